@@ -1,0 +1,38 @@
+//! compgate: a PLC-style compensation gateway for CNC machine tools.
+//!
+//! It polls temperature transmitters and ADC modules over Modbus TCP/RTU, filters the
+//! readings, computes the thermal compensation parameters SD43900/43910/43920 and
+//! writes them into an NC axis module the way a Siemens PLC's FB3 (PUT) job does.
+//!
+//! # Layout
+//!
+//! Data flows one way: `source` -> `channel` -> `comp` -> `nc`.
+//!
+//! - [`config`]: TOML + `COMPGATE__` environment overrides, serde structs with
+//!   `deny_unknown_fields`, and `validate`, which reports every problem at once.
+//! - [`source`]: field-device polling. Modbus TCP and RTU with request merging,
+//!   timeouts, reconnect with capped backoff; one task per device.
+//! - [`channel`]: pure and synchronous: scaling (counts -> mA -> degC), NAMUR NE43,
+//!   filters (median, low-pass, rate, stale) and quality.
+//! - [`comp`]: pure math: the thermal model `dKx = K0(T) + tan(beta)(T) * (Px - P0)`,
+//!   limits, deadband, hold or ramp on bad inputs.
+//! - [`nc`]: the `NcWriter` trait and the FB3-style job client over Modbus TCP.
+//! - [`gateway`]: wires the stages together; `run(config, shutdown)` is the one path
+//!   used by the service, the demo and the tests.
+//! - [`status`]: the live status line and plain per-update lines.
+//! - [`bench`]: `compgate bench`, cycle rate against the bare Modbus request rate.
+//! - [`cli`]: the command line.
+//!
+//! The simulated plant lives in the `compgate-plc` crate (`plc/`). The gateway's
+//! service code uses only its register map (`compgate_plc::ncmap`), the NC axis
+//! module's public interface; the demo, `sim` and the tests start the simulator.
+
+pub mod bench;
+pub mod channel;
+pub mod cli;
+pub mod comp;
+pub mod config;
+pub mod gateway;
+pub mod nc;
+pub mod source;
+pub mod status;
