@@ -192,13 +192,21 @@ impl JobStatus {
 /// Encodes an f64 into four registers, most significant word first.
 pub fn f64_to_regs(v: f64) -> [u16; 4] {
     let b = v.to_bits();
-    [(b >> 48) as u16, (b >> 32) as u16, (b >> 16) as u16, b as u16]
+    [
+        (b >> 48) as u16,
+        (b >> 32) as u16,
+        (b >> 16) as u16,
+        b as u16,
+    ]
 }
 
 /// Decodes four registers, most significant word first, into an f64.
 pub fn regs_to_f64(r: [u16; 4]) -> f64 {
     f64::from_bits(
-        (u64::from(r[0]) << 48) | (u64::from(r[1]) << 32) | (u64::from(r[2]) << 16) | u64::from(r[3]),
+        (u64::from(r[0]) << 48)
+            | (u64::from(r[1]) << 32)
+            | (u64::from(r[2]) << 16)
+            | u64::from(r[3]),
     )
 }
 
@@ -217,6 +225,6 @@ mod tests {
     #[test]
     fn pair_table_fits_before_job_id_done() {
         assert_eq!(PAIRS + PAIR_REGS * MAX_PAIRS as u16, JOB_ID_DONE);
-        assert!(RB_REFERENCED < READBACK + READBACK_LEN);
+        const { assert!(RB_REFERENCED < READBACK + READBACK_LEN) };
     }
 }
