@@ -1,1 +1,27 @@
+//! `compgate-plc`: the simulated PLC/NC side of compgate.
+//!
+//! Tests, the demo and commissioning dry-runs talk to these simulators exactly as the
+//! gateway talks to real equipment: over Modbus TCP (loopback, port 0) and Modbus RTU
+//! (a pseudo-terminal pair). Every simulator is a cloneable handle, so a test keeps one
+//! clone to inject faults and inspect state while another clone serves.
+//!
+//! Time inside the simulators is tokio time; deterministic noise comes from a seeded
+//! `SmallRng`.
+//!
+//! # Layout
+//!
+//! - [`ncmap`]: register map of the NC axis module, the contract shared with the
+//!   gateway's FB3-style writer (job block, handshake, read-back block, f64 encoding).
+//! - [`field`]: field I/O module: PT100 transmitters (4-20 mA) on a 12-bit ADC with
+//!   temperature profiles, noise, sensor faults (NE43 open/short, frozen) and
+//!   communication faults (delay, exception, dropped connections, silence); served
+//!   over Modbus TCP ([`field::FieldModule::serve_tcp`]) or RTU ([`field::serve_rtu`],
+//!   [`field::pty_pair`]).
+//! - [`nc`]: NC axis module: pure axis state ([`nc::NcAxis`]: SD43900/43910/43920,
+//!   MD32750 bits, MD32760 rate limit, referencing, motion) and its Modbus TCP server
+//!   ([`nc::NcAxisModule`]) implementing the FB3 REQ/DONE/ERROR/STATE handshake and
+//!   running the interpolation loop, with job fault injection.
+
+pub mod field;
+pub mod nc;
 pub mod ncmap;
