@@ -1,1 +1,58 @@
-//! TODO
+//! The command line.
+
+use std::path::PathBuf;
+
+use clap::{Parser, Subcommand};
+
+/// compgate: thermal compensation gateway for CNC machine tools.
+///
+/// Without a command it runs the gateway against an embedded simulated plant (field
+/// I/O module and NC axis module on loopback), as a demonstration.
+#[derive(Debug, Parser)]
+#[command(version, about, long_about = None)]
+pub struct Cli {
+    /// Log filter (tracing EnvFilter syntax), e.g. "info" or "compgate=debug".
+    /// Defaults to RUST_LOG, else "info" ("warn" for the demo, to keep the status line clean).
+    #[arg(long, global = true)]
+    pub log: Option<String>,
+    /// What to do; the demo when omitted.
+    #[command(subcommand)]
+    pub command: Option<Command>,
+}
+
+/// Subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Run the gateway against the devices the config names.
+    Run {
+        /// Configuration file (TOML).
+        #[arg(long, short)]
+        config: PathBuf,
+    },
+    /// Check a configuration and print every problem with its key and file.
+    Validate {
+        /// Configuration file (TOML).
+        #[arg(long, short)]
+        config: PathBuf,
+    },
+    /// Run only the simulated plant on the addresses the config names.
+    Sim {
+        /// Configuration file (TOML).
+        #[arg(long, short)]
+        config: PathBuf,
+    },
+    /// Run the gateway against the embedded simulated plant (the default).
+    Demo,
+    /// Measure poll-filter-compute cycles against the bare Modbus request rate.
+    Bench {
+        /// Channels on the simulated module, read in one request.
+        #[arg(long, default_value_t = 64)]
+        channels: u16,
+        /// Measured cycles per round.
+        #[arg(long, default_value_t = 5000)]
+        cycles: u32,
+        /// Alternating rounds of gateway and bare measurements.
+        #[arg(long, default_value_t = 5)]
+        rounds: u32,
+    },
+}

@@ -1,1 +1,611 @@
-//! TODO
+//! The running gateway: sources -> channels -> compensation -> NC writer.
+//!
+//! [`build`] turns a validated [`Config`] into runtime parts; [`run`] starts one task
+//! per device and one per NC module around a core loop that owns every channel
+//! processor and axis compensator. Only the device tasks watch the shutdown token:
+//! when they end, the core loop sees its input close, finishes, and drops the NC
+//! command channels, so an NC job in flight completes before the NC tasks stop.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::sync::{mpsc, watch, Mutex};
+use tokio::time::{Instant, MissedTickBehavior};
+use tokio_util::sync::CancellationToken;
+
+use crate::channel::{ChannelProcessor, Reading};
+use crate::comp::{AxisCompensator, CompParams, Decision};
+use crate::config::{self, Config};
+use crate::nc::{Job, JobReport, ModbusNcWriter, NcError, NcSnapshot, NcWriter};
+use crate::source::modbus::{Backoff, LinkSpec, ModbusLink};
+use crate::source::{ChannelSpec, DevicePoller, DeviceSample, PollParams, SharedLink};
+
+/// Errors of the gateway layer.
+#[derive(Debug, thiserror::Error)]
+pub enum GatewayError {
+    /// The configuration cannot be turned into a running gateway.
+    #[error("config: {0}")]
+    Config(String),
+}
+
+/// What the gateway shows of one channel.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ChannelStatus {
+    /// Channel name.
+    pub name: String,
+    /// The last reading.
+    pub reading: Reading,
+}
+
+/// What the gateway shows of one device.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct DeviceStatus {
+    /// Device name.
+    pub name: String,
+    /// Link description.
+    pub link: String,
+    /// Poll cycles run.
+    pub cycles: u64,
+    /// Cycles with at least one failed read, in a row.
+    pub failed_cycles: u32,
+    /// Last error, if the last cycle had one.
+    pub last_error: Option<String>,
+    /// Errors counted by kind (timeout, transport, exception, ...).
+    pub errors: BTreeMap<&'static str, u64>,
+    /// Duration of the last poll cycle.
+    pub last_cycle: Duration,
+}
+
+/// What the gateway shows of one axis.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct AxisStatus {
+    /// Axis name.
+    pub name: String,
+    /// Parameters the NC accepted last (read at start, then each verified write).
+    pub written: Option<CompParams>,
+    /// The last decision, in words.
+    pub decision: String,
+    /// Jobs that ended verified.
+    pub jobs_ok: u64,
+    /// Jobs that failed.
+    pub jobs_failed: u64,
+    /// The last job error.
+    pub last_job_error: Option<String>,
+    /// The NC's last snapshot.
+    pub nc: Option<NcSnapshot>,
+    /// A warning a commissioning engineer must see (MD32750 mismatch, NC unreachable).
+    pub warning: Option<String>,
+}
+
+/// Everything the status line, logs and tests look at.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Status {
+    /// Per channel, in config order.
+    pub channels: Vec<ChannelStatus>,
+    /// Per device.
+    pub devices: Vec<DeviceStatus>,
+    /// Per axis.
+    pub axes: Vec<AxisStatus>,
+    /// Device samples processed.
+    pub samples: u64,
+}
+
+/// One axis at run time.
+#[derive(Debug)]
+pub struct AxisRt {
+    /// Axis name.
+    pub name: String,
+    /// Index of its NC module.
+    pub nc_module: usize,
+    /// Channel index of each model input.
+    pub inputs: Vec<usize>,
+    /// The compensator.
+    pub comp: AxisCompensator,
+    /// MD32750 the config expects.
+    pub md32750: u16,
+    /// Time between updates.
+    pub update_interval: Duration,
+}
+
+/// The synchronous part of the gateway: channel processors and axis compensators.
+/// The core loop and `compgate bench` drive the same code.
+#[derive(Debug)]
+pub struct Pipeline {
+    /// Channel names, in config order.
+    pub channel_names: Vec<String>,
+    /// One processor per channel.
+    pub processors: Vec<ChannelProcessor>,
+    /// Axes.
+    pub axes: Vec<AxisRt>,
+    epoch: Instant,
+}
+
+impl Pipeline {
+    /// Seconds since the pipeline started: the time base of channels and axes.
+    pub fn now_s(&self, at: Instant) -> f64 {
+        at.saturating_duration_since(self.epoch).as_secs_f64()
+    }
+
+    /// Feeds one device sample through the channel processors.
+    pub fn ingest(&mut self, sample: &DeviceSample) {
+        let t_s = self.now_s(sample.started);
+        for (ch, value) in &sample.values {
+            let Some(p) = self.processors.get_mut(*ch) else {
+                continue;
+            };
+            match value {
+                Ok(raw) => {
+                    p.on_sample(t_s, *raw);
+                }
+                Err(fault) => {
+                    p.on_missing(t_s, fault.reason, fault.degraded);
+                }
+            }
+        }
+    }
+
+    /// The model inputs of axis `axis`: `None` where the channel is not usable.
+    pub fn axis_inputs(&self, axis: usize) -> Vec<Option<f64>> {
+        self.axes[axis]
+            .inputs
+            .iter()
+            .map(|&ch| {
+                let r = self.processors[ch].last();
+                if r.quality.is_usable() {
+                    r.value_degc
+                } else {
+                    None
+                }
+            })
+            .collect()
+    }
+
+    /// Runs one compensation decision for axis `axis`.
+    pub fn decide(&mut self, axis: usize, at: Instant) -> Decision {
+        let inputs = self.axis_inputs(axis);
+        let now_s = self.now_s(at);
+        self.axes[axis].comp.decide(now_s, &inputs)
+    }
+}
+
+/// A device task's parts.
+#[derive(Debug)]
+pub struct DeviceRt {
+    /// The poller.
+    pub poller: DevicePoller,
+    /// Time between poll cycles.
+    pub poll_interval: Duration,
+}
+
+/// An NC module's parts.
+#[derive(Debug)]
+pub struct NcModuleRt {
+    /// Module name.
+    pub name: String,
+    /// The writer.
+    pub writer: ModbusNcWriter,
+}
+
+/// Everything [`run`] needs, built from a config.
+#[derive(Debug)]
+pub struct Built {
+    /// Synchronous stages.
+    pub pipeline: Pipeline,
+    /// Device pollers.
+    pub devices: Vec<DeviceRt>,
+    /// NC modules.
+    pub nc_modules: Vec<NcModuleRt>,
+    /// Time between status updates.
+    pub status_interval: Duration,
+}
+
+fn secs(s: f64) -> Duration {
+    Duration::try_from_secs_f64(s).unwrap_or(Duration::ZERO)
+}
+
+/// Turns a validated config into runtime parts. Devices on one serial path share a
+/// link; every TCP device gets its own connection.
+pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
+    let device_index: BTreeMap<&str, usize> = cfg
+        .devices
+        .keys()
+        .enumerate()
+        .map(|(i, n)| (n.as_str(), i))
+        .collect();
+    let channel_names: Vec<String> = cfg.channels.keys().cloned().collect();
+    let channel_index: BTreeMap<&str, usize> = channel_names
+        .iter()
+        .enumerate()
+        .map(|(i, n)| (n.as_str(), i))
+        .collect();
+
+    let mut processors = Vec::with_capacity(cfg.channels.len());
+    let mut specs: Vec<Vec<ChannelSpec>> = vec![Vec::new(); cfg.devices.len()];
+    for (i, (name, ch)) in cfg.channels.iter().enumerate() {
+        let dev = *device_index.get(ch.device.as_str()).ok_or_else(|| {
+            GatewayError::Config(format!("channels.{name}.device: no device {}", ch.device))
+        })?;
+        specs[dev].push(ChannelSpec {
+            channel: i,
+            kind: ch.register,
+            address: ch.address,
+            data_type: ch.data_type,
+            byte_order: ch.byte_order,
+        });
+        processors.push(ChannelProcessor::new(
+            ch.scaling.to_runtime(),
+            ch.filter.to_runtime(),
+        ));
+    }
+
+    let mut serial_links: BTreeMap<String, SharedLink> = BTreeMap::new();
+    let mut devices = Vec::with_capacity(cfg.devices.len());
+    for ((name, dev), specs) in cfg.devices.iter().zip(specs) {
+        let spec = dev
+            .link_spec()
+            .map_err(|e| GatewayError::Config(format!("devices.{name}: {e}")))?;
+        let new_link = || {
+            Arc::new(Mutex::new(ModbusLink::new(
+                spec.clone(),
+                secs(dev.timeout_s),
+                Backoff::new(secs(dev.backoff_initial_s), secs(dev.backoff_max_s)),
+            )))
+        };
+        let link = match &spec {
+            LinkSpec::Rtu { path, .. } => serial_links
+                .entry(path.clone())
+                .or_insert_with(new_link)
+                .clone(),
+            LinkSpec::Tcp { .. } => new_link(),
+        };
+        let params = PollParams {
+            unit_id: dev.unit_id,
+            retries: dev.retries,
+            degrade_after_cycles: dev.degrade_after_cycles,
+            max_gap_registers: dev.max_gap_registers,
+        };
+        devices.push(DeviceRt {
+            poller: DevicePoller::new(devices.len(), name.clone(), params, link, specs),
+            poll_interval: secs(dev.poll_interval_s),
+        });
+    }
+
+    let nc_index: BTreeMap<&str, usize> = cfg
+        .nc_modules
+        .keys()
+        .enumerate()
+        .map(|(i, n)| (n.as_str(), i))
+        .collect();
+    let nc_modules = cfg
+        .nc_modules
+        .iter()
+        .map(|(name, m)| {
+            let link = ModbusLink::new(
+                LinkSpec::Tcp {
+                    address: m.address.clone(),
+                    connect_timeout: secs(m.connect_timeout_s),
+                },
+                secs(m.timeout_s),
+                Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
+            );
+            NcModuleRt {
+                name: name.clone(),
+                writer: ModbusNcWriter::new(link, m.unit_id, secs(m.job_timeout_s)),
+            }
+        })
+        .collect();
+
+    let mut axes = Vec::with_capacity(cfg.axes.len());
+    for (name, ax) in &cfg.axes {
+        let nc_module = *nc_index.get(ax.nc_module.as_str()).ok_or_else(|| {
+            GatewayError::Config(format!("axes.{name}.nc_module: no NC module {}", ax.nc_module))
+        })?;
+        let (model, input_names) = ax.model();
+        let inputs = input_names
+            .iter()
+            .map(|n| {
+                channel_index.get(n.as_str()).copied().ok_or_else(|| {
+                    GatewayError::Config(format!("axes.{name}: no channel {n}"))
+                })
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        axes.push(AxisRt {
+            name: name.clone(),
+            nc_module,
+            inputs,
+            comp: AxisCompensator::new(model, ax.limits(), ax.bad_input_policy()),
+            md32750: ax.md32750,
+            update_interval: secs(ax.update_interval_s),
+        });
+    }
+
+    Ok(Built {
+        pipeline: Pipeline {
+            channel_names,
+            processors,
+            axes,
+            epoch: Instant::now(),
+        },
+        devices,
+        nc_modules,
+        status_interval: secs(cfg.gateway.status_interval_s),
+    })
+}
+
+enum NcCommand {
+    Write { axis: usize, params: CompParams },
+}
+
+enum NcEvent {
+    Snapshot {
+        module: usize,
+        result: Result<NcSnapshot, NcError>,
+    },
+    Written {
+        axis: usize,
+        params: CompParams,
+        result: Result<JobReport, NcError>,
+    },
+}
+
+async fn device_task(mut dev: DeviceRt, tx: mpsc::Sender<DeviceSample>, shutdown: CancellationToken) {
+    let mut tick = tokio::time::interval(dev.poll_interval);
+    // A slow device must not burst-poll to catch up.
+    tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = shutdown.cancelled() => break,
+            _ = tick.tick() => {}
+        }
+        let sample = tokio::select! {
+            _ = shutdown.cancelled() => break,
+            s = dev.poller.poll() => s,
+        };
+        if tx.send(sample).await.is_err() {
+            break;
+        }
+    }
+}
+
+async fn nc_task(
+    module: usize,
+    mut nc: NcModuleRt,
+    mut rx: mpsc::Receiver<NcCommand>,
+    tx: mpsc::Sender<NcEvent>,
+    snapshot_interval: Duration,
+) {
+    let mut tick = tokio::time::interval(snapshot_interval);
+    tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            cmd = rx.recv() => {
+                let Some(NcCommand::Write { axis, params }) = cmd else { break };
+                let result = nc.writer.write_job(&Job::thermal(&params)).await;
+                match &result {
+                    Ok(r) => tracing::info!(module = %nc.name, job_id = r.job_id, sd43900_mm = params.k0_mm, sd43910 = params.tan_beta, sd43920_mm = params.p0_mm, elapsed_ms = r.elapsed.as_secs_f64() * 1e3, "NC job done, read-back verified"),
+                    Err(e) => tracing::warn!(module = %nc.name, error = %e, "NC job failed"),
+                }
+                if tx.send(NcEvent::Written { axis, params, result }).await.is_err() {
+                    break;
+                }
+            }
+            _ = tick.tick() => {
+                let result = nc.writer.read_snapshot().await;
+                if tx.send(NcEvent::Snapshot { module, result }).await.is_err() {
+                    break;
+                }
+            }
+        }
+    }
+}
+
+fn describe(d: &Decision, names: &[String], inputs: &[usize]) -> String {
+    let bad = |idx: &[usize]| {
+        idx.iter()
+            .filter_map(|&i| inputs.get(i).and_then(|&c| names.get(c)))
+            .cloned()
+            .collect::<Vec<_>>()
+            .join(",")
+    };
+    match d {
+        Decision::Write { clamped: false, .. } => "write".into(),
+        Decision::Write { clamped: true, .. } => "write (limited)".into(),
+        Decision::WithinDeadband => "within deadband".into(),
+        Decision::Hold { bad_inputs } => format!("hold: bad input {}", bad(bad_inputs)),
+        Decision::Ramp { bad_inputs, .. } => format!("ramp to zero: bad input {}", bad(bad_inputs)),
+    }
+}
+
+/// Runs the gateway until `shutdown` is cancelled, publishing status on `status`.
+pub async fn run(
+    cfg: &Config,
+    shutdown: CancellationToken,
+    status: watch::Sender<Status>,
+) -> Result<(), GatewayError> {
+    let built = build(cfg)?;
+    run_built(built, shutdown, status).await;
+    Ok(())
+}
+
+/// Runs already-built parts; see [`run`].
+pub async fn run_built(built: Built, shutdown: CancellationToken, status_tx: watch::Sender<Status>) {
+    let Built {
+        mut pipeline,
+        devices,
+        nc_modules,
+        status_interval,
+    } = built;
+
+    let mut status = Status {
+        channels: pipeline
+            .channel_names
+            .iter()
+            .zip(&pipeline.processors)
+            .map(|(name, p)| ChannelStatus {
+                name: name.clone(),
+                reading: p.last().clone(),
+            })
+            .collect(),
+        devices: devices
+            .iter()
+            .map(|d| DeviceStatus {
+                name: d.poller.name().to_string(),
+                link: d.poller.link().try_lock().map(|l| l.spec().to_string()).unwrap_or_default(),
+                ..DeviceStatus::default()
+            })
+            .collect(),
+        axes: pipeline
+            .axes
+            .iter()
+            .map(|a| AxisStatus {
+                name: a.name.clone(),
+                decision: "waiting for the NC".into(),
+                ..AxisStatus::default()
+            })
+            .collect(),
+        samples: 0,
+    };
+
+    let (sample_tx, mut sample_rx) = mpsc::channel::<DeviceSample>(64);
+    let mut tasks = tokio::task::JoinSet::new();
+    for dev in devices {
+        tasks.spawn(device_task(dev, sample_tx.clone(), shutdown.clone()));
+    }
+    drop(sample_tx);
+
+    let (event_tx, mut event_rx) = mpsc::channel::<NcEvent>(16);
+    let mut nc_tx = Vec::new();
+    for (i, nc) in nc_modules.into_iter().enumerate() {
+        let (tx, rx) = mpsc::channel(4);
+        nc_tx.push(tx);
+        tasks.spawn(nc_task(i, nc, rx, event_tx.clone(), status_interval));
+    }
+    drop(event_tx);
+
+    // Per axis: next decision time, and whether a job is in flight (one at a time).
+    let now = Instant::now();
+    let mut next_update: Vec<Instant> = pipeline.axes.iter().map(|a| now + a.update_interval).collect();
+    let mut in_flight = vec![false; pipeline.axes.len()];
+    let mut baselined = vec![false; pipeline.axes.len()];
+    let mut status_tick = tokio::time::interval(status_interval);
+    status_tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
+    let far = now + Duration::from_secs(86_400 * 365);
+
+    loop {
+        let next = next_update.iter().copied().min().unwrap_or(far);
+        tokio::select! {
+            sample = sample_rx.recv() => {
+                let Some(sample) = sample else { break };
+                pipeline.ingest(&sample);
+                status.samples += 1;
+                let d = &mut status.devices[sample.device];
+                d.cycles += 1;
+                d.last_cycle = sample.elapsed;
+                match &sample.error {
+                    Some(e) => {
+                        d.failed_cycles += 1;
+                        *d.errors.entry(e.kind()).or_default() += 1;
+                        d.last_error = Some(e.to_string());
+                    }
+                    None => {
+                        d.failed_cycles = 0;
+                        d.last_error = None;
+                    }
+                }
+                for (cs, p) in status.channels.iter_mut().zip(&pipeline.processors) {
+                    cs.reading = p.last().clone();
+                }
+            }
+            event = event_rx.recv() => {
+                let Some(event) = event else { continue };
+                match event {
+                    NcEvent::Snapshot { module, result } => {
+                        for (i, axis) in pipeline.axes.iter_mut().enumerate() {
+                            if axis.nc_module != module {
+                                continue;
+                            }
+                            let st = &mut status.axes[i];
+                            match &result {
+                                Ok(snap) => {
+                                    if !baselined[i] {
+                                        // Step limits and the deadband start from what the NC holds.
+                                        axis.comp.set_baseline(snap.thermal());
+                                        baselined[i] = true;
+                                        st.written = Some(snap.thermal());
+                                        tracing::info!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, "NC parameters read at start");
+                                    }
+                                    st.warning = (snap.md32750 != axis.md32750).then(|| format!(
+                                        "MD32750 is {} on the NC, the config expects {}", snap.md32750, axis.md32750));
+                                    if !snap.referenced {
+                                        st.warning.get_or_insert_with(|| "axis not referenced: the NC applies no temperature compensation".into());
+                                    }
+                                    st.nc = Some(*snap);
+                                }
+                                Err(e) => st.warning = Some(format!("NC unreachable: {e}")),
+                            }
+                        }
+                    }
+                    NcEvent::Written { axis, params, result } => {
+                        in_flight[axis] = false;
+                        let st = &mut status.axes[axis];
+                        match result {
+                            Ok(_) => {
+                                pipeline.axes[axis].comp.confirm(params);
+                                st.written = Some(params);
+                                st.jobs_ok += 1;
+                                st.last_job_error = None;
+                            }
+                            Err(e) => {
+                                st.jobs_failed += 1;
+                                st.last_job_error = Some(e.to_string());
+                            }
+                        }
+                    }
+                }
+            }
+            _ = tokio::time::sleep_until(next), if next < far => {
+                let at = Instant::now();
+                for i in 0..pipeline.axes.len() {
+                    if next_update[i] > at {
+                        continue;
+                    }
+                    next_update[i] = at + pipeline.axes[i].update_interval;
+                    if !baselined[i] || in_flight[i] {
+                        continue;
+                    }
+                    let decision = pipeline.decide(i, at);
+                    let axis = &pipeline.axes[i];
+                    status.axes[i].decision = describe(&decision, &pipeline.channel_names, &axis.inputs);
+                    let params = match decision {
+                        Decision::Write { params, .. } | Decision::Ramp { params, .. } => params,
+                        Decision::WithinDeadband | Decision::Hold { .. } => continue,
+                    };
+                    if nc_tx[axis.nc_module].try_send(NcCommand::Write { axis: i, params }).is_ok() {
+                        in_flight[i] = true;
+                    }
+                }
+            }
+            _ = status_tick.tick() => {
+                status_tx.send_replace(status.clone());
+            }
+        }
+    }
+    drop(nc_tx);
+    // Let NC jobs in flight finish; their events are no longer needed.
+    while event_rx.recv().await.is_some() {}
+    while tasks.join_next().await.is_some() {}
+    status_tx.send_replace(status);
+    tracing::info!("gateway stopped");
+}
+
+/// Builds the config's gateway with `config::load` and runs it; the service path.
+pub async fn run_file(
+    path: &std::path::Path,
+    shutdown: CancellationToken,
+    status: watch::Sender<Status>,
+) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
+    let cfg = config::load(path)?;
+    run(&cfg, shutdown, status).await?;
+    Ok(())
+}

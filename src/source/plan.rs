@@ -1,0 +1,225 @@
+//! Pure request planning and register decoding: no I/O.
+//!
+//! Channels on the same device and register kind are merged into as few reads as
+//! possible. Two channels share a read when the gap between them is at most
+//! `max_gap_registers` and the read stays within the Modbus limit of 125 registers.
+
+use serde::{Deserialize, Serialize};
+
+/// Most registers one Modbus read may return (function codes 0x03/0x04).
+pub const MAX_READ_REGISTERS: u16 = 125;
+
+/// Which register table a channel lives in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RegisterKind {
+    /// Input registers, function code 0x04 (read-only, the usual place for measurements).
+    Input,
+    /// Holding registers, function code 0x03.
+    Holding,
+}
+
+/// How a channel's registers encode its value.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DataType {
+    /// One register, unsigned.
+    U16,
+    /// One register, two's complement.
+    I16,
+    /// Two registers, unsigned.
+    U32,
+    /// Two registers, two's complement.
+    I32,
+    /// Two registers, IEEE 754 single precision.
+    F32,
+}
+
+impl DataType {
+    /// Registers the type occupies.
+    pub fn registers(self) -> u16 {
+        match self {
+            Self::U16 | Self::I16 => 1,
+            Self::U32 | Self::I32 | Self::F32 => 2,
+        }
+    }
+}
+
+/// Byte order of a value, A = most significant byte. Registers are read in address
+/// order; inside each register the first byte on the wire is its high byte.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub enum ByteOrder {
+    /// Big-endian: register 0 holds A B, register 1 holds C D.
+    #[default]
+    #[serde(rename = "ABCD")]
+    Abcd,
+    /// Word swap: register 0 holds C D, register 1 holds A B.
+    #[serde(rename = "CDAB")]
+    Cdab,
+    /// Byte swap inside each register: B A, D C.
+    #[serde(rename = "BADC")]
+    Badc,
+    /// Little-endian: D C, B A.
+    #[serde(rename = "DCBA")]
+    Dcba,
+}
+
+/// Decodes a value from its registers (`regs.len()` must equal `ty.registers()`).
+/// Returns `None` when the slice has the wrong length.
+pub fn decode(regs: &[u16], ty: DataType, order: ByteOrder) -> Option<f64> {
+    let swap_bytes = matches!(order, ByteOrder::Badc | ByteOrder::Dcba);
+    let fix = |w: u16| if swap_bytes { w.swap_bytes() } else { w };
+    match (ty, regs) {
+        (DataType::U16, [w]) => Some(f64::from(fix(*w))),
+        (DataType::I16, [w]) => Some(f64::from(fix(*w) as i16)),
+        (DataType::U32 | DataType::I32 | DataType::F32, [w0, w1]) => {
+            let (hi, lo) = match order {
+                ByteOrder::Abcd | ByteOrder::Badc => (fix(*w0), fix(*w1)),
+                ByteOrder::Cdab | ByteOrder::Dcba => (fix(*w1), fix(*w0)),
+            };
+            let bits = (u32::from(hi) << 16) | u32::from(lo);
+            Some(match ty {
+                DataType::U32 => f64::from(bits),
+                DataType::I32 => f64::from(bits as i32),
+                _ => f64::from(f32::from_bits(bits)),
+            })
+        }
+        _ => None,
+    }
+}
+
+/// One channel's place in the register space.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Slot {
+    /// Caller's channel index.
+    pub channel: usize,
+    /// Register table.
+    pub kind: RegisterKind,
+    /// 0-based address of the first register.
+    pub address: u16,
+    /// Registers occupied.
+    pub len: u16,
+}
+
+/// One Modbus read and the channels it serves.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ReadBlock {
+    /// Register table.
+    pub kind: RegisterKind,
+    /// First register read.
+    pub start: u16,
+    /// Registers read.
+    pub count: u16,
+    /// Channels served: (slot, offset of its first register in the block).
+    pub members: Vec<(Slot, u16)>,
+}
+
+/// Merges slots into reads. Slots are sorted by (kind, address); a slot joins the
+/// current block when the gap is at most `max_gap` and the block stays within
+/// [`MAX_READ_REGISTERS`]. Overlapping slots (two channels on the same register) share.
+pub fn plan(slots: &[Slot], max_gap: u16) -> Vec<ReadBlock> {
+    let mut sorted = slots.to_vec();
+    sorted.sort_by_key(|s| (s.kind, s.address, s.len));
+    let mut blocks: Vec<ReadBlock> = Vec::new();
+    for slot in sorted {
+        let end = u32::from(slot.address) + u32::from(slot.len);
+        if let Some(b) = blocks.last_mut() {
+            let b_end = u32::from(b.start) + u32::from(b.count);
+            let gap_ok = u32::from(slot.address) <= b_end + u32::from(max_gap);
+            let new_count = end.max(b_end) - u32::from(b.start);
+            if b.kind == slot.kind && gap_ok && new_count <= u32::from(MAX_READ_REGISTERS) {
+                b.count = new_count as u16;
+                b.members.push((slot, slot.address - b.start));
+                continue;
+            }
+        }
+        blocks.push(ReadBlock {
+            kind: slot.kind,
+            start: slot.address,
+            count: slot.len,
+            members: vec![(slot, 0)],
+        });
+    }
+    blocks
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn slot(channel: usize, kind: RegisterKind, address: u16, len: u16) -> Slot {
+        Slot {
+            channel,
+            kind,
+            address,
+            len,
+        }
+    }
+
+    #[test]
+    fn decodes_every_byte_order_of_the_same_f32() {
+        // 123.456f32 = 0x42F6E979: A=42 B=F6 C=E9 D=79
+        let v = 123.456f32;
+        let cases = [
+            (ByteOrder::Abcd, [0x42F6, 0xE979]),
+            (ByteOrder::Cdab, [0xE979, 0x42F6]),
+            (ByteOrder::Badc, [0xF642, 0x79E9]),
+            (ByteOrder::Dcba, [0x79E9, 0xF642]),
+        ];
+        for (order, regs) in cases {
+            assert_eq!(decode(&regs, DataType::F32, order), Some(f64::from(v)), "{order:?}");
+        }
+    }
+
+    #[test]
+    fn decodes_integers_with_sign_and_order() {
+        assert_eq!(decode(&[0xFFFF], DataType::I16, ByteOrder::Abcd), Some(-1.0));
+        assert_eq!(decode(&[0xFFFF], DataType::U16, ByteOrder::Abcd), Some(65535.0));
+        assert_eq!(decode(&[0x0100], DataType::U16, ByteOrder::Badc), Some(1.0));
+        assert_eq!(decode(&[0x0001, 0x0000], DataType::U32, ByteOrder::Abcd), Some(65536.0));
+        assert_eq!(decode(&[0x0000, 0x0001], DataType::U32, ByteOrder::Cdab), Some(65536.0));
+        assert_eq!(decode(&[0xFFFF, 0xFFFE], DataType::I32, ByteOrder::Abcd), Some(-2.0));
+        assert_eq!(decode(&[0xFEFF, 0xFFFF], DataType::I32, ByteOrder::Dcba), Some(-2.0));
+        assert_eq!(decode(&[1, 2], DataType::U16, ByteOrder::Abcd), None);
+    }
+
+    #[test]
+    fn merges_contiguous_and_small_gaps_only() {
+        use RegisterKind::*;
+        let slots = [
+            slot(0, Input, 0, 1),
+            slot(1, Input, 1, 1),
+            slot(2, Input, 5, 2),   // gap 3: merged with max_gap 4
+            slot(3, Input, 20, 1),  // gap 13: new block
+            slot(4, Holding, 1, 1), // other kind: new block
+        ];
+        let blocks = plan(&slots, 4);
+        assert_eq!(blocks.len(), 3);
+        assert_eq!((blocks[0].start, blocks[0].count), (0, 7));
+        assert_eq!(blocks[0].members.iter().map(|m| m.1).collect::<Vec<_>>(), [0, 1, 5]);
+        assert_eq!((blocks[1].start, blocks[1].count), (20, 1));
+        assert_eq!((blocks[2].kind, blocks[2].start), (Input, 1).max((Holding, 1)));
+    }
+
+    #[test]
+    fn never_exceeds_125_registers() {
+        let slots: Vec<Slot> = (0..300)
+            .map(|i| slot(i, RegisterKind::Input, i as u16, 1))
+            .collect();
+        let blocks = plan(&slots, 0);
+        assert_eq!(blocks.iter().map(|b| b.count).collect::<Vec<_>>(), [125, 125, 50]);
+        assert_eq!(blocks.iter().map(|b| b.members.len()).sum::<usize>(), 300);
+    }
+
+    #[test]
+    fn shared_registers_and_unsorted_input() {
+        let slots = [
+            slot(0, RegisterKind::Input, 10, 2),
+            slot(1, RegisterKind::Input, 10, 1),
+            slot(2, RegisterKind::Input, 3, 1),
+        ];
+        let blocks = plan(&slots, 0);
+        assert_eq!(blocks.len(), 2);
+        assert_eq!((blocks[1].start, blocks[1].count), (10, 2));
+    }
+}
