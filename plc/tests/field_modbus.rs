@@ -50,9 +50,11 @@ struct Running {
 }
 
 async fn start(spec: FieldModuleSpec) -> Running {
-    let module = FieldModule::new(spec).unwrap();
-    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
+    let module = FieldModule::new(spec).expect("valid spec");
+    let listener = TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("bind loopback");
+    let addr = listener.local_addr().expect("local addr");
     let shutdown = CancellationToken::new();
     let task = tokio::spawn(module.clone().serve_tcp(listener, shutdown.clone()));
     Running {
@@ -66,8 +68,8 @@ async fn start(spec: FieldModuleSpec) -> Running {
 async fn connect(addr: SocketAddr) -> Context {
     timeout(STEP, tcp::connect_slave(addr, Slave(17)))
         .await
-        .unwrap()
-        .unwrap()
+        .expect("connect in time")
+        .expect("connect")
 }
 
 /// Tolerance of a decoded temperature: half an ADC count plus 5 sigma of noise.
