@@ -1,1 +1,221 @@
-//! TODO
+//! `compgate bench`: full poll-filter-compute cycles against the bare request rate.
+//!
+//! Both sides read the same 64 input registers from the same simulated field module
+//! over loopback. The gateway side runs the real code path (`DevicePoller::poll` with
+//! its timeout and reconnect wrapper, every channel processor, one axis decision);
+//! the bare side calls tokio-modbus directly. Rounds alternate between the two so a
+//! noisy shared machine slows both alike, and the result is a ratio.
+
+use std::fmt::Write as _;
+use std::time::{Duration, Instant};
+
+use compgate_plc::field::{FieldModule, FieldModuleSpec, Profile, TransmitterSpec};
+use tokio::net::TcpListener;
+use tokio_modbus::client::{tcp, Reader};
+use tokio_util::sync::CancellationToken;
+
+use crate::config;
+use crate::gateway;
+
+/// Measurements of one side.
+#[derive(Debug, Clone, Default)]
+pub struct Side {
+    /// Cycles per second of each round.
+    pub rates_per_s: Vec<f64>,
+    /// Every cycle's latency.
+    pub latencies: Vec<Duration>,
+}
+
+impl Side {
+    /// Median of the round rates.
+    pub fn median_rate_per_s(&self) -> f64 {
+        let mut r = self.rates_per_s.clone();
+        r.sort_by(f64::total_cmp);
+        r.get(r.len() / 2).copied().unwrap_or(0.0)
+    }
+
+    /// Latency percentile (0..=100).
+    pub fn percentile(&self, p: f64) -> Duration {
+        let mut l = self.latencies.clone();
+        l.sort();
+        if l.is_empty() {
+            return Duration::ZERO;
+        }
+        let i = ((p / 100.0) * (l.len() - 1) as f64).round() as usize;
+        l[i.min(l.len() - 1)]
+    }
+}
+
+/// The result of a bench run.
+#[derive(Debug, Clone, Default)]
+pub struct BenchReport {
+    /// Channels per cycle.
+    pub channels: u16,
+    /// Gateway cycles.
+    pub gateway: Side,
+    /// Bare tokio-modbus reads.
+    pub bare: Side,
+}
+
+impl BenchReport {
+    /// Gateway rate over bare rate (medians).
+    pub fn ratio(&self) -> f64 {
+        self.gateway.median_rate_per_s() / self.bare.median_rate_per_s()
+    }
+
+    /// A Markdown table, as in the README.
+    pub fn table(&self) -> String {
+        let mut s = String::new();
+        let _ = writeln!(
+            s,
+            "| {} channels, loopback | cycles/s (median of rounds) | p50 latency | p99 latency |",
+            self.channels
+        );
+        s.push_str("|---|---|---|---|\n");
+        for (name, side) in [
+            ("bare tokio-modbus read", &self.bare),
+            ("gateway poll+filter+compute", &self.gateway),
+        ] {
+            let _ = writeln!(
+                s,
+                "| {name} | {:.0} | {:.1} us | {:.1} us |",
+                side.median_rate_per_s(),
+                side.percentile(50.0).as_secs_f64() * 1e6,
+                side.percentile(99.0).as_secs_f64() * 1e6
+            );
+        }
+        let _ = writeln!(s, "\nratio gateway/bare: {:.3} (target >= 0.9)", self.ratio());
+        s
+    }
+}
+
+/// Errors of the bench.
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    /// Setting up failed.
+    #[error("bench setup: {0}")]
+    Setup(String),
+    /// A read failed during measurement.
+    #[error("read failed during the bench: {0}")]
+    Read(String),
+}
+
+fn bench_config(channels: u16, address: &str) -> String {
+    let mut t = format!(
+        "[gateway]\nstatus_interval_s = 1.0\n\n[devices.ain]\ntransport = \"tcp\"\naddress = \"{address}\"\nunit_id = 1\ntimeout_s = 1.0\npoll_interval_s = 1.0\n\n[nc_modules.nc]\naddress = \"127.0.0.1:1\"\n\n"
+    );
+    for i in 0..channels {
+        let _ = write!(
+            t,
+            "[channels.T{i:03}]\ndevice = \"ain\"\nregister = \"input\"\naddress = {i}\ndata_type = \"u16\"\n\
+             scaling = {{ kind = \"transmitter\", adc_full_scale_counts = 4095, adc_full_scale_ma = 24.0, current_range = \"4-20\", range_min_degc = -50.0, range_max_degc = 150.0 }}\n\
+             filter = {{ median_samples = 5, lowpass_tau_s = 10.0, max_rate_degc_per_s = 100.0, max_rejected_samples = 5, stale_after_s = 0.0, valid_min_degc = -40.0, valid_max_degc = 140.0 }}\n\n"
+        );
+    }
+    t.push_str(
+        "[axes.X]\nnc_module = \"nc\"\nmd32750 = 3\np0_mm = 0.0\nupdate_interval_s = 1.0\n\
+         k0 = { offset_mm = 0.0, terms = [{ channel = \"T000\", ref_degc = 20.0, coeff_mm_per_degc = 0.004 }, { channel = \"T001\", ref_degc = 20.0, coeff_mm_per_degc = 0.001 }] }\n\
+         tan_beta = { offset = 0.0, terms = [{ channel = \"T002\", ref_degc = 20.0, coeff_per_degc = 0.0000115 }] }\n",
+    );
+    t
+}
+
+/// Runs the bench: `rounds` alternating rounds of `cycles` each.
+pub async fn run(channels: u16, cycles: u32, rounds: u32) -> Result<BenchReport, BenchError> {
+    let channels = channels.clamp(1, 125);
+    let transmitters = (0..channels)
+        .map(|i| {
+            let mut t = TransmitterSpec::new(
+                Profile::Sine {
+                    mean_degc: 22.0,
+                    amplitude_degc: 2.0,
+                    period_s: 60.0 + f64::from(i),
+                },
+                -50.0,
+                150.0,
+            );
+            t.noise_degc = 0.02;
+            t
+        })
+        .collect();
+    let module = FieldModule::new(FieldModuleSpec::new(transmitters, 1))
+        .map_err(|e| BenchError::Setup(e.to_string()))?;
+    let listener = TcpListener::bind("127.0.0.1:0")
+        .await
+        .map_err(|e| BenchError::Setup(e.to_string()))?;
+    let addr = listener
+        .local_addr()
+        .map_err(|e| BenchError::Setup(e.to_string()))?;
+    let shutdown = CancellationToken::new();
+    let _stop = shutdown.clone().drop_guard();
+    tokio::spawn(module.serve_tcp(listener, shutdown.clone()));
+
+    let cfg = config::load_str(&bench_config(channels, &addr.to_string()), "bench")
+        .map_err(|e| BenchError::Setup(e.to_string()))?;
+    let mut built = gateway::build(&cfg).map_err(|e| BenchError::Setup(e.to_string()))?;
+    let poller = &mut built
+        .devices
+        .first_mut()
+        .ok_or_else(|| BenchError::Setup("no device".into()))?
+        .poller;
+    if poller.blocks().len() != 1 {
+        return Err(BenchError::Setup(format!(
+            "expected one merged read, the plan has {}",
+            poller.blocks().len()
+        )));
+    }
+    let pipeline = &mut built.pipeline;
+
+    let stream = tokio::net::TcpStream::connect(addr)
+        .await
+        .map_err(|e| BenchError::Setup(e.to_string()))?;
+    stream
+        .set_nodelay(true)
+        .map_err(|e| BenchError::Setup(e.to_string()))?;
+    let mut bare = tcp::attach(stream);
+
+    let mut report = BenchReport {
+        channels,
+        ..BenchReport::default()
+    };
+    // Warm up both paths (connects, allocations, caches).
+    for _ in 0..200 {
+        let s = poller.poll().await;
+        pipeline.ingest(&s);
+        let _ = bare.read_input_registers(0, channels).await;
+    }
+    for _ in 0..rounds {
+        let t0 = Instant::now();
+        for _ in 0..cycles {
+            let c0 = Instant::now();
+            let sample = poller.poll().await;
+            if let Some(e) = &sample.error {
+                return Err(BenchError::Read(e.to_string()));
+            }
+            pipeline.ingest(&sample);
+            let _ = pipeline.decide(0, tokio::time::Instant::now());
+            report.gateway.latencies.push(c0.elapsed());
+        }
+        report
+            .gateway
+            .rates_per_s
+            .push(f64::from(cycles) / t0.elapsed().as_secs_f64());
+
+        let t0 = Instant::now();
+        for _ in 0..cycles {
+            let c0 = Instant::now();
+            match bare.read_input_registers(0, channels).await {
+                Ok(Ok(regs)) => {
+                    std::hint::black_box(regs);
+                }
+                other => return Err(BenchError::Read(format!("{other:?}"))),
+            }
+            report.bare.latencies.push(c0.elapsed());
+        }
+        report
+            .bare
+            .rates_per_s
+            .push(f64::from(cycles) / t0.elapsed().as_secs_f64());
+    }
+    Ok(report)
+}

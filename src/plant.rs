@@ -1,0 +1,279 @@
+//! The simulated plant for a config: one field I/O module per device and one NC axis
+//! module per NC module, from `compgate-plc`, on the config's addresses.
+//!
+//! Used by the demo (no arguments), `compgate sim` and the integration tests. The
+//! gateway's service code never calls this; it only ever sees sockets and serial paths.
+//!
+//! With [`Bind::Ephemeral`] every TCP server binds `127.0.0.1:0`, every RTU line is a
+//! fresh pseudo-terminal, and the returned config names the addresses really used, so
+//! any number of plants can run side by side. With [`Bind::AsConfigured`] the servers
+//! bind the configured addresses and each RTU line's configured path becomes a symlink
+//! to its pseudo-terminal.
+
+use std::collections::BTreeMap;
+
+use compgate_plc::field::{
+    self, FieldModule, FieldModuleSpec, Profile, TransmitterSpec, COUNTS_BASE,
+};
+use compgate_plc::nc::{Motion, NcAxis, NcAxisModule};
+use tokio::net::TcpListener;
+use tokio_util::sync::CancellationToken;
+
+use crate::config::{Config, DataTypeCfg, ScalingConfig, SimProfileKind, Transport};
+use crate::source::plan::{ByteOrder, DataType};
+
+/// Errors of the plant.
+#[derive(Debug, thiserror::Error)]
+pub enum PlantError {
+    /// A channel sits where the simulated module has no register for it.
+    #[error("channels.{channel}: {message}")]
+    Channel {
+        /// Channel name.
+        channel: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// Binding or opening failed.
+    #[error("{what}: {message}")]
+    Io {
+        /// What was being set up.
+        what: String,
+        /// The error.
+        message: String,
+    },
+}
+
+/// Where the plant's servers go.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Bind {
+    /// Loopback port 0 and fresh pseudo-terminals; the config is rewritten.
+    Ephemeral,
+    /// The addresses and paths the config names.
+    AsConfigured,
+}
+
+/// A running simulated plant. Dropping it stops every server.
+#[derive(Debug)]
+pub struct Plant {
+    /// The config with the addresses actually used.
+    pub config: Config,
+    /// Field modules by device name.
+    pub field: BTreeMap<String, FieldModule>,
+    /// NC axis modules by NC module name.
+    pub nc: BTreeMap<String, NcAxisModule>,
+    /// Transmitter index in its field module, by channel name.
+    pub transmitter: BTreeMap<String, usize>,
+    shutdown: CancellationToken,
+    // Slave ends of the ptys: the line dies when the last one closes.
+    _ptys: Vec<tokio_serial::SerialStream>,
+    symlinks: Vec<std::path::PathBuf>,
+}
+
+impl Drop for Plant {
+    fn drop(&mut self) {
+        self.shutdown.cancel();
+        for l in &self.symlinks {
+            let _ = std::fs::remove_file(l);
+        }
+    }
+}
+
+/// The transmitter index a channel reads, from the field module's register layout.
+fn transmitter_index(address: u16, ty: DataType, order: ByteOrder) -> Option<usize> {
+    match (ty, address) {
+        (DataType::U16 | DataType::I16, a) if a < field::FLOAT_CDAB_BASE => {
+            Some(usize::from(a - COUNTS_BASE))
+        }
+        (DataType::F32, a) if a >= field::FLOAT_ABCD_BASE && order == ByteOrder::Abcd => {
+            Some(usize::from((a - field::FLOAT_ABCD_BASE) / 2))
+        }
+        (DataType::F32, a) if a >= field::FLOAT_CDAB_BASE && a < field::FLOAT_ABCD_BASE && order == ByteOrder::Cdab => {
+            Some(usize::from((a - field::FLOAT_CDAB_BASE) / 2))
+        }
+        _ => None,
+    }
+}
+
+impl Plant {
+    /// Starts the plant for `cfg`.
+    pub async fn start(cfg: &Config, bind: Bind) -> Result<Self, PlantError> {
+        let mut config = cfg.clone();
+        let sim = cfg.sim.clone().unwrap_or_default();
+        let shutdown = CancellationToken::new();
+        let mut plant = Plant {
+            config: cfg.clone(),
+            field: BTreeMap::new(),
+            nc: BTreeMap::new(),
+            transmitter: BTreeMap::new(),
+            shutdown: shutdown.clone(),
+            _ptys: Vec::new(),
+            symlinks: Vec::new(),
+        };
+
+        // One field module per device, with a transmitter for every channel on it.
+        let mut rtu_lines: BTreeMap<String, Vec<(u8, FieldModule)>> = BTreeMap::new();
+        for (dev_name, dev) in &cfg.devices {
+            let mut transmitters: Vec<TransmitterSpec> = Vec::new();
+            for (ch_name, ch) in cfg.channels.iter().filter(|(_, c)| &c.device == dev_name) {
+                let ty: DataType = ch.data_type.into();
+                let idx = transmitter_index(ch.address, ty, ch.byte_order).ok_or_else(|| {
+                    PlantError::Channel {
+                        channel: ch_name.clone(),
+                        message: format!(
+                            "the simulated module has counts at 0.., f32 CDAB at {}.., f32 ABCD at {}..; address {} as {:?} {:?} is none of them",
+                            field::FLOAT_CDAB_BASE, field::FLOAT_ABCD_BASE, ch.address, ty, ch.byte_order
+                        ),
+                    }
+                })?;
+                let (lo, hi) = match &ch.scaling {
+                    ScalingConfig::Transmitter {
+                        range_min_degc,
+                        range_max_degc,
+                        ..
+                    } => (*range_min_degc, *range_max_degc),
+                    ScalingConfig::Direct { .. } => (-50.0, 150.0),
+                };
+                let s = sim.channels.get(ch_name).cloned().unwrap_or_default();
+                let profile = match s.profile {
+                    SimProfileKind::Constant => Profile::Constant { degc: s.mean_degc },
+                    SimProfileKind::Ramp => Profile::Ramp {
+                        start_degc: s.mean_degc,
+                        rate_degc_per_s: s.rate_degc_per_s,
+                    },
+                    SimProfileKind::Sine => Profile::Sine {
+                        mean_degc: s.mean_degc,
+                        amplitude_degc: s.amplitude_degc,
+                        period_s: s.period_s,
+                    },
+                };
+                if transmitters.len() <= idx {
+                    transmitters.resize(
+                        idx + 1,
+                        TransmitterSpec::new(Profile::Constant { degc: 20.0 }, lo, hi),
+                    );
+                }
+                let mut t = TransmitterSpec::new(profile, lo, hi);
+                t.noise_degc = s.noise_degc;
+                transmitters[idx] = t;
+                plant.transmitter.insert(ch_name.clone(), idx);
+            }
+            if transmitters.is_empty() {
+                transmitters.push(TransmitterSpec::new(Profile::Constant { degc: 20.0 }, -50.0, 150.0));
+            }
+            let mut spec = FieldModuleSpec::new(transmitters, sim.seed ^ plant.field.len() as u64);
+            if let Some(ScalingConfig::Transmitter {
+                adc_full_scale_counts,
+                adc_full_scale_ma,
+                ..
+            }) = cfg
+                .channels
+                .values()
+                .find(|c| &c.device == dev_name)
+                .map(|c| &c.scaling)
+            {
+                spec.adc_full_scale_counts = *adc_full_scale_counts as u16;
+                spec.adc_full_scale_ma = *adc_full_scale_ma;
+            }
+            let module = FieldModule::new(spec).map_err(|e| PlantError::Io {
+                what: format!("devices.{dev_name}"),
+                message: e.to_string(),
+            })?;
+            plant.field.insert(dev_name.clone(), module.clone());
+            match dev.transport {
+                Transport::Tcp => {
+                    let want = match bind {
+                        Bind::Ephemeral => "127.0.0.1:0".to_string(),
+                        Bind::AsConfigured => dev.address.clone().unwrap_or_default(),
+                    };
+                    let (listener, addr) = bind_tcp(&want, &format!("devices.{dev_name}")).await?;
+                    if let Some(d) = config.devices.get_mut(dev_name) {
+                        d.address = Some(addr);
+                    }
+                    tokio::spawn(module.serve_tcp(listener, shutdown.clone()));
+                }
+                Transport::Rtu => {
+                    let path = dev.serial_path.clone().unwrap_or_default();
+                    rtu_lines.entry(path).or_default().push((dev.unit_id, module));
+                }
+            }
+        }
+        for (path, units) in rtu_lines {
+            let what = format!("serial line {path}");
+            let (master, slave, pty_path) = field::pty_pair().map_err(|e| PlantError::Io {
+                what: what.clone(),
+                message: e.to_string(),
+            })?;
+            let used = match bind {
+                Bind::Ephemeral => pty_path,
+                Bind::AsConfigured => {
+                    let link = std::path::PathBuf::from(&path);
+                    if link.symlink_metadata().is_ok_and(|m| m.file_type().is_symlink()) {
+                        let _ = std::fs::remove_file(&link);
+                    }
+                    std::os::unix::fs::symlink(&pty_path, &link).map_err(|e| PlantError::Io {
+                        what: what.clone(),
+                        message: format!("cannot link {path} to {pty_path}: {e}"),
+                    })?;
+                    plant.symlinks.push(link);
+                    path.clone()
+                }
+            };
+            for d in config.devices.values_mut() {
+                if d.serial_path.as_deref() == Some(path.as_str()) {
+                    d.serial_path = Some(used.clone());
+                }
+            }
+            plant._ptys.push(slave);
+            tokio::spawn(field::serve_rtu(units, master, shutdown.clone()));
+        }
+
+        for (name, m) in &cfg.nc_modules {
+            let s = sim.nc_modules.get(name).cloned().unwrap_or_default();
+            let axis = NcAxis {
+                md32750: s.md32750,
+                referenced: s.referenced,
+                position_mm: s.motion_min_mm,
+                motion: if s.motion_speed_mm_per_s > 0.0 && s.motion_max_mm > s.motion_min_mm {
+                    Motion::Oscillate {
+                        min_mm: s.motion_min_mm,
+                        max_mm: s.motion_max_mm,
+                        speed_mm_per_s: s.motion_speed_mm_per_s,
+                    }
+                } else {
+                    Motion::Stopped
+                },
+                ..NcAxis::default()
+            };
+            let module = NcAxisModule::new(axis);
+            let want = match bind {
+                Bind::Ephemeral => "127.0.0.1:0".to_string(),
+                Bind::AsConfigured => m.address.clone(),
+            };
+            let (listener, addr) = bind_tcp(&want, &format!("nc_modules.{name}")).await?;
+            if let Some(c) = config.nc_modules.get_mut(name) {
+                c.address = addr;
+            }
+            tokio::spawn(module.clone().serve_tcp(listener, shutdown.clone()));
+            plant.nc.insert(name.clone(), module);
+        }
+        plant.config = config;
+        Ok(plant)
+    }
+
+    /// Stops every server.
+    pub fn stop(&self) {
+        self.shutdown.cancel();
+    }
+}
+
+async fn bind_tcp(addr: &str, what: &str) -> Result<(TcpListener, String), PlantError> {
+    let listener = TcpListener::bind(addr).await.map_err(|e| PlantError::Io {
+        what: what.to_string(),
+        message: format!("cannot listen on {addr}: {e}"),
+    })?;
+    let local = listener.local_addr().map_err(|e| PlantError::Io {
+        what: what.to_string(),
+        message: e.to_string(),
+    })?;
+    Ok((listener, local.to_string()))
+}
