@@ -126,8 +126,9 @@ pub struct NcAxis {
     pub allow_md32450_write: bool,
     /// Axis motion.
     pub motion: Motion,
-    /// Direction of an oscillation in progress.
-    moving_up: bool,
+    /// Direction of an oscillation: true toward `max_mm`. Public, like every field,
+    /// so callers can build an axis with `..NcAxis::default()`.
+    pub moving_positive: bool,
 }
 
 impl Default for NcAxis {
@@ -146,7 +147,7 @@ impl Default for NcAxis {
             ipo_cycle_s: 0.004,
             allow_md32450_write: false,
             motion: Motion::Stopped,
-            moving_up: true,
+            moving_positive: true,
         }
     }
 }
@@ -253,11 +254,11 @@ impl NcAxis {
         }
         // Reverse at (or beyond) a reversal point; never jump to the range.
         if self.position_mm >= max_mm {
-            self.moving_up = false;
+            self.moving_positive = false;
         } else if self.position_mm <= min_mm {
-            self.moving_up = true;
+            self.moving_positive = true;
         }
-        self.position_mm = if self.moving_up {
+        self.position_mm = if self.moving_positive {
             (self.position_mm + step_mm).min(max_mm)
         } else {
             (self.position_mm - step_mm).max(min_mm)
