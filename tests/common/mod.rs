@@ -1,0 +1,186 @@
+//! Shared test harness: a simulated plant on loopback port 0 (and ptys), the real
+//! gateway against it, and a way to wait for a status condition.
+#![allow(dead_code)]
+
+use std::time::Duration;
+
+use compgate::config;
+use compgate::gateway::{self, Status};
+use compgate::plant::{Bind, Plant};
+use tokio::sync::watch;
+use tokio::task::JoinHandle;
+use tokio_util::sync::CancellationToken;
+
+/// A running plant and gateway; dropping it stops both.
+pub struct Rig {
+    pub plant: Plant,
+    pub status: watch::Receiver<Status>,
+    pub shutdown: CancellationToken,
+    pub gateway: Option<JoinHandle<()>>,
+}
+
+impl Rig {
+    /// Stops the gateway and waits for it to finish.
+    pub async fn stop(mut self) -> Status {
+        self.shutdown.cancel();
+        if let Some(h) = self.gateway.take() {
+            tokio::time::timeout(Duration::from_secs(10), h)
+                .await
+                .expect("gateway stops within 10 s")
+                .expect("gateway task did not panic");
+        }
+        self.status.borrow().clone()
+    }
+
+    /// Waits until `pred` holds for the published status; panics with the last status
+    /// and `what` after `secs`.
+    pub async fn wait_for(&mut self, secs: f64, what: &str, pred: impl Fn(&Status) -> bool) -> Status {
+        let deadline = tokio::time::Instant::now() + Duration::from_secs_f64(secs);
+        loop {
+            {
+                let s = self.status.borrow_and_update();
+                if pred(&s) {
+                    return s.clone();
+                }
+            }
+            if tokio::time::timeout_at(deadline, self.status.changed()).await.is_err() {
+                panic!(
+                    "timed out after {secs} s waiting for: {what}\nlast status: {}",
+                    compgate::status::render(&self.status.borrow())
+                );
+            }
+        }
+    }
+
+    pub fn channel<'a>(s: &'a Status, name: &str) -> &'a gateway::ChannelStatus {
+        s.channels.iter().find(|c| c.name == name).expect("channel exists")
+    }
+}
+
+impl Drop for Rig {
+    fn drop(&mut self) {
+        self.shutdown.cancel();
+    }
+}
+
+/// Starts the simulated plant for `toml` and the gateway against it.
+pub async fn start(toml: &str) -> Rig {
+    let cfg = config::load_str(toml, "test.toml").expect("test config is valid");
+    let plant = Plant::start(&cfg, Bind::Ephemeral).await.expect("plant starts");
+    let (tx, rx) = watch::channel(Status::default());
+    let shutdown = CancellationToken::new();
+    let cfg = plant.config.clone();
+    let sd = shutdown.clone();
+    let gateway = tokio::spawn(async move {
+        gateway::run(&cfg, sd, tx).await.expect("gateway runs");
+    });
+    Rig {
+        plant,
+        status: rx,
+        shutdown,
+        gateway: Some(gateway),
+    }
+}
+
+/// A fast test config: one TCP field device with three PT100 channels (T_bed at
+/// counts address 0, T_screw at 1, T_col at 2), one NC module, axis X.
+/// `extra_device` and `axis_extra` are appended to the device and axis tables.
+pub fn config(policy: &str, device_extra: &str, filter: &str) -> String {
+    let scaling = r#"{ kind = "transmitter", adc_full_scale_counts = 4095, adc_full_scale_ma = 24.0, current_range = "4-20", range_min_degc = -50.0, range_max_degc = 150.0 }"#;
+    let filter = if filter.is_empty() {
+        "{ median_samples = 1, lowpass_tau_s = 0.0, max_rate_degc_per_s = 0.0, max_rejected_samples = 5, stale_after_s = 0.0, valid_min_degc = -20.0, valid_max_degc = 100.0 }"
+    } else {
+        filter
+    };
+    format!(
+        r#"
+[gateway]
+status_interval_s = 0.05
+
+[devices.ain1]
+transport = "tcp"
+address = "127.0.0.1:0"
+unit_id = 1
+timeout_s = 0.2
+connect_timeout_s = 0.5
+retries = 0
+poll_interval_s = 0.05
+backoff_initial_s = 0.05
+backoff_max_s = 0.2
+degrade_after_cycles = 3
+{device_extra}
+
+[channels.T_bed]
+device = "ain1"
+register = "input"
+address = 0
+data_type = "u16"
+scaling = {scaling}
+filter = {filter}
+
+[channels.T_screw]
+device = "ain1"
+register = "input"
+address = 1
+data_type = "u16"
+scaling = {scaling}
+filter = {filter}
+
+[channels.T_col]
+device = "ain1"
+register = "input"
+address = 2
+data_type = "u16"
+scaling = {scaling}
+filter = {filter}
+
+[nc_modules.nc_x]
+address = "127.0.0.1:0"
+unit_id = 1
+timeout_s = 0.5
+job_timeout_s = 0.5
+
+[axes.X]
+nc_module = "nc_x"
+md32750 = 3
+p0_mm = 100.0
+update_interval_s = 0.1
+deadband_k0_mm = 0.00001
+deadband_tan_beta = 0.0000000001
+max_abs_k0_mm = 0.5
+max_abs_tan_beta = 0.01
+max_step_k0_mm = 0.5
+max_step_tan_beta = 0.01
+on_bad_input = "{policy}"
+ramp_k0_mm_per_s = 0.05
+ramp_tan_beta_per_s = 0.0001
+k0 = {{ offset_mm = 0.0, terms = [{{ channel = "T_bed", ref_degc = 20.0, coeff_mm_per_degc = 0.004 }}] }}
+tan_beta = {{ offset = 0.0, terms = [{{ channel = "T_screw", ref_degc = 20.0, coeff_per_degc = 0.0000115 }}] }}
+
+[sim]
+seed = 7
+
+[sim.channels.T_bed]
+profile = "constant"
+mean_degc = 30.0
+
+[sim.channels.T_screw]
+profile = "constant"
+mean_degc = 25.0
+
+[sim.channels.T_col]
+profile = "constant"
+mean_degc = 60.0
+
+[sim.nc_modules.nc_x]
+referenced = true
+md32750 = 3
+motion_min_mm = 500.0
+motion_max_mm = 500.0
+motion_speed_mm_per_s = 0.0
+"#
+    )
+}
+
+/// One ADC count in degC for the test transmitters (24 mA / 4095 counts, 200 degC / 16 mA).
+pub const COUNT_DEGC: f64 = 24.0 / 4095.0 * 200.0 / 16.0;
