@@ -29,6 +29,21 @@
 //! every write function and every coil/discrete-input read gets 0x01
 //! `IllegalFunction`.
 //!
+//! # Communication faults over TCP
+//!
+//! [`FieldModule::serve_tcp`] uses tokio-modbus's server with one task per connection.
+//! Each connection's socket is wrapped in a transport that watches a cancellation token
+//! shared by all connections of the module. Setting [`CommFault::DropConnections`]
+//! cancels that token: every open connection reads EOF, its task ends and drops the
+//! socket, so the client sees EOF (or a reset if it keeps writing). A reply being
+//! delayed is cut short the same way. While the fault is set, new connections are
+//! accepted by the kernel and closed at once. Clearing the fault lets new connections
+//! work again (with a fresh token).
+//!
+//! Replies are computed when the request arrives. [`CommFault::Delay`] then holds the
+//! reply back and sends it even if the client has timed out meanwhile, so a client
+//! that reuses the connection reads the late reply as the answer to its next request.
+//!
 //! # Sampling
 //!
 //! The ADC converts every transmitter once per valid read request, drawing one noise

@@ -47,6 +47,10 @@ pub const SD43920_LIMIT_MM: f64 = 100_000.0;
 pub const MD32450_LIMIT_MM: f64 = 1.0;
 /// Shortest interpolation cycle the module runs, s (guards a zero or bad `ipo_cycle_s`).
 pub const MIN_IPO_CYCLE_S: f64 = 0.0005;
+/// Longest interpolation cycle the module runs, s.
+pub const MAX_IPO_CYCLE_S: f64 = 1.0;
+/// How often a standby serve task checks whether the IPO loop needs a runner.
+const IPO_STANDBY_POLL: Duration = Duration::from_millis(100);
 
 /// MD32750 bit 0: position-independent part (SD43900).
 pub const TEMP_COMP_ABS: u16 = 1 << 0;
@@ -594,20 +598,28 @@ impl NcAxisModule {
         }
     }
 
-    /// Calls [`NcAxis::ipo_tick`] every `ipo_cycle_s` of tokio time, forever, unless
-    /// another serve task already does (then it waits forever).
+    /// Calls [`NcAxis::ipo_tick`] every `ipo_cycle_s` of tokio time, forever. Only one
+    /// serve task of a module runs the loop; the others stand by and take over when
+    /// it stops.
     async fn run_ipo(&self) {
-        if self.shared.ipo_running.swap(true, Ordering::AcqRel) {
-            return std::future::pending().await;
+        loop {
+            if !self.shared.ipo_running.swap(true, Ordering::AcqRel) {
+                let _guard = IpoGuard(&self.shared.ipo_running);
+                self.ipo_loop().await;
+            }
+            tokio::time::sleep(IPO_STANDBY_POLL).await;
         }
-        let _guard = IpoGuard(&self.shared.ipo_running);
+    }
+
+    async fn ipo_loop(&self) {
         let mut next = Instant::now();
         loop {
             let cycle_s = self.lock().axis.ipo_cycle_s;
-            let cycle_s = if cycle_s.is_finite() {
-                cycle_s.max(MIN_IPO_CYCLE_S)
-            } else {
+            // NaN falls to the minimum; a huge value must not overflow the Duration.
+            let cycle_s = if cycle_s.is_nan() {
                 MIN_IPO_CYCLE_S
+            } else {
+                cycle_s.clamp(MIN_IPO_CYCLE_S, MAX_IPO_CYCLE_S)
             };
             // Absolute deadlines: a late wake-up catches up instead of slowing the axis.
             next += Duration::from_secs_f64(cycle_s);

@@ -375,3 +375,35 @@ async fn ipo_loop_runs_in_tokio_time() {
     shutdown.cancel();
     task.await.unwrap().unwrap();
 }
+
+#[tokio::test(start_paused = true)]
+async fn two_serve_tasks_share_one_ipo_loop() {
+    let module = NcAxisModule::new(NcAxis {
+        md32750: 1,
+        referenced: true,
+        max_ax_velo_mm_per_min: 6000.0, // 0.004 mm per cycle
+        ..NcAxis::default()
+    });
+    module.with_state(|axis| axis.execute_job(&[(var::SD43900, 0.5)]).unwrap());
+    let first_stop = CancellationToken::new();
+    let second_stop = CancellationToken::new();
+    let first = tokio::spawn(module.clone().serve_tcp(
+        TcpListener::bind("127.0.0.1:0").await.unwrap(),
+        first_stop.clone(),
+    ));
+    let second = tokio::spawn(module.clone().serve_tcp(
+        TcpListener::bind("127.0.0.1:0").await.unwrap(),
+        second_stop.clone(),
+    ));
+    tokio::time::sleep(Duration::from_millis(42)).await;
+    // 10 cycles, not 20: the axis does not run twice as fast.
+    assert!((module.state().applied_comp_mm - 0.040).abs() < 1e-12);
+    first_stop.cancel();
+    first.await.unwrap().unwrap();
+    // The standby task takes over within its 100 ms poll.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let applied_mm = module.state().applied_comp_mm;
+    assert!(applied_mm > 0.3 && applied_mm <= 0.5, "{applied_mm}");
+    second_stop.cancel();
+    second.await.unwrap().unwrap();
+}
