@@ -303,6 +303,10 @@ pub enum JobFault {
     NeverFinish,
     /// Jobs stay busy this long, then finish.
     Delay(Duration),
+    /// Jobs finish at once with ERROR and this STATUS (`ERROR_INDEX` 0: the refusal
+    /// is the module's, not one pair's) and change nothing, however valid they are.
+    /// `Refuse(JobStatus::Ok)` gives the inconsistent ERROR = 1 with STATUS = 0.
+    Refuse(JobStatus),
 }
 
 /// A job latched on the rising edge of `REQ`.
@@ -336,7 +340,7 @@ impl ModuleState {
 
     fn due_after_now(&self, now: Instant) -> Option<Instant> {
         match self.job_fault {
-            JobFault::None => Some(now),
+            JobFault::None | JobFault::Refuse(_) => Some(now),
             JobFault::NeverFinish => None,
             JobFault::Delay(delay) => Some(now + delay),
         }
@@ -383,7 +387,13 @@ impl ModuleState {
             return;
         }
         let Some(job) = self.job.take() else { return };
-        let result = job.pairs.and_then(|pairs| self.axis.execute_job(&pairs));
+        let result = match self.job_fault {
+            JobFault::Refuse(status) => Err(JobError {
+                status,
+                index_1based: 0,
+            }),
+            _ => job.pairs.and_then(|pairs| self.axis.execute_job(&pairs)),
+        };
         self.jobs_executed += 1;
         match result {
             Ok(()) => {

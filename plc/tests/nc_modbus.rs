@@ -407,3 +407,25 @@ async fn two_serve_tasks_share_one_ipo_loop() {
     second_stop.cancel();
     second.await.unwrap().unwrap();
 }
+
+#[tokio::test]
+async fn refuse_fault_refuses_valid_jobs_until_cleared() {
+    let mut run = start().await;
+    let ctx = &mut run.ctx;
+    run.module
+        .set_job_fault(JobFault::Refuse(JobStatus::AccessDenied));
+    write_job(ctx, 3, &[(var::SD43900, 0.05)]).await;
+    set_req(ctx, 1).await;
+    let s = status(ctx).await;
+    assert_eq!(
+        (s.state, s.error, s.status, s.error_index, s.job_id_done),
+        (JobState::Error, 1, JobStatus::AccessDenied, 0, 3)
+    );
+    assert_eq!(run.module.state().sd43900_mm, 0.0);
+    set_req(ctx, 0).await;
+    run.module.set_job_fault(JobFault::None);
+    set_req(ctx, 1).await;
+    let s = status(ctx).await;
+    assert_eq!((s.state, s.done), (JobState::Done, 1));
+    assert_eq!(run.module.state().sd43900_mm, 0.05);
+}
