@@ -1,0 +1,186 @@
+//! The filter stages: median window (spike rejection) and first-order low pass.
+
+use std::collections::VecDeque;
+
+/// Median of the last up-to-N accepted samples (fewer while the window fills).
+#[derive(Debug, Clone, PartialEq)]
+pub struct MedianWindow {
+    len: usize,
+    values_degc: VecDeque<f64>,
+}
+
+impl MedianWindow {
+    /// A window over `len` samples; 0 and 1 both mean "off" (the median of one).
+    pub fn new(len: usize) -> Self {
+        let len = len.max(1);
+        Self {
+            len,
+            values_degc: VecDeque::with_capacity(len),
+        }
+    }
+
+    /// Adds a sample, dropping the oldest when full, and returns the median.
+    pub fn push(&mut self, value_degc: f64) -> f64 {
+        if self.values_degc.len() == self.len {
+            self.values_degc.pop_front();
+        }
+        self.values_degc.push_back(value_degc);
+        self.median().unwrap_or(value_degc)
+    }
+
+    /// The median of the window: the middle value, or the mean of the two middle
+    /// values for an even count. `None` when empty.
+    pub fn median(&self) -> Option<f64> {
+        let mut sorted: Vec<f64> = self.values_degc.iter().copied().collect();
+        sorted.sort_by(f64::total_cmp);
+        let n = sorted.len();
+        match n {
+            0 => None,
+            _ if n % 2 == 1 => Some(sorted[n / 2]),
+            _ => Some((sorted[n / 2 - 1] + sorted[n / 2]) / 2.0),
+        }
+    }
+
+    /// Forgets every sample.
+    pub fn clear(&mut self) {
+        self.values_degc.clear();
+    }
+
+    /// Samples in the window.
+    pub fn count(&self) -> usize {
+        self.values_degc.len()
+    }
+}
+
+/// First-order low pass with the exact discretisation for irregular sampling:
+/// `y += (1 - exp(-dt/tau)) * (x - y)` with the real `dt` since the last update.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LowPass {
+    tau_s: f64,
+    /// (time of the last update, output).
+    state: Option<(f64, f64)>,
+}
+
+impl LowPass {
+    /// A low pass with time constant `tau_s`; 0 (or negative, or NaN) means off:
+    /// the output follows the input.
+    pub fn new(tau_s: f64) -> Self {
+        Self { tau_s, state: None }
+    }
+
+    /// Whether the filter does anything.
+    pub fn is_on(&self) -> bool {
+        self.tau_s > 0.0
+    }
+
+    /// Feeds `x_degc` at `t_s` and returns the output. The first sample seeds the
+    /// state. A `t_s` before the last update counts as `dt = 0` (no change).
+    pub fn update(&mut self, t_s: f64, x_degc: f64) -> f64 {
+        let y_degc = match self.state {
+            Some((t0_s, y0_degc)) if self.is_on() => {
+                let dt_s = (t_s - t0_s).max(0.0);
+                // 1 - exp(-dt/tau) without cancellation for dt << tau.
+                let alpha = -(-dt_s / self.tau_s).exp_m1();
+                y0_degc + alpha * (x_degc - y0_degc)
+            }
+            _ => x_degc,
+        };
+        self.state = Some((t_s, y_degc));
+        y_degc
+    }
+
+    /// Sets the state to `x_degc` at `t_s`: the next update starts from there.
+    pub fn reseed(&mut self, t_s: f64, x_degc: f64) {
+        self.state = Some((t_s, x_degc));
+    }
+
+    /// Forgets the state: the next update seeds it.
+    pub fn clear(&mut self) {
+        self.state = None;
+    }
+
+    /// The current output, if seeded.
+    pub fn output_degc(&self) -> Option<f64> {
+        self.state.map(|(_, y)| y)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn close(a: f64, b: f64) -> bool {
+        (a - b).abs() < 1e-12
+    }
+
+    #[test]
+    fn median_while_filling_and_full() {
+        let mut m = MedianWindow::new(3);
+        assert_eq!(m.median(), None);
+        assert_eq!(m.push(10.0), 10.0);
+        // Two samples: mean of the middle pair.
+        assert_eq!(m.push(20.0), 15.0);
+        // 10, 20, 90: a spike does not pass.
+        assert_eq!(m.push(90.0), 20.0);
+        // 20, 90, 21: the oldest (10) dropped.
+        assert_eq!(m.push(21.0), 21.0);
+        assert_eq!(m.count(), 3);
+        m.clear();
+        assert_eq!(m.count(), 0);
+        assert_eq!(m.push(5.0), 5.0);
+    }
+
+    #[test]
+    fn median_of_one_is_off() {
+        for len in [0, 1] {
+            let mut m = MedianWindow::new(len);
+            assert_eq!(m.push(1.0), 1.0);
+            assert_eq!(m.push(100.0), 100.0);
+            assert_eq!(m.count(), 1);
+        }
+    }
+
+    #[test]
+    fn lowpass_exact_discretisation() {
+        let mut lp = LowPass::new(10.0);
+        assert_eq!(lp.update(0.0, 20.0), 20.0);
+        // dt = tau: y = 20 + (1 - e^-1) * 10 = 26.3212055882856
+        let y = lp.update(10.0, 30.0);
+        assert!(close(y, 26.321_205_588_285_577), "{y}");
+        // Irregular: dt = 2*tau after that, input 30:
+        // y = 26.3212 + (1 - e^-2) * (30 - 26.3212) = 30 - 3.6788 * e^-2 = 29.502129316321360
+        let y = lp.update(30.0, 30.0);
+        assert!(close(y, 29.502_129_316_321_36), "{y}");
+    }
+
+    #[test]
+    fn lowpass_same_time_or_backwards_changes_nothing() {
+        let mut lp = LowPass::new(5.0);
+        lp.update(10.0, 20.0);
+        assert_eq!(lp.update(10.0, 99.0), 20.0);
+        assert_eq!(lp.update(9.0, 99.0), 20.0);
+    }
+
+    #[test]
+    fn lowpass_off_follows_input() {
+        for tau in [0.0, -1.0, f64::NAN] {
+            let mut lp = LowPass::new(tau);
+            assert!(!lp.is_on());
+            lp.update(0.0, 20.0);
+            assert_eq!(lp.update(1.0, 30.0), 30.0);
+        }
+    }
+
+    #[test]
+    fn lowpass_reseed_and_clear() {
+        let mut lp = LowPass::new(10.0);
+        lp.update(0.0, 20.0);
+        lp.reseed(5.0, 40.0);
+        assert_eq!(lp.output_degc(), Some(40.0));
+        // From 40 at t=5: dt = 0 -> no change.
+        assert_eq!(lp.update(5.0, 0.0), 40.0);
+        lp.clear();
+        assert_eq!(lp.output_degc(), None);
+        assert_eq!(lp.update(6.0, 7.0), 7.0);
+    }
+}

@@ -1,0 +1,230 @@
+//! Raw register value -> loop current -> degC, with NAMUR NE43 fault detection.
+
+use super::Reason;
+
+/// Below this loop current a 4-20 mA transmitter signals a fault (NAMUR NE43).
+pub const NE43_LOW_MA: f64 = 3.6;
+/// Above this loop current a 4-20 mA transmitter signals a fault (NAMUR NE43).
+pub const NE43_HIGH_MA: f64 = 21.0;
+
+/// Output current range of a transmitter.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum CurrentRange {
+    /// 4-20 mA live zero; NAMUR NE43 fault detection applies.
+    FourTo20,
+    /// 0-20 mA; no fault detection is possible from the current.
+    ZeroTo20,
+}
+
+/// How a raw register value becomes a temperature.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Scaling {
+    /// A transmitter's loop current read by an ADC.
+    ///
+    /// `current_ma = raw / adc_full_scale_counts * adc_full_scale_ma`, then the current
+    /// range maps linearly onto `range_min_degc..range_max_degc`.
+    Transmitter {
+        /// ADC counts at full scale (4095 for 12 bit).
+        adc_full_scale_counts: f64,
+        /// Loop current at the ADC's full scale, mA.
+        adc_full_scale_ma: f64,
+        /// The transmitter's current range.
+        current_range: CurrentRange,
+        /// Temperature at the bottom of the current range (4 or 0 mA), degC.
+        range_min_degc: f64,
+        /// Temperature at 20 mA, degC.
+        range_max_degc: f64,
+    },
+    /// A module that reports an engineering value: `degc = raw * gain + offset_degc`.
+    Direct {
+        /// Multiplier of the raw value, degC per raw unit.
+        gain: f64,
+        /// Added after the gain, degC.
+        offset_degc: f64,
+    },
+}
+
+/// One raw value after scaling.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Scaled {
+    /// Loop current, mA (transmitter scaling with a finite raw value only).
+    pub current_ma: Option<f64>,
+    /// The temperature, or why there is none (NE43 fault, not finite).
+    pub degc: Result<f64, Reason>,
+}
+
+impl Scaling {
+    /// Scales one raw value. NE43 is checked before the temperature is computed:
+    /// a fault current carries no temperature. Currents between 3.6 and 4 mA or
+    /// 20 and 21 mA are valid saturated readings and scale linearly (slightly
+    /// outside the range); the channel's plausible range decides about them.
+    pub fn scale(&self, raw: f64) -> Scaled {
+        if !raw.is_finite() {
+            return Scaled {
+                current_ma: None,
+                degc: Err(Reason::NotFinite),
+            };
+        }
+        let (current_ma, degc) = match *self {
+            Self::Transmitter {
+                adc_full_scale_counts,
+                adc_full_scale_ma,
+                current_range,
+                range_min_degc,
+                range_max_degc,
+            } => {
+                // Multiply first: integer counts times mA stay exact, so a count that
+                // is exactly 3.6 mA is not misread as 3.5999999999999996 mA.
+                let ma = raw * adc_full_scale_ma / adc_full_scale_counts;
+                let span_degc = range_max_degc - range_min_degc;
+                let degc = match current_range {
+                    CurrentRange::FourTo20 => {
+                        if ma < NE43_LOW_MA {
+                            return fault(ma, Reason::Ne43Low);
+                        }
+                        if ma > NE43_HIGH_MA {
+                            return fault(ma, Reason::Ne43High);
+                        }
+                        range_min_degc + (ma - 4.0) / 16.0 * span_degc
+                    }
+                    CurrentRange::ZeroTo20 => range_min_degc + ma / 20.0 * span_degc,
+                };
+                (Some(ma), degc)
+            }
+            Self::Direct { gain, offset_degc } => (None, raw * gain + offset_degc),
+        };
+        Scaled {
+            current_ma: current_ma.filter(|ma| ma.is_finite()),
+            degc: if degc.is_finite() {
+                Ok(degc)
+            } else {
+                Err(Reason::NotFinite)
+            },
+        }
+    }
+}
+
+fn fault(ma: f64, reason: Reason) -> Scaled {
+    Scaled {
+        current_ma: Some(ma),
+        degc: Err(reason),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 24000 counts = 24 mA: one count is one microampere.
+    fn pt100(range: CurrentRange) -> Scaling {
+        Scaling::Transmitter {
+            adc_full_scale_counts: 24000.0,
+            adc_full_scale_ma: 24.0,
+            current_range: range,
+            range_min_degc: -50.0,
+            range_max_degc: 150.0,
+        }
+    }
+
+    fn degc(s: &Scaling, raw: f64) -> f64 {
+        match s.scale(raw).degc {
+            Ok(v) => v,
+            Err(r) => panic!("raw {raw}: {r}"),
+        }
+    }
+
+    fn close(a: f64, b: f64) -> bool {
+        (a - b).abs() < 1e-9
+    }
+
+    #[test]
+    fn four_to_20_is_linear() {
+        let s = pt100(CurrentRange::FourTo20);
+        // 4 mA -> -50, 12 mA -> -50 + 8/16*200 = 50, 20 mA -> 150.
+        assert!(close(degc(&s, 4000.0), -50.0));
+        assert!(close(degc(&s, 12000.0), 50.0));
+        assert!(close(degc(&s, 20000.0), 150.0));
+        // 8.8 mA -> -50 + 4.8/16*200 = 10.
+        assert!(close(degc(&s, 8800.0), 10.0));
+        let c = s.scale(8800.0).current_ma.unwrap_or(f64::NAN);
+        assert!(close(c, 8.8));
+    }
+
+    #[test]
+    fn twelve_bit_adc() {
+        // 4095 counts = 24 mA: 1365 counts = 8 mA -> -50 + 4/16*200 = 0 degC.
+        let s = Scaling::Transmitter {
+            adc_full_scale_counts: 4095.0,
+            adc_full_scale_ma: 24.0,
+            current_range: CurrentRange::FourTo20,
+            range_min_degc: -50.0,
+            range_max_degc: 150.0,
+        };
+        assert!(close(degc(&s, 1365.0), 0.0));
+        // 2730 counts = 16 mA -> 100 degC.
+        assert!(close(degc(&s, 2730.0), 100.0));
+    }
+
+    #[test]
+    fn ne43_limits() {
+        let s = pt100(CurrentRange::FourTo20);
+        assert_eq!(s.scale(3599.0).degc, Err(Reason::Ne43Low));
+        assert_eq!(s.scale(0.0).degc, Err(Reason::Ne43Low));
+        assert_eq!(s.scale(21001.0).degc, Err(Reason::Ne43High));
+        // The fault keeps its current for diagnosis.
+        assert!(close(s.scale(3599.0).current_ma.unwrap_or(f64::NAN), 3.599));
+        // 3.6 mA and 21 mA are saturated but valid: -50 - 0.4/16*200 = -55,
+        // -50 + 17/16*200 = 162.5.
+        assert!(close(degc(&s, 3600.0), -55.0));
+        assert!(close(degc(&s, 21000.0), 162.5));
+    }
+
+    #[test]
+    fn zero_to_20_has_no_ne43() {
+        let s = Scaling::Transmitter {
+            adc_full_scale_counts: 20000.0,
+            adc_full_scale_ma: 20.0,
+            current_range: CurrentRange::ZeroTo20,
+            range_min_degc: 0.0,
+            range_max_degc: 100.0,
+        };
+        assert!(close(degc(&s, 0.0), 0.0));
+        // 5 mA -> 5/20*100 = 25.
+        assert!(close(degc(&s, 5000.0), 25.0));
+        // 2 mA would be an NE43 fault on 4-20; here it is 10 degC.
+        assert!(close(degc(&s, 2000.0), 10.0));
+    }
+
+    #[test]
+    fn direct() {
+        let s = Scaling::Direct {
+            gain: 0.1,
+            offset_degc: -2.0,
+        };
+        // 215 * 0.1 - 2 = 19.5
+        assert!(close(degc(&s, 215.0), 19.5));
+        assert_eq!(s.scale(215.0).current_ma, None);
+    }
+
+    #[test]
+    fn not_finite() {
+        let s = pt100(CurrentRange::FourTo20);
+        assert_eq!(s.scale(f64::NAN).degc, Err(Reason::NotFinite));
+        // Infinity is NotFinite, not an NE43 over-current.
+        assert_eq!(s.scale(f64::INFINITY).degc, Err(Reason::NotFinite));
+        let d = Scaling::Direct {
+            gain: 1e308,
+            offset_degc: 0.0,
+        };
+        assert_eq!(d.scale(10.0).degc, Err(Reason::NotFinite));
+        // A zero full scale divides by zero: not finite, not a panic.
+        let z = Scaling::Transmitter {
+            adc_full_scale_counts: 0.0,
+            adc_full_scale_ma: 24.0,
+            current_range: CurrentRange::ZeroTo20,
+            range_min_degc: 0.0,
+            range_max_degc: 100.0,
+        };
+        assert_eq!(z.scale(10.0).degc, Err(Reason::NotFinite));
+    }
+}
