@@ -439,8 +439,9 @@ impl TryFrom<ScalingRepr> for Scaling {
     }
 }
 
-/// `[channels.NAME.filter]`: applied in this order: plausibility range, median,
-/// rate limit, low-pass; stale detection watches the raw value.
+/// `[channels.NAME.filter]`: applied to each scaled sample in this order: plausible
+/// range, stale detection (on the raw value), rate plausibility, median, low-pass.
+/// A sample failing a check never reaches the median and the low-pass.
 #[derive(Deserialize, Serialize, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct FilterConfig {
