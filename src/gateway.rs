@@ -14,8 +14,10 @@ use tokio::sync::{mpsc, watch, Mutex};
 use tokio::time::{Instant, MissedTickBehavior};
 use tokio_util::sync::CancellationToken;
 
-use crate::channel::{ChannelProcessor, Reading};
-use crate::comp::{AxisCompensator, CompParams, Decision};
+use crate::channel::{ChannelProcessor, CurrentRange, FilterParams, Reading, Scaling};
+use crate::comp::{
+    Affine, AxisCompensator, BadInputPolicy, CompParams, Decision, Limits, Term, ThermalModel,
+};
 use crate::config::{self, Config};
 use crate::nc::{Job, JobReport, ModbusNcWriter, NcError, NcSnapshot, NcWriter};
 use crate::source::modbus::{Backoff, LinkSpec, ModbusLink};
@@ -200,8 +202,125 @@ pub struct Built {
     pub status_interval: Duration,
 }
 
-fn secs(s: f64) -> Duration {
-    Duration::try_from_secs_f64(s).unwrap_or(Duration::ZERO)
+// Config structs -> runtime parameters (the config layer stays free of runtime types).
+
+fn scaling_rt(s: &config::Scaling) -> Scaling {
+    match s {
+        config::Scaling::Transmitter(t) => Scaling::Transmitter {
+            adc_full_scale_counts: f64::from(t.adc_full_scale_counts),
+            adc_full_scale_ma: t.adc_full_scale_ma,
+            current_range: match t.current_range {
+                config::CurrentRange::Ma4To20 => CurrentRange::FourTo20,
+                config::CurrentRange::Ma0To20 => CurrentRange::ZeroTo20,
+            },
+            range_min_degc: t.range_min_degc,
+            range_max_degc: t.range_max_degc,
+        },
+        config::Scaling::Direct(d) => Scaling::Direct {
+            gain: d.gain,
+            offset_degc: d.offset_degc,
+        },
+    }
+}
+
+fn filter_rt(f: &config::FilterConfig) -> FilterParams {
+    FilterParams {
+        median_samples: f.median_samples.max(1) as usize,
+        lowpass_tau_s: f.lowpass_tau_s,
+        max_rate_degc_per_s: f.max_rate_degc_per_s,
+        max_rejected_samples: f.max_rejected_samples,
+        stale_after_s: f.stale_after_s,
+        valid_min_degc: f.valid_min_degc,
+        valid_max_degc: f.valid_max_degc,
+    }
+}
+
+fn link_spec(dev: &config::DeviceConfig) -> Option<LinkSpec> {
+    Some(match dev.transport {
+        config::Transport::Tcp => LinkSpec::Tcp {
+            address: dev.address.clone()?,
+            connect_timeout: dev.connect_timeout(),
+        },
+        config::Transport::Rtu => LinkSpec::Rtu {
+            path: dev.serial_path.clone()?,
+            baud: dev.baud(),
+            parity: match dev.parity() {
+                config::Parity::None => tokio_serial::Parity::None,
+                config::Parity::Even => tokio_serial::Parity::Even,
+                config::Parity::Odd => tokio_serial::Parity::Odd,
+            },
+            stop_bits: if dev.stop_bits() == 2 {
+                tokio_serial::StopBits::Two
+            } else {
+                tokio_serial::StopBits::One
+            },
+        },
+    })
+}
+
+/// The axis' thermal model and the channel name behind each model input.
+fn model_rt(ax: &config::AxisConfig) -> (ThermalModel, Vec<String>) {
+    let mut names: Vec<String> = Vec::new();
+    let mut input = |ch: &str| match names.iter().position(|n| n == ch) {
+        Some(i) => i,
+        None => {
+            names.push(ch.to_string());
+            names.len() - 1
+        }
+    };
+    let k0_terms = ax
+        .k0
+        .terms
+        .iter()
+        .map(|t| Term {
+            input: input(&t.channel),
+            ref_degc: t.ref_degc,
+            coeff: t.coeff_mm_per_degc,
+        })
+        .collect();
+    let tan_terms = ax
+        .tan_beta
+        .terms
+        .iter()
+        .map(|t| Term {
+            input: input(&t.channel),
+            ref_degc: t.ref_degc,
+            coeff: t.coeff_per_degc,
+        })
+        .collect();
+    let model = ThermalModel {
+        k0_mm: Affine {
+            offset: ax.k0.offset_mm,
+            terms: k0_terms,
+        },
+        tan_beta: Affine {
+            offset: ax.tan_beta.offset,
+            terms: tan_terms,
+        },
+        p0_mm: ax.p0_mm,
+    };
+    (model, names)
+}
+
+fn limits_rt(ax: &config::AxisConfig) -> Limits {
+    Limits {
+        max_abs_k0_mm: ax.max_abs_k0_mm,
+        max_abs_tan_beta: ax.max_abs_tan_beta,
+        max_step_k0_mm: ax.max_step_k0_mm,
+        max_step_tan_beta: ax.max_step_tan_beta,
+        deadband_k0_mm: ax.deadband_k0_mm,
+        deadband_tan_beta: ax.deadband_tan_beta,
+    }
+}
+
+fn policy_rt(ax: &config::AxisConfig) -> BadInputPolicy {
+    match ax.on_bad_input {
+        config::OnBadInput::Hold => BadInputPolicy::Hold,
+        config::OnBadInput::RampToZero => BadInputPolicy::RampToZero {
+            k0_mm_per_s: ax.ramp_k0_mm_per_s,
+            tan_beta_per_s: ax.ramp_tan_beta_per_s,
+        },
+    }
 }
 
 /// Turns a validated config into runtime parts. Devices on one serial path share a
@@ -234,22 +353,21 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             byte_order: ch.byte_order,
         });
         processors.push(ChannelProcessor::new(
-            ch.scaling.to_runtime(),
-            ch.filter.to_runtime(),
+            scaling_rt(&ch.scaling),
+            filter_rt(&ch.filter),
         ));
     }
 
     let mut serial_links: BTreeMap<String, SharedLink> = BTreeMap::new();
     let mut devices = Vec::with_capacity(cfg.devices.len());
     for ((name, dev), specs) in cfg.devices.iter().zip(specs) {
-        let spec = dev
-            .link_spec()
-            .map_err(|e| GatewayError::Config(format!("devices.{name}: {e}")))?;
+        let spec = link_spec(dev)
+            .ok_or_else(|| GatewayError::Config(format!("devices.{name}: address or serial_path missing")))?;
         let new_link = || {
             Arc::new(Mutex::new(ModbusLink::new(
                 spec.clone(),
-                secs(dev.timeout_s),
-                Backoff::new(secs(dev.backoff_initial_s), secs(dev.backoff_max_s)),
+                dev.timeout(),
+                Backoff::new(dev.backoff_initial(), dev.backoff_max()),
             )))
         };
         let link = match &spec {
@@ -267,7 +385,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
         };
         devices.push(DeviceRt {
             poller: DevicePoller::new(devices.len(), name.clone(), params, link, specs),
-            poll_interval: secs(dev.poll_interval_s),
+            poll_interval: dev.poll_interval(),
         });
     }
 
@@ -284,14 +402,14 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             let link = ModbusLink::new(
                 LinkSpec::Tcp {
                     address: m.address.clone(),
-                    connect_timeout: secs(m.connect_timeout_s),
+                    connect_timeout: m.connect_timeout(),
                 },
-                secs(m.timeout_s),
+                m.timeout(),
                 Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
             );
             NcModuleRt {
                 name: name.clone(),
-                writer: ModbusNcWriter::new(link, m.unit_id, secs(m.job_timeout_s)),
+                writer: ModbusNcWriter::new(link, m.unit_id, m.job_timeout()),
             }
         })
         .collect();
@@ -301,7 +419,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
         let nc_module = *nc_index.get(ax.nc_module.as_str()).ok_or_else(|| {
             GatewayError::Config(format!("axes.{name}.nc_module: no NC module {}", ax.nc_module))
         })?;
-        let (model, input_names) = ax.model();
+        let (model, input_names) = model_rt(ax);
         let inputs = input_names
             .iter()
             .map(|n| {
@@ -314,9 +432,9 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             name: name.clone(),
             nc_module,
             inputs,
-            comp: AxisCompensator::new(model, ax.limits(), ax.bad_input_policy()),
+            comp: AxisCompensator::new(model, limits_rt(ax), policy_rt(ax)),
             md32750: ax.md32750,
-            update_interval: secs(ax.update_interval_s),
+            update_interval: ax.update_interval(),
         });
     }
 
@@ -329,7 +447,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
         },
         devices,
         nc_modules,
-        status_interval: secs(cfg.gateway.status_interval_s),
+        status_interval: cfg.gateway.status_interval(),
     })
 }
 

@@ -19,6 +19,8 @@
 //! - [`nc`]: the `NcWriter` trait and the FB3-style job client over Modbus TCP.
 //! - [`gateway`]: wires the stages together; `run(config, shutdown)` is the one path
 //!   used by the service, the demo and the tests.
+//! - [`plant`]: the simulated plant for a config (demo, `sim`, tests), from
+//!   `compgate-plc`; the service path never uses it.
 //! - [`status`]: the live status line and plain per-update lines.
 //! - [`bench`]: `compgate bench`, cycle rate against the bare Modbus request rate.
 //! - [`cli`]: the command line.
@@ -27,12 +29,13 @@
 //! service code uses only its register map (`compgate_plc::ncmap`), the NC axis
 //! module's public interface; the demo, `sim` and the tests start the simulator.
 
-// pub mod bench; (enabled once channel/comp/config land)
+pub mod bench;
 pub mod channel;
 pub mod cli;
 pub mod comp;
 pub mod config;
-// pub mod gateway; (enabled once channel/comp/config land)
-// pub mod nc; (enabled once channel/comp/config land)
-// pub mod source; (enabled once channel/comp/config land)
-// pub mod status; (enabled once channel/comp/config land)
+pub mod gateway;
+pub mod nc;
+pub mod plant;
+pub mod source;
+pub mod status;

@@ -1,1 +1,138 @@
-fn main() {}
+//! The `compgate` binary: command line -> tracing -> command.
+
+use std::io::IsTerminal;
+use std::process::ExitCode;
+
+use clap::Parser;
+use compgate::cli::{Cli, Command};
+use compgate::plant::{Bind, Plant};
+use compgate::{bench, config, gateway, status};
+use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
+
+/// The demo's configuration, embedded so `cargo run --release` needs no file.
+const DEMO_CONFIG: &str = include_str!("../config/demo.toml");
+
+fn init_tracing(filter: Option<&str>, default: &str) {
+    let filter = filter
+        .map(str::to_string)
+        .or_else(|| std::env::var("RUST_LOG").ok())
+        .unwrap_or_else(|| default.to_string());
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::new(filter))
+        .with_writer(std::io::stderr)
+        .init();
+}
+
+/// Cancels the token on Ctrl-C or SIGTERM.
+fn shutdown_on_signals() -> CancellationToken {
+    let token = CancellationToken::new();
+    let t = token.clone();
+    tokio::spawn(async move {
+        let ctrl_c = tokio::signal::ctrl_c();
+        let mut term =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(s) => s,
+                Err(e) => {
+                    tracing::error!(error = %e, "cannot watch SIGTERM");
+                    let _ = ctrl_c.await;
+                    t.cancel();
+                    return;
+                }
+            };
+        tokio::select! {
+            _ = ctrl_c => tracing::info!("Ctrl-C: stopping"),
+            _ = term.recv() => tracing::info!("SIGTERM: stopping"),
+        }
+        t.cancel();
+    });
+    token
+}
+
+/// Runs the gateway on `cfg` with the status printer until a signal.
+async fn run_gateway(cfg: &config::Config) -> Result<(), String> {
+    let shutdown = shutdown_on_signals();
+    let (tx, rx) = watch::channel(gateway::Status::default());
+    let interval = std::time::Duration::from_secs_f64(cfg.gateway.status_interval_s);
+    let printer = tokio::spawn(status::print_loop(
+        rx,
+        interval,
+        std::io::stdout().is_terminal(),
+        shutdown.clone(),
+    ));
+    let result = gateway::run(cfg, shutdown.clone(), tx).await;
+    shutdown.cancel();
+    let _ = printer.await;
+    result.map_err(|e| e.to_string())
+}
+
+async fn demo() -> Result<(), String> {
+    let cfg = config::load_str(DEMO_CONFIG, "config/demo.toml (embedded)").map_err(|e| e.to_string())?;
+    let plant = Plant::start(&cfg, Bind::Ephemeral)
+        .await
+        .map_err(|e| e.to_string())?;
+    eprintln!(
+        "compgate demo: simulated field module and NC axis module on loopback; Ctrl-C stops."
+    );
+    run_gateway(&plant.config).await
+}
+
+async fn sim(path: &std::path::Path) -> Result<(), String> {
+    let cfg = config::load(path).map_err(|e| e.to_string())?;
+    let plant = Plant::start(&cfg, Bind::AsConfigured)
+        .await
+        .map_err(|e| e.to_string())?;
+    for (name, d) in &plant.config.devices {
+        let at = d.address.as_deref().or(d.serial_path.as_deref()).unwrap_or("-");
+        println!("field module {name}: {at} (unit {})", d.unit_id);
+    }
+    for (name, m) in &plant.config.nc_modules {
+        println!("NC axis module {name}: {}", m.address);
+    }
+    println!("simulated plant running; Ctrl-C stops.");
+    shutdown_on_signals().cancelled().await;
+    drop(plant);
+    Ok(())
+}
+
+#[tokio::main]
+async fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let command = cli.command.unwrap_or(Command::Demo);
+    let default_log = if matches!(command, Command::Demo) { "warn" } else { "info" };
+    init_tracing(cli.log.as_deref(), default_log);
+
+    let result = match command {
+        Command::Demo => demo().await,
+        Command::Run { config: path } => match config::load(&path) {
+            Ok(cfg) => run_gateway(&cfg).await,
+            Err(e) => Err(e.to_string()),
+        },
+        Command::Validate { config: path } => match config::load(&path) {
+            Ok(_) => {
+                println!("{}: OK", path.display());
+                Ok(())
+            }
+            Err(e) => Err(e.to_string()),
+        },
+        Command::Sim { config: path } => sim(&path).await,
+        Command::Bench {
+            channels,
+            cycles,
+            rounds,
+        } => match bench::run(channels, cycles, rounds).await {
+            Ok(report) => {
+                print!("{}", report.table());
+                Ok(())
+            }
+            Err(e) => Err(e.to_string()),
+        },
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}

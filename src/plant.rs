@@ -19,7 +19,7 @@ use compgate_plc::nc::{Motion, NcAxis, NcAxisModule};
 use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
 
-use crate::config::{Config, DataTypeCfg, ScalingConfig, SimProfileKind, Transport};
+use crate::config::{Config, Scaling, SimProfile, Transport};
 use crate::source::plan::{ByteOrder, DataType};
 
 /// Errors of the plant.
@@ -115,7 +115,7 @@ impl Plant {
         for (dev_name, dev) in &cfg.devices {
             let mut transmitters: Vec<TransmitterSpec> = Vec::new();
             for (ch_name, ch) in cfg.channels.iter().filter(|(_, c)| &c.device == dev_name) {
-                let ty: DataType = ch.data_type.into();
+                let ty: DataType = ch.data_type;
                 let idx = transmitter_index(ch.address, ty, ch.byte_order).ok_or_else(|| {
                     PlantError::Channel {
                         channel: ch_name.clone(),
@@ -126,21 +126,17 @@ impl Plant {
                     }
                 })?;
                 let (lo, hi) = match &ch.scaling {
-                    ScalingConfig::Transmitter {
-                        range_min_degc,
-                        range_max_degc,
-                        ..
-                    } => (*range_min_degc, *range_max_degc),
-                    ScalingConfig::Direct { .. } => (-50.0, 150.0),
+                    Scaling::Transmitter(t) => (t.range_min_degc, t.range_max_degc),
+                    Scaling::Direct(_) => (-50.0, 150.0),
                 };
-                let s = sim.channels.get(ch_name).cloned().unwrap_or_default();
+                let s = sim.channel(ch_name);
                 let profile = match s.profile {
-                    SimProfileKind::Constant => Profile::Constant { degc: s.mean_degc },
-                    SimProfileKind::Ramp => Profile::Ramp {
+                    SimProfile::Constant => Profile::Constant { degc: s.mean_degc },
+                    SimProfile::Ramp => Profile::Ramp {
                         start_degc: s.mean_degc,
                         rate_degc_per_s: s.rate_degc_per_s,
                     },
-                    SimProfileKind::Sine => Profile::Sine {
+                    SimProfile::Sine => Profile::Sine {
                         mean_degc: s.mean_degc,
                         amplitude_degc: s.amplitude_degc,
                         period_s: s.period_s,
@@ -161,18 +157,14 @@ impl Plant {
                 transmitters.push(TransmitterSpec::new(Profile::Constant { degc: 20.0 }, -50.0, 150.0));
             }
             let mut spec = FieldModuleSpec::new(transmitters, sim.seed ^ plant.field.len() as u64);
-            if let Some(ScalingConfig::Transmitter {
-                adc_full_scale_counts,
-                adc_full_scale_ma,
-                ..
-            }) = cfg
+            if let Some(Scaling::Transmitter(t)) = cfg
                 .channels
                 .values()
                 .find(|c| &c.device == dev_name)
                 .map(|c| &c.scaling)
             {
-                spec.adc_full_scale_counts = *adc_full_scale_counts as u16;
-                spec.adc_full_scale_ma = *adc_full_scale_ma;
+                spec.adc_full_scale_counts = u16::try_from(t.adc_full_scale_counts).unwrap_or(u16::MAX);
+                spec.adc_full_scale_ma = t.adc_full_scale_ma;
             }
             let module = FieldModule::new(spec).map_err(|e| PlantError::Io {
                 what: format!("devices.{dev_name}"),
@@ -228,7 +220,7 @@ impl Plant {
         }
 
         for (name, m) in &cfg.nc_modules {
-            let s = sim.nc_modules.get(name).cloned().unwrap_or_default();
+            let s = sim.nc_module(name);
             let axis = NcAxis {
                 md32750: s.md32750,
                 referenced: s.referenced,

@@ -243,56 +243,8 @@ impl ChannelConfig {
     }
 }
 
-/// Modbus register table.
-#[derive(Deserialize, Serialize, Debug, Clone, Copy, PartialEq, Eq, Hash)]
-#[serde(rename_all = "snake_case")]
-pub enum RegisterKind {
-    /// Input registers, read with function code 0x04.
-    Input,
-    /// Holding registers, read with function code 0x03.
-    Holding,
-}
-
-/// Encoding of a raw register value.
-#[derive(Deserialize, Serialize, Debug, Clone, Copy, PartialEq, Eq, Hash)]
-#[serde(rename_all = "snake_case")]
-pub enum DataType {
-    /// Unsigned 16 bit, one register.
-    U16,
-    /// Signed 16 bit (two's complement), one register.
-    I16,
-    /// Unsigned 32 bit, two registers.
-    U32,
-    /// Signed 32 bit, two registers.
-    I32,
-    /// IEEE 754 single precision, two registers.
-    F32,
-}
-
-impl DataType {
-    /// Number of 16-bit registers a value of this type occupies.
-    pub fn registers(self) -> u16 {
-        match self {
-            DataType::U16 | DataType::I16 => 1,
-            DataType::U32 | DataType::I32 | DataType::F32 => 2,
-        }
-    }
-}
-
-/// Byte order of a register value; A is the most significant byte.
-#[derive(Deserialize, Serialize, Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
-#[serde(rename_all = "UPPERCASE")]
-pub enum ByteOrder {
-    /// Big-endian (Modbus standard).
-    #[default]
-    Abcd,
-    /// Word swap: low word first, big-endian bytes in each word.
-    Cdab,
-    /// Byte swap: high word first, bytes swapped in each word.
-    Badc,
-    /// Little-endian.
-    Dcba,
-}
+// The wire encodings are the source layer's own types; the config names them.
+pub use crate::source::plan::{ByteOrder, DataType, RegisterKind};
 
 /// `[channels.NAME.scaling]`: raw value to degrees Celsius, selected by `kind`.
 #[derive(Deserialize, Serialize, Debug, Clone, PartialEq)]

@@ -195,18 +195,16 @@ impl ModbusNcWriter {
         job_id: u16,
         done: impl Fn(JobState) -> bool,
     ) -> Result<JobState, NcError> {
-        let mut last = None;
         loop {
             let s = self.state().await?;
             if done(s) {
                 return Ok(s);
             }
-            last = Some(s);
             if Instant::now() >= deadline {
                 return Err(NcError::JobTimeout {
                     job_id,
                     timeout: self.job_timeout,
-                    state: last,
+                    state: Some(s),
                 });
             }
             tokio::time::sleep(Duration::from_millis(2)).await;

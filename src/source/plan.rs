@@ -11,7 +11,7 @@ pub const MAX_READ_REGISTERS: u16 = 125;
 
 /// Which register table a channel lives in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+#[serde(rename_all = "snake_case")]
 pub enum RegisterKind {
     /// Input registers, function code 0x04 (read-only, the usual place for measurements).
     Input,
@@ -20,8 +20,8 @@ pub enum RegisterKind {
 }
 
 /// How a channel's registers encode its value.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum DataType {
     /// One register, unsigned.
     U16,
@@ -47,7 +47,7 @@ impl DataType {
 
 /// Byte order of a value, A = most significant byte. Registers are read in address
 /// order; inside each register the first byte on the wire is its high byte.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
 pub enum ByteOrder {
     /// Big-endian: register 0 holds A B, register 1 holds C D.
     #[default]
