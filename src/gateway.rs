@@ -57,6 +57,8 @@ pub struct DeviceStatus {
     pub errors: BTreeMap<&'static str, u64>,
     /// Duration of the last poll cycle.
     pub last_cycle: Duration,
+    /// Connections made to the device so far.
+    pub connects: u64,
 }
 
 /// What the gateway shows of one axis.
@@ -585,6 +587,7 @@ pub async fn run_built(built: Built, shutdown: CancellationToken, status_tx: wat
         samples: 0,
     };
 
+    status_tx.send_replace(status.clone());
     let (sample_tx, mut sample_rx) = mpsc::channel::<DeviceSample>(64);
     let mut tasks = tokio::task::JoinSet::new();
     for dev in devices {
@@ -620,6 +623,7 @@ pub async fn run_built(built: Built, shutdown: CancellationToken, status_tx: wat
                 let d = &mut status.devices[sample.device];
                 d.cycles += 1;
                 d.last_cycle = sample.elapsed;
+                d.connects = sample.connects;
                 match &sample.error {
                     Some(e) => {
                         d.failed_cycles += 1;

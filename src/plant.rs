@@ -113,7 +113,7 @@ impl Plant {
         // One field module per device, with a transmitter for every channel on it.
         let mut rtu_lines: BTreeMap<String, Vec<(u8, FieldModule)>> = BTreeMap::new();
         for (dev_name, dev) in &cfg.devices {
-            let mut transmitters: Vec<TransmitterSpec> = Vec::new();
+            let mut transmitters: Vec<Option<TransmitterSpec>> = Vec::new();
             for (ch_name, ch) in cfg.channels.iter().filter(|(_, c)| &c.device == dev_name) {
                 let ty: DataType = ch.data_type;
                 let idx = transmitter_index(ch.address, ty, ch.byte_order).ok_or_else(|| {
@@ -142,19 +142,25 @@ impl Plant {
                         period_s: s.period_s,
                     },
                 };
+                plant.transmitter.insert(ch_name.clone(), idx);
+                // Two channels may read one transmitter (counts and float view): the
+                // first one, or one with an explicit [sim] entry, sets its profile.
                 if transmitters.len() <= idx {
-                    transmitters.resize(
-                        idx + 1,
-                        TransmitterSpec::new(Profile::Constant { degc: 20.0 }, lo, hi),
-                    );
+                    transmitters.resize(idx + 1, None);
+                } else if transmitters[idx].is_some() && !sim.channels.contains_key(ch_name) {
+                    continue;
                 }
                 let mut t = TransmitterSpec::new(profile, lo, hi);
                 t.noise_degc = s.noise_degc;
-                transmitters[idx] = t;
-                plant.transmitter.insert(ch_name.clone(), idx);
+                transmitters[idx] = Some(t);
             }
+            let idle = || TransmitterSpec::new(Profile::Constant { degc: 20.0 }, -50.0, 150.0);
+            let mut transmitters: Vec<TransmitterSpec> = transmitters
+                .into_iter()
+                .map(|t| t.unwrap_or_else(idle))
+                .collect();
             if transmitters.is_empty() {
-                transmitters.push(TransmitterSpec::new(Profile::Constant { degc: 20.0 }, -50.0, 150.0));
+                transmitters.push(idle());
             }
             let mut spec = FieldModuleSpec::new(transmitters, sim.seed ^ plant.field.len() as u64);
             if let Some(Scaling::Transmitter(t)) = cfg

@@ -89,8 +89,14 @@ pub fn load_str_with_env(
                 .collect(),
         ))
         .build()
-        .and_then(|c| c.try_deserialize::<toml::Value>())
-        .map_err(|e| invalid(ConfigProblem::new(origin, "(file)", e.to_string())))?;
+        .and_then(|c| c.try_deserialize::<toml::Value>());
+    let layered = match layered {
+        Ok(tree) => tree,
+        Err(e) => {
+            problems.push(ConfigProblem::new(origin, "(file)", e.to_string()));
+            return Err(ConfigError::Invalid(problems));
+        }
+    };
 
     let structure = structural_pass(layered, origin, &overrides);
     problems.extend(structure.problems);
@@ -134,6 +140,11 @@ pub fn load_str_with_env(
     }
     match structure.config {
         Some(cfg) if problems.is_empty() => Ok(cfg),
+        None if problems.is_empty() => Err(invalid(ConfigProblem::new(
+            origin,
+            "(file)",
+            "the structure could not be read (no single key to blame)",
+        ))),
         _ => Err(ConfigError::Invalid(problems)),
     }
 }

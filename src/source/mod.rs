@@ -106,6 +106,8 @@ pub struct DeviceSample {
     pub values: Vec<(usize, Result<f64, Fault>)>,
     /// The first error of the cycle, if any.
     pub error: Option<SourceError>,
+    /// Connections the link has made so far (a rise means it reconnected).
+    pub connects: u64,
 }
 
 /// Polling parameters of one device.
@@ -250,7 +252,9 @@ impl DevicePoller {
                 .into_iter()
                 .map(|(ch, reason)| (ch, Err(Fault { reason, degraded }))),
         );
+        let connects = self.link.lock().await.connects();
         DeviceSample {
+            connects,
             device: self.index,
             started,
             elapsed: started.elapsed(),

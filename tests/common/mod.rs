@@ -39,7 +39,8 @@ impl Rig {
         loop {
             {
                 let s = self.status.borrow_and_update();
-                if pred(&s) {
+                // Status::default() until the gateway publishes its first status.
+                if !s.channels.is_empty() && pred(&s) {
                     return s.clone();
                 }
             }

@@ -322,6 +322,7 @@ fn env_override_changes_a_value() {
             ("COMPGATE__DEVICES__AIN1__TIMEOUT_S", "0.25"),
             ("COMPGATE__AXES__X__UPDATE_INTERVAL_S", "3"),
             ("COMPGATE__AXES__X__ON_BAD_INPUT", "hold"),
+            ("COMPGATE__DEVICES__AIN2__TIMEOUT_S", ""),
             ("UNRELATED", "1"),
             ("COMPGATE_SINGLE_UNDERSCORE", "1"),
         ]),
@@ -330,7 +331,7 @@ fn env_override_changes_a_value() {
     assert_eq!(cfg.devices["ain1"].timeout_s, 0.25);
     assert_eq!(cfg.axes["X"].update_interval_s, 3.0);
     assert_eq!(cfg.axes["X"].on_bad_input, OnBadInput::Hold);
-    assert_eq!(cfg.devices["ain2"].timeout_s, 0.3, "others untouched");
+    assert_eq!(cfg.devices["ain2"].timeout_s, 0.3, "empty counts as unset");
 }
 
 #[test]
