@@ -84,7 +84,11 @@ impl BenchReport {
                 side.percentile(99.0).as_secs_f64() * 1e6
             );
         }
-        let _ = writeln!(s, "\nratio gateway/bare: {:.3} (target >= 0.9)", self.ratio());
+        let _ = writeln!(
+            s,
+            "\nratio gateway/bare: {:.3} (target >= 0.9)",
+            self.ratio()
+        );
         s
     }
 }

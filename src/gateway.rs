@@ -363,8 +363,9 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
     let mut serial_links: BTreeMap<String, SharedLink> = BTreeMap::new();
     let mut devices = Vec::with_capacity(cfg.devices.len());
     for ((name, dev), specs) in cfg.devices.iter().zip(specs) {
-        let spec = link_spec(dev)
-            .ok_or_else(|| GatewayError::Config(format!("devices.{name}: address or serial_path missing")))?;
+        let spec = link_spec(dev).ok_or_else(|| {
+            GatewayError::Config(format!("devices.{name}: address or serial_path missing"))
+        })?;
         let new_link = || {
             Arc::new(Mutex::new(ModbusLink::new(
                 spec.clone(),
@@ -419,15 +420,19 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
     let mut axes = Vec::with_capacity(cfg.axes.len());
     for (name, ax) in &cfg.axes {
         let nc_module = *nc_index.get(ax.nc_module.as_str()).ok_or_else(|| {
-            GatewayError::Config(format!("axes.{name}.nc_module: no NC module {}", ax.nc_module))
+            GatewayError::Config(format!(
+                "axes.{name}.nc_module: no NC module {}",
+                ax.nc_module
+            ))
         })?;
         let (model, input_names) = model_rt(ax);
         let inputs = input_names
             .iter()
             .map(|n| {
-                channel_index.get(n.as_str()).copied().ok_or_else(|| {
-                    GatewayError::Config(format!("axes.{name}: no channel {n}"))
-                })
+                channel_index
+                    .get(n.as_str())
+                    .copied()
+                    .ok_or_else(|| GatewayError::Config(format!("axes.{name}: no channel {n}")))
             })
             .collect::<Result<Vec<_>, _>>()?;
         axes.push(AxisRt {
@@ -469,7 +474,11 @@ enum NcEvent {
     },
 }
 
-async fn device_task(mut dev: DeviceRt, tx: mpsc::Sender<DeviceSample>, shutdown: CancellationToken) {
+async fn device_task(
+    mut dev: DeviceRt,
+    tx: mpsc::Sender<DeviceSample>,
+    shutdown: CancellationToken,
+) {
     let mut tick = tokio::time::interval(dev.poll_interval);
     // A slow device must not burst-poll to catch up.
     tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
@@ -549,7 +558,11 @@ pub async fn run(
 }
 
 /// Runs already-built parts; see [`run`].
-pub async fn run_built(built: Built, shutdown: CancellationToken, status_tx: watch::Sender<Status>) {
+pub async fn run_built(
+    built: Built,
+    shutdown: CancellationToken,
+    status_tx: watch::Sender<Status>,
+) {
     let Built {
         mut pipeline,
         devices,
@@ -571,7 +584,12 @@ pub async fn run_built(built: Built, shutdown: CancellationToken, status_tx: wat
             .iter()
             .map(|d| DeviceStatus {
                 name: d.poller.name().to_string(),
-                link: d.poller.link().try_lock().map(|l| l.spec().to_string()).unwrap_or_default(),
+                link: d
+                    .poller
+                    .link()
+                    .try_lock()
+                    .map(|l| l.spec().to_string())
+                    .unwrap_or_default(),
                 ..DeviceStatus::default()
             })
             .collect(),
@@ -606,7 +624,11 @@ pub async fn run_built(built: Built, shutdown: CancellationToken, status_tx: wat
 
     // Per axis: next decision time, and whether a job is in flight (one at a time).
     let now = Instant::now();
-    let mut next_update: Vec<Instant> = pipeline.axes.iter().map(|a| now + a.update_interval).collect();
+    let mut next_update: Vec<Instant> = pipeline
+        .axes
+        .iter()
+        .map(|a| now + a.update_interval)
+        .collect();
     let mut in_flight = vec![false; pipeline.axes.len()];
     let mut baselined = vec![false; pipeline.axes.len()];
     let mut status_tick = tokio::time::interval(status_interval);

@@ -67,7 +67,8 @@ async fn run_gateway(cfg: &config::Config) -> Result<(), String> {
 }
 
 async fn demo() -> Result<(), String> {
-    let cfg = config::load_str(DEMO_CONFIG, "config/demo.toml (embedded)").map_err(|e| e.to_string())?;
+    let cfg =
+        config::load_str(DEMO_CONFIG, "config/demo.toml (embedded)").map_err(|e| e.to_string())?;
     let plant = Plant::start(&cfg, Bind::Ephemeral)
         .await
         .map_err(|e| e.to_string())?;
@@ -83,7 +84,11 @@ async fn sim(path: &std::path::Path) -> Result<(), String> {
         .await
         .map_err(|e| e.to_string())?;
     for (name, d) in &plant.config.devices {
-        let at = d.address.as_deref().or(d.serial_path.as_deref()).unwrap_or("-");
+        let at = d
+            .address
+            .as_deref()
+            .or(d.serial_path.as_deref())
+            .unwrap_or("-");
         println!("field module {name}: {at} (unit {})", d.unit_id);
     }
     for (name, m) in &plant.config.nc_modules {
@@ -99,7 +104,11 @@ async fn sim(path: &std::path::Path) -> Result<(), String> {
 async fn main() -> ExitCode {
     let cli = Cli::parse();
     let command = cli.command.unwrap_or(Command::Demo);
-    let default_log = if matches!(command, Command::Demo) { "warn" } else { "info" };
+    let default_log = if matches!(command, Command::Demo) {
+        "warn"
+    } else {
+        "info"
+    };
     init_tracing(cli.log.as_deref(), default_log);
 
     let result = match command {

@@ -87,7 +87,10 @@ fn transmitter_index(address: u16, ty: DataType, order: ByteOrder) -> Option<usi
         (DataType::F32, a) if a >= field::FLOAT_ABCD_BASE && order == ByteOrder::Abcd => {
             Some(usize::from((a - field::FLOAT_ABCD_BASE) / 2))
         }
-        (DataType::F32, a) if a >= field::FLOAT_CDAB_BASE && a < field::FLOAT_ABCD_BASE && order == ByteOrder::Cdab => {
+        (DataType::F32, a)
+            if (field::FLOAT_CDAB_BASE..field::FLOAT_ABCD_BASE).contains(&a)
+                && order == ByteOrder::Cdab =>
+        {
             Some(usize::from((a - field::FLOAT_CDAB_BASE) / 2))
         }
         _ => None,
@@ -169,7 +172,8 @@ impl Plant {
                 .find(|c| &c.device == dev_name)
                 .map(|c| &c.scaling)
             {
-                spec.adc_full_scale_counts = u16::try_from(t.adc_full_scale_counts).unwrap_or(u16::MAX);
+                spec.adc_full_scale_counts =
+                    u16::try_from(t.adc_full_scale_counts).unwrap_or(u16::MAX);
                 spec.adc_full_scale_ma = t.adc_full_scale_ma;
             }
             let module = FieldModule::new(spec).map_err(|e| PlantError::Io {
@@ -191,7 +195,10 @@ impl Plant {
                 }
                 Transport::Rtu => {
                     let path = dev.serial_path.clone().unwrap_or_default();
-                    rtu_lines.entry(path).or_default().push((dev.unit_id, module));
+                    rtu_lines
+                        .entry(path)
+                        .or_default()
+                        .push((dev.unit_id, module));
                 }
             }
         }
@@ -205,7 +212,10 @@ impl Plant {
                 Bind::Ephemeral => pty_path,
                 Bind::AsConfigured => {
                     let link = std::path::PathBuf::from(&path);
-                    if link.symlink_metadata().is_ok_and(|m| m.file_type().is_symlink()) {
+                    if link
+                        .symlink_metadata()
+                        .is_ok_and(|m| m.file_type().is_symlink())
+                    {
                         let _ = std::fs::remove_file(&link);
                     }
                     std::os::unix::fs::symlink(&pty_path, &link).map_err(|e| PlantError::Io {

@@ -30,7 +30,13 @@ pub fn render(s: &Status) -> String {
             .reading
             .value_degc
             .map_or_else(|| "-".to_string(), |v| format!("{v:.2}"));
-        let _ = write!(out, "{}={}degC[{}] ", c.name, v, quality_word(&c.reading.quality));
+        let _ = write!(
+            out,
+            "{}={}degC[{}] ",
+            c.name,
+            v,
+            quality_word(&c.reading.quality)
+        );
     }
     for a in &s.axes {
         let _ = write!(out, "| axis {}: ", a.name);
@@ -54,7 +60,13 @@ pub fn render(s: &Status) -> String {
             }
             None => out.push_str("NC comp=- "),
         }
-        let _ = write!(out, "jobs={}/{} ({})", a.jobs_ok, a.jobs_ok + a.jobs_failed, a.decision);
+        let _ = write!(
+            out,
+            "jobs={}/{} ({})",
+            a.jobs_ok,
+            a.jobs_ok + a.jobs_failed,
+            a.decision
+        );
         if let Some(w) = &a.warning {
             let _ = write!(out, " WARNING: {w}");
         }

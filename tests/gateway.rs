@@ -18,7 +18,10 @@ fn quality(s: &compgate::gateway::Status, ch: &str) -> Quality {
 }
 
 fn value(s: &compgate::gateway::Status, ch: &str) -> f64 {
-    Rig::channel(s, ch).reading.value_degc.expect("channel has a value")
+    Rig::channel(s, ch)
+        .reading
+        .value_degc
+        .expect("channel has a value")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -47,14 +50,26 @@ async fn full_chain_tcp_transmitters_to_applied_nc_compensation() {
     let k0 = 0.004 * (t_bed - 20.0);
     let tan = 0.0000115 * (t_screw - 20.0);
     let written = s.axes[0].written.expect("written");
-    assert!((nc.sd43900_mm - k0).abs() < 1e-12, "SD43900 {} vs {k0}", nc.sd43900_mm);
-    assert!((nc.sd43910 - tan).abs() < 1e-15, "SD43910 {} vs {tan}", nc.sd43910);
+    assert!(
+        (nc.sd43900_mm - k0).abs() < 1e-12,
+        "SD43900 {} vs {k0}",
+        nc.sd43900_mm
+    );
+    assert!(
+        (nc.sd43910 - tan).abs() < 1e-15,
+        "SD43910 {} vs {tan}",
+        nc.sd43910
+    );
     assert_eq!(nc.sd43920_mm, 100.0);
     assert_eq!(written.k0_mm.to_bits(), nc.sd43900_mm.to_bits());
 
     // The NC applies dKx = K0 + tan(beta) * (Px - P0) at Px = 500 mm, MD32750 = 3.
     let expect = k0 + tan * (500.0 - 100.0);
-    assert!((nc.applied_comp_mm - expect).abs() < 1e-12, "applied {} vs {expect}", nc.applied_comp_mm);
+    assert!(
+        (nc.applied_comp_mm - expect).abs() < 1e-12,
+        "applied {} vs {expect}",
+        nc.applied_comp_mm
+    );
     assert!((expect - 0.063).abs() < 0.001, "sanity: {expect}");
 
     // A temperature change reaches the NC.
@@ -67,7 +82,11 @@ async fn full_chain_tcp_transmitters_to_applied_nc_compensation() {
     })
     .await;
     let fin = rig.stop().await;
-    assert!(fin.axes[0].jobs_failed == 0, "{:?}", fin.axes[0].last_job_error);
+    assert!(
+        fin.axes[0].jobs_failed == 0,
+        "{:?}",
+        fin.axes[0].last_job_error
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -80,10 +99,15 @@ async fn full_chain_over_modbus_rtu_on_a_pty_pair() {
         .replace("connect_timeout_s = 0.5\n", "")
         .replace("unit_id = 1\ntimeout_s = 0.2", "unit_id = 9\ntimeout_s = 0.3");
     let mut rig = start(&toml).await;
-    let path = rig.plant.config.devices["ain1"].serial_path.clone().unwrap();
+    let path = rig.plant.config.devices["ain1"]
+        .serial_path
+        .clone()
+        .unwrap();
     assert!(path.starts_with("/dev/pts/"), "served on a pty: {path}");
     let s = rig
-        .wait_for(15.0, "a verified job from RTU readings", |s| s.axes[0].jobs_ok >= 1)
+        .wait_for(15.0, "a verified job from RTU readings", |s| {
+            s.axes[0].jobs_ok >= 1
+        })
         .await;
     assert!((value(&s, "T_bed") - 30.0).abs() <= COUNT_DEGC);
     assert!((value(&s, "T_col") - 60.0).abs() <= COUNT_DEGC);
@@ -95,7 +119,8 @@ async fn full_chain_over_modbus_rtu_on_a_pty_pair() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn timeout_holds_uncertain_then_bad_and_holds_compensation() {
     let mut rig = start(&config("hold", "", "")).await;
-    rig.wait_for(10.0, "first job", |s| s.axes[0].jobs_ok >= 1).await;
+    rig.wait_for(10.0, "first job", |s| s.axes[0].jobs_ok >= 1)
+        .await;
     let jobs_before = rig.plant.nc["nc_x"].jobs_executed();
     let sd_before = rig.plant.nc["nc_x"].state().sd43900_mm;
 
@@ -104,25 +129,43 @@ async fn timeout_holds_uncertain_then_bad_and_holds_compensation() {
     // Meanwhile the temperature moves: the gateway must not follow what it cannot read.
     field.set_temperature_override(0, Some(45.0)).unwrap();
     let s = rig
-        .wait_for(10.0, "channels bad after degrade_after_cycles timeouts", |s| {
-            quality(s, "T_bed") == Quality::Bad(Reason::DeviceDegraded)
-        })
+        .wait_for(
+            10.0,
+            "channels bad after degrade_after_cycles timeouts",
+            |s| quality(s, "T_bed") == Quality::Bad(Reason::DeviceDegraded),
+        )
         .await;
-    assert!(s.devices[0].errors.get("timeout").copied().unwrap_or(0) >= 3, "{:?}", s.devices[0].errors);
+    assert!(
+        s.devices[0].errors.get("timeout").copied().unwrap_or(0) >= 3,
+        "{:?}",
+        s.devices[0].errors
+    );
     // The held value is the last good one.
     assert!((value(&s, "T_bed") - 30.0).abs() <= COUNT_DEGC);
     let s = rig
-        .wait_for(5.0, "axis holds", |s| s.axes[0].decision.starts_with("hold: bad input"))
+        .wait_for(5.0, "axis holds", |s| {
+            s.axes[0].decision.starts_with("hold: bad input")
+        })
         .await;
-    assert!(s.axes[0].decision.contains("T_bed"), "{}", s.axes[0].decision);
+    assert!(
+        s.axes[0].decision.contains("T_bed"),
+        "{}",
+        s.axes[0].decision
+    );
     tokio::time::sleep(Duration::from_millis(300)).await;
-    assert_eq!(rig.plant.nc["nc_x"].jobs_executed(), jobs_before, "no job while inputs are bad");
+    assert_eq!(
+        rig.plant.nc["nc_x"].jobs_executed(),
+        jobs_before,
+        "no job while inputs are bad"
+    );
     assert_eq!(rig.plant.nc["nc_x"].state().sd43900_mm, sd_before);
 
     field.set_comm_fault(CommFault::None);
     rig.wait_for(10.0, "recovered and following 45 degC", |s| {
         quality(s, "T_bed") == Quality::Good
-            && s.axes[0].written.is_some_and(|p| (p.k0_mm - 0.1).abs() <= 0.004 * COUNT_DEGC)
+            && s.axes[0]
+                .written
+                .is_some_and(|p| (p.k0_mm - 0.1).abs() <= 0.004 * COUNT_DEGC)
     })
     .await;
     rig.stop().await;
@@ -131,7 +174,9 @@ async fn timeout_holds_uncertain_then_bad_and_holds_compensation() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn exception_is_not_a_transport_fault() {
     let mut rig = start(&config("hold", "", "")).await;
-    let s = rig.wait_for(10.0, "polling", |s| s.devices[0].cycles >= 3).await;
+    let s = rig
+        .wait_for(10.0, "polling", |s| s.devices[0].cycles >= 3)
+        .await;
     let connects = s.devices[0].connects;
     assert_eq!(connects, 1);
     let field = rig.plant.field["ain1"].clone();
@@ -142,10 +187,16 @@ async fn exception_is_not_a_transport_fault() {
                 && s.devices[0].errors.get("exception").copied().unwrap_or(0) >= 3
         })
         .await;
-    assert!(s.devices[0].last_error.as_deref().unwrap_or("").contains("0x06 server device busy"));
+    assert!(s.devices[0]
+        .last_error
+        .as_deref()
+        .unwrap_or("")
+        .contains("0x06 server device busy"));
     field.set_comm_fault(CommFault::None);
     let s = rig
-        .wait_for(10.0, "good again", |s| quality(s, "T_screw") == Quality::Good)
+        .wait_for(10.0, "good again", |s| {
+            quality(s, "T_screw") == Quality::Good
+        })
         .await;
     // The device answered every time: the connection was never rebuilt.
     assert_eq!(s.devices[0].connects, connects);
@@ -156,7 +207,8 @@ async fn exception_is_not_a_transport_fault() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn dropped_connection_reconnects_with_backoff() {
     let mut rig = start(&config("hold", "", "")).await;
-    rig.wait_for(10.0, "polling", |s| s.devices[0].cycles >= 3).await;
+    rig.wait_for(10.0, "polling", |s| s.devices[0].cycles >= 3)
+        .await;
     let field = rig.plant.field["ain1"].clone();
     field.set_comm_fault(CommFault::DropConnections);
     let s = rig
@@ -167,7 +219,10 @@ async fn dropped_connection_reconnects_with_backoff() {
                 && !quality(s, "T_bed").is_good()
         })
         .await;
-    assert_eq!(quality(&s, "T_bed").is_usable(), !matches!(quality(&s, "T_bed"), Quality::Bad(_)));
+    assert_eq!(
+        quality(&s, "T_bed").is_usable(),
+        !matches!(quality(&s, "T_bed"), Quality::Bad(_))
+    );
     field.set_comm_fault(CommFault::None);
     let s = rig
         .wait_for(10.0, "reconnected and good", |s| {
@@ -187,11 +242,17 @@ async fn late_reply_is_never_taken_for_the_next_answer() {
         "[channels.T_f32]\ndevice = \"ain1\"\nregister = \"input\"\naddress = 2004\ndata_type = \"f32\"\nbyte_order = \"ABCD\"\nscaling = { kind = \"direct\", gain = 1.0, offset_degc = 0.0 }\nfilter = { median_samples = 1, lowpass_tau_s = 0.0, max_rate_degc_per_s = 0.0, max_rejected_samples = 5, stale_after_s = 0.0, valid_min_degc = -20.0, valid_max_degc = 100.0 }\n\n[nc_modules.nc_x]",
     );
     let mut rig = start(&toml).await;
-    rig.wait_for(10.0, "polling", |s| s.devices[0].cycles >= 3).await;
+    rig.wait_for(10.0, "polling", |s| s.devices[0].cycles >= 3)
+        .await;
     let field = rig.plant.field["ain1"].clone();
     // Replies arrive 0.3 s late against a 0.2 s timeout.
     field.set_comm_fault(CommFault::Delay(Duration::from_millis(300)));
-    let truth = [("T_bed", 30.0), ("T_screw", 25.0), ("T_col", 60.0), ("T_f32", 60.0)];
+    let truth = [
+        ("T_bed", 30.0),
+        ("T_screw", 25.0),
+        ("T_col", 60.0),
+        ("T_f32", 60.0),
+    ];
     let deadline = tokio::time::Instant::now() + Duration::from_secs(2);
     let mut timeouts_seen = false;
     while tokio::time::Instant::now() < deadline {
@@ -201,14 +262,19 @@ async fn late_reply_is_never_taken_for_the_next_answer() {
         for (ch, t) in truth {
             let r = &Rig::channel(&s, ch).reading;
             if let Some(v) = r.unfiltered_degc.filter(|_| r.quality.is_good()) {
-                assert!((v - t).abs() <= 2.0 * COUNT_DEGC, "{ch} read {v}, truth {t}");
+                assert!(
+                    (v - t).abs() <= 2.0 * COUNT_DEGC,
+                    "{ch} read {v}, truth {t}"
+                );
             }
         }
     }
     assert!(timeouts_seen);
     field.set_comm_fault(CommFault::None);
     let s = rig
-        .wait_for(10.0, "all good again", |s| truth.iter().all(|(c, _)| quality(s, c) == Quality::Good))
+        .wait_for(10.0, "all good again", |s| {
+            truth.iter().all(|(c, _)| quality(s, c) == Quality::Good)
+        })
         .await;
     for (ch, t) in truth {
         assert!((value(&s, ch) - t).abs() <= 2.0 * COUNT_DEGC, "{ch}");
@@ -219,27 +285,38 @@ async fn late_reply_is_never_taken_for_the_next_answer() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn ne43_open_sensor_makes_channel_bad_and_ramps_to_zero() {
     let mut rig = start(&config("ramp_to_zero", "", "")).await;
-    rig.wait_for(10.0, "first job", |s| s.axes[0].jobs_ok >= 1).await;
+    rig.wait_for(10.0, "first job", |s| s.axes[0].jobs_ok >= 1)
+        .await;
     let field = rig.plant.field["ain1"].clone();
     field.set_sensor_fault(0, SensorFault::Open).unwrap();
     let s = rig
-        .wait_for(5.0, "NE43 low", |s| quality(s, "T_bed") == Quality::Bad(Reason::Ne43Low))
+        .wait_for(5.0, "NE43 low", |s| {
+            quality(s, "T_bed") == Quality::Bad(Reason::Ne43Low)
+        })
         .await;
     assert!(Rig::channel(&s, "T_bed").reading.current_ma.unwrap() < 3.6);
     // Ramp policy: K0 and tan(beta) go to zero at the configured rate, P0 stays.
     let s = rig
         .wait_for(10.0, "ramped to zero", |s| {
-            s.axes[0].written.is_some_and(|p| p.k0_mm == 0.0 && p.tan_beta == 0.0)
+            s.axes[0]
+                .written
+                .is_some_and(|p| p.k0_mm == 0.0 && p.tan_beta == 0.0)
         })
         .await;
-    assert!(s.axes[0].decision.contains("T_bed"), "{}", s.axes[0].decision);
+    assert!(
+        s.axes[0].decision.contains("T_bed"),
+        "{}",
+        s.axes[0].decision
+    );
     assert_eq!(rig.plant.nc["nc_x"].state().sd43900_mm, 0.0);
     assert_eq!(rig.plant.nc["nc_x"].state().sd43920_mm, 100.0);
     // The unaffected channel stays good.
     assert_eq!(quality(&s, "T_screw"), Quality::Good);
     field.set_sensor_fault(0, SensorFault::None).unwrap();
     rig.wait_for(10.0, "compensation back", |s| {
-        s.axes[0].written.is_some_and(|p| (p.k0_mm - 0.04).abs() <= 0.004 * COUNT_DEGC)
+        s.axes[0]
+            .written
+            .is_some_and(|p| (p.k0_mm - 0.04).abs() <= 0.004 * COUNT_DEGC)
     })
     .await;
     rig.stop().await;
@@ -252,16 +329,21 @@ async fn stale_sensor_is_detected() {
     // Noise keeps healthy counts moving, as on a real ADC.
     toml = toml.replace("mean_degc = 30.0", "mean_degc = 30.0\nnoise_degc = 0.5");
     let mut rig = start(&toml).await;
-    rig.wait_for(10.0, "first job", |s| s.axes[0].jobs_ok >= 1).await;
+    rig.wait_for(10.0, "first job", |s| s.axes[0].jobs_ok >= 1)
+        .await;
     let field = rig.plant.field["ain1"].clone();
     field.set_sensor_fault(0, SensorFault::Frozen).unwrap();
     let s = rig
-        .wait_for(5.0, "stale", |s| quality(s, "T_bed") == Quality::Bad(Reason::Stale))
+        .wait_for(5.0, "stale", |s| {
+            quality(s, "T_bed") == Quality::Bad(Reason::Stale)
+        })
         .await;
     assert!(s.axes[0].decision.starts_with("hold") || s.axes[0].decision.starts_with("within"));
-    rig.wait_for(5.0, "axis holds", |s| s.axes[0].decision.contains("T_bed")).await;
+    rig.wait_for(5.0, "axis holds", |s| s.axes[0].decision.contains("T_bed"))
+        .await;
     field.set_sensor_fault(0, SensorFault::None).unwrap();
-    rig.wait_for(5.0, "fresh again", |s| quality(s, "T_bed").is_usable()).await;
+    rig.wait_for(5.0, "fresh again", |s| quality(s, "T_bed").is_usable())
+        .await;
     rig.stop().await;
 }
 
@@ -284,14 +366,19 @@ async fn rejected_nc_job_is_reported_retried_and_not_confirmed() {
     nc.set_job_fault(JobFault::NeverFinish);
     let s = rig
         .wait_for(10.0, "job timeout", |s| {
-            s.axes[0].last_job_error.as_deref().is_some_and(|e| e.contains("did not finish"))
+            s.axes[0]
+                .last_job_error
+                .as_deref()
+                .is_some_and(|e| e.contains("did not finish"))
         })
         .await;
     assert_eq!(s.axes[0].jobs_ok, 0);
 
     nc.set_job_fault(JobFault::None);
     let s = rig
-        .wait_for(10.0, "job accepted once the NC allows it", |s| s.axes[0].jobs_ok >= 1)
+        .wait_for(10.0, "job accepted once the NC allows it", |s| {
+            s.axes[0].jobs_ok >= 1
+        })
         .await;
     assert!((nc.state().sd43900_mm - s.axes[0].written.unwrap().k0_mm).abs() < 1e-15);
     rig.stop().await;
@@ -304,10 +391,15 @@ async fn one_dead_device_does_not_stop_the_other() {
         "[devices.ain2]\ntransport = \"tcp\"\naddress = \"127.0.0.1:0\"\nunit_id = 1\ntimeout_s = 0.2\npoll_interval_s = 0.05\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.2\n\n[channels.T_col]\ndevice = \"ain2\"",
     );
     let mut rig = start(&toml).await;
-    rig.wait_for(10.0, "both polling", |s| s.devices.iter().all(|d| d.cycles >= 2)).await;
+    rig.wait_for(10.0, "both polling", |s| {
+        s.devices.iter().all(|d| d.cycles >= 2)
+    })
+    .await;
     rig.plant.field["ain2"].set_comm_fault(CommFault::Silent);
     let s = rig
-        .wait_for(10.0, "ain2 degraded", |s| quality(s, "T_col") == Quality::Bad(Reason::DeviceDegraded))
+        .wait_for(10.0, "ain2 degraded", |s| {
+            quality(s, "T_col") == Quality::Bad(Reason::DeviceDegraded)
+        })
         .await;
     let ain1_cycles = s.devices.iter().find(|d| d.name == "ain1").unwrap().cycles;
     let s = rig
@@ -318,7 +410,10 @@ async fn one_dead_device_does_not_stop_the_other() {
     assert_eq!(quality(&s, "T_bed"), Quality::Good);
     // The axis uses only ain1's channels: it keeps writing.
     let jobs = s.axes[0].jobs_ok;
-    rig.plant.field["ain1"].set_temperature_override(0, Some(33.0)).unwrap();
-    rig.wait_for(5.0, "a new job despite ain2", |s| s.axes[0].jobs_ok > jobs).await;
+    rig.plant.field["ain1"]
+        .set_temperature_override(0, Some(33.0))
+        .unwrap();
+    rig.wait_for(5.0, "a new job despite ain2", |s| s.axes[0].jobs_ok > jobs)
+        .await;
     rig.stop().await;
 }

@@ -167,19 +167,41 @@ mod tests {
             (ByteOrder::Dcba, [0x79E9, 0xF642]),
         ];
         for (order, regs) in cases {
-            assert_eq!(decode(&regs, DataType::F32, order), Some(f64::from(v)), "{order:?}");
+            assert_eq!(
+                decode(&regs, DataType::F32, order),
+                Some(f64::from(v)),
+                "{order:?}"
+            );
         }
     }
 
     #[test]
     fn decodes_integers_with_sign_and_order() {
-        assert_eq!(decode(&[0xFFFF], DataType::I16, ByteOrder::Abcd), Some(-1.0));
-        assert_eq!(decode(&[0xFFFF], DataType::U16, ByteOrder::Abcd), Some(65535.0));
+        assert_eq!(
+            decode(&[0xFFFF], DataType::I16, ByteOrder::Abcd),
+            Some(-1.0)
+        );
+        assert_eq!(
+            decode(&[0xFFFF], DataType::U16, ByteOrder::Abcd),
+            Some(65535.0)
+        );
         assert_eq!(decode(&[0x0100], DataType::U16, ByteOrder::Badc), Some(1.0));
-        assert_eq!(decode(&[0x0001, 0x0000], DataType::U32, ByteOrder::Abcd), Some(65536.0));
-        assert_eq!(decode(&[0x0000, 0x0001], DataType::U32, ByteOrder::Cdab), Some(65536.0));
-        assert_eq!(decode(&[0xFFFF, 0xFFFE], DataType::I32, ByteOrder::Abcd), Some(-2.0));
-        assert_eq!(decode(&[0xFEFF, 0xFFFF], DataType::I32, ByteOrder::Dcba), Some(-2.0));
+        assert_eq!(
+            decode(&[0x0001, 0x0000], DataType::U32, ByteOrder::Abcd),
+            Some(65536.0)
+        );
+        assert_eq!(
+            decode(&[0x0000, 0x0001], DataType::U32, ByteOrder::Cdab),
+            Some(65536.0)
+        );
+        assert_eq!(
+            decode(&[0xFFFF, 0xFFFE], DataType::I32, ByteOrder::Abcd),
+            Some(-2.0)
+        );
+        assert_eq!(
+            decode(&[0xFEFF, 0xFFFF], DataType::I32, ByteOrder::Dcba),
+            Some(-2.0)
+        );
         assert_eq!(decode(&[1, 2], DataType::U16, ByteOrder::Abcd), None);
     }
 
@@ -196,9 +218,15 @@ mod tests {
         let blocks = plan(&slots, 4);
         assert_eq!(blocks.len(), 3);
         assert_eq!((blocks[0].start, blocks[0].count), (0, 7));
-        assert_eq!(blocks[0].members.iter().map(|m| m.1).collect::<Vec<_>>(), [0, 1, 5]);
+        assert_eq!(
+            blocks[0].members.iter().map(|m| m.1).collect::<Vec<_>>(),
+            [0, 1, 5]
+        );
         assert_eq!((blocks[1].start, blocks[1].count), (20, 1));
-        assert_eq!((blocks[2].kind, blocks[2].start), (Input, 1).max((Holding, 1)));
+        assert_eq!(
+            (blocks[2].kind, blocks[2].start),
+            (Input, 1).max((Holding, 1))
+        );
     }
 
     #[test]
@@ -207,7 +235,10 @@ mod tests {
             .map(|i| slot(i, RegisterKind::Input, i as u16, 1))
             .collect();
         let blocks = plan(&slots, 0);
-        assert_eq!(blocks.iter().map(|b| b.count).collect::<Vec<_>>(), [125, 125, 50]);
+        assert_eq!(
+            blocks.iter().map(|b| b.count).collect::<Vec<_>>(),
+            [125, 125, 50]
+        );
         assert_eq!(blocks.iter().map(|b| b.members.len()).sum::<usize>(), 300);
     }
 

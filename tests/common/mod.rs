@@ -34,7 +34,12 @@ impl Rig {
 
     /// Waits until `pred` holds for the published status; panics with the last status
     /// and `what` after `secs`.
-    pub async fn wait_for(&mut self, secs: f64, what: &str, pred: impl Fn(&Status) -> bool) -> Status {
+    pub async fn wait_for(
+        &mut self,
+        secs: f64,
+        what: &str,
+        pred: impl Fn(&Status) -> bool,
+    ) -> Status {
         let deadline = tokio::time::Instant::now() + Duration::from_secs_f64(secs);
         loop {
             {
@@ -44,7 +49,10 @@ impl Rig {
                     return s.clone();
                 }
             }
-            if tokio::time::timeout_at(deadline, self.status.changed()).await.is_err() {
+            if tokio::time::timeout_at(deadline, self.status.changed())
+                .await
+                .is_err()
+            {
                 panic!(
                     "timed out after {secs} s waiting for: {what}\nlast status: {}",
                     compgate::status::render(&self.status.borrow())
@@ -54,7 +62,10 @@ impl Rig {
     }
 
     pub fn channel<'a>(s: &'a Status, name: &str) -> &'a gateway::ChannelStatus {
-        s.channels.iter().find(|c| c.name == name).expect("channel exists")
+        s.channels
+            .iter()
+            .find(|c| c.name == name)
+            .expect("channel exists")
     }
 }
 
@@ -67,7 +78,9 @@ impl Drop for Rig {
 /// Starts the simulated plant for `toml` and the gateway against it.
 pub async fn start(toml: &str) -> Rig {
     let cfg = config::load_str(toml, "test.toml").expect("test config is valid");
-    let plant = Plant::start(&cfg, Bind::Ephemeral).await.expect("plant starts");
+    let plant = Plant::start(&cfg, Bind::Ephemeral)
+        .await
+        .expect("plant starts");
     let (tx, rx) = watch::channel(Status::default());
     let shutdown = CancellationToken::new();
     let cfg = plant.config.clone();
