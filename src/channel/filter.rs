@@ -7,6 +7,7 @@ use std::collections::VecDeque;
 pub struct MedianWindow {
     len: usize,
     values_degc: VecDeque<f64>,
+    scratch: Vec<f64>,
 }
 
 impl MedianWindow {
@@ -16,6 +17,7 @@ impl MedianWindow {
         Self {
             len,
             values_degc: VecDeque::with_capacity(len),
+            scratch: Vec::with_capacity(len),
         }
     }
 
@@ -25,7 +27,11 @@ impl MedianWindow {
             self.values_degc.pop_front();
         }
         self.values_degc.push_back(value_degc);
-        self.median().unwrap_or(value_degc)
+        // Runs for every channel every cycle: sort in a kept buffer, no allocation.
+        self.scratch.clear();
+        self.scratch.extend(self.values_degc.iter().copied());
+        self.scratch.sort_unstable_by(f64::total_cmp);
+        median_of_sorted(&self.scratch).unwrap_or(value_degc)
     }
 
     /// The median of the window: the middle value, or the mean of the two middle
@@ -33,16 +39,12 @@ impl MedianWindow {
     pub fn median(&self) -> Option<f64> {
         let mut sorted: Vec<f64> = self.values_degc.iter().copied().collect();
         sorted.sort_by(f64::total_cmp);
-        let n = sorted.len();
-        match n {
-            0 => None,
-            _ if n % 2 == 1 => Some(sorted[n / 2]),
-            _ => Some((sorted[n / 2 - 1] + sorted[n / 2]) / 2.0),
-        }
+        median_of_sorted(&sorted)
     }
 
     /// Forgets every sample.
     pub fn clear(&mut self) {
+        self.scratch.clear();
         self.values_degc.clear();
     }
 
@@ -182,5 +184,14 @@ mod tests {
         lp.clear();
         assert_eq!(lp.output_degc(), None);
         assert_eq!(lp.update(6.0, 7.0), 7.0);
+    }
+}
+
+fn median_of_sorted(sorted: &[f64]) -> Option<f64> {
+    let n = sorted.len();
+    match n {
+        0 => None,
+        _ if n % 2 == 1 => Some(sorted[n / 2]),
+        _ => Some((sorted[n / 2 - 1] + sorted[n / 2]) / 2.0),
     }
 }
