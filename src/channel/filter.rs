@@ -3,11 +3,17 @@
 use std::collections::VecDeque;
 
 /// Median of the last up-to-N accepted samples (fewer while the window fills).
+///
+/// Runs for every channel on every poll, so it keeps the window sorted as it goes
+/// (remove the oldest, insert the newest, both by binary search) instead of sorting a
+/// copy each time.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MedianWindow {
     len: usize,
+    /// Arrival order, oldest first.
     values_degc: VecDeque<f64>,
-    scratch: Vec<f64>,
+    /// The same values in `f64::total_cmp` order.
+    sorted_degc: Vec<f64>,
 }
 
 impl MedianWindow {
@@ -17,35 +23,44 @@ impl MedianWindow {
         Self {
             len,
             values_degc: VecDeque::with_capacity(len),
-            scratch: Vec::with_capacity(len),
+            sorted_degc: Vec::with_capacity(len),
         }
     }
 
     /// Adds a sample, dropping the oldest when full, and returns the median.
     pub fn push(&mut self, value_degc: f64) -> f64 {
         if self.values_degc.len() == self.len {
-            self.values_degc.pop_front();
+            if let Some(old) = self.values_degc.pop_front() {
+                let at = self
+                    .sorted_degc
+                    .partition_point(|v| v.total_cmp(&old).is_lt());
+                self.sorted_degc.remove(at);
+            }
         }
         self.values_degc.push_back(value_degc);
-        // Runs for every channel every cycle: sort in a kept buffer, no allocation.
-        self.scratch.clear();
-        self.scratch.extend(self.values_degc.iter().copied());
-        self.scratch.sort_unstable_by(f64::total_cmp);
-        median_of_sorted(&self.scratch).unwrap_or(value_degc)
+        let at = self
+            .sorted_degc
+            .partition_point(|v| v.total_cmp(&value_degc).is_le());
+        self.sorted_degc.insert(at, value_degc);
+        self.median().unwrap_or(value_degc)
     }
 
     /// The median of the window: the middle value, or the mean of the two middle
     /// values for an even count. `None` when empty.
     pub fn median(&self) -> Option<f64> {
-        let mut sorted: Vec<f64> = self.values_degc.iter().copied().collect();
-        sorted.sort_by(f64::total_cmp);
-        median_of_sorted(&sorted)
+        let s = &self.sorted_degc;
+        let n = s.len();
+        match n {
+            0 => None,
+            _ if n % 2 == 1 => Some(s[n / 2]),
+            _ => Some((s[n / 2 - 1] + s[n / 2]) / 2.0),
+        }
     }
 
     /// Forgets every sample.
     pub fn clear(&mut self) {
-        self.scratch.clear();
         self.values_degc.clear();
+        self.sorted_degc.clear();
     }
 
     /// Samples in the window.
@@ -133,6 +148,35 @@ mod tests {
     }
 
     #[test]
+    fn incremental_median_matches_sorting_the_window() {
+        // Deterministic LCG; coarse values so duplicates occur.
+        let mut x: u64 = 12345;
+        for len in [1, 2, 3, 5, 8] {
+            let mut w = MedianWindow::new(len);
+            let mut window: Vec<f64> = Vec::new();
+            for _ in 0..500 {
+                x = x
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                let v = ((x >> 33) % 17) as f64 * 0.5 - 4.0;
+                window.push(v);
+                if window.len() > len {
+                    window.remove(0);
+                }
+                let mut sorted = window.clone();
+                sorted.sort_by(f64::total_cmp);
+                let n = sorted.len();
+                let expect = if n % 2 == 1 {
+                    sorted[n / 2]
+                } else {
+                    (sorted[n / 2 - 1] + sorted[n / 2]) / 2.0
+                };
+                assert_eq!(w.push(v), expect, "len {len} window {window:?}");
+            }
+        }
+    }
+
+    #[test]
     fn median_of_one_is_off() {
         for len in [0, 1] {
             let mut m = MedianWindow::new(len);
@@ -184,14 +228,5 @@ mod tests {
         lp.clear();
         assert_eq!(lp.output_degc(), None);
         assert_eq!(lp.update(6.0, 7.0), 7.0);
-    }
-}
-
-fn median_of_sorted(sorted: &[f64]) -> Option<f64> {
-    let n = sorted.len();
-    match n {
-        0 => None,
-        _ if n % 2 == 1 => Some(sorted[n / 2]),
-        _ => Some((sorted[n / 2 - 1] + sorted[n / 2]) / 2.0),
     }
 }
