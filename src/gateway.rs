@@ -742,14 +742,3 @@ pub async fn run_built(
     status_tx.send_replace(status);
     tracing::info!("gateway stopped");
 }
-
-/// Builds the config's gateway with `config::load` and runs it; the service path.
-pub async fn run_file(
-    path: &std::path::Path,
-    shutdown: CancellationToken,
-    status: watch::Sender<Status>,
-) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
-    let cfg = config::load(path)?;
-    run(&cfg, shutdown, status).await?;
-    Ok(())
-}

@@ -417,3 +417,42 @@ async fn one_dead_device_does_not_stop_the_other() {
         .await;
     rig.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn md32750_mismatch_and_unreferenced_axis_are_shown() {
+    let toml = config("hold", "", "").replace(
+        "referenced = true\nmd32750 = 3",
+        "referenced = false\nmd32750 = 1",
+    );
+    let mut rig = start(&toml).await;
+    let s = rig
+        .wait_for(10.0, "a warning about the NC", |s| {
+            s.axes[0].warning.is_some()
+        })
+        .await;
+    let w = s.axes[0].warning.clone().unwrap();
+    assert!(
+        w.contains("MD32750 is 1 on the NC, the config expects 3"),
+        "{w}"
+    );
+    // The settings are still written; the NC applies nothing until referenced.
+    let s = rig
+        .wait_for(10.0, "a job", |s| s.axes[0].jobs_ok >= 1)
+        .await;
+    assert_eq!(s.axes[0].nc.map(|nc| nc.applied_comp_mm), Some(0.0));
+    rig.plant.nc["nc_x"].with_state(|a| {
+        a.md32750 = 3;
+        a.referenced = true;
+    });
+    let s = rig
+        .wait_for(10.0, "warnings clear once the NC is right", |s| {
+            s.axes[0].warning.is_none() && s.axes[0].nc.is_some_and(|nc| nc.applied_comp_mm > 0.0)
+        })
+        .await;
+    assert!(render_has_no_warning(&s));
+    rig.stop().await;
+}
+
+fn render_has_no_warning(s: &compgate::gateway::Status) -> bool {
+    !compgate::status::render(s).contains("WARNING")
+}
