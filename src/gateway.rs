@@ -634,6 +634,7 @@ pub async fn run_built(
     let mut status_tick = tokio::time::interval(status_interval);
     status_tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
     let far = now + Duration::from_secs(86_400 * 365);
+    let mut events_open = true;
 
     loop {
         let next = next_update.iter().copied().min().unwrap_or(far);
@@ -661,8 +662,12 @@ pub async fn run_built(
                     cs.reading = p.last().clone();
                 }
             }
-            event = event_rx.recv() => {
-                let Some(event) = event else { continue };
+            event = event_rx.recv(), if events_open => {
+                // No NC modules (a monitoring-only config): the channel closes at once.
+                let Some(event) = event else {
+                    events_open = false;
+                    continue;
+                };
                 match event {
                     NcEvent::Snapshot { module, result } => {
                         for (i, axis) in pipeline.axes.iter_mut().enumerate() {

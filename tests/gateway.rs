@@ -456,3 +456,18 @@ async fn md32750_mismatch_and_unreferenced_axis_are_shown() {
 fn render_has_no_warning(s: &compgate::gateway::Status) -> bool {
     !compgate::status::render(s).contains("WARNING")
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn monitoring_only_config_without_axes_runs_and_stops() {
+    let full = config("hold", "", "");
+    let cut = full.find("[nc_modules.nc_x]").unwrap();
+    let toml = format!("{}\n[nc_modules]\n[axes]\n", &full[..cut]);
+    let mut rig = start(&toml).await;
+    let s = rig
+        .wait_for(10.0, "readings without any axis", |s| {
+            s.samples >= 5 && quality(s, "T_bed") == Quality::Good
+        })
+        .await;
+    assert!(s.axes.is_empty());
+    rig.stop().await;
+}
