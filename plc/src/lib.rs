@@ -21,7 +21,10 @@
 //!   MD32750 bits, MD32760 rate limit, referencing, motion) and its Modbus TCP server
 //!   ([`nc::NcAxisModule`]) implementing the FB3 REQ/DONE/ERROR/STATE handshake and
 //!   running the interpolation loop, with job fault injection.
+//! - [`axis`]: full-closed-loop feed axis (motor encoder and linear scale, backlash,
+//!   drive-train elasticity, noise), move programmes and the two-channel servo trace.
 
+pub mod axis;
 pub mod field;
 pub mod nc;
 pub mod ncmap;
