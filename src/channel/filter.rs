@@ -1,17 +1,16 @@
 //! The filter stages: median window (spike rejection) and first-order low pass.
 
-use std::collections::VecDeque;
-
 /// Median of the last up-to-N accepted samples (fewer while the window fills).
 ///
-/// Runs for every channel on every poll, so it keeps the window sorted as it goes
-/// (remove the oldest, insert the newest, both by binary search) instead of sorting a
-/// copy each time.
+/// Runs for every channel on every poll, so it keeps a sorted copy of the window and
+/// updates it in one pass: the oldest value is overwritten by the newest in place and
+/// moved to its rank. No allocation after construction.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MedianWindow {
     len: usize,
-    /// Arrival order, oldest first.
-    values_degc: VecDeque<f64>,
+    /// Ring of samples in arrival order; `next` is where the next one goes.
+    ring_degc: Vec<f64>,
+    next: usize,
     /// The same values in `f64::total_cmp` order.
     sorted_degc: Vec<f64>,
 }
@@ -22,26 +21,39 @@ impl MedianWindow {
         let len = len.max(1);
         Self {
             len,
-            values_degc: VecDeque::with_capacity(len),
+            ring_degc: Vec::with_capacity(len),
+            next: 0,
             sorted_degc: Vec::with_capacity(len),
         }
     }
 
     /// Adds a sample, dropping the oldest when full, and returns the median.
     pub fn push(&mut self, value_degc: f64) -> f64 {
-        if self.values_degc.len() == self.len {
-            if let Some(old) = self.values_degc.pop_front() {
-                let at = self
-                    .sorted_degc
-                    .partition_point(|v| v.total_cmp(&old).is_lt());
-                self.sorted_degc.remove(at);
-            }
+        let s = &mut self.sorted_degc;
+        let mut i = if self.ring_degc.len() < self.len {
+            self.ring_degc.push(value_degc);
+            s.push(value_degc);
+            s.len() - 1
+        } else {
+            let old = std::mem::replace(&mut self.ring_degc[self.next], value_degc);
+            self.next = (self.next + 1) % self.len;
+            // `old` is in `s` bit for bit: overwrite it in place.
+            let at = s
+                .iter()
+                .position(|v| v.to_bits() == old.to_bits())
+                .unwrap_or(0);
+            s[at] = value_degc;
+            at
+        };
+        // One of the two loops moves the new value to its rank.
+        while i > 0 && s[i - 1].total_cmp(&s[i]).is_gt() {
+            s.swap(i - 1, i);
+            i -= 1;
         }
-        self.values_degc.push_back(value_degc);
-        let at = self
-            .sorted_degc
-            .partition_point(|v| v.total_cmp(&value_degc).is_le());
-        self.sorted_degc.insert(at, value_degc);
+        while i + 1 < s.len() && s[i].total_cmp(&s[i + 1]).is_gt() {
+            s.swap(i, i + 1);
+            i += 1;
+        }
         self.median().unwrap_or(value_degc)
     }
 
@@ -59,13 +71,14 @@ impl MedianWindow {
 
     /// Forgets every sample.
     pub fn clear(&mut self) {
-        self.values_degc.clear();
+        self.ring_degc.clear();
         self.sorted_degc.clear();
+        self.next = 0;
     }
 
     /// Samples in the window.
     pub fn count(&self) -> usize {
-        self.values_degc.len()
+        self.ring_degc.len()
     }
 }
 
