@@ -489,6 +489,12 @@ impl ServoSim {
         }
     }
 
+    /// Records a refused arm command decoded outside (e.g. an unknown trigger code).
+    pub fn refuse_trace(&mut self, refusal: SimRefusal) {
+        self.trace_status = refusal as u16;
+        self.trace_state = TraceState::Idle;
+    }
+
     /// Stops the trace; samples recorded so far stay readable.
     pub fn stop_trace(&mut self) {
         if self.trace_state != TraceState::Complete {

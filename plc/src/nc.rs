@@ -9,7 +9,11 @@
 //!
 //! [`NcAxisModule`] serves that state over Modbus TCP with exactly the register map and
 //! REQ/DONE/ERROR/STATE handshake of [`crate::ncmap`], and runs the interpolation loop
-//! in tokio time while it serves.
+//! in tokio time while it serves. Behind the servo block of the map it also holds a
+//! full-closed-loop axis ([`crate::axis::ServoSim`]) that runs move programmes and the
+//! servo trace, advanced on each request by the tokio time elapsed times the
+//! simulation speed ([`NcAxisModule::set_sim_speed`]). Once a programme has run,
+//! `RB_POSITION` shows that axis's scale position (unless the axis oscillates).
 //!
 //! Handshake details beyond the map's doc, as the module implements them:
 //! - A rising edge is a write of a non-zero `REQ` while the stored `REQ` is 0 and
@@ -35,6 +39,7 @@ use tokio_modbus::server::Service;
 use tokio_modbus::{ExceptionCode, Request, Response};
 use tokio_util::sync::CancellationToken;
 
+use crate::axis::{AxisParams, MoveStep, ServoSim, SimRefusal, TraceConfig, Trigger};
 use crate::ncmap::{self, var, JobState, JobStatus};
 
 /// The NC's own sanity limit on |SD43900|, mm.
@@ -327,9 +332,179 @@ struct ModuleState {
     job_fault: JobFault,
     jobs_executed: u64,
     jobs_refused: u64,
+    /// The full-closed-loop axis behind the servo block.
+    servo: ServoSim,
+    /// Writable registers of the servo block as last written (SERVO..+SERVO_LEN).
+    servo_regs: Vec<u16>,
+    /// Machine seconds per tokio second.
+    sim_speed: f64,
+    /// When the servo simulation was last advanced; `None` before the first request.
+    servo_clock: Option<Instant>,
+    /// Machine time owed to the simulation but less than one servo cycle, s.
+    servo_carry_s: f64,
+    /// Set once a move programme ran: `RB_POSITION` then shows the scale position.
+    servo_drives_position: bool,
 }
 
+/// Most servo cycles one request advances (guards a huge simulation speed).
+const MAX_CYCLES_PER_ADVANCE: f64 = 5_000_000.0;
+
 impl ModuleState {
+    /// Advances the servo simulation to `now`.
+    fn advance_servo(&mut self, now: Instant) {
+        let Some(last) = self.servo_clock.replace(now) else {
+            return;
+        };
+        let cycle_s = self.servo.params().servo_cycle_s;
+        let owed_s = now.saturating_duration_since(last).as_secs_f64() * self.sim_speed.max(0.0)
+            + self.servo_carry_s;
+        let cycles = (owed_s / cycle_s).floor();
+        if !(cycles.is_finite() && cycles >= 1.0) {
+            self.servo_carry_s = if owed_s.is_finite() { owed_s } else { 0.0 };
+            return;
+        }
+        let run = cycles.min(MAX_CYCLES_PER_ADVANCE);
+        self.servo_carry_s = if run < cycles {
+            0.0
+        } else {
+            owed_s - run * cycle_s
+        };
+        // 0 < run <= MAX_CYCLES_PER_ADVANCE: fits.
+        self.servo.run_cycles(run as u64);
+        if self.servo_drives_position && self.axis.motion == Motion::Stopped {
+            self.axis.position_mm = self.servo.scale_mm();
+        }
+    }
+
+    fn servo_f64(&self, address: u16) -> f64 {
+        let at = usize::from(address - ncmap::SERVO);
+        ncmap::regs_to_f64([
+            self.servo_regs[at],
+            self.servo_regs[at + 1],
+            self.servo_regs[at + 2],
+            self.servo_regs[at + 3],
+        ])
+    }
+
+    /// Stores a write to the servo block, then runs `MV_CMD` / `TR_CMD` if written.
+    fn servo_write(&mut self, address: u16, words: &[u16]) {
+        let at = usize::from(address - ncmap::SERVO);
+        self.servo_regs[at..at + words.len()].copy_from_slice(words);
+        let end = address + words.len() as u16;
+        let covers = |reg: u16| address <= reg && reg < end;
+        if covers(ncmap::MV_CMD) {
+            let cmd =
+                std::mem::take(&mut self.servo_regs[usize::from(ncmap::MV_CMD - ncmap::SERVO)]);
+            match cmd {
+                1 => {
+                    let n = usize::from(
+                        self.servo_regs[usize::from(ncmap::MV_NUM_STEPS - ncmap::SERVO)],
+                    );
+                    let steps: Vec<MoveStep> = if (1..=crate::axis::MAX_STEPS).contains(&n) {
+                        (0..n as u16)
+                            .map(|i| {
+                                let base = ncmap::MV_STEPS + ncmap::MV_STEP_REGS * i;
+                                MoveStep {
+                                    target_mm: self.servo_f64(base),
+                                    feed_mm_per_min: self.servo_f64(base + 4),
+                                    dwell_s: self.servo_f64(base + 8),
+                                }
+                            })
+                            .collect()
+                    } else {
+                        Vec::new()
+                    };
+                    if self.servo.start_program(&steps).is_ok() {
+                        self.servo_drives_position = true;
+                    }
+                }
+                2 => self.servo.abort_program(),
+                _ => {}
+            }
+        }
+        if covers(ncmap::TR_CMD) {
+            let cmd =
+                std::mem::take(&mut self.servo_regs[usize::from(ncmap::TR_CMD - ncmap::SERVO)]);
+            match cmd {
+                1 => {
+                    let trigger = self.servo_regs[usize::from(ncmap::TR_TRIGGER - ncmap::SERVO)];
+                    match Trigger::from_u16(trigger) {
+                        Some(trigger) => {
+                            let cfg = TraceConfig {
+                                period_s: self.servo_f64(ncmap::TR_PERIOD_S),
+                                record_s: self.servo_f64(ncmap::TR_RECORD_S),
+                                trigger,
+                                threshold_mm: self.servo_f64(ncmap::TR_THRESHOLD_MM),
+                                delay_s: self.servo_f64(ncmap::TR_DELAY_S),
+                            };
+                            // A refusal shows in TR_STATUS.
+                            let _ = self.servo.arm_trace(cfg);
+                        }
+                        None => self.servo.refuse_trace(SimRefusal::BadTrigger),
+                    }
+                }
+                2 => self.servo.stop_trace(),
+                _ => {}
+            }
+        }
+    }
+
+    /// The servo block as read: stored writable registers and live values.
+    fn servo_block(&self) -> Vec<u16> {
+        let mut regs = self.servo_regs.clone();
+        let mut put = |address: u16, words: &[u16]| {
+            let at = usize::from(address - ncmap::SERVO);
+            regs[at..at + words.len()].copy_from_slice(words);
+        };
+        let sim = &self.servo;
+        let count = u32::try_from(sim.trace().len()).unwrap_or(u32::MAX);
+        put(ncmap::MV_STATE, &[sim.program_state() as u16]);
+        put(ncmap::MV_STATUS, &[sim.program_status()]);
+        put(ncmap::MV_STEP, &[sim.program_step()]);
+        put(ncmap::TR_STATE, &[sim.trace_state() as u16]);
+        put(ncmap::TR_STATUS, &[sim.trace_status()]);
+        put(ncmap::TR_COUNT, &ncmap::u32_to_regs(count));
+        put(
+            ncmap::TR_MAX_SAMPLES,
+            &ncmap::u32_to_regs(crate::axis::MAX_TRACE_SAMPLES as u32),
+        );
+        put(
+            ncmap::TR_TRIGGER_TIME_S,
+            &ncmap::f64_to_regs(sim.trace_trigger_time_s()),
+        );
+        put(
+            ncmap::TR_START_TIME_S,
+            &ncmap::f64_to_regs(sim.trace_start_time_s()),
+        );
+        put(ncmap::ENCODER_POS, &ncmap::f64_to_regs(sim.encoder_mm()));
+        put(ncmap::SCALE_POS, &ncmap::f64_to_regs(sim.scale_mm()));
+        put(ncmap::AXIS_MIN, &ncmap::f64_to_regs(sim.params().min_mm));
+        put(ncmap::AXIS_MAX, &ncmap::f64_to_regs(sim.params().max_mm));
+        put(ncmap::MACHINE_TIME_S, &ncmap::f64_to_regs(sim.time_s()));
+        put(
+            ncmap::SERVO_CYCLE_S,
+            &ncmap::f64_to_regs(sim.params().servo_cycle_s),
+        );
+        regs
+    }
+
+    /// The trace window for the current page.
+    fn trace_window(&self) -> Vec<u16> {
+        let page = usize::from(self.servo_regs[usize::from(ncmap::TR_PAGE - ncmap::SERVO)]);
+        let per_page = usize::from(ncmap::TR_PAGE_SAMPLES);
+        let trace = self.servo.trace();
+        let mut regs = Vec::with_capacity(usize::from(ncmap::TR_WINDOW_LEN));
+        for k in 0..per_page {
+            let (enc, scale) = trace
+                .get(page * per_page + k)
+                .copied()
+                .unwrap_or((f64::NAN, f64::NAN));
+            regs.extend_from_slice(&ncmap::f64_to_regs(enc));
+            regs.extend_from_slice(&ncmap::f64_to_regs(scale));
+        }
+        regs
+    }
+
     fn job_state(&self) -> JobState {
         JobState::from_u16(self.job_regs[usize::from(ncmap::STATE)]).unwrap_or(JobState::Idle)
     }
@@ -419,6 +594,13 @@ impl ModuleState {
             return Err(ExceptionCode::IllegalDataValue);
         }
         let end = u32::from(address) + words.len() as u32;
+        let inside = |from: u16, to: u16| address >= from && end <= u32::from(to);
+        if inside(ncmap::MV_CMD, ncmap::MV_WRITABLE_END)
+            || inside(ncmap::TR_WRITABLE_START, ncmap::TR_WRITABLE_END)
+        {
+            self.servo_write(address, words);
+            return Ok(());
+        }
         let only_req = address == ncmap::REQ && end == u32::from(ncmap::REQ) + 1;
         let in_params = address >= ncmap::JOB_ID && end <= u32::from(ncmap::JOB_ID_DONE);
         if !(only_req || in_params) {
@@ -468,12 +650,23 @@ impl ModuleState {
             Ok(self.job_regs[start..end].to_vec())
         } else if start >= rb_start && end <= rb_end {
             Ok(self.axis.readback_regs()[start - rb_start..end - rb_start].to_vec())
+        } else if start >= usize::from(ncmap::SERVO)
+            && end <= usize::from(ncmap::SERVO + ncmap::SERVO_LEN)
+        {
+            let base = usize::from(ncmap::SERVO);
+            Ok(self.servo_block()[start - base..end - base].to_vec())
+        } else if start >= usize::from(ncmap::TR_WINDOW)
+            && end <= usize::from(ncmap::TR_WINDOW + ncmap::TR_WINDOW_LEN)
+        {
+            let base = usize::from(ncmap::TR_WINDOW);
+            Ok(self.trace_window()[start - base..end - base].to_vec())
         } else {
             Err(ExceptionCode::IllegalDataAddress)
         }
     }
 
     fn reply(&mut self, request: &Request<'_>, now: Instant) -> Result<Response, ExceptionCode> {
+        self.advance_servo(now);
         match request {
             Request::ReadHoldingRegisters(address, quantity) => self
                 .read(*address, *quantity, now)
@@ -518,6 +711,12 @@ impl NcAxisModule {
             job_fault: JobFault::None,
             jobs_executed: 0,
             jobs_refused: 0,
+            servo: ServoSim::new(AxisParams::default()),
+            servo_regs: vec![0; usize::from(ncmap::SERVO_LEN)],
+            sim_speed: 1.0,
+            servo_clock: None,
+            servo_carry_s: 0.0,
+            servo_drives_position: false,
         };
         Self {
             shared: Arc::new(Shared {
@@ -544,6 +743,33 @@ impl NcAxisModule {
     /// Runs `f` on the axis state (e.g. to reference the axis or set MD32750).
     pub fn with_state<R>(&self, f: impl FnOnce(&mut NcAxis) -> R) -> R {
         f(&mut self.lock().axis)
+    }
+
+    /// Replaces the full-closed-loop axis behind the servo block (programme and trace
+    /// start over).
+    pub fn set_servo(&self, params: AxisParams) {
+        let mut state = self.lock();
+        state.servo = ServoSim::new(params);
+        state.servo_carry_s = 0.0;
+    }
+
+    /// Sets the simulation speed of the servo axis: machine seconds per second of
+    /// tokio time (1 = real time; tests and dry-runs use e.g. 1000).
+    pub fn set_sim_speed(&self, machine_s_per_s: f64) {
+        let mut state = self.lock();
+        state.advance_servo(Instant::now());
+        state.sim_speed = if machine_s_per_s.is_finite() {
+            machine_s_per_s.max(0.0)
+        } else {
+            0.0
+        };
+    }
+
+    /// Runs `f` on the servo axis, advanced to now.
+    pub fn with_servo<R>(&self, f: impl FnOnce(&mut ServoSim) -> R) -> R {
+        let mut state = self.lock();
+        state.advance_servo(Instant::now());
+        f(&mut state.servo)
     }
 
     /// `STATE` of the job block.

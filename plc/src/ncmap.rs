@@ -50,6 +50,55 @@
 //! | 141 | referenced (1 = axis referenced) | u16 |
 //!
 //! The read-back block is read-only: writes to it are refused with exception 0x02.
+//!
+//! # Servo block: move programme, servo trace, actual values (full-closed-loop axis)
+//!
+//! The module simulates a full-closed-loop axis (motor encoder and linear scale, see
+//! `compgate_plc::axis`). A client commands a move programme and records both actual
+//! positions with the servo trace, e.g. for the backlash test. `f64` values as above;
+//! `u32` values take two registers, high word first.
+//!
+//! | address | name | access | meaning |
+//! |---|---|---|---|
+//! | 1000 | `MV_CMD` | write | 1 starts the programme in `MV_STEPS`, 2 aborts; reads 0 (a command, not a state) |
+//! | 1001 | `MV_NUM_STEPS` | write | number of steps, 1..=8 |
+//! | 1002 + 12*i | `MV_TARGET[i]` | write | f64 target position of step i, mm |
+//! | 1006 + 12*i | `MV_FEED[i]` | write | f64 feed of step i, mm/min, in (0, MD32000] |
+//! | 1010 + 12*i | `MV_DWELL[i]` | write | f64 dwell after step i, s, 0..=3600; starts when the interpolator reaches the target |
+//! | 1100 | `MV_STATE` | read | 0 idle, 1 running, 2 done, 3 refused or aborted |
+//! | 1101 | `MV_STATUS` | read | 0 ok; refusal code (below) of the last `MV_CMD = 1` |
+//! | 1102 | `MV_STEP` | read | 1-based step running, 0 when none |
+//! | 1110 | `TR_TRIGGER` | write | 0 immediate, 1 scale rises through threshold, 2 scale falls through it |
+//! | 1112 | `TR_PERIOD_S` | write | f64 sample period, s: 1..=1000 servo cycles |
+//! | 1116 | `TR_RECORD_S` | write | f64 record time, s; samples = floor(record / period) <= `TR_MAX_SAMPLES` |
+//! | 1120 | `TR_THRESHOLD_MM` | write | f64 trigger threshold (scale actual position), mm |
+//! | 1124 | `TR_DELAY_S` | write | f64 post-trigger delay before recording, s, 0..=3600 |
+//! | 1128 | `TR_CMD` | write | 1 arms with the parameters above (earlier samples discarded), 2 stops; reads 0 |
+//! | 1129 | `TR_PAGE` | write | page shown in `TR_WINDOW` |
+//! | 1130 | `TR_STATE` | read | 0 idle, 1 armed, 2 post-trigger delay, 3 recording, 4 complete |
+//! | 1131 | `TR_STATUS` | read | 0 ok; refusal code of the last `TR_CMD = 1` |
+//! | 1132 | `TR_COUNT` | read | u32 samples recorded |
+//! | 1134 | `TR_MAX_SAMPLES` | read | u32 capacity of the trace buffer |
+//! | 1136 | `TR_TRIGGER_TIME_S` | read | f64 machine time of the trigger, s |
+//! | 1140 | `TR_START_TIME_S` | read | f64 machine time of sample 0, s |
+//! | 1144 | `ENCODER_POS` | read | f64 motor encoder actual position, mm |
+//! | 1148 | `SCALE_POS` | read | f64 linear scale actual position, mm |
+//! | 1152 | `AXIS_MIN` | read | f64 lower software limit, mm |
+//! | 1156 | `AXIS_MAX` | read | f64 upper software limit, mm |
+//! | 1160 | `MACHINE_TIME_S` | read | f64 machine time of the simulation, s |
+//! | 1164 | `SERVO_CYCLE_S` | read | f64 servo cycle, s |
+//! | 1200 + 8*k | `TR_WINDOW` | read | sample `TR_PAGE * 15 + k` (k = 0..15): f64 encoder then f64 scale, mm; NaN past `TR_COUNT` |
+//!
+//! Refusal codes (`MV_STATUS`, `TR_STATUS`): 1 step count, 2 target outside the
+//! software limits, 3 feed, 4 dwell, 5 programme already running, 6 sample period,
+//! 7 record time, 8 post-trigger delay, 9 trigger condition or threshold.
+//!
+//! A read holds at most 125 registers: 1100..1168 (status and actual values) is one.
+//! Reads may span any registers of 1000..1168 and of the window 1200..1320 (unmapped
+//! ones read 0). Writes must lie in 1000..1098 or 1110..1130; a write that includes
+//! `MV_CMD` or `TR_CMD` acts after the whole write is stored, so a programme and its
+//! start can go in one write-multiple. The simulation advances with tokio time times
+//! the module's simulation speed (1 = real time).
 
 /// Holding register of `REQ`.
 pub const REQ: u16 = 0;
@@ -104,6 +153,92 @@ pub const RB_MD32750: u16 = 140;
 pub const RB_REFERENCED: u16 = 141;
 /// Registers of the read-back block (READBACK..READBACK+READBACK_LEN).
 pub const READBACK_LEN: u16 = 42;
+
+/// Move programme command (write 1 start, 2 abort).
+pub const MV_CMD: u16 = 1000;
+/// Number of programme steps.
+pub const MV_NUM_STEPS: u16 = 1001;
+/// First register of the step table.
+pub const MV_STEPS: u16 = 1002;
+/// Registers per step: target, feed, dwell (f64 each).
+pub const MV_STEP_REGS: u16 = 12;
+/// End (exclusive) of the writable programme registers.
+pub const MV_WRITABLE_END: u16 = MV_STEPS + MV_STEP_REGS * 8;
+/// Programme state (see `compgate_plc::axis::ProgramState`).
+pub const MV_STATE: u16 = 1100;
+/// Programme refusal code.
+pub const MV_STATUS: u16 = 1101;
+/// 1-based step running.
+pub const MV_STEP: u16 = 1102;
+/// Trace trigger condition.
+pub const TR_TRIGGER: u16 = 1110;
+/// Trace sample period, s (f64).
+pub const TR_PERIOD_S: u16 = 1112;
+/// Trace record time, s (f64).
+pub const TR_RECORD_S: u16 = 1116;
+/// Trace trigger threshold, mm (f64).
+pub const TR_THRESHOLD_MM: u16 = 1120;
+/// Trace post-trigger delay, s (f64).
+pub const TR_DELAY_S: u16 = 1124;
+/// Trace command (write 1 arm, 2 stop).
+pub const TR_CMD: u16 = 1128;
+/// Trace page shown in the window.
+pub const TR_PAGE: u16 = 1129;
+/// Start of the writable trace registers.
+pub const TR_WRITABLE_START: u16 = 1110;
+/// End (exclusive) of the writable trace registers.
+pub const TR_WRITABLE_END: u16 = 1130;
+/// Trace state (see `compgate_plc::axis::TraceState`).
+pub const TR_STATE: u16 = 1130;
+/// Trace refusal code.
+pub const TR_STATUS: u16 = 1131;
+/// Samples recorded (u32).
+pub const TR_COUNT: u16 = 1132;
+/// Trace buffer capacity (u32).
+pub const TR_MAX_SAMPLES: u16 = 1134;
+/// Machine time of the trigger, s (f64).
+pub const TR_TRIGGER_TIME_S: u16 = 1136;
+/// Machine time of sample 0, s (f64).
+pub const TR_START_TIME_S: u16 = 1140;
+/// Motor encoder actual position, mm (f64).
+pub const ENCODER_POS: u16 = 1144;
+/// Linear scale actual position, mm (f64).
+pub const SCALE_POS: u16 = 1148;
+/// Lower software limit, mm (f64).
+pub const AXIS_MIN: u16 = 1152;
+/// Upper software limit, mm (f64).
+pub const AXIS_MAX: u16 = 1156;
+/// Machine time of the simulation, s (f64).
+pub const MACHINE_TIME_S: u16 = 1160;
+/// Servo cycle, s (f64).
+pub const SERVO_CYCLE_S: u16 = 1164;
+/// Start of the servo block.
+pub const SERVO: u16 = 1000;
+/// Start of the servo status part (`MV_STATE` ..= `SERVO_CYCLE_S`), readable in one
+/// request of `SERVO_STATUS_LEN` registers.
+pub const SERVO_STATUS: u16 = 1100;
+/// Registers of the servo status part.
+pub const SERVO_STATUS_LEN: u16 = 68;
+/// Registers of the servo block (SERVO..SERVO+SERVO_LEN).
+pub const SERVO_LEN: u16 = 168;
+/// First register of the trace window.
+pub const TR_WINDOW: u16 = 1200;
+/// Samples per trace page.
+pub const TR_PAGE_SAMPLES: u16 = 15;
+/// Registers per trace sample: encoder f64, scale f64.
+pub const TR_SAMPLE_REGS: u16 = 8;
+/// Registers of the trace window.
+pub const TR_WINDOW_LEN: u16 = TR_PAGE_SAMPLES * TR_SAMPLE_REGS;
+
+/// Encodes a u32 into two registers, high word first.
+pub fn u32_to_regs(v: u32) -> [u16; 2] {
+    [(v >> 16) as u16, v as u16]
+}
+
+/// Decodes two registers, high word first, into a u32.
+pub fn regs_to_u32(r: [u16; 2]) -> u32 {
+    (u32::from(r[0]) << 16) | u32::from(r[1])
+}
 
 /// Variable ids used in `VAR_ID[i]`: the Siemens parameter number.
 pub mod var {
@@ -226,5 +361,17 @@ mod tests {
     fn pair_table_fits_before_job_id_done() {
         assert_eq!(PAIRS + PAIR_REGS * MAX_PAIRS as u16, JOB_ID_DONE);
         const { assert!(RB_REFERENCED < READBACK + READBACK_LEN) };
+    }
+
+    #[test]
+    fn servo_block_is_consistent() {
+        assert_eq!(MV_WRITABLE_END, 1098);
+        const { assert!(MV_WRITABLE_END <= MV_STATE) };
+        assert_eq!(SERVO_CYCLE_S + 4, SERVO + SERVO_LEN);
+        assert_eq!(SERVO_STATUS + SERVO_STATUS_LEN, SERVO + SERVO_LEN);
+        const { assert!(TR_WINDOW >= SERVO + SERVO_LEN) };
+        // One read-holding request holds the window.
+        const { assert!(TR_WINDOW_LEN <= 125) };
+        assert_eq!(regs_to_u32(u32_to_regs(123_456_789)), 123_456_789);
     }
 }
