@@ -17,6 +17,8 @@
 //! - [`comp`]: pure math: the thermal model `dKx = K0(T) + tan(beta)(T) * (Px - P0)`,
 //!   limits, deadband, hold or ramp on bad inputs.
 //! - [`nc`]: the `NcWriter` trait and the FB3-style job client over Modbus TCP.
+//! - [`backlash`]: `compgate backlash`, backlash of a full-closed-loop axis from the
+//!   servo trace of encoder and scale (seed formulas, plateau extraction, MD32450 write).
 //! - [`gateway`]: wires the stages together; `run(config, shutdown)` is the one path
 //!   used by the service, the demo and the tests.
 //! - [`plant`]: the simulated plant for a config (demo, `sim`, tests), from
@@ -29,6 +31,7 @@
 //! service code uses only its register map (`compgate_plc::ncmap`), the NC axis
 //! module's public interface; the demo, `sim` and the tests start the simulator.
 
+pub mod backlash;
 pub mod bench;
 pub mod channel;
 pub mod cli;

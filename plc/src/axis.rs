@@ -134,9 +134,9 @@ pub enum SimRefusal {
 pub enum Trigger {
     /// 0: triggers on arming.
     Immediate = 0,
-    /// 1: the scale actual position rises through the threshold.
+    /// 1: the scale actual position rises through the threshold (edge).
     ScaleRising = 1,
-    /// 2: the scale actual position falls through the threshold.
+    /// 2: the scale actual position falls through the threshold (edge).
     ScaleFalling = 2,
 }
 
@@ -276,6 +276,8 @@ pub struct ServoSim {
     program: Option<Running>,
     program_state: ProgramState,
     program_status: u16,
+    program_start_s: f64,
+    program_end_s: f64,
     trace_cfg: TraceConfig,
     trace_state: TraceState,
     trace_status: u16,
@@ -307,6 +309,8 @@ impl ServoSim {
             program: None,
             program_state: ProgramState::Idle,
             program_status: 0,
+            program_start_s: 0.0,
+            program_end_s: 0.0,
             trace_cfg: TraceConfig::default(),
             trace_state: TraceState::Idle,
             trace_status: 0,
@@ -366,6 +370,16 @@ impl ServoSim {
         self.program
             .as_ref()
             .map_or(0, |r| u16::try_from(r.index + 1).unwrap_or(u16::MAX))
+    }
+
+    /// Machine time the last programme started, s.
+    pub fn program_start_s(&self) -> f64 {
+        self.program_start_s
+    }
+
+    /// Machine time the last programme ended, s; NaN while it runs.
+    pub fn program_end_s(&self) -> f64 {
+        self.program_end_s
     }
 
     /// Trace state.
@@ -443,6 +457,8 @@ impl ServoSim {
                 });
                 self.program_state = ProgramState::Running;
                 self.program_status = 0;
+                self.program_start_s = self.time_s;
+                self.program_end_s = f64::NAN;
                 Ok(())
             }
             Err(e) => {
@@ -460,6 +476,7 @@ impl ServoSim {
     pub fn abort_program(&mut self) {
         if self.program.take().is_some() {
             self.program_state = ProgramState::Refused;
+            self.program_end_s = self.time_s;
         }
     }
 
@@ -593,6 +610,7 @@ impl ServoSim {
                     if run.index >= run.steps.len() {
                         self.program = None;
                         self.program_state = ProgramState::Done;
+                        self.program_end_s = self.time_s + dt;
                     } else {
                         run.phase = Phase::Moving {
                             from_mm: self.cmd_mm,
@@ -628,18 +646,21 @@ impl ServoSim {
         };
         self.table_mm += (self.nut_mm - self.table_mm) * k;
         self.time_s += dt;
+        let previous_scale_mm = self.scale_meas_mm;
         self.measure();
-        self.trace_tick();
+        self.trace_tick(previous_scale_mm);
     }
 
-    fn trace_tick(&mut self) {
+    fn trace_tick(&mut self, previous_scale_mm: f64) {
         match self.trace_state {
             TraceState::Armed => {
                 let thr = self.trace_cfg.threshold_mm;
                 let fired = match self.trace_cfg.trigger {
                     Trigger::Immediate => true,
-                    Trigger::ScaleRising => self.scale_meas_mm >= thr,
-                    Trigger::ScaleFalling => self.scale_meas_mm <= thr,
+                    // Edges, not levels: an axis already beyond the threshold when
+                    // armed waits for the next crossing.
+                    Trigger::ScaleRising => previous_scale_mm < thr && self.scale_meas_mm >= thr,
+                    Trigger::ScaleFalling => previous_scale_mm > thr && self.scale_meas_mm <= thr,
                 };
                 if fired {
                     self.fire_trigger();

@@ -485,6 +485,14 @@ impl ModuleState {
             ncmap::SERVO_CYCLE_S,
             &ncmap::f64_to_regs(sim.params().servo_cycle_s),
         );
+        put(
+            ncmap::MV_START_TIME_S,
+            &ncmap::f64_to_regs(sim.program_start_s()),
+        );
+        put(
+            ncmap::MV_END_TIME_S,
+            &ncmap::f64_to_regs(sim.program_end_s()),
+        );
         regs
     }
 

@@ -87,14 +87,16 @@
 //! | 1156 | `AXIS_MAX` | read | f64 upper software limit, mm |
 //! | 1160 | `MACHINE_TIME_S` | read | f64 machine time of the simulation, s |
 //! | 1164 | `SERVO_CYCLE_S` | read | f64 servo cycle, s |
+//! | 1168 | `MV_START_TIME_S` | read | f64 machine time the last programme started, s |
+//! | 1172 | `MV_END_TIME_S` | read | f64 machine time it ended (done or aborted), s; NaN while running |
 //! | 1200 + 8*k | `TR_WINDOW` | read | sample `TR_PAGE * 15 + k` (k = 0..15): f64 encoder then f64 scale, mm; NaN past `TR_COUNT` |
 //!
 //! Refusal codes (`MV_STATUS`, `TR_STATUS`): 1 step count, 2 target outside the
 //! software limits, 3 feed, 4 dwell, 5 programme already running, 6 sample period,
 //! 7 record time, 8 post-trigger delay, 9 trigger condition or threshold.
 //!
-//! A read holds at most 125 registers: 1100..1168 (status and actual values) is one.
-//! Reads may span any registers of 1000..1168 and of the window 1200..1320 (unmapped
+//! A read holds at most 125 registers: 1100..1176 (status and actual values) is one.
+//! Reads may span any registers of 1000..1176 and of the window 1200..1320 (unmapped
 //! ones read 0). Writes must lie in 1000..1098 or 1110..1130; a write that includes
 //! `MV_CMD` or `TR_CMD` acts after the whole write is stored, so a programme and its
 //! start can go in one write-multiple. The simulation advances with tokio time times
@@ -212,15 +214,19 @@ pub const AXIS_MAX: u16 = 1156;
 pub const MACHINE_TIME_S: u16 = 1160;
 /// Servo cycle, s (f64).
 pub const SERVO_CYCLE_S: u16 = 1164;
+/// Machine time the last programme started, s (f64).
+pub const MV_START_TIME_S: u16 = 1168;
+/// Machine time the last programme ended, s (f64; NaN while running).
+pub const MV_END_TIME_S: u16 = 1172;
 /// Start of the servo block.
 pub const SERVO: u16 = 1000;
-/// Start of the servo status part (`MV_STATE` ..= `SERVO_CYCLE_S`), readable in one
+/// Start of the servo status part (`MV_STATE` ..= `MV_END_TIME_S`), readable in one
 /// request of `SERVO_STATUS_LEN` registers.
 pub const SERVO_STATUS: u16 = 1100;
 /// Registers of the servo status part.
-pub const SERVO_STATUS_LEN: u16 = 68;
+pub const SERVO_STATUS_LEN: u16 = 76;
 /// Registers of the servo block (SERVO..SERVO+SERVO_LEN).
-pub const SERVO_LEN: u16 = 168;
+pub const SERVO_LEN: u16 = 176;
 /// First register of the trace window.
 pub const TR_WINDOW: u16 = 1200;
 /// Samples per trace page.
@@ -367,7 +373,7 @@ mod tests {
     fn servo_block_is_consistent() {
         assert_eq!(MV_WRITABLE_END, 1098);
         const { assert!(MV_WRITABLE_END <= MV_STATE) };
-        assert_eq!(SERVO_CYCLE_S + 4, SERVO + SERVO_LEN);
+        assert_eq!(MV_END_TIME_S + 4, SERVO + SERVO_LEN);
         assert_eq!(SERVO_STATUS + SERVO_STATUS_LEN, SERVO + SERVO_LEN);
         const { assert!(TR_WINDOW >= SERVO + SERVO_LEN) };
         // One read-holding request holds the window.
