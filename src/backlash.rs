@@ -926,6 +926,23 @@ pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, Backl
     let points = extract(&trace, &procedure, Extraction::Plateau)?;
     let backlash = Backlash::from_points(&points);
 
+    let mut files = Vec::new();
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| BacklashError::Io(format!("{}: {e}", dir.display())))?;
+        let stem: String = args
+            .axis
+            .chars()
+            .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+            .collect();
+        let svg = dir.join(format!("backlash_{stem}.svg"));
+        write_svg(&svg, &args.axis, &trace, &points)?;
+        let csv = dir.join(format!("backlash_{stem}_trace.csv"));
+        write_csv(&csv, &trace)?;
+        files.push(svg);
+        files.push(csv);
+    }
+
     let mut md32450_written_mm = None;
     if args.write {
         let value = backlash.md32450_mm();
@@ -951,23 +968,6 @@ pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, Backl
             .into());
         }
         md32450_written_mm = Some(snapshot.md32450_mm);
-    }
-
-    let mut files = Vec::new();
-    if let Some(dir) = &args.out {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| BacklashError::Io(format!("{}: {e}", dir.display())))?;
-        let stem: String = args
-            .axis
-            .chars()
-            .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
-            .collect();
-        let svg = dir.join(format!("backlash_{stem}.svg"));
-        write_svg(&svg, &args.axis, &trace, &points)?;
-        let csv = dir.join(format!("backlash_{stem}_trace.csv"));
-        write_csv(&csv, &trace)?;
-        files.push(svg);
-        files.push(csv);
     }
 
     Ok(Outcome {

@@ -817,6 +817,30 @@ mod tests {
     }
 
     #[test]
+    fn a_level_trigger_waits_for_the_next_edge() {
+        let mut sim = ServoSim::new(AxisParams {
+            start_mm: 20.0,
+            ..quiet(0.0)
+        });
+        sim.arm_trace(TraceConfig {
+            record_s: 0.1,
+            trigger: Trigger::ScaleRising,
+            threshold_mm: 10.0,
+            ..TraceConfig::default()
+        })
+        .unwrap();
+        // Above the threshold at arming: no trigger on the way down...
+        sim.start_program(&[step(5.0)]).unwrap();
+        sim.run_until_idle(100.0);
+        assert_eq!(sim.trace_state(), TraceState::Armed);
+        // ...but on the way up through it.
+        sim.start_program(&[step(12.0)]).unwrap();
+        sim.run_until_idle(100.0);
+        assert_eq!(sim.trace_state(), TraceState::Complete);
+        assert!(sim.trace()[0].1 >= 10.0);
+    }
+
+    #[test]
     fn deterministic_for_a_seed() {
         let run = || {
             let mut sim = ServoSim::new(AxisParams::default());

@@ -142,6 +142,7 @@ fn elasticity_is_present_and_the_plateau_is_what_makes_it_work() {
         "rigid, no noise: arrival-sample error {:.3} um",
         err(&arrival_stiff) * 1000.0
     );
+    assert!(err(&arrival_stiff) <= tol);
 }
 
 #[test]
@@ -256,4 +257,31 @@ async fn run_with_sim_reports_the_table() {
     );
     let err = run(&BacklashArgs::default()).await.unwrap_err();
     assert!(matches!(err, BacklashError::Invalid(_)));
+}
+
+#[tokio::test]
+async fn md32450_write_refused_by_the_nc_is_reported() {
+    let (address, module, shutdown) = serve(0.01).await;
+    module.with_state(|axis| axis.allow_md32450_write = false);
+    let dir = tempfile::tempdir().unwrap();
+    let args = BacklashArgs {
+        write: true,
+        out: Some(dir.path().to_path_buf()),
+        ..BacklashArgs::default()
+    };
+    let err = run_on(&address, &args).await.unwrap_err();
+    assert!(
+        matches!(
+            err,
+            BacklashError::Nc(NcError::Refused {
+                status: ncmap::JobStatus::AccessDenied,
+                ..
+            })
+        ),
+        "{err}"
+    );
+    assert_eq!(module.state().md32450_mm, 0.0);
+    // The plot and the trace are written before MD32450 is touched.
+    assert!(dir.path().join("backlash_X1.svg").exists());
+    shutdown.cancel();
 }
