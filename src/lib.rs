@@ -19,6 +19,7 @@
 //! - [`nc`]: the `NcWriter` trait and the FB3-style job client over Modbus TCP.
 //! - [`backlash`]: `compgate backlash`, backlash of a full-closed-loop axis from the
 //!   servo trace of encoder and scale (seed formulas, plateau extraction, MD32450 write).
+//! - [`volumetric`]: online volumetric compensation of a 5-axis AC-head machine.
 //! - [`gateway`]: wires the stages together; `run(config, shutdown)` is the one path
 //!   used by the service, the demo and the tests.
 //! - [`plant`]: the simulated plant for a config (demo, `sim`, tests), from
@@ -42,3 +43,4 @@ pub mod nc;
 pub mod plant;
 pub mod source;
 pub mod status;
+pub mod volumetric;

@@ -1,0 +1,1003 @@
+//! `compgate volumetric`: online volumetric error compensation of a 5-axis machine with
+//! an AC swivel head (DOMAIN.md section 4).
+//!
+//! The compensator sits between the scales and the drives: it reads the five scale
+//! positions, computes where the tool really is from the error parameter file and
+//! hands the drives the corrected feedback: the axis positions at which the *ideal*
+//! machine would put the tool where the real one has it. A drive closing its loop on
+//! that feedback therefore settles where the actual tool pose equals the commanded
+//! nominal pose.
+//!
+//! # Kinematics
+//!
+//! X, Y, Z are linear, in mm; A (tilt, about X) and C (swivel, about Z) are in the
+//! head, in degrees. The workpiece frame is the machine base; the tool chain is
+//! base -> X slide -> Y slide -> Z slide -> C -> A -> tool, each link a rigid
+//! transform (rotation and translation, a 4x4 homogeneous matrix applied as 3x3 plus
+//! offset). Nominally
+//!
+//! ```text
+//! tip  = (X, Y, Z) + Rz(C) (pivot + Rx(A) (0, 0, -tool_length))
+//! axis = Rz(C) Rx(A) (0, 0, 1)        (unit vector from tip towards the spindle)
+//! ```
+//!
+//! With errors each link is `nominal * error`, small rotations taken to first order
+//! (`I + skew(a, b, c)`):
+//!
+//! - linear axis j at position q: translation `q * d_j + (EXj, EYj, EZj)`, rotation
+//!   `(EAj, EBj, ECj)`, with the direction `d_X = (1, 0, 0)`,
+//!   `d_Y = (-EC0Y, 1, 0)`, `d_Z = (EB0Z, -EA0Z, 1)` (squareness);
+//! - C at angle c: `L_C Rz(c) E_C(c) L_C^-1`, where `L_C` is the location of the C
+//!   axis line (offset XOC, YOC; tilts AOC about X, BOC about Y) and `E_C` the
+//!   position-dependent errors (EXC, EYC, EZC; EAC, EBC, ECC);
+//! - A at angle a: `T(pivot) L_A Rx(a) E_A(a) L_A^-1`, `L_A` from YOA, ZOA, BOA (about
+//!   Y), COA (about Z), `E_A` from EXA..ECA.
+//!
+//! Location errors thus vanish at the axis' zero angle and grow with the angle (the
+//! zero-angle offset belongs to the tool offsets).
+//!
+//! # Compensation (the seed's two steps)
+//!
+//! For scale positions q:
+//!
+//! 1. Actual tool axis v in the workpiece frame; the rotary angles that give v on the
+//!    ideal machine: `A' = k * atan2(sqrt(vx^2 + vy^2), vz)` (k the sign of A,
+//!    equivalent to the seed's `k * arccos(vz)`), `C' = atan2(k vx, -k vy)`, unwrapped
+//!    to the turn nearest C.
+//! 2. Actual tip p; with A', C': `(X', Y', Z') = p - Rz(C') (pivot + Rx(A') (0, 0, -L))`.
+//!
+//! `(X', Y', Z', A', C')` is the corrected feedback ([`VolumetricCompensator::feedback`]).
+//! For a commanded pose u, [`VolumetricCompensator::drive_positions`] iterates
+//! `q <- q - (feedback(q) - u)`, each step doing both stages, which is what the drive
+//! loop does physically; the report gives iterations and residual.
+//!
+//! Near A = 0 the tool axis is parallel to C and an orientation error about the A
+//! plane's normal cannot be corrected without a large C move: within
+//! [`SINGULAR_A_DEG`] of A = 0 C is not corrected and A' takes only the in-plane
+//! part (`A' = atan2(-w_y, w_z)`, w the axis in the C frame).
+//!
+//! # Error parameter file, version 1
+//!
+//! Text, one item per line, `#` starts a comment, blank lines ignored. Translations
+//! in um, rotations in arc-seconds (1" = 4.848 urad); positions of X, Y, Z in mm,
+//! angles of A, C in degrees. ISO 230-1 / 230-7 names.
+//!
+//! ```text
+//! compgate-volumetric-errors 1          # header: magic and version (required, first)
+//! pivot_mm 0 0 150                      # C axis to A axis offset in the C frame, mm
+//! tool_length_mm 250                    # A axis to tool tip along the tool, mm
+//! travel X 0 1000                       # travel of every axis (all five required)
+//! travel Y 0 800
+//! travel Z 0 600
+//! travel A -100 100                     # deg
+//! travel C -200 200                     # deg
+//! squareness EC0Y 6.0                   # arcsec: EC0Y (Y to X), EB0Z (Z to X), EA0Z (Z to Y)
+//! location XOC 8                        # um:     XOC YOC (C), YOA ZOA (A)
+//! location BOA -4                       # arcsec: AOC BOC (C), BOA COA (A)
+//! table X EXX EYX EZX EAX EBX ECX       # column names fixed per axis, in this order
+//! 0    0.0  0.0  0.0  0.0  0.0  0.0     # position, 3 translations (um), 3 rotations (")
+//! 1000 12.5 -3.1 4.0  2.2  -5.0 1.5
+//! end
+//! table A EXA EYA EZA EAA EBA ECA       # rotary tables over the angle in deg
+//! ...
+//! end
+//! ```
+//!
+//! Tables are interpolated linearly, positions strictly increasing, at least two
+//! rows. A table must cover the axis travel: it is rejected otherwise, never
+//! extrapolated. A missing table, squareness or location value means zero. Every
+//! error names the line and field at fault ([`VolumetricError::Parse`]).
+
+mod format;
+#[cfg(test)]
+mod tests;
+
+use std::f64::consts::PI;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+pub use format::{parse, write, LOCATION_A, LOCATION_C, MAGIC, SQUARENESS, VERSION};
+
+/// Axis names in the order of every `[f64; 5]` (X, Y, Z in mm; A, C in degrees).
+pub const AXES: [&str; 5] = ["X", "Y", "Z", "A", "C"];
+/// Column names of each axis' error table.
+pub const COLUMNS: [[&str; 6]; 5] = [
+    ["EXX", "EYX", "EZX", "EAX", "EBX", "ECX"],
+    ["EXY", "EYY", "EZY", "EAY", "EBY", "ECY"],
+    ["EXZ", "EYZ", "EZZ", "EAZ", "EBZ", "ECZ"],
+    ["EXA", "EYA", "EZA", "EAA", "EBA", "ECA"],
+    ["EXC", "EYC", "EZC", "EAC", "EBC", "ECC"],
+];
+/// mm per um.
+pub const MM_PER_UM: f64 = 1e-3;
+/// rad per arc-second.
+pub const RAD_PER_ARCSEC: f64 = PI / (180.0 * 3600.0);
+/// Within this many degrees of A = 0 the C axis is not corrected (see module doc).
+pub const SINGULAR_A_DEG: f64 = 1.0;
+/// Convergence tolerance of the linear residual, um.
+pub const TOL_UM: f64 = 0.01;
+/// Convergence tolerance of the rotary residual, arc-seconds.
+pub const TOL_ARCSEC: f64 = 0.001;
+/// Most iterations of [`VolumetricCompensator::drive_positions`].
+pub const MAX_ITERATIONS: usize = 20;
+
+/// Errors of the volumetric module.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum VolumetricError {
+    /// The error parameter file is malformed.
+    #[error("line {line}, {field}: {message}")]
+    Parse {
+        /// 1-based line number.
+        line: usize,
+        /// The field at fault.
+        field: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// The `--grid` specification is malformed or outside the travel.
+    #[error("grid: {0}")]
+    Grid(String),
+    /// Reading the file or writing the output failed.
+    #[error("{0}")]
+    Io(String),
+}
+
+/// Nominal geometry of the head.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Geometry {
+    /// Offset from the C axis (at the Z slide's reference point) to the A axis, in the
+    /// C frame, mm.
+    pub pivot_mm: [f64; 3],
+    /// Distance from the A axis to the tool tip along the tool, mm.
+    pub tool_length_mm: f64,
+}
+
+/// One axis' error table; internal units mm and rad, positions in mm or deg.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Table {
+    pos: Vec<f64>,
+    val: Vec<[f64; 6]>,
+}
+
+impl Table {
+    /// A table from positions and rows of (3 translations mm, 3 rotations rad).
+    pub fn new(pos: Vec<f64>, val: Vec<[f64; 6]>) -> Self {
+        Self { pos, val }
+    }
+
+    /// Linearly interpolated errors; the end rows are held outside (loading has
+    /// checked that the table covers the travel); an empty table gives zeros.
+    #[inline]
+    pub fn eval(&self, x: f64) -> [f64; 6] {
+        let n = self.pos.len();
+        if n == 0 {
+            return [0.0; 6];
+        }
+        if x <= self.pos[0] {
+            return self.val[0];
+        }
+        if x >= self.pos[n - 1] {
+            return self.val[n - 1];
+        }
+        let i = self.pos.partition_point(|p| *p <= x).clamp(1, n - 1);
+        let (x0, x1) = (self.pos[i - 1], self.pos[i]);
+        let t = (x - x0) / (x1 - x0);
+        let (a, b) = (&self.val[i - 1], &self.val[i]);
+        let mut out = [0.0; 6];
+        for k in 0..6 {
+            out[k] = a[k] + (b[k] - a[k]) * t;
+        }
+        out
+    }
+}
+
+/// The measured geometric errors of one machine, in internal units (mm, rad).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ErrorModel {
+    /// Head geometry.
+    pub geometry: Geometry,
+    /// Travel (min, max) of X, Y, Z (mm), A, C (deg).
+    pub travel: [(f64, f64); 5],
+    tables: [Table; 5],
+    /// EC0Y, EB0Z, EA0Z, rad.
+    squareness_rad: [f64; 3],
+    /// XOC, YOC (mm), AOC, BOC (rad).
+    loc_c: [f64; 4],
+    /// YOA, ZOA (mm), BOA, COA (rad).
+    loc_a: [f64; 4],
+    zero: bool,
+}
+
+impl ErrorModel {
+    /// A model from its parts (tables in mm / rad, squareness in rad, locations in mm
+    /// and rad, order as [`SQUARENESS`], [`LOCATION_C`], [`LOCATION_A`]).
+    pub fn new(
+        geometry: Geometry,
+        travel: [(f64, f64); 5],
+        tables: [Table; 5],
+        squareness_rad: [f64; 3],
+        loc_c: [f64; 4],
+        loc_a: [f64; 4],
+    ) -> Self {
+        let zero = tables
+            .iter()
+            .all(|t| t.val.iter().all(|r| r.iter().all(|v| *v == 0.0)))
+            && squareness_rad
+                .iter()
+                .chain(&loc_c)
+                .chain(&loc_a)
+                .all(|v| *v == 0.0);
+        Self {
+            geometry,
+            travel,
+            tables,
+            squareness_rad,
+            loc_c,
+            loc_a,
+            zero,
+        }
+    }
+
+    /// True when every error is zero (the compensator then passes positions through).
+    pub fn is_zero(&self) -> bool {
+        self.zero
+    }
+
+    /// Actual tool tip (mm) and unit tool axis in the workpiece frame at axis
+    /// positions q (mm, deg).
+    #[inline]
+    pub fn actual_pose(&self, q: &[f64; 5]) -> ([f64; 3], [f64; 3]) {
+        let g = &self.geometry;
+        let mut p = [0.0, 0.0, -g.tool_length_mm];
+        let mut v = [0.0, 0.0, 1.0];
+        // A: T(pivot) L_A Rx(a) E_A L_A^-1
+        let [yoa, zoa, boa, coa] = self.loc_a;
+        let la_r = [0.0, boa, coa];
+        let la_t = [0.0, yoa, zoa];
+        inv_small(&la_r, &la_t, &mut p, &mut v);
+        let e = self.tables[3].eval(q[3]);
+        small(&e, &mut p, &mut v);
+        let (sa, ca) = q[3].to_radians().sin_cos();
+        rot_x(sa, ca, &mut p, &mut v);
+        small(
+            &[la_t[0], la_t[1], la_t[2], la_r[0], la_r[1], la_r[2]],
+            &mut p,
+            &mut v,
+        );
+        for (pk, dk) in p.iter_mut().zip(&g.pivot_mm) {
+            *pk += dk;
+        }
+        // C: L_C Rz(c) E_C L_C^-1
+        let [xoc, yoc, aoc, boc] = self.loc_c;
+        let lc_r = [aoc, boc, 0.0];
+        let lc_t = [xoc, yoc, 0.0];
+        inv_small(&lc_r, &lc_t, &mut p, &mut v);
+        let e = self.tables[4].eval(q[4]);
+        small(&e, &mut p, &mut v);
+        let (sc, cc) = q[4].to_radians().sin_cos();
+        rot_z(sc, cc, &mut p, &mut v);
+        small(
+            &[lc_t[0], lc_t[1], lc_t[2], lc_r[0], lc_r[1], lc_r[2]],
+            &mut p,
+            &mut v,
+        );
+        // Z, Y, X slides.
+        let [c0y, b0z, a0z] = self.squareness_rad;
+        let dirs = [[1.0, 0.0, 0.0], [-c0y, 1.0, 0.0], [b0z, -a0z, 1.0]];
+        for j in (0..3).rev() {
+            let mut e = self.tables[j].eval(q[j]);
+            for k in 0..3 {
+                e[k] += q[j] * dirs[j][k];
+            }
+            small(&e, &mut p, &mut v);
+        }
+        let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        (p, [v[0] / n, v[1] / n, v[2] / n])
+    }
+}
+
+/// Nominal tip (mm) and tool axis at q.
+#[inline]
+pub fn nominal_pose(g: &Geometry, q: &[f64; 5]) -> ([f64; 3], [f64; 3]) {
+    let (sa, ca) = q[3].to_radians().sin_cos();
+    let (sc, cc) = q[4].to_radians().sin_cos();
+    let off = head_offset(g, sa, ca, sc, cc);
+    (
+        [q[0] + off[0], q[1] + off[1], q[2] + off[2]],
+        [sc * sa, -cc * sa, ca],
+    )
+}
+
+/// `Rz(C) (pivot + Rx(A) (0, 0, -L))` from the sines and cosines.
+#[inline]
+fn head_offset(g: &Geometry, sa: f64, ca: f64, sc: f64, cc: f64) -> [f64; 3] {
+    let l = g.tool_length_mm;
+    let h = [
+        g.pivot_mm[0],
+        g.pivot_mm[1] + sa * l,
+        g.pivot_mm[2] - ca * l,
+    ];
+    [cc * h[0] - sc * h[1], sc * h[0] + cc * h[1], h[2]]
+}
+
+/// Applies `[I + skew(e[3..]), e[..3]]` to a point and a vector.
+#[inline]
+fn small(e: &[f64; 6], p: &mut [f64; 3], v: &mut [f64; 3]) {
+    let [a, b, c] = [e[3], e[4], e[5]];
+    let r = |x: &[f64; 3]| {
+        [
+            x[0] - c * x[1] + b * x[2],
+            c * x[0] + x[1] - a * x[2],
+            -b * x[0] + a * x[1] + x[2],
+        ]
+    };
+    let rp = r(p);
+    *p = [rp[0] + e[0], rp[1] + e[1], rp[2] + e[2]];
+    *v = r(v);
+}
+
+/// Applies the first-order inverse of `[I + skew(r), t]`: `x -> (I - skew(r)) (x - t)`.
+#[inline]
+fn inv_small(r: &[f64; 3], t: &[f64; 3], p: &mut [f64; 3], v: &mut [f64; 3]) {
+    let q = [p[0] - t[0], p[1] - t[1], p[2] - t[2]];
+    let e = [0.0, 0.0, 0.0, -r[0], -r[1], -r[2]];
+    *p = q;
+    small(&e, p, v);
+}
+
+#[inline]
+fn rot_x(s: f64, c: f64, p: &mut [f64; 3], v: &mut [f64; 3]) {
+    let f = |x: &[f64; 3]| [x[0], c * x[1] - s * x[2], s * x[1] + c * x[2]];
+    *p = f(p);
+    *v = f(v);
+}
+
+#[inline]
+fn rot_z(s: f64, c: f64, p: &mut [f64; 3], v: &mut [f64; 3]) {
+    let f = |x: &[f64; 3]| [c * x[0] - s * x[1], s * x[0] + c * x[1], x[2]];
+    *p = f(p);
+    *v = f(v);
+}
+
+/// Angle between two unit vectors, rad (robust for tiny angles).
+#[inline]
+pub fn angle_rad(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    let c = [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ];
+    let s = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
+    s.atan2(a[0] * b[0] + a[1] * b[1] + a[2] * b[2])
+}
+
+/// Distance between two points, mm.
+#[inline]
+pub fn distance_mm(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}
+
+/// Result of solving for the drive positions of one commanded pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Solve {
+    /// Axis positions (scale values) at which the actual pose is the commanded one.
+    pub drive: [f64; 5],
+    /// Corrections applied (iterations of both steps).
+    pub iterations: usize,
+    /// Remaining linear residual `|feedback(drive) - command|` of X, Y, Z, um.
+    pub residual_um: f64,
+    /// Remaining rotary residual of A, C, arc-seconds.
+    pub residual_arcsec: f64,
+}
+
+/// The online compensator: scale positions in, corrected feedback out.
+#[derive(Debug, Clone)]
+pub struct VolumetricCompensator {
+    model: ErrorModel,
+}
+
+impl VolumetricCompensator {
+    /// A compensator for a machine's error model.
+    pub fn new(model: ErrorModel) -> Self {
+        Self { model }
+    }
+
+    /// The error model.
+    pub fn model(&self) -> &ErrorModel {
+        &self.model
+    }
+
+    /// Corrected feedback for scale positions q (X, Y, Z mm; A, C deg): the two-step
+    /// calculation of the module doc. Allocation-free. A zero model returns q
+    /// unchanged, bit for bit.
+    #[inline]
+    pub fn feedback(&self, q: &[f64; 5]) -> [f64; 5] {
+        if self.model.zero {
+            return *q;
+        }
+        let g = &self.model.geometry;
+        let (p, v) = self.model.actual_pose(q);
+        // Step 1: rotary angles giving the actual tool axis on the ideal machine.
+        let k = if q[3] < 0.0 { -1.0 } else { 1.0 };
+        let rho = (v[0] * v[0] + v[1] * v[1]).sqrt();
+        let (a, c) = if q[3].abs() < SINGULAR_A_DEG {
+            let (sc, cc) = q[4].to_radians().sin_cos();
+            let wy = -sc * v[0] + cc * v[1];
+            ((-wy).atan2(v[2]), q[4].to_radians())
+        } else {
+            let a = k * rho.atan2(v[2]);
+            let mut c = (k * v[0]).atan2(-k * v[1]);
+            let c_q = q[4].to_radians();
+            c += 2.0 * PI * ((c_q - c) / (2.0 * PI)).round();
+            (a, c)
+        };
+        // Step 2: linear positions putting the ideal tip there with A', C'.
+        let (sa, ca) = a.sin_cos();
+        let (sc, cc) = c.sin_cos();
+        let off = head_offset(g, sa, ca, sc, cc);
+        [
+            p[0] - off[0],
+            p[1] - off[1],
+            p[2] - off[2],
+            a.to_degrees(),
+            c.to_degrees(),
+        ]
+    }
+
+    /// Correction of each axis at scale positions q: `q - feedback(q)` (mm, deg).
+    #[inline]
+    pub fn correction(&self, q: &[f64; 5]) -> [f64; 5] {
+        let f = self.feedback(q);
+        std::array::from_fn(|i| q[i] - f[i])
+    }
+
+    /// Drive positions for a commanded pose u: iterates `q <- q - (feedback(q) - u)`
+    /// until the residual is within [`TOL_UM`] and [`TOL_ARCSEC`].
+    pub fn drive_positions(&self, u: &[f64; 5]) -> Solve {
+        let mut q = *u;
+        let mut iterations = 0;
+        loop {
+            let f = self.feedback(&q);
+            let r: [f64; 5] = std::array::from_fn(|i| f[i] - u[i]);
+            let lin_um = (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt() / MM_PER_UM;
+            let rot_as = r[3].abs().max(r[4].abs()) * 3600.0;
+            if (lin_um <= TOL_UM && rot_as <= TOL_ARCSEC) || iterations >= MAX_ITERATIONS {
+                return Solve {
+                    drive: q,
+                    iterations,
+                    residual_um: lin_um,
+                    residual_arcsec: rot_as,
+                };
+            }
+            for i in 0..5 {
+                q[i] -= r[i];
+            }
+            iterations += 1;
+        }
+    }
+
+    /// Tip error (mm, actual minus nominal) and orientation error (rotation vector
+    /// `nominal x actual`, rad) at axis positions q, as the simulated machine of
+    /// `compgate-plc` wants them.
+    pub fn pose_error(&self, q: &[f64; 5]) -> ([f64; 3], [f64; 3]) {
+        let (p, v) = self.model.actual_pose(q);
+        let (pn, vn) = nominal_pose(&self.model.geometry, q);
+        let w = [
+            vn[1] * v[2] - vn[2] * v[1],
+            vn[2] * v[0] - vn[0] * v[2],
+            vn[0] * v[1] - vn[1] * v[0],
+        ];
+        ([p[0] - pn[0], p[1] - pn[1], p[2] - pn[2]], w)
+    }
+}
+
+/// A synthetic but realistic error set (tens of um, tens of arc-seconds) of a
+/// machine with 1000 x 800 x 600 mm travel, A +-100 deg, C +-200 deg; the source of
+/// `config/volumetric-example.errors`. `scale` multiplies every error.
+pub fn synthetic_model(scale: f64) -> ErrorModel {
+    let travel = [
+        (0.0, 1000.0),
+        (0.0, 800.0),
+        (0.0, 600.0),
+        (-100.0, 100.0),
+        (-200.0, 200.0),
+    ];
+    // Per axis and column: amplitude (um or arcsec) of a linear and a wave term.
+    let amp: [[(f64, f64); 6]; 5] = [
+        [
+            (18.0, 4.0),
+            (-6.0, 3.0),
+            (5.0, 2.0),
+            (3.0, 2.0),
+            (-8.0, 4.0),
+            (6.0, 3.0),
+        ],
+        [
+            (-14.0, 5.0),
+            (4.0, 2.0),
+            (-7.0, 3.0),
+            (-5.0, 3.0),
+            (4.0, 2.0),
+            (7.0, 2.0),
+        ],
+        [
+            (10.0, 3.0),
+            (-5.0, 2.0),
+            (6.0, 2.0),
+            (6.0, 3.0),
+            (-4.0, 3.0),
+            (3.0, 1.0),
+        ],
+        [
+            (6.0, 4.0),
+            (-8.0, 5.0),
+            (5.0, 3.0),
+            (20.0, 8.0),
+            (-10.0, 5.0),
+            (8.0, 4.0),
+        ],
+        [
+            (-7.0, 5.0),
+            (6.0, 4.0),
+            (4.0, 3.0),
+            (-9.0, 4.0),
+            (7.0, 3.0),
+            (25.0, 10.0),
+        ],
+    ];
+    let tables: [Table; 5] = std::array::from_fn(|i| {
+        let (lo, hi) = travel[i];
+        let n = if i < 3 { 11 } else { 21 };
+        let mut pos = Vec::with_capacity(n);
+        let mut val = Vec::with_capacity(n);
+        for j in 0..n {
+            let s = j as f64 / (n - 1) as f64;
+            pos.push(lo + s * (hi - lo));
+            val.push(std::array::from_fn(|c| {
+                let (l, w) = amp[i][c];
+                let e = l * (s - 0.5) + w * (2.0 * PI * s * 1.5 + c as f64).sin();
+                let unit = if c < 3 { MM_PER_UM } else { RAD_PER_ARCSEC };
+                (e * 1e4).round() / 1e4 * unit * scale
+            }));
+        }
+        Table::new(pos, val)
+    });
+    ErrorModel::new(
+        Geometry {
+            pivot_mm: [0.0, 0.0, -150.0],
+            tool_length_mm: 250.0,
+        },
+        travel,
+        tables,
+        [6.0, -4.0, 5.0].map(|v| v * RAD_PER_ARCSEC * scale),
+        [
+            8.0 * MM_PER_UM,
+            -6.0 * MM_PER_UM,
+            5.0 * RAD_PER_ARCSEC,
+            -7.0 * RAD_PER_ARCSEC,
+        ]
+        .map(|v| v * scale),
+        [
+            5.0 * MM_PER_UM,
+            9.0 * MM_PER_UM,
+            -4.0 * RAD_PER_ARCSEC,
+            6.0 * RAD_PER_ARCSEC,
+        ]
+        .map(|v| v * scale),
+    )
+}
+
+/// Arguments of `compgate volumetric`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct VolumetricArgs {
+    /// Error parameter file (format: `compgate-volumetric-errors 1`).
+    #[arg(long, value_name = "FILE")]
+    pub errors: PathBuf,
+    /// Evaluation grid: a count of points per axis over its travel (e.g. `4`), or
+    /// per-axis ranges `X=0:1000:5,A=-90:90:4` (start:end:count; axes not named get 3
+    /// points over their travel).
+    #[arg(long, default_value = "4")]
+    pub grid: String,
+    /// Directory for the SVG error maps (created if missing).
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+}
+
+/// Grid axes: the values of each of the five axes.
+pub fn parse_grid(spec: &str, travel: &[(f64, f64); 5]) -> Result<[Vec<f64>; 5], VolumetricError> {
+    let lin = |lo: f64, hi: f64, n: usize| -> Vec<f64> {
+        if n == 1 {
+            vec![(lo + hi) / 2.0]
+        } else {
+            (0..n)
+                .map(|i| lo + (hi - lo) * i as f64 / (n - 1) as f64)
+                .collect()
+        }
+    };
+    let count = |s: &str| -> Result<usize, VolumetricError> {
+        match s.trim().parse::<usize>() {
+            Ok(n) if (1..=1000).contains(&n) => Ok(n),
+            _ => Err(VolumetricError::Grid(format!("bad count {s:?} (1..=1000)"))),
+        }
+    };
+    let spec = spec.trim();
+    if !spec.contains('=') {
+        let n = count(spec)?;
+        return Ok(std::array::from_fn(|i| lin(travel[i].0, travel[i].1, n)));
+    }
+    let mut out: [Option<Vec<f64>>; 5] = Default::default();
+    for part in spec.split(',') {
+        let (name, range) = part.split_once('=').ok_or_else(|| {
+            VolumetricError::Grid(format!("expected AXIS=start:end:count, got {part:?}"))
+        })?;
+        let i = AXES
+            .iter()
+            .position(|a| a.eq_ignore_ascii_case(name.trim()))
+            .ok_or_else(|| VolumetricError::Grid(format!("unknown axis {name:?}")))?;
+        let f: Vec<&str> = range.split(':').collect();
+        if f.len() != 3 {
+            return Err(VolumetricError::Grid(format!(
+                "{name}: expected start:end:count, got {range:?}"
+            )));
+        }
+        let num = |s: &str| {
+            s.trim()
+                .parse::<f64>()
+                .ok()
+                .filter(|v| v.is_finite())
+                .ok_or_else(|| VolumetricError::Grid(format!("{name}: not a number {s:?}")))
+        };
+        let (lo, hi, n) = (num(f[0])?, num(f[1])?, count(f[2])?);
+        let (tlo, thi) = travel[i];
+        if lo < tlo || hi > thi || lo > hi {
+            return Err(VolumetricError::Grid(format!(
+                "{name}: {lo}..{hi} outside the travel {tlo}..{thi}"
+            )));
+        }
+        out[i] = Some(lin(lo, hi, n));
+    }
+    Ok(std::array::from_fn(|i| {
+        out[i]
+            .take()
+            .unwrap_or_else(|| lin(travel[i].0, travel[i].1, 3))
+    }))
+}
+
+/// Statistics of one evaluation.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Stats {
+    /// Largest tip error, um.
+    pub max_tip_um: f64,
+    /// RMS tip error, um.
+    pub rms_tip_um: f64,
+    /// Largest orientation error, arc-seconds.
+    pub max_orient_arcsec: f64,
+    /// RMS orientation error, arc-seconds.
+    pub rms_orient_arcsec: f64,
+}
+
+/// Per-pose errors of a grid evaluation.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Evaluation {
+    /// The commanded poses.
+    pub poses: Vec<[f64; 5]>,
+    /// Uncompensated (tip um, orientation arcsec) per pose.
+    pub uncompensated: Vec<(f64, f64)>,
+    /// Compensated (tip um, orientation arcsec) per pose.
+    pub compensated: Vec<(f64, f64)>,
+    /// Most iterations needed.
+    pub max_iterations: usize,
+    /// Largest final residual, um and arc-seconds.
+    pub max_residual: (f64, f64),
+}
+
+fn stats(e: &[(f64, f64)]) -> Stats {
+    let n = e.len().max(1) as f64;
+    let mut s = Stats::default();
+    let (mut st, mut so) = (0.0, 0.0);
+    for (t, o) in e {
+        s.max_tip_um = s.max_tip_um.max(*t);
+        s.max_orient_arcsec = s.max_orient_arcsec.max(*o);
+        st += t * t;
+        so += o * o;
+    }
+    s.rms_tip_um = (st / n).sqrt();
+    s.rms_orient_arcsec = (so / n).sqrt();
+    s
+}
+
+impl Evaluation {
+    /// Statistics of the uncompensated errors.
+    pub fn uncompensated_stats(&self) -> Stats {
+        stats(&self.uncompensated)
+    }
+    /// Statistics of the compensated errors.
+    pub fn compensated_stats(&self) -> Stats {
+        stats(&self.compensated)
+    }
+}
+
+/// Evaluates every grid pose uncompensated (drives at the command) and compensated
+/// (drives where the feedback equals the command).
+pub fn evaluate(comp: &VolumetricCompensator, grid: &[Vec<f64>; 5]) -> Evaluation {
+    let model = comp.model();
+    let g = &model.geometry;
+    let mut ev = Evaluation::default();
+    let err = |q: &[f64; 5], u: &[f64; 5]| {
+        let (p, v) = model.actual_pose(q);
+        let (pn, vn) = nominal_pose(g, u);
+        (
+            distance_mm(&p, &pn) / MM_PER_UM,
+            angle_rad(&v, &vn) / RAD_PER_ARCSEC,
+        )
+    };
+    for &x in &grid[0] {
+        for &y in &grid[1] {
+            for &z in &grid[2] {
+                for &a in &grid[3] {
+                    for &c in &grid[4] {
+                        let u = [x, y, z, a, c];
+                        let s = comp.drive_positions(&u);
+                        ev.poses.push(u);
+                        ev.uncompensated.push(err(&u, &u));
+                        ev.compensated.push(err(&s.drive, &u));
+                        ev.max_iterations = ev.max_iterations.max(s.iterations);
+                        ev.max_residual.0 = ev.max_residual.0.max(s.residual_um);
+                        ev.max_residual.1 = ev.max_residual.1.max(s.residual_arcsec);
+                    }
+                }
+            }
+        }
+    }
+    ev
+}
+
+/// The report of an evaluation.
+pub fn report(ev: &Evaluation) -> String {
+    let (u, c) = (ev.uncompensated_stats(), ev.compensated_stats());
+    let pct = |a: f64, b: f64| if b > 0.0 { 100.0 * a / b } else { 0.0 };
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "volumetric compensation over {} grid poses",
+        ev.poses.len()
+    );
+    let _ = writeln!(
+        s,
+        "                     uncompensated   compensated   remaining"
+    );
+    let _ = writeln!(
+        s,
+        "tip max (um)         {:>13.4} {:>13.6} {:>10.4}%",
+        u.max_tip_um,
+        c.max_tip_um,
+        pct(c.max_tip_um, u.max_tip_um)
+    );
+    let _ = writeln!(
+        s,
+        "tip RMS (um)         {:>13.4} {:>13.6} {:>10.4}%",
+        u.rms_tip_um,
+        c.rms_tip_um,
+        pct(c.rms_tip_um, u.rms_tip_um)
+    );
+    let _ = writeln!(
+        s,
+        "orientation max (\") {:>13.4} {:>13.6} {:>10.4}%",
+        u.max_orient_arcsec,
+        c.max_orient_arcsec,
+        pct(c.max_orient_arcsec, u.max_orient_arcsec)
+    );
+    let _ = writeln!(
+        s,
+        "orientation RMS (\") {:>13.4} {:>13.6} {:>10.4}%",
+        u.rms_orient_arcsec,
+        c.rms_orient_arcsec,
+        pct(c.rms_orient_arcsec, u.rms_orient_arcsec)
+    );
+    let _ = writeln!(
+        s,
+        "iterations: at most {} (tolerance {TOL_UM} um, {TOL_ARCSEC}\"); largest residual {:.2e} um, {:.2e}\"",
+        ev.max_iterations, ev.max_residual.0, ev.max_residual.1
+    );
+    s
+}
+
+/// Writes the SVG error maps into `dir`: `tip-error.svg` and `orientation-error.svg`
+/// (error per grid pose, uncompensated and compensated) and `tip-error-xy.svg` (the
+/// uncompensated tip error over X and Y, worst over the other axes).
+pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, VolumetricError> {
+    use plotters::prelude::*;
+    std::fs::create_dir_all(dir)
+        .map_err(|e| VolumetricError::Io(format!("{}: {e}", dir.display())))?;
+    let mut written = Vec::new();
+    for (name, pick, unit) in [
+        ("tip-error.svg", 0usize, "tip error (um)"),
+        ("orientation-error.svg", 1, "orientation error (arcsec)"),
+    ] {
+        let path = dir.join(name);
+        let io = |e: String| VolumetricError::Io(format!("{}: {e}", path.display()));
+        let get = |t: &(f64, f64)| if pick == 0 { t.0 } else { t.1 };
+        let n = ev.poses.len().max(2);
+        let hi = ev.uncompensated.iter().map(get).fold(1e-9, f64::max) * 1.05;
+        let root = SVGBackend::new(&path, (1000, 500)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| io(e.to_string()))?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(
+                format!("volumetric compensation: {unit} per grid pose"),
+                ("sans-serif", 20),
+            )
+            .margin(10)
+            .x_label_area_size(30)
+            .y_label_area_size(70)
+            .build_cartesian_2d(0.0..(n - 1) as f64, 0.0..hi)
+            .map_err(|e| io(e.to_string()))?;
+        chart
+            .configure_mesh()
+            .x_desc("grid pose (X outermost, C innermost)")
+            .y_desc(unit)
+            .draw()
+            .map_err(|e| io(e.to_string()))?;
+        for (series, color, label) in [
+            (&ev.uncompensated, RED, "uncompensated"),
+            (&ev.compensated, BLUE, "compensated"),
+        ] {
+            chart
+                .draw_series(LineSeries::new(
+                    series.iter().enumerate().map(|(i, t)| (i as f64, get(t))),
+                    color,
+                ))
+                .map_err(|e| io(e.to_string()))?
+                .label(label)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color));
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE)
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| io(e.to_string()))?;
+        root.present().map_err(|e| io(e.to_string()))?;
+        written.push(path.clone());
+    }
+    // X-Y map of the worst uncompensated tip error.
+    let path = dir.join("tip-error-xy.svg");
+    let io = |e: String| VolumetricError::Io(format!("{}: {e}", path.display()));
+    let mut xs: Vec<f64> = ev.poses.iter().map(|p| p[0]).collect();
+    let mut ys: Vec<f64> = ev.poses.iter().map(|p| p[1]).collect();
+    for v in [&mut xs, &mut ys] {
+        v.sort_by(f64::total_cmp);
+        v.dedup();
+    }
+    let mut cell = vec![0.0f64; xs.len() * ys.len()];
+    for (p, e) in ev.poses.iter().zip(&ev.uncompensated) {
+        let i = xs.partition_point(|x| *x < p[0]);
+        let j = ys.partition_point(|y| *y < p[1]);
+        let k = i * ys.len() + j;
+        if let Some(c) = cell.get_mut(k) {
+            *c = c.max(e.0);
+        }
+    }
+    let top = cell.iter().copied().fold(1e-9, f64::max);
+    let half = |v: &[f64], i: usize| -> (f64, f64) {
+        let w = if v.len() > 1 {
+            (v[v.len() - 1] - v[0]) / (v.len() - 1) as f64
+        } else {
+            1.0
+        };
+        (v[i] - w / 2.0, v[i] + w / 2.0)
+    };
+    if !xs.is_empty() && !ys.is_empty() {
+        let (x0, _) = half(&xs, 0);
+        let (_, x1) = half(&xs, xs.len() - 1);
+        let (y0, _) = half(&ys, 0);
+        let (_, y1) = half(&ys, ys.len() - 1);
+        let root = SVGBackend::new(&path, (800, 700)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| io(e.to_string()))?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(
+                format!("uncompensated tip error over X-Y, worst over Z, A, C (max {top:.1} um)"),
+                ("sans-serif", 18),
+            )
+            .margin(10)
+            .x_label_area_size(30)
+            .y_label_area_size(60)
+            .build_cartesian_2d(x0..x1, y0..y1)
+            .map_err(|e| io(e.to_string()))?;
+        chart
+            .configure_mesh()
+            .x_desc("X (mm)")
+            .y_desc("Y (mm)")
+            .draw()
+            .map_err(|e| io(e.to_string()))?;
+        let mut rects = Vec::with_capacity(cell.len());
+        for i in 0..xs.len() {
+            for j in 0..ys.len() {
+                let v = cell[i * ys.len() + j] / top;
+                let (a0, a1) = half(&xs, i);
+                let (b0, b1) = half(&ys, j);
+                let color = RGBColor((255.0 * v) as u8, 64, (255.0 * (1.0 - v)) as u8);
+                rects.push(Rectangle::new([(a0, b0), (a1, b1)], color.filled()));
+            }
+        }
+        chart.draw_series(rects).map_err(|e| io(e.to_string()))?;
+        root.present().map_err(|e| io(e.to_string()))?;
+        written.push(path.clone());
+    }
+    Ok(written)
+}
+
+/// `compgate volumetric`: reads the error file, evaluates the grid uncompensated and
+/// compensated, writes the SVG maps with `--out`, and returns the report.
+pub fn run(args: &VolumetricArgs) -> Result<String, VolumetricError> {
+    let text = std::fs::read_to_string(&args.errors)
+        .map_err(|e| VolumetricError::Io(format!("{}: {e}", args.errors.display())))?;
+    let model = parse(&text).map_err(|e| match e {
+        VolumetricError::Parse {
+            line,
+            field,
+            message,
+        } => VolumetricError::Parse {
+            line,
+            field: format!("{}: {field}", args.errors.display()),
+            message,
+        },
+        other => other,
+    })?;
+    let grid = parse_grid(&args.grid, &model.travel)?;
+    let comp = VolumetricCompensator::new(model);
+    let ev = evaluate(&comp, &grid);
+    let mut s = report(&ev);
+    if let Some(dir) = &args.out {
+        for p in write_svgs(dir, &ev)? {
+            let _ = writeln!(s, "wrote {}", p.display());
+        }
+    }
+    Ok(s)
+}
+
+/// Result of [`bench_per_s`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Bench {
+    /// Compensations ([`VolumetricCompensator::feedback`]) per second on one core.
+    pub per_s: f64,
+    /// Time of one compensation, ns.
+    pub ns_each: f64,
+}
+
+/// Measures [`VolumetricCompensator::feedback`] on the synthetic model over a
+/// pseudo-random sweep of poses for about `seconds`, on the calling thread.
+pub fn bench_per_s(seconds: f64) -> Bench {
+    let comp = VolumetricCompensator::new(synthetic_model(1.0));
+    let t = comp.model().travel;
+    let mut poses = [[0.0; 5]; 256];
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    for p in poses.iter_mut() {
+        for (i, v) in p.iter_mut().enumerate() {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            let s = (state >> 11) as f64 / (1u64 << 53) as f64;
+            *v = t[i].0 + s * (t[i].1 - t[i].0);
+        }
+    }
+    let start = Instant::now();
+    let mut n = 0u64;
+    let mut sink = 0.0;
+    loop {
+        for p in &poses {
+            let f = comp.feedback(std::hint::black_box(p));
+            sink += f[0];
+        }
+        n += poses.len() as u64;
+        if start.elapsed().as_secs_f64() >= seconds {
+            break;
+        }
+    }
+    std::hint::black_box(sink);
+    let el = start.elapsed().as_secs_f64();
+    Bench {
+        per_s: n as f64 / el,
+        ns_each: el * 1e9 / n as f64,
+    }
+}
