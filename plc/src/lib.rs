@@ -23,8 +23,11 @@
 //!   running the interpolation loop, with job fault injection.
 //! - [`axis`]: full-closed-loop feed axis (motor encoder and linear scale, backlash,
 //!   drive-train elasticity, noise), move programmes and the two-channel servo trace.
+//! - [`machine5`]: 5-axis AC swivel-head machine with true geometric errors whose drives
+//!   close their loops on modified scale feedback (volumetric compensation).
 
 pub mod axis;
 pub mod field;
+pub mod machine5;
 pub mod nc;
 pub mod ncmap;
