@@ -643,6 +643,7 @@ pub fn write_svg(
     points: &[PointValue; 3],
 ) -> Result<(), BacklashError> {
     use plotters::prelude::*;
+    use plotters::style::text_anchor::{HPos, Pos, VPos};
     let io = |e: String| BacklashError::Io(format!("{}: {e}", path.display()));
     let n = trace.scale_mm.len();
     if n == 0 {
@@ -714,8 +715,10 @@ pub fn write_svg(
         chart
             .draw_series(std::iter::once(Text::new(
                 format!("{name}: L={:.4} M={:.4}", v.scale_mm, v.encoder_mm),
-                (t0, v.scale_mm + pad * 0.5),
-                ("sans-serif", 14),
+                (t1, v.scale_mm + pad * 0.5),
+                // Right-aligned at the plateau's end: D sits at the right edge.
+                TextStyle::from(("sans-serif", 14).into_font())
+                    .pos(Pos::new(HPos::Right, VPos::Bottom)),
             )))
             .map_err(|e| io(e.to_string()))?;
     }

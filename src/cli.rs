@@ -43,6 +43,8 @@ pub enum Command {
     },
     /// Run the gateway against the embedded simulated plant (the default).
     Demo,
+    /// Measure reversal backlash of a full-closed-loop axis from encoder vs scale trace.
+    Backlash(crate::backlash::BacklashArgs),
     /// Measure poll-filter-compute cycles against the bare Modbus request rate.
     Bench {
         /// Channels on the simulated module, read in one request.

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::Parser;
 use compgate::cli::{Cli, Command};
 use compgate::plant::{Bind, Plant};
-use compgate::{bench, config, gateway, status};
+use compgate::{backlash, bench, config, gateway, status};
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 
@@ -127,6 +127,13 @@ async fn main() -> ExitCode {
             Err(e) => Err(e.to_string()),
         },
         Command::Sim { config: path } => sim(&path).await,
+        Command::Backlash(args) => match backlash::run(&args).await {
+            Ok(report) => {
+                print!("{report}");
+                Ok(())
+            }
+            Err(e) => Err(e.to_string()),
+        },
         Command::Bench {
             channels,
             cycles,
