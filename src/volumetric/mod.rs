@@ -690,31 +690,55 @@ pub struct Evaluation {
     pub max_iterations: usize,
     /// Largest final residual, um and arc-seconds.
     pub max_residual: (f64, f64),
+    /// Per pose: within [`SINGULAR_A_DEG`] of A = 0, where the orientation is only
+    /// partly correctable; the statistics report these poses apart.
+    pub singular: Vec<bool>,
 }
 
-fn stats(e: &[(f64, f64)]) -> Stats {
-    let n = e.len().max(1) as f64;
+fn stats<'a>(e: impl Iterator<Item = &'a (f64, f64)>) -> Stats {
+    let mut n = 0usize;
     let mut s = Stats::default();
     let (mut st, mut so) = (0.0, 0.0);
     for (t, o) in e {
+        n += 1;
         s.max_tip_um = s.max_tip_um.max(*t);
         s.max_orient_arcsec = s.max_orient_arcsec.max(*o);
         st += t * t;
         so += o * o;
     }
+    let n = n.max(1) as f64;
     s.rms_tip_um = (st / n).sqrt();
     s.rms_orient_arcsec = (so / n).sqrt();
     s
 }
 
 impl Evaluation {
-    /// Statistics of the uncompensated errors.
-    pub fn uncompensated_stats(&self) -> Stats {
-        stats(&self.uncompensated)
+    fn pick<'a>(
+        &'a self,
+        e: &'a [(f64, f64)],
+        singular: bool,
+    ) -> impl Iterator<Item = &'a (f64, f64)> + 'a {
+        e.iter()
+            .zip(&self.singular)
+            .filter(move |(_, s)| **s == singular)
+            .map(|(e, _)| e)
     }
-    /// Statistics of the compensated errors.
+    /// Statistics of the uncompensated errors (poses outside the A = 0 band).
+    pub fn uncompensated_stats(&self) -> Stats {
+        stats(self.pick(&self.uncompensated, false))
+    }
+    /// Statistics of the compensated errors (poses outside the A = 0 band).
     pub fn compensated_stats(&self) -> Stats {
-        stats(&self.compensated)
+        stats(self.pick(&self.compensated, false))
+    }
+    /// Poses within the A = 0 band: their count and (uncompensated, compensated)
+    /// statistics.
+    pub fn singular_stats(&self) -> (usize, Stats, Stats) {
+        (
+            self.singular.iter().filter(|s| **s).count(),
+            stats(self.pick(&self.uncompensated, true)),
+            stats(self.pick(&self.compensated, true)),
+        )
     }
 }
 
@@ -740,6 +764,7 @@ pub fn evaluate(comp: &VolumetricCompensator, grid: &[Vec<f64>; 5]) -> Evaluatio
                         let u = [x, y, z, a, c];
                         let s = comp.drive_positions(&u);
                         ev.poses.push(u);
+                        ev.singular.push(a.abs() < SINGULAR_A_DEG);
                         ev.uncompensated.push(err(&u, &u));
                         ev.compensated.push(err(&s.drive, &u));
                         ev.max_iterations = ev.max_iterations.max(s.iterations);
@@ -758,10 +783,16 @@ pub fn report(ev: &Evaluation) -> String {
     let (u, c) = (ev.uncompensated_stats(), ev.compensated_stats());
     let pct = |a: f64, b: f64| if b > 0.0 { 100.0 * a / b } else { 0.0 };
     let mut s = String::new();
+    let (n_sing, su, sc) = ev.singular_stats();
     let _ = writeln!(
         s,
-        "volumetric compensation over {} grid poses",
-        ev.poses.len()
+        "volumetric compensation over {} grid poses{}",
+        ev.poses.len() - n_sing,
+        if n_sing > 0 {
+            format!(" ({n_sing} more within {SINGULAR_A_DEG} deg of A = 0, below)")
+        } else {
+            String::new()
+        }
     );
     let _ = writeln!(
         s,
@@ -800,6 +831,15 @@ pub fn report(ev: &Evaluation) -> String {
         "iterations: at most {} (tolerance {TOL_UM} um, {TOL_ARCSEC}\"); largest residual {:.2e} um, {:.2e}\"",
         ev.max_iterations, ev.max_residual.0, ev.max_residual.1
     );
+    if n_sing > 0 {
+        let _ = writeln!(
+            s,
+            "A = 0 band ({n_sing} poses, C not corrected): tip max {:.4} -> {:.6} um, \
+             orientation max {:.4} -> {:.4}\" (the part about the A plane's normal is \
+             not correctable without a large C move)",
+            su.max_tip_um, sc.max_tip_um, su.max_orient_arcsec, sc.max_orient_arcsec
+        );
+    }
     s
 }
 

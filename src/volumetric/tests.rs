@@ -228,6 +228,25 @@ fn run_writes_report_and_svgs() {
 }
 
 #[test]
+fn a_zero_band_is_reported_apart() {
+    let comp = VolumetricCompensator::new(synthetic_model(1.0));
+    let grid = parse_grid("3", &comp.model().travel).expect("grid");
+    let ev = evaluate(&comp, &grid);
+    let (n, u, c) = ev.singular_stats();
+    assert_eq!(n, 81);
+    // Tip still corrected in the band; orientation only in part.
+    assert!(c.max_tip_um <= 0.01 * u.max_tip_um, "{c:?} {u:?}");
+    assert!(c.max_orient_arcsec < u.max_orient_arcsec, "{c:?} {u:?}");
+    let (cu, cc) = (ev.uncompensated_stats(), ev.compensated_stats());
+    assert!(cc.max_orient_arcsec <= 0.01 * cu.max_orient_arcsec);
+    assert!(
+        report(&ev).contains("A = 0 band (81 poses"),
+        "{}",
+        report(&ev)
+    );
+}
+
+#[test]
 fn singular_band_keeps_c() {
     let comp = VolumetricCompensator::new(synthetic_model(1.0));
     let f = comp.feedback(&[100.0, 100.0, 100.0, 0.0, 45.0]);
