@@ -859,44 +859,37 @@ pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, Volumetri
         let io = |e: String| VolumetricError::Io(format!("{}: {e}", path.display()));
         let get = |t: &(f64, f64)| if pick == 0 { t.0 } else { t.1 };
         let n = ev.poses.len().max(2);
-        let hi = ev.uncompensated.iter().map(get).fold(1e-9, f64::max) * 1.05;
-        let root = SVGBackend::new(&path, (1000, 500)).into_drawing_area();
+        let root = SVGBackend::new(&path, (1000, 700)).into_drawing_area();
         root.fill(&WHITE).map_err(|e| io(e.to_string()))?;
-        let mut chart = ChartBuilder::on(&root)
-            .caption(
-                format!("volumetric compensation: {unit} per grid pose"),
-                ("sans-serif", 20),
-            )
-            .margin(10)
-            .x_label_area_size(30)
-            .y_label_area_size(70)
-            .build_cartesian_2d(0.0..(n - 1) as f64, 0.0..hi)
-            .map_err(|e| io(e.to_string()))?;
-        chart
-            .configure_mesh()
-            .x_desc("grid pose (X outermost, C innermost)")
-            .y_desc(unit)
-            .draw()
-            .map_err(|e| io(e.to_string()))?;
-        for (series, color, label) in [
-            (&ev.uncompensated, RED, "uncompensated"),
-            (&ev.compensated, BLUE, "compensated"),
+        let (upper, lower) = root.split_vertically(350);
+        for (area, series, color, label) in [
+            (&upper, &ev.uncompensated, RED, "uncompensated"),
+            (&lower, &ev.compensated, BLUE, "compensated"),
         ] {
+            let hi = series.iter().map(get).fold(1e-12, f64::max) * 1.05;
+            let mut chart = ChartBuilder::on(area)
+                .caption(
+                    format!("{label} {unit} per grid pose (max {:.4})", hi / 1.05),
+                    ("sans-serif", 18),
+                )
+                .margin(10)
+                .x_label_area_size(30)
+                .y_label_area_size(80)
+                .build_cartesian_2d(0.0..(n - 1) as f64, 0.0..hi)
+                .map_err(|e| io(e.to_string()))?;
+            chart
+                .configure_mesh()
+                .x_desc("grid pose (X outermost, C innermost)")
+                .y_desc(unit)
+                .draw()
+                .map_err(|e| io(e.to_string()))?;
             chart
                 .draw_series(LineSeries::new(
                     series.iter().enumerate().map(|(i, t)| (i as f64, get(t))),
                     color,
                 ))
-                .map_err(|e| io(e.to_string()))?
-                .label(label)
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color));
+                .map_err(|e| io(e.to_string()))?;
         }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE)
-            .border_style(BLACK)
-            .draw()
-            .map_err(|e| io(e.to_string()))?;
         root.present().map_err(|e| io(e.to_string()))?;
         written.push(path.clone());
     }
@@ -919,6 +912,7 @@ pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, Volumetri
         }
     }
     let top = cell.iter().copied().fold(1e-9, f64::max);
+    let bottom = cell.iter().copied().fold(top, f64::min);
     let half = |v: &[f64], i: usize| -> (f64, f64) {
         let w = if v.len() > 1 {
             (v[v.len() - 1] - v[0]) / (v.len() - 1) as f64
@@ -936,7 +930,10 @@ pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, Volumetri
         root.fill(&WHITE).map_err(|e| io(e.to_string()))?;
         let mut chart = ChartBuilder::on(&root)
             .caption(
-                format!("uncompensated tip error over X-Y, worst over Z, A, C (max {top:.1} um)"),
+                format!(
+                    "uncompensated tip error over X-Y, worst over Z, A, C \
+                     (blue {bottom:.1} .. red {top:.1} um)"
+                ),
                 ("sans-serif", 18),
             )
             .margin(10)
@@ -953,7 +950,7 @@ pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, Volumetri
         let mut rects = Vec::with_capacity(cell.len());
         for i in 0..xs.len() {
             for j in 0..ys.len() {
-                let v = cell[i * ys.len() + j] / top;
+                let v = (cell[i * ys.len() + j] - bottom) / (top - bottom).max(1e-12);
                 let (a0, a1) = half(&xs, i);
                 let (b0, b1) = half(&ys, j);
                 let color = RGBColor((255.0 * v) as u8, 64, (255.0 * (1.0 - v)) as u8);
