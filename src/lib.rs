@@ -20,6 +20,8 @@
 //! - [`backlash`]: `compgate backlash`, backlash of a full-closed-loop axis from the
 //!   servo trace of encoder and scale (seed formulas, plateau extraction, MD32450 write).
 //! - [`volumetric`]: online volumetric compensation of a 5-axis AC-head machine.
+//! - [`measure`]: the measured-error CSV format (`t_s,pos_mm,err_um,T_*`) that
+//!   `calibrate` and `diagnose` read and `export` writes.
 //! - [`gateway`]: wires the stages together; `run(config, shutdown)` is the one path
 //!   used by the service, the demo and the tests.
 //! - [`plant`]: the simulated plant for a config (demo, `sim`, tests), from
@@ -39,6 +41,7 @@ pub mod cli;
 pub mod comp;
 pub mod config;
 pub mod gateway;
+pub mod measure;
 pub mod nc;
 pub mod plant;
 pub mod source;
