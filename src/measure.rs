@@ -176,8 +176,8 @@ impl Measurements {
             let delta_mm = out.pos_mm.last().map_or(0.0, |p| pos_mm - p);
             let dir = match i_dir {
                 Some(i) => match num(i)? {
-                    v if v == 1.0 => 1,
-                    v if v == -1.0 => -1,
+                    1.0 => 1,
+                    -1.0 => -1,
                     _ => {
                         return Err(MeasureError::Field {
                             line,
