@@ -55,6 +55,8 @@ pub struct BenchReport {
     pub gateway: Side,
     /// Bare tokio-modbus reads.
     pub bare: Side,
+    /// The device poller alone (request wrapper and decoding, no channel processing).
+    pub poll_only: Side,
     /// Mean time of the synchronous part alone (64 channel processors + one decision).
     pub pipeline_only: Duration,
 }
@@ -77,6 +79,7 @@ impl BenchReport {
         for (name, side) in [
             ("bare tokio-modbus read", &self.bare),
             ("gateway poll+filter+compute", &self.gateway),
+            ("of which the device poll alone", &self.poll_only),
         ] {
             let _ = writeln!(
                 s,
@@ -98,6 +101,24 @@ impl BenchReport {
         );
         s
     }
+}
+
+/// Servo cycle budgets of a 5-axis NC the volumetric compensation runs inside, us.
+const SERVO_CYCLES_US: [f64; 2] = [125.0, 500.0];
+
+/// One line on the volumetric compensator: compensations per second on one core and
+/// the share of a servo cycle one compensation takes.
+pub fn volumetric_line(seconds: f64) -> String {
+    let b = crate::volumetric::bench_per_s(seconds);
+    format!(
+        "volumetric compensation, one core: {:.0}/s, {:.0} ns each = {:.2}% of a {} us / {:.3}% of a {} us servo cycle (target >= 1,000,000/s)\n",
+        b.per_s,
+        b.ns_each,
+        b.ns_each / (SERVO_CYCLES_US[0] * 10.0),
+        SERVO_CYCLES_US[0],
+        b.ns_each / (SERVO_CYCLES_US[1] * 10.0),
+        SERVO_CYCLES_US[1],
+    )
 }
 
 /// Errors of the bench.
@@ -223,6 +244,17 @@ async fn measure(channels: u16, cycles: u32, rounds: u32) -> Result<BenchReport,
         let t0 = Instant::now();
         for _ in 0..cycles {
             let c0 = Instant::now();
+            std::hint::black_box(poller.poll().await);
+            report.poll_only.latencies.push(c0.elapsed());
+        }
+        report
+            .poll_only
+            .rates_per_s
+            .push(f64::from(cycles) / t0.elapsed().as_secs_f64());
+
+        let t0 = Instant::now();
+        for _ in 0..cycles {
+            let c0 = Instant::now();
             match bare.read_input_registers(0, channels).await {
                 Ok(Ok(regs)) => {
                     std::hint::black_box(regs);
@@ -259,6 +291,7 @@ mod tests {
         let r = run(16, 20, 2).await.unwrap();
         assert_eq!(r.gateway.latencies.len(), 40);
         assert_eq!(r.bare.latencies.len(), 40);
+        assert_eq!(r.poll_only.latencies.len(), 40);
         assert_eq!(r.gateway.rates_per_s.len(), 2);
         assert!(r.ratio().is_finite() && r.ratio() > 0.0);
         assert!(r.table().contains("| bare tokio-modbus read |"));

@@ -45,6 +45,8 @@ pub enum Command {
     Demo,
     /// Measure reversal backlash of a full-closed-loop axis from encoder vs scale trace.
     Backlash(crate::backlash::BacklashArgs),
+    /// Evaluate volumetric compensation of a 5-axis AC-head machine over a workspace grid.
+    Volumetric(crate::volumetric::VolumetricArgs),
     /// Measure poll-filter-compute cycles against the bare Modbus request rate.
     Bench {
         /// Channels on the simulated module, read in one request.

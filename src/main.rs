@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::Parser;
 use compgate::cli::{Cli, Command};
 use compgate::plant::{Bind, Plant};
-use compgate::{backlash, bench, config, gateway, status};
+use compgate::{backlash, bench, config, gateway, status, volumetric};
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 
@@ -134,6 +134,13 @@ async fn main() -> ExitCode {
             }
             Err(e) => Err(e.to_string()),
         },
+        Command::Volumetric(args) => match volumetric::run(&args) {
+            Ok(report) => {
+                print!("{report}");
+                Ok(())
+            }
+            Err(e) => Err(e.to_string()),
+        },
         Command::Bench {
             channels,
             cycles,
@@ -141,6 +148,8 @@ async fn main() -> ExitCode {
         } => match bench::run(channels, cycles, rounds).await {
             Ok(report) => {
                 print!("{}", report.table());
+                println!();
+                print!("{}", bench::volumetric_line(2.0));
                 Ok(())
             }
             Err(e) => Err(e.to_string()),

@@ -67,3 +67,61 @@ fn servo_and_solver_agree() {
         assert!((q - d).abs() < 1e-5, "{s:?} {solve:?}");
     }
 }
+
+const BIN: &str = env!("CARGO_BIN_EXE_compgate");
+
+#[test]
+fn cli_reports_the_grid_and_writes_maps() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = std::process::Command::new(BIN)
+        .args([
+            "volumetric",
+            "--errors",
+            "config/volumetric-example.errors",
+            "--grid",
+            "3",
+            "--out",
+        ])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // Every "remaining" figure (compensated over uncompensated) is under 1 %.
+    let remaining: Vec<f64> = stdout
+        .lines()
+        .filter(|l| l.contains("max (") || l.contains("RMS ("))
+        .map(|l| {
+            let pct = l.split_whitespace().last().unwrap();
+            pct.trim_end_matches('%').parse().unwrap()
+        })
+        .collect();
+    assert_eq!(remaining.len(), 4, "{stdout}");
+    assert!(remaining.iter().all(|&p| p < 1.0), "{stdout}");
+    for svg in ["tip-error.svg", "orientation-error.svg", "tip-error-xy.svg"] {
+        let text = std::fs::read_to_string(dir.path().join(svg)).unwrap();
+        assert!(text.starts_with("<svg"), "{svg}");
+    }
+}
+
+#[test]
+fn cli_rejects_a_table_short_of_the_travel_naming_file_and_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("short.errors");
+    // The X table ends at 900 mm, the travel at 1000 mm.
+    let text = EXAMPLE.replacen("\n1000 9.0000", "\n#1000 9.0000", 1);
+    std::fs::write(&path, text).unwrap();
+    let out = std::process::Command::new(BIN)
+        .args(["volumetric", "--errors"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains(&path.display().to_string()), "{err}");
+    assert!(err.contains("line "), "{err}");
+}
