@@ -45,6 +45,8 @@ pub enum Command {
     Demo,
     /// Measure reversal backlash of a full-closed-loop axis from encoder vs scale trace.
     Backlash(crate::backlash::BacklashArgs),
+    /// Fit K0(T) and tan(beta)(T) to measured error curves and write the axis model.
+    Calibrate(crate::calibrate::CalibrateArgs),
     /// Measure poll-filter-compute cycles against the bare Modbus request rate.
     Bench {
         /// Channels on the simulated module, read in one request.
