@@ -47,6 +47,8 @@ pub enum Command {
     Backlash(crate::backlash::BacklashArgs),
     /// Evaluate volumetric compensation of a 5-axis AC-head machine over a workspace grid.
     Volumetric(crate::volumetric::VolumetricArgs),
+    /// Fit K0(T) and tan(beta)(T) to measured error curves and write the axis model.
+    Calibrate(crate::calibrate::CalibrateArgs),
     /// Measure poll-filter-compute cycles against the bare Modbus request rate.
     Bench {
         /// Channels on the simulated module, read in one request.

@@ -20,6 +20,8 @@
 //! - [`backlash`]: `compgate backlash`, backlash of a full-closed-loop axis from the
 //!   servo trace of encoder and scale (seed formulas, plateau extraction, MD32450 write).
 //! - [`volumetric`]: online volumetric compensation of a 5-axis AC-head machine.
+//! - [`calibrate`]: `compgate calibrate`, the patent's step S1: least-squares fit of
+//!   K0(T) and tan(beta)(T) (pure part in `calibrate::fit`), model file, plot.
 //! - [`measure`]: the measured-error CSV format (`t_s,pos_mm,err_um,T_*`) that
 //!   `calibrate` and `diagnose` read and `export` writes.
 //! - [`gateway`]: wires the stages together; `run(config, shutdown)` is the one path
@@ -36,6 +38,7 @@
 
 pub mod backlash;
 pub mod bench;
+pub mod calibrate;
 pub mod channel;
 pub mod cli;
 pub mod comp;

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::Parser;
 use compgate::cli::{Cli, Command};
 use compgate::plant::{Bind, Plant};
-use compgate::{backlash, bench, config, gateway, status, volumetric};
+use compgate::{backlash, bench, calibrate, config, gateway, status, volumetric};
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 
@@ -141,6 +141,9 @@ async fn main() -> ExitCode {
             }
             Err(e) => Err(e.to_string()),
         },
+        Command::Calibrate(args) => calibrate::run(&args)
+            .map(|report| print!("{report}"))
+            .map_err(|e| e.to_string()),
         Command::Bench {
             channels,
             cycles,
