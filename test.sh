@@ -7,6 +7,18 @@ cd "$(dirname "$0")"
 # Rust components the checks use (present on a standard rustup toolchain).
 rustup component add rustfmt clippy >/dev/null 2>&1 || true
 
+# System tools the service tests use: systemd-analyze (unit exposure, offline) and
+# mosquitto (a real MQTT broker on loopback).
+need=()
+command -v systemd-analyze >/dev/null 2>&1 || need+=(systemd)
+command -v mosquitto >/dev/null 2>&1 || [[ -x /usr/sbin/mosquitto ]] || need+=(mosquitto)
+if ((${#need[@]})); then
+    echo "== installing ${need[*]}"
+    if [[ $(id -u) -eq 0 ]]; then sudo=(); else sudo=(sudo); fi
+    "${sudo[@]}" apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive "${sudo[@]}" apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
+fi
+
 echo "== cargo fmt --check"
 cargo fmt --all -- --check
 echo "== cargo clippy"

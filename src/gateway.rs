@@ -23,6 +23,10 @@ use crate::nc::{Job, JobReport, ModbusNcWriter, NcError, NcSnapshot, NcWriter};
 use crate::source::modbus::{Backoff, LinkSpec, ModbusLink};
 use crate::source::{ChannelSpec, DevicePoller, DeviceSample, PollParams, SharedLink};
 
+mod hooks;
+mod reload;
+pub use hooks::{Hooks, Observer, Observers};
+
 /// Errors of the gateway layer.
 #[derive(Debug, thiserror::Error)]
 pub enum GatewayError {
@@ -474,27 +478,39 @@ enum NcEvent {
     },
 }
 
+/// What a task hands back when it ends, so a reload can keep its state.
+enum Returned {
+    Device(usize, DeviceRt),
+    Nc(usize, NcModuleRt),
+    Aborted,
+}
+
+/// Polls until `stop` (between polls: a reload keeps the link clean) or `shutdown`
+/// (at once, even mid-request).
 async fn device_task(
+    index: usize,
     mut dev: DeviceRt,
     tx: mpsc::Sender<DeviceSample>,
+    stop: CancellationToken,
     shutdown: CancellationToken,
-) {
+) -> Returned {
     let mut tick = tokio::time::interval(dev.poll_interval);
     // A slow device must not burst-poll to catch up.
     tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
     loop {
         tokio::select! {
-            _ = shutdown.cancelled() => break,
+            _ = stop.cancelled() => break,
             _ = tick.tick() => {}
         }
         let sample = tokio::select! {
-            _ = shutdown.cancelled() => break,
+            _ = shutdown.cancelled() => return Returned::Aborted,
             s = dev.poller.poll() => s,
         };
         if tx.send(sample).await.is_err() {
             break;
         }
     }
+    Returned::Device(index, dev)
 }
 
 async fn nc_task(
@@ -503,7 +519,7 @@ async fn nc_task(
     mut rx: mpsc::Receiver<NcCommand>,
     tx: mpsc::Sender<NcEvent>,
     snapshot_interval: Duration,
-) {
+) -> Returned {
     let mut tick = tokio::time::interval(snapshot_interval);
     tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
     loop {
@@ -527,6 +543,7 @@ async fn nc_task(
             }
         }
     }
+    Returned::Nc(module, nc)
 }
 
 fn describe(d: &Decision, names: &[String], inputs: &[usize]) -> String {
@@ -552,8 +569,19 @@ pub async fn run(
     shutdown: CancellationToken,
     status: watch::Sender<Status>,
 ) -> Result<(), GatewayError> {
+    run_with(cfg, shutdown, status, Hooks::default()).await
+}
+
+/// [`run`] with hooks: an observer (recorder, metrics, MQTT, systemd) and a source of
+/// reloaded configs.
+pub async fn run_with(
+    cfg: &Config,
+    shutdown: CancellationToken,
+    status: watch::Sender<Status>,
+    hooks: Hooks,
+) -> Result<(), GatewayError> {
     let built = build(cfg)?;
-    run_built(built, shutdown, status).await;
+    run_built_with(built, cfg.clone(), shutdown, status, hooks).await;
     Ok(())
 }
 
@@ -563,104 +591,252 @@ pub async fn run_built(
     shutdown: CancellationToken,
     status_tx: watch::Sender<Status>,
 ) {
-    let Built {
-        mut pipeline,
-        devices,
-        nc_modules,
-        status_interval,
-    } = built;
+    // Without a reload source the config is never compared: any will do.
+    let cfg = Config::default();
+    run_built_with(built, cfg, shutdown, status_tx, Hooks::default()).await;
+}
 
-    let mut status = Status {
-        channels: pipeline
-            .channel_names
-            .iter()
-            .zip(&pipeline.processors)
-            .map(|(name, p)| ChannelStatus {
-                name: name.clone(),
-                reading: p.last().clone(),
-            })
-            .collect(),
-        devices: devices
-            .iter()
-            .map(|d| DeviceStatus {
-                name: d.poller.name().to_string(),
-                link: d
-                    .poller
-                    .link()
-                    .try_lock()
-                    .map(|l| l.spec().to_string())
-                    .unwrap_or_default(),
-                ..DeviceStatus::default()
-            })
-            .collect(),
-        axes: pipeline
-            .axes
-            .iter()
-            .map(|a| AxisStatus {
-                name: a.name.clone(),
-                decision: "waiting for the NC".into(),
-                ..AxisStatus::default()
-            })
-            .collect(),
-        samples: 0,
-    };
+/// Runs `built` (made from `cfg`) through generations: a reload ends one generation
+/// between polls, after every NC job in flight has finished, and starts the next with
+/// the state of whatever did not change.
+async fn run_built_with(
+    built: Built,
+    mut cfg: Config,
+    shutdown: CancellationToken,
+    status_tx: watch::Sender<Status>,
+    mut hooks: Hooks,
+) {
+    let mut state = Running::new(built);
+    loop {
+        match generation(&mut state, &shutdown, &status_tx, &mut hooks).await {
+            None => break,
+            Some((new_cfg, new_built)) => {
+                state = reload::transplant(&cfg, &new_cfg, state, *new_built);
+                cfg = *new_cfg;
+                tracing::info!("configuration reloaded");
+                hooks.observer.on_reload(&Ok(()));
+            }
+        }
+    }
+    status_tx.send_replace(state.status);
+    tracing::info!("gateway stopped");
+}
 
-    status_tx.send_replace(status.clone());
+/// The state that lives across generations.
+struct Running {
+    pipeline: Pipeline,
+    devices: Vec<Option<DeviceRt>>,
+    nc_modules: Vec<Option<NcModuleRt>>,
+    status_interval: Duration,
+    status: Status,
+    /// Per axis: whether its step limits start from what the NC holds yet.
+    baselined: Vec<bool>,
+}
+
+impl Running {
+    fn new(built: Built) -> Self {
+        let Built {
+            pipeline,
+            devices,
+            nc_modules,
+            status_interval,
+        } = built;
+        let status = Status {
+            channels: pipeline
+                .channel_names
+                .iter()
+                .zip(&pipeline.processors)
+                .map(|(name, p)| ChannelStatus {
+                    name: name.clone(),
+                    reading: p.last().clone(),
+                })
+                .collect(),
+            devices: devices
+                .iter()
+                .map(|d| DeviceStatus {
+                    name: d.poller.name().to_string(),
+                    link: d
+                        .poller
+                        .link()
+                        .try_lock()
+                        .map(|l| l.spec().to_string())
+                        .unwrap_or_default(),
+                    ..DeviceStatus::default()
+                })
+                .collect(),
+            axes: pipeline
+                .axes
+                .iter()
+                .map(|a| AxisStatus {
+                    name: a.name.clone(),
+                    decision: "waiting for the NC".into(),
+                    ..AxisStatus::default()
+                })
+                .collect(),
+            samples: 0,
+        };
+        Running {
+            baselined: vec![false; pipeline.axes.len()],
+            pipeline,
+            devices: devices.into_iter().map(Some).collect(),
+            nc_modules: nc_modules.into_iter().map(Some).collect(),
+            status_interval,
+            status,
+        }
+    }
+
+    fn on_sample(&mut self, sample: &DeviceSample) {
+        self.pipeline.ingest(sample);
+        let status = &mut self.status;
+        status.samples += 1;
+        let d = &mut status.devices[sample.device];
+        d.cycles += 1;
+        d.last_cycle = sample.elapsed;
+        d.connects = sample.connects;
+        match &sample.error {
+            Some(e) => {
+                d.failed_cycles += 1;
+                *d.errors.entry(e.kind()).or_default() += 1;
+                d.last_error = Some(e.to_string());
+            }
+            None => {
+                d.failed_cycles = 0;
+                d.last_error = None;
+            }
+        }
+        for (cs, p) in status.channels.iter_mut().zip(&self.pipeline.processors) {
+            cs.reading = p.last().clone();
+        }
+    }
+
+    fn on_event(&mut self, event: NcEvent, in_flight: &mut [bool], observer: &mut dyn Observer) {
+        match event {
+            NcEvent::Snapshot { module, result } => {
+                for (i, axis) in self.pipeline.axes.iter_mut().enumerate() {
+                    if axis.nc_module != module {
+                        continue;
+                    }
+                    let st = &mut self.status.axes[i];
+                    match &result {
+                        Ok(snap) => {
+                            if !self.baselined[i] {
+                                // Step limits and the deadband start from what the NC holds.
+                                axis.comp.set_baseline(snap.thermal());
+                                self.baselined[i] = true;
+                                st.written = Some(snap.thermal());
+                                tracing::info!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, "NC parameters read at start");
+                            }
+                            st.warning = (snap.md32750 != axis.md32750).then(|| {
+                                format!(
+                                    "MD32750 is {} on the NC, the config expects {}",
+                                    snap.md32750, axis.md32750
+                                )
+                            });
+                            if !snap.referenced {
+                                st.warning.get_or_insert_with(|| "axis not referenced: the NC applies no temperature compensation".into());
+                            }
+                            st.nc = Some(*snap);
+                        }
+                        Err(e) => st.warning = Some(format!("NC unreachable: {e}")),
+                    }
+                }
+            }
+            NcEvent::Written {
+                axis,
+                params,
+                result,
+            } => {
+                if let Some(f) = in_flight.get_mut(axis) {
+                    *f = false;
+                }
+                observer.on_job(&self.pipeline.axes[axis].name, &params, &result);
+                let st = &mut self.status.axes[axis];
+                match result {
+                    Ok(_) => {
+                        self.pipeline.axes[axis].comp.confirm(params);
+                        st.written = Some(params);
+                        st.jobs_ok += 1;
+                        st.last_job_error = None;
+                    }
+                    Err(e) => {
+                        st.jobs_failed += 1;
+                        st.last_job_error = Some(e.to_string());
+                    }
+                }
+            }
+        }
+    }
+}
+
+async fn next_reload(reload: &mut Option<mpsc::Receiver<Config>>) -> Config {
+    if let Some(rx) = reload {
+        if let Some(cfg) = rx.recv().await {
+            return cfg;
+        }
+    }
+    *reload = None;
+    std::future::pending().await
+}
+
+/// Runs one generation. Returns the next config and its parts when a reload ended it,
+/// `None` on shutdown.
+async fn generation(
+    state: &mut Running,
+    shutdown: &CancellationToken,
+    status_tx: &watch::Sender<Status>,
+    hooks: &mut Hooks,
+) -> Option<(Box<Config>, Box<Built>)> {
+    status_tx.send_replace(state.status.clone());
+    let stop = shutdown.child_token();
     let (sample_tx, mut sample_rx) = mpsc::channel::<DeviceSample>(64);
     let mut tasks = tokio::task::JoinSet::new();
-    for dev in devices {
-        tasks.spawn(device_task(dev, sample_tx.clone(), shutdown.clone()));
+    for (i, dev) in state.devices.iter_mut().enumerate() {
+        if let Some(dev) = dev.take() {
+            tasks.spawn(device_task(
+                i,
+                dev,
+                sample_tx.clone(),
+                stop.clone(),
+                shutdown.clone(),
+            ));
+        }
     }
     drop(sample_tx);
 
     let (event_tx, mut event_rx) = mpsc::channel::<NcEvent>(16);
     let mut nc_tx = Vec::new();
-    for (i, nc) in nc_modules.into_iter().enumerate() {
+    for (i, nc) in state.nc_modules.iter_mut().enumerate() {
         let (tx, rx) = mpsc::channel(4);
         nc_tx.push(tx);
-        tasks.spawn(nc_task(i, nc, rx, event_tx.clone(), status_interval));
+        if let Some(nc) = nc.take() {
+            tasks.spawn(nc_task(i, nc, rx, event_tx.clone(), state.status_interval));
+        }
     }
     drop(event_tx);
 
     // Per axis: next decision time, and whether a job is in flight (one at a time).
     let now = Instant::now();
-    let mut next_update: Vec<Instant> = pipeline
+    let mut next_update: Vec<Instant> = state
+        .pipeline
         .axes
         .iter()
         .map(|a| now + a.update_interval)
         .collect();
-    let mut in_flight = vec![false; pipeline.axes.len()];
-    let mut baselined = vec![false; pipeline.axes.len()];
-    let mut status_tick = tokio::time::interval(status_interval);
+    let mut in_flight = vec![false; state.pipeline.axes.len()];
+    let mut status_tick = tokio::time::interval(state.status_interval);
     status_tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
     let far = now + Duration::from_secs(86_400 * 365);
     let mut events_open = true;
+    let mut reload_to: Option<(Box<Config>, Box<Built>)> = None;
+    let observer = &mut *hooks.observer;
 
     loop {
         let next = next_update.iter().copied().min().unwrap_or(far);
         tokio::select! {
             sample = sample_rx.recv() => {
                 let Some(sample) = sample else { break };
-                pipeline.ingest(&sample);
-                status.samples += 1;
-                let d = &mut status.devices[sample.device];
-                d.cycles += 1;
-                d.last_cycle = sample.elapsed;
-                d.connects = sample.connects;
-                match &sample.error {
-                    Some(e) => {
-                        d.failed_cycles += 1;
-                        *d.errors.entry(e.kind()).or_default() += 1;
-                        d.last_error = Some(e.to_string());
-                    }
-                    None => {
-                        d.failed_cycles = 0;
-                        d.last_error = None;
-                    }
-                }
-                for (cs, p) in status.channels.iter_mut().zip(&pipeline.processors) {
-                    cs.reading = p.last().clone();
-                }
+                state.on_sample(&sample);
+                observer.on_sample(&sample, &state.pipeline);
             }
             event = event_rx.recv(), if events_open => {
                 // No NC modules (a monitoring-only config): the channel closes at once.
@@ -668,64 +844,22 @@ pub async fn run_built(
                     events_open = false;
                     continue;
                 };
-                match event {
-                    NcEvent::Snapshot { module, result } => {
-                        for (i, axis) in pipeline.axes.iter_mut().enumerate() {
-                            if axis.nc_module != module {
-                                continue;
-                            }
-                            let st = &mut status.axes[i];
-                            match &result {
-                                Ok(snap) => {
-                                    if !baselined[i] {
-                                        // Step limits and the deadband start from what the NC holds.
-                                        axis.comp.set_baseline(snap.thermal());
-                                        baselined[i] = true;
-                                        st.written = Some(snap.thermal());
-                                        tracing::info!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, "NC parameters read at start");
-                                    }
-                                    st.warning = (snap.md32750 != axis.md32750).then(|| format!(
-                                        "MD32750 is {} on the NC, the config expects {}", snap.md32750, axis.md32750));
-                                    if !snap.referenced {
-                                        st.warning.get_or_insert_with(|| "axis not referenced: the NC applies no temperature compensation".into());
-                                    }
-                                    st.nc = Some(*snap);
-                                }
-                                Err(e) => st.warning = Some(format!("NC unreachable: {e}")),
-                            }
-                        }
-                    }
-                    NcEvent::Written { axis, params, result } => {
-                        in_flight[axis] = false;
-                        let st = &mut status.axes[axis];
-                        match result {
-                            Ok(_) => {
-                                pipeline.axes[axis].comp.confirm(params);
-                                st.written = Some(params);
-                                st.jobs_ok += 1;
-                                st.last_job_error = None;
-                            }
-                            Err(e) => {
-                                st.jobs_failed += 1;
-                                st.last_job_error = Some(e.to_string());
-                            }
-                        }
-                    }
-                }
+                state.on_event(event, &mut in_flight, observer);
             }
             _ = tokio::time::sleep_until(next), if next < far => {
                 let at = Instant::now();
+                let pipeline = &mut state.pipeline;
                 for i in 0..pipeline.axes.len() {
                     if next_update[i] > at {
                         continue;
                     }
                     next_update[i] = at + pipeline.axes[i].update_interval;
-                    if !baselined[i] || in_flight[i] {
+                    if !state.baselined[i] || in_flight[i] {
                         continue;
                     }
                     let decision = pipeline.decide(i, at);
                     let axis = &pipeline.axes[i];
-                    status.axes[i].decision = describe(&decision, &pipeline.channel_names, &axis.inputs);
+                    state.status.axes[i].decision = describe(&decision, &pipeline.channel_names, &axis.inputs);
                     let params = match decision {
                         Decision::Write { params, .. } | Decision::Ramp { params, .. } => params,
                         Decision::WithinDeadband | Decision::Hold { .. } => continue,
@@ -736,14 +870,40 @@ pub async fn run_built(
                 }
             }
             _ = status_tick.tick() => {
-                status_tx.send_replace(status.clone());
+                // Called from the control loop itself: a stuck loop stops the watchdog.
+                observer.on_status(&state.status);
+                status_tx.send_replace(state.status.clone());
+            }
+            new_cfg = next_reload(&mut hooks.reload), if reload_to.is_none() => {
+                match build(&new_cfg) {
+                    Ok(built) => {
+                        tracing::info!("reload: stopping the running generation between polls");
+                        reload_to = Some((Box::new(new_cfg), Box::new(built)));
+                        stop.cancel();
+                    }
+                    Err(e) => {
+                        tracing::error!(error = %e, "reload refused: the running configuration stays");
+                        observer.on_reload(&Err(e.to_string()));
+                    }
+                }
             }
         }
     }
     drop(nc_tx);
-    // Let NC jobs in flight finish; their events are no longer needed.
-    while event_rx.recv().await.is_some() {}
-    while tasks.join_next().await.is_some() {}
-    status_tx.send_replace(status);
-    tracing::info!("gateway stopped");
+    // Let NC jobs in flight finish and take their results: a reload keeps them.
+    while let Some(event) = event_rx.recv().await {
+        state.on_event(event, &mut in_flight, observer);
+    }
+    while let Some(done) = tasks.join_next().await {
+        match done {
+            Ok(Returned::Device(i, dev)) => state.devices[i] = Some(dev),
+            Ok(Returned::Nc(i, nc)) => state.nc_modules[i] = Some(nc),
+            Ok(Returned::Aborted) => {}
+            Err(e) => tracing::error!(error = %e, "gateway task failed"),
+        }
+    }
+    if shutdown.is_cancelled() {
+        return None;
+    }
+    reload_to
 }

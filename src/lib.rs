@@ -28,6 +28,8 @@
 //!   used by the service, the demo and the tests.
 //! - [`plant`]: the simulated plant for a config (demo, `sim`, tests), from
 //!   `compgate-plc`; the service path never uses it.
+//! - [`service`]: the shop-floor service: systemd notify/watchdog, journald, SIGHUP
+//!   reload, and the recorder, metrics and MQTT observers behind the control loop.
 //! - [`status`]: the live status line and plain per-update lines.
 //! - [`bench`]: `compgate bench`, cycle rate against the bare Modbus request rate.
 //! - [`cli`]: the command line.
@@ -47,6 +49,7 @@ pub mod gateway;
 pub mod measure;
 pub mod nc;
 pub mod plant;
+pub mod service;
 pub mod source;
 pub mod status;
 pub mod volumetric;

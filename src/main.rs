@@ -13,19 +13,6 @@ use tokio_util::sync::CancellationToken;
 /// The demo's configuration, embedded so `cargo run --release` needs no file.
 const DEMO_CONFIG: &str = include_str!("../config/demo.toml");
 
-fn init_tracing(filter: Option<&str>, default: &str) {
-    let filter = filter
-        .map(str::to_string)
-        .or_else(|| std::env::var("RUST_LOG").ok())
-        .unwrap_or_else(|| default.to_string());
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::new(filter))
-        .with_writer(std::io::stderr)
-        // Colour codes only for a person at a terminal, never into the journal or a file.
-        .with_ansi(std::io::stderr().is_terminal())
-        .init();
-}
-
 /// Cancels the token on Ctrl-C or SIGTERM.
 fn shutdown_on_signals() -> CancellationToken {
     let token = CancellationToken::new();
@@ -111,12 +98,12 @@ async fn main() -> ExitCode {
     } else {
         "info"
     };
-    init_tracing(cli.log.as_deref(), default_log);
+    compgate::service::init_tracing(cli.log.as_deref(), default_log);
 
     let result = match command {
         Command::Demo => demo().await,
         Command::Run { config: path } => match config::load(&path) {
-            Ok(cfg) => run_gateway(&cfg).await,
+            Ok(cfg) => compgate::service::run(&path, cfg).await,
             Err(e) => Err(e.to_string()),
         },
         Command::Validate { config: path } => match config::load(&path) {

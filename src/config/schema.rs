@@ -24,7 +24,7 @@ pub fn secs(s: f64) -> Duration {
 
 /// A whole configuration file: `[gateway]`, `[devices.NAME]`, `[channels.NAME]`,
 /// `[nc_modules.NAME]`, `[axes.NAME]` and the optional `[sim]`.
-#[derive(Deserialize, Serialize, Debug, Clone, PartialEq)]
+#[derive(Deserialize, Serialize, Debug, Clone, PartialEq, Default)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
     /// Gateway-wide settings. Optional table: every key has a default.

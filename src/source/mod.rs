@@ -182,6 +182,18 @@ impl DevicePoller {
     }
 
     /// Failed cycles in a row.
+    /// Takes over the link (with its open connection) and the failure count of
+    /// `old`: a reload that did not change the device keeps its state.
+    pub fn carry_over(&mut self, old: &DevicePoller) {
+        self.link = old.link.clone();
+        self.failed_cycles = old.failed_cycles;
+    }
+
+    /// Replaces the link (a reload moving a shared serial line onto the old link).
+    pub fn set_link(&mut self, link: SharedLink) {
+        self.link = link;
+    }
+
     pub fn failed_cycles(&self) -> u32 {
         self.failed_cycles
     }

@@ -2,6 +2,8 @@
 //! gateway against it, and a way to wait for a status condition.
 #![allow(dead_code)]
 
+pub mod process;
+
 use std::time::Duration;
 
 use compgate::config;

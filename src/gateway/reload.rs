@@ -1,0 +1,142 @@
+//! A reload keeps the state of whatever did not change: channel processors (filters,
+//! quality), device links (the open connection) and failure counts, NC module
+//! connections, and axis compensators with their baseline read from the NC.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use super::{Built, ChannelStatus, Running};
+use crate::config::Config;
+
+/// The state of the next generation: `new` (built from `new_cfg`) with the parts of
+/// `old` (running `old_cfg`) that are configured the same.
+pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: Built) -> Running {
+    let old_channel: BTreeMap<String, usize> = old
+        .pipeline
+        .channel_names
+        .iter()
+        .enumerate()
+        .map(|(i, n)| (n.clone(), i))
+        .collect();
+    let mut next = Running::new(new);
+    let Running {
+        pipeline: old_pipeline,
+        devices: old_devices,
+        nc_modules: mut old_nc,
+        status: old_status,
+        baselined: old_baselined,
+        ..
+    } = old;
+    // Carried processors keep their time base.
+    next.pipeline.epoch = old_pipeline.epoch;
+
+    let mut old_processors: Vec<_> = old_pipeline.processors.into_iter().map(Some).collect();
+    let mut kept_channels = 0;
+    for (j, name) in next.pipeline.channel_names.iter().enumerate() {
+        let same = old_cfg.channels.get(name) == new_cfg.channels.get(name);
+        if let (true, Some(&i)) = (same, old_channel.get(name)) {
+            if let Some(p) = old_processors[i].take() {
+                next.pipeline.processors[j] = p;
+                kept_channels += 1;
+            }
+        }
+    }
+    next.status.channels = next
+        .pipeline
+        .channel_names
+        .iter()
+        .zip(&next.pipeline.processors)
+        .map(|(name, p)| ChannelStatus {
+            name: name.clone(),
+            reading: p.last().clone(),
+        })
+        .collect();
+
+    // Devices: an unchanged device keeps its link; devices sharing a new serial link
+    // follow it onto the old one, so a line stays shared.
+    let old_devices: BTreeMap<String, (usize, super::DeviceRt)> = old_devices
+        .into_iter()
+        .enumerate()
+        .filter_map(|(i, d)| d.map(|d| (d.poller.name().to_string(), (i, d))))
+        .collect();
+    let mut relink = Vec::new();
+    let mut kept_devices = 0;
+    for (j, dev) in next.devices.iter_mut().enumerate() {
+        let Some(dev) = dev else { continue };
+        let name = dev.poller.name().to_string();
+        if old_cfg.devices.get(&name) != new_cfg.devices.get(&name) {
+            continue;
+        }
+        let Some((i, old_dev)) = old_devices.get(&name) else {
+            continue;
+        };
+        relink.push((
+            Arc::as_ptr(dev.poller.link()),
+            old_dev.poller.link().clone(),
+        ));
+        dev.poller.carry_over(&old_dev.poller);
+        if let Some(s) = old_status.devices.get(*i) {
+            next.status.devices[j] = s.clone();
+        }
+        kept_devices += 1;
+    }
+    for dev in next.devices.iter_mut().flatten() {
+        let ptr = Arc::as_ptr(dev.poller.link());
+        if let Some((_, link)) = relink.iter().find(|(p, _)| *p == ptr) {
+            dev.poller.set_link(link.clone());
+        }
+    }
+
+    // NC modules: unchanged ones keep their connection and job counter.
+    let old_nc_index: BTreeMap<&str, usize> = old_cfg
+        .nc_modules
+        .keys()
+        .enumerate()
+        .map(|(i, n)| (n.as_str(), i))
+        .collect();
+    let mut same_nc = BTreeMap::new();
+    for (j, name) in new_cfg.nc_modules.keys().enumerate() {
+        let same = old_cfg.nc_modules.get(name) == new_cfg.nc_modules.get(name);
+        if let (true, Some(&i)) = (same, old_nc_index.get(name.as_str())) {
+            if let Some(m) = old_nc.get_mut(i).and_then(Option::take) {
+                next.nc_modules[j] = Some(m);
+                same_nc.insert(name.clone(), ());
+            }
+        }
+    }
+
+    // Axes: an unchanged axis on an unchanged NC module keeps its compensator, its
+    // baseline and its status.
+    let mut old_axes: BTreeMap<String, (usize, super::AxisRt)> = old_pipeline
+        .axes
+        .into_iter()
+        .enumerate()
+        .map(|(i, a)| (a.name.clone(), (i, a)))
+        .collect();
+    for (j, axis) in next.pipeline.axes.iter_mut().enumerate() {
+        let cfg_same = old_cfg.axes.get(&axis.name) == new_cfg.axes.get(&axis.name);
+        let nc_same = new_cfg
+            .axes
+            .get(&axis.name)
+            .is_some_and(|a| same_nc.contains_key(&a.nc_module));
+        if !(cfg_same && nc_same) {
+            continue;
+        }
+        if let Some((i, old_axis)) = old_axes.remove(&axis.name) {
+            axis.comp = old_axis.comp;
+            next.baselined[j] = old_baselined.get(i).copied().unwrap_or(false);
+            if let Some(s) = old_status.axes.get(i) {
+                next.status.axes[j] = s.clone();
+            }
+        }
+    }
+    next.status.samples = old_status.samples;
+    tracing::info!(
+        channels_kept = kept_channels,
+        channels = next.pipeline.channel_names.len(),
+        devices_kept = kept_devices,
+        devices = next.devices.len(),
+        "reload: unchanged channels and devices keep their state"
+    );
+    next
+}

@@ -1,0 +1,138 @@
+//! The real `compgate` binary as a child process, with a systemd notify socket the
+//! test binds and its stderr collected line by line.
+#![allow(dead_code)]
+// Test harness: a panic with the message is the wanted failure.
+#![allow(clippy::unwrap_used)]
+
+use std::io::{BufRead, BufReader};
+use std::os::unix::net::UnixDatagram;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+pub const BIN: &str = env!("CARGO_BIN_EXE_compgate");
+
+/// A running `compgate run --config FILE`; dropping it kills it.
+pub struct Gateway {
+    pub child: Child,
+    pub notify: UnixDatagram,
+    pub stderr: Arc<Mutex<Vec<String>>>,
+    pub messages: Vec<String>,
+}
+
+impl Gateway {
+    /// Starts the binary on `config` with `NOTIFY_SOCKET` bound in `dir`.
+    pub fn start(dir: &Path, config: &Path, extra_env: &[(&str, &str)]) -> Self {
+        let sock: PathBuf = dir.join(format!("notify-{}.sock", std::process::id()));
+        let _ = std::fs::remove_file(&sock);
+        let notify = UnixDatagram::bind(&sock).expect("bind notify socket");
+        notify
+            .set_read_timeout(Some(Duration::from_millis(100)))
+            .unwrap();
+        let mut cmd = Command::new(BIN);
+        cmd.args(["--log", "info", "run", "--config"])
+            .arg(config)
+            .env("NOTIFY_SOCKET", &sock)
+            .env_remove("JOURNAL_STREAM")
+            .env_remove("RUST_LOG")
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped());
+        for (k, v) in extra_env {
+            cmd.env(k, v);
+        }
+        let mut child = cmd.spawn().expect("spawn compgate");
+        let stderr = Arc::new(Mutex::new(Vec::new()));
+        let pipe = child.stderr.take().unwrap();
+        let lines = stderr.clone();
+        std::thread::spawn(move || {
+            for line in BufReader::new(pipe).lines().map_while(Result::ok) {
+                lines.lock().unwrap().push(line);
+            }
+        });
+        Gateway {
+            child,
+            notify,
+            stderr,
+            messages: Vec::new(),
+        }
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    pub fn signal(&self, sig: &str) {
+        let ok = Command::new("kill")
+            .args([&format!("-{sig}"), &self.pid().to_string()])
+            .status()
+            .unwrap()
+            .success();
+        assert!(ok, "kill -{sig}");
+    }
+
+    /// Receives notify datagrams until one satisfies `pred`; panics after `secs`.
+    pub fn wait_notify(&mut self, secs: f64, what: &str, pred: impl Fn(&str) -> bool) -> String {
+        let deadline = Instant::now() + Duration::from_secs_f64(secs);
+        let mut buf = vec![0u8; 4096];
+        while Instant::now() < deadline {
+            if let Ok(n) = self.notify.recv(&mut buf) {
+                let msg = String::from_utf8_lossy(&buf[..n]).to_string();
+                self.messages.push(msg.clone());
+                if pred(&msg) {
+                    return msg;
+                }
+            }
+        }
+        panic!(
+            "timed out after {secs} s waiting for notify {what}; got {:?}\nstderr:\n{}",
+            self.messages.iter().rev().take(5).collect::<Vec<_>>(),
+            self.stderr_text()
+        );
+    }
+
+    pub fn stderr_text(&self) -> String {
+        self.stderr.lock().unwrap().join("\n")
+    }
+
+    /// Waits until a stderr line contains `needle`; panics after `secs`.
+    pub fn wait_log(&self, secs: f64, needle: &str) -> String {
+        let deadline = Instant::now() + Duration::from_secs_f64(secs);
+        while Instant::now() < deadline {
+            if let Some(l) = self
+                .stderr
+                .lock()
+                .unwrap()
+                .iter()
+                .find(|l| l.contains(needle))
+            {
+                return l.clone();
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        panic!(
+            "timed out after {secs} s waiting for log `{needle}`\nstderr:\n{}",
+            self.stderr_text()
+        );
+    }
+
+    /// SIGTERM and wait; returns whether it exited successfully.
+    pub fn stop(mut self) -> bool {
+        self.signal("TERM");
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while Instant::now() < deadline {
+            if let Some(st) = self.child.try_wait().unwrap() {
+                return st.success();
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        panic!("gateway did not stop within 10 s after SIGTERM");
+    }
+}
+
+impl Drop for Gateway {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}

@@ -1,0 +1,262 @@
+//! The shop-floor service: the systemd unit's hardening, sd_notify readiness, watchdog
+//! and status from the real binary, and SIGHUP reload.
+
+mod common;
+
+use std::time::Duration;
+
+use common::process::Gateway;
+use compgate::config;
+use compgate::gateway::{self, Hooks, Status};
+use compgate::plant::{Bind, Plant};
+use tokio::sync::{mpsc, watch};
+use tokio_util::sync::CancellationToken;
+
+const UNIT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/deploy/compgate.service");
+
+#[test]
+fn unit_file_exposure_is_at_most_2_0() {
+    let out = std::process::Command::new("systemd-analyze")
+        .args(["security", "--offline=true", "--no-pager", UNIT])
+        .output()
+        .expect("systemd-analyze runs (./test.sh installs the systemd package)");
+    let text =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    let line = text
+        .lines()
+        .find(|l| l.contains("Overall exposure level"))
+        .unwrap_or_else(|| panic!("no exposure figure in:\n{text}"));
+    let figure: f64 = line
+        .split(':')
+        .nth(1)
+        .and_then(|r| r.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("cannot parse: {line}"));
+    println!("{line}");
+    assert!(figure <= 2.0, "{line}");
+    let unit = std::fs::read_to_string(UNIT).unwrap();
+    for needle in [
+        "Type=notify",
+        "WatchdogSec=",
+        "ExecStartPre=/usr/local/bin/compgate validate",
+        "Restart=on-failure",
+        "ProtectSystem=strict",
+        "StateDirectory=compgate",
+        "ConfigurationDirectory=compgate",
+        "NoNewPrivileges=yes",
+        "RestrictAddressFamilies=AF_UNIX AF_INET AF_INET6 AF_CAN AF_NETLINK",
+        "User=compgate",
+    ] {
+        assert!(unit.contains(needle), "unit lacks {needle}");
+    }
+}
+
+/// A running simulated plant and the config file naming its addresses.
+async fn plant_and_file(dir: &std::path::Path, toml: &str) -> (Plant, std::path::PathBuf) {
+    let cfg = config::load_str(toml, "test.toml").expect("test config is valid");
+    let plant = Plant::start(&cfg, Bind::Ephemeral)
+        .await
+        .expect("plant starts");
+    let path = dir.join("compgate.toml");
+    let text = toml::to_string(&plant.config).expect("config serialises");
+    std::fs::write(&path, text).expect("config file written");
+    (plant, path)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn notify_ready_watchdog_and_status_from_the_real_binary() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, path) = plant_and_file(dir.path(), &common::config("hold", "", "")).await;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    let ready =
+        tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+    assert!(ready.lines().any(|l| l == "READY=1"), "{ready}");
+    // Watchdog pings keep coming from the control loop, with the status line.
+    let status = tokio::task::block_in_place(|| {
+        gw.wait_notify(10.0, "STATUS with a verified write", |m| {
+            m.contains("WATCHDOG=1")
+                && m.contains("ain1 up")
+                && m.contains("X: SD43900=")
+                && m.contains("jobs 1 ok")
+        })
+    });
+    assert!(status.contains("STATUS="), "{status}");
+    let before = gw
+        .messages
+        .iter()
+        .filter(|m| m.contains("WATCHDOG=1"))
+        .count();
+    tokio::task::block_in_place(|| std::thread::sleep(Duration::from_millis(400)));
+    tokio::task::block_in_place(|| {
+        gw.wait_notify(2.0, "more WATCHDOG=1", |m| m.contains("WATCHDOG=1"))
+    });
+    assert!(
+        gw.messages
+            .iter()
+            .filter(|m| m.contains("WATCHDOG=1"))
+            .count()
+            > before
+    );
+
+    // The field module stops answering: the status line says so.
+    plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::Silent);
+    tokio::task::block_in_place(|| {
+        gw.wait_notify(10.0, "STATUS link down", |m| m.contains("ain1 down"))
+    });
+    let stopping = tokio::task::block_in_place(|| {
+        gw.signal("TERM");
+        gw.wait_notify(10.0, "STOPPING=1", |m| m.contains("STOPPING=1"))
+    });
+    assert!(stopping.contains("STOPPING=1"));
+    drop(plant);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sighup_with_a_bad_config_keeps_the_old_one_running() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, path) = plant_and_file(dir.path(), &common::config("hold", "", "")).await;
+    let good = std::fs::read_to_string(&path).unwrap();
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+
+    // A typo and a dangling reference: refused, every problem logged with its key.
+    std::fs::write(
+        &path,
+        good.replace("timeout_s = 0.2", "timeot_s = 0.2")
+            .replace("channel = \"T_bed\"", "channel = \"T_nope\""),
+    )
+    .unwrap();
+    gw.signal("HUP");
+    let line = tokio::task::block_in_place(|| gw.wait_log(10.0, "reload refused"));
+    let err = gw.stderr_text();
+    assert!(err.contains("devices.ain1.timeot_s: unknown key"), "{err}");
+    assert!(err.contains("T_nope"), "{err}");
+    assert!(line.contains("ERROR"), "{line}");
+    // Still polling and writing with the old config.
+    let jobs_before = plant.nc["nc_x"].jobs_executed();
+    plant.field["ain1"]
+        .set_temperature_override(0, Some(40.0))
+        .unwrap();
+    tokio::task::block_in_place(|| {
+        gw.wait_notify(10.0, "still running", |m| {
+            m.contains("ain1 up") && m.contains("SD43900=0.0800mm")
+        })
+    });
+    assert!(plant.nc["nc_x"].jobs_executed() > jobs_before);
+
+    // A good config takes effect.
+    std::fs::write(
+        &path,
+        good.replace("coeff_mm_per_degc = 0.004", "coeff_mm_per_degc = 0.002"),
+    )
+    .unwrap();
+    gw.signal("HUP");
+    tokio::task::block_in_place(|| gw.wait_log(10.0, "configuration reloaded"));
+    tokio::task::block_in_place(|| {
+        gw.wait_notify(10.0, "new coefficient written", |m| {
+            m.contains("SD43900=0.0400mm")
+        })
+    });
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reload_keeps_the_state_of_unchanged_channels_and_devices() {
+    // A slow low-pass shows whether a channel's filter state survived: a fresh
+    // processor starts at the first sample, a kept one is still near the old value.
+    let filter = "{ median_samples = 1, lowpass_tau_s = 1000.0, max_rate_degc_per_s = 0.0, max_rejected_samples = 5, stale_after_s = 0.0, valid_min_degc = -20.0, valid_max_degc = 100.0 }";
+    let toml = common::config("hold", "", filter);
+    let cfg = config::load_str(&toml, "test.toml").unwrap();
+    let plant = Plant::start(&cfg, Bind::Ephemeral).await.unwrap();
+    let cfg = plant.config.clone();
+    let (tx, mut rx) = watch::channel(Status::default());
+    let (reload_tx, reload_rx) = mpsc::channel(1);
+    let shutdown = CancellationToken::new();
+    let sd = shutdown.clone();
+    let run_cfg = cfg.clone();
+    let gw = tokio::spawn(async move {
+        let hooks = Hooks {
+            reload: Some(reload_rx),
+            ..Hooks::default()
+        };
+        gateway::run_with(&run_cfg, sd, tx, hooks).await.unwrap();
+    });
+    let wait = |rx: &mut watch::Receiver<Status>,
+                what: &'static str,
+                pred: Box<dyn Fn(&Status) -> bool + Send>| {
+        let mut rx = rx.clone();
+        async move {
+            tokio::time::timeout(
+                Duration::from_secs(10),
+                rx.wait_for(|s| !s.channels.is_empty() && pred(s)),
+            )
+            .await
+            .unwrap_or_else(|_| panic!("timed out waiting for {what}"))
+            .unwrap()
+            .clone()
+        }
+    };
+    wait(&mut rx, "first job", Box::new(|s| s.axes[0].jobs_ok >= 1)).await;
+    let field = plant.field["ain1"].clone();
+    field
+        .set_temperature_override(plant.transmitter["T_bed"], Some(40.0))
+        .unwrap();
+    field
+        .set_temperature_override(plant.transmitter["T_col"], Some(40.0))
+        .unwrap();
+    let bed = cfg.channels.keys().position(|c| c == "T_bed").unwrap();
+    let col = cfg.channels.keys().position(|c| c == "T_col").unwrap();
+    let before = wait(
+        &mut rx,
+        "new samples",
+        Box::new(move |s| {
+            s.channels[bed]
+                .reading
+                .unfiltered_degc
+                .is_some_and(|v| (v - 40.0).abs() < 0.1)
+                && s.channels[col]
+                    .reading
+                    .unfiltered_degc
+                    .is_some_and(|v| (v - 40.0).abs() < 0.1)
+        }),
+    )
+    .await;
+    assert!(before.channels[bed].reading.value_degc.unwrap() < 31.0);
+    assert!(before.channels[col].reading.value_degc.unwrap() > 59.0);
+    let jobs_before = before.axes[0].jobs_ok;
+
+    // Change only T_col (its plausible range): T_bed, the device and the axis keep state.
+    let mut new_cfg = cfg.clone();
+    new_cfg
+        .channels
+        .get_mut("T_col")
+        .unwrap()
+        .filter
+        .valid_max_degc = 110.0;
+    reload_tx.send(new_cfg).await.unwrap();
+    let after = wait(
+        &mut rx,
+        "T_col restarted",
+        Box::new(move |s| {
+            s.channels[col]
+                .reading
+                .value_degc
+                .is_some_and(|v| (v - 40.0).abs() < 0.1)
+        }),
+    )
+    .await;
+    let bed_after = after.channels[bed].reading.value_degc.unwrap();
+    assert!(bed_after < 31.0, "T_bed's low-pass was reset: {bed_after}");
+    assert_eq!(
+        after.devices[0].connects, 1,
+        "the device kept its connection"
+    );
+    assert!(after.axes[0].jobs_ok >= jobs_before, "axis status kept");
+    assert!(after.axes[0].written.is_some());
+    shutdown.cancel();
+    tokio::time::timeout(Duration::from_secs(10), gw)
+        .await
+        .unwrap()
+        .unwrap();
+}
