@@ -505,7 +505,7 @@ impl Checker<'_> {
         }
         let f = &c.filter;
         let m = f.median_samples;
-        if m == 0 || m > MAX_MEDIAN_SAMPLES || m % 2 == 0 {
+        if m == 0 || m > MAX_MEDIAN_SAMPLES || m.is_multiple_of(2) {
             self.problem(
                 k("filter.median_samples"),
                 format!(
