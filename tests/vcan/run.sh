@@ -35,6 +35,8 @@ TESTS=(
     "compgate:can_vcan"
     "compgate-plc:canopen_vcan"
 )
+# VCAN_TESTS="pkg:test ..." narrows the set while iterating.
+if [[ -n "${VCAN_TESTS:-}" ]]; then read -ra TESTS <<<"$VCAN_TESTS"; fi
 
 build_tests() {
     local out=$WORK/tests.txt
