@@ -43,20 +43,28 @@ build_tests() {
     : >"$out"
     for t in "${TESTS[@]}"; do
         local pkg=${t%%:*} name=${t#*:}
-        cargo test -p "$pkg" --test "$name" --no-run --message-format=json 2>/dev/null |
-            grep '"executable":"' | grep -o '"executable":"[^"]*"' | cut -d'"' -f4 >>"$out"
+        # The test target's own executable (not the binaries built alongside it).
+        cargo test -p "$pkg" --test "$name" --no-run --message-format=json 2>"$WORK/build.log" |
+            grep "\"kind\":\\[\"test\"\\]" | grep "\"name\":\"$name\"" |
+            grep -o '"executable":"[^"]*"' | cut -d'"' -f4 >>"$out" || true
     done
-    [[ $(wc -l <"$out") -eq ${#TESTS[@]} ]] || { echo "vcan: cannot build the test binaries" >&2; exit 1; }
-    cat "$out"
+    if [[ $(wc -l <"$out") -ne ${#TESTS[@]} ]]; then
+        tail -20 "$WORK/build.log" >&2
+        echo "vcan: FAILED: cannot build the test binaries" >&2
+        exit 1
+    fi
 }
+
+mkdir -p "$WORK"
 
 # ---- native: the kernel has vcan
 if [[ $SMOKE -eq 0 && -e /sys/class/net/vcan0 ]]; then
     echo "vcan: vcan0 exists, running natively"
     ip link set up vcan0 2>/dev/null || true
     rc=0
-    for exe in $(build_tests); do
-        VCAN_IF=vcan0 "$exe" --ignored --test-threads=1 || rc=1
+    build_tests
+    for exe in $(cat "$WORK/tests.txt"); do
+        VCAN_IF=vcan0 "$exe" --ignored --test-threads=1 --show-output || rc=1
     done
     exit $rc
 fi
@@ -114,7 +122,8 @@ RUN_TESTS=""
 if [[ $SMOKE -eq 0 ]]; then
     echo "vcan: building the test binaries"
     i=0
-    for exe in $(build_tests); do
+    build_tests
+    for exe in $(cat "$WORK/tests.txt"); do
         i=$((i + 1))
         carry "$exe" "/tests/t$i"
         # Debug info only makes the initramfs (held in guest RAM) bigger.
@@ -139,7 +148,7 @@ passed=0; failed=0
 run_test() {
     echo "VCAN-RUN: \$2"
     t0=\$(cut -d' ' -f1 /proc/uptime)
-    if VCAN_IF=vcan0 RUST_BACKTRACE=1 /tests/\$1 --ignored --test-threads=1; then
+    if VCAN_IF=vcan0 RUST_BACKTRACE=1 /tests/\$1 --ignored --test-threads=1 --show-output; then
         passed=\$((passed+1)); r=ok
     else
         failed=\$((failed+1)); r=FAILED
