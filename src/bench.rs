@@ -193,11 +193,14 @@ async fn measure(channels: u16, cycles: u32, rounds: u32) -> Result<BenchReport,
     let cfg = config::load_str(&bench_config(channels, &addr.to_string()), "bench")
         .map_err(|e| BenchError::Setup(e.to_string()))?;
     let mut built = gateway::build(&cfg).map_err(|e| BenchError::Setup(e.to_string()))?;
-    let poller = &mut built
+    let gateway::Poller::Modbus(poller) = &mut built
         .devices
         .first_mut()
         .ok_or_else(|| BenchError::Setup("no device".into()))?
-        .poller;
+        .poller
+    else {
+        return Err(BenchError::Setup("not a Modbus device".into()));
+    };
     if poller.blocks().len() != 1 {
         return Err(BenchError::Setup(format!(
             "expected one merged read, the plan has {}",

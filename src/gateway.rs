@@ -20,6 +20,7 @@ use crate::comp::{
 };
 use crate::config::{self, Config};
 use crate::nc::{Job, JobReport, ModbusNcWriter, NcError, NcSnapshot, NcWriter};
+use crate::source::can::{CanChannelSpec, CanObject, CanParams, CanPoller};
 use crate::source::modbus::{Backoff, LinkSpec, ModbusLink};
 use crate::source::{ChannelSpec, DevicePoller, DeviceSample, PollParams, SharedLink};
 
@@ -177,11 +178,50 @@ impl Pipeline {
     }
 }
 
+/// The poller of one device, by transport.
+#[derive(Debug)]
+pub enum Poller {
+    /// A Modbus TCP or RTU device.
+    Modbus(DevicePoller),
+    /// A CANopen node.
+    Can(Box<CanPoller>),
+}
+
+impl Poller {
+    /// Device name from the config.
+    pub fn name(&self) -> &str {
+        match self {
+            Self::Modbus(p) => p.name(),
+            Self::Can(p) => p.name(),
+        }
+    }
+
+    /// The link, for the status line.
+    pub fn describe(&self) -> String {
+        match self {
+            Self::Modbus(p) => p
+                .link()
+                .try_lock()
+                .map(|l| l.spec().to_string())
+                .unwrap_or_default(),
+            Self::Can(p) => p.describe(),
+        }
+    }
+
+    /// Runs one poll cycle.
+    pub async fn poll(&mut self) -> DeviceSample {
+        match self {
+            Self::Modbus(p) => p.poll().await,
+            Self::Can(p) => p.poll().await,
+        }
+    }
+}
+
 /// A device task's parts.
 #[derive(Debug)]
 pub struct DeviceRt {
     /// The poller.
-    pub poller: DevicePoller,
+    pub poller: Poller,
     /// Time between poll cycles.
     pub poll_interval: Duration,
 }
@@ -243,6 +283,7 @@ fn filter_rt(f: &config::FilterConfig) -> FilterParams {
 
 fn link_spec(dev: &config::DeviceConfig) -> Option<LinkSpec> {
     Some(match dev.transport {
+        config::Transport::Can => return None,
         config::Transport::Tcp => LinkSpec::Tcp {
             address: dev.address.clone()?,
             connect_timeout: dev.connect_timeout(),
@@ -347,17 +388,43 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
 
     let mut processors = Vec::with_capacity(cfg.channels.len());
     let mut specs: Vec<Vec<ChannelSpec>> = vec![Vec::new(); cfg.devices.len()];
+    let mut can_specs: Vec<Vec<CanChannelSpec>> = vec![Vec::new(); cfg.devices.len()];
     for (i, (name, ch)) in cfg.channels.iter().enumerate() {
         let dev = *device_index.get(ch.device.as_str()).ok_or_else(|| {
             GatewayError::Config(format!("channels.{name}.device: no device {}", ch.device))
         })?;
-        specs[dev].push(ChannelSpec {
-            channel: i,
-            kind: ch.register,
-            address: ch.address,
-            data_type: ch.data_type,
-            byte_order: ch.byte_order,
-        });
+        match (ch.can, ch.register, ch.address) {
+            (Some(can), _, _) => {
+                let object = match (can.pdo, can.offset_bytes, can.sdo_index, can.sdo_subindex) {
+                    (Some(pdo), Some(offset_bytes), None, None) => {
+                        CanObject::Pdo { pdo, offset_bytes }
+                    }
+                    (None, None, Some(index), Some(sub)) => CanObject::Sdo { index, sub },
+                    _ => {
+                        return Err(GatewayError::Config(format!(
+                            "channels.{name}.can: a TPDO mapping or an SDO object"
+                        )))
+                    }
+                };
+                can_specs[dev].push(CanChannelSpec {
+                    channel: i,
+                    object,
+                    data_type: ch.data_type,
+                });
+            }
+            (None, Some(kind), Some(address)) => specs[dev].push(ChannelSpec {
+                channel: i,
+                kind,
+                address,
+                data_type: ch.data_type,
+                byte_order: ch.byte_order,
+            }),
+            _ => {
+                return Err(GatewayError::Config(format!(
+                    "channels.{name}: register and address, or can, missing"
+                )))
+            }
+        }
         processors.push(ChannelProcessor::new(
             scaling_rt(&ch.scaling),
             filter_rt(&ch.filter),
@@ -366,7 +433,37 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
 
     let mut serial_links: BTreeMap<String, SharedLink> = BTreeMap::new();
     let mut devices = Vec::with_capacity(cfg.devices.len());
-    for ((name, dev), specs) in cfg.devices.iter().zip(specs) {
+    let mut sync_producers: BTreeMap<String, String> = BTreeMap::new();
+    for (((name, dev), specs), can_specs) in cfg.devices.iter().zip(specs).zip(can_specs) {
+        if dev.transport == config::Transport::Can {
+            let (Some(interface), Some(node_id)) = (dev.interface.clone(), dev.node_id) else {
+                return Err(GatewayError::Config(format!(
+                    "devices.{name}: interface or node_id missing"
+                )));
+            };
+            // The first CAN device of each interface produces that bus' SYNC.
+            let producer = sync_producers
+                .entry(interface.clone())
+                .or_insert_with(|| name.clone());
+            let params = CanParams {
+                sync_producer: producer == name,
+                interface,
+                node_id,
+                timeout: dev.timeout(),
+                heartbeat_timeout: dev.heartbeat_timeout(),
+                degrade_after_cycles: dev.degrade_after_cycles,
+            };
+            devices.push(DeviceRt {
+                poller: Poller::Can(Box::new(CanPoller::new(
+                    devices.len(),
+                    name.clone(),
+                    params,
+                    can_specs,
+                ))),
+                poll_interval: dev.poll_interval(),
+            });
+            continue;
+        }
         let spec = link_spec(dev).ok_or_else(|| {
             GatewayError::Config(format!("devices.{name}: address or serial_path missing"))
         })?;
@@ -385,13 +482,19 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             LinkSpec::Tcp { .. } => new_link(),
         };
         let params = PollParams {
-            unit_id: dev.unit_id,
+            unit_id: dev.unit_id.unwrap_or_default(),
             retries: dev.retries,
             degrade_after_cycles: dev.degrade_after_cycles,
             max_gap_registers: dev.max_gap_registers,
         };
         devices.push(DeviceRt {
-            poller: DevicePoller::new(devices.len(), name.clone(), params, link, specs),
+            poller: Poller::Modbus(DevicePoller::new(
+                devices.len(),
+                name.clone(),
+                params,
+                link,
+                specs,
+            )),
             poll_interval: dev.poll_interval(),
         });
     }
@@ -655,12 +758,7 @@ impl Running {
                 .iter()
                 .map(|d| DeviceStatus {
                     name: d.poller.name().to_string(),
-                    link: d
-                        .poller
-                        .link()
-                        .try_lock()
-                        .map(|l| l.spec().to_string())
-                        .unwrap_or_default(),
+                    link: d.poller.describe(),
                     ..DeviceStatus::default()
                 })
                 .collect(),

@@ -73,12 +73,19 @@ async fn sim(path: &std::path::Path) -> Result<(), String> {
         .await
         .map_err(|e| e.to_string())?;
     for (name, d) in &plant.config.devices {
+        if let (Some(interface), Some(node)) = (&d.interface, d.node_id) {
+            println!("CANopen node {name}: {interface} node {node}");
+            continue;
+        }
         let at = d
             .address
             .as_deref()
             .or(d.serial_path.as_deref())
             .unwrap_or("-");
-        println!("field module {name}: {at} (unit {})", d.unit_id);
+        println!(
+            "field module {name}: {at} (unit {})",
+            d.unit_id.unwrap_or_default()
+        );
     }
     for (name, m) in &plant.config.nc_modules {
         println!("NC axis module {name}: {}", m.address);

@@ -12,6 +12,7 @@
 
 use std::collections::BTreeMap;
 
+use compgate_plc::canopen::{CanopenNode, MAX_PDO_TRANSMITTERS};
 use compgate_plc::field::{
     self, FieldModule, FieldModuleSpec, Profile, TransmitterSpec, COUNTS_BASE,
 };
@@ -19,7 +20,7 @@ use compgate_plc::nc::{Motion, NcAxis, NcAxisModule};
 use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
 
-use crate::config::{Config, Scaling, SimProfile, Transport};
+use crate::config::{CanChannelConfig, ChannelConfig, Config, Scaling, SimProfile, Transport};
 use crate::source::plan::{ByteOrder, DataType};
 
 /// Errors of the plant.
@@ -61,6 +62,8 @@ pub struct Plant {
     pub field: BTreeMap<String, FieldModule>,
     /// NC axis modules by NC module name.
     pub nc: BTreeMap<String, NcAxisModule>,
+    /// Simulated CANopen nodes by device name (they publish `field[name]`).
+    pub can: BTreeMap<String, CanopenNode>,
     /// Transmitter index in its field module, by channel name.
     pub transmitter: BTreeMap<String, usize>,
     shutdown: CancellationToken,
@@ -72,6 +75,9 @@ pub struct Plant {
 impl Drop for Plant {
     fn drop(&mut self) {
         self.shutdown.cancel();
+        for node in self.can.values() {
+            node.stop();
+        }
         for l in &self.symlinks {
             let _ = std::fs::remove_file(l);
         }
@@ -97,6 +103,47 @@ fn transmitter_index(address: u16, ty: DataType, order: ByteOrder) -> Option<usi
     }
 }
 
+/// The transmitter index a CAN channel reads, from the simulated node's TPDO layout
+/// and object dictionary (`compgate_plc::canopen`).
+fn can_transmitter_index(can: &CanChannelConfig, ty: DataType) -> Option<usize> {
+    match (
+        can.pdo,
+        can.offset_bytes,
+        can.sdo_index,
+        can.sdo_subindex,
+        ty,
+    ) {
+        (Some(p @ 1..=4), Some(o), None, None, DataType::U16 | DataType::I16) if o % 2 == 0 => {
+            Some(4 * usize::from(p - 1) + usize::from(o / 2))
+        }
+        (None, None, Some(0x6401), Some(i @ 1..), DataType::U16 | DataType::I16)
+        | (None, None, Some(0x9130), Some(i @ 1..), DataType::F32) => Some(usize::from(i) - 1),
+        _ => None,
+    }
+}
+
+/// The transmitter index of any channel, or why the simulated device has none.
+fn channel_transmitter(ch: &ChannelConfig) -> Result<usize, String> {
+    match (ch.can, ch.address) {
+        (Some(can), _) => can_transmitter_index(&can, ch.data_type)
+            .filter(|&i| i < MAX_PDO_TRANSMITTERS || can.sdo_index.is_some())
+            .ok_or_else(|| {
+                format!(
+                    "the simulated CANopen node has u16 counts in TPDO1..4 (4 per PDO, even \
+                     offsets), at 0x6401 sub 1.. (u16) and 0x9130 sub 1.. (f32); {can:?} as {:?} is none of them",
+                    ch.data_type
+                )
+            }),
+        (None, Some(address)) => transmitter_index(address, ch.data_type, ch.byte_order).ok_or_else(|| {
+            format!(
+                "the simulated module has counts at 0.., f32 CDAB at {}.., f32 ABCD at {}..; address {} as {:?} {:?} is none of them",
+                field::FLOAT_CDAB_BASE, field::FLOAT_ABCD_BASE, address, ch.data_type, ch.byte_order
+            )
+        }),
+        (None, None) => Err("no register address".into()),
+    }
+}
+
 impl Plant {
     /// Starts the plant for `cfg`.
     pub async fn start(cfg: &Config, bind: Bind) -> Result<Self, PlantError> {
@@ -107,6 +154,7 @@ impl Plant {
             config: cfg.clone(),
             field: BTreeMap::new(),
             nc: BTreeMap::new(),
+            can: BTreeMap::new(),
             transmitter: BTreeMap::new(),
             shutdown: shutdown.clone(),
             _ptys: Vec::new(),
@@ -118,15 +166,9 @@ impl Plant {
         for (dev_name, dev) in &cfg.devices {
             let mut transmitters: Vec<Option<TransmitterSpec>> = Vec::new();
             for (ch_name, ch) in cfg.channels.iter().filter(|(_, c)| &c.device == dev_name) {
-                let ty: DataType = ch.data_type;
-                let idx = transmitter_index(ch.address, ty, ch.byte_order).ok_or_else(|| {
-                    PlantError::Channel {
-                        channel: ch_name.clone(),
-                        message: format!(
-                            "the simulated module has counts at 0.., f32 CDAB at {}.., f32 ABCD at {}..; address {} as {:?} {:?} is none of them",
-                            field::FLOAT_CDAB_BASE, field::FLOAT_ABCD_BASE, ch.address, ty, ch.byte_order
-                        ),
-                    }
+                let idx = channel_transmitter(ch).map_err(|message| PlantError::Channel {
+                    channel: ch_name.clone(),
+                    message,
                 })?;
                 let (lo, hi) = match &ch.scaling {
                     Scaling::Transmitter(t) => (t.range_min_degc, t.range_max_degc),
@@ -198,7 +240,26 @@ impl Plant {
                     rtu_lines
                         .entry(path)
                         .or_default()
-                        .push((dev.unit_id, module));
+                        .push((dev.unit_id.unwrap_or_default(), module));
+                }
+                // A CAN node sits on the configured interface in either bind mode:
+                // vcan keeps nodes of several plants apart by node id only.
+                Transport::Can => {
+                    let interface = dev.interface.clone().unwrap_or_default();
+                    // Heartbeat well inside the consumer timeout (4 per timeout).
+                    let heartbeat_ms =
+                        (dev.heartbeat_timeout().as_secs_f64() * 250.0).clamp(10.0, 1000.0) as u16;
+                    let node = CanopenNode::spawn(
+                        &interface,
+                        dev.node_id.unwrap_or_default(),
+                        heartbeat_ms,
+                        module,
+                    )
+                    .map_err(|e| PlantError::Io {
+                        what: format!("devices.{dev_name}"),
+                        message: e.to_string(),
+                    })?;
+                    plant.can.insert(dev_name.clone(), node);
                 }
             }
         }

@@ -496,6 +496,18 @@ impl FieldModule {
         self.lock().comm_fault
     }
 
+    /// One ADC scan of every transmitter now, as a request would trigger it: counts
+    /// and measured temperature (degC) per transmitter. Other buses (the CANopen node
+    /// of [`crate::canopen`]) publish the module's values through this.
+    pub fn scan(&self) -> Vec<(u16, f32)> {
+        let mut inner = self.lock();
+        let t_s = inner.start.elapsed().as_secs_f64();
+        inner.convert(t_s);
+        (0..inner.channels.len())
+            .map(|i| inner.measured(i))
+            .collect()
+    }
+
     /// Requests answered, with data or with an exception.
     pub fn requests_served(&self) -> u64 {
         self.lock().requests_served

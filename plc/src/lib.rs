@@ -17,6 +17,9 @@
 //!   communication faults (delay, exception, dropped connections, silence); served
 //!   over Modbus TCP ([`field::FieldModule::serve_tcp`]) or RTU ([`field::serve_rtu`],
 //!   [`field::pty_pair`]).
+//! - [`canopen`]: CANopen transmitter/ADC node on a SocketCAN interface publishing a
+//!   field module's transmitters (NMT, SYNC + TPDOs, SDO upload, heartbeat, EMCY),
+//!   with fault injection.
 //! - [`nc`]: NC axis module: pure axis state ([`nc::NcAxis`]: SD43900/43910/43920,
 //!   MD32750 bits, MD32760 rate limit, referencing, motion) and its Modbus TCP server
 //!   ([`nc::NcAxisModule`]) implementing the FB3 REQ/DONE/ERROR/STATE handshake and
@@ -30,6 +33,7 @@
 //!   laser interferometer and measurement runs; pure, stepped, seeded.
 
 pub mod axis;
+pub mod canopen;
 pub mod field;
 pub mod machine5;
 pub mod nc;

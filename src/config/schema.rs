@@ -104,9 +104,30 @@ pub struct DeviceConfig {
     /// Modbus serial line specification asks).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stop_bits: Option<u8>,
-    /// Modbus unit id (slave address). Required. 0..=247 for `tcp` (many TCP modules
-    /// ignore it), 1..=247 for `rtu` (0 is the broadcast address, which never answers).
-    pub unit_id: u8,
+    /// Modbus unit id (slave address). Required for `tcp` and `rtu`, not allowed for
+    /// `can`. 0..=247 for `tcp` (many TCP modules ignore it), 1..=247 for `rtu` (0 is
+    /// the broadcast address, which never answers).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub unit_id: Option<u8>,
+    /// SocketCAN interface of the CAN bus, e.g. `"can0"` or `"vcan0"` (`can` only,
+    /// required there). The interface must be up with its bitrate set (see
+    /// `deploy/`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub interface: Option<String>,
+    /// CANopen node id of the device, 1..=127 (`can` only, required there). The
+    /// gateway sends it NMT start and reads its TPDOs (COB-ID 0x180, 0x280, 0x380,
+    /// 0x480 plus node id), SDOs (0x600 / 0x580 plus node id), heartbeat (0x700 plus
+    /// node id) and EMCY (0x080 plus node id). Node ids on one interface must be distinct.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub node_id: Option<u8>,
+    /// Heartbeat consumer timeout in seconds (`can` only): a node whose heartbeat
+    /// has been missing for longer has all its channels bad. 0 turns the check off.
+    /// Default 1.5 (for the common 1 s or faster producer heartbeat time, object
+    /// 0x1017); >= 0. The first CAN device of an interface (in name order) sends
+    /// the bus' SYNC every `poll_interval_s`; `timeout_s` is the longest wait for the
+    /// synchronous TPDOs after it and for each SDO answer.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub heartbeat_timeout_s: Option<f64>,
     /// Seconds one request may take before it counts as failed. Default 1.0; > 0.
     #[serde(default = "default_device_timeout_s")]
     pub timeout_s: f64,
@@ -138,6 +159,15 @@ pub struct DeviceConfig {
 }
 
 impl DeviceConfig {
+    /// Default of `heartbeat_timeout_s`.
+    pub const DEFAULT_HEARTBEAT_TIMEOUT_S: f64 = 1.5;
+    /// `heartbeat_timeout_s` (or its default) as a [`Duration`]; zero = off.
+    pub fn heartbeat_timeout(&self) -> Duration {
+        secs(
+            self.heartbeat_timeout_s
+                .unwrap_or(Self::DEFAULT_HEARTBEAT_TIMEOUT_S),
+        )
+    }
     /// Default of `baud`.
     pub const DEFAULT_BAUD: u32 = 19200;
     /// Default of `parity`.
@@ -193,6 +223,9 @@ pub enum Transport {
     Tcp,
     /// Modbus RTU on a serial line (`serial_path`, `baud`, `parity`, `stop_bits`).
     Rtu,
+    /// A CANopen node on a SocketCAN interface (`interface`, `node_id`,
+    /// `heartbeat_timeout_s`).
+    Can,
 }
 
 /// Serial parity.
@@ -215,13 +248,22 @@ pub enum Parity {
 pub struct ChannelConfig {
     /// Name of the device in `[devices]` the value is read from. Required.
     pub device: String,
-    /// Register table: `input` (function code 0x04) or `holding` (0x03). Required.
-    pub register: RegisterKind,
+    /// Register table: `input` (function code 0x04) or `holding` (0x03). Required on
+    /// a Modbus device, not allowed on a CAN device.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub register: Option<RegisterKind>,
     /// 0-based PDU address of the first register ("30001" in 1-based documentation
-    /// is address 0). Required; the value's last register must be <= 65535.
-    pub address: u16,
+    /// is address 0). Required on a Modbus device, not allowed on a CAN device; the
+    /// value's last register must be <= 65535.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub address: Option<u16>,
+    /// Where the value sits on a CAN device: a TPDO mapping or an SDO object.
+    /// Required on a CAN device, not allowed on a Modbus device.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub can: Option<CanChannelConfig>,
     /// Encoding of the raw value: `u16`, `i16` (one register), `u32`, `i32`, `f32`
-    /// (two registers). Required.
+    /// (two registers); on CAN little-endian, 2 or 4 bytes (`byte_order` unused).
+    /// Required.
     pub data_type: DataType,
     /// Byte order of the value, A = most significant byte: `ABCD` (big-endian),
     /// `CDAB` (word swap), `BADC` (byte swap), `DCBA` (little-endian). For 16-bit types
@@ -241,6 +283,29 @@ impl ChannelConfig {
     pub fn registers(&self) -> u16 {
         self.data_type.registers()
     }
+}
+
+/// `[channels.NAME.can]`: where a CAN channel's value is on its node. Either a TPDO
+/// mapping (`pdo` and `offset_bytes`) or an SDO object (`sdo_index` and
+/// `sdo_subindex`), not both.
+#[derive(Deserialize, Serialize, Debug, Clone, Copy, PartialEq, Eq)]
+#[serde(deny_unknown_fields)]
+pub struct CanChannelConfig {
+    /// Synchronous TPDO number 1..=4 (COB-ID 0x180 + 0x100 * (pdo - 1) + node id)
+    /// carrying the value, sent by the node after each SYNC.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pdo: Option<u8>,
+    /// Byte offset of the value in the TPDO, 0..=7; the value must end within the
+    /// 8 data bytes (offset + 2 for 16-bit, + 4 for 32-bit types).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub offset_bytes: Option<u8>,
+    /// Object dictionary index read by expedited SDO upload each poll cycle, e.g.
+    /// `0x6401` (CiA 401 analogue input 16 bit).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sdo_index: Option<u16>,
+    /// Sub-index of the SDO object, 0..=255.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sdo_subindex: Option<u8>,
 }
 
 // The wire encodings are the source layer's own types; the config names them.

@@ -89,6 +89,7 @@ pub(super) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
         ck.device(name, dev);
     }
     ck.serial_lines(&cfg.devices);
+    ck.can_buses(&cfg.devices);
 
     let has = |set: &Names, map_has: bool, name: &str| map_has || set.contains(name);
     for (name, ch) in &cfg.channels {
@@ -107,6 +108,7 @@ pub(super) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
                 ),
             );
         }
+        ck.channel_place(name, ch, cfg.devices.get(&ch.device).map(|d| d.transport));
         ck.channel(name, ch);
     }
 
@@ -311,7 +313,14 @@ impl Checker<'_> {
                         );
                     }
                 }
-                self.unit_id(k("unit_id"), d.unit_id);
+                self.not_can(name, d);
+                match d.unit_id {
+                    Some(id) => self.unit_id(k("unit_id"), id),
+                    None => self.problem(
+                        k("unit_id"),
+                        "required with transport = \"tcp\": the Modbus unit id, 0..=247".into(),
+                    ),
+                }
             }
             Transport::Rtu => {
                 match d.serial_path.as_deref() {
@@ -349,17 +358,22 @@ impl Checker<'_> {
                         self.problem(k("stop_bits"), format!("must be 1 or 2, got {s}"));
                     }
                 }
-                if d.unit_id == 0 {
-                    self.problem(
+                self.not_can(name, d);
+                match d.unit_id {
+                    Some(0) => self.problem(
                         k("unit_id"),
                         "must be 1..=247 on RTU: 0 is the broadcast address, which never \
                          answers"
                             .into(),
-                    );
-                } else {
-                    self.unit_id(k("unit_id"), d.unit_id);
+                    ),
+                    Some(id) => self.unit_id(k("unit_id"), id),
+                    None => self.problem(
+                        k("unit_id"),
+                        "required with transport = \"rtu\": the Modbus unit id, 1..=247".into(),
+                    ),
                 }
             }
+            Transport::Can => self.can_device(name, d),
         }
         self.positive(&k("timeout_s"), d.timeout_s, "seconds");
         if let Some(c) = d.connect_timeout_s {
@@ -385,6 +399,91 @@ impl Checker<'_> {
         }
     }
 
+    /// The CAN-only keys are absent on a Modbus device.
+    fn not_can(&mut self, name: &str, d: &DeviceConfig) {
+        for (f, present) in [
+            ("interface", d.interface.is_some()),
+            ("node_id", d.node_id.is_some()),
+            ("heartbeat_timeout_s", d.heartbeat_timeout_s.is_some()),
+        ] {
+            if present {
+                self.problem(
+                    field("devices", name, f),
+                    "only for transport = \"can\"; remove it or set transport = \"can\"".into(),
+                );
+            }
+        }
+    }
+
+    fn can_device(&mut self, name: &str, d: &DeviceConfig) {
+        let k = |f: &str| field("devices", name, f);
+        match d.interface.as_deref() {
+            Some(i) if !i.trim().is_empty() && i.len() < 16 && !i.contains('/') => {}
+            Some(i) => self.problem(
+                k("interface"),
+                format!("`{i}` is not a network interface name (1..=15 characters, no `/`), e.g. \"can0\""),
+            ),
+            None => self.problem(
+                k("interface"),
+                "required with transport = \"can\": the SocketCAN interface, e.g. \"can0\"".into(),
+            ),
+        }
+        match d.node_id {
+            Some(1..=127) => {}
+            Some(n) => self.problem(
+                k("node_id"),
+                format!("must be 1..=127 (CANopen node id), got {n}"),
+            ),
+            None => self.problem(
+                k("node_id"),
+                "required with transport = \"can\": the CANopen node id, 1..=127".into(),
+            ),
+        }
+        if let Some(h) = d.heartbeat_timeout_s {
+            if !(h.is_finite() && h >= 0.0) {
+                self.problem(
+                    k("heartbeat_timeout_s"),
+                    format!("must be >= 0 seconds (0 = no heartbeat check), got {h}"),
+                );
+            }
+        }
+        for (f, present) in [
+            ("address", d.address.is_some()),
+            ("connect_timeout_s", d.connect_timeout_s.is_some()),
+            ("serial_path", d.serial_path.is_some()),
+            ("baud", d.baud.is_some()),
+            ("parity", d.parity.is_some()),
+            ("stop_bits", d.stop_bits.is_some()),
+            ("unit_id", d.unit_id.is_some()),
+        ] {
+            if present {
+                self.problem(
+                    k(f),
+                    "not used by transport = \"can\" (a CAN node is addressed by interface \
+                     and node_id); remove it"
+                        .into(),
+                );
+            }
+        }
+    }
+
+    /// CAN nodes on one interface need distinct node ids.
+    fn can_buses(&mut self, devices: &BTreeMap<String, DeviceConfig>) {
+        let mut seen: BTreeMap<(&str, u8), &String> = BTreeMap::new();
+        for (name, d) in devices {
+            if let (Transport::Can, Some(i), Some(n)) =
+                (d.transport, d.interface.as_deref(), d.node_id)
+            {
+                if let Some(other) = seen.insert((i, n), name) {
+                    self.problem(
+                        field("devices", name, "node_id"),
+                        format!("node id {n} is already used by `{other}` on interface {i}"),
+                    );
+                }
+            }
+        }
+    }
+
     /// Devices on one serial line share its settings and its address space.
     fn serial_lines(&mut self, devices: &BTreeMap<String, DeviceConfig>) {
         let mut lines: BTreeMap<&str, Vec<(&String, &DeviceConfig)>> = BTreeMap::new();
@@ -398,7 +497,7 @@ impl Checker<'_> {
                 continue;
             };
             let mut ids: BTreeMap<u8, &String> = BTreeMap::new();
-            ids.insert(first.unit_id, first_name);
+            ids.insert(first.unit_id.unwrap_or_default(), first_name);
             for &(name, d) in devs.iter().skip(1) {
                 let k = |f: &str| field("devices", name, f);
                 let shared = |what: &str, theirs: String| {
@@ -422,14 +521,122 @@ impl Checker<'_> {
                         shared("stop_bits", first.stop_bits().to_string()),
                     );
                 }
-                if let Some(other) = ids.insert(d.unit_id, name) {
+                if let Some(other) = ids.insert(d.unit_id.unwrap_or_default(), name) {
                     self.problem(
                         k("unit_id"),
                         format!(
                             "unit id {} is already used by `{other}` on serial line {path}; \
                              devices on one line need distinct unit ids",
-                            d.unit_id
+                            d.unit_id.unwrap_or_default()
                         ),
+                    );
+                }
+            }
+        }
+    }
+
+    /// Where a channel is: registers on a Modbus device, `can` on a CAN device.
+    fn channel_place(&mut self, name: &str, c: &ChannelConfig, transport: Option<Transport>) {
+        let k = |f: &str| field("channels", name, f);
+        let on_can = match transport {
+            Some(t) => t == Transport::Can,
+            None => c.can.is_some(),
+        };
+        if !on_can {
+            if c.can.is_some() {
+                self.problem(
+                    k("can"),
+                    format!(
+                        "only for a channel on a CAN device (transport = \"can\"); `{}` is a Modbus device",
+                        c.device
+                    ),
+                );
+            }
+            for (f, present) in [
+                ("register", c.register.is_some()),
+                ("address", c.address.is_some()),
+            ] {
+                if !present {
+                    self.problem(k(f), "required for a channel on a Modbus device".into());
+                }
+            }
+            return;
+        }
+        for (f, present) in [
+            ("register", c.register.is_some()),
+            ("address", c.address.is_some()),
+        ] {
+            if present {
+                self.problem(
+                    k(f),
+                    format!(
+                        "not used on the CAN device `{}`; give the TPDO or SDO object in `can`",
+                        c.device
+                    ),
+                );
+            }
+        }
+        let Some(can) = c.can else {
+            self.problem(
+                k("can"),
+                format!(
+                    "required for a channel on the CAN device `{}`: {{ pdo = 1, offset_bytes = 0 }} \
+                     or {{ sdo_index = 0x6401, sdo_subindex = 1 }}",
+                    c.device
+                ),
+            );
+            return;
+        };
+        let size = u32::from(c.registers()) * 2;
+        let pdo = can.pdo.is_some() || can.offset_bytes.is_some();
+        let sdo = can.sdo_index.is_some() || can.sdo_subindex.is_some();
+        match (pdo, sdo) {
+            (true, true) => self.problem(
+                k("can"),
+                "either a TPDO mapping (pdo, offset_bytes) or an SDO object (sdo_index, \
+                 sdo_subindex), not both"
+                    .into(),
+            ),
+            (false, false) => self.problem(
+                k("can"),
+                "empty: give pdo and offset_bytes, or sdo_index and sdo_subindex".into(),
+            ),
+            (true, false) => {
+                match can.pdo {
+                    Some(1..=4) => {}
+                    Some(p) => self.problem(
+                        k("can.pdo"),
+                        format!("must be 1..=4 (TPDO1..TPDO4), got {p}"),
+                    ),
+                    None => self.problem(
+                        k("can.pdo"),
+                        "required with offset_bytes: the TPDO number 1..=4".into(),
+                    ),
+                }
+                match can.offset_bytes {
+                    Some(o) if u32::from(o) + size <= 8 => {}
+                    Some(o) => self.problem(
+                        k("can.offset_bytes"),
+                        format!(
+                            "a {} value at byte {o} takes {size} bytes and would end past the 8 bytes of a PDO; expected offset_bytes <= {}",
+                            type_name(c.data_type),
+                            8 - size
+                        ),
+                    ),
+                    None => self.problem(k("can.offset_bytes"), "required with pdo: the value's byte offset in the PDO".into()),
+                }
+            }
+            (false, true) => {
+                if can.sdo_index.is_none() {
+                    self.problem(
+                        k("can.sdo_index"),
+                        "required with sdo_subindex: the object index, e.g. 0x6401".into(),
+                    );
+                }
+                if can.sdo_subindex.is_none() {
+                    self.problem(
+                        k("can.sdo_subindex"),
+                        "required with sdo_index: the sub-index, 0..=255".into(),
                     );
                 }
             }
@@ -439,7 +646,7 @@ impl Checker<'_> {
     fn channel(&mut self, name: &str, c: &ChannelConfig) {
         let k = |f: &str| field("channels", name, f);
         let n = u32::from(c.registers());
-        if u32::from(c.address) + n > 65_536 {
+        if c.address.is_some_and(|a| u32::from(a) + n > 65_536) {
             self.problem(
                 k("address"),
                 format!(
@@ -505,7 +712,7 @@ impl Checker<'_> {
         }
         let f = &c.filter;
         let m = f.median_samples;
-        if m == 0 || m > MAX_MEDIAN_SAMPLES || m % 2 == 0 {
+        if m == 0 || m > MAX_MEDIAN_SAMPLES || m.is_multiple_of(2) {
             self.problem(
                 k("filter.median_samples"),
                 format!(
@@ -880,13 +1087,13 @@ mod rules {
         assert_eq!(
             problems_after(|c| {
                 let d = dev(c, "ain1");
-                d.unit_id = 248;
+                d.unit_id = Some(248);
                 d.timeout_s = 0.0;
                 d.poll_interval_s = -1.0;
                 d.backoff_initial_s = 5.0;
                 d.backoff_max_s = 1.0;
                 d.degrade_after_cycles = 0;
-                dev(c, "ain2").unit_id = 0;
+                dev(c, "ain2").unit_id = Some(0);
                 c.gateway.status_interval_s = f64::NAN;
                 c.nc_modules.get_mut("nc_x").expect("nc").job_timeout_s = 0.0;
             }),
@@ -928,7 +1135,7 @@ mod rules {
                 other.baud = None;
                 other.parity = None;
                 other.stop_bits = None;
-                other.unit_id = 8;
+                other.unit_id = Some(8);
                 c.devices.insert("ain3".into(), other);
             }),
             Vec::<String>::new()
@@ -940,7 +1147,7 @@ mod rules {
         assert_eq!(
             problems_after(|c| {
                 let t = ch(c, "T_ambient");
-                t.address = 65535;
+                t.address = Some(65535);
                 t.scaling = Scaling::Direct(DirectScaling {
                     gain: 0.0,
                     offset_degc: f64::INFINITY,
@@ -974,7 +1181,7 @@ mod rules {
         );
         // The same register read twice is fine.
         assert_eq!(
-            problems_after(|c| ch(c, "T_screw").address = 0),
+            problems_after(|c| ch(c, "T_screw").address = Some(0)),
             Vec::<String>::new()
         );
     }

@@ -5,7 +5,7 @@
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
-use super::{Built, ChannelStatus, Running};
+use super::{Built, ChannelStatus, Poller, Running};
 use crate::config::Config;
 
 /// The state of the next generation: `new` (built from `new_cfg`) with the parts of
@@ -70,20 +70,23 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         let Some((i, old_dev)) = old_devices.get(&name) else {
             continue;
         };
-        relink.push((
-            Arc::as_ptr(dev.poller.link()),
-            old_dev.poller.link().clone(),
-        ));
-        dev.poller.carry_over(&old_dev.poller);
+        // A CAN node's poller starts afresh (NMT start, heartbeat watch); its
+        // channels keep their filter state like any other.
+        if let (Poller::Modbus(new), Poller::Modbus(old)) = (&mut dev.poller, &old_dev.poller) {
+            relink.push((Arc::as_ptr(new.link()), old.link().clone()));
+            new.carry_over(old);
+        }
         if let Some(s) = old_status.devices.get(*i) {
             next.status.devices[j] = s.clone();
         }
         kept_devices += 1;
     }
     for dev in next.devices.iter_mut().flatten() {
-        let ptr = Arc::as_ptr(dev.poller.link());
-        if let Some((_, link)) = relink.iter().find(|(p, _)| *p == ptr) {
-            dev.poller.set_link(link.clone());
+        if let Poller::Modbus(p) = &mut dev.poller {
+            let ptr = Arc::as_ptr(p.link());
+            if let Some((_, link)) = relink.iter().find(|(q, _)| *q == ptr) {
+                p.set_link(link.clone());
+            }
         }
     }
 

@@ -8,6 +8,7 @@
 //! never interleave; a dead unit on that line delays the others by its timeout but
 //! never stops them.
 
+pub mod can;
 pub mod modbus;
 pub mod plan;
 
@@ -43,6 +44,9 @@ pub enum SourceError {
     /// Reconnect is backing off after failed attempts.
     #[error("reconnect backing off, next attempt in {0:?}")]
     BackingOff(Duration),
+    /// A CANopen node or its bus failed.
+    #[error("{0}")]
+    Can(can::CanError),
 }
 
 impl SourceError {
@@ -62,6 +66,7 @@ impl SourceError {
             Self::Transport(_) => "transport",
             Self::Exception(_) => "exception",
             Self::BackingOff(_) => "backoff",
+            Self::Can(e) => e.kind(),
         }
     }
 }

@@ -1,0 +1,371 @@
+//! Per-node bookkeeping with no I/O: heartbeat consumer, EMCY state, the SDO client's
+//! one outstanding request, and the latest TPDOs. Time is seconds on the caller's
+//! clock, so tests drive it directly.
+
+use super::codec::{self, Message, NmtState, RawFrame, SdoAnswer};
+
+/// Why a node's channels are bad as a whole.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum NodeFault {
+    /// No heartbeat for longer than the consumer timeout.
+    HeartbeatTimeout {
+        /// Seconds since the last heartbeat (or since monitoring started).
+        silent_s: f64,
+        /// The configured timeout.
+        timeout_s: f64,
+    },
+    /// The node reported an emergency that no error-reset EMCY has cleared.
+    Emergency {
+        /// EMCY error code.
+        code: u16,
+        /// Error register (0x1001).
+        register: u8,
+    },
+}
+
+/// What the poller must do after a frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NodeEvent {
+    /// The node is (again) pre-operational or has just booted: send NMT start.
+    NeedsStart,
+}
+
+/// Heartbeat consumer and EMCY state of one node.
+#[derive(Debug, Clone)]
+pub struct NodeMonitor {
+    node: u8,
+    heartbeat_timeout_s: f64,
+    since_s: f64,
+    last_heartbeat_s: Option<f64>,
+    state: Option<NmtState>,
+    emergency: Option<(u16, u8)>,
+    emergencies: u64,
+}
+
+impl NodeMonitor {
+    /// Monitors `node` from `now_s`; a timeout of 0 turns the heartbeat check off.
+    pub fn new(node: u8, heartbeat_timeout_s: f64, now_s: f64) -> Self {
+        Self {
+            node,
+            heartbeat_timeout_s,
+            since_s: now_s,
+            last_heartbeat_s: None,
+            state: None,
+            emergency: None,
+            emergencies: 0,
+        }
+    }
+
+    /// The NMT state of the last heartbeat.
+    pub fn state(&self) -> Option<NmtState> {
+        self.state
+    }
+
+    /// Emergencies received so far.
+    pub fn emergencies(&self) -> u64 {
+        self.emergencies
+    }
+
+    /// Takes one decoded frame received at `t_s`; frames of other nodes are ignored.
+    pub fn on_message(&mut self, t_s: f64, msg: &Message) -> Option<NodeEvent> {
+        match *msg {
+            Message::Heartbeat { node, state } if node == self.node => {
+                self.last_heartbeat_s = Some(t_s);
+                let previous = self.state.replace(state);
+                match state {
+                    NmtState::BootUp => {
+                        // A restarted node has forgotten its emergency.
+                        self.emergency = None;
+                        Some(NodeEvent::NeedsStart)
+                    }
+                    NmtState::PreOperational if previous != Some(NmtState::PreOperational) => {
+                        Some(NodeEvent::NeedsStart)
+                    }
+                    _ => None,
+                }
+            }
+            Message::Emcy {
+                node,
+                code,
+                register,
+                ..
+            } if node == self.node => {
+                if code == 0 {
+                    self.emergency = None;
+                } else {
+                    self.emergencies += 1;
+                    self.emergency = Some((code, register));
+                }
+                None
+            }
+            _ => None,
+        }
+    }
+
+    /// Whether the node's channels can be trusted at `now_s`.
+    pub fn health(&self, now_s: f64) -> Result<(), NodeFault> {
+        if let Some((code, register)) = self.emergency {
+            return Err(NodeFault::Emergency { code, register });
+        }
+        if self.heartbeat_timeout_s > 0.0 {
+            let silent_s = now_s - self.last_heartbeat_s.unwrap_or(self.since_s);
+            if silent_s > self.heartbeat_timeout_s {
+                return Err(NodeFault::HeartbeatTimeout {
+                    silent_s,
+                    timeout_s: self.heartbeat_timeout_s,
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Why an SDO upload failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SdoFailure {
+    /// No answer in time.
+    Timeout,
+    /// The server aborted with this code.
+    Abort(u32),
+    /// The server started a segmented transfer (not supported).
+    Segmented,
+    /// The server answered with another command.
+    Unexpected(u8),
+}
+
+/// SDO client of one node: at most one expedited upload outstanding.
+#[derive(Debug, Clone, Default)]
+pub struct SdoClient {
+    node: u8,
+    pending: Option<(u16, u8)>,
+}
+
+impl SdoClient {
+    /// A client for server `node`.
+    pub fn new(node: u8) -> Self {
+        Self {
+            node,
+            pending: None,
+        }
+    }
+
+    /// The object being uploaded, if any.
+    pub fn pending(&self) -> Option<(u16, u8)> {
+        self.pending
+    }
+
+    /// Starts an upload of `index`/`sub`; the frame to send. A request still
+    /// outstanding is dropped.
+    pub fn request(&mut self, index: u16, sub: u8) -> RawFrame {
+        self.pending = Some((index, sub));
+        codec::sdo_upload_request(self.node, index, sub)
+    }
+
+    /// Takes an answer from this node's server. `None` while nothing is outstanding
+    /// or when the answer is for another object (a late answer to an earlier request);
+    /// otherwise the upload's end: the data bytes and their count, or the failure.
+    pub fn on_answer(&mut self, answer: &SdoAnswer) -> Option<Result<([u8; 4], u8), SdoFailure>> {
+        let (index, sub) = self.pending?;
+        let result = match *answer {
+            SdoAnswer::Upload {
+                index: i,
+                sub: s,
+                data,
+                len,
+            } if (i, s) == (index, sub) => Ok((data, len)),
+            SdoAnswer::Segmented { index: i, sub: s } if (i, s) == (index, sub) => {
+                Err(SdoFailure::Segmented)
+            }
+            SdoAnswer::Abort {
+                index: i,
+                sub: s,
+                code,
+            } if (i, s) == (index, sub) => Err(SdoFailure::Abort(code)),
+            SdoAnswer::Other { command } => Err(SdoFailure::Unexpected(command)),
+            _ => return None,
+        };
+        self.pending = None;
+        Some(result)
+    }
+
+    /// The outstanding upload timed out.
+    pub fn on_timeout(&mut self) -> SdoFailure {
+        self.pending = None;
+        SdoFailure::Timeout
+    }
+}
+
+/// The latest frame of each TPDO 1..=4 of one node, with its receive time.
+#[derive(Debug, Clone, Default)]
+pub struct PdoStore {
+    latest: [Option<(f64, [u8; 8], u8)>; 4],
+    received: u64,
+}
+
+impl PdoStore {
+    /// Takes a decoded frame received at `t_s`; other nodes' PDOs are ignored.
+    pub fn on_message(&mut self, node: u8, t_s: f64, msg: &Message) {
+        if let Message::Tpdo {
+            node: n,
+            pdo,
+            data,
+            len,
+        } = *msg
+        {
+            if n == node {
+                if let Some(slot) = self.latest.get_mut(usize::from(pdo.wrapping_sub(1))) {
+                    *slot = Some((t_s, data, len));
+                    self.received += 1;
+                }
+            }
+        }
+    }
+
+    /// TPDO `pdo` if it arrived at or after `since_s`: its data bytes.
+    pub fn since(&self, pdo: u8, since_s: f64) -> Option<&[u8]> {
+        let (t_s, data, len) = self
+            .latest
+            .get(usize::from(pdo.wrapping_sub(1)))?
+            .as_ref()?;
+        (*t_s >= since_s).then(|| &data[..usize::from(*len)])
+    }
+
+    /// TPDOs received so far.
+    pub fn received(&self) -> u64 {
+        self.received
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use codec::decode;
+
+    fn msg(id: u16, d: &[u8]) -> Message {
+        decode(&RawFrame::new(id, d).expect("frame")).expect("decodes")
+    }
+
+    #[test]
+    fn heartbeat_timeout_and_recovery() {
+        let mut m = NodeMonitor::new(5, 1.0, 10.0);
+        assert_eq!(m.health(10.9), Ok(()));
+        assert!(matches!(
+            m.health(11.2),
+            Err(NodeFault::HeartbeatTimeout { timeout_s, .. }) if timeout_s == 1.0
+        ));
+        assert_eq!(m.on_message(11.3, &msg(0x705, &[0x05])), None);
+        assert_eq!(m.state(), Some(NmtState::Operational));
+        assert_eq!(m.health(12.2), Ok(()));
+        // Another node's heartbeat does not count.
+        m.on_message(12.5, &msg(0x706, &[0x05]));
+        assert!(m.health(12.29).is_ok());
+        assert!(m.health(12.31).is_err());
+        // Off.
+        assert_eq!(NodeMonitor::new(5, 0.0, 0.0).health(1e9), Ok(()));
+    }
+
+    #[test]
+    fn boot_up_and_pre_operational_ask_for_start() {
+        let mut m = NodeMonitor::new(5, 1.0, 0.0);
+        assert_eq!(
+            m.on_message(0.1, &msg(0x705, &[0x00])),
+            Some(NodeEvent::NeedsStart)
+        );
+        assert_eq!(
+            m.on_message(0.2, &msg(0x705, &[0x7F])),
+            Some(NodeEvent::NeedsStart)
+        );
+        // Asked once per change, not on every heartbeat.
+        assert_eq!(m.on_message(0.3, &msg(0x705, &[0x7F])), None);
+        assert_eq!(m.on_message(0.4, &msg(0x705, &[0x05])), None);
+        assert_eq!(
+            m.on_message(0.5, &msg(0x705, &[0x7F])),
+            Some(NodeEvent::NeedsStart)
+        );
+    }
+
+    #[test]
+    fn emergency_until_reset() {
+        let mut m = NodeMonitor::new(5, 0.0, 0.0);
+        m.on_message(1.0, &msg(0x085, &[0x10, 0x42, 0x09, 0, 0, 0, 0, 0]));
+        assert_eq!(
+            m.health(1.0),
+            Err(NodeFault::Emergency {
+                code: 0x4210,
+                register: 0x09
+            })
+        );
+        assert_eq!(m.emergencies(), 1);
+        m.on_message(2.0, &msg(0x086, &[0, 0, 0, 0, 0, 0, 0, 0]));
+        assert!(m.health(2.0).is_err(), "another node's reset");
+        m.on_message(2.0, &msg(0x085, &[0, 0, 0, 0, 0, 0, 0, 0]));
+        assert_eq!(m.health(2.0), Ok(()));
+        m.on_message(3.0, &msg(0x085, &[0x00, 0x50, 0x01, 0, 0, 0, 0, 0]));
+        assert!(m.health(3.0).is_err());
+        m.on_message(4.0, &msg(0x705, &[0x00]));
+        assert_eq!(m.health(4.0), Ok(()), "boot-up clears");
+    }
+
+    #[test]
+    fn sdo_client_matches_answers() {
+        let mut c = SdoClient::new(5);
+        let upload = SdoAnswer::Upload {
+            index: 0x6401,
+            sub: 1,
+            data: [1, 2, 0, 0],
+            len: 2,
+        };
+        assert_eq!(c.on_answer(&upload), None, "nothing outstanding");
+        assert_eq!(c.request(0x6401, 2).cob_id, 0x605);
+        assert_eq!(c.on_answer(&upload), None, "late answer to sub 1");
+        assert_eq!(c.pending(), Some((0x6401, 2)));
+        let upload2 = SdoAnswer::Upload {
+            index: 0x6401,
+            sub: 2,
+            data: [3, 4, 0, 0],
+            len: 2,
+        };
+        assert_eq!(c.on_answer(&upload2), Some(Ok(([3, 4, 0, 0], 2))));
+        assert_eq!(c.pending(), None);
+        c.request(0x2000, 0);
+        assert_eq!(
+            c.on_answer(&SdoAnswer::Abort {
+                index: 0x2000,
+                sub: 0,
+                code: 0x0602_0000
+            }),
+            Some(Err(SdoFailure::Abort(0x0602_0000)))
+        );
+        c.request(0x1008, 0);
+        assert_eq!(
+            c.on_answer(&SdoAnswer::Segmented {
+                index: 0x1008,
+                sub: 0
+            }),
+            Some(Err(SdoFailure::Segmented))
+        );
+        c.request(0x1008, 0);
+        assert_eq!(
+            c.on_answer(&SdoAnswer::Other { command: 0x60 }),
+            Some(Err(SdoFailure::Unexpected(0x60)))
+        );
+        c.request(0x1008, 0);
+        assert_eq!(c.on_timeout(), SdoFailure::Timeout);
+        assert_eq!(c.pending(), None);
+    }
+
+    #[test]
+    fn pdo_store_keeps_latest_per_pdo() {
+        let mut s = PdoStore::default();
+        s.on_message(5, 1.0, &msg(0x185, &[1, 2]));
+        s.on_message(5, 1.5, &msg(0x285, &[3, 4, 5]));
+        s.on_message(5, 1.6, &msg(0x186, &[9, 9]));
+        assert_eq!(s.since(1, 1.0), Some(&[1u8, 2][..]));
+        assert_eq!(s.since(1, 1.1), None, "older than the SYNC");
+        assert_eq!(s.since(2, 1.1), Some(&[3u8, 4, 5][..]));
+        assert_eq!(s.since(3, 0.0), None);
+        assert_eq!(s.since(0, 0.0), None);
+        assert_eq!(s.since(9, 0.0), None);
+        assert_eq!(s.received(), 2);
+    }
+}

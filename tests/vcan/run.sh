@@ -1,0 +1,190 @@
+#!/usr/bin/env bash
+# Runs the vcan integration tests (the CAN source and the simulated CANopen node).
+#
+# - Where the kernel has vcan (a shop-floor PC with `vcan0` up), they run natively.
+# - Elsewhere they run inside a small VM: a Debian kernel under QEMU's software
+#   emulation, an initramfs with busybox, the CAN modules, can-utils and the test
+#   binaries. Results come back over the serial console.
+#
+# Usage: tests/vcan/run.sh [--smoke]
+#   --smoke   boot the VM and show `ip link` with vcan0 up, run no tests
+#
+# With CI set, any run in which the vcan tests did not run is a failure.
+# Environment: VCAN_VM_TIMEOUT_S (default 1500) bounds the whole VM run.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+ROOT=$PWD
+SMOKE=0
+[[ "${1:-}" == "--smoke" ]] && SMOKE=1
+TIMEOUT_S=${VCAN_VM_TIMEOUT_S:-1500}
+WORK=$ROOT/target/vcan
+
+skip_or_fail() {
+    if [[ -n "${CI:-}" ]]; then
+        echo "vcan: FAILED: $1 (CI is set: the vcan tests must run)" >&2
+        exit 1
+    fi
+    echo "vcan: SKIPPED: $1" >&2
+    echo "vcan: the CAN tests did NOT run; set up vcan0 or the VM tooling" >&2
+    exit 0
+}
+
+# The test binaries that need vcan0; their vcan tests are #[ignore]d in a plain
+# `cargo test` and run here with --ignored.
+TESTS=(
+    "compgate:can_vcan"
+    "compgate-plc:canopen_vcan"
+)
+# VCAN_TESTS="pkg:test ..." narrows the set while iterating.
+if [[ -n "${VCAN_TESTS:-}" ]]; then read -ra TESTS <<<"$VCAN_TESTS"; fi
+
+build_tests() {
+    local out=$WORK/tests.txt
+    : >"$out"
+    for t in "${TESTS[@]}"; do
+        local pkg=${t%%:*} name=${t#*:}
+        # The test target's own executable (not the binaries built alongside it).
+        cargo test -p "$pkg" --test "$name" --no-run --message-format=json 2>"$WORK/build.log" |
+            grep "\"kind\":\\[\"test\"\\]" | grep "\"name\":\"$name\"" |
+            grep -o '"executable":"[^"]*"' | cut -d'"' -f4 >>"$out" || true
+    done
+    if [[ $(wc -l <"$out") -ne ${#TESTS[@]} ]]; then
+        tail -20 "$WORK/build.log" >&2
+        echo "vcan: FAILED: cannot build the test binaries" >&2
+        exit 1
+    fi
+}
+
+mkdir -p "$WORK"
+
+# ---- native: the kernel has vcan
+if [[ $SMOKE -eq 0 && -e /sys/class/net/vcan0 ]]; then
+    echo "vcan: vcan0 exists, running natively"
+    ip link set up vcan0 2>/dev/null || true
+    rc=0
+    build_tests
+    for exe in $(cat "$WORK/tests.txt"); do
+        VCAN_IF=vcan0 "$exe" --ignored --test-threads=1 --show-output || rc=1
+    done
+    exit $rc
+fi
+
+# ---- VM
+need=()
+command -v qemu-system-x86_64 >/dev/null || need+=(qemu-system-x86)
+# A static busybox: the initramfs carries no libraries for it.
+if [[ ! -x /bin/busybox ]] || ldd /bin/busybox >/dev/null 2>&1; then need+=(busybox-static); fi
+command -v cpio >/dev/null || need+=(cpio)
+command -v cansend >/dev/null || need+=(can-utils)
+if [[ ${#need[@]} -gt 0 ]]; then
+    echo "vcan: installing ${need[*]}"
+    if ! { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}"; } >"$WORK.apt.log" 2>&1; then
+        mkdir -p "$(dirname "$WORK")"
+        skip_or_fail "could not install ${need[*]} (see target/vcan.apt.log)"
+    fi
+fi
+mkdir -p "$WORK"
+
+# ---- kernel and CAN modules, cached under target/vcan/kernel
+KDIR=$WORK/kernel
+if [[ ! -f $KDIR/vmlinuz || ! -f $KDIR/mods/vcan.ko ]]; then
+    apt-get update -qq >/dev/null 2>&1 || true
+    # The plain -amd64 flavour: -cloud-amd64 has no CAN modules.
+    KPKG=$(apt-cache depends linux-image-amd64 2>/dev/null | grep -o 'linux-image-[0-9][^ ]*-amd64' | head -1)
+    [[ -n "$KPKG" ]] || skip_or_fail "no linux-image-*-amd64 package known to apt"
+    rm -rf "$KDIR" && mkdir -p "$KDIR/mods" "$KDIR/x"
+    (cd "$KDIR" && apt-get download "$KPKG" >/dev/null 2>&1) || skip_or_fail "cannot download $KPKG"
+    dpkg -x "$KDIR"/linux-image-*.deb "$KDIR/x"
+    M=$(echo "$KDIR"/x/lib/modules/*/kernel)
+    cp "$M/net/can/can.ko" "$M/net/can/can-raw.ko" "$M/drivers/net/can/dev/can-dev.ko" \
+        "$M/drivers/net/can/vcan.ko" "$KDIR/mods/"
+    cp "$KDIR"/x/boot/vmlinuz-* "$KDIR/vmlinuz"
+    rm -rf "$KDIR/x" "$KDIR"/linux-image-*.deb
+fi
+
+# ---- initramfs
+IR=$WORK/ir
+rm -rf "$IR" && mkdir -p "$IR"/{bin,sbin,proc,sys,dev,mods,tmp,tests}
+cp /bin/busybox "$IR/bin/"
+cp "$KDIR"/mods/*.ko "$IR/mods/"
+carry() { # carry BINARY DEST: a program and its shared libraries
+    cp -L "$1" "$IR$2"
+    for l in $(ldd "$1" | grep -o '/[^ ]*'); do
+        mkdir -p "$IR$(dirname "$l")"
+        [[ -e "$IR$l" ]] || cp -L "$l" "$IR$l"
+    done
+}
+carry "$(command -v ip)" /sbin/ip
+carry "$(command -v cansend)" /bin/cansend
+carry "$(command -v candump)" /bin/candump
+
+RUN_TESTS=""
+if [[ $SMOKE -eq 0 ]]; then
+    echo "vcan: building the test binaries"
+    i=0
+    build_tests
+    for exe in $(cat "$WORK/tests.txt"); do
+        i=$((i + 1))
+        carry "$exe" "/tests/t$i"
+        # Debug info only makes the initramfs (held in guest RAM) bigger.
+        strip --strip-debug "$IR/tests/t$i" 2>/dev/null || true
+        RUN_TESTS+="run_test t$i $(basename "$exe")"$'\n'
+    done
+fi
+
+cat >"$IR/init" <<EOF
+#!/bin/busybox sh
+/bin/busybox --install -s /bin
+export PATH=/bin:/sbin
+mount -t proc proc /proc; mount -t sysfs sys /sys; mount -t devtmpfs dev /dev
+mount -t tmpfs tmp /tmp
+export TMPDIR=/tmp
+for m in can can-raw can-dev vcan; do insmod /mods/\$m.ko || echo "VCAN-ERROR: insmod \$m"; done
+ip link set up lo
+ip link add dev vcan0 type vcan && ip link set up vcan0
+echo "VCAN-BOOTED: \$(cut -d' ' -f1 /proc/uptime) s"
+ip link show vcan0
+passed=0; failed=0
+run_test() {
+    echo "VCAN-RUN: \$2"
+    t0=\$(cut -d' ' -f1 /proc/uptime)
+    if VCAN_IF=vcan0 RUST_BACKTRACE=1 /tests/\$1 --ignored --test-threads=1 --show-output; then
+        passed=\$((passed+1)); r=ok
+    else
+        failed=\$((failed+1)); r=FAILED
+    fi
+    echo "VCAN-TEST: \$2 \$r from \$t0 s to \$(cut -d' ' -f1 /proc/uptime) s"
+}
+$RUN_TESTS
+echo "VCAN-RESULT: \$passed passed, \$failed failed; uptime \$(cut -d' ' -f1 /proc/uptime) s"
+poweroff -f
+EOF
+chmod +x "$IR/init"
+(cd "$IR" && find . | cpio -o -H newc 2>/dev/null | gzip -1 >"$WORK/initrd.gz")
+
+LOG=$WORK/console.log
+echo "vcan: booting the VM (timeout ${TIMEOUT_S} s, console in target/vcan/console.log)"
+t0=$(date +%s.%N)
+set +e
+# -enable-kvm hangs on the build machines: software emulation it is.
+timeout "$TIMEOUT_S" qemu-system-x86_64 -accel tcg -m 1536 -smp 1 -nographic -no-reboot \
+    -kernel "$KDIR/vmlinuz" -initrd "$WORK/initrd.gz" \
+    -append "console=ttyS0 quiet panic=-1" </dev/null 2>&1 | tr -d '\r' | tee "$LOG"
+qrc=${PIPESTATUS[0]}
+set -e
+t1=$(date +%s.%N)
+wall=$(echo "$t1 - $t0" | bc 2>/dev/null || awk "BEGIN{print $t1-$t0}")
+[[ $qrc -eq 124 ]] && echo "vcan: the VM timed out after ${TIMEOUT_S} s" >&2
+
+grep -q 'VCAN-BOOTED' "$LOG" || { echo "vcan: FAILED: the VM did not boot" >&2; exit 1; }
+echo "vcan: VM $(grep -o 'VCAN-BOOTED: .*' "$LOG" | sed 's/VCAN-BOOTED: /booted with vcan0 up after /') of guest uptime; whole VM run ${wall%.*} s wall"
+if [[ $SMOKE -eq 1 ]]; then
+    grep -q 'vcan0:.*UP' "$LOG" || { echo "vcan: FAILED: vcan0 not up" >&2; exit 1; }
+    exit 0
+fi
+res=$(grep -o 'VCAN-RESULT: [0-9]* passed, [0-9]* failed' "$LOG" | tail -1 || true)
+[[ -n "$res" ]] || { echo "vcan: FAILED: no result line from the VM" >&2; exit 1; }
+passed=$(echo "$res" | awk '{print $2}')
+failed=$(echo "$res" | awk '{print $4}')
+echo "vcan: test binaries: $passed passed, $failed failed"
+[[ $failed -eq 0 && $passed -eq ${#TESTS[@]} ]] || exit 1
