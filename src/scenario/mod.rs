@@ -230,7 +230,7 @@ pub fn commissioning_model(
     sensors: &[String],
 ) -> Result<(AxisModel, calibrate::Fit, Measurements), ScenarioError> {
     let mut machine = ThermalMachine::new(params.clone(), *effects, seed ^ 0x5EED_C0DE);
-    let plan = SweepPlan::even(params.axis_length_mm, TARGETS, 1800.0);
+    let plan = SweepPlan::irregular(params.axis_length_mm, TARGETS, 1800.0);
     let s = measurement_run(&mut machine, &DutyCycle::commissioning(24.0), &plan, 30.0);
     let m = Measurements::from_sim(&s);
     let fit = calibrate::calibrate(&m, sensors, None)
@@ -331,14 +331,12 @@ async fn run_once(
 
     let cycle = DutyCycle::scenario(s.hours);
     let end_s = s.hours * 3600.0;
-    let axis_mm = s.params.axis_length_mm;
-    let targets: Vec<(f64, i8)> = (0..TARGETS)
-        .map(|i| (axis_mm * i as f64 / (TARGETS - 1) as f64, 1))
-        .chain(
-            (0..TARGETS)
-                .rev()
-                .map(|i| (axis_mm * i as f64 / (TARGETS - 1) as f64, -1)),
-        )
+    let plan = SweepPlan::irregular(s.params.axis_length_mm, TARGETS, s.sample_every_s);
+    let targets: Vec<(f64, i8)> = plan
+        .targets_mm
+        .iter()
+        .map(|&p| (p, 1))
+        .chain(plan.targets_mm.iter().rev().map(|&p| (p, -1)))
         .collect();
     let sweep_motion = Motion {
         speed_mm_per_s: 50.0,

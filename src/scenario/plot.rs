@@ -43,7 +43,13 @@ fn time_panel(
         .iter()
         .copied()
         .fold(f64::NEG_INFINITY, f64::max);
-    let near = r.model.p0_mm;
+    let near = r
+        .off
+        .series
+        .pos_mm
+        .iter()
+        .copied()
+        .fold(f64::INFINITY, f64::min);
     let mut lines = Vec::new();
     for (name, run, color) in runs {
         lines.push((
@@ -91,7 +97,7 @@ fn time_panel(
     Ok(())
 }
 
-/// Error at the far end and at P0 against time; upper panel off and on, lower panel
+/// Error at both ends of the axis against time; upper panel off and on, lower panel
 /// on alone at its own scale.
 pub fn error_vs_time(path: &Path, r: &ScenarioReport) -> Result<(), String> {
     let root = SVGBackend::new(path, (1000, 760)).into_drawing_area();
