@@ -10,7 +10,9 @@
 //! tick steps the machine, polls once and stamps the sample with the simulated
 //! instant, so an 8-hour test takes seconds.
 //!
-//! The same machine (same seed) runs twice: compensation off, then on.
+//! The same machine (same seed) runs twice: compensation off, then on. Each run ends
+//! with an ISO 230-2 test: [`ISO_RUNS`] bidirectional runs back to back over the
+//! same targets, evaluated by [`crate::iso230`].
 
 mod plot;
 
@@ -86,6 +88,8 @@ const TARGETS: usize = 9;
 /// its first writes land (in both runs alike), as on a machine switched on before
 /// the test starts.
 const STARTUP_S: f64 = 60.0;
+/// Bidirectional runs of the closing ISO 230-2 test (the standard's 5).
+pub const ISO_RUNS: usize = 5;
 /// Temperature range of the simulated PT100 transmitters, degC.
 const RANGE_DEGC: (f64, f64) = (0.0, 50.0);
 
@@ -121,7 +125,10 @@ impl ErrorStats {
 pub struct RunData {
     /// The interferometer series, measured error = true error - applied compensation.
     pub series: Measurements,
-    /// Compensation the NC applied at each row, um.
+    /// ISO 230-2 runs after the duty cycle: [`ISO_RUNS`] bidirectional sweeps back
+    /// to back.
+    pub iso230: Measurements,
+    /// Compensation the NC applied at each row of `series`, um.
     pub applied_um: Vec<f64>,
     /// Its statistics.
     pub stats: ErrorStats,
@@ -152,6 +159,10 @@ pub struct ScenarioReport {
     pub off: RunData,
     /// Compensation on.
     pub on: RunData,
+    /// ISO 230-2 evaluation of the closing runs, off and on (`None` if it failed).
+    pub iso_off: Option<crate::iso230::Iso230>,
+    /// See `iso_off`.
+    pub iso_on: Option<crate::iso230::Iso230>,
 }
 
 impl ScenarioReport {
@@ -204,6 +215,19 @@ impl ScenarioReport {
             self.reduction_pp_percent(),
             self.reduction_rms_percent()
         );
+        if let (Some(a), Some(b)) = (&self.iso_off, &self.iso_on) {
+            let _ = writeln!(
+                s,
+                "\nISO 230-2 at the end ({ISO_RUNS} bidirectional runs, um) | A | B | R | E | M |\n|---|---|---|---|---|---|"
+            );
+            for (name, r) in [("compensation off", a), ("compensation on", b)] {
+                let _ = writeln!(
+                    s,
+                    "| {name} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |",
+                    r.a_um, r.b_um, r.r_um, r.e_um, r.m_um
+                );
+            }
+        }
         let _ = writeln!(
             s,
             "\ngateway in the loop: {} polls, {} NC jobs written and read back ({} failed)",
@@ -343,13 +367,21 @@ async fn run_once(
         duty: 0.2,
     };
     let mut out = RunData::default();
-    let mut temps: Vec<TempColumn> = sensors
-        .iter()
-        .map(|n| TempColumn {
-            name: (*n).to_string(),
-            degc: Vec::new(),
-        })
-        .collect();
+    let empty = Measurements {
+        temps: sensors
+            .iter()
+            .map(|n| TempColumn {
+                name: (*n).to_string(),
+                degc: Vec::new(),
+            })
+            .collect(),
+        ..Measurements::default()
+    };
+    out.series = empty.clone();
+    out.iso230 = empty;
+    // After the duty cycle: ISO_RUNS back-to-back bidirectional runs for iso230.
+    let iso_points = ISO_RUNS * targets.len();
+    let mut sweep_is_iso = false;
     let (mut amb_lo, mut amb_hi) = (f64::INFINITY, f64::NEG_INFINITY);
     let mut next_sweep_s = STARTUP_S;
     let mut next_update_s = 0.0;
@@ -357,9 +389,15 @@ async fn run_once(
     let mut pos_mm = 0.0;
     let mut travel_mm = 0.0;
     let mut last_progress_s = 0.0;
-    while machine.t_s() < end_s - 1e-9 {
+    loop {
         let t0 = machine.t_s();
-        if sweep_at.is_none() && t0 + 1e-9 >= next_sweep_s {
+        if sweep_at.is_none() && t0 >= end_s - 1e-9 {
+            if out.iso230.len() >= iso_points {
+                break;
+            }
+            sweep_at = Some(0);
+            sweep_is_iso = true;
+        } else if sweep_at.is_none() && t0 + 1e-9 >= next_sweep_s {
             sweep_at = Some(0);
             next_sweep_s += s.sample_every_s;
         }
@@ -427,14 +465,18 @@ async fn run_once(
             });
             let applied_um = applied_mm * 1000.0;
             let err_um = machine.measure(target_mm, dir) - applied_um;
-            let m = &mut out.series;
+            let m = if sweep_is_iso {
+                &mut out.iso230
+            } else {
+                out.applied_um.push(applied_um);
+                &mut out.series
+            };
             m.t_s.push(t_s);
             m.pos_mm.push(target_mm);
             m.dir.push(dir);
             m.travel_mm.push(travel_mm);
             m.err_um.push(err_um);
-            out.applied_um.push(applied_um);
-            for (col, (_, v)) in temps.iter_mut().zip(machine.sensors_degc()) {
+            for (col, (_, v)) in m.temps.iter_mut().zip(machine.sensors_degc()) {
                 col.degc.push(*v);
             }
             travel_mm = 0.0;
@@ -445,7 +487,6 @@ async fn run_once(
             last_progress_s = t_s;
         }
     }
-    out.series.temps = temps;
     out.stats = ErrorStats::of(&out.series.err_um);
     out.wall = wall.elapsed();
     Ok((out, amb_hi - amb_lo))
@@ -531,7 +572,11 @@ pub async fn run_with(
     progress.set_message("compensation on ");
     let (on, _) = run_once(&setup, true, &progress).await?;
     progress.finish_and_clear();
+    let iso = |m: &Measurements| crate::iso230::evaluate(&m.pos_mm, &m.dir, &m.err_um).ok();
+    let (iso_off, iso_on) = (iso(&off.iso230), iso(&on.iso230));
     let report = ScenarioReport {
+        iso_off,
+        iso_on,
         hours: args.hours,
         effects: effects.names(),
         model_source,
@@ -542,6 +587,8 @@ pub async fn run_with(
     };
     write_csv(&args.out.join("off.csv"), &report.off.series)?;
     write_csv(&args.out.join("on.csv"), &report.on.series)?;
+    write_csv(&args.out.join("iso230_off.csv"), &report.off.iso230)?;
+    write_csv(&args.out.join("iso230_on.csv"), &report.on.iso230)?;
     plot::error_vs_time(&args.out.join("error_vs_time.svg"), &report)
         .map_err(|e| io_err(&args.out.join("error_vs_time.svg"), e))?;
     plot::error_vs_position(&args.out.join("error_vs_position.svg"), &report)

@@ -28,8 +28,18 @@ async fn one_hour_with_the_gateway_in_the_loop_cuts_the_error() {
     assert!(r.off.applied_um.iter().all(|a| *a == 0.0));
     // Both runs saw the same machine: identical temperatures.
     assert_eq!(r.off.series.temps, r.on.series.temps);
+    // The closing ISO 230-2 test: 5 runs each way at every target.
+    let iso_on = r.iso_on.clone().unwrap();
+    assert!(iso_on
+        .targets
+        .iter()
+        .all(|t| t.runs_up == ISO_RUNS && t.runs_down == ISO_RUNS));
+    assert!(
+        iso_on.e_um < r.iso_off.clone().unwrap().e_um / 3.0,
+        "{text}"
+    );
     // The outputs can be read back.
-    for f in ["off.csv", "on.csv", "commissioning.csv"] {
+    for f in ["off.csv", "on.csv", "commissioning.csv", "iso230_on.csv"] {
         let m = Measurements::read_path(&dir.path().join(f)).unwrap();
         assert!(m.len() >= 18 && m.temp("screw").is_some(), "{f}");
     }
