@@ -69,6 +69,8 @@ fn check(f: &Fit, machine: &ThermalMachine, tol: f64) {
 fn recovers_true_coefficients_within_5_percent_on_noiseless_data() {
     let (m, machine) = commissioning(noiseless(), 11);
     let f = calibrate(&m, &names(&["column", "screw"]), None).unwrap();
+    // The figures, for the README (`-- --nocapture`).
+    eprintln!("noiseless, sensors column,screw:\n{}", report(&f));
     check(&f, &machine, 0.05);
     assert!(f.rms_um < 0.05, "{}", report(&f));
     // With every sensor the extra terms must come out ~0 as well.
