@@ -220,7 +220,10 @@ impl Effects {
         "extra_sensor",
     ];
 
-    /// Switches on the named effects with their default parameters.
+    /// Switches on the named effects with their default parameters:
+    /// `thermal_lag` tau 1800 s; `nonlinear_position` 2 um/K; `reversal` b 4 um;
+    /// `pitch_periodic` 10 mm, 1.5 um; `motion_heating` tau 2400 s, 4 K at load 1,
+    /// 3 um/K; `extra_sensor` tau 900 s, 8 K on half of a 2 h cycle, 2 um/K.
     pub fn from_names<S: AsRef<str>>(names: &[S]) -> Result<Self, String> {
         let mut e = Self::default();
         for name in names {

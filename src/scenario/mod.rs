@@ -44,6 +44,8 @@ pub enum ScenarioError {
     Effects(String),
     #[error("--hours must be > 0 (got {0})")]
     Hours(f64),
+    #[error("--sample-every-s must be at least {min_s} s, the length of one sweep (got {got_s})")]
+    SampleEvery { got_s: f64, min_s: f64 },
     #[error("model: {0}")]
     Model(String),
     #[error("setup: {0}")]
@@ -518,6 +520,13 @@ pub async fn run_with(
     if !(args.hours.is_finite() && args.hours > 0.0) {
         return Err(ScenarioError::Hours(args.hours));
     }
+    let sweep_s = TICK_S * (2 * TARGETS) as f64;
+    if args.sample_every_s.is_nan() || args.sample_every_s < sweep_s {
+        return Err(ScenarioError::SampleEvery {
+            got_s: args.sample_every_s,
+            min_s: sweep_s,
+        });
+    }
     let effects = Effects::from_names(&args.effects).map_err(ScenarioError::Effects)?;
     std::fs::create_dir_all(&args.out).map_err(|e| io_err(&args.out, e))?;
     let (model, model_source) = match &args.model {
@@ -551,7 +560,7 @@ pub async fn run_with(
         effects,
         seed: args.seed,
         hours: args.hours,
-        sample_every_s: args.sample_every_s.max(TICK_S * 20.0),
+        sample_every_s: args.sample_every_s,
         model: &model,
     };
     let progress = if std::io::stderr().is_terminal() {

@@ -69,6 +69,10 @@ async fn a_model_reading_an_unknown_channel_is_refused() {
     a.model = Some(model);
     let e = run(&a).await.unwrap_err().to_string();
     assert!(e.contains("`spindle`") && e.contains("screw"), "{e}");
+    a.sample_every_s = 10.0;
+    let e = run(&a).await.unwrap_err().to_string();
+    assert!(e.contains("--sample-every-s must be at least 36 s"), "{e}");
+    a.sample_every_s = 600.0;
     a.effects = vec!["warp".into()];
     let e = run(&a).await.unwrap_err().to_string();
     assert!(e.contains("unknown effect `warp`"), "{e}");
