@@ -359,6 +359,49 @@ mod tests {
     }
 
     #[test]
+    fn reads_the_measurement_csv() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("runs.csv");
+        let mut csv = String::from("t_s,pos_mm,dir,err_um,T_a\n");
+        let rows = [
+            (0.0, 1, 1.0),
+            (100.0, 1, 4.0),
+            (100.0, -1, 5.0),
+            (0.0, -1, -3.0),
+        ];
+        let extra = [(0.0, 2.0, -3.0, 4.0, 6.0), (0.0, 3.0, -3.0, 4.0, 7.0)];
+        let mut t = 0;
+        for (p, d, e) in rows {
+            csv.push_str(&format!("{t},{p},{d},{e},20\n"));
+            t += 1;
+        }
+        for (_, up0, down0, up100, down100) in extra {
+            for (p, d, e) in [
+                (0.0, 1, up0),
+                (100.0, 1, up100),
+                (100.0, -1, down100),
+                (0.0, -1, down0),
+            ] {
+                csv.push_str(&format!("{t},{p},{d},{e},20\n"));
+                t += 1;
+            }
+        }
+        std::fs::write(&path, csv).unwrap();
+        let text = run(&Iso230Args { data: path.clone() }).unwrap();
+        assert!(
+            text.contains("| A accuracy | 4.000 | 11.000 | 11.000 |"),
+            "{text}"
+        );
+        assert!(
+            text.contains("| B reversal value (mean B) | | | 5.000 (1.500) |"),
+            "{text}"
+        );
+        std::fs::write(&path, "t_s,pos_mm,dir,err_um,T_a\n0,0,1,1,20\n1,0,2,1,20\n").unwrap();
+        let e = run(&Iso230Args { data: path }).unwrap_err().to_string();
+        assert!(e.contains("runs.csv: line 3, column `dir`"), "{e}");
+    }
+
+    #[test]
     fn refuses_too_few_runs_and_unknown_direction() {
         let e = evaluate(&[0.0, 0.0, 1.0, 1.0, 1.0], &[1, -1, 1, -1, -1], &[0.0; 5]).unwrap_err();
         assert!(
