@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::Parser;
 use compgate::cli::{Cli, Command};
 use compgate::plant::{Bind, Plant};
-use compgate::{backlash, bench, calibrate, config, gateway, status, volumetric};
+use compgate::{backlash, bench, calibrate, config, gateway, iso230, scenario, status, volumetric};
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 
@@ -136,6 +136,17 @@ async fn main() -> ExitCode {
             Err(e) => Err(e.to_string()),
         },
         Command::Calibrate(args) => calibrate::run(&args)
+            .map(|report| print!("{report}"))
+            .map_err(|e| e.to_string()),
+        Command::Scenario(args) => match scenario::run(&args).await {
+            Ok(report) => {
+                print!("{}", report.text());
+                println!("written to {}", args.out.display());
+                Ok(())
+            }
+            Err(e) => Err(e.to_string()),
+        },
+        Command::Iso230(args) => iso230::run(&args)
             .map(|report| print!("{report}"))
             .map_err(|e| e.to_string()),
         Command::Bench {
