@@ -139,7 +139,8 @@ fn missing_required_key_is_reported_with_path() {
     assert_eq!(p[0].key, "devices.ain2.unit_id");
     // Required for Modbus transports only, so validation (not the parser) reports it.
     assert!(
-        p[0].message.starts_with("required with transport = \"rtu\""),
+        p[0].message
+            .starts_with("required with transport = \"rtu\""),
         "{}",
         p[0]
     );
