@@ -342,7 +342,8 @@ async fn bench_frames_per_second() {
         (4, 8_000),
         (8, 16_000),
         (16, 32_000),
-        (0, 32_000),
+        (32, 64_000),
+        (0, 64_000),
     ] {
         let params = CanParams {
             interface: interface(),

@@ -526,6 +526,13 @@ impl CanPoller {
                 Err(e) => link_error = Some(e),
             }
         }
+        // A node whose heartbeat has already timed out is not waited for: the cycle
+        // (and the bus' SYNC) keeps its period, and its next heartbeat is seen at
+        // the start of a cycle.
+        let node_silent = matches!(
+            self.monitor.health(self.t_s(Instant::now())),
+            Err(NodeFault::HeartbeatTimeout { .. })
+        );
         if link_error.is_none() {
             let since = if self.params.sync_producer {
                 let at = Instant::now();
@@ -537,7 +544,7 @@ impl CanPoller {
                 // Not the SYNC producer: any TPDO since the last cycle is fresh.
                 self.last_cycle.unwrap_or(started)
             };
-            if link_error.is_none() {
+            if link_error.is_none() && !node_silent {
                 self.read_pdos(since, &mut values, &mut errors).await;
                 for spec in self.specs.clone() {
                     let CanObject::Sdo { index, sub } = spec.object else {
