@@ -26,3 +26,5 @@ cargo clippy --workspace --all-targets -- -D warnings
 echo "== cargo test"
 cargo test --workspace --all-targets
 cargo test --workspace --doc
+echo "== vcan tests (CAN source and CANopen node; natively on vcan0, else in a VM)"
+tests/vcan/run.sh

@@ -11,7 +11,9 @@
 //! - [`config`]: TOML + `COMPGATE__` environment overrides, serde structs with
 //!   `deny_unknown_fields`, and `validate`, which reports every problem at once.
 //! - [`source`]: field-device polling. Modbus TCP and RTU with request merging,
-//!   timeouts, reconnect with capped backoff; one task per device.
+//!   timeouts, reconnect with capped backoff; CANopen nodes on SocketCAN
+//!   ([`source::can`]: NMT, SYNC + TPDOs, SDO upload, heartbeat, EMCY); one task per
+//!   device.
 //! - [`channel`]: pure and synchronous: scaling (counts -> mA -> degC), NAMUR NE43,
 //!   filters (median, low-pass, rate, stale) and quality.
 //! - [`comp`]: pure math: the thermal model `dKx = K0(T) + tan(beta)(T) * (Px - P0)`,

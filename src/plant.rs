@@ -247,8 +247,12 @@ impl Plant {
                 Transport::Can => {
                     let interface = dev.interface.clone().unwrap_or_default();
                     // Heartbeat well inside the consumer timeout (4 per timeout).
-                    let heartbeat_ms =
-                        (dev.heartbeat_timeout().as_secs_f64() * 250.0).clamp(10.0, 1000.0) as u16;
+                    let timeout_s = dev.heartbeat_timeout().as_secs_f64();
+                    let heartbeat_ms = if timeout_s > 0.0 {
+                        (timeout_s * 250.0).clamp(10.0, 1000.0) as u16
+                    } else {
+                        1000
+                    };
                     let node = CanopenNode::spawn(
                         &interface,
                         dev.node_id.unwrap_or_default(),

@@ -162,6 +162,10 @@ pub struct CanParams {
     pub degrade_after_cycles: u32,
 }
 
+/// Receive buffer asked for on each node's socket (the kernel doubles it for its
+/// bookkeeping); about 1 s of a saturated 1 Mbit/s bus.
+pub const RECEIVE_BUFFER_BYTES: std::ffi::c_int = 1 << 20;
+
 /// A frame as the reader task got it.
 type Received = (Instant, RawFrame);
 
@@ -282,6 +286,19 @@ impl CanPoller {
         socket
             .set_filters(&filters)
             .map_err(|e| self.socket_error(format!("set filters: {e}")))?;
+        // A deep receive queue absorbs bursts (every TPDO of the bus right after a
+        // SYNC) while the reader task waits for a CPU. Beyond the kernel's rmem_max
+        // this needs CAP_NET_ADMIN (SO_RCVBUFFORCE); otherwise the kernel caps it.
+        const SOL_SOCKET: std::ffi::c_int = 1;
+        const SO_RCVBUF: std::ffi::c_int = 8;
+        const SO_RCVBUFFORCE: std::ffi::c_int = 33;
+        let bytes = RECEIVE_BUFFER_BYTES.to_ne_bytes();
+        if socket
+            .set_socket_option_bytes(SOL_SOCKET, SO_RCVBUFFORCE, &bytes)
+            .is_err()
+        {
+            let _ = socket.set_socket_option_bytes(SOL_SOCKET, SO_RCVBUF, &bytes);
+        }
         let socket = Arc::new(socket);
         let (tx, rx) = mpsc::unbounded_channel();
         let reader_socket = socket.clone();
@@ -509,6 +526,13 @@ impl CanPoller {
                 Err(e) => link_error = Some(e),
             }
         }
+        // A node whose heartbeat has already timed out is not waited for: the cycle
+        // (and the bus' SYNC) keeps its period, and its next heartbeat is seen at
+        // the start of a cycle.
+        let node_silent = matches!(
+            self.monitor.health(self.t_s(Instant::now())),
+            Err(NodeFault::HeartbeatTimeout { .. })
+        );
         if link_error.is_none() {
             let since = if self.params.sync_producer {
                 let at = Instant::now();
@@ -520,7 +544,7 @@ impl CanPoller {
                 // Not the SYNC producer: any TPDO since the last cycle is fresh.
                 self.last_cycle.unwrap_or(started)
             };
-            if link_error.is_none() {
+            if link_error.is_none() && !node_silent {
                 self.read_pdos(since, &mut values, &mut errors).await;
                 for spec in self.specs.clone() {
                     let CanObject::Sdo { index, sub } = spec.object else {
