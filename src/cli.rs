@@ -45,6 +45,8 @@ pub enum Command {
     Demo,
     /// Measure reversal backlash of a full-closed-loop axis from encoder vs scale trace.
     Backlash(crate::backlash::BacklashArgs),
+    /// Write recorded operation as the measurement CSV that calibrate and diagnose read.
+    Export(crate::record::export::ExportArgs),
     /// Measure poll-filter-compute cycles against the bare Modbus request rate.
     Bench {
         /// Channels on the simulated module, read in one request.

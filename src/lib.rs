@@ -26,6 +26,8 @@
 //!   used by the service, the demo and the tests.
 //! - [`plant`]: the simulated plant for a config (demo, `sim`, tests), from
 //!   `compgate-plc`; the service path never uses it.
+//! - [`record`]: durable recording into SQLite (WAL) off the control loop, retention,
+//!   and `compgate export` to the measurement CSV.
 //! - [`service`]: the shop-floor service: systemd notify/watchdog, journald, SIGHUP
 //!   reload, and the recorder, metrics and MQTT observers behind the control loop.
 //! - [`status`]: the live status line and plain per-update lines.
@@ -46,6 +48,7 @@ pub mod gateway;
 pub mod measure;
 pub mod nc;
 pub mod plant;
+pub mod record;
 pub mod service;
 pub mod source;
 pub mod status;

@@ -11,6 +11,7 @@ use tokio_util::sync::CancellationToken;
 
 use crate::config::{self, Config};
 use crate::gateway::{self, Hooks, Observer, Observers};
+use crate::record::Recorder;
 
 /// Logs to the journal when stderr is connected to it (`JOURNAL_STREAM`, set by
 /// systemd), otherwise, or when the journal cannot be opened, to stderr.
@@ -81,7 +82,14 @@ fn signals(path: PathBuf, reload: mpsc::Sender<Config>) -> CancellationToken {
 pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
     let (reload_tx, reload_rx) = mpsc::channel(1);
     let shutdown = signals(path.to_path_buf(), reload_tx);
-    let observers: Vec<Box<dyn Observer>> = vec![Box::new(notify::Notifier::new())];
+    let mut observers: Vec<Box<dyn Observer>> = vec![Box::new(notify::Notifier::new())];
+    let recorder = match &cfg.recorder {
+        Some(r) => Some(Recorder::start(r).map_err(|e| e.to_string())?),
+        None => None,
+    };
+    if let Some(r) = &recorder {
+        observers.push(Box::new(r.observer()));
+    }
     let (tx, rx) = watch::channel(gateway::Status::default());
     let printer = tokio::spawn(crate::status::print_loop(
         rx,
@@ -95,6 +103,12 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
     };
     let result = gateway::run_with(&cfg, shutdown.clone(), tx, hooks).await;
     let _ = sd_notify::notify(&[sd_notify::NotifyState::Stopping]);
+    if let Some(r) = recorder {
+        // The observers are gone with the gateway: the writer commits what is queued.
+        tokio::task::spawn_blocking(move || r.finish())
+            .await
+            .map_err(|e| e.to_string())?;
+    }
     shutdown.cancel();
     let _ = printer.await;
     result.map_err(|e| e.to_string())
