@@ -1,6 +1,7 @@
 //! The shop-floor service around the gateway: systemd notification, journald logging,
 //! SIGHUP reload, and the observers (recorder, metrics, MQTT) behind the control loop.
 
+pub mod metrics;
 pub mod notify;
 
 use std::io::IsTerminal;
@@ -89,6 +90,11 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
     };
     if let Some(r) = &recorder {
         observers.push(Box::new(r.observer()));
+    }
+    if let Some(m) = &cfg.metrics {
+        metrics::install(&m.bind)?;
+        let stats = recorder.as_ref().map(|r| r.sender().stats().clone());
+        observers.push(Box::new(metrics::MetricsObserver::new(stats)));
     }
     let (tx, rx) = watch::channel(gateway::Status::default());
     let printer = tokio::spawn(crate::status::print_loop(
