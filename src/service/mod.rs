@@ -2,6 +2,7 @@
 //! SIGHUP reload, and the observers (recorder, metrics, MQTT) behind the control loop.
 
 pub mod metrics;
+pub mod mqtt;
 pub mod notify;
 
 use std::io::IsTerminal;
@@ -91,6 +92,15 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
     if let Some(r) = &recorder {
         observers.push(Box::new(r.observer()));
     }
+    let mut publisher = None;
+    if let (Some(m), Some(r)) = (&cfg.mqtt, &recorder) {
+        observers.push(Box::new(mqtt::MqttObserver::new(m, r.sender())));
+        publisher = Some(tokio::spawn(mqtt::publisher(
+            m.clone(),
+            r.path().to_path_buf(),
+            shutdown.clone(),
+        )));
+    }
     if let Some(m) = &cfg.metrics {
         metrics::install(&m.bind)?;
         let stats = recorder.as_ref().map(|r| r.sender().stats().clone());
@@ -109,6 +119,10 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
     };
     let result = gateway::run_with(&cfg, shutdown.clone(), tx, hooks).await;
     let _ = sd_notify::notify(&[sd_notify::NotifyState::Stopping]);
+    shutdown.cancel();
+    if let Some(p) = publisher {
+        let _ = p.await;
+    }
     if let Some(r) = recorder {
         // The observers are gone with the gateway: the writer commits what is queued.
         tokio::task::spawn_blocking(move || r.finish())
