@@ -53,6 +53,8 @@ pub enum Command {
     Scenario(crate::scenario::ScenarioArgs),
     /// ISO 230-2 evaluation (A, B, R, E, M) of bidirectional runs in a measurement CSV.
     Iso230(crate::iso230::Iso230Args),
+    /// Write recorded operation as the measurement CSV that calibrate and diagnose read.
+    Export(crate::record::export::ExportArgs),
     /// Measure poll-filter-compute cycles against the bare Modbus request rate.
     Bench {
         /// Channels on the simulated module, read in one request.

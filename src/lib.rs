@@ -34,6 +34,8 @@
 //!   real gateway in the loop over loopback Modbus, compensation off against on.
 //! - [`plant`]: the simulated plant for a config (demo, `sim`, tests), from
 //!   `compgate-plc`; the service path never uses it.
+//! - [`record`]: durable recording into SQLite (WAL) off the control loop, retention,
+//!   and `compgate export` to the measurement CSV.
 //! - [`service`]: the shop-floor service: systemd notify/watchdog, journald, SIGHUP
 //!   reload, and the recorder, metrics and MQTT observers behind the control loop.
 //! - [`status`]: the live status line and plain per-update lines.
@@ -56,6 +58,7 @@ pub mod iso230;
 pub mod measure;
 pub mod nc;
 pub mod plant;
+pub mod record;
 pub mod scenario;
 pub mod service;
 pub mod source;

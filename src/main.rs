@@ -149,6 +149,20 @@ async fn main() -> ExitCode {
         Command::Iso230(args) => iso230::run(&args)
             .map(|report| print!("{report}"))
             .map_err(|e| e.to_string()),
+        Command::Export(args) => match compgate::record::export::run(&args) {
+            Ok(summary) => {
+                for n in &summary.notes {
+                    eprintln!("note: {n}");
+                }
+                eprintln!(
+                    "{} rows, channels: {}",
+                    summary.rows,
+                    summary.channels.join(", ")
+                );
+                Ok(())
+            }
+            Err(e) => Err(e.to_string()),
+        },
         Command::Bench {
             channels,
             cycles,

@@ -260,3 +260,85 @@ async fn reload_keeps_the_state_of_unchanged_channels_and_devices() {
         .unwrap()
         .unwrap();
 }
+
+fn free_port() -> u16 {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind port 0");
+    l.local_addr().expect("local addr").port()
+}
+
+/// GET /metrics over a plain TCP connection; the body's samples as (series, value).
+fn scrape(port: u16) -> Vec<(String, f64)> {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).expect("metrics endpoint");
+    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
+        .expect("request");
+    let mut text = String::new();
+    s.read_to_string(&mut text).expect("response");
+    assert!(text.starts_with("HTTP/1.1 200"), "{text}");
+    text.lines()
+        .filter(|l| l.starts_with("compgate_"))
+        .filter_map(|l| {
+            let (k, v) = l.rsplit_once(' ')?;
+            Some((k.to_string(), v.parse().ok()?))
+        })
+        .collect()
+}
+
+fn sample(m: &[(String, f64)], series: &str) -> Option<f64> {
+    m.iter().find(|(k, _)| k == series).map(|(_, v)| *v)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn prometheus_endpoint_shows_links_channels_jobs_and_cycle_times() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, path) = plant_and_file(dir.path(), &common::config("hold", "", "")).await;
+    let port = free_port();
+    let mut text = std::fs::read_to_string(&path).unwrap();
+    text.push_str(&format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"\n"));
+    std::fs::write(&path, text).unwrap();
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "first job", |m| m.contains("jobs 1 ok")));
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let m = tokio::task::block_in_place(|| scrape(port));
+    assert_eq!(
+        sample(&m, r#"compgate_device_link_up{device="ain1"}"#),
+        Some(1.0),
+        "{m:?}"
+    );
+    let bed = sample(&m, r#"compgate_channel_value_degc{channel="T_bed"}"#).unwrap();
+    assert!((bed - 30.0).abs() < 0.1, "{bed}");
+    assert_eq!(
+        sample(&m, r#"compgate_channel_quality{channel="T_bed"}"#),
+        Some(0.0)
+    );
+    assert!(sample(&m, r#"compgate_nc_jobs_total{axis="X",result="ok"}"#).unwrap() >= 1.0);
+    let k0 = sample(&m, r#"compgate_axis_sd43900_mm{axis="X"}"#).unwrap();
+    assert!((k0 - 0.04).abs() < 0.001, "{k0}");
+    assert!(sample(&m, r#"compgate_cycle_seconds_count"#).unwrap() > 0.0);
+    assert!(m
+        .iter()
+        .any(|(k, _)| k.starts_with("compgate_device_poll_seconds_bucket{device=\"ain1\"")));
+
+    // The device stops answering: link down, timeouts counted, channels bad.
+    plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::Silent);
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let m = tokio::task::block_in_place(|| scrape(port));
+    assert_eq!(
+        sample(&m, r#"compgate_device_link_up{device="ain1"}"#),
+        Some(0.0)
+    );
+    assert!(
+        sample(
+            &m,
+            r#"compgate_device_errors_total{device="ain1",kind="timeout"}"#
+        )
+        .unwrap()
+            >= 3.0
+    );
+    assert_eq!(
+        sample(&m, r#"compgate_channel_quality{channel="T_bed"}"#),
+        Some(2.0)
+    );
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}

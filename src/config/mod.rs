@@ -51,6 +51,7 @@
 mod load;
 pub mod schema;
 mod validate;
+mod validate_service;
 
 use std::fmt;
 

@@ -46,6 +46,16 @@ pub struct Config {
     /// gateway itself ignores it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sim: Option<SimConfig>,
+    /// Durable recording of readings and NC jobs into SQLite. Absent: nothing is
+    /// recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub recorder: Option<RecorderConfig>,
+    /// Prometheus metrics endpoint. Absent: no endpoint.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub metrics: Option<MetricsConfig>,
+    /// MQTT publishing of readings, writes and health. Absent: nothing is published.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mqtt: Option<MqttConfig>,
 }
 
 // ------------------------------------------------------------------------ gateway --
@@ -920,4 +930,141 @@ fn default_sim_period_s() -> f64 {
 }
 fn default_sim_md32750() -> u16 {
     3
+}
+
+// ---------------------------------------------------------------- service sections --
+
+/// `[recorder]`: every poll cycle's raw and filtered readings with their quality, every
+/// NC job with its result, and the NC's position, into an SQLite database (WAL mode).
+/// Writes are batched on a thread of their own; the control loop never waits for them.
+#[derive(Deserialize, Serialize, Debug, Clone, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RecorderConfig {
+    /// Database file. A relative path is taken from `$STATE_DIRECTORY` (set by the
+    /// unit's `StateDirectory=`, `/var/lib/compgate`), else from the working directory.
+    /// Default `compgate.db`.
+    #[serde(default = "default_recorder_path")]
+    pub path: String,
+    /// Seconds between commits of the batched writes: a crash loses at most this much.
+    /// Default 0.5; > 0 and <= 1.
+    #[serde(default = "default_commit_interval_s")]
+    pub commit_interval_s: f64,
+    /// Poll cycles the queue between the control loop and the writer holds. When it
+    /// is full, cycles are dropped, counted and logged; the loop never waits. Default
+    /// 4096; >= 1.
+    #[serde(default = "default_queue_cycles")]
+    pub queue_cycles: u32,
+    /// Days readings, jobs and NC positions are kept. Default 90; > 0.
+    #[serde(default = "default_retention_days")]
+    pub retention_days: f64,
+    /// Largest size of the data in the database, MB; beyond it the oldest records go
+    /// first. Default 2048; > 0.
+    #[serde(default = "default_max_size_mb")]
+    pub max_size_mb: f64,
+    /// Seconds between retention passes (age and size). Default 60; > 0.
+    #[serde(default = "default_retention_interval_s")]
+    pub retention_interval_s: f64,
+}
+
+impl Default for RecorderConfig {
+    fn default() -> Self {
+        RecorderConfig {
+            path: default_recorder_path(),
+            commit_interval_s: default_commit_interval_s(),
+            queue_cycles: default_queue_cycles(),
+            retention_days: default_retention_days(),
+            max_size_mb: default_max_size_mb(),
+            retention_interval_s: default_retention_interval_s(),
+        }
+    }
+}
+
+fn default_recorder_path() -> String {
+    "compgate.db".into()
+}
+fn default_commit_interval_s() -> f64 {
+    0.5
+}
+fn default_queue_cycles() -> u32 {
+    4096
+}
+fn default_retention_days() -> f64 {
+    90.0
+}
+fn default_max_size_mb() -> f64 {
+    2048.0
+}
+fn default_retention_interval_s() -> f64 {
+    60.0
+}
+
+/// `[metrics]`: a Prometheus text endpoint (`GET /metrics`).
+#[derive(Deserialize, Serialize, Debug, Clone, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct MetricsConfig {
+    /// `host:port` to listen on. Default `127.0.0.1:9464` (localhost only; expose it
+    /// further on purpose, e.g. `0.0.0.0:9464` behind the plant firewall).
+    #[serde(default = "default_metrics_bind")]
+    pub bind: String,
+}
+
+impl Default for MetricsConfig {
+    fn default() -> Self {
+        MetricsConfig {
+            bind: default_metrics_bind(),
+        }
+    }
+}
+
+fn default_metrics_bind() -> String {
+    "127.0.0.1:9464".into()
+}
+
+/// `[mqtt]`: publishing to an MQTT broker with QoS 1. Topics are
+/// `<topic_prefix>/<machine>/...` (see the README). Messages wait in the recorder's
+/// database until the broker acknowledges them, so `[recorder]` is required.
+#[derive(Deserialize, Serialize, Debug, Clone, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct MqttConfig {
+    /// Broker `host:port`, e.g. `"broker.plant.local:1883"`. Required.
+    pub broker: String,
+    /// Machine name in every topic, 1..=64 characters of `A-Z a-z 0-9 _ -`. Required.
+    pub machine: String,
+    /// First topic level(s). Default `compgate`; no `+`, `#` or leading/trailing `/`.
+    #[serde(default = "default_topic_prefix")]
+    pub topic_prefix: String,
+    /// MQTT client id. Default `compgate-<machine>`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client_id: Option<String>,
+    /// Seconds between readings messages per channel (the latest reading is sent).
+    /// Default 1.0; > 0.
+    #[serde(default = "default_publish_interval_s")]
+    pub publish_interval_s: f64,
+    /// MQTT keep-alive, seconds. Default 10; >= 1.
+    #[serde(default = "default_keep_alive_s")]
+    pub keep_alive_s: f64,
+    /// Seconds before a message unacknowledged by a connected broker is sent again,
+    /// and between reconnect attempts. Default 2; > 0.
+    #[serde(default = "default_retry_s")]
+    pub retry_s: f64,
+    /// Messages kept for the broker at most (oldest dropped, counted and logged beyond).
+    /// Default 1000000; >= 1.
+    #[serde(default = "default_outbox_max_messages")]
+    pub outbox_max_messages: u64,
+}
+
+fn default_topic_prefix() -> String {
+    "compgate".into()
+}
+fn default_publish_interval_s() -> f64 {
+    1.0
+}
+fn default_keep_alive_s() -> f64 {
+    10.0
+}
+fn default_retry_s() -> f64 {
+    2.0
+}
+fn default_outbox_max_messages() -> u64 {
+    1_000_000
 }

@@ -163,6 +163,7 @@ pub(super) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
             ck.sim_nc_module(&key, sn);
         }
     }
+    ck.out.extend(super::validate_service::validate(cfg, file));
     ck.out
 }
 

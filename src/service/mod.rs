@@ -1,6 +1,8 @@
 //! The shop-floor service around the gateway: systemd notification, journald logging,
 //! SIGHUP reload, and the observers (recorder, metrics, MQTT) behind the control loop.
 
+pub mod metrics;
+pub mod mqtt;
 pub mod notify;
 
 use std::io::IsTerminal;
@@ -11,6 +13,7 @@ use tokio_util::sync::CancellationToken;
 
 use crate::config::{self, Config};
 use crate::gateway::{self, Hooks, Observer, Observers};
+use crate::record::Recorder;
 
 /// Logs to the journal when stderr is connected to it (`JOURNAL_STREAM`, set by
 /// systemd), otherwise, or when the journal cannot be opened, to stderr.
@@ -81,7 +84,28 @@ fn signals(path: PathBuf, reload: mpsc::Sender<Config>) -> CancellationToken {
 pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
     let (reload_tx, reload_rx) = mpsc::channel(1);
     let shutdown = signals(path.to_path_buf(), reload_tx);
-    let observers: Vec<Box<dyn Observer>> = vec![Box::new(notify::Notifier::new())];
+    let mut observers: Vec<Box<dyn Observer>> = vec![Box::new(notify::Notifier::new())];
+    let recorder = match &cfg.recorder {
+        Some(r) => Some(Recorder::start(r).map_err(|e| e.to_string())?),
+        None => None,
+    };
+    if let Some(r) = &recorder {
+        observers.push(Box::new(r.observer()));
+    }
+    let mut publisher = None;
+    if let (Some(m), Some(r)) = (&cfg.mqtt, &recorder) {
+        observers.push(Box::new(mqtt::MqttObserver::new(m, r.sender())));
+        publisher = Some(tokio::spawn(mqtt::publisher(
+            m.clone(),
+            r.path().to_path_buf(),
+            shutdown.clone(),
+        )));
+    }
+    if let Some(m) = &cfg.metrics {
+        metrics::install(&m.bind)?;
+        let stats = recorder.as_ref().map(|r| r.sender().stats().clone());
+        observers.push(Box::new(metrics::MetricsObserver::new(stats)));
+    }
     let (tx, rx) = watch::channel(gateway::Status::default());
     let printer = tokio::spawn(crate::status::print_loop(
         rx,
@@ -95,6 +119,16 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
     };
     let result = gateway::run_with(&cfg, shutdown.clone(), tx, hooks).await;
     let _ = sd_notify::notify(&[sd_notify::NotifyState::Stopping]);
+    shutdown.cancel();
+    if let Some(p) = publisher {
+        let _ = p.await;
+    }
+    if let Some(r) = recorder {
+        // The observers are gone with the gateway: the writer commits what is queued.
+        tokio::task::spawn_blocking(move || r.finish())
+            .await
+            .map_err(|e| e.to_string())?;
+    }
     shutdown.cancel();
     let _ = printer.await;
     result.map_err(|e| e.to_string())

@@ -2,6 +2,7 @@
 //! gateway against it, and a way to wait for a status condition.
 #![allow(dead_code)]
 
+pub mod broker;
 pub mod process;
 
 use std::time::Duration;

@@ -16,8 +16,11 @@ pub const BIN: &str = env!("CARGO_BIN_EXE_compgate");
 /// A running `compgate run --config FILE`; dropping it kills it.
 pub struct Gateway {
     pub child: Child,
-    pub notify: UnixDatagram,
     pub stderr: Arc<Mutex<Vec<String>>>,
+    /// Every notify datagram so far; a thread drains the socket so the gateway's
+    /// (blocking) sd_notify never waits on the test.
+    pub notified: Arc<Mutex<Vec<String>>>,
+    /// Datagrams `wait_notify` has looked at.
     pub messages: Vec<String>,
 }
 
@@ -42,6 +45,29 @@ impl Gateway {
             cmd.env(k, v);
         }
         let mut child = cmd.spawn().expect("spawn compgate");
+        let notified = Arc::new(Mutex::new(Vec::new()));
+        let sink = notified.clone();
+        std::thread::spawn(move || {
+            let mut buf = vec![0u8; 4096];
+            loop {
+                match notify.recv(&mut buf) {
+                    Ok(n) => sink
+                        .lock()
+                        .unwrap()
+                        .push(String::from_utf8_lossy(&buf[..n]).to_string()),
+                    Err(e)
+                        if e.kind() == std::io::ErrorKind::WouldBlock
+                            || e.kind() == std::io::ErrorKind::TimedOut =>
+                    {
+                        // Stop when the test dropped the gateway.
+                        if Arc::strong_count(&sink) == 1 {
+                            break;
+                        }
+                    }
+                    Err(_) => break,
+                }
+            }
+        });
         let stderr = Arc::new(Mutex::new(Vec::new()));
         let pipe = child.stderr.take().unwrap();
         let lines = stderr.clone();
@@ -52,8 +78,8 @@ impl Gateway {
         });
         Gateway {
             child,
-            notify,
             stderr,
+            notified,
             messages: Vec::new(),
         }
     }
@@ -74,15 +100,15 @@ impl Gateway {
     /// Receives notify datagrams until one satisfies `pred`; panics after `secs`.
     pub fn wait_notify(&mut self, secs: f64, what: &str, pred: impl Fn(&str) -> bool) -> String {
         let deadline = Instant::now() + Duration::from_secs_f64(secs);
-        let mut buf = vec![0u8; 4096];
         while Instant::now() < deadline {
-            if let Ok(n) = self.notify.recv(&mut buf) {
-                let msg = String::from_utf8_lossy(&buf[..n]).to_string();
+            let new: Vec<String> = self.notified.lock().unwrap()[self.messages.len()..].to_vec();
+            for msg in new {
                 self.messages.push(msg.clone());
                 if pred(&msg) {
                     return msg;
                 }
             }
+            std::thread::sleep(Duration::from_millis(10));
         }
         panic!(
             "timed out after {secs} s waiting for notify {what}; got {:?}\nstderr:\n{}",

@@ -1,0 +1,280 @@
+//! Durable recording with real processes: kill -9 at random moments, export to the
+//! measurement CSV, retention by size, and a full disk.
+
+mod common;
+
+use std::path::Path;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use common::process::{Gateway, BIN};
+use compgate::config;
+use compgate::measure::Measurements;
+use compgate::plant::{Bind, Plant};
+use rusqlite::Connection;
+
+fn now_ms() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .expect("clock after 1970")
+        .as_millis() as i64
+}
+
+/// The plant for `toml` + `extra` and the config file naming its addresses.
+async fn plant_and_file(dir: &Path, extra: &str) -> (Plant, std::path::PathBuf) {
+    let toml = common::config("hold", "", "");
+    let cfg = config::load_str(&toml, "test.toml").expect("test config is valid");
+    let plant = Plant::start(&cfg, Bind::Ephemeral)
+        .await
+        .expect("plant starts");
+    let path = dir.join("compgate.toml");
+    let text = toml::to_string(&plant.config).expect("config serialises") + extra;
+    std::fs::write(&path, text).expect("config written");
+    (plant, path)
+}
+
+fn recorder_section(db: &Path, extra: &str) -> String {
+    format!(
+        "\n[recorder]\npath = {:?}\ncommit_interval_s = 0.5\n{extra}\n",
+        db.display().to_string()
+    )
+}
+
+fn max_t(db: &Path) -> i64 {
+    let conn = Connection::open(db).expect("database opens");
+    let ok: String = conn
+        .query_row("PRAGMA integrity_check", [], |r| r.get(0))
+        .expect("integrity check runs");
+    assert_eq!(ok, "ok");
+    conn.query_row("SELECT max(t_unix_ms) FROM readings", [], |r| r.get(0))
+        .expect("readings")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn kill_9_loses_at_most_the_last_second_and_the_database_opens_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("rec.db");
+    let (plant, path) = plant_and_file(dir.path(), &recorder_section(&db, "")).await;
+    // Pseudo-random kill moments from the clock: 1.0 .. 3.0 s after READY.
+    let mut seed = now_ms() as u64;
+    let mut rows_before = 0i64;
+    for round in 0..3 {
+        let mut gw = Gateway::start(dir.path(), &path, &[]);
+        tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+        seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        let wait_ms = 1000 + (seed >> 33) % 2000;
+        tokio::time::sleep(Duration::from_millis(wait_ms)).await;
+        let killed_at = now_ms();
+        gw.signal("KILL");
+        let _ = gw.child.wait();
+        let last = max_t(&db);
+        let lost_ms = killed_at - last;
+        println!("round {round}: killed {wait_ms} ms after READY, last reading {lost_ms} ms before the kill");
+        assert!(
+            lost_ms <= 1000,
+            "round {round}: {lost_ms} ms of readings lost"
+        );
+        let conn = Connection::open(&db).unwrap();
+        let rows: i64 = conn
+            .query_row("SELECT count(*) FROM readings", [], |r| r.get(0))
+            .unwrap();
+        assert!(rows > rows_before, "round {round} recorded nothing");
+        rows_before = rows;
+        drop(gw);
+    }
+    drop(plant);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn recorded_operation_exports_to_the_measurement_csv() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("rec.db");
+    let (plant, path) = plant_and_file(dir.path(), &recorder_section(&db, "")).await;
+    let since = now_ms() as f64 / 1000.0;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| {
+        gw.wait_notify(10.0, "a verified write", |m| m.contains("jobs 1 ok"))
+    });
+    // A bad reading in the record must not reach the CSV: T_col fails for a while.
+    let col = plant.transmitter["T_col"];
+    plant.field["ain1"]
+        .set_sensor_fault(col, compgate_plc::field::SensorFault::Open)
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    plant.field["ain1"]
+        .set_sensor_fault(col, compgate_plc::field::SensorFault::None)
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+
+    let conn = Connection::open(&db).unwrap();
+    let (readings, jobs, nc) = compgate::record::counts(&conn).unwrap();
+    assert!(
+        readings > 100 && jobs >= 1 && nc >= 1,
+        "{readings} {jobs} {nc}"
+    );
+    let bad: i64 = conn
+        .query_row(
+            "SELECT count(*) FROM readings r JOIN channels c ON c.id = r.channel WHERE c.name = 'T_col' AND quality = 2 AND reason = 'NE43 low'",
+            [],
+            |r| r.get(0),
+        )
+        .unwrap();
+    assert!(bad > 0, "the NE43 fault is recorded with its quality");
+    let ok_job: (f64, i64) = conn
+        .query_row(
+            "SELECT sd43900_mm, ok FROM jobs ORDER BY t_unix_ms LIMIT 1",
+            [],
+            |r| Ok((r.get(0)?, r.get(1)?)),
+        )
+        .unwrap();
+    assert!(
+        (ok_job.0 - 0.04).abs() < 0.001 && ok_job.1 == 1,
+        "{ok_job:?}"
+    );
+    // A clean stop checkpoints the WAL into the database.
+    let wal = dir.path().join("rec.db-wal");
+    assert!(!wal.exists() || std::fs::metadata(&wal).unwrap().len() == 0);
+
+    let csv = dir.path().join("out.csv");
+    let out = std::process::Command::new(BIN)
+        .args(["export", "--db"])
+        .arg(&db)
+        .args([
+            "--since",
+            &format!("{since}"),
+            "--until",
+            &format!("{}", since + 600.0),
+        ])
+        .args(["--csv", "--axis", "X", "--step-s", "0.2", "--out"])
+        .arg(&csv)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("err_um is 0"), "{err}");
+    let m = Measurements::read_path(&csv).expect("calibrate/diagnose read the export");
+    assert!(m.len() >= 10, "{} rows", m.len());
+    for (name, degc) in [("bed", 30.0), ("screw", 25.0), ("col", 60.0)] {
+        let col = m.temp(name).unwrap_or_else(|| panic!("column T_{name}"));
+        assert!(
+            col.iter().all(|v| (v - degc).abs() < 0.2),
+            "T_{name}: {col:?}"
+        );
+    }
+    assert!(m.pos_mm.iter().all(|p| (p - 500.0).abs() < 1e-9));
+    assert!(m.err_um.iter().all(|e| *e == 0.0));
+
+    // Bad arguments name the flag.
+    let out = std::process::Command::new(BIN)
+        .args(["export", "--db"])
+        .arg(&db)
+        .args(["--since", "yesterday", "--until", "1", "--csv"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--since: `yesterday` is not a time"));
+    drop(plant);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn retention_by_size_keeps_the_database_bounded() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("rec.db");
+    let extra = "max_size_mb = 0.03\nretention_interval_s = 0.2";
+    let (plant, path) = plant_and_file(dir.path(), &recorder_section(&db, extra)).await;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+    // 3 channels at 20 Hz: about 80 kB in 6 s without retention.
+    tokio::time::sleep(Duration::from_secs(6)).await;
+    let conn = Connection::open(&db).unwrap();
+    let pages: i64 = conn
+        .query_row("PRAGMA page_count", [], |r| r.get(0))
+        .unwrap();
+    let free: i64 = conn
+        .query_row("PRAGMA freelist_count", [], |r| r.get(0))
+        .unwrap();
+    let size: i64 = conn
+        .query_row("PRAGMA page_size", [], |r| r.get(0))
+        .unwrap();
+    let (first, last): (i64, i64) = conn
+        .query_row(
+            "SELECT min(t_unix_ms), max(t_unix_ms) FROM readings",
+            [],
+            |r| Ok((r.get(0)?, r.get(1)?)),
+        )
+        .unwrap();
+    println!(
+        "data {} bytes, span {} ms",
+        (pages - free) * size,
+        last - first
+    );
+    // One batch may land between retention passes.
+    assert!(
+        (pages - free) * size < 64 * 1024,
+        "{} bytes in use",
+        (pages - free) * size
+    );
+    assert!(last - first < 5500, "the oldest readings were not deleted");
+    assert!(now_ms() - last < 1500, "recording goes on");
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
+
+/// A size-limited filesystem for the database (tmpfs; the tests run as root).
+struct SmallFs(std::path::PathBuf);
+
+impl SmallFs {
+    fn mount(at: &Path, size: &str) -> Self {
+        std::fs::create_dir_all(at).expect("mount point created");
+        let st = std::process::Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={size}"), "tmpfs"])
+            .arg(at)
+            .status()
+            .expect("mount runs");
+        assert!(st.success(), "mounting a tmpfs needs root");
+        SmallFs(at.to_path_buf())
+    }
+}
+
+impl Drop for SmallFs {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("umount").arg(&self.0).status();
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn full_disk_loses_records_but_never_stops_the_gateway() {
+    let dir = tempfile::tempdir().unwrap();
+    let fs = SmallFs::mount(&dir.path().join("small"), "160k");
+    let db = fs.0.join("rec.db");
+    let (plant, path) = plant_and_file(dir.path(), &recorder_section(&db, "")).await;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+    tokio::task::block_in_place(|| gw.wait_log(30.0, "recorder commit failed"));
+    // The control loop goes on: temperatures followed, jobs written, watchdog fed.
+    let jobs = plant.nc["nc_x"].jobs_executed();
+    plant.field["ain1"]
+        .set_temperature_override(plant.transmitter["T_bed"], Some(35.0))
+        .unwrap();
+    tokio::task::block_in_place(|| {
+        gw.wait_notify(10.0, "write after the disk filled", |m| {
+            m.contains("WATCHDOG=1") && m.contains("SD43900=0.060")
+        })
+    });
+    assert!(plant.nc["nc_x"].jobs_executed() > jobs);
+    assert!(
+        tokio::task::block_in_place(|| gw.stop()),
+        "clean stop with a full disk"
+    );
+    // What was committed before the disk filled is intact.
+    let conn = Connection::open(&db).unwrap();
+    let ok: String = conn
+        .query_row("PRAGMA quick_check", [], |r| r.get(0))
+        .unwrap();
+    assert_eq!(ok, "ok");
+    drop(conn);
+    drop(fs);
+    drop(plant);
+}
