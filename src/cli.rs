@@ -45,6 +45,8 @@ pub enum Command {
     Demo,
     /// Measure reversal backlash of a full-closed-loop axis from encoder vs scale trace.
     Backlash(crate::backlash::BacklashArgs),
+    /// Find where model and measurement disagree, name the missing effect, add it.
+    Diagnose(crate::diagnose::command::DiagnoseArgs),
     /// Measure poll-filter-compute cycles against the bare Modbus request rate.
     Bench {
         /// Channels on the simulated module, read in one request.

@@ -20,6 +20,8 @@
 //! - [`backlash`]: `compgate backlash`, backlash of a full-closed-loop axis from the
 //!   servo trace of encoder and scale (seed formulas, plateau extraction, MD32450 write).
 //! - [`volumetric`]: online volumetric compensation of a 5-axis AC-head machine.
+//! - [`diagnose`]: `compgate diagnose`, where model and measurement disagree, which
+//!   effect is missing, the model with it added, and how much the gap shrinks.
 //! - [`measure`]: the measured-error CSV format (`t_s,pos_mm,err_um,T_*`) that
 //!   `calibrate` and `diagnose` read and `export` writes.
 //! - [`gateway`]: wires the stages together; `run(config, shutdown)` is the one path
@@ -40,6 +42,7 @@ pub mod channel;
 pub mod cli;
 pub mod comp;
 pub mod config;
+pub mod diagnose;
 pub mod gateway;
 pub mod measure;
 pub mod nc;
