@@ -31,11 +31,13 @@ fn main() {
     let seeds: u64 = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(20);
     let rows: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(3000);
     let noises = [0.3, 1.0];
-    let snrs = [3.0, 6.0];
+    let snrs = [3.0, 5.0, 10.0];
 
     // Confusion: truth -> predicted top-1 (or "none").
     let mut confusion: BTreeMap<&str, BTreeMap<String, usize>> = BTreeMap::new();
     let mut shrink = Vec::new();
+    let mut sys_shrink = Vec::new();
+    let mut shrink_by_snr: BTreeMap<u32, Vec<f64>> = BTreeMap::new();
     let mut param_err: BTreeMap<&str, Vec<f64>> = BTreeMap::new();
     let mut total = 0;
     let mut correct = 0;
@@ -43,13 +45,15 @@ fn main() {
     for kind in EffectKind::ALL {
         for seed in 0..seeds {
             let noise = noises[(seed % 2) as usize];
-            let snr = snrs[((seed / 2) % 2) as usize];
+            let snr = snrs[((seed / 2) % 3) as usize];
             let (m, truth) = generate(&SynthSpec {
                 seed: 1000 + seed * 17 + kind as u64,
                 rows,
                 effects: vec![kind],
                 noise_um: noise,
                 snr,
+                laser: seed % 3 == 2,
+                noise_ar1: if seed % 4 == 3 { 0.5 } else { 0.0 },
             });
             let m = roundtrip(&m);
             let d = diagnose(&m, &opts()).expect("diagnose");
@@ -65,6 +69,21 @@ fn main() {
                     ambiguous += 1;
                 }
                 shrink.push(1.0 - d.final_gap.rms_um / d.baseline.rms_um);
+                shrink_by_snr
+                    .entry(snr as u32)
+                    .or_insert_with(Vec::new)
+                    .push(1.0 - d.final_gap.rms_um / d.baseline.rms_um);
+                // The systematic gap: fitted model against the noise-free truth.
+                let gap = |r: &[f64]| {
+                    let s: f64 = (0..r.len())
+                        .map(|i| {
+                            let g = (m.err_um[i] - r[i]) - truth.clean_um[i];
+                            g * g
+                        })
+                        .sum();
+                    (s / r.len() as f64).sqrt()
+                };
+                sys_shrink.push(1.0 - gap(&d.series.after_um) / gap(&d.series.before_um));
                 let t = truth.effects[0].1;
                 let key = match kind {
                     EffectKind::ThermalLag | EffectKind::MotionHeating => Some("tau_s"),
@@ -109,6 +128,8 @@ fn main() {
             effects: vec![],
             noise_um: noises[(seed % 2) as usize],
             snr: 0.0,
+            laser: seed % 3 == 2,
+            noise_ar1: if seed % 4 == 3 { 0.5 } else { 0.0 },
         });
         let d = diagnose(&roundtrip(&m), &opts()).expect("diagnose");
         let top = d
@@ -133,6 +154,8 @@ fn main() {
                     effects: vec![*a, *b],
                     noise_um: 0.5,
                     snr: 6.0,
+                    laser: seed % 2 == 1,
+                    noise_ar1: 0.0,
                 });
                 let d = diagnose(&roundtrip(&m), &opts()).expect("diagnose");
                 let names: Vec<&str> = d.effects.iter().map(|e| e.name).collect();
@@ -189,6 +212,19 @@ fn main() {
         "median gap shrink (right effect added): {:.1} %",
         100.0 * shrink[shrink.len() / 2]
     );
+    for (snr, mut v) in shrink_by_snr {
+        v.sort_by(f64::total_cmp);
+        println!(
+            "  effect RMS {snr} x noise: median residual RMS shrink {:.1} % (noise floor allows {:.1} %)",
+            100.0 * v[v.len() / 2],
+            100.0 * (1.0 - 1.0 / (1.0 + f64::from(snr * snr)).sqrt())
+        );
+    }
+    sys_shrink.sort_by(f64::total_cmp);
+    println!(
+        "median shrink of the systematic gap (model vs noise-free truth): {:.1} %",
+        100.0 * sys_shrink[sys_shrink.len() / 2]
+    );
     for (k, mut v) in param_err {
         v.sort_by(f64::total_cmp);
         println!(
@@ -206,6 +242,8 @@ fn main() {
         effects: vec![EffectKind::ThermalLag, EffectKind::Reversal],
         noise_um: 0.5,
         snr: 5.0,
+        laser: false,
+        noise_ar1: 0.0,
     });
     let mut csv = Vec::new();
     m.write(&mut csv).expect("write csv");

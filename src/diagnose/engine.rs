@@ -244,7 +244,7 @@ impl Current {
         self.gram.extend(&self.refs(), &e, &d.y_um, &d.blocks)
     }
 
-    fn rss_with(&self, d: &Data, extra: &[Vec<f64>]) -> f64 {
+    pub fn rss_with(&self, d: &Data, extra: &[Vec<f64>]) -> f64 {
         self.extended(d, extra).solve().rss
     }
 
@@ -278,7 +278,7 @@ fn search_log(lo: f64, hi: f64, n: usize, f: &mut dyn FnMut(f64) -> f64) -> (f64
     if at_edge {
         return (grid[best].exp(), vals[best], true);
     }
-    let (x, fx) = golden(grid[best - 1], grid[best + 1], 18, &mut |g| f(g.exp()));
+    let (x, fx) = golden(grid[best - 1], grid[best + 1], 14, &mut |g| f(g.exp()));
     if fx < vals[best] {
         (x.exp(), fx, false)
     } else {
@@ -287,7 +287,7 @@ fn search_log(lo: f64, hi: f64, n: usize, f: &mut dyn FnMut(f64) -> f64) -> (f64
 }
 
 /// Golden-section minimisation of a unimodal `f` on `[a, b]`.
-fn golden(mut a: f64, mut b: f64, iters: usize, f: &mut dyn FnMut(f64) -> f64) -> (f64, f64) {
+pub fn golden(mut a: f64, mut b: f64, iters: usize, f: &mut dyn FnMut(f64) -> f64) -> (f64, f64) {
     let r = (5f64.sqrt() - 1.0) / 2.0;
     let mut c = b - r * (b - a);
     let mut e = a + r * (b - a);
@@ -415,7 +415,7 @@ pub fn evaluate(
                 return None;
             }
             let mut f = |tau: f64| cur.rss_with(d, &d.effect_columns(kind, sensor, tau).0);
-            let (tau, _, edge) = search_log(lo, hi, 28, &mut f);
+            let (tau, _, edge) = search_log(lo, hi, 20, &mut f);
             (Some(tau), Some((lo, hi)), edge)
         }
         EffectKind::PitchPeriodic => {

@@ -323,6 +323,38 @@ fn describe(d: &Data, r: &[f64]) -> Where {
     }
 }
 
+/// Re-searches the time constant or period of every added effect with all the others
+/// in the model (one pass, within a factor 2 of the current value), so that a value
+/// found while another effect was still missing does not leave a misfit behind.
+fn refine(d: &Data, cur: Current, effects: &mut [EffectReport]) -> Current {
+    let mut cols = cur.cols;
+    for j in 0..effects.len() {
+        let Some(p) = effects[j].param else { continue };
+        let (a, b) = effects[j].cols;
+        let kind = effects[j].kind;
+        let sensor = effects[j].sensor;
+        let others: Vec<Vec<f64>> = cols[..a].iter().chain(&cols[b..]).cloned().collect();
+        let base = Current::new(d, others);
+        let mut f = |lp: f64| base.rss_with(d, &d.effect_columns(kind, sensor, lp.exp()).0);
+        // A period has many local minima: stay within 5 % of the one found.
+        let factor: f64 = if kind == EffectKind::PitchPeriodic {
+            1.05
+        } else {
+            2.0
+        };
+        let (lp, rss) = engine::golden((p / factor).ln(), (p * factor).ln(), 16, &mut f);
+        if rss < f(p.ln()) {
+            let (new_cols, mean) = d.effect_columns(kind, sensor, lp.exp());
+            for (k, c) in new_cols.into_iter().enumerate() {
+                cols[a + k] = c;
+            }
+            effects[j].param = Some(lp.exp());
+            effects[j].signal_mean = mean;
+        }
+    }
+    Current::new(d, cols)
+}
+
 /// Runs the workflow on measurements.
 pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseError> {
     let th = opts.thresholds;
@@ -364,18 +396,39 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
                 _ => cands.push((kind, None)),
             }
         }
-        for (kind, sensor) in cands {
-            if used
+        cands.retain(|&(kind, sensor)| {
+            !used
                 .iter()
                 .any(|&(k, s)| k == kind && (s == sensor || sensor.is_none()))
-            {
-                continue;
-            }
-            if let Some((ev, cols)) = engine::evaluate(&d, &cur, kind, sensor, &th, &r_cur) {
-                let mean = d.effect_columns(kind, sensor, ev.param.unwrap_or(0.0)).1;
-                evs.push((ev, cols, mean));
-            }
-        }
+        });
+        // Candidates are independent: spread them over the available cores.
+        let workers = std::thread::available_parallelism()
+            .map_or(1, |n| n.get())
+            .min(cands.len().max(1));
+        let (dr, cr, rr) = (&d, &cur, &r_cur);
+        let results: Vec<Vec<_>> = std::thread::scope(|scope| {
+            let handles: Vec<_> = (0..workers)
+                .map(|w| {
+                    let mine: Vec<_> = cands.iter().copied().skip(w).step_by(workers).collect();
+                    scope.spawn(move || {
+                        mine.into_iter()
+                            .filter_map(|(kind, sensor)| {
+                                engine::evaluate(dr, cr, kind, sensor, &th, rr).map(|(ev, cols)| {
+                                    let mean =
+                                        dr.effect_columns(kind, sensor, ev.param.unwrap_or(0.0)).1;
+                                    (ev, cols, mean)
+                                })
+                            })
+                            .collect()
+                    })
+                })
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| h.join().unwrap_or_default())
+                .collect()
+        });
+        evs.extend(results.into_iter().flatten());
         evs.sort_by(|a, b| a.0.delta_ic.total_cmp(&b.0.delta_ic));
         let best = evs.iter().position(|e| e.0.passes());
         rounds.push(Round {
@@ -414,6 +467,7 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
             cols: (start, cur.cols.len()),
             signal_mean: mean,
         });
+        cur = refine(&d, cur, &mut effects);
         r_cur = cur.residuals(&d);
     }
 

@@ -22,6 +22,13 @@ pub struct SynthSpec {
     pub noise_um: f64,
     /// RMS of each effect's part the baseline cannot explain, as a multiple of the noise.
     pub snr: f64,
+    /// Laser-style sampling: 21 fixed targets measured in bidirectional cycles at a
+    /// regular interval, with machining travel between cycles; else random positions
+    /// at irregular times.
+    pub laser: bool,
+    /// Lag-1 correlation of the noise (0: white); its standard deviation stays
+    /// `noise_um`.
+    pub noise_ar1: f64,
 }
 
 /// The truth behind a generated series.
@@ -31,6 +38,8 @@ pub struct Truth {
     pub effects: Vec<(EffectKind, f64, f64)>,
     /// Baseline sensors (the extra sensor is `c`, outside them).
     pub sensors: Vec<String>,
+    /// The error without noise, um.
+    pub clean_um: Vec<f64>,
 }
 
 fn first_order(t_s: &[f64], x: &[f64], tau_s: f64) -> Vec<f64> {
@@ -42,39 +51,73 @@ fn first_order(t_s: &[f64], x: &[f64], tau_s: f64) -> Vec<f64> {
 pub fn generate(spec: &SynthSpec) -> (Measurements, Truth) {
     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed);
     let n = spec.rows;
-    // Irregular sampling: mean interval 4..20 s with jitter.
-    let dt_mean = rng.random_range(4.0..20.0);
-    let mut t_s = Vec::with_capacity(n);
-    let mut t = 0.0;
-    for _ in 0..n {
-        t_s.push(t);
-        t += dt_mean * rng.random_range(0.5..1.5);
-    }
-    let duration = t;
-    // Axis: runs of moves to random targets with idle spells; the measurement sees the
-    // position at each row.
     let span_mm: f64 = rng.random_range(300.0..1500.0);
+    let mut t_s = Vec::with_capacity(n);
     let mut pos_mm = Vec::with_capacity(n);
     let mut travel_mm = Vec::with_capacity(n);
-    let mut pos: f64 = span_mm * rng.random_range(0.0..1.0);
-    let mut busy = true;
-    let mut speed_scale = 1.0;
-    for _ in 0..n {
-        if rng.random_bool(0.01) {
-            busy = !busy;
-            speed_scale = rng.random_range(0.3..1.0);
-        }
-        let prev = pos;
-        if busy || rng.random_bool(0.1) {
-            pos = if rng.random_bool(speed_scale) {
-                span_mm * rng.random_range(0.0..1.0)
+    if spec.laser {
+        // Bidirectional cycles over 21 targets, one row per target, then a machining
+        // spell whose travel shows in the next row.
+        let dt = rng.random_range(5.0..15.0);
+        let gap_s = rng.random_range(300.0..1200.0);
+        let targets: Vec<f64> = (0..21).map(|k| span_mm * k as f64 / 20.0).collect();
+        let mut t = 0.0;
+        let mut pos = 0.0;
+        let mut k = 0usize;
+        while t_s.len() < n {
+            let fwd = k % 2 == 0;
+            let mut extra = if k > 0 {
+                rng.random_range(0.0..2000.0) * gap_s / 600.0
             } else {
-                (pos + rng.random_range(-0.1..0.1) * span_mm).clamp(0.0, span_mm)
+                0.0
             };
+            if k > 0 {
+                t += gap_s * rng.random_range(0.5..1.5);
+            }
+            for j in 0..21 {
+                if t_s.len() == n {
+                    break;
+                }
+                let target = if fwd { targets[j] } else { targets[20 - j] };
+                t_s.push(t);
+                travel_mm.push((target - pos).abs() + extra);
+                extra = 0.0;
+                pos_mm.push(target);
+                pos = target;
+                t += dt;
+            }
+            k += 1;
         }
-        travel_mm.push((pos - prev).abs());
-        pos_mm.push(pos);
+    } else {
+        // Irregular sampling: mean interval 4..20 s with jitter; runs of moves to
+        // random targets with idle spells.
+        let dt_mean = rng.random_range(4.0..20.0);
+        let mut t = 0.0;
+        for _ in 0..n {
+            t_s.push(t);
+            t += dt_mean * rng.random_range(0.5..1.5);
+        }
+        let mut pos: f64 = span_mm * rng.random_range(0.0..1.0);
+        let mut busy = true;
+        let mut speed_scale = 1.0;
+        for _ in 0..n {
+            if rng.random_bool(0.01) {
+                busy = !busy;
+                speed_scale = rng.random_range(0.3..1.0);
+            }
+            let prev = pos;
+            if busy || rng.random_bool(0.1) {
+                pos = if rng.random_bool(speed_scale) {
+                    span_mm * rng.random_range(0.0..1.0)
+                } else {
+                    (pos + rng.random_range(-0.1..0.1) * span_mm).clamp(0.0, span_mm)
+                };
+            }
+            travel_mm.push((pos - prev).abs());
+            pos_mm.push(pos);
+        }
     }
+    let duration = t_s[n - 1] - t_s[0];
     // Temperatures: a spindle-like source with an on/off schedule, ambient drift, and
     // an independent coolant sensor.
     let mut heat = Vec::with_capacity(n);
@@ -158,6 +201,7 @@ pub fn generate(spec: &SynthSpec) -> (Measurements, Truth) {
     let mut truth = Truth {
         effects: Vec::new(),
         sensors: vec!["a".into(), "b".into()],
+        clean_um: Vec::new(),
     };
     for &kind in &spec.effects {
         let sign = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
@@ -203,7 +247,11 @@ pub fn generate(spec: &SynthSpec) -> (Measurements, Truth) {
             }
             EffectKind::Reversal => ((0..n).map(|i| f64::from(dir[i])).collect(), 0.0),
             EffectKind::PitchPeriodic => {
-                let period = span_mm * rng.random_range(0.02..0.2);
+                let period = if spec.laser {
+                    span_mm / 20.0 * rng.random_range(4.0..8.0)
+                } else {
+                    span_mm * rng.random_range(0.02..0.2)
+                };
                 let ph = rng.random_range(0.0..std::f64::consts::TAU);
                 (
                     pos_mm
@@ -228,11 +276,14 @@ pub fn generate(spec: &SynthSpec) -> (Measurements, Truth) {
             _ => param,
         };
         truth.effects.push((kind, param, spec.snr * spec.noise_um));
-        let _ = scale;
     }
+    truth.clean_um = err.clone();
     let noise = Normal::new(0.0, spec.noise_um.max(1e-12)).unwrap_or_else(|_| unreachable!());
+    let rho = spec.noise_ar1.clamp(0.0, 0.999);
+    let mut z: f64 = noise.sample(&mut rng);
     for e in err.iter_mut() {
-        *e += noise.sample(&mut rng);
+        *e += z;
+        z = rho * z + (1.0 - rho * rho).sqrt() * noise.sample(&mut rng);
     }
     let m = Measurements {
         t_s,
