@@ -120,6 +120,7 @@ fn main() {
     }
     // Null data.
     let mut fp = 0;
+    let mut null_best_dic: Vec<f64> = Vec::new();
     let nulls = seeds * 6;
     for seed in 0..nulls {
         let (m, _) = generate(&SynthSpec {
@@ -205,6 +206,18 @@ fn main() {
     println!(
         "false positives on null data: {fp}/{nulls} = {:.1} %",
         100.0 * fp as f64 / nulls as f64
+    );
+    null_best_dic.sort_by(f64::total_cmp);
+    let q = |p: f64| null_best_dic[((null_best_dic.len() - 1) as f64 * p) as usize];
+    let passing = null_best_dic.iter().filter(|v| v.is_finite()).count();
+    println!(
+        "null calibration: {passing}/{} cases had a candidate passing CV and plausibility; \
+         best dIC among them: 5th percentile {:.1}, 1st percentile {:.1}, minimum {:.1} (acceptance needs < -{})",
+        null_best_dic.len(),
+        q(0.05),
+        q(0.01),
+        null_best_dic[0],
+        compgate::diagnose::Thresholds::default().ic_margin
     );
     println!("pairs, both found: {pair_ok}/{pairs}");
     shrink.sort_by(f64::total_cmp);

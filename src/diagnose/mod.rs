@@ -328,11 +328,11 @@ fn describe(d: &Data, r: &[f64]) -> Where {
 /// found while another effect was still missing does not leave a misfit behind.
 fn refine(d: &Data, cur: Current, effects: &mut [EffectReport]) -> Current {
     let mut cols = cur.cols;
-    for j in 0..effects.len() {
-        let Some(p) = effects[j].param else { continue };
-        let (a, b) = effects[j].cols;
-        let kind = effects[j].kind;
-        let sensor = effects[j].sensor;
+    for e in effects.iter_mut() {
+        let Some(p) = e.param else { continue };
+        let (a, b) = e.cols;
+        let kind = e.kind;
+        let sensor = e.sensor;
         let others: Vec<Vec<f64>> = cols[..a].iter().chain(&cols[b..]).cloned().collect();
         let base = Current::new(d, others);
         let mut f = |lp: f64| base.rss_with(d, &d.effect_columns(kind, sensor, lp.exp()).0);
@@ -348,8 +348,8 @@ fn refine(d: &Data, cur: Current, effects: &mut [EffectReport]) -> Current {
             for (k, c) in new_cols.into_iter().enumerate() {
                 cols[a + k] = c;
             }
-            effects[j].param = Some(lp.exp());
-            effects[j].signal_mean = mean;
+            e.param = Some(lp.exp());
+            e.signal_mean = mean;
         }
     }
     Current::new(d, cols)
