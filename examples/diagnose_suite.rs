@@ -71,7 +71,7 @@ fn main() {
                 shrink.push(1.0 - d.final_gap.rms_um / d.baseline.rms_um);
                 shrink_by_snr
                     .entry(snr as u32)
-                    .or_insert_with(Vec::new)
+                    .or_default()
                     .push(1.0 - d.final_gap.rms_um / d.baseline.rms_um);
                 // The systematic gap: fitted model against the noise-free truth.
                 let gap = |r: &[f64]| {
