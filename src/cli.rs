@@ -55,6 +55,8 @@ pub enum Command {
     Iso230(crate::iso230::Iso230Args),
     /// Write recorded operation as the measurement CSV that calibrate and diagnose read.
     Export(crate::record::export::ExportArgs),
+    /// Find where model and measurement disagree, name the missing effect, add it.
+    Diagnose(crate::diagnose::command::DiagnoseArgs),
     /// Measure poll-filter-compute cycles against the bare Modbus request rate.
     Bench {
         /// Channels on the simulated module, read in one request.

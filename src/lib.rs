@@ -26,6 +26,8 @@
 //!   K0(T) and tan(beta)(T) (pure part in `calibrate::fit`), model file, plot.
 //! - [`iso230`]: `compgate iso230`, ISO 230-2 evaluation (A, B, R, E, M) of
 //!   bidirectional runs in the measured-error CSV.
+//! - [`diagnose`]: `compgate diagnose`, where model and measurement disagree, which
+//!   effect is missing, the model with it added, and how much the gap shrinks.
 //! - [`measure`]: the measured-error CSV format (`t_s,pos_mm,err_um,T_*`) that
 //!   `calibrate` and `diagnose` read and `export` writes.
 //! - [`gateway`]: wires the stages together; `run(config, shutdown)` is the one path
@@ -53,6 +55,7 @@ pub mod channel;
 pub mod cli;
 pub mod comp;
 pub mod config;
+pub mod diagnose;
 pub mod gateway;
 pub mod iso230;
 pub mod measure;

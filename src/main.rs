@@ -163,6 +163,9 @@ async fn main() -> ExitCode {
             }
             Err(e) => Err(e.to_string()),
         },
+        Command::Diagnose(args) => {
+            compgate::diagnose::command::run(&args).map_err(|e| e.to_string())
+        }
         Command::Bench {
             channels,
             cycles,

@@ -1,0 +1,307 @@
+//! The model file `--model` reads and `--out` writes.
+//!
+//! `p0_mm`, `[k0]` and `[tan_beta]` are exactly the keys of a gateway axis
+//! (`[axes.NAME]` in the gateway config, same structs), with channels named after the
+//! data's sensors (`T_<name>` column -> channel `<name>`). A thermal lag the gateway
+//! carries itself: `[[lagged_channels]]` names a channel on the same transmitter with
+//! `filter.lowpass_tau_s = tau_s`, and the k0/tan_beta terms reference it. Effects the
+//! gateway's K0/tan(beta) form cannot carry are listed in `[[effects]]` with the NC
+//! function that carries them (reversal: backlash MD32450; pitch and nonlinear
+//! position: the leadscrew error compensation table; motion heating: no sensor, so no
+//! NC function without an extra model).
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+use super::effects::{lag, legendre_2_4, motion_heat, EffectKind};
+use super::{DiagnoseError, Diagnosis};
+use crate::config::schema::{K0Model, K0Term, TanBetaModel, TanBetaTerm};
+use crate::measure::Measurements;
+
+/// A thermal model file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct ModelFile {
+    /// SD43920 reference position P0, mm (as `[axes.NAME] p0_mm`). Default 0.0.
+    #[serde(default)]
+    pub p0_mm: f64,
+    /// K0(T) in mm (as `[axes.NAME.k0]`). Default: zero.
+    #[serde(default)]
+    pub k0: K0Model,
+    /// tan(beta)(T) (as `[axes.NAME.tan_beta]`). Default: zero.
+    #[serde(default)]
+    pub tan_beta: TanBetaModel,
+    /// Channels that are a sensor seen through a first-order lag; the gateway realises
+    /// one as a channel on the sensor's transmitter with `filter.lowpass_tau_s`.
+    #[serde(default)]
+    pub lagged_channels: Vec<LaggedChannel>,
+    /// Effects outside the K0/tan(beta) form, with the NC function that carries them.
+    #[serde(default)]
+    pub effects: Vec<EffectTerm>,
+}
+
+/// A lagged view of a sensor.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LaggedChannel {
+    /// Channel name the k0/tan_beta terms use.
+    pub channel: String,
+    /// Sensor (channel) it is derived from.
+    pub sensor: String,
+    /// First-order time constant, s (the channel's `filter.lowpass_tau_s`).
+    pub lowpass_tau_s: f64,
+}
+
+/// An effect term outside the K0/tan(beta) form.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EffectTerm {
+    /// Effect name: `reversal`, `pitch_periodic`, `nonlinear_position`,
+    /// `motion_heating`.
+    pub name: String,
+    /// The NC function that carries it, or why the gateway does not apply it.
+    pub carried_by: String,
+    /// Parameters (units in the names); see the README.
+    pub params: BTreeMap<String, f64>,
+}
+
+fn get(params: &BTreeMap<String, f64>, key: &str) -> f64 {
+    params.get(key).copied().unwrap_or(0.0)
+}
+
+impl ModelFile {
+    /// Reads and checks a model file; errors name the file and key.
+    pub fn read_path(path: &std::path::Path) -> Result<Self, DiagnoseError> {
+        let text = std::fs::read_to_string(path).map_err(|source| DiagnoseError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        let de = toml::Deserializer::new(&text);
+        let mf: ModelFile =
+            serde_path_to_error::deserialize(de).map_err(|e| DiagnoseError::ModelFile {
+                path: path.display().to_string(),
+                message: format!("{}: {}", e.path(), e.inner().message()),
+            })?;
+        for e in &mf.effects {
+            if EffectKind::from_name(&e.name).is_none() {
+                return Err(DiagnoseError::ModelFile {
+                    path: path.display().to_string(),
+                    message: format!("effects: unknown effect name `{}`", e.name),
+                });
+            }
+        }
+        Ok(mf)
+    }
+
+    /// The TOML text, with a header comment.
+    pub fn to_toml(&self) -> String {
+        let body = toml::to_string(self).unwrap_or_default();
+        format!(
+            "# Thermal model written by `compgate diagnose`.\n\
+             # p0_mm, [k0] and [tan_beta] are the keys of a gateway axis ([axes.NAME]);\n\
+             # channels are the data's sensors (column T_<name> -> channel <name>).\n\
+             # [[lagged_channels]]: a channel on the named sensor's transmitter with\n\
+             # filter.lowpass_tau_s. [[effects]]: terms outside K0/tan(beta), with the\n\
+             # NC function that carries them.\n\n{body}"
+        )
+    }
+
+    /// The error the model predicts for every row, um.
+    // Index loops: several row-aligned series at once.
+    #[allow(clippy::needless_range_loop)]
+    pub fn predict_um(&self, m: &Measurements) -> Result<Vec<f64>, DiagnoseError> {
+        let mut signals: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+        for c in &m.temps {
+            signals.insert(c.name.clone(), c.degc.clone());
+        }
+        for l in &self.lagged_channels {
+            let src = m
+                .temp(&l.sensor)
+                .ok_or_else(|| DiagnoseError::UnknownChannel {
+                    channel: l.sensor.clone(),
+                    key: format!("lagged_channels `{}`", l.channel),
+                })?;
+            signals.insert(l.channel.clone(), lag(&m.t_s, src, l.lowpass_tau_s));
+        }
+        let find = |ch: &str, key: &str| {
+            signals
+                .get(ch)
+                .ok_or_else(|| DiagnoseError::UnknownChannel {
+                    channel: ch.to_string(),
+                    key: key.to_string(),
+                })
+        };
+        let n = m.len();
+        let mut k0_mm = vec![self.k0.offset_mm; n];
+        for t in &self.k0.terms {
+            let z = find(&t.channel, "k0.terms")?;
+            for i in 0..n {
+                k0_mm[i] += t.coeff_mm_per_degc * (z[i] - t.ref_degc);
+            }
+        }
+        let mut tan = vec![self.tan_beta.offset; n];
+        for t in &self.tan_beta.terms {
+            let z = find(&t.channel, "tan_beta.terms")?;
+            for i in 0..n {
+                tan[i] += t.coeff_per_degc * (z[i] - t.ref_degc);
+            }
+        }
+        let mut out: Vec<f64> = (0..n)
+            .map(|i| 1000.0 * (k0_mm[i] + tan[i] * (m.pos_mm[i] - self.p0_mm)))
+            .collect();
+        for e in &self.effects {
+            let p = &e.params;
+            match EffectKind::from_name(&e.name) {
+                Some(EffectKind::Reversal) => {
+                    for i in 0..n {
+                        out[i] += 0.5 * get(p, "b_um") * f64::from(m.dir[i]);
+                    }
+                }
+                Some(EffectKind::PitchPeriodic) => {
+                    let w = std::f64::consts::TAU / get(p, "period_mm");
+                    for i in 0..n {
+                        out[i] +=
+                            get(p, "amplitude_um") * (w * m.pos_mm[i] + get(p, "phase_rad")).sin();
+                    }
+                }
+                Some(EffectKind::NonlinearPosition) => {
+                    let (c, h) = (get(p, "center_mm"), get(p, "half_span_mm").max(1e-9));
+                    for i in 0..n {
+                        let l = legendre_2_4((m.pos_mm[i] - c) / h);
+                        out[i] += get(p, "legendre_p2_um") * l[0]
+                            + get(p, "legendre_p3_um") * l[1]
+                            + get(p, "legendre_p4_um") * l[2];
+                    }
+                }
+                Some(EffectKind::MotionHeating) => {
+                    let h = motion_heat(&m.t_s, &m.travel_mm, get(p, "tau_s").max(1e-9));
+                    let r = get(p, "ref_mm_per_s");
+                    for i in 0..n {
+                        out[i] += (h[i] - r)
+                            * (get(p, "k0_um_per_mm_per_s")
+                                + get(p, "slope_um_per_mm_per_mm_per_s")
+                                    * (m.pos_mm[i] - self.p0_mm));
+                    }
+                }
+                _ => {}
+            }
+        }
+        Ok(out)
+    }
+
+    /// The updated model of a diagnosis: the refitted baseline plus every added effect.
+    pub fn from_diagnosis(d: &Diagnosis) -> Self {
+        let b = &d.beta;
+        let mut mf = ModelFile {
+            p0_mm: d.p0_mm,
+            k0: K0Model {
+                offset_mm: b[0] / 1000.0,
+                terms: Vec::new(),
+            },
+            tan_beta: TanBetaModel {
+                offset: b[1] / 1000.0,
+                terms: Vec::new(),
+            },
+            ..Default::default()
+        };
+        let push = |mf: &mut ModelFile, channel: String, ref_degc: f64, k0: f64, slope: f64| {
+            mf.k0.terms.push(K0Term {
+                channel: channel.clone(),
+                ref_degc,
+                coeff_mm_per_degc: k0 / 1000.0,
+            });
+            mf.tan_beta.terms.push(TanBetaTerm {
+                channel,
+                ref_degc,
+                coeff_per_degc: slope / 1000.0,
+            });
+        };
+        for (j, &s) in d.sensor_idx.iter().enumerate() {
+            push(
+                &mut mf,
+                d.temp_names[s].clone(),
+                d.temp_mean_degc[s],
+                b[2 + 2 * j],
+                b[3 + 2 * j],
+            );
+        }
+        for e in &d.effects {
+            let c = &b[e.cols.0..e.cols.1];
+            let p = |k: &str| e.params.get(k).and_then(|v| v.as_f64()).unwrap_or(0.0);
+            match e.kind {
+                EffectKind::ThermalLag => {
+                    let sensor = e
+                        .sensor
+                        .map(|s| d.temp_names[s].clone())
+                        .unwrap_or_default();
+                    let tau = e.param.unwrap_or(0.0);
+                    let channel = format!("{sensor}_lag{}s", tau.round());
+                    mf.lagged_channels.push(LaggedChannel {
+                        channel: channel.clone(),
+                        sensor,
+                        lowpass_tau_s: tau,
+                    });
+                    push(&mut mf, channel, e.signal_mean, c[0], c[1]);
+                }
+                EffectKind::ExtraSensor => {
+                    let s = e.sensor.unwrap_or(0);
+                    push(
+                        &mut mf,
+                        d.temp_names[s].clone(),
+                        d.temp_mean_degc[s],
+                        c[0],
+                        c[1],
+                    );
+                }
+                EffectKind::Reversal => mf.effects.push(EffectTerm {
+                    name: e.name.into(),
+                    carried_by: "NC backlash compensation MD32450 = |b_um| (sign: + means \
+                                 the axis lags when approaching in +); not applied by the gateway"
+                        .into(),
+                    params: BTreeMap::from([("b_um".into(), p("b_um"))]),
+                }),
+                EffectKind::PitchPeriodic => mf.effects.push(EffectTerm {
+                    name: e.name.into(),
+                    carried_by: "NC leadscrew error compensation table (LEC); not applied \
+                                 by the gateway"
+                        .into(),
+                    params: BTreeMap::from([
+                        ("period_mm".into(), p("period_mm")),
+                        ("amplitude_um".into(), p("amplitude_um")),
+                        ("phase_rad".into(), p("phase_rad")),
+                    ]),
+                }),
+                EffectKind::NonlinearPosition => mf.effects.push(EffectTerm {
+                    name: e.name.into(),
+                    carried_by: "NC leadscrew error compensation table (LEC); not applied \
+                                 by the gateway"
+                        .into(),
+                    params: [
+                        "legendre_p2_um",
+                        "legendre_p3_um",
+                        "legendre_p4_um",
+                        "center_mm",
+                        "half_span_mm",
+                    ]
+                    .into_iter()
+                    .map(|k| (k.to_string(), p(k)))
+                    .collect(),
+                }),
+                EffectKind::MotionHeating => mf.effects.push(EffectTerm {
+                    name: e.name.into(),
+                    carried_by: "no sensor sees it: needs a motion-heat model fed with the \
+                                 axis travel; not applied by the gateway"
+                        .into(),
+                    params: BTreeMap::from([
+                        ("tau_s".into(), p("tau_s")),
+                        ("ref_mm_per_s".into(), e.signal_mean),
+                        ("k0_um_per_mm_per_s".into(), c[0]),
+                        ("slope_um_per_mm_per_mm_per_s".into(), c[1]),
+                    ]),
+                }),
+            }
+        }
+        mf
+    }
+}

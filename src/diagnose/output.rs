@@ -1,0 +1,339 @@
+//! What `diagnose` shows and writes: the stdout report, SVG plots, `report.html` and
+//! the updated model file.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use super::{DiagnoseError, Diagnosis, ModelFile, Where};
+
+fn where_text(out: &mut String, w: &Where) {
+    let worst_t = w
+        .time_windows
+        .iter()
+        .copied()
+        .fold(None::<(f64, f64, f64)>, |m, x| match m {
+            Some(m) if m.2 >= x.2 => Some(m),
+            _ => Some(x),
+        });
+    let _ = writeln!(out, "  time windows (RMS um):");
+    for (a, b, r) in &w.time_windows {
+        let mark = if worst_t.is_some_and(|m| m.0 == *a) {
+            "  <- largest"
+        } else {
+            ""
+        };
+        let _ = writeln!(out, "    {a:>9.0} .. {b:>9.0} s  {r:8.3}{mark}");
+    }
+    let _ = writeln!(out, "  position ranges (mean / RMS um):");
+    for (a, b, m, r) in &w.position_ranges {
+        let _ = writeln!(out, "    {a:>9.1} .. {b:>9.1} mm  {m:+8.3} / {r:7.3}");
+    }
+    let _ = writeln!(
+        out,
+        "  direction: mean {:+.3} um approaching in + ({} rows), {:+.3} um in - ({} rows), difference {:+.3} um",
+        w.dir_plus_mean_um,
+        w.dir_rows.0,
+        w.dir_minus_mean_um,
+        w.dir_rows.1,
+        w.dir_plus_mean_um - w.dir_minus_mean_um
+    );
+    match w.periodic {
+        Some((p, a)) => {
+            let _ = writeln!(
+                out,
+                "  periodic in position: strongest period {p:.2} mm, amplitude {a:.3} um"
+            );
+        }
+        None => {
+            let _ = writeln!(
+                out,
+                "  periodic in position: positions too sparse to resolve"
+            );
+        }
+    }
+    let _ = writeln!(out, "  lag-1 autocorrelation in time: {:.3}", w.rho);
+}
+
+/// The human-readable report.
+pub fn text_report(d: &Diagnosis) -> String {
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "compgate diagnose: {} rows, baseline sensors: {}",
+        d.rows,
+        d.sensors.join(", ")
+    );
+    if !d.ignored_columns.is_empty() {
+        let _ = writeln!(out, "ignored columns: {}", d.ignored_columns.join(", "));
+    }
+    if let Some(g) = d.model_gap {
+        let _ = writeln!(
+            out,
+            "given model (simulation) vs measurement: RMS {:.3} um, max |gap| {:.3} um",
+            g.rms_um, g.max_abs_um
+        );
+    }
+    let _ = writeln!(
+        out,
+        "baseline refit K0(T) + tan(beta)(T)*(pos - {:.1}): RMS {:.3} um, max |gap| {:.3} um",
+        d.p0_mm, d.baseline.rms_um, d.baseline.max_abs_um
+    );
+    let _ = writeln!(out, "\nwhere the baseline disagrees:");
+    where_text(&mut out, &d.where_baseline);
+    for (i, round) in d.rounds.iter().enumerate() {
+        let _ = writeln!(
+            out,
+            "\nround {}: candidates (dIC < 0 is better; accepted needs IC, blocked CV, plausible)",
+            i + 1
+        );
+        let _ = writeln!(
+            out,
+            "  {:<20} {:>7} {:>12} {:>9} {:>9} {:>10} {:>8} {:>9} {:>9}  verdict",
+            "effect", "sensor", "param", "rms_um", "cv_rms", "dIC", "rho", "n_eff", "edge"
+        );
+        for c in &round.candidates {
+            let param = match (c.param, c.param_name) {
+                (Some(v), Some(n)) => format!(
+                    "{}={v:.1}",
+                    n.trim_end_matches("_mm").trim_end_matches("_s")
+                ),
+                _ => "-".into(),
+            };
+            let mut why = Vec::new();
+            if !c.passes_ic {
+                why.push("IC");
+            }
+            if !c.passes_cv {
+                why.push("CV");
+            }
+            if !c.plausible {
+                why.push("edge of range");
+            }
+            let verdict = if c.accepted {
+                "ACCEPTED".to_string()
+            } else if why.is_empty() {
+                "passes (not best)".into()
+            } else {
+                format!("fails: {}", why.join(", "))
+            };
+            let _ = writeln!(
+                out,
+                "  {:<20} {:>7} {:>12} {:>9.3} {:>9.3} {:>10.1} {:>8.3} {:>9.0} {:>9}  {verdict}",
+                c.name,
+                c.sensor.as_deref().unwrap_or("-"),
+                param,
+                c.rms_after_um,
+                c.cv_rms_after_um,
+                c.delta_ic,
+                c.rho,
+                c.n_eff,
+                if c.at_edge { "yes" } else { "no" },
+            );
+        }
+    }
+    let _ = writeln!(out, "\neffects added:");
+    if d.effects.is_empty() {
+        let _ = writeln!(out, "  none");
+    }
+    for e in &d.effects {
+        let params: Vec<String> = e
+            .params
+            .iter()
+            .map(|(k, v)| match v.as_f64() {
+                Some(x) => format!("{k}={x:.4}"),
+                None => format!("{k}={}", v.as_str().unwrap_or("?")),
+            })
+            .collect();
+        let _ = writeln!(
+            out,
+            "  {}: RMS {:.3} -> {:.3} um; {}{}",
+            e.name,
+            e.rms_before_um,
+            e.rms_after_um,
+            params.join(", "),
+            if e.ambiguous_with.is_empty() {
+                String::new()
+            } else {
+                format!("; AMBIGUOUS with {}", e.ambiguous_with.join(", "))
+            }
+        );
+    }
+    if !d.effects.is_empty() {
+        let _ = writeln!(out, "\nwhere the final model still disagrees:");
+        where_text(&mut out, &d.where_final);
+    }
+    let _ = writeln!(
+        out,
+        "\nfinal: RMS {:.3} um, max |gap| {:.3} um",
+        d.final_gap.rms_um, d.final_gap.max_abs_um
+    );
+    let _ = writeln!(out, "verdict: {}", d.verdict);
+    out
+}
+
+/// At most `max` evenly spread row indices.
+fn thin(n: usize, max: usize) -> Vec<usize> {
+    let step = n.div_ceil(max).max(1);
+    (0..n).step_by(step).collect()
+}
+
+type Xy = Vec<(f64, f64)>;
+
+/// File, title, x label, x of a row, x range.
+type PlotSpec<'a> = (
+    &'a str,
+    &'a str,
+    &'a str,
+    Box<dyn Fn(usize) -> f64 + 'a>,
+    (f64, f64),
+);
+
+fn scatter_svg(
+    path: &Path,
+    title: &str,
+    x_desc: &str,
+    before: &Xy,
+    after: &Xy,
+    x_range: (f64, f64),
+) -> Result<(), DiagnoseError> {
+    use plotters::prelude::*;
+    let err = |e: String| DiagnoseError::Plot {
+        path: path.display().to_string(),
+        message: e,
+    };
+    let mut lo = f64::INFINITY;
+    let mut hi = f64::NEG_INFINITY;
+    for &(_, y) in before.iter().chain(after) {
+        lo = lo.min(y);
+        hi = hi.max(y);
+    }
+    if !lo.is_finite() {
+        lo = -1.0;
+        hi = 1.0;
+    }
+    let pad = ((hi - lo) * 0.05).max(0.01);
+    let root = SVGBackend::new(path, (900, 620)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(e.to_string()))?;
+    let (upper, lower) = root.split_vertically(310);
+    for (area, series, label, color) in [
+        (&upper, before, "before (baseline)", RED),
+        (&lower, after, "after (with the added effects)", BLUE),
+    ] {
+        let mut chart = ChartBuilder::on(area)
+            .caption(format!("{title}: {label}"), ("sans-serif", 16))
+            .margin(8)
+            .x_label_area_size(30)
+            .y_label_area_size(60)
+            .build_cartesian_2d(x_range.0..x_range.1, (lo - pad)..(hi + pad))
+            .map_err(|e| err(e.to_string()))?;
+        chart
+            .configure_mesh()
+            .x_desc(x_desc)
+            .y_desc("residual (um)")
+            .draw()
+            .map_err(|e| err(e.to_string()))?;
+        chart
+            .draw_series(
+                series
+                    .iter()
+                    .map(|&(x, y)| Circle::new((x, y), 1, color.mix(0.5).filled())),
+            )
+            .map_err(|e| err(e.to_string()))?;
+    }
+    root.present().map_err(|e| err(e.to_string()))
+}
+
+/// Writes the model file, the plots and `report.html` into `dir`; returns the paths.
+pub fn write_out(dir: &Path, d: &Diagnosis) -> Result<Vec<PathBuf>, DiagnoseError> {
+    let io = |path: &Path| {
+        let path = path.display().to_string();
+        move |source| DiagnoseError::Io { path, source }
+    };
+    std::fs::create_dir_all(dir).map_err(io(dir))?;
+    let mut written = Vec::new();
+    let model_path = dir.join("model.toml");
+    std::fs::write(&model_path, ModelFile::from_diagnosis(d).to_toml()).map_err(io(&model_path))?;
+    written.push(model_path);
+
+    let s = &d.series;
+    let idx = thin(s.t_s.len(), 6000);
+    let pick =
+        |x: &dyn Fn(usize) -> f64, r: &[f64]| -> Xy { idx.iter().map(|&i| (x(i), r[i])).collect() };
+    let t_end = s.t_s.last().copied().unwrap_or(1.0).max(s.t_s[0] + 1e-9);
+    let (p_lo, p_hi) = d.pos_range_mm;
+    let p_pad = ((p_hi - p_lo) * 0.02).max(1e-3);
+    // Direction: +1/-1 with a deterministic spread so the points do not pile up.
+    let jitter = |i: usize| f64::from(s.dir[i]) + 0.3 * (((i * 7919) % 1000) as f64 / 1000.0 - 0.5);
+    let plots: [PlotSpec; 3] = [
+        (
+            "residual_time.svg",
+            "residual against time",
+            "t (s)",
+            Box::new(|i| s.t_s[i]),
+            (s.t_s[0], t_end),
+        ),
+        (
+            "residual_position.svg",
+            "residual against position",
+            "position (mm)",
+            Box::new(|i| s.pos_mm[i]),
+            (p_lo - p_pad, p_hi + p_pad),
+        ),
+        (
+            "residual_direction.svg",
+            "residual against direction of approach",
+            "direction (-1 / +1)",
+            Box::new(jitter),
+            (-1.6, 1.6),
+        ),
+    ];
+    let mut svgs = Vec::new();
+    for (file, title, x_desc, x, range) in plots {
+        let path = dir.join(file);
+        let before = pick(&*x, &s.before_um);
+        let after = pick(&*x, &s.after_um);
+        scatter_svg(&path, title, x_desc, &before, &after, range)?;
+        let text = std::fs::read_to_string(&path).map_err(io(&path))?;
+        svgs.push((title, text));
+        written.push(path);
+    }
+    let html_path = dir.join("report.html");
+    let mut html = String::from(
+        "<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>compgate diagnose</title>\
+         <style>body{font-family:sans-serif;margin:2em;max-width:1000px}pre{background:#f4f4f4;padding:1em;overflow-x:auto}</style>\
+         </head><body>\n<h1>compgate diagnose</h1>\n",
+    );
+    let _ = writeln!(html, "<p><b>Verdict:</b> {}</p>", escape(&d.verdict));
+    for (title, svg) in &svgs {
+        let svg = svg.trim_start_matches(|c| c != '<');
+        let svg = match svg.strip_prefix("<?xml") {
+            Some(rest) => rest.split_once("?>").map_or(rest, |(_, r)| r),
+            None => svg,
+        };
+        let _ = writeln!(html, "<h2>{}</h2>\n{}", escape(title), svg);
+    }
+    let _ = writeln!(
+        html,
+        "<h2>Report</h2>\n<pre>{}</pre>",
+        escape(&text_report(d))
+    );
+    let _ = writeln!(
+        html,
+        "<h2>Updated model</h2>\n<pre>{}</pre>\n</body></html>",
+        escape(&ModelFile::from_diagnosis(d).to_toml())
+    );
+    std::fs::write(&html_path, html).map_err(io(&html_path))?;
+    written.push(html_path);
+    Ok(written)
+}
+
+fn escape(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+}
+
+/// The `--json` document.
+pub fn json(d: &Diagnosis) -> String {
+    serde_json::to_string_pretty(d).unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
+}

@@ -1,0 +1,252 @@
+//! `compgate diagnose` on data with hidden effects. Every case is generated, written
+//! as CSV, and diagnosed from the CSV alone; the verdict is checked against the truth.
+
+use std::process::Command;
+
+use compgate::diagnose::synth::{generate, SynthSpec};
+use compgate::diagnose::{diagnose, EffectKind, Options};
+use compgate::measure::Measurements;
+
+fn spec(seed: u64, effects: Vec<EffectKind>, noise_um: f64, snr: f64) -> SynthSpec {
+    SynthSpec {
+        seed,
+        rows: 900,
+        effects,
+        noise_um,
+        snr,
+        laser: seed % 3 == 2,
+        noise_ar1: if seed % 4 == 3 { 0.5 } else { 0.0 },
+    }
+}
+
+/// Only the CSV text crosses over to the diagnosis.
+fn via_csv(m: &Measurements) -> Measurements {
+    let mut buf = Vec::new();
+    m.write(&mut buf).expect("write");
+    Measurements::read(buf.as_slice()).expect("read")
+}
+
+fn opts() -> Options {
+    Options {
+        sensors: Some(vec!["a".into(), "b".into()]),
+        ..Default::default()
+    }
+}
+
+fn top1(m: &Measurements) -> String {
+    let d = diagnose(&via_csv(m), &opts()).expect("diagnose");
+    d.effects
+        .first()
+        .map_or("none".to_string(), |e| e.name.to_string())
+}
+
+#[test]
+fn each_hidden_effect_is_named_at_several_noise_levels() {
+    let mut wrong = Vec::new();
+    let mut total = 0;
+    for kind in EffectKind::ALL {
+        for seed in 0..10u64 {
+            let noise = [0.2, 0.5, 1.5][(seed % 3) as usize];
+            let snr = [3.0, 6.0][(seed % 2) as usize];
+            let (m, _) = generate(&spec(100 + seed * 13 + kind as u64, vec![kind], noise, snr));
+            total += 1;
+            let got = top1(&m);
+            if got != kind.name() {
+                wrong.push(format!("{} seed {seed}: {got}", kind.name()));
+            }
+        }
+    }
+    // At least 95 % right.
+    assert!(
+        wrong.len() * 20 <= total,
+        "{} of {total} wrong: {wrong:?}",
+        wrong.len()
+    );
+}
+
+#[test]
+fn null_data_gives_no_effect() {
+    let mut fp = Vec::new();
+    for seed in 0..20u64 {
+        let (m, _) = generate(&spec(
+            700 + seed,
+            vec![],
+            [0.2, 0.5, 1.5][(seed % 3) as usize],
+            0.0,
+        ));
+        let got = top1(&m);
+        if got != "none" {
+            fp.push(format!("seed {seed}: {got}"));
+        }
+    }
+    // At most 5 % false positives: one in twenty.
+    assert!(fp.len() <= 1, "{fp:?}");
+}
+
+#[test]
+fn two_hidden_effects_are_found_one_after_the_other() {
+    let pairs = [
+        (EffectKind::Reversal, EffectKind::ThermalLag),
+        (EffectKind::PitchPeriodic, EffectKind::ExtraSensor),
+        (EffectKind::NonlinearPosition, EffectKind::MotionHeating),
+        (EffectKind::Reversal, EffectKind::PitchPeriodic),
+    ];
+    for (i, (a, b)) in pairs.into_iter().enumerate() {
+        let (m, _) = generate(&spec(900 + i as u64, vec![a, b], 0.5, 6.0));
+        let d = diagnose(&via_csv(&m), &opts()).expect("diagnose");
+        let names: Vec<&str> = d.effects.iter().map(|e| e.name).collect();
+        assert!(
+            names.len() == 2 && names.contains(&a.name()) && names.contains(&b.name()),
+            "{a} + {b}: {}",
+            d.verdict
+        );
+        assert!(d.final_gap.rms_um < 0.7, "{}", d.verdict);
+    }
+}
+
+#[test]
+fn recovered_parameters_are_close() {
+    for (kind, key) in [
+        (EffectKind::ThermalLag, "tau_s"),
+        (EffectKind::MotionHeating, "tau_s"),
+        (EffectKind::PitchPeriodic, "period_mm"),
+        (EffectKind::Reversal, "b_um"),
+    ] {
+        let (m, truth) = generate(&spec(50 + kind as u64, vec![kind], 0.5, 6.0));
+        let d = diagnose(&via_csv(&m), &opts()).expect("diagnose");
+        let e = d.effects.first().expect("an effect");
+        assert_eq!(e.name, kind.name());
+        let got = e.params[key].as_f64().expect("number");
+        let want = truth.effects[0].1;
+        assert!(
+            ((got - want) / want).abs() < 0.15,
+            "{kind} {key}: {got} vs {want}"
+        );
+    }
+}
+
+#[test]
+fn cli_writes_json_plots_report_and_a_model_that_reproduces_the_fit() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (m, truth) = generate(&spec(4242, vec![EffectKind::ThermalLag], 0.5, 6.0));
+    let csv = dir.path().join("data.csv");
+    let mut buf = Vec::new();
+    m.write(&mut buf).expect("write");
+    // An extra column is reported and ignored.
+    let text = String::from_utf8(buf).expect("utf8");
+    let text: String = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| {
+            if i == 0 {
+                format!("{l},operator\n")
+            } else {
+                format!("{l},x\n")
+            }
+        })
+        .collect();
+    std::fs::write(&csv, text).expect("csv");
+    let out = dir.path().join("out");
+    let json = dir.path().join("result.json");
+    let exe = env!("CARGO_BIN_EXE_compgate");
+    let run = Command::new(exe)
+        .args(["diagnose", "--data"])
+        .arg(&csv)
+        .args(["--sensors", "a,b", "--out"])
+        .arg(&out)
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .expect("run");
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "{stdout} {}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    assert!(stdout.contains("ignored columns: operator"), "{stdout}");
+    assert!(stdout.contains("verdict: missing: thermal_lag"), "{stdout}");
+
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("parse");
+    let base = v["baseline"]["rms_um"].as_f64().expect("baseline");
+    let fin = v["final"]["rms_um"].as_f64().expect("final");
+    assert!(v["baseline"]["max_abs_um"].as_f64().is_some());
+    let e = &v["effects"][0];
+    assert_eq!(e["name"], "thermal_lag");
+    assert_eq!(e["params"]["sensor"], "a");
+    let tau = e["params"]["tau_s"].as_f64().expect("tau");
+    assert!((tau / truth.effects[0].1 - 1.0).abs() < 0.15, "{tau}");
+    assert!(
+        e["rms_before_um"].as_f64().expect("before") > e["rms_after_um"].as_f64().expect("after")
+    );
+    assert!(fin < 0.7 * base, "{fin} vs {base}");
+
+    for f in [
+        "residual_time.svg",
+        "residual_position.svg",
+        "residual_direction.svg",
+    ] {
+        let svg = std::fs::read_to_string(out.join(f)).expect("svg");
+        assert!(svg.contains("<svg") && svg.contains("<circle"), "{f}");
+    }
+    let html = std::fs::read_to_string(out.join("report.html")).expect("html");
+    assert_eq!(html.matches("<svg").count(), 3);
+    assert!(!html.contains("src=\""), "self-contained");
+
+    // The written model, given back as the simulation, predicts the data as well as
+    // the final fit did.
+    let again = Command::new(exe)
+        .args(["diagnose", "--data"])
+        .arg(&csv)
+        .args(["--sensors", "a,b", "--model"])
+        .arg(out.join("model.toml"))
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .expect("run");
+    assert!(
+        again.status.success(),
+        "{}",
+        String::from_utf8_lossy(&again.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("parse");
+    let gap = v["model_gap"]["rms_um"].as_f64().expect("model gap");
+    assert!((gap - fin).abs() < 0.02 * fin + 1e-3, "{gap} vs {fin}");
+}
+
+#[test]
+fn bad_input_names_the_thing_at_fault() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let csv = dir.path().join("d.csv");
+    std::fs::write(&csv, "t_s,pos_mm,err_um,T_a\n0,0,1,20\n1,x,1,20\n").expect("csv");
+    let exe = env!("CARGO_BIN_EXE_compgate");
+    let run = Command::new(exe)
+        .args(["diagnose", "--data"])
+        .arg(&csv)
+        .output()
+        .expect("run");
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success());
+    assert!(
+        err.contains("d.csv") && err.contains("line 3, column `pos_mm`"),
+        "{err}"
+    );
+
+    let (m, _) = generate(&spec(1, vec![], 0.5, 0.0));
+    let opts = Options {
+        sensors: Some(vec!["nope".into()]),
+        ..Default::default()
+    };
+    let e = diagnose(&m, &opts).expect_err("unknown sensor");
+    assert!(e.to_string().contains("T_nope"), "{e}");
+
+    let model = dir.path().join("m.toml");
+    std::fs::write(&model, "p0_mm = 0\n[k0]\noffset_mm = 0\nbogus = 1\n").expect("model");
+    let e = compgate::diagnose::ModelFile::read_path(&model).expect_err("unknown key");
+    assert!(
+        e.to_string().contains("m.toml") && e.to_string().contains("bogus"),
+        "{e}"
+    );
+}
