@@ -9,6 +9,7 @@
 //! ```text
 //!  interpolator --x_cmd--> position loop (closed on the SCALE, no feedforward)
 //!                                   v_motor = Kv * (x_cmd - table)
+//!                                   (or on the encoder: Feedback::Encoder)
 //!  motor  m  (motor encoder)        m += v_motor * dt
 //!  nut    n  backlash:              |m - n| <= backlash / 2   (the nut stands still
 //!                                   while the motor crosses the gap)
@@ -63,6 +64,21 @@ pub struct AxisParams {
     pub seed: u64,
     /// Position of motor and table at start, mm.
     pub start_mm: f64,
+    /// Which measuring system closes the position loop.
+    pub feedback: Feedback,
+}
+
+/// The measuring system the position loop is closed on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Feedback {
+    /// Full closed loop: the linear scale. The table settles on the target and the
+    /// backlash shows only between encoder and scale.
+    #[default]
+    Scale,
+    /// Semi-closed loop: the motor encoder. The motor settles on the target and the
+    /// table stops half the gap short of it, on the side it came from: the reversal
+    /// error a laser interferometer sees in an ISO 230-2 test.
+    Encoder,
 }
 
 impl Default for AxisParams {
@@ -80,6 +96,7 @@ impl Default for AxisParams {
             servo_cycle_s: 0.001,
             seed: 1,
             start_mm: 0.0,
+            feedback: Feedback::Scale,
         }
     }
 }
@@ -628,11 +645,16 @@ impl ServoSim {
         let p = &self.params;
         let dt = p.servo_cycle_s;
         let (kv, half_gap, tau) = (p.kv_per_s, 0.5 * p.backlash_mm, p.elastic_tau_s);
+        let feedback = p.feedback;
         let (x_cmd, _v_cmd) = self.interpolate(dt);
-        // Position loop closed on the table (scale), proportional, no feedforward:
-        // with Kv * tau < 1/4 the loop is overdamped and never overshoots, so every
-        // target is approached from the side the move came from.
-        let v_motor = kv * (x_cmd - self.table_mm);
+        // Position loop, proportional, no feedforward: with Kv * tau < 1/4 the loop is
+        // overdamped and never overshoots, so every target is approached from the side
+        // the move came from.
+        let actual_mm = match feedback {
+            Feedback::Scale => self.table_mm,
+            Feedback::Encoder => self.motor_mm,
+        };
+        let v_motor = kv * (x_cmd - actual_mm);
         self.motor_mm += v_motor * dt;
         // Backlash: the nut follows the motor only once the gap is taken up.
         self.nut_mm = self

@@ -290,3 +290,78 @@ async fn md32450_write_refused_by_the_nc_is_reported() {
     assert!(dir.path().join("backlash_X1.svg").exists());
     shutdown.cancel();
 }
+
+/// ISO 230-2 on the same axis run semi-closed-loop (loop on the motor encoder), with
+/// the scale as the laser interferometer on the table: 5 bidirectional runs over
+/// irregularly spaced targets, each reading the mean of 0.2 s at standstill.
+fn iso230_semi_closed(backlash_um: f64, noise_um: f64, seed: u64) -> crate::iso230::Iso230 {
+    use compgate_plc::axis::{Feedback, MoveStep};
+    let mut sim = ServoSim::new(AxisParams {
+        backlash_mm: backlash_um / 1000.0,
+        encoder_noise_mm: noise_um / 1000.0,
+        scale_noise_mm: noise_um / 1000.0,
+        feedback: Feedback::Encoder,
+        seed,
+        ..AxisParams::default()
+    });
+    let targets_mm = [10.0, 34.7, 61.3, 84.9, 110.6];
+    let overtravel_mm = 5.0;
+    let (mut pos, mut dir, mut err) = (Vec::new(), Vec::new(), Vec::new());
+    let go = |sim: &mut ServoSim, target_mm: f64| {
+        let step = MoveStep {
+            target_mm,
+            feed_mm_per_min: 1000.0,
+            dwell_s: 0.5,
+        };
+        sim.start_program(&[step]).unwrap();
+        sim.run_until_idle(60.0);
+    };
+    for _run in 0..5 {
+        for (d, order) in [(1i8, [0, 1, 2, 3, 4]), (-1, [4, 3, 2, 1, 0])] {
+            go(
+                &mut sim,
+                targets_mm[order[0]] - f64::from(d) * overtravel_mm,
+            );
+            for &i in &order {
+                go(&mut sim, targets_mm[i]);
+                let mut sum_mm = 0.0;
+                for _ in 0..200 {
+                    sim.step();
+                    sum_mm += sim.scale_mm();
+                }
+                pos.push(targets_mm[i]);
+                dir.push(d);
+                err.push((sum_mm / 200.0 - targets_mm[i]) * 1000.0);
+            }
+        }
+    }
+    crate::iso230::evaluate(&pos, &dir, &err).unwrap()
+}
+
+#[test]
+fn iso230_reversal_value_agrees_with_f1_f2() {
+    for (backlash_um, seed) in [(5.0, 1), (20.0, 2), (45.0, 3)] {
+        let (trace, _) = simulate(backlash_um, 0.3, 8.0, seed);
+        let f = measure(&trace, Extraction::Plateau);
+        let iso = iso230_semi_closed(backlash_um, 0.3, seed);
+        let tol_um = tolerance_mm(backlash_um / 1000.0) * 1000.0;
+        eprintln!(
+            "backlash {backlash_um} um: F1 {:.3} F2 {:.3} um; ISO 230-2 B {:.3} um, mean B {:.3} um",
+            f.f1_mm * 1000.0,
+            f.f2_mm * 1000.0,
+            iso.b_um,
+            iso.b_mean_um
+        );
+        // The table stops short of each target on the side it came from: B_i < 0.
+        assert!(iso.b_mean_um < 0.0, "{iso:?}");
+        for f_mm in [f.f1_mm, f.f2_mm] {
+            assert!(
+                (iso.b_um - f_mm * 1000.0).abs() <= tol_um,
+                "B {} um against F {} um",
+                iso.b_um,
+                f_mm * 1000.0
+            );
+            assert!((iso.b_mean_um.abs() - f_mm * 1000.0).abs() <= tol_um);
+        }
+    }
+}
