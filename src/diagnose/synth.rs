@@ -65,7 +65,7 @@ pub fn generate(spec: &SynthSpec) -> (Measurements, Truth) {
         let mut pos = 0.0;
         let mut k = 0usize;
         while t_s.len() < n {
-            let fwd = k % 2 == 0;
+            let fwd = k.is_multiple_of(2);
             let mut extra = if k > 0 {
                 rng.random_range(0.0..2000.0) * gap_s / 600.0
             } else {

@@ -155,7 +155,7 @@ impl RecordSender {
             Err(TrySendError::Full(_)) => {
                 let n = self.stats.dropped_queue.fetch_add(1, Ordering::Relaxed) + 1;
                 // Log the first drop and then every 1000th, not every one.
-                if n == 1 || n % 1000 == 0 {
+                if n == 1 || n.is_multiple_of(1000) {
                     tracing::warn!(dropped = n, "recorder queue full: records dropped");
                 }
             }
@@ -400,7 +400,7 @@ impl Writer {
             Err(e) => {
                 self.stats.dropped_write.fetch_add(n, Ordering::Relaxed);
                 let failed = self.stats.failed_commits.fetch_add(1, Ordering::Relaxed) + 1;
-                if failed == 1 || failed % 100 == 0 {
+                if failed == 1 || failed.is_multiple_of(100) {
                     tracing::error!(error = %e, records = n, failed_commits = failed, "recorder commit failed: batch dropped, the gateway carries on");
                 }
             }

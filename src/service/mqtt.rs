@@ -302,7 +302,7 @@ async fn session(
             _ = tick.tick() => {
                 ticks += 1;
                 // The cap is enforced every 5 s; acknowledged rows go every tick.
-                if !acked.is_empty() || ticks % 50 == 0 {
+                if !acked.is_empty() || ticks.is_multiple_of(50) {
                     let dropped = delete(db, std::mem::take(&mut acked), cfg.outbox_max_messages).await?;
                     if dropped > 0 {
                         *dropped_total += dropped;
