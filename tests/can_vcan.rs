@@ -297,7 +297,7 @@ async fn node_to_nc_then_silence_recovery_emcy_and_sdo_abort() {
         "CAN e2e: mean SYNC period {:.1} ms (poll_interval_s = 0.1)",
         mean_s * 1e3
     );
-    assert!((0.09..0.2).contains(&mean_s), "SYNC period {mean_s} s");
+    assert!((0.09..0.3).contains(&mean_s), "SYNC period {mean_s} s");
 }
 
 /// Runs everywhere: without the interface (or without CAN in the kernel) the poller

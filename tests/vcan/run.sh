@@ -67,6 +67,11 @@ mkdir -p "$WORK"
 if [[ $SMOKE -eq 0 && -e /sys/class/net/vcan0 ]]; then
     echo "vcan: vcan0 exists, running natively"
     ip link set up vcan0 2>/dev/null || true
+    # The e2e test drives can-utils (cansend, candump, cangen) as a third-party peer.
+    if ! command -v cansend >/dev/null; then
+        { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq can-utils; } \
+            >"$WORK.apt.log" 2>&1 || skip_or_fail "could not install can-utils (see target/vcan.apt.log)"
+    fi
     rc=0
     build_tests
     for exe in $(cat "$WORK/tests.txt"); do
