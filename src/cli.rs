@@ -68,5 +68,9 @@ pub enum Command {
         /// Alternating rounds of gateway and bare measurements.
         #[arg(long, default_value_t = 5)]
         rounds: u32,
+        /// Instead: soak the real gateway process for this many seconds (8 devices x
+        /// 64 channels at 10 Hz, recording, metrics and MQTT on) and report CPU and RSS.
+        #[arg(long)]
+        soak: Option<f64>,
     },
 }

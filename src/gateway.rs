@@ -802,8 +802,14 @@ impl Running {
                 d.last_error = None;
             }
         }
-        for (cs, p) in status.channels.iter_mut().zip(&self.pipeline.processors) {
-            cs.reading = p.last().clone();
+        // Only this sample's channels changed (512 channels on 8 devices: 8x less work).
+        for (ch, _) in &sample.values {
+            if let (Some(cs), Some(p)) = (
+                status.channels.get_mut(*ch),
+                self.pipeline.processors.get(*ch),
+            ) {
+                cs.reading = p.last().clone();
+            }
         }
     }
 

@@ -167,9 +167,22 @@ async fn main() -> ExitCode {
             compgate::diagnose::command::run(&args).map_err(|e| e.to_string())
         }
         Command::Bench {
+            soak: Some(seconds),
+            ..
+        } => match tokio::task::spawn_blocking(move || compgate::service::soak::run(seconds)).await
+        {
+            Ok(Ok(report)) => {
+                print!("{report}");
+                Ok(())
+            }
+            Ok(Err(e)) => Err(e),
+            Err(e) => Err(e.to_string()),
+        },
+        Command::Bench {
             channels,
             cycles,
             rounds,
+            soak: None,
         } => match bench::run(channels, cycles, rounds).await {
             Ok(report) => {
                 print!("{}", report.table());

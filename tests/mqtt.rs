@@ -27,6 +27,7 @@ async fn plant_and_file(dir: &Path, broker_port: u16) -> (Plant, std::path::Path
     (plant, path)
 }
 
+/// Times of the readings messages on `topic` that carry channel `T_bed`.
 fn times(got: &Received, topic: &str) -> Vec<i64> {
     let mut t: Vec<i64> = got
         .lock()
@@ -68,22 +69,35 @@ async fn readings_writes_and_health_survive_a_broker_outage() {
         let got = got.clone();
         move || got.lock().unwrap().iter().any(|(t, _)| t == topic)
     };
-    wait_until(10.0, "a reading", has("compgate/mill-7/readings/T_bed")).await;
+    wait_until(10.0, "a reading", has("compgate/mill-7/readings/ain1")).await;
     wait_until(10.0, "a write", has("compgate/mill-7/writes/X")).await;
-    wait_until(10.0, "health", has("compgate/mill-7/health")).await;
+    let g2 = got.clone();
+    wait_until(10.0, "health with the link up", move || {
+        g2.lock()
+            .unwrap()
+            .iter()
+            .any(|(t, v)| t == "compgate/mill-7/health" && v["devices"][0]["link"] == "up")
+    })
+    .await;
     {
         let g = got.lock().unwrap();
-        let reading = &g
+        let msg = &g
             .iter()
-            .find(|(t, _)| t == "compgate/mill-7/readings/T_bed")
+            .find(|(t, _)| t == "compgate/mill-7/readings/ain1")
             .unwrap()
             .1;
+        assert!(
+            msg["t_unix_ms"].as_i64().unwrap() > 1_700_000_000_000,
+            "{msg}"
+        );
+        let chans = msg["channels"].as_array().unwrap();
+        assert_eq!(chans.len(), 3, "{msg}");
+        let reading = chans.iter().find(|c| c["channel"] == "T_bed").unwrap();
         assert_eq!(reading["quality"], "good", "{reading}");
         assert!(
             (reading["value_degc"].as_f64().unwrap() - 30.0).abs() < 0.1,
             "{reading}"
         );
-        assert!(reading["t_unix_ms"].as_i64().unwrap() > 1_700_000_000_000);
         let write = &g
             .iter()
             .find(|(t, _)| t == "compgate/mill-7/writes/X")
@@ -97,6 +111,7 @@ async fn readings_writes_and_health_survive_a_broker_outage() {
         );
         let health = &g
             .iter()
+            .rev()
             .find(|(t, _)| t == "compgate/mill-7/health")
             .unwrap()
             .1;
@@ -115,7 +130,7 @@ async fn readings_writes_and_health_survive_a_broker_outage() {
     tokio::task::block_in_place(|| broker.restart());
 
     // Everything recorded during the outage arrives afterwards, in order.
-    let topic = "compgate/mill-7/readings/T_bed";
+    let topic = "compgate/mill-7/readings/ain1";
     wait_until(15.0, "the backlog", || {
         times(&got, topic).last().is_some_and(|t| *t > up_ms + 500)
     })

@@ -4,6 +4,7 @@
 pub mod metrics;
 pub mod mqtt;
 pub mod notify;
+pub mod soak;
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};

@@ -12,11 +12,12 @@
 //!
 //! | topic | when | payload |
 //! |---|---|---|
-//! | `P/M/readings/<channel>` | every `publish_interval_s` per channel | `{"t_unix_ms", "channel", "value_degc", "unfiltered_degc", "raw", "quality", "reason"}` |
+//! | `P/M/readings/<device>` | every `publish_interval_s` per device | `{"t_unix_ms", "device", "channels": [{"channel", "value_degc", "unfiltered_degc", "raw", "quality", "reason"}]}` |
 //! | `P/M/writes/<axis>` | every NC job | `{"t_unix_ms", "axis", "sd43900_mm", "sd43910", "sd43920_mm", "ok", "job_id", "elapsed_ms", "error", "quality"}` |
 //! | `P/M/health` | every `publish_interval_s` | `{"t_unix_ms", "quality", "devices": [{"name", "link", "failed_cycles", "last_error"}], "axes": [{"name", "sd43900_mm", "sd43910", "sd43920_mm", "jobs_ok", "jobs_failed", "warning"}]}` |
 //!
-//! `quality` is `good`, `uncertain` or `bad`: a reading's own quality; `good`/`bad` for
+//! One readings message carries a whole poll cycle of a device (64 channels are one
+//! message, not 64). `quality` is `good`, `uncertain` or `bad`: a reading's own quality; `good`/`bad` for
 //! a job's result; for health `good` when every link is up and no axis has a warning,
 //! else `uncertain`.
 
@@ -51,8 +52,11 @@ pub struct MqttObserver {
     base: String,
     interval: Duration,
     tx: RecordSender,
+    /// Per device index: last readings message.
     last_reading: HashMap<usize, Instant>,
     last_health: Option<Instant>,
+    /// Device names by index, from the status.
+    devices: Vec<String>,
 }
 
 impl MqttObserver {
@@ -64,6 +68,7 @@ impl MqttObserver {
             tx,
             last_reading: HashMap::new(),
             last_health: None,
+            devices: Vec::new(),
         }
     }
 
@@ -75,34 +80,41 @@ impl MqttObserver {
 impl Observer for MqttObserver {
     fn on_sample(&mut self, sample: &DeviceSample, pipeline: &Pipeline) {
         let now = Instant::now();
-        let t_unix_ms = now_unix_ms();
-        for (ch, _) in &sample.values {
-            if !Self::due(self.last_reading.get(ch), self.interval, now) {
-                continue;
-            }
-            let (Some(name), Some(p)) = (
-                pipeline.channel_names.get(*ch),
-                pipeline.processors.get(*ch),
-            ) else {
-                continue;
-            };
-            self.last_reading.insert(*ch, now);
-            let r = p.last();
-            let (q, reason) = quality_code(&r.quality);
-            let payload = json!({
-                "t_unix_ms": t_unix_ms,
-                "channel": name,
-                "value_degc": r.value_degc,
-                "unfiltered_degc": r.unfiltered_degc,
-                "raw": r.raw,
-                "quality": quality_word(q),
-                "reason": reason,
-            });
-            self.tx.send(Record::Outbox {
-                topic: format!("{}/readings/{name}", self.base),
-                payload: payload.to_string(),
-            });
+        if !Self::due(self.last_reading.get(&sample.device), self.interval, now) {
+            return;
         }
+        self.last_reading.insert(sample.device, now);
+        let device = self
+            .devices
+            .get(sample.device)
+            .cloned()
+            .unwrap_or_else(|| format!("device{}", sample.device));
+        let channels: Vec<serde_json::Value> = sample
+            .values
+            .iter()
+            .filter_map(|(ch, _)| {
+                let name = pipeline.channel_names.get(*ch)?;
+                let r = pipeline.processors.get(*ch)?.last();
+                let (q, reason) = quality_code(&r.quality);
+                Some(json!({
+                    "channel": name,
+                    "value_degc": r.value_degc,
+                    "unfiltered_degc": r.unfiltered_degc,
+                    "raw": r.raw,
+                    "quality": quality_word(q),
+                    "reason": reason,
+                }))
+            })
+            .collect();
+        let payload = json!({
+            "t_unix_ms": now_unix_ms(),
+            "device": device,
+            "channels": channels,
+        });
+        self.tx.send(Record::Outbox {
+            topic: format!("{}/readings/{device}", self.base),
+            payload: payload.to_string(),
+        });
     }
 
     fn on_job(&mut self, axis: &str, params: &CompParams, result: &Result<JobReport, NcError>) {
@@ -125,6 +137,9 @@ impl Observer for MqttObserver {
     }
 
     fn on_status(&mut self, status: &Status) {
+        if self.devices.len() != status.devices.len() {
+            self.devices = status.devices.iter().map(|d| d.name.clone()).collect();
+        }
         let now = Instant::now();
         if !Self::due(self.last_health.as_ref(), self.interval, now) {
             return;
@@ -161,8 +176,9 @@ impl Observer for MqttObserver {
     }
 
     fn on_reload(&mut self, _result: &Result<(), String>) {
-        // Channel indices may have moved.
+        // Device indices may have moved.
         self.last_reading.clear();
+        self.devices.clear();
     }
 }
 

@@ -11,8 +11,9 @@ use std::time::Duration;
 
 use tokio::net::TcpStream;
 use tokio::time::Instant;
-use tokio_modbus::client::{rtu, tcp, Context, Reader, Writer};
+use tokio_modbus::client::{rtu, tcp, Client, Context, Writer};
 use tokio_modbus::prelude::SlaveContext;
+use tokio_modbus::prelude::{Request, Response};
 use tokio_modbus::{ExceptionCode, Slave};
 use tokio_serial::SerialPort;
 
@@ -251,9 +252,25 @@ impl ModbusLink {
         count: u16,
     ) -> Result<Vec<u16>, SourceError> {
         let regs = self
-            .call(unit, move |ctx| match kind {
-                RegisterKind::Input => Box::pin(ctx.read_input_registers(start, count)),
-                RegisterKind::Holding => Box::pin(ctx.read_holding_registers(start, count)),
+            .call(unit, move |ctx| {
+                // Not `read_input_registers`/`read_holding_registers`: they
+                // debug-assert the register count, which a malformed reply (wrong byte
+                // count on RTU) breaks with a panic. The count is checked below.
+                let request = match kind {
+                    RegisterKind::Input => Request::ReadInputRegisters(start, count),
+                    RegisterKind::Holding => Request::ReadHoldingRegisters(start, count),
+                };
+                Box::pin(async move {
+                    ctx.call(request).await.map(|r| {
+                        r.map(|response| match response {
+                            Response::ReadInputRegisters(w) | Response::ReadHoldingRegisters(w) => {
+                                w
+                            }
+                            // Any other reply is out of step: the count check rejects it.
+                            _ => Vec::new(),
+                        })
+                    })
+                })
             })
             .await?;
         if regs.len() != usize::from(count) {

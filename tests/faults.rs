@@ -1,0 +1,447 @@
+//! The fault catalogue with real processes and sockets (the README's fault table).
+//! Timeouts, exception responses, dropped connections and rejected NC jobs are in
+//! `tests/gateway.rs`; a bad config on SIGHUP in `tests/service.rs`; a full disk in
+//! `tests/record.rs`; the broker down in `tests/mqtt.rs`.
+
+// Test helpers: a panic with the message is the wanted failure.
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use common::process::Gateway;
+use common::proxy::Proxy;
+use common::{config, COUNT_DEGC};
+use compgate::channel::Quality;
+use compgate::config as cfgmod;
+use compgate::gateway::{self, Status};
+use compgate::plant::{Bind, Plant};
+use compgate_plc::nc::NcAxisModule;
+use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
+
+fn q(s: &Status, ch: &str) -> Quality {
+    s.channels
+        .iter()
+        .find(|c| c.name == ch)
+        .expect("channel")
+        .reading
+        .quality
+}
+
+/// The gateway in-process on `cfg`; returns its status and a stopper.
+fn run_gateway(
+    cfg: cfgmod::Config,
+) -> (
+    watch::Receiver<Status>,
+    CancellationToken,
+    tokio::task::JoinHandle<()>,
+) {
+    let (tx, rx) = watch::channel(Status::default());
+    let shutdown = CancellationToken::new();
+    let sd = shutdown.clone();
+    let h = tokio::spawn(async move {
+        gateway::run(&cfg, sd, tx).await.expect("gateway runs");
+    });
+    (rx, shutdown, h)
+}
+
+async fn wait(
+    rx: &watch::Receiver<Status>,
+    secs: f64,
+    what: &str,
+    pred: impl Fn(&Status) -> bool,
+) -> Status {
+    let mut rx2 = rx.clone();
+    let got = tokio::time::timeout(
+        Duration::from_secs_f64(secs),
+        rx2.wait_for(|s| !s.channels.is_empty() && pred(s)),
+    )
+    .await
+    .map(|s| s.expect("status").clone());
+    match got {
+        Ok(s) => s,
+        Err(_) => panic!(
+            "timed out waiting for {what}: {}",
+            compgate::status::render(&rx.borrow())
+        ),
+    }
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// Watches the NC's SD43900 every 2 ms and keeps every distinct value, in order.
+fn watch_nc(nc: NcAxisModule, stop: CancellationToken) -> Arc<Mutex<Vec<f64>>> {
+    let seen = Arc::new(Mutex::new(vec![nc.state().sd43900_mm]));
+    let s = seen.clone();
+    tokio::spawn(async move {
+        while !stop.is_cancelled() {
+            let v = nc.state().sd43900_mm;
+            {
+                let mut s = s.lock().unwrap();
+                if s.last() != Some(&v) {
+                    s.push(v);
+                }
+            }
+            tokio::time::sleep(Duration::from_millis(2)).await;
+        }
+    });
+    seen
+}
+
+fn max_jump(values: &[f64]) -> f64 {
+    values
+        .windows(2)
+        .map(|w| (w[1] - w[0]).abs())
+        .fold(0.0, f64::max)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn modbus_server_process_killed_and_restarted() {
+    // The field module runs as its own process (`compgate sim`) on a fixed port.
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let mut field_cfg = cfgmod::load_str(&config("hold", "", ""), "test.toml").unwrap();
+    field_cfg.nc_modules.clear();
+    field_cfg.axes.clear();
+    if let Some(sim) = field_cfg.sim.as_mut() {
+        sim.nc_modules.clear();
+    }
+    field_cfg.devices.get_mut("ain1").unwrap().address = Some(format!("127.0.0.1:{port}"));
+    let field_path = dir.path().join("field.toml");
+    std::fs::write(&field_path, toml::to_string(&field_cfg).unwrap()).unwrap();
+    let start_sim = || {
+        let mut child = std::process::Command::new(common::process::BIN)
+            .args(["sim", "--config"])
+            .arg(&field_path)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        for _ in 0..200 {
+            if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
+                return child;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let _ = child.kill();
+        let _ = child.wait();
+        panic!("compgate sim did not listen");
+    };
+    let mut sim = tokio::task::block_in_place(start_sim);
+
+    // The NC from an in-process plant; the gateway reads the field module process.
+    let plant = Plant::start(
+        &cfgmod::load_str(&config("hold", "", ""), "t.toml").unwrap(),
+        Bind::Ephemeral,
+    )
+    .await
+    .unwrap();
+    let mut cfg = plant.config.clone();
+    cfg.devices.get_mut("ain1").unwrap().address = Some(format!("127.0.0.1:{port}"));
+    let (rx, shutdown, h) = run_gateway(cfg);
+    wait(&rx, 10.0, "first job", |s| s.axes[0].jobs_ok >= 1).await;
+    let jobs = plant.nc["nc_x"].jobs_executed();
+    let sd = plant.nc["nc_x"].state().sd43900_mm;
+
+    sim.kill().unwrap();
+    sim.wait().unwrap();
+    let s = wait(&rx, 10.0, "channels bad, axis holding", |s| {
+        matches!(q(s, "T_bed"), Quality::Bad(_)) && s.axes[0].decision.starts_with("hold")
+    })
+    .await;
+    assert!(
+        s.devices[0]
+            .errors
+            .keys()
+            .any(|k| *k == "connect" || *k == "transport" || *k == "backoff"),
+        "{:?}",
+        s.devices[0].errors
+    );
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert_eq!(
+        plant.nc["nc_x"].jobs_executed(),
+        jobs,
+        "no job from dead inputs"
+    );
+    assert_eq!(plant.nc["nc_x"].state().sd43900_mm, sd);
+
+    let mut sim = tokio::task::block_in_place(start_sim);
+    let s = wait(&rx, 10.0, "reconnected and good", |s| {
+        q(s, "T_bed") == Quality::Good && s.devices[0].connects >= 2
+    })
+    .await;
+    let v = s
+        .channels
+        .iter()
+        .find(|c| c.name == "T_bed")
+        .unwrap()
+        .reading
+        .value_degc
+        .unwrap();
+    assert!((v - 30.0).abs() <= COUNT_DEGC, "{v}");
+    shutdown.cancel();
+    h.await.unwrap();
+    let _ = sim.kill();
+    let _ = sim.wait();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nc_unreachable_while_temperatures_change() {
+    let toml = config("hold", "", "").replace("max_step_k0_mm = 0.5", "max_step_k0_mm = 0.01");
+    let plant = Plant::start(&cfgmod::load_str(&toml, "t.toml").unwrap(), Bind::Ephemeral)
+        .await
+        .unwrap();
+    let nc = plant.nc["nc_x"].clone();
+    let proxy = Proxy::start(plant.config.nc_modules["nc_x"].address.clone()).await;
+    let mut cfg = plant.config.clone();
+    cfg.nc_modules.get_mut("nc_x").unwrap().address = proxy.addr.to_string();
+    let stop_watch = CancellationToken::new();
+    let seen = watch_nc(nc.clone(), stop_watch.clone());
+    let (rx, shutdown, h) = run_gateway(cfg);
+    wait(&rx, 10.0, "ramped to 0.04", |s| {
+        s.axes[0]
+            .written
+            .is_some_and(|p| (p.k0_mm - 0.04).abs() < 0.001)
+    })
+    .await;
+
+    proxy.cut();
+    let jobs = nc.jobs_executed();
+    plant.field["ain1"]
+        .set_temperature_override(plant.transmitter["T_bed"], Some(40.0))
+        .unwrap();
+    let s = wait(&rx, 10.0, "NC unreachable shown, jobs failing", |s| {
+        s.axes[0]
+            .warning
+            .as_deref()
+            .is_some_and(|w| w.contains("NC unreachable"))
+            && s.axes[0].jobs_failed >= 1
+    })
+    .await;
+    // The temperatures are still followed; nothing reaches the NC; nothing is taken as written.
+    let v = s
+        .channels
+        .iter()
+        .find(|c| c.name == "T_bed")
+        .unwrap()
+        .reading
+        .value_degc
+        .unwrap();
+    assert!((v - 40.0).abs() <= COUNT_DEGC);
+    assert_eq!(nc.jobs_executed(), jobs);
+    assert!((s.axes[0].written.unwrap().k0_mm - nc.state().sd43900_mm).abs() < 1e-12);
+
+    proxy.restore();
+    wait(&rx, 15.0, "caught up with 40 degC", |s| {
+        s.axes[0]
+            .written
+            .is_some_and(|p| (p.k0_mm - 0.08).abs() < 0.001)
+            && s.axes[0].warning.is_none()
+    })
+    .await;
+    stop_watch.cancel();
+    let seen = seen.lock().unwrap().clone();
+    assert!(
+        max_jump(&seen) <= 0.01 + 1e-9,
+        "jump {} in {seen:?}",
+        max_jump(&seen)
+    );
+    assert!(seen.len() >= 8, "ramped in steps: {seen:?}");
+    shutdown.cancel();
+    h.await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn gateway_sigkill_and_restart_reads_the_nc_first_and_never_jumps() {
+    let dir = tempfile::tempdir().unwrap();
+    let toml = config("hold", "", "").replace("max_step_k0_mm = 0.5", "max_step_k0_mm = 0.005");
+    let plant = Plant::start(&cfgmod::load_str(&toml, "t.toml").unwrap(), Bind::Ephemeral)
+        .await
+        .unwrap();
+    plant.field["ain1"]
+        .set_temperature_override(plant.transmitter["T_bed"], Some(60.0))
+        .unwrap();
+    let path = dir.path().join("compgate.toml");
+    std::fs::write(&path, toml::to_string(&plant.config).unwrap()).unwrap();
+    let nc = plant.nc["nc_x"].clone();
+    let stop_watch = CancellationToken::new();
+    let seen = watch_nc(nc.clone(), stop_watch.clone());
+
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| {
+        gw.wait_notify(10.0, "a few steps", |m| m.contains("jobs 5 ok"))
+    });
+    gw.signal("KILL");
+    let _ = gw.child.wait();
+    let held = nc.state().sd43900_mm;
+    assert!(held > 0.02 && held < 0.1, "mid-ramp: {held}");
+    drop(gw);
+
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    let line = tokio::task::block_in_place(|| gw.wait_log(10.0, "NC parameters read at start"));
+    assert!(line.contains(&format!("sd43900_mm={held}")), "{line}");
+    tokio::task::block_in_place(|| {
+        gw.wait_notify(20.0, "the ramp completed", |m| m.contains("SD43900=0.160"))
+    });
+    stop_watch.cancel();
+    let seen = seen.lock().unwrap().clone();
+    assert!(
+        max_jump(&seen) <= 0.005 + 1e-9,
+        "jump {} in {seen:?}",
+        max_jump(&seen)
+    );
+    assert!(seen.contains(&held));
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+}
+
+/// Modbus CRC-16 (poly 0xA001, init 0xFFFF), low byte first on the wire.
+fn crc16(data: &[u8]) -> [u8; 2] {
+    let mut crc: u16 = 0xFFFF;
+    for b in data {
+        crc ^= u16::from(*b);
+        for _ in 0..8 {
+            crc = if crc & 1 != 0 {
+                (crc >> 1) ^ 0xA001
+            } else {
+                crc >> 1
+            };
+        }
+    }
+    crc.to_le_bytes()
+}
+
+fn response(unit: u8, fc: u8, regs: &[u16]) -> Vec<u8> {
+    let mut f = vec![unit, fc, (regs.len() * 2) as u8];
+    for r in regs {
+        f.extend_from_slice(&r.to_be_bytes());
+    }
+    let c = crc16(&f);
+    f.extend_from_slice(&c);
+    f
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn garbage_and_malformed_rtu_frames_never_become_values() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let (mut master, _slave, pty) = compgate_plc::field::pty_pair().unwrap();
+    let toml = config("hold", "", "")
+        .replace(
+            "transport = \"tcp\"\naddress = \"127.0.0.1:0\"",
+            &format!("transport = \"rtu\"\nserial_path = \"{pty}\"\nbaud = 115200\nparity = \"even\"\nstop_bits = 1"),
+        )
+        .replace("connect_timeout_s = 0.5\n", "")
+        .replace("unit_id = 1\ntimeout_s = 0.2", "unit_id = 9\ntimeout_s = 0.2");
+    let cfg = cfgmod::load_str(&toml, "t.toml").unwrap();
+    // The NC from a plant of the TCP variant; the RTU line is served by this test.
+    let plant = Plant::start(
+        &cfgmod::load_str(&config("hold", "", ""), "t.toml").unwrap(),
+        Bind::Ephemeral,
+    )
+    .await
+    .unwrap();
+    let mut cfg = cfg;
+    cfg.nc_modules = plant.config.nc_modules.clone();
+
+    // 1775 counts = 30.04 degC on every channel; the garbage carries 3000 counts (111 degC).
+    const GOOD: u16 = 1775;
+    let mode = Arc::new(std::sync::atomic::AtomicU8::new(0));
+    let m = mode.clone();
+    let server = tokio::spawn(async move {
+        let mut n: u32 = 0;
+        let mut req = [0u8; 8];
+        loop {
+            if master.read_exact(&mut req).await.is_err() {
+                break;
+            }
+            // Resynchronise on a request for our unit (a previous garbage reply may
+            // have left the client mid-frame; requests are always 8 bytes).
+            if req[0] != 9 || crc16(&req[..6]) != [req[6], req[7]] {
+                continue;
+            }
+            let count = usize::from(u16::from_be_bytes([req[4], req[5]]));
+            n += 1;
+            let good = response(9, req[1], &vec![GOOD; count]);
+            let reply = if m.load(std::sync::atomic::Ordering::SeqCst) == 0 {
+                good
+            } else {
+                match n % 5 {
+                    // Bytes that are no frame at all.
+                    0 => vec![0x55, 0xAA, 0x00, 0xFF, 0x13, 0x37, 0x42],
+                    // A frame with a wrong CRC.
+                    1 => {
+                        let mut f = response(9, req[1], &vec![3000; count]);
+                        let l = f.len();
+                        f[l - 1] ^= 0xFF;
+                        f
+                    }
+                    // A truncated frame.
+                    2 => response(9, req[1], &vec![3000; count])[..4].to_vec(),
+                    // A valid frame from another unit.
+                    3 => response(7, req[1], &vec![3000; count]),
+                    // A byte count that does not match the request.
+                    _ => response(9, req[1], &vec![3000; count + 1]),
+                }
+            };
+            if master.write_all(&reply).await.is_err() {
+                break;
+            }
+        }
+    });
+    let (rx, shutdown, h) = run_gateway(cfg);
+    wait(&rx, 10.0, "good over RTU", |s| {
+        q(s, "T_bed") == Quality::Good
+    })
+    .await;
+
+    mode.store(1, std::sync::atomic::Ordering::SeqCst);
+    // Every status during the garbage: any value shown is the true one.
+    let mut watch_rx = rx.clone();
+    let check = tokio::spawn(async move {
+        let mut worst: f64 = 0.0;
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(3);
+        while tokio::time::timeout_at(deadline, watch_rx.changed())
+            .await
+            .is_ok()
+        {
+            let s = watch_rx.borrow_and_update().clone();
+            for c in &s.channels {
+                for v in [c.reading.unfiltered_degc, c.reading.value_degc]
+                    .into_iter()
+                    .flatten()
+                {
+                    worst = worst.max((v - 30.04).abs());
+                }
+            }
+        }
+        worst
+    });
+    let s = wait(&rx, 10.0, "channels no longer good", |s| {
+        !q(s, "T_bed").is_good()
+    })
+    .await;
+    let errors: u64 = s.devices[0].errors.values().sum();
+    assert!(errors >= 1, "{:?}", s.devices[0].errors);
+    let worst = check.await.unwrap();
+    assert!(
+        worst < 0.05,
+        "a garbage value reached a channel: off by {worst} degC"
+    );
+
+    mode.store(0, std::sync::atomic::Ordering::SeqCst);
+    wait(&rx, 10.0, "good again", |s| {
+        q(s, "T_bed") == Quality::Good && q(s, "T_col") == Quality::Good
+    })
+    .await;
+    shutdown.cancel();
+    h.await.unwrap();
+    server.abort();
+}
