@@ -36,7 +36,14 @@ impl Broker {
         let conf = dir.join("mosquitto.conf");
         std::fs::write(
             &conf,
-            format!("listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\n"),
+            // Persistence keeps the test subscriber's session (and the QoS 1 messages
+            // queued for it) across a stop/start, so it misses nothing published
+            // before it reconnects. `user root`: started as root, mosquitto would
+            // otherwise switch to its own user, which cannot write the test's directory.
+            format!(
+                "listener {port} 127.0.0.1\nallow_anonymous true\npersistence true\npersistence_location {}/\nuser root\n",
+                dir.display()
+            ),
         )
         .unwrap();
         let mut b = Broker {
@@ -67,9 +74,12 @@ impl Broker {
         panic!("mosquitto did not listen on port {}", self.port);
     }
 
+    /// SIGTERM: mosquitto saves its persistence file and exits.
     pub fn stop(&mut self) {
         if let Some(mut c) = self.child.take() {
-            let _ = c.kill();
+            let _ = Command::new("kill")
+                .args(["-TERM", &c.id().to_string()])
+                .status();
             let _ = c.wait();
         }
     }
@@ -92,6 +102,7 @@ pub fn subscribe(port: u16, filter: &str) -> (Received, tokio::task::JoinHandle<
     let task = tokio::spawn(async move {
         let mut opts = MqttOptions::new("test-subscriber", "127.0.0.1", port);
         opts.set_keep_alive(Duration::from_secs(5));
+        opts.set_clean_session(false);
         let (client, mut events) = AsyncClient::new(opts, 64);
         loop {
             match events.poll().await {
