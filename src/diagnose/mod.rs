@@ -214,6 +214,9 @@ pub struct Diagnosis {
     pub p0_mm: f64,
     #[serde(skip)]
     pub beta: Vec<f64>,
+    /// Coefficients of the baseline refit alone.
+    #[serde(skip)]
+    pub beta_baseline: Vec<f64>,
     #[serde(skip)]
     pub temp_mean_degc: Vec<f64>,
     #[serde(skip)]
@@ -375,6 +378,7 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
 
     let mut cur = Current::new(&d, d.baseline_columns());
     let r0 = cur.residuals(&d);
+    let beta_baseline: Vec<f64> = cur.gram.solve().beta.iter().copied().collect();
     let baseline = Gap::of(&r0);
     let where_baseline = describe(&d, &r0);
 
@@ -568,6 +572,7 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
         verdict,
         p0_mm: d.p0_mm,
         beta,
+        beta_baseline,
         temp_mean_degc: d.temp_mean_degc.clone(),
         temp_names: d.names.clone(),
         sensor_idx: d.sensors.clone(),

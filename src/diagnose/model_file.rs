@@ -190,9 +190,17 @@ impl ModelFile {
         Ok(out)
     }
 
+    /// The baseline refit alone (K0 and tan(beta) affine in the sensors).
+    pub fn baseline_from_diagnosis(d: &Diagnosis) -> Self {
+        Self::build(d, &d.beta_baseline, &[])
+    }
+
     /// The updated model of a diagnosis: the refitted baseline plus every added effect.
     pub fn from_diagnosis(d: &Diagnosis) -> Self {
-        let b = &d.beta;
+        Self::build(d, &d.beta, &d.effects)
+    }
+
+    fn build(d: &Diagnosis, b: &[f64], effects: &[super::EffectReport]) -> Self {
         let mut mf = ModelFile {
             p0_mm: d.p0_mm,
             k0: K0Model {
@@ -226,7 +234,7 @@ impl ModelFile {
                 b[3 + 2 * j],
             );
         }
-        for e in &d.effects {
+        for e in effects {
             let c = &b[e.cols.0..e.cols.1];
             let p = |k: &str| e.params.get(k).and_then(|v| v.as_f64()).unwrap_or(0.0);
             match e.kind {
@@ -256,8 +264,9 @@ impl ModelFile {
                 }
                 EffectKind::Reversal => mf.effects.push(EffectTerm {
                     name: e.name.into(),
-                    carried_by: "NC backlash compensation MD32450 = |b_um| (sign: + means \
-                                 the axis lags when approaching in +); not applied by the gateway"
+                    carried_by: "NC backlash compensation MD32450 = |b_um| (b_um is the error \
+                                 approaching in + minus the error approaching in -); not applied \
+                                 by the gateway"
                         .into(),
                     params: BTreeMap::from([("b_um".into(), p("b_um"))]),
                 }),

@@ -254,9 +254,13 @@ pub fn write_out(dir: &Path, d: &Diagnosis) -> Result<Vec<PathBuf>, DiagnoseErro
     let model_path = dir.join("model.toml");
     std::fs::write(&model_path, ModelFile::from_diagnosis(d).to_toml()).map_err(io(&model_path))?;
     written.push(model_path);
+    let base_path = dir.join("baseline_model.toml");
+    std::fs::write(&base_path, ModelFile::baseline_from_diagnosis(d).to_toml())
+        .map_err(io(&base_path))?;
+    written.push(base_path);
 
     let s = &d.series;
-    let idx = thin(s.t_s.len(), 6000);
+    let idx = thin(s.t_s.len(), 2000);
     let pick =
         |x: &dyn Fn(usize) -> f64, r: &[f64]| -> Xy { idx.iter().map(|&i| (x(i), r[i])).collect() };
     let t_end = s.t_s.last().copied().unwrap_or(1.0).max(s.t_s[0] + 1e-9);
