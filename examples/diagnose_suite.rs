@@ -28,11 +28,11 @@ fn opts() -> Options {
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
-    // `sample FILE`: one data set with a thermal lag and a reversal, for the README.
+    // `sample FILE [ROWS]`: one data set with a thermal lag and a reversal, for the README.
     if args.get(1).map(String::as_str) == Some("sample") {
         let (m, truth) = generate(&SynthSpec {
             seed: 7,
-            rows: 3000,
+            rows: args.get(3).and_then(|s| s.parse().ok()).unwrap_or(3000),
             effects: vec![EffectKind::ThermalLag, EffectKind::Reversal],
             noise_um: 0.5,
             snr: 6.0,
