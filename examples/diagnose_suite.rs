@@ -13,7 +13,19 @@ use compgate::diagnose::synth::{generate, SynthSpec};
 use compgate::diagnose::{diagnose, EffectKind, Options};
 use compgate::measure::Measurements;
 
+/// Temperature resolution of the transmitters, degC (third argument; 0: none).
+static QUANTUM_DEGC: std::sync::OnceLock<f64> = std::sync::OnceLock::new();
+
 fn roundtrip(m: &Measurements) -> Measurements {
+    let mut m = m.clone();
+    let q = QUANTUM_DEGC.get().copied().unwrap_or(0.0);
+    if q > 0.0 {
+        for c in &mut m.temps {
+            for v in &mut c.degc {
+                *v = (*v / q).round() * q;
+            }
+        }
+    }
     let mut buf = Vec::new();
     m.write(&mut buf).expect("write csv");
     Measurements::read(buf.as_slice()).expect("read csv")
@@ -47,6 +59,7 @@ fn main() {
     }
     let seeds: u64 = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(20);
     let rows: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(3000);
+    let _ = QUANTUM_DEGC.set(args.get(3).and_then(|s| s.parse().ok()).unwrap_or(0.0));
     let noises = [0.3, 1.0];
     let snrs = [3.0, 5.0, 10.0];
 

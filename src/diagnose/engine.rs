@@ -204,12 +204,15 @@ pub struct Evidence {
     pub passes_ic: bool,
     pub passes_cv: bool,
     pub plausible: bool,
+    /// The effect's RMS relative to the residual that remains with it.
+    pub size_ratio: f64,
+    pub passes_size: bool,
 }
 
 impl Evidence {
-    /// All three tests hold.
+    /// Every test holds.
     pub fn passes(&self) -> bool {
-        self.passes_ic && self.passes_cv && self.plausible
+        self.passes_ic && self.passes_cv && self.plausible && self.passes_size
     }
 }
 
@@ -455,6 +458,7 @@ pub fn evaluate(
     let n_eff = (d.n as f64 * (1.0 - rho) / (1.0 + rho)).max(p_total + 2.0);
     let ratio = (sol.rss / cur.rss.max(1e-300)).max(1e-300);
     let delta_ic = n_eff * ratio.ln() + k_add as f64 * n_eff.ln();
+    let size_ratio = ((cur.rss - sol.rss).max(0.0) / sol.rss.max(1e-300)).sqrt();
     let ev = Evidence {
         kind,
         sensor,
@@ -472,6 +476,8 @@ pub fn evaluate(
         passes_ic: delta_ic < -th.ic_margin,
         passes_cv: cv_after < cur.cv * (1.0 - th.cv_min_gain),
         plausible: !at_edge && sol.rss.is_finite(),
+        size_ratio,
+        passes_size: size_ratio >= th.min_size_ratio,
     };
     Some((ev, cols))
 }

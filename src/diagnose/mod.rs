@@ -12,7 +12,9 @@
 //!   `n_eff ln(RSS1/RSS0) + k ln(n_eff) < -ic_margin`, `n_eff = n (1-rho)/(1+rho)` from
 //!   the lag-1 autocorrelation `rho` of the candidate model's residuals;
 //! - the held-out error of blocked (contiguous) cross-validation drops;
-//! - its searched parameter is not at the edge of its range.
+//! - its searched parameter is not at the edge of its range;
+//! - it is of a practical size: its RMS is at least `min_size_ratio` of the residual
+//!   that remains.
 //!
 //! The best passing candidate (lowest criterion) is added; a runner-up of another kind
 //! within `tie_ic` is reported as ambiguous. Selection repeats until nothing passes.
@@ -72,6 +74,11 @@ pub struct Thresholds {
     pub cv_min_gain: f64,
     /// A runner-up of another kind within this criterion distance is a near-tie.
     pub tie_ic: f64,
+    /// Practical size: the effect's RMS must be at least this fraction of the residual
+    /// RMS that remains with it. Smaller effects are of no use to a compensation and
+    /// are where artefacts of sensor noise and resolution live (a lag that merely
+    /// smooths a quantised sensor).
+    pub min_size_ratio: f64,
     /// Contiguous blocks for cross-validation.
     pub cv_blocks: usize,
     /// Most effects added.
@@ -84,6 +91,7 @@ impl Default for Thresholds {
             ic_margin: 10.0,
             cv_min_gain: 0.01,
             tie_ic: 6.0,
+            min_size_ratio: 0.35,
             cv_blocks: 5,
             max_effects: 4,
         }
@@ -141,6 +149,8 @@ pub struct CandidateReport {
     pub passes_ic: bool,
     pub passes_cv: bool,
     pub plausible: bool,
+    pub size_ratio: f64,
+    pub passes_size: bool,
     pub accepted: bool,
 }
 
@@ -268,6 +278,8 @@ fn candidate_report(d: &Data, e: &Evidence, accepted: bool) -> CandidateReport {
         passes_ic: e.passes_ic,
         passes_cv: e.passes_cv,
         plausible: e.plausible,
+        size_ratio: e.size_ratio,
+        passes_size: e.passes_size,
         accepted,
     }
 }

@@ -83,7 +83,7 @@ pub fn text_report(d: &Diagnosis) -> String {
     for (i, round) in d.rounds.iter().enumerate() {
         let _ = writeln!(
             out,
-            "\nround {}: candidates (dIC < 0 is better; accepted needs IC, blocked CV, plausible)",
+            "\nround {}: candidates (dIC < 0 is better; accepted needs IC, blocked CV, plausible, size)",
             i + 1
         );
         let _ = writeln!(
@@ -108,6 +108,9 @@ pub fn text_report(d: &Diagnosis) -> String {
             }
             if !c.plausible {
                 why.push("edge of range");
+            }
+            if !c.passes_size {
+                why.push("too small");
             }
             let verdict = if c.accepted {
                 "ACCEPTED".to_string()
