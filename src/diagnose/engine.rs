@@ -481,3 +481,48 @@ pub fn evaluate(
     };
     Some((ev, cols))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn golden_and_log_search_find_the_minimum() {
+        let (x, _) = golden(0.0, 10.0, 40, &mut |x| (x - 3.3) * (x - 3.3));
+        assert!((x - 3.3).abs() < 1e-3, "{x}");
+        let (x, _, edge) = search_log(1.0, 1000.0, 20, &mut |x: f64| (x.ln() - 4.0).powi(2));
+        assert!(!edge && (x.ln() - 4.0).abs() < 1e-3, "{x}");
+        let (_, _, edge) = search_log(1.0, 1000.0, 20, &mut |x: f64| x);
+        assert!(edge);
+    }
+
+    #[test]
+    fn periodogram_finds_a_sine_in_position() {
+        let n = 3000;
+        let m = Measurements {
+            t_s: (0..n).map(|i| i as f64).collect(),
+            pos_mm: (0..n).map(|i| ((i * 7919) % 1000) as f64 * 0.5).collect(),
+            err_um: vec![0.0; n],
+            dir: vec![1; n],
+            travel_mm: vec![1.0; n],
+            temps: vec![crate::measure::TempColumn {
+                name: "a".into(),
+                degc: vec![20.0; n],
+            }],
+            ignored_columns: vec![],
+        };
+        let d = Data::new(&m, None, None, 5).expect("data");
+        let r: Vec<f64> = d
+            .pos_mm
+            .iter()
+            .map(|p| 2.0 * (std::f64::consts::TAU * p / 37.0).sin())
+            .collect();
+        let range = period_range(&d).expect("range");
+        assert!(range.0 < 37.0 && range.1 > 37.0, "{range:?}");
+        let (period, amp) = periodogram(&d, &r, range)[0];
+        assert!(
+            (period - 37.0).abs() < 0.5 && (amp - 2.0).abs() < 0.2,
+            "{period} {amp}"
+        );
+    }
+}

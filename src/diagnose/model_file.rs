@@ -314,3 +314,110 @@ impl ModelFile {
         mf
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::schema::AxisConfig;
+    use crate::measure::TempColumn;
+
+    fn model() -> ModelFile {
+        ModelFile {
+            p0_mm: 100.0,
+            k0: K0Model {
+                offset_mm: 0.001,
+                terms: vec![
+                    K0Term {
+                        channel: "a".into(),
+                        ref_degc: 20.0,
+                        coeff_mm_per_degc: 0.002,
+                    },
+                    K0Term {
+                        channel: "a_lag100s".into(),
+                        ref_degc: 20.0,
+                        coeff_mm_per_degc: -0.001,
+                    },
+                ],
+            },
+            tan_beta: TanBetaModel {
+                offset: 0.0,
+                terms: vec![TanBetaTerm {
+                    channel: "a".into(),
+                    ref_degc: 20.0,
+                    coeff_per_degc: 1e-5,
+                }],
+            },
+            lagged_channels: vec![LaggedChannel {
+                channel: "a_lag100s".into(),
+                sensor: "a".into(),
+                lowpass_tau_s: 100.0,
+            }],
+            effects: vec![EffectTerm {
+                name: "reversal".into(),
+                carried_by: "MD32450".into(),
+                params: BTreeMap::from([("b_um".into(), 4.0)]),
+            }],
+        }
+    }
+
+    #[test]
+    fn round_trips_and_its_axis_keys_load_as_a_gateway_axis() {
+        let m = model();
+        let text = m.to_toml();
+        let back: ModelFile = toml::from_str(&text).expect("parse");
+        assert_eq!(back, m);
+        // p0_mm, [k0] and [tan_beta] are the keys of [axes.NAME].
+        #[derive(Serialize)]
+        struct AxisPart<'a> {
+            nc_module: &'a str,
+            md32750: u16,
+            p0_mm: f64,
+            k0: &'a K0Model,
+            tan_beta: &'a TanBetaModel,
+        }
+        let axis = toml::to_string(&AxisPart {
+            nc_module: "nc1",
+            md32750: 3,
+            p0_mm: m.p0_mm,
+            k0: &m.k0,
+            tan_beta: &m.tan_beta,
+        })
+        .expect("toml");
+        let axis: AxisConfig = toml::from_str(&axis).expect("axis config");
+        assert_eq!(axis.k0, m.k0);
+        assert_eq!(axis.tan_beta, m.tan_beta);
+        assert_eq!(axis.p0_mm, 100.0);
+    }
+
+    #[test]
+    fn predicts_with_lagged_channels_and_effects() {
+        let meas = Measurements {
+            t_s: vec![0.0, 100.0, 200.0],
+            pos_mm: vec![100.0, 200.0, 100.0],
+            err_um: vec![0.0; 3],
+            dir: vec![0, 1, -1],
+            travel_mm: vec![0.0, 100.0, 100.0],
+            temps: vec![TempColumn {
+                name: "a".into(),
+                degc: vec![20.0, 21.0, 21.0],
+            }],
+            ignored_columns: vec![],
+        };
+        let p = model().predict_um(&meas).expect("predict");
+        // Row 0: K0 offset 1 um, everything at its reference, dir unknown.
+        assert!((p[0] - 1.0).abs() < 1e-9, "{}", p[0]);
+        // Row 1: lag(a) = 20 + (1 - e^-1) = 20.632; K0 = 1 + 2 - 0.632 um; slope
+        // 1e-5 * 1 degC * 100 mm = 1 um; reversal +2 um.
+        let lag1 = 20.0 + (1.0 - (-1.0f64).exp());
+        let want = 1.0 + 2.0 - (lag1 - 20.0) + 1.0 + 2.0;
+        assert!((p[1] - want).abs() < 1e-9, "{} vs {want}", p[1]);
+        // A term on a channel the data lacks is an error naming it.
+        let mut bad = model();
+        bad.k0.terms[0].channel = "z".into();
+        let e = bad.predict_um(&meas).expect_err("unknown channel");
+        assert!(
+            e.to_string().contains("`z`") && e.to_string().contains("k0.terms"),
+            "{e}"
+        );
+    }
+}
