@@ -40,6 +40,28 @@ fn opts() -> Options {
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
+    // `case SEED LASER NOISE SNR EFFECT... FILE`: one suite case as CSV, to look at.
+    if args.get(1).map(String::as_str) == Some("case") && args.len() > 6 {
+        let num = |i: usize| args[i].parse::<f64>().expect("number");
+        let effects = args[6..args.len() - 1]
+            .iter()
+            .map(|n| EffectKind::from_name(n).expect("effect name"))
+            .collect();
+        let (m, truth) = generate(&SynthSpec {
+            seed: num(2) as u64,
+            rows: 2000,
+            effects,
+            noise_um: num(4),
+            snr: num(5),
+            laser: num(3) != 0.0,
+            noise_ar1: 0.0,
+        });
+        let path = &args[args.len() - 1];
+        m.write(std::fs::File::create(path).expect("create"))
+            .expect("write");
+        println!("wrote {path}; hidden: {:?}", truth.effects);
+        return;
+    }
     // `sample FILE [ROWS]`: one data set with a thermal lag and a reversal, for the README.
     if args.get(1).map(String::as_str) == Some("sample") {
         let (m, truth) = generate(&SynthSpec {

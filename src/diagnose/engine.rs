@@ -425,18 +425,31 @@ pub fn evaluate(
             let range = period_range(d)?;
             let peaks = periodogram(d, r_cur, range);
             let f_step = 1.0 / (4.0 * (d.pos_max_mm - d.pos_min_mm));
-            let mut best: Option<(f64, f64)> = None;
-            for &(period, _) in peaks.iter().take(3) {
+            // The joint fit decides between the three strongest peaks; only the best
+            // one is refined.
+            let start = peaks
+                .iter()
+                .take(3)
+                .map(|&(period, _)| {
+                    (
+                        period,
+                        cur.rss_with(d, &d.effect_columns(kind, None, period).0),
+                    )
+                })
+                .min_by(|a, b| a.1.total_cmp(&b.1));
+            let best = start.map(|(period, rss0)| {
                 let f0 = 1.0 / period;
                 let a = (f0 - f_step).max(1.0 / range.1);
                 let b = (f0 + f_step).min(1.0 / range.0);
-                let (f, rss) = golden(a, b, 16, &mut |f: f64| {
+                let (f, rss) = golden(a, b, 14, &mut |f: f64| {
                     cur.rss_with(d, &d.effect_columns(kind, None, 1.0 / f).0)
                 });
-                if best.is_none_or(|(_, r)| rss < r) {
-                    best = Some((1.0 / f, rss));
+                if rss < rss0 {
+                    (1.0 / f, rss)
+                } else {
+                    (period, rss0)
                 }
-            }
+            });
             let (period, _) = best?;
             // Within 5 % of either end counts as the edge: a period near the span is
             // a curve, not a pitch error.
