@@ -47,6 +47,12 @@ pub enum Command {
     Backlash(crate::backlash::BacklashArgs),
     /// Find where model and measurement disagree, name the missing effect, add it.
     Diagnose(crate::diagnose::command::DiagnoseArgs),
+    /// Fit K0(T) and tan(beta)(T) to measured error curves and write the axis model.
+    Calibrate(crate::calibrate::CalibrateArgs),
+    /// Thermal test of the simulated machine with the gateway in the loop, off vs on.
+    Scenario(crate::scenario::ScenarioArgs),
+    /// ISO 230-2 evaluation (A, B, R, E, M) of bidirectional runs in a measurement CSV.
+    Iso230(crate::iso230::Iso230Args),
     /// Measure poll-filter-compute cycles against the bare Modbus request rate.
     Bench {
         /// Channels on the simulated module, read in one request.

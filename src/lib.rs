@@ -22,10 +22,16 @@
 //! - [`volumetric`]: online volumetric compensation of a 5-axis AC-head machine.
 //! - [`diagnose`]: `compgate diagnose`, where model and measurement disagree, which
 //!   effect is missing, the model with it added, and how much the gap shrinks.
+//! - [`calibrate`]: `compgate calibrate`, the patent's step S1: least-squares fit of
+//!   K0(T) and tan(beta)(T) (pure part in `calibrate::fit`), model file, plot.
+//! - [`iso230`]: `compgate iso230`, ISO 230-2 evaluation (A, B, R, E, M) of
+//!   bidirectional runs in the measured-error CSV.
 //! - [`measure`]: the measured-error CSV format (`t_s,pos_mm,err_um,T_*`) that
 //!   `calibrate` and `diagnose` read and `export` writes.
 //! - [`gateway`]: wires the stages together; `run(config, shutdown)` is the one path
 //!   used by the service, the demo and the tests.
+//! - [`scenario`]: `compgate scenario`, the simulated machine's thermal test with the
+//!   real gateway in the loop over loopback Modbus, compensation off against on.
 //! - [`plant`]: the simulated plant for a config (demo, `sim`, tests), from
 //!   `compgate-plc`; the service path never uses it.
 //! - [`status`]: the live status line and plain per-update lines.
@@ -38,15 +44,18 @@
 
 pub mod backlash;
 pub mod bench;
+pub mod calibrate;
 pub mod channel;
 pub mod cli;
 pub mod comp;
 pub mod config;
 pub mod diagnose;
 pub mod gateway;
+pub mod iso230;
 pub mod measure;
 pub mod nc;
 pub mod plant;
+pub mod scenario;
 pub mod source;
 pub mod status;
 pub mod volumetric;

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::Parser;
 use compgate::cli::{Cli, Command};
 use compgate::plant::{Bind, Plant};
-use compgate::{backlash, bench, config, gateway, status};
+use compgate::{backlash, bench, calibrate, config, gateway, iso230, scenario, status};
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 
@@ -137,6 +137,20 @@ async fn main() -> ExitCode {
         Command::Diagnose(args) => {
             compgate::diagnose::command::run(&args).map_err(|e| e.to_string())
         }
+        Command::Calibrate(args) => calibrate::run(&args)
+            .map(|report| print!("{report}"))
+            .map_err(|e| e.to_string()),
+        Command::Scenario(args) => match scenario::run(&args).await {
+            Ok(report) => {
+                print!("{}", report.text());
+                println!("written to {}", args.out.display());
+                Ok(())
+            }
+            Err(e) => Err(e.to_string()),
+        },
+        Command::Iso230(args) => iso230::run(&args)
+            .map(|report| print!("{report}"))
+            .map_err(|e| e.to_string()),
         Command::Bench {
             channels,
             cycles,

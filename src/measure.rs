@@ -263,6 +263,30 @@ impl Measurements {
     }
 }
 
+impl Measurements {
+    /// A measurement series of the simulated machine (`compgate_plc::thermal`), whose
+    /// columns are already those of this format.
+    pub fn from_sim(s: &compgate_plc::thermal::Series) -> Self {
+        Self {
+            t_s: s.t_s.clone(),
+            pos_mm: s.pos_mm.clone(),
+            err_um: s.err_um.clone(),
+            dir: s.dir.clone(),
+            travel_mm: s.travel_mm.clone(),
+            temps: s
+                .sensor_names
+                .iter()
+                .zip(&s.temps_degc)
+                .map(|(name, degc)| TempColumn {
+                    name: (*name).to_string(),
+                    degc: degc.clone(),
+                })
+                .collect(),
+            ignored_columns: Vec::new(),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

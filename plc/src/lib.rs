@@ -25,9 +25,13 @@
 //!   drive-train elasticity, noise), move programmes and the two-channel servo trace.
 //! - [`machine5`]: 5-axis AC swivel-head machine with true geometric errors whose drives
 //!   close their loops on modified scale feedback (volumetric compensation).
+//! - [`thermal`]: thermal network of a large feed axis (ambient, bed, column, screw,
+//!   motor, sensors), its true positioning error field with switchable effects, a
+//!   laser interferometer and measurement runs; pure, stepped, seeded.
 
 pub mod axis;
 pub mod field;
 pub mod machine5;
 pub mod nc;
 pub mod ncmap;
+pub mod thermal;

@@ -1,0 +1,612 @@
+//! `compgate scenario`: an ISO 230-3-style thermal test of the simulated machine with
+//! the real gateway in the loop.
+//!
+//! The thermal machine (`compgate_plc::thermal`) runs a duty cycle in simulated time.
+//! Its sensor temperatures go to a simulated field I/O module, served over Modbus TCP
+//! on loopback; the gateway's own poller, channel processors and compensator
+//! ([`crate::gateway::build`]) read them and its FB3-style writer puts
+//! SD43900/43910/43920 into a simulated NC axis module, which applies them. The
+//! interferometer reads `true error - applied compensation`. Time is simulated: each
+//! tick steps the machine, polls once and stamps the sample with the simulated
+//! instant, so an 8-hour test takes seconds.
+//!
+//! The same machine (same seed) runs twice: compensation off, then on. Each run ends
+//! with an ISO 230-2 test: [`ISO_RUNS`] bidirectional runs back to back over the
+//! same targets, evaluated by [`crate::iso230`].
+
+mod plot;
+
+use std::fmt::Write as _;
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use compgate_plc::field::{FieldModule, FieldModuleSpec, Profile, TransmitterSpec};
+use compgate_plc::nc::{NcAxis, NcAxisModule};
+use compgate_plc::thermal::{
+    measurement_run, DutyCycle, Effects, Motion, SweepPlan, ThermalMachine, ThermalParams,
+};
+use thiserror::Error;
+use tokio::net::TcpListener;
+use tokio_util::sync::CancellationToken;
+
+use crate::calibrate::{self, AxisModel};
+use crate::comp::Decision;
+use crate::config;
+use crate::gateway;
+use crate::measure::{Measurements, TempColumn};
+use crate::nc::{Job, NcWriter};
+
+/// Errors of the scenario.
+#[derive(Debug, Error)]
+pub enum ScenarioError {
+    #[error("--effects: {0}")]
+    Effects(String),
+    #[error("--hours must be > 0 (got {0})")]
+    Hours(f64),
+    #[error("--sample-every-s must be at least {min_s} s, the length of one sweep (got {got_s})")]
+    SampleEvery { got_s: f64, min_s: f64 },
+    #[error("model: {0}")]
+    Model(String),
+    #[error("setup: {0}")]
+    Setup(String),
+    #[error("{path}: {message}")]
+    Io { path: String, message: String },
+}
+
+/// `compgate scenario` arguments.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ScenarioArgs {
+    /// Simulated hours.
+    #[arg(long, default_value_t = 8.0)]
+    pub hours: f64,
+    /// Seed of the machine (noise, ambient wander).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Extra effects, comma separated: thermal_lag, nonlinear_position, reversal,
+    /// pitch_periodic, motion_heating, extra_sensor.
+    #[arg(long, value_delimiter = ',')]
+    pub effects: Vec<String>,
+    /// Model file (calibrate's or diagnose's output); default: the model calibrate
+    /// fits from a 24-hour commissioning run of the same machine.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Sensors of the commissioning fit (without --model).
+    #[arg(long, value_delimiter = ',', default_value = "column,screw")]
+    pub sensors: Vec<String>,
+    /// Output directory: report, CSVs, plots, model.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Interferometer sweep every this many simulated seconds.
+    #[arg(long, default_value_t = 600.0)]
+    pub sample_every_s: f64,
+}
+
+/// Simulated seconds per tick: one poll of the field module per tick.
+const TICK_S: f64 = 2.0;
+/// Interferometer targets per sweep over the axis.
+const TARGETS: usize = 9;
+/// The first interferometer sweep waits this long, s: the gateway's filters fill and
+/// its first writes land (in both runs alike), as on a machine switched on before
+/// the test starts.
+const STARTUP_S: f64 = 60.0;
+/// Bidirectional runs of the closing ISO 230-2 test (the standard's 5).
+pub const ISO_RUNS: usize = 5;
+/// Temperature range of the simulated PT100 transmitters, degC.
+const RANGE_DEGC: (f64, f64) = (0.0, 50.0);
+
+/// Peak-to-peak and RMS of one run.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ErrorStats {
+    /// max - min of every interferometer reading, um.
+    pub peak_to_peak_um: f64,
+    /// RMS of every reading, um.
+    pub rms_um: f64,
+    /// Largest |reading|, um.
+    pub max_abs_um: f64,
+}
+
+impl ErrorStats {
+    /// Statistics of `err_um`.
+    pub fn of(err_um: &[f64]) -> Self {
+        let (lo, hi) = err_um
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+                (a.min(*v), b.max(*v))
+            });
+        Self {
+            peak_to_peak_um: if err_um.is_empty() { 0.0 } else { hi - lo },
+            rms_um: (err_um.iter().map(|v| v * v).sum::<f64>() / err_um.len().max(1) as f64).sqrt(),
+            max_abs_um: err_um.iter().map(|v| v.abs()).fold(0.0, f64::max),
+        }
+    }
+}
+
+/// One run (compensation off or on).
+#[derive(Debug, Clone, Default)]
+pub struct RunData {
+    /// The interferometer series, measured error = true error - applied compensation.
+    pub series: Measurements,
+    /// ISO 230-2 runs after the duty cycle: [`ISO_RUNS`] bidirectional sweeps back
+    /// to back.
+    pub iso230: Measurements,
+    /// Compensation the NC applied at each row of `series`, um.
+    pub applied_um: Vec<f64>,
+    /// Its statistics.
+    pub stats: ErrorStats,
+    /// Jobs written and verified.
+    pub jobs_ok: u64,
+    /// Jobs that failed.
+    pub jobs_failed: u64,
+    /// Field module polls.
+    pub polls: u64,
+    /// Wall time of the run.
+    pub wall: Duration,
+}
+
+/// The scenario's result.
+#[derive(Debug, Clone)]
+pub struct ScenarioReport {
+    /// Simulated hours.
+    pub hours: f64,
+    /// Effects that were on.
+    pub effects: Vec<&'static str>,
+    /// Where the model came from.
+    pub model_source: String,
+    /// The model the gateway ran.
+    pub model: AxisModel,
+    /// Ambient max - min over the run, K.
+    pub ambient_swing_degc: f64,
+    /// Compensation off.
+    pub off: RunData,
+    /// Compensation on.
+    pub on: RunData,
+    /// ISO 230-2 evaluation of the closing runs, off and on (`None` if it failed).
+    pub iso_off: Option<crate::iso230::Iso230>,
+    /// See `iso_off`.
+    pub iso_on: Option<crate::iso230::Iso230>,
+}
+
+impl ScenarioReport {
+    /// Peak-to-peak reduction, percent.
+    pub fn reduction_pp_percent(&self) -> f64 {
+        100.0 * (1.0 - self.on.stats.peak_to_peak_um / self.off.stats.peak_to_peak_um)
+    }
+
+    /// RMS reduction, percent.
+    pub fn reduction_rms_percent(&self) -> f64 {
+        100.0 * (1.0 - self.on.stats.rms_um / self.off.stats.rms_um)
+    }
+
+    /// Simulated time over wall time, both runs.
+    pub fn speed_up(&self) -> f64 {
+        2.0 * self.hours * 3600.0 / (self.off.wall + self.on.wall).as_secs_f64().max(1e-9)
+    }
+
+    /// The report as printed (Markdown table).
+    pub fn text(&self) -> String {
+        let mut s = String::new();
+        let effects = if self.effects.is_empty() {
+            "none".to_string()
+        } else {
+            self.effects.join(", ")
+        };
+        let _ = writeln!(
+            s,
+            "scenario: {} h simulated, effects: {effects}, ambient swing {:.2} K",
+            self.hours, self.ambient_swing_degc
+        );
+        let _ = writeln!(s, "model: {}", self.model_source);
+        s.push_str(
+            "\n| thermal positioning error | peak-to-peak (um) | RMS (um) | max abs (um) |\n",
+        );
+        s.push_str("|---|---|---|---|\n");
+        for (name, r) in [
+            ("compensation off", &self.off),
+            ("compensation on", &self.on),
+        ] {
+            let _ = writeln!(
+                s,
+                "| {name} | {:.2} | {:.2} | {:.2} |",
+                r.stats.peak_to_peak_um, r.stats.rms_um, r.stats.max_abs_um
+            );
+        }
+        let _ = writeln!(
+            s,
+            "| reduction | {:.1} % | {:.1} % | |",
+            self.reduction_pp_percent(),
+            self.reduction_rms_percent()
+        );
+        if let (Some(a), Some(b)) = (&self.iso_off, &self.iso_on) {
+            let _ = writeln!(
+                s,
+                "\nISO 230-2 at the end ({ISO_RUNS} bidirectional runs, um) | A | B | R | E | M |\n|---|---|---|---|---|---|"
+            );
+            for (name, r) in [("compensation off", a), ("compensation on", b)] {
+                let _ = writeln!(
+                    s,
+                    "| {name} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |",
+                    r.a_um, r.b_um, r.r_um, r.e_um, r.m_um
+                );
+            }
+        }
+        let _ = writeln!(
+            s,
+            "\ngateway in the loop: {} polls, {} NC jobs written and read back ({} failed)",
+            self.on.polls, self.on.jobs_ok, self.on.jobs_failed
+        );
+        let _ = writeln!(
+            s,
+            "wall time {:.2} s off + {:.2} s on for 2 x {} h: {:.0} x real time",
+            self.off.wall.as_secs_f64(),
+            self.on.wall.as_secs_f64(),
+            self.hours,
+            self.speed_up()
+        );
+        s
+    }
+}
+
+/// The commissioning measurement: a 24-hour run of the same machine (another seed),
+/// fitted by calibrate.
+pub fn commissioning_model(
+    params: &ThermalParams,
+    effects: &Effects,
+    seed: u64,
+    sensors: &[String],
+) -> Result<(AxisModel, calibrate::Fit, Measurements), ScenarioError> {
+    let mut machine = ThermalMachine::new(params.clone(), *effects, seed ^ 0x5EED_C0DE);
+    let plan = SweepPlan::irregular(params.axis_length_mm, TARGETS, 1800.0);
+    let s = measurement_run(&mut machine, &DutyCycle::commissioning(24.0), &plan, 30.0);
+    let m = Measurements::from_sim(&s);
+    let fit = calibrate::calibrate(&m, sensors, None)
+        .map_err(|e| ScenarioError::Model(format!("commissioning fit: {e}")))?;
+    Ok((AxisModel::from_fit(&fit), fit, m))
+}
+
+fn gateway_config(field: &str, nc: &str, sensors: &[&str], model: &AxisModel) -> String {
+    let mut t = format!(
+        "[devices.ain]\ntransport = \"tcp\"\naddress = \"{field}\"\nunit_id = 1\ntimeout_s = 1.0\npoll_interval_s = {TICK_S}\n\n\
+         [nc_modules.nc_x]\naddress = \"{nc}\"\nunit_id = 1\ntimeout_s = 1.0\njob_timeout_s = 2.0\n\n"
+    );
+    for (i, name) in sensors.iter().enumerate() {
+        let _ = write!(
+            t,
+            "[channels.{name}]\ndevice = \"ain\"\nregister = \"input\"\naddress = {i}\ndata_type = \"u16\"\n\
+             scaling = {{ kind = \"transmitter\", adc_full_scale_counts = 4095, adc_full_scale_ma = 24.0, current_range = \"4-20\", range_min_degc = {:.1}, range_max_degc = {:.1} }}\n\
+             filter = {{ median_samples = 3, lowpass_tau_s = 20.0, max_rate_degc_per_s = 0.5, max_rejected_samples = 5, stale_after_s = 0.0, valid_min_degc = 1.0, valid_max_degc = 49.0 }}\n\n",
+            RANGE_DEGC.0, RANGE_DEGC.1
+        );
+    }
+    // Gateway tuning of the scenario: updates every 10 s, deadbands of 0.2 um (K0)
+    // and 0.2 um over the 2 m axis (slope); default step limits.
+    let axis = "update_interval_s = 10.0\ndeadband_k0_mm = 0.0002\ndeadband_tan_beta = 0.0000001\n\
+         max_step_k0_mm = 0.02\nmax_step_tan_beta = 0.00002\n";
+    let fragment = calibrate::model_toml("X", "nc_x", model, "");
+    // Insert the tuning keys right after the [axes.X] header.
+    t.push_str(&fragment.replacen("[axes.X]\n", &format!("[axes.X]\n{axis}"), 1));
+    t
+}
+
+/// Parts of a run that stay the same for off and on.
+struct Setup<'a> {
+    params: &'a ThermalParams,
+    effects: Effects,
+    seed: u64,
+    hours: f64,
+    sample_every_s: f64,
+    model: &'a AxisModel,
+}
+
+fn setup_err(e: impl std::fmt::Display) -> ScenarioError {
+    ScenarioError::Setup(e.to_string())
+}
+
+async fn run_once(
+    s: &Setup<'_>,
+    compensate: bool,
+    progress: &indicatif::ProgressBar,
+) -> Result<(RunData, f64), ScenarioError> {
+    let wall = Instant::now();
+    let mut machine = ThermalMachine::new(s.params.clone(), s.effects, s.seed);
+    let sensors = machine.sensor_names();
+    for ch in s.model.channels() {
+        if !sensors.contains(&ch.as_str()) {
+            return Err(ScenarioError::Model(format!(
+                "the model reads channel `{ch}`; the machine's sensors are {}",
+                sensors.join(", ")
+            )));
+        }
+    }
+    let transmitters = sensors
+        .iter()
+        .map(|_| TransmitterSpec::new(Profile::Constant { degc: 20.0 }, RANGE_DEGC.0, RANGE_DEGC.1))
+        .collect();
+    let field = FieldModule::new(FieldModuleSpec::new(transmitters, s.seed)).map_err(setup_err)?;
+    let nc = NcAxisModule::new(NcAxis {
+        md32750: 3,
+        referenced: true,
+        ..NcAxis::default()
+    });
+    let shutdown = CancellationToken::new();
+    let _stop = shutdown.clone().drop_guard();
+    let fl = TcpListener::bind("127.0.0.1:0").await.map_err(setup_err)?;
+    let nl = TcpListener::bind("127.0.0.1:0").await.map_err(setup_err)?;
+    let (fa, na) = (
+        fl.local_addr().map_err(setup_err)?,
+        nl.local_addr().map_err(setup_err)?,
+    );
+    tokio::spawn(field.clone().serve_tcp(fl, shutdown.clone()));
+    tokio::spawn(nc.clone().serve_tcp(nl, shutdown.clone()));
+
+    let text = gateway_config(&fa.to_string(), &na.to_string(), &sensors, s.model);
+    let cfg = config::load_str(&text, "scenario").map_err(setup_err)?;
+    let mut built = gateway::build(&cfg).map_err(setup_err)?;
+    let update_every_s = cfg.axes["X"].update_interval_s;
+    let mut writer = built
+        .nc_modules
+        .pop()
+        .ok_or_else(|| setup_err("no NC module"))?
+        .writer;
+    let mut dev = built.devices.pop().ok_or_else(|| setup_err("no device"))?;
+    let pipeline = &mut built.pipeline;
+    // Step limits and deadband start from what the NC holds, as in the service.
+    let snap = writer.read_snapshot().await.map_err(setup_err)?;
+    pipeline.axes[0].comp.set_baseline(snap.thermal());
+    let base = Instant::now();
+
+    let cycle = DutyCycle::scenario(s.hours);
+    let end_s = s.hours * 3600.0;
+    let plan = SweepPlan::irregular(s.params.axis_length_mm, TARGETS, s.sample_every_s);
+    let targets: Vec<(f64, i8)> = plan
+        .targets_mm
+        .iter()
+        .map(|&p| (p, 1))
+        .chain(plan.targets_mm.iter().rev().map(|&p| (p, -1)))
+        .collect();
+    let sweep_motion = Motion {
+        speed_mm_per_s: 50.0,
+        duty: 0.2,
+    };
+    let mut out = RunData::default();
+    let empty = Measurements {
+        temps: sensors
+            .iter()
+            .map(|n| TempColumn {
+                name: (*n).to_string(),
+                degc: Vec::new(),
+            })
+            .collect(),
+        ..Measurements::default()
+    };
+    out.series = empty.clone();
+    out.iso230 = empty;
+    // After the duty cycle: ISO_RUNS back-to-back bidirectional runs for iso230.
+    let iso_points = ISO_RUNS * targets.len();
+    let mut sweep_is_iso = false;
+    let (mut amb_lo, mut amb_hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    let mut next_sweep_s = STARTUP_S;
+    let mut next_update_s = 0.0;
+    let mut sweep_at: Option<usize> = None;
+    let mut pos_mm = 0.0;
+    let mut travel_mm = 0.0;
+    let mut last_progress_s = 0.0;
+    loop {
+        let t0 = machine.t_s();
+        if sweep_at.is_none() && t0 >= end_s - 1e-9 {
+            if out.iso230.len() >= iso_points {
+                break;
+            }
+            sweep_at = Some(0);
+            sweep_is_iso = true;
+        } else if sweep_at.is_none() && t0 + 1e-9 >= next_sweep_s {
+            sweep_at = Some(0);
+            next_sweep_s += s.sample_every_s;
+        }
+        let motion = if sweep_at.is_some() {
+            sweep_motion
+        } else {
+            cycle.motion_at(t0)
+        };
+        machine.step(TICK_S, &motion);
+        if sweep_at.is_none() {
+            travel_mm += motion.travel_mm(TICK_S);
+        }
+        let t_s = machine.t_s();
+        let at = tokio::time::Instant::from_std(base + Duration::from_secs_f64(t_s));
+        amb_lo = amb_lo.min(machine.ambient_degc());
+        amb_hi = amb_hi.max(machine.ambient_degc());
+
+        // Field module -> gateway poller -> channel processors.
+        for (i, (_, v)) in machine.sensors_degc().iter().enumerate() {
+            field
+                .set_temperature_override(i, Some(*v))
+                .map_err(setup_err)?;
+        }
+        let mut sample = dev.poller.poll().await;
+        sample.started = at;
+        pipeline.ingest(&sample);
+        out.polls += 1;
+
+        // Compensator -> FB3 job into the NC, every update interval.
+        if compensate && t_s + 1e-9 >= next_update_s {
+            next_update_s += update_every_s;
+            let params = match pipeline.decide(0, at) {
+                Decision::Write { params, .. } | Decision::Ramp { params, .. } => Some(params),
+                Decision::WithinDeadband | Decision::Hold { .. } => None,
+            };
+            if let Some(params) = params {
+                match writer.write_job(&Job::thermal(&params)).await {
+                    Ok(_) => {
+                        pipeline.axes[0].comp.confirm(params);
+                        out.jobs_ok += 1;
+                    }
+                    Err(e) => {
+                        tracing::warn!(error = %e, "scenario: NC job failed");
+                        out.jobs_failed += 1;
+                    }
+                }
+            }
+        }
+
+        // Interferometer: one target per tick while a sweep runs.
+        if let Some(k) = sweep_at {
+            let (target_mm, dir) = targets[k];
+            travel_mm += (target_mm - pos_mm).abs();
+            pos_mm = target_mm;
+            // The NC interpolates to the target and slews its compensation there.
+            let applied_mm = nc.with_state(|a| {
+                a.position_mm = target_mm;
+                for _ in 0..1_000_000 {
+                    a.ipo_tick();
+                    if a.applied_comp_mm == a.target_comp_mm() {
+                        break;
+                    }
+                }
+                a.applied_comp_mm
+            });
+            let applied_um = applied_mm * 1000.0;
+            let err_um = machine.measure(target_mm, dir) - applied_um;
+            let m = if sweep_is_iso {
+                &mut out.iso230
+            } else {
+                out.applied_um.push(applied_um);
+                &mut out.series
+            };
+            m.t_s.push(t_s);
+            m.pos_mm.push(target_mm);
+            m.dir.push(dir);
+            m.travel_mm.push(travel_mm);
+            m.err_um.push(err_um);
+            for (col, (_, v)) in m.temps.iter_mut().zip(machine.sensors_degc()) {
+                col.degc.push(*v);
+            }
+            travel_mm = 0.0;
+            sweep_at = (k + 1 < targets.len()).then_some(k + 1);
+        }
+        if t_s - last_progress_s >= 60.0 {
+            progress.inc((t_s - last_progress_s) as u64);
+            last_progress_s = t_s;
+        }
+    }
+    out.stats = ErrorStats::of(&out.series.err_um);
+    out.wall = wall.elapsed();
+    Ok((out, amb_hi - amb_lo))
+}
+
+fn io_err(path: &Path, e: impl std::fmt::Display) -> ScenarioError {
+    ScenarioError::Io {
+        path: path.display().to_string(),
+        message: e.to_string(),
+    }
+}
+
+fn write_csv(path: &Path, m: &Measurements) -> Result<(), ScenarioError> {
+    let f = std::fs::File::create(path).map_err(|e| io_err(path, e))?;
+    m.write(std::io::BufWriter::new(f))
+        .map_err(|e| io_err(path, e))
+}
+
+/// Runs the scenario with the default machine and writes everything into `args.out`.
+pub async fn run(args: &ScenarioArgs) -> Result<ScenarioReport, ScenarioError> {
+    run_with(args, &ThermalParams::default()).await
+}
+
+/// Runs the scenario on a machine with `params`.
+pub async fn run_with(
+    args: &ScenarioArgs,
+    params: &ThermalParams,
+) -> Result<ScenarioReport, ScenarioError> {
+    if !(args.hours.is_finite() && args.hours > 0.0) {
+        return Err(ScenarioError::Hours(args.hours));
+    }
+    let sweep_s = TICK_S * (2 * TARGETS) as f64;
+    if args.sample_every_s.is_nan() || args.sample_every_s < sweep_s {
+        return Err(ScenarioError::SampleEvery {
+            got_s: args.sample_every_s,
+            min_s: sweep_s,
+        });
+    }
+    let effects = Effects::from_names(&args.effects).map_err(ScenarioError::Effects)?;
+    std::fs::create_dir_all(&args.out).map_err(|e| io_err(&args.out, e))?;
+    let (model, model_source) = match &args.model {
+        Some(path) => {
+            let (axis, model) =
+                calibrate::load_model(path).map_err(|e| ScenarioError::Model(e.to_string()))?;
+            (model, format!("{} (axes.{axis})", path.display()))
+        }
+        None => {
+            let (model, fit, m) = commissioning_model(params, &effects, args.seed, &args.sensors)?;
+            let path = args.out.join("model.toml");
+            let header = format!(
+                "compgate scenario: commissioning fit, 24 h run of the same machine\nRMS residual {:.3} um, R^2 {:.6}",
+                fit.rms_um, fit.r2
+            );
+            std::fs::write(&path, calibrate::model_toml("X", "nc_x", &model, &header))
+                .map_err(|e| io_err(&path, e))?;
+            write_csv(&args.out.join("commissioning.csv"), &m)?;
+            (
+                model,
+                format!(
+                    "calibrate on a 24 h commissioning run (sensors {}; RMS residual {:.2} um), written to model.toml",
+                    args.sensors.join(","),
+                    fit.rms_um
+                ),
+            )
+        }
+    };
+    let setup = Setup {
+        params,
+        effects,
+        seed: args.seed,
+        hours: args.hours,
+        sample_every_s: args.sample_every_s,
+        model: &model,
+    };
+    let progress = if std::io::stderr().is_terminal() {
+        let pb = indicatif::ProgressBar::new((2.0 * args.hours * 3600.0) as u64);
+        pb.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{msg} [{bar:40}] {pos}/{len} simulated s ({eta})",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        pb
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    progress.set_message("compensation off");
+    let (off, swing) = run_once(&setup, false, &progress).await?;
+    progress.set_position((args.hours * 3600.0) as u64);
+    progress.set_message("compensation on ");
+    let (on, _) = run_once(&setup, true, &progress).await?;
+    progress.finish_and_clear();
+    let iso = |m: &Measurements| crate::iso230::evaluate(&m.pos_mm, &m.dir, &m.err_um).ok();
+    let (iso_off, iso_on) = (iso(&off.iso230), iso(&on.iso230));
+    let report = ScenarioReport {
+        iso_off,
+        iso_on,
+        hours: args.hours,
+        effects: effects.names(),
+        model_source,
+        model,
+        ambient_swing_degc: swing,
+        off,
+        on,
+    };
+    write_csv(&args.out.join("off.csv"), &report.off.series)?;
+    write_csv(&args.out.join("on.csv"), &report.on.series)?;
+    write_csv(&args.out.join("iso230_off.csv"), &report.off.iso230)?;
+    write_csv(&args.out.join("iso230_on.csv"), &report.on.iso230)?;
+    plot::error_vs_time(&args.out.join("error_vs_time.svg"), &report)
+        .map_err(|e| io_err(&args.out.join("error_vs_time.svg"), e))?;
+    plot::error_vs_position(&args.out.join("error_vs_position.svg"), &report)
+        .map_err(|e| io_err(&args.out.join("error_vs_position.svg"), e))?;
+    let text = report.text();
+    let path = args.out.join("report.md");
+    std::fs::write(&path, &text).map_err(|e| io_err(&path, e))?;
+    Ok(report)
+}
+
+#[cfg(test)]
+mod tests;
