@@ -243,7 +243,11 @@ fn bad_input_names_the_thing_at_fault() {
     assert!(e.to_string().contains("T_nope"), "{e}");
 
     let model = dir.path().join("m.toml");
-    std::fs::write(&model, "p0_mm = 0\n[k0]\noffset_mm = 0\nbogus = 1\n").expect("model");
+    std::fs::write(
+        &model,
+        "[axes.X]\np0_mm = 0\n[axes.X.k0]\noffset_mm = 0\nbogus = 1\n",
+    )
+    .expect("model");
     let e = compgate::diagnose::ModelFile::read_path(&model).expect_err("unknown key");
     assert!(
         e.to_string().contains("m.toml") && e.to_string().contains("bogus"),

@@ -1,8 +1,9 @@
 //! The model file `--model` reads and `--out` writes.
 //!
-//! `p0_mm`, `[k0]` and `[tan_beta]` are exactly the keys of a gateway axis
-//! (`[axes.NAME]` in the gateway config, same structs), with channels named after the
-//! data's sensors (`T_<name>` column -> channel `<name>`). A thermal lag the gateway
+//! The axis part is an `[axes.X]` table in the form `calibrate` writes and
+//! `scenario --model` and the gateway config read (`p0_mm`, `[axes.X.k0]`,
+//! `[axes.X.tan_beta]`, same structs), with channels named after the data's sensors
+//! (`T_<name>` column -> channel `<name>`). A thermal lag the gateway
 //! carries itself: `[[lagged_channels]]` names a channel on the same transmitter with
 //! `filter.lowpass_tau_s = tau_s`, and the k0/tan_beta terms reference it. Effects the
 //! gateway's K0/tan(beta) form cannot carry are listed in `[[effects]]` with the NC
@@ -77,34 +78,92 @@ impl ModelFile {
             path: path.display().to_string(),
             source,
         })?;
-        let de = toml::Deserializer::new(&text);
-        let mf: ModelFile =
-            serde_path_to_error::deserialize(de).map_err(|e| DiagnoseError::ModelFile {
-                path: path.display().to_string(),
-                message: format!("{}: {}", e.path(), e.inner().message()),
-            })?;
-        for e in &mf.effects {
-            if EffectKind::from_name(&e.name).is_none() {
-                return Err(DiagnoseError::ModelFile {
-                    path: path.display().to_string(),
-                    message: format!("effects: unknown effect name `{}`", e.name),
-                });
-            }
-        }
-        Ok(mf)
+        Self::from_toml(&text, &path.display().to_string())
     }
 
-    /// The TOML text, with a header comment.
+    /// Parses the text of a model file: the first `[axes.NAME]` (keys other than
+    /// `p0_mm`, `k0` and `tan_beta` are ignored, so a whole gateway config or a
+    /// calibrate model will do) plus the optional top-level `lagged_channels` and
+    /// `effects`. `origin` names the file in errors.
+    pub fn from_toml(text: &str, origin: &str) -> Result<Self, DiagnoseError> {
+        let err = |message: String| DiagnoseError::ModelFile {
+            path: origin.to_string(),
+            message,
+        };
+        let root: toml::Table = toml::from_str(text).map_err(|e| err(e.to_string()))?;
+        let (name, axis) = root
+            .get("axes")
+            .and_then(|a| a.as_table())
+            .and_then(|a| a.iter().next())
+            .ok_or_else(|| err("no [axes.NAME] table".into()))?;
+        let mut t = axis
+            .as_table()
+            .cloned()
+            .ok_or_else(|| err(format!("axes.{name} is not a table")))?;
+        t.retain(|k, _| matches!(k, "p0_mm" | "k0" | "tan_beta"));
+        let axis: crate::calibrate::AxisModel = toml::Value::Table(t)
+            .try_into()
+            .map_err(|e: toml::de::Error| err(format!("axes.{name}: {}", e.message())))?;
+        let lagged_channels: Vec<LaggedChannel> = match root.get("lagged_channels") {
+            Some(v) => v
+                .clone()
+                .try_into()
+                .map_err(|e: toml::de::Error| err(format!("lagged_channels: {}", e.message())))?,
+            None => Vec::new(),
+        };
+        let effects: Vec<EffectTerm> = match root.get("effects") {
+            Some(v) => v
+                .clone()
+                .try_into()
+                .map_err(|e: toml::de::Error| err(format!("effects: {}", e.message())))?,
+            None => Vec::new(),
+        };
+        for e in &effects {
+            if EffectKind::from_name(&e.name).is_none() {
+                return Err(err(format!("effects: unknown effect name `{}`", e.name)));
+            }
+        }
+        Ok(ModelFile {
+            p0_mm: axis.p0_mm,
+            k0: axis.k0,
+            tan_beta: axis.tan_beta,
+            lagged_channels,
+            effects,
+        })
+    }
+
+    /// The TOML text: `[axes.X]` as calibrate writes it, then the lagged channels and
+    /// effects, with a header comment.
     pub fn to_toml(&self) -> String {
-        let body = toml::to_string(self).unwrap_or_default();
-        format!(
-            "# Thermal model written by `compgate diagnose`.\n\
-             # p0_mm, [k0] and [tan_beta] are the keys of a gateway axis ([axes.NAME]);\n\
-             # channels are the data's sensors (column T_<name> -> channel <name>).\n\
-             # [[lagged_channels]]: a channel on the named sensor's transmitter with\n\
-             # filter.lowpass_tau_s. [[effects]]: terms outside K0/tan(beta), with the\n\
-             # NC function that carries them.\n\n{body}"
-        )
+        let axis = crate::calibrate::AxisModel {
+            p0_mm: self.p0_mm,
+            k0: self.k0.clone(),
+            tan_beta: self.tan_beta.clone(),
+        };
+        let header = "Thermal model written by `compgate diagnose`.\n\
+             [axes.X] is the gateway's axis form (as calibrate writes it; scenario --model\n\
+             reads it); channels are the data's sensors (column T_<name> -> channel <name>).\n\
+             [[lagged_channels]]: a channel on the named sensor's transmitter with\n\
+             filter.lowpass_tau_s. [[effects]]: terms outside K0/tan(beta), with the NC\n\
+             function that carries them.\n";
+        let mut s = crate::calibrate::model_toml("X", "nc_x", &axis, header);
+        #[derive(Serialize)]
+        struct Extra<'a> {
+            #[serde(skip_serializing_if = "<[_]>::is_empty")]
+            lagged_channels: &'a [LaggedChannel],
+            #[serde(skip_serializing_if = "<[_]>::is_empty")]
+            effects: &'a [EffectTerm],
+        }
+        let extra = toml::to_string(&Extra {
+            lagged_channels: &self.lagged_channels,
+            effects: &self.effects,
+        })
+        .unwrap_or_default();
+        if !extra.is_empty() {
+            s.push('\n');
+            s.push_str(&extra);
+        }
+        s
     }
 
     /// The error the model predicts for every row, um.
@@ -364,8 +423,18 @@ mod tests {
     fn round_trips_and_its_axis_keys_load_as_a_gateway_axis() {
         let m = model();
         let text = m.to_toml();
-        let back: ModelFile = toml::from_str(&text).expect("parse");
+        let back = ModelFile::from_toml(&text, "m.toml").expect("parse");
         assert_eq!(back, m);
+        // calibrate's reader (the one scenario --model uses) takes it too.
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("model.toml");
+        std::fs::write(&path, &text).expect("write");
+        let (name, axis) = crate::calibrate::load_model(&path).expect("calibrate reads it");
+        assert_eq!(name, "X");
+        assert_eq!(
+            (axis.k0, axis.tan_beta, axis.p0_mm),
+            (m.k0.clone(), m.tan_beta.clone(), m.p0_mm)
+        );
         // p0_mm, [k0] and [tan_beta] are the keys of [axes.NAME].
         #[derive(Serialize)]
         struct AxisPart<'a> {
