@@ -130,33 +130,44 @@ impl Data {
         (duration, median)
     }
 
-    /// The columns an effect adds, and for a lagged signal its mean (the reference the
-    /// model file records). `param` is tau_s or period_mm.
+    /// The columns an effect adds, and for each lagged signal its mean (the reference
+    /// the model file records). `param` is tau_s or period_mm. A thermal lag without a
+    /// sensor lags every baseline sensor with one time constant (the whole structure
+    /// lags).
     pub fn effect_columns(
         &self,
         kind: EffectKind,
         sensor: Option<usize>,
         param: f64,
-    ) -> (Vec<Vec<f64>>, f64) {
+    ) -> (Vec<Vec<f64>>, Vec<f64>) {
         match kind {
             EffectKind::ThermalLag => {
-                let s = sensor.unwrap_or(0);
-                let mut z = lag(&self.t_s, &self.temps_degc[s], param);
-                let mean = center(&mut z);
-                let (a, b) = self.thermal_pair(&z, 0.0);
-                (vec![a, b], mean)
+                let which: Vec<usize> = match sensor {
+                    Some(s) => vec![s],
+                    None => self.sensors.clone(),
+                };
+                let mut cols = Vec::new();
+                let mut means = Vec::new();
+                for s in which {
+                    let mut z = lag(&self.t_s, &self.temps_degc[s], param);
+                    means.push(center(&mut z));
+                    let (a, b) = self.thermal_pair(&z, 0.0);
+                    cols.push(a);
+                    cols.push(b);
+                }
+                (cols, means)
             }
             EffectKind::MotionHeating => {
                 let mut z = motion_heat(&self.t_s, &self.travel_mm, param);
                 let mean = center(&mut z);
                 let (a, b) = self.thermal_pair(&z, 0.0);
-                (vec![a, b], mean)
+                (vec![a, b], vec![mean])
             }
             EffectKind::ExtraSensor => {
                 let s = sensor.unwrap_or(0);
                 let mean = self.temp_mean_degc[s];
                 let (a, b) = self.thermal_pair(&self.temps_degc[s], mean);
-                (vec![a, b], mean)
+                (vec![a, b], vec![mean])
             }
             EffectKind::NonlinearPosition => {
                 let mut cols: Vec<Vec<f64>> = (0..3).map(|_| Vec::with_capacity(self.n)).collect();
@@ -165,13 +176,13 @@ impl Data {
                         c.push(p);
                     }
                 }
-                (cols, 0.0)
+                (cols, Vec::new())
             }
-            EffectKind::Reversal => (vec![self.dir.clone()], 0.0),
+            EffectKind::Reversal => (vec![self.dir.clone()], Vec::new()),
             EffectKind::PitchPeriodic => {
                 let w = std::f64::consts::TAU / param;
                 let (s, c) = self.pos_mm.iter().map(|p| (w * p).sin_cos()).unzip();
-                (vec![s, c], 0.0)
+                (vec![s, c], Vec::new())
             }
         }
     }

@@ -174,9 +174,9 @@ pub struct EffectReport {
     /// Indices of its columns in the final design.
     #[serde(skip)]
     pub cols: (usize, usize),
-    /// Mean of its signal (lag, heat), the reference the model file records.
+    /// Mean of each of its signals (lags, heat), the references the model file records.
     #[serde(skip)]
-    pub signal_mean: f64,
+    pub signal_mean: Vec<f64>,
 }
 
 /// One round of selection: every candidate's evidence.
@@ -399,11 +399,17 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
     let mut used: Vec<(EffectKind, Option<usize>)> = Vec::new();
     let mut r_cur = r0.clone();
     while effects.len() < th.max_effects {
-        let mut evs: Vec<(Evidence, Vec<Vec<f64>>, f64)> = Vec::new();
+        let mut evs: Vec<(Evidence, Vec<Vec<f64>>, Vec<f64>)> = Vec::new();
         let mut cands: Vec<(EffectKind, Option<usize>)> = Vec::new();
         for kind in EffectKind::ALL {
             match kind {
-                EffectKind::ThermalLag => cands.extend(d.sensors.iter().map(|&s| (kind, Some(s)))),
+                EffectKind::ThermalLag => {
+                    cands.extend(d.sensors.iter().map(|&s| (kind, Some(s))));
+                    if d.sensors.len() > 1 {
+                        // Every baseline sensor through one lag.
+                        cands.push((kind, None));
+                    }
+                }
                 EffectKind::ExtraSensor => cands.extend(
                     (0..d.names.len())
                         .filter(|s| !d.sensors.contains(s))
@@ -498,6 +504,18 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
             p.insert("sensor".into(), serde_json::json!(d.names[s]));
         }
         match e.kind {
+            EffectKind::ThermalLag if e.sensor.is_none() => {
+                p.insert("tau_s".into(), num(e.param.unwrap_or(0.0)));
+                let names: Vec<&str> = d.sensors.iter().map(|&s| d.names[s].as_str()).collect();
+                p.insert("sensor".into(), serde_json::json!(names.join(",")));
+                for (k, name) in names.iter().enumerate() {
+                    p.insert(format!("k0_um_per_degc_{name}"), num(b[2 * k]));
+                    p.insert(
+                        format!("slope_um_per_mm_per_degc_{name}"),
+                        num(b[2 * k + 1]),
+                    );
+                }
+            }
             EffectKind::ThermalLag | EffectKind::MotionHeating => {
                 p.insert("tau_s".into(), num(e.param.unwrap_or(0.0)));
                 let unit = if e.kind == EffectKind::ThermalLag {

@@ -298,18 +298,22 @@ impl ModelFile {
             let p = |k: &str| e.params.get(k).and_then(|v| v.as_f64()).unwrap_or(0.0);
             match e.kind {
                 EffectKind::ThermalLag => {
-                    let sensor = e
-                        .sensor
-                        .map(|s| d.temp_names[s].clone())
-                        .unwrap_or_default();
+                    let which: Vec<usize> = match e.sensor {
+                        Some(s) => vec![s],
+                        None => d.sensor_idx.clone(),
+                    };
                     let tau = e.param.unwrap_or(0.0);
-                    let channel = format!("{sensor}_lag{}s", tau.round());
-                    mf.lagged_channels.push(LaggedChannel {
-                        channel: channel.clone(),
-                        sensor,
-                        lowpass_tau_s: tau,
-                    });
-                    push(&mut mf, channel, e.signal_mean, c[0], c[1]);
+                    for (k, s) in which.into_iter().enumerate() {
+                        let sensor = d.temp_names[s].clone();
+                        let channel = format!("{sensor}_lag{}s", tau.round());
+                        mf.lagged_channels.push(LaggedChannel {
+                            channel: channel.clone(),
+                            sensor,
+                            lowpass_tau_s: tau,
+                        });
+                        let mean = e.signal_mean.get(k).copied().unwrap_or(0.0);
+                        push(&mut mf, channel, mean, c[2 * k], c[2 * k + 1]);
+                    }
                 }
                 EffectKind::ExtraSensor => {
                     let s = e.sensor.unwrap_or(0);
@@ -363,7 +367,10 @@ impl ModelFile {
                         .into(),
                     params: BTreeMap::from([
                         ("tau_s".into(), p("tau_s")),
-                        ("ref_mm_per_s".into(), e.signal_mean),
+                        (
+                            "ref_mm_per_s".into(),
+                            e.signal_mean.first().copied().unwrap_or(0.0),
+                        ),
                         ("k0_um_per_mm_per_s".into(), c[0]),
                         ("slope_um_per_mm_per_mm_per_s".into(), c[1]),
                     ]),
