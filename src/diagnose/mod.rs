@@ -452,7 +452,20 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
         });
         evs.extend(results.into_iter().flatten());
         evs.sort_by(|a, b| a.0.delta_ic.total_cmp(&b.0.delta_ic));
-        let best = evs.iter().position(|e| e.0.passes());
+        let mut best = evs.iter().position(|e| e.0.passes());
+        // Near-tie within one kind (one sensor's lag against every sensor's): the
+        // simpler candidate wins.
+        if let Some(b) = best {
+            let (kind, ic, k) = (evs[b].0.kind, evs[b].0.delta_ic, evs[b].0.k_add);
+            if let Some(simpler) = evs.iter().position(|e| {
+                e.0.passes()
+                    && e.0.kind == kind
+                    && e.0.k_add < k
+                    && e.0.delta_ic - ic < th.tie_ic
+            }) {
+                best = Some(simpler);
+            }
+        }
         rounds.push(Round {
             candidates: evs
                 .iter()
