@@ -262,7 +262,11 @@ fn candidate_report(d: &Data, e: &Evidence, accepted: bool) -> CandidateReport {
     let n = d.n as f64;
     CandidateReport {
         name: e.kind.name(),
-        sensor: e.sensor.map(|s| d.names[s].clone()),
+        sensor: match (e.sensor, e.kind) {
+            (Some(s), _) => Some(d.names[s].clone()),
+            (None, EffectKind::ThermalLag) => Some("all".into()),
+            _ => None,
+        },
         param: e.param,
         param_name: param_name(e.kind),
         range: e.range,
@@ -458,10 +462,7 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
         if let Some(b) = best {
             let (kind, ic, k) = (evs[b].0.kind, evs[b].0.delta_ic, evs[b].0.k_add);
             if let Some(simpler) = evs.iter().position(|e| {
-                e.0.passes()
-                    && e.0.kind == kind
-                    && e.0.k_add < k
-                    && e.0.delta_ic - ic < th.tie_ic
+                e.0.passes() && e.0.kind == kind && e.0.k_add < k && e.0.delta_ic - ic < th.tie_ic
             }) {
                 best = Some(simpler);
             }
