@@ -130,33 +130,44 @@ impl Data {
         (duration, median)
     }
 
-    /// The columns an effect adds, and for a lagged signal its mean (the reference the
-    /// model file records). `param` is tau_s or period_mm.
+    /// The columns an effect adds, and for each lagged signal its mean (the reference
+    /// the model file records). `param` is tau_s or period_mm. A thermal lag without a
+    /// sensor lags every baseline sensor with one time constant (the whole structure
+    /// lags).
     pub fn effect_columns(
         &self,
         kind: EffectKind,
         sensor: Option<usize>,
         param: f64,
-    ) -> (Vec<Vec<f64>>, f64) {
+    ) -> (Vec<Vec<f64>>, Vec<f64>) {
         match kind {
             EffectKind::ThermalLag => {
-                let s = sensor.unwrap_or(0);
-                let mut z = lag(&self.t_s, &self.temps_degc[s], param);
-                let mean = center(&mut z);
-                let (a, b) = self.thermal_pair(&z, 0.0);
-                (vec![a, b], mean)
+                let which: Vec<usize> = match sensor {
+                    Some(s) => vec![s],
+                    None => self.sensors.clone(),
+                };
+                let mut cols = Vec::new();
+                let mut means = Vec::new();
+                for s in which {
+                    let mut z = lag(&self.t_s, &self.temps_degc[s], param);
+                    means.push(center(&mut z));
+                    let (a, b) = self.thermal_pair(&z, 0.0);
+                    cols.push(a);
+                    cols.push(b);
+                }
+                (cols, means)
             }
             EffectKind::MotionHeating => {
                 let mut z = motion_heat(&self.t_s, &self.travel_mm, param);
                 let mean = center(&mut z);
                 let (a, b) = self.thermal_pair(&z, 0.0);
-                (vec![a, b], mean)
+                (vec![a, b], vec![mean])
             }
             EffectKind::ExtraSensor => {
                 let s = sensor.unwrap_or(0);
                 let mean = self.temp_mean_degc[s];
                 let (a, b) = self.thermal_pair(&self.temps_degc[s], mean);
-                (vec![a, b], mean)
+                (vec![a, b], vec![mean])
             }
             EffectKind::NonlinearPosition => {
                 let mut cols: Vec<Vec<f64>> = (0..3).map(|_| Vec::with_capacity(self.n)).collect();
@@ -165,13 +176,13 @@ impl Data {
                         c.push(p);
                     }
                 }
-                (cols, 0.0)
+                (cols, Vec::new())
             }
-            EffectKind::Reversal => (vec![self.dir.clone()], 0.0),
+            EffectKind::Reversal => (vec![self.dir.clone()], Vec::new()),
             EffectKind::PitchPeriodic => {
                 let w = std::f64::consts::TAU / param;
                 let (s, c) = self.pos_mm.iter().map(|p| (w * p).sin_cos()).unzip();
-                (vec![s, c], 0.0)
+                (vec![s, c], Vec::new())
             }
         }
     }
@@ -204,12 +215,15 @@ pub struct Evidence {
     pub passes_ic: bool,
     pub passes_cv: bool,
     pub plausible: bool,
+    /// The effect's RMS relative to the residual that remains with it.
+    pub size_ratio: f64,
+    pub passes_size: bool,
 }
 
 impl Evidence {
-    /// All three tests hold.
+    /// Every test holds.
     pub fn passes(&self) -> bool {
-        self.passes_ic && self.passes_cv && self.plausible
+        self.passes_ic && self.passes_cv && self.plausible && self.passes_size
     }
 }
 
@@ -422,18 +436,31 @@ pub fn evaluate(
             let range = period_range(d)?;
             let peaks = periodogram(d, r_cur, range);
             let f_step = 1.0 / (4.0 * (d.pos_max_mm - d.pos_min_mm));
-            let mut best: Option<(f64, f64)> = None;
-            for &(period, _) in peaks.iter().take(3) {
+            // The joint fit decides between the three strongest peaks; only the best
+            // one is refined.
+            let start = peaks
+                .iter()
+                .take(3)
+                .map(|&(period, _)| {
+                    (
+                        period,
+                        cur.rss_with(d, &d.effect_columns(kind, None, period).0),
+                    )
+                })
+                .min_by(|a, b| a.1.total_cmp(&b.1));
+            let best = start.map(|(period, rss0)| {
                 let f0 = 1.0 / period;
                 let a = (f0 - f_step).max(1.0 / range.1);
                 let b = (f0 + f_step).min(1.0 / range.0);
-                let (f, rss) = golden(a, b, 16, &mut |f: f64| {
+                let (f, rss) = golden(a, b, 14, &mut |f: f64| {
                     cur.rss_with(d, &d.effect_columns(kind, None, 1.0 / f).0)
                 });
-                if best.is_none_or(|(_, r)| rss < r) {
-                    best = Some((1.0 / f, rss));
+                if rss < rss0 {
+                    (1.0 / f, rss)
+                } else {
+                    (period, rss0)
                 }
-            }
+            });
             let (period, _) = best?;
             // Within 5 % of either end counts as the edge: a period near the span is
             // a curve, not a pitch error.
@@ -455,6 +482,7 @@ pub fn evaluate(
     let n_eff = (d.n as f64 * (1.0 - rho) / (1.0 + rho)).max(p_total + 2.0);
     let ratio = (sol.rss / cur.rss.max(1e-300)).max(1e-300);
     let delta_ic = n_eff * ratio.ln() + k_add as f64 * n_eff.ln();
+    let size_ratio = ((cur.rss - sol.rss).max(0.0) / sol.rss.max(1e-300)).sqrt();
     let ev = Evidence {
         kind,
         sensor,
@@ -472,6 +500,53 @@ pub fn evaluate(
         passes_ic: delta_ic < -th.ic_margin,
         passes_cv: cv_after < cur.cv * (1.0 - th.cv_min_gain),
         plausible: !at_edge && sol.rss.is_finite(),
+        size_ratio,
+        passes_size: size_ratio >= th.min_size_ratio,
     };
     Some((ev, cols))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn golden_and_log_search_find_the_minimum() {
+        let (x, _) = golden(0.0, 10.0, 40, &mut |x| (x - 3.3) * (x - 3.3));
+        assert!((x - 3.3).abs() < 1e-3, "{x}");
+        let (x, _, edge) = search_log(1.0, 1000.0, 20, &mut |x: f64| (x.ln() - 4.0).powi(2));
+        assert!(!edge && (x.ln() - 4.0).abs() < 1e-3, "{x}");
+        let (_, _, edge) = search_log(1.0, 1000.0, 20, &mut |x: f64| x);
+        assert!(edge);
+    }
+
+    #[test]
+    fn periodogram_finds_a_sine_in_position() {
+        let n = 3000;
+        let m = Measurements {
+            t_s: (0..n).map(|i| i as f64).collect(),
+            pos_mm: (0..n).map(|i| ((i * 7919) % 1000) as f64 * 0.5).collect(),
+            err_um: vec![0.0; n],
+            dir: vec![1; n],
+            travel_mm: vec![1.0; n],
+            temps: vec![crate::measure::TempColumn {
+                name: "a".into(),
+                degc: vec![20.0; n],
+            }],
+            ignored_columns: vec![],
+        };
+        let d = Data::new(&m, None, None, 5).expect("data");
+        let r: Vec<f64> = d
+            .pos_mm
+            .iter()
+            .map(|p| 2.0 * (std::f64::consts::TAU * p / 37.0).sin())
+            .collect();
+        let range = period_range(&d).expect("range");
+        assert!(range.0 < 37.0 && range.1 > 37.0, "{range:?}");
+        let (period, amp) = periodogram(&d, &r, range)[0];
+        assert!(
+            (period - 37.0).abs() < 0.5 && (amp - 2.0).abs() < 0.2,
+            "{period} {amp}"
+        );
+    }
 }

@@ -12,7 +12,9 @@
 //!   `n_eff ln(RSS1/RSS0) + k ln(n_eff) < -ic_margin`, `n_eff = n (1-rho)/(1+rho)` from
 //!   the lag-1 autocorrelation `rho` of the candidate model's residuals;
 //! - the held-out error of blocked (contiguous) cross-validation drops;
-//! - its searched parameter is not at the edge of its range.
+//! - its searched parameter is not at the edge of its range;
+//! - it is of a practical size: its RMS is at least `min_size_ratio` of the residual
+//!   that remains.
 //!
 //! The best passing candidate (lowest criterion) is added; a runner-up of another kind
 //! within `tie_ic` is reported as ambiguous. Selection repeats until nothing passes.
@@ -72,6 +74,11 @@ pub struct Thresholds {
     pub cv_min_gain: f64,
     /// A runner-up of another kind within this criterion distance is a near-tie.
     pub tie_ic: f64,
+    /// Practical size: the effect's RMS must be at least this fraction of the residual
+    /// RMS that remains with it. Smaller effects are of no use to a compensation and
+    /// are where artefacts of sensor noise and resolution live (a lag that merely
+    /// smooths a quantised sensor).
+    pub min_size_ratio: f64,
     /// Contiguous blocks for cross-validation.
     pub cv_blocks: usize,
     /// Most effects added.
@@ -84,6 +91,7 @@ impl Default for Thresholds {
             ic_margin: 10.0,
             cv_min_gain: 0.01,
             tie_ic: 6.0,
+            min_size_ratio: 0.35,
             cv_blocks: 5,
             max_effects: 4,
         }
@@ -141,6 +149,8 @@ pub struct CandidateReport {
     pub passes_ic: bool,
     pub passes_cv: bool,
     pub plausible: bool,
+    pub size_ratio: f64,
+    pub passes_size: bool,
     pub accepted: bool,
 }
 
@@ -164,9 +174,9 @@ pub struct EffectReport {
     /// Indices of its columns in the final design.
     #[serde(skip)]
     pub cols: (usize, usize),
-    /// Mean of its signal (lag, heat), the reference the model file records.
+    /// Mean of each of its signals (lags, heat), the references the model file records.
     #[serde(skip)]
-    pub signal_mean: f64,
+    pub signal_mean: Vec<f64>,
 }
 
 /// One round of selection: every candidate's evidence.
@@ -214,6 +224,9 @@ pub struct Diagnosis {
     pub p0_mm: f64,
     #[serde(skip)]
     pub beta: Vec<f64>,
+    /// Coefficients of the baseline refit alone.
+    #[serde(skip)]
+    pub beta_baseline: Vec<f64>,
     #[serde(skip)]
     pub temp_mean_degc: Vec<f64>,
     #[serde(skip)]
@@ -249,7 +262,11 @@ fn candidate_report(d: &Data, e: &Evidence, accepted: bool) -> CandidateReport {
     let n = d.n as f64;
     CandidateReport {
         name: e.kind.name(),
-        sensor: e.sensor.map(|s| d.names[s].clone()),
+        sensor: match (e.sensor, e.kind) {
+            (Some(s), _) => Some(d.names[s].clone()),
+            (None, EffectKind::ThermalLag) => Some("all".into()),
+            _ => None,
+        },
         param: e.param,
         param_name: param_name(e.kind),
         range: e.range,
@@ -265,6 +282,8 @@ fn candidate_report(d: &Data, e: &Evidence, accepted: bool) -> CandidateReport {
         passes_ic: e.passes_ic,
         passes_cv: e.passes_cv,
         plausible: e.plausible,
+        size_ratio: e.size_ratio,
+        passes_size: e.passes_size,
         accepted,
     }
 }
@@ -375,6 +394,7 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
 
     let mut cur = Current::new(&d, d.baseline_columns());
     let r0 = cur.residuals(&d);
+    let beta_baseline: Vec<f64> = cur.gram.solve().beta.iter().copied().collect();
     let baseline = Gap::of(&r0);
     let where_baseline = describe(&d, &r0);
 
@@ -383,11 +403,17 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
     let mut used: Vec<(EffectKind, Option<usize>)> = Vec::new();
     let mut r_cur = r0.clone();
     while effects.len() < th.max_effects {
-        let mut evs: Vec<(Evidence, Vec<Vec<f64>>, f64)> = Vec::new();
+        let mut evs: Vec<(Evidence, Vec<Vec<f64>>, Vec<f64>)> = Vec::new();
         let mut cands: Vec<(EffectKind, Option<usize>)> = Vec::new();
         for kind in EffectKind::ALL {
             match kind {
-                EffectKind::ThermalLag => cands.extend(d.sensors.iter().map(|&s| (kind, Some(s)))),
+                EffectKind::ThermalLag => {
+                    cands.extend(d.sensors.iter().map(|&s| (kind, Some(s))));
+                    if d.sensors.len() > 1 {
+                        // Every baseline sensor through one lag.
+                        cands.push((kind, None));
+                    }
+                }
                 EffectKind::ExtraSensor => cands.extend(
                     (0..d.names.len())
                         .filter(|s| !d.sensors.contains(s))
@@ -430,7 +456,17 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
         });
         evs.extend(results.into_iter().flatten());
         evs.sort_by(|a, b| a.0.delta_ic.total_cmp(&b.0.delta_ic));
-        let best = evs.iter().position(|e| e.0.passes());
+        let mut best = evs.iter().position(|e| e.0.passes());
+        // Near-tie within one kind (one sensor's lag against every sensor's): the
+        // simpler candidate wins.
+        if let Some(b) = best {
+            let (kind, ic, k) = (evs[b].0.kind, evs[b].0.delta_ic, evs[b].0.k_add);
+            if let Some(simpler) = evs.iter().position(|e| {
+                e.0.passes() && e.0.kind == kind && e.0.k_add < k && e.0.delta_ic - ic < th.tie_ic
+            }) {
+                best = Some(simpler);
+            }
+        }
         rounds.push(Round {
             candidates: evs
                 .iter()
@@ -482,6 +518,18 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
             p.insert("sensor".into(), serde_json::json!(d.names[s]));
         }
         match e.kind {
+            EffectKind::ThermalLag if e.sensor.is_none() => {
+                p.insert("tau_s".into(), num(e.param.unwrap_or(0.0)));
+                let names: Vec<&str> = d.sensors.iter().map(|&s| d.names[s].as_str()).collect();
+                p.insert("sensor".into(), serde_json::json!(names.join(",")));
+                for (k, name) in names.iter().enumerate() {
+                    p.insert(format!("k0_um_per_degc_{name}"), num(b[2 * k]));
+                    p.insert(
+                        format!("slope_um_per_mm_per_degc_{name}"),
+                        num(b[2 * k + 1]),
+                    );
+                }
+            }
             EffectKind::ThermalLag | EffectKind::MotionHeating => {
                 p.insert("tau_s".into(), num(e.param.unwrap_or(0.0)));
                 let unit = if e.kind == EffectKind::ThermalLag {
@@ -568,6 +616,7 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
         verdict,
         p0_mm: d.p0_mm,
         beta,
+        beta_baseline,
         temp_mean_degc: d.temp_mean_degc.clone(),
         temp_names: d.names.clone(),
         sensor_idx: d.sensors.clone(),

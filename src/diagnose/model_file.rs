@@ -1,8 +1,9 @@
 //! The model file `--model` reads and `--out` writes.
 //!
-//! `p0_mm`, `[k0]` and `[tan_beta]` are exactly the keys of a gateway axis
-//! (`[axes.NAME]` in the gateway config, same structs), with channels named after the
-//! data's sensors (`T_<name>` column -> channel `<name>`). A thermal lag the gateway
+//! The axis part is an `[axes.X]` table in the form `calibrate` writes and
+//! `scenario --model` and the gateway config read (`p0_mm`, `[axes.X.k0]`,
+//! `[axes.X.tan_beta]`, same structs), with channels named after the data's sensors
+//! (`T_<name>` column -> channel `<name>`). A thermal lag the gateway
 //! carries itself: `[[lagged_channels]]` names a channel on the same transmitter with
 //! `filter.lowpass_tau_s = tau_s`, and the k0/tan_beta terms reference it. Effects the
 //! gateway's K0/tan(beta) form cannot carry are listed in `[[effects]]` with the NC
@@ -77,34 +78,92 @@ impl ModelFile {
             path: path.display().to_string(),
             source,
         })?;
-        let de = toml::Deserializer::new(&text);
-        let mf: ModelFile =
-            serde_path_to_error::deserialize(de).map_err(|e| DiagnoseError::ModelFile {
-                path: path.display().to_string(),
-                message: format!("{}: {}", e.path(), e.inner().message()),
-            })?;
-        for e in &mf.effects {
-            if EffectKind::from_name(&e.name).is_none() {
-                return Err(DiagnoseError::ModelFile {
-                    path: path.display().to_string(),
-                    message: format!("effects: unknown effect name `{}`", e.name),
-                });
-            }
-        }
-        Ok(mf)
+        Self::from_toml(&text, &path.display().to_string())
     }
 
-    /// The TOML text, with a header comment.
+    /// Parses the text of a model file: the first `[axes.NAME]` (keys other than
+    /// `p0_mm`, `k0` and `tan_beta` are ignored, so a whole gateway config or a
+    /// calibrate model will do) plus the optional top-level `lagged_channels` and
+    /// `effects`. `origin` names the file in errors.
+    pub fn from_toml(text: &str, origin: &str) -> Result<Self, DiagnoseError> {
+        let err = |message: String| DiagnoseError::ModelFile {
+            path: origin.to_string(),
+            message,
+        };
+        let root: toml::Table = toml::from_str(text).map_err(|e| err(e.to_string()))?;
+        let (name, axis) = root
+            .get("axes")
+            .and_then(|a| a.as_table())
+            .and_then(|a| a.iter().next())
+            .ok_or_else(|| err("no [axes.NAME] table".into()))?;
+        let mut t = axis
+            .as_table()
+            .cloned()
+            .ok_or_else(|| err(format!("axes.{name} is not a table")))?;
+        t.retain(|k, _| matches!(k, "p0_mm" | "k0" | "tan_beta"));
+        let axis: crate::calibrate::AxisModel = toml::Value::Table(t)
+            .try_into()
+            .map_err(|e: toml::de::Error| err(format!("axes.{name}: {}", e.message())))?;
+        let lagged_channels: Vec<LaggedChannel> = match root.get("lagged_channels") {
+            Some(v) => v
+                .clone()
+                .try_into()
+                .map_err(|e: toml::de::Error| err(format!("lagged_channels: {}", e.message())))?,
+            None => Vec::new(),
+        };
+        let effects: Vec<EffectTerm> = match root.get("effects") {
+            Some(v) => v
+                .clone()
+                .try_into()
+                .map_err(|e: toml::de::Error| err(format!("effects: {}", e.message())))?,
+            None => Vec::new(),
+        };
+        for e in &effects {
+            if EffectKind::from_name(&e.name).is_none() {
+                return Err(err(format!("effects: unknown effect name `{}`", e.name)));
+            }
+        }
+        Ok(ModelFile {
+            p0_mm: axis.p0_mm,
+            k0: axis.k0,
+            tan_beta: axis.tan_beta,
+            lagged_channels,
+            effects,
+        })
+    }
+
+    /// The TOML text: `[axes.X]` as calibrate writes it, then the lagged channels and
+    /// effects, with a header comment.
     pub fn to_toml(&self) -> String {
-        let body = toml::to_string(self).unwrap_or_default();
-        format!(
-            "# Thermal model written by `compgate diagnose`.\n\
-             # p0_mm, [k0] and [tan_beta] are the keys of a gateway axis ([axes.NAME]);\n\
-             # channels are the data's sensors (column T_<name> -> channel <name>).\n\
-             # [[lagged_channels]]: a channel on the named sensor's transmitter with\n\
-             # filter.lowpass_tau_s. [[effects]]: terms outside K0/tan(beta), with the\n\
-             # NC function that carries them.\n\n{body}"
-        )
+        let axis = crate::calibrate::AxisModel {
+            p0_mm: self.p0_mm,
+            k0: self.k0.clone(),
+            tan_beta: self.tan_beta.clone(),
+        };
+        let header = "Thermal model written by `compgate diagnose`.\n\
+             [axes.X] is the gateway's axis form (as calibrate writes it; scenario --model\n\
+             reads it); channels are the data's sensors (column T_<name> -> channel <name>).\n\
+             [[lagged_channels]]: a channel on the named sensor's transmitter with\n\
+             filter.lowpass_tau_s. [[effects]]: terms outside K0/tan(beta), with the NC\n\
+             function that carries them.\n";
+        let mut s = crate::calibrate::model_toml("X", "nc_x", &axis, header);
+        #[derive(Serialize)]
+        struct Extra<'a> {
+            #[serde(skip_serializing_if = "<[_]>::is_empty")]
+            lagged_channels: &'a [LaggedChannel],
+            #[serde(skip_serializing_if = "<[_]>::is_empty")]
+            effects: &'a [EffectTerm],
+        }
+        let extra = toml::to_string(&Extra {
+            lagged_channels: &self.lagged_channels,
+            effects: &self.effects,
+        })
+        .unwrap_or_default();
+        if !extra.is_empty() {
+            s.push('\n');
+            s.push_str(&extra);
+        }
+        s
     }
 
     /// The error the model predicts for every row, um.
@@ -190,9 +249,17 @@ impl ModelFile {
         Ok(out)
     }
 
+    /// The baseline refit alone (K0 and tan(beta) affine in the sensors).
+    pub fn baseline_from_diagnosis(d: &Diagnosis) -> Self {
+        Self::build(d, &d.beta_baseline, &[])
+    }
+
     /// The updated model of a diagnosis: the refitted baseline plus every added effect.
     pub fn from_diagnosis(d: &Diagnosis) -> Self {
-        let b = &d.beta;
+        Self::build(d, &d.beta, &d.effects)
+    }
+
+    fn build(d: &Diagnosis, b: &[f64], effects: &[super::EffectReport]) -> Self {
         let mut mf = ModelFile {
             p0_mm: d.p0_mm,
             k0: K0Model {
@@ -226,23 +293,27 @@ impl ModelFile {
                 b[3 + 2 * j],
             );
         }
-        for e in &d.effects {
+        for e in effects {
             let c = &b[e.cols.0..e.cols.1];
             let p = |k: &str| e.params.get(k).and_then(|v| v.as_f64()).unwrap_or(0.0);
             match e.kind {
                 EffectKind::ThermalLag => {
-                    let sensor = e
-                        .sensor
-                        .map(|s| d.temp_names[s].clone())
-                        .unwrap_or_default();
+                    let which: Vec<usize> = match e.sensor {
+                        Some(s) => vec![s],
+                        None => d.sensor_idx.clone(),
+                    };
                     let tau = e.param.unwrap_or(0.0);
-                    let channel = format!("{sensor}_lag{}s", tau.round());
-                    mf.lagged_channels.push(LaggedChannel {
-                        channel: channel.clone(),
-                        sensor,
-                        lowpass_tau_s: tau,
-                    });
-                    push(&mut mf, channel, e.signal_mean, c[0], c[1]);
+                    for (k, s) in which.into_iter().enumerate() {
+                        let sensor = d.temp_names[s].clone();
+                        let channel = format!("{sensor}_lag{}s", tau.round());
+                        mf.lagged_channels.push(LaggedChannel {
+                            channel: channel.clone(),
+                            sensor,
+                            lowpass_tau_s: tau,
+                        });
+                        let mean = e.signal_mean.get(k).copied().unwrap_or(0.0);
+                        push(&mut mf, channel, mean, c[2 * k], c[2 * k + 1]);
+                    }
                 }
                 EffectKind::ExtraSensor => {
                     let s = e.sensor.unwrap_or(0);
@@ -256,8 +327,9 @@ impl ModelFile {
                 }
                 EffectKind::Reversal => mf.effects.push(EffectTerm {
                     name: e.name.into(),
-                    carried_by: "NC backlash compensation MD32450 = |b_um| (sign: + means \
-                                 the axis lags when approaching in +); not applied by the gateway"
+                    carried_by: "NC backlash compensation MD32450 = |b_um| (b_um is the error \
+                                 approaching in + minus the error approaching in -); not applied \
+                                 by the gateway"
                         .into(),
                     params: BTreeMap::from([("b_um".into(), p("b_um"))]),
                 }),
@@ -295,7 +367,10 @@ impl ModelFile {
                         .into(),
                     params: BTreeMap::from([
                         ("tau_s".into(), p("tau_s")),
-                        ("ref_mm_per_s".into(), e.signal_mean),
+                        (
+                            "ref_mm_per_s".into(),
+                            e.signal_mean.first().copied().unwrap_or(0.0),
+                        ),
                         ("k0_um_per_mm_per_s".into(), c[0]),
                         ("slope_um_per_mm_per_mm_per_s".into(), c[1]),
                     ]),
@@ -303,5 +378,122 @@ impl ModelFile {
             }
         }
         mf
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::schema::AxisConfig;
+    use crate::measure::TempColumn;
+
+    fn model() -> ModelFile {
+        ModelFile {
+            p0_mm: 100.0,
+            k0: K0Model {
+                offset_mm: 0.001,
+                terms: vec![
+                    K0Term {
+                        channel: "a".into(),
+                        ref_degc: 20.0,
+                        coeff_mm_per_degc: 0.002,
+                    },
+                    K0Term {
+                        channel: "a_lag100s".into(),
+                        ref_degc: 20.0,
+                        coeff_mm_per_degc: -0.001,
+                    },
+                ],
+            },
+            tan_beta: TanBetaModel {
+                offset: 0.0,
+                terms: vec![TanBetaTerm {
+                    channel: "a".into(),
+                    ref_degc: 20.0,
+                    coeff_per_degc: 1e-5,
+                }],
+            },
+            lagged_channels: vec![LaggedChannel {
+                channel: "a_lag100s".into(),
+                sensor: "a".into(),
+                lowpass_tau_s: 100.0,
+            }],
+            effects: vec![EffectTerm {
+                name: "reversal".into(),
+                carried_by: "MD32450".into(),
+                params: BTreeMap::from([("b_um".into(), 4.0)]),
+            }],
+        }
+    }
+
+    #[test]
+    fn round_trips_and_its_axis_keys_load_as_a_gateway_axis() {
+        let m = model();
+        let text = m.to_toml();
+        let back = ModelFile::from_toml(&text, "m.toml").expect("parse");
+        assert_eq!(back, m);
+        // calibrate's reader (the one scenario --model uses) takes it too.
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("model.toml");
+        std::fs::write(&path, &text).expect("write");
+        let (name, axis) = crate::calibrate::load_model(&path).expect("calibrate reads it");
+        assert_eq!(name, "X");
+        assert_eq!(
+            (axis.k0, axis.tan_beta, axis.p0_mm),
+            (m.k0.clone(), m.tan_beta.clone(), m.p0_mm)
+        );
+        // p0_mm, [k0] and [tan_beta] are the keys of [axes.NAME].
+        #[derive(Serialize)]
+        struct AxisPart<'a> {
+            nc_module: &'a str,
+            md32750: u16,
+            p0_mm: f64,
+            k0: &'a K0Model,
+            tan_beta: &'a TanBetaModel,
+        }
+        let axis = toml::to_string(&AxisPart {
+            nc_module: "nc1",
+            md32750: 3,
+            p0_mm: m.p0_mm,
+            k0: &m.k0,
+            tan_beta: &m.tan_beta,
+        })
+        .expect("toml");
+        let axis: AxisConfig = toml::from_str(&axis).expect("axis config");
+        assert_eq!(axis.k0, m.k0);
+        assert_eq!(axis.tan_beta, m.tan_beta);
+        assert_eq!(axis.p0_mm, 100.0);
+    }
+
+    #[test]
+    fn predicts_with_lagged_channels_and_effects() {
+        let meas = Measurements {
+            t_s: vec![0.0, 100.0, 200.0],
+            pos_mm: vec![100.0, 200.0, 100.0],
+            err_um: vec![0.0; 3],
+            dir: vec![0, 1, -1],
+            travel_mm: vec![0.0, 100.0, 100.0],
+            temps: vec![TempColumn {
+                name: "a".into(),
+                degc: vec![20.0, 21.0, 21.0],
+            }],
+            ignored_columns: vec![],
+        };
+        let p = model().predict_um(&meas).expect("predict");
+        // Row 0: K0 offset 1 um, everything at its reference, dir unknown.
+        assert!((p[0] - 1.0).abs() < 1e-9, "{}", p[0]);
+        // Row 1: lag(a) = 20 + (1 - e^-1) = 20.632; K0 = 1 + 2 - 0.632 um; slope
+        // 1e-5 * 1 degC * 100 mm = 1 um; reversal +2 um.
+        let lag1 = 20.0 + (1.0 - (-1.0f64).exp());
+        let want = 1.0 + 2.0 - (lag1 - 20.0) + 1.0 + 2.0;
+        assert!((p[1] - want).abs() < 1e-9, "{} vs {want}", p[1]);
+        // A term on a channel the data lacks is an error naming it.
+        let mut bad = model();
+        bad.k0.terms[0].channel = "z".into();
+        let e = bad.predict_um(&meas).expect_err("unknown channel");
+        assert!(
+            e.to_string().contains("`z`") && e.to_string().contains("k0.terms"),
+            "{e}"
+        );
     }
 }

@@ -83,7 +83,7 @@ pub fn text_report(d: &Diagnosis) -> String {
     for (i, round) in d.rounds.iter().enumerate() {
         let _ = writeln!(
             out,
-            "\nround {}: candidates (dIC < 0 is better; accepted needs IC, blocked CV, plausible)",
+            "\nround {}: candidates (dIC < 0 is better; accepted needs IC, blocked CV, plausible, size)",
             i + 1
         );
         let _ = writeln!(
@@ -108,6 +108,9 @@ pub fn text_report(d: &Diagnosis) -> String {
             }
             if !c.plausible {
                 why.push("edge of range");
+            }
+            if !c.passes_size {
+                why.push("too small");
             }
             let verdict = if c.accepted {
                 "ACCEPTED".to_string()
@@ -254,9 +257,13 @@ pub fn write_out(dir: &Path, d: &Diagnosis) -> Result<Vec<PathBuf>, DiagnoseErro
     let model_path = dir.join("model.toml");
     std::fs::write(&model_path, ModelFile::from_diagnosis(d).to_toml()).map_err(io(&model_path))?;
     written.push(model_path);
+    let base_path = dir.join("baseline_model.toml");
+    std::fs::write(&base_path, ModelFile::baseline_from_diagnosis(d).to_toml())
+        .map_err(io(&base_path))?;
+    written.push(base_path);
 
     let s = &d.series;
-    let idx = thin(s.t_s.len(), 6000);
+    let idx = thin(s.t_s.len(), 2000);
     let pick =
         |x: &dyn Fn(usize) -> f64, r: &[f64]| -> Xy { idx.iter().map(|&i| (x(i), r[i])).collect() };
     let t_end = s.t_s.last().copied().unwrap_or(1.0).max(s.t_s[0] + 1e-9);
