@@ -11,6 +11,8 @@ CREATE TABLE IF NOT EXISTS channels (
     id   INTEGER PRIMARY KEY,
     name TEXT NOT NULL UNIQUE
 );
+-- Clustered by time (one b-tree, no separate index): inserts, time-range exports and
+-- retention deletes all walk the same key.
 CREATE TABLE IF NOT EXISTS readings (
     t_unix_ms       INTEGER NOT NULL,
     channel         INTEGER NOT NULL REFERENCES channels(id),
@@ -18,9 +20,9 @@ CREATE TABLE IF NOT EXISTS readings (
     unfiltered_degc REAL,
     value_degc      REAL,
     quality         INTEGER NOT NULL, -- 0 good, 1 uncertain, 2 bad
-    reason          TEXT
-);
-CREATE INDEX IF NOT EXISTS readings_t ON readings(t_unix_ms);
+    reason          TEXT,
+    PRIMARY KEY (t_unix_ms, channel)
+) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS jobs (
     t_unix_ms  INTEGER NOT NULL,
     axis       TEXT NOT NULL,
@@ -98,7 +100,7 @@ pub fn insert(conn: &mut Connection, batch: &[Record]) -> rusqlite::Result<()> {
     {
         let mut ids: std::collections::HashMap<*const u8, i64> = std::collections::HashMap::new();
         let mut reading = tx.prepare_cached(
-            "INSERT INTO readings(t_unix_ms, channel, raw, unfiltered_degc, value_degc, quality, reason) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+            "INSERT OR REPLACE INTO readings(t_unix_ms, channel, raw, unfiltered_degc, value_degc, quality, reason) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
         )?;
         for rec in batch {
             match rec {
