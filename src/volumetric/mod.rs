@@ -54,7 +54,12 @@
 //! Near A = 0 the tool axis is parallel to C and an orientation error about the A
 //! plane's normal cannot be corrected without a large C move: within
 //! [`SINGULAR_A_DEG`] of A = 0 C is not corrected and A' takes only the in-plane
-//! part (`A' = atan2(-w_y, w_z)`, w the axis in the C frame).
+//! part (`A' = atan2(-w_y, w_z)`, w the axis in the C frame). That is
+//! [`PoleMode::Hold`], the default and the only behaviour of `feedback`.
+//! [`PoleMode::Swing`] ([`VolumetricCompensator::drive_positions_pole`], offline)
+//! solves such commands with a C move instead, bounded by a limit; where an
+//! out-of-plane head error makes the tool sweep a cone that misses the C direction,
+//! no C move reaches the nominal axis and the least error is taken.
 //!
 //! # Error parameter file, version 1
 //!
@@ -530,10 +535,12 @@ impl VolumetricCompensator {
 
     /// Drive positions for a commanded pose u under a pole policy: outside the
     /// A = 0 band, and always in [`PoleMode::Hold`], exactly [`Self::drive_positions`].
-    /// In [`PoleMode::Swing`] a command inside the band is solved by Newton on the 5-D
-    /// pose residual (see [`PoleSolve`]); if that needs a C move beyond
-    /// `max_c_swing_deg` or does not converge, the Hold result is returned and
-    /// `fallback` is set.
+    /// In [`PoleMode::Swing`] a command inside the band is solved for C as a root of
+    /// the out-of-plane axis residual (tip and in-plane axis by Newton with C held);
+    /// where no C reaches the nominal axis (an out-of-plane head error makes the tool
+    /// sweep a cone that misses it) the least error is taken and `reached` is false.
+    /// If the solve needs a C move beyond `max_c_swing_deg` or fails, the Hold result
+    /// is returned and `fallback` is set.
     pub fn drive_positions_pole(&self, u: &[f64; 5], pole: &Pole) -> PoleSolve {
         let hold = self.drive_positions(u);
         let plain = PoleSolve {
