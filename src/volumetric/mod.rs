@@ -54,7 +54,12 @@
 //! Near A = 0 the tool axis is parallel to C and an orientation error about the A
 //! plane's normal cannot be corrected without a large C move: within
 //! [`SINGULAR_A_DEG`] of A = 0 C is not corrected and A' takes only the in-plane
-//! part (`A' = atan2(-w_y, w_z)`, w the axis in the C frame).
+//! part (`A' = atan2(-w_y, w_z)`, w the axis in the C frame). That is
+//! [`PoleMode::Hold`], the default and the only behaviour of `feedback`.
+//! [`PoleMode::Swing`] ([`VolumetricCompensator::drive_positions_pole`], offline)
+//! solves such commands with a C move instead, bounded by a limit; where an
+//! out-of-plane head error makes the tool sweep a cone that misses the C direction,
+//! no C move reaches the nominal axis and the least error is taken.
 //!
 //! # Error parameter file, version 1
 //!
@@ -391,6 +396,57 @@ pub struct Solve {
     pub residual_arcsec: f64,
 }
 
+/// What the compensator does with a command within [`SINGULAR_A_DEG`] of A = 0 (the
+/// pole, tool axis parallel to C), where an orientation error about the A plane's
+/// normal can only be removed by a finite C move.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum PoleMode {
+    /// C is not corrected, A takes the in-plane part only: safe in a moving servo loop
+    /// (the online `feedback` path).
+    #[default]
+    Hold,
+    /// Solve for the drive positions that put the actual pose on the nominal one, even
+    /// if C must swing (bounded by [`Pole::max_c_swing_deg`]).
+    Swing,
+}
+
+/// The pole policy.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pole {
+    /// Hold or swing.
+    pub mode: PoleMode,
+    /// Largest C move from the command a swing may make, deg; beyond it the Hold
+    /// result is kept.
+    pub max_c_swing_deg: f64,
+}
+
+impl Default for Pole {
+    fn default() -> Self {
+        Self {
+            mode: PoleMode::Hold,
+            max_c_swing_deg: 180.0,
+        }
+    }
+}
+
+/// Result of [`VolumetricCompensator::drive_positions_pole`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PoleSolve {
+    /// The drive positions; in a swing the residuals are the pose residuals (tip um,
+    /// tool axis arc-seconds) and `iterations` the Newton steps.
+    pub solve: Solve,
+    /// Newton steps of the swing solve (0 when not swung).
+    pub newton_iterations: usize,
+    /// C move from the command, deg (0 when not swung).
+    pub c_swing_deg: f64,
+    /// A swing was wanted but exceeded the limit or did not converge; Hold was kept.
+    pub fallback: bool,
+    /// The nominal pose was reached; false when no C reaches the nominal tool axis
+    /// (see [`VolumetricCompensator::drive_positions_pole`]) and the drive positions
+    /// give the least orientation error with the tip on the command.
+    pub reached: bool,
+}
+
 /// The online compensator: scale positions in, corrected feedback out.
 #[derive(Debug, Clone)]
 pub struct VolumetricCompensator {
@@ -475,6 +531,186 @@ impl VolumetricCompensator {
             }
             iterations += 1;
         }
+    }
+
+    /// Drive positions for a commanded pose u under a pole policy: outside the
+    /// A = 0 band, and always in [`PoleMode::Hold`], exactly [`Self::drive_positions`].
+    /// In [`PoleMode::Swing`] a command inside the band is solved for C as a root of
+    /// the out-of-plane axis residual (tip and in-plane axis by Newton with C held);
+    /// where no C reaches the nominal axis (an out-of-plane head error makes the tool
+    /// sweep a cone that misses it) the least error is taken and `reached` is false.
+    /// If the solve needs a C move beyond `max_c_swing_deg` or fails, the Hold result
+    /// is returned and `fallback` is set.
+    pub fn drive_positions_pole(&self, u: &[f64; 5], pole: &Pole) -> PoleSolve {
+        let hold = self.drive_positions(u);
+        let plain = PoleSolve {
+            solve: hold,
+            newton_iterations: 0,
+            c_swing_deg: 0.0,
+            fallback: false,
+            reached: true,
+        };
+        if pole.mode == PoleMode::Hold || self.model.zero || u[3].abs() >= SINGULAR_A_DEG {
+            return plain;
+        }
+        match self.swing(u, &hold.drive, pole.max_c_swing_deg) {
+            Some(s) if (s.solve.drive[4] - u[4]).abs() <= pole.max_c_swing_deg => s,
+            _ => PoleSolve {
+                fallback: true,
+                ..plain
+            },
+        }
+    }
+
+    /// The swing solve. At the pole the C-dependent errors (C location, EAC, EBC) vary
+    /// with C as much as the tilt to be made, so the tilt's azimuth is found as a root
+    /// of a function of C: for C held, Newton on (X, Y, Z, A) zeroes the tip residual
+    /// and the in-plane tool axis residual; what is left is the out-of-plane residual
+    /// f(C), which changes sign between C and C + 180 deg. The root nearest the command
+    /// is bracketed on a 5 deg scan within the swing limit and bisected.
+    fn swing(&self, u: &[f64; 5], start: &[f64; 5], limit_deg: f64) -> Option<PoleSolve> {
+        let mut evals = 0usize;
+        let f = |c: f64, evals: &mut usize| {
+            *evals += 1;
+            self.hold_c(u, start, c)
+        };
+        let here = f(u[4], &mut evals)?;
+        let tol_rad = 0.1 * TOL_ARCSEC * RAD_PER_ARCSEC;
+        let mut best = None;
+        // Smallest |f| seen, for when no root exists (see below).
+        let mut least = (here.1.abs(), u[4], here.0);
+        if here.1.abs() <= tol_rad {
+            best = Some(here.0);
+        } else {
+            let step = 1.0;
+            let n = (limit_deg.min(180.0) / step).floor() as usize;
+            let mut prev = [(u[4], here.1); 2];
+            // Both sides outwards, the nearer bracket first.
+            'scan: for k in 1..=n {
+                for (side, dir) in [1.0, -1.0].into_iter().enumerate() {
+                    let c1 = u[4] + dir * step * k as f64;
+                    let (q1, f1) = f(c1, &mut evals)?;
+                    if f1.abs() < least.0 {
+                        least = (f1.abs(), c1, q1);
+                    }
+                    let (c0, f0) = prev[side];
+                    prev[side] = (c1, f1);
+                    if f0.signum() == f1.signum() {
+                        continue;
+                    }
+                    let (mut lo, mut hi, mut f_lo) = (c0, c1, f0);
+                    for _ in 0..60 {
+                        let mid = 0.5 * (lo + hi);
+                        let (q, fm) = f(mid, &mut evals)?;
+                        if fm.abs() <= tol_rad {
+                            best = Some(q);
+                            break 'scan;
+                        }
+                        if fm.signum() == f_lo.signum() {
+                            lo = mid;
+                            f_lo = fm;
+                        } else {
+                            hi = mid;
+                        }
+                    }
+                    best = Some(f(0.5 * (lo + hi), &mut evals)?.0);
+                    break 'scan;
+                }
+            }
+        }
+        // No root: the out-of-plane error of the head (tool or A axis tilted out of
+        // the A plane) makes the tool sweep a cone that misses the C direction; no C
+        // move reaches the nominal axis. Take the least error, |f| minimised by a
+        // golden-section search around the best scan point.
+        let reached = best.is_some();
+        if best.is_none() {
+            let g = (5f64.sqrt() - 1.0) / 2.0;
+            let (mut lo, mut hi) = (least.1 - 1.0, least.1 + 1.0);
+            for _ in 0..40 {
+                let (m1, m2) = (hi - g * (hi - lo), lo + g * (hi - lo));
+                if f(m1, &mut evals)?.1.abs() < f(m2, &mut evals)?.1.abs() {
+                    hi = m2;
+                } else {
+                    lo = m1;
+                }
+            }
+            let (q, fm) = f(0.5 * (lo + hi), &mut evals)?;
+            best = Some(if fm.abs() < least.0 { q } else { least.2 });
+        }
+        let drive = best?;
+        let (p, v) = self.model.actual_pose(&drive);
+        let (pn, vn) = nominal_pose(&self.model.geometry, u);
+        let tip_um = distance_mm(&p, &pn) / MM_PER_UM;
+        let orient_as = angle_rad(&v, &vn) / RAD_PER_ARCSEC;
+        let hold_as = {
+            let (_, vh) = self.model.actual_pose(start);
+            angle_rad(&vh, &vn) / RAD_PER_ARCSEC
+        };
+        let ok = tip_um <= TOL_UM && (orient_as <= TOL_ARCSEC || (!reached && orient_as < hold_as));
+        ok.then_some(PoleSolve {
+            solve: Solve {
+                drive,
+                iterations: evals,
+                residual_um: tip_um,
+                residual_arcsec: orient_as,
+            },
+            newton_iterations: evals,
+            c_swing_deg: (drive[4] - u[4]).abs(),
+            fallback: false,
+            reached,
+        })
+    }
+
+    /// With C held at `c_deg`: Newton on (X, Y, Z, A) for the tip and the in-plane
+    /// axis residual (nominal Jacobian by central differences); returns the drive
+    /// positions and the out-of-plane axis residual, rad, signed so that it turns
+    /// with C.
+    fn hold_c(&self, u: &[f64; 5], start: &[f64; 5], c_deg: f64) -> Option<([f64; 5], f64)> {
+        use nalgebra::{SMatrix, SVector};
+        let g = &self.model.geometry;
+        let (pn, vn) = nominal_pose(g, u);
+        let res = |x: &SVector<f64, 4>, actual: bool| -> SVector<f64, 5> {
+            let q = [x[0], x[1], x[2], x[3], c_deg];
+            let (p, v) = if actual {
+                self.model.actual_pose(&q)
+            } else {
+                nominal_pose(g, &q)
+            };
+            let d = [v[0] - vn[0], v[1] - vn[1], v[2] - vn[2]];
+            SVector::from([p[0] - pn[0], p[1] - pn[1], p[2] - pn[2], d[0], d[1]])
+        };
+        let mut x = SVector::from([start[0], start[1], start[2], start[3]]);
+        for _ in 0..MAX_ITERATIONS {
+            let mut jac = SMatrix::<f64, 5, 4>::zeros();
+            for k in 0..4 {
+                let h = 1e-6; // mm or deg
+                let (mut xp, mut xm) = (x, x);
+                xp[k] += h;
+                xm[k] -= h;
+                jac.set_column(k, &((res(&xp, false) - res(&xm, false)) / (2.0 * h)));
+            }
+            // In-plane direction of the axis motion under A, in the x-y components
+            // (the axis is near Z at the pole), and its normal.
+            let m = jac.fixed_view::<2, 1>(3, 3).normalize();
+            let n = [-m[1], m[0]];
+            let r = res(&x, true);
+            let r4 = SVector::from([r[0], r[1], r[2], r[3] * m[0] + r[4] * m[1]]);
+            let out = r[3] * n[0] + r[4] * n[1];
+            let q = [x[0], x[1], x[2], x[3], c_deg];
+            if r4.fixed_rows::<3>(0).norm() / MM_PER_UM <= 0.1 * TOL_UM
+                && r4[3].abs() / RAD_PER_ARCSEC <= 0.1 * TOL_ARCSEC
+            {
+                return Some((q, out));
+            }
+            let mut j4 = SMatrix::<f64, 4, 4>::zeros();
+            j4.fixed_view_mut::<3, 4>(0, 0)
+                .copy_from(&jac.fixed_view::<3, 4>(0, 0));
+            for k in 0..4 {
+                j4[(3, k)] = jac[(3, k)] * m[0] + jac[(4, k)] * m[1];
+            }
+            x -= j4.lu().solve(&r4)?;
+        }
+        None
     }
 
     /// Tip error (mm, actual minus nominal) and orientation error (rotation vector
@@ -602,6 +838,13 @@ pub struct VolumetricArgs {
     /// Directory for the SVG error maps (created if missing).
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
+    /// Within 1 deg of A = 0 (the pole): `hold` leaves C alone (safe online), `swing`
+    /// solves for the drive positions even if C must swing.
+    #[arg(long, value_enum, default_value_t = PoleMode::Hold)]
+    pub pole: PoleMode,
+    /// Largest C move a pole swing may make, deg (beyond it Hold is kept).
+    #[arg(long = "max-c-swing", value_name = "DEG", default_value_t = 180.0)]
+    pub max_c_swing_deg: f64,
 }
 
 /// Grid axes: the values of each of the five axes.
@@ -693,6 +936,16 @@ pub struct Evaluation {
     /// Per pose: within [`SINGULAR_A_DEG`] of A = 0, where the orientation is only
     /// partly correctable; the statistics report these poses apart.
     pub singular: Vec<bool>,
+    /// The pole policy used.
+    pub pole: Pole,
+    /// Largest C swing made at the pole, deg.
+    pub max_c_swing_deg: f64,
+    /// Most Newton steps of a pole swing.
+    pub max_pole_iterations: usize,
+    /// Band poses where a swing was wanted but Hold was kept.
+    pub pole_fallbacks: usize,
+    /// Band poses whose nominal tool axis no C reaches (least error taken).
+    pub pole_unreachable: usize,
 }
 
 fn stats<'a>(e: impl Iterator<Item = &'a (f64, f64)>) -> Stats {
@@ -745,9 +998,21 @@ impl Evaluation {
 /// Evaluates every grid pose uncompensated (drives at the command) and compensated
 /// (drives where the feedback equals the command).
 pub fn evaluate(comp: &VolumetricCompensator, grid: &[Vec<f64>; 5]) -> Evaluation {
+    evaluate_pole(comp, grid, &Pole::default())
+}
+
+/// [`evaluate`] under a pole policy.
+pub fn evaluate_pole(
+    comp: &VolumetricCompensator,
+    grid: &[Vec<f64>; 5],
+    pole: &Pole,
+) -> Evaluation {
     let model = comp.model();
     let g = &model.geometry;
-    let mut ev = Evaluation::default();
+    let mut ev = Evaluation {
+        pole: *pole,
+        ..Evaluation::default()
+    };
     let err = |q: &[f64; 5], u: &[f64; 5]| {
         let (p, v) = model.actual_pose(q);
         let (pn, vn) = nominal_pose(g, u);
@@ -762,14 +1027,22 @@ pub fn evaluate(comp: &VolumetricCompensator, grid: &[Vec<f64>; 5]) -> Evaluatio
                 for &a in &grid[3] {
                     for &c in &grid[4] {
                         let u = [x, y, z, a, c];
-                        let s = comp.drive_positions(&u);
+                        let ps = comp.drive_positions_pole(&u, pole);
+                        let s = ps.solve;
+                        ev.max_c_swing_deg = ev.max_c_swing_deg.max(ps.c_swing_deg);
+                        ev.max_pole_iterations = ev.max_pole_iterations.max(ps.newton_iterations);
+                        ev.pole_fallbacks += usize::from(ps.fallback);
+                        ev.pole_unreachable += usize::from(!ps.reached);
                         ev.poses.push(u);
                         ev.singular.push(a.abs() < SINGULAR_A_DEG);
                         ev.uncompensated.push(err(&u, &u));
                         ev.compensated.push(err(&s.drive, &u));
-                        ev.max_iterations = ev.max_iterations.max(s.iterations);
-                        ev.max_residual.0 = ev.max_residual.0.max(s.residual_um);
-                        ev.max_residual.1 = ev.max_residual.1.max(s.residual_arcsec);
+                        // Swing solves count apart (Newton steps, pose residuals).
+                        if ps.newton_iterations == 0 {
+                            ev.max_iterations = ev.max_iterations.max(s.iterations);
+                            ev.max_residual.0 = ev.max_residual.0.max(s.residual_um);
+                            ev.max_residual.1 = ev.max_residual.1.max(s.residual_arcsec);
+                        }
                     }
                 }
             }
@@ -831,10 +1104,28 @@ pub fn report(ev: &Evaluation) -> String {
         "iterations: at most {} (tolerance {TOL_UM} um, {TOL_ARCSEC}\"); largest residual {:.2e} um, {:.2e}\"",
         ev.max_iterations, ev.max_residual.0, ev.max_residual.1
     );
-    if n_sing > 0 {
+    if n_sing > 0 && ev.pole.mode == PoleMode::Swing {
         let _ = writeln!(
             s,
-            "A = 0 band ({n_sing} poses, C not corrected): tip max {:.4} -> {:.6} um, \
+            "A = 0 band ({n_sing} poses, pole mode swing, C move limit {} deg): tip max \
+             {:.4} -> {:.6} um, orientation max {:.4} -> {:.6}\" ({:.4} %); largest C \
+             swing {:.2} deg, solves at most {}, {} poses kept on hold, {} unreachable \
+             (least error taken)",
+            ev.pole.max_c_swing_deg,
+            su.max_tip_um,
+            sc.max_tip_um,
+            su.max_orient_arcsec,
+            sc.max_orient_arcsec,
+            pct(sc.max_orient_arcsec, su.max_orient_arcsec),
+            ev.max_c_swing_deg,
+            ev.max_pole_iterations,
+            ev.pole_fallbacks,
+            ev.pole_unreachable
+        );
+    } else if n_sing > 0 {
+        let _ = writeln!(
+            s,
+            "A = 0 band ({n_sing} poses, pole mode hold, C not corrected): tip max {:.4} -> {:.6} um, \
              orientation max {:.4} -> {:.4}\" (the part about the A plane's normal is \
              not correctable without a large C move)",
             su.max_tip_um, sc.max_tip_um, su.max_orient_arcsec, sc.max_orient_arcsec
@@ -983,7 +1274,17 @@ pub fn run(args: &VolumetricArgs) -> Result<String, VolumetricError> {
     })?;
     let grid = parse_grid(&args.grid, &model.travel)?;
     let comp = VolumetricCompensator::new(model);
-    let ev = evaluate(&comp, &grid);
+    let pole = Pole {
+        mode: args.pole,
+        max_c_swing_deg: args.max_c_swing_deg,
+    };
+    if !(pole.max_c_swing_deg >= 0.0 && pole.max_c_swing_deg.is_finite()) {
+        return Err(VolumetricError::Grid(format!(
+            "--max-c-swing: {} deg is not a finite angle >= 0",
+            pole.max_c_swing_deg
+        )));
+    }
+    let ev = evaluate_pole(&comp, &grid, &pole);
     let mut s = report(&ev);
     if let Some(dir) = &args.out {
         for p in write_svgs(dir, &ev)? {

@@ -209,6 +209,8 @@ fn run_writes_report_and_svgs() {
         errors,
         grid: "3".into(),
         out: Some(out.clone()),
+        pole: PoleMode::Hold,
+        max_c_swing_deg: 180.0,
     })
     .expect("run");
     assert!(report.contains("tip max"), "{report}");
@@ -222,6 +224,8 @@ fn run_writes_report_and_svgs() {
         errors: bad,
         grid: "3".into(),
         out: None,
+        pole: PoleMode::Hold,
+        max_c_swing_deg: 180.0,
     })
     .expect_err("bad file");
     assert!(e.to_string().contains("line 2"), "{e}");
@@ -349,4 +353,74 @@ proptest! {
         let q = [x, y, z, a, c];
         prop_assert_eq!(comp.feedback(&q).map(f64::to_bits), q.map(f64::to_bits));
     }
+}
+
+#[test]
+fn pole_modes_agree_off_the_band_and_on_a_zero_model() {
+    let comp = VolumetricCompensator::new(synthetic_model(1.0));
+    let swing = Pole {
+        mode: PoleMode::Swing,
+        max_c_swing_deg: 180.0,
+    };
+    let grid = parse_grid("3", &comp.model().travel).expect("grid");
+    for &a in &[-100.0, -3.0, 1.0, 50.0] {
+        for &c in &grid[4] {
+            let u = [500.0, 400.0, 300.0, a, c];
+            let h = comp.drive_positions(&u);
+            for pole in [Pole::default(), swing] {
+                let s = comp.drive_positions_pole(&u, &pole);
+                assert_eq!(s.solve.drive.map(f64::to_bits), h.drive.map(f64::to_bits));
+                assert_eq!(s.newton_iterations, 0);
+            }
+        }
+    }
+    let zero = VolumetricCompensator::new(synthetic_model(0.0));
+    for q in [[0.0, 0.0, 0.0, 0.0, 0.0], [10.0, 20.0, 30.0, 0.5, -120.0]] {
+        for pole in [Pole::default(), swing] {
+            let s = zero.drive_positions_pole(&q, &pole);
+            assert_eq!(s.solve.drive.map(f64::to_bits), q.map(f64::to_bits));
+        }
+    }
+}
+
+#[test]
+fn swing_reaches_the_pole_pose_or_reduces_its_error() {
+    let comp = VolumetricCompensator::new(synthetic_model(1.0));
+    let swing = Pole {
+        mode: PoleMode::Swing,
+        max_c_swing_deg: 180.0,
+    };
+    let g = comp.model().geometry;
+    let err = |q: &[f64; 5], u: &[f64; 5]| {
+        let (p, v) = comp.model().actual_pose(q);
+        let (pn, vn) = nominal_pose(&g, u);
+        (
+            distance_mm(&p, &pn) / MM_PER_UM,
+            angle_rad(&v, &vn) / RAD_PER_ARCSEC,
+        )
+    };
+    let (mut reached, mut unreachable) = (0, 0);
+    for &x in &[0.0, 1000.0] {
+        for &c in &[-200.0, -100.0, 0.0, 100.0, 200.0] {
+            let u = [x, 400.0, 300.0, 0.0, c];
+            let s = comp.drive_positions_pole(&u, &swing);
+            let hold = comp.drive_positions(&u);
+            let (t, o) = err(&s.solve.drive, &u);
+            let (_, o_hold) = err(&hold.drive, &u);
+            if s.fallback {
+                continue;
+            }
+            assert!(t <= TOL_UM, "{u:?} {s:?}");
+            assert!(s.c_swing_deg <= 180.0, "{s:?}");
+            if s.reached {
+                reached += 1;
+                assert!(o <= TOL_ARCSEC, "{u:?} {s:?}");
+            } else {
+                unreachable += 1;
+                assert!(o < o_hold, "{u:?} {o} {o_hold}");
+            }
+        }
+    }
+    println!("reached {reached}, unreachable {unreachable}");
+    assert!(reached > 0, "{reached} {unreachable}");
 }
