@@ -203,13 +203,15 @@ impl DevicePoller {
         self.failed_cycles
     }
 
-    async fn read_block(&self, block: &ReadBlock) -> Result<Vec<u16>, SourceError> {
+    /// Reads one block, retrying transport faults up to `retries` times.
+    async fn read_block(
+        &self,
+        link: &mut ModbusLink,
+        block: &ReadBlock,
+    ) -> Result<Vec<u16>, SourceError> {
         let mut attempt = 0;
         loop {
-            let result = self
-                .link
-                .lock()
-                .await
+            let result = link
                 .read(self.params.unit_id, block.kind, block.start, block.count)
                 .await;
             match result {
@@ -233,8 +235,12 @@ impl DevicePoller {
         let mut values = Vec::with_capacity(self.specs.len());
         let mut first_error = None;
         let mut failed: Vec<(usize, Reason)> = Vec::new();
+        // One lock for the whole cycle: on a shared RTU line the device's reads go
+        // out back to back.
+        let link = self.link.clone();
+        let mut link = link.lock().await;
         for block in &self.blocks {
-            match self.read_block(block).await {
+            match self.read_block(&mut link, block).await {
                 Ok(regs) => {
                     for (slot, offset) in &block.members {
                         let spec = &self.specs[slot.channel];
@@ -269,7 +275,8 @@ impl DevicePoller {
                 .into_iter()
                 .map(|(ch, reason)| (ch, Err(Fault { reason, degraded }))),
         );
-        let connects = self.link.lock().await.connects();
+        let connects = link.connects();
+        drop(link);
         DeviceSample {
             connects,
             device: self.index,
