@@ -178,6 +178,9 @@ impl Pipeline {
     }
 }
 
+/// Samples the device tasks may queue ahead of the core loop.
+pub const SAMPLE_QUEUE: usize = 64;
+
 /// The poller of one device, by transport.
 #[derive(Debug)]
 pub enum Poller {
@@ -892,7 +895,7 @@ async fn generation(
 ) -> Option<(Box<Config>, Box<Built>)> {
     status_tx.send_replace(state.status.clone());
     let stop = shutdown.child_token();
-    let (sample_tx, mut sample_rx) = mpsc::channel::<DeviceSample>(64);
+    let (sample_tx, mut sample_rx) = mpsc::channel::<DeviceSample>(SAMPLE_QUEUE);
     let mut tasks = tokio::task::JoinSet::new();
     for (i, dev) in state.devices.iter_mut().enumerate() {
         if let Some(dev) = dev.take() {
