@@ -316,8 +316,8 @@ impl ErrorModel {
     pub fn pole_reach(&self, u: &[f64; 5], c_range_deg: (f64, f64)) -> PoleReach {
         let [_, _, aoc, boc] = self.loc_c;
         let (mut sx, mut sy) = (0.0, 0.0);
-        for j in 0..3 {
-            let e = self.tables[j].eval(u[j]);
+        for (t, x) in self.tables.iter().zip(u).take(3) {
+            let e = t.eval(*x);
             sx += e[3];
             sy += e[4];
         }
