@@ -51,15 +51,38 @@
 //! `q <- q - (feedback(q) - u)`, each step doing both stages, which is what the drive
 //! loop does physically; the report gives iterations and residual.
 //!
+//! # The A = 0 pole
+//!
 //! Near A = 0 the tool axis is parallel to C and an orientation error about the A
 //! plane's normal cannot be corrected without a large C move: within
 //! [`SINGULAR_A_DEG`] of A = 0 C is not corrected and A' takes only the in-plane
 //! part (`A' = atan2(-w_y, w_z)`, w the axis in the C frame). That is
 //! [`PoleMode::Hold`], the default and the only behaviour of `feedback`.
 //! [`PoleMode::Swing`] ([`VolumetricCompensator::drive_positions_pole`], offline)
-//! solves such commands with a C move instead, bounded by a limit; where an
-//! out-of-plane head error makes the tool sweep a cone that misses the C direction,
-//! no C move reaches the nominal axis and the least error is taken.
+//! solves such commands with C free within [`Pole::c_range`]: within a limit of the
+//! commanded C and within the C travel.
+//!
+//! Not every tool axis near the pole can be reached. Turning A sweeps the tool over
+//! a cone about the actual A axis, turning C turns that cone about the actual C
+//! axis, and the cone misses the C axis by the cap radius
+//!
+//! ```text
+//! cap(C) = EBA(A) - BOC + EBC(C)
+//!        = (EBA - BOA)          tool tilted out of the plane normal to A
+//!        + (BOA - BOC - EBC)    A tilted out of the plane normal to C
+//! ```
+//!
+//! No (A, C) puts the tool within `cap` of the actual C axis. The nominal axis lies
+//! at `offset` from the actual C axis (C location AOC, BOC; the slides' angular
+//! errors; the commanded tilt), at azimuth `phi` in the C rotor frame at C = 0; once
+//! A has taken the in-plane part, the tool misses it by
+//! `|offset cos(phi - C) - cap(C)|`. Where that has no root over the C range the
+//! least orientation error is its minimum, about `cap - offset`, and X, Y, Z still
+//! put the tip on the command. [`ErrorModel::pole_reach`] evaluates this from the
+//! parameters (first order in the errors; on the example file it agrees with a
+//! brute-force search over all drive positions within 0.002"). A file without
+//! out-of-plane head errors (EBA, EBC, BOC zero) has cap radius 0, and a C move
+//! reaches every axis at the pole.
 //!
 //! # Error parameter file, version 1
 //!
