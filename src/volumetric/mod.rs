@@ -51,15 +51,38 @@
 //! `q <- q - (feedback(q) - u)`, each step doing both stages, which is what the drive
 //! loop does physically; the report gives iterations and residual.
 //!
+//! # The A = 0 pole
+//!
 //! Near A = 0 the tool axis is parallel to C and an orientation error about the A
 //! plane's normal cannot be corrected without a large C move: within
 //! [`SINGULAR_A_DEG`] of A = 0 C is not corrected and A' takes only the in-plane
 //! part (`A' = atan2(-w_y, w_z)`, w the axis in the C frame). That is
 //! [`PoleMode::Hold`], the default and the only behaviour of `feedback`.
 //! [`PoleMode::Swing`] ([`VolumetricCompensator::drive_positions_pole`], offline)
-//! solves such commands with a C move instead, bounded by a limit; where an
-//! out-of-plane head error makes the tool sweep a cone that misses the C direction,
-//! no C move reaches the nominal axis and the least error is taken.
+//! solves such commands with C free within [`Pole::c_range`]: within a limit of the
+//! commanded C and within the C travel.
+//!
+//! Not every tool axis near the pole can be reached. Turning A sweeps the tool over
+//! a cone about the actual A axis, turning C turns that cone about the actual C
+//! axis, and the cone misses the C axis by the cap radius
+//!
+//! ```text
+//! cap(C) = EBA(A) - BOC + EBC(C)
+//!        = (EBA - BOA)          tool tilted out of the plane normal to A
+//!        + (BOA - BOC - EBC)    A tilted out of the plane normal to C
+//! ```
+//!
+//! No (A, C) puts the tool within `cap` of the actual C axis. The nominal axis lies
+//! at `offset` from the actual C axis (C location AOC, BOC; the slides' angular
+//! errors; the commanded tilt), at azimuth `phi` in the C rotor frame at C = 0; once
+//! A has taken the in-plane part, the tool misses it by
+//! `|offset cos(phi - C) - cap(C)|`. Where that has no root over the C range the
+//! least orientation error is its minimum, about `cap - offset`, and X, Y, Z still
+//! put the tip on the command. [`ErrorModel::pole_reach`] evaluates this from the
+//! parameters (first order in the errors; on the example file it agrees with a
+//! brute-force search over all drive positions within 0.002"). A file without
+//! out-of-plane head errors (EBA, EBC, BOC zero) has cap radius 0, and a C move
+//! reaches every axis at the pole.
 //!
 //! # Error parameter file, version 1
 //!
@@ -300,6 +323,153 @@ impl ErrorModel {
         let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
         (p, [v[0] / n, v[1] / n, v[2] / n])
     }
+
+    /// Which tool axes the head can reach near the pole, from the error parameters alone
+    /// (first order in the errors and in the nominal axis' tilt; module doc, "The A = 0
+    /// pole"), for a command u with C limited to `c_range_deg`.
+    ///
+    /// Turning A sweeps the tool over a cone about the actual A axis; turning C turns
+    /// that cone about the actual C axis. The cone misses the C axis by
+    /// `EBA(A) - BOC + EBC(C)`: the tool's tilt out of the plane normal to A
+    /// (`EBA - BOA`) plus A's tilt out of the plane normal to C (`BOA - BOC - EBC`). So
+    /// the directions within that angle of the actual C axis (a cap) are reached by no
+    /// (A, C). With the nominal axis at `offset` from the actual C axis and at azimuth
+    /// `phi` in the C rotor frame at C = 0, the tool misses it by
+    /// `|offset cos(phi - C) - cap(C)|` once A has taken the in-plane part.
+    pub fn pole_reach(&self, u: &[f64; 5], c_range_deg: (f64, f64)) -> PoleReach {
+        let [_, _, aoc, boc] = self.loc_c;
+        let (mut sx, mut sy) = (0.0, 0.0);
+        for (t, x) in self.tables.iter().zip(u).take(3) {
+            let e = t.eval(*x);
+            sx += e[3];
+            sy += e[4];
+        }
+        // Nominal axis tilt minus the actual C axis' tilt (slides, then C location).
+        let (sa, _) = u[3].to_radians().sin_cos();
+        let (sc, cc) = u[4].to_radians().sin_cos();
+        let t = [sc * sa - (boc + sy), -cc * sa - (-aoc - sx)];
+        let eba = self.tables[3].eval(u[3])[4];
+        let cap = |c_deg: f64| eba - boc + self.tables[4].eval(c_deg)[4];
+        let miss = |c_deg: f64| {
+            let (s, c) = c_deg.to_radians().sin_cos();
+            t[0] * c + t[1] * s - cap(c_deg)
+        };
+        let (lo, hi) = (c_range_deg.0.min(c_range_deg.1), c_range_deg.1);
+        let best = least_abs_root(
+            &mut |c| Some(miss(c)),
+            u[4].clamp(lo, hi),
+            (lo, hi),
+            POLE_SCAN_DEG,
+        )
+        .unwrap_or((u[4], miss(u[4])));
+        PoleReach {
+            offset_arcsec: t[0].hypot(t[1]) / RAD_PER_ARCSEC,
+            cap_arcsec: cap(best.0).abs() / RAD_PER_ARCSEC,
+            min_arcsec: best.1.abs() / RAD_PER_ARCSEC,
+            c_deg: best.0,
+        }
+    }
+}
+
+/// Result of [`ErrorModel::pole_reach`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PoleReach {
+    /// Angle between the nominal tool axis and the actual C axis, arc-seconds.
+    pub offset_arcsec: f64,
+    /// Radius of the cap around the actual C axis that no (A, C) reaches, at `c_deg`
+    /// (it changes with C by EBC), arc-seconds.
+    pub cap_arcsec: f64,
+    /// Least orientation error over C in the range, arc-seconds; 0 where the nominal
+    /// axis is reached.
+    pub min_arcsec: f64,
+    /// C of that least error (where reached, the root nearest the command), deg.
+    pub c_deg: f64,
+}
+
+/// Scan step over C of the pole solves, deg.
+const POLE_SCAN_DEG: f64 = 1.0;
+
+/// For a continuous f over [lo, hi]: the root nearest `from` if f changes sign on a
+/// scan of `step` outwards from it (then bisected), else the point of least |f|
+/// (golden-section search in the scan cells either side of the least sample).
+/// Returns (x, f(x)); None as soon as f fails.
+fn least_abs_root(
+    f: &mut impl FnMut(f64) -> Option<f64>,
+    from: f64,
+    (lo, hi): (f64, f64),
+    step: f64,
+) -> Option<(f64, f64)> {
+    let f0 = f(from)?;
+    let mut least = (from, f0);
+    if f0 == 0.0 {
+        return Some(least);
+    }
+    let mut prev = [(from, f0); 2];
+    for k in 1.. {
+        let mut moved = false;
+        for (side, dir) in [1.0, -1.0].into_iter().enumerate() {
+            let (x0, y0) = prev[side];
+            if (dir > 0.0 && x0 >= hi) || (dir < 0.0 && x0 <= lo) {
+                continue;
+            }
+            moved = true;
+            let x1 = (from + dir * step * k as f64).clamp(lo, hi);
+            let y1 = f(x1)?;
+            prev[side] = (x1, y1);
+            if y1.abs() < least.1.abs() {
+                least = (x1, y1);
+            }
+            if y1 == 0.0 {
+                return Some((x1, y1));
+            }
+            if y0.signum() != y1.signum() {
+                let (mut a, mut b, mut ya) = (x0, x1, y0);
+                for _ in 0..80 {
+                    let m = 0.5 * (a + b);
+                    let ym = f(m)?;
+                    if ym == 0.0 || (b - a).abs() < 1e-12 {
+                        return Some((m, ym));
+                    }
+                    if ym.signum() == ya.signum() {
+                        (a, ya) = (m, ym);
+                    } else {
+                        b = m;
+                    }
+                }
+                let m = 0.5 * (a + b);
+                return Some((m, f(m)?));
+            }
+        }
+        if !moved {
+            break;
+        }
+    }
+    // No root: |f| is smooth but for the kinks of the tables, so its least value is
+    // within a scan step of the least sample.
+    let g = (5f64.sqrt() - 1.0) / 2.0;
+    let (mut a, mut b) = ((least.0 - step).max(lo), (least.0 + step).min(hi));
+    let (mut m1, mut m2) = (b - g * (b - a), a + g * (b - a));
+    let (mut f1, mut f2) = (f(m1)?.abs(), f(m2)?.abs());
+    for _ in 0..60 {
+        if f1 < f2 {
+            b = m2;
+            (m2, f2) = (m1, f1);
+            m1 = b - g * (b - a);
+            f1 = f(m1)?.abs();
+        } else {
+            a = m1;
+            (m1, f1) = (m2, f2);
+            m2 = a + g * (b - a);
+            f2 = f(m2)?.abs();
+        }
+    }
+    let m = 0.5 * (a + b);
+    let ym = f(m)?;
+    Some(if ym.abs() < least.1.abs() {
+        (m, ym)
+    } else {
+        least
+    })
 }
 
 /// Nominal tip (mm) and tool axis at q.
@@ -415,9 +585,19 @@ pub enum PoleMode {
 pub struct Pole {
     /// Hold or swing.
     pub mode: PoleMode,
-    /// Largest C move from the command a swing may make, deg; beyond it the Hold
-    /// result is kept.
+    /// Largest C move from the command a swing may make, deg; the swing also stays
+    /// within the C travel ([`Pole::c_range`]).
     pub max_c_swing_deg: f64,
+}
+
+impl Pole {
+    /// The C positions a swing may use for a command at `c_deg`: within
+    /// `max_c_swing_deg` of it and within the C `travel`; None if that is empty.
+    pub fn c_range(&self, c_deg: f64, travel: (f64, f64)) -> Option<(f64, f64)> {
+        let lo = (c_deg - self.max_c_swing_deg).max(travel.0);
+        let hi = (c_deg + self.max_c_swing_deg).min(travel.1);
+        (lo <= hi).then_some((lo, hi))
+    }
 }
 
 impl Default for Pole {
@@ -439,10 +619,11 @@ pub struct PoleSolve {
     pub newton_iterations: usize,
     /// C move from the command, deg (0 when not swung).
     pub c_swing_deg: f64,
-    /// A swing was wanted but exceeded the limit or did not converge; Hold was kept.
+    /// A swing was wanted but failed or did no better than Hold; Hold was kept.
     pub fallback: bool,
-    /// The nominal pose was reached; false when no C reaches the nominal tool axis
-    /// (see [`VolumetricCompensator::drive_positions_pole`]) and the drive positions
+    /// The nominal pose was reached; false after a fallback and when no C in the range
+    /// reaches the nominal tool axis (see
+    /// [`VolumetricCompensator::drive_positions_pole`]), where the drive positions
     /// give the least orientation error with the tip on the command.
     pub reached: bool,
 }
@@ -535,12 +716,13 @@ impl VolumetricCompensator {
 
     /// Drive positions for a commanded pose u under a pole policy: outside the
     /// A = 0 band, and always in [`PoleMode::Hold`], exactly [`Self::drive_positions`].
-    /// In [`PoleMode::Swing`] a command inside the band is solved for C as a root of
-    /// the out-of-plane axis residual (tip and in-plane axis by Newton with C held);
-    /// where no C reaches the nominal axis (an out-of-plane head error makes the tool
-    /// sweep a cone that misses it) the least error is taken and `reached` is false.
-    /// If the solve needs a C move beyond `max_c_swing_deg` or fails, the Hold result
-    /// is returned and `fallback` is set.
+    /// In [`PoleMode::Swing`] a command inside the band is solved with C free within
+    /// [`Pole::c_range`]: C is the root, nearest the command, of the out-of-plane axis
+    /// residual (tip and in-plane axis by Newton with C held). Where no C in the range
+    /// reaches the nominal axis (an out-of-plane head error makes the tool sweep a cone
+    /// that misses it, [`ErrorModel::pole_reach`]) the C of least orientation error is
+    /// taken and `reached` is false. If the solve fails or does no better than Hold,
+    /// the Hold result is returned and `fallback` is set.
     pub fn drive_positions_pole(&self, u: &[f64; 5], pole: &Pole) -> PoleSolve {
         let hold = self.drive_positions(u);
         let plain = PoleSolve {
@@ -553,10 +735,14 @@ impl VolumetricCompensator {
         if pole.mode == PoleMode::Hold || self.model.zero || u[3].abs() >= SINGULAR_A_DEG {
             return plain;
         }
-        match self.swing(u, &hold.drive, pole.max_c_swing_deg) {
+        let swung = pole
+            .c_range(u[4], self.model.travel[4])
+            .and_then(|range| self.swing(u, &hold.drive, range));
+        match swung {
             Some(s) if (s.solve.drive[4] - u[4]).abs() <= pole.max_c_swing_deg => s,
             _ => PoleSolve {
                 fallback: true,
+                reached: false,
                 ..plain
             },
         }
@@ -566,78 +752,19 @@ impl VolumetricCompensator {
     /// with C as much as the tilt to be made, so the tilt's azimuth is found as a root
     /// of a function of C: for C held, Newton on (X, Y, Z, A) zeroes the tip residual
     /// and the in-plane tool axis residual; what is left is the out-of-plane residual
-    /// f(C), which changes sign between C and C + 180 deg. The root nearest the command
-    /// is bracketed on a 5 deg scan within the swing limit and bisected.
-    fn swing(&self, u: &[f64; 5], start: &[f64; 5], limit_deg: f64) -> Option<PoleSolve> {
+    /// f(C), which is the orientation error. The root nearest the command is bracketed
+    /// on a scan within `c_range` and bisected; without a root, |f| is minimised.
+    fn swing(&self, u: &[f64; 5], start: &[f64; 5], c_range: (f64, f64)) -> Option<PoleSolve> {
         let mut evals = 0usize;
-        let f = |c: f64, evals: &mut usize| {
-            *evals += 1;
-            self.hold_c(u, start, c)
+        let mut f = |c: f64| {
+            evals += 1;
+            self.hold_c(u, start, c).map(|r| r.1)
         };
-        let here = f(u[4], &mut evals)?;
-        let tol_rad = 0.1 * TOL_ARCSEC * RAD_PER_ARCSEC;
-        let mut best = None;
-        // Smallest |f| seen, for when no root exists (see below).
-        let mut least = (here.1.abs(), u[4], here.0);
-        if here.1.abs() <= tol_rad {
-            best = Some(here.0);
-        } else {
-            let step = 1.0;
-            let n = (limit_deg.min(180.0) / step).floor() as usize;
-            let mut prev = [(u[4], here.1); 2];
-            // Both sides outwards, the nearer bracket first.
-            'scan: for k in 1..=n {
-                for (side, dir) in [1.0, -1.0].into_iter().enumerate() {
-                    let c1 = u[4] + dir * step * k as f64;
-                    let (q1, f1) = f(c1, &mut evals)?;
-                    if f1.abs() < least.0 {
-                        least = (f1.abs(), c1, q1);
-                    }
-                    let (c0, f0) = prev[side];
-                    prev[side] = (c1, f1);
-                    if f0.signum() == f1.signum() {
-                        continue;
-                    }
-                    let (mut lo, mut hi, mut f_lo) = (c0, c1, f0);
-                    for _ in 0..60 {
-                        let mid = 0.5 * (lo + hi);
-                        let (q, fm) = f(mid, &mut evals)?;
-                        if fm.abs() <= tol_rad {
-                            best = Some(q);
-                            break 'scan;
-                        }
-                        if fm.signum() == f_lo.signum() {
-                            lo = mid;
-                            f_lo = fm;
-                        } else {
-                            hi = mid;
-                        }
-                    }
-                    best = Some(f(0.5 * (lo + hi), &mut evals)?.0);
-                    break 'scan;
-                }
-            }
-        }
-        // No root: the out-of-plane error of the head (tool or A axis tilted out of
-        // the A plane) makes the tool sweep a cone that misses the C direction; no C
-        // move reaches the nominal axis. Take the least error, |f| minimised by a
-        // golden-section search around the best scan point.
-        let reached = best.is_some();
-        if best.is_none() {
-            let g = (5f64.sqrt() - 1.0) / 2.0;
-            let (mut lo, mut hi) = (least.1 - 1.0, least.1 + 1.0);
-            for _ in 0..40 {
-                let (m1, m2) = (hi - g * (hi - lo), lo + g * (hi - lo));
-                if f(m1, &mut evals)?.1.abs() < f(m2, &mut evals)?.1.abs() {
-                    hi = m2;
-                } else {
-                    lo = m1;
-                }
-            }
-            let (q, fm) = f(0.5 * (lo + hi), &mut evals)?;
-            best = Some(if fm.abs() < least.0 { q } else { least.2 });
-        }
-        let drive = best?;
+        let from = u[4].clamp(c_range.0, c_range.1);
+        let (c, fc) = least_abs_root(&mut f, from, c_range, POLE_SCAN_DEG)?;
+        let (drive, _) = self.hold_c(u, start, c)?;
+        evals += 1;
+        let reached = fc.abs() <= 0.1 * TOL_ARCSEC * RAD_PER_ARCSEC;
         let (p, v) = self.model.actual_pose(&drive);
         let (pn, vn) = nominal_pose(&self.model.geometry, u);
         let tip_um = distance_mm(&p, &pn) / MM_PER_UM;
@@ -824,6 +951,30 @@ pub fn synthetic_model(scale: f64) -> ErrorModel {
     )
 }
 
+/// [`synthetic_model`] without the head's out-of-plane errors (EBA, EBC, BOA, BOC
+/// zero): the cone the tool sweeps about A then passes through the C axis (cap
+/// radius 0, [`ErrorModel::pole_reach`]), so a C move reaches every tool axis at the
+/// pole; the source of `config/volumetric-in-plane.errors`.
+pub fn synthetic_model_in_plane(scale: f64) -> ErrorModel {
+    let m = synthetic_model(scale);
+    let mut tables = m.tables.clone();
+    for t in &mut tables[3..] {
+        for row in &mut t.val {
+            row[4] = 0.0;
+        }
+    }
+    let [xoc, yoc, aoc, _] = m.loc_c;
+    let [yoa, zoa, _, coa] = m.loc_a;
+    ErrorModel::new(
+        m.geometry,
+        m.travel,
+        tables,
+        m.squareness_rad,
+        [xoc, yoc, aoc, 0.0],
+        [yoa, zoa, 0.0, coa],
+    )
+}
+
 /// Arguments of `compgate volumetric`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct VolumetricArgs {
@@ -946,6 +1097,48 @@ pub struct Evaluation {
     pub pole_fallbacks: usize,
     /// Band poses whose nominal tool axis no C reaches (least error taken).
     pub pole_unreachable: usize,
+    /// Per pose in the A = 0 band, what the pole allows ([`ErrorModel::pole_reach`]):
+    /// with C in the policy's range ([`Pole::c_range`]) and with C over its whole
+    /// travel; None off the band.
+    pub pole_reach: Vec<Option<(PoleReach, PoleReach)>>,
+}
+
+/// Tolerance of "at the achievable minimum" at the pole: this many arc-seconds or
+/// [`POLE_TOL_FRACTION`] of the pose's uncompensated orientation error, the larger.
+pub const POLE_TOL_ARCSEC: f64 = 0.01;
+/// See [`POLE_TOL_ARCSEC`].
+pub const POLE_TOL_FRACTION: f64 = 0.01;
+
+/// The A = 0 band poses against the achievable minimum of their orientation error
+/// (C in the policy's range). Reachable: the minimum is within [`TOL_ARCSEC`] of 0;
+/// at the minimum: the compensated error exceeds it by at most the tolerance of
+/// [`POLE_TOL_ARCSEC`].
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct PoleClasses {
+    /// Reachable and reached.
+    pub reached: usize,
+    /// Reachable but not reached (a solver defect, or the Hold policy).
+    pub missed: usize,
+    /// Unreachable, at the minimum.
+    pub at_minimum: usize,
+    /// Unreachable, above the minimum (a solver defect, or the Hold policy).
+    pub above_minimum: usize,
+    /// Largest compensated orientation error minus the minimum, arc-seconds.
+    pub max_excess_arcsec: f64,
+    /// Largest and RMS achievable minimum, C in the policy's range, arc-seconds.
+    pub min_max_arcsec: f64,
+    /// See `min_max_arcsec`.
+    pub min_rms_arcsec: f64,
+    /// Largest achievable minimum with C over its whole travel, arc-seconds.
+    pub travel_min_max_arcsec: f64,
+    /// Poses whose minimum is lower (by more than the tolerance) with C over its
+    /// whole travel than in the policy's range.
+    pub lower_over_travel: usize,
+    /// Over the unreachable poses: range of the cap radius and of the nominal axis'
+    /// distance from the actual C axis, arc-seconds.
+    pub cap_arcsec: (f64, f64),
+    /// See `cap_arcsec`.
+    pub offset_arcsec: (f64, f64),
 }
 
 fn stats<'a>(e: impl Iterator<Item = &'a (f64, f64)>) -> Stats {
@@ -984,6 +1177,57 @@ impl Evaluation {
     pub fn compensated_stats(&self) -> Stats {
         stats(self.pick(&self.compensated, false))
     }
+    /// The band poses sorted against their achievable minimum ([`PoleClasses`]).
+    pub fn pole_classes(&self) -> PoleClasses {
+        let mut k = PoleClasses {
+            cap_arcsec: (f64::INFINITY, 0.0),
+            offset_arcsec: (f64::INFINITY, 0.0),
+            ..PoleClasses::default()
+        };
+        let mut sum_sq = 0.0;
+        let mut n = 0usize;
+        for ((reach, unc), comp) in self
+            .pole_reach
+            .iter()
+            .zip(&self.uncompensated)
+            .zip(&self.compensated)
+        {
+            let Some((r, rt)) = reach else { continue };
+            let tol = POLE_TOL_ARCSEC.max(POLE_TOL_FRACTION * unc.1);
+            let excess = comp.1 - r.min_arcsec;
+            let at_min = excess <= tol;
+            let reachable = r.min_arcsec <= TOL_ARCSEC;
+            match (reachable, at_min) {
+                (true, true) => k.reached += 1,
+                (true, false) => k.missed += 1,
+                (false, true) => k.at_minimum += 1,
+                (false, false) => k.above_minimum += 1,
+            }
+            if !reachable {
+                k.cap_arcsec = (
+                    k.cap_arcsec.0.min(r.cap_arcsec),
+                    k.cap_arcsec.1.max(r.cap_arcsec),
+                );
+                k.offset_arcsec = (
+                    k.offset_arcsec.0.min(r.offset_arcsec),
+                    k.offset_arcsec.1.max(r.offset_arcsec),
+                );
+            }
+            k.max_excess_arcsec = k.max_excess_arcsec.max(excess);
+            k.min_max_arcsec = k.min_max_arcsec.max(r.min_arcsec);
+            k.travel_min_max_arcsec = k.travel_min_max_arcsec.max(rt.min_arcsec);
+            k.lower_over_travel += usize::from(rt.min_arcsec < r.min_arcsec - tol);
+            sum_sq += r.min_arcsec * r.min_arcsec;
+            n += 1;
+        }
+        k.min_rms_arcsec = (sum_sq / n.max(1) as f64).sqrt();
+        if k.at_minimum + k.above_minimum == 0 {
+            k.cap_arcsec = (0.0, 0.0);
+            k.offset_arcsec = (0.0, 0.0);
+        }
+        k
+    }
+
     /// Poses within the A = 0 band: their count and (uncompensated, compensated)
     /// statistics.
     pub fn singular_stats(&self) -> (usize, Stats, Stats) {
@@ -1035,6 +1279,12 @@ pub fn evaluate_pole(
                         ev.pole_unreachable += usize::from(!ps.reached);
                         ev.poses.push(u);
                         ev.singular.push(a.abs() < SINGULAR_A_DEG);
+                        let travel_c = model.travel[4];
+                        ev.pole_reach
+                            .push((a.abs() < SINGULAR_A_DEG && !model.zero).then(|| {
+                                let range = pole.c_range(c, travel_c).unwrap_or((c, c));
+                                (model.pole_reach(&u, range), model.pole_reach(&u, travel_c))
+                            }));
                         ev.uncompensated.push(err(&u, &u));
                         ev.compensated.push(err(&s.drive, &u));
                         // Swing solves count apart (Newton steps, pose residuals).
@@ -1104,32 +1354,84 @@ pub fn report(ev: &Evaluation) -> String {
         "iterations: at most {} (tolerance {TOL_UM} um, {TOL_ARCSEC}\"); largest residual {:.2e} um, {:.2e}\"",
         ev.max_iterations, ev.max_residual.0, ev.max_residual.1
     );
-    if n_sing > 0 && ev.pole.mode == PoleMode::Swing {
-        let _ = writeln!(
-            s,
-            "A = 0 band ({n_sing} poses, pole mode swing, C move limit {} deg): tip max \
-             {:.4} -> {:.6} um, orientation max {:.4} -> {:.6}\" ({:.4} %); largest C \
-             swing {:.2} deg, solves at most {}, {} poses kept on hold, {} unreachable \
-             (least error taken)",
-            ev.pole.max_c_swing_deg,
-            su.max_tip_um,
-            sc.max_tip_um,
-            su.max_orient_arcsec,
-            sc.max_orient_arcsec,
-            pct(sc.max_orient_arcsec, su.max_orient_arcsec),
-            ev.max_c_swing_deg,
-            ev.max_pole_iterations,
-            ev.pole_fallbacks,
-            ev.pole_unreachable
-        );
-    } else if n_sing > 0 {
-        let _ = writeln!(
-            s,
-            "A = 0 band ({n_sing} poses, pole mode hold, C not corrected): tip max {:.4} -> {:.6} um, \
-             orientation max {:.4} -> {:.4}\" (the part about the A plane's normal is \
-             not correctable without a large C move)",
-            su.max_tip_um, sc.max_tip_um, su.max_orient_arcsec, sc.max_orient_arcsec
-        );
+    if n_sing > 0 {
+        let k = ev.pole_classes();
+        let travel = if k.lower_over_travel > 0 {
+            format!(
+                ", {:.4}\" with C over its whole travel (lower for {} poses)",
+                k.travel_min_max_arcsec, k.lower_over_travel
+            )
+        } else {
+            String::new()
+        };
+        let why = if k.at_minimum + k.above_minimum > 0 {
+            format!(
+                " (no A/C reaches the nominal axis for {} poses: the cone the tool sweeps \
+                 about A misses the actual C axis by a cap radius of {:.2}..{:.2}\", the \
+                 nominal axis lies {:.2}..{:.2}\" from the actual C axis)",
+                k.at_minimum + k.above_minimum,
+                k.cap_arcsec.0,
+                k.cap_arcsec.1,
+                k.offset_arcsec.0,
+                k.offset_arcsec.1
+            )
+        } else {
+            String::new()
+        };
+        if ev.pole.mode == PoleMode::Swing {
+            let _ = writeln!(
+                s,
+                "A = 0 band ({n_sing} poses, pole mode swing, C within {} deg of the command \
+                 and its travel): tip max {:.4} -> {:.6} um ({:.4} %)",
+                ev.pole.max_c_swing_deg,
+                su.max_tip_um,
+                sc.max_tip_um,
+                pct(sc.max_tip_um, su.max_tip_um)
+            );
+            let _ = writeln!(
+                s,
+                "  orientation max {:.4} -> {:.4}\" = achievable minimum {:.4}\"{why}; RMS \
+                 {:.4} -> {:.4}\" (minimum {:.4}\"){travel}",
+                su.max_orient_arcsec,
+                sc.max_orient_arcsec,
+                k.min_max_arcsec,
+                su.rms_orient_arcsec,
+                sc.rms_orient_arcsec,
+                k.min_rms_arcsec
+            );
+            let _ = writeln!(
+                s,
+                "  against the minimum (within {POLE_TOL_ARCSEC}\" or {} % of the \
+                 uncompensated error): {} reachable and reached, {} reachable but missed, {} \
+                 unreachable and at the minimum, {} unreachable and above it (largest excess \
+                 {:+.4}\")",
+                100.0 * POLE_TOL_FRACTION,
+                k.reached,
+                k.missed,
+                k.at_minimum,
+                k.above_minimum,
+                k.max_excess_arcsec
+            );
+            let _ = writeln!(
+                s,
+                "  largest C swing {:.2} deg, fixed-C solves at most {}, {} poses kept on \
+                 hold (no C did better)",
+                ev.max_c_swing_deg, ev.max_pole_iterations, ev.pole_fallbacks
+            );
+        } else {
+            let _ = writeln!(
+                s,
+                "A = 0 band ({n_sing} poses, pole mode hold, C not corrected): tip max {:.4} -> {:.6} um, \
+                 orientation max {:.4} -> {:.4}\" (the part about the A plane's normal needs \
+                 a C move)",
+                su.max_tip_um, sc.max_tip_um, su.max_orient_arcsec, sc.max_orient_arcsec
+            );
+            let _ = writeln!(
+                s,
+                "  with --pole swing (C within {} deg): achievable minimum {:.4}\"{why}{travel}",
+                ev.pole.max_c_swing_deg, k.min_max_arcsec
+            );
+        }
     }
     s
 }
