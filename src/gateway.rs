@@ -437,14 +437,17 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
 
     // One SYNC per interface at its devices' poll interval (validation makes it one
     // value per interface).
-    let sync_producers = sync::plan(cfg.devices.values().filter_map(|dev| {
-        (dev.transport == config::Transport::Can).then(|| SyncDevice {
-            interface: dev.interface.clone().unwrap_or_default(),
-            poll_interval: dev.poll_interval(),
-            backoff_initial: dev.backoff_initial(),
-            backoff_max: dev.backoff_max(),
-        })
-    }));
+    let sync_producers = sync::plan(
+        cfg.devices
+            .values()
+            .filter(|dev| dev.transport == config::Transport::Can)
+            .map(|dev| SyncDevice {
+                interface: dev.interface.clone().unwrap_or_default(),
+                poll_interval: dev.poll_interval(),
+                backoff_initial: dev.backoff_initial(),
+                backoff_max: dev.backoff_max(),
+            }),
+    );
     let mut serial_links: BTreeMap<String, SharedLink> = BTreeMap::new();
     let mut devices = Vec::with_capacity(cfg.devices.len());
     for (((name, dev), specs), can_specs) in cfg.devices.iter().zip(specs).zip(can_specs) {
