@@ -2,7 +2,8 @@
 //! channel processing -> thermal model -> FB3 job -> the NC axis module (Modbus on
 //! loopback). Then node silence, recovery, an EMCY from can-utils' `cansend`, an SDO
 //! abort, and `candump` watching the gateway's SYNC and NMT frames and timing the
-//! SYNC period; the SYNC producer across the interface going down and up.
+//! SYNC period; the SYNC producer across the interface going down and up, a reload
+//! and shutdown.
 //!
 //! Needs `vcan0` (or `VCAN_IF`) and can-utils: ignored in a plain `cargo test`;
 //! `tests/vcan/run.sh` runs them natively or inside a VM with vcan.
@@ -457,6 +458,118 @@ async fn sync_producer_survives_the_interface_going_down() {
         after >= 10,
         "only {after} SYNC in the 3 s after the interface came back"
     );
+}
+
+/// Creates a second virtual CAN interface for one test and removes it afterwards.
+struct ExtraVcan(&'static str);
+
+impl ExtraVcan {
+    fn add(name: &'static str) -> Self {
+        let _ = std::process::Command::new("ip")
+            .args(["link", "del", name])
+            .output();
+        for args in [
+            vec!["link", "add", "dev", name, "type", "vcan"],
+            vec!["link", "set", "up", name],
+        ] {
+            let out = std::process::Command::new("ip")
+                .args(&args)
+                .output()
+                .expect("ip runs");
+            assert!(
+                out.status.success(),
+                "ip {args:?} (needs root, as in the tests/vcan/run.sh VM): {out:?}"
+            );
+        }
+        Self(name)
+    }
+}
+
+impl Drop for ExtraVcan {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("ip")
+            .args(["link", "del", self.0])
+            .output();
+    }
+}
+
+/// A reload that moves the node to another interface stops the old interface's
+/// SYNC producer and starts one on the new interface; shutdown stops that one.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs vcan0 and root (ip link add); tests/vcan/run.sh runs it"]
+async fn reload_and_shutdown_stop_the_sync_producer() {
+    use compgate::gateway::{self, Hooks};
+    use compgate::plant::{Bind, Plant};
+
+    let other = ExtraVcan::add("vcan7");
+    let cfg = compgate::config::load_str(&can_config(5), "test.toml").expect("valid");
+    let plant = Plant::start(&cfg, Bind::Ephemeral).await.expect("plant");
+    let cfg = plant.config.clone();
+    let bus = socketcan::tokio::CanSocket::open(&interface()).expect("open vcan");
+    let bus2 = socketcan::tokio::CanSocket::open(other.0).expect("open vcan7");
+    let (tx, mut rx) = tokio::sync::watch::channel(Status::default());
+    let (reload_tx, reload_rx) = tokio::sync::mpsc::channel(1);
+    let shutdown = tokio_util::sync::CancellationToken::new();
+    let sd = shutdown.clone();
+    let run_cfg = cfg.clone();
+    let gw = tokio::spawn(async move {
+        let hooks = Hooks {
+            reload: Some(reload_rx),
+            ..Hooks::default()
+        };
+        gateway::run_with(&run_cfg, sd, tx, hooks)
+            .await
+            .expect("gateway runs");
+    });
+    let running = count_syncs(&bus, Duration::from_millis(600)).await;
+    assert!(
+        running >= 2,
+        "{running} SYNC on {} before the reload",
+        interface()
+    );
+
+    let mut moved = cfg.clone();
+    moved.devices.get_mut("node5").expect("node5").interface = Some(other.0.into());
+    reload_tx.send(moved).await.expect("reload sent");
+    let link = format!("can:{} node 5", other.0);
+    tokio::time::timeout(
+        Duration::from_secs(10),
+        rx.wait_for(|s| s.devices.first().is_some_and(|d| d.link == link)),
+    )
+    .await
+    .expect("reload took effect within 10 s")
+    .expect("status");
+    // The old generation's tasks have all ended before the new one publishes its
+    // status: what the old producer sent is already queued, and drained here.
+    count_syncs(&bus, Duration::from_millis(300)).await;
+    let old_after = count_syncs(&bus, Duration::from_millis(700)).await;
+    let new_after = count_syncs(&bus2, Duration::from_millis(1000)).await;
+
+    shutdown.cancel();
+    tokio::time::timeout(Duration::from_secs(10), gw)
+        .await
+        .expect("gateway stops within 10 s")
+        .expect("gateway task");
+    count_syncs(&bus2, Duration::from_millis(300)).await;
+    let after_shutdown = count_syncs(&bus2, Duration::from_millis(700)).await;
+    println!(
+        "CAN e2e: SYNC across reload: {running} on {} before, {old_after} after, {new_after} on {}; {after_shutdown} after shutdown",
+        interface(),
+        other.0
+    );
+    assert_eq!(
+        old_after,
+        0,
+        "the old producer still sends on {}",
+        interface()
+    );
+    assert!(
+        new_after >= 2,
+        "{new_after} SYNC on {} after the reload",
+        other.0
+    );
+    assert_eq!(after_shutdown, 0, "SYNC still sent after shutdown");
+    drop(plant);
 }
 
 /// Frames per second the gateway's CAN path (socket, reader task, decoder, PDO store)
