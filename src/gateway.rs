@@ -1,10 +1,11 @@
 //! The running gateway: sources -> channels -> compensation -> NC writer.
 //!
 //! [`build`] turns a validated [`Config`] into runtime parts; [`run`] starts one task
-//! per device and one per NC module around a core loop that owns every channel
-//! processor and axis compensator. Only the device tasks watch the shutdown token:
-//! when they end, the core loop sees its input close, finishes, and drops the NC
-//! command channels, so an NC job in flight completes before the NC tasks stop.
+//! per device, one SYNC producer per CAN interface and one task per NC module around a
+//! core loop that owns every channel processor and axis compensator. Only the device
+//! and SYNC tasks watch the shutdown token: when the device tasks end, the core loop
+//! sees its input close, finishes, and drops the NC command channels, so an NC job in
+//! flight completes before the NC tasks stop.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -20,6 +21,7 @@ use crate::comp::{
 };
 use crate::config::{self, Config};
 use crate::nc::{Job, JobReport, ModbusNcWriter, NcError, NcSnapshot, NcWriter};
+use crate::source::can::sync::{self, SyncDevice, SyncParams};
 use crate::source::can::{CanChannelSpec, CanObject, CanParams, CanPoller};
 use crate::source::modbus::{Backoff, LinkSpec, ModbusLink};
 use crate::source::{ChannelSpec, DevicePoller, DeviceSample, PollParams, SharedLink};
@@ -245,6 +247,8 @@ pub struct Built {
     pub pipeline: Pipeline,
     /// Device pollers.
     pub devices: Vec<DeviceRt>,
+    /// One SYNC producer per CAN interface.
+    pub sync_producers: Vec<SyncParams>,
     /// NC modules.
     pub nc_modules: Vec<NcModuleRt>,
     /// Time between status updates.
@@ -434,9 +438,21 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
         ));
     }
 
+    // One SYNC per interface at its devices' poll interval (validation makes it one
+    // value per interface).
+    let sync_producers = sync::plan(
+        cfg.devices
+            .values()
+            .filter(|dev| dev.transport == config::Transport::Can)
+            .map(|dev| SyncDevice {
+                interface: dev.interface.clone().unwrap_or_default(),
+                poll_interval: dev.poll_interval(),
+                backoff_initial: dev.backoff_initial(),
+                backoff_max: dev.backoff_max(),
+            }),
+    );
     let mut serial_links: BTreeMap<String, SharedLink> = BTreeMap::new();
     let mut devices = Vec::with_capacity(cfg.devices.len());
-    let mut sync_producers: BTreeMap<String, String> = BTreeMap::new();
     for (((name, dev), specs), can_specs) in cfg.devices.iter().zip(specs).zip(can_specs) {
         if dev.transport == config::Transport::Can {
             let (Some(interface), Some(node_id)) = (dev.interface.clone(), dev.node_id) else {
@@ -444,12 +460,12 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
                     "devices.{name}: interface or node_id missing"
                 )));
             };
-            // The first CAN device of each interface produces that bus' SYNC.
-            let producer = sync_producers
-                .entry(interface.clone())
-                .or_insert_with(|| name.clone());
+            let sync_period = sync_producers
+                .iter()
+                .find(|p| p.interface == interface)
+                .map_or(dev.poll_interval(), |p| p.period);
             let params = CanParams {
-                sync_producer: producer == name,
+                sync_period,
                 interface,
                 node_id,
                 timeout: dev.timeout(),
@@ -563,6 +579,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             epoch: Instant::now(),
         },
         devices,
+        sync_producers,
         nc_modules,
         status_interval: cfg.gateway.status_interval(),
     })
@@ -588,6 +605,8 @@ enum NcEvent {
 enum Returned {
     Device(usize, DeviceRt),
     Nc(usize, NcModuleRt),
+    /// A SYNC producer keeps nothing: the next generation opens a fresh socket.
+    Sync,
     Aborted,
 }
 
@@ -617,6 +636,13 @@ async fn device_task(
         }
     }
     Returned::Device(index, dev)
+}
+
+/// Sends an interface's SYNC until `stop` (a reload or shutdown): at once, since no
+/// exchange is in flight and the next generation starts its own producer.
+async fn sync_task(params: SyncParams, stop: CancellationToken) -> Returned {
+    sync::run(params, stop).await;
+    Returned::Sync
 }
 
 async fn nc_task(
@@ -732,6 +758,7 @@ async fn run_built_with(
 struct Running {
     pipeline: Pipeline,
     devices: Vec<Option<DeviceRt>>,
+    sync_producers: Vec<SyncParams>,
     nc_modules: Vec<Option<NcModuleRt>>,
     status_interval: Duration,
     status: Status,
@@ -744,6 +771,7 @@ impl Running {
         let Built {
             pipeline,
             devices,
+            sync_producers,
             nc_modules,
             status_interval,
         } = built;
@@ -780,6 +808,7 @@ impl Running {
             baselined: vec![false; pipeline.axes.len()],
             pipeline,
             devices: devices.into_iter().map(Some).collect(),
+            sync_producers,
             nc_modules: nc_modules.into_iter().map(Some).collect(),
             status_interval,
             status,
@@ -909,6 +938,12 @@ async fn generation(
         }
     }
     drop(sample_tx);
+    // Each generation starts the producers of its own config; they stop with `stop`
+    // like the device tasks, so a reload that changes an interface or its period
+    // takes effect and a shutdown leaves no SYNC on the bus.
+    for p in &state.sync_producers {
+        tasks.spawn(sync_task(p.clone(), stop.clone()));
+    }
 
     let (event_tx, mut event_rx) = mpsc::channel::<NcEvent>(16);
     let mut nc_tx = Vec::new();
@@ -1005,7 +1040,7 @@ async fn generation(
         match done {
             Ok(Returned::Device(i, dev)) => state.devices[i] = Some(dev),
             Ok(Returned::Nc(i, nc)) => state.nc_modules[i] = Some(nc),
-            Ok(Returned::Aborted) => {}
+            Ok(Returned::Sync | Returned::Aborted) => {}
             Err(e) => tracing::error!(error = %e, "gateway task failed"),
         }
     }

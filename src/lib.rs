@@ -13,7 +13,7 @@
 //! - [`source`]: field-device polling. Modbus TCP and RTU with request merging,
 //!   timeouts, reconnect with capped backoff; CANopen nodes on SocketCAN
 //!   ([`source::can`]: NMT, SYNC + TPDOs, SDO upload, heartbeat, EMCY); one task per
-//!   device.
+//!   device, and one SYNC producer per CAN interface on a fixed-rate timer.
 //! - [`channel`]: pure and synchronous: scaling (counts -> mA -> degC), NAMUR NE43,
 //!   filters (median, low-pass, rate, stale) and quality.
 //! - [`comp`]: pure math: the thermal model `dKx = K0(T) + tan(beta)(T) * (Px - P0)`,

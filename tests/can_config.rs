@@ -100,6 +100,43 @@ fn two_nodes_with_one_id_on_one_interface() {
 }
 
 #[test]
+fn one_poll_interval_and_one_sync_producer_per_interface() {
+    // can_ain polls every 0.5 s; a second node on vcan0 must too (one SYNC period).
+    let second = "\n[devices.can_b]\ntransport = \"can\"\ninterface = \"vcan0\"\nnode_id = 6\n";
+    let p = problems(&format!("{}{second}poll_interval_s = 0.2\n", example()));
+    assert!(
+        has(
+            &p,
+            "devices.can_b.poll_interval_s",
+            "interface vcan0 is shared with `can_ain`, which uses poll_interval_s = 0.5"
+        ),
+        "{p:#?}"
+    );
+    assert_eq!(p.len(), 1, "{p:#?}");
+    // The default (1.0 s) differs as well.
+    let p = problems(&format!("{}{second}", example()));
+    assert!(
+        has(&p, "devices.can_b.poll_interval_s", "one SYNC"),
+        "{p:#?}"
+    );
+
+    // Same interval on vcan0, another on vcan1: one producer each, at its interval.
+    let third = "\n[devices.can_c]\ntransport = \"can\"\ninterface = \"vcan1\"\nnode_id = 5\npoll_interval_s = 0.25\n";
+    let text = format!("{}{second}poll_interval_s = 0.5\n{third}", example());
+    let cfg = config::load_str(&text, "can.toml").expect("valid");
+    let built = compgate::gateway::build(&cfg).expect("builds");
+    let producers: Vec<(String, f64)> = built
+        .sync_producers
+        .iter()
+        .map(|p| (p.interface.clone(), p.period.as_secs_f64()))
+        .collect();
+    assert_eq!(
+        producers,
+        vec![("vcan0".to_string(), 0.5), ("vcan1".to_string(), 0.25)]
+    );
+}
+
+#[test]
 fn channel_mappings() {
     let p = problems(&example().replace("pdo = 1, offset_bytes = 2", "pdo = 5, offset_bytes = 2"));
     assert!(has(&p, "channels.T_screw.can.pdo", "1..=4"), "{p:#?}");

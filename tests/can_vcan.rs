@@ -1,7 +1,9 @@
 //! The gateway against a simulated CANopen node on real vcan: TPDO and SDO channels ->
 //! channel processing -> thermal model -> FB3 job -> the NC axis module (Modbus on
 //! loopback). Then node silence, recovery, an EMCY from can-utils' `cansend`, an SDO
-//! abort, and `candump` watching the gateway's SYNC and NMT frames.
+//! abort, and `candump` watching the gateway's SYNC and NMT frames and timing the
+//! SYNC period; the SYNC producer across the interface going down and up, a reload
+//! and shutdown.
 //!
 //! Needs `vcan0` (or `VCAN_IF`) and can-utils: ignored in a plain `cargo test`;
 //! `tests/vcan/run.sh` runs them natively or inside a VM with vcan.
@@ -14,6 +16,7 @@ use std::time::Duration;
 use common::{start, Rig, COUNT_DEGC};
 use compgate::channel::{Quality, Reason};
 use compgate::gateway::Status;
+use compgate::source::can::sync::{self, SyncParams};
 use compgate::source::can::{CanChannelSpec, CanObject, CanParams, CanPoller};
 use compgate::source::plan::DataType;
 use tokio::time::Instant;
@@ -271,7 +274,8 @@ async fn node_to_nc_then_silence_recovery_emcy_and_sdo_abort() {
         fin.axes[0].last_job_error
     );
 
-    // candump saw the gateway's NMT start of node 5 and its SYNCs.
+    // candump saw the gateway's NMT start of node 5 and its SYNCs (`-L` stamps each
+    // frame with the kernel's receive time, as `-t a` does).
     // SIGTERM lets candump flush its buffered output (SIGKILL would lose it).
     let pid = dump.id().expect("candump pid").to_string();
     let killed = std::process::Command::new("kill")
@@ -285,19 +289,40 @@ async fn node_to_nc_then_silence_recovery_emcy_and_sdo_abort() {
     let syncs = text.lines().filter(|l| l.ends_with(" 080#")).count();
     println!("CAN e2e: candump saw {nmt} NMT start and {syncs} SYNC frames");
     assert!(nmt >= 1, "no NMT start in candump:\n{text}");
-    // SYNC every poll_interval_s (0.1 s) on average.
     let sync_times: Vec<f64> = text
         .lines()
         .filter(|l| l.ends_with(" 080#"))
         .filter_map(|l| l.strip_prefix('(')?.split(')').next()?.parse().ok())
         .collect();
     assert!(syncs >= 10, "only {syncs} SYNC in candump:\n{text}");
-    let mean_s = (sync_times[sync_times.len() - 1] - sync_times[0]) / (sync_times.len() - 1) as f64;
+    assert_eq!(sync_times.len(), syncs, "unparsed SYNC lines:\n{text}");
+    let gaps_s: Vec<f64> = sync_times.windows(2).map(|w| w[1] - w[0]).collect();
+    let mean_s = (sync_times[sync_times.len() - 1] - sync_times[0]) / gaps_s.len() as f64;
+    let max_gap_s = gaps_s.iter().copied().fold(0.0, f64::max);
     println!(
-        "CAN e2e: mean SYNC period {:.1} ms (poll_interval_s = 0.1)",
+        "CAN e2e: SYNC period mean {:.1} ms, largest gap {:.1} ms over {} periods (poll_interval_s = 0.1)",
+        mean_s * 1e3,
+        max_gap_s * 1e3,
+        gaps_s.len()
+    );
+    // The SYNC runs on its own fixed-rate timer through node silence, PDO and SDO
+    // timeouts, so its mean period is the configured 100 ms. The bounds leave room for
+    // the emulated VM (one vCPU under software emulation on a shared 2-core host,
+    // timer ticks late by tens of ms), yet fail the old design, which sent SYNC from
+    // the poll cycle and measured 131-134 ms: +-10 % on the mean. A late tick is
+    // followed by one on the original grid (MissedTickBehavior::Skip), so a gap near
+    // 2x means one lost tick; 2.5x allows that but not a producer that stalled or
+    // waited for a poll cycle's timeouts (0.1 s interval + 0.2 s timeout = 300 ms).
+    assert!(
+        (0.09..=0.11).contains(&mean_s),
+        "mean SYNC period {:.1} ms, expected 100 ms +-10 %",
         mean_s * 1e3
     );
-    assert!((0.09..0.3).contains(&mean_s), "SYNC period {mean_s} s");
+    assert!(
+        max_gap_s < 0.25,
+        "largest SYNC gap {:.1} ms, expected < 250 ms (2.5 periods)",
+        max_gap_s * 1e3
+    );
 }
 
 /// Runs everywhere: without the interface (or without CAN in the kernel) the poller
@@ -309,7 +334,7 @@ async fn missing_interface_is_a_named_socket_error() {
         node_id: 3,
         timeout: Duration::from_millis(50),
         heartbeat_timeout: Duration::ZERO,
-        sync_producer: true,
+        sync_period: Duration::from_millis(100),
         degrade_after_cycles: 3,
     };
     let spec = CanChannelSpec {
@@ -325,6 +350,231 @@ async fn missing_interface_is_a_named_socket_error() {
     let e = s.error.expect("error").to_string();
     assert!(e.contains("CAN interface nosuchcan7"), "{e}");
     assert!(matches!(s.values[..], [(0, Err(_))]));
+}
+
+/// Runs everywhere: a SYNC producer whose interface cannot be opened logs, retries
+/// with backoff instead of ending, and stops when told.
+#[tokio::test]
+async fn sync_producer_retries_a_missing_interface_and_stops() {
+    let stop = tokio_util::sync::CancellationToken::new();
+    let task = tokio::spawn(sync::run(
+        SyncParams {
+            interface: "nosuchcan7".into(),
+            period: Duration::from_millis(10),
+            backoff_initial: Duration::from_millis(10),
+            backoff_max: Duration::from_millis(40),
+        },
+        stop.clone(),
+    ));
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert!(!task.is_finished(), "the producer gave up");
+    stop.cancel();
+    let stats = tokio::time::timeout(Duration::from_secs(5), task)
+        .await
+        .expect("stops when cancelled")
+        .expect("task");
+    assert_eq!(stats.sent, 0);
+    assert_eq!(stats.opens, 0);
+    assert!(stats.open_errors >= 2, "{stats:?}");
+}
+
+/// Sets the test interface up again even when the test fails half-way.
+struct LinkUp;
+
+impl Drop for LinkUp {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("ip")
+            .args(["link", "set", "up", &interface()])
+            .status();
+    }
+}
+
+fn ip_link(state: &str) {
+    let out = std::process::Command::new("ip")
+        .args(["link", "set", state, &interface()])
+        .output()
+        .expect("ip runs");
+    assert!(
+        out.status.success(),
+        "ip link set {state} {} (needs root, as in the tests/vcan/run.sh VM): {out:?}",
+        interface()
+    );
+}
+
+/// SYNCs seen on `bus` within `wait` (receive errors, as when the interface goes
+/// down, are skipped).
+async fn count_syncs(bus: &socketcan::tokio::CanSocket, wait: Duration) -> usize {
+    use socketcan::EmbeddedFrame;
+    let deadline = Instant::now() + wait;
+    let mut n = 0;
+    while let Ok(r) = tokio::time::timeout_at(deadline, bus.read_frame()).await {
+        if let Ok(frame) = r {
+            if frame.id() == socketcan::Id::Standard(socketcan::StandardId::new(0x080).expect("id"))
+            {
+                n += 1;
+            }
+        }
+    }
+    n
+}
+
+/// The interface goes down under the SYNC producer (its sends fail with ENETDOWN) and
+/// comes back: the producer reopens its socket and SYNC resumes, without a restart.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs vcan0 and root (ip link set down); tests/vcan/run.sh runs it"]
+async fn sync_producer_survives_the_interface_going_down() {
+    let _up = LinkUp;
+    let bus = socketcan::tokio::CanSocket::open(&interface()).expect("open vcan");
+    let stop = tokio_util::sync::CancellationToken::new();
+    let task = tokio::spawn(sync::run(
+        SyncParams {
+            interface: interface(),
+            period: Duration::from_millis(50),
+            backoff_initial: Duration::from_millis(100),
+            backoff_max: Duration::from_millis(200),
+        },
+        stop.clone(),
+    ));
+    let before = count_syncs(&bus, Duration::from_millis(500)).await;
+    assert!(before >= 3, "{before} SYNC before the interface went down");
+    ip_link("down");
+    // Reads what was queued before the interface went down, so `after` counts only
+    // SYNCs sent once it is back.
+    let queued = count_syncs(&bus, Duration::from_millis(600)).await;
+    ip_link("up");
+    let after = count_syncs(&bus, Duration::from_secs(3)).await;
+    stop.cancel();
+    let stats = tokio::time::timeout(Duration::from_secs(5), task)
+        .await
+        .expect("stops when cancelled")
+        .expect("task");
+    println!("CAN e2e: SYNC producer across interface down/up: {before} SYNC before, {queued} still queued, {after} in 3 s after; {stats:?}");
+    assert!(
+        stats.send_errors >= 1,
+        "no send failed while down: {stats:?}"
+    );
+    assert!(stats.opens >= 2, "socket not reopened: {stats:?}");
+    assert!(
+        after >= 10,
+        "only {after} SYNC in the 3 s after the interface came back"
+    );
+}
+
+/// Creates a second virtual CAN interface for one test and removes it afterwards.
+struct ExtraVcan(&'static str);
+
+impl ExtraVcan {
+    fn add(name: &'static str) -> Self {
+        let _ = std::process::Command::new("ip")
+            .args(["link", "del", name])
+            .output();
+        for args in [
+            vec!["link", "add", "dev", name, "type", "vcan"],
+            vec!["link", "set", "up", name],
+        ] {
+            let out = std::process::Command::new("ip")
+                .args(&args)
+                .output()
+                .expect("ip runs");
+            assert!(
+                out.status.success(),
+                "ip {args:?} (needs root, as in the tests/vcan/run.sh VM): {out:?}"
+            );
+        }
+        Self(name)
+    }
+}
+
+impl Drop for ExtraVcan {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("ip")
+            .args(["link", "del", self.0])
+            .output();
+    }
+}
+
+/// A reload that moves the node to another interface stops the old interface's
+/// SYNC producer and starts one on the new interface; shutdown stops that one.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs vcan0 and root (ip link add); tests/vcan/run.sh runs it"]
+async fn reload_and_shutdown_stop_the_sync_producer() {
+    use compgate::gateway::{self, Hooks};
+    use compgate::plant::{Bind, Plant};
+
+    let other = ExtraVcan::add("vcan7");
+    let cfg = compgate::config::load_str(&can_config(5), "test.toml").expect("valid");
+    let plant = Plant::start(&cfg, Bind::Ephemeral).await.expect("plant");
+    let cfg = plant.config.clone();
+    let bus = socketcan::tokio::CanSocket::open(&interface()).expect("open vcan");
+    let bus2 = socketcan::tokio::CanSocket::open(other.0).expect("open vcan7");
+    let (tx, mut rx) = tokio::sync::watch::channel(Status::default());
+    let (reload_tx, reload_rx) = tokio::sync::mpsc::channel(1);
+    let shutdown = tokio_util::sync::CancellationToken::new();
+    let sd = shutdown.clone();
+    let run_cfg = cfg.clone();
+    let gw = tokio::spawn(async move {
+        let hooks = Hooks {
+            reload: Some(reload_rx),
+            ..Hooks::default()
+        };
+        gateway::run_with(&run_cfg, sd, tx, hooks)
+            .await
+            .expect("gateway runs");
+    });
+    let running = count_syncs(&bus, Duration::from_millis(600)).await;
+    assert!(
+        running >= 2,
+        "{running} SYNC on {} before the reload",
+        interface()
+    );
+
+    let mut moved = cfg.clone();
+    moved.devices.get_mut("node5").expect("node5").interface = Some(other.0.into());
+    reload_tx.send(moved).await.expect("reload sent");
+    let link = format!("can:{} node 5", other.0);
+    tokio::time::timeout(
+        Duration::from_secs(10),
+        rx.wait_for(|s| s.devices.first().is_some_and(|d| d.link == link)),
+    )
+    .await
+    .expect("reload took effect within 10 s")
+    .expect("status");
+    // The old generation's tasks have all ended before the new one publishes its
+    // status: what the old producer sent is already queued, and drained here.
+    tokio::join!(
+        count_syncs(&bus, Duration::from_millis(300)),
+        count_syncs(&bus2, Duration::from_millis(300))
+    );
+    let (old_after, new_after) = tokio::join!(
+        count_syncs(&bus, Duration::from_secs(1)),
+        count_syncs(&bus2, Duration::from_secs(1))
+    );
+
+    shutdown.cancel();
+    tokio::time::timeout(Duration::from_secs(10), gw)
+        .await
+        .expect("gateway stops within 10 s")
+        .expect("gateway task");
+    count_syncs(&bus2, Duration::from_millis(300)).await;
+    let after_shutdown = count_syncs(&bus2, Duration::from_millis(700)).await;
+    println!(
+        "CAN e2e: SYNC across reload: {running} on {} in 0.6 s before; in 1 s after: {old_after} there, {new_after} on {}; {after_shutdown} after shutdown",
+        interface(),
+        other.0
+    );
+    assert_eq!(
+        old_after,
+        0,
+        "the old producer still sends on {}",
+        interface()
+    );
+    assert!(
+        new_after >= 2,
+        "{new_after} SYNC on {} after the reload",
+        other.0
+    );
+    assert_eq!(after_shutdown, 0, "SYNC still sent after shutdown");
+    drop(plant);
 }
 
 /// Frames per second the gateway's CAN path (socket, reader task, decoder, PDO store)
@@ -350,7 +600,7 @@ async fn bench_frames_per_second() {
             node_id: 42,
             timeout: Duration::from_millis(20),
             heartbeat_timeout: Duration::ZERO,
-            sync_producer: false,
+            sync_period: Duration::from_millis(100),
             degrade_after_cycles: 3,
         };
         let spec = CanChannelSpec {

@@ -133,8 +133,8 @@ pub struct DeviceConfig {
     /// Heartbeat consumer timeout in seconds (`can` only): a node whose heartbeat
     /// has been missing for longer has all its channels bad. 0 turns the check off.
     /// Default 1.5 (for the common 1 s or faster producer heartbeat time, object
-    /// 0x1017); >= 0. The first CAN device of an interface (in name order) sends
-    /// the bus' SYNC every `poll_interval_s`; `timeout_s` is the longest wait for the
+    /// 0x1017); >= 0. The gateway sends each interface's SYNC from a timer of its
+    /// own every `poll_interval_s`; `timeout_s` is the longest wait for the
     /// synchronous TPDOs after it and for each SDO answer.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub heartbeat_timeout_s: Option<f64>,
@@ -148,7 +148,9 @@ pub struct DeviceConfig {
     /// attempts in all).
     #[serde(default = "default_retries")]
     pub retries: u32,
-    /// Seconds between poll cycles. Default 1.0; > 0.
+    /// Seconds between poll cycles. Default 1.0; > 0. On `can` devices also the
+    /// period of the interface's SYNC, so all CAN devices on one interface must use
+    /// the same value.
     #[serde(default = "default_poll_interval_s")]
     pub poll_interval_s: f64,
     /// Reconnect backoff after a transport fault: first wait in seconds; it doubles

@@ -22,6 +22,9 @@ use super::ConfigProblem;
 ///   neither `address` nor `connect_timeout_s`; baud 1200..=115200, stop bits 1 or 2.
 ///   Devices sharing a `serial_path` must agree on baud, parity and stop bits
 ///   (defaults applied) and have distinct unit ids.
+/// - **CAN**: `interface` and `node_id` 1..=127 on `can` devices and none of the
+///   Modbus keys; node ids distinct per interface, and one `poll_interval_s` per
+///   interface (its SYNC period).
 /// - **Unit ids** 0..=247; on RTU 1..=247 (0 is broadcast).
 /// - **Times**: every timeout and interval > 0, `backoff_initial_s <= backoff_max_s`;
 ///   filter times >= 0 (0 = off).
@@ -468,19 +471,37 @@ impl Checker<'_> {
         }
     }
 
-    /// CAN nodes on one interface need distinct node ids.
+    /// CAN nodes on one interface need distinct node ids and share its SYNC period.
     fn can_buses(&mut self, devices: &BTreeMap<String, DeviceConfig>) {
         let mut seen: BTreeMap<(&str, u8), &String> = BTreeMap::new();
+        let mut period: BTreeMap<&str, (&String, f64)> = BTreeMap::new();
         for (name, d) in devices {
-            if let (Transport::Can, Some(i), Some(n)) =
-                (d.transport, d.interface.as_deref(), d.node_id)
-            {
+            let (Transport::Can, Some(i)) = (d.transport, d.interface.as_deref()) else {
+                continue;
+            };
+            if let Some(n) = d.node_id {
                 if let Some(other) = seen.insert((i, n), name) {
                     self.problem(
                         field("devices", name, "node_id"),
                         format!("node id {n} is already used by `{other}` on interface {i}"),
                     );
                 }
+            }
+            // One SYNC producer per interface sends at the poll interval: two values
+            // would leave one device's cycle and the bus' SYNC out of step.
+            match period.get(i) {
+                None => {
+                    period.insert(i, (name, d.poll_interval_s));
+                }
+                Some(&(first, p)) if p != d.poll_interval_s => self.problem(
+                    field("devices", name, "poll_interval_s"),
+                    format!(
+                        "interface {i} is shared with `{first}`, which uses poll_interval_s = \
+                         {p}; the interface has one SYNC, sent every poll_interval_s, so all \
+                         CAN devices on one interface must use the same poll_interval_s"
+                    ),
+                ),
+                Some(_) => {}
             }
         }
     }

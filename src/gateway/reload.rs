@@ -1,6 +1,7 @@
 //! A reload keeps the state of whatever did not change: channel processors (filters,
 //! quality), device links (the open connection) and failure counts, NC module
-//! connections, and axis compensators with their baseline read from the NC.
+//! connections, and axis compensators with their baseline read from the NC. SYNC
+//! producers keep nothing: each generation starts those of its own config.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;

@@ -1,23 +1,32 @@
 //! CAN source: CANopen nodes on a SocketCAN interface (`can0`, `vcan0`, ...).
 //!
-//! One [`CanPoller`] per configured node, with its own raw CAN socket filtered to the
-//! node's COB-IDs and a reader task that timestamps every frame as it arrives. One
-//! poll cycle:
+//! One SYNC producer per interface ([`sync`]) sends SYNC on a fixed-rate timer at the
+//! interface's poll interval, on a socket of its own, so no poll cycle can stretch
+//! the SYNC period.
 //!
-//! 1. takes the frames received since the last cycle (heartbeats, EMCY, TPDOs);
+//! One [`CanPoller`] per configured node, with its own raw CAN socket filtered to the
+//! node's COB-IDs and the SYNC, and a reader task that timestamps every frame as it
+//! arrives. The kernel loops the producer's SYNC back to every other socket on the
+//! interface, so each poller sees SYNCs and TPDOs in bus order. One poll cycle:
+//!
+//! 1. takes the frames received since the last cycle (SYNCs, heartbeats, EMCY,
+//!    TPDOs);
 //! 2. sends NMT start when the node is new, booted or pre-operational;
-//! 3. sends SYNC if this node's poller is its bus' SYNC producer (the first CAN device
-//!    of the interface in the config) and waits, up to the timeout, for the mapped
-//!    synchronous TPDOs sent after it;
+//! 3. reads the mapped synchronous TPDOs that followed the newest SYNC; those not
+//!    there yet (the SYNC has just gone out) are waited for up to the timeout, as is
+//!    a SYNC when none has come for two periods (then the PDO channels fail with
+//!    [`CanError::NoSync`]);
 //! 4. uploads every SDO channel's object (expedited, one at a time);
 //! 5. checks the heartbeat consumer and the EMCY state: a silent node or an
 //!    unreset emergency makes every channel of the node bad.
 //!
-//! The frame codec ([`codec`]) and the bookkeeping ([`node`]) are pure and tested
-//! without a kernel; this file holds the socket side.
+//! The frame codec ([`codec`]), the bookkeeping ([`node`]) and the SYNC plan
+//! ([`sync::plan`]) are pure and tested without a kernel; this file and the producer
+//! task hold the socket side.
 
 pub mod codec;
 pub mod node;
+pub mod sync;
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -44,8 +53,8 @@ pub enum CanError {
         /// What failed.
         message: String,
     },
-    /// A mapped TPDO did not arrive after the SYNC.
-    #[error("node {node}: TPDO{pdo} not received within {timeout:?}")]
+    /// A mapped TPDO did not arrive after the newest SYNC.
+    #[error("node {node}: TPDO{pdo} not received within {timeout:?} of the SYNC")]
     PdoTimeout {
         /// Node id.
         node: u8,
@@ -53,6 +62,15 @@ pub enum CanError {
         pdo: u8,
         /// Wait.
         timeout: Duration,
+    },
+    /// No SYNC on the interface for longer than two SYNC periods: the producer
+    /// cannot send (interface down, transmit queue full) or has stopped.
+    #[error("CAN interface {interface}: no SYNC for more than {max_age:?}")]
+    NoSync {
+        /// Interface name.
+        interface: String,
+        /// The age after which the newest SYNC no longer counts.
+        max_age: Duration,
     },
     /// A TPDO is shorter than its mapping.
     #[error("node {node}: TPDO{pdo}: {error}")]
@@ -108,6 +126,7 @@ impl CanError {
         match self {
             Self::Socket { .. } => "can socket",
             Self::PdoTimeout { .. } | Self::Pdo { .. } => "can pdo",
+            Self::NoSync { .. } => "can sync",
             Self::Sdo { .. } => "can sdo",
             Self::HeartbeatTimeout { .. } => "can heartbeat",
             Self::Emergency { .. } => "can emcy",
@@ -156,8 +175,9 @@ pub struct CanParams {
     pub timeout: Duration,
     /// Heartbeat consumer timeout (zero = off).
     pub heartbeat_timeout: Duration,
-    /// This poller sends the bus' SYNC.
-    pub sync_producer: bool,
+    /// The interface's SYNC period (its producer is [`sync::run`]); a SYNC older than
+    /// [`sync::max_age`] of it no longer counts.
+    pub sync_period: Duration,
     /// Failed cycles in a row after which the node counts as degraded.
     pub degrade_after_cycles: u32,
 }
@@ -219,7 +239,6 @@ pub struct CanPoller {
     failed_cycles: u32,
     opens: u64,
     frames: u64,
-    last_cycle: Option<Instant>,
 }
 
 impl CanPoller {
@@ -240,7 +259,6 @@ impl CanPoller {
             failed_cycles: 0,
             opens: 0,
             frames: 0,
-            last_cycle: None,
         }
     }
 
@@ -278,10 +296,11 @@ impl CanPoller {
     fn open(&mut self) -> Result<(), CanError> {
         let socket = CanSocket::open(&self.params.interface).map_err(|e| self.socket_error(e))?;
         let n = u32::from(self.params.node_id);
-        // Only this node's EMCY, TPDOs, SDO answers and heartbeats.
+        // The bus' SYNC, and only this node's EMCY, TPDOs, SDO answers and heartbeats.
         let filters: Vec<CanFilter> = [0x080, 0x180, 0x280, 0x380, 0x480, 0x580, 0x700]
             .iter()
             .map(|base| CanFilter::new(base + n, 0x7FF))
+            .chain([CanFilter::new(u32::from(codec::SYNC_COB_ID), 0x7FF)])
             .collect();
         socket
             .set_filters(&filters)
@@ -335,7 +354,9 @@ impl CanPoller {
 
     /// Takes one received frame; an SDO answer is returned to the caller.
     fn handle(&mut self, at: Instant, raw: &RawFrame) -> Option<codec::SdoAnswer> {
-        self.frames += 1;
+        if raw.cob_id != codec::SYNC_COB_ID {
+            self.frames += 1;
+        }
         let t_s = self.t_s(at);
         let msg = match codec::decode(raw) {
             Ok(m) => m,
@@ -389,9 +410,10 @@ impl CanPoller {
         }
     }
 
+    /// Reads the mapped TPDOs that followed the newest SYNC, waiting up to the
+    /// timeout for those (or the SYNC) not there yet.
     async fn read_pdos(
         &mut self,
-        since: Instant,
         values: &mut Vec<(usize, Result<f64, Fault>)>,
         errors: &mut Vec<CanError>,
     ) {
@@ -408,30 +430,47 @@ impl CanPoller {
         if wanted.is_empty() {
             return;
         }
-        let since_s = self.t_s(since);
+        let max_age = sync::max_age(self.params.sync_period);
+        let max_age_s = max_age.as_secs_f64();
         let deadline = Instant::now() + self.params.timeout;
-        while wanted
-            .iter()
-            .any(|&p| self.pdos.since(p, since_s).is_none())
-        {
+        // A SYNC arriving during the wait becomes the one to read: its TPDOs are the
+        // freshest, and a silent node still runs into the deadline.
+        let sync = loop {
+            let sync = self.pdos.current_sync(self.t_s(Instant::now()), max_age_s);
+            if let Some(sync) = sync {
+                if wanted
+                    .iter()
+                    .all(|&p| self.pdos.after_sync(p, sync).is_some())
+                {
+                    break Some(sync);
+                }
+            }
             let Some((at, raw)) = self.next_frame(deadline).await else {
-                break;
+                break self.pdos.current_sync(self.t_s(Instant::now()), max_age_s);
             };
             self.handle(at, &raw);
-        }
+        };
         let node = self.params.node_id;
         for spec in self.specs.clone() {
             let CanObject::Pdo { pdo, offset_bytes } = spec.object else {
                 continue;
             };
-            let value = match self.pdos.since(pdo, since_s) {
-                None => Err(CanError::PdoTimeout {
-                    node,
-                    pdo,
-                    timeout: self.params.timeout,
+            let value = match sync {
+                None => Err(CanError::NoSync {
+                    interface: self.params.interface.clone(),
+                    max_age,
                 }),
-                Some(data) => codec::decode_value(data, usize::from(offset_bytes), spec.data_type)
-                    .map_err(|error| CanError::Pdo { node, pdo, error }),
+                Some(sync) => match self.pdos.after_sync(pdo, sync) {
+                    None => Err(CanError::PdoTimeout {
+                        node,
+                        pdo,
+                        timeout: self.params.timeout,
+                    }),
+                    Some(data) => {
+                        codec::decode_value(data, usize::from(offset_bytes), spec.data_type)
+                            .map_err(|error| CanError::Pdo { node, pdo, error })
+                    }
+                },
             };
             match value {
                 Ok(v) => values.push((spec.channel, Ok(v))),
@@ -527,47 +566,33 @@ impl CanPoller {
             }
         }
         // A node whose heartbeat has already timed out is not waited for: the cycle
-        // (and the bus' SYNC) keeps its period, and its next heartbeat is seen at
-        // the start of a cycle.
+        // keeps its period, and its next heartbeat is seen at the start of a cycle.
         let node_silent = matches!(
             self.monitor.health(self.t_s(Instant::now())),
             Err(NodeFault::HeartbeatTimeout { .. })
         );
-        if link_error.is_none() {
-            let since = if self.params.sync_producer {
-                let at = Instant::now();
-                if let Err(e) = self.send(codec::sync()).await {
-                    link_error = Some(e);
-                }
-                at
-            } else {
-                // Not the SYNC producer: any TPDO since the last cycle is fresh.
-                self.last_cycle.unwrap_or(started)
-            };
-            if link_error.is_none() && !node_silent {
-                self.read_pdos(since, &mut values, &mut errors).await;
-                for spec in self.specs.clone() {
-                    let CanObject::Sdo { index, sub } = spec.object else {
-                        continue;
-                    };
-                    match self.upload(index, sub, spec.data_type).await {
-                        Ok(v) => values.push((spec.channel, Ok(v))),
-                        Err(e) => {
-                            let reason = match e {
-                                CanError::Sdo {
-                                    abort_code: Some(_),
-                                    ..
-                                } => Reason::DeviceException,
-                                _ => Reason::Comm,
-                            };
-                            values.push((spec.channel, Err(self.fault(reason))));
-                            errors.push(e);
-                        }
+        if link_error.is_none() && !node_silent {
+            self.read_pdos(&mut values, &mut errors).await;
+            for spec in self.specs.clone() {
+                let CanObject::Sdo { index, sub } = spec.object else {
+                    continue;
+                };
+                match self.upload(index, sub, spec.data_type).await {
+                    Ok(v) => values.push((spec.channel, Ok(v))),
+                    Err(e) => {
+                        let reason = match e {
+                            CanError::Sdo {
+                                abort_code: Some(_),
+                                ..
+                            } => Reason::DeviceException,
+                            _ => Reason::Comm,
+                        };
+                        values.push((spec.channel, Err(self.fault(reason))));
+                        errors.push(e);
                     }
                 }
             }
         }
-        self.last_cycle = Some(started);
         let node = self.params.node_id;
         let health = self.monitor.health(self.t_s(Instant::now()));
         let node_error = match (link_error, health) {

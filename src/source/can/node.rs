@@ -1,6 +1,6 @@
 //! Per-node bookkeeping with no I/O: heartbeat consumer, EMCY state, the SDO client's
-//! one outstanding request, and the latest TPDOs. Time is seconds on the caller's
-//! clock, so tests drive it directly.
+//! one outstanding request, and the latest TPDOs with the SYNC each followed. Time is
+//! seconds on the caller's clock, so tests drive it directly.
 
 use super::codec::{self, Message, NmtState, RawFrame, SdoAnswer};
 
@@ -195,39 +195,86 @@ impl SdoClient {
     }
 }
 
-/// The latest frame of each TPDO 1..=4 of one node, with its receive time.
+/// One SYNC as a node's socket saw it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SyncMark {
+    /// Count of SYNCs seen on this socket, 1 for the first.
+    pub seq: u64,
+    /// Receive time.
+    pub t_s: f64,
+}
+
+/// A TPDO as stored: its bytes and the SYNC it followed (0 = none yet).
+#[derive(Debug, Clone, Copy)]
+struct StoredPdo {
+    after_sync: u64,
+    data: [u8; 8],
+    len: u8,
+}
+
+/// The latest frame of each TPDO 1..=4 of one node, and the SYNC each followed.
+///
+/// The socket delivers the bus' SYNC (from the interface's SYNC producer, through the
+/// kernel's loopback) and the node's TPDOs in bus order, so a TPDO belongs to the last
+/// SYNC handled before it. Order decides, not timestamps: a TPDO that answers a SYNC
+/// can never be taken for the answer to an earlier one. (A node so slow that its
+/// TPDOs of SYNC n come after SYNC n+1 counts as answering n+1; a CANopen master
+/// cannot tell either.)
 #[derive(Debug, Clone, Default)]
 pub struct PdoStore {
-    latest: [Option<(f64, [u8; 8], u8)>; 4],
+    latest: [Option<StoredPdo>; 4],
+    sync: Option<SyncMark>,
     received: u64,
 }
 
 impl PdoStore {
-    /// Takes a decoded frame received at `t_s`; other nodes' PDOs are ignored.
+    /// Takes a decoded frame received at `t_s`: a SYNC, or a TPDO of `node` (other
+    /// nodes' PDOs are ignored).
     pub fn on_message(&mut self, node: u8, t_s: f64, msg: &Message) {
-        if let Message::Tpdo {
-            node: n,
-            pdo,
-            data,
-            len,
-        } = *msg
-        {
-            if n == node {
+        match *msg {
+            Message::Sync { .. } => {
+                let seq = self.sync.map_or(0, |s| s.seq) + 1;
+                self.sync = Some(SyncMark { seq, t_s });
+            }
+            Message::Tpdo {
+                node: n,
+                pdo,
+                data,
+                len,
+            } if n == node => {
                 if let Some(slot) = self.latest.get_mut(usize::from(pdo.wrapping_sub(1))) {
-                    *slot = Some((t_s, data, len));
+                    *slot = Some(StoredPdo {
+                        after_sync: self.sync.map_or(0, |s| s.seq),
+                        data,
+                        len,
+                    });
                     self.received += 1;
                 }
             }
+            _ => {}
         }
     }
 
-    /// TPDO `pdo` if it arrived at or after `since_s`: its data bytes.
-    pub fn since(&self, pdo: u8, since_s: f64) -> Option<&[u8]> {
-        let (t_s, data, len) = self
+    /// The newest SYNC seen, if any.
+    pub fn last_sync(&self) -> Option<SyncMark> {
+        self.sync
+    }
+
+    /// The SYNC a poll at `now_s` reads: the newest one, unless it was received more
+    /// than `max_age_s` before `now_s` (the producer has stopped or the bus is down:
+    /// its TPDOs are no longer current).
+    pub fn current_sync(&self, now_s: f64, max_age_s: f64) -> Option<SyncMark> {
+        self.sync.filter(|s| now_s - s.t_s <= max_age_s)
+    }
+
+    /// TPDO `pdo` if it followed SYNC `sync` (the newest TPDO of SYNC `sync`): its
+    /// data bytes. `None` while the node has not answered that SYNC yet.
+    pub fn after_sync(&self, pdo: u8, sync: SyncMark) -> Option<&[u8]> {
+        let p = self
             .latest
             .get(usize::from(pdo.wrapping_sub(1)))?
             .as_ref()?;
-        (*t_s >= since_s).then(|| &data[..usize::from(*len)])
+        (p.after_sync == sync.seq).then(|| &p.data[..usize::from(p.len)])
     }
 
     /// TPDOs received so far.
@@ -355,17 +402,45 @@ mod tests {
     }
 
     #[test]
-    fn pdo_store_keeps_latest_per_pdo() {
+    fn pdo_store_keeps_latest_per_pdo_and_its_sync() {
         let mut s = PdoStore::default();
-        s.on_message(5, 1.0, &msg(0x185, &[1, 2]));
-        s.on_message(5, 1.5, &msg(0x285, &[3, 4, 5]));
-        s.on_message(5, 1.6, &msg(0x186, &[9, 9]));
-        assert_eq!(s.since(1, 1.0), Some(&[1u8, 2][..]));
-        assert_eq!(s.since(1, 1.1), None, "older than the SYNC");
-        assert_eq!(s.since(2, 1.1), Some(&[3u8, 4, 5][..]));
-        assert_eq!(s.since(3, 0.0), None);
-        assert_eq!(s.since(0, 0.0), None);
-        assert_eq!(s.since(9, 0.0), None);
-        assert_eq!(s.received(), 2);
+        // A TPDO before any SYNC belongs to none.
+        s.on_message(5, 0.5, &msg(0x185, &[7, 7]));
+        assert_eq!(s.last_sync(), None);
+        s.on_message(5, 1.0, &msg(0x080, &[]));
+        let first = s.last_sync().expect("sync");
+        assert_eq!(first.seq, 1);
+        assert_eq!(s.after_sync(1, first), None, "older than the SYNC");
+        s.on_message(5, 1.001, &msg(0x185, &[1, 2]));
+        s.on_message(5, 1.002, &msg(0x285, &[3, 4, 5]));
+        s.on_message(5, 1.003, &msg(0x186, &[9, 9]));
+        assert_eq!(s.after_sync(1, first), Some(&[1u8, 2][..]));
+        assert_eq!(s.after_sync(2, first), Some(&[3u8, 4, 5][..]));
+        assert_eq!(s.after_sync(3, first), None);
+        assert_eq!(s.after_sync(0, first), None);
+        assert_eq!(s.after_sync(9, first), None);
+        assert_eq!(s.received(), 3, "node 6's TPDO is not counted");
+        // The next SYNC: TPDO2 answers it, TPDO1 not yet.
+        s.on_message(5, 1.1, &msg(0x080, &[]));
+        let second = s.last_sync().expect("sync");
+        assert_eq!(second, SyncMark { seq: 2, t_s: 1.1 });
+        s.on_message(5, 1.101, &msg(0x285, &[6]));
+        assert_eq!(s.after_sync(1, second), None, "TPDO1 still of SYNC 1");
+        assert_eq!(s.after_sync(2, second), Some(&[6u8][..]));
+        assert_eq!(s.after_sync(2, first), None, "replaced by SYNC 2's");
+        // A SYNC with a counter byte counts the same.
+        s.on_message(5, 1.2, &msg(0x080, &[3]));
+        assert_eq!(s.last_sync().map(|m| m.seq), Some(3));
+    }
+
+    #[test]
+    fn a_sync_older_than_max_age_is_not_current() {
+        let mut s = PdoStore::default();
+        assert_eq!(s.current_sync(0.0, 0.2), None, "none seen");
+        s.on_message(5, 10.0, &msg(0x080, &[]));
+        assert_eq!(s.current_sync(10.2, 0.2).map(|m| m.seq), Some(1));
+        assert_eq!(s.current_sync(10.21, 0.2), None, "producer stopped");
+        s.on_message(5, 10.3, &msg(0x080, &[]));
+        assert_eq!(s.current_sync(10.4, 0.2).map(|m| m.seq), Some(2));
     }
 }
