@@ -78,6 +78,13 @@ impl BenchReport {
         self.gateway.median_rate_per_s() / self.bare.median_rate_per_s()
     }
 
+    /// What the gateway adds to one cycle, from the median rates: the time of a
+    /// gateway cycle (one task) less that of a bare read, us. Unlike the ratio it does
+    /// not depend on how long the bare read takes.
+    pub fn overhead_us(&self) -> f64 {
+        1e6 / self.sequential.median_rate_per_s() - 1e6 / self.bare.median_rate_per_s()
+    }
+
     /// Gateway rate with poll and processing in one task over bare rate (medians).
     pub fn sequential_ratio(&self) -> f64 {
         self.sequential.median_rate_per_s() / self.bare.median_rate_per_s()
@@ -122,6 +129,11 @@ impl BenchReport {
             "\nratio gateway/bare: {:.3} as the gateway runs (device task -> core task), {:.3} in one task (target >= 0.9)",
             self.ratio(),
             self.sequential_ratio()
+        );
+        let _ = writeln!(
+            s,
+            "gateway overhead per cycle (one task, from the median rates): {:.2} us",
+            self.overhead_us()
         );
         s
     }
@@ -376,6 +388,7 @@ mod tests {
         assert_eq!(r.sequential.latencies.len(), 40);
         assert_eq!(r.gateway.rates_per_s.len(), 2);
         assert!(r.ratio().is_finite() && r.ratio() > 0.0);
+        assert!(r.overhead_us().is_finite());
         assert!(r.table().contains("| bare tokio-modbus read |"));
     }
 }

@@ -63,10 +63,10 @@ pub enum Command {
         #[arg(long, default_value_t = 64)]
         channels: u16,
         /// Measured cycles per round.
-        #[arg(long, default_value_t = 5000)]
+        #[arg(long, default_value_t = 2000)]
         cycles: u32,
-        /// Alternating rounds of gateway and bare measurements.
-        #[arg(long, default_value_t = 5)]
+        /// Alternating rounds of gateway and bare measurements (many short rounds: the median then outvotes bursts of load from other processes)
+        #[arg(long, default_value_t = 15)]
         rounds: u32,
         /// Instead: soak the real gateway process for this many seconds (8 devices x
         /// 64 channels at 10 Hz, recording, metrics and MQTT on) and report CPU and RSS.
