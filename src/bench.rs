@@ -1,12 +1,10 @@
 //! `compgate bench`: full poll-filter-compute cycles against the bare request rate.
 //!
 //! Both sides read the same 64 input registers from the same simulated field module
-//! over loopback; the module runs on a thread and runtime of its own, as a field
-//! device is a machine of its own. The gateway side runs the real code path
-//! (`DevicePoller::poll` with its timeout and reconnect wrapper, every channel
-//! processor, one axis decision) twice: as the gateway runs it, the device task
-//! handing each sample over a bounded channel to the core task, and in one task, poll
-//! then processing. The bare side calls tokio-modbus directly. Rounds alternate so a
+//! over loopback. The gateway side runs the real code path (`DevicePoller::poll` with
+//! its timeout and reconnect wrapper, every channel processor, one axis decision)
+//! twice: as the gateway runs it, the device task handing each sample over a bounded
+//! channel to the core task, and in one task, poll then processing. The bare side calls tokio-modbus directly. Rounds alternate so a
 //! noisy shared machine slows all sides alike, and the result is a ratio.
 
 use std::fmt::Write as _;
@@ -216,35 +214,18 @@ async fn measure(channels: u16, cycles: u32, rounds: u32) -> Result<BenchReport,
         .collect();
     let module = FieldModule::new(FieldModuleSpec::new(transmitters, 1))
         .map_err(|e| BenchError::Setup(e.to_string()))?;
-    // The simulated module gets a thread and runtime of its own, as a field device
-    // is a machine of its own: sharing the gateway's workers would make the two sides
-    // queue behind each other's tasks.
-    let listener = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.set_nonblocking(true).map(|()| l))
+    // The simulated module runs on the gateway's runtime. On a thread of its own it
+    // would park between requests, and waking a parked CPU (50-100 us on a virtual
+    // machine) would lengthen the bare read and flatter the ratio.
+    let listener = TcpListener::bind("127.0.0.1:0")
+        .await
         .map_err(|e| BenchError::Setup(e.to_string()))?;
     let addr = listener
         .local_addr()
         .map_err(|e| BenchError::Setup(e.to_string()))?;
     let shutdown = CancellationToken::new();
     let _stop = shutdown.clone().drop_guard();
-    let server_rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .map_err(|e| BenchError::Setup(e.to_string()))?;
-    let server_stop = shutdown.clone();
-    std::thread::Builder::new()
-        .name("bench-field-module".into())
-        .spawn(move || {
-            server_rt.block_on(async move {
-                match TcpListener::from_std(listener) {
-                    Ok(l) => {
-                        let _ = module.serve_tcp(l, server_stop).await;
-                    }
-                    Err(e) => tracing::error!(error = %e, "bench field module"),
-                }
-            });
-        })
-        .map_err(|e| BenchError::Setup(e.to_string()))?;
+    tokio::spawn(module.serve_tcp(listener, shutdown.clone()));
 
     let cfg = config::load_str(&bench_config(channels, &addr.to_string()), "bench")
         .map_err(|e| BenchError::Setup(e.to_string()))?;
