@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Runs every test of compgate: formatting, lints, unit, integration and doc tests of
+# Runs every test of compgate: formatting, lints, docs, unit, integration and doc tests of
 # the whole workspace. Installs what it needs first. CI runs exactly this (.ci/run).
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -23,6 +23,8 @@ echo "== cargo fmt --check"
 cargo fmt --all -- --check
 echo "== cargo clippy"
 cargo clippy --workspace --all-targets -- -D warnings
+echo "== cargo doc (broken links and bad doc markup are errors)"
+RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --quiet
 echo "== cargo test"
 cargo test --workspace --all-targets
 cargo test --workspace --doc

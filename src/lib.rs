@@ -41,7 +41,7 @@
 //! - [`service`]: the shop-floor service: systemd notify/watchdog, journald, SIGHUP
 //!   reload, and the recorder, metrics and MQTT observers behind the control loop.
 //! - [`status`]: the live status line and plain per-update lines.
-//! - [`bench`]: `compgate bench`, cycle rate against the bare Modbus request rate.
+//! - [`bench`](mod@bench): `compgate bench`, cycle rate against the bare Modbus request rate.
 //! - [`cli`]: the command line.
 //!
 //! The simulated plant lives in the `compgate-plc` crate (`plc/`). The gateway's

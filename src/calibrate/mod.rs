@@ -36,7 +36,7 @@ pub enum CalibrateError {
 /// `compgate calibrate` arguments.
 #[derive(Debug, Clone, clap::Args)]
 pub struct CalibrateArgs {
-    /// Measured-error CSV (t_s,pos_mm,err_um,T_<sensor>...).
+    /// Measured-error CSV (`t_s,pos_mm,err_um,T_<sensor>...`).
     #[arg(long)]
     pub data: PathBuf,
     /// Where to write the model (TOML, the gateway's `[axes.NAME]` form).

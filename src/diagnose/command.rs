@@ -8,7 +8,7 @@ use crate::measure::Measurements;
 /// Arguments of `compgate diagnose`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct DiagnoseArgs {
-    /// Measured error CSV: t_s, pos_mm, err_um, T_<name>..., optional dir, travel_mm.
+    /// Measured error CSV: t_s, pos_mm, err_um, `T_<name>`..., optional dir, travel_mm.
     #[arg(long)]
     pub data: PathBuf,
     /// Baseline sensors, comma separated (names with or without `T_`); default: every
