@@ -99,6 +99,7 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
         publisher = Some(tokio::spawn(mqtt::publisher(
             m.clone(),
             r.path().to_path_buf(),
+            r.outbox_notify(),
             shutdown.clone(),
         )));
     }
