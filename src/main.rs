@@ -96,16 +96,33 @@ async fn sim(path: &std::path::Path) -> Result<(), String> {
     Ok(())
 }
 
-#[tokio::main]
-async fn main() -> ExitCode {
+fn main() -> ExitCode {
     let cli = Cli::parse();
     let command = cli.command.unwrap_or(Command::Demo);
+    let mut runtime = tokio::runtime::Builder::new_multi_thread();
+    if matches!(command, Command::Run { .. }) {
+        // The service does little work in many small wake-ups (8 devices at 10 Hz:
+        // a timer and a reply each). On one worker they follow each other on one
+        // thread; with a worker per core they also wake idle workers to steal work,
+        // which cost a fifth of the soak's CPU (1.60 % -> 1.35 % of one core).
+        runtime.worker_threads(1);
+    }
+    match runtime.enable_all().build() {
+        Ok(rt) => rt.block_on(run(cli.log, command)),
+        Err(e) => {
+            eprintln!("error: cannot start the async runtime: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run(log: Option<String>, command: Command) -> ExitCode {
     let default_log = if matches!(command, Command::Demo) {
         "warn"
     } else {
         "info"
     };
-    compgate::service::init_tracing(cli.log.as_deref(), default_log);
+    compgate::service::init_tracing(log.as_deref(), default_log);
 
     let result = match command {
         Command::Demo => demo().await,

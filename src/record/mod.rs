@@ -15,9 +15,9 @@ pub mod export;
 mod schema;
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::mpsc::{self, RecvTimeoutError, SyncSender, TrySendError};
-use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::mpsc::{self, SyncSender, TryRecvError, TrySendError};
+use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use rusqlite::{params, Connection};
@@ -66,8 +66,8 @@ pub fn quality_code(q: &Quality) -> (u8, Option<&'static str>) {
 /// One channel's reading of one poll cycle.
 #[derive(Debug, Clone)]
 pub struct Row {
-    /// Channel name.
-    pub channel: Arc<str>,
+    /// Channel: index into the cycle's `names`.
+    pub channel: u32,
     /// Raw register value.
     pub raw: Option<f64>,
     /// Temperature before filtering, degC.
@@ -87,6 +87,9 @@ pub enum Record {
     Cycle {
         /// Time, ms since the Unix epoch.
         t_unix_ms: i64,
+        /// Every channel name of the configuration, by index; one shared table per
+        /// configuration, so a cycle costs one reference count, not one per channel.
+        names: Arc<[String]>,
         /// Its channels' readings.
         rows: Vec<Row>,
     },
@@ -140,19 +143,43 @@ pub struct RecorderStats {
     pub failed_commits: AtomicU64,
 }
 
+/// What the queue's ends share besides the queue: how full it is and who to wake.
+#[derive(Debug)]
+struct QueueShared {
+    /// Records queued and not yet taken by the writer.
+    pending: AtomicUsize,
+    /// At this many pending records the writer is woken before its commit is due.
+    wake_at: usize,
+    /// The writer thread, set once it runs.
+    writer: OnceLock<std::thread::Thread>,
+}
+
 /// The control loop's end of the queue. Cloneable; never blocks.
 #[derive(Debug, Clone)]
 pub struct RecordSender {
     tx: SyncSender<Record>,
     stats: Arc<RecorderStats>,
+    shared: Arc<QueueShared>,
 }
 
 impl RecordSender {
     /// Queues `record`; drops and counts it when the queue is full.
     pub fn send(&self, record: Record) {
+        // Counted before it is queued, so the writer never takes more than counted.
+        let n = self.shared.pending.fetch_add(1, Ordering::Relaxed) + 1;
         match self.tx.try_send(record) {
-            Ok(()) => {}
+            Ok(()) => {
+                // The writer sleeps until its commit is due (waking it for every
+                // record cost as much CPU as the inserts); only a queue filling up
+                // wakes it early.
+                if n == self.shared.wake_at {
+                    if let Some(t) = self.shared.writer.get() {
+                        t.unpark();
+                    }
+                }
+            }
             Err(TrySendError::Full(_)) => {
+                self.shared.pending.fetch_sub(1, Ordering::Relaxed);
                 let n = self.stats.dropped_queue.fetch_add(1, Ordering::Relaxed) + 1;
                 // Log the first drop and then every 1000th, not every one.
                 if n == 1 || n.is_multiple_of(1000) {
@@ -160,6 +187,7 @@ impl RecordSender {
                 }
             }
             Err(TrySendError::Disconnected(_)) => {
+                self.shared.pending.fetch_sub(1, Ordering::Relaxed);
                 self.stats.dropped_write.fetch_add(1, Ordering::Relaxed);
             }
         }
@@ -195,6 +223,7 @@ pub struct Recorder {
     sender: RecordSender,
     thread: Option<std::thread::JoinHandle<()>>,
     path: PathBuf,
+    outbox: Arc<tokio::sync::Notify>,
 }
 
 impl Recorder {
@@ -205,6 +234,13 @@ impl Recorder {
         let queue = usize::try_from(cfg.queue_cycles).unwrap_or(usize::MAX);
         let (tx, rx) = mpsc::sync_channel(queue);
         let stats = Arc::new(RecorderStats::default());
+        let shared = Arc::new(QueueShared {
+            pending: AtomicUsize::new(0),
+            // Half full: the other half takes what arrives while the writer wakes.
+            wake_at: (queue / 2).max(1),
+            writer: OnceLock::new(),
+        });
+        let outbox = Arc::new(tokio::sync::Notify::new());
         let writer = Writer {
             conn,
             commit_interval: crate::config::secs(cfg.commit_interval_s),
@@ -212,6 +248,9 @@ impl Recorder {
             retention_ms: (cfg.retention_days * 86_400_000.0) as i64,
             max_bytes: (cfg.max_size_mb * 1024.0 * 1024.0) as i64,
             stats: stats.clone(),
+            shared: shared.clone(),
+            outbox: outbox.clone(),
+            statements: schema::Statements::default(),
         };
         let thread = std::thread::Builder::new()
             .name("recorder".into())
@@ -220,11 +259,13 @@ impl Recorder {
                 path: path.display().to_string(),
                 message: format!("cannot start the writer thread: {e}"),
             })?;
+        let _ = shared.writer.set(thread.thread().clone());
         tracing::info!(path = %path.display(), "recording into SQLite (WAL)");
         Ok(Recorder {
-            sender: RecordSender { tx, stats },
+            sender: RecordSender { tx, stats, shared },
             thread: Some(thread),
             path,
+            outbox,
         })
     }
 
@@ -236,6 +277,12 @@ impl Recorder {
     /// The database file.
     pub fn path(&self) -> &Path {
         &self.path
+    }
+
+    /// Notified after every commit that added MQTT outbox messages, so the publisher
+    /// reads the outbox when there is something new instead of polling it.
+    pub fn outbox_notify(&self) -> Arc<tokio::sync::Notify> {
+        self.outbox.clone()
     }
 
     /// The observer that records what the control loop sees.
@@ -257,6 +304,8 @@ impl Recorder {
         let (dead, _) = mpsc::sync_channel(0);
         self.sender.tx = dead;
         if let Some(t) = self.thread.take() {
+            // It sleeps until its next commit: wake it to see the queue closed.
+            t.thread().unpark();
             let _ = t.join();
         }
     }
@@ -272,36 +321,33 @@ impl Drop for Recorder {
 #[derive(Debug)]
 pub struct RecordObserver {
     tx: RecordSender,
-    names: Option<Vec<Arc<str>>>,
+    names: Option<Arc<[String]>>,
 }
 
 impl Observer for RecordObserver {
     fn on_sample(&mut self, sample: &DeviceSample, pipeline: &Pipeline) {
-        let names = self.names.get_or_insert_with(|| {
-            pipeline
-                .channel_names
-                .iter()
-                .map(|n| Arc::from(n.as_str()))
-                .collect()
-        });
+        let names = self
+            .names
+            .get_or_insert_with(|| pipeline.channel_names.iter().cloned().collect());
         let t_unix_ms = now_unix_ms();
-        let rows = sample
-            .values
-            .iter()
-            .filter_map(|(ch, _)| {
-                let r = pipeline.processors.get(*ch)?.last();
-                let (quality, reason) = quality_code(&r.quality);
-                Some(Row {
-                    channel: names.get(*ch)?.clone(),
-                    raw: r.raw,
-                    unfiltered_degc: r.unfiltered_degc,
-                    value_degc: r.value_degc,
-                    quality,
-                    reason,
-                })
+        let mut rows = Vec::with_capacity(sample.values.len());
+        rows.extend(sample.values.iter().filter_map(|(ch, _)| {
+            let r = pipeline.processors.get(*ch)?.last();
+            let (quality, reason) = quality_code(&r.quality);
+            Some(Row {
+                channel: u32::try_from(*ch).ok()?,
+                raw: r.raw,
+                unfiltered_degc: r.unfiltered_degc,
+                value_degc: r.value_degc,
+                quality,
+                reason,
             })
-            .collect();
-        self.tx.send(Record::Cycle { t_unix_ms, rows });
+        }));
+        self.tx.send(Record::Cycle {
+            t_unix_ms,
+            names: names.clone(),
+            rows,
+        });
     }
 
     fn on_job(&mut self, axis: &str, params: &CompParams, result: &Result<JobReport, NcError>) {
@@ -347,6 +393,9 @@ struct Writer {
     retention_ms: i64,
     max_bytes: i64,
     stats: Arc<RecorderStats>,
+    shared: Arc<QueueShared>,
+    outbox: Arc<tokio::sync::Notify>,
+    statements: schema::Statements,
 }
 
 impl Writer {
@@ -355,22 +404,32 @@ impl Writer {
         let mut next_commit = Instant::now() + self.commit_interval;
         let mut next_retention = Instant::now();
         loop {
+            // Sleep until the commit is due; a filling queue or the recorder's end
+            // unparks earlier, and the commit comes early then (as it does after a
+            // rare spurious wake-up: one more commit, nothing lost).
             let wait = next_commit.saturating_duration_since(Instant::now());
-            let closed = match rx.recv_timeout(wait) {
-                Ok(r) => {
-                    batch.push(r);
-                    // Take whatever else is queued without waiting.
-                    batch.extend(rx.try_iter());
-                    false
-                }
-                Err(RecvTimeoutError::Timeout) => false,
-                Err(RecvTimeoutError::Disconnected) => true,
-            };
-            let now = Instant::now();
-            if now >= next_commit || closed {
-                self.commit(&mut batch);
-                next_commit = now + self.commit_interval;
+            if !wait.is_zero() {
+                std::thread::park_timeout(wait);
             }
+            let mut closed = false;
+            let mut taken = 0;
+            loop {
+                match rx.try_recv() {
+                    Ok(r) => {
+                        batch.push(r);
+                        taken += 1;
+                    }
+                    Err(TryRecvError::Empty) => break,
+                    Err(TryRecvError::Disconnected) => {
+                        closed = true;
+                        break;
+                    }
+                }
+            }
+            self.shared.pending.fetch_sub(taken, Ordering::Relaxed);
+            let now = Instant::now();
+            self.commit(&mut batch);
+            next_commit = now + self.commit_interval;
             if now >= next_retention || closed {
                 if let Err(e) = self.retention() {
                     tracing::warn!(error = %e, "recorder retention pass failed");
@@ -393,11 +452,17 @@ impl Writer {
             return;
         }
         let n = batch.len() as u64;
-        match schema::insert(&mut self.conn, batch) {
+        let outbox = batch.iter().any(|r| matches!(r, Record::Outbox { .. }));
+        match schema::insert(&mut self.conn, &mut self.statements, batch) {
             Ok(()) => {
                 self.stats.written.fetch_add(n, Ordering::Relaxed);
+                if outbox {
+                    self.outbox.notify_one();
+                }
             }
             Err(e) => {
+                // Channel ids looked up in the rolled-back transaction are gone.
+                self.statements.forget_channels();
                 self.stats.dropped_write.fetch_add(n, Ordering::Relaxed);
                 let failed = self.stats.failed_commits.fetch_add(1, Ordering::Relaxed) + 1;
                 if failed == 1 || failed.is_multiple_of(100) {

@@ -3,11 +3,12 @@ use std::time::Duration;
 
 use super::*;
 
-fn cycle(name: &Arc<str>, v: f64) -> Record {
+fn cycle(names: &Arc<[String]>, v: f64) -> Record {
     Record::Cycle {
         t_unix_ms: now_unix_ms(),
+        names: names.clone(),
         rows: vec![Row {
-            channel: name.clone(),
+            channel: 0,
             raw: Some(v),
             unfiltered_degc: Some(v),
             value_degc: Some(v),
@@ -27,7 +28,7 @@ fn writer_commits_every_interval_and_on_finish() {
     };
     let rec = Recorder::start(&cfg).expect("starts");
     let tx = rec.sender();
-    let name: Arc<str> = Arc::from("T_a");
+    let name: Arc<[String]> = Arc::from(vec!["T_a".to_string()]);
     for i in 0..20 {
         tx.send(cycle(&name, f64::from(i)));
         std::thread::sleep(Duration::from_millis(20));
@@ -42,4 +43,60 @@ fn writer_commits_every_interval_and_on_finish() {
     assert_eq!(counts(&conn).expect("counts").0, 20);
     assert_eq!(stats.written.load(Ordering::Relaxed), 20);
     assert_eq!(stats.dropped_queue.load(Ordering::Relaxed), 0);
+}
+
+fn reading(channel: u32, v: f64, quality: u8) -> Row {
+    Row {
+        channel,
+        raw: Some(v * 10.0),
+        unfiltered_degc: Some(v + 0.5),
+        value_degc: Some(v),
+        quality,
+        reason: (quality > 0).then_some("NE43 low"),
+    }
+}
+
+#[test]
+fn multi_row_inserts_keep_every_reading_under_its_channel_name() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut conn = open(&dir.path().join("m.db")).expect("opens");
+    let mut statements = schema::Statements::default();
+    // 130 channels: two full 64-row statements and a 2-row one.
+    let names: Arc<[String]> = (0..130).map(|i| format!("T_{i}")).collect();
+    let rows = (0..130u32)
+        .map(|i| reading(i, f64::from(i), u8::from(i == 7) * 2))
+        .collect();
+    let first = Record::Cycle {
+        t_unix_ms: 1_000,
+        names: names.clone(),
+        rows,
+    };
+    // A reload: a new name table in another order; the same name keeps its id.
+    let reloaded: Arc<[String]> = vec!["T_5".to_string(), "T_new".to_string()].into();
+    let second = Record::Cycle {
+        t_unix_ms: 2_000,
+        names: reloaded,
+        rows: vec![reading(0, 55.0, 0), reading(1, 66.0, 1)],
+    };
+    schema::insert(&mut conn, &mut statements, &[first, second]).expect("inserted");
+    assert_eq!(counts(&conn).expect("counts").0, 132);
+    let value = |name: &str, t: i64| -> (f64, f64, f64, u8, Option<String>) {
+        conn.query_row(
+            "SELECT raw, unfiltered_degc, value_degc, quality, reason FROM readings r JOIN channels c ON c.id = r.channel WHERE c.name = ?1 AND t_unix_ms = ?2",
+            rusqlite::params![name, t],
+            |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?, r.get(4)?)),
+        )
+        .expect("reading")
+    };
+    assert_eq!(value("T_129", 1_000), (1290.0, 129.5, 129.0, 0, None));
+    assert_eq!(
+        value("T_7", 1_000),
+        (70.0, 7.5, 7.0, 2, Some("NE43 low".to_string()))
+    );
+    assert_eq!(value("T_5", 2_000).2, 55.0);
+    assert_eq!(value("T_new", 2_000).3, 1);
+    let channels: i64 = conn
+        .query_row("SELECT count(*) FROM channels", [], |r| r.get(0))
+        .expect("channels");
+    assert_eq!(channels, 131);
 }

@@ -99,6 +99,7 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
         publisher = Some(tokio::spawn(mqtt::publisher(
             m.clone(),
             r.path().to_path_buf(),
+            r.outbox_notify(),
             shutdown.clone(),
         )));
     }
@@ -118,7 +119,17 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
         observer: Box::new(Observers(observers)),
         reload: Some(reload_rx),
     };
-    let result = gateway::run_with(&cfg, shutdown.clone(), tx, hooks).await;
+    // On a runtime worker, where the device tasks run: a sample then wakes the
+    // control loop on the same thread, not `block_on`'s thread through a futex, once
+    // per poll cycle.
+    let gateway_cfg = cfg.clone();
+    let gateway_shutdown = shutdown.clone();
+    let result =
+        tokio::spawn(
+            async move { gateway::run_with(&gateway_cfg, gateway_shutdown, tx, hooks).await },
+        )
+        .await
+        .map_err(|e| e.to_string());
     let _ = sd_notify::notify(&[sd_notify::NotifyState::Stopping]);
     shutdown.cancel();
     if let Some(p) = publisher {
@@ -132,5 +143,5 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
     }
     shutdown.cancel();
     let _ = printer.await;
-    result.map_err(|e| e.to_string())
+    result?.map_err(|e| e.to_string())
 }

@@ -29,7 +29,9 @@ use std::time::{Duration, Instant};
 use rusqlite::Connection;
 
 use rumqttc::{AsyncClient, Event, MqttOptions, Outgoing, Packet, QoS};
+use serde::Serialize;
 use serde_json::json;
+use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 
 use crate::comp::CompParams;
@@ -45,6 +47,27 @@ fn quality_word(code: u8) -> &'static str {
         1 => "uncertain",
         _ => "bad",
     }
+}
+
+/// A readings message, serialised straight from borrowed values: building a
+/// `serde_json::Value` tree first cost six key strings and a map per channel. Fields
+/// are in alphabetical order, the order the `json!` maps wrote them in.
+#[derive(Serialize)]
+struct ReadingsMsg<'a> {
+    channels: Vec<ChannelMsg<'a>>,
+    device: &'a str,
+    t_unix_ms: i64,
+}
+
+/// One channel of a [`ReadingsMsg`] (non-finite values are written as `null`).
+#[derive(Serialize)]
+struct ChannelMsg<'a> {
+    channel: &'a str,
+    quality: &'static str,
+    raw: Option<f64>,
+    reason: Option<&'static str>,
+    unfiltered_degc: Option<f64>,
+    value_degc: Option<f64>,
 }
 
 /// Builds the messages in the control loop and queues them with the recorder.
@@ -84,37 +107,43 @@ impl Observer for MqttObserver {
             return;
         }
         self.last_reading.insert(sample.device, now);
-        let device = self
-            .devices
-            .get(sample.device)
-            .cloned()
-            .unwrap_or_else(|| format!("device{}", sample.device));
-        let channels: Vec<serde_json::Value> = sample
+        let fallback;
+        let device = match self.devices.get(sample.device) {
+            Some(d) => d.as_str(),
+            None => {
+                fallback = format!("device{}", sample.device);
+                fallback.as_str()
+            }
+        };
+        let channels: Vec<ChannelMsg<'_>> = sample
             .values
             .iter()
             .filter_map(|(ch, _)| {
                 let name = pipeline.channel_names.get(*ch)?;
                 let r = pipeline.processors.get(*ch)?.last();
                 let (q, reason) = quality_code(&r.quality);
-                Some(json!({
-                    "channel": name,
-                    "value_degc": r.value_degc,
-                    "unfiltered_degc": r.unfiltered_degc,
-                    "raw": r.raw,
-                    "quality": quality_word(q),
-                    "reason": reason,
-                }))
+                Some(ChannelMsg {
+                    channel: name,
+                    quality: quality_word(q),
+                    raw: r.raw,
+                    reason,
+                    unfiltered_degc: r.unfiltered_degc,
+                    value_degc: r.value_degc,
+                })
             })
             .collect();
-        let payload = json!({
-            "t_unix_ms": now_unix_ms(),
-            "device": device,
-            "channels": channels,
-        });
-        self.tx.send(Record::Outbox {
-            topic: format!("{}/readings/{device}", self.base),
-            payload: payload.to_string(),
-        });
+        let msg = ReadingsMsg {
+            channels,
+            device,
+            t_unix_ms: now_unix_ms(),
+        };
+        match serde_json::to_string(&msg) {
+            Ok(payload) => self.tx.send(Record::Outbox {
+                topic: format!("{}/readings/{device}", self.base),
+                payload,
+            }),
+            Err(e) => tracing::warn!(error = %e, "MQTT: readings message not built"),
+        }
     }
 
     fn on_job(&mut self, axis: &str, params: &CompParams, result: &Result<JobReport, NcError>) {
@@ -184,9 +213,21 @@ impl Observer for MqttObserver {
 
 /// Messages in flight to the broker at most.
 const WINDOW: usize = 64;
+/// Work on the outbox (deleting acknowledged rows, reading new ones) waits this long
+/// after the first reason for it, so that one database round trip takes what came
+/// together.
+const BATCH: Duration = Duration::from_millis(100);
+/// How often `outbox_max_messages` is enforced.
+const CAP_INTERVAL: Duration = Duration::from_secs(5);
 
 /// Sends the outbox of the database at `db` to the broker until `shutdown`.
-pub async fn publisher(cfg: MqttConfig, db_path: PathBuf, shutdown: CancellationToken) {
+/// `outbox` is notified when the recorder committed new messages.
+pub async fn publisher(
+    cfg: MqttConfig,
+    db_path: PathBuf,
+    outbox: Arc<Notify>,
+    shutdown: CancellationToken,
+) {
     let retry = secs(cfg.retry_s);
     let mut dropped_total: u64 = 0;
     let db = match crate::record::open(&db_path) {
@@ -197,7 +238,7 @@ pub async fn publisher(cfg: MqttConfig, db_path: PathBuf, shutdown: Cancellation
         }
     };
     while !shutdown.is_cancelled() {
-        match session(&cfg, &db, &shutdown, &mut dropped_total).await {
+        match session(&cfg, &db, &outbox, &shutdown, &mut dropped_total).await {
             Ok(()) => break,
             Err(e) => {
                 tracing::warn!(broker = %cfg.broker, error = %e, retry_s = cfg.retry_s, "MQTT: broker unreachable; messages wait in the outbox");
@@ -212,46 +253,58 @@ pub async fn publisher(cfg: MqttConfig, db_path: PathBuf, shutdown: Cancellation
 
 type Db = Arc<Mutex<Connection>>;
 
-/// Outbox rows with an id above `after`, oldest first.
-async fn fetch(db: &Db, after: i64, limit: usize) -> Result<Vec<(i64, String, String)>, String> {
-    let db = db.clone();
-    tokio::task::spawn_blocking(move || {
-        let conn = db.lock().map_err(|e| e.to_string())?;
-        let mut s = conn
-            .prepare_cached(
-                "SELECT id, topic, payload FROM mqtt_outbox WHERE id > ?1 ORDER BY id LIMIT ?2",
-            )
-            .map_err(|e| e.to_string())?;
-        let rows = s
-            .query_map(rusqlite::params![after, limit as i64], |r| {
-                Ok((r.get(0)?, r.get(1)?, r.get(2)?))
-            })
-            .and_then(|rows| rows.collect::<Result<Vec<_>, _>>())
-            .map_err(|e| e.to_string())?;
-        Ok(rows)
-    })
-    .await
-    .map_err(|e| e.to_string())?
+/// One round trip to the outbox.
+struct Exchange {
+    /// Acknowledged rows to delete.
+    acked: Vec<i64>,
+    /// Enforce the cap: delete the oldest beyond this many messages.
+    cap: Option<u64>,
+    /// Read up to `.1` rows with an id above `.0`, oldest first.
+    fetch: Option<(i64, usize)>,
 }
 
-/// Deletes acknowledged rows, and the oldest beyond `max` (counted as dropped).
-async fn delete(db: &Db, ids: Vec<i64>, max: u64) -> Result<u64, String> {
+/// Runs `ex` in one blocking call: deletes first, then reads. Returns the rows
+/// dropped by the cap and the rows read.
+async fn exchange(db: &Db, ex: Exchange) -> Result<(u64, Vec<(i64, String, String)>), String> {
     let db = db.clone();
     tokio::task::spawn_blocking(move || {
         let mut conn = db.lock().map_err(|e| e.to_string())?;
-        let tx = conn.transaction().map_err(|e| e.to_string())?;
-        for id in ids {
-            tx.execute("DELETE FROM mqtt_outbox WHERE id = ?1", [id])
-                .map_err(|e| e.to_string())?;
+        let mut dropped = 0;
+        if !ex.acked.is_empty() || ex.cap.is_some() {
+            let tx = conn.transaction().map_err(|e| e.to_string())?;
+            {
+                let mut del = tx
+                    .prepare_cached("DELETE FROM mqtt_outbox WHERE id = ?1")
+                    .map_err(|e| e.to_string())?;
+                for id in &ex.acked {
+                    del.execute([id]).map_err(|e| e.to_string())?;
+                }
+            }
+            if let Some(max) = ex.cap {
+                dropped = tx
+                    .prepare_cached(
+                        "DELETE FROM mqtt_outbox WHERE id <= (SELECT max(id) FROM mqtt_outbox) - ?1",
+                    )
+                    .and_then(|mut s| s.execute([i64::try_from(max).unwrap_or(i64::MAX)]))
+                    .map_err(|e| e.to_string())? as u64;
+            }
+            tx.commit().map_err(|e| e.to_string())?;
         }
-        let dropped = tx
-            .execute(
-                "DELETE FROM mqtt_outbox WHERE id <= (SELECT max(id) FROM mqtt_outbox) - ?1",
-                [i64::try_from(max).unwrap_or(i64::MAX)],
-            )
-            .map_err(|e| e.to_string())?;
-        tx.commit().map_err(|e| e.to_string())?;
-        Ok(dropped as u64)
+        let rows = match ex.fetch {
+            Some((after, limit)) => conn
+                .prepare_cached(
+                    "SELECT id, topic, payload FROM mqtt_outbox WHERE id > ?1 ORDER BY id LIMIT ?2",
+                )
+                .and_then(|mut s| {
+                    s.query_map(rusqlite::params![after, limit as i64], |r| {
+                        Ok((r.get(0)?, r.get(1)?, r.get(2)?))
+                    })?
+                    .collect::<Result<Vec<_>, _>>()
+                })
+                .map_err(|e| e.to_string())?,
+            None => Vec::new(),
+        };
+        Ok((dropped, rows))
     })
     .await
     .map_err(|e| e.to_string())?
@@ -259,9 +312,14 @@ async fn delete(db: &Db, ids: Vec<i64>, max: u64) -> Result<u64, String> {
 
 /// One connection to the broker: sends the outbox until `shutdown` (Ok) or a
 /// connection error (Err). A new session starts from the oldest unacknowledged row.
+///
+/// The outbox is read when the recorder has committed new messages (`outbox`), at
+/// the start of a connection, and while a backlog is left; acknowledged rows are
+/// deleted in batches. An idle session does not wake up at all but for the cap.
 async fn session(
     cfg: &MqttConfig,
     db: &Db,
+    outbox: &Notify,
     shutdown: &CancellationToken,
     dropped_total: &mut u64,
 ) -> Result<(), String> {
@@ -286,13 +344,18 @@ async fn session(
     let mut sent: VecDeque<i64> = VecDeque::new();
     let mut inflight: BTreeMap<u16, i64> = BTreeMap::new();
     let mut acked: Vec<i64> = Vec::new();
-    let mut ticks: u64 = 0;
-    let mut tick = tokio::time::interval(Duration::from_millis(100));
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    // Rows may be waiting that have not been read yet.
+    let mut unread = true;
+    // When the pending outbox work runs.
+    let mut work_at: Option<tokio::time::Instant> = None;
+    let mut cap_tick = tokio::time::interval(CAP_INTERVAL);
+    cap_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut cap_due = false;
     loop {
+        let far = tokio::time::Instant::now() + Duration::from_secs(3600);
         tokio::select! {
             _ = shutdown.cancelled() => {
-                let _ = delete(db, std::mem::take(&mut acked), cfg.outbox_max_messages).await;
+                let _ = exchange(db, Exchange { acked: std::mem::take(&mut acked), cap: Some(cfg.outbox_max_messages), fetch: None }).await;
                 let _ = client.try_disconnect();
                 return Ok(());
             }
@@ -315,24 +378,23 @@ async fn session(
                     _ => {}
                 }
             }
-            _ = tick.tick() => {
-                ticks += 1;
-                // The cap is enforced every 5 s; acknowledged rows go every tick.
-                if !acked.is_empty() || ticks.is_multiple_of(50) {
-                    let dropped = delete(db, std::mem::take(&mut acked), cfg.outbox_max_messages).await?;
-                    if dropped > 0 {
-                        *dropped_total += dropped;
-                        tracing::warn!(dropped, dropped_total = *dropped_total, "MQTT outbox over outbox_max_messages: oldest messages dropped");
-                    }
-                }
-                if !connected {
-                    continue;
-                }
+            () = outbox.notified() => unread = true,
+            _ = cap_tick.tick() => cap_due = true,
+            () = tokio::time::sleep_until(work_at.unwrap_or(far)), if work_at.is_some() => {
+                work_at = None;
                 let room = WINDOW.saturating_sub(sent.len() + inflight.len());
-                if room == 0 {
-                    continue;
+                let fetch = (connected && unread && room > 0).then_some((queued_upto, room));
+                let cap = std::mem::take(&mut cap_due).then_some(cfg.outbox_max_messages);
+                let (dropped, rows) = exchange(db, Exchange { acked: std::mem::take(&mut acked), cap, fetch }).await?;
+                if dropped > 0 {
+                    *dropped_total += dropped;
+                    tracing::warn!(dropped, dropped_total = *dropped_total, "MQTT outbox over outbox_max_messages: oldest messages dropped");
                 }
-                for (row, topic, payload) in fetch(db, queued_upto, room).await? {
+                if fetch.is_some() {
+                    // A full window may have left more behind.
+                    unread = rows.len() == room;
+                }
+                for (row, topic, payload) in rows {
                     client
                         .try_publish(topic, QoS::AtLeastOnce, false, payload)
                         .map_err(|e| e.to_string())?;
@@ -341,5 +403,53 @@ async fn session(
                 }
             }
         }
+        let room = WINDOW > sent.len() + inflight.len();
+        if work_at.is_none() && (!acked.is_empty() || cap_due || (connected && unread && room)) {
+            work_at = Some(tokio::time::Instant::now() + BATCH);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn readings_payload_is_the_documented_json() {
+        let msg = ReadingsMsg {
+            channels: vec![
+                ChannelMsg {
+                    channel: "T_bed",
+                    quality: "good",
+                    raw: Some(1234.0),
+                    reason: None,
+                    unfiltered_degc: Some(30.02),
+                    value_degc: Some(30.0),
+                },
+                ChannelMsg {
+                    channel: "T_col",
+                    quality: "bad",
+                    raw: None,
+                    reason: Some("NE43 low"),
+                    unfiltered_degc: Some(f64::NAN),
+                    value_degc: None,
+                },
+            ],
+            device: "ain1",
+            t_unix_ms: 1_763_800_000_123,
+        };
+        let expected = json!({
+            "t_unix_ms": 1_763_800_000_123_i64,
+            "device": "ain1",
+            "channels": [
+                {"channel": "T_bed", "value_degc": 30.0, "unfiltered_degc": 30.02, "raw": 1234.0, "quality": "good", "reason": null},
+                {"channel": "T_col", "value_degc": null, "unfiltered_degc": f64::NAN, "raw": null, "quality": "bad", "reason": "NE43 low"},
+            ],
+        });
+        // Byte for byte what the `json!` maps wrote: same keys, same order.
+        assert_eq!(
+            serde_json::to_string(&msg).expect("serialises"),
+            expected.to_string()
+        );
     }
 }

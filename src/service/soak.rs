@@ -1,9 +1,12 @@
 //! `compgate bench --soak SECONDS`: the gateway as a real process against 8 simulated
 //! field modules x 64 channels at 10 Hz, with recording, MQTT (when a `mosquitto`
 //! binary is installed) and metrics on. Samples the gateway process' CPU time and RSS
-//! from `/proc` once a second and reports CPU % of one core, RSS and its growth. The
-//! simulator and the broker run as processes of their own and are not counted.
+//! from `/proc` once a second after a warm-up and reports CPU % of one core (in total
+//! and by thread), RSS at the end of the warm-up and at the end, and the trend of RSS
+//! as the least-squares slope over the samples after the warm-up. The simulator and
+//! the broker run as processes of their own and are not counted.
 
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -56,6 +59,67 @@ fn sample(pid: u32) -> Option<Sample> {
         cpu_ticks: utime + stime,
         rss_kb,
     })
+}
+
+/// CPU ticks of every live thread of `pid`: thread id -> (name, ticks).
+fn thread_ticks(pid: u32) -> BTreeMap<u32, (String, u64)> {
+    let mut out = BTreeMap::new();
+    let Ok(dir) = std::fs::read_dir(format!("/proc/{pid}/task")) else {
+        return out;
+    };
+    for entry in dir.flatten() {
+        let Some(tid) = entry.file_name().to_str().and_then(|t| t.parse().ok()) else {
+            continue;
+        };
+        let Ok(stat) = std::fs::read_to_string(entry.path().join("stat")) else {
+            continue;
+        };
+        let (Some((head, rest)), Some(open)) = (stat.rsplit_once(')'), stat.find('(')) else {
+            continue;
+        };
+        let name = head.get(open + 1..).unwrap_or("?").to_string();
+        let f: Vec<&str> = rest.split_whitespace().collect();
+        let ticks = f.get(11).and_then(|v| v.parse::<u64>().ok()).unwrap_or(0)
+            + f.get(12).and_then(|v| v.parse::<u64>().ok()).unwrap_or(0);
+        out.insert(tid, (name, ticks));
+    }
+    out
+}
+
+/// CPU ticks spent between `before` and `after` by thread name; a thread that
+/// started in between counts from zero, one that ended is missing (its time is in
+/// the process total only).
+fn ticks_by_name(
+    before: &BTreeMap<u32, (String, u64)>,
+    after: &BTreeMap<u32, (String, u64)>,
+) -> BTreeMap<String, u64> {
+    let mut by_name: BTreeMap<String, u64> = BTreeMap::new();
+    for (tid, (name, ticks)) in after {
+        let start = before.get(tid).map_or(0, |b| b.1);
+        *by_name.entry(name.clone()).or_default() += ticks.saturating_sub(start);
+    }
+    by_name
+}
+
+/// Least-squares slope of RSS over time, kB per hour.
+fn rss_slope_kb_per_h(samples: &[Sample]) -> Option<f64> {
+    let t0 = samples.first()?.at;
+    let n = samples.len() as f64;
+    if samples.len() < 3 {
+        return None;
+    }
+    let xs: Vec<f64> = samples
+        .iter()
+        .map(|s| s.at.duration_since(t0).as_secs_f64())
+        .collect();
+    let mx = xs.iter().sum::<f64>() / n;
+    let my = samples.iter().map(|s| s.rss_kb as f64).sum::<f64>() / n;
+    let (mut sxy, mut sxx) = (0.0, 0.0);
+    for (x, s) in xs.iter().zip(samples) {
+        sxy += (x - mx) * (s.rss_kb as f64 - my);
+        sxx += (x - mx) * (x - mx);
+    }
+    (sxx > 0.0).then(|| sxy / sxx * 3600.0)
 }
 
 fn mosquitto() -> Option<PathBuf> {
@@ -210,14 +274,18 @@ pub fn run(seconds: f64) -> Result<String, String> {
             .map_err(|e| format!("compgate run: {e}"))?,
     );
     let pid = gw.0.id();
-    let warmup = Duration::from_secs_f64((seconds * 0.2).min(30.0));
+    // Caches (SQLite's page cache, the MQTT outbox, allocator arenas) fill during the
+    // warm-up; what RSS does after it is the trend.
+    let warmup = Duration::from_secs_f64((seconds * 0.2).min(60.0));
     let end = Instant::now() + Duration::from_secs_f64(seconds);
     std::thread::sleep(warmup);
+    let threads_before = thread_ticks(pid);
     let mut samples = Vec::new();
     while Instant::now() < end {
         samples.push(sample(pid).ok_or("the gateway process ended during the soak")?);
         std::thread::sleep(Duration::from_secs(1));
     }
+    let threads_after = thread_ticks(pid);
     let rows = rusqlite::Connection::open(dir.path().join("soak.db"))
         .and_then(|c| c.query_row("SELECT count(*) FROM readings", [], |r| r.get::<_, i64>(0)))
         .unwrap_or(-1);
@@ -227,20 +295,16 @@ pub fn run(seconds: f64) -> Result<String, String> {
     drop(broker);
 
     let (first, last) = match (samples.first(), samples.last()) {
-        (Some(f), Some(l)) if samples.len() >= 2 => (*f, *l),
+        (Some(f), Some(l)) if samples.len() >= 3 => (*f, *l),
         _ => return Err("too few samples".into()),
     };
     let hz = clock_ticks_per_s() as f64;
     let span_s = last.at.duration_since(first.at).as_secs_f64();
-    let cpu_pct = (last.cpu_ticks - first.cpu_ticks) as f64 / hz / span_s * 100.0;
+    let pct = |ticks: u64| ticks as f64 / hz / span_s * 100.0;
+    let cpu_pct = pct(last.cpu_ticks - first.cpu_ticks);
     let max_rss = samples.iter().map(|s| s.rss_kb).max().unwrap_or(0);
-    // Growth: mean of the last quarter against the mean of the first quarter.
-    let q = (samples.len() / 4).max(1);
-    let mean = |s: &[Sample]| s.iter().map(|x| x.rss_kb as f64).sum::<f64>() / s.len() as f64;
-    let early = mean(&samples[..q]);
-    let late = mean(&samples[samples.len() - q..]);
-    let growth_kb = late - early;
-    let per_hour = growth_kb / span_s * 3600.0;
+    let slope_all = rss_slope_kb_per_h(&samples);
+    let slope_half = rss_slope_kb_per_h(&samples[samples.len() / 2..]);
     let mut out = String::new();
     let _ = writeln!(
         out,
@@ -257,18 +321,79 @@ pub fn run(seconds: f64) -> Result<String, String> {
         warmup.as_secs_f64()
     );
     let _ = writeln!(out, "CPU      {cpu_pct:.2} % of one core (target < 2 %)");
+    let by_name = ticks_by_name(&threads_before, &threads_after);
+    let mut threads: Vec<(&String, &u64)> = by_name.iter().collect();
+    threads.sort_by(|a, b| b.1.cmp(a.1));
     let _ = writeln!(
         out,
-        "RSS      {:.1} MB at start, {:.1} MB at end, {:.1} MB max (target < 30 MB)",
+        "  by thread: {}",
+        threads
+            .iter()
+            .map(|(n, t)| format!("{n} {:.2} %", pct(**t)))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    let _ = writeln!(
+        out,
+        "RSS      {:.1} MB after warm-up, {:.1} MB at the end, {:.1} MB max (target < 30 MB)",
         first.rss_kb as f64 / 1024.0,
         last.rss_kb as f64 / 1024.0,
         max_rss as f64 / 1024.0
     );
+    let slope = |s: Option<f64>| s.map_or("n/a".to_string(), |v| format!("{v:+.0} kB/h"));
     let _ = writeln!(
         out,
-        "growth   {:+.2} MB (last quarter vs first quarter), {:+.2} MB/h",
-        growth_kb / 1024.0,
-        per_hour / 1024.0
+        "trend    {} (least squares over {} samples after warm-up), {} over the second half; end - start {:+.2} MB",
+        slope(slope_all),
+        samples.len(),
+        slope(slope_half),
+        (last.rss_kb as f64 - first.rss_kb as f64) / 1024.0
     );
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn at(t0: Instant, s: f64, rss_kb: u64) -> Sample {
+        Sample {
+            at: t0 + Duration::from_secs_f64(s),
+            cpu_ticks: 0,
+            rss_kb,
+        }
+    }
+
+    #[test]
+    fn rss_slope_is_the_least_squares_line_in_kb_per_hour() {
+        let t0 = Instant::now();
+        // 1 kB every 10 s is 360 kB/h, whatever the noise around the line.
+        let rising: Vec<Sample> = (0..100u32)
+            .map(|i| {
+                at(
+                    t0,
+                    f64::from(i),
+                    20_000 + u64::from(i) / 10 + u64::from(i % 2),
+                )
+            })
+            .collect();
+        let slope = rss_slope_kb_per_h(&rising).expect("slope");
+        assert!((slope - 360.0).abs() < 10.0, "{slope}");
+        let flat: Vec<Sample> = (0..100u32).map(|i| at(t0, f64::from(i), 20_000)).collect();
+        assert_eq!(rss_slope_kb_per_h(&flat), Some(0.0));
+        assert_eq!(rss_slope_kb_per_h(&flat[..2]), None);
+    }
+
+    #[test]
+    fn thread_time_is_summed_by_name_and_new_threads_count_from_zero() {
+        let before = BTreeMap::from([(1, ("recorder".to_string(), 10)), (2, ("w".to_string(), 5))]);
+        let after = BTreeMap::from([
+            (1, ("recorder".to_string(), 15)),
+            (2, ("w".to_string(), 9)),
+            (3, ("w".to_string(), 2)),
+        ]);
+        let by = ticks_by_name(&before, &after);
+        assert_eq!(by["recorder"], 5);
+        assert_eq!(by["w"], 6);
+    }
 }
