@@ -9,17 +9,23 @@ fn grid4(model: &ErrorModel) -> [Vec<f64>; 5] {
     parse_grid("4", &model.travel).expect("grid")
 }
 
+/// Checks that a shipped error file is `model` written out; with
+/// `COMPGATE_REGEN_EXAMPLE` set it rewrites the file instead. True when checked.
+fn shipped_file_matches(text: &str, file: &str, model: &ErrorModel) -> bool {
+    if std::env::var_os("COMPGATE_REGEN_EXAMPLE").is_some() {
+        let path = format!("{}/config/{file}", env!("CARGO_MANIFEST_DIR"));
+        std::fs::write(path, write(model)).expect("regenerate");
+        return false;
+    }
+    assert_eq!(text, write(model), "config/{file}");
+    true
+}
+
 #[test]
 fn example_file_is_the_synthetic_model() {
-    if std::env::var_os("COMPGATE_REGEN_EXAMPLE").is_some() {
-        let path = concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/config/volumetric-example.errors"
-        );
-        std::fs::write(path, write(&synthetic_model(1.0))).expect("regenerate");
+    if !shipped_file_matches(EXAMPLE, "volumetric-example.errors", &synthetic_model(1.0)) {
         return;
     }
-    assert_eq!(EXAMPLE, write(&synthetic_model(1.0)));
     let m = parse(EXAMPLE).expect("example parses");
     let s = synthetic_model(1.0);
     assert_eq!(m.travel, s.travel);
@@ -648,15 +654,11 @@ fn swing_reaches_the_achievable_minimum_in_the_band() {
 
 #[test]
 fn in_plane_file_is_the_synthetic_model_without_out_of_plane_errors() {
-    if std::env::var_os("COMPGATE_REGEN_EXAMPLE").is_some() {
-        let path = concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/config/volumetric-in-plane.errors"
-        );
-        std::fs::write(path, write(&synthetic_model_in_plane(1.0))).expect("regenerate");
-        return;
-    }
-    assert_eq!(IN_PLANE, write(&synthetic_model_in_plane(1.0)));
+    shipped_file_matches(
+        IN_PLANE,
+        "volumetric-in-plane.errors",
+        &synthetic_model_in_plane(1.0),
+    );
 }
 
 #[test]
