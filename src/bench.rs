@@ -4,8 +4,9 @@
 //! over loopback. The gateway side runs the real code path (`DevicePoller::poll` with
 //! its timeout and reconnect wrapper, every channel processor, one axis decision)
 //! twice: as the gateway runs it, the device task handing each sample over a bounded
-//! channel to the core task, and in one task, poll then processing. The bare side calls tokio-modbus directly. Rounds alternate so a
-//! noisy shared machine slows all sides alike, and the result is a ratio.
+//! channel to the core task, and in one task, poll then processing. The bare side
+//! calls tokio-modbus directly. Rounds alternate so a noisy shared machine slows all
+//! sides alike, and the result is a ratio.
 
 use std::fmt::Write as _;
 use std::time::{Duration, Instant};
@@ -19,9 +20,6 @@ use tokio_util::sync::CancellationToken;
 use crate::config;
 use crate::gateway;
 use crate::source::DeviceSample;
-
-/// Samples the device task may queue ahead of the core task, as in the gateway.
-const SAMPLE_QUEUE: usize = gateway::SAMPLE_QUEUE;
 
 /// Measurements of one side.
 #[derive(Debug, Clone, Default)]
@@ -269,7 +267,7 @@ async fn measure(channels: u16, cycles: u32, rounds: u32) -> Result<BenchReport,
         // poll interval) and sends each sample over the same bounded channel to a
         // core task that owns the pipeline. A cycle's latency runs from the start of
         // its poll to the end of its decision.
-        let (tx, mut rx) = mpsc::channel::<DeviceSample>(SAMPLE_QUEUE);
+        let (tx, mut rx) = mpsc::channel::<DeviceSample>(gateway::SAMPLE_QUEUE);
         let mut core_pipeline = pipeline;
         let core = tokio::spawn(async move {
             let mut latencies = Vec::with_capacity(cycles as usize);
