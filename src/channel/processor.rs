@@ -55,8 +55,9 @@ impl ChannelProcessor {
     }
 
     /// Processes a fresh raw register value (ADC counts or an engineering value)
-    /// taken at `t_s` and returns the new reading.
-    pub fn on_sample(&mut self, t_s: f64, raw: f64) -> Reading {
+    /// taken at `t_s` and returns the new reading (borrowed: the gateway calls this
+    /// for every channel on every poll and mostly does not need a copy).
+    pub fn on_sample(&mut self, t_s: f64, raw: f64) -> &Reading {
         // Tracked on every sample, so any change of the raw value restarts the
         // clock even if that sample fails a check.
         let stale = self.track_raw(t_s, raw);
@@ -80,7 +81,7 @@ impl ChannelProcessor {
             value_degc,
             quality,
         };
-        self.last.clone()
+        &self.last
     }
 
     /// Records that no sample arrived at `t_s` (for `reason`). The last filtered
@@ -89,7 +90,7 @@ impl ChannelProcessor {
     /// `Bad(reason)` if the reading before was already bad. The next accepted sample
     /// re-seeds the filters. The stale clock keeps running: a raw value identical
     /// before and after an outage counts from when it was first seen.
-    pub fn on_missing(&mut self, t_s: f64, reason: Reason, degraded: bool) -> Reading {
+    pub fn on_missing(&mut self, t_s: f64, reason: Reason, degraded: bool) -> &Reading {
         self.outage = true;
         let value_degc = self.last.value_degc;
         let quality = if degraded {
@@ -107,7 +108,7 @@ impl ChannelProcessor {
             value_degc,
             quality,
         };
-        self.last.clone()
+        &self.last
     }
 
     /// The latest reading (before any input: `Bad(NoData)`, no values).
@@ -250,7 +251,7 @@ mod tests {
             FilterParams::default(),
         );
         // 8.8 mA -> 10 degC
-        let r = p.on_sample(1.0, 8800.0);
+        let r = p.on_sample(1.0, 8800.0).clone();
         assert_eq!(r.quality, Quality::Good);
         assert!(close(r.current_ma, 8.8));
         assert!(close(r.unfiltered_degc, 10.0));
