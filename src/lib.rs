@@ -40,6 +40,8 @@
 //!   and `compgate export` to the measurement CSV.
 //! - [`service`]: the shop-floor service: systemd notify/watchdog, journald, SIGHUP
 //!   reload, and the recorder, metrics and MQTT observers behind the control loop.
+//! - [`heap`]: glibc malloc's figures (live heap, free bytes held) and the service's
+//!   one-arena setting; the one module with `unsafe` (two libc calls).
 //! - [`status`]: the live status line and plain per-update lines.
 //! - [`bench`](mod@bench): `compgate bench`, cycle rate against the bare Modbus request rate.
 //! - [`cli`]: the command line.
@@ -57,6 +59,7 @@ pub mod comp;
 pub mod config;
 pub mod diagnose;
 pub mod gateway;
+pub mod heap;
 pub mod iso230;
 pub mod measure;
 pub mod nc;

@@ -106,6 +106,9 @@ fn main() -> ExitCode {
         // thread; with a worker per core they also wake idle workers to steal work,
         // which cost a fifth of the soak's CPU (1.60 % -> 1.35 % of one core).
         runtime.worker_threads(1);
+        // Before any thread exists: per-thread malloc arenas made the service's RSS
+        // creep upward with a flat live heap (see `compgate::heap::use_one_arena`).
+        compgate::heap::use_one_arena();
     }
     match runtime.enable_all().build() {
         Ok(rt) => rt.block_on(run(cli.log, command)),

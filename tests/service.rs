@@ -315,6 +315,12 @@ async fn prometheus_endpoint_shows_links_channels_jobs_and_cycle_times() {
     let k0 = sample(&m, r#"compgate_axis_sd43900_mm{axis="X"}"#).unwrap();
     assert!((k0 - 0.04).abs() < 0.001, "{k0}");
     assert!(sample(&m, r#"compgate_cycle_seconds_count"#).unwrap() > 0.0);
+    // glibc's figures: the gateway's live heap is megabytes, not zero.
+    if cfg!(all(target_os = "linux", target_env = "gnu")) {
+        let in_use = sample(&m, r#"compgate_process_heap_bytes{state="in_use"}"#).unwrap();
+        assert!(in_use > 100_000.0, "{in_use}");
+        assert!(sample(&m, r#"compgate_process_heap_bytes{state="free"}"#).is_some());
+    }
     assert!(m
         .iter()
         .any(|(k, _)| k.starts_with("compgate_device_poll_seconds_bucket{device=\"ain1\"")));

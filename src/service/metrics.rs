@@ -12,6 +12,7 @@
 //! | `compgate_nc_jobs_total` | counter | axis, result (`ok`/`failed`) | NC job outcomes |
 //! | `compgate_cycle_seconds` | histogram | | control loop: time to process one device sample |
 //! | `compgate_recorder_records_total` | counter | outcome (`written`, `dropped_queue`, `dropped_write`) | recorder |
+//! | `compgate_process_heap_bytes` | gauge | state (`in_use`, `free`) | glibc malloc: bytes allocated (the live heap) and bytes it holds free; RSS growing with `in_use` flat is the allocator, not a leak (glibc only) |
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -73,6 +74,7 @@ pub struct MetricsObserver {
     cycle: Option<Histogram>,
     recorder: Option<Arc<RecorderStats>>,
     recorder_counters: Option<[Counter; 3]>,
+    heap: Option<[Gauge; 2]>,
 }
 
 impl MetricsObserver {
@@ -176,6 +178,16 @@ impl Observer for MetricsObserver {
             c[0].absolute(stats.written.load(Relaxed));
             c[1].absolute(stats.dropped_queue.load(Relaxed));
             c[2].absolute(stats.dropped_write.load(Relaxed));
+        }
+        if let Some(h) = crate::heap::stats() {
+            let g = self.heap.get_or_insert_with(|| {
+                [
+                    gauge!("compgate_process_heap_bytes", "state" => "in_use"),
+                    gauge!("compgate_process_heap_bytes", "state" => "free"),
+                ]
+            });
+            g[0].set(h.in_use_bytes as f64);
+            g[1].set(h.free_bytes as f64);
         }
     }
 

@@ -3,8 +3,11 @@
 //! binary is installed) and metrics on. Samples the gateway process' CPU time and RSS
 //! from `/proc` once a second after a warm-up and reports CPU % of one core (in total
 //! and by thread), RSS at the end of the warm-up and at the end, and the trend of RSS
-//! as the least-squares slope over the samples after the warm-up. The simulator and
-//! the broker run as processes of their own and are not counted.
+//! as the least-squares slope over the samples after the warm-up. Once a minute it
+//! also reads the gateway's live heap (`compgate_process_heap_bytes`, glibc's
+//! figure) from the metrics endpoint, so that a rising RSS can be told apart: a
+//! growing heap is a leak, a flat heap under a rising RSS is the allocator. The
+//! simulator and the broker run as processes of their own and are not counted.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -103,23 +106,49 @@ fn ticks_by_name(
 
 /// Least-squares slope of RSS over time, kB per hour.
 fn rss_slope_kb_per_h(samples: &[Sample]) -> Option<f64> {
-    let t0 = samples.first()?.at;
-    let n = samples.len() as f64;
-    if samples.len() < 3 {
+    let points: Vec<(Instant, u64)> = samples.iter().map(|s| (s.at, s.rss_kb)).collect();
+    slope_kb_per_h(&points)
+}
+
+/// Least-squares slope of `(time, kB)` points, kB per hour; `None` under 3 points.
+fn slope_kb_per_h(points: &[(Instant, u64)]) -> Option<f64> {
+    let t0 = points.first()?.0;
+    let n = points.len() as f64;
+    if points.len() < 3 {
         return None;
     }
-    let xs: Vec<f64> = samples
+    let xs: Vec<f64> = points
         .iter()
-        .map(|s| s.at.duration_since(t0).as_secs_f64())
+        .map(|p| p.0.duration_since(t0).as_secs_f64())
         .collect();
     let mx = xs.iter().sum::<f64>() / n;
-    let my = samples.iter().map(|s| s.rss_kb as f64).sum::<f64>() / n;
+    let my = points.iter().map(|p| p.1 as f64).sum::<f64>() / n;
     let (mut sxy, mut sxx) = (0.0, 0.0);
-    for (x, s) in xs.iter().zip(samples) {
-        sxy += (x - mx) * (s.rss_kb as f64 - my);
+    for (x, p) in xs.iter().zip(points) {
+        sxy += (x - mx) * (p.1 as f64 - my);
         sxx += (x - mx) * (x - mx);
     }
     (sxx > 0.0).then(|| sxy / sxx * 3600.0)
+}
+
+/// How often the soak reads the gateway's heap figure: a scrape renders every
+/// metric, so not every second.
+const HEAP_EVERY: Duration = Duration::from_secs(60);
+
+/// The gateway's live heap in kB, from `compgate_process_heap_bytes{state="in_use"}`
+/// on its metrics endpoint; `None` when it cannot be read (or off glibc).
+fn heap_in_use_kb(metrics_port: u16) -> Option<u64> {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", metrics_port)).ok()?;
+    s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+        .ok()?;
+    let mut body = String::new();
+    s.read_to_string(&mut body).ok()?;
+    body.lines()
+        .find_map(|l| l.strip_prefix("compgate_process_heap_bytes{state=\"in_use\"} "))
+        .and_then(|v| v.trim().parse::<f64>().ok())
+        .map(|b| (b / 1024.0) as u64)
 }
 
 fn mosquitto() -> Option<PathBuf> {
@@ -281,8 +310,16 @@ pub fn run(seconds: f64) -> Result<String, String> {
     std::thread::sleep(warmup);
     let threads_before = thread_ticks(pid);
     let mut samples = Vec::new();
+    let mut heap: Vec<(Instant, u64)> = Vec::new();
+    let mut next_heap = Instant::now();
     while Instant::now() < end {
         samples.push(sample(pid).ok_or("the gateway process ended during the soak")?);
+        if Instant::now() >= next_heap || Instant::now() + Duration::from_secs(1) >= end {
+            if let Some(kb) = heap_in_use_kb(metrics_port) {
+                heap.push((Instant::now(), kb));
+            }
+            next_heap += HEAP_EVERY;
+        }
         std::thread::sleep(Duration::from_secs(1));
     }
     let threads_after = thread_ticks(pid);
@@ -349,6 +386,25 @@ pub fn run(seconds: f64) -> Result<String, String> {
         slope(slope_half),
         (last.rss_kb as f64 - first.rss_kb as f64) / 1024.0
     );
+    match (heap.first(), heap.last()) {
+        (Some(f), Some(l)) => {
+            let _ = writeln!(
+                out,
+                "heap     {:.1} MB in use after warm-up, {:.1} MB at the end; trend {} ({} readings, one a minute), {} over the second half",
+                f.1 as f64 / 1024.0,
+                l.1 as f64 / 1024.0,
+                slope(slope_kb_per_h(&heap)),
+                heap.len(),
+                slope(slope_kb_per_h(&heap[heap.len() / 2..])),
+            );
+        }
+        _ => {
+            let _ = writeln!(
+                out,
+                "heap     n/a (no glibc heap figure on the metrics endpoint)"
+            );
+        }
+    }
     Ok(out)
 }
 
