@@ -60,9 +60,9 @@ pub struct CalibrateArgs {
     pub plot: Option<PathBuf>,
 }
 
-/// The model part of an `[axes.NAME]` table: what calibrate writes and
-/// `scenario --model` reads.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// The model part of an `[axes.NAME]` table: what calibrate writes, `scenario
+/// --model` reads, and the axis part of diagnose's model file.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 pub struct AxisModel {
     /// SD43920, mm.
     #[serde(default)]
@@ -174,22 +174,25 @@ pub fn load_model(path: &Path) -> Result<(String, AxisModel), CalibrateError> {
     };
     let text = std::fs::read_to_string(path).map_err(|e| err(e.to_string()))?;
     let value: toml::Table = toml::from_str(&text).map_err(|e| err(e.to_string()))?;
-    let axes = value
+    first_axis_model(&value).map_err(err)
+}
+
+/// The first `[axes.NAME]` of a parsed model file or gateway config, and its name;
+/// keys other than `p0_mm`, `k0` and `tan_beta` are ignored. The error names the key.
+pub fn first_axis_model(root: &toml::Table) -> Result<(String, AxisModel), String> {
+    let (name, axis) = root
         .get("axes")
         .and_then(|a| a.as_table())
-        .ok_or_else(|| err("no [axes.NAME] table".into()))?;
-    let (name, axis) = axes
-        .iter()
-        .next()
-        .ok_or_else(|| err("no [axes.NAME] table".into()))?;
+        .and_then(|a| a.iter().next())
+        .ok_or("no [axes.NAME] table")?;
     let mut t = axis
         .as_table()
         .cloned()
-        .ok_or_else(|| err(format!("axes.{name} is not a table")))?;
+        .ok_or_else(|| format!("axes.{name} is not a table"))?;
     t.retain(|k, _| matches!(k, "p0_mm" | "k0" | "tan_beta"));
     let model: AxisModel = toml::Value::Table(t)
         .try_into()
-        .map_err(|e: toml::de::Error| err(format!("axes.{name}: {e}")))?;
+        .map_err(|e: toml::de::Error| format!("axes.{name}: {}", e.message()))?;
     Ok((name.clone(), model))
 }
 

@@ -380,7 +380,7 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
     let d = Data::new(
         m,
         opts.sensors.as_deref(),
-        opts.model.as_ref().map(|mf| mf.p0_mm),
+        opts.model.as_ref().map(|mf| mf.axis.p0_mm),
         th.cv_blocks,
     )?;
     let model_gap = match &opts.model {

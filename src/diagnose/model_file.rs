@@ -17,28 +17,20 @@ use serde::{Deserialize, Serialize};
 
 use super::effects::{lag, legendre_2_4, motion_heat, EffectKind};
 use super::{DiagnoseError, Diagnosis};
+use crate::calibrate::AxisModel;
 use crate::config::schema::{K0Model, K0Term, TanBetaModel, TanBetaTerm};
 use crate::measure::Measurements;
 
-/// A thermal model file.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
-#[serde(deny_unknown_fields)]
+/// A thermal model file: the axis model `calibrate` writes, plus what only diagnose
+/// adds (lagged channels, effects outside the K0/tan(beta) form).
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct ModelFile {
-    /// SD43920 reference position P0, mm (as `[axes.NAME] p0_mm`). Default 0.0.
-    #[serde(default)]
-    pub p0_mm: f64,
-    /// K0(T) in mm (as `[axes.NAME.k0]`). Default: zero.
-    #[serde(default)]
-    pub k0: K0Model,
-    /// tan(beta)(T) (as `[axes.NAME.tan_beta]`). Default: zero.
-    #[serde(default)]
-    pub tan_beta: TanBetaModel,
+    /// The `[axes.NAME]` part: P0, K0(T) and tan(beta)(T).
+    pub axis: AxisModel,
     /// Channels that are a sensor seen through a first-order lag; the gateway realises
     /// one as a channel on the sensor's transmitter with `filter.lowpass_tau_s`.
-    #[serde(default)]
     pub lagged_channels: Vec<LaggedChannel>,
     /// Effects outside the K0/tan(beta) form, with the NC function that carries them.
-    #[serde(default)]
     pub effects: Vec<EffectTerm>,
 }
 
@@ -91,19 +83,7 @@ impl ModelFile {
             message,
         };
         let root: toml::Table = toml::from_str(text).map_err(|e| err(e.to_string()))?;
-        let (name, axis) = root
-            .get("axes")
-            .and_then(|a| a.as_table())
-            .and_then(|a| a.iter().next())
-            .ok_or_else(|| err("no [axes.NAME] table".into()))?;
-        let mut t = axis
-            .as_table()
-            .cloned()
-            .ok_or_else(|| err(format!("axes.{name} is not a table")))?;
-        t.retain(|k, _| matches!(k, "p0_mm" | "k0" | "tan_beta"));
-        let axis: crate::calibrate::AxisModel = toml::Value::Table(t)
-            .try_into()
-            .map_err(|e: toml::de::Error| err(format!("axes.{name}: {}", e.message())))?;
+        let (_, axis) = crate::calibrate::first_axis_model(&root).map_err(err)?;
         let lagged_channels: Vec<LaggedChannel> = match root.get("lagged_channels") {
             Some(v) => v
                 .clone()
@@ -124,9 +104,7 @@ impl ModelFile {
             }
         }
         Ok(ModelFile {
-            p0_mm: axis.p0_mm,
-            k0: axis.k0,
-            tan_beta: axis.tan_beta,
+            axis,
             lagged_channels,
             effects,
         })
@@ -135,18 +113,13 @@ impl ModelFile {
     /// The TOML text: `[axes.X]` as calibrate writes it, then the lagged channels and
     /// effects, with a header comment.
     pub fn to_toml(&self) -> String {
-        let axis = crate::calibrate::AxisModel {
-            p0_mm: self.p0_mm,
-            k0: self.k0.clone(),
-            tan_beta: self.tan_beta.clone(),
-        };
         let header = "Thermal model written by `compgate diagnose`.\n\
              [axes.X] is the gateway's axis form (as calibrate writes it; scenario --model\n\
              reads it); channels are the data's sensors (column T_<name> -> channel <name>).\n\
              [[lagged_channels]]: a channel on the named sensor's transmitter with\n\
              filter.lowpass_tau_s. [[effects]]: terms outside K0/tan(beta), with the NC\n\
              function that carries them.\n";
-        let mut s = crate::calibrate::model_toml("X", "nc_x", &axis, header);
+        let mut s = crate::calibrate::model_toml("X", "nc_x", &self.axis, header);
         #[derive(Serialize)]
         struct Extra<'a> {
             #[serde(skip_serializing_if = "<[_]>::is_empty")]
@@ -192,22 +165,22 @@ impl ModelFile {
                 })
         };
         let n = m.len();
-        let mut k0_mm = vec![self.k0.offset_mm; n];
-        for t in &self.k0.terms {
+        let mut k0_mm = vec![self.axis.k0.offset_mm; n];
+        for t in &self.axis.k0.terms {
             let z = find(&t.channel, "k0.terms")?;
             for i in 0..n {
                 k0_mm[i] += t.coeff_mm_per_degc * (z[i] - t.ref_degc);
             }
         }
-        let mut tan = vec![self.tan_beta.offset; n];
-        for t in &self.tan_beta.terms {
+        let mut tan = vec![self.axis.tan_beta.offset; n];
+        for t in &self.axis.tan_beta.terms {
             let z = find(&t.channel, "tan_beta.terms")?;
             for i in 0..n {
                 tan[i] += t.coeff_per_degc * (z[i] - t.ref_degc);
             }
         }
         let mut out: Vec<f64> = (0..n)
-            .map(|i| 1000.0 * (k0_mm[i] + tan[i] * (m.pos_mm[i] - self.p0_mm)))
+            .map(|i| 1000.0 * (k0_mm[i] + tan[i] * (m.pos_mm[i] - self.axis.p0_mm)))
             .collect();
         for e in &self.effects {
             let p = &e.params;
@@ -240,7 +213,7 @@ impl ModelFile {
                         out[i] += (h[i] - r)
                             * (get(p, "k0_um_per_mm_per_s")
                                 + get(p, "slope_um_per_mm_per_mm_per_s")
-                                    * (m.pos_mm[i] - self.p0_mm));
+                                    * (m.pos_mm[i] - self.axis.p0_mm));
                     }
                 }
                 _ => {}
@@ -261,24 +234,26 @@ impl ModelFile {
 
     fn build(d: &Diagnosis, b: &[f64], effects: &[super::EffectReport]) -> Self {
         let mut mf = ModelFile {
-            p0_mm: d.p0_mm,
-            k0: K0Model {
-                offset_mm: b[0] / 1000.0,
-                terms: Vec::new(),
-            },
-            tan_beta: TanBetaModel {
-                offset: b[1] / 1000.0,
-                terms: Vec::new(),
+            axis: AxisModel {
+                p0_mm: d.p0_mm,
+                k0: K0Model {
+                    offset_mm: b[0] / 1000.0,
+                    terms: Vec::new(),
+                },
+                tan_beta: TanBetaModel {
+                    offset: b[1] / 1000.0,
+                    terms: Vec::new(),
+                },
             },
             ..Default::default()
         };
         let push = |mf: &mut ModelFile, channel: String, ref_degc: f64, k0: f64, slope: f64| {
-            mf.k0.terms.push(K0Term {
+            mf.axis.k0.terms.push(K0Term {
                 channel: channel.clone(),
                 ref_degc,
                 coeff_mm_per_degc: k0 / 1000.0,
             });
-            mf.tan_beta.terms.push(TanBetaTerm {
+            mf.axis.tan_beta.terms.push(TanBetaTerm {
                 channel,
                 ref_degc,
                 coeff_per_degc: slope / 1000.0,
@@ -389,29 +364,31 @@ mod tests {
 
     fn model() -> ModelFile {
         ModelFile {
-            p0_mm: 100.0,
-            k0: K0Model {
-                offset_mm: 0.001,
-                terms: vec![
-                    K0Term {
+            axis: AxisModel {
+                p0_mm: 100.0,
+                k0: K0Model {
+                    offset_mm: 0.001,
+                    terms: vec![
+                        K0Term {
+                            channel: "a".into(),
+                            ref_degc: 20.0,
+                            coeff_mm_per_degc: 0.002,
+                        },
+                        K0Term {
+                            channel: "a_lag100s".into(),
+                            ref_degc: 20.0,
+                            coeff_mm_per_degc: -0.001,
+                        },
+                    ],
+                },
+                tan_beta: TanBetaModel {
+                    offset: 0.0,
+                    terms: vec![TanBetaTerm {
                         channel: "a".into(),
                         ref_degc: 20.0,
-                        coeff_mm_per_degc: 0.002,
-                    },
-                    K0Term {
-                        channel: "a_lag100s".into(),
-                        ref_degc: 20.0,
-                        coeff_mm_per_degc: -0.001,
-                    },
-                ],
-            },
-            tan_beta: TanBetaModel {
-                offset: 0.0,
-                terms: vec![TanBetaTerm {
-                    channel: "a".into(),
-                    ref_degc: 20.0,
-                    coeff_per_degc: 1e-5,
-                }],
+                        coeff_per_degc: 1e-5,
+                    }],
+                },
             },
             lagged_channels: vec![LaggedChannel {
                 channel: "a_lag100s".into(),
@@ -440,7 +417,7 @@ mod tests {
         assert_eq!(name, "X");
         assert_eq!(
             (axis.k0, axis.tan_beta, axis.p0_mm),
-            (m.k0.clone(), m.tan_beta.clone(), m.p0_mm)
+            (m.axis.k0.clone(), m.axis.tan_beta.clone(), m.axis.p0_mm)
         );
         // p0_mm, [k0] and [tan_beta] are the keys of [axes.NAME].
         #[derive(Serialize)]
@@ -454,14 +431,14 @@ mod tests {
         let axis = toml::to_string(&AxisPart {
             nc_module: "nc1",
             md32750: 3,
-            p0_mm: m.p0_mm,
-            k0: &m.k0,
-            tan_beta: &m.tan_beta,
+            p0_mm: m.axis.p0_mm,
+            k0: &m.axis.k0,
+            tan_beta: &m.axis.tan_beta,
         })
         .expect("toml");
         let axis: AxisConfig = toml::from_str(&axis).expect("axis config");
-        assert_eq!(axis.k0, m.k0);
-        assert_eq!(axis.tan_beta, m.tan_beta);
+        assert_eq!(axis.k0, m.axis.k0);
+        assert_eq!(axis.tan_beta, m.axis.tan_beta);
         assert_eq!(axis.p0_mm, 100.0);
     }
 
@@ -489,7 +466,7 @@ mod tests {
         assert!((p[1] - want).abs() < 1e-9, "{} vs {want}", p[1]);
         // A term on a channel the data lacks is an error naming it.
         let mut bad = model();
-        bad.k0.terms[0].channel = "z".into();
+        bad.axis.k0.terms[0].channel = "z".into();
         let e = bad.predict_um(&meas).expect_err("unknown channel");
         assert!(
             e.to_string().contains("`z`") && e.to_string().contains("k0.terms"),
