@@ -44,13 +44,21 @@ fn clock_ticks_per_s() -> u64 {
         .unwrap_or(100)
 }
 
-fn sample(pid: u32) -> Option<Sample> {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
-    // Fields after the command name (which may hold spaces) start at field 3.
-    let rest = stat.rsplit_once(')')?.1;
+/// The command name and the CPU ticks (user + system) of a `/proc/.../stat` line.
+fn stat_name_ticks(stat: &str) -> Option<(&str, u64)> {
+    // The name sits in parentheses and may hold spaces; fields resume after the last
+    // `)`, at field 3.
+    let (head, rest) = stat.rsplit_once(')')?;
+    let name = head.get(head.find('(')? + 1..)?;
     let f: Vec<&str> = rest.split_whitespace().collect();
     let utime: u64 = f.get(11)?.parse().ok()?;
     let stime: u64 = f.get(12)?.parse().ok()?;
+    Some((name, utime + stime))
+}
+
+fn sample(pid: u32) -> Option<Sample> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    let (_, cpu_ticks) = stat_name_ticks(&stat)?;
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
     let rss_kb = status
         .lines()
@@ -59,7 +67,7 @@ fn sample(pid: u32) -> Option<Sample> {
         .and_then(|v| v.parse().ok())?;
     Some(Sample {
         at: Instant::now(),
-        cpu_ticks: utime + stime,
+        cpu_ticks,
         rss_kb,
     })
 }
@@ -77,14 +85,9 @@ fn thread_ticks(pid: u32) -> BTreeMap<u32, (String, u64)> {
         let Ok(stat) = std::fs::read_to_string(entry.path().join("stat")) else {
             continue;
         };
-        let (Some((head, rest)), Some(open)) = (stat.rsplit_once(')'), stat.find('(')) else {
-            continue;
-        };
-        let name = head.get(open + 1..).unwrap_or("?").to_string();
-        let f: Vec<&str> = rest.split_whitespace().collect();
-        let ticks = f.get(11).and_then(|v| v.parse::<u64>().ok()).unwrap_or(0)
-            + f.get(12).and_then(|v| v.parse::<u64>().ok()).unwrap_or(0);
-        out.insert(tid, (name, ticks));
+        if let Some((name, ticks)) = stat_name_ticks(&stat) {
+            out.insert(tid, (name.to_string(), ticks));
+        }
     }
     out
 }
@@ -438,6 +441,13 @@ mod tests {
         let flat: Vec<Sample> = (0..100u32).map(|i| at(t0, f64::from(i), 20_000)).collect();
         assert_eq!(rss_slope_kb_per_h(&flat), Some(0.0));
         assert_eq!(rss_slope_kb_per_h(&flat[..2]), None);
+    }
+
+    #[test]
+    fn stat_line_gives_name_with_spaces_and_user_plus_system_ticks() {
+        let stat = "4242 (tokio rt) worker) S 1 2 3 4 5 6 7 8 9 10 120 30 0 0 20 0 4";
+        assert_eq!(stat_name_ticks(stat), Some(("tokio rt) worker", 150)));
+        assert_eq!(stat_name_ticks("4242 no parentheses"), None);
     }
 
     #[test]
