@@ -172,23 +172,15 @@ pub(super) fn key_segment(k: &str) -> Cow<'_, str> {
 
 /// `devices.ain1.timeout_s`, `axes.X.k0.terms[1].channel`.
 fn render(path: &[Seg]) -> String {
-    let mut s = String::new();
-    for seg in path {
-        match seg {
-            Seg::Key(k) => {
-                if !s.is_empty() {
-                    s.push('.');
-                }
-                s.push_str(&key_segment(k));
-            }
-            Seg::Index(i) => s.push_str(&format!("[{i}]")),
-        }
-    }
-    s
+    render_with(path, key_segment)
 }
 
 /// The path in the `config` crate's expression syntax (keys never quoted).
 fn render_expr(path: &[Seg]) -> String {
+    render_with(path, Cow::Borrowed)
+}
+
+fn render_with<'a>(path: &'a [Seg], key: impl Fn(&'a str) -> Cow<'a, str>) -> String {
     let mut s = String::new();
     for seg in path {
         match seg {
@@ -196,7 +188,7 @@ fn render_expr(path: &[Seg]) -> String {
                 if !s.is_empty() {
                     s.push('.');
                 }
-                s.push_str(k);
+                s.push_str(&key(k));
             }
             Seg::Index(i) => s.push_str(&format!("[{i}]")),
         }

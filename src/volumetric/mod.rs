@@ -1321,34 +1321,26 @@ pub fn report(ev: &Evaluation) -> String {
         s,
         "                     uncompensated   compensated   remaining"
     );
-    let _ = writeln!(
-        s,
-        "tip max (um)         {:>13.4} {:>13.6} {:>10.4}%",
-        u.max_tip_um,
-        c.max_tip_um,
-        pct(c.max_tip_um, u.max_tip_um)
-    );
-    let _ = writeln!(
-        s,
-        "tip RMS (um)         {:>13.4} {:>13.6} {:>10.4}%",
-        u.rms_tip_um,
-        c.rms_tip_um,
-        pct(c.rms_tip_um, u.rms_tip_um)
-    );
-    let _ = writeln!(
-        s,
-        "orientation max (\") {:>13.4} {:>13.6} {:>10.4}%",
-        u.max_orient_arcsec,
-        c.max_orient_arcsec,
-        pct(c.max_orient_arcsec, u.max_orient_arcsec)
-    );
-    let _ = writeln!(
-        s,
-        "orientation RMS (\") {:>13.4} {:>13.6} {:>10.4}%",
-        u.rms_orient_arcsec,
-        c.rms_orient_arcsec,
-        pct(c.rms_orient_arcsec, u.rms_orient_arcsec)
-    );
+    for (label, uncomp, comp) in [
+        ("tip max (um)        ", u.max_tip_um, c.max_tip_um),
+        ("tip RMS (um)        ", u.rms_tip_um, c.rms_tip_um),
+        (
+            "orientation max (\")",
+            u.max_orient_arcsec,
+            c.max_orient_arcsec,
+        ),
+        (
+            "orientation RMS (\")",
+            u.rms_orient_arcsec,
+            c.rms_orient_arcsec,
+        ),
+    ] {
+        let _ = writeln!(
+            s,
+            "{label} {uncomp:>13.4} {comp:>13.6} {:>10.4}%",
+            pct(comp, uncomp)
+        );
+    }
     let _ = writeln!(
         s,
         "iterations: at most {} (tolerance {TOL_UM} um, {TOL_ARCSEC}\"); largest residual {:.2e} um, {:.2e}\"",
