@@ -156,31 +156,29 @@ impl ModelFile {
                 })?;
             signals.insert(l.channel.clone(), lag(&m.t_s, src, l.lowpass_tau_s));
         }
-        let find = |ch: &str, key: &str| {
-            signals
-                .get(ch)
-                .ok_or_else(|| DiagnoseError::UnknownChannel {
-                    channel: ch.to_string(),
+        // Every channel the axis reads must exist, named with its key, before any row.
+        let k0 = self.axis.k0.terms.iter().map(|t| (&t.channel, "k0.terms"));
+        let tan = self
+            .axis
+            .tan_beta
+            .terms
+            .iter()
+            .map(|t| (&t.channel, "tan_beta.terms"));
+        for (ch, key) in k0.chain(tan) {
+            if !signals.contains_key(ch) {
+                return Err(DiagnoseError::UnknownChannel {
+                    channel: ch.clone(),
                     key: key.to_string(),
-                })
-        };
+                });
+            }
+        }
         let n = m.len();
-        let mut k0_mm = vec![self.axis.k0.offset_mm; n];
-        for t in &self.axis.k0.terms {
-            let z = find(&t.channel, "k0.terms")?;
-            for i in 0..n {
-                k0_mm[i] += t.coeff_mm_per_degc * (z[i] - t.ref_degc);
-            }
-        }
-        let mut tan = vec![self.axis.tan_beta.offset; n];
-        for t in &self.axis.tan_beta.terms {
-            let z = find(&t.channel, "tan_beta.terms")?;
-            for i in 0..n {
-                tan[i] += t.coeff_per_degc * (z[i] - t.ref_degc);
-            }
-        }
         let mut out: Vec<f64> = (0..n)
-            .map(|i| 1000.0 * (k0_mm[i] + tan[i] * (m.pos_mm[i] - self.axis.p0_mm)))
+            .map(|i| {
+                self.axis
+                    .predict_um(m.pos_mm[i], |ch| signals.get(ch).map(|z| z[i]))
+                    .unwrap_or(f64::NAN) // every channel checked above
+            })
             .collect();
         for e in &self.effects {
             let p = &e.params;
