@@ -15,7 +15,7 @@ use tokio::sync::{mpsc, watch, Mutex};
 use tokio::time::{Instant, MissedTickBehavior};
 use tokio_util::sync::CancellationToken;
 
-use crate::channel::{ChannelProcessor, CurrentRange, FilterParams, Reading, Scaling};
+use crate::channel::{ChannelProcessor, CurrentRange, FilterParams, LowPassGain, Reading, Scaling};
 use crate::comp::{
     Affine, AxisCompensator, BadInputPolicy, CompParams, Decision, Limits, Term, ThermalModel,
 };
@@ -141,13 +141,14 @@ impl Pipeline {
     /// Feeds one device sample through the channel processors.
     pub fn ingest(&mut self, sample: &DeviceSample) {
         let t_s = self.now_s(sample.started);
+        let mut gain = LowPassGain::default();
         for (ch, value) in &sample.values {
             let Some(p) = self.processors.get_mut(*ch) else {
                 continue;
             };
             match value {
                 Ok(raw) => {
-                    p.on_sample(t_s, *raw);
+                    p.on_sample_with(t_s, *raw, &mut gain);
                 }
                 Err(fault) => {
                     p.on_missing(t_s, fault.reason, fault.degraded);

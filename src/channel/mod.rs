@@ -21,7 +21,7 @@ mod processor;
 mod quality;
 mod scaling;
 
-pub use filter::{LowPass, MedianWindow};
+pub use filter::{LowPass, LowPassGain, MedianWindow};
 pub use processor::ChannelProcessor;
 pub use quality::{Quality, Reason};
 pub use scaling::{CurrentRange, Scaled, Scaling, NE43_HIGH_MA, NE43_LOW_MA};

@@ -1,6 +1,6 @@
 //! One channel's state: checks, filters and quality, sample by sample.
 
-use super::{FilterParams, LowPass, MedianWindow, Quality, Reading, Reason, Scaling};
+use super::{FilterParams, LowPass, LowPassGain, MedianWindow, Quality, Reading, Reason, Scaling};
 
 /// Without an accepted sample for this many low-pass time constants the filters
 /// re-seed: the old state would weigh less than exp(-5) = 0.7 % anyway.
@@ -58,6 +58,12 @@ impl ChannelProcessor {
     /// taken at `t_s` and returns the new reading (borrowed: the gateway calls this
     /// for every channel on every poll and mostly does not need a copy).
     pub fn on_sample(&mut self, t_s: f64, raw: f64) -> &Reading {
+        self.on_sample_with(t_s, raw, &mut LowPassGain::default())
+    }
+
+    /// [`Self::on_sample`] for one of several channels sampled at `t_s`: they share
+    /// `gain`, so the low pass's exponential is computed once for all of them.
+    pub fn on_sample_with(&mut self, t_s: f64, raw: f64, gain: &mut LowPassGain) -> &Reading {
         // Tracked on every sample, so any change of the raw value restarts the
         // clock even if that sample fails a check.
         let stale = self.track_raw(t_s, raw);
@@ -65,7 +71,7 @@ impl ChannelProcessor {
         let mut value_degc = self.last.value_degc;
         let quality = match scaled.degc {
             Err(reason) => Quality::Bad(reason),
-            Ok(degc) => match self.accept(t_s, degc, stale) {
+            Ok(degc) => match self.accept(t_s, degc, stale, gain) {
                 Ok(filtered_degc) => {
                     value_degc = Some(filtered_degc);
                     Quality::Good
@@ -128,7 +134,13 @@ impl ChannelProcessor {
 
     /// Steps 4-8 for a finite scaled value: the filtered value, or the quality of
     /// a sample that did not get through.
-    fn accept(&mut self, t_s: f64, degc: f64, stale: bool) -> Result<f64, Quality> {
+    fn accept(
+        &mut self,
+        t_s: f64,
+        degc: f64,
+        stale: bool,
+        gain: &mut LowPassGain,
+    ) -> Result<f64, Quality> {
         // RangeInclusive::contains is false for NaN bounds: a broken range fails safe.
         if !(self.params.valid_min_degc..=self.params.valid_max_degc).contains(&degc) {
             return Err(Quality::Bad(Reason::OutOfRange));
@@ -152,7 +164,7 @@ impl ChannelProcessor {
         self.rejected_in_row = 0;
         self.accepted = Some((t_s, degc));
         let median_degc = self.median.push(degc);
-        Ok(self.lowpass.update(t_s, median_degc))
+        Ok(self.lowpass.update_with(t_s, median_degc, gain))
     }
 
     /// Quality of a held value: uncertain only if the channel was usable.
