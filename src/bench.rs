@@ -357,15 +357,16 @@ async fn measure(channels: u16, cycles: u32, rounds: u32) -> Result<BenchReport,
     let step = Duration::from_secs_f64(1.0 / report.bare.median_rate_per_s().max(1.0));
     // Median of per-round means, like the rates: one burst of load must not decide it.
     let mut means = Vec::with_capacity(rounds as usize);
+    let n = cycles.max(1);
     for _ in 0..rounds.max(1) {
         let t0 = Instant::now();
-        for i in 0..cycles.max(1) {
+        for i in 0..n {
             let sample = &mut samples[i as usize % ALONE_SAMPLES];
             sample.started += step * ALONE_SAMPLES as u32;
             pipeline.ingest(std::hint::black_box(sample));
             std::hint::black_box(pipeline.decide(0, tokio::time::Instant::now()));
         }
-        means.push(t0.elapsed() / cycles.max(1));
+        means.push(t0.elapsed() / n);
     }
     means.sort();
     report.pipeline_only = means[means.len() / 2];
