@@ -258,6 +258,18 @@ mod tests {
         (a - b).abs() < 1e-12
     }
 
+    /// The median by sorting: the reference the windows are checked against.
+    fn sorted_median(values: &[f64]) -> f64 {
+        let mut sorted = values.to_vec();
+        sorted.sort_by(f64::total_cmp);
+        let n = sorted.len();
+        if n % 2 == 1 {
+            sorted[n / 2]
+        } else {
+            (sorted[n / 2 - 1] + sorted[n / 2]) / 2.0
+        }
+    }
+
     #[test]
     fn median_while_filling_and_full() {
         let mut m = MedianWindow::new(3);
@@ -291,15 +303,11 @@ mod tests {
                 if window.len() > len {
                     window.remove(0);
                 }
-                let mut sorted = window.clone();
-                sorted.sort_by(f64::total_cmp);
-                let n = sorted.len();
-                let expect = if n % 2 == 1 {
-                    sorted[n / 2]
-                } else {
-                    (sorted[n / 2 - 1] + sorted[n / 2]) / 2.0
-                };
-                assert_eq!(w.push(v), expect, "len {len} window {window:?}");
+                assert_eq!(
+                    w.push(v),
+                    sorted_median(&window),
+                    "len {len} window {window:?}"
+                );
             }
         }
     }
@@ -331,14 +339,7 @@ mod tests {
             &[1.0, 3.0, 2.0],
             &[4.0, -4.0],
         ] {
-            let mut sorted = values.to_vec();
-            sorted.sort_by(f64::total_cmp);
-            let n = sorted.len();
-            let expect = if n % 2 == 1 {
-                sorted[n / 2]
-            } else {
-                (sorted[n / 2 - 1] + sorted[n / 2]) / 2.0
-            };
+            let expect = sorted_median(values);
             for o in orders(values) {
                 assert_eq!(network_median(&o), Some(expect), "{o:?}");
             }
