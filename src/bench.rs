@@ -190,7 +190,8 @@ pub enum BenchError {
 /// two polls must pass the rate check, as it does in service with the example
 /// configs' 1 degC/s: at 100 degC/s a quarter of the bench's samples were rejected as
 /// implausible, and the figure measured the hold path of a faulty sensor instead of
-/// the filters. At 10000 degC/s a poll may move 0.14 degC, the in-service 0.1.
+/// the filters. At 10000 degC/s a bench poll may move 0.14 degC; in service, 1 degC/s
+/// at 100 ms lets a poll move 0.1 degC.
 const BENCH_MAX_RATE_DEGC_PER_S: f64 = 10_000.0;
 
 fn bench_config(channels: u16, address: &str) -> String {
