@@ -44,34 +44,25 @@ impl MedianWindow {
 
     /// Adds a sample, dropping the oldest when full, and returns the median.
     pub fn push(&mut self, value_degc: f64) -> f64 {
+        let dropped = self.put_in_ring(value_degc);
         if self.len <= NETWORK_MAX_LEN {
-            if self.ring_degc.len() < self.len {
-                self.ring_degc.push(value_degc);
-            } else {
-                self.ring_degc[self.next] = value_degc;
-                self.next = if self.next + 1 == self.len {
-                    0
-                } else {
-                    self.next + 1
-                };
-            }
             return network_median(&self.ring_degc).unwrap_or(value_degc);
         }
         let s = &mut self.sorted_degc;
-        let mut i = if self.ring_degc.len() < self.len {
-            self.ring_degc.push(value_degc);
-            s.push(value_degc);
-            s.len() - 1
-        } else {
-            let old = std::mem::replace(&mut self.ring_degc[self.next], value_degc);
-            self.next = (self.next + 1) % self.len;
-            // `old` is in `s` bit for bit: overwrite it in place.
-            let at = s
-                .iter()
-                .position(|v| v.to_bits() == old.to_bits())
-                .unwrap_or(0);
-            s[at] = value_degc;
-            at
+        let mut i = match dropped {
+            None => {
+                s.push(value_degc);
+                s.len() - 1
+            }
+            Some(old) => {
+                // `old` is in `s` bit for bit: overwrite it in place.
+                let at = s
+                    .iter()
+                    .position(|v| v.to_bits() == old.to_bits())
+                    .unwrap_or(0);
+                s[at] = value_degc;
+                at
+            }
         };
         // One of the two loops moves the new value to its rank.
         while i > 0 && s[i - 1].total_cmp(&s[i]).is_gt() {
@@ -83,6 +74,22 @@ impl MedianWindow {
             i += 1;
         }
         self.median().unwrap_or(value_degc)
+    }
+
+    /// Puts a sample into the ring; returns the one it replaced once the ring is full.
+    fn put_in_ring(&mut self, value_degc: f64) -> Option<f64> {
+        if self.ring_degc.len() < self.len {
+            self.ring_degc.push(value_degc);
+            return None;
+        }
+        let old = std::mem::replace(&mut self.ring_degc[self.next], value_degc);
+        // A compare instead of `%`, which is an integer division.
+        self.next = if self.next + 1 == self.len {
+            0
+        } else {
+            self.next + 1
+        };
+        Some(old)
     }
 
     /// The median of the window: the middle value, or the mean of the two middle
