@@ -138,6 +138,11 @@ impl Pipeline {
         at.saturating_duration_since(self.epoch).as_secs_f64()
     }
 
+    /// The latest reading of channel `ch` (config order); `None` past the last channel.
+    pub fn reading(&self, ch: usize) -> Option<&Reading> {
+        self.processors.get(ch).map(ChannelProcessor::last)
+    }
+
     /// Feeds one device sample through the channel processors.
     pub fn ingest(&mut self, sample: &DeviceSample) {
         let t_s = self.now_s(sample.started);
@@ -162,14 +167,7 @@ impl Pipeline {
         self.axes[axis]
             .inputs
             .iter()
-            .map(|&ch| {
-                let r = self.processors[ch].last();
-                if r.quality.is_usable() {
-                    r.value_degc
-                } else {
-                    None
-                }
-            })
+            .map(|&ch| self.reading(ch).and_then(Reading::usable_degc))
             .collect()
     }
 
@@ -837,11 +835,9 @@ impl Running {
         }
         // Only this sample's channels changed (512 channels on 8 devices: 8x less work).
         for (ch, _) in &sample.values {
-            if let (Some(cs), Some(p)) = (
-                status.channels.get_mut(*ch),
-                self.pipeline.processors.get(*ch),
-            ) {
-                cs.reading = p.last().clone();
+            if let (Some(cs), Some(r)) = (status.channels.get_mut(*ch), self.pipeline.reading(*ch))
+            {
+                cs.reading = r.clone();
             }
         }
     }

@@ -332,7 +332,7 @@ impl Observer for RecordObserver {
         let t_unix_ms = now_unix_ms();
         let mut rows = Vec::with_capacity(sample.values.len());
         rows.extend(sample.values.iter().filter_map(|(ch, _)| {
-            let r = pipeline.processors.get(*ch)?.last();
+            let r = pipeline.reading(*ch)?;
             let (quality, reason) = quality_code(&r.quality);
             Some(Row {
                 channel: u32::try_from(*ch).ok()?,

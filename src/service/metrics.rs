@@ -108,11 +108,9 @@ impl Observer for MetricsObserver {
                 .collect();
         }
         for (ch, _) in &sample.values {
-            let (Some(h), Some(p)) = (self.channels.get_mut(*ch), pipeline.processors.get(*ch))
-            else {
+            let (Some(h), Some(r)) = (self.channels.get_mut(*ch), pipeline.reading(*ch)) else {
                 continue;
             };
-            let r = p.last();
             h.value.set(r.value_degc.unwrap_or(f64::NAN));
             let q = quality_code(&r.quality).0;
             if h.last_quality != Some(q) {

@@ -120,7 +120,7 @@ impl Observer for MqttObserver {
             .iter()
             .filter_map(|(ch, _)| {
                 let name = pipeline.channel_names.get(*ch)?;
-                let r = pipeline.processors.get(*ch)?.last();
+                let r = pipeline.reading(*ch)?;
                 let (q, reason) = quality_code(&r.quality);
                 Some(ChannelMsg {
                     channel: name,
