@@ -326,9 +326,10 @@ async fn measure(channels: u16, cycles: u32, rounds: u32) -> Result<BenchReport,
             .push(f64::from(cycles) / t0.elapsed().as_secs_f64());
         report.gateway.latencies.extend(latencies);
         pipeline = back;
-        for p in &pipeline.processors {
+        for ch in 0..pipeline.channel_names.len() {
             report.readings_checked += 1;
-            report.readings_good += u64::from(p.last().quality.is_good());
+            report.readings_good +=
+                u64::from(pipeline.reading(ch).is_some_and(|r| r.quality.is_good()));
         }
 
         let t0 = Instant::now();

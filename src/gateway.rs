@@ -15,7 +15,9 @@ use tokio::sync::{mpsc, watch, Mutex};
 use tokio::time::{Instant, MissedTickBehavior};
 use tokio_util::sync::CancellationToken;
 
-use crate::channel::{ChannelProcessor, CurrentRange, FilterParams, LowPassGain, Reading, Scaling};
+use crate::channel::{
+    Bank, ChannelProcessor, CurrentRange, FilterParams, LowPassGain, Reading, Scaling,
+};
 use crate::comp::{
     Affine, AxisCompensator, BadInputPolicy, CompParams, Decision, Limits, Term, ThermalModel,
 };
@@ -125,8 +127,12 @@ pub struct AxisRt {
 pub struct Pipeline {
     /// Channel names, in config order.
     pub channel_names: Vec<String>,
-    /// One processor per channel.
-    pub processors: Vec<ChannelProcessor>,
+    /// One processor per channel; out of date for a channel its device's bank holds.
+    processors: Vec<ChannelProcessor>,
+    /// One bank per device, for its steady channels.
+    banks: Vec<Bank>,
+    /// Each channel's device and its lane in the device's bank.
+    homes: Vec<(usize, usize)>,
     /// Axes.
     pub axes: Vec<AxisRt>,
     epoch: Instant,
@@ -138,28 +144,93 @@ impl Pipeline {
         at.saturating_duration_since(self.epoch).as_secs_f64()
     }
 
-    /// The latest reading of channel `ch` (config order); `None` past the last channel.
-    pub fn reading(&self, ch: usize) -> Option<&Reading> {
-        self.processors.get(ch).map(ChannelProcessor::last)
+    /// A pipeline over `processors` (config order), the channels of device `d` being
+    /// `device_channels[d]`.
+    fn new(
+        channel_names: Vec<String>,
+        processors: Vec<ChannelProcessor>,
+        device_channels: Vec<Vec<usize>>,
+        axes: Vec<AxisRt>,
+    ) -> Self {
+        let mut homes = vec![(usize::MAX, 0); processors.len()];
+        for (device, channels) in device_channels.iter().enumerate() {
+            for (lane, &ch) in channels.iter().enumerate() {
+                homes[ch] = (device, lane);
+            }
+        }
+        let banks = device_channels
+            .into_iter()
+            .map(|channels| Bank::new(channels, &processors))
+            .collect();
+        Self {
+            channel_names,
+            processors,
+            banks,
+            homes,
+            axes,
+            epoch: Instant::now(),
+        }
     }
 
-    /// Feeds one device sample through the channel processors.
+    /// The latest reading of channel `ch` (config order); `None` past the last channel.
+    pub fn reading(&self, ch: usize) -> Option<Reading> {
+        let (device, lane) = *self.homes.get(ch)?;
+        match self.banks.get(device) {
+            Some(bank) if bank.holds(lane) => Some(bank.reading(lane)),
+            _ => self.processors.get(ch).map(|p| p.last().clone()),
+        }
+    }
+
+    /// Every channel's name and reading, in config order.
+    pub fn channel_statuses(&self) -> Vec<ChannelStatus> {
+        self.channel_names
+            .iter()
+            .enumerate()
+            .map(|(ch, name)| ChannelStatus {
+                name: name.clone(),
+                reading: self.reading(ch).unwrap_or_else(Reading::no_data),
+            })
+            .collect()
+    }
+
+    /// The channel processors, brought up to date and taken out (the pipeline is
+    /// left without channels): what a reload carries over.
+    fn take_processors(&mut self) -> Vec<ChannelProcessor> {
+        for bank in &mut self.banks {
+            bank.release_all(&mut self.processors);
+        }
+        self.banks.clear();
+        self.homes.clear();
+        std::mem::take(&mut self.processors)
+    }
+
+    /// Feeds one device sample through the channel processors: the values of steady
+    /// channels through the device's bank, the rest one by one.
     pub fn ingest(&mut self, sample: &DeviceSample) {
         let t_s = self.now_s(sample.started);
         let mut gain = LowPassGain::default();
+        let mut no_bank = Bank::default();
+        let bank = self.banks.get_mut(sample.device).unwrap_or(&mut no_bank);
         for (ch, value) in &sample.values {
             let Some(p) = self.processors.get_mut(*ch) else {
                 continue;
             };
+            let (device, lane) = self.homes[*ch];
+            let in_bank = device == sample.device;
             match value {
+                Ok(raw) if in_bank => bank.sample(lane, p, t_s, *raw, &mut gain),
                 Ok(raw) => {
                     p.on_sample_with(t_s, *raw, &mut gain);
+                }
+                Err(fault) if in_bank => {
+                    bank.missing(lane, p, t_s, fault.reason, fault.degraded);
                 }
                 Err(fault) => {
                     p.on_missing(t_s, fault.reason, fault.degraded);
                 }
             }
         }
+        bank.step(t_s, &mut gain, &mut self.processors);
     }
 
     /// The model inputs of axis `axis`: `None` where the channel is not usable.
@@ -167,7 +238,7 @@ impl Pipeline {
         self.axes[axis]
             .inputs
             .iter()
-            .map(|&ch| self.reading(ch).and_then(Reading::usable_degc))
+            .map(|&ch| self.reading(ch).and_then(|r| r.usable_degc()))
             .collect()
     }
 
@@ -395,6 +466,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
     let mut processors = Vec::with_capacity(cfg.channels.len());
     let mut specs: Vec<Vec<ChannelSpec>> = vec![Vec::new(); cfg.devices.len()];
     let mut can_specs: Vec<Vec<CanChannelSpec>> = vec![Vec::new(); cfg.devices.len()];
+    let mut device_channels: Vec<Vec<usize>> = vec![Vec::new(); cfg.devices.len()];
     for (i, (name, ch)) in cfg.channels.iter().enumerate() {
         let dev = *device_index.get(ch.device.as_str()).ok_or_else(|| {
             GatewayError::Config(format!("channels.{name}.device: no device {}", ch.device))
@@ -431,6 +503,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
                 )))
             }
         }
+        device_channels[dev].push(i);
         processors.push(ChannelProcessor::new(
             scaling_rt(&ch.scaling),
             filter_rt(&ch.filter),
@@ -571,12 +644,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
     }
 
     Ok(Built {
-        pipeline: Pipeline {
-            channel_names,
-            processors,
-            axes,
-            epoch: Instant::now(),
-        },
+        pipeline: Pipeline::new(channel_names, processors, device_channels, axes),
         devices,
         sync_producers,
         nc_modules,
@@ -775,15 +843,7 @@ impl Running {
             status_interval,
         } = built;
         let status = Status {
-            channels: pipeline
-                .channel_names
-                .iter()
-                .zip(&pipeline.processors)
-                .map(|(name, p)| ChannelStatus {
-                    name: name.clone(),
-                    reading: p.last().clone(),
-                })
-                .collect(),
+            channels: pipeline.channel_statuses(),
             devices: devices
                 .iter()
                 .map(|d| DeviceStatus {
@@ -837,7 +897,7 @@ impl Running {
         for (ch, _) in &sample.values {
             if let (Some(cs), Some(r)) = (status.channels.get_mut(*ch), self.pipeline.reading(*ch))
             {
-                cs.reading = r.clone();
+                cs.reading = r;
             }
         }
     }

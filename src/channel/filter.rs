@@ -118,28 +118,69 @@ impl MedianWindow {
     pub fn count(&self) -> usize {
         self.ring_degc.len()
     }
-}
 
-/// `(min, max)`; for finite values the order `total_cmp` gives but for the sign of
-/// zero. Compiles to `minsd`/`maxsd` (`f64::min` adds NaN handling).
-fn sort2(a: f64, b: f64) -> (f64, f64) {
-    (lo(a, b), hi(a, b))
-}
+    /// A full window of up to [`NETWORK_MAX_LEN`] samples as its ring (storage order,
+    /// which the compare network reads) and the slot the next sample goes to.
+    pub(crate) fn full_ring(&self) -> Option<(&[f64], usize)> {
+        (self.len <= NETWORK_MAX_LEN && self.ring_degc.len() == self.len)
+            .then_some((&self.ring_degc[..], self.next))
+    }
 
-fn lo(a: f64, b: f64) -> f64 {
-    if a < b {
-        a
-    } else {
-        b
+    /// Sets a window of up to [`NETWORK_MAX_LEN`] samples to the full `ring_degc` with
+    /// the next sample going to slot `next`: the inverse of [`Self::full_ring`].
+    pub(crate) fn set_full_ring(&mut self, ring_degc: &[f64], next: usize) {
+        debug_assert!(self.len <= NETWORK_MAX_LEN && ring_degc.len() == self.len);
+        self.ring_degc.clear();
+        self.ring_degc.extend_from_slice(ring_degc);
+        self.next = next;
     }
 }
 
-fn hi(a: f64, b: f64) -> f64 {
-    if a > b {
-        a
-    } else {
-        b
+/// What the compare networks need of a value: `lo`/`hi` as `minsd`/`maxsd` compute
+/// them (`if a < b { a } else { b }`; `f64::min` adds NaN handling). For finite
+/// values the order `total_cmp` gives but for the sign of zero. Implemented for one
+/// value and for four lanes, so the channel bank runs the very same networks.
+pub(crate) trait Ordered: Copy {
+    fn lo(self, other: Self) -> Self;
+    fn hi(self, other: Self) -> Self;
+}
+
+impl Ordered for f64 {
+    #[inline(always)]
+    fn lo(self, other: Self) -> Self {
+        if self < other {
+            self
+        } else {
+            other
+        }
     }
+
+    #[inline(always)]
+    fn hi(self, other: Self) -> Self {
+        if self > other {
+            self
+        } else {
+            other
+        }
+    }
+}
+
+impl Ordered for wide::f64x4 {
+    #[inline(always)]
+    fn lo(self, other: Self) -> Self {
+        self.simd_lt(other).select(self, other)
+    }
+
+    #[inline(always)]
+    fn hi(self, other: Self) -> Self {
+        self.simd_gt(other).select(self, other)
+    }
+}
+
+/// `(min, max)`.
+#[inline(always)]
+fn sort2<T: Ordered>(a: T, b: T) -> (T, T) {
+    (a.lo(b), a.hi(b))
 }
 
 /// The median of up to five values in any order (even counts: the mean of the two
@@ -149,27 +190,35 @@ fn network_median(values: &[f64]) -> Option<f64> {
         [] => None,
         [a] => Some(a),
         [a, b] => Some((a + b) / 2.0),
-        [a, b, c] => {
-            let (a, b) = sort2(a, b);
-            Some(hi(a, lo(b, c)))
-        }
+        [a, b, c] => Some(median3(a, b, c)),
         [a, b, c, d] => {
             let (a, b) = sort2(a, b);
             let (c, d) = sort2(c, d);
-            let (l, h) = sort2(hi(a, c), lo(b, d));
+            let (l, h) = sort2(a.hi(c), b.lo(d));
             Some((l + h) / 2.0)
         }
-        // Selects the middle (N. Devillard, "Fast median search", 1998).
-        [a, b, c, d, e] => {
-            let (a, b) = sort2(a, b);
-            let (d, e) = sort2(d, e);
-            let d = hi(a, d);
-            let b = lo(b, e);
-            let (b, c) = sort2(b, c);
-            Some(hi(b, lo(c, d)))
-        }
+        [a, b, c, d, e] => Some(median5(a, b, c, d, e)),
         _ => None,
     }
+}
+
+/// The median of three values by a compare network.
+#[inline(always)]
+pub(crate) fn median3<T: Ordered>(a: T, b: T, c: T) -> T {
+    let (a, b) = sort2(a, b);
+    a.hi(b.lo(c))
+}
+
+/// The median of five values by a compare network that selects the middle
+/// (N. Devillard, "Fast median search", 1998).
+#[inline(always)]
+pub(crate) fn median5<T: Ordered>(a: T, b: T, c: T, d: T, e: T) -> T {
+    let (a, b) = sort2(a, b);
+    let (d, e) = sort2(d, e);
+    let d = a.hi(d);
+    let b = b.lo(e);
+    let (b, c) = sort2(b, c);
+    b.hi(c.lo(d))
 }
 
 /// The low-pass gain `1 - exp(-dt/tau)`, remembered for the last `(dt, tau)` asked.
@@ -254,6 +303,11 @@ impl LowPass {
     /// The current output, if seeded.
     pub fn output_degc(&self) -> Option<f64> {
         self.state.map(|(_, y)| y)
+    }
+
+    /// (time of the last update, output), if seeded.
+    pub(crate) fn state(&self) -> Option<(f64, f64)> {
+        self.state
     }
 }
 

@@ -16,11 +16,13 @@
 //! previous filtered value with a `Bad` (or, for a single rate rejection,
 //! `Uncertain`) quality. The compensation only uses usable readings.
 
+mod bank;
 mod filter;
 mod processor;
 mod quality;
 mod scaling;
 
+pub use bank::Bank;
 pub use filter::{LowPass, LowPassGain, MedianWindow};
 pub use processor::ChannelProcessor;
 pub use quality::{Quality, Reason};

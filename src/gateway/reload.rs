@@ -6,7 +6,7 @@
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
-use super::{Built, ChannelStatus, Poller, Running};
+use super::{Built, Poller, Running};
 use crate::config::Config;
 
 /// The state of the next generation: `new` (built from `new_cfg`) with the parts of
@@ -21,7 +21,7 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         .collect();
     let mut next = Running::new(new);
     let Running {
-        pipeline: old_pipeline,
+        pipeline: mut old_pipeline,
         devices: old_devices,
         nc_modules: mut old_nc,
         status: old_status,
@@ -31,7 +31,11 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
     // Carried processors keep their time base.
     next.pipeline.epoch = old_pipeline.epoch;
 
-    let mut old_processors: Vec<_> = old_pipeline.processors.into_iter().map(Some).collect();
+    let mut old_processors: Vec<_> = old_pipeline
+        .take_processors()
+        .into_iter()
+        .map(Some)
+        .collect();
     let mut kept_channels = 0;
     for (j, name) in next.pipeline.channel_names.iter().enumerate() {
         let same = old_cfg.channels.get(name) == new_cfg.channels.get(name);
@@ -42,16 +46,7 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
             }
         }
     }
-    next.status.channels = next
-        .pipeline
-        .channel_names
-        .iter()
-        .zip(&next.pipeline.processors)
-        .map(|(name, p)| ChannelStatus {
-            name: name.clone(),
-            reading: p.last().clone(),
-        })
-        .collect();
+    next.status.channels = next.pipeline.channel_statuses();
 
     // Devices: an unchanged device keeps its link; devices sharing a new serial link
     // follow it onto the old one, so a line stays shared.
