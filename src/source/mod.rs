@@ -186,7 +186,6 @@ impl DevicePoller {
         &self.link
     }
 
-    /// Failed cycles in a row.
     /// Takes over the link (with its open connection) and the failure count of
     /// `old`: a reload that did not change the device keeps its state.
     pub fn carry_over(&mut self, old: &DevicePoller) {
@@ -199,6 +198,7 @@ impl DevicePoller {
         self.link = link;
     }
 
+    /// Failed cycles in a row.
     pub fn failed_cycles(&self) -> u32 {
         self.failed_cycles
     }
