@@ -382,13 +382,26 @@ fn steady_path(set: &Settings, st: &mut State, t_s: f64) {
         .select(y0 + st.alpha * (median_degc - y0), median_degc);
     st.ring_degc = s;
     let k1 = k + f64x4::splat(1.0);
-    st.next = plain.select(k1.simd_eq(len).select(zero, k1), k);
+    let next = k1.simd_eq(len).select(zero, k1);
+    let ma_shown = set.has_current.select(ma, f64x4::splat(f64::NAN));
+    if plain.all() {
+        // The usual case, without the selects (three instructions each on SSE2).
+        st.next = next;
+        st.raw = raw;
+        st.raw_since_s = since_s;
+        st.t_s = t;
+        st.unfiltered_degc = degc;
+        st.value_degc = y;
+        st.current_ma = ma_shown;
+        st.fresh = zero;
+        return;
+    }
+    st.next = plain.select(next, k);
     st.raw = plain.select(raw, st.raw);
     st.raw_since_s = plain.select(since_s, st.raw_since_s);
     st.t_s = plain.select(t, st.t_s);
     st.unfiltered_degc = plain.select(degc, st.unfiltered_degc);
     st.value_degc = plain.select(y, y0);
-    let ma_shown = set.has_current.select(ma, f64x4::splat(f64::NAN));
     st.current_ma = plain.select(ma_shown, st.current_ma);
     st.fresh &= fail;
 }

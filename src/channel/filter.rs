@@ -165,15 +165,24 @@ impl Ordered for f64 {
     }
 }
 
+/// On x86 `fast_min`/`fast_max` are `minpd`/`maxpd`, which compute exactly `lo`/`hi`
+/// (the second operand on equality or NaN). Elsewhere (NEON's `fmin` orders -0 below
+/// +0) a compare and select.
 impl Ordered for wide::f64x4 {
     #[inline(always)]
     fn lo(self, other: Self) -> Self {
-        self.simd_lt(other).select(self, other)
+        #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
+        return self.fast_min(other);
+        #[cfg(not(any(target_arch = "x86", target_arch = "x86_64")))]
+        return self.simd_lt(other).select(self, other);
     }
 
     #[inline(always)]
     fn hi(self, other: Self) -> Self {
-        self.simd_gt(other).select(self, other)
+        #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
+        return self.fast_max(other);
+        #[cfg(not(any(target_arch = "x86", target_arch = "x86_64")))]
+        return self.simd_gt(other).select(self, other);
     }
 }
 
