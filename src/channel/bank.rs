@@ -54,6 +54,13 @@ struct Settings {
     tau_s: f64x4,
     /// Median window length; 0: the lane is never held (a length the bank lacks).
     median_len: f64x4,
+    // The same for the whole block, so the steady path can skip selects.
+    /// The median length of every lane, if they all have the same (else 0).
+    same_len: u8,
+    /// Every lane has the low pass on.
+    lowpass_all: bool,
+    /// Every lane's reading has a loop current.
+    current_all: bool,
 }
 
 /// The state of four lanes (see [`Steady`]) and one sample's work.
@@ -65,9 +72,8 @@ struct State {
     unfiltered_degc: f64x4,
     value_degc: f64x4,
     current_ma: f64x4,
-    /// Median ring, one vector per slot, and the slot the next sample goes to.
+    /// Median window, one vector per slot, oldest first: a shift register.
     ring_degc: [f64x4; 5],
-    next: f64x4,
     /// This sample's raw values ...
     input: f64x4,
     /// ... where this mask is set (by [`Bank::sample`]); after the steady path, set
@@ -171,6 +177,16 @@ impl Bank {
                 *lane(v, j) = x;
             }
         }
+        for Block { set, .. } in &mut blocks {
+            let lens = set.median_len.as_array();
+            set.same_len = if lens.iter().all(|&l| l == lens[0]) {
+                lens[0] as u8
+            } else {
+                0
+            };
+            set.lowpass_all = set.tau_s.simd_gt(f64x4::splat(0.0)).all();
+            set.current_all = set.has_current.all();
+        }
         Self {
             held: vec![false; channels.len()],
             channels,
@@ -235,7 +251,6 @@ impl Bank {
         for (slot, v) in st.ring_degc.iter_mut().zip(s.ring_degc) {
             *lane(slot, j) = v;
         }
-        *lane(&mut st.next, j) = s.next as f64;
         self.held[i] = true;
     }
 
@@ -271,7 +286,6 @@ impl Bank {
             value_degc: st.value_degc.as_array()[j],
             current_ma: st.current_ma.as_array()[j],
             ring_degc: std::array::from_fn(|k| st.ring_degc[k].as_array()[j]),
-            next: st.next.as_array()[j] as usize,
         }
     }
 
@@ -341,15 +355,15 @@ fn steady_path(set: &Settings, st: &mut State, t_s: f64) {
     let inf = f64x4::splat(f64::INFINITY);
     let t = f64x4::splat(t_s);
     let raw = st.input;
-    // Stale clock (`track_raw`): the same bits are the same value with the same sign
-    // (a NaN never stays on the path).
-    let same = raw.simd_eq(st.raw) & !(raw.is_sign_negative() ^ st.raw.is_sign_negative());
-    let since_s = same.select(st.raw_since_s, t);
+    // Stale clock (`track_raw`): the same bits are the same value, but for the sign
+    // of zero; so a raw zero leaves the steady path (below), as a NaN does anyway.
+    let since_s = raw.simd_eq(st.raw).select(st.raw_since_s, t);
     let stale = set.stale_after_s.simd_gt(zero) & (t - since_s).simd_ge(set.stale_after_s);
     // Scaling (`Scaling::scale`): NE43, finiteness.
     let ma = raw * set.mul / set.div;
     let degc = set.base_degc + (ma - set.zero) / set.span_in * set.span_out_degc;
     let mut fail = !raw.abs().simd_lt(inf)
+        | raw.simd_eq(zero)
         | ma.simd_lt(set.ne43_low_ma)
         | ma.simd_gt(set.ne43_high_ma)
         | !degc.abs().simd_lt(inf);
@@ -362,31 +376,49 @@ fn steady_path(set: &Settings, st: &mut State, t_s: f64) {
         | (rate.simd_gt(zero) & (degc - st.unfiltered_degc).abs().simd_gt(rate * dt_pos_s))
         | (set.tau_s.simd_gt(zero) & dt_s.simd_gt(f64x4::splat(GAP_TAUS) * set.tau_s));
     let plain = st.fresh & !fail;
-    // Median (`MedianWindow::push` on a full window).
-    let k = st.next;
-    let mut s = st.ring_degc;
-    for (slot, v) in s.iter_mut().enumerate() {
-        *v = (plain & k.simd_eq(f64x4::splat(slot as f64))).select(degc, *v);
-    }
+    // Usually every lane stays on the path and the block's lanes have the same
+    // settings: then no selects (three instructions each on SSE2) are needed.
+    let all_plain = plain.all();
+    // Median (`MedianWindow::push` on a full window): shift in the new value.
+    let r = st.ring_degc;
     let len = set.median_len;
-    let median_degc = len.simd_eq(f64x4::splat(5.0)).select(
-        median5(s[0], s[1], s[2], s[3], s[4]),
-        len.simd_eq(f64x4::splat(3.0))
-            .select(median3(s[0], s[1], s[2]), s[0]),
-    );
+    let (median_degc, ring) = match (set.same_len, all_plain) {
+        (5, true) => (
+            median5(r[1], r[2], r[3], r[4], degc),
+            [r[1], r[2], r[3], r[4], degc],
+        ),
+        (3, true) => (median3(r[1], r[2], degc), [r[1], r[2], degc, r[3], r[4]]),
+        (1, true) => (degc, [degc, r[1], r[2], r[3], r[4]]),
+        _ => {
+            let last = |slot: f64| plain & len.simd_eq(f64x4::splat(slot));
+            let moves = |slot: f64| plain & len.simd_gt(f64x4::splat(slot));
+            let s: [f64x4; 5] = std::array::from_fn(|j| {
+                let shifted = if j < 4 { r[j + 1] } else { r[4] };
+                last(j as f64 + 1.0).select(degc, moves(j as f64 + 1.0).select(shifted, r[j]))
+            });
+            let m = len.simd_eq(f64x4::splat(5.0)).select(
+                median5(s[0], s[1], s[2], s[3], s[4]),
+                len.simd_eq(f64x4::splat(3.0))
+                    .select(median3(s[0], s[1], s[2]), s[0]),
+            );
+            (m, s)
+        }
+    };
+    st.ring_degc = ring;
     // Low pass (`LowPass::update_with`).
     let y0 = st.value_degc;
-    let y = set
-        .tau_s
-        .simd_gt(zero)
-        .select(y0 + st.alpha * (median_degc - y0), median_degc);
-    st.ring_degc = s;
-    let k1 = k + f64x4::splat(1.0);
-    let next = k1.simd_eq(len).select(zero, k1);
-    let ma_shown = set.has_current.select(ma, f64x4::splat(f64::NAN));
-    if plain.all() {
-        // The usual case, without the selects (three instructions each on SSE2).
-        st.next = next;
+    let smoothed = y0 + st.alpha * (median_degc - y0);
+    let y = if set.lowpass_all {
+        smoothed
+    } else {
+        set.tau_s.simd_gt(zero).select(smoothed, median_degc)
+    };
+    let ma_shown = if set.current_all {
+        ma
+    } else {
+        set.has_current.select(ma, f64x4::splat(f64::NAN))
+    };
+    if all_plain {
         st.raw = raw;
         st.raw_since_s = since_s;
         st.t_s = t;
@@ -396,7 +428,6 @@ fn steady_path(set: &Settings, st: &mut State, t_s: f64) {
         st.fresh = zero;
         return;
     }
-    st.next = plain.select(next, k);
     st.raw = plain.select(raw, st.raw);
     st.raw_since_s = plain.select(since_s, st.raw_since_s);
     st.t_s = plain.select(t, st.t_s);
@@ -451,13 +482,52 @@ mod tests {
             };
             out.push(ChannelProcessor::new(scaling, filter));
         }
+        // Blocks of four alike, as most devices have: transmitters, then direct values
+        // of +-0 in the median window, where only the order the network reads them
+        // decides the sign of the median.
+        for i in 24..40 {
+            let median_samples = [5, 3][(i / 4) % 2];
+            let (scaling, filter) = if i < 32 {
+                let scaling = Scaling::Transmitter {
+                    adc_full_scale_counts: 4095.0,
+                    adc_full_scale_ma: 24.0,
+                    current_range: CurrentRange::FourTo20,
+                    range_min_degc: -50.0,
+                    range_max_degc: 150.0,
+                };
+                let filter = FilterParams {
+                    median_samples,
+                    lowpass_tau_s: 2.0,
+                    max_rate_degc_per_s: 40.0,
+                    max_rejected_samples: 3,
+                    stale_after_s: 1.5,
+                    valid_min_degc: -20.0,
+                    valid_max_degc: 60.0,
+                };
+                (scaling, filter)
+            } else {
+                let scaling = Scaling::Direct {
+                    gain: 1.0,
+                    offset_degc: -0.0,
+                };
+                let filter = FilterParams {
+                    median_samples,
+                    ..FilterParams::default()
+                };
+                (scaling, filter)
+            };
+            out.push(ChannelProcessor::new(scaling, filter));
+        }
         out
     }
 
     /// The raw value of channel `i` at step `k`: noisy counts around a level that
     /// drifts, with spikes, NE43 faults, NaN, out-of-range values, frozen stretches.
     fn raw_value(rng: &mut ChaCha8Rng, i: usize, k: usize) -> f64 {
-        if i % 3 == 2 {
+        if i >= 32 {
+            return [-1.0, -0.0, 0.0, 1.0][rng.random_range(0..4)];
+        }
+        if i % 3 == 2 && i < 24 {
             // Direct: 1/16 degC per count, counts around 0 (rounding gives -0.0 too).
             let counts = (k as f64 / 7.0).sin() * 30.0 + f64::from(rng.random_range(-2..=2));
             return match rng.random_range(0..100) {

@@ -13,7 +13,8 @@
 #[derive(Debug, Clone, PartialEq)]
 pub struct MedianWindow {
     len: usize,
-    /// Ring of samples in arrival order; `next` is where the next one goes.
+    /// The samples: oldest first in a short window; a ring in a long one, `next`
+    /// being where the next sample goes.
     ring_degc: Vec<f64>,
     next: usize,
     /// The same values in `f64::total_cmp` order (long windows only).
@@ -82,6 +83,15 @@ impl MedianWindow {
             self.ring_degc.push(value_degc);
             return None;
         }
+        if self.len <= NETWORK_MAX_LEN {
+            // Short windows keep arrival order (oldest first), as the channel bank's
+            // shift registers do: the network then sees the values in the same order
+            // (which only matters for the sign of a zero median).
+            let old = self.ring_degc[0];
+            self.ring_degc.copy_within(1.., 0);
+            self.ring_degc[self.len - 1] = value_degc;
+            return Some(old);
+        }
         let old = std::mem::replace(&mut self.ring_degc[self.next], value_degc);
         // A compare instead of `%`, which is an integer division.
         self.next = if self.next + 1 == self.len {
@@ -119,20 +129,18 @@ impl MedianWindow {
         self.ring_degc.len()
     }
 
-    /// A full window of up to [`NETWORK_MAX_LEN`] samples as its ring (storage order,
-    /// which the compare network reads) and the slot the next sample goes to.
-    pub(crate) fn full_ring(&self) -> Option<(&[f64], usize)> {
+    /// A full window of up to [`NETWORK_MAX_LEN`] samples, oldest first.
+    pub(crate) fn full_ring(&self) -> Option<&[f64]> {
         (self.len <= NETWORK_MAX_LEN && self.ring_degc.len() == self.len)
-            .then_some((&self.ring_degc[..], self.next))
+            .then_some(&self.ring_degc[..])
     }
 
-    /// Sets a window of up to [`NETWORK_MAX_LEN`] samples to the full `ring_degc` with
-    /// the next sample going to slot `next`: the inverse of [`Self::full_ring`].
-    pub(crate) fn set_full_ring(&mut self, ring_degc: &[f64], next: usize) {
+    /// Sets a window of up to [`NETWORK_MAX_LEN`] samples to the full `ring_degc`,
+    /// oldest first: the inverse of [`Self::full_ring`].
+    pub(crate) fn set_full_ring(&mut self, ring_degc: &[f64]) {
         debug_assert!(self.len <= NETWORK_MAX_LEN && ring_degc.len() == self.len);
         self.ring_degc.clear();
         self.ring_degc.extend_from_slice(ring_degc);
-        self.next = next;
     }
 }
 

@@ -24,10 +24,8 @@ pub(crate) struct Steady {
     pub value_degc: f64,
     /// The reading's loop current, mA (NaN: none).
     pub current_ma: f64,
-    /// The median ring in storage order (the first `len` slots) ...
+    /// The median window, oldest first (the first `len` slots).
     pub ring_degc: [f64; 5],
-    /// ... and the slot the next sample goes to.
-    pub next: usize,
 }
 
 impl Steady {
@@ -173,7 +171,7 @@ impl ChannelProcessor {
     /// The processor's state if its channel is steady (see [`Steady`]) and its median
     /// window holds at most five samples; `None` otherwise.
     pub(crate) fn steady(&self) -> Option<Steady> {
-        let (ring, next) = self.median.full_ring()?;
+        let ring = self.median.full_ring()?;
         let last = &self.last;
         let (Some((bits, raw_since_s)), Some((t_s, unfiltered_degc)), Some((lp_t_s, value_degc))) =
             (self.raw_since, self.accepted, self.lowpass.state())
@@ -201,7 +199,6 @@ impl ChannelProcessor {
             value_degc,
             current_ma: last.current_ma.unwrap_or(f64::NAN),
             ring_degc,
-            next,
         })
     }
 
@@ -210,7 +207,7 @@ impl ChannelProcessor {
     /// itself.
     pub(crate) fn resume(&mut self, s: &Steady) {
         let len = self.params.median_samples.max(1);
-        self.median.set_full_ring(&s.ring_degc[..len], s.next);
+        self.median.set_full_ring(&s.ring_degc[..len]);
         self.lowpass.reseed(s.t_s, s.value_degc);
         self.accepted = Some((s.t_s, s.unfiltered_degc));
         self.rejected_in_row = 0;
