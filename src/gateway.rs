@@ -135,6 +135,8 @@ pub struct Pipeline {
     homes: Vec<(usize, usize)>,
     /// Axes.
     pub axes: Vec<AxisRt>,
+    /// Model inputs of the last decision (kept for its allocation).
+    temps_degc: Vec<Option<f64>>,
     epoch: Instant,
 }
 
@@ -168,6 +170,7 @@ impl Pipeline {
             banks,
             homes,
             axes,
+            temps_degc: Vec::new(),
             epoch: Instant::now(),
         }
     }
@@ -233,20 +236,30 @@ impl Pipeline {
         bank.step(t_s, &mut gain, &mut self.processors);
     }
 
-    /// The model inputs of axis `axis`: `None` where the channel is not usable.
-    pub fn axis_inputs(&self, axis: usize) -> Vec<Option<f64>> {
-        self.axes[axis]
-            .inputs
-            .iter()
-            .map(|&ch| self.reading(ch).and_then(|r| r.usable_degc()))
-            .collect()
+    /// The value of channel `ch` if its quality allows using it.
+    pub fn usable_degc(&self, ch: usize) -> Option<f64> {
+        let (device, lane) = *self.homes.get(ch)?;
+        match self.banks.get(device) {
+            Some(bank) if bank.holds(lane) => Some(bank.value_degc(lane)),
+            _ => self.processors.get(ch)?.last().usable_degc(),
+        }
     }
 
     /// Runs one compensation decision for axis `axis`.
     pub fn decide(&mut self, axis: usize, at: Instant) -> Decision {
-        let inputs = self.axis_inputs(axis);
         let now_s = self.now_s(at);
-        self.axes[axis].comp.decide(now_s, &inputs)
+        // The inputs in a buffer kept between calls: the bench decides on every cycle.
+        let mut temps_degc = std::mem::take(&mut self.temps_degc);
+        temps_degc.clear();
+        temps_degc.extend(
+            self.axes[axis]
+                .inputs
+                .iter()
+                .map(|&ch| self.usable_degc(ch)),
+        );
+        let decision = self.axes[axis].comp.decide(now_s, &temps_degc);
+        self.temps_degc = temps_degc;
+        decision
     }
 }
 

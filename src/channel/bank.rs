@@ -270,6 +270,11 @@ impl Bank {
         }
     }
 
+    /// The filtered value of held lane `i` (a held lane is `Good`).
+    pub fn value_degc(&self, i: usize) -> f64 {
+        self.blocks[i / W].st.value_degc.as_array()[i % W]
+    }
+
     /// The reading of held lane `i`.
     pub fn reading(&self, i: usize) -> Reading {
         self.steady(i).reading()
