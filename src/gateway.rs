@@ -1119,3 +1119,70 @@ async fn generation(
     }
     reload_to
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::channel::{Quality, Reason};
+    use crate::source::Fault;
+
+    fn sample(p: &Pipeline, k: u32, fault_on: Option<usize>) -> DeviceSample {
+        let values = (0..p.channel_names.len())
+            .filter(|&ch| p.homes[ch].0 == 0)
+            .map(|ch| {
+                let value = if Some(ch) == fault_on {
+                    Err(Fault {
+                        reason: Reason::Comm,
+                        degraded: false,
+                    })
+                } else {
+                    // About 30 degC, one count of noise.
+                    Ok(1774.0 + f64::from((k + ch as u32) % 2))
+                };
+                (ch, value)
+            })
+            .collect();
+        DeviceSample {
+            device: 0,
+            started: p.epoch + Duration::from_millis(100 * u64::from(k)),
+            elapsed: Duration::ZERO,
+            values,
+            error: None,
+            connects: 1,
+        }
+    }
+
+    // The pipeline shows what the bank holds and hands it back whole: after a fault
+    // and on a reload the processors carry on from the bank's state.
+    #[test]
+    fn bank_state_goes_back_to_the_processors() {
+        let cfg = config::load_str(include_str!("../config/demo.toml"), "demo.toml")
+            .expect("demo config");
+        let mut p = build(&cfg).expect("build").pipeline;
+        for k in 0..30 {
+            p.ingest(&sample(&p, k, None));
+        }
+        let held = (0..p.channel_names.len())
+            .filter(|&ch| p.homes[ch].0 == 0 && p.banks[0].holds(p.homes[ch].1))
+            .count();
+        assert!(held >= 4, "{held} channels held");
+        let before: Vec<Reading> = (0..p.channel_names.len())
+            .map(|ch| p.reading(ch).expect("reading"))
+            .collect();
+        assert_eq!(before[0].quality, Quality::Good);
+        assert!(before[0].value_degc.is_some_and(|v| (v - 30.0).abs() < 0.1));
+        // A missing sample hands the channel back: held value, uncertain.
+        p.ingest(&sample(&p, 30, Some(0)));
+        let r = p.reading(0).expect("reading");
+        assert_eq!(r.quality, Quality::Uncertain(Reason::Comm));
+        assert_eq!(r.value_degc, before[0].value_degc);
+        assert!(!p.banks[0].holds(p.homes[0].1));
+        let now: Vec<Reading> = (0..p.channel_names.len())
+            .map(|ch| p.reading(ch).expect("reading"))
+            .collect();
+        let processors = p.take_processors();
+        for (ch, (proc_, r)) in processors.iter().zip(&now).enumerate() {
+            assert_eq!(proc_.last(), r, "channel {ch}");
+        }
+    }
+}

@@ -3,10 +3,10 @@
 /// Median of the last up-to-N accepted samples (fewer while the window fills).
 ///
 /// Runs for every channel on every poll. Windows of up to five samples (the usual
-/// 3 or 5) take the median straight from the ring through a fixed network of
-/// compare-exchanges: no branch depends on the values, which change order from one
-/// noisy sample to the next. Longer windows keep a sorted copy and
-/// move the newest value to its rank in one pass. No allocation after construction.
+/// 3 or 5) keep the samples oldest first and take the median through a fixed network
+/// of compare-exchanges: no branch depends on the values, which change order from one
+/// noisy sample to the next. Longer windows keep a ring and a sorted copy and move
+/// the newest value to its rank in one pass. No allocation after construction.
 ///
 /// The values must be finite (the channel processor checks before it pushes); a NaN
 /// gives some member of the window rather than a panic.
