@@ -16,7 +16,7 @@
 
 use wide::f64x4;
 
-use super::filter::{median3, median5};
+use super::filter::{median3, median5, Ordered};
 use super::processor::{Steady, GAP_TAUS};
 use super::{ChannelProcessor, CurrentRange, LowPassGain, Reading, Reason, Scaling};
 use super::{NE43_HIGH_MA, NE43_LOW_MA};
@@ -54,6 +54,12 @@ struct Settings {
     tau_s: f64x4,
     /// Median window length; 0: the lane is never held (a length the bank lacks).
     median_len: f64x4,
+    // Derived once: masks of the stages that are on, the gap limit.
+    stale_on: f64x4,
+    rate_on: f64x4,
+    lowpass_on: f64x4,
+    /// `GAP_TAUS * tau_s`, s.
+    gap_s: f64x4,
     // The same for the whole block, so the steady path can skip selects.
     /// The median length of every lane, if they all have the same (else 0).
     same_len: u8,
@@ -184,7 +190,12 @@ impl Bank {
             } else {
                 0
             };
-            set.lowpass_all = set.tau_s.simd_gt(f64x4::splat(0.0)).all();
+            let zero = f64x4::splat(0.0);
+            set.stale_on = set.stale_after_s.simd_gt(zero);
+            set.rate_on = set.max_rate_degc_per_s.simd_gt(zero);
+            set.lowpass_on = set.tau_s.simd_gt(zero);
+            set.gap_s = f64x4::splat(GAP_TAUS) * set.tau_s;
+            set.lowpass_all = set.lowpass_on.all();
             set.current_all = set.has_current.all();
         }
         Self {
@@ -363,23 +374,25 @@ fn steady_path(set: &Settings, st: &mut State, t_s: f64) {
     // Stale clock (`track_raw`): the same bits are the same value, but for the sign
     // of zero; so a raw zero leaves the steady path (below), as a NaN does anyway.
     let since_s = raw.simd_eq(st.raw).select(st.raw_since_s, t);
-    let stale = set.stale_after_s.simd_gt(zero) & (t - since_s).simd_ge(set.stale_after_s);
-    // Scaling (`Scaling::scale`): NE43, finiteness.
+    let stale = set.stale_on & (t - since_s).simd_ge(set.stale_after_s);
+    // Scaling (`Scaling::scale`): NE43, finiteness (a raw value that is not finite
+    // gives a temperature that is not finite).
     let ma = raw * set.mul / set.div;
     let degc = set.base_degc + (ma - set.zero) / set.span_in * set.span_out_degc;
-    let mut fail = !raw.abs().simd_lt(inf)
-        | raw.simd_eq(zero)
+    let mut fail = raw.simd_eq(zero)
         | ma.simd_lt(set.ne43_low_ma)
         | ma.simd_gt(set.ne43_high_ma)
         | !degc.abs().simd_lt(inf);
     // Range, stale, rate and gap (`accept`).
     fail = fail | !(set.valid_min_degc.simd_le(degc) & degc.simd_le(set.valid_max_degc)) | stale;
     let dt_s = t - st.t_s;
-    let dt_pos_s = dt_s.simd_gt(zero).select(dt_s, zero);
     let rate = set.max_rate_degc_per_s;
     fail = fail
-        | (rate.simd_gt(zero) & (degc - st.unfiltered_degc).abs().simd_gt(rate * dt_pos_s))
-        | (set.tau_s.simd_gt(zero) & dt_s.simd_gt(f64x4::splat(GAP_TAUS) * set.tau_s));
+        | (set.rate_on
+            & (degc - st.unfiltered_degc)
+                .abs()
+                .simd_gt(rate * dt_s.hi(zero)))
+        | (set.lowpass_on & dt_s.simd_gt(set.gap_s));
     let plain = st.fresh & !fail;
     // Usually every lane stays on the path and the block's lanes have the same
     // settings: then no selects (three instructions each on SSE2) are needed.
@@ -416,7 +429,7 @@ fn steady_path(set: &Settings, st: &mut State, t_s: f64) {
     let y = if set.lowpass_all {
         smoothed
     } else {
-        set.tau_s.simd_gt(zero).select(smoothed, median_degc)
+        set.lowpass_on.select(smoothed, median_degc)
     };
     let ma_shown = if set.current_all {
         ma
