@@ -5,21 +5,22 @@
 //! gap, into a full median window and the low pass, `Good`. A [`Bank`] holds the
 //! steady channels of one device and runs that path for four channels at a time with
 //! SIMD operations and no branch on the values. A sample that leaves the path (any
-//! check failing, a long gap, a missing sample) hands its channel back to its
+//! check failing, a long gap, a missing sample, a raw value of exactly zero, whose
+//! sign the stale clock would have to tell apart) hands its channel back to its
 //! processor, which handles that sample and the ones after it until the channel is
 //! steady again; then the bank takes it back.
 //!
 //! The bank computes with the processor's formulas in the processor's order (lane-wise
 //! IEEE operations give the scalar results), and its median is the processor's compare
-//! network on the ring in the same storage order, so its results are the processor's
-//! bit for bit (`tests` below compares the two on noisy and faulty sample streams).
+//! network on the window in the same order (oldest first), so its results are the
+//! processor's bit for bit (`tests` below compares the two on noisy and faulty sample
+//! streams).
 
 use wide::f64x4;
 
 use super::filter::{median3, median5, Ordered};
 use super::processor::{Steady, GAP_TAUS};
-use super::{ChannelProcessor, CurrentRange, LowPassGain, Reading, Reason, Scaling};
-use super::{NE43_HIGH_MA, NE43_LOW_MA};
+use super::{ChannelProcessor, LowPassGain, Reading, Reason};
 
 /// Lanes per block.
 const W: usize = 4;
@@ -31,9 +32,7 @@ const BANK_MEDIAN_LENS: [usize; 3] = [1, 3, 5];
 /// A true lane of a mask: all bits set.
 const TRUE: f64 = f64::from_bits(u64::MAX);
 
-/// The settings of four lanes, as numbers. Scaling: `current = raw * mul / div`,
-/// `degc = base + (current - zero) / span_in * span_out` (a direct scaling is
-/// `mul = gain`, `base = offset` and neutral values elsewhere).
+/// The settings of four lanes, as numbers (the scaling as `Scaling::linear` gives it).
 #[derive(Debug, Clone, Copy, Default)]
 struct Settings {
     mul: f64x4,
@@ -116,56 +115,21 @@ impl Bank {
         let mut blocks = vec![Block::default(); channels.len().div_ceil(W)];
         for (i, &ch) in channels.iter().enumerate() {
             let p = &processors[ch];
-            let (mul, div, zero, span_in, span_out, base, ne43, has_current) = match *p.scaling() {
-                Scaling::Transmitter {
-                    adc_full_scale_counts,
-                    adc_full_scale_ma,
-                    current_range,
-                    range_min_degc,
-                    range_max_degc,
-                } => {
-                    let span_degc = range_max_degc - range_min_degc;
-                    let (zero, span_in, ne43) = match current_range {
-                        CurrentRange::FourTo20 => (4.0, 16.0, (NE43_LOW_MA, NE43_HIGH_MA)),
-                        CurrentRange::ZeroTo20 => (0.0, 20.0, (f64::NEG_INFINITY, f64::INFINITY)),
-                    };
-                    let (mul, div) = (adc_full_scale_ma, adc_full_scale_counts);
-                    (
-                        mul,
-                        div,
-                        zero,
-                        span_in,
-                        span_degc,
-                        range_min_degc,
-                        ne43,
-                        true,
-                    )
-                }
-                Scaling::Direct { gain, offset_degc } => (
-                    gain,
-                    1.0,
-                    0.0,
-                    1.0,
-                    1.0,
-                    offset_degc,
-                    (f64::NEG_INFINITY, f64::INFINITY),
-                    false,
-                ),
-            };
+            let l = p.scaling().linear();
             let f = p.filter_params();
             let len = f.median_samples.max(1);
             let (b, j) = (i / W, i % W);
             let set = &mut blocks[b].set;
             for (v, x) in [
-                (&mut set.mul, mul),
-                (&mut set.div, div),
-                (&mut set.zero, zero),
-                (&mut set.span_in, span_in),
-                (&mut set.span_out_degc, span_out),
-                (&mut set.base_degc, base),
-                (&mut set.ne43_low_ma, ne43.0),
-                (&mut set.ne43_high_ma, ne43.1),
-                (&mut set.has_current, if has_current { TRUE } else { 0.0 }),
+                (&mut set.mul, l.mul),
+                (&mut set.div, l.div),
+                (&mut set.zero, l.zero),
+                (&mut set.span_in, l.span_in),
+                (&mut set.span_out_degc, l.span_out_degc),
+                (&mut set.base_degc, l.base_degc),
+                (&mut set.ne43_low_ma, l.ne43_low_ma),
+                (&mut set.ne43_high_ma, l.ne43_high_ma),
+                (&mut set.has_current, if l.has_current { TRUE } else { 0.0 }),
                 (&mut set.valid_min_degc, f.valid_min_degc),
                 (&mut set.valid_max_degc, f.valid_max_degc),
                 (&mut set.stale_after_s, f.stale_after_s),
@@ -210,7 +174,7 @@ impl Bank {
         self.held.get(lane).copied().unwrap_or(false)
     }
 
-    /// A fresh raw value of `lane` (processor `p`) taken at `t_s`: queued for
+    /// A fresh raw value of lane `i` (processor `p`) taken at `t_s`: queued for
     /// [`Self::step`] if the bank holds the lane, else processed by `p` at once.
     #[inline]
     pub fn sample(
@@ -231,7 +195,7 @@ impl Bank {
         }
     }
 
-    /// No sample for `lane` (processor `p`) at `t_s`: see
+    /// No sample for lane `i` (processor `p`) at `t_s`: see
     /// [`ChannelProcessor::on_missing`].
     pub fn missing(
         &mut self,
@@ -340,10 +304,7 @@ impl Bank {
 /// updated together with the same time constant.
 #[inline(always)]
 fn gains(set: &Settings, st: &State, t_s: f64, fresh: u32, gain: &mut LowPassGain) -> f64x4 {
-    let dt_s = f64x4::splat(t_s) - st.t_s;
-    let dt_s = dt_s
-        .simd_gt(f64x4::splat(0.0))
-        .select(dt_s, f64x4::splat(0.0));
+    let dt_s = (f64x4::splat(t_s) - st.t_s).hi(f64x4::splat(0.0));
     let (dts, taus) = (dt_s.as_array(), set.tau_s.as_array());
     // Usually every lane has the first fresh lane's time step and time constant.
     // Equal values here have equal bits (steps are never -0 or NaN), so the gain is
@@ -460,7 +421,7 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
-    use super::super::FilterParams;
+    use super::super::{CurrentRange, FilterParams, Scaling};
     use super::*;
 
     /// A mix of the settings a device's channels have: every scaling, median lengths

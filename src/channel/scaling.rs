@@ -53,7 +53,67 @@ pub struct Scaled {
     pub degc: Result<f64, Reason>,
 }
 
+/// A scaling as numbers: `current = raw * mul / div`,
+/// `degc = base_degc + (current - zero) / span_in * span_out_degc`, NE43 limits (infinite
+/// where they do not apply). A direct scaling is `mul = gain`, `base_degc = offset` and
+/// neutral values elsewhere (`x / 1`, `x - 0`, `x * 1` are exact), so one formula serves
+/// every kind, in the processor and, four channels at a time, in the channel bank.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Linear {
+    pub mul: f64,
+    pub div: f64,
+    pub zero: f64,
+    pub span_in: f64,
+    pub span_out_degc: f64,
+    pub base_degc: f64,
+    pub ne43_low_ma: f64,
+    pub ne43_high_ma: f64,
+    /// The current is a loop current (a transmitter) and part of the reading.
+    pub has_current: bool,
+}
+
 impl Scaling {
+    /// The scaling as numbers.
+    pub(crate) fn linear(&self) -> Linear {
+        let no_ne43 = (f64::NEG_INFINITY, f64::INFINITY);
+        match *self {
+            Self::Transmitter {
+                adc_full_scale_counts,
+                adc_full_scale_ma,
+                current_range,
+                range_min_degc,
+                range_max_degc,
+            } => {
+                let (zero, span_in, ne43) = match current_range {
+                    CurrentRange::FourTo20 => (4.0, 16.0, (NE43_LOW_MA, NE43_HIGH_MA)),
+                    CurrentRange::ZeroTo20 => (0.0, 20.0, no_ne43),
+                };
+                Linear {
+                    mul: adc_full_scale_ma,
+                    div: adc_full_scale_counts,
+                    zero,
+                    span_in,
+                    span_out_degc: range_max_degc - range_min_degc,
+                    base_degc: range_min_degc,
+                    ne43_low_ma: ne43.0,
+                    ne43_high_ma: ne43.1,
+                    has_current: true,
+                }
+            }
+            Self::Direct { gain, offset_degc } => Linear {
+                mul: gain,
+                div: 1.0,
+                zero: 0.0,
+                span_in: 1.0,
+                span_out_degc: 1.0,
+                base_degc: offset_degc,
+                ne43_low_ma: no_ne43.0,
+                ne43_high_ma: no_ne43.1,
+                has_current: false,
+            },
+        }
+    }
+
     /// Scales one raw value. NE43 is checked before the temperature is computed:
     /// a fault current carries no temperature. Currents between 3.6 and 4 mA or
     /// 20 and 21 mA are valid saturated readings and scale linearly (slightly
@@ -65,36 +125,17 @@ impl Scaling {
                 degc: Err(Reason::NotFinite),
             };
         }
-        let (current_ma, degc) = match *self {
-            Self::Transmitter {
-                adc_full_scale_counts,
-                adc_full_scale_ma,
-                current_range,
-                range_min_degc,
-                range_max_degc,
-            } => {
-                // Multiply first: integer counts times mA stay exact, so a count that
-                // is exactly 3.6 mA is not misread as 3.5999999999999996 mA.
-                let ma = raw * adc_full_scale_ma / adc_full_scale_counts;
-                let span_degc = range_max_degc - range_min_degc;
-                let degc = match current_range {
-                    CurrentRange::FourTo20 => {
-                        if ma < NE43_LOW_MA {
-                            return fault(ma, Reason::Ne43Low);
-                        }
-                        if ma > NE43_HIGH_MA {
-                            return fault(ma, Reason::Ne43High);
-                        }
-                        range_min_degc + (ma - 4.0) / 16.0 * span_degc
-                    }
-                    CurrentRange::ZeroTo20 => range_min_degc + ma / 20.0 * span_degc,
-                };
-                (Some(ma), degc)
-            }
-            Self::Direct { gain, offset_degc } => (None, raw * gain + offset_degc),
-        };
+        let l = self.linear();
+        let ma = raw * l.mul / l.div;
+        if ma < l.ne43_low_ma {
+            return fault(ma, Reason::Ne43Low);
+        }
+        if ma > l.ne43_high_ma {
+            return fault(ma, Reason::Ne43High);
+        }
+        let degc = l.base_degc + (ma - l.zero) / l.span_in * l.span_out_degc;
         Scaled {
-            current_ma: current_ma.filter(|ma| ma.is_finite()),
+            current_ma: Some(ma).filter(|ma| l.has_current && ma.is_finite()),
             degc: if degc.is_finite() {
                 Ok(degc)
             } else {
