@@ -177,11 +177,17 @@ impl Pipeline {
 
     /// The latest reading of channel `ch` (config order); `None` past the last channel.
     pub fn reading(&self, ch: usize) -> Option<Reading> {
-        let (device, lane) = *self.homes.get(ch)?;
-        match self.banks.get(device) {
-            Some(bank) if bank.holds(lane) => Some(bank.reading(lane)),
-            _ => self.processors.get(ch).map(|p| p.last().clone()),
+        match self.held(ch) {
+            Some((bank, lane)) => Some(bank.reading(lane)),
+            None => self.processors.get(ch).map(|p| p.last().clone()),
         }
+    }
+
+    /// The bank and lane of channel `ch` if its device's bank holds it.
+    fn held(&self, ch: usize) -> Option<(&Bank, usize)> {
+        let (device, lane) = *self.homes.get(ch)?;
+        let bank = self.banks.get(device)?;
+        bank.holds(lane).then_some((bank, lane))
     }
 
     /// Every channel's name and reading, in config order.
@@ -238,10 +244,9 @@ impl Pipeline {
 
     /// The value of channel `ch` if its quality allows using it.
     pub fn usable_degc(&self, ch: usize) -> Option<f64> {
-        let (device, lane) = *self.homes.get(ch)?;
-        match self.banks.get(device) {
-            Some(bank) if bank.holds(lane) => Some(bank.value_degc(lane)),
-            _ => self.processors.get(ch)?.last().usable_degc(),
+        match self.held(ch) {
+            Some((bank, lane)) => Some(bank.value_degc(lane)),
+            None => self.processors.get(ch)?.last().usable_degc(),
         }
     }
 
