@@ -23,6 +23,8 @@ echo "== cargo fmt --check"
 cargo fmt --all -- --check
 echo "== cargo clippy"
 cargo clippy --workspace --all-targets -- -D warnings
+# The production binary (deploy/install.sh): without the simulator.
+cargo clippy -p compgate --no-default-features -- -D warnings
 echo "== cargo doc (broken links and bad doc markup are errors)"
 RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --quiet
 echo "== cargo test"

@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
-# Installs compgate as a systemd service on a shop-floor PC. Run as root from the
-# repository after `cargo build --release`:
+# Builds the production binary and installs compgate as a systemd service on a
+# shop-floor PC. Run as root from the repository:
 #
 #   sudo deploy/install.sh [CONFIG.toml]
 #
-# - binary       -> /usr/local/bin/compgate
+# - binary       -> /usr/local/bin/compgate, built without the default `sim` feature:
+#                   no simulated plant (demo, sim, scenario, backlash --sim) in it
+# - manual       -> /usr/local/share/doc/compgate (README.md and docs/)
 # - config       -> /etc/compgate/compgate.toml (only if absent; default: config/example.toml)
 # - unit         -> /etc/systemd/system/compgate.service
 # - system user  compgate (no login, no home), member of dialout for RS-485 adapters
@@ -18,9 +20,20 @@ if [[ $(id -u) -ne 0 ]]; then
     exit 1
 fi
 config_src=${1:-config/example.toml}
-binary=target/release/compgate
+# Its own target directory, so the demo build in target/release stays as it is.
+build=(cargo build --release --locked --no-default-features --bin compgate
+    --target-dir target/production)
+binary=target/production/release/compgate
+if command -v cargo >/dev/null 2>&1; then
+    "${build[@]}"
+elif [[ -n ${SUDO_USER:-} ]]; then
+    # rustup installs cargo per user: build as the user who called sudo.
+    sudo -u "$SUDO_USER" bash -lc "cd '$PWD' && ${build[*]}"
+else
+    echo "install.sh: cargo not found; run '${build[*]}' and then this script" >&2
+fi
 if [[ ! -x $binary ]]; then
-    echo "install.sh: $binary missing; run 'cargo build --release' first" >&2
+    echo "install.sh: $binary missing" >&2
     exit 1
 fi
 
@@ -38,6 +51,7 @@ if [[ ! -e /etc/compgate/compgate.toml ]]; then
 fi
 install -d -m 0755 /usr/local/share/doc/compgate
 install -m 0644 README.md /usr/local/share/doc/compgate/README.md
+cp -r docs /usr/local/share/doc/compgate/
 install -m 0644 deploy/compgate.service /etc/systemd/system/compgate.service
 
 /usr/local/bin/compgate validate --config /etc/compgate/compgate.toml

@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 /// compgate: thermal compensation gateway for CNC machine tools.
 ///
@@ -35,42 +35,76 @@ pub enum Command {
         #[arg(long, short)]
         config: PathBuf,
     },
+    /// Write recorded operation as the measurement CSV that calibrate and diagnose read.
+    Export(compgate_service::record::export::ExportArgs),
+    /// Fit K0(T) and tan(beta)(T) to measured error curves and write the axis model.
+    Calibrate(compgate_commission::calibrate::CalibrateArgs),
+    /// Find where model and measurement disagree, name the missing effect, add it.
+    Diagnose(compgate_commission::diagnose::command::DiagnoseArgs),
+    /// ISO 230-2 evaluation (A, B, R, E, M) of bidirectional runs in a measurement CSV.
+    Iso230(compgate_commission::iso230::Iso230Args),
+    /// Measure reversal backlash of a full-closed-loop axis from encoder vs scale trace.
+    Backlash(compgate_commission::backlash::BacklashArgs),
+    /// Evaluate volumetric compensation of a 5-axis AC-head machine over a workspace grid.
+    Volumetric(compgate_commission::volumetric::VolumetricArgs),
+    /// Thermal test of the simulated machine with the gateway in the loop, off vs on.
+    #[cfg(feature = "sim")]
+    Scenario(crate::scenario::ScenarioArgs),
+    /// Run the gateway against the embedded simulated plant (the default).
+    #[cfg(feature = "sim")]
+    Demo,
     /// Run only the simulated plant on the addresses the config names.
+    #[cfg(feature = "sim")]
     Sim {
         /// Configuration file (TOML).
         #[arg(long, short)]
         config: PathBuf,
     },
-    /// Run the gateway against the embedded simulated plant (the default).
-    Demo,
-    /// Measure reversal backlash of a full-closed-loop axis from encoder vs scale trace.
-    Backlash(crate::backlash::BacklashArgs),
-    /// Evaluate volumetric compensation of a 5-axis AC-head machine over a workspace grid.
-    Volumetric(crate::volumetric::VolumetricArgs),
-    /// Fit K0(T) and tan(beta)(T) to measured error curves and write the axis model.
-    Calibrate(crate::calibrate::CalibrateArgs),
-    /// Thermal test of the simulated machine with the gateway in the loop, off vs on.
-    Scenario(crate::scenario::ScenarioArgs),
-    /// ISO 230-2 evaluation (A, B, R, E, M) of bidirectional runs in a measurement CSV.
-    Iso230(crate::iso230::Iso230Args),
-    /// Write recorded operation as the measurement CSV that calibrate and diagnose read.
-    Export(crate::record::export::ExportArgs),
-    /// Find where model and measurement disagree, name the missing effect, add it.
-    Diagnose(crate::diagnose::command::DiagnoseArgs),
-    /// Measure poll-filter-compute cycles against the bare Modbus request rate.
-    Bench {
-        /// Channels on the simulated module, read in one request.
-        #[arg(long, default_value_t = 64)]
-        channels: u16,
-        /// Measured cycles per round.
-        #[arg(long, default_value_t = 2000)]
-        cycles: u32,
-        /// Alternating rounds of gateway and bare measurements (many short rounds: the median then outvotes bursts of load from other processes)
-        #[arg(long, default_value_t = 15)]
-        rounds: u32,
-        /// Instead: soak the real gateway process for this many seconds (8 devices x
-        /// 64 channels at 10 Hz, recording, metrics and MQTT on) and report CPU and RSS.
-        #[arg(long)]
-        soak: Option<f64>,
-    },
+}
+
+/// The groups `compgate --help` lists the commands in.
+const GROUPS: [(&str, &[&str]); 3] = [
+    ("Service", &["run", "validate", "export"]),
+    (
+        "Commissioning",
+        &[
+            "calibrate",
+            "diagnose",
+            "iso230",
+            "backlash",
+            "volumetric",
+            "scenario",
+        ],
+    ),
+    ("Tools", &["demo", "sim"]),
+];
+
+/// The clap command with the subcommands listed by group in the help.
+pub fn command() -> clap::Command {
+    let cmd = Cli::command();
+    let mut listing = String::new();
+    for (group, names) in GROUPS {
+        let subs: Vec<&clap::Command> = names
+            .iter()
+            .filter_map(|n| cmd.get_subcommands().find(|s| s.get_name() == *n))
+            .collect();
+        if subs.is_empty() {
+            continue;
+        }
+        listing.push_str(&format!("{group}:\n"));
+        for s in subs {
+            let about = s.get_about().map(|a| a.to_string()).unwrap_or_default();
+            listing.push_str(&format!("  {:<11} {about}\n", s.get_name()));
+        }
+        listing.push('\n');
+    }
+    cmd.help_template(format!(
+        "{{before-help}}{{about-with-newline}}\n{{usage-heading}} {{usage}}\n\n{listing}Options:\n{{options}}{{after-help}}"
+    ))
+}
+
+/// Parses the process's arguments (clap exits on `--help` and on errors).
+pub fn parse() -> Cli {
+    let matches = command().get_matches();
+    Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit())
 }

@@ -20,8 +20,10 @@ use compgate_plc::nc::{Motion, NcAxis, NcAxisModule};
 use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
 
-use crate::config::{CanChannelConfig, ChannelConfig, Config, Scaling, SimProfile, Transport};
-use crate::source::plan::{ByteOrder, DataType};
+use compgate_gateway::config::{
+    CanChannelConfig, ChannelConfig, Config, Scaling, SimProfile, Transport,
+};
+use compgate_gateway::source::plan::{ByteOrder, DataType};
 
 /// Errors of the plant.
 #[derive(Debug, thiserror::Error)]
@@ -349,4 +351,68 @@ async fn bind_tcp(addr: &str, what: &str) -> Result<(TcpListener, String), Plant
         message: e.to_string(),
     })?;
     Ok((listener, local.to_string()))
+}
+
+/// Serves the simulated axis of `compgate backlash --sim`: an NC axis module with the
+/// `--sim-*` parameters on loopback.
+/// Returns its address, the module and the token that stops it.
+pub async fn backlash_axis(
+    args: &compgate_commission::backlash::BacklashArgs,
+) -> Result<
+    (
+        String,
+        compgate_plc::nc::NcAxisModule,
+        tokio_util::sync::CancellationToken,
+    ),
+    compgate_commission::backlash::BacklashError,
+> {
+    use compgate_plc::axis::AxisParams;
+    use compgate_plc::nc::{NcAxis, NcAxisModule};
+    let params = AxisParams {
+        backlash_mm: args.sim_backlash_um / 1000.0,
+        encoder_noise_mm: args.sim_noise_um / 1000.0,
+        scale_noise_mm: args.sim_noise_um / 1000.0,
+        elastic_tau_s: args.sim_elastic_ms / 1000.0,
+        seed: args.sim_seed,
+        ..AxisParams::default()
+    };
+    let mut problems = Vec::new();
+    if !(0.0..=1000.0).contains(&args.sim_backlash_um) {
+        problems.push(format!(
+            "--sim-backlash-um {} outside 0..=1000",
+            args.sim_backlash_um
+        ));
+    }
+    if !(0.0..=100.0).contains(&args.sim_noise_um) {
+        problems.push(format!(
+            "--sim-noise-um {} outside 0..=100",
+            args.sim_noise_um
+        ));
+    }
+    let max_tau_ms = 0.2 / params.kv_per_s * 1000.0;
+    if !(0.0..=max_tau_ms).contains(&args.sim_elastic_ms) {
+        problems.push(format!(
+            "--sim-elastic-ms {} outside 0..={max_tau_ms} (Kv = {} 1/s must stay overdamped)",
+            args.sim_elastic_ms, params.kv_per_s
+        ));
+    }
+    if !(args.sim_speed > 0.0 && args.sim_speed <= 1e6) {
+        problems.push(format!("--sim-speed {} outside (0, 1e6]", args.sim_speed));
+    }
+    if !problems.is_empty() {
+        return Err(compgate_commission::backlash::BacklashError::Invalid(
+            problems,
+        ));
+    }
+    let module = NcAxisModule::new(NcAxis {
+        allow_md32450_write: true,
+        referenced: true,
+        ..NcAxis::default()
+    });
+    module.set_servo(params);
+    module.set_sim_speed(args.sim_speed);
+    let (address, shutdown) = module.serve_loopback().await.map_err(|e| {
+        compgate_commission::backlash::BacklashError::Io(format!("bind loopback: {e}"))
+    })?;
+    Ok((address, module, shutdown))
 }

@@ -1,7 +1,7 @@
 //! CAN devices and channels in the config: what loads, and what validation reports
 //! (by key and file) for each kind of mistake.
 
-use compgate::config::{self, ConfigError, Transport};
+use compgate_gateway::config::{self, ConfigError, Transport};
 
 fn example() -> String {
     std::fs::read_to_string(concat!(
@@ -43,7 +43,7 @@ fn the_can_example_loads() {
     let sdo = cfg.channels["T_col"].can.expect("can table");
     assert_eq!((sdo.sdo_index, sdo.sdo_subindex), (Some(0x9130), Some(3)));
     // And the gateway builds from it without touching the bus.
-    compgate::gateway::build(&cfg).expect("builds");
+    compgate_gateway::runtime::build(&cfg).expect("builds");
 }
 
 #[test]
@@ -124,7 +124,7 @@ fn one_poll_interval_and_one_sync_producer_per_interface() {
     let third = "\n[devices.can_c]\ntransport = \"can\"\ninterface = \"vcan1\"\nnode_id = 5\npoll_interval_s = 0.25\n";
     let text = format!("{}{second}poll_interval_s = 0.5\n{third}", example());
     let cfg = config::load_str(&text, "can.toml").expect("valid");
-    let built = compgate::gateway::build(&cfg).expect("builds");
+    let built = compgate_gateway::runtime::build(&cfg).expect("builds");
     let producers: Vec<(String, f64)> = built
         .sync_producers
         .iter()

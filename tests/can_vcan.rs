@@ -14,11 +14,11 @@ use std::process::Stdio;
 use std::time::Duration;
 
 use common::{start, Rig, COUNT_DEGC};
-use compgate::channel::{Quality, Reason};
-use compgate::gateway::Status;
-use compgate::source::can::sync::{self, SyncParams};
-use compgate::source::can::{CanChannelSpec, CanObject, CanParams, CanPoller};
-use compgate::source::plan::DataType;
+use compgate_core::channel::{Quality, Reason};
+use compgate_gateway::runtime::Status;
+use compgate_gateway::source::can::sync::{self, SyncParams};
+use compgate_gateway::source::can::{CanChannelSpec, CanObject, CanParams, CanPoller};
+use compgate_gateway::source::plan::DataType;
 use tokio::time::Instant;
 
 fn interface() -> String {
@@ -498,11 +498,11 @@ impl Drop for ExtraVcan {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "needs vcan0 and root (ip link add); tests/vcan/run.sh runs it"]
 async fn reload_and_shutdown_stop_the_sync_producer() {
-    use compgate::gateway::{self, Hooks};
     use compgate::plant::{Bind, Plant};
+    use compgate_gateway::runtime::{self, Hooks};
 
     let other = ExtraVcan::add("vcan7");
-    let cfg = compgate::config::load_str(&can_config(5), "test.toml").expect("valid");
+    let cfg = compgate_gateway::config::load_str(&can_config(5), "test.toml").expect("valid");
     let plant = Plant::start(&cfg, Bind::Ephemeral).await.expect("plant");
     let cfg = plant.config.clone();
     let bus = socketcan::tokio::CanSocket::open(&interface()).expect("open vcan");
@@ -517,7 +517,7 @@ async fn reload_and_shutdown_stop_the_sync_producer() {
             reload: Some(reload_rx),
             ..Hooks::default()
         };
-        gateway::run_with(&run_cfg, sd, tx, hooks)
+        runtime::run_with(&run_cfg, sd, tx, hooks)
             .await
             .expect("gateway runs");
     });

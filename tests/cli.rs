@@ -47,6 +47,47 @@ fn validate_reports_every_problem_with_file_and_key_and_exits_1() {
 }
 
 #[test]
+fn backlash_with_sim_reports_the_table_and_without_a_target_exits_1() {
+    let out = Command::new(BIN)
+        .args(["backlash", "--sim", "--sim-backlash-um", "12"])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        text.contains("H1") && text.contains("h2") && text.contains("F2"),
+        "{text}"
+    );
+    let none = Command::new(BIN).arg("backlash").output().unwrap();
+    assert_eq!(none.status.code(), Some(1));
+    assert!(
+        String::from_utf8_lossy(&none.stderr).contains("give --nc ADDRESS or --sim"),
+        "{}",
+        String::from_utf8_lossy(&none.stderr)
+    );
+}
+
+#[test]
+fn help_groups_the_commands() {
+    let out = Command::new(BIN).arg("--help").output().unwrap();
+    let help = String::from_utf8_lossy(&out.stdout);
+    let at = |s: &str| {
+        help.find(s)
+            .unwrap_or_else(|| panic!("{s} missing:\n{help}"))
+    };
+    assert!(at("Service:") < at("  run "));
+    assert!(at("  export ") < at("Commissioning:"));
+    assert!(at("Commissioning:") < at("  calibrate "));
+    assert!(at("  scenario ") < at("Tools:"));
+    assert!(at("Tools:") < at("  demo "));
+    assert_eq!(help.matches("  validate ").count(), 1, "{help}");
+}
+
+#[test]
 fn demo_prints_plain_lines_when_piped_and_stops_on_sigterm() {
     let mut child = Command::new(BIN)
         .stdout(Stdio::piped())

@@ -4,7 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
-use compgate::config::{self, ConfigError, ConfigProblem};
+use compgate_gateway::config::{self, ConfigError, ConfigProblem};
 
 fn config_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("config")

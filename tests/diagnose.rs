@@ -3,9 +3,9 @@
 
 use std::process::Command;
 
-use compgate::diagnose::synth::{generate, SynthSpec};
-use compgate::diagnose::{diagnose, EffectKind, Options};
-use compgate::measure::Measurements;
+use compgate_commission::diagnose::synth::{generate, SynthSpec};
+use compgate_commission::diagnose::{diagnose, EffectKind, Options};
+use compgate_core::measure::Measurements;
 
 fn spec(seed: u64, effects: Vec<EffectKind>, noise_um: f64, snr: f64) -> SynthSpec {
     SynthSpec {
@@ -248,7 +248,7 @@ fn bad_input_names_the_thing_at_fault() {
         "[axes.X]\np0_mm = 0\n[axes.X.k0]\noffset_mm = 0\nbogus = 1\n",
     )
     .expect("model");
-    let e = compgate::diagnose::ModelFile::read_path(&model).expect_err("unknown key");
+    let e = compgate_commission::diagnose::ModelFile::read_path(&model).expect_err("unknown key");
     assert!(
         e.to_string().contains("m.toml") && e.to_string().contains("bogus"),
         "{e}"

@@ -14,10 +14,10 @@ use std::time::Duration;
 use common::process::Gateway;
 use common::proxy::Proxy;
 use common::{config, COUNT_DEGC};
-use compgate::channel::Quality;
-use compgate::config as cfgmod;
-use compgate::gateway::{self, Status};
 use compgate::plant::{Bind, Plant};
+use compgate_core::channel::Quality;
+use compgate_gateway::config as cfgmod;
+use compgate_gateway::runtime::{self, Status};
 use compgate_plc::nc::NcAxisModule;
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
@@ -43,7 +43,7 @@ fn run_gateway(
     let shutdown = CancellationToken::new();
     let sd = shutdown.clone();
     let h = tokio::spawn(async move {
-        gateway::run(&cfg, sd, tx).await.expect("gateway runs");
+        runtime::run(&cfg, sd, tx).await.expect("gateway runs");
     });
     (rx, shutdown, h)
 }
@@ -65,7 +65,7 @@ async fn wait(
         Ok(s) => s,
         Err(_) => panic!(
             "timed out waiting for {what}: {}",
-            compgate::status::render(&rx.borrow())
+            compgate_service::status::render(&rx.borrow())
         ),
     }
 }

@@ -7,17 +7,17 @@ mod common;
 use std::time::Duration;
 
 use common::{config, start, Rig, COUNT_DEGC};
-use compgate::channel::{Quality, Reason};
+use compgate_core::channel::{Quality, Reason};
+use compgate_ncproto::JobStatus;
 use compgate_plc::field::{CommFault, SensorFault};
 use compgate_plc::nc::JobFault;
-use compgate_plc::ncmap::JobStatus;
 use tokio_modbus::ExceptionCode;
 
-fn quality(s: &compgate::gateway::Status, ch: &str) -> Quality {
+fn quality(s: &compgate_gateway::runtime::Status, ch: &str) -> Quality {
     Rig::channel(s, ch).reading.quality
 }
 
-fn value(s: &compgate::gateway::Status, ch: &str) -> f64 {
+fn value(s: &compgate_gateway::runtime::Status, ch: &str) -> f64 {
     Rig::channel(s, ch)
         .reading
         .value_degc
@@ -453,8 +453,8 @@ async fn md32750_mismatch_and_unreferenced_axis_are_shown() {
     rig.stop().await;
 }
 
-fn render_has_no_warning(s: &compgate::gateway::Status) -> bool {
-    !compgate::status::render(s).contains("WARNING")
+fn render_has_no_warning(s: &compgate_gateway::runtime::Status) -> bool {
+    !compgate_service::status::render(s).contains("WARNING")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

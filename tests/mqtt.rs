@@ -8,8 +8,8 @@ use std::time::Duration;
 
 use common::broker::{subscribe, Broker, Received};
 use common::process::Gateway;
-use compgate::config;
 use compgate::plant::{Bind, Plant};
+use compgate_gateway::config;
 
 async fn plant_and_file(dir: &Path, broker_port: u16) -> (Plant, std::path::PathBuf) {
     let toml = common::config("hold", "", "");
@@ -53,7 +53,7 @@ async fn wait_until(secs: f64, what: &str, mut pred: impl FnMut() -> bool) {
 }
 
 fn now_ms() -> i64 {
-    compgate::record::now_unix_ms()
+    compgate_service::record::now_unix_ms()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -7,9 +7,9 @@ use std::path::Path;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use common::process::{Gateway, BIN};
-use compgate::config;
-use compgate::measure::Measurements;
 use compgate::plant::{Bind, Plant};
+use compgate_core::measure::Measurements;
+use compgate_gateway::config;
 use rusqlite::Connection;
 
 fn now_ms() -> i64 {
@@ -109,7 +109,7 @@ async fn recorded_operation_exports_to_the_measurement_csv() {
     assert!(tokio::task::block_in_place(|| gw.stop()));
 
     let conn = Connection::open(&db).unwrap();
-    let (readings, jobs, nc) = compgate::record::counts(&conn).unwrap();
+    let (readings, jobs, nc) = compgate_service::record::counts(&conn).unwrap();
     assert!(
         readings > 100 && jobs >= 1 && nc >= 1,
         "{readings} {jobs} {nc}"

@@ -6,9 +6,9 @@ mod common;
 use std::time::Duration;
 
 use common::process::Gateway;
-use compgate::config;
-use compgate::gateway::{self, Hooks, Status};
 use compgate::plant::{Bind, Plant};
+use compgate_gateway::config;
+use compgate_gateway::runtime::{self, Hooks, Status};
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
@@ -180,7 +180,7 @@ async fn reload_keeps_the_state_of_unchanged_channels_and_devices() {
             reload: Some(reload_rx),
             ..Hooks::default()
         };
-        gateway::run_with(&run_cfg, sd, tx, hooks).await.unwrap();
+        runtime::run_with(&run_cfg, sd, tx, hooks).await.unwrap();
     });
     let wait = |rx: &mut watch::Receiver<Status>,
                 what: &'static str,

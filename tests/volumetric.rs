@@ -3,7 +3,7 @@
 
 use std::sync::Arc;
 
-use compgate::volumetric::{
+use compgate_commission::volumetric::{
     angle_rad, distance_mm, parse, VolumetricCompensator, MM_PER_UM, RAD_PER_ARCSEC,
 };
 use compgate_plc::machine5::{HeadGeometry, Machine5};

@@ -26,12 +26,11 @@
 //! Moves follow a trapezoidal velocity profile at the programmed feed and the axis
 //! acceleration; a dwell starts when the interpolator reaches the target.
 
+use compgate_ncproto::servo::{MoveStep, TraceConfig, Trigger, MAX_STEPS};
 use rand::rngs::SmallRng;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 
-/// Most steps in one move programme.
-pub const MAX_STEPS: usize = 8;
 /// Most samples one trace holds (both channels).
 pub const MAX_TRACE_SAMPLES: usize = 200_000;
 
@@ -101,18 +100,6 @@ impl Default for AxisParams {
     }
 }
 
-/// One step of a move programme: move to `target_mm` at `feed_mm_per_min`, then
-/// dwell `dwell_s`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct MoveStep {
-    /// Target position, mm.
-    pub target_mm: f64,
-    /// Feed, mm/min (> 0).
-    pub feed_mm_per_min: f64,
-    /// Dwell after arrival, s (>= 0).
-    pub dwell_s: f64,
-}
-
 /// Why a programme or trace configuration was refused. The discriminant is the
 /// status register value (see `ncmap`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
@@ -144,56 +131,6 @@ pub enum SimRefusal {
     /// 9: unknown trigger condition, or a threshold that is not finite.
     #[error("bad trigger")]
     BadTrigger = 9,
-}
-
-/// Trace trigger condition.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Trigger {
-    /// 0: triggers on arming.
-    Immediate = 0,
-    /// 1: the scale actual position rises through the threshold (edge).
-    ScaleRising = 1,
-    /// 2: the scale actual position falls through the threshold (edge).
-    ScaleFalling = 2,
-}
-
-impl Trigger {
-    /// Decodes the trigger register.
-    pub fn from_u16(v: u16) -> Option<Self> {
-        match v {
-            0 => Some(Self::Immediate),
-            1 => Some(Self::ScaleRising),
-            2 => Some(Self::ScaleFalling),
-            _ => None,
-        }
-    }
-}
-
-/// Servo trace parameters, as set before arming.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TraceConfig {
-    /// Sample period, s (a whole number of servo cycles).
-    pub period_s: f64,
-    /// Record time, s.
-    pub record_s: f64,
-    /// Trigger condition.
-    pub trigger: Trigger,
-    /// Trigger threshold (scale position), mm.
-    pub threshold_mm: f64,
-    /// Post-trigger delay before recording starts, s.
-    pub delay_s: f64,
-}
-
-impl Default for TraceConfig {
-    fn default() -> Self {
-        Self {
-            period_s: 0.002,
-            record_s: 10.0,
-            trigger: Trigger::Immediate,
-            threshold_mm: 0.0,
-            delay_s: 0.0,
-        }
-    }
 }
 
 /// Servo trace state.

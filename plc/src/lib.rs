@@ -1,5 +1,8 @@
 //! `compgate-plc`: the simulated PLC/NC side of compgate.
 //!
+//! It depends only on `compgate-core` (measurement types) and `compgate-ncproto` (the
+//! NC axis module's register map, the contract it shares with the gateway's writer).
+//!
 //! Tests, the demo and commissioning dry-runs talk to these simulators exactly as the
 //! gateway talks to real equipment: over Modbus TCP (loopback, port 0) and Modbus RTU
 //! (a pseudo-terminal pair). Every simulator is a cloneable handle, so a test keeps one
@@ -10,8 +13,6 @@
 //!
 //! # Layout
 //!
-//! - [`ncmap`]: register map of the NC axis module, the contract shared with the
-//!   gateway's FB3-style writer (job block, handshake, read-back block, f64 encoding).
 //! - [`field`]: field I/O module: PT100 transmitters (4-20 mA) on a 12-bit ADC with
 //!   temperature profiles, noise, sensor faults (NE43 open/short, frozen) and
 //!   communication faults (delay, exception, dropped connections, silence); served
@@ -37,5 +38,4 @@ pub mod canopen;
 pub mod field;
 pub mod machine5;
 pub mod nc;
-pub mod ncmap;
 pub mod thermal;

@@ -8,7 +8,7 @@
 //! `dK = K0 + tan(beta) * (Px - P0)` no faster than MD32760 x MAX_AX_VELO.
 //!
 //! [`NcAxisModule`] serves that state over Modbus TCP with exactly the register map and
-//! REQ/DONE/ERROR/STATE handshake of [`crate::ncmap`], and runs the interpolation loop
+//! REQ/DONE/ERROR/STATE handshake of [`compgate_ncproto`], and runs the interpolation loop
 //! in tokio time while it serves. Behind the servo block of the map it also holds a
 //! full-closed-loop axis ([`crate::axis::ServoSim`]) that runs move programmes and the
 //! servo trace, advanced on each request by the tokio time elapsed times the
@@ -39,17 +39,11 @@ use tokio_modbus::server::Service;
 use tokio_modbus::{ExceptionCode, Request, Response};
 use tokio_util::sync::CancellationToken;
 
-use crate::axis::{AxisParams, MoveStep, ServoSim, SimRefusal, TraceConfig, Trigger};
-use crate::ncmap::{self, var, JobState, JobStatus};
+use crate::axis::{AxisParams, ServoSim, SimRefusal};
+use compgate_ncproto::servo::{MoveStep, TraceConfig, Trigger, MAX_STEPS};
+use compgate_ncproto::{self as ncmap, var, JobState, JobStatus};
+use compgate_ncproto::{MD32450_LIMIT_MM, SD43900_LIMIT_MM, SD43910_LIMIT, SD43920_LIMIT_MM};
 
-/// The NC's own sanity limit on |SD43900|, mm.
-pub const SD43900_LIMIT_MM: f64 = 10.0;
-/// The NC's own sanity limit on |SD43910| (mm/mm).
-pub const SD43910_LIMIT: f64 = 0.1;
-/// Limit on |SD43920|, mm.
-pub const SD43920_LIMIT_MM: f64 = 100_000.0;
-/// Upper limit of MD32450 (backlash), mm; the lower limit is 0.
-pub const MD32450_LIMIT_MM: f64 = 1.0;
 /// Shortest interpolation cycle the module runs, s (guards a zero or bad `ipo_cycle_s`).
 pub const MIN_IPO_CYCLE_S: f64 = 0.0005;
 /// Longest interpolation cycle the module runs, s.
@@ -400,7 +394,7 @@ impl ModuleState {
                     let n = usize::from(
                         self.servo_regs[usize::from(ncmap::MV_NUM_STEPS - ncmap::SERVO)],
                     );
-                    let steps: Vec<MoveStep> = if (1..=crate::axis::MAX_STEPS).contains(&n) {
+                    let steps: Vec<MoveStep> = if (1..=MAX_STEPS).contains(&n) {
                         (0..n as u16)
                             .map(|i| {
                                 let base = ncmap::MV_STEPS + ncmap::MV_STEP_REGS * i;
@@ -810,6 +804,16 @@ impl NcAxisModule {
     /// Jobs that ended with ERROR.
     pub fn jobs_refused(&self) -> u64 {
         self.lock().jobs_refused
+    }
+
+    /// Serves this module on a fresh loopback port until the returned token is
+    /// cancelled; returns the address (`127.0.0.1:PORT`).
+    pub async fn serve_loopback(&self) -> io::Result<(String, CancellationToken)> {
+        let listener = TcpListener::bind("127.0.0.1:0").await?;
+        let address = listener.local_addr()?.to_string();
+        let shutdown = CancellationToken::new();
+        tokio::spawn(self.clone().serve_tcp(listener, shutdown.clone()));
+        Ok((address, shutdown))
     }
 
     /// Serves the register map over Modbus TCP on `listener`, for any unit id, and runs

@@ -34,6 +34,7 @@
 //! `P0 = P_ref` ([`ThermalMachine::true_model`]). The [`Effects`] add what this
 //! straight-line model cannot express.
 
+use compgate_core::measure::{Measurements, TempColumn};
 use rand::rngs::SmallRng;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
@@ -813,6 +814,30 @@ pub fn measurement_run(
         }
     }
     s
+}
+
+/// A measurement series in the measured-error CSV's form, whose columns these already
+/// are.
+impl From<&Series> for Measurements {
+    fn from(s: &Series) -> Self {
+        Self {
+            t_s: s.t_s.clone(),
+            pos_mm: s.pos_mm.clone(),
+            err_um: s.err_um.clone(),
+            dir: s.dir.clone(),
+            travel_mm: s.travel_mm.clone(),
+            temps: s
+                .sensor_names
+                .iter()
+                .zip(&s.temps_degc)
+                .map(|(name, degc)| TempColumn {
+                    name: (*name).to_string(),
+                    degc: degc.clone(),
+                })
+                .collect(),
+            ignored_columns: Vec::new(),
+        }
+    }
 }
 
 #[cfg(test)]

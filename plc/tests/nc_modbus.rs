@@ -4,8 +4,8 @@
 use std::net::SocketAddr;
 use std::time::Duration;
 
+use compgate_ncproto::{self as ncmap, var, JobState, JobStatus};
 use compgate_plc::nc::{JobFault, NcAxis, NcAxisModule, NcError};
-use compgate_plc::ncmap::{self, var, JobState, JobStatus};
 use tokio::net::TcpListener;
 use tokio::time::timeout;
 use tokio_modbus::client::Context;

@@ -4,9 +4,9 @@
 use std::net::SocketAddr;
 use std::time::Duration;
 
+use compgate_ncproto as ncmap;
 use compgate_plc::axis::{AxisParams, ProgramState, TraceState};
 use compgate_plc::nc::{NcAxis, NcAxisModule};
-use compgate_plc::ncmap;
 use tokio::net::TcpListener;
 use tokio::time::timeout;
 use tokio_modbus::client::Context;

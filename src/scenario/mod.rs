@@ -4,7 +4,7 @@
 //! The thermal machine (`compgate_plc::thermal`) runs a duty cycle in simulated time.
 //! Its sensor temperatures go to a simulated field I/O module, served over Modbus TCP
 //! on loopback; the gateway's own poller, channel processors and compensator
-//! ([`crate::gateway::build`]) read them and its FB3-style writer puts
+//! ([`compgate_gateway::runtime::build`]) read them and its FB3-style writer puts
 //! SD43900/43910/43920 into a simulated NC axis module, which applies them. The
 //! interferometer reads `true error - applied compensation`. Time is simulated: each
 //! tick steps the machine, polls once and stamps the sample with the simulated
@@ -12,7 +12,7 @@
 //!
 //! The same machine (same seed) runs twice: compensation off, then on. Each run ends
 //! with an ISO 230-2 test: [`ISO_RUNS`] bidirectional runs back to back over the
-//! same targets, evaluated by [`crate::iso230`].
+//! same targets, evaluated by [`compgate_commission::iso230`].
 
 mod plot;
 
@@ -30,12 +30,12 @@ use thiserror::Error;
 use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
 
-use crate::calibrate::{self, AxisModel};
-use crate::comp::Decision;
-use crate::config;
-use crate::gateway;
-use crate::measure::{Measurements, TempColumn};
-use crate::nc::{Job, NcWriter};
+use compgate_commission::calibrate::{self, AxisModel};
+use compgate_core::comp::Decision;
+use compgate_core::measure::{Measurements, TempColumn};
+use compgate_gateway::config;
+use compgate_gateway::nc::{Job, NcWriter};
+use compgate_gateway::runtime;
 
 /// Errors of the scenario.
 #[derive(Debug, Error)]
@@ -162,9 +162,9 @@ pub struct ScenarioReport {
     /// Compensation on.
     pub on: RunData,
     /// ISO 230-2 evaluation of the closing runs, off and on (`None` if it failed).
-    pub iso_off: Option<crate::iso230::Iso230>,
+    pub iso_off: Option<compgate_commission::iso230::Iso230>,
     /// See `iso_off`.
-    pub iso_on: Option<crate::iso230::Iso230>,
+    pub iso_on: Option<compgate_commission::iso230::Iso230>,
 }
 
 impl ScenarioReport {
@@ -258,7 +258,7 @@ pub fn commissioning_model(
     let mut machine = ThermalMachine::new(params.clone(), *effects, seed ^ 0x5EED_C0DE);
     let plan = SweepPlan::irregular(params.axis_length_mm, TARGETS, 1800.0);
     let s = measurement_run(&mut machine, &DutyCycle::commissioning(24.0), &plan, 30.0);
-    let m = Measurements::from_sim(&s);
+    let m = Measurements::from(&s);
     let fit = calibrate::calibrate(&m, sensors, None)
         .map_err(|e| ScenarioError::Model(format!("commissioning fit: {e}")))?;
     Ok((AxisModel::from_fit(&fit), fit, m))
@@ -341,7 +341,7 @@ async fn run_once(
 
     let text = gateway_config(&fa.to_string(), &na.to_string(), &sensors, s.model);
     let cfg = config::load_str(&text, "scenario").map_err(setup_err)?;
-    let mut built = gateway::build(&cfg).map_err(setup_err)?;
+    let mut built = runtime::build(&cfg).map_err(setup_err)?;
     let update_every_s = cfg.axes["X"].update_interval_s;
     let mut writer = built
         .nc_modules
@@ -581,7 +581,8 @@ pub async fn run_with(
     progress.set_message("compensation on ");
     let (on, _) = run_once(&setup, true, &progress).await?;
     progress.finish_and_clear();
-    let iso = |m: &Measurements| crate::iso230::evaluate(&m.pos_mm, &m.dir, &m.err_um).ok();
+    let iso =
+        |m: &Measurements| compgate_commission::iso230::evaluate(&m.pos_mm, &m.dir, &m.err_um).ok();
     let (iso_off, iso_on) = (iso(&off.iso230), iso(&on.iso230));
     let report = ScenarioReport {
         iso_off,

@@ -127,7 +127,7 @@ pub fn error_vs_time(path: &Path, r: &ScenarioReport) -> Result<(), String> {
 fn position_panel(area: &Area<'_>, caption: &str, run: &RunData, hours: f64) -> Result<(), String> {
     let e = |x: &dyn std::fmt::Display| x.to_string();
     let m = &run.series;
-    let sweeps = crate::calibrate::sweeps(&m.t_s);
+    let sweeps = compgate_commission::calibrate::sweeps(&m.t_s);
     let step = sweeps.len().div_ceil(10).max(1);
     let (xlo, xhi) = m
         .pos_mm

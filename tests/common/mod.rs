@@ -8,9 +8,9 @@ pub mod proxy;
 
 use std::time::Duration;
 
-use compgate::config;
-use compgate::gateway::{self, Status};
 use compgate::plant::{Bind, Plant};
+use compgate_gateway::config;
+use compgate_gateway::runtime::{self, Status};
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
@@ -59,13 +59,13 @@ impl Rig {
             {
                 panic!(
                     "timed out after {secs} s waiting for: {what}\nlast status: {}",
-                    compgate::status::render(&self.status.borrow())
+                    compgate_service::status::render(&self.status.borrow())
                 );
             }
         }
     }
 
-    pub fn channel<'a>(s: &'a Status, name: &str) -> &'a gateway::ChannelStatus {
+    pub fn channel<'a>(s: &'a Status, name: &str) -> &'a runtime::ChannelStatus {
         s.channels
             .iter()
             .find(|c| c.name == name)
@@ -90,7 +90,7 @@ pub async fn start(toml: &str) -> Rig {
     let cfg = plant.config.clone();
     let sd = shutdown.clone();
     let gateway = tokio::spawn(async move {
-        gateway::run(&cfg, sd, tx).await.expect("gateway runs");
+        runtime::run(&cfg, sd, tx).await.expect("gateway runs");
     });
     Rig {
         plant,

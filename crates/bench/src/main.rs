@@ -1,0 +1,96 @@
+//! `compgate-bench`: the benchmarks of compgate, kept out of the production binary.
+//!
+//! - `cycle`: full poll-filter-compute cycles against the bare Modbus request rate.
+//! - `soak`: the `compgate` binary as a real process against simulated field modules,
+//!   with recording, metrics and MQTT on; CPU and RSS over time.
+
+mod cycle;
+mod soak;
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+/// compgate's benchmarks.
+#[derive(Debug, Parser)]
+#[command(version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Measure poll-filter-compute cycles against the bare Modbus request rate.
+    Cycle {
+        /// Channels on the simulated module, read in one request.
+        #[arg(long, default_value_t = 64)]
+        channels: u16,
+        /// Measured cycles per round.
+        #[arg(long, default_value_t = 2000)]
+        cycles: u32,
+        /// Alternating rounds of gateway and bare measurements (many short rounds: the
+        /// median then outvotes bursts of load from other processes).
+        #[arg(long, default_value_t = 15)]
+        rounds: u32,
+    },
+    /// Soak the real gateway process (8 devices x 64 channels at 10 Hz, recording,
+    /// metrics and MQTT on) and report CPU and RSS.
+    Soak {
+        /// How long, in seconds (at least 10).
+        #[arg(long)]
+        seconds: f64,
+        /// The `compgate` binary to soak; by default the one beside this binary.
+        #[arg(long)]
+        compgate: Option<PathBuf>,
+    },
+}
+
+/// The `compgate` binary that cargo built beside this one.
+fn sibling_compgate() -> Result<PathBuf, String> {
+    let exe = std::env::current_exe().map_err(|e| format!("own binary: {e}"))?;
+    let path = exe.with_file_name("compgate");
+    if path.is_file() {
+        Ok(path)
+    } else {
+        Err(format!(
+            "no compgate binary at {} (build it first: cargo build --release), or give --compgate",
+            path.display()
+        ))
+    }
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Cycle {
+            channels,
+            cycles,
+            rounds,
+        } => tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| format!("cannot start the async runtime: {e}"))
+            .and_then(|rt| {
+                rt.block_on(cycle::run(channels, cycles, rounds))
+                    .map_err(|e| e.to_string())
+            })
+            .map(|report| {
+                print!("{}", report.table());
+                println!();
+                print!("{}", cycle::volumetric_line(2.0));
+            }),
+        Command::Soak { seconds, compgate } => compgate
+            .map_or_else(sibling_compgate, Ok)
+            .and_then(|exe| soak::run(seconds, &exe))
+            .map(|report| print!("{report}")),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}

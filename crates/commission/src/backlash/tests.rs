@@ -1,0 +1,370 @@
+use compgate_plc::axis::{AxisParams, ServoSim, TraceState};
+use compgate_plc::nc::{NcAxis, NcAxisModule};
+
+use super::*;
+
+/// Tolerance of the acceptance: max(0.5 um, 2 %).
+fn tolerance_mm(backlash_mm: f64) -> f64 {
+    (0.02 * backlash_mm).max(0.0005)
+}
+
+/// Runs the default procedure on the pure simulated axis; returns the trace and the
+/// machine time.
+fn simulate(backlash_um: f64, noise_um: f64, elastic_ms: f64, seed: u64) -> (Trace, f64) {
+    let proc = Procedure::from_args(&BacklashArgs::default());
+    let mut sim = ServoSim::new(AxisParams {
+        backlash_mm: backlash_um / 1000.0,
+        encoder_noise_mm: noise_um / 1000.0,
+        scale_noise_mm: noise_um / 1000.0,
+        elastic_tau_s: elastic_ms / 1000.0,
+        seed,
+        ..AxisParams::default()
+    });
+    sim.arm_trace(proc.trace_config()).unwrap();
+    sim.start_program(&proc.program()).unwrap();
+    let machine_s = sim.run_until_idle(600.0);
+    assert_eq!(sim.trace_state(), TraceState::Complete);
+    let (encoder_mm, scale_mm) = sim.trace().iter().copied().unzip();
+    (
+        Trace {
+            period_s: proc.period_s,
+            encoder_mm,
+            scale_mm,
+        },
+        machine_s,
+    )
+}
+
+fn measure(trace: &Trace, how: Extraction) -> Backlash {
+    let proc = Procedure::from_args(&BacklashArgs::default());
+    Backlash::from_points(&extract(trace, &proc, how).unwrap())
+}
+
+#[test]
+fn seed_formulas_on_hand_made_values() {
+    // B = 60, C = 30, D = 60 on the scale; the encoder overtravels each reversal.
+    let l = [60.0001, 30.0002, 59.9998];
+    let m = [60.0121, 29.9902, 60.0053];
+    let r = Backlash::from_values(l, m);
+    let close = |a: f64, b: f64| (a - b).abs() < 1e-9;
+    assert!(close(r.scale_h1_mm, 29.9999)); // H1 = |L1 - L2|
+    assert!(close(r.scale_h2_mm, 29.9996)); // H2 = |L2 - L3|
+    assert!(close(r.encoder_h1_mm, 30.0219)); // h1 = |M1 - M2|
+    assert!(close(r.encoder_h2_mm, 30.0151)); // h2 = |M2 - M3|
+    assert!(close(r.f1_mm, 0.0220)); // F1 = |h1 - H1|
+    assert!(close(r.f2_mm, 0.0155)); // F2 = |h2 - H2|
+                                     // Formulas 7 and 8: F1 = ||M1-M2| - |L1-L2||, F2 = ||M2-M3| - |L2-L3||.
+    assert!(close(
+        r.f1_mm,
+        ((m[0] - m[1]).abs() - (l[0] - l[1]).abs()).abs()
+    ));
+    assert!(close(
+        r.f2_mm,
+        ((m[1] - m[2]).abs() - (l[1] - l[2]).abs()).abs()
+    ));
+    assert!(close(r.md32450_mm(), 0.01875));
+    // No lost motion: encoder and scale move alike.
+    let r = Backlash::from_values(l, l);
+    assert_eq!((r.f1_mm, r.f2_mm), (0.0, 0.0));
+}
+
+#[test]
+fn injected_backlash_is_recovered_within_tolerance_with_noise() {
+    // 0..50 um, measurement noise 0.3 um and 1 um (standard deviation, both
+    // channels), three noise seeds each.
+    for noise_um in [0.3, 1.0] {
+        let mut worst_um: f64 = 0.0;
+        for backlash_um in [0.0, 1.0, 2.5, 5.0, 10.0, 20.0, 35.0, 50.0] {
+            for seed in 1..=3 {
+                let (trace, _) = simulate(backlash_um, noise_um, 8.0, seed);
+                let r = measure(&trace, Extraction::Plateau);
+                let tol = tolerance_mm(backlash_um / 1000.0);
+                for f in [r.f1_mm, r.f2_mm] {
+                    let err = f - backlash_um / 1000.0;
+                    worst_um = worst_um.max(err.abs() * 1000.0);
+                    assert!(
+                        err.abs() <= tol,
+                        "backlash {backlash_um} um, noise {noise_um} um, seed {seed}: F1 {} um F2 {} um, tolerance {} um",
+                        r.f1_mm * 1000.0,
+                        r.f2_mm * 1000.0,
+                        tol * 1000.0
+                    );
+                }
+                if seed == 1 {
+                    eprintln!(
+                        "noise {noise_um} um, injected {backlash_um:>5.1} um: F1 {:>7.3} um  F2 {:>7.3} um",
+                        r.f1_mm * 1000.0,
+                        r.f2_mm * 1000.0
+                    );
+                }
+            }
+        }
+        eprintln!("noise {noise_um} um: worst error {worst_um:.3} um");
+    }
+}
+
+#[test]
+fn zero_backlash_reads_zero_within_noise() {
+    for seed in 1..=5 {
+        let (trace, _) = simulate(0.0, 0.5, 8.0, seed);
+        let r = measure(&trace, Extraction::Plateau);
+        assert!(r.f1_mm < 0.0005 && r.f2_mm < 0.0005, "{r:?}");
+    }
+}
+
+#[test]
+fn elasticity_is_present_and_the_plateau_is_what_makes_it_work() {
+    let backlash_um = 20.0;
+    let (trace, _) = simulate(backlash_um, 0.3, 8.0, 7);
+    // While moving, the motor leads the table by far more than the gap: the spring.
+    let max_lead_um = trace
+        .encoder_mm
+        .iter()
+        .zip(&trace.scale_mm)
+        .map(|(e, l)| (e - l).abs() * 1000.0)
+        .fold(0.0, f64::max);
+    assert!(max_lead_um > 5.0 * backlash_um, "lead {max_lead_um} um");
+    let tol = tolerance_mm(backlash_um / 1000.0);
+    let plateau = measure(&trace, Extraction::Plateau);
+    let arrival = measure(&trace, Extraction::ArrivalSample);
+    let err = |r: &Backlash| {
+        (r.f1_mm - backlash_um / 1000.0)
+            .abs()
+            .max((r.f2_mm - backlash_um / 1000.0).abs())
+    };
+    eprintln!(
+        "elastic 8 ms: plateau error {:.3} um, arrival-sample error {:.3} um, tolerance {:.3} um",
+        err(&plateau) * 1000.0,
+        err(&arrival) * 1000.0,
+        tol * 1000.0
+    );
+    assert!(err(&plateau) <= tol);
+    assert!(err(&arrival) > tol, "the single sample at arrival misses");
+    // Without elasticity and noise the single sample would do: the spring is the reason.
+    let (stiff, _) = simulate(backlash_um, 0.0, 0.0, 7);
+    let arrival_stiff = measure(&stiff, Extraction::ArrivalSample);
+    eprintln!(
+        "rigid, no noise: arrival-sample error {:.3} um",
+        err(&arrival_stiff) * 1000.0
+    );
+    assert!(err(&arrival_stiff) <= tol);
+}
+
+#[test]
+fn validation_lists_every_problem_before_anything_moves() {
+    let args = BacklashArgs {
+        a: 50.0,
+        b: 40.0,
+        c: 39.5,
+        d: 39.0,
+        dwell: 0.1,
+        feed: -5.0,
+        ..BacklashArgs::default()
+    };
+    let Err(BacklashError::Invalid(problems)) = Procedure::from_args(&args).validate(None) else {
+        panic!("expected Invalid");
+    };
+    assert_eq!(problems.len(), 5, "{problems:?}");
+    let args = BacklashArgs {
+        b: 2000.0,
+        d: 2000.0,
+        feed: 50_000.0,
+        ..BacklashArgs::default()
+    };
+    let Err(BacklashError::Invalid(problems)) =
+        Procedure::from_args(&args).validate(Some((-10.0, 1000.0, 10_000.0)))
+    else {
+        panic!("expected Invalid");
+    };
+    assert_eq!(problems.len(), 2, "{problems:?}");
+    assert!(problems[0].contains("axis limits"), "{problems:?}");
+}
+
+/// A simulated axis as `backlash --sim` serves it, with the given backlash, at 2000x.
+async fn serve(backlash_mm: f64) -> (String, NcAxisModule, tokio_util::sync::CancellationToken) {
+    let module = NcAxisModule::new(NcAxis {
+        allow_md32450_write: true,
+        referenced: true,
+        ..NcAxis::default()
+    });
+    // The `--sim-*` defaults: 0.3 um noise, 8 ms elasticity, seed 1.
+    module.set_servo(AxisParams {
+        backlash_mm,
+        encoder_noise_mm: 0.0003,
+        scale_noise_mm: 0.0003,
+        elastic_tau_s: 0.008,
+        seed: 1,
+        ..AxisParams::default()
+    });
+    module.set_sim_speed(2000.0);
+    let (address, shutdown) = module.serve_loopback().await.unwrap();
+    (address, module, shutdown)
+}
+
+#[tokio::test]
+async fn travel_outside_the_limits_is_refused_before_the_axis_moves() {
+    let (address, module, shutdown) = serve(0.02).await;
+    let args = BacklashArgs {
+        b: 1500.0,
+        d: 1500.0,
+        ..BacklashArgs::default()
+    };
+    let err = run_on(&address, &args).await.unwrap_err();
+    assert!(
+        matches!(&err, BacklashError::Invalid(p) if p[0].contains("axis limits")),
+        "{err}"
+    );
+    module.with_servo(|s| {
+        assert_eq!(s.program_state(), compgate_plc::axis::ProgramState::Idle);
+        assert_eq!(s.trace_state(), TraceState::Idle);
+    });
+    shutdown.cancel();
+}
+
+#[tokio::test]
+async fn end_to_end_over_modbus_tcp_runs_uploads_computes_and_writes_md32450() {
+    let backlash_mm = 0.027;
+    let (address, module, shutdown) = serve(backlash_mm).await;
+    let dir = tempfile::tempdir().unwrap();
+    let args = BacklashArgs {
+        axis: "X1".into(),
+        write: true,
+        out: Some(dir.path().to_path_buf()),
+        ..BacklashArgs::default()
+    };
+    let started = std::time::Instant::now();
+    let outcome = run_on(&address, &args).await.unwrap();
+    let wall = started.elapsed();
+    let r = outcome.backlash;
+    let tol = tolerance_mm(backlash_mm);
+    assert!((r.f1_mm - backlash_mm).abs() <= tol, "{r:?}");
+    assert!((r.f2_mm - backlash_mm).abs() <= tol, "{r:?}");
+    let written = outcome.md32450_written_mm.unwrap();
+    assert_eq!(written, r.md32450_mm());
+    assert_eq!(module.state().md32450_mm, written);
+    assert_eq!(
+        outcome.trace.scale_mm.len(),
+        module.with_servo(|s| s.trace().len())
+    );
+    let svg = std::fs::read_to_string(dir.path().join("backlash_X1.svg")).unwrap();
+    assert!(svg.contains("<svg") && svg.contains("encoder (motor)"));
+    assert!(dir.path().join("backlash_X1_trace.csv").exists());
+    let text = report("X1", &outcome, None);
+    assert!(text.contains("F1") && text.contains("written (FB3 job) and read back"));
+    eprintln!("{text}");
+    eprintln!(
+        "machine time {:.1} s, wall time {:.2} s",
+        outcome.machine_time_s,
+        wall.as_secs_f64()
+    );
+    shutdown.cancel();
+}
+
+#[tokio::test]
+async fn run_without_an_nc_is_refused_before_connecting() {
+    let err = run(&BacklashArgs::default()).await.unwrap_err();
+    assert!(matches!(err, BacklashError::Invalid(_)));
+}
+
+#[tokio::test]
+async fn md32450_write_refused_by_the_nc_is_reported() {
+    let (address, module, shutdown) = serve(0.01).await;
+    module.with_state(|axis| axis.allow_md32450_write = false);
+    let dir = tempfile::tempdir().unwrap();
+    let args = BacklashArgs {
+        write: true,
+        out: Some(dir.path().to_path_buf()),
+        ..BacklashArgs::default()
+    };
+    let err = run_on(&address, &args).await.unwrap_err();
+    assert!(
+        matches!(
+            err,
+            BacklashError::Nc(NcError::Refused {
+                status: ncmap::JobStatus::AccessDenied,
+                ..
+            })
+        ),
+        "{err}"
+    );
+    assert_eq!(module.state().md32450_mm, 0.0);
+    // The plot and the trace are written before MD32450 is touched.
+    assert!(dir.path().join("backlash_X1.svg").exists());
+    shutdown.cancel();
+}
+
+/// ISO 230-2 on the same axis run semi-closed-loop (loop on the motor encoder), with
+/// the scale as the laser interferometer on the table: 5 bidirectional runs over
+/// irregularly spaced targets, each reading the mean of 0.2 s at standstill.
+fn iso230_semi_closed(backlash_um: f64, noise_um: f64, seed: u64) -> crate::iso230::Iso230 {
+    use compgate_ncproto::servo::MoveStep;
+    use compgate_plc::axis::Feedback;
+    let mut sim = ServoSim::new(AxisParams {
+        backlash_mm: backlash_um / 1000.0,
+        encoder_noise_mm: noise_um / 1000.0,
+        scale_noise_mm: noise_um / 1000.0,
+        feedback: Feedback::Encoder,
+        seed,
+        ..AxisParams::default()
+    });
+    let targets_mm = [10.0, 34.7, 61.3, 84.9, 110.6];
+    let overtravel_mm = 5.0;
+    let (mut pos, mut dir, mut err) = (Vec::new(), Vec::new(), Vec::new());
+    let go = |sim: &mut ServoSim, target_mm: f64| {
+        let step = MoveStep {
+            target_mm,
+            feed_mm_per_min: 1000.0,
+            dwell_s: 0.5,
+        };
+        sim.start_program(&[step]).unwrap();
+        sim.run_until_idle(60.0);
+    };
+    for _run in 0..5 {
+        for (d, order) in [(1i8, [0, 1, 2, 3, 4]), (-1, [4, 3, 2, 1, 0])] {
+            go(
+                &mut sim,
+                targets_mm[order[0]] - f64::from(d) * overtravel_mm,
+            );
+            for &i in &order {
+                go(&mut sim, targets_mm[i]);
+                let mut sum_mm = 0.0;
+                for _ in 0..200 {
+                    sim.step();
+                    sum_mm += sim.scale_mm();
+                }
+                pos.push(targets_mm[i]);
+                dir.push(d);
+                err.push((sum_mm / 200.0 - targets_mm[i]) * 1000.0);
+            }
+        }
+    }
+    crate::iso230::evaluate(&pos, &dir, &err).unwrap()
+}
+
+#[test]
+fn iso230_reversal_value_agrees_with_f1_f2() {
+    for (backlash_um, seed) in [(5.0, 1), (20.0, 2), (45.0, 3)] {
+        let (trace, _) = simulate(backlash_um, 0.3, 8.0, seed);
+        let f = measure(&trace, Extraction::Plateau);
+        let iso = iso230_semi_closed(backlash_um, 0.3, seed);
+        let tol_um = tolerance_mm(backlash_um / 1000.0) * 1000.0;
+        eprintln!(
+            "backlash {backlash_um} um: F1 {:.3} F2 {:.3} um; ISO 230-2 B {:.3} um, mean B {:.3} um",
+            f.f1_mm * 1000.0,
+            f.f2_mm * 1000.0,
+            iso.b_um,
+            iso.b_mean_um
+        );
+        // The table stops short of each target on the side it came from: B_i < 0.
+        assert!(iso.b_mean_um < 0.0, "{iso:?}");
+        for f_mm in [f.f1_mm, f.f2_mm] {
+            assert!(
+                (iso.b_um - f_mm * 1000.0).abs() <= tol_um,
+                "B {} um against F {} um",
+                iso.b_um,
+                f_mm * 1000.0
+            );
+            assert!((iso.b_mean_um.abs() - f_mm * 1000.0).abs() <= tol_um);
+        }
+    }
+}

@@ -1,0 +1,552 @@
+//! The selection engine: baseline fit, candidate effects fitted jointly with the
+//! current model, and greedy forward selection with three independent tests.
+
+use super::effects::{center, lag, legendre_2_4, motion_heat, EffectKind};
+use super::fit::{ar1, blocks, residuals, Gram};
+use super::{DiagnoseError, Thresholds};
+use compgate_core::measure::Measurements;
+
+/// The measurements prepared for fitting: centred temperatures, position in mm from P0.
+pub struct Data {
+    pub n: usize,
+    pub y_um: Vec<f64>,
+    pub t_s: Vec<f64>,
+    pub pos_mm: Vec<f64>,
+    /// Reference position P0 of the model, mm.
+    pub p0_mm: f64,
+    /// `pos - P0`, mm.
+    pub x_mm: Vec<f64>,
+    /// Position scaled onto [-1, 1] over the measured range.
+    pub v: Vec<f64>,
+    pub pos_min_mm: f64,
+    pub pos_max_mm: f64,
+    pub dir: Vec<f64>,
+    pub travel_mm: Vec<f64>,
+    /// Sensor names (without `T_`), all columns of the file.
+    pub names: Vec<String>,
+    /// Raw temperatures per column, degC.
+    pub temps_degc: Vec<Vec<f64>>,
+    /// Mean per column, degC (the reference temperature of the fitted terms).
+    pub temp_mean_degc: Vec<f64>,
+    /// Indices of the baseline's sensors.
+    pub sensors: Vec<usize>,
+    /// Contiguous blocks for cross-validation.
+    pub blocks: Vec<(usize, usize)>,
+}
+
+impl Data {
+    /// Prepares `m` with the baseline sensors `sensors` (None: every column).
+    pub fn new(
+        m: &Measurements,
+        sensors: Option<&[String]>,
+        p0_mm: Option<f64>,
+        cv_blocks: usize,
+    ) -> Result<Self, DiagnoseError> {
+        let n = m.len();
+        let names: Vec<String> = m.temps.iter().map(|c| c.name.clone()).collect();
+        let sensors = match sensors {
+            None => (0..names.len()).collect(),
+            Some(list) => {
+                let mut idx = Vec::new();
+                for s in list {
+                    let s = s.strip_prefix("T_").unwrap_or(s);
+                    match names.iter().position(|n| n == s) {
+                        Some(i) if !idx.contains(&i) => idx.push(i),
+                        Some(_) => {}
+                        None => {
+                            return Err(DiagnoseError::UnknownSensor {
+                                sensor: s.to_string(),
+                                available: names.join(", "),
+                            })
+                        }
+                    }
+                }
+                idx
+            }
+        };
+        let min_rows = 8 * (2 + 2 * sensors.len()) + 20;
+        if n < min_rows {
+            return Err(DiagnoseError::TooFewRows { rows: n, min_rows });
+        }
+        let pos_min_mm = m.pos_mm.iter().copied().fold(f64::INFINITY, f64::min);
+        let pos_max_mm = m.pos_mm.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let p0_mm = p0_mm.unwrap_or(0.5 * (pos_min_mm + pos_max_mm));
+        let half = (0.5 * (pos_max_mm - pos_min_mm)).max(1e-9);
+        let mid = 0.5 * (pos_min_mm + pos_max_mm);
+        let temps_degc: Vec<Vec<f64>> = m.temps.iter().map(|c| c.degc.clone()).collect();
+        let temp_mean_degc = temps_degc
+            .iter()
+            .map(|c| c.iter().sum::<f64>() / n as f64)
+            .collect();
+        Ok(Data {
+            n,
+            y_um: m.err_um.clone(),
+            t_s: m.t_s.clone(),
+            pos_mm: m.pos_mm.clone(),
+            p0_mm,
+            x_mm: m.pos_mm.iter().map(|p| p - p0_mm).collect(),
+            v: m.pos_mm.iter().map(|p| (p - mid) / half).collect(),
+            pos_min_mm,
+            pos_max_mm,
+            dir: m.dir.iter().map(|&d| f64::from(d)).collect(),
+            travel_mm: m.travel_mm.clone(),
+            names,
+            temps_degc,
+            temp_mean_degc,
+            sensors,
+            blocks: blocks(n, cv_blocks),
+        })
+    }
+
+    /// Baseline columns: 1, x, then per sensor T and T*x (T centred).
+    pub fn baseline_columns(&self) -> Vec<Vec<f64>> {
+        let mut cols = vec![vec![1.0; self.n], self.x_mm.clone()];
+        for &s in &self.sensors {
+            let (k0, slope) = self.thermal_pair(&self.temps_degc[s], self.temp_mean_degc[s]);
+            cols.push(k0);
+            cols.push(slope);
+        }
+        cols
+    }
+
+    /// A K0-like column `z - ref` and its slope-like partner `(z - ref) * x`.
+    fn thermal_pair(&self, z: &[f64], reference: f64) -> (Vec<f64>, Vec<f64>) {
+        let k0: Vec<f64> = z.iter().map(|v| v - reference).collect();
+        let slope = k0.iter().zip(&self.x_mm).map(|(a, x)| a * x).collect();
+        (k0, slope)
+    }
+
+    /// Duration of the record and median positive sample interval, s.
+    pub fn time_scales(&self) -> (f64, f64) {
+        let duration = self.t_s[self.n - 1] - self.t_s[0];
+        let mut dts: Vec<f64> = self
+            .t_s
+            .windows(2)
+            .map(|w| w[1] - w[0])
+            .filter(|d| *d > 0.0)
+            .collect();
+        dts.sort_by(f64::total_cmp);
+        let median = dts.get(dts.len() / 2).copied().unwrap_or(1.0);
+        (duration, median)
+    }
+
+    /// The columns an effect adds, and for each lagged signal its mean (the reference
+    /// the model file records). `param` is tau_s or period_mm. A thermal lag without a
+    /// sensor lags every baseline sensor with one time constant (the whole structure
+    /// lags).
+    pub fn effect_columns(
+        &self,
+        kind: EffectKind,
+        sensor: Option<usize>,
+        param: f64,
+    ) -> (Vec<Vec<f64>>, Vec<f64>) {
+        match kind {
+            EffectKind::ThermalLag => {
+                let which: Vec<usize> = match sensor {
+                    Some(s) => vec![s],
+                    None => self.sensors.clone(),
+                };
+                let mut cols = Vec::new();
+                let mut means = Vec::new();
+                for s in which {
+                    let mut z = lag(&self.t_s, &self.temps_degc[s], param);
+                    means.push(center(&mut z));
+                    let (a, b) = self.thermal_pair(&z, 0.0);
+                    cols.push(a);
+                    cols.push(b);
+                }
+                (cols, means)
+            }
+            EffectKind::MotionHeating => {
+                let mut z = motion_heat(&self.t_s, &self.travel_mm, param);
+                let mean = center(&mut z);
+                let (a, b) = self.thermal_pair(&z, 0.0);
+                (vec![a, b], vec![mean])
+            }
+            EffectKind::ExtraSensor => {
+                let s = sensor.unwrap_or(0);
+                let mean = self.temp_mean_degc[s];
+                let (a, b) = self.thermal_pair(&self.temps_degc[s], mean);
+                (vec![a, b], vec![mean])
+            }
+            EffectKind::NonlinearPosition => {
+                let mut cols: Vec<Vec<f64>> = (0..3).map(|_| Vec::with_capacity(self.n)).collect();
+                for &v in &self.v {
+                    for (c, p) in cols.iter_mut().zip(legendre_2_4(v)) {
+                        c.push(p);
+                    }
+                }
+                (cols, Vec::new())
+            }
+            EffectKind::Reversal => (vec![self.dir.clone()], Vec::new()),
+            EffectKind::PitchPeriodic => {
+                let w = std::f64::consts::TAU / param;
+                let (s, c) = self.pos_mm.iter().map(|p| (w * p).sin_cos()).unzip();
+                (vec![s, c], Vec::new())
+            }
+        }
+    }
+}
+
+/// One candidate's best fit and its evidence.
+#[derive(Debug, Clone)]
+pub struct Evidence {
+    pub kind: EffectKind,
+    /// Sensor index (thermal_lag, extra_sensor).
+    pub sensor: Option<usize>,
+    /// tau_s or period_mm.
+    pub param: Option<f64>,
+    /// Search range of `param`.
+    pub range: Option<(f64, f64)>,
+    /// Added parameters (linear plus the searched one).
+    pub k_add: usize,
+    pub rss_before: f64,
+    pub rss_after: f64,
+    /// Lag-1 autocorrelation of the candidate model's residuals and the effective
+    /// sample size it implies.
+    pub rho: f64,
+    pub n_eff: f64,
+    /// Change of the information criterion (negative: better).
+    pub delta_ic: f64,
+    pub cv_before: f64,
+    pub cv_after: f64,
+    /// The searched parameter sits at the edge of its range.
+    pub at_edge: bool,
+    pub passes_ic: bool,
+    pub passes_cv: bool,
+    pub plausible: bool,
+    /// The effect's RMS relative to the residual that remains with it.
+    pub size_ratio: f64,
+    pub passes_size: bool,
+}
+
+impl Evidence {
+    /// Every test holds.
+    pub fn passes(&self) -> bool {
+        self.passes_ic && self.passes_cv && self.plausible && self.passes_size
+    }
+}
+
+/// The model being grown: its columns and their Gram.
+pub struct Current {
+    pub cols: Vec<Vec<f64>>,
+    pub gram: Gram,
+    pub rss: f64,
+    pub cv: f64,
+}
+
+impl Current {
+    pub fn new(d: &Data, cols: Vec<Vec<f64>>) -> Self {
+        let refs: Vec<&[f64]> = cols.iter().map(|c| c.as_slice()).collect();
+        let gram = Gram::new(&refs, &d.y_um, &d.blocks);
+        let rss = gram.solve().rss;
+        let cv = gram.cv_mse(d.n);
+        Current {
+            cols,
+            gram,
+            rss,
+            cv,
+        }
+    }
+
+    fn refs(&self) -> Vec<&[f64]> {
+        self.cols.iter().map(|c| c.as_slice()).collect()
+    }
+
+    fn extended(&self, d: &Data, extra: &[Vec<f64>]) -> Gram {
+        let e: Vec<&[f64]> = extra.iter().map(|c| c.as_slice()).collect();
+        self.gram.extend(&self.refs(), &e, &d.y_um, &d.blocks)
+    }
+
+    pub fn rss_with(&self, d: &Data, extra: &[Vec<f64>]) -> f64 {
+        self.extended(d, extra).solve().rss
+    }
+
+    /// Adds columns for good.
+    pub fn push(&mut self, d: &Data, extra: Vec<Vec<f64>>) {
+        self.gram = self.extended(d, &extra);
+        self.cols.extend(extra);
+        self.rss = self.gram.solve().rss;
+        self.cv = self.gram.cv_mse(d.n);
+    }
+
+    /// Residuals of the current fit.
+    pub fn residuals(&self, d: &Data) -> Vec<f64> {
+        residuals(&self.refs(), &d.y_um, &self.gram.solve().beta)
+    }
+}
+
+/// Minimises `f` over a log-spaced grid of `n` points in `[lo, hi]`, then refines by
+/// golden-section search between the neighbours of the best point. Returns the best
+/// value, its objective and whether the grid minimum was at an end of the range.
+fn search_log(lo: f64, hi: f64, n: usize, f: &mut dyn FnMut(f64) -> f64) -> (f64, f64, bool) {
+    let (llo, lhi) = (lo.ln(), hi.ln());
+    let grid: Vec<f64> = (0..n)
+        .map(|i| llo + (lhi - llo) * i as f64 / (n - 1) as f64)
+        .collect();
+    let vals: Vec<f64> = grid.iter().map(|&g| f(g.exp())).collect();
+    let best = (0..n)
+        .min_by(|&a, &b| vals[a].total_cmp(&vals[b]))
+        .unwrap_or(0);
+    let at_edge = best == 0 || best == n - 1;
+    if at_edge {
+        return (grid[best].exp(), vals[best], true);
+    }
+    let (x, fx) = golden(grid[best - 1], grid[best + 1], 14, &mut |g| f(g.exp()));
+    if fx < vals[best] {
+        (x.exp(), fx, false)
+    } else {
+        (grid[best].exp(), vals[best], false)
+    }
+}
+
+/// Golden-section minimisation of a unimodal `f` on `[a, b]`.
+pub fn golden(mut a: f64, mut b: f64, iters: usize, f: &mut dyn FnMut(f64) -> f64) -> (f64, f64) {
+    let r = (5f64.sqrt() - 1.0) / 2.0;
+    let mut c = b - r * (b - a);
+    let mut e = a + r * (b - a);
+    let (mut fc, mut fe) = (f(c), f(e));
+    for _ in 0..iters {
+        if fc < fe {
+            b = e;
+            e = c;
+            fe = fc;
+            c = b - r * (b - a);
+            fc = f(c);
+        } else {
+            a = c;
+            c = e;
+            fc = fe;
+            e = a + r * (b - a);
+            fe = f(e);
+        }
+    }
+    if fc < fe {
+        (c, fc)
+    } else {
+        (e, fe)
+    }
+}
+
+/// Range of periods a position series can resolve: from three times the typical
+/// spacing of distinct positions (or 1/500 of the span) up to the span.
+pub fn period_range(d: &Data) -> Option<(f64, f64)> {
+    let span = d.pos_max_mm - d.pos_min_mm;
+    if span <= 0.0 {
+        return None;
+    }
+    let mut p: Vec<f64> = d.pos_mm.clone();
+    p.sort_by(f64::total_cmp);
+    let tol = span * 1e-6;
+    let gaps: Vec<f64> = p
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .filter(|g| *g > tol)
+        .collect();
+    if gaps.len() < 8 {
+        return None;
+    }
+    let mut sorted = gaps.clone();
+    sorted.sort_by(f64::total_cmp);
+    let typical = sorted[sorted.len() / 2];
+    let lo = (3.0 * typical).max(span / 500.0);
+    (lo < span / 3.0).then_some((lo, span))
+}
+
+/// Periodogram of residuals `r` against position: least-squares sine amplitude per
+/// trial period, on position bins. Returns (period_mm, amplitude_um), best first, local
+/// maxima only.
+pub fn periodogram(d: &Data, r: &[f64], range: (f64, f64)) -> Vec<(f64, f64)> {
+    let span = d.pos_max_mm - d.pos_min_mm;
+    let nb = 4096usize;
+    let mut sum = vec![0.0; nb];
+    let mut cnt = vec![0.0; nb];
+    for (p, ri) in d.pos_mm.iter().zip(r) {
+        let b = (((p - d.pos_min_mm) / span) * (nb - 1) as f64).round() as usize;
+        sum[b.min(nb - 1)] += ri;
+        cnt[b.min(nb - 1)] += 1.0;
+    }
+    let bins: Vec<(f64, f64, f64)> = (0..nb)
+        .filter(|&b| cnt[b] > 0.0)
+        .map(|b| {
+            let pos = d.pos_min_mm + span * b as f64 / (nb - 1) as f64;
+            (pos, sum[b] / cnt[b], cnt[b])
+        })
+        .collect();
+    let f_lo = 1.0 / range.1;
+    let f_hi = 1.0 / range.0;
+    let df = 1.0 / (4.0 * span);
+    let nf = (((f_hi - f_lo) / df).ceil() as usize).clamp(8, 20_000);
+    let mut amps = Vec::with_capacity(nf + 1);
+    for i in 0..=nf {
+        let f = f_lo + (f_hi - f_lo) * i as f64 / nf as f64;
+        let w = std::f64::consts::TAU * f;
+        let (mut ss, mut cc, mut sc, mut sy, mut cy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for &(p, y, n) in &bins {
+            let (s, c) = (w * p).sin_cos();
+            ss += n * s * s;
+            cc += n * c * c;
+            sc += n * s * c;
+            sy += n * s * y;
+            cy += n * c * y;
+        }
+        let det = ss * cc - sc * sc;
+        let amp = if det > 1e-12 * (ss * cc).max(1e-300) {
+            let a = (cc * sy - sc * cy) / det;
+            let b = (ss * cy - sc * sy) / det;
+            a.hypot(b)
+        } else {
+            0.0
+        };
+        amps.push((1.0 / f, amp));
+    }
+    let mut peaks: Vec<(f64, f64)> = (0..amps.len())
+        .filter(|&i| {
+            let a = amps[i].1;
+            (i == 0 || a >= amps[i - 1].1) && (i + 1 == amps.len() || a >= amps[i + 1].1)
+        })
+        .map(|i| amps[i])
+        .collect();
+    peaks.sort_by(|a, b| b.1.total_cmp(&a.1));
+    peaks
+}
+
+/// Evaluates one candidate against the current model.
+pub fn evaluate(
+    d: &Data,
+    cur: &Current,
+    kind: EffectKind,
+    sensor: Option<usize>,
+    th: &Thresholds,
+    r_cur: &[f64],
+) -> Option<(Evidence, Vec<Vec<f64>>)> {
+    let (duration, dt) = d.time_scales();
+    let (param, range, at_edge) = match kind {
+        EffectKind::ThermalLag | EffectKind::MotionHeating => {
+            let lo = (2.0 * dt).max(duration / 2000.0);
+            let hi = duration;
+            if !(lo > 0.0 && hi > 4.0 * lo) {
+                return None;
+            }
+            let mut f = |tau: f64| cur.rss_with(d, &d.effect_columns(kind, sensor, tau).0);
+            let (tau, _, edge) = search_log(lo, hi, 20, &mut f);
+            (Some(tau), Some((lo, hi)), edge)
+        }
+        EffectKind::PitchPeriodic => {
+            let range = period_range(d)?;
+            let peaks = periodogram(d, r_cur, range);
+            let f_step = 1.0 / (4.0 * (d.pos_max_mm - d.pos_min_mm));
+            // The joint fit decides between the three strongest peaks; only the best
+            // one is refined.
+            let start = peaks
+                .iter()
+                .take(3)
+                .map(|&(period, _)| {
+                    (
+                        period,
+                        cur.rss_with(d, &d.effect_columns(kind, None, period).0),
+                    )
+                })
+                .min_by(|a, b| a.1.total_cmp(&b.1));
+            let best = start.map(|(period, rss0)| {
+                let f0 = 1.0 / period;
+                let a = (f0 - f_step).max(1.0 / range.1);
+                let b = (f0 + f_step).min(1.0 / range.0);
+                let (f, rss) = golden(a, b, 14, &mut |f: f64| {
+                    cur.rss_with(d, &d.effect_columns(kind, None, 1.0 / f).0)
+                });
+                if rss < rss0 {
+                    (1.0 / f, rss)
+                } else {
+                    (period, rss0)
+                }
+            });
+            let (period, _) = best?;
+            // Within 5 % of either end counts as the edge: a period near the span is
+            // a curve, not a pitch error.
+            let edge = period > range.1 / 1.05 || period < range.0 * 1.05;
+            (Some(period), Some(range), edge)
+        }
+        _ => (None, None, false),
+    };
+    let (cols, _) = d.effect_columns(kind, sensor, param.unwrap_or(0.0));
+    let g = cur.extended(d, &cols);
+    let sol = g.solve();
+    let cv_after = g.cv_mse(d.n);
+    let mut all: Vec<&[f64]> = cur.cols.iter().map(|c| c.as_slice()).collect();
+    all.extend(cols.iter().map(|c| c.as_slice()));
+    let r = residuals(&all, &d.y_um, &sol.beta);
+    let rho = ar1(&r);
+    let k_add = cols.len() + usize::from(param.is_some());
+    let p_total = (all.len() + 1) as f64;
+    let n_eff = (d.n as f64 * (1.0 - rho) / (1.0 + rho)).max(p_total + 2.0);
+    let ratio = (sol.rss / cur.rss.max(1e-300)).max(1e-300);
+    let delta_ic = n_eff * ratio.ln() + k_add as f64 * n_eff.ln();
+    let size_ratio = ((cur.rss - sol.rss).max(0.0) / sol.rss.max(1e-300)).sqrt();
+    let ev = Evidence {
+        kind,
+        sensor,
+        param,
+        range,
+        k_add,
+        rss_before: cur.rss,
+        rss_after: sol.rss,
+        rho,
+        n_eff,
+        delta_ic,
+        cv_before: cur.cv,
+        cv_after,
+        at_edge,
+        passes_ic: delta_ic < -th.ic_margin,
+        passes_cv: cv_after < cur.cv * (1.0 - th.cv_min_gain),
+        plausible: !at_edge && sol.rss.is_finite(),
+        size_ratio,
+        passes_size: size_ratio >= th.min_size_ratio,
+    };
+    Some((ev, cols))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn golden_and_log_search_find_the_minimum() {
+        let (x, _) = golden(0.0, 10.0, 40, &mut |x| (x - 3.3) * (x - 3.3));
+        assert!((x - 3.3).abs() < 1e-3, "{x}");
+        let (x, _, edge) = search_log(1.0, 1000.0, 20, &mut |x: f64| (x.ln() - 4.0).powi(2));
+        assert!(!edge && (x.ln() - 4.0).abs() < 1e-3, "{x}");
+        let (_, _, edge) = search_log(1.0, 1000.0, 20, &mut |x: f64| x);
+        assert!(edge);
+    }
+
+    #[test]
+    fn periodogram_finds_a_sine_in_position() {
+        let n = 3000;
+        let m = Measurements {
+            t_s: (0..n).map(|i| i as f64).collect(),
+            pos_mm: (0..n).map(|i| ((i * 7919) % 1000) as f64 * 0.5).collect(),
+            err_um: vec![0.0; n],
+            dir: vec![1; n],
+            travel_mm: vec![1.0; n],
+            temps: vec![compgate_core::measure::TempColumn {
+                name: "a".into(),
+                degc: vec![20.0; n],
+            }],
+            ignored_columns: vec![],
+        };
+        let d = Data::new(&m, None, None, 5).expect("data");
+        let r: Vec<f64> = d
+            .pos_mm
+            .iter()
+            .map(|p| 2.0 * (std::f64::consts::TAU * p / 37.0).sin())
+            .collect();
+        let range = period_range(&d).expect("range");
+        assert!(range.0 < 37.0 && range.1 > 37.0, "{range:?}");
+        let (period, amp) = periodogram(&d, &r, range)[0];
+        assert!(
+            (period - 37.0).abs() < 0.5 && (amp - 2.0).abs() < 0.2,
+            "{period} {amp}"
+        );
+    }
+}

@@ -1,0 +1,474 @@
+//! The model file `--model` reads and `--out` writes.
+//!
+//! The axis part is an `[axes.X]` table in the form `calibrate` writes and
+//! `scenario --model` and the gateway config read (`p0_mm`, `[axes.X.k0]`,
+//! `[axes.X.tan_beta]`, same structs), with channels named after the data's sensors
+//! (`T_<name>` column -> channel `<name>`). A thermal lag the gateway
+//! carries itself: `[[lagged_channels]]` names a channel on the same transmitter with
+//! `filter.lowpass_tau_s = tau_s`, and the k0/tan_beta terms reference it. Effects the
+//! gateway's K0/tan(beta) form cannot carry are listed in `[[effects]]` with the NC
+//! function that carries them (reversal: backlash MD32450; pitch and nonlinear
+//! position: the leadscrew error compensation table; motion heating: no sensor, so no
+//! NC function without an extra model).
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+use super::effects::{lag, legendre_2_4, motion_heat, EffectKind};
+use super::{DiagnoseError, Diagnosis};
+use crate::calibrate::AxisModel;
+use compgate_core::measure::Measurements;
+use compgate_gateway::config::schema::{K0Model, K0Term, TanBetaModel, TanBetaTerm};
+
+/// A thermal model file: the axis model `calibrate` writes, plus what only diagnose
+/// adds (lagged channels, effects outside the K0/tan(beta) form).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct ModelFile {
+    /// The `[axes.NAME]` part: P0, K0(T) and tan(beta)(T).
+    pub axis: AxisModel,
+    /// Channels that are a sensor seen through a first-order lag; the gateway realises
+    /// one as a channel on the sensor's transmitter with `filter.lowpass_tau_s`.
+    pub lagged_channels: Vec<LaggedChannel>,
+    /// Effects outside the K0/tan(beta) form, with the NC function that carries them.
+    pub effects: Vec<EffectTerm>,
+}
+
+/// A lagged view of a sensor.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LaggedChannel {
+    /// Channel name the k0/tan_beta terms use.
+    pub channel: String,
+    /// Sensor (channel) it is derived from.
+    pub sensor: String,
+    /// First-order time constant, s (the channel's `filter.lowpass_tau_s`).
+    pub lowpass_tau_s: f64,
+}
+
+/// An effect term outside the K0/tan(beta) form.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EffectTerm {
+    /// Effect name: `reversal`, `pitch_periodic`, `nonlinear_position`,
+    /// `motion_heating`.
+    pub name: String,
+    /// The NC function that carries it, or why the gateway does not apply it.
+    pub carried_by: String,
+    /// Parameters (units in the names); see the README.
+    pub params: BTreeMap<String, f64>,
+}
+
+fn get(params: &BTreeMap<String, f64>, key: &str) -> f64 {
+    params.get(key).copied().unwrap_or(0.0)
+}
+
+impl ModelFile {
+    /// Reads and checks a model file; errors name the file and key.
+    pub fn read_path(path: &std::path::Path) -> Result<Self, DiagnoseError> {
+        let text = std::fs::read_to_string(path).map_err(|source| DiagnoseError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Self::from_toml(&text, &path.display().to_string())
+    }
+
+    /// Parses the text of a model file: the first `[axes.NAME]` (keys other than
+    /// `p0_mm`, `k0` and `tan_beta` are ignored, so a whole gateway config or a
+    /// calibrate model will do) plus the optional top-level `lagged_channels` and
+    /// `effects`. `origin` names the file in errors.
+    pub fn from_toml(text: &str, origin: &str) -> Result<Self, DiagnoseError> {
+        let err = |message: String| DiagnoseError::ModelFile {
+            path: origin.to_string(),
+            message,
+        };
+        let root: toml::Table = toml::from_str(text).map_err(|e| err(e.to_string()))?;
+        let (_, axis) = crate::calibrate::first_axis_model(&root).map_err(err)?;
+        let lagged_channels: Vec<LaggedChannel> = match root.get("lagged_channels") {
+            Some(v) => v
+                .clone()
+                .try_into()
+                .map_err(|e: toml::de::Error| err(format!("lagged_channels: {}", e.message())))?,
+            None => Vec::new(),
+        };
+        let effects: Vec<EffectTerm> = match root.get("effects") {
+            Some(v) => v
+                .clone()
+                .try_into()
+                .map_err(|e: toml::de::Error| err(format!("effects: {}", e.message())))?,
+            None => Vec::new(),
+        };
+        for e in &effects {
+            if EffectKind::from_name(&e.name).is_none() {
+                return Err(err(format!("effects: unknown effect name `{}`", e.name)));
+            }
+        }
+        Ok(ModelFile {
+            axis,
+            lagged_channels,
+            effects,
+        })
+    }
+
+    /// The TOML text: `[axes.X]` as calibrate writes it, then the lagged channels and
+    /// effects, with a header comment.
+    pub fn to_toml(&self) -> String {
+        let header = "Thermal model written by `compgate diagnose`.\n\
+             [axes.X] is the gateway's axis form (as calibrate writes it; scenario --model\n\
+             reads it); channels are the data's sensors (column T_<name> -> channel <name>).\n\
+             [[lagged_channels]]: a channel on the named sensor's transmitter with\n\
+             filter.lowpass_tau_s. [[effects]]: terms outside K0/tan(beta), with the NC\n\
+             function that carries them.\n";
+        let mut s = crate::calibrate::model_toml("X", "nc_x", &self.axis, header);
+        #[derive(Serialize)]
+        struct Extra<'a> {
+            #[serde(skip_serializing_if = "<[_]>::is_empty")]
+            lagged_channels: &'a [LaggedChannel],
+            #[serde(skip_serializing_if = "<[_]>::is_empty")]
+            effects: &'a [EffectTerm],
+        }
+        let extra = toml::to_string(&Extra {
+            lagged_channels: &self.lagged_channels,
+            effects: &self.effects,
+        })
+        .unwrap_or_default();
+        if !extra.is_empty() {
+            s.push('\n');
+            s.push_str(&extra);
+        }
+        s
+    }
+
+    /// The error the model predicts for every row, um.
+    // Index loops: several row-aligned series at once.
+    #[allow(clippy::needless_range_loop)]
+    pub fn predict_um(&self, m: &Measurements) -> Result<Vec<f64>, DiagnoseError> {
+        let mut signals: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+        for c in &m.temps {
+            signals.insert(c.name.clone(), c.degc.clone());
+        }
+        for l in &self.lagged_channels {
+            let src = m
+                .temp(&l.sensor)
+                .ok_or_else(|| DiagnoseError::UnknownChannel {
+                    channel: l.sensor.clone(),
+                    key: format!("lagged_channels `{}`", l.channel),
+                })?;
+            signals.insert(l.channel.clone(), lag(&m.t_s, src, l.lowpass_tau_s));
+        }
+        // Every channel the axis reads must exist, named with its key, before any row.
+        let k0 = self.axis.k0.terms.iter().map(|t| (&t.channel, "k0.terms"));
+        let tan = self
+            .axis
+            .tan_beta
+            .terms
+            .iter()
+            .map(|t| (&t.channel, "tan_beta.terms"));
+        for (ch, key) in k0.chain(tan) {
+            if !signals.contains_key(ch) {
+                return Err(DiagnoseError::UnknownChannel {
+                    channel: ch.clone(),
+                    key: key.to_string(),
+                });
+            }
+        }
+        let n = m.len();
+        let mut out: Vec<f64> = (0..n)
+            .map(|i| {
+                self.axis
+                    .predict_um(m.pos_mm[i], |ch| signals.get(ch).map(|z| z[i]))
+                    .unwrap_or(f64::NAN) // every channel checked above
+            })
+            .collect();
+        for e in &self.effects {
+            let p = &e.params;
+            match EffectKind::from_name(&e.name) {
+                Some(EffectKind::Reversal) => {
+                    for i in 0..n {
+                        out[i] += 0.5 * get(p, "b_um") * f64::from(m.dir[i]);
+                    }
+                }
+                Some(EffectKind::PitchPeriodic) => {
+                    let w = std::f64::consts::TAU / get(p, "period_mm");
+                    for i in 0..n {
+                        out[i] +=
+                            get(p, "amplitude_um") * (w * m.pos_mm[i] + get(p, "phase_rad")).sin();
+                    }
+                }
+                Some(EffectKind::NonlinearPosition) => {
+                    let (c, h) = (get(p, "center_mm"), get(p, "half_span_mm").max(1e-9));
+                    for i in 0..n {
+                        let l = legendre_2_4((m.pos_mm[i] - c) / h);
+                        out[i] += get(p, "legendre_p2_um") * l[0]
+                            + get(p, "legendre_p3_um") * l[1]
+                            + get(p, "legendre_p4_um") * l[2];
+                    }
+                }
+                Some(EffectKind::MotionHeating) => {
+                    let h = motion_heat(&m.t_s, &m.travel_mm, get(p, "tau_s").max(1e-9));
+                    let r = get(p, "ref_mm_per_s");
+                    for i in 0..n {
+                        out[i] += (h[i] - r)
+                            * (get(p, "k0_um_per_mm_per_s")
+                                + get(p, "slope_um_per_mm_per_mm_per_s")
+                                    * (m.pos_mm[i] - self.axis.p0_mm));
+                    }
+                }
+                _ => {}
+            }
+        }
+        Ok(out)
+    }
+
+    /// The baseline refit alone (K0 and tan(beta) affine in the sensors).
+    pub fn baseline_from_diagnosis(d: &Diagnosis) -> Self {
+        Self::build(d, &d.beta_baseline, &[])
+    }
+
+    /// The updated model of a diagnosis: the refitted baseline plus every added effect.
+    pub fn from_diagnosis(d: &Diagnosis) -> Self {
+        Self::build(d, &d.beta, &d.effects)
+    }
+
+    fn build(d: &Diagnosis, b: &[f64], effects: &[super::EffectReport]) -> Self {
+        let mut mf = ModelFile {
+            axis: AxisModel {
+                p0_mm: d.p0_mm,
+                k0: K0Model {
+                    offset_mm: b[0] / 1000.0,
+                    terms: Vec::new(),
+                },
+                tan_beta: TanBetaModel {
+                    offset: b[1] / 1000.0,
+                    terms: Vec::new(),
+                },
+            },
+            ..Default::default()
+        };
+        let push = |mf: &mut ModelFile, channel: String, ref_degc: f64, k0: f64, slope: f64| {
+            mf.axis.k0.terms.push(K0Term {
+                channel: channel.clone(),
+                ref_degc,
+                coeff_mm_per_degc: k0 / 1000.0,
+            });
+            mf.axis.tan_beta.terms.push(TanBetaTerm {
+                channel,
+                ref_degc,
+                coeff_per_degc: slope / 1000.0,
+            });
+        };
+        for (j, &s) in d.sensor_idx.iter().enumerate() {
+            push(
+                &mut mf,
+                d.temp_names[s].clone(),
+                d.temp_mean_degc[s],
+                b[2 + 2 * j],
+                b[3 + 2 * j],
+            );
+        }
+        for e in effects {
+            let c = &b[e.cols.0..e.cols.1];
+            let p = |k: &str| e.params.get(k).and_then(|v| v.as_f64()).unwrap_or(0.0);
+            match e.kind {
+                EffectKind::ThermalLag => {
+                    let which: Vec<usize> = match e.sensor {
+                        Some(s) => vec![s],
+                        None => d.sensor_idx.clone(),
+                    };
+                    let tau = e.param.unwrap_or(0.0);
+                    for (k, s) in which.into_iter().enumerate() {
+                        let sensor = d.temp_names[s].clone();
+                        let channel = format!("{sensor}_lag{}s", tau.round());
+                        mf.lagged_channels.push(LaggedChannel {
+                            channel: channel.clone(),
+                            sensor,
+                            lowpass_tau_s: tau,
+                        });
+                        let mean = e.signal_mean.get(k).copied().unwrap_or(0.0);
+                        push(&mut mf, channel, mean, c[2 * k], c[2 * k + 1]);
+                    }
+                }
+                EffectKind::ExtraSensor => {
+                    let s = e.sensor.unwrap_or(0);
+                    push(
+                        &mut mf,
+                        d.temp_names[s].clone(),
+                        d.temp_mean_degc[s],
+                        c[0],
+                        c[1],
+                    );
+                }
+                EffectKind::Reversal => mf.effects.push(EffectTerm {
+                    name: e.name.into(),
+                    carried_by: "NC backlash compensation MD32450 = |b_um| (b_um is the error \
+                                 approaching in + minus the error approaching in -); not applied \
+                                 by the gateway"
+                        .into(),
+                    params: BTreeMap::from([("b_um".into(), p("b_um"))]),
+                }),
+                EffectKind::PitchPeriodic => mf.effects.push(EffectTerm {
+                    name: e.name.into(),
+                    carried_by: "NC leadscrew error compensation table (LEC); not applied \
+                                 by the gateway"
+                        .into(),
+                    params: BTreeMap::from([
+                        ("period_mm".into(), p("period_mm")),
+                        ("amplitude_um".into(), p("amplitude_um")),
+                        ("phase_rad".into(), p("phase_rad")),
+                    ]),
+                }),
+                EffectKind::NonlinearPosition => mf.effects.push(EffectTerm {
+                    name: e.name.into(),
+                    carried_by: "NC leadscrew error compensation table (LEC); not applied \
+                                 by the gateway"
+                        .into(),
+                    params: [
+                        "legendre_p2_um",
+                        "legendre_p3_um",
+                        "legendre_p4_um",
+                        "center_mm",
+                        "half_span_mm",
+                    ]
+                    .into_iter()
+                    .map(|k| (k.to_string(), p(k)))
+                    .collect(),
+                }),
+                EffectKind::MotionHeating => mf.effects.push(EffectTerm {
+                    name: e.name.into(),
+                    carried_by: "no sensor sees it: needs a motion-heat model fed with the \
+                                 axis travel; not applied by the gateway"
+                        .into(),
+                    params: BTreeMap::from([
+                        ("tau_s".into(), p("tau_s")),
+                        (
+                            "ref_mm_per_s".into(),
+                            e.signal_mean.first().copied().unwrap_or(0.0),
+                        ),
+                        ("k0_um_per_mm_per_s".into(), c[0]),
+                        ("slope_um_per_mm_per_mm_per_s".into(), c[1]),
+                    ]),
+                }),
+            }
+        }
+        mf
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use compgate_core::measure::TempColumn;
+    use compgate_gateway::config::schema::AxisConfig;
+
+    fn model() -> ModelFile {
+        ModelFile {
+            axis: AxisModel {
+                p0_mm: 100.0,
+                k0: K0Model {
+                    offset_mm: 0.001,
+                    terms: vec![
+                        K0Term {
+                            channel: "a".into(),
+                            ref_degc: 20.0,
+                            coeff_mm_per_degc: 0.002,
+                        },
+                        K0Term {
+                            channel: "a_lag100s".into(),
+                            ref_degc: 20.0,
+                            coeff_mm_per_degc: -0.001,
+                        },
+                    ],
+                },
+                tan_beta: TanBetaModel {
+                    offset: 0.0,
+                    terms: vec![TanBetaTerm {
+                        channel: "a".into(),
+                        ref_degc: 20.0,
+                        coeff_per_degc: 1e-5,
+                    }],
+                },
+            },
+            lagged_channels: vec![LaggedChannel {
+                channel: "a_lag100s".into(),
+                sensor: "a".into(),
+                lowpass_tau_s: 100.0,
+            }],
+            effects: vec![EffectTerm {
+                name: "reversal".into(),
+                carried_by: "MD32450".into(),
+                params: BTreeMap::from([("b_um".into(), 4.0)]),
+            }],
+        }
+    }
+
+    #[test]
+    fn round_trips_and_its_axis_keys_load_as_a_gateway_axis() {
+        let m = model();
+        let text = m.to_toml();
+        let back = ModelFile::from_toml(&text, "m.toml").expect("parse");
+        assert_eq!(back, m);
+        // calibrate's reader (the one scenario --model uses) takes it too.
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("model.toml");
+        std::fs::write(&path, &text).expect("write");
+        let (name, axis) = crate::calibrate::load_model(&path).expect("calibrate reads it");
+        assert_eq!(name, "X");
+        assert_eq!(
+            (axis.k0, axis.tan_beta, axis.p0_mm),
+            (m.axis.k0.clone(), m.axis.tan_beta.clone(), m.axis.p0_mm)
+        );
+        // p0_mm, [k0] and [tan_beta] are the keys of [axes.NAME].
+        #[derive(Serialize)]
+        struct AxisPart<'a> {
+            nc_module: &'a str,
+            md32750: u16,
+            p0_mm: f64,
+            k0: &'a K0Model,
+            tan_beta: &'a TanBetaModel,
+        }
+        let axis = toml::to_string(&AxisPart {
+            nc_module: "nc1",
+            md32750: 3,
+            p0_mm: m.axis.p0_mm,
+            k0: &m.axis.k0,
+            tan_beta: &m.axis.tan_beta,
+        })
+        .expect("toml");
+        let axis: AxisConfig = toml::from_str(&axis).expect("axis config");
+        assert_eq!(axis.k0, m.axis.k0);
+        assert_eq!(axis.tan_beta, m.axis.tan_beta);
+        assert_eq!(axis.p0_mm, 100.0);
+    }
+
+    #[test]
+    fn predicts_with_lagged_channels_and_effects() {
+        let meas = Measurements {
+            t_s: vec![0.0, 100.0, 200.0],
+            pos_mm: vec![100.0, 200.0, 100.0],
+            err_um: vec![0.0; 3],
+            dir: vec![0, 1, -1],
+            travel_mm: vec![0.0, 100.0, 100.0],
+            temps: vec![TempColumn {
+                name: "a".into(),
+                degc: vec![20.0, 21.0, 21.0],
+            }],
+            ignored_columns: vec![],
+        };
+        let p = model().predict_um(&meas).expect("predict");
+        // Row 0: K0 offset 1 um, everything at its reference, dir unknown.
+        assert!((p[0] - 1.0).abs() < 1e-9, "{}", p[0]);
+        // Row 1: lag(a) = 20 + (1 - e^-1) = 20.632; K0 = 1 + 2 - 0.632 um; slope
+        // 1e-5 * 1 degC * 100 mm = 1 um; reversal +2 um.
+        let lag1 = 20.0 + (1.0 - (-1.0f64).exp());
+        let want = 1.0 + 2.0 - (lag1 - 20.0) + 1.0 + 2.0;
+        assert!((p[1] - want).abs() < 1e-9, "{} vs {want}", p[1]);
+        // A term on a channel the data lacks is an error naming it.
+        let mut bad = model();
+        bad.axis.k0.terms[0].channel = "z".into();
+        let e = bad.predict_um(&meas).expect_err("unknown channel");
+        assert!(
+            e.to_string().contains("`z`") && e.to_string().contains("k0.terms"),
+            "{e}"
+        );
+    }
+}

@@ -1,0 +1,17 @@
+//! `compgate-commission`: the offline commissioning tools. They read files (and, for
+//! `backlash`, talk to the NC) and write reports; none needs the service running.
+//!
+//! - [`calibrate`]: the patent's step S1, least-squares fit of K0(T) and tan(beta)(T)
+//!   (pure part in `calibrate::fit`), model file, plot.
+//! - [`iso230`]: ISO 230-2 evaluation (A, B, R, E, M) of bidirectional runs.
+//! - [`diagnose`]: where model and measurement disagree, which effect is missing, the
+//!   model with it added, and how much the gap shrinks.
+//! - [`backlash`]: backlash of a full-closed-loop axis from the servo trace of encoder
+//!   and scale (seed formulas, plateau extraction, MD32450 write).
+//! - [`volumetric`]: online volumetric compensation of a 5-axis AC-head machine.
+
+pub mod backlash;
+pub mod calibrate;
+pub mod diagnose;
+pub mod iso230;
+pub mod volumetric;

@@ -1,0 +1,335 @@
+//! Measured error data: the CSV format `calibrate` and `diagnose` read and `export`
+//! writes, so that recorded operation and laser measurements feed commissioning alike.
+//!
+//! One header row, comma separated, one row per measurement in time order:
+//!
+//! | column      | unit | required | meaning                                                   |
+//! |-------------|------|----------|-----------------------------------------------------------|
+//! | `t_s`       | s    | yes      | time, non-decreasing                                      |
+//! | `pos_mm`    | mm   | yes      | axis position of the measurement                          |
+//! | `err_um`    | um   | yes      | positioning error, actual minus commanded                 |
+//! | `T_<name>`  | degC | >= 1     | a temperature sensor                                      |
+//! | `dir`       | -    | no       | +1/-1, direction of the last move; else the sign of the last non-zero position change |
+//! | `travel_mm` | mm   | no       | distance travelled since the previous row; else abs(delta pos_mm) |
+//!
+//! Any other column is reported in [`Measurements::ignored_columns`] and skipped.
+
+use std::io::{Read, Write};
+use std::path::Path;
+
+use thiserror::Error;
+
+/// Errors reading or writing measurement CSV. Lines are 1-based file lines (the header
+/// is line 1), columns are header names.
+#[derive(Debug, Error)]
+pub enum MeasureError {
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("line {line}: {message}")]
+    Csv { line: u64, message: String },
+    #[error("line 1: required column `{0}` is missing")]
+    MissingColumn(&'static str),
+    #[error("line 1: no temperature column (a column named T_<name>)")]
+    NoTemperature,
+    #[error("line 1: column `{0}` appears twice")]
+    DuplicateColumn(String),
+    #[error("line {line}, column `{column}`: {reason} (value {value:?})")]
+    Field {
+        line: u64,
+        column: String,
+        value: String,
+        reason: &'static str,
+    },
+    #[error("line {line}, column `t_s`: time goes backwards ({t_s} s after {prev_s} s)")]
+    TimeBackwards { line: u64, t_s: f64, prev_s: f64 },
+    #[error("no data rows")]
+    Empty,
+}
+
+/// One temperature column.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TempColumn {
+    /// Sensor name without the `T_` prefix.
+    pub name: String,
+    /// One value per row.
+    pub degc: Vec<f64>,
+}
+
+/// A measurement series, column-wise.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Measurements {
+    pub t_s: Vec<f64>,
+    pub pos_mm: Vec<f64>,
+    pub err_um: Vec<f64>,
+    /// +1/-1; 0 while the direction is unknown (no move yet and no `dir` column).
+    pub dir: Vec<i8>,
+    pub travel_mm: Vec<f64>,
+    pub temps: Vec<TempColumn>,
+    /// Header names that are not part of the format, in file order.
+    pub ignored_columns: Vec<String>,
+}
+
+impl Measurements {
+    /// Number of rows.
+    pub fn len(&self) -> usize {
+        self.t_s.len()
+    }
+
+    /// True when there are no rows.
+    pub fn is_empty(&self) -> bool {
+        self.t_s.is_empty()
+    }
+
+    /// The temperature column of a sensor (name without `T_`).
+    pub fn temp(&self, name: &str) -> Option<&[f64]> {
+        self.temps
+            .iter()
+            .find(|c| c.name == name)
+            .map(|c| c.degc.as_slice())
+    }
+
+    /// Reads a file; errors name the file.
+    pub fn read_path(path: &Path) -> Result<Self, MeasureError> {
+        let file = std::fs::File::open(path).map_err(|source| MeasureError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Self::read(std::io::BufReader::new(file))
+    }
+
+    /// Reads CSV from any reader.
+    pub fn read<R: Read>(reader: R) -> Result<Self, MeasureError> {
+        let mut rdr = csv::ReaderBuilder::new()
+            .trim(csv::Trim::All)
+            .flexible(false)
+            .from_reader(reader);
+        let csv_err = |e: csv::Error| MeasureError::Csv {
+            line: e.position().map_or(1, |p| p.line()),
+            message: e.to_string(),
+        };
+        let header = rdr.headers().map_err(csv_err)?.clone();
+
+        let mut seen = std::collections::HashSet::new();
+        let (mut i_t, mut i_pos, mut i_err, mut i_dir, mut i_travel) =
+            (None, None, None, None, None);
+        let mut temp_idx = Vec::new();
+        let mut out = Measurements::default();
+        for (i, name) in header.iter().enumerate() {
+            if !seen.insert(name.to_string()) {
+                return Err(MeasureError::DuplicateColumn(name.to_string()));
+            }
+            match name {
+                "t_s" => i_t = Some(i),
+                "pos_mm" => i_pos = Some(i),
+                "err_um" => i_err = Some(i),
+                "dir" => i_dir = Some(i),
+                "travel_mm" => i_travel = Some(i),
+                _ => match name.strip_prefix("T_") {
+                    Some(sensor) if !sensor.is_empty() => {
+                        temp_idx.push(i);
+                        out.temps.push(TempColumn {
+                            name: sensor.to_string(),
+                            degc: Vec::new(),
+                        });
+                    }
+                    _ => out.ignored_columns.push(name.to_string()),
+                },
+            }
+        }
+        let i_t = i_t.ok_or(MeasureError::MissingColumn("t_s"))?;
+        let i_pos = i_pos.ok_or(MeasureError::MissingColumn("pos_mm"))?;
+        let i_err = i_err.ok_or(MeasureError::MissingColumn("err_um"))?;
+        if temp_idx.is_empty() {
+            return Err(MeasureError::NoTemperature);
+        }
+
+        let mut record = csv::StringRecord::new();
+        let mut last_dir: i8 = 0;
+        while rdr.read_record(&mut record).map_err(csv_err)? {
+            let line = record.position().map_or(0, |p| p.line());
+            let num = |i: usize| -> Result<f64, MeasureError> {
+                let raw = &record[i];
+                let bad = |reason| MeasureError::Field {
+                    line,
+                    column: header[i].to_string(),
+                    value: raw.to_string(),
+                    reason,
+                };
+                let v: f64 = raw.parse().map_err(|_| bad("not a number"))?;
+                if v.is_finite() {
+                    Ok(v)
+                } else {
+                    Err(bad("not a finite number"))
+                }
+            };
+            let t_s = num(i_t)?;
+            if let Some(&prev_s) = out.t_s.last() {
+                if t_s < prev_s {
+                    return Err(MeasureError::TimeBackwards { line, t_s, prev_s });
+                }
+            }
+            let pos_mm = num(i_pos)?;
+            let delta_mm = out.pos_mm.last().map_or(0.0, |p| pos_mm - p);
+            let dir = match i_dir {
+                Some(i) => match num(i)? {
+                    1.0 => 1,
+                    -1.0 => -1,
+                    _ => {
+                        return Err(MeasureError::Field {
+                            line,
+                            column: "dir".into(),
+                            value: record[i].to_string(),
+                            reason: "must be +1 or -1",
+                        })
+                    }
+                },
+                None => {
+                    if delta_mm > 0.0 {
+                        last_dir = 1;
+                    } else if delta_mm < 0.0 {
+                        last_dir = -1;
+                    }
+                    last_dir
+                }
+            };
+            let travel_mm = match i_travel {
+                Some(i) => {
+                    let v = num(i)?;
+                    if v < 0.0 {
+                        return Err(MeasureError::Field {
+                            line,
+                            column: "travel_mm".into(),
+                            value: record[i].to_string(),
+                            reason: "must not be negative",
+                        });
+                    }
+                    v
+                }
+                None => delta_mm.abs(),
+            };
+            out.err_um.push(num(i_err)?);
+            for (col, &i) in out.temps.iter_mut().zip(&temp_idx) {
+                col.degc.push(num(i)?);
+            }
+            out.t_s.push(t_s);
+            out.pos_mm.push(pos_mm);
+            out.dir.push(dir);
+            out.travel_mm.push(travel_mm);
+        }
+        if out.is_empty() {
+            return Err(MeasureError::Empty);
+        }
+        Ok(out)
+    }
+
+    /// Writes the series in the same format (with `dir` and `travel_mm`), so that
+    /// `read(write(m)) == m` up to float formatting (Rust's shortest round-trip form).
+    pub fn write<W: Write>(&self, writer: W) -> Result<(), MeasureError> {
+        let io = |source| MeasureError::Io {
+            path: "output".into(),
+            source,
+        };
+        let mut w = csv::Writer::from_writer(writer);
+        let csv_err = |e: csv::Error| MeasureError::Csv {
+            line: 0,
+            message: e.to_string(),
+        };
+        let mut header = vec![
+            "t_s".to_string(),
+            "pos_mm".into(),
+            "dir".into(),
+            "travel_mm".into(),
+            "err_um".into(),
+        ];
+        header.extend(self.temps.iter().map(|c| format!("T_{}", c.name)));
+        w.write_record(&header).map_err(csv_err)?;
+        let mut row: Vec<String> = Vec::with_capacity(header.len());
+        for i in 0..self.len() {
+            row.clear();
+            row.push(self.t_s[i].to_string());
+            row.push(self.pos_mm[i].to_string());
+            // Unknown direction is written as +1: the format has no "unknown".
+            row.push(if self.dir[i] < 0 { "-1" } else { "1" }.into());
+            row.push(self.travel_mm[i].to_string());
+            row.push(self.err_um[i].to_string());
+            row.extend(self.temps.iter().map(|c| c.degc[i].to_string()));
+            w.write_record(&row).map_err(csv_err)?;
+        }
+        w.flush().map_err(io)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn read(s: &str) -> Result<Measurements, MeasureError> {
+        Measurements::read(s.as_bytes())
+    }
+
+    #[test]
+    fn derives_dir_and_travel_and_reports_other_columns() {
+        let m = read(
+            "t_s,pos_mm,err_um,T_bed,note,T_screw\n\
+             0,0,1.0,20,a,21\n\
+             1,100,2.0,20.5,b,22\n\
+             2,100,2.5,20.6,c,22.5\n\
+             3,50,1.5,20.7,d,23\n",
+        )
+        .unwrap();
+        assert_eq!(m.len(), 4);
+        assert_eq!(m.dir, vec![0, 1, 1, -1]);
+        assert_eq!(m.travel_mm, vec![0.0, 100.0, 0.0, 50.0]);
+        assert_eq!(m.ignored_columns, vec!["note".to_string()]);
+        assert_eq!(m.temp("screw").unwrap(), &[21.0, 22.0, 22.5, 23.0]);
+        assert_eq!(m.temps[0].name, "bed");
+    }
+
+    #[test]
+    fn round_trips_through_write() {
+        let m = read(
+            "t_s,pos_mm,dir,travel_mm,err_um,T_a\n\
+             0.5,10.25,-1,3.5,-0.125,20.1\n\
+             0.75,11,1,0.75,0.3333333333333333,20.2\n",
+        )
+        .unwrap();
+        let mut buf = Vec::new();
+        m.write(&mut buf).unwrap();
+        assert_eq!(read(std::str::from_utf8(&buf).unwrap()).unwrap(), m);
+    }
+
+    #[test]
+    fn errors_name_line_and_column() {
+        let e = read("t_s,pos_mm,err_um,T_a\n0,0,1,20\n1,x,1,20\n").unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "line 3, column `pos_mm`: not a number (value \"x\")"
+        );
+        let e = read("t_s,pos_mm,err_um,T_a\n5,0,1,20\n4,0,1,20\n").unwrap_err();
+        assert!(e.to_string().starts_with("line 3, column `t_s`"), "{e}");
+        let e = read("t_s,pos_mm,err_um,T_a,dir\n5,0,1,20,0\n").unwrap_err();
+        assert!(e.to_string().contains("column `dir`"), "{e}");
+        let e = read("t_s,pos_mm,err_um,T_a\n5,0,1,20\n6,0,1\n").unwrap_err();
+        assert!(e.to_string().starts_with("line 3:"), "{e}");
+        let e = read("t_s,pos_mm,T_a\n5,0,20\n").unwrap_err();
+        assert!(e.to_string().contains("`err_um` is missing"), "{e}");
+        assert!(matches!(
+            read("t_s,pos_mm,err_um\n0,0,0\n"),
+            Err(MeasureError::NoTemperature)
+        ));
+        assert!(matches!(
+            read("t_s,pos_mm,err_um,T_a\n"),
+            Err(MeasureError::Empty)
+        ));
+        assert!(matches!(
+            read("t_s,pos_mm,err_um,T_a,T_a\n0,0,0,1,1\n"),
+            Err(MeasureError::DuplicateColumn(_))
+        ));
+        let e = read("t_s,pos_mm,err_um,T_a\n0,0,NaN,20\n").unwrap_err();
+        assert!(e.to_string().contains("not a finite number"), "{e}");
+    }
+}

@@ -1,0 +1,488 @@
+use super::*;
+use crate::config::*;
+
+const EXAMPLE: &str = include_str!("../../../../../config/example.toml");
+const DEMO: &str = include_str!("../../../../../config/demo.toml");
+
+fn env(vars: &[(&str, &str)]) -> Vec<(String, String)> {
+    vars.iter()
+        .map(|(k, v)| (k.to_string(), v.to_string()))
+        .collect()
+}
+
+/// The problems of a text that must not load.
+fn problems(text: &str) -> Vec<ConfigProblem> {
+    problems_env(text, &[])
+}
+
+fn problems_env(text: &str, vars: &[(&str, &str)]) -> Vec<ConfigProblem> {
+    match load_str_with_env(text, "t.toml", env(vars)) {
+        Ok(_) => panic!("expected problems"),
+        Err(ConfigError::Invalid(p)) => p,
+        Err(e) => panic!("unexpected {e}"),
+    }
+}
+
+fn keys(p: &[ConfigProblem]) -> Vec<&str> {
+    p.iter().map(|p| p.key.as_str()).collect()
+}
+
+/// The example with `from` replaced by `to` (which must occur exactly once).
+fn edit(from: &str, to: &str) -> String {
+    assert_eq!(EXAMPLE.matches(from).count(), 1, "{from}");
+    EXAMPLE.replace(from, to)
+}
+
+#[test]
+fn example_loads_with_the_documented_values() {
+    let cfg = load_str(EXAMPLE, "example.toml").expect("example is valid");
+    assert_eq!(cfg.gateway.status_interval_s, 1.0);
+    let ain1 = &cfg.devices["ain1"];
+    assert_eq!(ain1.transport, Transport::Tcp);
+    assert_eq!(ain1.address.as_deref(), Some("127.0.0.1:5020"));
+    assert_eq!(ain1.connect_timeout(), std::time::Duration::from_secs(2));
+    let ain2 = &cfg.devices["ain2"];
+    assert_eq!(
+        (ain2.baud(), ain2.parity(), ain2.stop_bits()),
+        (19200, Parity::Even, 1)
+    );
+    let screw = &cfg.channels["T_screw"];
+    assert_eq!(screw.byte_order, ByteOrder::Abcd, "default byte order");
+    assert_eq!(
+        screw.scaling,
+        Scaling::Transmitter(TransmitterScaling {
+            adc_full_scale_counts: 4095,
+            adc_full_scale_ma: 24.0,
+            current_range: CurrentRange::Ma4To20,
+            range_min_degc: -50.0,
+            range_max_degc: 150.0,
+        })
+    );
+    let amb = &cfg.channels["T_ambient"];
+    assert_eq!(
+        (amb.data_type, amb.byte_order),
+        (DataType::F32, ByteOrder::Cdab)
+    );
+    assert_eq!(amb.registers(), 2);
+    assert_eq!(
+        amb.scaling,
+        Scaling::Direct(DirectScaling {
+            gain: 1.0,
+            offset_degc: 0.0
+        })
+    );
+    let x = &cfg.axes["X"];
+    assert_eq!(x.on_bad_input, OnBadInput::RampToZero);
+    assert_eq!(x.k0.terms.len(), 2);
+    assert_eq!(x.tan_beta.terms[0].coeff_per_degc, 0.0000115);
+    assert!(cfg.sim.is_none());
+}
+
+#[test]
+fn demo_loads_and_simulates_every_axis_input() {
+    let cfg = load_str(DEMO, "demo.toml").expect("demo is valid");
+    let sim = cfg.sim.as_ref().expect("demo has [sim]");
+    let x = &cfg.axes["X"];
+    assert_eq!(x.md32750, 3);
+    assert_eq!(sim.nc_module(&x.nc_module).md32750, 3);
+    for t in &x.k0.terms {
+        assert!(sim.channels.contains_key(&t.channel), "{}", t.channel);
+    }
+    for t in &x.tan_beta.terms {
+        assert!(sim.channels.contains_key(&t.channel), "{}", t.channel);
+    }
+}
+
+#[test]
+fn serialized_config_loads_back_equal() {
+    for text in [EXAMPLE, DEMO] {
+        let cfg = load_str(text, "x.toml").expect("valid");
+        let again = toml::to_string(&cfg).expect("serializes");
+        assert_eq!(
+            load_str(&again, "again.toml").expect("reloads"),
+            cfg,
+            "{again}"
+        );
+    }
+}
+
+#[test]
+fn minimal_config_takes_the_documented_defaults() {
+    let text = r#"
+        [devices.d]
+        transport = "tcp"
+        address = "10.0.0.5:502"
+        unit_id = 1
+        [channels.c]
+        device = "d"
+        register = "input"
+        address = 0
+        data_type = "u16"
+        scaling = { kind = "direct" }
+        [nc_modules.n]
+        address = "10.0.0.6:502"
+        unit_id = 1
+        [axes.X]
+        nc_module = "n"
+        md32750 = 3
+    "#;
+    let cfg = load_str(text, "m.toml").expect("valid");
+    assert_eq!(cfg.gateway, GatewayConfig::default());
+    let d = &cfg.devices["d"];
+    assert_eq!(d.timeout_s, 1.0);
+    assert_eq!(d.retries, 1);
+    assert_eq!((d.backoff_initial_s, d.backoff_max_s), (0.5, 30.0));
+    assert_eq!(cfg.channels["c"].filter, FilterConfig::default());
+    assert_eq!(cfg.channels["c"].filter.median_samples, 3);
+    let x = &cfg.axes["X"];
+    assert_eq!(x.max_abs_tan_beta, 0.01);
+    assert_eq!(x.on_bad_input, OnBadInput::Hold);
+    assert_eq!(x.k0, K0Model::default());
+    assert_eq!(cfg.nc_modules["n"].job_timeout_s, 2.0);
+}
+
+#[test]
+fn two_typos_are_both_reported_with_file_and_path() {
+    let text = edit("timeout_s = 0.3", "timeout = 0.3")
+        .replace("lowpass_tau_s = 10.0", "lowpas_tau_s = 10.0");
+    let p = problems(&text);
+    assert_eq!(
+        keys(&p),
+        ["channels.T_bed.filter.lowpas_tau_s", "devices.ain2.timeout"],
+        "{p:#?}"
+    );
+    assert!(p.iter().all(|p| p.file == "t.toml"));
+    assert_eq!(
+        p[0].to_string(),
+        "t.toml: channels.T_bed.filter.lowpas_tau_s: unknown key; did you mean `lowpass_tau_s`?"
+    );
+    assert!(p[1].message.contains("`timeout_s`"), "{}", p[1]);
+}
+
+#[test]
+fn unknown_keys_everywhere_are_reported() {
+    let text = format!(
+        "colour = \"red\"\n{}",
+        edit("offset = 0.0", "offset = 0.0\nbogus = 1")
+            .replace(
+                "{ channel = \"T_bed\", ref_degc = 20.0, coeff_mm_per_degc = 0.004 }",
+                "{ channel = \"T_bed\", ref_degc = 20.0, coef_mm_per_degc = 0.004 }",
+            )
+            .replace(
+                "kind = \"direct\", gain",
+                "kind = \"direct\", range_min_degc = 0.0, gain"
+            )
+    );
+    let p = problems(&text);
+    assert_eq!(
+        keys(&p),
+        [
+            "axes.X.k0.terms[0].coef_mm_per_degc",
+            "axes.X.tan_beta.bogus",
+            "channels.T_ambient.scaling.range_min_degc",
+            "colour",
+        ],
+        "{p:#?}"
+    );
+    assert!(
+        p[2].message.contains("not used by kind = \"direct\""),
+        "{}",
+        p[2]
+    );
+}
+
+#[test]
+fn missing_required_key_is_reported_with_its_path() {
+    let p = problems(&edit("device = \"ain2\"\n", ""));
+    assert_eq!(keys(&p), ["channels.T_ambient.device"], "{p:#?}");
+    assert_eq!(p[0].message, "required key is missing");
+
+    let p = problems(&edit("range_max_degc = 150.0\n", ""));
+    assert_eq!(
+        keys(&p),
+        ["channels.T_bed.scaling.range_max_degc"],
+        "{p:#?}"
+    );
+
+    let text: String = EXAMPLE
+        .split("# ---------------------------------------------------------------- field")
+        .next()
+        .unwrap_or_default()
+        .to_string();
+    let p = problems(&text);
+    assert_eq!(
+        keys(&p),
+        ["devices", "channels", "nc_modules", "axes"],
+        "missing sections: {p:#?}"
+    );
+}
+
+#[test]
+fn type_errors_and_typos_together() {
+    let text = edit("timeout_s = 0.3", "timeout_s = \"fast\"")
+        .replace("unit_id = 7", "unit_id = 300")
+        .replace("transport = \"tcp\"", "transport = \"tpc\"")
+        .replace(
+            "max_gap_registers = 8\n\n[devices.ain2]",
+            "max_gap_register = 8\n\n[devices.ain2]",
+        );
+    let p = problems(&text);
+    assert_eq!(
+        keys(&p),
+        [
+            "devices.ain1.max_gap_register",
+            "devices.ain1.transport",
+            "devices.ain2.timeout_s",
+            "devices.ain2.unit_id",
+        ],
+        "{p:#?}"
+    );
+    assert_eq!(
+        p[1].message,
+        "unknown value `tpc`, expected one of `tcp`, `rtu`, `can`"
+    );
+    assert!(p[2].message.ends_with("expected a number"), "{}", p[2]);
+    assert!(p[3].message.contains("0..=255"), "{}", p[3]);
+}
+
+#[test]
+fn broken_entries_do_not_cause_follow_up_reference_problems() {
+    // ain2 loses a required key: its channel T_ambient still refers to it, and that
+    // must not be reported as an unknown device. A real broken reference is.
+    let text = edit("transport = \"rtu\"\n", "").replace(
+        "{ channel = \"T_screw\", ref_degc",
+        "{ channel = \"T_srew\", ref_degc",
+    );
+    let p = problems(&text);
+    assert_eq!(
+        keys(&p),
+        ["devices.ain2.transport", "axes.X.tan_beta.terms[0].channel"],
+        "{p:#?}"
+    );
+    assert!(
+        p[1].message.contains("unknown channel `T_srew`"),
+        "{}",
+        p[0]
+    );
+}
+
+#[test]
+fn errors_in_array_elements_keep_the_file_indices() {
+    let text = edit(
+        "    { channel = \"T_ambient\", ref_degc = 20.0, coeff_mm_per_degc = 0.001 },\n",
+        "    { channel = 5, ref_degc = 20.0, coeff_mm_per_degc = 0.001 },\n    \
+         { channel = \"T_bed\", ref_degc = \"x\", coeff_mm_per_degc = 0.001 },\n    \
+         { channel = \"T_bed\", ref_degc = 20.0, coeff_mm_per_degc = 0.001, extra = 1 },\n",
+    );
+    let p = problems(&text);
+    assert_eq!(
+        keys(&p),
+        [
+            "axes.X.k0.terms[1].channel",
+            "axes.X.k0.terms[2].ref_degc",
+            "axes.X.k0.terms[3].extra",
+        ],
+        "{p:#?}"
+    );
+}
+
+#[test]
+fn broken_reference_is_reported() {
+    let p = problems(&edit("nc_module = \"nc_x\"", "nc_module = \"nc_y\""));
+    assert_eq!(keys(&p), ["axes.X.nc_module"], "{p:#?}");
+    assert_eq!(
+        p[0].to_string(),
+        "t.toml: axes.X.nc_module: unknown NC module `nc_y`; expected one of the names in \
+         [nc_modules]: `nc_x`"
+    );
+    let p = problems(&edit("device = \"ain2\"", "device = \"ain3\""));
+    assert_eq!(keys(&p), ["channels.T_ambient.device"], "{p:#?}");
+}
+
+#[test]
+fn syntax_error_names_line_and_column() {
+    let text = EXAMPLE.replacen("[devices.ain1]", "[devices.ain1", 1);
+    let line = EXAMPLE
+        .lines()
+        .position(|l| l == "[devices.ain1]")
+        .map(|i| i + 1)
+        .unwrap_or_default();
+    let p = problems(&text);
+    assert_eq!(p.len(), 1);
+    assert!(
+        p[0].key.starts_with(&format!("line {line}, column")),
+        "{p:?}"
+    );
+    assert!(p[0].message.starts_with("TOML syntax error"), "{p:?}");
+}
+
+#[test]
+fn env_override_changes_a_value() {
+    let cfg = load_str_with_env(
+        EXAMPLE,
+        "e.toml",
+        env(&[
+            ("COMPGATE__DEVICES__AIN1__TIMEOUT_S", "0.25"),
+            ("COMPGATE__AXES__X__UPDATE_INTERVAL_S", "3"),
+            ("COMPGATE__AXES__X__ON_BAD_INPUT", "hold"),
+            ("COMPGATE__DEVICES__AIN2__TIMEOUT_S", ""),
+            ("UNRELATED", "1"),
+            ("COMPGATE_SINGLE_UNDERSCORE", "1"),
+        ]),
+    )
+    .expect("valid");
+    assert_eq!(cfg.devices["ain1"].timeout_s, 0.25);
+    assert_eq!(cfg.axes["X"].update_interval_s, 3.0);
+    assert_eq!(cfg.axes["X"].on_bad_input, OnBadInput::Hold);
+    assert_eq!(cfg.devices["ain2"].timeout_s, 0.3, "empty counts as unset");
+}
+
+#[test]
+fn env_override_keeps_mixed_case_names() {
+    let cfg = load_str_with_env(
+        EXAMPLE,
+        "e.toml",
+        env(&[
+            ("COMPGATE__CHANNELS__T_BED__ADDRESS", "9"),
+            ("COMPGATE__CHANNELS__T_BED__FILTER__LOWPASS_TAU_S", "20"),
+            (
+                "COMPGATE__AXES__X__K0__TERMS__1__COEFF_MM_PER_DEGC",
+                "0.002",
+            ),
+            ("COMPGATE__DEVICES__AIN2__SERIAL_PATH", "1"),
+        ]),
+    )
+    .expect("valid");
+    assert_eq!(cfg.channels["T_bed"].address, Some(9));
+    assert_eq!(cfg.channels["T_bed"].filter.lowpass_tau_s, 20.0);
+    assert!(!cfg.channels.contains_key("t_bed"));
+    assert_eq!(cfg.axes["X"].k0.terms[1].coeff_mm_per_degc, 0.002);
+    assert_eq!(cfg.axes["X"].k0.terms[0].coeff_mm_per_degc, 0.004);
+    assert_eq!(
+        cfg.devices["ain2"].serial_path.as_deref(),
+        Some("1"),
+        "a number set for a text key stays text"
+    );
+}
+
+#[test]
+fn env_problems_name_the_variable() {
+    let p = problems_env(
+        EXAMPLE,
+        &[
+            ("COMPGATE__DEVICES__AIN1__TIMEOUTS", "1"),
+            ("COMPGATE__DEVICES__AIN1__BACKOFF_MAX_S", "0.1"),
+        ],
+    );
+    assert_eq!(
+        keys(&p),
+        ["devices.ain1.timeouts", "devices.ain1.backoff_max_s"],
+        "{p:#?}"
+    );
+    assert!(
+        p[0].message
+            .ends_with("(environment: COMPGATE__DEVICES__AIN1__TIMEOUTS)"),
+        "{}",
+        p[0]
+    );
+    assert!(p[1].message.contains("backoff_initial_s"), "{}", p[1]);
+    assert!(p[1]
+        .message
+        .contains("COMPGATE__DEVICES__AIN1__BACKOFF_MAX_S"));
+
+    let p = problems_env(
+        EXAMPLE,
+        &[("COMPGATE__AXES__X__K0__TERMS__5__REF_DEGC", "1")],
+    );
+    assert_eq!(p.len(), 1, "{p:#?}");
+    assert!(p[0].message.contains("beyond the 2 elements"), "{}", p[0]);
+}
+
+#[test]
+fn env_cannot_tell_names_apart_that_differ_in_case() {
+    let text = format!(
+        "{EXAMPLE}\n[channels.t_BED]\ndevice = \"ain1\"\nregister = \"input\"\naddress = 5\n\
+         data_type = \"u16\"\nscaling = {{ kind = \"direct\" }}\n"
+    );
+    let p = problems(&text);
+    assert_eq!(keys(&p), ["channels.t_BED"], "{p:#?}");
+    let p = problems_env(&text, &[("COMPGATE__CHANNELS__T_BED__ADDRESS", "3")]);
+    assert!(
+        p.iter().any(|p| p.key == "channels.t_bed.address" && p.message.contains("`T_bed` and `t_BED`")),
+        "{p:#?}"
+    );
+}
+
+#[test]
+fn error_display_lists_every_problem() {
+    let err = load_str(&edit("unit_id = 7", "unit_id = 0"), "x.toml").expect_err("invalid");
+    assert_eq!(
+        err.to_string(),
+        "1 configuration problem:\n  x.toml: devices.ain2.unit_id: must be 1..=247 on RTU: \
+         0 is the broadcast address, which never answers"
+    );
+    assert_eq!(err.problems().len(), 1);
+    let missing = load(Path::new("surely/not/here.toml")).expect_err("no file");
+    assert!(matches!(missing, ConfigError::Read { .. }), "{missing}");
+}
+
+#[test]
+fn humanized_messages() {
+    assert_eq!(
+        humanize("unknown field `baudrate`, expected one of `baud`, `parity`"),
+        "unknown key; did you mean `baud`?"
+    );
+    assert_eq!(
+        humanize("unknown field `speed`, expected one of `baud`, `parity`"),
+        "unknown key; expected one of `baud`, `parity`"
+    );
+    assert_eq!(
+        humanize("unknown field `x`, there are no fields"),
+        "unknown key; this table takes no keys"
+    );
+    assert_eq!(
+        humanize("invalid type: integer `5`, expected struct DeviceConfig"),
+        "invalid type: integer `5`, expected a table"
+    );
+    assert_eq!(
+        closest("stopbits", &["stop_bits", "baud"]),
+        Some("stop_bits")
+    );
+    assert_eq!(closest("retry", &["retries", "unit_id"]), Some("retries"));
+    assert_eq!(closest("colour", &["address", "unit_id"]), None);
+    assert_eq!(closest("axis", &["axes", "devices"]), Some("axes"));
+    assert_eq!(edit_distance("kitten", "sitting"), 3);
+}
+
+#[test]
+fn secs_saturates() {
+    use std::time::Duration;
+    assert_eq!(secs(0.5), Duration::from_millis(500));
+    assert_eq!(secs(-1.0), Duration::ZERO);
+    assert_eq!(secs(f64::NAN), Duration::ZERO);
+    assert_eq!(secs(f64::INFINITY), Duration::MAX);
+}
+
+#[test]
+fn every_missing_key_of_a_table_is_reported() {
+    let text = format!(
+        "{EXAMPLE}\n[channels.T_new]\nfilter = {{ median_samples = 2 }}\n\n\
+         [channels.T_new2]\ndevice = \"ain1\"\nregister = \"input\"\naddress = 7\n\
+         data_type = \"u16\"\nscaling = {{ kind = \"transmitter\", adc_full_scale_ma = 24.0 }}\n"
+    );
+    let p = problems(&text);
+    assert_eq!(
+        keys(&p),
+        [
+            // register and address depend on the device's transport: validation
+            // reports them once the device is known.
+            "channels.T_new.device",
+            "channels.T_new.data_type",
+            "channels.T_new.scaling",
+            "channels.T_new2.scaling.adc_full_scale_counts",
+            "channels.T_new2.scaling.range_min_degc",
+            "channels.T_new2.scaling.range_max_degc",
+        ],
+        "the even median of T_new is not judged on stand-ins: {p:#?}"
+    );
+}

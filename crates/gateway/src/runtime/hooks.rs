@@ -1,0 +1,73 @@
+//! What the service hangs on the control loop: an [`Observer`] called from the loop
+//! itself, and a source of reloaded configurations.
+//!
+//! Observers must return quickly: anything slow (disk, network) goes through a bounded
+//! channel to a task of its own, and drops rather than blocks when that task lags.
+
+use tokio::sync::mpsc;
+
+use super::{Pipeline, Status};
+use crate::config::Config;
+use crate::nc::{JobReport, NcError};
+use crate::source::DeviceSample;
+use compgate_core::comp::CompParams;
+
+/// Called by the control loop; every method defaults to doing nothing.
+pub trait Observer: Send {
+    /// One device poll cycle went through the channel processors; `pipeline` holds
+    /// the channels' new readings.
+    fn on_sample(&mut self, _sample: &DeviceSample, _pipeline: &Pipeline) {}
+    /// An NC job for axis `axis` ended.
+    fn on_job(&mut self, _axis: &str, _params: &CompParams, _result: &Result<JobReport, NcError>) {}
+    /// The status tick of the loop (every `gateway.status_interval_s`).
+    fn on_status(&mut self, _status: &Status) {}
+    /// A reload took effect (`Ok`) or was refused and the old config stays (`Err`).
+    fn on_reload(&mut self, _result: &Result<(), String>) {}
+}
+
+/// The observer that does nothing.
+impl Observer for () {}
+
+/// Several observers, called in order.
+#[derive(Default)]
+pub struct Observers(pub Vec<Box<dyn Observer>>);
+
+impl Observer for Observers {
+    fn on_sample(&mut self, sample: &DeviceSample, pipeline: &Pipeline) {
+        for o in &mut self.0 {
+            o.on_sample(sample, pipeline);
+        }
+    }
+    fn on_job(&mut self, axis: &str, params: &CompParams, result: &Result<JobReport, NcError>) {
+        for o in &mut self.0 {
+            o.on_job(axis, params, result);
+        }
+    }
+    fn on_status(&mut self, status: &Status) {
+        for o in &mut self.0 {
+            o.on_status(status);
+        }
+    }
+    fn on_reload(&mut self, result: &Result<(), String>) {
+        for o in &mut self.0 {
+            o.on_reload(result);
+        }
+    }
+}
+
+/// Hooks of [`run_with`](super::run_with).
+pub struct Hooks {
+    /// Called from the control loop.
+    pub observer: Box<dyn Observer>,
+    /// New configurations (already loaded and validated), e.g. on SIGHUP.
+    pub reload: Option<mpsc::Receiver<Config>>,
+}
+
+impl Default for Hooks {
+    fn default() -> Self {
+        Hooks {
+            observer: Box::new(()),
+            reload: None,
+        }
+    }
+}

@@ -1,0 +1,289 @@
+//! Field-device polling.
+//!
+//! A [`DevicePoller`] reads every channel of one device (one Modbus unit) in as few
+//! requests as [`plan::plan`] allows and turns the answer into per-channel results.
+//! A device exception ("the device answered no") is kept apart from a transport
+//! fault ("no answer"): only the latter rebuilds the connection. Devices sharing an
+//! RTU line share one [`modbus::ModbusLink`] behind a mutex, so requests on the line
+//! never interleave; a dead unit on that line delays the others by its timeout but
+//! never stops them.
+
+pub mod can;
+pub mod modbus;
+pub mod plan;
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::sync::Mutex;
+use tokio::time::Instant;
+use tokio_modbus::ExceptionCode;
+
+use compgate_core::channel::Reason;
+use modbus::{exception_name, ModbusLink};
+use plan::{ByteOrder, DataType, ReadBlock, RegisterKind, Slot};
+
+/// Errors of the source layer.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SourceError {
+    /// Connecting took longer than the connect timeout.
+    #[error("connect timed out")]
+    ConnectTimeout,
+    /// Connecting failed.
+    #[error("connect failed: {0}")]
+    Connect(String),
+    /// No reply within the request timeout.
+    #[error("no reply within {0:?}")]
+    Timeout(Duration),
+    /// The transport failed (reset, EOF, garbled frame).
+    #[error("transport fault: {0}")]
+    Transport(String),
+    /// The device answered with a Modbus exception.
+    #[error("device exception {}", exception_name(*.0))]
+    Exception(ExceptionCode),
+    /// Reconnect is backing off after failed attempts.
+    #[error("reconnect backing off, next attempt in {0:?}")]
+    BackingOff(Duration),
+    /// A CANopen node or its bus failed.
+    #[error("{0}")]
+    Can(can::CanError),
+}
+
+impl SourceError {
+    /// The channel-quality reason this fault maps to.
+    pub fn reason(&self) -> Reason {
+        match self {
+            Self::Exception(_) => Reason::DeviceException,
+            _ => Reason::Comm,
+        }
+    }
+
+    /// Short kind name, for counters and status.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Self::ConnectTimeout | Self::Connect(_) => "connect",
+            Self::Timeout(_) => "timeout",
+            Self::Transport(_) => "transport",
+            Self::Exception(_) => "exception",
+            Self::BackingOff(_) => "backoff",
+            Self::Can(e) => e.kind(),
+        }
+    }
+}
+
+/// A link shared by the devices on it.
+pub type SharedLink = Arc<Mutex<ModbusLink>>;
+
+/// Where one channel sits on its device and how it is encoded.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ChannelSpec {
+    /// Index of the channel in the gateway.
+    pub channel: usize,
+    /// Register table.
+    pub kind: RegisterKind,
+    /// 0-based address.
+    pub address: u16,
+    /// Encoding.
+    pub data_type: DataType,
+    /// Byte order.
+    pub byte_order: ByteOrder,
+}
+
+/// Why a channel got no value this cycle.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Fault {
+    /// Reason for the channel's quality.
+    pub reason: Reason,
+    /// The device has failed for `degrade_after_cycles` cycles in a row.
+    pub degraded: bool,
+}
+
+/// The outcome of one poll cycle of one device.
+#[derive(Debug, Clone)]
+pub struct DeviceSample {
+    /// Device index.
+    pub device: usize,
+    /// When the cycle started.
+    pub started: Instant,
+    /// Time the cycle took.
+    pub elapsed: Duration,
+    /// Raw value or fault for every channel of the device.
+    pub values: Vec<(usize, Result<f64, Fault>)>,
+    /// The first error of the cycle, if any.
+    pub error: Option<SourceError>,
+    /// Connections the link has made so far (a rise means it reconnected).
+    pub connects: u64,
+}
+
+/// Polling parameters of one device.
+#[derive(Debug, Clone)]
+pub struct PollParams {
+    /// Modbus unit id.
+    pub unit_id: u8,
+    /// Extra attempts after a transport fault within one cycle.
+    pub retries: u32,
+    /// Failed cycles in a row after which the device counts as degraded.
+    pub degrade_after_cycles: u32,
+    /// Largest gap merged into one read.
+    pub max_gap_registers: u16,
+}
+
+/// Polls one device.
+#[derive(Debug)]
+pub struct DevicePoller {
+    index: usize,
+    name: String,
+    params: PollParams,
+    link: SharedLink,
+    blocks: Vec<ReadBlock>,
+    specs: Vec<ChannelSpec>,
+    failed_cycles: u32,
+}
+
+impl DevicePoller {
+    /// A poller for device `index` named `name` reading `specs` over `link`.
+    pub fn new(
+        index: usize,
+        name: String,
+        params: PollParams,
+        link: SharedLink,
+        specs: Vec<ChannelSpec>,
+    ) -> Self {
+        let slots: Vec<Slot> = specs
+            .iter()
+            .enumerate()
+            .map(|(i, s)| Slot {
+                channel: i,
+                kind: s.kind,
+                address: s.address,
+                len: s.data_type.registers(),
+            })
+            .collect();
+        let blocks = plan::plan(&slots, params.max_gap_registers);
+        Self {
+            index,
+            name,
+            params,
+            link,
+            blocks,
+            specs,
+            failed_cycles: 0,
+        }
+    }
+
+    /// Device name from the config.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The reads one cycle makes.
+    pub fn blocks(&self) -> &[ReadBlock] {
+        &self.blocks
+    }
+
+    /// The shared link.
+    pub fn link(&self) -> &SharedLink {
+        &self.link
+    }
+
+    /// Takes over the link (with its open connection) and the failure count of
+    /// `old`: a reload that did not change the device keeps its state.
+    pub fn carry_over(&mut self, old: &DevicePoller) {
+        self.link = old.link.clone();
+        self.failed_cycles = old.failed_cycles;
+    }
+
+    /// Replaces the link (a reload moving a shared serial line onto the old link).
+    pub fn set_link(&mut self, link: SharedLink) {
+        self.link = link;
+    }
+
+    /// Failed cycles in a row.
+    pub fn failed_cycles(&self) -> u32 {
+        self.failed_cycles
+    }
+
+    /// Reads one block, retrying transport faults up to `retries` times.
+    async fn read_block(
+        &self,
+        link: &mut ModbusLink,
+        block: &ReadBlock,
+    ) -> Result<Vec<u16>, SourceError> {
+        let mut attempt = 0;
+        loop {
+            let result = link
+                .read(self.params.unit_id, block.kind, block.start, block.count)
+                .await;
+            match result {
+                Err(
+                    e @ (SourceError::Timeout(_)
+                    | SourceError::Transport(_)
+                    | SourceError::Connect(_)
+                    | SourceError::ConnectTimeout),
+                ) if attempt < self.params.retries => {
+                    attempt += 1;
+                    tracing::debug!(device = %self.name, attempt, error = %e, "retrying read");
+                }
+                other => return other,
+            }
+        }
+    }
+
+    /// Runs one poll cycle.
+    pub async fn poll(&mut self) -> DeviceSample {
+        let started = Instant::now();
+        let mut values = Vec::with_capacity(self.specs.len());
+        let mut first_error = None;
+        let mut failed: Vec<(usize, Reason)> = Vec::new();
+        // One lock for the whole cycle: on a shared RTU line the device's reads go
+        // out back to back.
+        let link = self.link.clone();
+        let mut link = link.lock().await;
+        for block in &self.blocks {
+            match self.read_block(&mut link, block).await {
+                Ok(regs) => {
+                    for (slot, offset) in &block.members {
+                        let spec = &self.specs[slot.channel];
+                        let at = usize::from(*offset);
+                        let len = usize::from(slot.len);
+                        let value = regs
+                            .get(at..at + len)
+                            .and_then(|r| plan::decode(r, spec.data_type, spec.byte_order));
+                        match value {
+                            Some(v) => values.push((spec.channel, Ok(v))),
+                            None => failed.push((spec.channel, Reason::Comm)),
+                        }
+                    }
+                }
+                Err(e) => {
+                    tracing::debug!(device = %self.name, start = block.start, count = block.count, error = %e, "read failed");
+                    for (slot, _) in &block.members {
+                        failed.push((self.specs[slot.channel].channel, e.reason()));
+                    }
+                    first_error.get_or_insert(e);
+                }
+            }
+        }
+        if failed.is_empty() {
+            self.failed_cycles = 0;
+        } else {
+            self.failed_cycles = self.failed_cycles.saturating_add(1);
+        }
+        let degraded = self.failed_cycles >= self.params.degrade_after_cycles;
+        values.extend(
+            failed
+                .into_iter()
+                .map(|(ch, reason)| (ch, Err(Fault { reason, degraded }))),
+        );
+        let connects = link.connects();
+        drop(link);
+        DeviceSample {
+            connects,
+            device: self.index,
+            started,
+            elapsed: started.elapsed(),
+            values,
+            error: first_error,
+        }
+    }
+}

@@ -1,0 +1,149 @@
+//! The shop-floor service around the gateway: systemd notification, journald logging,
+//! SIGHUP reload, and the observers (recorder, metrics, MQTT) behind the control loop.
+
+pub mod heap;
+pub mod metrics;
+pub mod mqtt;
+pub mod notify;
+pub mod record;
+pub mod status;
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+
+use tokio::sync::{mpsc, watch};
+use tokio_util::sync::CancellationToken;
+
+use crate::record::Recorder;
+use compgate_gateway::config::{self, Config};
+use compgate_gateway::runtime::{self, Hooks, Observer, Observers};
+
+/// Logs to the journal when stderr is connected to it (`JOURNAL_STREAM`, set by
+/// systemd), otherwise, or when the journal cannot be opened, to stderr.
+pub fn init_tracing(filter: Option<&str>, default: &str) {
+    use tracing_subscriber::layer::SubscriberExt;
+    use tracing_subscriber::util::SubscriberInitExt;
+    let filter = filter
+        .map(str::to_string)
+        .or_else(|| std::env::var("RUST_LOG").ok())
+        .unwrap_or_else(|| default.to_string());
+    let env_filter = tracing_subscriber::EnvFilter::new(filter);
+    let journal = std::env::var_os("JOURNAL_STREAM").and_then(|_| tracing_journald::layer().ok());
+    let registry = tracing_subscriber::registry().with(env_filter);
+    match journal {
+        Some(layer) => registry.with(layer).init(),
+        None => registry
+            .with(
+                tracing_subscriber::fmt::layer()
+                    .with_writer(std::io::stderr)
+                    // Colour codes only for a person at a terminal.
+                    .with_ansi(std::io::stderr().is_terminal()),
+            )
+            .init(),
+    }
+}
+
+/// Cancels the returned token on Ctrl-C or SIGTERM; sends the reloaded config on
+/// SIGHUP. A config that does not load is logged and not sent: the old one stays.
+fn signals(path: PathBuf, reload: mpsc::Sender<Config>) -> CancellationToken {
+    use tokio::signal::unix::{signal, SignalKind};
+    let token = CancellationToken::new();
+    let t = token.clone();
+    tokio::spawn(async move {
+        let (mut term, mut hup) = match (
+            signal(SignalKind::terminate()),
+            signal(SignalKind::hangup()),
+        ) {
+            (Ok(term), Ok(hup)) => (term, hup),
+            (Err(e), _) | (_, Err(e)) => {
+                tracing::error!(error = %e, "cannot watch SIGTERM/SIGHUP");
+                let _ = tokio::signal::ctrl_c().await;
+                t.cancel();
+                return;
+            }
+        };
+        loop {
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => { tracing::info!("Ctrl-C: stopping"); break }
+                _ = term.recv() => { tracing::info!("SIGTERM: stopping"); break }
+                _ = hup.recv() => {
+                    tracing::info!(file = %path.display(), "SIGHUP: reloading the configuration");
+                    match config::load(&path) {
+                        Ok(cfg) => {
+                            let _ = reload.send(cfg).await;
+                        }
+                        Err(e) => tracing::error!(error = %e, "reload refused: the running configuration stays"),
+                    }
+                }
+            }
+        }
+        t.cancel();
+    });
+    token
+}
+
+/// `compgate run`: the gateway on `cfg` (loaded from `path`) as a service, until
+/// SIGTERM or Ctrl-C.
+pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
+    let (reload_tx, reload_rx) = mpsc::channel(1);
+    let shutdown = signals(path.to_path_buf(), reload_tx);
+    let mut observers: Vec<Box<dyn Observer>> = vec![Box::new(notify::Notifier::new())];
+    let recorder = match &cfg.recorder {
+        Some(r) => Some(Recorder::start(r).map_err(|e| e.to_string())?),
+        None => None,
+    };
+    if let Some(r) = &recorder {
+        observers.push(Box::new(r.observer()));
+    }
+    let mut publisher = None;
+    if let (Some(m), Some(r)) = (&cfg.mqtt, &recorder) {
+        observers.push(Box::new(mqtt::MqttObserver::new(m, r.sender())));
+        publisher = Some(tokio::spawn(mqtt::publisher(
+            m.clone(),
+            r.path().to_path_buf(),
+            r.outbox_notify(),
+            shutdown.clone(),
+        )));
+    }
+    if let Some(m) = &cfg.metrics {
+        metrics::install(&m.bind)?;
+        let stats = recorder.as_ref().map(|r| r.sender().stats().clone());
+        observers.push(Box::new(metrics::MetricsObserver::new(stats)));
+    }
+    let (tx, rx) = watch::channel(runtime::Status::default());
+    let printer = tokio::spawn(crate::status::print_loop(
+        rx,
+        cfg.gateway.status_interval(),
+        std::io::stdout().is_terminal(),
+        shutdown.clone(),
+    ));
+    let hooks = Hooks {
+        observer: Box::new(Observers(observers)),
+        reload: Some(reload_rx),
+    };
+    // On a runtime worker, where the device tasks run: a sample then wakes the
+    // control loop on the same thread, not `block_on`'s thread through a futex, once
+    // per poll cycle.
+    let gateway_cfg = cfg.clone();
+    let gateway_shutdown = shutdown.clone();
+    let result =
+        tokio::spawn(
+            async move { runtime::run_with(&gateway_cfg, gateway_shutdown, tx, hooks).await },
+        )
+        .await
+        .map_err(|e| e.to_string());
+    let _ = sd_notify::notify(&[sd_notify::NotifyState::Stopping]);
+    shutdown.cancel();
+    if let Some(p) = publisher {
+        let _ = p.await;
+    }
+    if let Some(r) = recorder {
+        // The observers are gone with the gateway: the writer commits what is queued.
+        tokio::task::spawn_blocking(move || r.finish())
+            .await
+            .map_err(|e| e.to_string())?;
+    }
+    shutdown.cancel();
+    let _ = printer.await;
+    result?.map_err(|e| e.to_string())
+}

@@ -1,0 +1,196 @@
+//! Prometheus metrics through the `metrics` facade and its Prometheus exporter (the
+//! exporter writes the text format and serves `GET /metrics`).
+//!
+//! | metric | type | labels | meaning |
+//! |---|---|---|---|
+//! | `compgate_device_link_up` | gauge | device | 1 when the last poll cycle read everything |
+//! | `compgate_device_poll_seconds` | histogram | device | duration of a poll cycle: the request round trips |
+//! | `compgate_device_errors_total` | counter | device, kind | failed cycles by kind: timeout, transport, connect, exception, backoff |
+//! | `compgate_channel_value_degc` | gauge | channel | filtered temperature (NaN without a value) |
+//! | `compgate_channel_quality` | gauge | channel | 0 good, 1 uncertain, 2 bad |
+//! | `compgate_axis_sd43900_mm`, `compgate_axis_sd43910`, `compgate_axis_sd43920_mm` | gauge | axis | parameters last written and verified |
+//! | `compgate_nc_jobs_total` | counter | axis, result (`ok`/`failed`) | NC job outcomes |
+//! | `compgate_cycle_seconds` | histogram | | control loop: time to process one device sample |
+//! | `compgate_recorder_records_total` | counter | outcome (`written`, `dropped_queue`, `dropped_write`) | recorder |
+//! | `compgate_process_heap_bytes` | gauge | state (`in_use`, `free`) | glibc malloc: bytes allocated (the live heap) and bytes it holds free; RSS growing with `in_use` flat is the allocator, not a leak (glibc only) |
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Instant;
+
+use metrics::{counter, gauge, histogram, Counter, Gauge, Histogram};
+use metrics_exporter_prometheus::{Matcher, PrometheusBuilder};
+
+use crate::record::{quality_code, RecorderStats};
+use compgate_core::comp::CompParams;
+use compgate_gateway::nc::{JobReport, NcError};
+use compgate_gateway::runtime::{Observer, Pipeline, Status};
+use compgate_gateway::source::DeviceSample;
+
+/// Starts the exporter on `bind` (inside the tokio runtime) and installs the global
+/// recorder.
+pub fn install(bind: &str) -> Result<(), String> {
+    let addr: SocketAddr = bind
+        .parse()
+        .map_err(|e| format!("metrics.bind `{bind}`: {e}"))?;
+    let buckets = [
+        0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0,
+    ];
+    let (recorder, exporter) = PrometheusBuilder::new()
+        .with_http_listener(addr)
+        .set_buckets_for_metric(Matcher::Suffix("_seconds".into()), &buckets)
+        .map_err(|e| format!("metrics: {e}"))?
+        .build()
+        .map_err(|e| format!("metrics.bind `{bind}`: {e}"))?;
+    tokio::spawn(async move {
+        if let Err(e) = exporter.await {
+            tracing::error!(error = ?e, "metrics endpoint stopped");
+        }
+    });
+    metrics::set_global_recorder(recorder).map_err(|e| format!("metrics: {e}"))?;
+    tracing::info!(bind = %addr, "Prometheus metrics on http://{addr}/metrics");
+    Ok(())
+}
+
+struct ChannelHandles {
+    value: Gauge,
+    quality: Gauge,
+    /// Quality code last set: it rarely changes, and setting a gauge is two atomic
+    /// writes, 512 channels x 10 Hz of them.
+    last_quality: Option<u8>,
+}
+
+struct DeviceHandles {
+    name: String,
+    up: Gauge,
+    poll: Histogram,
+}
+
+/// The observer that updates the metrics.
+#[derive(Default)]
+pub struct MetricsObserver {
+    channels: Vec<ChannelHandles>,
+    devices: Vec<DeviceHandles>,
+    cycle: Option<Histogram>,
+    recorder: Option<Arc<RecorderStats>>,
+    recorder_counters: Option<[Counter; 3]>,
+    heap: Option<[Gauge; 2]>,
+}
+
+impl MetricsObserver {
+    /// An observer; with `recorder`, its counters are exported too.
+    pub fn new(recorder: Option<Arc<RecorderStats>>) -> Self {
+        MetricsObserver {
+            recorder,
+            ..Self::default()
+        }
+    }
+}
+
+fn set_params(axis: &str, p: &CompParams) {
+    gauge!("compgate_axis_sd43900_mm", "axis" => axis.to_string()).set(p.k0_mm);
+    gauge!("compgate_axis_sd43910", "axis" => axis.to_string()).set(p.tan_beta);
+    gauge!("compgate_axis_sd43920_mm", "axis" => axis.to_string()).set(p.p0_mm);
+}
+
+impl Observer for MetricsObserver {
+    fn on_sample(&mut self, sample: &DeviceSample, pipeline: &Pipeline) {
+        let started = Instant::now();
+        if self.channels.len() != pipeline.channel_names.len() {
+            self.channels = pipeline
+                .channel_names
+                .iter()
+                .map(|n| ChannelHandles {
+                    value: gauge!("compgate_channel_value_degc", "channel" => n.clone()),
+                    quality: gauge!("compgate_channel_quality", "channel" => n.clone()),
+                    last_quality: None,
+                })
+                .collect();
+        }
+        for (ch, _) in &sample.values {
+            let (Some(h), Some(r)) = (self.channels.get_mut(*ch), pipeline.reading(*ch)) else {
+                continue;
+            };
+            h.value.set(r.value_degc.unwrap_or(f64::NAN));
+            let q = quality_code(&r.quality).0;
+            if h.last_quality != Some(q) {
+                h.quality.set(f64::from(q));
+                h.last_quality = Some(q);
+            }
+        }
+        if let Some(d) = self.devices.get(sample.device) {
+            d.up.set(if sample.error.is_none() { 1.0 } else { 0.0 });
+            d.poll.record(sample.elapsed.as_secs_f64());
+            if let Some(e) = &sample.error {
+                counter!("compgate_device_errors_total", "device" => d.name.clone(), "kind" => e.kind())
+                    .increment(1);
+            }
+        }
+        self.cycle
+            .get_or_insert_with(|| histogram!("compgate_cycle_seconds"))
+            .record(started.elapsed().as_secs_f64());
+    }
+
+    fn on_job(&mut self, axis: &str, params: &CompParams, result: &Result<JobReport, NcError>) {
+        let outcome = if result.is_ok() { "ok" } else { "failed" };
+        counter!("compgate_nc_jobs_total", "axis" => axis.to_string(), "result" => outcome)
+            .increment(1);
+        if result.is_ok() {
+            set_params(axis, params);
+        }
+    }
+
+    fn on_status(&mut self, status: &Status) {
+        if self.devices.len() != status.devices.len()
+            || self
+                .devices
+                .iter()
+                .zip(&status.devices)
+                .any(|(h, d)| h.name != d.name)
+        {
+            self.devices = status
+                .devices
+                .iter()
+                .map(|d| DeviceHandles {
+                    name: d.name.clone(),
+                    up: gauge!("compgate_device_link_up", "device" => d.name.clone()),
+                    poll: histogram!("compgate_device_poll_seconds", "device" => d.name.clone()),
+                })
+                .collect();
+            // What the NC held at start counts as written until the first job.
+            for a in &status.axes {
+                if let Some(p) = &a.written {
+                    set_params(&a.name, p);
+                }
+            }
+        }
+        if let Some(stats) = &self.recorder {
+            let c = self.recorder_counters.get_or_insert_with(|| {
+                [
+                    counter!("compgate_recorder_records_total", "outcome" => "written"),
+                    counter!("compgate_recorder_records_total", "outcome" => "dropped_queue"),
+                    counter!("compgate_recorder_records_total", "outcome" => "dropped_write"),
+                ]
+            });
+            use std::sync::atomic::Ordering::Relaxed;
+            c[0].absolute(stats.written.load(Relaxed));
+            c[1].absolute(stats.dropped_queue.load(Relaxed));
+            c[2].absolute(stats.dropped_write.load(Relaxed));
+        }
+        if let Some(h) = crate::heap::stats() {
+            let g = self.heap.get_or_insert_with(|| {
+                [
+                    gauge!("compgate_process_heap_bytes", "state" => "in_use"),
+                    gauge!("compgate_process_heap_bytes", "state" => "free"),
+                ]
+            });
+            g[0].set(h.in_use_bytes as f64);
+            g[1].set(h.free_bytes as f64);
+        }
+    }
+
+    fn on_reload(&mut self, _result: &Result<(), String>) {
+        self.channels.clear();
+        self.devices.clear();
+    }
+}

@@ -1,0 +1,455 @@
+//! MQTT publishing (QoS 1) with store-and-forward through the recorder's database.
+//!
+//! The control loop's [`MqttObserver`] turns readings, NC jobs and health into JSON
+//! messages and queues them with the recorder, which commits them into the
+//! `mqtt_outbox` table in the same transaction as the readings. The [`publisher`]
+//! task sends the outbox in id order and deletes a message only when the broker has
+//! acknowledged it (PUBACK). While the broker is down the outbox grows; after it is
+//! back the backlog goes out first, oldest first. Delivery is at least once: after a
+//! broken connection unacknowledged messages are sent again.
+//!
+//! Topics (`P` = `topic_prefix`, `M` = `machine`):
+//!
+//! | topic | when | payload |
+//! |---|---|---|
+//! | `P/M/readings/<device>` | every `publish_interval_s` per device | `{"t_unix_ms", "device", "channels": [{"channel", "value_degc", "unfiltered_degc", "raw", "quality", "reason"}]}` |
+//! | `P/M/writes/<axis>` | every NC job | `{"t_unix_ms", "axis", "sd43900_mm", "sd43910", "sd43920_mm", "ok", "job_id", "elapsed_ms", "error", "quality"}` |
+//! | `P/M/health` | every `publish_interval_s` | `{"t_unix_ms", "quality", "devices": [{"name", "link", "failed_cycles", "last_error"}], "axes": [{"name", "sd43900_mm", "sd43910", "sd43920_mm", "jobs_ok", "jobs_failed", "warning"}]}` |
+//!
+//! One readings message carries a whole poll cycle of a device (64 channels are one
+//! message, not 64). `quality` is `good`, `uncertain` or `bad`: a reading's own quality; `good`/`bad` for
+//! a job's result; for health `good` when every link is up and no axis has a warning,
+//! else `uncertain`.
+
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use rusqlite::Connection;
+
+use rumqttc::{AsyncClient, Event, MqttOptions, Outgoing, Packet, QoS};
+use serde::Serialize;
+use serde_json::json;
+use tokio::sync::Notify;
+use tokio_util::sync::CancellationToken;
+
+use crate::record::{now_unix_ms, quality_code, Record, RecordSender};
+use compgate_core::comp::CompParams;
+use compgate_gateway::config::{secs, MqttConfig};
+use compgate_gateway::nc::{JobReport, NcError};
+use compgate_gateway::runtime::{Observer, Pipeline, Status};
+use compgate_gateway::source::DeviceSample;
+
+fn quality_word(code: u8) -> &'static str {
+    match code {
+        0 => "good",
+        1 => "uncertain",
+        _ => "bad",
+    }
+}
+
+/// A readings message, serialised straight from borrowed values: building a
+/// `serde_json::Value` tree first cost six key strings and a map per channel. Fields
+/// are in alphabetical order, the order the `json!` maps wrote them in.
+#[derive(Serialize)]
+struct ReadingsMsg<'a> {
+    channels: Vec<ChannelMsg<'a>>,
+    device: &'a str,
+    t_unix_ms: i64,
+}
+
+/// One channel of a [`ReadingsMsg`] (non-finite values are written as `null`).
+#[derive(Serialize)]
+struct ChannelMsg<'a> {
+    channel: &'a str,
+    quality: &'static str,
+    raw: Option<f64>,
+    reason: Option<&'static str>,
+    unfiltered_degc: Option<f64>,
+    value_degc: Option<f64>,
+}
+
+/// Builds the messages in the control loop and queues them with the recorder.
+pub struct MqttObserver {
+    base: String,
+    interval: Duration,
+    tx: RecordSender,
+    /// Per device index: last readings message.
+    last_reading: HashMap<usize, Instant>,
+    last_health: Option<Instant>,
+    /// Device names by index, from the status.
+    devices: Vec<String>,
+}
+
+impl MqttObserver {
+    /// An observer for `cfg` that queues through `tx`.
+    pub fn new(cfg: &MqttConfig, tx: RecordSender) -> Self {
+        MqttObserver {
+            base: format!("{}/{}", cfg.topic_prefix, cfg.machine),
+            interval: secs(cfg.publish_interval_s),
+            tx,
+            last_reading: HashMap::new(),
+            last_health: None,
+            devices: Vec::new(),
+        }
+    }
+
+    fn due(last: Option<&Instant>, interval: Duration, now: Instant) -> bool {
+        last.is_none_or(|t| now.saturating_duration_since(*t) >= interval)
+    }
+}
+
+impl Observer for MqttObserver {
+    fn on_sample(&mut self, sample: &DeviceSample, pipeline: &Pipeline) {
+        let now = Instant::now();
+        if !Self::due(self.last_reading.get(&sample.device), self.interval, now) {
+            return;
+        }
+        self.last_reading.insert(sample.device, now);
+        let fallback;
+        let device = match self.devices.get(sample.device) {
+            Some(d) => d.as_str(),
+            None => {
+                fallback = format!("device{}", sample.device);
+                fallback.as_str()
+            }
+        };
+        let channels: Vec<ChannelMsg<'_>> = sample
+            .values
+            .iter()
+            .filter_map(|(ch, _)| {
+                let name = pipeline.channel_names.get(*ch)?;
+                let r = pipeline.reading(*ch)?;
+                let (q, reason) = quality_code(&r.quality);
+                Some(ChannelMsg {
+                    channel: name,
+                    quality: quality_word(q),
+                    raw: r.raw,
+                    reason,
+                    unfiltered_degc: r.unfiltered_degc,
+                    value_degc: r.value_degc,
+                })
+            })
+            .collect();
+        let msg = ReadingsMsg {
+            channels,
+            device,
+            t_unix_ms: now_unix_ms(),
+        };
+        match serde_json::to_string(&msg) {
+            Ok(payload) => self.tx.send(Record::Outbox {
+                topic: format!("{}/readings/{device}", self.base),
+                payload,
+            }),
+            Err(e) => tracing::warn!(error = %e, "MQTT: readings message not built"),
+        }
+    }
+
+    fn on_job(&mut self, axis: &str, params: &CompParams, result: &Result<JobReport, NcError>) {
+        let payload = json!({
+            "t_unix_ms": now_unix_ms(),
+            "axis": axis,
+            "sd43900_mm": params.k0_mm,
+            "sd43910": params.tan_beta,
+            "sd43920_mm": params.p0_mm,
+            "ok": result.is_ok(),
+            "job_id": result.as_ref().ok().map(|r| r.job_id),
+            "elapsed_ms": result.as_ref().ok().map(|r| r.elapsed.as_secs_f64() * 1e3),
+            "error": result.as_ref().err().map(ToString::to_string),
+            "quality": if result.is_ok() { "good" } else { "bad" },
+        });
+        self.tx.send(Record::Outbox {
+            topic: format!("{}/writes/{axis}", self.base),
+            payload: payload.to_string(),
+        });
+    }
+
+    fn on_status(&mut self, status: &Status) {
+        if self.devices.len() != status.devices.len() {
+            self.devices = status.devices.iter().map(|d| d.name.clone()).collect();
+        }
+        let now = Instant::now();
+        if !Self::due(self.last_health.as_ref(), self.interval, now) {
+            return;
+        }
+        self.last_health = Some(now);
+        let healthy = status
+            .devices
+            .iter()
+            .all(|d| d.cycles > 0 && d.last_error.is_none())
+            && status.axes.iter().all(|a| a.warning.is_none());
+        let payload = json!({
+            "t_unix_ms": now_unix_ms(),
+            "quality": if healthy { "good" } else { "uncertain" },
+            "devices": status.devices.iter().map(|d| json!({
+                "name": d.name,
+                "link": if d.cycles > 0 && d.last_error.is_none() { "up" } else { "down" },
+                "failed_cycles": d.failed_cycles,
+                "last_error": d.last_error,
+            })).collect::<Vec<_>>(),
+            "axes": status.axes.iter().map(|a| json!({
+                "name": a.name,
+                "sd43900_mm": a.written.map(|p| p.k0_mm),
+                "sd43910": a.written.map(|p| p.tan_beta),
+                "sd43920_mm": a.written.map(|p| p.p0_mm),
+                "jobs_ok": a.jobs_ok,
+                "jobs_failed": a.jobs_failed,
+                "warning": a.warning,
+            })).collect::<Vec<_>>(),
+        });
+        self.tx.send(Record::Outbox {
+            topic: format!("{}/health", self.base),
+            payload: payload.to_string(),
+        });
+    }
+
+    fn on_reload(&mut self, _result: &Result<(), String>) {
+        // Device indices may have moved.
+        self.last_reading.clear();
+        self.devices.clear();
+    }
+}
+
+/// Messages in flight to the broker at most.
+const WINDOW: usize = 64;
+/// Work on the outbox (deleting acknowledged rows, reading new ones) waits this long
+/// after the first reason for it, so that one database round trip takes what came
+/// together.
+const BATCH: Duration = Duration::from_millis(100);
+/// How often `outbox_max_messages` is enforced.
+const CAP_INTERVAL: Duration = Duration::from_secs(5);
+
+/// Sends the outbox of the database at `db` to the broker until `shutdown`.
+/// `outbox` is notified when the recorder committed new messages.
+pub async fn publisher(
+    cfg: MqttConfig,
+    db_path: PathBuf,
+    outbox: Arc<Notify>,
+    shutdown: CancellationToken,
+) {
+    let retry = secs(cfg.retry_s);
+    let mut dropped_total: u64 = 0;
+    let db = match crate::record::open(&db_path) {
+        Ok(c) => Arc::new(Mutex::new(c)),
+        Err(e) => {
+            tracing::error!(error = %e, "MQTT: cannot open the outbox; nothing is published");
+            return;
+        }
+    };
+    while !shutdown.is_cancelled() {
+        match session(&cfg, &db, &outbox, &shutdown, &mut dropped_total).await {
+            Ok(()) => break,
+            Err(e) => {
+                tracing::warn!(broker = %cfg.broker, error = %e, retry_s = cfg.retry_s, "MQTT: broker unreachable; messages wait in the outbox");
+            }
+        }
+        tokio::select! {
+            _ = shutdown.cancelled() => break,
+            _ = tokio::time::sleep(retry) => {}
+        }
+    }
+}
+
+type Db = Arc<Mutex<Connection>>;
+
+/// One round trip to the outbox.
+struct Exchange {
+    /// Acknowledged rows to delete.
+    acked: Vec<i64>,
+    /// Enforce the cap: delete the oldest beyond this many messages.
+    cap: Option<u64>,
+    /// Read up to `.1` rows with an id above `.0`, oldest first.
+    fetch: Option<(i64, usize)>,
+}
+
+/// Runs `ex` in one blocking call: deletes first, then reads. Returns the rows
+/// dropped by the cap and the rows read.
+async fn exchange(db: &Db, ex: Exchange) -> Result<(u64, Vec<(i64, String, String)>), String> {
+    let db = db.clone();
+    tokio::task::spawn_blocking(move || {
+        let mut conn = db.lock().map_err(|e| e.to_string())?;
+        let mut dropped = 0;
+        if !ex.acked.is_empty() || ex.cap.is_some() {
+            let tx = conn.transaction().map_err(|e| e.to_string())?;
+            {
+                let mut del = tx
+                    .prepare_cached("DELETE FROM mqtt_outbox WHERE id = ?1")
+                    .map_err(|e| e.to_string())?;
+                for id in &ex.acked {
+                    del.execute([id]).map_err(|e| e.to_string())?;
+                }
+            }
+            if let Some(max) = ex.cap {
+                dropped = tx
+                    .prepare_cached(
+                        "DELETE FROM mqtt_outbox WHERE id <= (SELECT max(id) FROM mqtt_outbox) - ?1",
+                    )
+                    .and_then(|mut s| s.execute([i64::try_from(max).unwrap_or(i64::MAX)]))
+                    .map_err(|e| e.to_string())? as u64;
+            }
+            tx.commit().map_err(|e| e.to_string())?;
+        }
+        let rows = match ex.fetch {
+            Some((after, limit)) => conn
+                .prepare_cached(
+                    "SELECT id, topic, payload FROM mqtt_outbox WHERE id > ?1 ORDER BY id LIMIT ?2",
+                )
+                .and_then(|mut s| {
+                    s.query_map(rusqlite::params![after, limit as i64], |r| {
+                        Ok((r.get(0)?, r.get(1)?, r.get(2)?))
+                    })?
+                    .collect::<Result<Vec<_>, _>>()
+                })
+                .map_err(|e| e.to_string())?,
+            None => Vec::new(),
+        };
+        Ok((dropped, rows))
+    })
+    .await
+    .map_err(|e| e.to_string())?
+}
+
+/// One connection to the broker: sends the outbox until `shutdown` (Ok) or a
+/// connection error (Err). A new session starts from the oldest unacknowledged row.
+///
+/// The outbox is read when the recorder has committed new messages (`outbox`), at
+/// the start of a connection, and while a backlog is left; acknowledged rows are
+/// deleted in batches. An idle session does not wake up at all but for the cap.
+async fn session(
+    cfg: &MqttConfig,
+    db: &Db,
+    outbox: &Notify,
+    shutdown: &CancellationToken,
+    dropped_total: &mut u64,
+) -> Result<(), String> {
+    let (host, port) = cfg
+        .broker
+        .rsplit_once(':')
+        .and_then(|(h, p)| Some((h.to_string(), p.parse::<u16>().ok()?)))
+        .ok_or_else(|| format!("mqtt.broker `{}` is not host:port", cfg.broker))?;
+    let id = cfg
+        .client_id
+        .clone()
+        .unwrap_or_else(|| format!("compgate-{}", cfg.machine));
+    let mut opts = MqttOptions::new(id, host, port);
+    opts.set_keep_alive(secs(cfg.keep_alive_s));
+    opts.set_clean_session(true);
+    opts.set_inflight(WINDOW as u16);
+    let (client, mut events) = AsyncClient::new(opts, WINDOW * 2);
+
+    let mut connected = false;
+    let mut queued_upto: i64 = 0;
+    // Row ids sent but not yet given a packet id, in send order.
+    let mut sent: VecDeque<i64> = VecDeque::new();
+    let mut inflight: BTreeMap<u16, i64> = BTreeMap::new();
+    let mut acked: Vec<i64> = Vec::new();
+    // Rows may be waiting that have not been read yet.
+    let mut unread = true;
+    // When the pending outbox work runs.
+    let mut work_at: Option<tokio::time::Instant> = None;
+    let mut cap_tick = tokio::time::interval(CAP_INTERVAL);
+    cap_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut cap_due = false;
+    loop {
+        let far = tokio::time::Instant::now() + Duration::from_secs(3600);
+        tokio::select! {
+            _ = shutdown.cancelled() => {
+                let _ = exchange(db, Exchange { acked: std::mem::take(&mut acked), cap: Some(cfg.outbox_max_messages), fetch: None }).await;
+                let _ = client.try_disconnect();
+                return Ok(());
+            }
+            ev = events.poll() => {
+                match ev.map_err(|e| e.to_string())? {
+                    Event::Incoming(Packet::ConnAck(_)) => {
+                        connected = true;
+                        tracing::info!(broker = %cfg.broker, "MQTT connected");
+                    }
+                    Event::Outgoing(Outgoing::Publish(pkid)) => {
+                        if let Some(row) = sent.pop_front() {
+                            inflight.insert(pkid, row);
+                        }
+                    }
+                    Event::Incoming(Packet::PubAck(ack)) => {
+                        if let Some(row) = inflight.remove(&ack.pkid) {
+                            acked.push(row);
+                        }
+                    }
+                    _ => {}
+                }
+            }
+            () = outbox.notified() => unread = true,
+            _ = cap_tick.tick() => cap_due = true,
+            () = tokio::time::sleep_until(work_at.unwrap_or(far)), if work_at.is_some() => {
+                work_at = None;
+                let room = WINDOW.saturating_sub(sent.len() + inflight.len());
+                let fetch = (connected && unread && room > 0).then_some((queued_upto, room));
+                let cap = std::mem::take(&mut cap_due).then_some(cfg.outbox_max_messages);
+                let (dropped, rows) = exchange(db, Exchange { acked: std::mem::take(&mut acked), cap, fetch }).await?;
+                if dropped > 0 {
+                    *dropped_total += dropped;
+                    tracing::warn!(dropped, dropped_total = *dropped_total, "MQTT outbox over outbox_max_messages: oldest messages dropped");
+                }
+                if fetch.is_some() {
+                    // A full window may have left more behind.
+                    unread = rows.len() == room;
+                }
+                for (row, topic, payload) in rows {
+                    client
+                        .try_publish(topic, QoS::AtLeastOnce, false, payload)
+                        .map_err(|e| e.to_string())?;
+                    sent.push_back(row);
+                    queued_upto = row;
+                }
+            }
+        }
+        let room = WINDOW > sent.len() + inflight.len();
+        if work_at.is_none() && (!acked.is_empty() || cap_due || (connected && unread && room)) {
+            work_at = Some(tokio::time::Instant::now() + BATCH);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn readings_payload_is_the_documented_json() {
+        let msg = ReadingsMsg {
+            channels: vec![
+                ChannelMsg {
+                    channel: "T_bed",
+                    quality: "good",
+                    raw: Some(1234.0),
+                    reason: None,
+                    unfiltered_degc: Some(30.02),
+                    value_degc: Some(30.0),
+                },
+                ChannelMsg {
+                    channel: "T_col",
+                    quality: "bad",
+                    raw: None,
+                    reason: Some("NE43 low"),
+                    unfiltered_degc: Some(f64::NAN),
+                    value_degc: None,
+                },
+            ],
+            device: "ain1",
+            t_unix_ms: 1_763_800_000_123,
+        };
+        let expected = json!({
+            "t_unix_ms": 1_763_800_000_123_i64,
+            "device": "ain1",
+            "channels": [
+                {"channel": "T_bed", "value_degc": 30.0, "unfiltered_degc": 30.02, "raw": 1234.0, "quality": "good", "reason": null},
+                {"channel": "T_col", "value_degc": null, "unfiltered_degc": f64::NAN, "raw": null, "quality": "bad", "reason": "NE43 low"},
+            ],
+        });
+        // Byte for byte what the `json!` maps wrote: same keys, same order.
+        assert_eq!(
+            serde_json::to_string(&msg).expect("serialises"),
+            expected.to_string()
+        );
+    }
+}

@@ -1,0 +1,522 @@
+//! Durable recording: every poll cycle's raw and filtered readings with their quality,
+//! every NC job with its result and the NC's position, into SQLite in WAL mode.
+//!
+//! The control loop hands records to a bounded queue ([`RecordSender`]) and never
+//! waits: when the queue is full the record is dropped and counted. A writer thread
+//! commits the queue in one transaction every `commit_interval_s` (a crash loses at
+//! most that much; `synchronous = NORMAL` in WAL mode survives a killed process) and
+//! applies retention by age and by size. A failed commit (disk full) drops its batch,
+//! is counted and logged, and the writer carries on.
+//!
+//! The same database holds the MQTT outbox, written in the same transaction as the
+//! readings, so what was recorded is also what will be published.
+
+pub mod export;
+mod schema;
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::mpsc::{self, SyncSender, TryRecvError, TrySendError};
+use std::sync::{Arc, OnceLock};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use rusqlite::{params, Connection};
+
+use compgate_core::channel::Quality;
+use compgate_core::comp::CompParams;
+use compgate_gateway::config::RecorderConfig;
+use compgate_gateway::nc::{JobReport, NcError};
+use compgate_gateway::runtime::{Observer, Pipeline, Status};
+use compgate_gateway::source::DeviceSample;
+
+pub use schema::open;
+
+/// Errors of the recorder.
+#[derive(Debug, thiserror::Error)]
+pub enum RecordError {
+    /// The database could not be opened or prepared.
+    #[error("recorder database {path}: {message}")]
+    Open {
+        /// The database file.
+        path: String,
+        /// What failed.
+        message: String,
+    },
+    /// A query failed.
+    #[error("recorder database: {0}")]
+    Sqlite(#[from] rusqlite::Error),
+}
+
+/// Milliseconds since the Unix epoch, now.
+pub fn now_unix_ms() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
+}
+
+/// Quality as stored: 0 good, 1 uncertain, 2 bad, with the reason apart.
+pub fn quality_code(q: &Quality) -> (u8, Option<&'static str>) {
+    match q {
+        Quality::Good => (0, None),
+        Quality::Uncertain(r) => (1, Some(r.as_str())),
+        Quality::Bad(r) => (2, Some(r.as_str())),
+    }
+}
+
+/// One channel's reading of one poll cycle.
+#[derive(Debug, Clone)]
+pub struct Row {
+    /// Channel: index into the cycle's `names`.
+    pub channel: u32,
+    /// Raw register value.
+    pub raw: Option<f64>,
+    /// Temperature before filtering, degC.
+    pub unfiltered_degc: Option<f64>,
+    /// Filtered temperature, degC.
+    pub value_degc: Option<f64>,
+    /// 0 good, 1 uncertain, 2 bad.
+    pub quality: u8,
+    /// Why not good.
+    pub reason: Option<&'static str>,
+}
+
+/// What the writer stores.
+#[derive(Debug, Clone)]
+pub enum Record {
+    /// One device poll cycle.
+    Cycle {
+        /// Time, ms since the Unix epoch.
+        t_unix_ms: i64,
+        /// Every channel name of the configuration, by index; one shared table per
+        /// configuration, so a cycle costs one reference count, not one per channel.
+        names: Arc<[String]>,
+        /// Its channels' readings.
+        rows: Vec<Row>,
+    },
+    /// One NC job and its result.
+    Job {
+        /// Time the result arrived, ms since the Unix epoch.
+        t_unix_ms: i64,
+        /// Axis name.
+        axis: String,
+        /// Parameters sent.
+        params: CompParams,
+        /// Job id, when the job got that far.
+        job_id: Option<u16>,
+        /// Duration of the job, ms.
+        elapsed_ms: Option<f64>,
+        /// `None` when the NC accepted and the read-back matched.
+        error: Option<String>,
+    },
+    /// The NC's state of one axis.
+    Nc {
+        /// Time, ms since the Unix epoch.
+        t_unix_ms: i64,
+        /// Axis name.
+        axis: String,
+        /// Actual position, mm.
+        position_mm: f64,
+        /// Compensation applied, mm.
+        applied_comp_mm: f64,
+        /// Parameters the NC holds.
+        params: CompParams,
+    },
+    /// An MQTT message waiting for the broker.
+    Outbox {
+        /// Topic.
+        topic: String,
+        /// JSON payload.
+        payload: String,
+    },
+}
+
+/// Counters of the recorder, shared with metrics.
+#[derive(Debug, Default)]
+pub struct RecorderStats {
+    /// Records dropped because the queue was full.
+    pub dropped_queue: AtomicU64,
+    /// Records lost because a commit failed (disk full, I/O error).
+    pub dropped_write: AtomicU64,
+    /// Records committed.
+    pub written: AtomicU64,
+    /// Commits that failed.
+    pub failed_commits: AtomicU64,
+}
+
+/// What the queue's ends share besides the queue: how full it is and who to wake.
+#[derive(Debug)]
+struct QueueShared {
+    /// Records queued and not yet taken by the writer.
+    pending: AtomicUsize,
+    /// At this many pending records the writer is woken before its commit is due.
+    wake_at: usize,
+    /// The writer thread, set once it runs.
+    writer: OnceLock<std::thread::Thread>,
+}
+
+/// The control loop's end of the queue. Cloneable; never blocks.
+#[derive(Debug, Clone)]
+pub struct RecordSender {
+    tx: SyncSender<Record>,
+    stats: Arc<RecorderStats>,
+    shared: Arc<QueueShared>,
+}
+
+impl RecordSender {
+    /// Queues `record`; drops and counts it when the queue is full.
+    pub fn send(&self, record: Record) {
+        // Counted before it is queued, so the writer never takes more than counted.
+        let n = self.shared.pending.fetch_add(1, Ordering::Relaxed) + 1;
+        match self.tx.try_send(record) {
+            Ok(()) => {
+                // The writer sleeps until its commit is due (waking it for every
+                // record cost as much CPU as the inserts); only a queue filling up
+                // wakes it early.
+                if n == self.shared.wake_at {
+                    if let Some(t) = self.shared.writer.get() {
+                        t.unpark();
+                    }
+                }
+            }
+            Err(TrySendError::Full(_)) => {
+                self.shared.pending.fetch_sub(1, Ordering::Relaxed);
+                let n = self.stats.dropped_queue.fetch_add(1, Ordering::Relaxed) + 1;
+                // Log the first drop and then every 1000th, not every one.
+                if n == 1 || n.is_multiple_of(1000) {
+                    tracing::warn!(dropped = n, "recorder queue full: records dropped");
+                }
+            }
+            Err(TrySendError::Disconnected(_)) => {
+                self.shared.pending.fetch_sub(1, Ordering::Relaxed);
+                self.stats.dropped_write.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+    }
+
+    /// The counters.
+    pub fn stats(&self) -> &Arc<RecorderStats> {
+        &self.stats
+    }
+}
+
+/// The database path: `path` as configured, relative ones under `$STATE_DIRECTORY`
+/// (systemd's `StateDirectory=`) when set.
+pub fn resolve_path(path: &str) -> PathBuf {
+    let p = Path::new(path);
+    if p.is_absolute() {
+        return p.to_path_buf();
+    }
+    match std::env::var_os("STATE_DIRECTORY") {
+        // systemd may pass several, separated by ':'; the first is ours.
+        Some(dirs) => {
+            let dirs = dirs.to_string_lossy().to_string();
+            let first = dirs.split(':').next().unwrap_or("");
+            Path::new(first).join(p)
+        }
+        None => p.to_path_buf(),
+    }
+}
+
+/// The running recorder: the writer thread and the queue's sending end.
+#[derive(Debug)]
+pub struct Recorder {
+    sender: RecordSender,
+    thread: Option<std::thread::JoinHandle<()>>,
+    path: PathBuf,
+    outbox: Arc<tokio::sync::Notify>,
+}
+
+impl Recorder {
+    /// Opens (creating if needed) the database and starts the writer thread.
+    pub fn start(cfg: &RecorderConfig) -> Result<Self, RecordError> {
+        let path = resolve_path(&cfg.path);
+        let conn = open(&path)?;
+        let queue = usize::try_from(cfg.queue_cycles).unwrap_or(usize::MAX);
+        let (tx, rx) = mpsc::sync_channel(queue);
+        let stats = Arc::new(RecorderStats::default());
+        let shared = Arc::new(QueueShared {
+            pending: AtomicUsize::new(0),
+            // Half full: the other half takes what arrives while the writer wakes.
+            wake_at: (queue / 2).max(1),
+            writer: OnceLock::new(),
+        });
+        let outbox = Arc::new(tokio::sync::Notify::new());
+        let writer = Writer {
+            conn,
+            commit_interval: compgate_gateway::config::secs(cfg.commit_interval_s),
+            retention_interval: compgate_gateway::config::secs(cfg.retention_interval_s),
+            retention_ms: (cfg.retention_days * 86_400_000.0) as i64,
+            max_bytes: (cfg.max_size_mb * 1024.0 * 1024.0) as i64,
+            stats: stats.clone(),
+            shared: shared.clone(),
+            outbox: outbox.clone(),
+            statements: schema::Statements::default(),
+        };
+        let thread = std::thread::Builder::new()
+            .name("recorder".into())
+            .spawn(move || writer.run(rx))
+            .map_err(|e| RecordError::Open {
+                path: path.display().to_string(),
+                message: format!("cannot start the writer thread: {e}"),
+            })?;
+        let _ = shared.writer.set(thread.thread().clone());
+        tracing::info!(path = %path.display(), "recording into SQLite (WAL)");
+        Ok(Recorder {
+            sender: RecordSender { tx, stats, shared },
+            thread: Some(thread),
+            path,
+            outbox,
+        })
+    }
+
+    /// A sending end of the queue.
+    pub fn sender(&self) -> RecordSender {
+        self.sender.clone()
+    }
+
+    /// The database file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Notified after every commit that added MQTT outbox messages, so the publisher
+    /// reads the outbox when there is something new instead of polling it.
+    pub fn outbox_notify(&self) -> Arc<tokio::sync::Notify> {
+        self.outbox.clone()
+    }
+
+    /// The observer that records what the control loop sees.
+    pub fn observer(&self) -> RecordObserver {
+        RecordObserver {
+            tx: self.sender(),
+            names: None,
+        }
+    }
+
+    /// Closes the queue and waits for the writer's last commit.
+    pub fn finish(mut self) {
+        self.join();
+    }
+
+    fn join(&mut self) {
+        // Replace our sender so the writer sees the queue close once every other
+        // sender (observers) is gone too.
+        let (dead, _) = mpsc::sync_channel(0);
+        self.sender.tx = dead;
+        if let Some(t) = self.thread.take() {
+            // It sleeps until its next commit: wake it to see the queue closed.
+            t.thread().unpark();
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for Recorder {
+    fn drop(&mut self) {
+        self.join();
+    }
+}
+
+/// Records cycles, jobs and the NC's position from the control loop.
+#[derive(Debug)]
+pub struct RecordObserver {
+    tx: RecordSender,
+    names: Option<Arc<[String]>>,
+}
+
+impl Observer for RecordObserver {
+    fn on_sample(&mut self, sample: &DeviceSample, pipeline: &Pipeline) {
+        let names = self
+            .names
+            .get_or_insert_with(|| pipeline.channel_names.iter().cloned().collect());
+        let t_unix_ms = now_unix_ms();
+        let mut rows = Vec::with_capacity(sample.values.len());
+        rows.extend(sample.values.iter().filter_map(|(ch, _)| {
+            let r = pipeline.reading(*ch)?;
+            let (quality, reason) = quality_code(&r.quality);
+            Some(Row {
+                channel: u32::try_from(*ch).ok()?,
+                raw: r.raw,
+                unfiltered_degc: r.unfiltered_degc,
+                value_degc: r.value_degc,
+                quality,
+                reason,
+            })
+        }));
+        self.tx.send(Record::Cycle {
+            t_unix_ms,
+            names: names.clone(),
+            rows,
+        });
+    }
+
+    fn on_job(&mut self, axis: &str, params: &CompParams, result: &Result<JobReport, NcError>) {
+        let (job_id, elapsed_ms, error) = match result {
+            Ok(r) => (Some(r.job_id), Some(r.elapsed.as_secs_f64() * 1e3), None),
+            Err(e) => (None, None, Some(e.to_string())),
+        };
+        self.tx.send(Record::Job {
+            t_unix_ms: now_unix_ms(),
+            axis: axis.to_string(),
+            params: *params,
+            job_id,
+            elapsed_ms,
+            error,
+        });
+    }
+
+    fn on_status(&mut self, status: &Status) {
+        let t_unix_ms = now_unix_ms();
+        for a in &status.axes {
+            if let Some(nc) = &a.nc {
+                self.tx.send(Record::Nc {
+                    t_unix_ms,
+                    axis: a.name.clone(),
+                    position_mm: nc.position_mm,
+                    applied_comp_mm: nc.applied_comp_mm,
+                    params: nc.thermal(),
+                });
+            }
+        }
+    }
+
+    fn on_reload(&mut self, _result: &Result<(), String>) {
+        // Channel indices may have moved.
+        self.names = None;
+    }
+}
+
+struct Writer {
+    conn: Connection,
+    commit_interval: Duration,
+    retention_interval: Duration,
+    retention_ms: i64,
+    max_bytes: i64,
+    stats: Arc<RecorderStats>,
+    shared: Arc<QueueShared>,
+    outbox: Arc<tokio::sync::Notify>,
+    statements: schema::Statements,
+}
+
+impl Writer {
+    fn run(mut self, rx: mpsc::Receiver<Record>) {
+        let mut batch: Vec<Record> = Vec::new();
+        let mut next_commit = Instant::now() + self.commit_interval;
+        let mut next_retention = Instant::now();
+        loop {
+            // Sleep until the commit is due; a filling queue or the recorder's end
+            // unparks earlier, and the commit comes early then (as it does after a
+            // rare spurious wake-up: one more commit, nothing lost).
+            let wait = next_commit.saturating_duration_since(Instant::now());
+            if !wait.is_zero() {
+                std::thread::park_timeout(wait);
+            }
+            let mut closed = false;
+            let mut taken = 0;
+            loop {
+                match rx.try_recv() {
+                    Ok(r) => {
+                        batch.push(r);
+                        taken += 1;
+                    }
+                    Err(TryRecvError::Empty) => break,
+                    Err(TryRecvError::Disconnected) => {
+                        closed = true;
+                        break;
+                    }
+                }
+            }
+            self.shared.pending.fetch_sub(taken, Ordering::Relaxed);
+            let now = Instant::now();
+            self.commit(&mut batch);
+            next_commit = now + self.commit_interval;
+            if now >= next_retention || closed {
+                if let Err(e) = self.retention() {
+                    tracing::warn!(error = %e, "recorder retention pass failed");
+                }
+                next_retention = now + self.retention_interval;
+            }
+            if closed {
+                break;
+            }
+        }
+        // A clean stop leaves no WAL behind.
+        let _ = self
+            .conn
+            .query_row("PRAGMA wal_checkpoint(TRUNCATE)", [], |_| Ok(()));
+        tracing::info!("recorder stopped");
+    }
+
+    fn commit(&mut self, batch: &mut Vec<Record>) {
+        if batch.is_empty() {
+            return;
+        }
+        let n = batch.len() as u64;
+        let outbox = batch.iter().any(|r| matches!(r, Record::Outbox { .. }));
+        match schema::insert(&mut self.conn, &mut self.statements, batch) {
+            Ok(()) => {
+                self.stats.written.fetch_add(n, Ordering::Relaxed);
+                if outbox {
+                    self.outbox.notify_one();
+                }
+            }
+            Err(e) => {
+                // Channel ids looked up in the rolled-back transaction are gone.
+                self.statements.forget_channels();
+                self.stats.dropped_write.fetch_add(n, Ordering::Relaxed);
+                let failed = self.stats.failed_commits.fetch_add(1, Ordering::Relaxed) + 1;
+                if failed == 1 || failed.is_multiple_of(100) {
+                    tracing::error!(error = %e, records = n, failed_commits = failed, "recorder commit failed: batch dropped, the gateway carries on");
+                }
+            }
+        }
+        batch.clear();
+    }
+
+    fn retention(&mut self) -> Result<(), RecordError> {
+        let cutoff = now_unix_ms() - self.retention_ms;
+        schema::delete_before(&self.conn, cutoff)?;
+        // Oldest tenth of the time range at a time until the data fits.
+        for _ in 0..10 {
+            let used = schema::data_bytes(&self.conn)?;
+            if used <= self.max_bytes {
+                break;
+            }
+            let Some((first, last)) = schema::time_range(&self.conn)? else {
+                break;
+            };
+            // Never the newest records: a limit below the schema's own pages would
+            // otherwise empty the database pass after pass.
+            if last <= first {
+                break;
+            }
+            let cut = first + ((last - first) / 10).max(1);
+            tracing::info!(
+                used_bytes = used,
+                max_bytes = self.max_bytes,
+                "recorder over its size: deleting the oldest records"
+            );
+            schema::delete_before(&self.conn, cut)?;
+        }
+        self.conn.execute_batch("PRAGMA incremental_vacuum;")?;
+        let _ = self
+            .conn
+            .query_row("PRAGMA wal_checkpoint(TRUNCATE)", [], |_| Ok(()));
+        Ok(())
+    }
+}
+
+/// Readings, jobs and NC rows, counted (for tests and `export`).
+pub fn counts(conn: &Connection) -> Result<(i64, i64, i64), RecordError> {
+    let c = |t: &str| -> Result<i64, RecordError> {
+        Ok(
+            conn.query_row(&format!("SELECT count(*) FROM {t}"), params![], |r| {
+                r.get(0)
+            })?,
+        )
+    };
+    Ok((c("readings")?, c("jobs")?, c("nc")?))
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,110 @@
+//! The commands that run the simulated plant (feature `sim`): the demo, `sim`, and the
+//! simulated axis of `backlash --sim`.
+
+use std::io::IsTerminal;
+
+use compgate::plant::{Bind, Plant};
+use compgate_commission::backlash;
+use compgate_gateway::{config, runtime};
+use compgate_service::status;
+use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
+
+/// The demo's configuration, embedded so `cargo run --release` needs no file.
+const DEMO_CONFIG: &str = include_str!("../config/demo.toml");
+
+/// Cancels the token on Ctrl-C or SIGTERM.
+fn shutdown_on_signals() -> CancellationToken {
+    let token = CancellationToken::new();
+    let t = token.clone();
+    tokio::spawn(async move {
+        let ctrl_c = tokio::signal::ctrl_c();
+        let mut term =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(s) => s,
+                Err(e) => {
+                    tracing::error!(error = %e, "cannot watch SIGTERM");
+                    let _ = ctrl_c.await;
+                    t.cancel();
+                    return;
+                }
+            };
+        tokio::select! {
+            _ = ctrl_c => tracing::info!("Ctrl-C: stopping"),
+            _ = term.recv() => tracing::info!("SIGTERM: stopping"),
+        }
+        t.cancel();
+    });
+    token
+}
+
+/// Runs the gateway on `cfg` with the status printer until a signal.
+async fn run_gateway(cfg: &config::Config) -> Result<(), String> {
+    let shutdown = shutdown_on_signals();
+    let (tx, rx) = watch::channel(runtime::Status::default());
+    let interval = std::time::Duration::from_secs_f64(cfg.gateway.status_interval_s);
+    let printer = tokio::spawn(status::print_loop(
+        rx,
+        interval,
+        std::io::stdout().is_terminal(),
+        shutdown.clone(),
+    ));
+    let result = runtime::run(cfg, shutdown.clone(), tx).await;
+    shutdown.cancel();
+    let _ = printer.await;
+    result.map_err(|e| e.to_string())
+}
+
+pub async fn demo() -> Result<(), String> {
+    let cfg =
+        config::load_str(DEMO_CONFIG, "config/demo.toml (embedded)").map_err(|e| e.to_string())?;
+    let plant = Plant::start(&cfg, Bind::Ephemeral)
+        .await
+        .map_err(|e| e.to_string())?;
+    eprintln!(
+        "compgate demo: simulated field module and NC axis module on loopback; Ctrl-C stops."
+    );
+    run_gateway(&plant.config).await
+}
+
+pub async fn sim(path: &std::path::Path) -> Result<(), String> {
+    let cfg = config::load(path).map_err(|e| e.to_string())?;
+    let plant = Plant::start(&cfg, Bind::AsConfigured)
+        .await
+        .map_err(|e| e.to_string())?;
+    for (name, d) in &plant.config.devices {
+        if let (Some(interface), Some(node)) = (&d.interface, d.node_id) {
+            println!("CANopen node {name}: {interface} node {node}");
+            continue;
+        }
+        let at = d
+            .address
+            .as_deref()
+            .or(d.serial_path.as_deref())
+            .unwrap_or("-");
+        println!(
+            "field module {name}: {at} (unit {})",
+            d.unit_id.unwrap_or_default()
+        );
+    }
+    for (name, m) in &plant.config.nc_modules {
+        println!("NC axis module {name}: {}", m.address);
+    }
+    println!("simulated plant running; Ctrl-C stops.");
+    shutdown_on_signals().cancelled().await;
+    drop(plant);
+    Ok(())
+}
+
+/// `compgate backlash --sim`: the test on an in-process simulated axis.
+pub async fn backlash(args: &backlash::BacklashArgs) -> Result<String, backlash::BacklashError> {
+    backlash::check_args(args)?;
+    let (address, _module, shutdown) = compgate::plant::backlash_axis(args).await?;
+    let _stop = shutdown.drop_guard();
+    let outcome = backlash::run_on(&address, args).await?;
+    let note = format!(
+        "simulated: backlash {} um, noise {} um, elasticity {} ms",
+        args.sim_backlash_um, args.sim_noise_um, args.sim_elastic_ms
+    );
+    Ok(backlash::report(&args.axis, &outcome, Some(&note)))
+}
