@@ -1,0 +1,566 @@
+//! The running gateway: sources -> channels -> compensation -> NC writer.
+//!
+//! [`build`] turns a validated [`Config`] into runtime parts; [`run`] starts one task
+//! per device, one SYNC producer per CAN interface and one task per NC module around a
+//! core loop that owns every channel processor and axis compensator. Only the device
+//! and SYNC tasks watch the shutdown token: when the device tasks end, the core loop
+//! sees its input close, finishes, and drops the NC command channels, so an NC job in
+//! flight completes before the NC tasks stop.
+
+use std::time::Duration;
+
+use tokio::sync::{mpsc, watch};
+use tokio::time::{Instant, MissedTickBehavior};
+use tokio_util::sync::CancellationToken;
+
+use crate::config::Config;
+use crate::nc::{Job, JobReport, NcError, NcSnapshot, NcWriter};
+use crate::source::can::sync::{self, SyncParams};
+use crate::source::DeviceSample;
+use compgate_core::comp::{CompParams, Decision};
+
+mod build;
+mod hooks;
+mod pipeline;
+mod reload;
+mod status;
+pub use build::*;
+pub use hooks::{Hooks, Observer, Observers};
+pub use pipeline::*;
+pub use status::*;
+
+/// Errors of the gateway layer.
+#[derive(Debug, thiserror::Error)]
+pub enum GatewayError {
+    /// The configuration cannot be turned into a running gateway.
+    #[error("config: {0}")]
+    Config(String),
+}
+
+/// Samples the device tasks may queue ahead of the core loop.
+pub const SAMPLE_QUEUE: usize = 64;
+/// What the core loop asks of an NC task.
+enum NcCommand {
+    Write { axis: usize, params: CompParams },
+}
+
+/// What an NC task reports back to the core loop.
+enum NcEvent {
+    Snapshot {
+        module: usize,
+        result: Result<NcSnapshot, NcError>,
+    },
+    Written {
+        axis: usize,
+        params: CompParams,
+        result: Result<JobReport, NcError>,
+    },
+}
+
+/// What a task hands back when it ends, so a reload can keep its state.
+enum Returned {
+    Device(usize, DeviceRt),
+    Nc(usize, NcModuleRt),
+    /// A SYNC producer keeps nothing: the next generation opens a fresh socket.
+    Sync,
+    Aborted,
+}
+
+/// Polls until `stop` (between polls: a reload keeps the link clean) or `shutdown`
+/// (at once, even mid-request).
+async fn device_task(
+    index: usize,
+    mut dev: DeviceRt,
+    tx: mpsc::Sender<DeviceSample>,
+    stop: CancellationToken,
+    shutdown: CancellationToken,
+) -> Returned {
+    let mut tick = tokio::time::interval(dev.poll_interval);
+    // A slow device must not burst-poll to catch up.
+    tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = stop.cancelled() => break,
+            _ = tick.tick() => {}
+        }
+        let sample = tokio::select! {
+            _ = shutdown.cancelled() => return Returned::Aborted,
+            s = dev.poller.poll() => s,
+        };
+        if tx.send(sample).await.is_err() {
+            break;
+        }
+    }
+    Returned::Device(index, dev)
+}
+
+/// Sends an interface's SYNC until `stop` (a reload or shutdown): at once, since no
+/// exchange is in flight and the next generation starts its own producer.
+async fn sync_task(params: SyncParams, stop: CancellationToken) -> Returned {
+    sync::run(params, stop).await;
+    Returned::Sync
+}
+
+async fn nc_task(
+    module: usize,
+    mut nc: NcModuleRt,
+    mut rx: mpsc::Receiver<NcCommand>,
+    tx: mpsc::Sender<NcEvent>,
+    snapshot_interval: Duration,
+) -> Returned {
+    let mut tick = tokio::time::interval(snapshot_interval);
+    tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            cmd = rx.recv() => {
+                let Some(NcCommand::Write { axis, params }) = cmd else { break };
+                let result = nc.writer.write_job(&Job::thermal(&params)).await;
+                match &result {
+                    Ok(r) => tracing::info!(module = %nc.name, job_id = r.job_id, sd43900_mm = params.k0_mm, sd43910 = params.tan_beta, sd43920_mm = params.p0_mm, elapsed_ms = r.elapsed.as_secs_f64() * 1e3, "NC job done, read-back verified"),
+                    Err(e) => tracing::warn!(module = %nc.name, error = %e, "NC job failed"),
+                }
+                if tx.send(NcEvent::Written { axis, params, result }).await.is_err() {
+                    break;
+                }
+            }
+            _ = tick.tick() => {
+                let result = nc.writer.read_snapshot().await;
+                if tx.send(NcEvent::Snapshot { module, result }).await.is_err() {
+                    break;
+                }
+            }
+        }
+    }
+    Returned::Nc(module, nc)
+}
+
+fn describe(d: &Decision, names: &[String], inputs: &[usize]) -> String {
+    let bad = |idx: &[usize]| {
+        idx.iter()
+            .filter_map(|&i| inputs.get(i).and_then(|&c| names.get(c)))
+            .cloned()
+            .collect::<Vec<_>>()
+            .join(",")
+    };
+    match d {
+        Decision::Write { clamped: false, .. } => "write".into(),
+        Decision::Write { clamped: true, .. } => "write (limited)".into(),
+        Decision::WithinDeadband => "within deadband".into(),
+        Decision::Hold { bad_inputs } => format!("hold: bad input {}", bad(bad_inputs)),
+        Decision::Ramp { bad_inputs, .. } => format!("ramp to zero: bad input {}", bad(bad_inputs)),
+    }
+}
+
+/// Runs the gateway until `shutdown` is cancelled, publishing status on `status`.
+pub async fn run(
+    cfg: &Config,
+    shutdown: CancellationToken,
+    status: watch::Sender<Status>,
+) -> Result<(), GatewayError> {
+    run_with(cfg, shutdown, status, Hooks::default()).await
+}
+
+/// [`run`] with hooks: an observer (recorder, metrics, MQTT, systemd) and a source of
+/// reloaded configs.
+pub async fn run_with(
+    cfg: &Config,
+    shutdown: CancellationToken,
+    status: watch::Sender<Status>,
+    hooks: Hooks,
+) -> Result<(), GatewayError> {
+    let built = build(cfg)?;
+    run_built_with(built, cfg.clone(), shutdown, status, hooks).await;
+    Ok(())
+}
+
+/// Runs already-built parts; see [`run`].
+pub async fn run_built(
+    built: Built,
+    shutdown: CancellationToken,
+    status_tx: watch::Sender<Status>,
+) {
+    // Without a reload source the config is never compared: any will do.
+    let cfg = Config::default();
+    run_built_with(built, cfg, shutdown, status_tx, Hooks::default()).await;
+}
+
+/// Runs `built` (made from `cfg`) through generations: a reload ends one generation
+/// between polls, after every NC job in flight has finished, and starts the next with
+/// the state of whatever did not change.
+async fn run_built_with(
+    built: Built,
+    mut cfg: Config,
+    shutdown: CancellationToken,
+    status_tx: watch::Sender<Status>,
+    mut hooks: Hooks,
+) {
+    let mut state = Running::new(built);
+    loop {
+        match generation(&mut state, &shutdown, &status_tx, &mut hooks).await {
+            None => break,
+            Some((new_cfg, new_built)) => {
+                state = reload::transplant(&cfg, &new_cfg, state, *new_built);
+                cfg = *new_cfg;
+                tracing::info!("configuration reloaded");
+                hooks.observer.on_reload(&Ok(()));
+            }
+        }
+    }
+    status_tx.send_replace(state.status);
+    tracing::info!("gateway stopped");
+}
+
+/// The state that lives across generations.
+struct Running {
+    pipeline: Pipeline,
+    devices: Vec<Option<DeviceRt>>,
+    sync_producers: Vec<SyncParams>,
+    nc_modules: Vec<Option<NcModuleRt>>,
+    status_interval: Duration,
+    status: Status,
+    /// Per axis: whether its step limits start from what the NC holds yet.
+    baselined: Vec<bool>,
+}
+
+impl Running {
+    fn new(built: Built) -> Self {
+        let Built {
+            pipeline,
+            devices,
+            sync_producers,
+            nc_modules,
+            status_interval,
+        } = built;
+        let status = Status {
+            channels: pipeline.channel_statuses(),
+            devices: devices
+                .iter()
+                .map(|d| DeviceStatus {
+                    name: d.poller.name().to_string(),
+                    link: d.poller.describe(),
+                    ..DeviceStatus::default()
+                })
+                .collect(),
+            axes: pipeline
+                .axes
+                .iter()
+                .map(|a| AxisStatus {
+                    name: a.name.clone(),
+                    decision: "waiting for the NC".into(),
+                    ..AxisStatus::default()
+                })
+                .collect(),
+            samples: 0,
+        };
+        Running {
+            baselined: vec![false; pipeline.axes.len()],
+            pipeline,
+            devices: devices.into_iter().map(Some).collect(),
+            sync_producers,
+            nc_modules: nc_modules.into_iter().map(Some).collect(),
+            status_interval,
+            status,
+        }
+    }
+
+    fn on_sample(&mut self, sample: &DeviceSample) {
+        self.pipeline.ingest(sample);
+        let status = &mut self.status;
+        status.samples += 1;
+        let d = &mut status.devices[sample.device];
+        d.cycles += 1;
+        d.last_cycle = sample.elapsed;
+        d.connects = sample.connects;
+        match &sample.error {
+            Some(e) => {
+                d.failed_cycles += 1;
+                *d.errors.entry(e.kind()).or_default() += 1;
+                d.last_error = Some(e.to_string());
+            }
+            None => {
+                d.failed_cycles = 0;
+                d.last_error = None;
+            }
+        }
+        // Only this sample's channels changed (512 channels on 8 devices: 8x less work).
+        for (ch, _) in &sample.values {
+            if let (Some(cs), Some(r)) = (status.channels.get_mut(*ch), self.pipeline.reading(*ch))
+            {
+                cs.reading = r;
+            }
+        }
+    }
+
+    fn on_event(&mut self, event: NcEvent, in_flight: &mut [bool], observer: &mut dyn Observer) {
+        match event {
+            NcEvent::Snapshot { module, result } => {
+                for (i, axis) in self.pipeline.axes.iter_mut().enumerate() {
+                    if axis.nc_module != module {
+                        continue;
+                    }
+                    let st = &mut self.status.axes[i];
+                    match &result {
+                        Ok(snap) => {
+                            if !self.baselined[i] {
+                                // Step limits and the deadband start from what the NC holds.
+                                axis.comp.set_baseline(snap.thermal());
+                                self.baselined[i] = true;
+                                st.written = Some(snap.thermal());
+                                tracing::info!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, "NC parameters read at start");
+                            }
+                            st.warning = (snap.md32750 != axis.md32750).then(|| {
+                                format!(
+                                    "MD32750 is {} on the NC, the config expects {}",
+                                    snap.md32750, axis.md32750
+                                )
+                            });
+                            if !snap.referenced {
+                                st.warning.get_or_insert_with(|| "axis not referenced: the NC applies no temperature compensation".into());
+                            }
+                            st.nc = Some(*snap);
+                        }
+                        Err(e) => st.warning = Some(format!("NC unreachable: {e}")),
+                    }
+                }
+            }
+            NcEvent::Written {
+                axis,
+                params,
+                result,
+            } => {
+                if let Some(f) = in_flight.get_mut(axis) {
+                    *f = false;
+                }
+                observer.on_job(&self.pipeline.axes[axis].name, &params, &result);
+                let st = &mut self.status.axes[axis];
+                match result {
+                    Ok(_) => {
+                        self.pipeline.axes[axis].comp.confirm(params);
+                        st.written = Some(params);
+                        st.jobs_ok += 1;
+                        st.last_job_error = None;
+                    }
+                    Err(e) => {
+                        st.jobs_failed += 1;
+                        st.last_job_error = Some(e.to_string());
+                    }
+                }
+            }
+        }
+    }
+}
+
+async fn next_reload(reload: &mut Option<mpsc::Receiver<Config>>) -> Config {
+    if let Some(rx) = reload {
+        if let Some(cfg) = rx.recv().await {
+            return cfg;
+        }
+    }
+    *reload = None;
+    std::future::pending().await
+}
+
+/// Runs one generation. Returns the next config and its parts when a reload ended it,
+/// `None` on shutdown.
+async fn generation(
+    state: &mut Running,
+    shutdown: &CancellationToken,
+    status_tx: &watch::Sender<Status>,
+    hooks: &mut Hooks,
+) -> Option<(Box<Config>, Box<Built>)> {
+    status_tx.send_replace(state.status.clone());
+    let stop = shutdown.child_token();
+    let (sample_tx, mut sample_rx) = mpsc::channel::<DeviceSample>(SAMPLE_QUEUE);
+    let mut tasks = tokio::task::JoinSet::new();
+    for (i, dev) in state.devices.iter_mut().enumerate() {
+        if let Some(dev) = dev.take() {
+            tasks.spawn(device_task(
+                i,
+                dev,
+                sample_tx.clone(),
+                stop.clone(),
+                shutdown.clone(),
+            ));
+        }
+    }
+    drop(sample_tx);
+    // Each generation starts the producers of its own config; they stop with `stop`
+    // like the device tasks, so a reload that changes an interface or its period
+    // takes effect and a shutdown leaves no SYNC on the bus.
+    for p in &state.sync_producers {
+        tasks.spawn(sync_task(p.clone(), stop.clone()));
+    }
+
+    let (event_tx, mut event_rx) = mpsc::channel::<NcEvent>(16);
+    let mut nc_tx = Vec::new();
+    for (i, nc) in state.nc_modules.iter_mut().enumerate() {
+        let (tx, rx) = mpsc::channel(4);
+        nc_tx.push(tx);
+        if let Some(nc) = nc.take() {
+            tasks.spawn(nc_task(i, nc, rx, event_tx.clone(), state.status_interval));
+        }
+    }
+    drop(event_tx);
+
+    // Per axis: next decision time, and whether a job is in flight (one at a time).
+    let now = Instant::now();
+    let mut next_update: Vec<Instant> = state
+        .pipeline
+        .axes
+        .iter()
+        .map(|a| now + a.update_interval)
+        .collect();
+    let mut in_flight = vec![false; state.pipeline.axes.len()];
+    let mut status_tick = tokio::time::interval(state.status_interval);
+    status_tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
+    let far = now + Duration::from_secs(86_400 * 365);
+    let mut events_open = true;
+    let mut reload_to: Option<(Box<Config>, Box<Built>)> = None;
+    let observer = &mut *hooks.observer;
+
+    loop {
+        let next = next_update.iter().copied().min().unwrap_or(far);
+        tokio::select! {
+            sample = sample_rx.recv() => {
+                let Some(sample) = sample else { break };
+                state.on_sample(&sample);
+                observer.on_sample(&sample, &state.pipeline);
+            }
+            event = event_rx.recv(), if events_open => {
+                // No NC modules (a monitoring-only config): the channel closes at once.
+                let Some(event) = event else {
+                    events_open = false;
+                    continue;
+                };
+                state.on_event(event, &mut in_flight, observer);
+            }
+            _ = tokio::time::sleep_until(next), if next < far => {
+                let at = Instant::now();
+                let pipeline = &mut state.pipeline;
+                for i in 0..pipeline.axes.len() {
+                    if next_update[i] > at {
+                        continue;
+                    }
+                    next_update[i] = at + pipeline.axes[i].update_interval;
+                    if !state.baselined[i] || in_flight[i] {
+                        continue;
+                    }
+                    let decision = pipeline.decide(i, at);
+                    let axis = &pipeline.axes[i];
+                    state.status.axes[i].decision = describe(&decision, &pipeline.channel_names, &axis.inputs);
+                    let params = match decision {
+                        Decision::Write { params, .. } | Decision::Ramp { params, .. } => params,
+                        Decision::WithinDeadband | Decision::Hold { .. } => continue,
+                    };
+                    if nc_tx[axis.nc_module].try_send(NcCommand::Write { axis: i, params }).is_ok() {
+                        in_flight[i] = true;
+                    }
+                }
+            }
+            _ = status_tick.tick() => {
+                // Called from the control loop itself: a stuck loop stops the watchdog.
+                observer.on_status(&state.status);
+                status_tx.send_replace(state.status.clone());
+            }
+            new_cfg = next_reload(&mut hooks.reload), if reload_to.is_none() => {
+                match build(&new_cfg) {
+                    Ok(built) => {
+                        tracing::info!("reload: stopping the running generation between polls");
+                        reload_to = Some((Box::new(new_cfg), Box::new(built)));
+                        stop.cancel();
+                    }
+                    Err(e) => {
+                        tracing::error!(error = %e, "reload refused: the running configuration stays");
+                        observer.on_reload(&Err(e.to_string()));
+                    }
+                }
+            }
+        }
+    }
+    drop(nc_tx);
+    // Let NC jobs in flight finish and take their results: a reload keeps them.
+    while let Some(event) = event_rx.recv().await {
+        state.on_event(event, &mut in_flight, observer);
+    }
+    while let Some(done) = tasks.join_next().await {
+        match done {
+            Ok(Returned::Device(i, dev)) => state.devices[i] = Some(dev),
+            Ok(Returned::Nc(i, nc)) => state.nc_modules[i] = Some(nc),
+            Ok(Returned::Sync | Returned::Aborted) => {}
+            Err(e) => tracing::error!(error = %e, "gateway task failed"),
+        }
+    }
+    if shutdown.is_cancelled() {
+        return None;
+    }
+    reload_to
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::source::Fault;
+    use compgate_core::channel::Reading;
+    use compgate_core::channel::{Quality, Reason};
+
+    fn sample(p: &Pipeline, k: u32, fault_on: Option<usize>) -> DeviceSample {
+        let values = (0..p.channel_names.len())
+            .filter(|&ch| p.homes[ch].0 == 0)
+            .map(|ch| {
+                let value = if Some(ch) == fault_on {
+                    Err(Fault {
+                        reason: Reason::Comm,
+                        degraded: false,
+                    })
+                } else {
+                    // About 30 degC, one count of noise.
+                    Ok(1774.0 + f64::from((k + ch as u32) % 2))
+                };
+                (ch, value)
+            })
+            .collect();
+        DeviceSample {
+            device: 0,
+            started: p.epoch + Duration::from_millis(100 * u64::from(k)),
+            elapsed: Duration::ZERO,
+            values,
+            error: None,
+            connects: 1,
+        }
+    }
+
+    // The pipeline shows what the bank holds and hands it back whole: after a fault
+    // and on a reload the processors carry on from the bank's state.
+    #[test]
+    fn bank_state_goes_back_to_the_processors() {
+        let cfg =
+            crate::config::load_str(include_str!("../../../../config/demo.toml"), "demo.toml")
+                .expect("demo config");
+        let mut p = build(&cfg).expect("build").pipeline;
+        for k in 0..30 {
+            p.ingest(&sample(&p, k, None));
+        }
+        let held = (0..p.channel_names.len())
+            .filter(|&ch| p.homes[ch].0 == 0 && p.banks[0].holds(p.homes[ch].1))
+            .count();
+        assert!(held >= 4, "{held} channels held");
+        let before: Vec<Reading> = (0..p.channel_names.len())
+            .map(|ch| p.reading(ch).expect("reading"))
+            .collect();
+        assert_eq!(before[0].quality, Quality::Good);
+        assert!(before[0].value_degc.is_some_and(|v| (v - 30.0).abs() < 0.1));
+        // A missing sample hands the channel back: held value, uncertain.
+        p.ingest(&sample(&p, 30, Some(0)));
+        let r = p.reading(0).expect("reading");
+        assert_eq!(r.quality, Quality::Uncertain(Reason::Comm));
+        assert_eq!(r.value_degc, before[0].value_degc);
+        assert!(!p.banks[0].holds(p.homes[0].1));
+        let now: Vec<Reading> = (0..p.channel_names.len())
+            .map(|ch| p.reading(ch).expect("reading"))
+            .collect();
+        let processors = p.take_processors();
+        for (ch, (proc_, r)) in processors.iter().zip(&now).enumerate() {
+            assert_eq!(proc_.last(), r, "channel {ch}");
+        }
+    }
+}

@@ -1,0 +1,72 @@
+//! What the running gateway shows: the status snapshot of devices, channels and axes.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use crate::nc::NcSnapshot;
+use compgate_core::channel::Reading;
+use compgate_core::comp::CompParams;
+
+/// What the gateway shows of one channel.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ChannelStatus {
+    /// Channel name.
+    pub name: String,
+    /// The last reading.
+    pub reading: Reading,
+}
+
+/// What the gateway shows of one device.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct DeviceStatus {
+    /// Device name.
+    pub name: String,
+    /// Link description.
+    pub link: String,
+    /// Poll cycles run.
+    pub cycles: u64,
+    /// Cycles with at least one failed read, in a row.
+    pub failed_cycles: u32,
+    /// Last error, if the last cycle had one.
+    pub last_error: Option<String>,
+    /// Errors counted by kind (timeout, transport, exception, ...).
+    pub errors: BTreeMap<&'static str, u64>,
+    /// Duration of the last poll cycle.
+    pub last_cycle: Duration,
+    /// Connections made to the device so far.
+    pub connects: u64,
+}
+
+/// What the gateway shows of one axis.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct AxisStatus {
+    /// Axis name.
+    pub name: String,
+    /// Parameters the NC accepted last (read at start, then each verified write).
+    pub written: Option<CompParams>,
+    /// The last decision, in words.
+    pub decision: String,
+    /// Jobs that ended verified.
+    pub jobs_ok: u64,
+    /// Jobs that failed.
+    pub jobs_failed: u64,
+    /// The last job error.
+    pub last_job_error: Option<String>,
+    /// The NC's last snapshot.
+    pub nc: Option<NcSnapshot>,
+    /// A warning a commissioning engineer must see (MD32750 mismatch, NC unreachable).
+    pub warning: Option<String>,
+}
+
+/// Everything the status line, logs and tests look at.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Status {
+    /// Per channel, in config order.
+    pub channels: Vec<ChannelStatus>,
+    /// Per device.
+    pub devices: Vec<DeviceStatus>,
+    /// Per axis.
+    pub axes: Vec<AxisStatus>,
+    /// Device samples processed.
+    pub samples: u64,
+}
