@@ -187,12 +187,14 @@ impl Profile {
         }
     }
 
-    fn validate(&self) -> Result<(), String> {
+    /// Why the profile cannot be run (a value that is not finite, an empty or unsorted
+    /// step list).
+    fn validate(&self) -> Result<(), FieldError> {
         let finite = |v: f64, what: &str| {
             if v.is_finite() {
                 Ok(())
             } else {
-                Err(format!("{what} is not finite"))
+                Err(FieldError::InvalidSpec(format!("{what} is not finite")))
             }
         };
         match self {
@@ -214,19 +216,25 @@ impl Profile {
                 if period_s.is_finite() && *period_s > 0.0 {
                     Ok(())
                 } else {
-                    Err(format!("period_s = {period_s} must be > 0"))
+                    Err(FieldError::InvalidSpec(format!(
+                        "period_s = {period_s} must be > 0"
+                    )))
                 }
             }
             Self::Steps(steps) => {
                 if steps.is_empty() {
-                    return Err("Steps needs at least one step".into());
+                    return Err(FieldError::InvalidSpec(
+                        "Steps needs at least one step".into(),
+                    ));
                 }
                 for (t_s, degc) in steps {
                     finite(*t_s, "step t_s")?;
                     finite(*degc, "step degc")?;
                 }
                 if steps.windows(2).any(|w| w[1].0 < w[0].0) {
-                    return Err("Steps must be sorted by t_s".into());
+                    return Err(FieldError::InvalidSpec(
+                        "Steps must be sorted by t_s".into(),
+                    ));
                 }
                 Ok(())
             }
@@ -345,9 +353,9 @@ impl FieldModuleSpec {
                     t.noise_degc
                 ));
             }
-            t.profile
-                .validate()
-                .or_else(|msg| bad(format!("transmitter {i}: {msg}")))?;
+            if let Err(FieldError::InvalidSpec(msg)) = t.profile.validate() {
+                return bad(format!("transmitter {i}: {msg}"));
+            }
         }
         Ok(())
     }

@@ -210,6 +210,11 @@ pub struct Effects {
     pub extra_sensor: Option<ExtraSensorParams>,
 }
 
+/// An effect name that [`Effects::from_names`] does not know.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown effect `{0}`; known: {known}", known = Effects::NAMES.join(", "))]
+pub struct UnknownEffect(pub String);
+
 impl Effects {
     /// The effect names, as the diagnose vocabulary spells them.
     pub const NAMES: [&'static str; 6] = [
@@ -225,7 +230,7 @@ impl Effects {
     /// `thermal_lag` tau 1800 s; `nonlinear_position` 2 um/K; `reversal` b 4 um;
     /// `pitch_periodic` 10 mm, 1.5 um; `motion_heating` tau 2400 s, 4 K at load 1,
     /// 3 um/K; `extra_sensor` tau 900 s, 8 K on half of a 2 h cycle, 2 um/K.
-    pub fn from_names<S: AsRef<str>>(names: &[S]) -> Result<Self, String> {
+    pub fn from_names<S: AsRef<str>>(names: &[S]) -> Result<Self, UnknownEffect> {
         let mut e = Self::default();
         for name in names {
             match name.as_ref().trim() {
@@ -256,12 +261,7 @@ impl Effects {
                     })
                 }
                 "" => {}
-                other => {
-                    return Err(format!(
-                        "unknown effect `{other}`; known: {}",
-                        Self::NAMES.join(", ")
-                    ))
-                }
+                other => return Err(UnknownEffect(other.to_string())),
             }
         }
         Ok(e)

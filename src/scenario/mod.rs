@@ -527,7 +527,8 @@ pub async fn run_with(
             min_s: sweep_s,
         });
     }
-    let effects = Effects::from_names(&args.effects).map_err(ScenarioError::Effects)?;
+    let effects =
+        Effects::from_names(&args.effects).map_err(|e| ScenarioError::Effects(e.to_string()))?;
     std::fs::create_dir_all(&args.out).map_err(|e| io_err(&args.out, e))?;
     let (model, model_source) = match &args.model {
         Some(path) => {
