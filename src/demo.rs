@@ -5,6 +5,7 @@ use std::io::IsTerminal;
 
 use compgate::plant::{Bind, Plant};
 use compgate_commission::backlash;
+use compgate_gateway::config::DeviceConfig;
 use compgate_gateway::{config, runtime};
 use compgate_service::status;
 use tokio::sync::watch;
@@ -73,19 +74,15 @@ pub async fn sim(path: &std::path::Path) -> Result<(), String> {
         .await
         .map_err(|e| e.to_string())?;
     for (name, d) in &plant.config.devices {
-        if let (Some(interface), Some(node)) = (&d.interface, d.node_id) {
-            println!("CANopen node {name}: {interface} node {node}");
-            continue;
-        }
-        let at = d
-            .address
-            .as_deref()
-            .or(d.serial_path.as_deref())
-            .unwrap_or("-");
-        println!(
-            "field module {name}: {at} (unit {})",
-            d.unit_id.unwrap_or_default()
-        );
+        let (at, unit) = match d {
+            DeviceConfig::Can(c) => {
+                println!("CANopen node {name}: {} node {}", c.interface, c.node_id);
+                continue;
+            }
+            DeviceConfig::Tcp(t) => (&t.address, t.unit_id),
+            DeviceConfig::Rtu(r) => (&r.serial_path, r.unit_id),
+        };
+        println!("field module {name}: {at} (unit {unit})");
     }
     for (name, m) in &plant.config.nc_modules {
         println!("NC axis module {name}: {}", m.address);

@@ -21,7 +21,7 @@ use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
 
 use compgate_gateway::config::{
-    CanChannelConfig, ChannelConfig, Config, Scaling, SimProfile, Transport,
+    CanChannelConfig, ChannelConfig, Config, DeviceConfig, Scaling, SimProfile,
 };
 use compgate_gateway::source::plan::{ByteOrder, DataType};
 
@@ -225,46 +225,41 @@ impl Plant {
                 message: e.to_string(),
             })?;
             plant.field.insert(dev_name.clone(), module.clone());
-            match dev.transport {
-                Transport::Tcp => {
+            match dev {
+                DeviceConfig::Tcp(tcp) => {
                     let want = match bind {
                         Bind::Ephemeral => "127.0.0.1:0".to_string(),
-                        Bind::AsConfigured => dev.address.clone().unwrap_or_default(),
+                        Bind::AsConfigured => tcp.address.clone(),
                     };
                     let (listener, addr) = bind_tcp(&want, &format!("devices.{dev_name}")).await?;
-                    if let Some(d) = config.devices.get_mut(dev_name) {
-                        d.address = Some(addr);
+                    if let Some(DeviceConfig::Tcp(d)) = config.devices.get_mut(dev_name) {
+                        d.address = addr;
                     }
                     tokio::spawn(module.serve_tcp(listener, shutdown.clone()));
                 }
-                Transport::Rtu => {
-                    let path = dev.serial_path.clone().unwrap_or_default();
+                DeviceConfig::Rtu(rtu) => {
+                    let path = rtu.serial_path.clone();
                     rtu_lines
                         .entry(path)
                         .or_default()
-                        .push((dev.unit_id.unwrap_or_default(), module));
+                        .push((rtu.unit_id, module));
                 }
                 // A CAN node sits on the configured interface in either bind mode:
                 // vcan keeps nodes of several plants apart by node id only.
-                Transport::Can => {
-                    let interface = dev.interface.clone().unwrap_or_default();
+                DeviceConfig::Can(can) => {
+                    let interface = can.interface.clone();
                     // Heartbeat well inside the consumer timeout (4 per timeout).
-                    let timeout_s = dev.heartbeat_timeout().as_secs_f64();
+                    let timeout_s = can.heartbeat_timeout().as_secs_f64();
                     let heartbeat_ms = if timeout_s > 0.0 {
                         (timeout_s * 250.0).clamp(10.0, 1000.0) as u16
                     } else {
                         1000
                     };
-                    let node = CanopenNode::spawn(
-                        &interface,
-                        dev.node_id.unwrap_or_default(),
-                        heartbeat_ms,
-                        module,
-                    )
-                    .map_err(|e| PlantError::Io {
-                        what: format!("devices.{dev_name}"),
-                        message: e.to_string(),
-                    })?;
+                    let node = CanopenNode::spawn(&interface, can.node_id, heartbeat_ms, module)
+                        .map_err(|e| PlantError::Io {
+                            what: format!("devices.{dev_name}"),
+                            message: e.to_string(),
+                        })?;
                     plant.can.insert(dev_name.clone(), node);
                 }
             }
@@ -294,8 +289,10 @@ impl Plant {
                 }
             };
             for d in config.devices.values_mut() {
-                if d.serial_path.as_deref() == Some(path.as_str()) {
-                    d.serial_path = Some(used.clone());
+                if let DeviceConfig::Rtu(d) = d {
+                    if d.serial_path == path {
+                        d.serial_path = used.clone();
+                    }
                 }
             }
             plant._ptys.push(slave);

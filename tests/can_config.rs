@@ -35,9 +35,9 @@ fn has(p: &[String], key: &str, words: &str) -> bool {
 fn the_can_example_loads() {
     let cfg = config::load_str(&example(), "can.toml").expect("valid");
     let dev = &cfg.devices["can_ain"];
-    assert_eq!(dev.transport, Transport::Can);
-    assert_eq!(dev.node_id, Some(5));
-    assert_eq!(dev.interface.as_deref(), Some("vcan0"));
+    assert_eq!(dev.transport(), Transport::Can);
+    assert_eq!(dev.can().map(|c| c.node_id), Some(5));
+    assert_eq!(dev.can().map(|c| c.interface.as_str()), Some("vcan0"));
     let can = cfg.channels["T_screw"].can.expect("can table");
     assert_eq!((can.pdo, can.offset_bytes), (Some(1), Some(2)));
     let sdo = cfg.channels["T_col"].can.expect("can table");

@@ -529,7 +529,12 @@ async fn reload_and_shutdown_stop_the_sync_producer() {
     );
 
     let mut moved = cfg.clone();
-    moved.devices.get_mut("node5").expect("node5").interface = Some(other.0.into());
+    moved
+        .devices
+        .get_mut("node5")
+        .and_then(|d| d.can_mut())
+        .expect("node5")
+        .interface = other.0.into();
     reload_tx.send(moved).await.expect("reload sent");
     let link = format!("can:{} node 5", other.0);
     tokio::time::timeout(

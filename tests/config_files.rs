@@ -103,13 +103,13 @@ fn env_override_changes_a_value() {
     ]
     .map(|(k, v)| (k.to_string(), v.to_string()));
     let cfg = config::load_with_env(&file, env).expect("valid with overrides");
-    assert_eq!(cfg.devices["ain1"].timeout_s, 0.125);
+    assert_eq!(cfg.devices["ain1"].common().timeout_s, 0.125);
     assert_eq!(cfg.channels["T_screw"].filter.valid_max_degc, 60.0);
     assert_eq!(cfg.axes["X"].tan_beta.terms[0].coeff_per_degc, 0.000012);
     assert_eq!(cfg.channels.len(), 3, "no lowercase twin of T_screw");
 
     let plain = config::load_with_env(&file, no_env()).expect("valid");
-    assert_eq!(plain.devices["ain1"].timeout_s, 0.5);
+    assert_eq!(plain.devices["ain1"].common().timeout_s, 0.5);
 }
 
 #[test]

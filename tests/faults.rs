@@ -115,7 +115,12 @@ async fn modbus_server_process_killed_and_restarted() {
     if let Some(sim) = field_cfg.sim.as_mut() {
         sim.nc_modules.clear();
     }
-    field_cfg.devices.get_mut("ain1").unwrap().address = Some(format!("127.0.0.1:{port}"));
+    field_cfg
+        .devices
+        .get_mut("ain1")
+        .and_then(|d| d.tcp_mut())
+        .unwrap()
+        .address = format!("127.0.0.1:{port}");
     let field_path = dir.path().join("field.toml");
     std::fs::write(&field_path, toml::to_string(&field_cfg).unwrap()).unwrap();
     let start_sim = || {
@@ -146,7 +151,11 @@ async fn modbus_server_process_killed_and_restarted() {
     .await
     .unwrap();
     let mut cfg = plant.config.clone();
-    cfg.devices.get_mut("ain1").unwrap().address = Some(format!("127.0.0.1:{port}"));
+    cfg.devices
+        .get_mut("ain1")
+        .and_then(|d| d.tcp_mut())
+        .unwrap()
+        .address = format!("127.0.0.1:{port}");
     let (rx, shutdown, h) = run_gateway(cfg);
     wait(&rx, 10.0, "first job", |s| s.axes[0].jobs_ok >= 1).await;
     let jobs = plant.nc["nc_x"].jobs_executed();

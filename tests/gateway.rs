@@ -100,8 +100,8 @@ async fn full_chain_over_modbus_rtu_on_a_pty_pair() {
         .replace("unit_id = 1\ntimeout_s = 0.2", "unit_id = 9\ntimeout_s = 0.3");
     let mut rig = start(&toml).await;
     let path = rig.plant.config.devices["ain1"]
-        .serial_path
-        .clone()
+        .rtu()
+        .map(|d| d.serial_path.clone())
         .unwrap();
     assert!(path.starts_with("/dev/pts/"), "served on a pty: {path}");
     let s = rig

@@ -3,8 +3,10 @@
 //! Data flows one way: [`source`] -> `compgate_core::channel` -> `compgate_core::comp`
 //! -> [`nc`].
 //!
-//! - [`config`]: TOML + `COMPGATE__` environment overrides, serde structs with
-//!   `deny_unknown_fields`, and `validate`, which reports every problem at once.
+//! - [`config`]: TOML + `COMPGATE__` environment overrides checked against the JSON
+//!   Schema of the config structs, then the stages' `validate`; every problem at
+//!   once. Each stage owns its config struct, `validate` and `build`: [`source`]
+//!   (devices), [`channel`], [`nc`] (NC modules), [`axis`].
 //! - [`source`]: field-device polling. Modbus TCP and RTU with request merging,
 //!   timeouts, reconnect with capped backoff; CANopen nodes on SocketCAN
 //!   ([`source::can`]: NMT, SYNC + TPDOs, SDO upload, heartbeat, EMCY); one task per
@@ -17,6 +19,8 @@
 //! Nothing here depends on the simulator (`compgate-plc`): tests and the binary's
 //! demo wire the two together.
 
+pub mod axis;
+pub mod channel;
 pub mod config;
 pub mod nc;
 pub mod runtime;

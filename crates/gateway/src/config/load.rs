@@ -1,35 +1,39 @@
-//! Loading: TOML text + environment overrides layered by the `config` crate, then a
-//! structural pass that collects every unknown key, type error and missing key, then
-//! [`validate`](super::validate).
+//! Loading: TOML text + environment overrides layered by the `config` crate, then
+//! the structural check against the JSON Schema ([`structure`](super::structure)),
+//! then the stages' semantic validation ([`validate`](super::validate)).
 //!
-//! # Why the structural pass loops
+//! # Every problem at once
 //!
-//! serde stops at the first error. To report all of them, the merged tree is
-//! deserialized with `serde_path_to_error`, which names the key of the error; the
-//! offending key is then taken out of the tree and deserialization retried:
+//! The structural check looks at every key of the layered tree and reports every
+//! unknown key, wrong type, missing key and unknown enum value with its path. Then:
 //!
-//! - unknown key: reported and removed; nothing else is affected.
-//! - wrong type or value: reported and removed; a key with a default then takes it,
-//!   a required key turns into "missing", which is not reported twice.
-//! - missing required key: reported (unless a misspelling of it was), then filled
-//!   with a stand-in of the right type (tried in turn: text, integer, bool, table,
-//!   array; an enum gets its first value), so the search goes on and every missing
-//!   key of a table is found. Nothing is reported about the stand-ins themselves. If
-//!   no stand-in fits, the table holding the key is dropped.
+//! - unknown keys are taken out of the tree: nothing else depends on them;
+//! - an entry (`devices.X`, `channels.X`, `nc_modules.X`, `axes.X`,
+//!   `sim.channels.X`, `sim.nc_modules.X`, or a whole single section such as
+//!   `[gateway]`) with any other structural problem is taken out as a whole, and its
+//!   name counts as defined, so references to it cause no follow-up problem. Its own
+//!   references (a channel's `device`, an axis' `nc_module` and term channels) are
+//!   still checked on the raw values;
+//! - what remains is deserialized and validated by the stages; findings below a
+//!   removed entry cannot occur.
 //!
-//! Semantic validation still runs on the result, but its findings under an entry
-//! (`devices.X`, `axes.Y`, ...) that had a wrong or missing value are dropped (they
-//! would describe stand-ins or defaults, not the file), and names of dropped entries,
-//! or of every entry of a missing section, count as defined.
+//! An environment value that the `config` crate parsed as a number or bool where the
+//! schema wants text is turned back into the text that was set.
 
-use std::borrow::Cow;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::path::Path;
 
 use config::{Environment, File, FileFormat, Source};
+use serde::Deserialize;
 
-use super::validate::{validate_assuming, Assumed};
-use super::{Config, ConfigError, ConfigProblem, ENV_PREFIX, ENV_SEPARATOR};
+use super::keys::{entry_prefix, is_under, key_segment, render, render_expr, Seg};
+use super::problem::{ConfigError, ConfigProblem};
+use super::root::{list, validate_assuming, Assumed, Config};
+use super::structure::{self, closest, Finding, Kind};
+use super::{ENV_PREFIX, ENV_SEPARATOR};
+
+#[cfg(test)]
+use super::structure::edit_distance;
 
 /// Loads `path` with overrides from the process environment (`COMPGATE__...`) and
 /// validates it. Returns the configuration only when nothing is wrong; otherwise every
@@ -90,7 +94,7 @@ pub fn load_str_with_env(
         ))
         .build()
         .and_then(|c| c.try_deserialize::<toml::Value>());
-    let layered = match layered {
+    let mut tree = match layered {
         Ok(tree) => tree,
         Err(e) => {
             problems.push(ConfigProblem::new(origin, "(file)", e.to_string()));
@@ -98,127 +102,213 @@ pub fn load_str_with_env(
         }
     };
 
-    let structure = structural_pass(layered, origin, &overrides);
-    problems.extend(structure.problems);
-    if let Some(cfg) = &structure.config {
-        let tainted: BTreeSet<String> = structure
-            .touched
+    let schema = super::schema::json_schema();
+    let mut findings = structure::check(&schema, &tree);
+    // A number or bool from the environment where text is expected: the variable
+    // meant the text.
+    let mut coerced = false;
+    for f in findings.iter().filter(|f| f.kind == Kind::NotText) {
+        if let Some(o) = overrides.iter().find(|o| o.path == f.path) {
+            coerced |= set(&mut tree, &f.path, toml::Value::String(o.raw.clone()));
+        }
+    }
+    if coerced {
+        findings = structure::check(&schema, &tree);
+    }
+
+    let raw = tree.clone();
+    let (cfg, broken, assumed) = clean(tree, &findings);
+    problems.extend(
+        findings
             .iter()
-            .chain(&structure.dropped)
-            .map(|p| render(entry_prefix(p)))
-            .collect();
-        let mut assumed = Assumed::default();
-        for path in structure.touched.iter().chain(&structure.dropped) {
-            let (section, name) = match path.as_slice() {
-                [Seg::Key(section)] => (section, None),
-                [Seg::Key(section), Seg::Key(name)] if structure.dropped.contains(path) => {
-                    (section, Some(name))
-                }
-                _ => continue,
-            };
-            let names = match section.as_str() {
-                "devices" => &mut assumed.devices,
-                "channels" => &mut assumed.channels,
-                "nc_modules" => &mut assumed.nc_modules,
-                _ => continue,
-            };
-            match name {
-                Some(n) => {
-                    names.insert(n.clone());
-                }
-                None => names.any = true,
+            .map(|f| ConfigProblem::new(origin, render(&f.path), f.message.clone())),
+    );
+    match cfg {
+        Ok(cfg) => {
+            let tainted: Vec<String> = broken.iter().map(|b| render(b)).collect();
+            let recorder_broken = tainted.iter().any(|t| t == "recorder");
+            problems.extend(
+                validate_assuming(&cfg, origin, &assumed)
+                    .into_iter()
+                    .filter(|p| !tainted.iter().any(|t| is_under(&p.key, t)))
+                    .filter(|p| !(recorder_broken && p.key == "mqtt")),
+            );
+            problems.extend(broken_references(&raw, &broken, origin));
+            for p in &mut problems {
+                annotate_env(p, &overrides);
+            }
+            if problems.is_empty() {
+                Ok(cfg)
+            } else {
+                Err(ConfigError::Invalid(problems))
             }
         }
-        problems.extend(
-            validate_assuming(cfg, origin, &assumed)
-                .into_iter()
-                .filter(|p| !tainted.iter().any(|t| is_under(&p.key, t))),
-        );
-    }
-    for p in &mut problems {
-        annotate_env(p, &overrides);
-    }
-    match structure.config {
-        Some(cfg) if problems.is_empty() => Ok(cfg),
-        None if problems.is_empty() => Err(invalid(ConfigProblem::new(
-            origin,
-            "(file)",
-            "the structure could not be read (no single key to blame)",
-        ))),
-        _ => Err(ConfigError::Invalid(problems)),
-    }
-}
-
-// -------------------------------------------------------------------- key paths --
-
-/// One level of a key path.
-#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
-enum Seg {
-    Key(String),
-    Index(usize),
-}
-
-/// A key as written in a dotted path: bare when TOML allows it, else quoted.
-pub(super) fn key_segment(k: &str) -> Cow<'_, str> {
-    if !k.is_empty()
-        && k.chars()
-            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
-    {
-        Cow::Borrowed(k)
-    } else {
-        Cow::Owned(format!("{k:?}"))
-    }
-}
-
-/// `devices.ain1.timeout_s`, `axes.X.k0.terms[1].channel`.
-fn render(path: &[Seg]) -> String {
-    render_with(path, key_segment)
-}
-
-/// The path in the `config` crate's expression syntax (keys never quoted).
-fn render_expr(path: &[Seg]) -> String {
-    render_with(path, Cow::Borrowed)
-}
-
-fn render_with<'a>(path: &'a [Seg], key: impl Fn(&'a str) -> Cow<'a, str>) -> String {
-    let mut s = String::new();
-    for seg in path {
-        match seg {
-            Seg::Key(k) => {
-                if !s.is_empty() {
-                    s.push('.');
-                }
-                s.push_str(&key(k));
+        Err(e) => {
+            if problems.is_empty() {
+                problems.push(ConfigProblem::new(origin, "(file)", humanize(e.message())));
             }
-            Seg::Index(i) => s.push_str(&format!("[{i}]")),
+            for p in &mut problems {
+                annotate_env(p, &overrides);
+            }
+            Err(ConfigError::Invalid(problems))
         }
-    }
-    s
-}
-
-/// Whether dotted `key` is `prefix` or lies below it.
-fn is_under(key: &str, prefix: &str) -> bool {
-    match key.strip_prefix(prefix) {
-        Some(rest) => rest.is_empty() || rest.starts_with('.') || rest.starts_with('['),
-        None => prefix.is_empty(),
     }
 }
 
-/// The named entry a path lies in: `devices.X`, `sim.channels.X`, `gateway`, ...
-fn entry_prefix(path: &[Seg]) -> &[Seg] {
-    let depth = match path.first() {
-        Some(Seg::Key(s))
-            if matches!(s.as_str(), "devices" | "channels" | "nc_modules" | "axes") =>
-        {
-            2
+/// The sections every file must have; a missing or broken one becomes empty.
+const REQUIRED_SECTIONS: [&str; 4] = ["devices", "channels", "nc_modules", "axes"];
+
+/// Takes the unknown keys and the broken entries out of `tree` and deserializes the
+/// rest. Returns the configuration (or serde's error), the broken entries and the
+/// names that count as defined.
+fn clean(
+    mut tree: toml::Value,
+    findings: &[Finding],
+) -> (Result<Config, toml::de::Error>, BTreeSet<Vec<Seg>>, Assumed) {
+    let mut broken: BTreeSet<Vec<Seg>> = BTreeSet::new();
+    let mut unknown: Vec<&[Seg]> = Vec::new();
+    for f in findings {
+        match f.kind {
+            Kind::Unknown => unknown.push(&f.path),
+            Kind::NotText | Kind::Broken => {
+                broken.insert(entry_prefix(&f.path).to_vec());
+            }
         }
-        Some(Seg::Key(s)) if s == "sim" => match path.get(1) {
-            Some(Seg::Key(t)) if t == "channels" || t == "nc_modules" => 3,
-            _ => 1,
-        },
-        _ => 1,
+    }
+    for path in unknown {
+        remove(&mut tree, path);
+    }
+    let mut assumed = Assumed::default();
+    for b in &broken {
+        remove(&mut tree, b);
+        let (section, name) = match b.as_slice() {
+            [Seg::Key(section)] => (section.as_str(), None),
+            [Seg::Key(section), Seg::Key(name)] => (section.as_str(), Some(name)),
+            _ => continue,
+        };
+        let names = match section {
+            "devices" => &mut assumed.devices,
+            "channels" => &mut assumed.channels,
+            "nc_modules" => &mut assumed.nc_modules,
+            _ => continue,
+        };
+        match name {
+            Some(n) => names.insert(n.clone()),
+            None => names.any = true,
+        }
+    }
+    if let toml::Value::Table(t) = &mut tree {
+        for section in REQUIRED_SECTIONS {
+            if !t.contains_key(section) {
+                t.insert(section.to_string(), toml::Value::Table(toml::Table::new()));
+                match section {
+                    "devices" => assumed.devices.any = true,
+                    "channels" => assumed.channels.any = true,
+                    "nc_modules" => assumed.nc_modules.any = true,
+                    _ => {}
+                }
+            }
+        }
+    }
+    let cfg = Config::deserialize(tree);
+    (cfg, broken, assumed)
+}
+
+/// The references of entries left out for structural problems, checked on the raw
+/// values: a channel's `device`, an axis' `nc_module` and its terms' channels.
+fn broken_references(
+    raw: &toml::Value,
+    broken: &BTreeSet<Vec<Seg>>,
+    origin: &str,
+) -> Vec<ConfigProblem> {
+    let section = |name: &str| raw.get(name).and_then(toml::Value::as_table);
+    let names =
+        |name: &str| -> Option<Vec<String>> { section(name).map(|t| t.keys().cloned().collect()) };
+    let mut out = Vec::new();
+    let mut check = |key: String, value: Option<&toml::Value>, sec: &str, what: &str| {
+        let (Some(v), Some(defined)) = (value.and_then(toml::Value::as_str), names(sec)) else {
+            return;
+        };
+        if !defined.iter().any(|d| d == v) {
+            out.push(ConfigProblem::new(
+                origin,
+                key,
+                format!(
+                    "unknown {what} `{v}`; expected one of the names in [{sec}]: {}",
+                    list(defined.iter())
+                ),
+            ));
+        }
     };
-    &path[..depth.min(path.len())]
+    for b in broken {
+        let [Seg::Key(sec), Seg::Key(name)] = b.as_slice() else {
+            continue;
+        };
+        let Some(e) = section(sec).and_then(|t| t.get(name)) else {
+            continue;
+        };
+        let key = |f: &str| format!("{sec}.{}.{f}", key_segment(name));
+        match sec.as_str() {
+            "channels" => check(key("device"), e.get("device"), "devices", "device"),
+            "axes" => {
+                check(
+                    key("nc_module"),
+                    e.get("nc_module"),
+                    "nc_modules",
+                    "NC module",
+                );
+                for model in ["k0", "tan_beta"] {
+                    let terms = e
+                        .get(model)
+                        .and_then(|m| m.get("terms"))
+                        .and_then(toml::Value::as_array);
+                    for (i, t) in terms.into_iter().flatten().enumerate() {
+                        check(
+                            key(&format!("{model}.terms[{i}].channel")),
+                            t.get("channel"),
+                            "channels",
+                            "channel",
+                        );
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+    out
+}
+
+fn node_mut<'a>(tree: &'a mut toml::Value, path: &[Seg]) -> Option<&'a mut toml::Value> {
+    let mut node = tree;
+    for seg in path {
+        node = match (node, seg) {
+            (toml::Value::Table(t), Seg::Key(k)) => t.get_mut(k)?,
+            (toml::Value::Array(a), Seg::Index(i)) => a.get_mut(*i)?,
+            _ => return None,
+        };
+    }
+    Some(node)
+}
+
+/// Sets the value at `path`; false when the place does not exist.
+fn set(tree: &mut toml::Value, path: &[Seg], value: toml::Value) -> bool {
+    match node_mut(tree, path) {
+        Some(node) => {
+            *node = value;
+            true
+        }
+        None => false,
+    }
+}
+
+/// Removes the table key at `path` (array elements stay: entries are tables).
+fn remove(tree: &mut toml::Value, path: &[Seg]) {
+    let Some((Seg::Key(last), parent)) = path.split_last() else {
+        return;
+    };
+    if let Some(toml::Value::Table(t)) = node_mut(tree, parent) {
+        t.remove(last);
+    }
 }
 
 fn syntax_problem(origin: &str, text: &str, e: &toml::de::Error) -> ConfigProblem {
@@ -333,7 +423,7 @@ fn env_overrides(
 }
 
 /// Maps a lowercased dotted key onto the spelling of the keys in `root`.
-fn restore_case(root: &toml::Value, key: &str) -> Result<Vec<Seg>, String> {
+fn restore_case(root: &toml::Value, key: &str) -> Result<Vec<Seg>, EnvKeyError> {
     let mut path = Vec::new();
     let mut node = Some(root);
     for seg in key.split('.') {
@@ -357,10 +447,10 @@ fn restore_case(root: &toml::Value, key: &str) -> Result<Vec<Seg>, String> {
                         many => {
                             let names: Vec<String> =
                                 many.iter().map(|(k, _)| format!("`{k}`")).collect();
-                            return Err(format!(
-                                "`{seg}` matches {} ignoring case; rename them",
-                                names.join(" and ")
-                            ));
+                            return Err(EnvKeyError::Ambiguous {
+                                seg: seg.to_string(),
+                                names: names.join(" and "),
+                            });
                         }
                     }
                 }
@@ -371,17 +461,17 @@ fn restore_case(root: &toml::Value, key: &str) -> Result<Vec<Seg>, String> {
                     a.get(i)
                 }
                 Ok(i) => {
-                    return Err(format!(
-                        "index {i} is beyond the {} elements of {}",
-                        a.len(),
-                        render(&path)
-                    ))
+                    return Err(EnvKeyError::BeyondEnd {
+                        index: i,
+                        len: a.len(),
+                        array: render(&path),
+                    })
                 }
                 Err(_) => {
-                    return Err(format!(
-                        "{} is an array; expected a 0-based index instead of `{seg}`",
-                        render(&path)
-                    ))
+                    return Err(EnvKeyError::NotAnIndex {
+                        array: render(&path),
+                        seg: seg.to_string(),
+                    })
                 }
             },
             _ => {
@@ -423,318 +513,22 @@ fn annotate_env(p: &mut ConfigProblem, overrides: &[EnvOverride]) {
     }
 }
 
-// -------------------------------------------------------------- structural pass --
-
-struct Structure {
-    config: Option<Config>,
-    problems: Vec<ConfigProblem>,
-    /// Keys (file indices) whose value was wrong, missing or dropped: semantic
-    /// findings below their entries would describe stand-ins, not the file.
-    touched: Vec<Vec<Seg>>,
-    /// Entries (file indices) removed as a whole: their names count as defined.
-    dropped: Vec<Vec<Seg>>,
-}
-
-/// Upper bound of deserialization attempts; every attempt removes or fills in a key,
-/// so only a pathological file gets near it.
-const MAX_ATTEMPTS: usize = 2000;
-
-/// Stand-ins tried, in this order, for a required key that is missing, until one
-/// has the right type. Enum keys get the first allowed value instead of `""`.
-fn stand_in(i: usize) -> Option<toml::Value> {
-    Some(match i {
-        0 => toml::Value::String(String::new()),
-        1 => toml::Value::Integer(0),
-        2 => toml::Value::Boolean(false),
-        3 => toml::Value::Table(toml::Table::new()),
-        4 => toml::Value::Array(Vec::new()),
-        _ => return None,
-    })
-}
-
-/// The loop described in the module documentation. All bookkeeping uses the file's
-/// array indices; `shifts` translates them to the shrinking tree.
-struct Pass<'a> {
-    tree: toml::Value,
-    origin: &'a str,
-    overrides: &'a [EnvOverride],
-    problems: Vec<ConfigProblem>,
-    touched: Vec<Vec<Seg>>,
-    dropped: Vec<Vec<Seg>>,
-    /// Keys whose problem is already reported (a removed wrong value, a key whose
-    /// misspelling was reported): their "missing" is not reported again.
-    explained: BTreeSet<Vec<Seg>>,
-    /// Keys holding a stand-in -> index of the stand-in in use.
-    filled: BTreeMap<Vec<Seg>, usize>,
-    /// Array path -> file indices of the elements removed from it.
-    shifts: BTreeMap<Vec<Seg>, Vec<usize>>,
-    /// Environment values turned back into text.
-    coerced: BTreeSet<Vec<Seg>>,
-}
-
-fn structural_pass(tree: toml::Value, origin: &str, overrides: &[EnvOverride]) -> Structure {
-    let mut pass = Pass {
-        tree,
-        origin,
-        overrides,
-        problems: Vec::new(),
-        touched: Vec::new(),
-        dropped: Vec::new(),
-        explained: BTreeSet::new(),
-        filled: BTreeMap::new(),
-        shifts: BTreeMap::new(),
-        coerced: BTreeSet::new(),
-    };
-    let mut config = None;
-    for _ in 0..MAX_ATTEMPTS {
-        match serde_path_to_error::deserialize::<_, Config>(pass.tree.clone()) {
-            Ok(cfg) => {
-                config = Some(cfg);
-                break;
-            }
-            Err(e) => {
-                let message = e.inner().message().to_string();
-                if !pass.step(e.path(), &message) {
-                    break;
-                }
-            }
-        }
-    }
-    Structure {
-        config,
-        problems: pass.problems,
-        touched: pass.touched,
-        dropped: pass.dropped,
-    }
-}
-
-impl Pass<'_> {
-    fn report(&mut self, key: &[Seg], message: String) {
-        self.problems
-            .push(ConfigProblem::new(self.origin, render(key), message));
-    }
-
-    /// Handles one error; false when no progress is possible.
-    fn step(&mut self, path: &serde_path_to_error::Path, message: &str) -> bool {
-        let Some(current) = segments(path) else {
-            self.report(&[], humanize(message));
-            return false;
-        };
-        let at = to_file_indices(&current, &self.shifts);
-        // The deepest stand-in the error lies in, if any.
-        let in_stand_in = self
-            .filled
-            .keys()
-            .filter(|f| at.starts_with(f))
-            .max_by_key(|f| f.len())
-            .cloned();
-
-        if let Some(name) = quoted_after(message, "unknown field `") {
-            let mut key = at;
-            if key.last() != Some(&Seg::Key(name.to_string())) {
-                key.push(Seg::Key(name.to_string()));
-            }
-            if in_stand_in.is_none() {
-                self.report(&key, humanize(message));
-                let allowed = message
-                    .split_once("expected")
-                    .map_or(vec![], |(_, t)| backticked(t));
-                if let (Some(best), Some((_, parent))) = (closest(name, &allowed), key.split_last())
-                {
-                    let mut meant = parent.to_vec();
-                    meant.push(Seg::Key(best.to_string()));
-                    self.explained.insert(meant);
-                }
-            }
-            return self.remove(&key);
-        }
-
-        if let Some(name) = quoted_after(message, "missing field `") {
-            let mut key = at;
-            key.push(Seg::Key(name.to_string()));
-            if in_stand_in.is_none() && !self.explained.contains(&key) {
-                self.report(&key, humanize(message));
-            }
-            self.touched.push(key.clone());
-            return self.fill(&key, 0);
-        }
-
-        if let Some(stand_in) = in_stand_in {
-            // The stand-in has the wrong type: an enum gets its first allowed value,
-            // anything else the next candidate.
-            let target = if self.filled.contains_key(&at) {
-                at
-            } else {
-                stand_in
-            };
-            let first_variant = message
-                .strip_prefix("unknown variant `")
-                .and_then(|rest| rest.split_once("expected"))
-                .and_then(|(_, allowed)| backticked(allowed).into_iter().next());
-            if let Some(variant) = first_variant {
-                if self.set(&target, toml::Value::String(variant.to_string())) {
-                    self.filled.insert(target, usize::MAX);
-                    return true;
-                }
-            }
-            let next = self.filled.get(&target).map_or(0, |i| i.saturating_add(1));
-            return self.fill(&target, next);
-        }
-
-        // A number or bool from the environment where text is expected: the variable
-        // meant the text.
-        if message.contains("expected a string") && !self.coerced.contains(&at) {
-            if let Some(o) = self.overrides.iter().find(|o| o.path == at) {
-                let raw = toml::Value::String(o.raw.clone());
-                if self.set(&at, raw) {
-                    self.coerced.insert(at);
-                    return true;
-                }
-            }
-        }
-        self.report(&at, humanize(message));
-        self.explained.insert(at.clone());
-        self.touched.push(at.clone());
-        self.remove(&at)
-    }
-
-    /// Puts stand-in `i` at `key`; when none is left, drops the table holding it.
-    fn fill(&mut self, key: &[Seg], i: usize) -> bool {
-        match stand_in(i) {
-            Some(v) => {
-                self.filled.insert(key.to_vec(), i);
-                self.set(key, v)
-            }
-            None => {
-                let Some((_, parent)) = key.split_last() else {
-                    return false;
-                };
-                self.dropped.push(parent.to_vec());
-                self.touched.push(parent.to_vec());
-                self.filled.retain(|f, _| !f.starts_with(parent));
-                self.remove(parent)
-            }
-        }
-    }
-
-    /// Sets the value at `key` (file indices), creating it in an existing table.
-    fn set(&mut self, key: &[Seg], value: toml::Value) -> bool {
-        let Some(current) = to_current(key, &self.shifts) else {
-            return false;
-        };
-        let Some((last, parent)) = current.split_last() else {
-            return false;
-        };
-        match (node_mut(&mut self.tree, parent), last) {
-            (Some(toml::Value::Table(t)), Seg::Key(k)) => {
-                t.insert(k.clone(), value);
-                true
-            }
-            (Some(toml::Value::Array(a)), Seg::Index(i)) if *i < a.len() => {
-                a[*i] = value;
-                true
-            }
-            _ => false,
-        }
-    }
-
-    /// Removes the key at `key` (file indices); remembers removed array elements.
-    fn remove(&mut self, key: &[Seg]) -> bool {
-        let Some(current) = to_current(key, &self.shifts) else {
-            return false;
-        };
-        let (Some((last, parent)), Some((file_last, file_parent))) =
-            (current.split_last(), key.split_last())
-        else {
-            return false;
-        };
-        match (node_mut(&mut self.tree, parent), last) {
-            (Some(toml::Value::Table(t)), Seg::Key(k)) => t.remove(k).is_some(),
-            (Some(toml::Value::Array(a)), Seg::Index(i)) if *i < a.len() => {
-                a.remove(*i);
-                if let Seg::Index(orig) = file_last {
-                    let gone = self.shifts.entry(file_parent.to_vec()).or_default();
-                    gone.push(*orig);
-                    gone.sort_unstable();
-                }
-                true
-            }
-            _ => false,
-        }
-    }
-}
-
-/// The error's path as segments; `None` when serde could not name a level.
-fn segments(path: &serde_path_to_error::Path) -> Option<Vec<Seg>> {
-    use serde_path_to_error::Segment;
-    let mut out = Vec::new();
-    for s in path.iter() {
-        match s {
-            Segment::Map { key } => out.push(Seg::Key(key.clone())),
-            Segment::Seq { index } => out.push(Seg::Index(*index)),
-            Segment::Enum { .. } => {}
-            Segment::Unknown => return None,
-        }
-    }
-    Some(out)
-}
-
-/// Translates indices in the current (shrunk) tree back to the file's indices.
-fn to_file_indices(path: &[Seg], shifts: &BTreeMap<Vec<Seg>, Vec<usize>>) -> Vec<Seg> {
-    let mut out: Vec<Seg> = Vec::with_capacity(path.len());
-    for seg in path {
-        match seg {
-            Seg::Index(i) => {
-                let mut idx = *i;
-                if let Some(gone) = shifts.get(&out) {
-                    for g in gone {
-                        if *g <= idx {
-                            idx += 1;
-                        }
-                    }
-                }
-                out.push(Seg::Index(idx));
-            }
-            key => out.push(key.clone()),
-        }
-    }
-    out
-}
-
-fn node_mut<'a>(tree: &'a mut toml::Value, path: &[Seg]) -> Option<&'a mut toml::Value> {
-    let mut node = tree;
-    for seg in path {
-        node = match (node, seg) {
-            (toml::Value::Table(t), Seg::Key(k)) => t.get_mut(k)?,
-            (toml::Value::Array(a), Seg::Index(i)) => a.get_mut(*i)?,
-            _ => return None,
-        };
-    }
-    Some(node)
-}
-
-/// Translates the file's indices to the current tree's; `None` when an element on
-/// the way was removed.
-fn to_current(path: &[Seg], shifts: &BTreeMap<Vec<Seg>, Vec<usize>>) -> Option<Vec<Seg>> {
-    let mut out = Vec::with_capacity(path.len());
-    for (depth, seg) in path.iter().enumerate() {
-        match seg {
-            Seg::Index(i) => {
-                let gone = shifts.get(&path[..depth]).map_or(&[][..], |g| g.as_slice());
-                if gone.contains(i) {
-                    return None;
-                }
-                out.push(Seg::Index(i - gone.iter().filter(|g| **g < *i).count()));
-            }
-            key => out.push(key.clone()),
-        }
-    }
-    Some(out)
-}
-
-/// `name` in messages like "unknown field `name`, expected ...".
-fn quoted_after<'m>(message: &'m str, prefix: &str) -> Option<&'m str> {
-    message.strip_prefix(prefix)?.split('`').next()
+/// Why an environment variable's name does not fit the file.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+enum EnvKeyError {
+    /// Several keys of the file match the level ignoring case.
+    #[error("`{seg}` matches {names} ignoring case; rename them")]
+    Ambiguous { seg: String, names: String },
+    /// An array index past the end.
+    #[error("index {index} is beyond the {len} elements of {array}")]
+    BeyondEnd {
+        index: usize,
+        len: usize,
+        array: String,
+    },
+    /// A level that is not a number meets an array.
+    #[error("{array} is an array; expected a 0-based index instead of `{seg}`")]
+    NotAnIndex { array: String, seg: String },
 }
 
 /// Every `quoted` word in `s`.
@@ -791,43 +585,6 @@ fn humanize(message: &str) -> String {
         m.push_str("expected a table");
     }
     m
-}
-
-/// The candidate closest to `name` when it is close enough to be a typo.
-///
-/// Close enough: at most a third of the letters differ (at least 2 may), or half of
-/// them when the first three letters agree (`retry` -> `retries`).
-fn closest<'c>(name: &str, candidates: &[&'c str]) -> Option<&'c str> {
-    let len = name.chars().count();
-    let head = |s: &str| s.to_lowercase().chars().take(3).collect::<String>();
-    candidates
-        .iter()
-        .map(|c| (edit_distance(name, c), *c))
-        .filter(|(d, c)| {
-            let limit = if len >= 3 && head(name) == head(c) {
-                len.div_ceil(2)
-            } else {
-                len / 3
-            };
-            *d <= limit.max(2)
-        })
-        .min_by_key(|(d, _)| *d)
-        .map(|(_, c)| c)
-}
-
-fn edit_distance(a: &str, b: &str) -> usize {
-    let a: Vec<char> = a.to_lowercase().chars().collect();
-    let b: Vec<char> = b.to_lowercase().chars().collect();
-    let mut prev: Vec<usize> = (0..=b.len()).collect();
-    for (i, ca) in a.iter().enumerate() {
-        let mut cur = vec![i + 1; b.len() + 1];
-        for (j, cb) in b.iter().enumerate() {
-            let subst = prev[j] + usize::from(ca != cb);
-            cur[j + 1] = subst.min(prev[j + 1] + 1).min(cur[j] + 1);
-        }
-        prev = cur;
-    }
-    prev[b.len()]
 }
 
 #[cfg(test)]

@@ -1,22 +1,37 @@
-//! Configuration: TOML file + `COMPGATE__` environment overrides, serde structs that
-//! refuse unknown keys, and a validation that reports every problem at once.
+//! Configuration: TOML file + `COMPGATE__` environment overrides, checked against the
+//! JSON Schema of the config structs, then validated by the stages that own them,
+//! reporting every problem at once.
+//!
+//! # Who owns what
+//!
+//! Each stage owns its config struct, its `validate` and its `build`: devices in
+//! [`crate::source::config`] (Modbus TCP/RTU in [`crate::source::modbus::config`],
+//! CANopen in [`crate::source::can::config`]), channels in [`crate::channel`], NC
+//! modules in [`crate::nc::config`], axes in [`crate::axis`]. This module keeps file
+//! loading, the environment overlay, key paths ([`keys`]), the problem type
+//! ([`problem`]) and the top-level [`Config`] that gathers the sections; [`schema`]
+//! re-exports every section type and derives the JSON Schema.
 //!
 //! # Loading
 //!
 //! [`load`] reads one TOML file and layers environment overrides on top of it with
 //! the `config` crate, then checks the result twice:
 //!
-//! 1. **Structure** ([`schema`]): every key must be known (a typo is an error, not a
-//!    silently ignored key), every value must have the right type and every required
-//!    key must be present. All such problems of the file are collected, each with the
-//!    file name and the dotted path of the key, e.g.
+//! 1. **Structure** (against [`schema::json_schema`]): every key must be known (a
+//!    typo is an error, not a silently ignored key; so is a key of another transport),
+//!    every value must have the right type and every required key must be present.
+//!    All such problems of the file are collected, each with the file name and the
+//!    dotted path of the key, e.g.
 //!
 //!    ```text
 //!    config/plant.toml: devices.ain1.timeout: unknown key; did you mean `timeout_s`?
 //!    config/plant.toml: axes.X.k0.terms[1].channel: required key is missing
 //!    ```
-//! 2. **Meaning** ([`validate`]): references between sections, ranges, transport
-//!    rules, shared serial lines. See [`validate`] for the list.
+//! 2. **Meaning** ([`validate`]): references between sections, ranges, shared serial
+//!    lines and CAN interfaces. See [`validate`] for the list. It runs even when
+//!    step 1 found problems: entries with structural problems are left out (their
+//!    names still count as defined) and their references are checked on the raw
+//!    values, so a type error never hides another problem.
 //!
 //! [`load`] returns the [`Config`] only when both found nothing; otherwise
 //! [`ConfigError::Invalid`] carries every [`ConfigProblem`], so a `validate` command
@@ -48,101 +63,21 @@
 //! `config/minimal.toml`); addresses, unit ids, register addresses, data types,
 //! scaling ranges and model coefficients are required.
 
+pub mod keys;
 mod load;
+pub mod problem;
+mod root;
 pub mod schema;
-mod validate;
-mod validate_service;
-
-use std::fmt;
+mod service;
+mod sim;
+mod structure;
 
 pub use load::{load, load_str, load_str_with_env, load_with_env};
+pub use problem::{ConfigError, ConfigProblem};
+pub use root::validate;
 pub use schema::*;
-pub use validate::validate;
 
 /// Prefix of environment overrides, followed by [`ENV_SEPARATOR`].
 pub const ENV_PREFIX: &str = "COMPGATE";
 /// Separator between the levels of an environment override's name.
 pub const ENV_SEPARATOR: &str = "__";
-
-/// One thing wrong with a configuration.
-#[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub struct ConfigProblem {
-    /// The file (or origin, e.g. `demo.toml (embedded)`) the configuration came from.
-    pub file: String,
-    /// Dotted path of the key, e.g. `devices.ain1.timeout_s` or
-    /// `axes.X.k0.terms[1].channel`. For a TOML syntax error: `line L, column C`.
-    pub key: String,
-    /// What is wrong and what is expected.
-    pub message: String,
-}
-
-impl ConfigProblem {
-    /// A problem of `key` in `file`.
-    pub fn new(
-        file: impl Into<String>,
-        key: impl Into<String>,
-        message: impl Into<String>,
-    ) -> Self {
-        ConfigProblem {
-            file: file.into(),
-            key: key.into(),
-            message: message.into(),
-        }
-    }
-}
-
-impl fmt::Display for ConfigProblem {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}: {}: {}", self.file, self.key, self.message)
-    }
-}
-
-/// Why a configuration could not be loaded.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum ConfigError {
-    /// The file could not be read.
-    #[error("{file}: cannot read the configuration: {message}")]
-    Read {
-        /// The file.
-        file: String,
-        /// The operating system's reason.
-        message: String,
-    },
-    /// The file was read but is not a valid configuration: every problem found.
-    #[error("{}", ProblemList(.0))]
-    Invalid(Vec<ConfigProblem>),
-}
-
-impl ConfigError {
-    /// Every problem: the problems of [`ConfigError::Invalid`], or one for
-    /// [`ConfigError::Read`].
-    pub fn problems(&self) -> Vec<ConfigProblem> {
-        match self {
-            ConfigError::Read { file, message } => {
-                vec![ConfigProblem::new(
-                    file,
-                    "(file)",
-                    format!("cannot read: {message}"),
-                )]
-            }
-            ConfigError::Invalid(problems) => problems.clone(),
-        }
-    }
-}
-
-struct ProblemList<'a>(&'a [ConfigProblem]);
-
-impl fmt::Display for ProblemList<'_> {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let n = self.0.len();
-        write!(
-            f,
-            "{n} configuration problem{}:",
-            if n == 1 { "" } else { "s" }
-        )?;
-        for p in self.0 {
-            write!(f, "\n  {p}")?;
-        }
-        Ok(())
-    }
-}

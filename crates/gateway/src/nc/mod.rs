@@ -5,6 +5,8 @@
 //! the NC axis module's register map (`compgate_ncproto`) over Modbus TCP with
 //! the REQ/DONE/ERROR/STATE handshake, a job timeout and read-back verification.
 
+pub mod config;
+
 use std::future::Future;
 use std::time::Duration;
 

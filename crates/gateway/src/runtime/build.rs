@@ -6,14 +6,13 @@ use std::time::Duration;
 
 use tokio::sync::Mutex;
 
-use crate::config::{self, Config};
+use crate::config::{Config, DeviceConfig};
 use crate::nc::ModbusNcWriter;
 use crate::source::can::sync::{self, SyncDevice, SyncParams};
-use crate::source::can::{CanChannelSpec, CanObject, CanParams, CanPoller};
+use crate::source::can::{CanChannelSpec, CanPoller};
 use crate::source::modbus::{Backoff, LinkSpec, ModbusLink};
-use crate::source::{ChannelSpec, DevicePoller, DeviceSample, PollParams, SharedLink};
-use compgate_core::channel::{ChannelProcessor, CurrentRange, FilterParams, Scaling};
-use compgate_core::comp::{Affine, AxisCompensator, BadInputPolicy, Limits, Term, ThermalModel};
+use crate::source::{ChannelSpec, DevicePoller, DeviceSample, SharedLink};
+use compgate_core::comp::AxisCompensator;
 
 use super::{AxisRt, GatewayError, Pipeline};
 
@@ -89,128 +88,6 @@ pub struct Built {
     pub status_interval: Duration,
 }
 
-// Config structs -> runtime parameters (the config layer stays free of runtime types).
-
-pub(super) fn scaling_rt(s: &config::Scaling) -> Scaling {
-    match s {
-        config::Scaling::Transmitter(t) => Scaling::Transmitter {
-            adc_full_scale_counts: f64::from(t.adc_full_scale_counts),
-            adc_full_scale_ma: t.adc_full_scale_ma,
-            current_range: match t.current_range {
-                config::CurrentRange::Ma4To20 => CurrentRange::FourTo20,
-                config::CurrentRange::Ma0To20 => CurrentRange::ZeroTo20,
-            },
-            range_min_degc: t.range_min_degc,
-            range_max_degc: t.range_max_degc,
-        },
-        config::Scaling::Direct(d) => Scaling::Direct {
-            gain: d.gain,
-            offset_degc: d.offset_degc,
-        },
-    }
-}
-
-pub(super) fn filter_rt(f: &config::FilterConfig) -> FilterParams {
-    FilterParams {
-        median_samples: f.median_samples.max(1) as usize,
-        lowpass_tau_s: f.lowpass_tau_s,
-        max_rate_degc_per_s: f.max_rate_degc_per_s,
-        max_rejected_samples: f.max_rejected_samples,
-        stale_after_s: f.stale_after_s,
-        valid_min_degc: f.valid_min_degc,
-        valid_max_degc: f.valid_max_degc,
-    }
-}
-
-pub(super) fn link_spec(dev: &config::DeviceConfig) -> Option<LinkSpec> {
-    Some(match dev.transport {
-        config::Transport::Can => return None,
-        config::Transport::Tcp => LinkSpec::Tcp {
-            address: dev.address.clone()?,
-            connect_timeout: dev.connect_timeout(),
-        },
-        config::Transport::Rtu => LinkSpec::Rtu {
-            path: dev.serial_path.clone()?,
-            baud: dev.baud(),
-            parity: match dev.parity() {
-                config::Parity::None => tokio_serial::Parity::None,
-                config::Parity::Even => tokio_serial::Parity::Even,
-                config::Parity::Odd => tokio_serial::Parity::Odd,
-            },
-            stop_bits: if dev.stop_bits() == 2 {
-                tokio_serial::StopBits::Two
-            } else {
-                tokio_serial::StopBits::One
-            },
-        },
-    })
-}
-
-/// The axis' thermal model and the channel name behind each model input.
-pub(super) fn model_rt(ax: &config::AxisConfig) -> (ThermalModel, Vec<String>) {
-    let mut names: Vec<String> = Vec::new();
-    let mut input = |ch: &str| match names.iter().position(|n| n == ch) {
-        Some(i) => i,
-        None => {
-            names.push(ch.to_string());
-            names.len() - 1
-        }
-    };
-    let k0_terms = ax
-        .k0
-        .terms
-        .iter()
-        .map(|t| Term {
-            input: input(&t.channel),
-            ref_degc: t.ref_degc,
-            coeff: t.coeff_mm_per_degc,
-        })
-        .collect();
-    let tan_terms = ax
-        .tan_beta
-        .terms
-        .iter()
-        .map(|t| Term {
-            input: input(&t.channel),
-            ref_degc: t.ref_degc,
-            coeff: t.coeff_per_degc,
-        })
-        .collect();
-    let model = ThermalModel {
-        k0_mm: Affine {
-            offset: ax.k0.offset_mm,
-            terms: k0_terms,
-        },
-        tan_beta: Affine {
-            offset: ax.tan_beta.offset,
-            terms: tan_terms,
-        },
-        p0_mm: ax.p0_mm,
-    };
-    (model, names)
-}
-
-pub(super) fn limits_rt(ax: &config::AxisConfig) -> Limits {
-    Limits {
-        max_abs_k0_mm: ax.max_abs_k0_mm,
-        max_abs_tan_beta: ax.max_abs_tan_beta,
-        max_step_k0_mm: ax.max_step_k0_mm,
-        max_step_tan_beta: ax.max_step_tan_beta,
-        deadband_k0_mm: ax.deadband_k0_mm,
-        deadband_tan_beta: ax.deadband_tan_beta,
-    }
-}
-
-pub(super) fn policy_rt(ax: &config::AxisConfig) -> BadInputPolicy {
-    match ax.on_bad_input {
-        config::OnBadInput::Hold => BadInputPolicy::Hold,
-        config::OnBadInput::RampToZero => BadInputPolicy::RampToZero {
-            k0_mm_per_s: ax.ramp_k0_mm_per_s,
-            tan_beta_per_s: ax.ramp_tan_beta_per_s,
-        },
-    }
-}
-
 /// Turns a validated config into runtime parts. Devices on one serial path share a
 /// link; every TCP device gets its own connection.
 pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
@@ -237,17 +114,11 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
         })?;
         match (ch.can, ch.register, ch.address) {
             (Some(can), _, _) => {
-                let object = match (can.pdo, can.offset_bytes, can.sdo_index, can.sdo_subindex) {
-                    (Some(pdo), Some(offset_bytes), None, None) => {
-                        CanObject::Pdo { pdo, offset_bytes }
-                    }
-                    (None, None, Some(index), Some(sub)) => CanObject::Sdo { index, sub },
-                    _ => {
-                        return Err(GatewayError::Config(format!(
-                            "channels.{name}.can: a TPDO mapping or an SDO object"
-                        )))
-                    }
-                };
+                let object = can.object().ok_or_else(|| {
+                    GatewayError::Config(format!(
+                        "channels.{name}.can: a TPDO mapping or an SDO object"
+                    ))
+                })?;
                 can_specs[dev].push(CanChannelSpec {
                     channel: i,
                     object,
@@ -268,65 +139,48 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             }
         }
         device_channels[dev].push(i);
-        processors.push(ChannelProcessor::new(
-            scaling_rt(&ch.scaling),
-            filter_rt(&ch.filter),
-        ));
+        processors.push(ch.build());
     }
 
     // One SYNC per interface at its devices' poll interval (validation makes it one
     // value per interface).
-    let sync_producers = sync::plan(
-        cfg.devices
-            .values()
-            .filter(|dev| dev.transport == config::Transport::Can)
-            .map(|dev| SyncDevice {
-                interface: dev.interface.clone().unwrap_or_default(),
-                poll_interval: dev.poll_interval(),
-                backoff_initial: dev.backoff_initial(),
-                backoff_max: dev.backoff_max(),
-            }),
-    );
+    let sync_producers = sync::plan(cfg.devices.values().filter_map(DeviceConfig::can).map(
+        |dev| SyncDevice {
+            interface: dev.interface.clone(),
+            poll_interval: dev.common.poll_interval(),
+            backoff_initial: dev.common.backoff_initial(),
+            backoff_max: dev.common.backoff_max(),
+        },
+    ));
     let mut serial_links: BTreeMap<String, SharedLink> = BTreeMap::new();
     let mut devices = Vec::with_capacity(cfg.devices.len());
     for (((name, dev), specs), can_specs) in cfg.devices.iter().zip(specs).zip(can_specs) {
-        if dev.transport == config::Transport::Can {
-            let (Some(interface), Some(node_id)) = (dev.interface.clone(), dev.node_id) else {
-                return Err(GatewayError::Config(format!(
-                    "devices.{name}: interface or node_id missing"
-                )));
-            };
-            let sync_period = sync_producers
-                .iter()
-                .find(|p| p.interface == interface)
-                .map_or(dev.poll_interval(), |p| p.period);
-            let params = CanParams {
-                sync_period,
-                interface,
-                node_id,
-                timeout: dev.timeout(),
-                heartbeat_timeout: dev.heartbeat_timeout(),
-                degrade_after_cycles: dev.degrade_after_cycles,
-            };
-            devices.push(DeviceRt {
-                poller: Poller::Can(Box::new(CanPoller::new(
-                    devices.len(),
-                    name.clone(),
-                    params,
-                    can_specs,
-                ))),
-                poll_interval: dev.poll_interval(),
-            });
-            continue;
-        }
-        let spec = link_spec(dev).ok_or_else(|| {
-            GatewayError::Config(format!("devices.{name}: address or serial_path missing"))
-        })?;
+        let common = dev.common();
+        let (spec, params) = match dev {
+            DeviceConfig::Can(can) => {
+                let sync_period = sync_producers
+                    .iter()
+                    .find(|p| p.interface == can.interface)
+                    .map_or(common.poll_interval(), |p| p.period);
+                devices.push(DeviceRt {
+                    poller: Poller::Can(Box::new(CanPoller::new(
+                        devices.len(),
+                        name.clone(),
+                        can.params(sync_period),
+                        can_specs,
+                    ))),
+                    poll_interval: common.poll_interval(),
+                });
+                continue;
+            }
+            DeviceConfig::Tcp(tcp) => (tcp.link_spec(), tcp.poll_params()),
+            DeviceConfig::Rtu(rtu) => (rtu.link_spec(), rtu.poll_params()),
+        };
         let new_link = || {
             Arc::new(Mutex::new(ModbusLink::new(
                 spec.clone(),
-                dev.timeout(),
-                Backoff::new(dev.backoff_initial(), dev.backoff_max()),
+                common.timeout(),
+                Backoff::new(common.backoff_initial(), common.backoff_max()),
             )))
         };
         let link = match &spec {
@@ -336,12 +190,6 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
                 .clone(),
             LinkSpec::Tcp { .. } => new_link(),
         };
-        let params = PollParams {
-            unit_id: dev.unit_id.unwrap_or_default(),
-            retries: dev.retries,
-            degrade_after_cycles: dev.degrade_after_cycles,
-            max_gap_registers: dev.max_gap_registers,
-        };
         devices.push(DeviceRt {
             poller: Poller::Modbus(DevicePoller::new(
                 devices.len(),
@@ -350,7 +198,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
                 link,
                 specs,
             )),
-            poll_interval: dev.poll_interval(),
+            poll_interval: common.poll_interval(),
         });
     }
 
@@ -363,19 +211,9 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
     let nc_modules = cfg
         .nc_modules
         .iter()
-        .map(|(name, m)| {
-            let link = ModbusLink::new(
-                LinkSpec::Tcp {
-                    address: m.address.clone(),
-                    connect_timeout: m.connect_timeout(),
-                },
-                m.timeout(),
-                Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
-            );
-            NcModuleRt {
-                name: name.clone(),
-                writer: ModbusNcWriter::new(link, m.unit_id, m.job_timeout()),
-            }
+        .map(|(name, m)| NcModuleRt {
+            name: name.clone(),
+            writer: m.build(),
         })
         .collect();
 
@@ -387,7 +225,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
                 ax.nc_module
             ))
         })?;
-        let (model, input_names) = model_rt(ax);
+        let (model, input_names) = ax.model();
         let inputs = input_names
             .iter()
             .map(|n| {
@@ -401,7 +239,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             name: name.clone(),
             nc_module,
             inputs,
-            comp: AxisCompensator::new(model, limits_rt(ax), policy_rt(ax)),
+            comp: AxisCompensator::new(model, ax.limits(), ax.policy()),
             md32750: ax.md32750,
             update_interval: ax.update_interval(),
         });

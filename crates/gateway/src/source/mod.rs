@@ -9,6 +9,7 @@
 //! never stops them.
 
 pub mod can;
+pub mod config;
 pub mod modbus;
 pub mod plan;
 

@@ -6,6 +6,8 @@
 //! reply left in the old stream would otherwise be read as the answer to the next
 //! request (tokio-modbus issue 324). Reconnects back off exponentially up to a cap.
 
+pub mod config;
+
 use std::borrow::Cow;
 use std::net::SocketAddr;
 use std::pin::Pin;

@@ -4,13 +4,16 @@
 //! possible. Two channels share a read when the gap between them is at most
 //! `max_gap_registers` and the read stays within the Modbus limit of 125 registers.
 
+use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 /// Most registers one Modbus read may return (function codes 0x03/0x04).
 pub const MAX_READ_REGISTERS: u16 = 125;
 
 /// Which register table a channel lives in.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize, JsonSchema,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum RegisterKind {
     /// Input registers, function code 0x04 (read-only, the usual place for measurements).
@@ -20,7 +23,7 @@ pub enum RegisterKind {
 }
 
 /// How a channel's registers encode its value.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum DataType {
     /// One register, unsigned.
@@ -43,11 +46,22 @@ impl DataType {
             Self::U32 | Self::I32 | Self::F32 => 2,
         }
     }
+
+    /// The name used in the configuration (`u16`, `f32`, ...).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::U16 => "u16",
+            Self::I16 => "i16",
+            Self::U32 => "u32",
+            Self::I32 => "i32",
+            Self::F32 => "f32",
+        }
+    }
 }
 
 /// Byte order of a value, A = most significant byte. Registers are read in address
 /// order; inside each register the first byte on the wire is its high byte.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize, JsonSchema)]
 pub enum ByteOrder {
     /// Big-endian: register 0 holds A B, register 1 holds C D.
     #[default]

@@ -37,11 +37,11 @@ fn edit(from: &str, to: &str) -> String {
 fn example_loads_with_the_documented_values() {
     let cfg = load_str(EXAMPLE, "example.toml").expect("example is valid");
     assert_eq!(cfg.gateway.status_interval_s, 1.0);
-    let ain1 = &cfg.devices["ain1"];
-    assert_eq!(ain1.transport, Transport::Tcp);
-    assert_eq!(ain1.address.as_deref(), Some("127.0.0.1:5020"));
+    assert_eq!(cfg.devices["ain1"].transport(), Transport::Tcp);
+    let ain1 = cfg.devices["ain1"].tcp().expect("tcp");
+    assert_eq!(ain1.address, "127.0.0.1:5020");
     assert_eq!(ain1.connect_timeout(), std::time::Duration::from_secs(2));
-    let ain2 = &cfg.devices["ain2"];
+    let ain2 = cfg.devices["ain2"].rtu().expect("rtu");
     assert_eq!(
         (ain2.baud(), ain2.parity(), ain2.stop_bits()),
         (19200, Parity::Even, 1)
@@ -128,10 +128,13 @@ fn minimal_config_takes_the_documented_defaults() {
     "#;
     let cfg = load_str(text, "m.toml").expect("valid");
     assert_eq!(cfg.gateway, GatewayConfig::default());
-    let d = &cfg.devices["d"];
-    assert_eq!(d.timeout_s, 1.0);
+    let d = cfg.devices["d"].tcp().expect("tcp");
+    assert_eq!(d.common.timeout_s, 1.0);
     assert_eq!(d.retries, 1);
-    assert_eq!((d.backoff_initial_s, d.backoff_max_s), (0.5, 30.0));
+    assert_eq!(
+        (d.common.backoff_initial_s, d.common.backoff_max_s),
+        (0.5, 30.0)
+    );
     assert_eq!(cfg.channels["c"].filter, FilterConfig::default());
     assert_eq!(cfg.channels["c"].filter.median_samples, 3);
     let x = &cfg.axes["X"];
@@ -331,10 +334,14 @@ fn env_override_changes_a_value() {
         ]),
     )
     .expect("valid");
-    assert_eq!(cfg.devices["ain1"].timeout_s, 0.25);
+    assert_eq!(cfg.devices["ain1"].common().timeout_s, 0.25);
     assert_eq!(cfg.axes["X"].update_interval_s, 3.0);
     assert_eq!(cfg.axes["X"].on_bad_input, OnBadInput::Hold);
-    assert_eq!(cfg.devices["ain2"].timeout_s, 0.3, "empty counts as unset");
+    assert_eq!(
+        cfg.devices["ain2"].common().timeout_s,
+        0.3,
+        "empty counts as unset"
+    );
 }
 
 #[test]
@@ -359,7 +366,7 @@ fn env_override_keeps_mixed_case_names() {
     assert_eq!(cfg.axes["X"].k0.terms[1].coeff_mm_per_degc, 0.002);
     assert_eq!(cfg.axes["X"].k0.terms[0].coeff_mm_per_degc, 0.004);
     assert_eq!(
-        cfg.devices["ain2"].serial_path.as_deref(),
+        cfg.devices["ain2"].rtu().map(|d| d.serial_path.as_str()),
         Some("1"),
         "a number set for a text key stays text"
     );
@@ -484,5 +491,61 @@ fn every_missing_key_of_a_table_is_reported() {
             "channels.T_new2.scaling.range_max_degc",
         ],
         "the even median of T_new is not judged on stand-ins: {p:#?}"
+    );
+}
+
+#[test]
+fn a_key_of_another_transport_is_an_unknown_key() {
+    let p = problems(&edit(
+        "address = \"127.0.0.1:5020\"\n",
+        "address = \"127.0.0.1:5020\"\nbaud_rate = 9600\nbaud = 9600\n",
+    ));
+    assert_eq!(
+        keys(&p),
+        ["devices.ain1.baud", "devices.ain1.baud_rate"],
+        "{p:#?}"
+    );
+    assert!(
+        p[0].message.contains("not used by transport = \"tcp\"")
+            && p[0].message.contains("only for transport = \"rtu\""),
+        "{}",
+        p[0]
+    );
+    assert!(p[1].message.starts_with("unknown key"), "{}", p[1]);
+    assert!(p[1].message.contains("`baud`"), "{}", p[1]);
+}
+
+#[test]
+fn a_type_error_does_not_hide_an_unknown_device_of_the_same_entry() {
+    let p = problems(
+        &edit("device = \"ain2\"", "device = \"ain9\"")
+            .replace("address = 1000\n", "address = \"x\"\n"),
+    );
+    assert_eq!(
+        keys(&p),
+        ["channels.T_ambient.address", "channels.T_ambient.device"],
+        "{p:#?}"
+    );
+    assert!(
+        p[0].message.ends_with("expected an integer 0..=65535"),
+        "{}",
+        p[0]
+    );
+    assert!(
+        p[1].message.starts_with("unknown device `ain9`"),
+        "{}",
+        p[1]
+    );
+}
+
+#[test]
+fn type_errors_in_two_entries_are_both_reported() {
+    let text = edit("timeout_s = 0.3", "timeout_s = \"slow\"")
+        .replace("md32750 = 3", "md32750 = \"three\"");
+    let p = problems(&text);
+    assert_eq!(
+        keys(&p),
+        ["axes.X.md32750", "devices.ain2.timeout_s"],
+        "{p:#?}"
     );
 }

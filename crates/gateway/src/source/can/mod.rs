@@ -25,6 +25,7 @@
 //! task hold the socket side.
 
 pub mod codec;
+pub mod config;
 pub mod node;
 pub mod sync;
 

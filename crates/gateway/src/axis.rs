@@ -1,0 +1,391 @@
+//! `[axes.NAME]`: a compensated axis' model, limits and bad-input policy; the axis'
+//! validation and the runtime parts it builds ([`ThermalModel`], [`Limits`],
+//! [`BadInputPolicy`]).
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+use crate::config::keys::secs;
+use crate::config::problem::Problems;
+use compgate_core::comp::{Affine, BadInputPolicy, Limits, Term, ThermalModel};
+
+/// Above this |tan(beta)| limit the value cannot be a thermal slope.
+const TAN_BETA_LIMIT_CEILING: f64 = 0.1;
+
+/// `[axes.NAME]`: one compensated axis,
+/// `dKx = K0(T) + tan(beta)(T) * (Px - P0)` -> SD43900, SD43910, SD43920.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct AxisConfig {
+    /// Name of the NC module in `[nc_modules]` that carries this axis. Required; one
+    /// axis per module.
+    pub nc_module: String,
+    /// MD32750 `$MA_TEMP_COMP_TYPE` the NC must have (bit 0: K0, bit 1: slope).
+    /// Checked against the NC at start. Required; 0..=7. A K0 model needs bit 0 and a
+    /// tan(beta) model needs bit 1, otherwise the NC would ignore the value written.
+    pub md32750: u16,
+    /// SD43920 `$SA_TEMP_COMP_REF_POSITION`: reference position P0 in mm. Default 0.0.
+    #[serde(default)]
+    pub p0_mm: f64,
+    /// Seconds between compensation updates. Default 10.0; > 0.
+    #[serde(default = "default_update_interval_s")]
+    pub update_interval_s: f64,
+    /// No write while K0 changed less than this (mm). Default 0.001; >= 0.
+    #[serde(default = "default_deadband_k0_mm")]
+    pub deadband_k0_mm: f64,
+    /// No write while tan(beta) changed less than this (dimensionless, mm/mm).
+    /// Default 0.000001; >= 0.
+    #[serde(default = "default_deadband_tan_beta")]
+    pub deadband_tan_beta: f64,
+    /// Hard limit of |K0| in mm; a computed value beyond it is clamped and logged.
+    /// Default 0.5; > 0.
+    #[serde(default = "default_max_abs_k0_mm")]
+    pub max_abs_k0_mm: f64,
+    /// Hard limit of |tan(beta)|; must stay below the NC's MD32760
+    /// `$MA_COMP_ADD_VELO_FACTOR`. Default 0.01 (the MD32760 default); > 0 and
+    /// <= 0.1.
+    #[serde(default = "default_max_abs_tan_beta")]
+    pub max_abs_tan_beta: f64,
+    /// Largest change of K0 in one update (mm). Default 0.02; > 0.
+    #[serde(default = "default_max_step_k0_mm")]
+    pub max_step_k0_mm: f64,
+    /// Largest change of tan(beta) in one update. Default 0.00002; > 0.
+    #[serde(default = "default_max_step_tan_beta")]
+    pub max_step_tan_beta: f64,
+    /// What to do while an input channel is bad: `hold` the last value or
+    /// `ramp_to_zero`. Default `hold`.
+    #[serde(default)]
+    pub on_bad_input: OnBadInput,
+    /// Ramp rate of K0 towards zero in mm per second (`ramp_to_zero` only).
+    /// Default 0.0005; > 0 with `ramp_to_zero`.
+    #[serde(default = "default_ramp_k0_mm_per_s")]
+    pub ramp_k0_mm_per_s: f64,
+    /// Ramp rate of tan(beta) towards zero per second (`ramp_to_zero` only).
+    /// Default 0.0000005; > 0 with `ramp_to_zero`.
+    #[serde(default = "default_ramp_tan_beta_per_s")]
+    pub ramp_tan_beta_per_s: f64,
+    /// K0(T) model (SD43900). Optional table; default: offset 0, no terms (K0 = 0).
+    #[serde(default)]
+    pub k0: K0Model,
+    /// tan(beta)(T) model (SD43910). Optional table; default: offset 0, no terms.
+    #[serde(default)]
+    pub tan_beta: TanBetaModel,
+}
+
+/// Reaction to a bad input channel.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum OnBadInput {
+    /// Keep the last good parameters.
+    #[default]
+    Hold,
+    /// Ramp the parameters towards zero at `ramp_*_per_s`.
+    RampToZero,
+}
+
+/// `[axes.NAME.k0]`: `K0(T) = offset_mm + sum(coeff_mm_per_degc * (T[channel] -
+/// ref_degc))`, in mm.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq, Default)]
+#[serde(deny_unknown_fields)]
+pub struct K0Model {
+    /// Constant part of K0 in mm. Default 0.0.
+    #[serde(default)]
+    pub offset_mm: f64,
+    /// Linear temperature terms; each channel at most once. Default none.
+    #[serde(default)]
+    pub terms: Vec<K0Term>,
+}
+
+/// One term of the K0 model.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct K0Term {
+    /// Name of the channel in `[channels]`. Required.
+    pub channel: String,
+    /// Temperature in degC at which the term is zero. Default 20.0 (ISO 1 reference
+    /// temperature).
+    #[serde(default = "default_ref_degc")]
+    pub ref_degc: f64,
+    /// K0 change in mm per degC. Required.
+    pub coeff_mm_per_degc: f64,
+}
+
+/// `[axes.NAME.tan_beta]`: `tan(beta)(T) = offset + sum(coeff_per_degc * (T[channel] -
+/// ref_degc))`, dimensionless (mm/mm).
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq, Default)]
+#[serde(deny_unknown_fields)]
+pub struct TanBetaModel {
+    /// Constant part of tan(beta). Default 0.0.
+    #[serde(default)]
+    pub offset: f64,
+    /// Linear temperature terms; each channel at most once. Default none.
+    #[serde(default)]
+    pub terms: Vec<TanBetaTerm>,
+}
+
+/// One term of the tan(beta) model.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct TanBetaTerm {
+    /// Name of the channel in `[channels]`. Required.
+    pub channel: String,
+    /// Temperature in degC at which the term is zero. Default 20.0.
+    #[serde(default = "default_ref_degc")]
+    pub ref_degc: f64,
+    /// tan(beta) change per degC, e.g. 0.0000115 for a steel ball screw
+    /// (11.5 um/m/K). Required.
+    pub coeff_per_degc: f64,
+}
+
+/// What an axis' validation needs to know about the channels.
+pub struct ChannelNames<'a> {
+    /// Whether a channel of this name is defined.
+    pub known: &'a dyn Fn(&str) -> bool,
+    /// The defined names, for the message (e.g. "`T_bed`, `T_screw`").
+    pub list: &'a str,
+}
+
+impl AxisConfig {
+    /// `update_interval_s` as a [`Duration`].
+    pub fn update_interval(&self) -> Duration {
+        secs(self.update_interval_s)
+    }
+
+    /// Checks the axis; `key` is its path (`axes.NAME`).
+    pub fn validate(&self, key: &str, channels: &ChannelNames<'_>, out: &mut Problems<'_>) {
+        let k = |f: &str| format!("{key}.{f}");
+        if self.md32750 > 7 {
+            out.push(
+                k("md32750"),
+                format!(
+                    "must be 0..=7 (bit 0: K0, bit 1: slope, bit 2: tool direction), got {}",
+                    self.md32750
+                ),
+            );
+        } else {
+            let k0_used = self.k0.offset_mm != 0.0 || !self.k0.terms.is_empty();
+            let tb_used = self.tan_beta.offset != 0.0 || !self.tan_beta.terms.is_empty();
+            if k0_used && self.md32750 & 1 == 0 {
+                out.push(
+                    k("k0"),
+                    format!(
+                        "a K0 model is configured but md32750 = {} has bit 0 clear: the NC \
+                         would ignore SD43900; set bit 0 or remove the model",
+                        self.md32750
+                    ),
+                );
+            }
+            if tb_used && self.md32750 & 2 == 0 {
+                out.push(
+                    k("tan_beta"),
+                    format!(
+                        "a tan(beta) model is configured but md32750 = {} has bit 1 clear: \
+                         the NC would ignore SD43910; set bit 1 or remove the model",
+                        self.md32750
+                    ),
+                );
+            }
+        }
+        out.finite(&k("p0_mm"), self.p0_mm);
+        out.positive(&k("update_interval_s"), self.update_interval_s, "seconds");
+        out.non_negative(&k("deadband_k0_mm"), self.deadband_k0_mm, "mm");
+        out.non_negative(&k("deadband_tan_beta"), self.deadband_tan_beta, "mm/mm");
+        out.positive(&k("max_abs_k0_mm"), self.max_abs_k0_mm, "mm");
+        if out.positive(&k("max_abs_tan_beta"), self.max_abs_tan_beta, "mm/mm")
+            && self.max_abs_tan_beta > TAN_BETA_LIMIT_CEILING
+        {
+            out.push(
+                k("max_abs_tan_beta"),
+                format!(
+                    "must be <= {TAN_BETA_LIMIT_CEILING} and below the NC's MD32760 \
+                     (default 0.01), got {}",
+                    self.max_abs_tan_beta
+                ),
+            );
+        }
+        out.positive(&k("max_step_k0_mm"), self.max_step_k0_mm, "mm per update");
+        out.positive(
+            &k("max_step_tan_beta"),
+            self.max_step_tan_beta,
+            "per update",
+        );
+        match self.on_bad_input {
+            OnBadInput::RampToZero => {
+                out.positive(
+                    &k("ramp_k0_mm_per_s"),
+                    self.ramp_k0_mm_per_s,
+                    "mm per second",
+                );
+                out.positive(
+                    &k("ramp_tan_beta_per_s"),
+                    self.ramp_tan_beta_per_s,
+                    "per second",
+                );
+            }
+            OnBadInput::Hold => {
+                out.non_negative(
+                    &k("ramp_k0_mm_per_s"),
+                    self.ramp_k0_mm_per_s,
+                    "mm per second",
+                );
+                out.non_negative(
+                    &k("ramp_tan_beta_per_s"),
+                    self.ramp_tan_beta_per_s,
+                    "per second",
+                );
+            }
+        }
+        out.finite(&k("k0.offset_mm"), self.k0.offset_mm);
+        out.finite(&k("tan_beta.offset"), self.tan_beta.offset);
+        let k0_terms = self.k0.terms.iter().map(|t| {
+            (
+                t.channel.as_str(),
+                t.ref_degc,
+                ("coeff_mm_per_degc", t.coeff_mm_per_degc),
+            )
+        });
+        terms(&k("k0.terms"), k0_terms, channels, out);
+        let tb_terms = self.tan_beta.terms.iter().map(|t| {
+            (
+                t.channel.as_str(),
+                t.ref_degc,
+                ("coeff_per_degc", t.coeff_per_degc),
+            )
+        });
+        terms(&k("tan_beta.terms"), tb_terms, channels, out);
+    }
+
+    /// The axis' thermal model and the channel name behind each model input.
+    pub fn model(&self) -> (ThermalModel, Vec<String>) {
+        let mut names: Vec<String> = Vec::new();
+        let mut input = |ch: &str| match names.iter().position(|n| n == ch) {
+            Some(i) => i,
+            None => {
+                names.push(ch.to_string());
+                names.len() - 1
+            }
+        };
+        let k0_terms = self
+            .k0
+            .terms
+            .iter()
+            .map(|t| Term {
+                input: input(&t.channel),
+                ref_degc: t.ref_degc,
+                coeff: t.coeff_mm_per_degc,
+            })
+            .collect();
+        let tan_terms = self
+            .tan_beta
+            .terms
+            .iter()
+            .map(|t| Term {
+                input: input(&t.channel),
+                ref_degc: t.ref_degc,
+                coeff: t.coeff_per_degc,
+            })
+            .collect();
+        let model = ThermalModel {
+            k0_mm: Affine {
+                offset: self.k0.offset_mm,
+                terms: k0_terms,
+            },
+            tan_beta: Affine {
+                offset: self.tan_beta.offset,
+                terms: tan_terms,
+            },
+            p0_mm: self.p0_mm,
+        };
+        (model, names)
+    }
+
+    /// The axis' limits and deadbands.
+    pub fn limits(&self) -> Limits {
+        Limits {
+            max_abs_k0_mm: self.max_abs_k0_mm,
+            max_abs_tan_beta: self.max_abs_tan_beta,
+            max_step_k0_mm: self.max_step_k0_mm,
+            max_step_tan_beta: self.max_step_tan_beta,
+            deadband_k0_mm: self.deadband_k0_mm,
+            deadband_tan_beta: self.deadband_tan_beta,
+        }
+    }
+
+    /// The axis' reaction to a bad input.
+    pub fn policy(&self) -> BadInputPolicy {
+        match self.on_bad_input {
+            OnBadInput::Hold => BadInputPolicy::Hold,
+            OnBadInput::RampToZero => BadInputPolicy::RampToZero {
+                k0_mm_per_s: self.ramp_k0_mm_per_s,
+                tan_beta_per_s: self.ramp_tan_beta_per_s,
+            },
+        }
+    }
+}
+
+/// Every term's channel exists and appears once; numbers finite.
+fn terms<'t>(
+    key: &str,
+    terms: impl Iterator<Item = (&'t str, f64, (&'static str, f64))>,
+    channels: &ChannelNames<'_>,
+    out: &mut Problems<'_>,
+) {
+    let mut seen: BTreeMap<&str, usize> = BTreeMap::new();
+    for (i, (channel, ref_degc, (coeff_name, coeff))) in terms.enumerate() {
+        let tk = |f: &str| format!("{key}[{i}].{f}");
+        if !(channels.known)(channel) {
+            out.push(
+                tk("channel"),
+                format!(
+                    "unknown channel `{channel}`; expected one of the names in \
+                     [channels]: {}",
+                    channels.list
+                ),
+            );
+        } else if let Some(first) = seen.insert(channel, i) {
+            out.push(
+                tk("channel"),
+                format!(
+                    "channel `{channel}` already has term [{first}]; combine the \
+                     coefficients into one term"
+                ),
+            );
+        }
+        out.finite(&tk("ref_degc"), ref_degc);
+        out.finite(&tk(coeff_name), coeff);
+    }
+}
+
+fn default_update_interval_s() -> f64 {
+    10.0
+}
+fn default_deadband_k0_mm() -> f64 {
+    0.001
+}
+fn default_deadband_tan_beta() -> f64 {
+    0.000_001
+}
+fn default_max_abs_k0_mm() -> f64 {
+    0.5
+}
+fn default_max_abs_tan_beta() -> f64 {
+    0.01
+}
+fn default_max_step_k0_mm() -> f64 {
+    0.02
+}
+fn default_max_step_tan_beta() -> f64 {
+    0.000_02
+}
+fn default_ramp_k0_mm_per_s() -> f64 {
+    0.0005
+}
+fn default_ramp_tan_beta_per_s() -> f64 {
+    0.000_000_5
+}
+fn default_ref_degc() -> f64 {
+    20.0
+}

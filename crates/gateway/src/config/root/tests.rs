@@ -1,0 +1,357 @@
+use super::*;
+use crate::config::schema::*;
+use crate::config::{load_str, ConfigError};
+
+fn example() -> Config {
+    match load_str(
+        include_str!("../../../../../config/example.toml"),
+        "example.toml",
+    ) {
+        Ok(cfg) => cfg,
+        Err(e) => panic!("{e}"),
+    }
+}
+
+/// Keys of the problems after `change` was applied to the example.
+fn problems_after(change: impl FnOnce(&mut Config)) -> Vec<String> {
+    let mut cfg = example();
+    change(&mut cfg);
+    validate(&cfg, "v.toml")
+        .into_iter()
+        .map(|p| {
+            assert_eq!(p.file, "v.toml");
+            assert!(!p.message.is_empty());
+            p.key
+        })
+        .collect()
+}
+
+fn tcp<'a>(cfg: &'a mut Config, name: &str) -> &'a mut TcpDeviceConfig {
+    cfg.devices
+        .get_mut(name)
+        .and_then(DeviceConfig::tcp_mut)
+        .expect("tcp device in example")
+}
+fn rtu<'a>(cfg: &'a mut Config, name: &str) -> &'a mut RtuDeviceConfig {
+    cfg.devices
+        .get_mut(name)
+        .and_then(DeviceConfig::rtu_mut)
+        .expect("rtu device in example")
+}
+
+/// Keys of the problems of the example text with `from` replaced by `to`.
+fn text_problems(from: &str, to: &str) -> Vec<String> {
+    let text = include_str!("../../../../../config/example.toml");
+    assert_eq!(text.matches(from).count(), 1, "{from}");
+    match load_str(&text.replace(from, to), "v.toml") {
+        Ok(_) => Vec::new(),
+        Err(ConfigError::Invalid(p)) => p.into_iter().map(|p| p.key).collect(),
+        Err(e) => panic!("{e}"),
+    }
+}
+fn ch<'a>(cfg: &'a mut Config, name: &str) -> &'a mut ChannelConfig {
+    cfg.channels.get_mut(name).expect("channel in example")
+}
+fn x(cfg: &mut Config) -> &mut AxisConfig {
+    cfg.axes.get_mut("X").expect("axis in example")
+}
+
+#[test]
+fn example_is_clean() {
+    assert_eq!(problems_after(|_| {}), Vec::<String>::new());
+}
+
+#[test]
+fn tcp_and_rtu_fields() {
+    // A TCP device cannot hold serial keys nor lack its address: the schema
+    // refuses such a file (keys in the order of the table).
+    assert_eq!(
+        text_problems(
+            "address = \"127.0.0.1:5020\"\n",
+            "serial_path = \"/dev/ttyS0\"\nbaud = 9600\n"
+        ),
+        [
+            "devices.ain1.baud",
+            "devices.ain1.serial_path",
+            "devices.ain1.address",
+        ]
+    );
+    assert_eq!(
+        text_problems(
+            "serial_path = \"/dev/ttyUSB0\"\n",
+            "address = \"10.0.0.1:502\"\nconnect_timeout_s = 1.0\n"
+        ),
+        [
+            "devices.ain2.address",
+            "devices.ain2.connect_timeout_s",
+            "devices.ain2.serial_path",
+        ]
+    );
+    assert_eq!(
+        problems_after(|c| {
+            let d = rtu(c, "ain2");
+            d.baud = Some(300);
+            d.stop_bits = Some(3);
+        }),
+        ["devices.ain2.baud", "devices.ain2.stop_bits"]
+    );
+    assert_eq!(
+        problems_after(|c| tcp(c, "ain1").address = "plc:5o2".into()),
+        ["devices.ain1.address"]
+    );
+}
+
+#[test]
+fn unit_ids_and_times() {
+    assert_eq!(
+        problems_after(|c| {
+            let d = tcp(c, "ain1");
+            d.unit_id = 248;
+            d.common.timeout_s = 0.0;
+            d.common.poll_interval_s = -1.0;
+            d.common.backoff_initial_s = 5.0;
+            d.common.backoff_max_s = 1.0;
+            d.common.degrade_after_cycles = 0;
+            rtu(c, "ain2").unit_id = 0;
+            c.gateway.status_interval_s = f64::NAN;
+            c.nc_modules.get_mut("nc_x").expect("nc").job_timeout_s = 0.0;
+        }),
+        [
+            "gateway.status_interval_s",
+            "devices.ain1.unit_id",
+            "devices.ain1.timeout_s",
+            "devices.ain1.poll_interval_s",
+            "devices.ain1.backoff_max_s",
+            "devices.ain1.degrade_after_cycles",
+            "devices.ain2.unit_id",
+            "nc_modules.nc_x.job_timeout_s",
+        ]
+    );
+}
+
+#[test]
+fn shared_serial_line() {
+    let keys = problems_after(|c| {
+        let mut other = rtu(c, "ain2").clone();
+        other.baud = Some(9600);
+        other.parity = Some(Parity::None);
+        other.stop_bits = None; // 2 without parity
+        c.devices.insert("ain3".into(), DeviceConfig::Rtu(other));
+    });
+    assert_eq!(
+        keys,
+        [
+            "devices.ain3.baud",
+            "devices.ain3.parity",
+            "devices.ain3.stop_bits",
+            "devices.ain3.unit_id",
+        ]
+    );
+    // Defaults count: an explicit 19200/even/1 equals the defaults.
+    assert_eq!(
+        problems_after(|c| {
+            let mut other = rtu(c, "ain2").clone();
+            other.baud = None;
+            other.parity = None;
+            other.stop_bits = None;
+            other.unit_id = 8;
+            c.devices.insert("ain3".into(), DeviceConfig::Rtu(other));
+        }),
+        Vec::<String>::new()
+    );
+}
+
+#[test]
+fn registers_and_scaling() {
+    assert_eq!(
+        problems_after(|c| {
+            let t = ch(c, "T_ambient");
+            t.address = Some(65535);
+            t.scaling = Scaling::Direct(DirectScaling {
+                gain: 0.0,
+                offset_degc: f64::INFINITY,
+            });
+        }),
+        [
+            "channels.T_ambient.address",
+            "channels.T_ambient.scaling.gain",
+            "channels.T_ambient.scaling.offset_degc",
+        ]
+    );
+    assert_eq!(
+        problems_after(|c| {
+            let t = ch(c, "T_bed");
+            t.data_type = DataType::I16;
+            t.scaling = Scaling::Transmitter(TransmitterScaling {
+                adc_full_scale_counts: 40_000,
+                adc_full_scale_ma: 16.0,
+                current_range: CurrentRange::Ma4To20,
+                range_min_degc: 100.0,
+                range_max_degc: 0.0,
+            });
+            ch(c, "T_screw").data_type = DataType::F32;
+        }),
+        [
+            "channels.T_bed.scaling.adc_full_scale_counts",
+            "channels.T_bed.scaling.adc_full_scale_ma",
+            "channels.T_bed.scaling.range_max_degc",
+        ],
+        "f32 counts are fine"
+    );
+    // The same register read twice is fine.
+    assert_eq!(
+        problems_after(|c| ch(c, "T_screw").address = Some(0)),
+        Vec::<String>::new()
+    );
+}
+
+#[test]
+fn filter_ranges() {
+    assert_eq!(
+        problems_after(|c| {
+            let f = &mut ch(c, "T_bed").filter;
+            f.median_samples = 4;
+            f.lowpass_tau_s = -1.0;
+            f.max_rate_degc_per_s = -0.1;
+            f.max_rejected_samples = 0;
+            f.stale_after_s = -5.0;
+            f.valid_min_degc = 50.0;
+            f.valid_max_degc = 50.0;
+            ch(c, "T_screw").filter.median_samples = 0;
+        }),
+        [
+            "channels.T_bed.filter.median_samples",
+            "channels.T_bed.filter.lowpass_tau_s",
+            "channels.T_bed.filter.max_rate_degc_per_s",
+            "channels.T_bed.filter.max_rejected_samples",
+            "channels.T_bed.filter.stale_after_s",
+            "channels.T_bed.filter.valid_max_degc",
+            "channels.T_screw.filter.median_samples",
+        ]
+    );
+}
+
+#[test]
+fn references() {
+    assert_eq!(
+        problems_after(|c| {
+            ch(c, "T_bed").device = "nope".into();
+            x(c).tan_beta.terms[0].channel = "T_nope".into();
+            let dup = x(c).k0.terms[0].clone();
+            x(c).k0.terms.push(dup);
+            let mut y = c.axes["X"].clone();
+            y.k0 = K0Model::default();
+            y.tan_beta = TanBetaModel::default();
+            c.axes.insert("Y".into(), y);
+        }),
+        [
+            "channels.T_bed.device",
+            "axes.X.k0.terms[2].channel",
+            "axes.X.tan_beta.terms[0].channel",
+            "axes.Y.nc_module",
+        ]
+    );
+    assert_eq!(
+        problems_after(|c| x(c).nc_module = "nc_y".into()),
+        ["axes.X.nc_module"]
+    );
+}
+
+#[test]
+fn axis_limits_and_md32750() {
+    assert_eq!(
+        problems_after(|c| {
+            let a = x(c);
+            a.max_abs_tan_beta = 0.2;
+            a.max_abs_k0_mm = 0.0;
+            a.deadband_k0_mm = -0.1;
+            a.max_step_tan_beta = 0.0;
+            a.ramp_k0_mm_per_s = 0.0;
+            a.update_interval_s = 0.0;
+        }),
+        [
+            "axes.X.update_interval_s",
+            "axes.X.deadband_k0_mm",
+            "axes.X.max_abs_k0_mm",
+            "axes.X.max_abs_tan_beta",
+            "axes.X.max_step_tan_beta",
+            "axes.X.ramp_k0_mm_per_s",
+        ]
+    );
+    assert_eq!(problems_after(|c| x(c).md32750 = 8), ["axes.X.md32750"]);
+    assert_eq!(problems_after(|c| x(c).md32750 = 2), ["axes.X.k0"]);
+    assert_eq!(problems_after(|c| x(c).md32750 = 1), ["axes.X.tan_beta"]);
+    assert_eq!(
+        problems_after(|c| {
+            x(c).on_bad_input = OnBadInput::Hold;
+            x(c).ramp_k0_mm_per_s = 0.0;
+        }),
+        Vec::<String>::new(),
+        "ramp rates may be 0 with hold"
+    );
+}
+
+#[test]
+fn names() {
+    assert_eq!(
+        problems_after(|c| {
+            let t = c.channels["T_bed"].clone();
+            c.channels.insert("t_bed".into(), t.clone());
+            c.channels.insert("T bed".into(), t.clone());
+            c.channels.insert("T__bed".into(), t.clone());
+            c.channels.insert("".into(), t.clone());
+            c.channels.insert("T".repeat(65), t);
+        }),
+        [
+            "channels.\"\"",
+            "channels.\"T bed\"",
+            format!("channels.{}", "T".repeat(65)).as_str(),
+            "channels.T__bed",
+            "channels.t_bed",
+        ]
+    );
+}
+
+#[test]
+fn sim_section() {
+    assert_eq!(
+        problems_after(|c| {
+            let mut sim = SimConfig::default();
+            sim.channels.insert(
+                "T_bed".into(),
+                SimChannelConfig {
+                    profile: SimProfile::Sine,
+                    amplitude_degc: -1.0,
+                    period_s: 0.0,
+                    noise_degc: -0.1,
+                    ..SimChannelConfig::default()
+                },
+            );
+            sim.channels
+                .insert("T_nope".into(), SimChannelConfig::default());
+            sim.nc_modules.insert(
+                "nc_x".into(),
+                SimNcModuleConfig {
+                    md32750: 9,
+                    motion_min_mm: 10.0,
+                    motion_max_mm: 0.0,
+                    motion_speed_mm_per_s: -1.0,
+                    ..SimNcModuleConfig::default()
+                },
+            );
+            sim.nc_modules
+                .insert("nc_nope".into(), SimNcModuleConfig::default());
+            c.sim = Some(sim);
+        }),
+        [
+            "sim.channels.T_bed.amplitude_degc",
+            "sim.channels.T_bed.period_s",
+            "sim.channels.T_bed.noise_degc",
+            "sim.channels.T_nope",
+            "sim.nc_modules.nc_nope",
+            "sim.nc_modules.nc_x.md32750",
+            "sim.nc_modules.nc_x.motion_max_mm",
+            "sim.nc_modules.nc_x.motion_speed_mm_per_s",
+        ]
+    );
+}

@@ -1,0 +1,242 @@
+//! The service sections `[recorder]`, `[metrics]`, `[mqtt]` (used by
+//! `compgate-service`) and their validation.
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+use super::problem::ConfigProblem;
+use super::root::Config;
+
+/// `[recorder]`: every poll cycle's raw and filtered readings with their quality, every
+/// NC job with its result, and the NC's position, into an SQLite database (WAL mode).
+/// Writes are batched on a thread of their own; the control loop never waits for them.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RecorderConfig {
+    /// Database file. A relative path is taken from `$STATE_DIRECTORY` (set by the
+    /// unit's `StateDirectory=`, `/var/lib/compgate`), else from the working directory.
+    /// Default `compgate.db`.
+    #[serde(default = "default_recorder_path")]
+    pub path: String,
+    /// Seconds between commits of the batched writes: a crash loses at most this much.
+    /// Default 0.5; > 0 and <= 1.
+    #[serde(default = "default_commit_interval_s")]
+    pub commit_interval_s: f64,
+    /// Poll cycles the queue between the control loop and the writer holds. When it
+    /// is full, cycles are dropped, counted and logged; the loop never waits. Default
+    /// 4096; >= 1.
+    #[serde(default = "default_queue_cycles")]
+    pub queue_cycles: u32,
+    /// Days readings, jobs and NC positions are kept. Default 90; > 0.
+    #[serde(default = "default_retention_days")]
+    pub retention_days: f64,
+    /// Largest size of the data in the database, MB; beyond it the oldest records go
+    /// first. Default 2048; > 0.
+    #[serde(default = "default_max_size_mb")]
+    pub max_size_mb: f64,
+    /// Seconds between retention passes (age and size). Default 60; > 0.
+    #[serde(default = "default_retention_interval_s")]
+    pub retention_interval_s: f64,
+}
+
+impl Default for RecorderConfig {
+    fn default() -> Self {
+        RecorderConfig {
+            path: default_recorder_path(),
+            commit_interval_s: default_commit_interval_s(),
+            queue_cycles: default_queue_cycles(),
+            retention_days: default_retention_days(),
+            max_size_mb: default_max_size_mb(),
+            retention_interval_s: default_retention_interval_s(),
+        }
+    }
+}
+
+fn default_recorder_path() -> String {
+    "compgate.db".into()
+}
+fn default_commit_interval_s() -> f64 {
+    0.5
+}
+fn default_queue_cycles() -> u32 {
+    4096
+}
+fn default_retention_days() -> f64 {
+    90.0
+}
+fn default_max_size_mb() -> f64 {
+    2048.0
+}
+fn default_retention_interval_s() -> f64 {
+    60.0
+}
+
+/// `[metrics]`: a Prometheus text endpoint (`GET /metrics`).
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct MetricsConfig {
+    /// `host:port` to listen on. Default `127.0.0.1:9464` (localhost only; expose it
+    /// further on purpose, e.g. `0.0.0.0:9464` behind the plant firewall).
+    #[serde(default = "default_metrics_bind")]
+    pub bind: String,
+}
+
+impl Default for MetricsConfig {
+    fn default() -> Self {
+        MetricsConfig {
+            bind: default_metrics_bind(),
+        }
+    }
+}
+
+fn default_metrics_bind() -> String {
+    "127.0.0.1:9464".into()
+}
+
+/// `[mqtt]`: publishing to an MQTT broker with QoS 1. Topics are
+/// `<topic_prefix>/<machine>/...` (see the README). Messages wait in the recorder's
+/// database until the broker acknowledges them, so `[recorder]` is required.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct MqttConfig {
+    /// Broker `host:port`, e.g. `"broker.plant.local:1883"`. Required.
+    pub broker: String,
+    /// Machine name in every topic, 1..=64 characters of `A-Z a-z 0-9 _ -`. Required.
+    pub machine: String,
+    /// First topic level(s). Default `compgate`; no `+`, `#` or leading/trailing `/`.
+    #[serde(default = "default_topic_prefix")]
+    pub topic_prefix: String,
+    /// MQTT client id. Default `compgate-<machine>`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client_id: Option<String>,
+    /// Seconds between readings messages per channel (the latest reading is sent).
+    /// Default 1.0; > 0.
+    #[serde(default = "default_publish_interval_s")]
+    pub publish_interval_s: f64,
+    /// MQTT keep-alive, seconds. Default 10; >= 1.
+    #[serde(default = "default_keep_alive_s")]
+    pub keep_alive_s: f64,
+    /// Seconds before a message unacknowledged by a connected broker is sent again,
+    /// and between reconnect attempts. Default 2; > 0.
+    #[serde(default = "default_retry_s")]
+    pub retry_s: f64,
+    /// Messages kept for the broker at most (oldest dropped, counted and logged beyond).
+    /// Default 1000000; >= 1.
+    #[serde(default = "default_outbox_max_messages")]
+    pub outbox_max_messages: u64,
+}
+
+fn default_topic_prefix() -> String {
+    "compgate".into()
+}
+fn default_publish_interval_s() -> f64 {
+    1.0
+}
+fn default_keep_alive_s() -> f64 {
+    10.0
+}
+fn default_retry_s() -> f64 {
+    2.0
+}
+fn default_outbox_max_messages() -> u64 {
+    1_000_000
+}
+
+/// Every problem of the service sections of `cfg`, read from `file`.
+pub(super) fn validate_service(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
+    let mut out = Vec::new();
+    let mut problem = |key: &str, msg: String| out.push(ConfigProblem::new(file, key, msg));
+    let positive = |v: f64| v.is_finite() && v > 0.0;
+    if let Some(r) = &cfg.recorder {
+        if r.path.trim().is_empty() {
+            problem("recorder.path", "must not be empty".into());
+        }
+        if !(positive(r.commit_interval_s) && r.commit_interval_s <= 1.0) {
+            problem(
+                "recorder.commit_interval_s",
+                format!("{} is not within 0 < s <= 1 seconds", r.commit_interval_s),
+            );
+        }
+        if r.queue_cycles == 0 {
+            problem("recorder.queue_cycles", "must be at least 1".into());
+        }
+        for (key, v) in [
+            ("recorder.retention_days", r.retention_days),
+            ("recorder.max_size_mb", r.max_size_mb),
+            ("recorder.retention_interval_s", r.retention_interval_s),
+        ] {
+            if !positive(v) {
+                problem(key, format!("{v} must be a finite number > 0"));
+            }
+        }
+    }
+    if let Some(m) = &cfg.metrics {
+        if m.bind.parse::<std::net::SocketAddr>().is_err() {
+            problem(
+                "metrics.bind",
+                format!(
+                    "`{}` is not an `ip:port` address, e.g. `127.0.0.1:9464`",
+                    m.bind
+                ),
+            );
+        }
+    }
+    if let Some(m) = &cfg.mqtt {
+        if cfg.recorder.is_none() {
+            problem(
+                "mqtt",
+                "needs a [recorder] section: messages wait in its database until the broker has them".into(),
+            );
+        }
+        match m.broker.rsplit_once(':') {
+            Some((host, port)) if !host.is_empty() && port.parse::<u16>().is_ok_and(|p| p > 0) => {}
+            _ => problem(
+                "mqtt.broker",
+                format!(
+                    "`{}` is not `host:port`, e.g. `broker.plant.local:1883`",
+                    m.broker
+                ),
+            ),
+        }
+        let name_ok = |n: &str| {
+            !n.is_empty()
+                && n.len() <= 64
+                && n.chars()
+                    .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+        };
+        if !name_ok(&m.machine) {
+            problem(
+                "mqtt.machine",
+                format!(
+                    "`{}` must be 1..=64 characters of A-Z a-z 0-9 _ -",
+                    m.machine
+                ),
+            );
+        }
+        let p = &m.topic_prefix;
+        if p.is_empty() || p.starts_with('/') || p.ends_with('/') || p.contains(['+', '#']) {
+            problem(
+                "mqtt.topic_prefix",
+                format!("`{p}` must be non-empty, without + or #, and not start or end with /"),
+            );
+        }
+        for (key, v) in [
+            ("mqtt.publish_interval_s", m.publish_interval_s),
+            ("mqtt.retry_s", m.retry_s),
+        ] {
+            if !positive(v) {
+                problem(key, format!("{v} must be a finite number > 0"));
+            }
+        }
+        if !(m.keep_alive_s.is_finite() && m.keep_alive_s >= 1.0) {
+            problem(
+                "mqtt.keep_alive_s",
+                format!("{} must be >= 1 second", m.keep_alive_s),
+            );
+        }
+        if m.outbox_max_messages == 0 {
+            problem("mqtt.outbox_max_messages", "must be at least 1".into());
+        }
+    }
+    out
+}

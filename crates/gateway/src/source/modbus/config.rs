@@ -1,0 +1,212 @@
+//! `[devices.NAME]` with `transport = "tcp"` or `"rtu"`: the Modbus devices' keys,
+//! their validation and what they build ([`LinkSpec`], [`PollParams`]).
+
+use std::time::Duration;
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+use super::LinkSpec;
+use crate::config::keys::secs;
+use crate::config::problem::Problems;
+use crate::source::config::DeviceCommon;
+use crate::source::PollParams;
+
+/// `transport = "tcp"`: a Modbus TCP server.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
+#[schemars(deny_unknown_fields)]
+pub struct TcpDeviceConfig {
+    /// `host:port` of the Modbus TCP server, e.g. `"192.168.0.10:502"`. Required.
+    /// Port 0 is accepted only because the embedded demo replaces it with the port its
+    /// simulator bound.
+    pub address: String,
+    /// Modbus unit id, 0..=247 (many TCP modules ignore it). Required.
+    pub unit_id: u8,
+    /// Seconds a TCP connect may take. Default 2.0; > 0.
+    #[serde(default = "default_connect_timeout_s")]
+    pub connect_timeout_s: f64,
+    /// Extra attempts of a failed request within one poll cycle. Default 1 (two
+    /// attempts in all).
+    #[serde(default = "default_retries")]
+    pub retries: u32,
+    /// Registers that may be read and discarded to merge two channels into one
+    /// request (0 = merge only adjacent channels). Default 8.
+    #[serde(default = "default_max_gap_registers")]
+    pub max_gap_registers: u16,
+    /// Timeouts, poll interval, backoff, degradation.
+    #[serde(flatten)]
+    pub common: DeviceCommon,
+}
+
+impl TcpDeviceConfig {
+    /// Default of `connect_timeout_s`.
+    pub const DEFAULT_CONNECT_TIMEOUT_S: f64 = 2.0;
+
+    /// `connect_timeout_s` as a [`Duration`].
+    pub fn connect_timeout(&self) -> Duration {
+        secs(self.connect_timeout_s)
+    }
+
+    /// `address` is `host:port`, the unit id 0..=247, the connect timeout > 0.
+    pub fn validate(&self, key: &str, out: &mut Problems<'_>) {
+        let k = |f: &str| format!("{key}.{f}");
+        out.host_port(&k("address"), &self.address);
+        out.unit_id(&k("unit_id"), self.unit_id);
+        out.positive(&k("connect_timeout_s"), self.connect_timeout_s, "seconds");
+    }
+
+    /// The link to the server.
+    pub fn link_spec(&self) -> LinkSpec {
+        LinkSpec::Tcp {
+            address: self.address.clone(),
+            connect_timeout: self.connect_timeout(),
+        }
+    }
+
+    /// The poller's parameters.
+    pub fn poll_params(&self) -> PollParams {
+        PollParams {
+            unit_id: self.unit_id,
+            retries: self.retries,
+            degrade_after_cycles: self.common.degrade_after_cycles,
+            max_gap_registers: self.max_gap_registers,
+        }
+    }
+}
+
+/// `transport = "rtu"`: a Modbus RTU slave on an RS-485 line.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
+#[schemars(deny_unknown_fields)]
+pub struct RtuDeviceConfig {
+    /// Serial device of the RS-485 line, e.g. `"/dev/ttyUSB0"`. Required. Several
+    /// devices on one path share the line: they must agree on baud, parity and stop
+    /// bits and have distinct unit ids.
+    pub serial_path: String,
+    /// Modbus unit id (slave address), 1..=247 (0 is the broadcast address, which
+    /// never answers). Required.
+    pub unit_id: u8,
+    /// Baud rate, 1200..=115200. Default 19200 (the Modbus serial line default).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub baud: Option<u32>,
+    /// Parity: `none`, `even` or `odd`. Default `even` (the Modbus serial line
+    /// default).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub parity: Option<Parity>,
+    /// Stop bits: 1 or 2. Default 1, or 2 when `parity = "none"` (as the Modbus serial
+    /// line specification asks).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stop_bits: Option<u8>,
+    /// Extra attempts of a failed request within one poll cycle. Default 1 (two
+    /// attempts in all).
+    #[serde(default = "default_retries")]
+    pub retries: u32,
+    /// Registers that may be read and discarded to merge two channels into one
+    /// request (0 = merge only adjacent channels). Default 8.
+    #[serde(default = "default_max_gap_registers")]
+    pub max_gap_registers: u16,
+    /// Timeouts, poll interval, backoff, degradation.
+    #[serde(flatten)]
+    pub common: DeviceCommon,
+}
+
+impl RtuDeviceConfig {
+    /// Default of `baud`.
+    pub const DEFAULT_BAUD: u32 = 19200;
+    /// Default of `parity`.
+    pub const DEFAULT_PARITY: Parity = Parity::Even;
+
+    /// Effective baud rate: `baud` or 19200.
+    pub fn baud(&self) -> u32 {
+        self.baud.unwrap_or(Self::DEFAULT_BAUD)
+    }
+    /// Effective parity: `parity` or even.
+    pub fn parity(&self) -> Parity {
+        self.parity.unwrap_or(Self::DEFAULT_PARITY)
+    }
+    /// Effective stop bits: `stop_bits`, or 2 without parity and 1 with parity.
+    pub fn stop_bits(&self) -> u8 {
+        self.stop_bits.unwrap_or(match self.parity() {
+            Parity::None => 2,
+            Parity::Even | Parity::Odd => 1,
+        })
+    }
+
+    /// A serial path, baud 1200..=115200, stop bits 1 or 2, unit id 1..=247.
+    pub fn validate(&self, key: &str, out: &mut Problems<'_>) {
+        let k = |f: &str| format!("{key}.{f}");
+        if self.serial_path.trim().is_empty() {
+            out.push(
+                k("serial_path"),
+                "must name the serial device, e.g. \"/dev/ttyUSB0\"",
+            );
+        }
+        if let Some(b) = self.baud {
+            if !(1200..=115_200).contains(&b) {
+                out.push(k("baud"), format!("must be 1200..=115200, got {b}"));
+            }
+        }
+        if let Some(s) = self.stop_bits {
+            if !(1..=2).contains(&s) {
+                out.push(k("stop_bits"), format!("must be 1 or 2, got {s}"));
+            }
+        }
+        if self.unit_id == 0 {
+            out.push(
+                k("unit_id"),
+                "must be 1..=247 on RTU: 0 is the broadcast address, which never answers",
+            );
+        } else {
+            out.unit_id(&k("unit_id"), self.unit_id);
+        }
+    }
+
+    /// The serial line (devices on one path share it).
+    pub fn link_spec(&self) -> LinkSpec {
+        LinkSpec::Rtu {
+            path: self.serial_path.clone(),
+            baud: self.baud(),
+            parity: match self.parity() {
+                Parity::None => tokio_serial::Parity::None,
+                Parity::Even => tokio_serial::Parity::Even,
+                Parity::Odd => tokio_serial::Parity::Odd,
+            },
+            stop_bits: if self.stop_bits() == 2 {
+                tokio_serial::StopBits::Two
+            } else {
+                tokio_serial::StopBits::One
+            },
+        }
+    }
+
+    /// The poller's parameters.
+    pub fn poll_params(&self) -> PollParams {
+        PollParams {
+            unit_id: self.unit_id,
+            retries: self.retries,
+            degrade_after_cycles: self.common.degrade_after_cycles,
+            max_gap_registers: self.max_gap_registers,
+        }
+    }
+}
+
+/// Serial parity.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum Parity {
+    /// No parity bit.
+    None,
+    /// Even parity.
+    Even,
+    /// Odd parity.
+    Odd,
+}
+
+fn default_connect_timeout_s() -> f64 {
+    TcpDeviceConfig::DEFAULT_CONNECT_TIMEOUT_S
+}
+fn default_retries() -> u32 {
+    1
+}
+fn default_max_gap_registers() -> u16 {
+    8
+}
