@@ -244,7 +244,12 @@ pub(crate) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
         }
     }
     let mut out = out.into_vec();
-    out.extend(validate_service(cfg, file));
+    out.extend(validate_service(
+        cfg.recorder.as_ref(),
+        cfg.metrics.as_ref(),
+        cfg.mqtt.as_ref(),
+        file,
+    ));
     out
 }
 

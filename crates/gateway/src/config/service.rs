@@ -5,7 +5,6 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 use super::problem::ConfigProblem;
-use super::root::Config;
 
 /// `[recorder]`: every poll cycle's raw and filtered readings with their quality, every
 /// NC job with its result, and the NC's position, into an SQLite database (WAL mode).
@@ -143,11 +142,16 @@ fn default_outbox_max_messages() -> u64 {
 }
 
 /// Every problem of the service sections of `cfg`, read from `file`.
-pub(super) fn validate_service(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
+pub(super) fn validate_service(
+    recorder: Option<&RecorderConfig>,
+    metrics: Option<&MetricsConfig>,
+    mqtt: Option<&MqttConfig>,
+    file: &str,
+) -> Vec<ConfigProblem> {
     let mut out = Vec::new();
     let mut problem = |key: &str, msg: String| out.push(ConfigProblem::new(file, key, msg));
     let positive = |v: f64| v.is_finite() && v > 0.0;
-    if let Some(r) = &cfg.recorder {
+    if let Some(r) = recorder {
         if r.path.trim().is_empty() {
             problem("recorder.path", "must not be empty".into());
         }
@@ -170,7 +174,7 @@ pub(super) fn validate_service(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
             }
         }
     }
-    if let Some(m) = &cfg.metrics {
+    if let Some(m) = metrics {
         if m.bind.parse::<std::net::SocketAddr>().is_err() {
             problem(
                 "metrics.bind",
@@ -181,8 +185,8 @@ pub(super) fn validate_service(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
             );
         }
     }
-    if let Some(m) = &cfg.mqtt {
-        if cfg.recorder.is_none() {
+    if let Some(m) = mqtt {
+        if recorder.is_none() {
             problem(
                 "mqtt",
                 "needs a [recorder] section: messages wait in its database until the broker has them".into(),
