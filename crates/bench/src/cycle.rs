@@ -134,7 +134,7 @@ impl BenchReport {
         );
         let _ = writeln!(
             s,
-            "\nratio gateway/bare: {:.3} as the gateway runs (device task -> core task), {:.3} in one task (target >= 0.9)",
+            "\nratio gateway/bare: {:.3} as the gateway runs (device task -> core task), {:.3} in one task",
             self.ratio(),
             self.sequential_ratio()
         );

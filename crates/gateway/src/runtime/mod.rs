@@ -503,10 +503,26 @@ mod tests {
     use compgate_core::channel::Reading;
     use compgate_core::channel::{Quality, Reason};
 
-    fn sample(p: &Pipeline, k: u32, fault_on: Option<usize>) -> DeviceSample {
-        let values = (0..p.channel_names.len())
-            .filter(|&ch| p.homes[ch].0 == 0)
-            .map(|ch| {
+    fn demo() -> Config {
+        crate::config::load_str(include_str!("../../../../config/demo.toml"), "demo.toml")
+            .expect("demo config")
+    }
+
+    /// The channels of the first device (index 0), in config order.
+    fn first_device_channels(cfg: &Config) -> Vec<usize> {
+        let device = cfg.devices.keys().next().expect("a device");
+        cfg.channels
+            .values()
+            .enumerate()
+            .filter(|(_, c)| &c.device == device)
+            .map(|(ch, _)| ch)
+            .collect()
+    }
+
+    fn sample(p: &Pipeline, channels: &[usize], k: u32, fault_on: Option<usize>) -> DeviceSample {
+        let values = channels
+            .iter()
+            .map(|&ch| {
                 let value = if Some(ch) == fault_on {
                     Err(Fault {
                         reason: Reason::Comm,
@@ -529,38 +545,53 @@ mod tests {
         }
     }
 
-    // The pipeline shows what the bank holds and hands it back whole: after a fault
-    // and on a reload the processors carry on from the bank's state.
+    fn readings(p: &Pipeline) -> Vec<Reading> {
+        (0..p.channel_names.len())
+            .map(|ch| p.reading(ch).expect("reading"))
+            .collect()
+    }
+
+    // A fault shows in the channel's quality with its value held, and a reload of an
+    // unchanged config carries every channel's state over whole.
     #[test]
-    fn bank_state_goes_back_to_the_processors() {
-        let cfg =
-            crate::config::load_str(include_str!("../../../../config/demo.toml"), "demo.toml")
-                .expect("demo config");
+    fn a_fault_holds_the_value_and_a_reload_keeps_the_channels() {
+        let cfg = demo();
+        let channels = first_device_channels(&cfg);
+        assert!(channels.len() >= 4, "{} channels", channels.len());
         let mut p = build(&cfg).expect("build").pipeline;
         for k in 0..30 {
-            p.ingest(&sample(&p, k, None));
+            p.ingest(&sample(&p, &channels, k, None));
         }
-        let held = (0..p.channel_names.len())
-            .filter(|&ch| p.homes[ch].0 == 0 && p.banks[0].holds(p.homes[ch].1))
-            .count();
-        assert!(held >= 4, "{held} channels held");
-        let before: Vec<Reading> = (0..p.channel_names.len())
-            .map(|ch| p.reading(ch).expect("reading"))
-            .collect();
-        assert_eq!(before[0].quality, Quality::Good);
-        assert!(before[0].value_degc.is_some_and(|v| (v - 30.0).abs() < 0.1));
-        // A missing sample hands the channel back: held value, uncertain.
-        p.ingest(&sample(&p, 30, Some(0)));
-        let r = p.reading(0).expect("reading");
+        let before = readings(&p);
+        let ch = channels[0];
+        assert_eq!(before[ch].quality, Quality::Good);
+        assert!(before[ch]
+            .value_degc
+            .is_some_and(|v| (v - 30.0).abs() < 0.1));
+        // A missing sample: held value, uncertain.
+        p.ingest(&sample(&p, &channels, 30, Some(ch)));
+        let r = p.reading(ch).expect("reading");
         assert_eq!(r.quality, Quality::Uncertain(Reason::Comm));
-        assert_eq!(r.value_degc, before[0].value_degc);
-        assert!(!p.banks[0].holds(p.homes[0].1));
-        let now: Vec<Reading> = (0..p.channel_names.len())
-            .map(|ch| p.reading(ch).expect("reading"))
+        assert_eq!(r.value_degc, before[ch].value_degc);
+        let now = readings(&p);
+
+        let old = Running::new(Built {
+            pipeline: p,
+            ..build(&cfg).expect("build")
+        });
+        let next = reload::transplant(&cfg, &cfg, old, build(&cfg).expect("build"));
+        assert_eq!(readings(&next.pipeline), now);
+        let shown: Vec<Reading> = next
+            .status
+            .channels
+            .iter()
+            .map(|c| c.reading.clone())
             .collect();
-        let processors = p.take_processors();
-        for (ch, (proc_, r)) in processors.iter().zip(&now).enumerate() {
-            assert_eq!(proc_.last(), r, "channel {ch}");
-        }
+        assert_eq!(shown, now);
+        // The carried processors go on from their state: the next good sample of the
+        // faulted channel is good again.
+        let mut p = next.pipeline;
+        p.ingest(&sample(&p, &channels, 31, None));
+        assert_eq!(p.reading(ch).expect("reading").quality, Quality::Good);
     }
 }
