@@ -24,8 +24,7 @@ use metrics_exporter_prometheus::{Matcher, PrometheusBuilder};
 use crate::record::{quality_code, RecorderStats};
 use compgate_core::comp::CompParams;
 use compgate_gateway::nc::{JobReport, NcError};
-use compgate_gateway::runtime::{Observer, Pipeline, Status};
-use compgate_gateway::source::DeviceSample;
+use compgate_gateway::runtime::{Observer, SampleReadings, Status};
 
 /// Starts the exporter on `bind` (inside the tokio runtime) and installs the global
 /// recorder.
@@ -94,10 +93,10 @@ fn set_params(axis: &str, p: &CompParams) {
 }
 
 impl Observer for MetricsObserver {
-    fn on_sample(&mut self, sample: &DeviceSample, pipeline: &Pipeline) {
+    fn on_sample(&mut self, readings: &SampleReadings) {
         let started = Instant::now();
-        if self.channels.len() != pipeline.channel_names.len() {
-            self.channels = pipeline
+        if self.channels.len() != readings.channel_names.len() {
+            self.channels = readings
                 .channel_names
                 .iter()
                 .map(|n| ChannelHandles {
@@ -107,10 +106,11 @@ impl Observer for MetricsObserver {
                 })
                 .collect();
         }
-        for (ch, _) in &sample.values {
-            let (Some(h), Some(r)) = (self.channels.get_mut(*ch), pipeline.reading(*ch)) else {
+        for c in &readings.channels {
+            let Some(h) = self.channels.get_mut(c.channel) else {
                 continue;
             };
+            let r = &c.reading;
             h.value.set(r.value_degc.unwrap_or(f64::NAN));
             let q = quality_code(&r.quality).0;
             if h.last_quality != Some(q) {
@@ -118,10 +118,10 @@ impl Observer for MetricsObserver {
                 h.last_quality = Some(q);
             }
         }
-        if let Some(d) = self.devices.get(sample.device) {
-            d.up.set(if sample.error.is_none() { 1.0 } else { 0.0 });
-            d.poll.record(sample.elapsed.as_secs_f64());
-            if let Some(e) = &sample.error {
+        if let Some(d) = self.devices.get(readings.device) {
+            d.up.set(if readings.error.is_none() { 1.0 } else { 0.0 });
+            d.poll.record(readings.poll_elapsed.as_secs_f64());
+            if let Some(e) = &readings.error {
                 counter!("compgate_device_errors_total", "device" => d.name.clone(), "kind" => e.kind())
                     .increment(1);
             }

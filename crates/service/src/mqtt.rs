@@ -38,8 +38,7 @@ use crate::record::{now_unix_ms, quality_code, Record, RecordSender};
 use compgate_core::comp::CompParams;
 use compgate_gateway::config::{secs, MqttConfig};
 use compgate_gateway::nc::{JobReport, NcError};
-use compgate_gateway::runtime::{Observer, Pipeline, Status};
-use compgate_gateway::source::DeviceSample;
+use compgate_gateway::runtime::{Observer, SampleReadings, Status};
 
 fn quality_word(code: u8) -> &'static str {
     match code {
@@ -78,8 +77,6 @@ pub struct MqttObserver {
     /// Per device index: last readings message.
     last_reading: HashMap<usize, Instant>,
     last_health: Option<Instant>,
-    /// Device names by index, from the status.
-    devices: Vec<String>,
 }
 
 impl MqttObserver {
@@ -91,7 +88,6 @@ impl MqttObserver {
             tx,
             last_reading: HashMap::new(),
             last_health: None,
-            devices: Vec::new(),
         }
     }
 
@@ -101,35 +97,26 @@ impl MqttObserver {
 }
 
 impl Observer for MqttObserver {
-    fn on_sample(&mut self, sample: &DeviceSample, pipeline: &Pipeline) {
+    fn on_sample(&mut self, readings: &SampleReadings) {
         let now = Instant::now();
-        if !Self::due(self.last_reading.get(&sample.device), self.interval, now) {
+        if !Self::due(self.last_reading.get(&readings.device), self.interval, now) {
             return;
         }
-        self.last_reading.insert(sample.device, now);
-        let fallback;
-        let device = match self.devices.get(sample.device) {
-            Some(d) => d.as_str(),
-            None => {
-                fallback = format!("device{}", sample.device);
-                fallback.as_str()
-            }
-        };
-        let channels: Vec<ChannelMsg<'_>> = sample
-            .values
-            .iter()
-            .filter_map(|(ch, _)| {
-                let name = pipeline.channel_names.get(*ch)?;
-                let r = pipeline.reading(*ch)?;
+        self.last_reading.insert(readings.device, now);
+        let device = &*readings.device_name;
+        let channels: Vec<ChannelMsg<'_>> = readings
+            .named()
+            .map(|(name, c)| {
+                let r = &c.reading;
                 let (q, reason) = quality_code(&r.quality);
-                Some(ChannelMsg {
+                ChannelMsg {
                     channel: name,
                     quality: quality_word(q),
                     raw: r.raw,
                     reason,
                     unfiltered_degc: r.unfiltered_degc,
                     value_degc: r.value_degc,
-                })
+                }
             })
             .collect();
         let msg = ReadingsMsg {
@@ -166,9 +153,6 @@ impl Observer for MqttObserver {
     }
 
     fn on_status(&mut self, status: &Status) {
-        if self.devices.len() != status.devices.len() {
-            self.devices = status.devices.iter().map(|d| d.name.clone()).collect();
-        }
         let now = Instant::now();
         if !Self::due(self.last_health.as_ref(), self.interval, now) {
             return;
@@ -207,7 +191,6 @@ impl Observer for MqttObserver {
     fn on_reload(&mut self, _result: &Result<(), String>) {
         // Device indices may have moved.
         self.last_reading.clear();
-        self.devices.clear();
     }
 }
 

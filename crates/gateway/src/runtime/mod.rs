@@ -7,6 +7,7 @@
 //! sees its input close, finishes, and drops the NC command channels, so an NC job in
 //! flight completes before the NC tasks stop.
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::sync::{mpsc, watch};
@@ -22,11 +23,13 @@ use compgate_core::comp::{CompParams, Decision};
 mod build;
 mod hooks;
 mod pipeline;
+mod readings;
 mod reload;
 mod status;
 pub use build::*;
 pub use hooks::{Hooks, Observer, Observers};
 pub use pipeline::*;
+pub use readings::{ChannelReading, SampleReadings};
 pub use status::*;
 
 /// Errors of the gateway layer.
@@ -220,6 +223,10 @@ struct Running {
     status: Status,
     /// Per axis: whether its step limits start from what the NC holds yet.
     baselined: Vec<bool>,
+    /// Device names by index, for [`SampleReadings::device_name`].
+    device_names: Vec<Arc<str>>,
+    /// The last sample's outcome (kept for its allocation).
+    readings: SampleReadings,
 }
 
 impl Running {
@@ -254,6 +261,8 @@ impl Running {
         };
         Running {
             baselined: vec![false; pipeline.axes.len()],
+            device_names: devices.iter().map(|d| Arc::from(d.poller.name())).collect(),
+            readings: SampleReadings::default(),
             pipeline,
             devices: devices.into_iter().map(Some).collect(),
             sync_producers,
@@ -263,30 +272,43 @@ impl Running {
         }
     }
 
+    /// Runs `sample` through the channel processors and builds, once, what the
+    /// status and the observers see of it: [`Self::readings`].
     fn on_sample(&mut self, sample: &DeviceSample) {
-        self.pipeline.ingest(sample);
+        let r = &mut self.readings;
+        r.device = sample.device;
+        r.device_name = self
+            .device_names
+            .get(sample.device)
+            .cloned()
+            .unwrap_or_default();
+        r.poll_elapsed = sample.elapsed;
+        r.connects = sample.connects;
+        r.error.clone_from(&sample.error);
+        r.channel_names = self.pipeline.channel_names.clone();
+        self.pipeline.ingest(sample, &mut r.channels);
+
         let status = &mut self.status;
         status.samples += 1;
-        let d = &mut status.devices[sample.device];
-        d.cycles += 1;
-        d.last_cycle = sample.elapsed;
-        d.connects = sample.connects;
-        match &sample.error {
-            Some(e) => {
-                d.failed_cycles += 1;
-                *d.errors.entry(e.kind()).or_default() += 1;
-                d.last_error = Some(e.to_string());
-            }
-            None => {
-                d.failed_cycles = 0;
-                d.last_error = None;
+        if let Some(d) = status.devices.get_mut(r.device) {
+            d.cycles += 1;
+            d.last_cycle = r.poll_elapsed;
+            d.connects = r.connects;
+            match &r.error {
+                Some(e) => {
+                    d.failed_cycles += 1;
+                    *d.errors.entry(e.kind()).or_default() += 1;
+                    d.last_error = Some(e.to_string());
+                }
+                None => {
+                    d.failed_cycles = 0;
+                    d.last_error = None;
+                }
             }
         }
-        // Only this sample's channels changed (512 channels on 8 devices: 8x less work).
-        for (ch, _) in &sample.values {
-            if let (Some(cs), Some(r)) = (status.channels.get_mut(*ch), self.pipeline.reading(*ch))
-            {
-                cs.reading = r;
+        for c in &r.channels {
+            if let Some(cs) = status.channels.get_mut(c.channel) {
+                cs.reading.clone_from(&c.reading);
             }
         }
     }
@@ -424,7 +446,7 @@ async fn generation(
             sample = sample_rx.recv() => {
                 let Some(sample) = sample else { break };
                 state.on_sample(&sample);
-                observer.on_sample(&sample, &state.pipeline);
+                observer.on_sample(&state.readings);
             }
             event = event_rx.recv(), if events_open => {
                 // No NC modules (a monitoring-only config): the channel closes at once.
@@ -559,8 +581,9 @@ mod tests {
         let channels = first_device_channels(&cfg);
         assert!(channels.len() >= 4, "{} channels", channels.len());
         let mut p = build(&cfg).expect("build").pipeline;
+        let mut out = Vec::new();
         for k in 0..30 {
-            p.ingest(&sample(&p, &channels, k, None));
+            p.ingest(&sample(&p, &channels, k, None), &mut out);
         }
         let before = readings(&p);
         let ch = channels[0];
@@ -569,7 +592,7 @@ mod tests {
             .value_degc
             .is_some_and(|v| (v - 30.0).abs() < 0.1));
         // A missing sample: held value, uncertain.
-        p.ingest(&sample(&p, &channels, 30, Some(ch)));
+        p.ingest(&sample(&p, &channels, 30, Some(ch)), &mut out);
         let r = p.reading(ch).expect("reading");
         assert_eq!(r.quality, Quality::Uncertain(Reason::Comm));
         assert_eq!(r.value_degc, before[ch].value_degc);
@@ -591,7 +614,45 @@ mod tests {
         // The carried processors go on from their state: the next good sample of the
         // faulted channel is good again.
         let mut p = next.pipeline;
-        p.ingest(&sample(&p, &channels, 31, None));
+        p.ingest(&sample(&p, &channels, 31, None), &mut out);
         assert_eq!(p.reading(ch).expect("reading").quality, Quality::Good);
+    }
+
+    // The core loop builds one value per sample: the link outcome and the new reading
+    // of exactly the sample's channels; the status shows the same.
+    #[test]
+    fn one_sample_builds_its_readings_once_for_status_and_observers() {
+        let cfg = demo();
+        let channels = first_device_channels(&cfg);
+        let mut state = Running::new(build(&cfg).expect("build"));
+        let mut s = sample(&state.pipeline, &channels, 1, Some(channels[1]));
+        s.error = Some(crate::source::SourceError::Timeout(Duration::from_millis(
+            200,
+        )));
+        s.elapsed = Duration::from_millis(3);
+        s.connects = 2;
+        state.on_sample(&s);
+
+        let r = &state.readings;
+        assert_eq!(r.device, 0);
+        assert_eq!(
+            &*r.device_name,
+            cfg.devices.keys().next().expect("device").as_str()
+        );
+        assert_eq!(r.error, s.error);
+        assert_eq!((r.poll_elapsed, r.connects), (s.elapsed, 2));
+        let got: Vec<usize> = r.channels.iter().map(|c| c.channel).collect();
+        assert_eq!(got, channels);
+        for (name, c) in r.named() {
+            assert_eq!(name, state.pipeline.channel_names[c.channel]);
+            assert_eq!(Some(&c.reading), state.pipeline.reading(c.channel).as_ref());
+            assert_eq!(state.status.channels[c.channel].reading, c.reading);
+        }
+        assert_eq!(r.channels[0].reading.quality, Quality::Good);
+        assert_eq!(r.channels[1].reading.quality, Quality::Bad(Reason::NoData));
+        let d = &state.status.devices[0];
+        assert_eq!((d.cycles, d.failed_cycles, d.connects), (1, 1, 2));
+        assert_eq!(d.last_error, s.error.as_ref().map(ToString::to_string));
+        assert_eq!(state.status.samples, 1);
     }
 }

@@ -1,5 +1,6 @@
 //! The synchronous part of the gateway: channel processors and axis compensators.
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::time::Instant;
@@ -8,7 +9,7 @@ use crate::source::DeviceSample;
 use compgate_core::channel::{ChannelProcessor, LowPassGain, Reading};
 use compgate_core::comp::{AxisCompensator, Decision};
 
-use super::ChannelStatus;
+use super::{ChannelReading, ChannelStatus};
 
 /// One axis at run time.
 #[derive(Debug)]
@@ -31,8 +32,8 @@ pub struct AxisRt {
 /// The core loop and `compgate bench` drive the same code.
 #[derive(Debug)]
 pub struct Pipeline {
-    /// Channel names, in config order.
-    pub channel_names: Vec<String>,
+    /// Channel names, in config order (shared with every [`SampleReadings`](super::SampleReadings)).
+    pub channel_names: Arc<[String]>,
     /// One processor per channel: the channel's only state.
     pub(super) processors: Vec<ChannelProcessor>,
     /// One per axis.
@@ -55,7 +56,7 @@ impl Pipeline {
         axes: Vec<AxisRt>,
     ) -> Self {
         Self {
-            channel_names,
+            channel_names: channel_names.into(),
             processors,
             axes,
             temps_degc: Vec::new(),
@@ -86,8 +87,10 @@ impl Pipeline {
         std::mem::take(&mut self.processors)
     }
 
-    /// Feeds one device sample through its channels' processors.
-    pub fn ingest(&mut self, sample: &DeviceSample) {
+    /// Feeds one device sample through its channels' processors; `readings` gets
+    /// their new readings (cleared first, so one buffer serves every sample).
+    pub fn ingest(&mut self, sample: &DeviceSample, readings: &mut Vec<ChannelReading>) {
+        readings.clear();
         let t_s = self.now_s(sample.started);
         // The sample's channels were read at one instant: one exponential serves them.
         let mut gain = LowPassGain::default();
@@ -95,14 +98,14 @@ impl Pipeline {
             let Some(p) = self.processors.get_mut(*ch) else {
                 continue;
             };
-            match value {
-                Ok(raw) => {
-                    p.on_sample_with(t_s, *raw, &mut gain);
-                }
-                Err(fault) => {
-                    p.on_missing(t_s, fault.reason, fault.degraded);
-                }
-            }
+            let reading = match value {
+                Ok(raw) => p.on_sample_with(t_s, *raw, &mut gain),
+                Err(fault) => p.on_missing(t_s, fault.reason, fault.degraded),
+            };
+            readings.push(ChannelReading {
+                channel: *ch,
+                reading: reading.clone(),
+            });
         }
     }
 
