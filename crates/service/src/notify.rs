@@ -6,7 +6,7 @@ use std::fmt::Write as _;
 
 use sd_notify::NotifyState;
 
-use compgate_gateway::runtime::{Observer, SampleReadings, Status};
+use compgate_gateway::runtime::{GatewayError, Observer, SampleReadings, Status};
 
 /// The systemd notifier, an [`Observer`] of the control loop.
 #[derive(Debug, Default)]
@@ -76,7 +76,7 @@ impl Observer for Notifier {
         }
     }
 
-    fn on_reload(&mut self, result: &Result<(), String>) {
+    fn on_reload(&mut self, result: &Result<(), GatewayError>) {
         if let Err(e) = result {
             let line = format!("reload refused, old configuration running: {e}");
             Self::send(&[NotifyState::Status(&line)]);

@@ -6,7 +6,7 @@
 
 use tokio::sync::mpsc;
 
-use super::{SampleReadings, Status};
+use super::{GatewayError, SampleReadings, Status};
 use crate::config::Config;
 use crate::nc::{JobReport, NcError};
 use compgate_core::comp::CompParams;
@@ -21,7 +21,7 @@ pub trait Observer: Send {
     /// The status tick of the loop (every `gateway.status_interval_s`).
     fn on_status(&mut self, _status: &Status) {}
     /// A reload took effect (`Ok`) or was refused and the old config stays (`Err`).
-    fn on_reload(&mut self, _result: &Result<(), String>) {}
+    fn on_reload(&mut self, _result: &Result<(), GatewayError>) {}
 }
 
 /// The observer that does nothing.
@@ -47,7 +47,7 @@ impl Observer for Observers {
             o.on_status(status);
         }
     }
-    fn on_reload(&mut self, result: &Result<(), String>) {
+    fn on_reload(&mut self, result: &Result<(), GatewayError>) {
         for o in &mut self.0 {
             o.on_reload(result);
         }

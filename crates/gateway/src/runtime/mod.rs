@@ -33,7 +33,7 @@ pub use readings::{ChannelReading, SampleReadings};
 pub use status::*;
 
 /// Errors of the gateway layer.
-#[derive(Debug, thiserror::Error)]
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum GatewayError {
     /// The configuration cannot be turned into a running gateway.
     #[error("config: {0}")]
@@ -493,7 +493,7 @@ async fn generation(
                     }
                     Err(e) => {
                         tracing::error!(error = %e, "reload refused: the running configuration stays");
-                        observer.on_reload(&Err(e.to_string()));
+                        observer.on_reload(&Err(e));
                     }
                 }
             }
