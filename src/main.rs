@@ -71,7 +71,9 @@ async fn run(log: Option<String>, command: Command) -> ExitCode {
         #[cfg(feature = "sim")]
         Command::Demo => demo::demo().await,
         Command::Run { config: path } => match config::load(&path) {
-            Ok(cfg) => compgate_service::run(&path, cfg).await,
+            Ok(cfg) => compgate_service::run(&path, cfg)
+                .await
+                .map_err(|e| e.to_string()),
             Err(e) => Err(e.to_string()),
         },
         Command::Validate { config: path } => match config::load(&path) {

@@ -350,6 +350,7 @@ async fn run_once(
         .writer;
     let mut dev = built.devices.pop().ok_or_else(|| setup_err("no device"))?;
     let pipeline = &mut built.pipeline;
+    let mut readings = Vec::new();
     // Step limits and deadband start from what the NC holds, as in the service.
     let snap = writer.read_snapshot().await.map_err(setup_err)?;
     pipeline.axes[0].comp.set_baseline(snap.thermal());
@@ -425,7 +426,7 @@ async fn run_once(
         }
         let mut sample = dev.poller.poll().await;
         sample.started = at;
-        pipeline.ingest(&sample);
+        pipeline.ingest(&sample, &mut readings);
         out.polls += 1;
 
         // Compensator -> FB3 job into the NC, every update interval.

@@ -14,9 +14,54 @@ use std::path::{Path, PathBuf};
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
-use crate::record::Recorder;
+use crate::record::{RecordError, Recorder};
 use compgate_gateway::config::{self, Config};
-use compgate_gateway::runtime::{self, Hooks, Observer, Observers};
+use compgate_gateway::runtime::{self, GatewayError, Hooks, Observer, Observers};
+
+/// Errors of the service layer. Errors of other crates are kept as their messages,
+/// so the enum stays `Clone + Eq` for tests to compare.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ServiceError {
+    /// The recorder could not start (its [`RecordError`], as a message).
+    #[error("{0}")]
+    Recorder(String),
+    /// The metrics exporter cannot listen on `metrics.bind`.
+    #[error("metrics.bind `{bind}`: {message}")]
+    MetricsBind {
+        /// The configured address.
+        bind: String,
+        /// Why not.
+        message: String,
+    },
+    /// The metrics recorder could not be set up or installed.
+    #[error("metrics: {0}")]
+    Metrics(String),
+    /// `mqtt.broker` is not `host:port`.
+    #[error("mqtt.broker `{0}` is not host:port")]
+    MqttBroker(String),
+    /// The MQTT client or its connection to the broker failed.
+    #[error("{0}")]
+    Mqtt(String),
+    /// The MQTT outbox in the recorder's database failed.
+    #[error("{0}")]
+    MqttOutbox(String),
+    /// The gateway could not run.
+    #[error(transparent)]
+    Gateway(#[from] GatewayError),
+    /// A task of the service panicked or was cancelled.
+    #[error("{0}")]
+    Task(String),
+}
+
+impl From<RecordError> for ServiceError {
+    fn from(e: RecordError) -> Self {
+        Self::Recorder(e.to_string())
+    }
+}
+
+fn task_err(e: tokio::task::JoinError) -> ServiceError {
+    ServiceError::Task(e.to_string())
+}
 
 /// Logs to the journal when stderr is connected to it (`JOURNAL_STREAM`, set by
 /// systemd), otherwise, or when the journal cannot be opened, to stderr.
@@ -84,12 +129,12 @@ fn signals(path: PathBuf, reload: mpsc::Sender<Config>) -> CancellationToken {
 
 /// `compgate run`: the gateway on `cfg` (loaded from `path`) as a service, until
 /// SIGTERM or Ctrl-C.
-pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
+pub async fn run(path: &Path, cfg: Config) -> Result<(), ServiceError> {
     let (reload_tx, reload_rx) = mpsc::channel(1);
     let shutdown = signals(path.to_path_buf(), reload_tx);
     let mut observers: Vec<Box<dyn Observer>> = vec![Box::new(notify::Notifier::new())];
     let recorder = match &cfg.recorder {
-        Some(r) => Some(Recorder::start(r).map_err(|e| e.to_string())?),
+        Some(r) => Some(Recorder::start(r)?),
         None => None,
     };
     if let Some(r) = &recorder {
@@ -131,7 +176,7 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
             async move { runtime::run_with(&gateway_cfg, gateway_shutdown, tx, hooks).await },
         )
         .await
-        .map_err(|e| e.to_string());
+        .map_err(task_err);
     let _ = sd_notify::notify(&[sd_notify::NotifyState::Stopping]);
     shutdown.cancel();
     if let Some(p) = publisher {
@@ -141,9 +186,9 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), String> {
         // The observers are gone with the gateway: the writer commits what is queued.
         tokio::task::spawn_blocking(move || r.finish())
             .await
-            .map_err(|e| e.to_string())?;
+            .map_err(task_err)?;
     }
     shutdown.cancel();
     let _ = printer.await;
-    result?.map_err(|e| e.to_string())
+    Ok(result??)
 }

@@ -22,34 +22,39 @@ use metrics::{counter, gauge, histogram, Counter, Gauge, Histogram};
 use metrics_exporter_prometheus::{Matcher, PrometheusBuilder};
 
 use crate::record::{quality_code, RecorderStats};
+use crate::ServiceError;
 use compgate_core::comp::CompParams;
 use compgate_gateway::nc::{JobReport, NcError};
-use compgate_gateway::runtime::{Observer, Pipeline, Status};
-use compgate_gateway::source::DeviceSample;
+use compgate_gateway::runtime::{GatewayError, Observer, SampleReadings, Status};
 
 /// Starts the exporter on `bind` (inside the tokio runtime) and installs the global
 /// recorder.
-pub fn install(bind: &str) -> Result<(), String> {
-    let addr: SocketAddr = bind
-        .parse()
-        .map_err(|e| format!("metrics.bind `{bind}`: {e}"))?;
+pub fn install(bind: &str) -> Result<(), ServiceError> {
+    let addr: SocketAddr = bind.parse().map_err(|e| bind_err(bind, e))?;
     let buckets = [
         0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0,
     ];
     let (recorder, exporter) = PrometheusBuilder::new()
         .with_http_listener(addr)
         .set_buckets_for_metric(Matcher::Suffix("_seconds".into()), &buckets)
-        .map_err(|e| format!("metrics: {e}"))?
+        .map_err(|e| ServiceError::Metrics(e.to_string()))?
         .build()
-        .map_err(|e| format!("metrics.bind `{bind}`: {e}"))?;
+        .map_err(|e| bind_err(bind, e))?;
     tokio::spawn(async move {
         if let Err(e) = exporter.await {
             tracing::error!(error = ?e, "metrics endpoint stopped");
         }
     });
-    metrics::set_global_recorder(recorder).map_err(|e| format!("metrics: {e}"))?;
+    metrics::set_global_recorder(recorder).map_err(|e| ServiceError::Metrics(e.to_string()))?;
     tracing::info!(bind = %addr, "Prometheus metrics on http://{addr}/metrics");
     Ok(())
+}
+
+fn bind_err(bind: &str, e: impl std::fmt::Display) -> ServiceError {
+    ServiceError::MetricsBind {
+        bind: bind.to_string(),
+        message: e.to_string(),
+    }
 }
 
 struct ChannelHandles {
@@ -94,10 +99,10 @@ fn set_params(axis: &str, p: &CompParams) {
 }
 
 impl Observer for MetricsObserver {
-    fn on_sample(&mut self, sample: &DeviceSample, pipeline: &Pipeline) {
+    fn on_sample(&mut self, readings: &SampleReadings) {
         let started = Instant::now();
-        if self.channels.len() != pipeline.channel_names.len() {
-            self.channels = pipeline
+        if self.channels.len() != readings.channel_names.len() {
+            self.channels = readings
                 .channel_names
                 .iter()
                 .map(|n| ChannelHandles {
@@ -107,10 +112,11 @@ impl Observer for MetricsObserver {
                 })
                 .collect();
         }
-        for (ch, _) in &sample.values {
-            let (Some(h), Some(r)) = (self.channels.get_mut(*ch), pipeline.reading(*ch)) else {
+        for c in &readings.channels {
+            let Some(h) = self.channels.get_mut(c.channel) else {
                 continue;
             };
+            let r = &c.reading;
             h.value.set(r.value_degc.unwrap_or(f64::NAN));
             let q = quality_code(&r.quality).0;
             if h.last_quality != Some(q) {
@@ -118,10 +124,10 @@ impl Observer for MetricsObserver {
                 h.last_quality = Some(q);
             }
         }
-        if let Some(d) = self.devices.get(sample.device) {
-            d.up.set(if sample.error.is_none() { 1.0 } else { 0.0 });
-            d.poll.record(sample.elapsed.as_secs_f64());
-            if let Some(e) = &sample.error {
+        if let Some(d) = self.devices.get(readings.device) {
+            d.up.set(if readings.error.is_none() { 1.0 } else { 0.0 });
+            d.poll.record(readings.poll_elapsed.as_secs_f64());
+            if let Some(e) = &readings.error {
                 counter!("compgate_device_errors_total", "device" => d.name.clone(), "kind" => e.kind())
                     .increment(1);
             }
@@ -189,8 +195,24 @@ impl Observer for MetricsObserver {
         }
     }
 
-    fn on_reload(&mut self, _result: &Result<(), String>) {
+    fn on_reload(&mut self, _result: &Result<(), GatewayError>) {
         self.channels.clear();
         self.devices.clear();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_bind_that_is_no_address_is_a_typed_error() {
+        assert_eq!(
+            install("localhost"),
+            Err(ServiceError::MetricsBind {
+                bind: "localhost".into(),
+                message: "invalid socket address syntax".into(),
+            })
+        );
     }
 }

@@ -35,11 +35,11 @@ use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 
 use crate::record::{now_unix_ms, quality_code, Record, RecordSender};
+use crate::ServiceError;
 use compgate_core::comp::CompParams;
 use compgate_gateway::config::{secs, MqttConfig};
 use compgate_gateway::nc::{JobReport, NcError};
-use compgate_gateway::runtime::{Observer, Pipeline, Status};
-use compgate_gateway::source::DeviceSample;
+use compgate_gateway::runtime::{GatewayError, Observer, SampleReadings, Status};
 
 fn quality_word(code: u8) -> &'static str {
     match code {
@@ -78,8 +78,6 @@ pub struct MqttObserver {
     /// Per device index: last readings message.
     last_reading: HashMap<usize, Instant>,
     last_health: Option<Instant>,
-    /// Device names by index, from the status.
-    devices: Vec<String>,
 }
 
 impl MqttObserver {
@@ -91,7 +89,6 @@ impl MqttObserver {
             tx,
             last_reading: HashMap::new(),
             last_health: None,
-            devices: Vec::new(),
         }
     }
 
@@ -101,35 +98,26 @@ impl MqttObserver {
 }
 
 impl Observer for MqttObserver {
-    fn on_sample(&mut self, sample: &DeviceSample, pipeline: &Pipeline) {
+    fn on_sample(&mut self, readings: &SampleReadings) {
         let now = Instant::now();
-        if !Self::due(self.last_reading.get(&sample.device), self.interval, now) {
+        if !Self::due(self.last_reading.get(&readings.device), self.interval, now) {
             return;
         }
-        self.last_reading.insert(sample.device, now);
-        let fallback;
-        let device = match self.devices.get(sample.device) {
-            Some(d) => d.as_str(),
-            None => {
-                fallback = format!("device{}", sample.device);
-                fallback.as_str()
-            }
-        };
-        let channels: Vec<ChannelMsg<'_>> = sample
-            .values
-            .iter()
-            .filter_map(|(ch, _)| {
-                let name = pipeline.channel_names.get(*ch)?;
-                let r = pipeline.reading(*ch)?;
+        self.last_reading.insert(readings.device, now);
+        let device = &*readings.device_name;
+        let channels: Vec<ChannelMsg<'_>> = readings
+            .named()
+            .map(|(name, c)| {
+                let r = &c.reading;
                 let (q, reason) = quality_code(&r.quality);
-                Some(ChannelMsg {
+                ChannelMsg {
                     channel: name,
                     quality: quality_word(q),
                     raw: r.raw,
                     reason,
                     unfiltered_degc: r.unfiltered_degc,
                     value_degc: r.value_degc,
-                })
+                }
             })
             .collect();
         let msg = ReadingsMsg {
@@ -166,9 +154,6 @@ impl Observer for MqttObserver {
     }
 
     fn on_status(&mut self, status: &Status) {
-        if self.devices.len() != status.devices.len() {
-            self.devices = status.devices.iter().map(|d| d.name.clone()).collect();
-        }
         let now = Instant::now();
         if !Self::due(self.last_health.as_ref(), self.interval, now) {
             return;
@@ -204,10 +189,9 @@ impl Observer for MqttObserver {
         });
     }
 
-    fn on_reload(&mut self, _result: &Result<(), String>) {
+    fn on_reload(&mut self, _result: &Result<(), GatewayError>) {
         // Device indices may have moved.
         self.last_reading.clear();
-        self.devices.clear();
     }
 }
 
@@ -265,19 +249,27 @@ struct Exchange {
 
 /// Runs `ex` in one blocking call: deletes first, then reads. Returns the rows
 /// dropped by the cap and the rows read.
-async fn exchange(db: &Db, ex: Exchange) -> Result<(u64, Vec<(i64, String, String)>), String> {
+/// An outbox error: the database or its lock.
+fn outbox_err(e: impl std::fmt::Display) -> ServiceError {
+    ServiceError::MqttOutbox(e.to_string())
+}
+
+async fn exchange(
+    db: &Db,
+    ex: Exchange,
+) -> Result<(u64, Vec<(i64, String, String)>), ServiceError> {
     let db = db.clone();
     tokio::task::spawn_blocking(move || {
-        let mut conn = db.lock().map_err(|e| e.to_string())?;
+        let mut conn = db.lock().map_err(outbox_err)?;
         let mut dropped = 0;
         if !ex.acked.is_empty() || ex.cap.is_some() {
-            let tx = conn.transaction().map_err(|e| e.to_string())?;
+            let tx = conn.transaction().map_err(outbox_err)?;
             {
                 let mut del = tx
                     .prepare_cached("DELETE FROM mqtt_outbox WHERE id = ?1")
-                    .map_err(|e| e.to_string())?;
+                    .map_err(outbox_err)?;
                 for id in &ex.acked {
-                    del.execute([id]).map_err(|e| e.to_string())?;
+                    del.execute([id]).map_err(outbox_err)?;
                 }
             }
             if let Some(max) = ex.cap {
@@ -286,9 +278,9 @@ async fn exchange(db: &Db, ex: Exchange) -> Result<(u64, Vec<(i64, String, Strin
                         "DELETE FROM mqtt_outbox WHERE id <= (SELECT max(id) FROM mqtt_outbox) - ?1",
                     )
                     .and_then(|mut s| s.execute([i64::try_from(max).unwrap_or(i64::MAX)]))
-                    .map_err(|e| e.to_string())? as u64;
+                    .map_err(outbox_err)? as u64;
             }
-            tx.commit().map_err(|e| e.to_string())?;
+            tx.commit().map_err(outbox_err)?;
         }
         let rows = match ex.fetch {
             Some((after, limit)) => conn
@@ -301,13 +293,13 @@ async fn exchange(db: &Db, ex: Exchange) -> Result<(u64, Vec<(i64, String, Strin
                     })?
                     .collect::<Result<Vec<_>, _>>()
                 })
-                .map_err(|e| e.to_string())?,
+                .map_err(outbox_err)?,
             None => Vec::new(),
         };
         Ok((dropped, rows))
     })
     .await
-    .map_err(|e| e.to_string())?
+    .map_err(|e| ServiceError::Task(e.to_string()))?
 }
 
 /// One connection to the broker: sends the outbox until `shutdown` (Ok) or a
@@ -322,12 +314,12 @@ async fn session(
     outbox: &Notify,
     shutdown: &CancellationToken,
     dropped_total: &mut u64,
-) -> Result<(), String> {
+) -> Result<(), ServiceError> {
     let (host, port) = cfg
         .broker
         .rsplit_once(':')
         .and_then(|(h, p)| Some((h.to_string(), p.parse::<u16>().ok()?)))
-        .ok_or_else(|| format!("mqtt.broker `{}` is not host:port", cfg.broker))?;
+        .ok_or_else(|| ServiceError::MqttBroker(cfg.broker.clone()))?;
     let id = cfg
         .client_id
         .clone()
@@ -360,7 +352,7 @@ async fn session(
                 return Ok(());
             }
             ev = events.poll() => {
-                match ev.map_err(|e| e.to_string())? {
+                match ev.map_err(|e| ServiceError::Mqtt(e.to_string()))? {
                     Event::Incoming(Packet::ConnAck(_)) => {
                         connected = true;
                         tracing::info!(broker = %cfg.broker, "MQTT connected");
@@ -397,7 +389,7 @@ async fn session(
                 for (row, topic, payload) in rows {
                     client
                         .try_publish(topic, QoS::AtLeastOnce, false, payload)
-                        .map_err(|e| e.to_string())?;
+                        .map_err(|e| ServiceError::Mqtt(e.to_string()))?;
                     sent.push_back(row);
                     queued_upto = row;
                 }

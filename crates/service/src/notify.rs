@@ -6,8 +6,7 @@ use std::fmt::Write as _;
 
 use sd_notify::NotifyState;
 
-use compgate_gateway::runtime::{Observer, Pipeline, Status};
-use compgate_gateway::source::DeviceSample;
+use compgate_gateway::runtime::{GatewayError, Observer, SampleReadings, Status};
 
 /// The systemd notifier, an [`Observer`] of the control loop.
 #[derive(Debug, Default)]
@@ -59,8 +58,8 @@ pub fn status_line(s: &Status) -> String {
 }
 
 impl Observer for Notifier {
-    fn on_sample(&mut self, sample: &DeviceSample, _pipeline: &Pipeline) {
-        if !self.ready && sample.error.is_none() {
+    fn on_sample(&mut self, readings: &SampleReadings) {
+        if !self.ready && readings.error.is_none() {
             self.ready = true;
             tracing::info!("first poll cycle succeeded: ready");
             Self::send(&[NotifyState::Ready]);
@@ -77,7 +76,7 @@ impl Observer for Notifier {
         }
     }
 
-    fn on_reload(&mut self, result: &Result<(), String>) {
+    fn on_reload(&mut self, result: &Result<(), GatewayError>) {
         if let Err(e) = result {
             let line = format!("reload refused, old configuration running: {e}");
             Self::send(&[NotifyState::Status(&line)]);

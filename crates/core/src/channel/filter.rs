@@ -84,9 +84,9 @@ impl MedianWindow {
             return None;
         }
         if self.len <= NETWORK_MAX_LEN {
-            // Short windows keep arrival order (oldest first), as the channel bank's
-            // shift registers do: the network then sees the values in the same order
-            // (which only matters for the sign of a zero median).
+            // Short windows keep arrival order (oldest first): shifting up to four
+            // values costs less than keeping a ring index, and the network needs no
+            // particular order.
             let old = self.ring_degc[0];
             self.ring_degc.copy_within(1.., 0);
             self.ring_degc[self.len - 1] = value_degc;
@@ -128,76 +128,34 @@ impl MedianWindow {
     pub fn count(&self) -> usize {
         self.ring_degc.len()
     }
+}
 
-    /// A full window of up to [`NETWORK_MAX_LEN`] samples, oldest first.
-    pub(crate) fn full_ring(&self) -> Option<&[f64]> {
-        (self.len <= NETWORK_MAX_LEN && self.ring_degc.len() == self.len)
-            .then_some(&self.ring_degc[..])
-    }
-
-    /// Sets a window of up to [`NETWORK_MAX_LEN`] samples to the full `ring_degc`,
-    /// oldest first: the inverse of [`Self::full_ring`].
-    pub(crate) fn set_full_ring(&mut self, ring_degc: &[f64]) {
-        debug_assert!(self.len <= NETWORK_MAX_LEN && ring_degc.len() == self.len);
-        self.ring_degc.clear();
-        self.ring_degc.extend_from_slice(ring_degc);
+/// The smaller of `a` and `b` as `minsd` computes it (`b` on equality or NaN):
+/// `f64::min` adds NaN handling the network does not need. For finite values the
+/// order `total_cmp` gives but for the sign of zero.
+#[inline(always)]
+fn lo(a: f64, b: f64) -> f64 {
+    if a < b {
+        a
+    } else {
+        b
     }
 }
 
-/// What the compare networks need of a value: `lo`/`hi` as `minsd`/`maxsd` compute
-/// them (`if a < b { a } else { b }`; `f64::min` adds NaN handling). For finite
-/// values the order `total_cmp` gives but for the sign of zero. Implemented for one
-/// value and for four lanes, so the channel bank runs the very same networks.
-pub(crate) trait Ordered: Copy {
-    fn lo(self, other: Self) -> Self;
-    fn hi(self, other: Self) -> Self;
-}
-
-impl Ordered for f64 {
-    #[inline(always)]
-    fn lo(self, other: Self) -> Self {
-        if self < other {
-            self
-        } else {
-            other
-        }
-    }
-
-    #[inline(always)]
-    fn hi(self, other: Self) -> Self {
-        if self > other {
-            self
-        } else {
-            other
-        }
-    }
-}
-
-/// On x86 `fast_min`/`fast_max` are `minpd`/`maxpd`, which compute exactly `lo`/`hi`
-/// (the second operand on equality or NaN). Elsewhere (NEON's `fmin` orders -0 below
-/// +0) a compare and select.
-impl Ordered for wide::f64x4 {
-    #[inline(always)]
-    fn lo(self, other: Self) -> Self {
-        #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
-        return self.fast_min(other);
-        #[cfg(not(any(target_arch = "x86", target_arch = "x86_64")))]
-        return self.simd_lt(other).select(self, other);
-    }
-
-    #[inline(always)]
-    fn hi(self, other: Self) -> Self {
-        #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
-        return self.fast_max(other);
-        #[cfg(not(any(target_arch = "x86", target_arch = "x86_64")))]
-        return self.simd_gt(other).select(self, other);
+/// The larger of `a` and `b` as `maxsd` computes it; see [`lo`].
+#[inline(always)]
+fn hi(a: f64, b: f64) -> f64 {
+    if a > b {
+        a
+    } else {
+        b
     }
 }
 
 /// `(min, max)`.
 #[inline(always)]
-fn sort2<T: Ordered>(a: T, b: T) -> (T, T) {
-    (a.lo(b), a.hi(b))
+fn sort2(a: f64, b: f64) -> (f64, f64) {
+    (lo(a, b), hi(a, b))
 }
 
 /// The median of up to five values in any order (even counts: the mean of the two
@@ -211,7 +169,7 @@ fn network_median(values: &[f64]) -> Option<f64> {
         [a, b, c, d] => {
             let (a, b) = sort2(a, b);
             let (c, d) = sort2(c, d);
-            let (l, h) = sort2(a.hi(c), b.lo(d));
+            let (l, h) = sort2(hi(a, c), lo(b, d));
             Some((l + h) / 2.0)
         }
         [a, b, c, d, e] => Some(median5(a, b, c, d, e)),
@@ -221,21 +179,21 @@ fn network_median(values: &[f64]) -> Option<f64> {
 
 /// The median of three values by a compare network.
 #[inline(always)]
-pub(crate) fn median3<T: Ordered>(a: T, b: T, c: T) -> T {
+fn median3(a: f64, b: f64, c: f64) -> f64 {
     let (a, b) = sort2(a, b);
-    a.hi(b.lo(c))
+    hi(a, lo(b, c))
 }
 
 /// The median of five values by a compare network that selects the middle
 /// (N. Devillard, "Fast median search", 1998).
 #[inline(always)]
-pub(crate) fn median5<T: Ordered>(a: T, b: T, c: T, d: T, e: T) -> T {
+fn median5(a: f64, b: f64, c: f64, d: f64, e: f64) -> f64 {
     let (a, b) = sort2(a, b);
     let (d, e) = sort2(d, e);
-    let d = a.hi(d);
-    let b = b.lo(e);
+    let d = hi(a, d);
+    let b = lo(b, e);
     let (b, c) = sort2(b, c);
-    b.hi(c.lo(d))
+    hi(b, lo(c, d))
 }
 
 /// The low-pass gain `1 - exp(-dt/tau)`, remembered for the last `(dt, tau)` asked.
@@ -320,11 +278,6 @@ impl LowPass {
     /// The current output, if seeded.
     pub fn output_degc(&self) -> Option<f64> {
         self.state.map(|(_, y)| y)
-    }
-
-    /// (time of the last update, output), if seeded.
-    pub(crate) fn state(&self) -> Option<(f64, f64)> {
-        self.state
     }
 }
 

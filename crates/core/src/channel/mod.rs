@@ -15,19 +15,12 @@
 //! A sample that fails a check never reaches the filters: the reading keeps the
 //! previous filtered value with a `Bad` (or, for a single rate rejection,
 //! `Uncertain`) quality. The compensation only uses usable readings.
-//!
-//! A [`Bank`] per device runs steps 1-8 for the device's steady channels (the last
-//! sample accepted, the median window full) four at a time with SIMD operations,
-//! with the processor's results bit for bit; any other sample goes to the channel's
-//! processor.
 
-mod bank;
 mod filter;
 mod processor;
 mod quality;
 mod scaling;
 
-pub use bank::Bank;
 pub use filter::{LowPass, LowPassGain, MedianWindow};
 pub use processor::ChannelProcessor;
 pub use quality::{Quality, Reason};

@@ -4,43 +4,7 @@ use super::{FilterParams, LowPass, LowPassGain, MedianWindow, Quality, Reading, 
 
 /// Without an accepted sample for this many low-pass time constants the filters
 /// re-seed: the old state would weigh less than exp(-5) = 0.7 % anyway.
-pub(super) const GAP_TAUS: f64 = 5.0;
-
-/// The whole state of a processor whose channel is steady: its last sample was
-/// accepted (`Good`), its median window is full, and no outage or rate rejection is
-/// pending. [`super::Bank`] holds channels in this state as arrays and hands them back
-/// through [`ChannelProcessor::resume`].
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub(crate) struct Steady {
-    /// The last raw value: the stale clock's value and the reading's `raw`.
-    pub raw: f64,
-    /// Since when `raw` has been unchanged, s.
-    pub raw_since_s: f64,
-    /// Time of the last sample: accepted, low-pass update and reading, s.
-    pub t_s: f64,
-    /// The last accepted unfiltered value (rate check reference, reading), degC.
-    pub unfiltered_degc: f64,
-    /// The low pass's output: the reading's value, degC.
-    pub value_degc: f64,
-    /// The reading's loop current, mA (NaN: none).
-    pub current_ma: f64,
-    /// The median window, oldest first (the first `len` slots).
-    pub ring_degc: [f64; 5],
-}
-
-impl Steady {
-    /// The reading of a steady channel: its last sample, `Good`.
-    pub(crate) fn reading(&self) -> Reading {
-        Reading {
-            t_s: self.t_s,
-            raw: Some(self.raw),
-            current_ma: Some(self.current_ma).filter(|ma| !ma.is_nan()),
-            unfiltered_degc: Some(self.unfiltered_degc),
-            value_degc: Some(self.value_degc),
-            quality: Quality::Good,
-        }
-    }
-}
+const GAP_TAUS: f64 = 5.0;
 
 /// Turns one channel's raw values into filtered temperatures with a quality.
 ///
@@ -166,54 +130,6 @@ impl ChannelProcessor {
     /// The filter settings this processor applies.
     pub fn filter_params(&self) -> &FilterParams {
         &self.params
-    }
-
-    /// The processor's state if its channel is steady (see [`Steady`]) and its median
-    /// window holds at most five samples; `None` otherwise.
-    pub(crate) fn steady(&self) -> Option<Steady> {
-        let ring = self.median.full_ring()?;
-        let last = &self.last;
-        let (Some((bits, raw_since_s)), Some((t_s, unfiltered_degc)), Some((lp_t_s, value_degc))) =
-            (self.raw_since, self.accepted, self.lowpass.state())
-        else {
-            return None;
-        };
-        let plain = last.quality.is_good()
-            && !self.outage
-            && self.rejected_in_row == 0
-            && last.raw.map(f64::to_bits) == Some(bits)
-            && last.t_s == t_s
-            && lp_t_s == t_s
-            && last.unfiltered_degc == Some(unfiltered_degc)
-            && last.value_degc == Some(value_degc);
-        if !plain {
-            return None;
-        }
-        let mut ring_degc = [0.0; 5];
-        ring_degc[..ring.len()].copy_from_slice(ring);
-        Some(Steady {
-            raw: f64::from_bits(bits),
-            raw_since_s,
-            t_s,
-            unfiltered_degc,
-            value_degc,
-            current_ma: last.current_ma.unwrap_or(f64::NAN),
-            ring_degc,
-        })
-    }
-
-    /// Takes over the state `s` (from [`Self::steady`] of this processor, advanced by
-    /// the bank): afterwards the processor is as if it had processed every sample
-    /// itself.
-    pub(crate) fn resume(&mut self, s: &Steady) {
-        let len = self.params.median_samples.max(1);
-        self.median.set_full_ring(&s.ring_degc[..len]);
-        self.lowpass.reseed(s.t_s, s.value_degc);
-        self.accepted = Some((s.t_s, s.unfiltered_degc));
-        self.rejected_in_row = 0;
-        self.raw_since = Some((s.raw.to_bits(), s.raw_since_s));
-        self.outage = false;
-        self.last = s.reading();
     }
 
     /// Steps 4-8 for a finite scaled value: the filtered value, or the quality of

@@ -57,7 +57,7 @@ pub struct Scaled {
 /// `degc = base_degc + (current - zero) / span_in * span_out_degc`, NE43 limits (infinite
 /// where they do not apply). A direct scaling is `mul = gain`, `base_degc = offset` and
 /// neutral values elsewhere (`x / 1`, `x - 0`, `x * 1` are exact), so one formula serves
-/// every kind, in the processor and, four channels at a time, in the channel bank.
+/// every kind.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct Linear {
     pub mul: f64,

@@ -107,7 +107,6 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
     let mut processors = Vec::with_capacity(cfg.channels.len());
     let mut specs: Vec<Vec<ChannelSpec>> = vec![Vec::new(); cfg.devices.len()];
     let mut can_specs: Vec<Vec<CanChannelSpec>> = vec![Vec::new(); cfg.devices.len()];
-    let mut device_channels: Vec<Vec<usize>> = vec![Vec::new(); cfg.devices.len()];
     for (i, (name, ch)) in cfg.channels.iter().enumerate() {
         let dev = *device_index.get(ch.device.as_str()).ok_or_else(|| {
             GatewayError::Config(format!("channels.{name}.device: no device {}", ch.device))
@@ -138,7 +137,6 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
                 )))
             }
         }
-        device_channels[dev].push(i);
         processors.push(ch.build());
     }
 
@@ -246,7 +244,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
     }
 
     Ok(Built {
-        pipeline: Pipeline::new(channel_names, processors, device_channels, axes),
+        pipeline: Pipeline::new(channel_names, processors, axes),
         devices,
         sync_producers,
         nc_modules,

@@ -6,23 +6,22 @@
 
 use tokio::sync::mpsc;
 
-use super::{Pipeline, Status};
+use super::{GatewayError, SampleReadings, Status};
 use crate::config::Config;
 use crate::nc::{JobReport, NcError};
-use crate::source::DeviceSample;
 use compgate_core::comp::CompParams;
 
 /// Called by the control loop; every method defaults to doing nothing.
 pub trait Observer: Send {
-    /// One device poll cycle went through the channel processors; `pipeline` holds
-    /// the channels' new readings.
-    fn on_sample(&mut self, _sample: &DeviceSample, _pipeline: &Pipeline) {}
+    /// One device poll cycle went through the channel processors: its link outcome
+    /// and its channels' new readings.
+    fn on_sample(&mut self, _readings: &SampleReadings) {}
     /// An NC job for axis `axis` ended.
     fn on_job(&mut self, _axis: &str, _params: &CompParams, _result: &Result<JobReport, NcError>) {}
     /// The status tick of the loop (every `gateway.status_interval_s`).
     fn on_status(&mut self, _status: &Status) {}
     /// A reload took effect (`Ok`) or was refused and the old config stays (`Err`).
-    fn on_reload(&mut self, _result: &Result<(), String>) {}
+    fn on_reload(&mut self, _result: &Result<(), GatewayError>) {}
 }
 
 /// The observer that does nothing.
@@ -33,9 +32,9 @@ impl Observer for () {}
 pub struct Observers(pub Vec<Box<dyn Observer>>);
 
 impl Observer for Observers {
-    fn on_sample(&mut self, sample: &DeviceSample, pipeline: &Pipeline) {
+    fn on_sample(&mut self, readings: &SampleReadings) {
         for o in &mut self.0 {
-            o.on_sample(sample, pipeline);
+            o.on_sample(readings);
         }
     }
     fn on_job(&mut self, axis: &str, params: &CompParams, result: &Result<JobReport, NcError>) {
@@ -48,7 +47,7 @@ impl Observer for Observers {
             o.on_status(status);
         }
     }
-    fn on_reload(&mut self, result: &Result<(), String>) {
+    fn on_reload(&mut self, result: &Result<(), GatewayError>) {
         for o in &mut self.0 {
             o.on_reload(result);
         }

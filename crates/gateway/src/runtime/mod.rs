@@ -7,6 +7,7 @@
 //! sees its input close, finishes, and drops the NC command channels, so an NC job in
 //! flight completes before the NC tasks stop.
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::sync::{mpsc, watch};
@@ -22,15 +23,17 @@ use compgate_core::comp::{CompParams, Decision};
 mod build;
 mod hooks;
 mod pipeline;
+mod readings;
 mod reload;
 mod status;
 pub use build::*;
 pub use hooks::{Hooks, Observer, Observers};
 pub use pipeline::*;
+pub use readings::{ChannelReading, SampleReadings};
 pub use status::*;
 
 /// Errors of the gateway layer.
-#[derive(Debug, thiserror::Error)]
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum GatewayError {
     /// The configuration cannot be turned into a running gateway.
     #[error("config: {0}")]
@@ -220,6 +223,10 @@ struct Running {
     status: Status,
     /// Per axis: whether its step limits start from what the NC holds yet.
     baselined: Vec<bool>,
+    /// Device names by index, for [`SampleReadings::device_name`].
+    device_names: Vec<Arc<str>>,
+    /// The last sample's outcome (kept for its allocation).
+    readings: SampleReadings,
 }
 
 impl Running {
@@ -254,6 +261,8 @@ impl Running {
         };
         Running {
             baselined: vec![false; pipeline.axes.len()],
+            device_names: devices.iter().map(|d| Arc::from(d.poller.name())).collect(),
+            readings: SampleReadings::default(),
             pipeline,
             devices: devices.into_iter().map(Some).collect(),
             sync_producers,
@@ -263,30 +272,43 @@ impl Running {
         }
     }
 
+    /// Runs `sample` through the channel processors and builds, once, what the
+    /// status and the observers see of it: [`Self::readings`].
     fn on_sample(&mut self, sample: &DeviceSample) {
-        self.pipeline.ingest(sample);
+        let r = &mut self.readings;
+        r.device = sample.device;
+        r.device_name = self
+            .device_names
+            .get(sample.device)
+            .cloned()
+            .unwrap_or_default();
+        r.poll_elapsed = sample.elapsed;
+        r.connects = sample.connects;
+        r.error.clone_from(&sample.error);
+        r.channel_names = self.pipeline.channel_names.clone();
+        self.pipeline.ingest(sample, &mut r.channels);
+
         let status = &mut self.status;
         status.samples += 1;
-        let d = &mut status.devices[sample.device];
-        d.cycles += 1;
-        d.last_cycle = sample.elapsed;
-        d.connects = sample.connects;
-        match &sample.error {
-            Some(e) => {
-                d.failed_cycles += 1;
-                *d.errors.entry(e.kind()).or_default() += 1;
-                d.last_error = Some(e.to_string());
-            }
-            None => {
-                d.failed_cycles = 0;
-                d.last_error = None;
+        if let Some(d) = status.devices.get_mut(r.device) {
+            d.cycles += 1;
+            d.last_cycle = r.poll_elapsed;
+            d.connects = r.connects;
+            match &r.error {
+                Some(e) => {
+                    d.failed_cycles += 1;
+                    *d.errors.entry(e.kind()).or_default() += 1;
+                    d.last_error = Some(e.to_string());
+                }
+                None => {
+                    d.failed_cycles = 0;
+                    d.last_error = None;
+                }
             }
         }
-        // Only this sample's channels changed (512 channels on 8 devices: 8x less work).
-        for (ch, _) in &sample.values {
-            if let (Some(cs), Some(r)) = (status.channels.get_mut(*ch), self.pipeline.reading(*ch))
-            {
-                cs.reading = r;
+        for c in &r.channels {
+            if let Some(cs) = status.channels.get_mut(c.channel) {
+                cs.reading.clone_from(&c.reading);
             }
         }
     }
@@ -424,7 +446,7 @@ async fn generation(
             sample = sample_rx.recv() => {
                 let Some(sample) = sample else { break };
                 state.on_sample(&sample);
-                observer.on_sample(&sample, &state.pipeline);
+                observer.on_sample(&state.readings);
             }
             event = event_rx.recv(), if events_open => {
                 // No NC modules (a monitoring-only config): the channel closes at once.
@@ -471,7 +493,7 @@ async fn generation(
                     }
                     Err(e) => {
                         tracing::error!(error = %e, "reload refused: the running configuration stays");
-                        observer.on_reload(&Err(e.to_string()));
+                        observer.on_reload(&Err(e));
                     }
                 }
             }
@@ -503,10 +525,26 @@ mod tests {
     use compgate_core::channel::Reading;
     use compgate_core::channel::{Quality, Reason};
 
-    fn sample(p: &Pipeline, k: u32, fault_on: Option<usize>) -> DeviceSample {
-        let values = (0..p.channel_names.len())
-            .filter(|&ch| p.homes[ch].0 == 0)
-            .map(|ch| {
+    fn demo() -> Config {
+        crate::config::load_str(include_str!("../../../../config/demo.toml"), "demo.toml")
+            .expect("demo config")
+    }
+
+    /// The channels of the first device (index 0), in config order.
+    fn first_device_channels(cfg: &Config) -> Vec<usize> {
+        let device = cfg.devices.keys().next().expect("a device");
+        cfg.channels
+            .values()
+            .enumerate()
+            .filter(|(_, c)| &c.device == device)
+            .map(|(ch, _)| ch)
+            .collect()
+    }
+
+    fn sample(p: &Pipeline, channels: &[usize], k: u32, fault_on: Option<usize>) -> DeviceSample {
+        let values = channels
+            .iter()
+            .map(|&ch| {
                 let value = if Some(ch) == fault_on {
                     Err(Fault {
                         reason: Reason::Comm,
@@ -529,38 +567,92 @@ mod tests {
         }
     }
 
-    // The pipeline shows what the bank holds and hands it back whole: after a fault
-    // and on a reload the processors carry on from the bank's state.
+    fn readings(p: &Pipeline) -> Vec<Reading> {
+        (0..p.channel_names.len())
+            .map(|ch| p.reading(ch).expect("reading"))
+            .collect()
+    }
+
+    // A fault shows in the channel's quality with its value held, and a reload of an
+    // unchanged config carries every channel's state over whole.
     #[test]
-    fn bank_state_goes_back_to_the_processors() {
-        let cfg =
-            crate::config::load_str(include_str!("../../../../config/demo.toml"), "demo.toml")
-                .expect("demo config");
+    fn a_fault_holds_the_value_and_a_reload_keeps_the_channels() {
+        let cfg = demo();
+        let channels = first_device_channels(&cfg);
+        assert!(channels.len() >= 4, "{} channels", channels.len());
         let mut p = build(&cfg).expect("build").pipeline;
+        let mut out = Vec::new();
         for k in 0..30 {
-            p.ingest(&sample(&p, k, None));
+            p.ingest(&sample(&p, &channels, k, None), &mut out);
         }
-        let held = (0..p.channel_names.len())
-            .filter(|&ch| p.homes[ch].0 == 0 && p.banks[0].holds(p.homes[ch].1))
-            .count();
-        assert!(held >= 4, "{held} channels held");
-        let before: Vec<Reading> = (0..p.channel_names.len())
-            .map(|ch| p.reading(ch).expect("reading"))
-            .collect();
-        assert_eq!(before[0].quality, Quality::Good);
-        assert!(before[0].value_degc.is_some_and(|v| (v - 30.0).abs() < 0.1));
-        // A missing sample hands the channel back: held value, uncertain.
-        p.ingest(&sample(&p, 30, Some(0)));
-        let r = p.reading(0).expect("reading");
+        let before = readings(&p);
+        let ch = channels[0];
+        assert_eq!(before[ch].quality, Quality::Good);
+        assert!(before[ch]
+            .value_degc
+            .is_some_and(|v| (v - 30.0).abs() < 0.1));
+        // A missing sample: held value, uncertain.
+        p.ingest(&sample(&p, &channels, 30, Some(ch)), &mut out);
+        let r = p.reading(ch).expect("reading");
         assert_eq!(r.quality, Quality::Uncertain(Reason::Comm));
-        assert_eq!(r.value_degc, before[0].value_degc);
-        assert!(!p.banks[0].holds(p.homes[0].1));
-        let now: Vec<Reading> = (0..p.channel_names.len())
-            .map(|ch| p.reading(ch).expect("reading"))
+        assert_eq!(r.value_degc, before[ch].value_degc);
+        let now = readings(&p);
+
+        let old = Running::new(Built {
+            pipeline: p,
+            ..build(&cfg).expect("build")
+        });
+        let next = reload::transplant(&cfg, &cfg, old, build(&cfg).expect("build"));
+        assert_eq!(readings(&next.pipeline), now);
+        let shown: Vec<Reading> = next
+            .status
+            .channels
+            .iter()
+            .map(|c| c.reading.clone())
             .collect();
-        let processors = p.take_processors();
-        for (ch, (proc_, r)) in processors.iter().zip(&now).enumerate() {
-            assert_eq!(proc_.last(), r, "channel {ch}");
+        assert_eq!(shown, now);
+        // The carried processors go on from their state: the next good sample of the
+        // faulted channel is good again.
+        let mut p = next.pipeline;
+        p.ingest(&sample(&p, &channels, 31, None), &mut out);
+        assert_eq!(p.reading(ch).expect("reading").quality, Quality::Good);
+    }
+
+    // The core loop builds one value per sample: the link outcome and the new reading
+    // of exactly the sample's channels; the status shows the same.
+    #[test]
+    fn one_sample_builds_its_readings_once_for_status_and_observers() {
+        let cfg = demo();
+        let channels = first_device_channels(&cfg);
+        let mut state = Running::new(build(&cfg).expect("build"));
+        let mut s = sample(&state.pipeline, &channels, 1, Some(channels[1]));
+        s.error = Some(crate::source::SourceError::Timeout(Duration::from_millis(
+            200,
+        )));
+        s.elapsed = Duration::from_millis(3);
+        s.connects = 2;
+        state.on_sample(&s);
+
+        let r = &state.readings;
+        assert_eq!(r.device, 0);
+        assert_eq!(
+            &*r.device_name,
+            cfg.devices.keys().next().expect("device").as_str()
+        );
+        assert_eq!(r.error, s.error);
+        assert_eq!((r.poll_elapsed, r.connects), (s.elapsed, 2));
+        let got: Vec<usize> = r.channels.iter().map(|c| c.channel).collect();
+        assert_eq!(got, channels);
+        for (name, c) in r.named() {
+            assert_eq!(name, state.pipeline.channel_names[c.channel]);
+            assert_eq!(Some(&c.reading), state.pipeline.reading(c.channel).as_ref());
+            assert_eq!(state.status.channels[c.channel].reading, c.reading);
         }
+        assert_eq!(r.channels[0].reading.quality, Quality::Good);
+        assert_eq!(r.channels[1].reading.quality, Quality::Bad(Reason::NoData));
+        let d = &state.status.devices[0];
+        assert_eq!((d.cycles, d.failed_cycles, d.connects), (1, 1, 2));
+        assert_eq!(d.last_error, s.error.as_ref().map(ToString::to_string));
+        assert_eq!(state.status.samples, 1);
     }
 }

@@ -26,8 +26,7 @@ use compgate_core::channel::Quality;
 use compgate_core::comp::CompParams;
 use compgate_gateway::config::RecorderConfig;
 use compgate_gateway::nc::{JobReport, NcError};
-use compgate_gateway::runtime::{Observer, Pipeline, Status};
-use compgate_gateway::source::DeviceSample;
+use compgate_gateway::runtime::{Observer, SampleReadings, Status};
 
 pub use schema::open;
 
@@ -287,10 +286,7 @@ impl Recorder {
 
     /// The observer that records what the control loop sees.
     pub fn observer(&self) -> RecordObserver {
-        RecordObserver {
-            tx: self.sender(),
-            names: None,
-        }
+        RecordObserver { tx: self.sender() }
     }
 
     /// Closes the queue and waits for the writer's last commit.
@@ -321,21 +317,17 @@ impl Drop for Recorder {
 #[derive(Debug)]
 pub struct RecordObserver {
     tx: RecordSender,
-    names: Option<Arc<[String]>>,
 }
 
 impl Observer for RecordObserver {
-    fn on_sample(&mut self, sample: &DeviceSample, pipeline: &Pipeline) {
-        let names = self
-            .names
-            .get_or_insert_with(|| pipeline.channel_names.iter().cloned().collect());
+    fn on_sample(&mut self, readings: &SampleReadings) {
         let t_unix_ms = now_unix_ms();
-        let mut rows = Vec::with_capacity(sample.values.len());
-        rows.extend(sample.values.iter().filter_map(|(ch, _)| {
-            let r = pipeline.reading(*ch)?;
+        let mut rows = Vec::with_capacity(readings.channels.len());
+        rows.extend(readings.channels.iter().filter_map(|c| {
+            let r = &c.reading;
             let (quality, reason) = quality_code(&r.quality);
             Some(Row {
-                channel: u32::try_from(*ch).ok()?,
+                channel: u32::try_from(c.channel).ok()?,
                 raw: r.raw,
                 unfiltered_degc: r.unfiltered_degc,
                 value_degc: r.value_degc,
@@ -345,7 +337,7 @@ impl Observer for RecordObserver {
         }));
         self.tx.send(Record::Cycle {
             t_unix_ms,
-            names: names.clone(),
+            names: readings.channel_names.clone(),
             rows,
         });
     }
@@ -378,11 +370,6 @@ impl Observer for RecordObserver {
                 });
             }
         }
-    }
-
-    fn on_reload(&mut self, _result: &Result<(), String>) {
-        // Channel indices may have moved.
-        self.names = None;
     }
 }
 
