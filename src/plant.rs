@@ -125,24 +125,28 @@ fn can_transmitter_index(can: &CanChannelConfig, ty: DataType) -> Option<usize> 
 }
 
 /// The transmitter index of any channel, or why the simulated device has none.
-fn channel_transmitter(ch: &ChannelConfig) -> Result<usize, String> {
+fn channel_transmitter(name: &str, ch: &ChannelConfig) -> Result<usize, PlantError> {
+    let refuse = |message: String| PlantError::Channel {
+        channel: name.to_string(),
+        message,
+    };
     match (ch.can, ch.address) {
         (Some(can), _) => can_transmitter_index(&can, ch.data_type)
             .filter(|&i| i < MAX_PDO_TRANSMITTERS || can.sdo_index.is_some())
             .ok_or_else(|| {
-                format!(
+                refuse(format!(
                     "the simulated CANopen node has u16 counts in TPDO1..4 (4 per PDO, even \
                      offsets), at 0x6401 sub 1.. (u16) and 0x9130 sub 1.. (f32); {can:?} as {:?} is none of them",
                     ch.data_type
-                )
+                ))
             }),
         (None, Some(address)) => transmitter_index(address, ch.data_type, ch.byte_order).ok_or_else(|| {
-            format!(
+            refuse(format!(
                 "the simulated module has counts at 0.., f32 CDAB at {}.., f32 ABCD at {}..; address {} as {:?} {:?} is none of them",
                 field::FLOAT_CDAB_BASE, field::FLOAT_ABCD_BASE, address, ch.data_type, ch.byte_order
-            )
+            ))
         }),
-        (None, None) => Err("no register address".into()),
+        (None, None) => Err(refuse("no register address".into())),
     }
 }
 
@@ -168,10 +172,7 @@ impl Plant {
         for (dev_name, dev) in &cfg.devices {
             let mut transmitters: Vec<Option<TransmitterSpec>> = Vec::new();
             for (ch_name, ch) in cfg.channels.iter().filter(|(_, c)| &c.device == dev_name) {
-                let idx = channel_transmitter(ch).map_err(|message| PlantError::Channel {
-                    channel: ch_name.clone(),
-                    message,
-                })?;
+                let idx = channel_transmitter(ch_name, ch)?;
                 let (lo, hi) = match &ch.scaling {
                     Scaling::Transmitter(t) => (t.range_min_degc, t.range_max_degc),
                     Scaling::Direct(_) => (-50.0, 150.0),
