@@ -36,6 +36,8 @@ use compgate_gateway::source::modbus::{Backoff, LinkSpec, ModbusLink};
 use compgate_gateway::source::plan::RegisterKind;
 use compgate_gateway::source::SourceError;
 
+use crate::plot::{self, Color as _, PlotError};
+
 /// Shortest dwell, s: the loop must settle and leave a plateau to average.
 pub const MIN_DWELL_S: f64 = 0.5;
 /// Fewest samples averaged on one plateau.
@@ -642,20 +644,15 @@ pub fn write_svg(
     trace: &Trace,
     points: &[PointValue; 3],
 ) -> Result<(), BacklashError> {
-    use plotters::prelude::*;
-    use plotters::style::text_anchor::{HPos, Pos, VPos};
-    let io = |e: String| BacklashError::Io(format!("{}: {e}", path.display()));
+    let io = |e: PlotError| BacklashError::Io(format!("{}: {e}", path.display()));
     let n = trace.scale_mm.len();
     if n == 0 {
-        return Err(io("empty trace".into()));
+        return Err(io(PlotError("empty trace".into())));
     }
     let t = |i: usize| i as f64 * trace.period_s;
     let t_end = t(n - 1).max(trace.period_s);
-    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-    for v in trace.encoder_mm.iter().chain(&trace.scale_mm) {
-        lo = lo.min(*v);
-        hi = hi.max(*v);
-    }
+    let (lo, hi) = plot::extent(trace.encoder_mm.iter().chain(&trace.scale_mm).copied())
+        .unwrap_or((-1.0, 1.0));
     let pad = ((hi - lo) * 0.05).max(0.01);
     let diff_um: Vec<f64> = trace
         .encoder_mm
@@ -663,94 +660,46 @@ pub fn write_svg(
         .zip(&trace.scale_mm)
         .map(|(e, l)| (e - l) * 1000.0)
         .collect();
-    let (dlo, dhi) = diff_um
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
-            (a.min(*v), b.max(*v))
-        });
-    let dpad = ((dhi - dlo) * 0.05).max(1.0);
-    let root = SVGBackend::new(path, (1000, 700)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| io(e.to_string()))?;
+    let root = plot::canvas(path, (1000, 700)).map_err(io)?;
     let (upper, lower) = root.split_vertically(440);
-    let mut chart = ChartBuilder::on(&upper)
+    let mut chart = plot::Frame::new("t (s)", "position (mm)")
         .caption(
             format!("backlash test, axis {axis}: position against time"),
-            ("sans-serif", 20),
+            20,
         )
-        .margin(10)
-        .x_label_area_size(30)
-        .y_label_area_size(70)
-        .build_cartesian_2d(0.0..t_end, (lo - pad)..(hi + pad))
-        .map_err(|e| io(e.to_string()))?;
-    chart
-        .configure_mesh()
-        .x_desc("t (s)")
-        .y_desc("position (mm)")
-        .draw()
-        .map_err(|e| io(e.to_string()))?;
-    chart
-        .draw_series(LineSeries::new(
-            (0..n).map(|i| (t(i), trace.encoder_mm[i])),
-            &RED,
-        ))
-        .map_err(|e| io(e.to_string()))?
-        .label("encoder (motor)")
-        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED));
-    chart
-        .draw_series(LineSeries::new(
-            (0..n).map(|i| (t(i), trace.scale_mm[i])),
-            &BLUE,
-        ))
-        .map_err(|e| io(e.to_string()))?
-        .label("scale (table)")
-        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE));
+        .label_areas(30, 70)
+        .draw(&upper, 0.0..t_end, (lo - pad)..(hi + pad))
+        .map_err(io)?;
+    let channels = [
+        (&trace.encoder_mm, plot::RED, "encoder (motor)"),
+        (&trace.scale_mm, plot::BLUE, "scale (table)"),
+    ];
+    for (values, color, label) in channels {
+        let pts = (0..n).map(|i| (t(i), values[i]));
+        plot::line(&mut chart, pts, color, Some(label.into())).map_err(io)?;
+    }
     for (name, v) in ["B", "C", "D"].iter().zip(points) {
         let (t0, t1) = (t(v.first), t(v.last));
-        chart
-            .draw_series(std::iter::once(PathElement::new(
-                vec![(t0, v.scale_mm), (t1, v.scale_mm)],
-                BLACK.stroke_width(3),
-            )))
-            .map_err(|e| io(e.to_string()))?;
-        chart
-            .draw_series(std::iter::once(Text::new(
-                format!("{name}: L={:.4} M={:.4}", v.scale_mm, v.encoder_mm),
-                (t1, v.scale_mm + pad * 0.5),
-                // Right-aligned at the plateau's end: D sits at the right edge.
-                TextStyle::from(("sans-serif", 14).into_font())
-                    .pos(Pos::new(HPos::Right, VPos::Bottom)),
-            )))
-            .map_err(|e| io(e.to_string()))?;
+        let plateau = plot::BLACK.stroke_width(3);
+        plot::segment(&mut chart, (t0, v.scale_mm), (t1, v.scale_mm), plateau).map_err(io)?;
+        // At the plateau's end, right-aligned: D sits at the right edge.
+        let text = format!("{name}: L={:.4} M={:.4}", v.scale_mm, v.encoder_mm);
+        plot::note(&mut chart, text, (t1, v.scale_mm + pad * 0.5), 14).map_err(io)?;
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| io(e.to_string()))?;
-    let mut diff = ChartBuilder::on(&lower)
-        .margin(10)
-        .x_label_area_size(30)
-        .y_label_area_size(70)
-        .build_cartesian_2d(0.0..t_end, (dlo - dpad)..(dhi + dpad))
-        .map_err(|e| io(e.to_string()))?;
-    diff.configure_mesh()
-        .x_desc("t (s)")
-        .y_desc("encoder - scale (um)")
-        .draw()
-        .map_err(|e| io(e.to_string()))?;
-    diff.draw_series(LineSeries::new((0..n).map(|i| (t(i), diff_um[i])), &BLACK))
-        .map_err(|e| io(e.to_string()))?;
+    plot::legend(&mut chart, plot::SeriesLabelPosition::MiddleRight).map_err(io)?;
+    let y = plot::padded(diff_um.iter().copied(), 0.05, 1.0, (-1.0, 1.0));
+    let mut diff = plot::Frame::new("t (s)", "encoder - scale (um)")
+        .label_areas(30, 70)
+        .draw(&lower, 0.0..t_end, y)
+        .map_err(io)?;
+    let pts = (0..n).map(|i| (t(i), diff_um[i]));
+    plot::line(&mut diff, pts, plot::BLACK, None).map_err(io)?;
     for v in points {
         let d = (v.encoder_mm - v.scale_mm) * 1000.0;
-        diff.draw_series(std::iter::once(PathElement::new(
-            vec![(t(v.first), d), (t(v.last), d)],
-            RED.stroke_width(3),
-        )))
-        .map_err(|e| io(e.to_string()))?;
+        let plateau = plot::RED.stroke_width(3);
+        plot::segment(&mut diff, (t(v.first), d), (t(v.last), d), plateau).map_err(io)?;
     }
-    root.present().map_err(|e| io(e.to_string()))?;
-    Ok(())
+    plot::finish(&root).map_err(io)
 }
 
 /// Register I/O on the NC axis module's servo block.

@@ -14,4 +14,5 @@ pub mod backlash;
 pub mod calibrate;
 pub mod diagnose;
 pub mod iso230;
+pub mod plot;
 pub mod volumetric;

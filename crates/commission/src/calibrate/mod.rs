@@ -16,6 +16,8 @@ use thiserror::Error;
 
 use compgate_core::measure::{MeasureError, Measurements};
 use compgate_gateway::config::{K0Model, K0Term, TanBetaModel, TanBetaTerm};
+
+use crate::plot::{self, Color as _, Palette as _, PlotError};
 pub use fit::{Fit, FitError};
 
 /// Errors of `calibrate` and of reading a model file.
@@ -301,9 +303,9 @@ pub fn run(args: &CalibrateArgs) -> Result<String, CalibrateError> {
     let mut out = report(&f);
     let _ = writeln!(out, "model written to {}", args.out.display());
     if let Some(plot) = &args.plot {
-        plot_curves(plot, &m, &f).map_err(|message| CalibrateError::Io {
+        plot_curves(plot, &m, &f).map_err(|e| CalibrateError::Io {
             path: plot.display().to_string(),
-            message,
+            message: e.to_string(),
         })?;
         let _ = writeln!(out, "plot written to {}", plot.display());
     }
@@ -333,50 +335,30 @@ pub fn sweeps(t_s: &[f64]) -> Vec<std::ops::Range<usize>> {
 
 /// SVG: measured error against position, one curve per sweep (at most 12, evenly
 /// chosen), each with the fitted line at that sweep's mean temperatures.
-pub fn plot_curves(path: &Path, m: &Measurements, f: &Fit) -> Result<(), String> {
-    use plotters::prelude::*;
+pub fn plot_curves(path: &Path, m: &Measurements, f: &Fit) -> Result<(), PlotError> {
     let all = sweeps(&m.t_s);
     let step = all.len().div_ceil(12).max(1);
     let chosen: Vec<_> = all.into_iter().step_by(step).collect();
     let cols: Vec<&[f64]> = f.terms.iter().filter_map(|t| m.temp(&t.name)).collect();
-    let (pmin, pmax) = m
-        .pos_mm
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
-            (a.min(*v), b.max(*v))
-        });
-    let (emin, emax) = m
-        .err_um
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
-            (a.min(*v), b.max(*v))
-        });
-    let pad = ((emax - emin) * 0.05).max(1.0);
-    let root = SVGBackend::new(path, (1000, 650)).into_drawing_area();
-    let e = |e: &dyn std::fmt::Display| e.to_string();
-    root.fill(&WHITE).map_err(|x| e(&x))?;
+    let (pmin, pmax) = plot::extent(m.pos_mm.iter().copied()).unwrap_or((0.0, 1.0));
+    let root = plot::canvas(path, (1000, 650))?;
     let first = f.terms.first().map_or("", |t| t.name.as_str());
-    let mut chart = ChartBuilder::on(&root)
+    let mut chart = plot::Frame::new("position (mm)", "error, actual - commanded (um)")
         .caption(
             format!(
                 "calibrate: measured error curves (solid) and fitted model (dashed), RMS {:.2} um",
                 f.rms_um
             ),
-            ("sans-serif", 18),
+            18,
         )
-        .margin(10)
-        .x_label_area_size(35)
-        .y_label_area_size(60)
-        .build_cartesian_2d(pmin..pmax.max(pmin + 1.0), (emin - pad)..(emax + pad))
-        .map_err(|x| e(&x))?;
-    chart
-        .configure_mesh()
-        .x_desc("position (mm)")
-        .y_desc("error, actual - commanded (um)")
-        .draw()
-        .map_err(|x| e(&x))?;
+        .label_areas(35, 60)
+        .draw(
+            &root,
+            pmin..pmax.max(pmin + 1.0),
+            plot::padded(m.err_um.iter().copied(), 0.05, 1.0, (-1.0, 1.0)),
+        )?;
     for (k, r) in chosen.iter().enumerate() {
-        let color = Palette99::pick(k).to_rgba();
+        let color = plot::Palette99::pick(k).to_rgba();
         let temps: Vec<f64> = cols
             .iter()
             .map(|c| c[r.clone()].iter().sum::<f64>() / r.len() as f64)
@@ -388,20 +370,9 @@ pub fn plot_curves(path: &Path, m: &Measurements, f: &Fit) -> Result<(), String>
             m.t_s[r.start] / 3600.0,
             temps.first().copied().unwrap_or(f64::NAN)
         );
-        chart
-            .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
-            .map_err(|x| e(&x))?
-            .label(label)
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
-            });
-        chart
-            .draw_series(
-                pts.iter()
-                    .map(|&(x, y)| Circle::new((x, y), 3, color.filled())),
-            )
-            .map_err(|x| e(&x))?;
-        // Dashed fitted line: short segments.
+        plot::line(&mut chart, pts.clone(), color.stroke_width(2), Some(label))?;
+        plot::dots(&mut chart, pts, 3, color.filled())?;
+        // Dashed fitted line: every other short segment.
         let n = 40;
         let line: Vec<(f64, f64)> = (0..=n)
             .map(|i| {
@@ -411,21 +382,12 @@ pub fn plot_curves(path: &Path, m: &Measurements, f: &Fit) -> Result<(), String>
             .collect();
         for w in line.chunks(2) {
             if let [a, b] = w {
-                chart
-                    .draw_series(std::iter::once(PathElement::new(vec![*a, *b], color)))
-                    .map_err(|x| e(&x))?;
+                plot::segment(&mut chart, *a, *b, color)?;
             }
         }
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|x| e(&x))?;
-    root.present().map_err(|x| e(&x))?;
-    Ok(())
+    plot::legend(&mut chart, plot::SeriesLabelPosition::UpperLeft)?;
+    plot::finish(&root)
 }
 
 #[cfg(test)]

@@ -5,6 +5,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use super::{DiagnoseError, Diagnosis, ModelFile, Where};
+use crate::plot::{self, Color as _, PlotError};
 
 fn where_text(out: &mut String, w: &Where) {
     let worst_t = w
@@ -199,51 +200,36 @@ fn scatter_svg(
     after: &Xy,
     x_range: (f64, f64),
 ) -> Result<(), DiagnoseError> {
-    use plotters::prelude::*;
-    let err = |e: String| DiagnoseError::Plot {
+    let err = |e: PlotError| DiagnoseError::Plot {
         path: path.display().to_string(),
-        message: e,
+        message: e.to_string(),
     };
-    let mut lo = f64::INFINITY;
-    let mut hi = f64::NEG_INFINITY;
-    for &(_, y) in before.iter().chain(after) {
-        lo = lo.min(y);
-        hi = hi.max(y);
-    }
-    if !lo.is_finite() {
-        lo = -1.0;
-        hi = 1.0;
-    }
-    let pad = ((hi - lo) * 0.05).max(0.01);
-    let root = SVGBackend::new(path, (900, 620)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| err(e.to_string()))?;
+    let y_range = plot::padded(
+        before.iter().chain(after).map(|&(_, y)| y),
+        0.05,
+        0.01,
+        (-1.0, 1.0),
+    );
+    let root = plot::canvas(path, (900, 620)).map_err(err)?;
     let (upper, lower) = root.split_vertically(310);
     for (area, series, label, color) in [
-        (&upper, before, "before (baseline)", RED),
-        (&lower, after, "after (with the added effects)", BLUE),
+        (&upper, before, "before (baseline)", plot::RED),
+        (&lower, after, "after (with the added effects)", plot::BLUE),
     ] {
-        let mut chart = ChartBuilder::on(area)
-            .caption(format!("{title}: {label}"), ("sans-serif", 16))
+        let mut chart = plot::Frame::new(x_desc, "residual (um)")
+            .caption(format!("{title}: {label}"), 16)
             .margin(8)
-            .x_label_area_size(30)
-            .y_label_area_size(60)
-            .build_cartesian_2d(x_range.0..x_range.1, (lo - pad)..(hi + pad))
-            .map_err(|e| err(e.to_string()))?;
-        chart
-            .configure_mesh()
-            .x_desc(x_desc)
-            .y_desc("residual (um)")
-            .draw()
-            .map_err(|e| err(e.to_string()))?;
-        chart
-            .draw_series(
-                series
-                    .iter()
-                    .map(|&(x, y)| Circle::new((x, y), 1, color.mix(0.5).filled())),
-            )
-            .map_err(|e| err(e.to_string()))?;
+            .draw(area, x_range.0..x_range.1, y_range.clone())
+            .map_err(err)?;
+        plot::dots(
+            &mut chart,
+            series.iter().copied(),
+            1,
+            color.mix(0.5).filled(),
+        )
+        .map_err(err)?;
     }
-    root.present().map_err(|e| err(e.to_string()))
+    plot::finish(&root).map_err(err)
 }
 
 /// Writes the model file, the plots and `report.html` into `dir`; returns the paths.

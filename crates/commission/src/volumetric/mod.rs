@@ -125,6 +125,8 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use crate::plot::{self, PlotError};
+
 pub use format::{parse, write, LOCATION_A, LOCATION_C, MAGIC, SQUARENESS, VERSION};
 
 /// Axis names in the order of every `[f64; 5]` (X, Y, Z in mm; A, C in degrees).
@@ -1432,7 +1434,6 @@ pub fn report(ev: &Evaluation) -> String {
 /// (error per grid pose, uncompensated and compensated) and `tip-error-xy.svg` (the
 /// uncompensated tip error over X and Y, worst over the other axes).
 pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, VolumetricError> {
-    use plotters::prelude::*;
     std::fs::create_dir_all(dir)
         .map_err(|e| VolumetricError::Io(format!("{}: {e}", dir.display())))?;
     let mut written = Vec::new();
@@ -1441,46 +1442,33 @@ pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, Volumetri
         ("orientation-error.svg", 1, "orientation error (arcsec)"),
     ] {
         let path = dir.join(name);
-        let io = |e: String| VolumetricError::Io(format!("{}: {e}", path.display()));
+        let io = |e: PlotError| VolumetricError::Io(format!("{}: {e}", path.display()));
         let get = |t: &(f64, f64)| if pick == 0 { t.0 } else { t.1 };
         let n = ev.poses.len().max(2);
-        let root = SVGBackend::new(&path, (1000, 700)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| io(e.to_string()))?;
+        let root = plot::canvas(&path, (1000, 700)).map_err(io)?;
         let (upper, lower) = root.split_vertically(350);
         for (area, series, color, label) in [
-            (&upper, &ev.uncompensated, RED, "uncompensated"),
-            (&lower, &ev.compensated, BLUE, "compensated"),
+            (&upper, &ev.uncompensated, plot::RED, "uncompensated"),
+            (&lower, &ev.compensated, plot::BLUE, "compensated"),
         ] {
             let hi = series.iter().map(get).fold(1e-12, f64::max) * 1.05;
-            let mut chart = ChartBuilder::on(area)
+            let mut chart = plot::Frame::new("grid pose (X outermost, C innermost)", unit)
                 .caption(
                     format!("{label} {unit} per grid pose (max {:.4})", hi / 1.05),
-                    ("sans-serif", 18),
+                    18,
                 )
-                .margin(10)
-                .x_label_area_size(30)
-                .y_label_area_size(80)
-                .build_cartesian_2d(0.0..(n - 1) as f64, 0.0..hi)
-                .map_err(|e| io(e.to_string()))?;
-            chart
-                .configure_mesh()
-                .x_desc("grid pose (X outermost, C innermost)")
-                .y_desc(unit)
-                .draw()
-                .map_err(|e| io(e.to_string()))?;
-            chart
-                .draw_series(LineSeries::new(
-                    series.iter().enumerate().map(|(i, t)| (i as f64, get(t))),
-                    color,
-                ))
-                .map_err(|e| io(e.to_string()))?;
+                .label_areas(30, 80)
+                .draw(area, 0.0..(n - 1) as f64, 0.0..hi)
+                .map_err(io)?;
+            let pts = series.iter().enumerate().map(|(i, t)| (i as f64, get(t)));
+            plot::line(&mut chart, pts, color, None).map_err(io)?;
         }
-        root.present().map_err(|e| io(e.to_string()))?;
+        plot::finish(&root).map_err(io)?;
         written.push(path.clone());
     }
     // X-Y map of the worst uncompensated tip error.
     let path = dir.join("tip-error-xy.svg");
-    let io = |e: String| VolumetricError::Io(format!("{}: {e}", path.display()));
+    let io = |e: PlotError| VolumetricError::Io(format!("{}: {e}", path.display()));
     let mut xs: Vec<f64> = ev.poses.iter().map(|p| p[0]).collect();
     let mut ys: Vec<f64> = ev.poses.iter().map(|p| p[1]).collect();
     for v in [&mut xs, &mut ys] {
@@ -1511,39 +1499,28 @@ pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, Volumetri
         let (_, x1) = half(&xs, xs.len() - 1);
         let (y0, _) = half(&ys, 0);
         let (_, y1) = half(&ys, ys.len() - 1);
-        let root = SVGBackend::new(&path, (800, 700)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| io(e.to_string()))?;
-        let mut chart = ChartBuilder::on(&root)
+        let root = plot::canvas(&path, (800, 700)).map_err(io)?;
+        let mut chart = plot::Frame::new("X (mm)", "Y (mm)")
             .caption(
                 format!(
                     "uncompensated tip error over X-Y, worst over Z, A, C \
                      (blue {bottom:.1} .. red {top:.1} um)"
                 ),
-                ("sans-serif", 18),
+                18,
             )
-            .margin(10)
-            .x_label_area_size(30)
-            .y_label_area_size(60)
-            .build_cartesian_2d(x0..x1, y0..y1)
-            .map_err(|e| io(e.to_string()))?;
-        chart
-            .configure_mesh()
-            .x_desc("X (mm)")
-            .y_desc("Y (mm)")
-            .draw()
-            .map_err(|e| io(e.to_string()))?;
+            .draw(&root, x0..x1, y0..y1)
+            .map_err(io)?;
         let mut rects = Vec::with_capacity(cell.len());
         for i in 0..xs.len() {
             for j in 0..ys.len() {
                 let v = (cell[i * ys.len() + j] - bottom) / (top - bottom).max(1e-12);
                 let (a0, a1) = half(&xs, i);
                 let (b0, b1) = half(&ys, j);
-                let color = RGBColor((255.0 * v) as u8, 64, (255.0 * (1.0 - v)) as u8);
-                rects.push(Rectangle::new([(a0, b0), (a1, b1)], color.filled()));
+                rects.push(((a0, b0), (a1, b1), plot::blue_to_red(v, 64)));
             }
         }
-        chart.draw_series(rects).map_err(|e| io(e.to_string()))?;
-        root.present().map_err(|e| io(e.to_string()))?;
+        plot::cells(&mut chart, rects).map_err(io)?;
+        plot::finish(&root).map_err(io)?;
         written.push(path.clone());
     }
     Ok(written)
