@@ -37,6 +37,7 @@ use compgate_gateway::source::plan::RegisterKind;
 use compgate_gateway::source::SourceError;
 
 use crate::plot::{self, Color as _, PlotError};
+use crate::stats::mean;
 
 /// Shortest dwell, s: the loop must settle and leave a plateau to average.
 pub const MIN_DWELL_S: f64 = 0.5;
@@ -405,10 +406,6 @@ fn standstill_runs(trace: &Trace, feed_mm_per_min: f64) -> Vec<(usize, usize)> {
         runs.push((s, n - 1));
     }
     runs
-}
-
-fn mean(v: &[f64]) -> f64 {
-    v.iter().sum::<f64>() / v.len() as f64
 }
 
 /// Takes L1..L3 and M1..M3 at B, C, D from the trace.

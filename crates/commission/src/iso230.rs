@@ -33,6 +33,8 @@ use thiserror::Error;
 
 use compgate_core::measure::{MeasureError, Measurements};
 
+use crate::stats::mean_sd;
+
 /// Runs the standard asks for, each way per target.
 pub const RUNS_REQUIRED: usize = 5;
 
@@ -109,13 +111,6 @@ pub struct Iso230 {
     pub e_um: f64,
     /// Mean bidirectional positioning error M.
     pub m_um: f64,
-}
-
-fn mean_sd(v: &[f64]) -> (f64, f64) {
-    let n = v.len() as f64;
-    let mean = v.iter().sum::<f64>() / n;
-    let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
-    (mean, var.sqrt())
 }
 
 fn max(it: impl Iterator<Item = f64>) -> f64 {

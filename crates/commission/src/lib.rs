@@ -14,5 +14,7 @@ pub mod backlash;
 pub mod calibrate;
 pub mod diagnose;
 pub mod iso230;
+pub mod lsq;
 pub mod plot;
+pub mod stats;
 pub mod volumetric;

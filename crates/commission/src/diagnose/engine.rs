@@ -4,6 +4,7 @@
 use super::effects::{center, lag, legendre_2_4, motion_heat, EffectKind};
 use super::fit::{ar1, blocks, residuals, Gram};
 use super::{DiagnoseError, Thresholds};
+use crate::stats::golden;
 use compgate_core::measure::Measurements;
 
 /// The measurements prepared for fitting: centred temperatures, position in mm from P0.
@@ -297,34 +298,6 @@ fn search_log(lo: f64, hi: f64, n: usize, f: &mut dyn FnMut(f64) -> f64) -> (f64
         (x.exp(), fx, false)
     } else {
         (grid[best].exp(), vals[best], false)
-    }
-}
-
-/// Golden-section minimisation of a unimodal `f` on `[a, b]`.
-pub fn golden(mut a: f64, mut b: f64, iters: usize, f: &mut dyn FnMut(f64) -> f64) -> (f64, f64) {
-    let r = (5f64.sqrt() - 1.0) / 2.0;
-    let mut c = b - r * (b - a);
-    let mut e = a + r * (b - a);
-    let (mut fc, mut fe) = (f(c), f(e));
-    for _ in 0..iters {
-        if fc < fe {
-            b = e;
-            e = c;
-            fe = fc;
-            c = b - r * (b - a);
-            fc = f(c);
-        } else {
-            a = c;
-            c = e;
-            fc = fe;
-            e = a + r * (b - a);
-            fe = f(e);
-        }
-    }
-    if fc < fe {
-        (c, fc)
-    } else {
-        (e, fe)
     }
 }
 

@@ -361,7 +361,7 @@ fn refine(d: &Data, cur: Current, effects: &mut [EffectReport]) -> Current {
         } else {
             2.0
         };
-        let (lp, rss) = engine::golden((p / factor).ln(), (p * factor).ln(), 16, &mut f);
+        let (lp, rss) = crate::stats::golden((p / factor).ln(), (p * factor).ln(), 16, &mut f);
         if rss < f(p.ln()) {
             let (new_cols, mean) = d.effect_columns(kind, sensor, lp.exp());
             for (k, c) in new_cols.into_iter().enumerate() {

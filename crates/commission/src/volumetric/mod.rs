@@ -126,6 +126,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use crate::plot::{self, PlotError};
+use crate::stats;
 
 pub use format::{parse, write, LOCATION_A, LOCATION_C, MAGIC, SQUARENESS, VERSION};
 
@@ -448,24 +449,8 @@ fn least_abs_root(
     }
     // No root: |f| is smooth but for the kinks of the tables, so its least value is
     // within a scan step of the least sample.
-    let g = (5f64.sqrt() - 1.0) / 2.0;
-    let (mut a, mut b) = ((least.0 - step).max(lo), (least.0 + step).min(hi));
-    let (mut m1, mut m2) = (b - g * (b - a), a + g * (b - a));
-    let (mut f1, mut f2) = (f(m1)?.abs(), f(m2)?.abs());
-    for _ in 0..60 {
-        if f1 < f2 {
-            b = m2;
-            (m2, f2) = (m1, f1);
-            m1 = b - g * (b - a);
-            f1 = f(m1)?.abs();
-        } else {
-            a = m1;
-            (m1, f1) = (m2, f2);
-            m2 = a + g * (b - a);
-            f2 = f(m2)?.abs();
-        }
-    }
-    let m = 0.5 * (a + b);
+    let (a, b) = ((least.0 - step).max(lo), (least.0 + step).min(hi));
+    let (m, _) = stats::try_golden(a, b, 60, &mut |x| f(x).map(f64::abs).ok_or(())).ok()?;
     let ym = f(m)?;
     Some(if ym.abs() < least.1.abs() {
         (m, ym)
