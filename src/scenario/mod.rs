@@ -31,6 +31,7 @@ use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
 
 use compgate_commission::calibrate::{self, AxisModel};
+use compgate_commission::table::Markdown;
 use compgate_core::comp::Decision;
 use compgate_core::measure::{Measurements, TempColumn};
 use compgate_gateway::config;
@@ -197,38 +198,41 @@ impl ScenarioReport {
             self.hours, self.ambient_swing_degc
         );
         let _ = writeln!(s, "model: {}", self.model_source);
-        s.push_str(
-            "\n| thermal positioning error | peak-to-peak (um) | RMS (um) | max abs (um) |\n",
-        );
-        s.push_str("|---|---|---|---|\n");
+        let um = |v: f64| format!("{v:.2}");
+        let mut error = Markdown::new([
+            "thermal positioning error",
+            "peak-to-peak (um)",
+            "RMS (um)",
+            "max abs (um)",
+        ]);
         for (name, r) in [
             ("compensation off", &self.off),
             ("compensation on", &self.on),
         ] {
-            let _ = writeln!(
-                s,
-                "| {name} | {:.2} | {:.2} | {:.2} |",
-                r.stats.peak_to_peak_um, r.stats.rms_um, r.stats.max_abs_um
-            );
+            let st = &r.stats;
+            let cells = [um(st.peak_to_peak_um), um(st.rms_um), um(st.max_abs_um)];
+            error.row(std::iter::once(name.to_string()).chain(cells));
         }
-        let _ = writeln!(
-            s,
-            "| reduction | {:.1} % | {:.1} % | |",
-            self.reduction_pp_percent(),
-            self.reduction_rms_percent()
-        );
+        error.row([
+            "reduction".to_string(),
+            format!("{:.1} %", self.reduction_pp_percent()),
+            format!("{:.1} %", self.reduction_rms_percent()),
+            String::new(),
+        ]);
+        s.push('\n');
+        s.push_str(&error.render());
         if let (Some(a), Some(b)) = (&self.iso_off, &self.iso_on) {
-            let _ = writeln!(
-                s,
-                "\nISO 230-2 at the end ({ISO_RUNS} bidirectional runs, um) | A | B | R | E | M |\n|---|---|---|---|---|---|"
-            );
+            let title = format!("ISO 230-2 at the end ({ISO_RUNS} bidirectional runs, um)");
+            let mut iso = Markdown::new([title.as_str(), "A", "B", "R", "E", "M"]);
             for (name, r) in [("compensation off", a), ("compensation on", b)] {
-                let _ = writeln!(
-                    s,
-                    "| {name} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |",
-                    r.a_um, r.b_um, r.r_um, r.e_um, r.m_um
-                );
+                let cells = [r.a_um, r.b_um, r.r_um, r.e_um, r.m_um].map(um);
+                iso.row(std::iter::once(name.to_string()).chain(cells));
             }
+            // The title stands in the header row without a leading `|`, as the guide
+            // shows it.
+            let iso = iso.render();
+            s.push('\n');
+            s.push_str(iso.strip_prefix("| ").unwrap_or(&iso));
         }
         let _ = writeln!(
             s,

@@ -34,6 +34,7 @@ use thiserror::Error;
 use compgate_core::measure::{MeasureError, Measurements};
 
 use crate::stats::mean_sd;
+use crate::table::Markdown;
 
 /// Runs the standard asks for, each way per target.
 pub const RUNS_REQUIRED: usize = 5;
@@ -208,48 +209,53 @@ pub fn evaluate(pos_mm: &[f64], dir: &[i8], err_um: &[f64]) -> Result<Iso230, Is
 pub fn report(r: &Iso230) -> String {
     let mut s = String::new();
     s.push_str("ISO 230-2 bidirectional evaluation (um)\n\n");
-    s.push_str("| target mm | runs +/- | mean + | mean - | s + | s - | B_i | mean bidir | R_i + | R_i - | R_i |\n");
-    s.push_str("|---|---|---|---|---|---|---|---|---|---|---|\n");
+    let um = |v: f64| format!("{v:.3}");
+    let mut targets = Markdown::new([
+        "target mm",
+        "runs +/-",
+        "mean +",
+        "mean -",
+        "s +",
+        "s -",
+        "B_i",
+        "mean bidir",
+        "R_i +",
+        "R_i -",
+        "R_i",
+    ]);
     for t in &r.targets {
-        let _ = writeln!(
-            s,
-            "| {} | {}/{} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} |",
-            t.pos_mm,
-            t.runs_up,
-            t.runs_down,
-            t.mean_up_um,
-            t.mean_down_um,
-            t.s_up_um,
-            t.s_down_um,
-            t.b_um,
-            t.mean_um,
-            t.r_up_um,
-            t.r_down_um,
-            t.r_um
-        );
+        targets.row([
+            t.pos_mm.to_string(),
+            format!("{}/{}", t.runs_up, t.runs_down),
+            um(t.mean_up_um),
+            um(t.mean_down_um),
+            um(t.s_up_um),
+            um(t.s_down_um),
+            um(t.b_um),
+            um(t.mean_um),
+            um(t.r_up_um),
+            um(t.r_down_um),
+            um(t.r_um),
+        ]);
     }
-    s.push_str("\n| axis | + (up) | - (down) | bidirectional |\n|---|---|---|---|\n");
-    let _ = writeln!(
-        s,
-        "| A accuracy | {:.3} | {:.3} | {:.3} |",
-        r.a_up_um, r.a_down_um, r.a_um
-    );
-    let _ = writeln!(
-        s,
-        "| R repeatability | {:.3} | {:.3} | {:.3} |",
-        r.r_up_um, r.r_down_um, r.r_um
-    );
-    let _ = writeln!(
-        s,
-        "| E systematic error | {:.3} | {:.3} | {:.3} |",
-        r.e_up_um, r.e_down_um, r.e_um
-    );
-    let _ = writeln!(s, "| M mean bidirectional error | | | {:.3} |", r.m_um);
-    let _ = writeln!(
-        s,
-        "| B reversal value (mean B) | | | {:.3} ({:.3}) |",
-        r.b_um, r.b_mean_um
-    );
+    s.push_str(&targets.render());
+    let mut axis = Markdown::new(["axis", "+ (up)", "- (down)", "bidirectional"]);
+    for (name, up, down, both) in [
+        ("A accuracy", r.a_up_um, r.a_down_um, r.a_um),
+        ("R repeatability", r.r_up_um, r.r_down_um, r.r_um),
+        ("E systematic error", r.e_up_um, r.e_down_um, r.e_um),
+    ] {
+        axis.row([name.to_string(), um(up), um(down), um(both)]);
+    }
+    axis.row(["M mean bidirectional error", "", "", &um(r.m_um)]);
+    axis.row([
+        "B reversal value (mean B)",
+        "",
+        "",
+        &format!("{:.3} ({:.3})", r.b_um, r.b_mean_um),
+    ]);
+    s.push('\n');
+    s.push_str(&axis.render());
     let few = r
         .targets
         .iter()

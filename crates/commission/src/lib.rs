@@ -17,4 +17,5 @@ pub mod iso230;
 pub mod lsq;
 pub mod plot;
 pub mod stats;
+pub mod table;
 pub mod volumetric;

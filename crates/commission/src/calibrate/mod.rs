@@ -18,6 +18,7 @@ use compgate_core::measure::{MeasureError, Measurements};
 use compgate_gateway::config::{K0Model, K0Term, TanBetaModel, TanBetaTerm};
 
 use crate::plot::{self, Color as _, Palette as _, PlotError};
+use crate::table::Markdown;
 pub use fit::{Fit, FitError};
 
 /// Errors of `calibrate` and of reading a model file.
@@ -258,23 +259,25 @@ pub fn report(f: &Fit) -> String {
         "K0 offset {:+.4} um (+/- {:.4}), tan(beta) offset {:+.4e} (+/- {:.1e})",
         f.k0_offset_um, f.k0_offset_se_um, f.tan_beta_offset, f.tan_beta_offset_se
     );
-    let _ = writeln!(
-        s,
-        "| sensor | ref degC | K0 um/K | +/- | tan(beta) 1/K | +/- |"
-    );
-    s.push_str("|---|---|---|---|---|---|\n");
+    let mut table = Markdown::new([
+        "sensor",
+        "ref degC",
+        "K0 um/K",
+        "+/-",
+        "tan(beta) 1/K",
+        "+/-",
+    ]);
     for t in &f.terms {
-        let _ = writeln!(
-            s,
-            "| {} | {:.2} | {:+.4} | {:.4} | {:+.4e} | {:.1e} |",
-            t.name,
-            t.ref_degc,
-            t.k0_um_per_degc,
-            t.k0_se_um_per_degc,
-            t.tan_beta_per_degc,
-            t.tan_beta_se_per_degc
-        );
+        table.row([
+            t.name.clone(),
+            format!("{:.2}", t.ref_degc),
+            format!("{:+.4}", t.k0_um_per_degc),
+            format!("{:.4}", t.k0_se_um_per_degc),
+            format!("{:+.4e}", t.tan_beta_per_degc),
+            format!("{:.1e}", t.tan_beta_se_per_degc),
+        ]);
     }
+    s.push_str(&table.render());
     s.push_str(
         "(+/- : standard errors assuming independent residuals; a lower bound on thermal data)\n",
     );

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 
 use super::{DiagnoseError, Diagnosis, ModelFile, Where};
 use crate::plot::{self, Color as _, PlotError};
+use crate::table::{plain_line, Column};
 
 fn where_text(out: &mut String, w: &Where) {
     let worst_t = w
@@ -55,6 +56,21 @@ fn where_text(out: &mut String, w: &Where) {
     let _ = writeln!(out, "  lag-1 autocorrelation in time: {:.3}", w.rho);
 }
 
+/// The candidates table: effect, sensor, param, rms_um, cv_rms, dIC, rho, n_eff, edge,
+/// verdict.
+const CANDIDATE_COLUMNS: [Column; 10] = [
+    Column::left(2, 20),
+    Column::right(1, 7),
+    Column::right(1, 12),
+    Column::right(1, 9),
+    Column::right(1, 9),
+    Column::right(1, 10),
+    Column::right(1, 8),
+    Column::right(1, 9),
+    Column::right(1, 9),
+    Column::left(2, 0),
+];
+
 /// The human-readable report.
 pub fn text_report(d: &Diagnosis) -> String {
     let mut out = String::new();
@@ -87,11 +103,11 @@ pub fn text_report(d: &Diagnosis) -> String {
             "\nround {}: candidates (dIC < 0 is better; accepted needs IC, blocked CV, plausible, size)",
             i + 1
         );
-        let _ = writeln!(
-            out,
-            "  {:<20} {:>7} {:>12} {:>9} {:>9} {:>10} {:>8} {:>9} {:>9}  verdict",
-            "effect", "sensor", "param", "rms_um", "cv_rms", "dIC", "rho", "n_eff", "edge"
-        );
+        let header = [
+            "effect", "sensor", "param", "rms_um", "cv_rms", "dIC", "rho", "n_eff", "edge",
+            "verdict",
+        ];
+        let _ = writeln!(out, "{}", plain_line(&CANDIDATE_COLUMNS, header));
         for c in &round.candidates {
             let param = match (c.param, c.param_name) {
                 (Some(v), Some(n)) => format!(
@@ -120,19 +136,19 @@ pub fn text_report(d: &Diagnosis) -> String {
             } else {
                 format!("fails: {}", why.join(", "))
             };
-            let _ = writeln!(
-                out,
-                "  {:<20} {:>7} {:>12} {:>9.3} {:>9.3} {:>10.1} {:>8.3} {:>9.0} {:>9}  {verdict}",
-                c.name,
-                c.sensor.as_deref().unwrap_or("-"),
+            let cells = [
+                c.name.to_string(),
+                c.sensor.as_deref().unwrap_or("-").to_string(),
                 param,
-                c.rms_after_um,
-                c.cv_rms_after_um,
-                c.delta_ic,
-                c.rho,
-                c.n_eff,
-                if c.at_edge { "yes" } else { "no" },
-            );
+                format!("{:.3}", c.rms_after_um),
+                format!("{:.3}", c.cv_rms_after_um),
+                format!("{:.1}", c.delta_ic),
+                format!("{:.3}", c.rho),
+                format!("{:.0}", c.n_eff),
+                (if c.at_edge { "yes" } else { "no" }).to_string(),
+                verdict,
+            ];
+            let _ = writeln!(out, "{}", plain_line(&CANDIDATE_COLUMNS, cells));
         }
     }
     let _ = writeln!(out, "\neffects added:");

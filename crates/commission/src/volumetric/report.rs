@@ -7,6 +7,7 @@ use super::evaluation::{Evaluation, POLE_TOL_ARCSEC, POLE_TOL_FRACTION};
 use super::kinematics::PoleMode;
 use super::{VolumetricError, SINGULAR_A_DEG, TOL_ARCSEC, TOL_UM};
 use crate::plot::{self, PlotError};
+use crate::table::{plain_line, Column};
 
 /// The report of an evaluation.
 pub fn report(ev: &Evaluation) -> String {
@@ -24,13 +25,17 @@ pub fn report(ev: &Evaluation) -> String {
             String::new()
         }
     );
-    let _ = writeln!(
-        s,
-        "                     uncompensated   compensated   remaining"
-    );
+    const COLUMNS: [Column; 4] = [
+        Column::left(0, 20),
+        Column::right(1, 13),
+        Column::right(1, 13),
+        Column::right(1, 11),
+    ];
+    let header = ["", "uncompensated", "compensated", "remaining"];
+    let _ = writeln!(s, "{}", plain_line(&COLUMNS, header));
     for (label, uncomp, comp) in [
-        ("tip max (um)        ", u.max_tip_um, c.max_tip_um),
-        ("tip RMS (um)        ", u.rms_tip_um, c.rms_tip_um),
+        ("tip max (um)", u.max_tip_um, c.max_tip_um),
+        ("tip RMS (um)", u.rms_tip_um, c.rms_tip_um),
         (
             "orientation max (\")",
             u.max_orient_arcsec,
@@ -42,11 +47,13 @@ pub fn report(ev: &Evaluation) -> String {
             c.rms_orient_arcsec,
         ),
     ] {
-        let _ = writeln!(
-            s,
-            "{label} {uncomp:>13.4} {comp:>13.6} {:>10.4}%",
-            pct(comp, uncomp)
-        );
+        let cells = [
+            label.to_string(),
+            format!("{uncomp:.4}"),
+            format!("{comp:.6}"),
+            format!("{:.4}%", pct(comp, uncomp)),
+        ];
+        let _ = writeln!(s, "{}", plain_line(&COLUMNS, cells));
     }
     let _ = writeln!(
         s,
