@@ -25,6 +25,7 @@ pub mod engine;
 pub mod fit;
 pub mod model_file;
 pub mod output;
+#[cfg(any(test, feature = "synth"))]
 pub mod synth;
 
 use std::collections::BTreeMap;
