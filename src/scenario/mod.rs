@@ -49,6 +49,16 @@ pub enum ScenarioError {
     SampleEvery { got_s: f64, min_s: f64 },
     #[error("model: {0}")]
     Model(String),
+    #[error("model: commissioning fit: {0}")]
+    Fit(#[source] calibrate::CalibrateError),
+    #[error("model: {0}")]
+    ModelFile(#[source] calibrate::CalibrateError),
+    #[error("{path}: {source}")]
+    Plot {
+        path: String,
+        #[source]
+        source: compgate_commission::plot::PlotError,
+    },
     #[error("setup: {0}")]
     Setup(String),
     #[error("{path}: {message}")]
@@ -263,8 +273,7 @@ pub fn commissioning_model(
     let plan = SweepPlan::irregular(params.axis_length_mm, TARGETS, 1800.0);
     let s = measurement_run(&mut machine, &DutyCycle::commissioning(24.0), &plan, 30.0);
     let m = Measurements::from(&s);
-    let fit = calibrate::calibrate(&m, sensors, None)
-        .map_err(|e| ScenarioError::Model(format!("commissioning fit: {e}")))?;
+    let fit = calibrate::calibrate(&m, sensors, None).map_err(ScenarioError::Fit)?;
     Ok((AxisModel::from_fit(&fit), fit, m))
 }
 
@@ -535,8 +544,7 @@ pub async fn run_with(
     std::fs::create_dir_all(&args.out).map_err(|e| io_err(&args.out, e))?;
     let (model, model_source) = match &args.model {
         Some(path) => {
-            let (axis, model) =
-                calibrate::load_model(path).map_err(|e| ScenarioError::Model(e.to_string()))?;
+            let (axis, model) = calibrate::load_model(path).map_err(ScenarioError::ModelFile)?;
             (model, format!("{} (axes.{axis})", path.display()))
         }
         None => {
@@ -603,10 +611,14 @@ pub async fn run_with(
     write_csv(&args.out.join("on.csv"), &report.on.series)?;
     write_csv(&args.out.join("iso230_off.csv"), &report.off.iso230)?;
     write_csv(&args.out.join("iso230_on.csv"), &report.on.iso230)?;
-    plot::error_vs_time(&args.out.join("error_vs_time.svg"), &report)
-        .map_err(|e| io_err(&args.out.join("error_vs_time.svg"), e))?;
-    plot::error_vs_position(&args.out.join("error_vs_position.svg"), &report)
-        .map_err(|e| io_err(&args.out.join("error_vs_position.svg"), e))?;
+    let plot_err = |path: &Path| {
+        let path = path.display().to_string();
+        move |source| ScenarioError::Plot { path, source }
+    };
+    let path = args.out.join("error_vs_time.svg");
+    plot::error_vs_time(&path, &report).map_err(plot_err(&path))?;
+    let path = args.out.join("error_vs_position.svg");
+    plot::error_vs_position(&path, &report).map_err(plot_err(&path))?;
     let text = report.text();
     let path = args.out.join("report.md");
     std::fs::write(&path, &text).map_err(|e| io_err(&path, e))?;

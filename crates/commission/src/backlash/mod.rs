@@ -38,6 +38,8 @@ use compgate_gateway::nc::NcError;
 use compgate_gateway::source::SourceError;
 use compgate_ncproto::servo::TraceConfig;
 
+use crate::plot::PlotError;
+
 pub use command::{check_args, run, run_on, BacklashArgs};
 pub use math::{extract, Backlash, Extraction, PointValue, Points, Procedure, Trace};
 pub use report::{report, write_csv, write_svg};
@@ -89,6 +91,15 @@ pub enum BacklashError {
     /// Writing the report files failed.
     #[error("output: {0}")]
     Io(String),
+    /// Drawing the position-time SVG failed.
+    #[error("output: {path}: {source}")]
+    Plot {
+        /// The SVG file.
+        path: String,
+        /// What the plotting reported.
+        #[source]
+        source: PlotError,
+    },
 }
 
 /// Names a refusal code of the servo block.

@@ -110,7 +110,10 @@ pub fn write_svg(
     trace: &Trace,
     points: &[PointValue; 3],
 ) -> Result<(), BacklashError> {
-    let io = |e: PlotError| BacklashError::Io(format!("{}: {e}", path.display()));
+    let io = |source: PlotError| BacklashError::Plot {
+        path: path.display().to_string(),
+        source,
+    };
     let n = trace.scale_mm.len();
     if n == 0 {
         return Err(io(PlotError("empty trace".into())));

@@ -62,8 +62,12 @@ pub enum DiagnoseError {
         #[source]
         source: std::io::Error,
     },
-    #[error("plot {path}: {message}")]
-    Plot { path: String, message: String },
+    #[error("plot {path}: {source}")]
+    Plot {
+        path: String,
+        #[source]
+        source: crate::plot::PlotError,
+    },
 }
 
 /// Decision thresholds, calibrated on null data (see the README).

@@ -216,9 +216,9 @@ fn scatter_svg(
     after: &Xy,
     x_range: (f64, f64),
 ) -> Result<(), DiagnoseError> {
-    let err = |e: PlotError| DiagnoseError::Plot {
+    let err = |source: PlotError| DiagnoseError::Plot {
         path: path.display().to_string(),
-        message: e.to_string(),
+        source,
     };
     let y_range = plot::padded(
         before.iter().chain(after).map(|&(_, y)| y),

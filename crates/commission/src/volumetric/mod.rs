@@ -127,6 +127,8 @@ mod tests;
 
 use std::f64::consts::PI;
 
+use crate::plot::PlotError;
+
 pub use command::{parse_grid, run, VolumetricArgs};
 pub use evaluation::{
     evaluate, evaluate_pole, Evaluation, PoleClasses, Stats, POLE_TOL_ARCSEC, POLE_TOL_FRACTION,
@@ -181,4 +183,13 @@ pub enum VolumetricError {
     /// Reading the file or writing the output failed.
     #[error("{0}")]
     Io(String),
+    /// Drawing an error map failed.
+    #[error("{path}: {source}")]
+    Plot {
+        /// The SVG file.
+        path: String,
+        /// What the plotting reported.
+        #[source]
+        source: PlotError,
+    },
 }

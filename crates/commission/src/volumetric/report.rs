@@ -154,7 +154,10 @@ pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, Volumetri
         ("orientation-error.svg", 1, "orientation error (arcsec)"),
     ] {
         let path = dir.join(name);
-        let io = |e: PlotError| VolumetricError::Io(format!("{}: {e}", path.display()));
+        let io = |source: PlotError| VolumetricError::Plot {
+            path: path.display().to_string(),
+            source,
+        };
         let get = |t: &(f64, f64)| if pick == 0 { t.0 } else { t.1 };
         let n = ev.poses.len().max(2);
         let root = plot::canvas(&path, (1000, 700)).map_err(io)?;
@@ -180,7 +183,10 @@ pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, Volumetri
     }
     // X-Y map of the worst uncompensated tip error.
     let path = dir.join("tip-error-xy.svg");
-    let io = |e: PlotError| VolumetricError::Io(format!("{}: {e}", path.display()));
+    let io = |source: PlotError| VolumetricError::Plot {
+        path: path.display().to_string(),
+        source,
+    };
     let mut xs: Vec<f64> = ev.poses.iter().map(|p| p[0]).collect();
     let mut ys: Vec<f64> = ev.poses.iter().map(|p| p[1]).collect();
     for v in [&mut xs, &mut ys] {

@@ -26,15 +26,16 @@
 //!                                 A  = max over both directions of (xm + 2s) - min of (xm - 2s)
 //! ```
 
-use std::fmt::Write as _;
-use std::path::PathBuf;
+mod command;
+mod report;
 
 use thiserror::Error;
 
-use compgate_core::measure::{MeasureError, Measurements};
+use compgate_core::measure::MeasureError;
 
 use crate::stats::mean_sd;
-use crate::table::Markdown;
+pub use command::{run, Iso230Args};
+pub use report::report;
 
 /// Runs the standard asks for, each way per target.
 pub const RUNS_REQUIRED: usize = 5;
@@ -56,14 +57,6 @@ pub enum Iso230Error {
     NoDirection { row: usize },
     #[error("fewer than 2 target positions")]
     TooFewTargets,
-}
-
-/// `compgate iso230` arguments.
-#[derive(Debug, Clone, clap::Args)]
-pub struct Iso230Args {
-    /// Measured-error CSV (t_s,pos_mm,err_um,T_...; dir recommended).
-    #[arg(long)]
-    pub data: PathBuf,
 }
 
 /// One target position's figures, um.
@@ -203,78 +196,6 @@ pub fn evaluate(pos_mm: &[f64], dir: &[i8], err_um: &[f64]) -> Result<Iso230, Is
         m_um: max(t.iter().map(|x| x.mean_um)) - min(t.iter().map(|x| x.mean_um)),
         targets,
     })
-}
-
-/// The report, as printed.
-pub fn report(r: &Iso230) -> String {
-    let mut s = String::new();
-    s.push_str("ISO 230-2 bidirectional evaluation (um)\n\n");
-    let um = |v: f64| format!("{v:.3}");
-    let mut targets = Markdown::new([
-        "target mm",
-        "runs +/-",
-        "mean +",
-        "mean -",
-        "s +",
-        "s -",
-        "B_i",
-        "mean bidir",
-        "R_i +",
-        "R_i -",
-        "R_i",
-    ]);
-    for t in &r.targets {
-        targets.row([
-            t.pos_mm.to_string(),
-            format!("{}/{}", t.runs_up, t.runs_down),
-            um(t.mean_up_um),
-            um(t.mean_down_um),
-            um(t.s_up_um),
-            um(t.s_down_um),
-            um(t.b_um),
-            um(t.mean_um),
-            um(t.r_up_um),
-            um(t.r_down_um),
-            um(t.r_um),
-        ]);
-    }
-    s.push_str(&targets.render());
-    let mut axis = Markdown::new(["axis", "+ (up)", "- (down)", "bidirectional"]);
-    for (name, up, down, both) in [
-        ("A accuracy", r.a_up_um, r.a_down_um, r.a_um),
-        ("R repeatability", r.r_up_um, r.r_down_um, r.r_um),
-        ("E systematic error", r.e_up_um, r.e_down_um, r.e_um),
-    ] {
-        axis.row([name.to_string(), um(up), um(down), um(both)]);
-    }
-    axis.row(["M mean bidirectional error", "", "", &um(r.m_um)]);
-    axis.row([
-        "B reversal value (mean B)",
-        "",
-        "",
-        &format!("{:.3} ({:.3})", r.b_um, r.b_mean_um),
-    ]);
-    s.push('\n');
-    s.push_str(&axis.render());
-    let few = r
-        .targets
-        .iter()
-        .filter(|t| t.runs_up < RUNS_REQUIRED || t.runs_down < RUNS_REQUIRED)
-        .count();
-    if few > 0 {
-        let _ = writeln!(
-            s,
-            "\nnote: {few} target(s) have fewer than the {RUNS_REQUIRED} runs each way ISO 230-2 asks for"
-        );
-    }
-    s
-}
-
-/// Runs the command.
-pub fn run(args: &Iso230Args) -> Result<String, Iso230Error> {
-    let m = Measurements::read_path(&args.data)
-        .map_err(|e| Iso230Error::Data(args.data.display().to_string(), e))?;
-    Ok(report(&evaluate(&m.pos_mm, &m.dir, &m.err_um)?))
 }
 
 #[cfg(test)]
