@@ -53,12 +53,8 @@ pub enum ScenarioError {
     Fit(#[source] calibrate::CalibrateError),
     #[error("model: {0}")]
     ModelFile(#[source] calibrate::CalibrateError),
-    #[error("{path}: {source}")]
-    Plot {
-        path: String,
-        #[source]
-        source: compgate_commission::plot::PlotError,
-    },
+    #[error("{0}")]
+    Plot(#[from] compgate_commission::plot::PlotError),
     #[error("setup: {0}")]
     Setup(String),
     #[error("{path}: {message}")]
@@ -611,14 +607,8 @@ pub async fn run_with(
     write_csv(&args.out.join("on.csv"), &report.on.series)?;
     write_csv(&args.out.join("iso230_off.csv"), &report.off.iso230)?;
     write_csv(&args.out.join("iso230_on.csv"), &report.on.iso230)?;
-    let plot_err = |path: &Path| {
-        let path = path.display().to_string();
-        move |source| ScenarioError::Plot { path, source }
-    };
-    let path = args.out.join("error_vs_time.svg");
-    plot::error_vs_time(&path, &report).map_err(plot_err(&path))?;
-    let path = args.out.join("error_vs_position.svg");
-    plot::error_vs_position(&path, &report).map_err(plot_err(&path))?;
+    plot::error_vs_time(&args.out.join("error_vs_time.svg"), &report)?;
+    plot::error_vs_position(&args.out.join("error_vs_position.svg"), &report)?;
     let text = report.text();
     let path = args.out.join("report.md");
     std::fs::write(&path, &text).map_err(|e| io_err(&path, e))?;

@@ -2,9 +2,25 @@
 
 use std::path::Path;
 
-use compgate_commission::plot::{self, Area, Color as _, PlotError, RGBColor};
+use std::ops::Range;
+
+use compgate_commission::plot::{self, Area, Chart, Color as _, DrawError, PlotError, RGBColor};
 
 use super::{RunData, ScenarioReport};
+
+/// A panel of the scenario's charts: error (um) against `x_desc`.
+fn panel<'a, 'p>(
+    area: &'a Area<'p>,
+    caption: &str,
+    x_desc: &str,
+    x: Range<f64>,
+    y: Range<f64>,
+) -> Result<Chart<'a, 'p>, DrawError> {
+    plot::Frame::new(x_desc, "error (um)")
+        .caption(caption, 17)
+        .label_areas(32, 60)
+        .draw(area, x, y)
+}
 
 /// Rows of `run` at position `pos_mm` approached in `dir`: (t in h, err um).
 fn at_position(run: &RunData, pos_mm: f64, dir: i8) -> Vec<(f64, f64)> {
@@ -20,7 +36,7 @@ fn time_panel(
     caption: &str,
     r: &ScenarioReport,
     runs: &[(&str, &RunData, RGBColor)],
-) -> Result<(), PlotError> {
+) -> Result<(), DrawError> {
     let (near, far) = plot::extent(r.off.series.pos_mm.iter().copied())
         .unwrap_or((f64::INFINITY, f64::NEG_INFINITY));
     let mut lines = Vec::new();
@@ -44,10 +60,7 @@ fn time_panel(
         0.5,
         (-0.5, 0.5),
     );
-    let mut chart = plot::Frame::new("time (h)", "error (um)")
-        .caption(caption, 17)
-        .label_areas(32, 60)
-        .draw(area, 0.0..r.hours, y)?;
+    let mut chart = panel(area, caption, "time (h)", 0.0..r.hours, y)?;
     for (label, pts, color, width) in lines {
         plot::line(&mut chart, pts, color.stroke_width(width), Some(label))?;
     }
@@ -57,27 +70,27 @@ fn time_panel(
 /// Error at both ends of the axis against time; upper panel off and on, lower panel
 /// on alone at its own scale.
 pub fn error_vs_time(path: &Path, r: &ScenarioReport) -> Result<(), PlotError> {
-    let root = plot::canvas(path, (1000, 760))?;
-    let (upper, lower) = root.split_vertically(400);
-    time_panel(
-        &upper,
-        &format!(
-            "thermal positioning error, {} h: off p-p {:.1} um, on p-p {:.1} um ({:.1} % less)",
-            r.hours,
-            r.off.stats.peak_to_peak_um,
-            r.on.stats.peak_to_peak_um,
-            r.reduction_pp_percent()
-        ),
-        r,
-        &[("off", &r.off, plot::RED), ("on", &r.on, plot::BLUE)],
-    )?;
-    time_panel(
-        &lower,
-        "compensation on (own scale)",
-        r,
-        &[("on", &r.on, plot::BLUE)],
-    )?;
-    plot::finish(&root)
+    plot::svg(path, (1000, 760), |root| {
+        let (upper, lower) = root.split_vertically(400);
+        time_panel(
+            &upper,
+            &format!(
+                "thermal positioning error, {} h: off p-p {:.1} um, on p-p {:.1} um ({:.1} % less)",
+                r.hours,
+                r.off.stats.peak_to_peak_um,
+                r.on.stats.peak_to_peak_um,
+                r.reduction_pp_percent()
+            ),
+            r,
+            &[("off", &r.off, plot::RED), ("on", &r.on, plot::BLUE)],
+        )?;
+        time_panel(
+            &lower,
+            "compensation on (own scale)",
+            r,
+            &[("on", &r.on, plot::BLUE)],
+        )
+    })
 }
 
 fn position_panel(
@@ -85,17 +98,14 @@ fn position_panel(
     caption: &str,
     run: &RunData,
     hours: f64,
-) -> Result<(), PlotError> {
+) -> Result<(), DrawError> {
     let m = &run.series;
     let sweeps = compgate_commission::calibrate::sweeps(&m.t_s);
     let step = sweeps.len().div_ceil(10).max(1);
     let (xlo, xhi) =
         plot::extent(m.pos_mm.iter().copied()).unwrap_or((f64::INFINITY, f64::NEG_INFINITY));
     let y = plot::padded(m.err_um.iter().copied(), 0.08, 0.5, (-0.5, 0.5));
-    let mut chart = plot::Frame::new("position (mm)", "error (um)")
-        .caption(caption, 17)
-        .label_areas(32, 60)
-        .draw(area, xlo..xhi.max(xlo + 1.0), y)?;
+    let mut chart = panel(area, caption, "position (mm)", xlo..xhi.max(xlo + 1.0), y)?;
     for r in sweeps.into_iter().step_by(step) {
         let t_h = m.t_s[r.start] / 3600.0;
         // Colour runs from blue (start) to red (end of the run).
@@ -120,22 +130,22 @@ fn position_panel(
 
 /// Error curves along the axis (thick: approached +, thin: approached -), off and on.
 pub fn error_vs_position(path: &Path, r: &ScenarioReport) -> Result<(), PlotError> {
-    let root = plot::canvas(path, (1200, 560))?;
-    let (left, right) = root.split_horizontally(600);
-    position_panel(
-        &left,
-        &format!(
-            "compensation off: p-p {:.1} um",
-            r.off.stats.peak_to_peak_um
-        ),
-        &r.off,
-        r.hours,
-    )?;
-    position_panel(
-        &right,
-        &format!("compensation on: p-p {:.1} um", r.on.stats.peak_to_peak_um),
-        &r.on,
-        r.hours,
-    )?;
-    plot::finish(&root)
+    plot::svg(path, (1200, 560), |root| {
+        let (left, right) = root.split_horizontally(600);
+        position_panel(
+            &left,
+            &format!(
+                "compensation off: p-p {:.1} um",
+                r.off.stats.peak_to_peak_um
+            ),
+            &r.off,
+            r.hours,
+        )?;
+        position_panel(
+            &right,
+            &format!("compensation on: p-p {:.1} um", r.on.stats.peak_to_peak_um),
+            &r.on,
+            r.hours,
+        )
+    })
 }

@@ -2,7 +2,7 @@
 //! with labelled axes, line, dot and segment series with legend entries, and the
 //! legend box. The tools (and the root package's scenario) say what to draw; the
 //! plotting library stays behind this module, so its setup and its error type live in
-//! one place.
+//! one place. [`svg`] ties a drawing error to its file.
 
 use std::ops::Range;
 use std::path::Path;
@@ -16,13 +16,24 @@ pub use plotters::chart::SeriesLabelPosition;
 pub use plotters::style::colors::{BLACK, BLUE, RED, WHITE};
 pub use plotters::style::{Color, Palette, Palette99, RGBAColor, RGBColor, ShapeStyle};
 
-/// Drawing or writing a chart failed; the message is the plotting library's.
+/// A drawing step failed; the message is the plotting library's. [`svg`] ties it to
+/// its file as a [`PlotError`].
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{0}")]
-pub struct PlotError(pub String);
+pub struct DrawError(pub String);
 
-fn fail(e: impl std::fmt::Display) -> PlotError {
-    PlotError(e.to_string())
+fn fail(e: impl std::fmt::Display) -> DrawError {
+    DrawError(e.to_string())
+}
+
+/// Drawing or writing an SVG file failed.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{path}: {message}")]
+pub struct PlotError {
+    /// The SVG file.
+    pub path: String,
+    /// What went wrong.
+    pub message: String,
 }
 
 /// A drawing area of an SVG file (the whole canvas or a panel of it).
@@ -32,16 +43,23 @@ pub type Area<'p> = DrawingArea<SVGBackend<'p>, Shift>;
 pub type Chart<'a, 'p> =
     ChartContext<'a, SVGBackend<'p>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
 
-/// A white canvas of `size_px` (width, height) that [`finish`] writes to `path`.
-pub fn canvas(path: &Path, size_px: (u32, u32)) -> Result<Area<'_>, PlotError> {
+/// Draws an SVG of `size_px` (width, height) on a white canvas and writes it to
+/// `path`.
+pub fn svg(
+    path: &Path,
+    size_px: (u32, u32),
+    draw: impl FnOnce(&Area<'_>) -> Result<(), DrawError>,
+) -> Result<(), PlotError> {
     let root = SVGBackend::new(path, size_px).into_drawing_area();
-    root.fill(&WHITE).map_err(fail)?;
-    Ok(root)
-}
-
-/// Writes the canvas out.
-pub fn finish(root: &Area<'_>) -> Result<(), PlotError> {
-    root.present().map_err(fail)
+    let drawn = root
+        .fill(&WHITE)
+        .map_err(fail)
+        .and_then(|()| draw(&root))
+        .and_then(|()| root.present().map_err(fail));
+    drawn.map_err(|DrawError(message)| PlotError {
+        path: path.display().to_string(),
+        message,
+    })
 }
 
 /// How a panel is framed: caption, axis descriptions, margins. The defaults are
@@ -95,7 +113,7 @@ impl Frame {
         area: &'a Area<'p>,
         x: Range<f64>,
         y: Range<f64>,
-    ) -> Result<Chart<'a, 'p>, PlotError> {
+    ) -> Result<Chart<'a, 'p>, DrawError> {
         let mut builder = ChartBuilder::on(area);
         if let Some((text, font_px)) = &self.caption {
             builder.caption(text, ("sans-serif", *font_px));
@@ -122,7 +140,7 @@ pub fn line(
     points: impl IntoIterator<Item = (f64, f64)>,
     style: impl Into<ShapeStyle>,
     label: Option<String>,
-) -> Result<(), PlotError> {
+) -> Result<(), DrawError> {
     let style = style.into();
     let anno = chart
         .draw_series(LineSeries::new(points, style))
@@ -140,7 +158,7 @@ pub fn dots(
     points: impl IntoIterator<Item = (f64, f64)>,
     radius_px: u32,
     style: impl Into<ShapeStyle>,
-) -> Result<(), PlotError> {
+) -> Result<(), DrawError> {
     let style = style.into();
     chart
         .draw_series(points.into_iter().map(|p| Circle::new(p, radius_px, style)))
@@ -154,7 +172,7 @@ pub fn segment(
     a: (f64, f64),
     b: (f64, f64),
     style: impl Into<ShapeStyle>,
-) -> Result<(), PlotError> {
+) -> Result<(), DrawError> {
     let style = style.into();
     chart
         .draw_series(std::iter::once(PathElement::new(vec![a, b], style)))
@@ -169,7 +187,7 @@ pub fn note(
     text: String,
     at: (f64, f64),
     font_px: u32,
-) -> Result<(), PlotError> {
+) -> Result<(), DrawError> {
     let style = TextStyle::from(("sans-serif", font_px).into_font())
         .pos(Pos::new(HPos::Right, VPos::Bottom));
     chart
@@ -182,7 +200,7 @@ pub fn note(
 pub fn cells(
     chart: &mut Chart<'_, '_>,
     cells: impl IntoIterator<Item = ((f64, f64), (f64, f64), RGBColor)>,
-) -> Result<(), PlotError> {
+) -> Result<(), DrawError> {
     chart
         .draw_series(
             cells
@@ -197,7 +215,7 @@ pub fn cells(
 pub fn legend<'a, 'p: 'a>(
     chart: &mut Chart<'a, 'p>,
     position: SeriesLabelPosition,
-) -> Result<(), PlotError> {
+) -> Result<(), DrawError> {
     chart
         .configure_series_labels()
         .position(position)
@@ -254,29 +272,27 @@ mod tests {
     fn writes_a_valid_svg_with_every_series() {
         let dir = tempfile::tempdir().expect("tempdir");
         let path = dir.path().join("chart.svg");
-        let root = canvas(&path, (400, 300)).expect("canvas");
-        let (upper, lower) = root.split_vertically(150);
-        let mut chart = Frame::new("x (mm)", "y (um)")
-            .caption("upper", 14)
-            .draw(&upper, 0.0..10.0, -1.0..1.0)
-            .expect("frame");
-        line(
-            &mut chart,
-            [(0.0, 0.0), (10.0, 0.5)],
-            RED,
-            Some("one".into()),
-        )
-        .expect("line");
-        dots(&mut chart, [(5.0, 0.2)], 2, BLUE.filled()).expect("dots");
-        segment(&mut chart, (1.0, 0.1), (2.0, 0.1), BLACK.stroke_width(3)).expect("segment");
-        note(&mut chart, "a note".into(), (9.0, 0.5), 12).expect("note");
-        legend(&mut chart, SeriesLabelPosition::UpperLeft).expect("legend");
-        let mut low = Frame::new("x", "y")
-            .draw(&lower, 0.0..1.0, 0.0..1.0)
-            .expect("frame");
-        cells(&mut low, [((0.0, 0.0), (0.5, 0.5), blue_to_red(0.5, 64))]).expect("cells");
-        finish(&root).expect("finish");
-        drop(root);
+        svg(&path, (400, 300), |root| {
+            let (upper, lower) = root.split_vertically(150);
+            let mut chart = Frame::new("x (mm)", "y (um)").caption("upper", 14).draw(
+                &upper,
+                0.0..10.0,
+                -1.0..1.0,
+            )?;
+            line(
+                &mut chart,
+                [(0.0, 0.0), (10.0, 0.5)],
+                RED,
+                Some("one".into()),
+            )?;
+            dots(&mut chart, [(5.0, 0.2)], 2, BLUE.filled())?;
+            segment(&mut chart, (1.0, 0.1), (2.0, 0.1), BLACK.stroke_width(3))?;
+            note(&mut chart, "a note".into(), (9.0, 0.5), 12)?;
+            legend(&mut chart, SeriesLabelPosition::UpperLeft)?;
+            let mut low = Frame::new("x", "y").draw(&lower, 0.0..1.0, 0.0..1.0)?;
+            cells(&mut low, [((0.0, 0.0), (0.5, 0.5), blue_to_red(0.5, 64))])
+        })
+        .expect("svg");
         let svg = std::fs::read_to_string(&path).expect("read");
         assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
         for text in [

@@ -92,14 +92,8 @@ pub enum BacklashError {
     #[error("output: {0}")]
     Io(String),
     /// Drawing the position-time SVG failed.
-    #[error("output: {path}: {source}")]
-    Plot {
-        /// The SVG file.
-        path: String,
-        /// What the plotting reported.
-        #[source]
-        source: PlotError,
-    },
+    #[error("output: {0}")]
+    Plot(#[from] PlotError),
 }
 
 /// Names a refusal code of the servo block.

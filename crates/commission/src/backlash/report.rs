@@ -110,13 +110,12 @@ pub fn write_svg(
     trace: &Trace,
     points: &[PointValue; 3],
 ) -> Result<(), BacklashError> {
-    let io = |source: PlotError| BacklashError::Plot {
-        path: path.display().to_string(),
-        source,
-    };
     let n = trace.scale_mm.len();
     if n == 0 {
-        return Err(io(PlotError("empty trace".into())));
+        return Err(BacklashError::Plot(PlotError {
+            path: path.display().to_string(),
+            message: "empty trace".into(),
+        }));
     }
     let t = |i: usize| i as f64 * trace.period_s;
     let t_end = t(n - 1).max(trace.period_s);
@@ -129,44 +128,44 @@ pub fn write_svg(
         .zip(&trace.scale_mm)
         .map(|(e, l)| (e - l) * 1000.0)
         .collect();
-    let root = plot::canvas(path, (1000, 700)).map_err(io)?;
-    let (upper, lower) = root.split_vertically(440);
-    let mut chart = plot::Frame::new("t (s)", "position (mm)")
-        .caption(
-            format!("backlash test, axis {axis}: position against time"),
-            20,
-        )
-        .label_areas(30, 70)
-        .draw(&upper, 0.0..t_end, (lo - pad)..(hi + pad))
-        .map_err(io)?;
-    let channels = [
-        (&trace.encoder_mm, plot::RED, "encoder (motor)"),
-        (&trace.scale_mm, plot::BLUE, "scale (table)"),
-    ];
-    for (values, color, label) in channels {
-        let pts = (0..n).map(|i| (t(i), values[i]));
-        plot::line(&mut chart, pts, color, Some(label.into())).map_err(io)?;
-    }
-    for (name, v) in ["B", "C", "D"].iter().zip(points) {
-        let (t0, t1) = (t(v.first), t(v.last));
-        let plateau = plot::BLACK.stroke_width(3);
-        plot::segment(&mut chart, (t0, v.scale_mm), (t1, v.scale_mm), plateau).map_err(io)?;
-        // At the plateau's end, right-aligned: D sits at the right edge.
-        let text = format!("{name}: L={:.4} M={:.4}", v.scale_mm, v.encoder_mm);
-        plot::note(&mut chart, text, (t1, v.scale_mm + pad * 0.5), 14).map_err(io)?;
-    }
-    plot::legend(&mut chart, plot::SeriesLabelPosition::MiddleRight).map_err(io)?;
-    let y = plot::padded(diff_um.iter().copied(), 0.05, 1.0, (-1.0, 1.0));
-    let mut diff = plot::Frame::new("t (s)", "encoder - scale (um)")
-        .label_areas(30, 70)
-        .draw(&lower, 0.0..t_end, y)
-        .map_err(io)?;
-    let pts = (0..n).map(|i| (t(i), diff_um[i]));
-    plot::line(&mut diff, pts, plot::BLACK, None).map_err(io)?;
-    for v in points {
-        let d = (v.encoder_mm - v.scale_mm) * 1000.0;
-        let plateau = plot::RED.stroke_width(3);
-        plot::segment(&mut diff, (t(v.first), d), (t(v.last), d), plateau).map_err(io)?;
-    }
-    plot::finish(&root).map_err(io)
+    plot::svg(path, (1000, 700), |root| {
+        let (upper, lower) = root.split_vertically(440);
+        let mut chart = plot::Frame::new("t (s)", "position (mm)")
+            .caption(
+                format!("backlash test, axis {axis}: position against time"),
+                20,
+            )
+            .label_areas(30, 70)
+            .draw(&upper, 0.0..t_end, (lo - pad)..(hi + pad))?;
+        let channels = [
+            (&trace.encoder_mm, plot::RED, "encoder (motor)"),
+            (&trace.scale_mm, plot::BLUE, "scale (table)"),
+        ];
+        for (values, color, label) in channels {
+            let pts = (0..n).map(|i| (t(i), values[i]));
+            plot::line(&mut chart, pts, color, Some(label.into()))?;
+        }
+        for (name, v) in ["B", "C", "D"].iter().zip(points) {
+            let (t0, t1) = (t(v.first), t(v.last));
+            let plateau = plot::BLACK.stroke_width(3);
+            plot::segment(&mut chart, (t0, v.scale_mm), (t1, v.scale_mm), plateau)?;
+            // At the plateau's end, right-aligned: D sits at the right edge.
+            let text = format!("{name}: L={:.4} M={:.4}", v.scale_mm, v.encoder_mm);
+            plot::note(&mut chart, text, (t1, v.scale_mm + pad * 0.5), 14)?;
+        }
+        plot::legend(&mut chart, plot::SeriesLabelPosition::MiddleRight)?;
+        let y = plot::padded(diff_um.iter().copied(), 0.05, 1.0, (-1.0, 1.0));
+        let mut diff = plot::Frame::new("t (s)", "encoder - scale (um)")
+            .label_areas(30, 70)
+            .draw(&lower, 0.0..t_end, y)?;
+        let pts = (0..n).map(|i| (t(i), diff_um[i]));
+        plot::line(&mut diff, pts, plot::BLACK, None)?;
+        for v in points {
+            let d = (v.encoder_mm - v.scale_mm) * 1000.0;
+            let plateau = plot::RED.stroke_width(3);
+            plot::segment(&mut diff, (t(v.first), d), (t(v.last), d), plateau)?;
+        }
+        Ok(())
+    })?;
+    Ok(())
 }

@@ -59,10 +59,7 @@ pub fn run(args: &CalibrateArgs) -> Result<String, CalibrateError> {
     let mut out = report(&f);
     let _ = writeln!(out, "model written to {}", args.out.display());
     if let Some(plot) = &args.plot {
-        plot_curves(plot, &m, &f).map_err(|source| CalibrateError::Plot {
-            path: plot.display().to_string(),
-            source,
-        })?;
+        plot_curves(plot, &m, &f)?;
         let _ = writeln!(out, "plot written to {}", plot.display());
     }
     Ok(out)

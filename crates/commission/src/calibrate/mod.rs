@@ -34,12 +34,8 @@ pub enum CalibrateError {
         #[source]
         source: std::io::Error,
     },
-    #[error("{path}: {source}")]
-    Plot {
-        path: String,
-        #[source]
-        source: PlotError,
-    },
+    #[error("{0}")]
+    Plot(#[from] PlotError),
     #[error("{path}: {source}")]
     Model {
         path: String,

@@ -7,6 +7,7 @@ use compgate_core::measure::Measurements;
 
 use super::{sweeps, Fit};
 use crate::plot::{self, Color as _, Palette as _, PlotError};
+use crate::stats;
 use crate::table::Markdown;
 
 /// The fit report, as printed.
@@ -62,51 +63,49 @@ pub fn plot_curves(path: &Path, m: &Measurements, f: &Fit) -> Result<(), PlotErr
     let chosen: Vec<_> = all.into_iter().step_by(step).collect();
     let cols: Vec<&[f64]> = f.terms.iter().filter_map(|t| m.temp(&t.name)).collect();
     let (pmin, pmax) = plot::extent(m.pos_mm.iter().copied()).unwrap_or((0.0, 1.0));
-    let root = plot::canvas(path, (1000, 650))?;
-    let first = f.terms.first().map_or("", |t| t.name.as_str());
-    let mut chart = plot::Frame::new("position (mm)", "error, actual - commanded (um)")
-        .caption(
-            format!(
-                "calibrate: measured error curves (solid) and fitted model (dashed), RMS {:.2} um",
-                f.rms_um
-            ),
-            18,
-        )
-        .label_areas(35, 60)
-        .draw(
-            &root,
-            pmin..pmax.max(pmin + 1.0),
-            plot::padded(m.err_um.iter().copied(), 0.05, 1.0, (-1.0, 1.0)),
-        )?;
-    for (k, r) in chosen.iter().enumerate() {
-        let color = plot::Palette99::pick(k).to_rgba();
-        let temps: Vec<f64> = cols
-            .iter()
-            .map(|c| c[r.clone()].iter().sum::<f64>() / r.len() as f64)
-            .collect();
-        let mut pts: Vec<(f64, f64)> = r.clone().map(|i| (m.pos_mm[i], m.err_um[i])).collect();
-        pts.sort_by(|a, b| a.0.total_cmp(&b.0));
-        let label = format!(
-            "t = {:.1} h, T_{first} = {:.2} degC",
-            m.t_s[r.start] / 3600.0,
-            temps.first().copied().unwrap_or(f64::NAN)
-        );
-        plot::line(&mut chart, pts.clone(), color.stroke_width(2), Some(label))?;
-        plot::dots(&mut chart, pts, 3, color.filled())?;
-        // Dashed fitted line: every other short segment.
-        let n = 40;
-        let line: Vec<(f64, f64)> = (0..=n)
-            .map(|i| {
-                let x = pmin + (pmax - pmin) * i as f64 / n as f64;
-                (x, f.predict_um(x, &temps))
-            })
-            .collect();
-        for w in line.chunks(2) {
-            if let [a, b] = w {
-                plot::segment(&mut chart, *a, *b, color)?;
+    plot::svg(path, (1000, 650), |root| {
+        let first = f.terms.first().map_or("", |t| t.name.as_str());
+        let mut chart = plot::Frame::new("position (mm)", "error, actual - commanded (um)")
+            .caption(
+                format!(
+                    "calibrate: measured error curves (solid) and fitted model (dashed), RMS {:.2} um",
+                    f.rms_um
+                ),
+                18,
+            )
+            .label_areas(35, 60)
+            .draw(
+                root,
+                pmin..pmax.max(pmin + 1.0),
+                plot::padded(m.err_um.iter().copied(), 0.05, 1.0, (-1.0, 1.0)),
+            )?;
+        for (k, r) in chosen.iter().enumerate() {
+            let color = plot::Palette99::pick(k).to_rgba();
+            let temps: Vec<f64> = cols.iter().map(|c| stats::mean(&c[r.clone()])).collect();
+            let mut pts: Vec<(f64, f64)> = r.clone().map(|i| (m.pos_mm[i], m.err_um[i])).collect();
+            pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let label = format!(
+                "t = {:.1} h, T_{first} = {:.2} degC",
+                m.t_s[r.start] / 3600.0,
+                temps.first().copied().unwrap_or(f64::NAN)
+            );
+            plot::line(&mut chart, pts.clone(), color.stroke_width(2), Some(label))?;
+            plot::dots(&mut chart, pts, 3, color.filled())?;
+            // Dashed fitted line: every other short segment.
+            let n = 40;
+            let line: Vec<(f64, f64)> = (0..=n)
+                .map(|i| {
+                    let x = pmin + (pmax - pmin) * i as f64 / n as f64;
+                    (x, f.predict_um(x, &temps))
+                })
+                .collect();
+            for w in line.chunks(2) {
+                if let [a, b] = w {
+                    plot::segment(&mut chart, *a, *b, color)?;
+                }
             }
         }
-    }
-    plot::legend(&mut chart, plot::SeriesLabelPosition::UpperLeft)?;
-    plot::finish(&root)
+        plot::legend(&mut chart, plot::SeriesLabelPosition::UpperLeft)?;
+        Ok(())
+    })
 }

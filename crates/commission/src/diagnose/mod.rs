@@ -62,12 +62,8 @@ pub enum DiagnoseError {
         #[source]
         source: std::io::Error,
     },
-    #[error("plot {path}: {source}")]
-    Plot {
-        path: String,
-        #[source]
-        source: crate::plot::PlotError,
-    },
+    #[error("plot {0}")]
+    Plot(#[from] crate::plot::PlotError),
 }
 
 /// Decision thresholds, calibrated on null data (see the README).

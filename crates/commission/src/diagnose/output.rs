@@ -5,7 +5,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use super::{DiagnoseError, Diagnosis, ModelFile, Where};
-use crate::plot::{self, Color as _, PlotError};
+use crate::plot::{self, Color as _};
 use crate::table::{plain_line, Column};
 
 fn where_text(out: &mut String, w: &Where) {
@@ -216,36 +216,28 @@ fn scatter_svg(
     after: &Xy,
     x_range: (f64, f64),
 ) -> Result<(), DiagnoseError> {
-    let err = |source: PlotError| DiagnoseError::Plot {
-        path: path.display().to_string(),
-        source,
-    };
     let y_range = plot::padded(
         before.iter().chain(after).map(|&(_, y)| y),
         0.05,
         0.01,
         (-1.0, 1.0),
     );
-    let root = plot::canvas(path, (900, 620)).map_err(err)?;
-    let (upper, lower) = root.split_vertically(310);
-    for (area, series, label, color) in [
-        (&upper, before, "before (baseline)", plot::RED),
-        (&lower, after, "after (with the added effects)", plot::BLUE),
-    ] {
-        let mut chart = plot::Frame::new(x_desc, "residual (um)")
-            .caption(format!("{title}: {label}"), 16)
-            .margin(8)
-            .draw(area, x_range.0..x_range.1, y_range.clone())
-            .map_err(err)?;
-        plot::dots(
-            &mut chart,
-            series.iter().copied(),
-            1,
-            color.mix(0.5).filled(),
-        )
-        .map_err(err)?;
-    }
-    plot::finish(&root).map_err(err)
+    plot::svg(path, (900, 620), |root| {
+        let (upper, lower) = root.split_vertically(310);
+        for (area, series, label, color) in [
+            (&upper, before, "before (baseline)", plot::RED),
+            (&lower, after, "after (with the added effects)", plot::BLUE),
+        ] {
+            let mut chart = plot::Frame::new(x_desc, "residual (um)")
+                .caption(format!("{title}: {label}"), 16)
+                .margin(8)
+                .draw(area, x_range.0..x_range.1, y_range.clone())?;
+            let style = color.mix(0.5).filled();
+            plot::dots(&mut chart, series.iter().copied(), 1, style)?;
+        }
+        Ok(())
+    })?;
+    Ok(())
 }
 
 /// Writes the model file, the plots and `report.html` into `dir`; returns the paths.

@@ -117,35 +117,15 @@ impl ErrorModel {
         let mut v = [0.0, 0.0, 1.0];
         // A: T(pivot) L_A Rx(a) E_A L_A^-1
         let [yoa, zoa, boa, coa] = self.loc_a;
-        let la_r = [0.0, boa, coa];
-        let la_t = [0.0, yoa, zoa];
-        inv_small(&la_r, &la_t, &mut p, &mut v);
-        let e = self.tables[3].eval(q[3]);
-        small(&e, &mut p, &mut v);
-        let (sa, ca) = q[3].to_radians().sin_cos();
-        rot_x(sa, ca, &mut p, &mut v);
-        small(
-            &[la_t[0], la_t[1], la_t[2], la_r[0], la_r[1], la_r[2]],
-            &mut p,
-            &mut v,
-        );
+        let la = ([0.0, boa, coa], [0.0, yoa, zoa]);
+        rotary_link(&self.tables[3], q[3], la, rot_x, &mut p, &mut v);
         for (pk, dk) in p.iter_mut().zip(&g.pivot_mm) {
             *pk += dk;
         }
         // C: L_C Rz(c) E_C L_C^-1
         let [xoc, yoc, aoc, boc] = self.loc_c;
-        let lc_r = [aoc, boc, 0.0];
-        let lc_t = [xoc, yoc, 0.0];
-        inv_small(&lc_r, &lc_t, &mut p, &mut v);
-        let e = self.tables[4].eval(q[4]);
-        small(&e, &mut p, &mut v);
-        let (sc, cc) = q[4].to_radians().sin_cos();
-        rot_z(sc, cc, &mut p, &mut v);
-        small(
-            &[lc_t[0], lc_t[1], lc_t[2], lc_r[0], lc_r[1], lc_r[2]],
-            &mut p,
-            &mut v,
-        );
+        let lc = ([aoc, boc, 0.0], [xoc, yoc, 0.0]);
+        rotary_link(&self.tables[4], q[4], lc, rot_z, &mut p, &mut v);
         // Z, Y, X slides.
         let [c0y, b0z, a0z] = self.squareness_rad;
         let dirs = [[1.0, 0.0, 0.0], [-c0y, 1.0, 0.0], [b0z, -a0z, 1.0]];
@@ -330,6 +310,27 @@ fn small(e: &[f64; 6], p: &mut [f64; 3], v: &mut [f64; 3]) {
     let rp = r(p);
     *p = [rp[0] + e[0], rp[1] + e[1], rp[2] + e[2]];
     *v = r(v);
+}
+
+/// Applies a rotary link `L Rot(angle) E(angle) L^-1` to a point and a vector: `loc`
+/// is the location `L` (rotation, translation), `table` gives `E`, `rot` turns by the
+/// angle's sine and cosine.
+#[inline]
+fn rotary_link(
+    table: &Table,
+    angle_deg: f64,
+    (loc_r, loc_t): ([f64; 3], [f64; 3]),
+    rot: fn(f64, f64, &mut [f64; 3], &mut [f64; 3]),
+    p: &mut [f64; 3],
+    v: &mut [f64; 3],
+) {
+    inv_small(&loc_r, &loc_t, p, v);
+    small(&table.eval(angle_deg), p, v);
+    let (s, c) = angle_deg.to_radians().sin_cos();
+    rot(s, c, p, v);
+    let [tx, ty, tz] = loc_t;
+    let [rx, ry, rz] = loc_r;
+    small(&[tx, ty, tz, rx, ry, rz], p, v);
 }
 
 /// Applies the first-order inverse of `[I + skew(r), t]`: `x -> (I - skew(r)) (x - t)`.

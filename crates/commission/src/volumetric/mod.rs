@@ -184,12 +184,6 @@ pub enum VolumetricError {
     #[error("{0}")]
     Io(String),
     /// Drawing an error map failed.
-    #[error("{path}: {source}")]
-    Plot {
-        /// The SVG file.
-        path: String,
-        /// What the plotting reported.
-        #[source]
-        source: PlotError,
-    },
+    #[error("{0}")]
+    Plot(#[from] PlotError),
 }

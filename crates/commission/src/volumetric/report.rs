@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use super::evaluation::{Evaluation, POLE_TOL_ARCSEC, POLE_TOL_FRACTION};
 use super::kinematics::PoleMode;
 use super::{VolumetricError, SINGULAR_A_DEG, TOL_ARCSEC, TOL_UM};
-use crate::plot::{self, PlotError};
+use crate::plot;
 use crate::table::{plain_line, Column};
 
 /// The report of an evaluation.
@@ -154,39 +154,29 @@ pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, Volumetri
         ("orientation-error.svg", 1, "orientation error (arcsec)"),
     ] {
         let path = dir.join(name);
-        let io = |source: PlotError| VolumetricError::Plot {
-            path: path.display().to_string(),
-            source,
-        };
         let get = |t: &(f64, f64)| if pick == 0 { t.0 } else { t.1 };
         let n = ev.poses.len().max(2);
-        let root = plot::canvas(&path, (1000, 700)).map_err(io)?;
-        let (upper, lower) = root.split_vertically(350);
-        for (area, series, color, label) in [
-            (&upper, &ev.uncompensated, plot::RED, "uncompensated"),
-            (&lower, &ev.compensated, plot::BLUE, "compensated"),
-        ] {
-            let hi = series.iter().map(get).fold(1e-12, f64::max) * 1.05;
-            let mut chart = plot::Frame::new("grid pose (X outermost, C innermost)", unit)
-                .caption(
-                    format!("{label} {unit} per grid pose (max {:.4})", hi / 1.05),
-                    18,
-                )
-                .label_areas(30, 80)
-                .draw(area, 0.0..(n - 1) as f64, 0.0..hi)
-                .map_err(io)?;
-            let pts = series.iter().enumerate().map(|(i, t)| (i as f64, get(t)));
-            plot::line(&mut chart, pts, color, None).map_err(io)?;
-        }
-        plot::finish(&root).map_err(io)?;
+        plot::svg(&path, (1000, 700), |root| {
+            let (upper, lower) = root.split_vertically(350);
+            for (area, series, color, label) in [
+                (&upper, &ev.uncompensated, plot::RED, "uncompensated"),
+                (&lower, &ev.compensated, plot::BLUE, "compensated"),
+            ] {
+                let hi = series.iter().map(get).fold(1e-12, f64::max) * 1.05;
+                let caption = format!("{label} {unit} per grid pose (max {:.4})", hi / 1.05);
+                let mut chart = plot::Frame::new("grid pose (X outermost, C innermost)", unit)
+                    .caption(caption, 18)
+                    .label_areas(30, 80)
+                    .draw(area, 0.0..(n - 1) as f64, 0.0..hi)?;
+                let pts = series.iter().enumerate().map(|(i, t)| (i as f64, get(t)));
+                plot::line(&mut chart, pts, color, None)?;
+            }
+            Ok(())
+        })?;
         written.push(path.clone());
     }
     // X-Y map of the worst uncompensated tip error.
     let path = dir.join("tip-error-xy.svg");
-    let io = |source: PlotError| VolumetricError::Plot {
-        path: path.display().to_string(),
-        source,
-    };
     let mut xs: Vec<f64> = ev.poses.iter().map(|p| p[0]).collect();
     let mut ys: Vec<f64> = ev.poses.iter().map(|p| p[1]).collect();
     for v in [&mut xs, &mut ys] {
@@ -217,17 +207,6 @@ pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, Volumetri
         let (_, x1) = half(&xs, xs.len() - 1);
         let (y0, _) = half(&ys, 0);
         let (_, y1) = half(&ys, ys.len() - 1);
-        let root = plot::canvas(&path, (800, 700)).map_err(io)?;
-        let mut chart = plot::Frame::new("X (mm)", "Y (mm)")
-            .caption(
-                format!(
-                    "uncompensated tip error over X-Y, worst over Z, A, C \
-                     (blue {bottom:.1} .. red {top:.1} um)"
-                ),
-                18,
-            )
-            .draw(&root, x0..x1, y0..y1)
-            .map_err(io)?;
         let mut rects = Vec::with_capacity(cell.len());
         for i in 0..xs.len() {
             for j in 0..ys.len() {
@@ -237,8 +216,16 @@ pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, Volumetri
                 rects.push(((a0, b0), (a1, b1), plot::blue_to_red(v, 64)));
             }
         }
-        plot::cells(&mut chart, rects).map_err(io)?;
-        plot::finish(&root).map_err(io)?;
+        let caption = format!(
+            "uncompensated tip error over X-Y, worst over Z, A, C \
+             (blue {bottom:.1} .. red {top:.1} um)"
+        );
+        plot::svg(&path, (800, 700), |root| {
+            let mut chart = plot::Frame::new("X (mm)", "Y (mm)")
+                .caption(caption, 18)
+                .draw(root, x0..x1, y0..y1)?;
+            plot::cells(&mut chart, rects)
+        })?;
         written.push(path.clone());
     }
     Ok(written)
