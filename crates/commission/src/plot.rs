@@ -307,4 +307,13 @@ mod tests {
             assert!(svg.contains(text), "{text} missing");
         }
     }
+
+    #[test]
+    fn a_failed_write_names_its_file() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("no-such-dir").join("chart.svg");
+        let e = svg(&path, (10, 10), |_| Ok(())).expect_err("no directory");
+        assert_eq!(e.path, path.display().to_string());
+        assert!(e.to_string().starts_with(&e.path), "{e}");
+    }
 }

@@ -56,20 +56,16 @@ fn where_text(out: &mut String, w: &Where) {
     let _ = writeln!(out, "  lag-1 autocorrelation in time: {:.3}", w.rho);
 }
 
-/// The candidates table: effect, sensor, param, rms_um, cv_rms, dIC, rho, n_eff, edge,
-/// verdict.
-const CANDIDATE_COLUMNS: [Column; 10] = [
-    Column::left(2, 20),
-    Column::right(1, 7),
-    Column::right(1, 12),
-    Column::right(1, 9),
-    Column::right(1, 9),
-    Column::right(1, 10),
-    Column::right(1, 8),
-    Column::right(1, 9),
-    Column::right(1, 9),
-    Column::left(2, 0),
-];
+/// The candidates table: the effect, eight right-aligned figures (sensor, param,
+/// rms_um, cv_rms, dIC, rho, n_eff, edge), the verdict after two spaces.
+fn candidate_columns() -> [Column; 10] {
+    const FIGURE_WIDTHS: [usize; 8] = [7, 12, 9, 9, 10, 8, 9, 9];
+    std::array::from_fn(|i| match i {
+        0 => Column::left(2, 20),
+        9 => Column::left(2, 0),
+        _ => Column::right(1, FIGURE_WIDTHS[i - 1]),
+    })
+}
 
 /// The human-readable report.
 pub fn text_report(d: &Diagnosis) -> String {
@@ -97,6 +93,7 @@ pub fn text_report(d: &Diagnosis) -> String {
     );
     let _ = writeln!(out, "\nwhere the baseline disagrees:");
     where_text(&mut out, &d.where_baseline);
+    let columns = candidate_columns();
     for (i, round) in d.rounds.iter().enumerate() {
         let _ = writeln!(
             out,
@@ -107,7 +104,7 @@ pub fn text_report(d: &Diagnosis) -> String {
             "effect", "sensor", "param", "rms_um", "cv_rms", "dIC", "rho", "n_eff", "edge",
             "verdict",
         ];
-        let _ = writeln!(out, "{}", plain_line(&CANDIDATE_COLUMNS, header));
+        let _ = writeln!(out, "{}", plain_line(&columns, header));
         for c in &round.candidates {
             let param = match (c.param, c.param_name) {
                 (Some(v), Some(n)) => format!(
@@ -148,7 +145,7 @@ pub fn text_report(d: &Diagnosis) -> String {
                 (if c.at_edge { "yes" } else { "no" }).to_string(),
                 verdict,
             ];
-            let _ = writeln!(out, "{}", plain_line(&CANDIDATE_COLUMNS, cells));
+            let _ = writeln!(out, "{}", plain_line(&columns, cells));
         }
     }
     let _ = writeln!(out, "\neffects added:");
