@@ -33,7 +33,7 @@ use tokio_util::sync::CancellationToken;
 use compgate_commission::calibrate::{self, AxisModel};
 use compgate_commission::table::Markdown;
 use compgate_core::comp::Decision;
-use compgate_core::measure::{Measurements, TempColumn};
+use compgate_core::measure::{MeasureError, Measurements, TempColumn};
 use compgate_gateway::config;
 use compgate_gateway::nc::{Job, NcWriter};
 use compgate_gateway::runtime;
@@ -47,8 +47,8 @@ pub enum ScenarioError {
     Hours(f64),
     #[error("--sample-every-s must be at least {min_s} s, the length of one sweep (got {got_s})")]
     SampleEvery { got_s: f64, min_s: f64 },
-    #[error("model: {0}")]
-    Model(String),
+    #[error("model: the model reads channel `{channel}`; the machine's sensors are {sensors}")]
+    UnknownChannel { channel: String, sensors: String },
     #[error("model: commissioning fit: {0}")]
     Fit(#[source] calibrate::CalibrateError),
     #[error("model: {0}")]
@@ -57,8 +57,18 @@ pub enum ScenarioError {
     Plot(#[from] compgate_commission::plot::PlotError),
     #[error("setup: {0}")]
     Setup(String),
-    #[error("{path}: {message}")]
-    Io { path: String, message: String },
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: {source}")]
+    Csv {
+        path: String,
+        #[source]
+        source: MeasureError,
+    },
 }
 
 /// `compgate scenario` arguments.
@@ -321,10 +331,10 @@ async fn run_once(
     let sensors = machine.sensor_names();
     for ch in s.model.channels() {
         if !sensors.contains(&ch.as_str()) {
-            return Err(ScenarioError::Model(format!(
-                "the model reads channel `{ch}`; the machine's sensors are {}",
-                sensors.join(", ")
-            )));
+            return Err(ScenarioError::UnknownChannel {
+                channel: ch,
+                sensors: sensors.join(", "),
+            });
         }
     }
     let transmitters = sensors
@@ -503,17 +513,20 @@ async fn run_once(
     Ok((out, amb_hi - amb_lo))
 }
 
-fn io_err(path: &Path, e: impl std::fmt::Display) -> ScenarioError {
+fn io_err(path: &Path, source: std::io::Error) -> ScenarioError {
     ScenarioError::Io {
         path: path.display().to_string(),
-        message: e.to_string(),
+        source,
     }
 }
 
 fn write_csv(path: &Path, m: &Measurements) -> Result<(), ScenarioError> {
     let f = std::fs::File::create(path).map_err(|e| io_err(path, e))?;
     m.write(std::io::BufWriter::new(f))
-        .map_err(|e| io_err(path, e))
+        .map_err(|source| ScenarioError::Csv {
+            path: path.display().to_string(),
+            source,
+        })
 }
 
 /// Runs the scenario with the default machine and writes everything into `args.out`.
