@@ -6,6 +6,7 @@ use super::fit::{ar1, blocks, residuals, Gram};
 use super::{DiagnoseError, Thresholds};
 use crate::stats::golden;
 use compgate_core::measure::Measurements;
+use serde::Serialize;
 
 /// The measurements prepared for fitting: centred temperatures, position in mm from P0.
 pub struct Data {
@@ -211,6 +212,13 @@ pub struct Evidence {
     pub delta_ic: f64,
     pub cv_before: f64,
     pub cv_after: f64,
+    /// The acceptance tests.
+    pub checks: Checks,
+}
+
+/// A candidate's acceptance tests, as computed and as reported.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Checks {
     /// The searched parameter sits at the edge of its range.
     pub at_edge: bool,
     pub passes_ic: bool,
@@ -224,7 +232,8 @@ pub struct Evidence {
 impl Evidence {
     /// Every test holds.
     pub fn passes(&self) -> bool {
-        self.passes_ic && self.passes_cv && self.plausible && self.passes_size
+        let c = &self.checks;
+        c.passes_ic && c.passes_cv && c.plausible && c.passes_size
     }
 }
 
@@ -469,12 +478,14 @@ pub fn evaluate(
         delta_ic,
         cv_before: cur.cv,
         cv_after,
-        at_edge,
-        passes_ic: delta_ic < -th.ic_margin,
-        passes_cv: cv_after < cur.cv * (1.0 - th.cv_min_gain),
-        plausible: !at_edge && sol.rss.is_finite(),
-        size_ratio,
-        passes_size: size_ratio >= th.min_size_ratio,
+        checks: Checks {
+            at_edge,
+            passes_ic: delta_ic < -th.ic_margin,
+            passes_cv: cv_after < cur.cv * (1.0 - th.cv_min_gain),
+            plausible: !at_edge && sol.rss.is_finite(),
+            size_ratio,
+            passes_size: size_ratio >= th.min_size_ratio,
+        },
     };
     Some((ev, cols))
 }

@@ -114,16 +114,16 @@ pub fn text_report(d: &Diagnosis) -> String {
                 _ => "-".into(),
             };
             let mut why = Vec::new();
-            if !c.passes_ic {
+            if !c.checks.passes_ic {
                 why.push("IC");
             }
-            if !c.passes_cv {
+            if !c.checks.passes_cv {
                 why.push("CV");
             }
-            if !c.plausible {
+            if !c.checks.plausible {
                 why.push("edge of range");
             }
-            if !c.passes_size {
+            if !c.checks.passes_size {
                 why.push("too small");
             }
             let verdict = if c.accepted {
@@ -142,7 +142,7 @@ pub fn text_report(d: &Diagnosis) -> String {
                 format!("{:.1}", c.delta_ic),
                 format!("{:.3}", c.rho),
                 format!("{:.0}", c.n_eff),
-                (if c.at_edge { "yes" } else { "no" }).to_string(),
+                (if c.checks.at_edge { "yes" } else { "no" }).to_string(),
                 verdict,
             ];
             let _ = writeln!(out, "{}", plain_line(&columns, cells));
