@@ -196,7 +196,7 @@ fn main() {
             d.rounds[0]
                 .candidates
                 .iter()
-                .filter(|c| c.passes_cv && c.plausible)
+                .filter(|c| c.checks.passes_cv && c.checks.plausible)
                 .map(|c| c.delta_ic)
                 .fold(f64::INFINITY, f64::min),
         );

@@ -31,8 +31,9 @@ use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
 
 use compgate_commission::calibrate::{self, AxisModel};
+use compgate_commission::table::Markdown;
 use compgate_core::comp::Decision;
-use compgate_core::measure::{Measurements, TempColumn};
+use compgate_core::measure::{MeasureError, Measurements, TempColumn};
 use compgate_gateway::config;
 use compgate_gateway::nc::{Job, NcWriter};
 use compgate_gateway::runtime;
@@ -46,12 +47,28 @@ pub enum ScenarioError {
     Hours(f64),
     #[error("--sample-every-s must be at least {min_s} s, the length of one sweep (got {got_s})")]
     SampleEvery { got_s: f64, min_s: f64 },
+    #[error("model: the model reads channel `{channel}`; the machine's sensors are {sensors}")]
+    UnknownChannel { channel: String, sensors: String },
+    #[error("model: commissioning fit: {0}")]
+    Fit(#[source] calibrate::CalibrateError),
     #[error("model: {0}")]
-    Model(String),
+    ModelFile(#[source] calibrate::CalibrateError),
+    #[error("{0}")]
+    Plot(#[from] compgate_commission::plot::PlotError),
     #[error("setup: {0}")]
     Setup(String),
-    #[error("{path}: {message}")]
-    Io { path: String, message: String },
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: {source}")]
+    Csv {
+        path: String,
+        #[source]
+        source: MeasureError,
+    },
 }
 
 /// `compgate scenario` arguments.
@@ -197,38 +214,41 @@ impl ScenarioReport {
             self.hours, self.ambient_swing_degc
         );
         let _ = writeln!(s, "model: {}", self.model_source);
-        s.push_str(
-            "\n| thermal positioning error | peak-to-peak (um) | RMS (um) | max abs (um) |\n",
-        );
-        s.push_str("|---|---|---|---|\n");
+        let um = |v: f64| format!("{v:.2}");
+        let mut error = Markdown::new([
+            "thermal positioning error",
+            "peak-to-peak (um)",
+            "RMS (um)",
+            "max abs (um)",
+        ]);
         for (name, r) in [
             ("compensation off", &self.off),
             ("compensation on", &self.on),
         ] {
-            let _ = writeln!(
-                s,
-                "| {name} | {:.2} | {:.2} | {:.2} |",
-                r.stats.peak_to_peak_um, r.stats.rms_um, r.stats.max_abs_um
-            );
+            let st = &r.stats;
+            let cells = [um(st.peak_to_peak_um), um(st.rms_um), um(st.max_abs_um)];
+            error.row(std::iter::once(name.to_string()).chain(cells));
         }
-        let _ = writeln!(
-            s,
-            "| reduction | {:.1} % | {:.1} % | |",
-            self.reduction_pp_percent(),
-            self.reduction_rms_percent()
-        );
+        error.row([
+            "reduction".to_string(),
+            format!("{:.1} %", self.reduction_pp_percent()),
+            format!("{:.1} %", self.reduction_rms_percent()),
+            String::new(),
+        ]);
+        s.push('\n');
+        s.push_str(&error.render());
         if let (Some(a), Some(b)) = (&self.iso_off, &self.iso_on) {
-            let _ = writeln!(
-                s,
-                "\nISO 230-2 at the end ({ISO_RUNS} bidirectional runs, um) | A | B | R | E | M |\n|---|---|---|---|---|---|"
-            );
+            let title = format!("ISO 230-2 at the end ({ISO_RUNS} bidirectional runs, um)");
+            let mut iso = Markdown::new([title.as_str(), "A", "B", "R", "E", "M"]);
             for (name, r) in [("compensation off", a), ("compensation on", b)] {
-                let _ = writeln!(
-                    s,
-                    "| {name} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |",
-                    r.a_um, r.b_um, r.r_um, r.e_um, r.m_um
-                );
+                let cells = [r.a_um, r.b_um, r.r_um, r.e_um, r.m_um].map(um);
+                iso.row(std::iter::once(name.to_string()).chain(cells));
             }
+            // The title stands in the header row without a leading `|`, as the guide
+            // shows it.
+            let iso = iso.render();
+            s.push('\n');
+            s.push_str(iso.strip_prefix("| ").unwrap_or(&iso));
         }
         let _ = writeln!(
             s,
@@ -259,8 +279,7 @@ pub fn commissioning_model(
     let plan = SweepPlan::irregular(params.axis_length_mm, TARGETS, 1800.0);
     let s = measurement_run(&mut machine, &DutyCycle::commissioning(24.0), &plan, 30.0);
     let m = Measurements::from(&s);
-    let fit = calibrate::calibrate(&m, sensors, None)
-        .map_err(|e| ScenarioError::Model(format!("commissioning fit: {e}")))?;
+    let fit = calibrate::calibrate(&m, sensors, None).map_err(ScenarioError::Fit)?;
     Ok((AxisModel::from_fit(&fit), fit, m))
 }
 
@@ -312,10 +331,10 @@ async fn run_once(
     let sensors = machine.sensor_names();
     for ch in s.model.channels() {
         if !sensors.contains(&ch.as_str()) {
-            return Err(ScenarioError::Model(format!(
-                "the model reads channel `{ch}`; the machine's sensors are {}",
-                sensors.join(", ")
-            )));
+            return Err(ScenarioError::UnknownChannel {
+                channel: ch,
+                sensors: sensors.join(", "),
+            });
         }
     }
     let transmitters = sensors
@@ -495,17 +514,20 @@ async fn run_once(
     Ok((out, amb_hi - amb_lo))
 }
 
-fn io_err(path: &Path, e: impl std::fmt::Display) -> ScenarioError {
+fn io_err(path: &Path, source: std::io::Error) -> ScenarioError {
     ScenarioError::Io {
         path: path.display().to_string(),
-        message: e.to_string(),
+        source,
     }
 }
 
 fn write_csv(path: &Path, m: &Measurements) -> Result<(), ScenarioError> {
     let f = std::fs::File::create(path).map_err(|e| io_err(path, e))?;
     m.write(std::io::BufWriter::new(f))
-        .map_err(|e| io_err(path, e))
+        .map_err(|source| ScenarioError::Csv {
+            path: path.display().to_string(),
+            source,
+        })
 }
 
 /// Runs the scenario with the default machine and writes everything into `args.out`.
@@ -533,8 +555,7 @@ pub async fn run_with(
     std::fs::create_dir_all(&args.out).map_err(|e| io_err(&args.out, e))?;
     let (model, model_source) = match &args.model {
         Some(path) => {
-            let (axis, model) =
-                calibrate::load_model(path).map_err(|e| ScenarioError::Model(e.to_string()))?;
+            let (axis, model) = calibrate::load_model(path).map_err(ScenarioError::ModelFile)?;
             (model, format!("{} (axes.{axis})", path.display()))
         }
         None => {
@@ -601,10 +622,8 @@ pub async fn run_with(
     write_csv(&args.out.join("on.csv"), &report.on.series)?;
     write_csv(&args.out.join("iso230_off.csv"), &report.off.iso230)?;
     write_csv(&args.out.join("iso230_on.csv"), &report.on.iso230)?;
-    plot::error_vs_time(&args.out.join("error_vs_time.svg"), &report)
-        .map_err(|e| io_err(&args.out.join("error_vs_time.svg"), e))?;
-    plot::error_vs_position(&args.out.join("error_vs_position.svg"), &report)
-        .map_err(|e| io_err(&args.out.join("error_vs_position.svg"), e))?;
+    plot::error_vs_time(&args.out.join("error_vs_time.svg"), &report)?;
+    plot::error_vs_position(&args.out.join("error_vs_position.svg"), &report)?;
     let text = report.text();
     let path = args.out.join("report.md");
     std::fs::write(&path, &text).map_err(|e| io_err(&path, e))?;

@@ -158,7 +158,7 @@ const SERVO_CYCLES_US: [f64; 2] = [125.0, 500.0];
 /// One line on the volumetric compensator: compensations per second on one core and
 /// the share of a servo cycle one compensation takes.
 pub fn volumetric_line(seconds: f64) -> String {
-    let b = compgate_commission::volumetric::bench_per_s(seconds);
+    let b = crate::volumetric::bench_per_s(seconds);
     format!(
         "volumetric compensation, one core: {:.0}/s, {:.0} ns each = {:.2}% of a {} us / {:.3}% of a {} us servo cycle (target >= 1,000,000/s)\n",
         b.per_s,

@@ -6,6 +6,7 @@
 
 mod cycle;
 mod soak;
+mod volumetric;
 
 use std::path::PathBuf;
 use std::process::ExitCode;

@@ -1,6 +1,8 @@
 use compgate_plc::axis::{AxisParams, ServoSim, TraceState};
 use compgate_plc::nc::{NcAxis, NcAxisModule};
 
+use compgate_ncproto as ncmap;
+
 use super::*;
 
 /// Tolerance of the acceptance: max(0.5 um, 2 %).

@@ -6,14 +6,17 @@
 //! tan_beta(T) = tan_beta_offset + sum_j tan_beta_per_degc[j] * (T_j - ref_j)
 //! ```
 //!
-//! Linear in its 2 + 2m coefficients, so one linear least-squares problem; solved
-//! with nalgebra's SVD on a column-scaled design (temperatures in K and positions in
-//! mm differ by three orders of magnitude). Standard errors come from
+//! Linear in its 2 + 2m coefficients, so one linear least-squares problem, solved by
+//! [`crate::lsq`] on the column-scaled design (temperatures in K and positions in mm
+//! differ by three orders of magnitude). Standard errors come from
 //! `sigma^2 (X^T X)^-1`, assuming independent residuals; on a slow thermal series
 //! they are a lower bound.
 
 use nalgebra::{DMatrix, DVector};
 use thiserror::Error;
+
+use crate::lsq;
+use crate::stats::mean;
 
 /// Why a fit is impossible.
 #[derive(Debug, Clone, PartialEq, Error)]
@@ -126,10 +129,6 @@ pub fn choose_p0_mm(pos_mm: &[f64]) -> f64 {
         .unwrap_or(0.0)
 }
 
-fn mean(v: &[f64]) -> f64 {
-    v.iter().sum::<f64>() / v.len().max(1) as f64
-}
-
 /// Fits the model to rows of `pos_mm`, `err_um` and one temperature column per
 /// sensor `(name, degc)`, with reference position `p0_mm`.
 pub fn fit(
@@ -187,49 +186,18 @@ pub fn fit(
             x[(i, 2 + m + j)] = dx[i] * dt;
         }
     }
-    let scale: Vec<f64> = (0..p)
-        .map(|c| {
-            let s = x.column(c).norm();
-            if s > 0.0 {
-                s
-            } else {
-                1.0
-            }
-        })
-        .collect();
-    let mut xs = x.clone();
-    for (c, s) in scale.iter().enumerate() {
-        xs.column_mut(c).unscale_mut(*s);
-    }
-    let y = DVector::from_column_slice(err_um);
-    let svd = xs.svd(true, true);
-    let sv = &svd.singular_values;
-    let s_max = sv.max();
-    let s_min = sv.min();
-    let condition = if s_min > 0.0 {
-        s_max / s_min
-    } else {
-        f64::INFINITY
-    };
-    if !condition.is_finite() || condition > 1e10 {
-        return Err(FitError::Collinear { condition });
-    }
-    let beta_s = svd
-        .solve(&y, 0.0)
-        .map_err(|_| FitError::Collinear { condition })?;
-    let beta: Vec<f64> = (0..p).map(|c| beta_s[c] / scale[c]).collect();
-    let fitted = &x * DVector::from_column_slice(&beta);
+    let design = lsq::solve_design(&x, err_um, 1e10).map_err(|c| FitError::Collinear {
+        condition: c.condition,
+    })?;
+    let beta = &design.beta;
+    let condition = design.condition;
+    let fitted = &x * DVector::from_column_slice(beta);
     let residuals_um: Vec<f64> = (0..n).map(|i| err_um[i] - fitted[i]).collect();
     let ss_res: f64 = residuals_um.iter().map(|r| r * r).sum();
     let y_mean = mean(err_um);
     let ss_tot: f64 = err_um.iter().map(|v| (v - y_mean).powi(2)).sum();
     let sigma2 = ss_res / (n - p) as f64;
-    // (Xs^T Xs)^-1 = V diag(1/s^2) V^T.
-    let v_t = svd.v_t.as_ref().ok_or(FitError::Collinear { condition })?;
-    let se = |c: usize| {
-        let var_s: f64 = (0..sv.len()).map(|k| (v_t[(k, c)] / sv[k]).powi(2)).sum();
-        (sigma2 * var_s).sqrt() / scale[c]
-    };
+    let se = |c: usize| (sigma2 * design.inv_gram_diag[c]).sqrt();
     // tan(beta) = slope_um_per_mm / 1000.
     let terms = sensors
         .iter()

@@ -5,18 +5,19 @@
 //! The model's channels are the CSV's temperature columns without `T_`: name the
 //! gateway's channels alike (or rename them in the written file).
 
+mod command;
 pub mod fit;
-
-use std::collections::BTreeMap;
-use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
-
-use serde::{Deserialize, Serialize};
-use thiserror::Error;
+mod model;
+mod report;
 
 use compgate_core::measure::{MeasureError, Measurements};
-use compgate_gateway::config::{K0Model, K0Term, TanBetaModel, TanBetaTerm};
+use thiserror::Error;
+
+use crate::plot::PlotError;
+pub use command::{run, CalibrateArgs};
 pub use fit::{Fit, FitError};
+pub use model::{first_axis_model, load_model, model_toml, AxisModel, ModelError};
+pub use report::{plot_curves, report};
 
 /// Errors of `calibrate` and of reading a model file.
 #[derive(Debug, Error)]
@@ -27,173 +28,21 @@ pub enum CalibrateError {
     NoSensor(String, String),
     #[error("fit: {0}")]
     Fit(#[from] FitError),
-    #[error("{path}: {message}")]
-    Io { path: String, message: String },
-    #[error("{path}: {message}")]
-    Model { path: String, message: String },
-}
-
-/// `compgate calibrate` arguments.
-#[derive(Debug, Clone, clap::Args)]
-pub struct CalibrateArgs {
-    /// Measured-error CSV (`t_s,pos_mm,err_um,T_<sensor>...`).
-    #[arg(long)]
-    pub data: PathBuf,
-    /// Where to write the model (TOML, the gateway's `[axes.NAME]` form).
-    #[arg(long)]
-    pub out: PathBuf,
-    /// Sensors the model uses, comma separated, with or without `T_`; default every
-    /// temperature column.
-    #[arg(long, value_delimiter = ',')]
-    pub sensors: Vec<String>,
-    /// Reference position P0, mm; default the measured position nearest 0.
-    #[arg(long)]
-    pub p0_mm: Option<f64>,
-    /// Axis name in the written model.
-    #[arg(long, default_value = "X")]
-    pub axis: String,
-    /// NC module name in the written model.
-    #[arg(long, default_value = "nc_x")]
-    pub nc_module: String,
-    /// SVG plot of the measured error curves with the fitted lines.
-    #[arg(long)]
-    pub plot: Option<PathBuf>,
-}
-
-/// The model part of an `[axes.NAME]` table: what calibrate writes, `scenario
-/// --model` reads, and the axis part of diagnose's model file.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
-pub struct AxisModel {
-    /// SD43920, mm.
-    #[serde(default)]
-    pub p0_mm: f64,
-    /// K0(T) -> SD43900.
-    #[serde(default)]
-    pub k0: K0Model,
-    /// tan(beta)(T) -> SD43910.
-    #[serde(default)]
-    pub tan_beta: TanBetaModel,
-}
-
-impl AxisModel {
-    /// The fitted model in config units (mm, mm/mm).
-    pub fn from_fit(f: &Fit) -> Self {
-        Self {
-            p0_mm: f.p0_mm,
-            k0: K0Model {
-                offset_mm: f.k0_offset_um / 1000.0,
-                terms: f
-                    .terms
-                    .iter()
-                    .map(|t| K0Term {
-                        channel: t.name.clone(),
-                        ref_degc: t.ref_degc,
-                        coeff_mm_per_degc: t.k0_um_per_degc / 1000.0,
-                    })
-                    .collect(),
-            },
-            tan_beta: TanBetaModel {
-                offset: f.tan_beta_offset,
-                terms: f
-                    .terms
-                    .iter()
-                    .map(|t| TanBetaTerm {
-                        channel: t.name.clone(),
-                        ref_degc: t.ref_degc,
-                        coeff_per_degc: t.tan_beta_per_degc,
-                    })
-                    .collect(),
-            },
-        }
-    }
-
-    /// Error the model predicts at `pos_mm` with temperatures by channel name, um;
-    /// `None` if a channel is missing.
-    pub fn predict_um(&self, pos_mm: f64, temp_degc: impl Fn(&str) -> Option<f64>) -> Option<f64> {
-        let mut k0_mm = self.k0.offset_mm;
-        for t in &self.k0.terms {
-            k0_mm += t.coeff_mm_per_degc * (temp_degc(&t.channel)? - t.ref_degc);
-        }
-        let mut tan = self.tan_beta.offset;
-        for t in &self.tan_beta.terms {
-            tan += t.coeff_per_degc * (temp_degc(&t.channel)? - t.ref_degc);
-        }
-        Some(1000.0 * (k0_mm + tan * (pos_mm - self.p0_mm)))
-    }
-
-    /// Channels the model reads, each once.
-    pub fn channels(&self) -> Vec<String> {
-        let mut c: Vec<String> = Vec::new();
-        let names = self.k0.terms.iter().map(|t| &t.channel);
-        for n in names.chain(self.tan_beta.terms.iter().map(|t| &t.channel)) {
-            if !c.contains(n) {
-                c.push(n.clone());
-            }
-        }
-        c
-    }
-}
-
-#[derive(Serialize)]
-struct AxisOut<'a> {
-    nc_module: &'a str,
-    md32750: u16,
-    #[serde(flatten)]
-    model: &'a AxisModel,
-}
-
-/// The model as a TOML fragment `[axes.<axis>]`, with a comment header.
-pub fn model_toml(axis: &str, nc_module: &str, model: &AxisModel, header: &str) -> String {
-    let mut axes = BTreeMap::new();
-    axes.insert(
-        axis,
-        AxisOut {
-            nc_module,
-            // Both parts are fitted: K0 (bit 0) and the slope (bit 1).
-            md32750: 3,
-            model,
-        },
-    );
-    let mut root = BTreeMap::new();
-    root.insert("axes", axes);
-    let body = toml::to_string(&root).unwrap_or_default();
-    let mut s = String::new();
-    for line in header.lines() {
-        let _ = writeln!(s, "# {line}");
-    }
-    s.push_str(&body);
-    s
-}
-
-/// Reads the first `[axes.NAME]` of a model file (from calibrate or diagnose) or of a
-/// whole gateway config; keys other than `p0_mm`, `k0` and `tan_beta` are ignored.
-pub fn load_model(path: &Path) -> Result<(String, AxisModel), CalibrateError> {
-    let err = |message: String| CalibrateError::Model {
-        path: path.display().to_string(),
-        message,
-    };
-    let text = std::fs::read_to_string(path).map_err(|e| err(e.to_string()))?;
-    let value: toml::Table = toml::from_str(&text).map_err(|e| err(e.to_string()))?;
-    first_axis_model(&value).map_err(err)
-}
-
-/// The first `[axes.NAME]` of a parsed model file or gateway config, and its name;
-/// keys other than `p0_mm`, `k0` and `tan_beta` are ignored. The error names the key.
-pub fn first_axis_model(root: &toml::Table) -> Result<(String, AxisModel), String> {
-    let (name, axis) = root
-        .get("axes")
-        .and_then(|a| a.as_table())
-        .and_then(|a| a.iter().next())
-        .ok_or("no [axes.NAME] table")?;
-    let mut t = axis
-        .as_table()
-        .cloned()
-        .ok_or_else(|| format!("axes.{name} is not a table"))?;
-    t.retain(|k, _| matches!(k, "p0_mm" | "k0" | "tan_beta"));
-    let model: AxisModel = toml::Value::Table(t)
-        .try_into()
-        .map_err(|e: toml::de::Error| format!("axes.{name}: {}", e.message()))?;
-    Ok((name.clone(), model))
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{0}")]
+    Plot(#[from] PlotError),
+    #[error("{path}: {source}")]
+    Model {
+        path: String,
+        // Boxed: a TOML error is large, and every Result of the module carries this.
+        #[source]
+        source: Box<ModelError>,
+    },
 }
 
 /// Picks the sensor columns named in `wanted` (with or without `T_`), or all.
@@ -236,80 +85,6 @@ pub fn calibrate(
     Ok(fit::fit(&m.pos_mm, &m.err_um, &cols, p0_mm)?)
 }
 
-/// The fit report, as printed.
-pub fn report(f: &Fit) -> String {
-    let mut s = String::new();
-    let _ = writeln!(
-        s,
-        "fit: {} rows, {} sensors, P0 = {} mm",
-        f.rows,
-        f.terms.len(),
-        f.p0_mm
-    );
-    let _ = writeln!(
-        s,
-        "quality: RMS residual {:.3} um, max |residual| {:.3} um, R^2 {:.6}, condition {:.1e}",
-        f.rms_um, f.max_abs_um, f.r2, f.condition
-    );
-    let _ = writeln!(
-        s,
-        "K0 offset {:+.4} um (+/- {:.4}), tan(beta) offset {:+.4e} (+/- {:.1e})",
-        f.k0_offset_um, f.k0_offset_se_um, f.tan_beta_offset, f.tan_beta_offset_se
-    );
-    let _ = writeln!(
-        s,
-        "| sensor | ref degC | K0 um/K | +/- | tan(beta) 1/K | +/- |"
-    );
-    s.push_str("|---|---|---|---|---|---|\n");
-    for t in &f.terms {
-        let _ = writeln!(
-            s,
-            "| {} | {:.2} | {:+.4} | {:.4} | {:+.4e} | {:.1e} |",
-            t.name,
-            t.ref_degc,
-            t.k0_um_per_degc,
-            t.k0_se_um_per_degc,
-            t.tan_beta_per_degc,
-            t.tan_beta_se_per_degc
-        );
-    }
-    s.push_str(
-        "(+/- : standard errors assuming independent residuals; a lower bound on thermal data)\n",
-    );
-    s
-}
-
-/// Runs the command: read, fit, write the model (and plot); returns the report.
-pub fn run(args: &CalibrateArgs) -> Result<String, CalibrateError> {
-    let m = Measurements::read_path(&args.data)
-        .map_err(|e| CalibrateError::Data(args.data.display().to_string(), e))?;
-    let f = calibrate(&m, &args.sensors, args.p0_mm)?;
-    let model = AxisModel::from_fit(&f);
-    let header = format!(
-        "compgate calibrate: axis {} from {} rows of {}\nRMS residual {:.3} um, R^2 {:.6}\nchannels are the CSV's T_ columns without T_; name the gateway's channels alike",
-        args.axis,
-        f.rows,
-        args.data.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned()),
-        f.rms_um,
-        f.r2
-    );
-    let text = model_toml(&args.axis, &args.nc_module, &model, &header);
-    std::fs::write(&args.out, text).map_err(|e| CalibrateError::Io {
-        path: args.out.display().to_string(),
-        message: e.to_string(),
-    })?;
-    let mut out = report(&f);
-    let _ = writeln!(out, "model written to {}", args.out.display());
-    if let Some(plot) = &args.plot {
-        plot_curves(plot, &m, &f).map_err(|message| CalibrateError::Io {
-            path: plot.display().to_string(),
-            message,
-        })?;
-        let _ = writeln!(out, "plot written to {}", plot.display());
-    }
-    Ok(out)
-}
-
 /// Splits rows into sweeps: a new sweep starts after a pause longer than 5 times the
 /// median time step.
 pub fn sweeps(t_s: &[f64]) -> Vec<std::ops::Range<usize>> {
@@ -329,103 +104,6 @@ pub fn sweeps(t_s: &[f64]) -> Vec<std::ops::Range<usize>> {
     }
     out.push(start..t_s.len());
     out
-}
-
-/// SVG: measured error against position, one curve per sweep (at most 12, evenly
-/// chosen), each with the fitted line at that sweep's mean temperatures.
-pub fn plot_curves(path: &Path, m: &Measurements, f: &Fit) -> Result<(), String> {
-    use plotters::prelude::*;
-    let all = sweeps(&m.t_s);
-    let step = all.len().div_ceil(12).max(1);
-    let chosen: Vec<_> = all.into_iter().step_by(step).collect();
-    let cols: Vec<&[f64]> = f.terms.iter().filter_map(|t| m.temp(&t.name)).collect();
-    let (pmin, pmax) = m
-        .pos_mm
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
-            (a.min(*v), b.max(*v))
-        });
-    let (emin, emax) = m
-        .err_um
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
-            (a.min(*v), b.max(*v))
-        });
-    let pad = ((emax - emin) * 0.05).max(1.0);
-    let root = SVGBackend::new(path, (1000, 650)).into_drawing_area();
-    let e = |e: &dyn std::fmt::Display| e.to_string();
-    root.fill(&WHITE).map_err(|x| e(&x))?;
-    let first = f.terms.first().map_or("", |t| t.name.as_str());
-    let mut chart = ChartBuilder::on(&root)
-        .caption(
-            format!(
-                "calibrate: measured error curves (solid) and fitted model (dashed), RMS {:.2} um",
-                f.rms_um
-            ),
-            ("sans-serif", 18),
-        )
-        .margin(10)
-        .x_label_area_size(35)
-        .y_label_area_size(60)
-        .build_cartesian_2d(pmin..pmax.max(pmin + 1.0), (emin - pad)..(emax + pad))
-        .map_err(|x| e(&x))?;
-    chart
-        .configure_mesh()
-        .x_desc("position (mm)")
-        .y_desc("error, actual - commanded (um)")
-        .draw()
-        .map_err(|x| e(&x))?;
-    for (k, r) in chosen.iter().enumerate() {
-        let color = Palette99::pick(k).to_rgba();
-        let temps: Vec<f64> = cols
-            .iter()
-            .map(|c| c[r.clone()].iter().sum::<f64>() / r.len() as f64)
-            .collect();
-        let mut pts: Vec<(f64, f64)> = r.clone().map(|i| (m.pos_mm[i], m.err_um[i])).collect();
-        pts.sort_by(|a, b| a.0.total_cmp(&b.0));
-        let label = format!(
-            "t = {:.1} h, T_{first} = {:.2} degC",
-            m.t_s[r.start] / 3600.0,
-            temps.first().copied().unwrap_or(f64::NAN)
-        );
-        chart
-            .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
-            .map_err(|x| e(&x))?
-            .label(label)
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
-            });
-        chart
-            .draw_series(
-                pts.iter()
-                    .map(|&(x, y)| Circle::new((x, y), 3, color.filled())),
-            )
-            .map_err(|x| e(&x))?;
-        // Dashed fitted line: short segments.
-        let n = 40;
-        let line: Vec<(f64, f64)> = (0..=n)
-            .map(|i| {
-                let x = pmin + (pmax - pmin) * i as f64 / n as f64;
-                (x, f.predict_um(x, &temps))
-            })
-            .collect();
-        for w in line.chunks(2) {
-            if let [a, b] = w {
-                chart
-                    .draw_series(std::iter::once(PathElement::new(vec![*a, *b], color)))
-                    .map_err(|x| e(&x))?;
-            }
-        }
-    }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|x| e(&x))?;
-    root.present().map_err(|x| e(&x))?;
-    Ok(())
 }
 
 #[cfg(test)]

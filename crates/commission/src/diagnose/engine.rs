@@ -4,7 +4,9 @@
 use super::effects::{center, lag, legendre_2_4, motion_heat, EffectKind};
 use super::fit::{ar1, blocks, residuals, Gram};
 use super::{DiagnoseError, Thresholds};
+use crate::stats::golden;
 use compgate_core::measure::Measurements;
+use serde::Serialize;
 
 /// The measurements prepared for fitting: centred temperatures, position in mm from P0.
 pub struct Data {
@@ -210,6 +212,13 @@ pub struct Evidence {
     pub delta_ic: f64,
     pub cv_before: f64,
     pub cv_after: f64,
+    /// The acceptance tests.
+    pub checks: Checks,
+}
+
+/// A candidate's acceptance tests, as computed and as reported.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Checks {
     /// The searched parameter sits at the edge of its range.
     pub at_edge: bool,
     pub passes_ic: bool,
@@ -223,7 +232,8 @@ pub struct Evidence {
 impl Evidence {
     /// Every test holds.
     pub fn passes(&self) -> bool {
-        self.passes_ic && self.passes_cv && self.plausible && self.passes_size
+        let c = &self.checks;
+        c.passes_ic && c.passes_cv && c.plausible && c.passes_size
     }
 }
 
@@ -297,34 +307,6 @@ fn search_log(lo: f64, hi: f64, n: usize, f: &mut dyn FnMut(f64) -> f64) -> (f64
         (x.exp(), fx, false)
     } else {
         (grid[best].exp(), vals[best], false)
-    }
-}
-
-/// Golden-section minimisation of a unimodal `f` on `[a, b]`.
-pub fn golden(mut a: f64, mut b: f64, iters: usize, f: &mut dyn FnMut(f64) -> f64) -> (f64, f64) {
-    let r = (5f64.sqrt() - 1.0) / 2.0;
-    let mut c = b - r * (b - a);
-    let mut e = a + r * (b - a);
-    let (mut fc, mut fe) = (f(c), f(e));
-    for _ in 0..iters {
-        if fc < fe {
-            b = e;
-            e = c;
-            fe = fc;
-            c = b - r * (b - a);
-            fc = f(c);
-        } else {
-            a = c;
-            c = e;
-            fc = fe;
-            e = a + r * (b - a);
-            fe = f(e);
-        }
-    }
-    if fc < fe {
-        (c, fc)
-    } else {
-        (e, fe)
     }
 }
 
@@ -496,12 +478,14 @@ pub fn evaluate(
         delta_ic,
         cv_before: cur.cv,
         cv_after,
-        at_edge,
-        passes_ic: delta_ic < -th.ic_margin,
-        passes_cv: cv_after < cur.cv * (1.0 - th.cv_min_gain),
-        plausible: !at_edge && sol.rss.is_finite(),
-        size_ratio,
-        passes_size: size_ratio >= th.min_size_ratio,
+        checks: Checks {
+            at_edge,
+            passes_ic: delta_ic < -th.ic_margin,
+            passes_cv: cv_after < cur.cv * (1.0 - th.cv_min_gain),
+            plausible: !at_edge && sol.rss.is_finite(),
+            size_ratio,
+            passes_size: size_ratio >= th.min_size_ratio,
+        },
     };
     Some((ev, cols))
 }

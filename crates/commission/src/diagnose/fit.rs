@@ -4,6 +4,9 @@
 
 use nalgebra::{DMatrix, DVector};
 
+pub use crate::lsq::residuals;
+use crate::lsq::solve_normal;
+
 /// Cross products of a column set with itself and with the response, per block.
 #[derive(Debug, Clone)]
 pub struct Gram {
@@ -141,43 +144,6 @@ impl Gram {
 /// `y'y - 2 b'X'y + b'X'X b`, never negative.
 fn sse(xx: &DMatrix<f64>, xy: &DVector<f64>, yy: f64, beta: &DVector<f64>) -> f64 {
     (yy - 2.0 * beta.dot(xy) + (xx * beta).dot(beta)).max(0.0)
-}
-
-/// Solves the normal equations by SVD after scaling every column to unit norm, so that
-/// collinear columns (a lag near zero, a sensor equal to another) get the minimum-norm
-/// solution instead of exploding.
-pub fn solve_normal(xx: &DMatrix<f64>, xy: &DVector<f64>) -> DVector<f64> {
-    let p = xy.len();
-    let d = DVector::from_iterator(
-        p,
-        (0..p).map(|i| {
-            let v = xx[(i, i)];
-            if v > 1e-300 {
-                1.0 / v.sqrt()
-            } else {
-                0.0
-            }
-        }),
-    );
-    let scaled = DMatrix::from_fn(p, p, |i, j| xx[(i, j)] * d[i] * d[j]);
-    let rhs = xy.component_mul(&d);
-    let svd = scaled.svd(true, true);
-    let smax = svd.singular_values.max();
-    let sol = svd
-        .solve(&rhs, smax * 1e-12)
-        .unwrap_or_else(|_| DVector::zeros(p));
-    sol.component_mul(&d)
-}
-
-/// Residuals `y - X beta`.
-pub fn residuals(cols: &[&[f64]], y: &[f64], beta: &DVector<f64>) -> Vec<f64> {
-    let mut r = y.to_vec();
-    for (c, b) in cols.iter().zip(beta.iter()) {
-        for (ri, ci) in r.iter_mut().zip(c.iter()) {
-            *ri -= b * ci;
-        }
-    }
-    r
 }
 
 /// Lag-1 autocorrelation of a residual series, clamped to [0, 0.99]: negative

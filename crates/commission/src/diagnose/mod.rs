@@ -25,6 +25,7 @@ pub mod engine;
 pub mod fit;
 pub mod model_file;
 pub mod output;
+#[cfg(any(test, feature = "synth"))]
 pub mod synth;
 
 use std::collections::BTreeMap;
@@ -33,6 +34,7 @@ use serde::Serialize;
 use thiserror::Error;
 
 pub use effects::EffectKind;
+pub use engine::Checks;
 use engine::{Current, Data, Evidence};
 pub use model_file::ModelFile;
 
@@ -61,8 +63,8 @@ pub enum DiagnoseError {
         #[source]
         source: std::io::Error,
     },
-    #[error("plot {path}: {message}")]
-    Plot { path: String, message: String },
+    #[error("plot {0}")]
+    Plot(#[from] crate::plot::PlotError),
 }
 
 /// Decision thresholds, calibrated on null data (see the README).
@@ -145,12 +147,9 @@ pub struct CandidateReport {
     pub delta_ic: f64,
     pub cv_rms_before_um: f64,
     pub cv_rms_after_um: f64,
-    pub at_edge: bool,
-    pub passes_ic: bool,
-    pub passes_cv: bool,
-    pub plausible: bool,
-    pub size_ratio: f64,
-    pub passes_size: bool,
+    /// Reported inline: `at_edge`, `passes_ic`, ... `passes_size`.
+    #[serde(flatten)]
+    pub checks: Checks,
     pub accepted: bool,
 }
 
@@ -278,12 +277,7 @@ fn candidate_report(d: &Data, e: &Evidence, accepted: bool) -> CandidateReport {
         delta_ic: e.delta_ic,
         cv_rms_before_um: e.cv_before.sqrt(),
         cv_rms_after_um: e.cv_after.sqrt(),
-        at_edge: e.at_edge,
-        passes_ic: e.passes_ic,
-        passes_cv: e.passes_cv,
-        plausible: e.plausible,
-        size_ratio: e.size_ratio,
-        passes_size: e.passes_size,
+        checks: e.checks,
         accepted,
     }
 }
@@ -361,7 +355,7 @@ fn refine(d: &Data, cur: Current, effects: &mut [EffectReport]) -> Current {
         } else {
             2.0
         };
-        let (lp, rss) = engine::golden((p / factor).ln(), (p * factor).ln(), 16, &mut f);
+        let (lp, rss) = crate::stats::golden((p / factor).ln(), (p * factor).ln(), 16, &mut f);
         if rss < f(p.ln()) {
             let (new_cols, mean) = d.effect_columns(kind, sensor, lp.exp());
             for (k, c) in new_cols.into_iter().enumerate() {

@@ -83,7 +83,8 @@ impl ModelFile {
             message,
         };
         let root: toml::Table = toml::from_str(text).map_err(|e| err(e.to_string()))?;
-        let (_, axis) = crate::calibrate::first_axis_model(&root).map_err(err)?;
+        let (_, axis) =
+            crate::calibrate::first_axis_model(&root).map_err(|e| err(e.to_string()))?;
         let lagged_channels: Vec<LaggedChannel> = match root.get("lagged_channels") {
             Some(v) => v
                 .clone()

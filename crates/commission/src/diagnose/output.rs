@@ -5,6 +5,8 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use super::{DiagnoseError, Diagnosis, ModelFile, Where};
+use crate::plot::{self, Color as _};
+use crate::table::{plain_line, Column};
 
 fn where_text(out: &mut String, w: &Where) {
     let worst_t = w
@@ -54,6 +56,17 @@ fn where_text(out: &mut String, w: &Where) {
     let _ = writeln!(out, "  lag-1 autocorrelation in time: {:.3}", w.rho);
 }
 
+/// The candidates table: the effect, eight right-aligned figures (sensor, param,
+/// rms_um, cv_rms, dIC, rho, n_eff, edge), the verdict after two spaces.
+fn candidate_columns() -> [Column; 10] {
+    const FIGURE_WIDTHS: [usize; 8] = [7, 12, 9, 9, 10, 8, 9, 9];
+    std::array::from_fn(|i| match i {
+        0 => Column::left(2, 20),
+        9 => Column::left(2, 0),
+        _ => Column::right(1, FIGURE_WIDTHS[i - 1]),
+    })
+}
+
 /// The human-readable report.
 pub fn text_report(d: &Diagnosis) -> String {
     let mut out = String::new();
@@ -80,17 +93,18 @@ pub fn text_report(d: &Diagnosis) -> String {
     );
     let _ = writeln!(out, "\nwhere the baseline disagrees:");
     where_text(&mut out, &d.where_baseline);
+    let columns = candidate_columns();
     for (i, round) in d.rounds.iter().enumerate() {
         let _ = writeln!(
             out,
             "\nround {}: candidates (dIC < 0 is better; accepted needs IC, blocked CV, plausible, size)",
             i + 1
         );
-        let _ = writeln!(
-            out,
-            "  {:<20} {:>7} {:>12} {:>9} {:>9} {:>10} {:>8} {:>9} {:>9}  verdict",
-            "effect", "sensor", "param", "rms_um", "cv_rms", "dIC", "rho", "n_eff", "edge"
-        );
+        let header = [
+            "effect", "sensor", "param", "rms_um", "cv_rms", "dIC", "rho", "n_eff", "edge",
+            "verdict",
+        ];
+        let _ = writeln!(out, "{}", plain_line(&columns, header));
         for c in &round.candidates {
             let param = match (c.param, c.param_name) {
                 (Some(v), Some(n)) => format!(
@@ -100,16 +114,16 @@ pub fn text_report(d: &Diagnosis) -> String {
                 _ => "-".into(),
             };
             let mut why = Vec::new();
-            if !c.passes_ic {
+            if !c.checks.passes_ic {
                 why.push("IC");
             }
-            if !c.passes_cv {
+            if !c.checks.passes_cv {
                 why.push("CV");
             }
-            if !c.plausible {
+            if !c.checks.plausible {
                 why.push("edge of range");
             }
-            if !c.passes_size {
+            if !c.checks.passes_size {
                 why.push("too small");
             }
             let verdict = if c.accepted {
@@ -119,19 +133,19 @@ pub fn text_report(d: &Diagnosis) -> String {
             } else {
                 format!("fails: {}", why.join(", "))
             };
-            let _ = writeln!(
-                out,
-                "  {:<20} {:>7} {:>12} {:>9.3} {:>9.3} {:>10.1} {:>8.3} {:>9.0} {:>9}  {verdict}",
-                c.name,
-                c.sensor.as_deref().unwrap_or("-"),
+            let cells = [
+                c.name.to_string(),
+                c.sensor.as_deref().unwrap_or("-").to_string(),
                 param,
-                c.rms_after_um,
-                c.cv_rms_after_um,
-                c.delta_ic,
-                c.rho,
-                c.n_eff,
-                if c.at_edge { "yes" } else { "no" },
-            );
+                format!("{:.3}", c.rms_after_um),
+                format!("{:.3}", c.cv_rms_after_um),
+                format!("{:.1}", c.delta_ic),
+                format!("{:.3}", c.rho),
+                format!("{:.0}", c.n_eff),
+                (if c.checks.at_edge { "yes" } else { "no" }).to_string(),
+                verdict,
+            ];
+            let _ = writeln!(out, "{}", plain_line(&columns, cells));
         }
     }
     let _ = writeln!(out, "\neffects added:");
@@ -199,51 +213,28 @@ fn scatter_svg(
     after: &Xy,
     x_range: (f64, f64),
 ) -> Result<(), DiagnoseError> {
-    use plotters::prelude::*;
-    let err = |e: String| DiagnoseError::Plot {
-        path: path.display().to_string(),
-        message: e,
-    };
-    let mut lo = f64::INFINITY;
-    let mut hi = f64::NEG_INFINITY;
-    for &(_, y) in before.iter().chain(after) {
-        lo = lo.min(y);
-        hi = hi.max(y);
-    }
-    if !lo.is_finite() {
-        lo = -1.0;
-        hi = 1.0;
-    }
-    let pad = ((hi - lo) * 0.05).max(0.01);
-    let root = SVGBackend::new(path, (900, 620)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| err(e.to_string()))?;
-    let (upper, lower) = root.split_vertically(310);
-    for (area, series, label, color) in [
-        (&upper, before, "before (baseline)", RED),
-        (&lower, after, "after (with the added effects)", BLUE),
-    ] {
-        let mut chart = ChartBuilder::on(area)
-            .caption(format!("{title}: {label}"), ("sans-serif", 16))
-            .margin(8)
-            .x_label_area_size(30)
-            .y_label_area_size(60)
-            .build_cartesian_2d(x_range.0..x_range.1, (lo - pad)..(hi + pad))
-            .map_err(|e| err(e.to_string()))?;
-        chart
-            .configure_mesh()
-            .x_desc(x_desc)
-            .y_desc("residual (um)")
-            .draw()
-            .map_err(|e| err(e.to_string()))?;
-        chart
-            .draw_series(
-                series
-                    .iter()
-                    .map(|&(x, y)| Circle::new((x, y), 1, color.mix(0.5).filled())),
-            )
-            .map_err(|e| err(e.to_string()))?;
-    }
-    root.present().map_err(|e| err(e.to_string()))
+    let y_range = plot::padded(
+        before.iter().chain(after).map(|&(_, y)| y),
+        0.05,
+        0.01,
+        (-1.0, 1.0),
+    );
+    plot::svg(path, (900, 620), |root| {
+        let (upper, lower) = root.split_vertically(310);
+        for (area, series, label, color) in [
+            (&upper, before, "before (baseline)", plot::RED),
+            (&lower, after, "after (with the added effects)", plot::BLUE),
+        ] {
+            let mut chart = plot::Frame::new(x_desc, "residual (um)")
+                .caption(format!("{title}: {label}"), 16)
+                .margin(8)
+                .draw(area, x_range.0..x_range.1, y_range.clone())?;
+            let style = color.mix(0.5).filled();
+            plot::dots(&mut chart, series.iter().copied(), 1, style)?;
+        }
+        Ok(())
+    })?;
+    Ok(())
 }
 
 /// Writes the model file, the plots and `report.html` into `dir`; returns the paths.

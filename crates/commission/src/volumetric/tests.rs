@@ -1,5 +1,6 @@
 use proptest::prelude::*;
 
+use super::evaluation::stats;
 use super::*;
 
 const EXAMPLE: &str = include_str!("../../../../config/volumetric-example.errors");
@@ -263,23 +264,6 @@ fn singular_band_keeps_c() {
     let f = comp.feedback(&[100.0, 100.0, 100.0, 0.0, 45.0]);
     assert!((f[4] - 45.0).abs() < 1e-12);
     assert!(f[3].abs() < 0.01);
-}
-
-#[test]
-fn bench_runs() {
-    let seconds = std::env::var("COMPGATE_BENCH_S")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(0.05);
-    let b = bench_per_s(seconds);
-    println!(
-        "{:.0} compensations/s, {:.1} ns each; {:.0} per 125 us cycle, {:.0} per 500 us",
-        b.per_s,
-        b.ns_each,
-        125e3 / b.ns_each,
-        500e3 / b.ns_each
-    );
-    assert!(b.per_s > 1000.0, "{b:?}");
 }
 
 /// A random small model: every table value and constant uniformly within +-`amp`

@@ -26,12 +26,16 @@
 //!                                 A  = max over both directions of (xm + 2s) - min of (xm - 2s)
 //! ```
 
-use std::fmt::Write as _;
-use std::path::PathBuf;
+mod command;
+mod report;
 
 use thiserror::Error;
 
-use compgate_core::measure::{MeasureError, Measurements};
+use compgate_core::measure::MeasureError;
+
+use crate::stats::mean_sd;
+pub use command::{run, Iso230Args};
+pub use report::report;
 
 /// Runs the standard asks for, each way per target.
 pub const RUNS_REQUIRED: usize = 5;
@@ -53,14 +57,6 @@ pub enum Iso230Error {
     NoDirection { row: usize },
     #[error("fewer than 2 target positions")]
     TooFewTargets,
-}
-
-/// `compgate iso230` arguments.
-#[derive(Debug, Clone, clap::Args)]
-pub struct Iso230Args {
-    /// Measured-error CSV (t_s,pos_mm,err_um,T_...; dir recommended).
-    #[arg(long)]
-    pub data: PathBuf,
 }
 
 /// One target position's figures, um.
@@ -109,13 +105,6 @@ pub struct Iso230 {
     pub e_um: f64,
     /// Mean bidirectional positioning error M.
     pub m_um: f64,
-}
-
-fn mean_sd(v: &[f64]) -> (f64, f64) {
-    let n = v.len() as f64;
-    let mean = v.iter().sum::<f64>() / n;
-    let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
-    (mean, var.sqrt())
 }
 
 fn max(it: impl Iterator<Item = f64>) -> f64 {
@@ -207,73 +196,6 @@ pub fn evaluate(pos_mm: &[f64], dir: &[i8], err_um: &[f64]) -> Result<Iso230, Is
         m_um: max(t.iter().map(|x| x.mean_um)) - min(t.iter().map(|x| x.mean_um)),
         targets,
     })
-}
-
-/// The report, as printed.
-pub fn report(r: &Iso230) -> String {
-    let mut s = String::new();
-    s.push_str("ISO 230-2 bidirectional evaluation (um)\n\n");
-    s.push_str("| target mm | runs +/- | mean + | mean - | s + | s - | B_i | mean bidir | R_i + | R_i - | R_i |\n");
-    s.push_str("|---|---|---|---|---|---|---|---|---|---|---|\n");
-    for t in &r.targets {
-        let _ = writeln!(
-            s,
-            "| {} | {}/{} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} |",
-            t.pos_mm,
-            t.runs_up,
-            t.runs_down,
-            t.mean_up_um,
-            t.mean_down_um,
-            t.s_up_um,
-            t.s_down_um,
-            t.b_um,
-            t.mean_um,
-            t.r_up_um,
-            t.r_down_um,
-            t.r_um
-        );
-    }
-    s.push_str("\n| axis | + (up) | - (down) | bidirectional |\n|---|---|---|---|\n");
-    let _ = writeln!(
-        s,
-        "| A accuracy | {:.3} | {:.3} | {:.3} |",
-        r.a_up_um, r.a_down_um, r.a_um
-    );
-    let _ = writeln!(
-        s,
-        "| R repeatability | {:.3} | {:.3} | {:.3} |",
-        r.r_up_um, r.r_down_um, r.r_um
-    );
-    let _ = writeln!(
-        s,
-        "| E systematic error | {:.3} | {:.3} | {:.3} |",
-        r.e_up_um, r.e_down_um, r.e_um
-    );
-    let _ = writeln!(s, "| M mean bidirectional error | | | {:.3} |", r.m_um);
-    let _ = writeln!(
-        s,
-        "| B reversal value (mean B) | | | {:.3} ({:.3}) |",
-        r.b_um, r.b_mean_um
-    );
-    let few = r
-        .targets
-        .iter()
-        .filter(|t| t.runs_up < RUNS_REQUIRED || t.runs_down < RUNS_REQUIRED)
-        .count();
-    if few > 0 {
-        let _ = writeln!(
-            s,
-            "\nnote: {few} target(s) have fewer than the {RUNS_REQUIRED} runs each way ISO 230-2 asks for"
-        );
-    }
-    s
-}
-
-/// Runs the command.
-pub fn run(args: &Iso230Args) -> Result<String, Iso230Error> {
-    let m = Measurements::read_path(&args.data)
-        .map_err(|e| Iso230Error::Data(args.data.display().to_string(), e))?;
-    Ok(report(&evaluate(&m.pos_mm, &m.dir, &m.err_um)?))
 }
 
 #[cfg(test)]

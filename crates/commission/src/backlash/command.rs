@@ -1,0 +1,381 @@
+//! `compgate backlash` on the command line: the arguments, the servo client that runs
+//! the programme and uploads the trace over Modbus TCP, the MD32450 write and the
+//! report files.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use compgate_ncproto::{self as ncmap, var};
+
+use compgate_gateway::nc::{Job, ModbusNcWriter, NcError, NcWriter};
+use compgate_gateway::source::modbus::{Backoff, LinkSpec, ModbusLink};
+use compgate_gateway::source::plan::RegisterKind;
+
+use super::math::{extract, Backlash, Extraction, Points, Procedure, Trace};
+use super::report::{report, write_csv, write_svg};
+use super::{BacklashError, Outcome};
+
+/// Arguments of `compgate backlash`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct BacklashArgs {
+    /// Axis name, for the report and file names.
+    #[arg(long, default_value = "X1")]
+    pub axis: String,
+    /// Point A, mm: approached positively; the trace starts here.
+    #[arg(long, default_value_t = 10.0)]
+    pub a: f64,
+    /// Point B, mm: above A.
+    #[arg(long, default_value_t = 60.0)]
+    pub b: f64,
+    /// Point C, mm: below B (negative move).
+    #[arg(long, default_value_t = 30.0)]
+    pub c: f64,
+    /// Point D, mm: above C (positive move).
+    #[arg(long, default_value_t = 60.0)]
+    pub d: f64,
+    /// Feed v of every move, mm/min.
+    #[arg(long, default_value_t = 1000.0)]
+    pub feed: f64,
+    /// Dwell S at every point, s.
+    #[arg(long, default_value_t = 2.0)]
+    pub dwell: f64,
+    /// Servo trace sample period, ms.
+    #[arg(long, default_value_t = 2.0)]
+    pub period_ms: f64,
+    /// Write the result (mean of F1 and F2) to MD32450 through the FB3 job and verify
+    /// the read-back.
+    #[arg(long)]
+    pub write: bool,
+    /// NC axis module, host:port (Modbus TCP).
+    #[arg(long, value_name = "ADDRESS")]
+    pub nc: Option<String>,
+    /// Modbus unit id of the NC axis module.
+    #[arg(long, default_value_t = 1)]
+    pub unit: u8,
+    /// Directory for the position-time SVG and the trace CSV.
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Run against an in-process simulated axis instead of --nc.
+    #[arg(long)]
+    pub sim: bool,
+    /// Simulated axis: backlash, um.
+    #[arg(long, default_value_t = 20.0)]
+    pub sim_backlash_um: f64,
+    /// Simulated axis: measurement noise (standard deviation) of encoder and scale, um.
+    #[arg(long, default_value_t = 0.3)]
+    pub sim_noise_um: f64,
+    /// Simulated axis: drive-train elasticity time constant, ms (table lag = v * tau).
+    #[arg(long, default_value_t = 8.0)]
+    pub sim_elastic_ms: f64,
+    /// Simulated axis: noise seed.
+    #[arg(long, default_value_t = 1)]
+    pub sim_seed: u64,
+    /// Simulated axis: machine seconds per wall-clock second.
+    #[arg(long, default_value_t = 1000.0)]
+    pub sim_speed: f64,
+}
+
+impl Default for BacklashArgs {
+    fn default() -> Self {
+        Self {
+            axis: "X1".into(),
+            a: 10.0,
+            b: 60.0,
+            c: 30.0,
+            d: 60.0,
+            feed: 1000.0,
+            dwell: 2.0,
+            period_ms: 2.0,
+            write: false,
+            nc: None,
+            unit: 1,
+            out: None,
+            sim: false,
+            sim_backlash_um: 20.0,
+            sim_noise_um: 0.3,
+            sim_elastic_ms: 8.0,
+            sim_seed: 1,
+            sim_speed: 1000.0,
+        }
+    }
+}
+
+impl Procedure {
+    /// The procedure of `args`.
+    pub fn from_args(args: &BacklashArgs) -> Self {
+        Self {
+            points: Points {
+                a_mm: args.a,
+                b_mm: args.b,
+                c_mm: args.c,
+                d_mm: args.d,
+            },
+            feed_mm_per_min: args.feed,
+            dwell_s: args.dwell,
+            period_s: args.period_ms / 1000.0,
+        }
+    }
+}
+
+/// Register I/O on the NC axis module's servo block.
+struct ServoClient {
+    link: ModbusLink,
+    unit: u8,
+}
+
+impl ServoClient {
+    async fn read(&mut self, start: u16, count: u16) -> Result<Vec<u16>, BacklashError> {
+        Ok(self
+            .link
+            .read(self.unit, RegisterKind::Holding, start, count)
+            .await?)
+    }
+
+    async fn write(&mut self, start: u16, words: &[u16]) -> Result<(), BacklashError> {
+        Ok(self.link.write(self.unit, start, words).await?)
+    }
+
+    async fn status(&mut self) -> Result<Vec<u16>, BacklashError> {
+        self.read(ncmap::SERVO_STATUS, ncmap::SERVO_STATUS_LEN)
+            .await
+    }
+}
+
+fn reg(status: &[u16], address: u16) -> u16 {
+    status
+        .get(usize::from(address - ncmap::SERVO_STATUS))
+        .copied()
+        .unwrap_or(0)
+}
+
+fn f64_reg(status: &[u16], address: u16) -> f64 {
+    let at = usize::from(address - ncmap::SERVO_STATUS);
+    status
+        .get(at..at + 4)
+        .and_then(|r| <[u16; 4]>::try_from(r).ok())
+        .map_or(f64::NAN, ncmap::regs_to_f64)
+}
+
+fn link_to(address: &str) -> ModbusLink {
+    ModbusLink::new(
+        LinkSpec::Tcp {
+            address: address.to_string(),
+            connect_timeout: Duration::from_secs(3),
+        },
+        Duration::from_secs(2),
+        Backoff::new(Duration::from_millis(100), Duration::from_secs(2)),
+    )
+}
+
+/// Runs the test on the NC axis module at `address` and returns everything measured.
+pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, BacklashError> {
+    let procedure = Procedure::from_args(args);
+    procedure.validate(None)?;
+    let mut nc = ServoClient {
+        link: link_to(address),
+        unit: args.unit,
+    };
+    // The axis limits and the highest feed come from the NC; check them before moving.
+    let status = nc.status().await?;
+    let rb = nc.read(ncmap::READBACK, ncmap::READBACK_LEN).await?;
+    let at = usize::from(ncmap::RB_MAX_AX_VELO - ncmap::READBACK);
+    let max_feed = rb
+        .get(at..at + 4)
+        .and_then(|r| <[u16; 4]>::try_from(r).ok())
+        .map_or(f64::NAN, ncmap::regs_to_f64);
+    procedure.validate(Some((
+        f64_reg(&status, ncmap::AXIS_MIN),
+        f64_reg(&status, ncmap::AXIS_MAX),
+        max_feed,
+    )))?;
+    if reg(&status, ncmap::MV_STATE) == 1 {
+        return Err(BacklashError::Refused {
+            what: "move programme",
+            code: 5,
+        });
+    }
+
+    // Arm the trace first, so it is waiting when the axis arrives at A.
+    let cfg = procedure.trace_config();
+    let mut words = vec![cfg.trigger as u16, 0];
+    for v in [cfg.period_s, cfg.record_s, cfg.threshold_mm, cfg.delay_s] {
+        words.extend_from_slice(&ncmap::f64_to_regs(v));
+    }
+    words.push(1);
+    nc.write(ncmap::TR_TRIGGER, &words).await?;
+    let status = nc.status().await?;
+    if reg(&status, ncmap::TR_STATUS) != 0 {
+        return Err(BacklashError::Refused {
+            what: "servo trace",
+            code: reg(&status, ncmap::TR_STATUS),
+        });
+    }
+
+    // The programme and its start in one write.
+    let steps = procedure.program();
+    let mut words = vec![1, steps.len() as u16];
+    for s in &steps {
+        for v in [s.target_mm, s.feed_mm_per_min, s.dwell_s] {
+            words.extend_from_slice(&ncmap::f64_to_regs(v));
+        }
+    }
+    nc.write(ncmap::MV_CMD, &words).await?;
+    tracing::info!(axis = %args.axis, nc = address, "backlash test programme started");
+
+    // Wait for the programme and the trace; real time bounds the wait at the
+    // programme's own duration plus a margin.
+    let move_s: f64 = {
+        let mut from = f64_reg(&status, ncmap::SCALE_POS);
+        let mut total = 0.0;
+        for s in &steps {
+            total += (s.target_mm - from).abs() / (s.feed_mm_per_min / 60.0) + 1.0 + s.dwell_s;
+            from = s.target_mm;
+        }
+        total
+    };
+    let deadline =
+        tokio::time::Instant::now() + Duration::from_secs_f64(move_s + cfg.record_s + 30.0);
+    let status = loop {
+        let status = nc.status().await?;
+        match reg(&status, ncmap::MV_STATE) {
+            3 => {
+                return Err(BacklashError::Refused {
+                    what: "move programme",
+                    code: reg(&status, ncmap::MV_STATUS),
+                })
+            }
+            2 if reg(&status, ncmap::TR_STATE) == 4 => break status,
+            2 if reg(&status, ncmap::TR_STATE) <= 1 => {
+                return Err(BacklashError::Timeout(format!(
+                    "the programme ended but the trace never triggered (scale rising through {} mm)",
+                    cfg.threshold_mm
+                )))
+            }
+            _ => {}
+        }
+        if tokio::time::Instant::now() >= deadline {
+            return Err(BacklashError::Timeout(format!(
+                "programme step {}, trace state {} after {:.0} s",
+                reg(&status, ncmap::MV_STEP),
+                reg(&status, ncmap::TR_STATE),
+                move_s + cfg.record_s + 30.0
+            )));
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+
+    // Upload, page by page.
+    let count = ncmap::regs_to_u32([
+        reg(&status, ncmap::TR_COUNT),
+        reg(&status, ncmap::TR_COUNT + 1),
+    ]);
+    let per_page = u32::from(ncmap::TR_PAGE_SAMPLES);
+    let mut trace = Trace {
+        period_s: cfg.period_s,
+        ..Trace::default()
+    };
+    for page in 0..count.div_ceil(per_page) {
+        let page_u16 = u16::try_from(page).map_err(|_| {
+            BacklashError::Extraction(format!("{count} samples exceed the page index"))
+        })?;
+        nc.write(ncmap::TR_PAGE, &[page_u16]).await?;
+        let w = nc.read(ncmap::TR_WINDOW, ncmap::TR_WINDOW_LEN).await?;
+        let in_page = (count - page * per_page).min(per_page) as usize;
+        for k in 0..in_page {
+            let f = |at: usize| ncmap::regs_to_f64([w[at], w[at + 1], w[at + 2], w[at + 3]]);
+            trace.encoder_mm.push(f(8 * k));
+            trace.scale_mm.push(f(8 * k + 4));
+        }
+    }
+    let machine_time_s =
+        f64_reg(&status, ncmap::MV_END_TIME_S) - f64_reg(&status, ncmap::MV_START_TIME_S);
+
+    let points = extract(&trace, &procedure, Extraction::Plateau)?;
+    let backlash = Backlash::from_points(&points);
+
+    let mut files = Vec::new();
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| BacklashError::Io(format!("{}: {e}", dir.display())))?;
+        let stem: String = args
+            .axis
+            .chars()
+            .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+            .collect();
+        let svg = dir.join(format!("backlash_{stem}.svg"));
+        write_svg(&svg, &args.axis, &trace, &points)?;
+        let csv = dir.join(format!("backlash_{stem}_trace.csv"));
+        write_csv(&csv, &trace)?;
+        files.push(svg);
+        files.push(csv);
+    }
+
+    let mut md32450_written_mm = None;
+    if args.write {
+        let value = backlash.md32450_mm();
+        if !(0.0..=compgate_ncproto::MD32450_LIMIT_MM).contains(&value) {
+            return Err(BacklashError::Invalid(vec![format!(
+                "MD32450 = {value} mm is outside 0 ..= {} mm; not written",
+                compgate_ncproto::MD32450_LIMIT_MM
+            )]));
+        }
+        let mut writer = ModbusNcWriter::new(link_to(address), args.unit, Duration::from_secs(5));
+        writer
+            .write_job(&Job {
+                pairs: vec![(var::MD32450, value)],
+            })
+            .await?;
+        let snapshot = writer.read_snapshot().await?;
+        if snapshot.md32450_mm.to_bits() != value.to_bits() {
+            return Err(NcError::ReadBack {
+                var: var::MD32450,
+                written: value,
+                read: snapshot.md32450_mm,
+            }
+            .into());
+        }
+        md32450_written_mm = Some(snapshot.md32450_mm);
+    }
+
+    Ok(Outcome {
+        procedure,
+        trace_config: cfg,
+        trace,
+        points,
+        backlash,
+        md32450_written_mm,
+        machine_time_s,
+        files,
+    })
+}
+
+/// Checks everything about the arguments that can be checked offline, before any
+/// connection is made.
+pub fn check_args(args: &BacklashArgs) -> Result<(), BacklashError> {
+    let mut problems = match Procedure::from_args(args).validate(None) {
+        Err(BacklashError::Invalid(p)) => p,
+        _ => Vec::new(),
+    };
+    match (&args.nc, args.sim) {
+        (Some(_), true) => problems.push("--nc and --sim exclude each other".into()),
+        (None, false) => problems.push("give --nc ADDRESS or --sim".into()),
+        _ => {}
+    }
+    if problems.is_empty() {
+        Ok(())
+    } else {
+        Err(BacklashError::Invalid(problems))
+    }
+}
+
+/// `compgate backlash --nc ADDRESS`: runs the test on the NC and returns the report
+/// table. (`--sim` is the binary's: it serves the simulated axis, then calls
+/// [`run_on`].)
+pub async fn run(args: &BacklashArgs) -> Result<String, BacklashError> {
+    check_args(args)?;
+    let Some(address) = &args.nc else {
+        return Err(BacklashError::Invalid(vec!["give --nc ADDRESS".into()]));
+    };
+    let outcome = run_on(address, args).await?;
+    Ok(report(&args.axis, &outcome, None))
+}

@@ -1,0 +1,134 @@
+//! `compgate backlash`: backlash of a full-closed-loop axis from the servo trace of its
+//! motor encoder and linear scale (DOMAIN.md section 3).
+//!
+//! Procedure: the axis moves at feed v positively to A, dwells S s; positively to B,
+//! dwells; negatively to C, dwells; positively to D, dwells. The servo trace records
+//! the encoder and scale actual positions from the arrival at A. At B, C, D the scale
+//! reads L1..L3 and the encoder M1..M3, and
+//!
+//! ```text
+//! H1 = |L1 - L2|   H2 = |L2 - L3|   h1 = |M1 - M2|   h2 = |M2 - M3|
+//! F1 = |h1 - H1|   (positive-direction backlash)
+//! F2 = |h2 - H2|   (negative-direction backlash)
+//! ```
+//!
+//! The scale is the reference; no external instrument is needed.
+//!
+//! L and M are not single samples: the drive train is elastic, so while the axis
+//! still creeps into position the motor leads the table by more than the gap. Each
+//! value is the mean over the settled part (second half) of the standstill plateau at
+//! the point, found in the trace from the scale velocity ([`extract`]).
+//!
+//! The parts: `math` (validation, extraction, the seed's formulas; pure, no tokio),
+//! `report` (the table, the trace CSV, the SVG) and `command` (the arguments and the
+//! servo client): [`run`] drives an NC axis module over Modbus TCP: it commands the
+//! programme, arms and uploads the trace through the servo block of
+//! `compgate_ncproto`, and with `--write` writes MD32450 through the FB3 job
+//! ([`compgate_gateway::nc::ModbusNcWriter`]).
+
+mod command;
+mod math;
+mod report;
+#[cfg(test)]
+mod tests;
+
+use std::path::PathBuf;
+
+use compgate_gateway::nc::NcError;
+use compgate_gateway::source::SourceError;
+use compgate_ncproto::servo::TraceConfig;
+
+use crate::plot::PlotError;
+
+pub use command::{check_args, run, run_on, BacklashArgs};
+pub use math::{extract, Backlash, Extraction, PointValue, Points, Procedure, Trace};
+pub use report::{report, write_csv, write_svg};
+
+/// Shortest dwell, s: the loop must settle and leave a plateau to average.
+pub const MIN_DWELL_S: f64 = 0.5;
+/// Fewest samples averaged on one plateau.
+pub const MIN_PLATEAU_SAMPLES: usize = 25;
+/// Shortest stroke B->C and C->D, mm: longer than the largest MD32450, so each
+/// reversal takes the whole gap up.
+pub const MIN_STROKE_MM: f64 = 1.0;
+/// The axis first goes this far below A, so A is approached positively, mm.
+pub const PRE_TRAVEL_MM: f64 = 1.0;
+/// Trigger threshold below A: the trace starts as the axis arrives at A, mm.
+pub const TRIGGER_BELOW_A_MM: f64 = 0.002;
+/// Span of the velocity estimate used to find standstill, s.
+pub const VELOCITY_SPAN_S: f64 = 0.05;
+/// A plateau's scale value must lie this close to its point, mm.
+pub const POINT_TOLERANCE_MM: f64 = 0.1;
+/// In-position window of the single-sample extraction, mm.
+pub const ARRIVAL_WINDOW_MM: f64 = 0.005;
+
+/// Errors of the backlash test.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum BacklashError {
+    /// Parameters refused before anything moved; every problem is listed.
+    #[error("invalid backlash test parameters: {}", .0.join("; "))]
+    Invalid(Vec<String>),
+    /// The Modbus link failed.
+    #[error("NC link: {0}")]
+    Link(#[from] SourceError),
+    /// The MD32450 job failed.
+    #[error("MD32450 write: {0}")]
+    Nc(#[from] NcError),
+    /// The NC refused the move programme or the trace configuration.
+    #[error("NC refused the {what}: code {code} ({})", refusal_name(*.code))]
+    Refused {
+        /// "move programme" or "servo trace".
+        what: &'static str,
+        /// Refusal code (`MV_STATUS` / `TR_STATUS`).
+        code: u16,
+    },
+    /// The programme or the trace did not finish in time.
+    #[error("timed out: {0}")]
+    Timeout(String),
+    /// The trace does not show the plateaus the procedure needs.
+    #[error("trace: {0}")]
+    Extraction(String),
+    /// Writing the report files failed.
+    #[error("output: {0}")]
+    Io(String),
+    /// Drawing the position-time SVG failed.
+    #[error("output: {0}")]
+    Plot(#[from] PlotError),
+}
+
+/// Names a refusal code of the servo block.
+pub fn refusal_name(code: u16) -> &'static str {
+    match code {
+        1 => "step count",
+        2 => "target outside the software limits",
+        3 => "feed out of range",
+        4 => "dwell out of range",
+        5 => "a programme is running",
+        6 => "sample period is not a whole number of servo cycles",
+        7 => "record time exceeds the trace buffer",
+        8 => "bad post-trigger delay",
+        9 => "bad trigger",
+        _ => "unknown",
+    }
+}
+
+/// Everything one test produced.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Outcome {
+    /// The procedure run.
+    pub procedure: Procedure,
+    /// The trace parameters used.
+    pub trace_config: TraceConfig,
+    /// The uploaded trace.
+    pub trace: Trace,
+    /// The plateau values at B, C, D.
+    pub points: [PointValue; 3],
+    /// The result.
+    pub backlash: Backlash,
+    /// MD32450 written and read back, mm.
+    pub md32450_written_mm: Option<f64>,
+    /// Machine time of the move programme (approach to A through the dwell at D), s.
+    pub machine_time_s: f64,
+    /// Files written.
+    pub files: Vec<PathBuf>,
+}

@@ -1,0 +1,179 @@
+//! The axis model and its file: the `[axes.NAME]` table calibrate writes, `scenario
+//! --model` and diagnose read.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use compgate_gateway::config::{K0Model, K0Term, TanBetaModel, TanBetaTerm};
+
+use super::{CalibrateError, Fit};
+
+/// Why the `[axes.NAME]` of a model file cannot be read.
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    /// The file cannot be read.
+    #[error("{0}")]
+    Read(#[from] std::io::Error),
+    /// The file is not TOML.
+    #[error("{0}")]
+    Toml(#[from] toml::de::Error),
+    /// No `[axes.NAME]` table.
+    #[error("no [axes.NAME] table")]
+    NoAxes,
+    /// `axes.NAME` is a value, not a table.
+    #[error("axes.{0} is not a table")]
+    NotATable(String),
+    /// A model key of `axes.NAME` is malformed.
+    #[error("axes.{axis}: {}", source.message())]
+    Invalid {
+        /// The axis name.
+        axis: String,
+        /// What TOML reported.
+        #[source]
+        source: toml::de::Error,
+    },
+}
+
+/// The model part of an `[axes.NAME]` table: what calibrate writes, `scenario
+/// --model` reads, and the axis part of diagnose's model file.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct AxisModel {
+    /// SD43920, mm.
+    #[serde(default)]
+    pub p0_mm: f64,
+    /// K0(T) -> SD43900.
+    #[serde(default)]
+    pub k0: K0Model,
+    /// tan(beta)(T) -> SD43910.
+    #[serde(default)]
+    pub tan_beta: TanBetaModel,
+}
+
+impl AxisModel {
+    /// The fitted model in config units (mm, mm/mm).
+    pub fn from_fit(f: &Fit) -> Self {
+        Self {
+            p0_mm: f.p0_mm,
+            k0: K0Model {
+                offset_mm: f.k0_offset_um / 1000.0,
+                terms: f
+                    .terms
+                    .iter()
+                    .map(|t| K0Term {
+                        channel: t.name.clone(),
+                        ref_degc: t.ref_degc,
+                        coeff_mm_per_degc: t.k0_um_per_degc / 1000.0,
+                    })
+                    .collect(),
+            },
+            tan_beta: TanBetaModel {
+                offset: f.tan_beta_offset,
+                terms: f
+                    .terms
+                    .iter()
+                    .map(|t| TanBetaTerm {
+                        channel: t.name.clone(),
+                        ref_degc: t.ref_degc,
+                        coeff_per_degc: t.tan_beta_per_degc,
+                    })
+                    .collect(),
+            },
+        }
+    }
+
+    /// Error the model predicts at `pos_mm` with temperatures by channel name, um;
+    /// `None` if a channel is missing.
+    pub fn predict_um(&self, pos_mm: f64, temp_degc: impl Fn(&str) -> Option<f64>) -> Option<f64> {
+        let mut k0_mm = self.k0.offset_mm;
+        for t in &self.k0.terms {
+            k0_mm += t.coeff_mm_per_degc * (temp_degc(&t.channel)? - t.ref_degc);
+        }
+        let mut tan = self.tan_beta.offset;
+        for t in &self.tan_beta.terms {
+            tan += t.coeff_per_degc * (temp_degc(&t.channel)? - t.ref_degc);
+        }
+        Some(1000.0 * (k0_mm + tan * (pos_mm - self.p0_mm)))
+    }
+
+    /// Channels the model reads, each once.
+    pub fn channels(&self) -> Vec<String> {
+        let mut c: Vec<String> = Vec::new();
+        let names = self.k0.terms.iter().map(|t| &t.channel);
+        for n in names.chain(self.tan_beta.terms.iter().map(|t| &t.channel)) {
+            if !c.contains(n) {
+                c.push(n.clone());
+            }
+        }
+        c
+    }
+}
+
+#[derive(Serialize)]
+struct AxisOut<'a> {
+    nc_module: &'a str,
+    md32750: u16,
+    #[serde(flatten)]
+    model: &'a AxisModel,
+}
+
+/// The model as a TOML fragment `[axes.<axis>]`, with a comment header.
+pub fn model_toml(axis: &str, nc_module: &str, model: &AxisModel, header: &str) -> String {
+    let mut axes = BTreeMap::new();
+    axes.insert(
+        axis,
+        AxisOut {
+            nc_module,
+            // Both parts are fitted: K0 (bit 0) and the slope (bit 1).
+            md32750: 3,
+            model,
+        },
+    );
+    let mut root = BTreeMap::new();
+    root.insert("axes", axes);
+    let body = toml::to_string(&root).unwrap_or_default();
+    let mut s = String::new();
+    for line in header.lines() {
+        let _ = writeln!(s, "# {line}");
+    }
+    s.push_str(&body);
+    s
+}
+
+/// Reads the first `[axes.NAME]` of a model file (from calibrate or diagnose) or of a
+/// whole gateway config; keys other than `p0_mm`, `k0` and `tan_beta` are ignored.
+pub fn load_model(path: &Path) -> Result<(String, AxisModel), CalibrateError> {
+    let read = || -> Result<_, ModelError> {
+        let text = std::fs::read_to_string(path)?;
+        first_axis_model(&toml::from_str(&text)?)
+    };
+    read().map_err(|source| CalibrateError::Model {
+        path: path.display().to_string(),
+        source: Box::new(source),
+    })
+}
+
+/// The first `[axes.NAME]` of a parsed model file or gateway config, and its name;
+/// keys other than `p0_mm`, `k0` and `tan_beta` are ignored. The error names the key.
+pub fn first_axis_model(root: &toml::Table) -> Result<(String, AxisModel), ModelError> {
+    let (name, axis) = root
+        .get("axes")
+        .and_then(|a| a.as_table())
+        .and_then(|a| a.iter().next())
+        .ok_or(ModelError::NoAxes)?;
+    let mut t = axis
+        .as_table()
+        .cloned()
+        .ok_or_else(|| ModelError::NotATable(name.clone()))?;
+    t.retain(|k, _| matches!(k, "p0_mm" | "k0" | "tan_beta"));
+    let model: AxisModel =
+        toml::Value::Table(t)
+            .try_into()
+            .map_err(|source| ModelError::Invalid {
+                axis: name.clone(),
+                source,
+            })?;
+    Ok((name.clone(), model))
+}

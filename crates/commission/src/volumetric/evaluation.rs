@@ -1,0 +1,250 @@
+//! Grid evaluation: every commanded pose uncompensated and compensated, and the
+//! statistics of the errors (pure, no I/O).
+
+use super::kinematics::{
+    angle_rad, distance_mm, nominal_pose, Pole, PoleReach, VolumetricCompensator,
+};
+use super::{MM_PER_UM, RAD_PER_ARCSEC, SINGULAR_A_DEG, TOL_ARCSEC};
+
+/// Statistics of one evaluation.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Stats {
+    /// Largest tip error, um.
+    pub max_tip_um: f64,
+    /// RMS tip error, um.
+    pub rms_tip_um: f64,
+    /// Largest orientation error, arc-seconds.
+    pub max_orient_arcsec: f64,
+    /// RMS orientation error, arc-seconds.
+    pub rms_orient_arcsec: f64,
+}
+
+/// Per-pose errors of a grid evaluation.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Evaluation {
+    /// The commanded poses.
+    pub poses: Vec<[f64; 5]>,
+    /// Uncompensated (tip um, orientation arcsec) per pose.
+    pub uncompensated: Vec<(f64, f64)>,
+    /// Compensated (tip um, orientation arcsec) per pose.
+    pub compensated: Vec<(f64, f64)>,
+    /// Most iterations needed.
+    pub max_iterations: usize,
+    /// Largest final residual, um and arc-seconds.
+    pub max_residual: (f64, f64),
+    /// Per pose: within [`SINGULAR_A_DEG`] of A = 0, where the orientation is only
+    /// partly correctable; the statistics report these poses apart.
+    pub singular: Vec<bool>,
+    /// The pole policy used.
+    pub pole: Pole,
+    /// Largest C swing made at the pole, deg.
+    pub max_c_swing_deg: f64,
+    /// Most Newton steps of a pole swing.
+    pub max_pole_iterations: usize,
+    /// Band poses where a swing was wanted but Hold was kept.
+    pub pole_fallbacks: usize,
+    /// Band poses whose nominal tool axis no C reaches (least error taken).
+    pub pole_unreachable: usize,
+    /// Per pose in the A = 0 band, what the pole allows ([`super::ErrorModel::pole_reach`]):
+    /// with C in the policy's range ([`Pole::c_range`]) and with C over its whole
+    /// travel; None off the band.
+    pub pole_reach: Vec<Option<(PoleReach, PoleReach)>>,
+}
+
+/// Tolerance of "at the achievable minimum" at the pole: this many arc-seconds or
+/// [`POLE_TOL_FRACTION`] of the pose's uncompensated orientation error, the larger.
+pub const POLE_TOL_ARCSEC: f64 = 0.01;
+/// See [`POLE_TOL_ARCSEC`].
+pub const POLE_TOL_FRACTION: f64 = 0.01;
+
+/// The A = 0 band poses against the achievable minimum of their orientation error
+/// (C in the policy's range). Reachable: the minimum is within [`TOL_ARCSEC`] of 0;
+/// at the minimum: the compensated error exceeds it by at most the tolerance of
+/// [`POLE_TOL_ARCSEC`].
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct PoleClasses {
+    /// Reachable and reached.
+    pub reached: usize,
+    /// Reachable but not reached (a solver defect, or the Hold policy).
+    pub missed: usize,
+    /// Unreachable, at the minimum.
+    pub at_minimum: usize,
+    /// Unreachable, above the minimum (a solver defect, or the Hold policy).
+    pub above_minimum: usize,
+    /// Largest compensated orientation error minus the minimum, arc-seconds.
+    pub max_excess_arcsec: f64,
+    /// Largest and RMS achievable minimum, C in the policy's range, arc-seconds.
+    pub min_max_arcsec: f64,
+    /// See `min_max_arcsec`.
+    pub min_rms_arcsec: f64,
+    /// Largest achievable minimum with C over its whole travel, arc-seconds.
+    pub travel_min_max_arcsec: f64,
+    /// Poses whose minimum is lower (by more than the tolerance) with C over its
+    /// whole travel than in the policy's range.
+    pub lower_over_travel: usize,
+    /// Over the unreachable poses: range of the cap radius and of the nominal axis'
+    /// distance from the actual C axis, arc-seconds.
+    pub cap_arcsec: (f64, f64),
+    /// See `cap_arcsec`.
+    pub offset_arcsec: (f64, f64),
+}
+
+pub(super) fn stats<'a>(e: impl Iterator<Item = &'a (f64, f64)>) -> Stats {
+    let mut n = 0usize;
+    let mut s = Stats::default();
+    let (mut st, mut so) = (0.0, 0.0);
+    for (t, o) in e {
+        n += 1;
+        s.max_tip_um = s.max_tip_um.max(*t);
+        s.max_orient_arcsec = s.max_orient_arcsec.max(*o);
+        st += t * t;
+        so += o * o;
+    }
+    let n = n.max(1) as f64;
+    s.rms_tip_um = (st / n).sqrt();
+    s.rms_orient_arcsec = (so / n).sqrt();
+    s
+}
+
+impl Evaluation {
+    fn pick<'a>(
+        &'a self,
+        e: &'a [(f64, f64)],
+        singular: bool,
+    ) -> impl Iterator<Item = &'a (f64, f64)> + 'a {
+        e.iter()
+            .zip(&self.singular)
+            .filter(move |(_, s)| **s == singular)
+            .map(|(e, _)| e)
+    }
+    /// Statistics of the uncompensated errors (poses outside the A = 0 band).
+    pub fn uncompensated_stats(&self) -> Stats {
+        stats(self.pick(&self.uncompensated, false))
+    }
+    /// Statistics of the compensated errors (poses outside the A = 0 band).
+    pub fn compensated_stats(&self) -> Stats {
+        stats(self.pick(&self.compensated, false))
+    }
+    /// The band poses sorted against their achievable minimum ([`PoleClasses`]).
+    pub fn pole_classes(&self) -> PoleClasses {
+        let mut k = PoleClasses {
+            cap_arcsec: (f64::INFINITY, 0.0),
+            offset_arcsec: (f64::INFINITY, 0.0),
+            ..PoleClasses::default()
+        };
+        let mut sum_sq = 0.0;
+        let mut n = 0usize;
+        for ((reach, unc), comp) in self
+            .pole_reach
+            .iter()
+            .zip(&self.uncompensated)
+            .zip(&self.compensated)
+        {
+            let Some((r, rt)) = reach else { continue };
+            let tol = POLE_TOL_ARCSEC.max(POLE_TOL_FRACTION * unc.1);
+            let excess = comp.1 - r.min_arcsec;
+            let at_min = excess <= tol;
+            let reachable = r.min_arcsec <= TOL_ARCSEC;
+            match (reachable, at_min) {
+                (true, true) => k.reached += 1,
+                (true, false) => k.missed += 1,
+                (false, true) => k.at_minimum += 1,
+                (false, false) => k.above_minimum += 1,
+            }
+            if !reachable {
+                k.cap_arcsec = (
+                    k.cap_arcsec.0.min(r.cap_arcsec),
+                    k.cap_arcsec.1.max(r.cap_arcsec),
+                );
+                k.offset_arcsec = (
+                    k.offset_arcsec.0.min(r.offset_arcsec),
+                    k.offset_arcsec.1.max(r.offset_arcsec),
+                );
+            }
+            k.max_excess_arcsec = k.max_excess_arcsec.max(excess);
+            k.min_max_arcsec = k.min_max_arcsec.max(r.min_arcsec);
+            k.travel_min_max_arcsec = k.travel_min_max_arcsec.max(rt.min_arcsec);
+            k.lower_over_travel += usize::from(rt.min_arcsec < r.min_arcsec - tol);
+            sum_sq += r.min_arcsec * r.min_arcsec;
+            n += 1;
+        }
+        k.min_rms_arcsec = (sum_sq / n.max(1) as f64).sqrt();
+        if k.at_minimum + k.above_minimum == 0 {
+            k.cap_arcsec = (0.0, 0.0);
+            k.offset_arcsec = (0.0, 0.0);
+        }
+        k
+    }
+
+    /// Poses within the A = 0 band: their count and (uncompensated, compensated)
+    /// statistics.
+    pub fn singular_stats(&self) -> (usize, Stats, Stats) {
+        (
+            self.singular.iter().filter(|s| **s).count(),
+            stats(self.pick(&self.uncompensated, true)),
+            stats(self.pick(&self.compensated, true)),
+        )
+    }
+}
+
+/// Evaluates every grid pose uncompensated (drives at the command) and compensated
+/// (drives where the feedback equals the command).
+pub fn evaluate(comp: &VolumetricCompensator, grid: &[Vec<f64>; 5]) -> Evaluation {
+    evaluate_pole(comp, grid, &Pole::default())
+}
+
+/// [`evaluate`] under a pole policy.
+pub fn evaluate_pole(
+    comp: &VolumetricCompensator,
+    grid: &[Vec<f64>; 5],
+    pole: &Pole,
+) -> Evaluation {
+    let model = comp.model();
+    let g = &model.geometry;
+    let mut ev = Evaluation {
+        pole: *pole,
+        ..Evaluation::default()
+    };
+    let err = |q: &[f64; 5], u: &[f64; 5]| {
+        let (p, v) = model.actual_pose(q);
+        let (pn, vn) = nominal_pose(g, u);
+        (
+            distance_mm(&p, &pn) / MM_PER_UM,
+            angle_rad(&v, &vn) / RAD_PER_ARCSEC,
+        )
+    };
+    for &x in &grid[0] {
+        for &y in &grid[1] {
+            for &z in &grid[2] {
+                for &a in &grid[3] {
+                    for &c in &grid[4] {
+                        let u = [x, y, z, a, c];
+                        let ps = comp.drive_positions_pole(&u, pole);
+                        let s = ps.solve;
+                        ev.max_c_swing_deg = ev.max_c_swing_deg.max(ps.c_swing_deg);
+                        ev.max_pole_iterations = ev.max_pole_iterations.max(ps.newton_iterations);
+                        ev.pole_fallbacks += usize::from(ps.fallback);
+                        ev.pole_unreachable += usize::from(!ps.reached);
+                        ev.poses.push(u);
+                        ev.singular.push(a.abs() < SINGULAR_A_DEG);
+                        let travel_c = model.travel[4];
+                        ev.pole_reach
+                            .push((a.abs() < SINGULAR_A_DEG && !model.zero).then(|| {
+                                let range = pole.c_range(c, travel_c).unwrap_or((c, c));
+                                (model.pole_reach(&u, range), model.pole_reach(&u, travel_c))
+                            }));
+                        ev.uncompensated.push(err(&u, &u));
+                        ev.compensated.push(err(&s.drive, &u));
+                        // Swing solves count apart (Newton steps, pose residuals).
+                        if ps.newton_iterations == 0 {
+                            ev.max_iterations = ev.max_iterations.max(s.iterations);
+                            ev.max_residual.0 = ev.max_residual.0.max(s.residual_um);
+                            ev.max_residual.1 = ev.max_residual.1.max(s.residual_arcsec);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    ev
+}

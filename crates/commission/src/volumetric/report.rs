@@ -1,0 +1,232 @@
+//! What `volumetric` shows and writes: the text report and the SVG error maps.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use super::evaluation::{Evaluation, POLE_TOL_ARCSEC, POLE_TOL_FRACTION};
+use super::kinematics::PoleMode;
+use super::{VolumetricError, SINGULAR_A_DEG, TOL_ARCSEC, TOL_UM};
+use crate::plot;
+use crate::table::{plain_line, Column};
+
+/// The report of an evaluation.
+pub fn report(ev: &Evaluation) -> String {
+    let (u, c) = (ev.uncompensated_stats(), ev.compensated_stats());
+    let pct = |a: f64, b: f64| if b > 0.0 { 100.0 * a / b } else { 0.0 };
+    let mut s = String::new();
+    let (n_sing, su, sc) = ev.singular_stats();
+    let _ = writeln!(
+        s,
+        "volumetric compensation over {} grid poses{}",
+        ev.poses.len() - n_sing,
+        if n_sing > 0 {
+            format!(" ({n_sing} more within {SINGULAR_A_DEG} deg of A = 0, below)")
+        } else {
+            String::new()
+        }
+    );
+    const COLUMNS: [Column; 4] = [
+        Column::left(0, 20),
+        Column::right(1, 13),
+        Column::right(1, 13),
+        Column::right(1, 11),
+    ];
+    let header = ["", "uncompensated", "compensated", "remaining"];
+    let _ = writeln!(s, "{}", plain_line(&COLUMNS, header));
+    for (label, uncomp, comp) in [
+        ("tip max (um)", u.max_tip_um, c.max_tip_um),
+        ("tip RMS (um)", u.rms_tip_um, c.rms_tip_um),
+        (
+            "orientation max (\")",
+            u.max_orient_arcsec,
+            c.max_orient_arcsec,
+        ),
+        (
+            "orientation RMS (\")",
+            u.rms_orient_arcsec,
+            c.rms_orient_arcsec,
+        ),
+    ] {
+        let cells = [
+            label.to_string(),
+            format!("{uncomp:.4}"),
+            format!("{comp:.6}"),
+            format!("{:.4}%", pct(comp, uncomp)),
+        ];
+        let _ = writeln!(s, "{}", plain_line(&COLUMNS, cells));
+    }
+    let _ = writeln!(
+        s,
+        "iterations: at most {} (tolerance {TOL_UM} um, {TOL_ARCSEC}\"); largest residual {:.2e} um, {:.2e}\"",
+        ev.max_iterations, ev.max_residual.0, ev.max_residual.1
+    );
+    if n_sing > 0 {
+        let k = ev.pole_classes();
+        let travel = if k.lower_over_travel > 0 {
+            format!(
+                ", {:.4}\" with C over its whole travel (lower for {} poses)",
+                k.travel_min_max_arcsec, k.lower_over_travel
+            )
+        } else {
+            String::new()
+        };
+        let why = if k.at_minimum + k.above_minimum > 0 {
+            format!(
+                " (no A/C reaches the nominal axis for {} poses: the cone the tool sweeps \
+                 about A misses the actual C axis by a cap radius of {:.2}..{:.2}\", the \
+                 nominal axis lies {:.2}..{:.2}\" from the actual C axis)",
+                k.at_minimum + k.above_minimum,
+                k.cap_arcsec.0,
+                k.cap_arcsec.1,
+                k.offset_arcsec.0,
+                k.offset_arcsec.1
+            )
+        } else {
+            String::new()
+        };
+        if ev.pole.mode == PoleMode::Swing {
+            let _ = writeln!(
+                s,
+                "A = 0 band ({n_sing} poses, pole mode swing, C within {} deg of the command \
+                 and its travel): tip max {:.4} -> {:.6} um ({:.4} %)",
+                ev.pole.max_c_swing_deg,
+                su.max_tip_um,
+                sc.max_tip_um,
+                pct(sc.max_tip_um, su.max_tip_um)
+            );
+            let _ = writeln!(
+                s,
+                "  orientation max {:.4} -> {:.4}\" = achievable minimum {:.4}\"{why}; RMS \
+                 {:.4} -> {:.4}\" (minimum {:.4}\"){travel}",
+                su.max_orient_arcsec,
+                sc.max_orient_arcsec,
+                k.min_max_arcsec,
+                su.rms_orient_arcsec,
+                sc.rms_orient_arcsec,
+                k.min_rms_arcsec
+            );
+            let _ = writeln!(
+                s,
+                "  against the minimum (within {POLE_TOL_ARCSEC}\" or {} % of the \
+                 uncompensated error): {} reachable and reached, {} reachable but missed, {} \
+                 unreachable and at the minimum, {} unreachable and above it (largest excess \
+                 {:+.4}\")",
+                100.0 * POLE_TOL_FRACTION,
+                k.reached,
+                k.missed,
+                k.at_minimum,
+                k.above_minimum,
+                k.max_excess_arcsec
+            );
+            let _ = writeln!(
+                s,
+                "  largest C swing {:.2} deg, fixed-C solves at most {}, {} poses kept on \
+                 hold (no C did better)",
+                ev.max_c_swing_deg, ev.max_pole_iterations, ev.pole_fallbacks
+            );
+        } else {
+            let _ = writeln!(
+                s,
+                "A = 0 band ({n_sing} poses, pole mode hold, C not corrected): tip max {:.4} -> {:.6} um, \
+                 orientation max {:.4} -> {:.4}\" (the part about the A plane's normal needs \
+                 a C move)",
+                su.max_tip_um, sc.max_tip_um, su.max_orient_arcsec, sc.max_orient_arcsec
+            );
+            let _ = writeln!(
+                s,
+                "  with --pole swing (C within {} deg): achievable minimum {:.4}\"{why}{travel}",
+                ev.pole.max_c_swing_deg, k.min_max_arcsec
+            );
+        }
+    }
+    s
+}
+
+/// Writes the SVG error maps into `dir`: `tip-error.svg` and `orientation-error.svg`
+/// (error per grid pose, uncompensated and compensated) and `tip-error-xy.svg` (the
+/// uncompensated tip error over X and Y, worst over the other axes).
+pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, VolumetricError> {
+    std::fs::create_dir_all(dir)
+        .map_err(|e| VolumetricError::Io(format!("{}: {e}", dir.display())))?;
+    let mut written = Vec::new();
+    for (name, pick, unit) in [
+        ("tip-error.svg", 0usize, "tip error (um)"),
+        ("orientation-error.svg", 1, "orientation error (arcsec)"),
+    ] {
+        let path = dir.join(name);
+        let get = |t: &(f64, f64)| if pick == 0 { t.0 } else { t.1 };
+        let n = ev.poses.len().max(2);
+        plot::svg(&path, (1000, 700), |root| {
+            let (upper, lower) = root.split_vertically(350);
+            for (area, series, color, label) in [
+                (&upper, &ev.uncompensated, plot::RED, "uncompensated"),
+                (&lower, &ev.compensated, plot::BLUE, "compensated"),
+            ] {
+                let hi = series.iter().map(get).fold(1e-12, f64::max) * 1.05;
+                let caption = format!("{label} {unit} per grid pose (max {:.4})", hi / 1.05);
+                let mut chart = plot::Frame::new("grid pose (X outermost, C innermost)", unit)
+                    .caption(caption, 18)
+                    .label_areas(30, 80)
+                    .draw(area, 0.0..(n - 1) as f64, 0.0..hi)?;
+                let pts = series.iter().enumerate().map(|(i, t)| (i as f64, get(t)));
+                plot::line(&mut chart, pts, color, None)?;
+            }
+            Ok(())
+        })?;
+        written.push(path.clone());
+    }
+    // X-Y map of the worst uncompensated tip error.
+    let path = dir.join("tip-error-xy.svg");
+    let mut xs: Vec<f64> = ev.poses.iter().map(|p| p[0]).collect();
+    let mut ys: Vec<f64> = ev.poses.iter().map(|p| p[1]).collect();
+    for v in [&mut xs, &mut ys] {
+        v.sort_by(f64::total_cmp);
+        v.dedup();
+    }
+    let mut cell = vec![0.0f64; xs.len() * ys.len()];
+    for (p, e) in ev.poses.iter().zip(&ev.uncompensated) {
+        let i = xs.partition_point(|x| *x < p[0]);
+        let j = ys.partition_point(|y| *y < p[1]);
+        let k = i * ys.len() + j;
+        if let Some(c) = cell.get_mut(k) {
+            *c = c.max(e.0);
+        }
+    }
+    let top = cell.iter().copied().fold(1e-9, f64::max);
+    let bottom = cell.iter().copied().fold(top, f64::min);
+    let half = |v: &[f64], i: usize| -> (f64, f64) {
+        let w = if v.len() > 1 {
+            (v[v.len() - 1] - v[0]) / (v.len() - 1) as f64
+        } else {
+            1.0
+        };
+        (v[i] - w / 2.0, v[i] + w / 2.0)
+    };
+    if !xs.is_empty() && !ys.is_empty() {
+        let (x0, _) = half(&xs, 0);
+        let (_, x1) = half(&xs, xs.len() - 1);
+        let (y0, _) = half(&ys, 0);
+        let (_, y1) = half(&ys, ys.len() - 1);
+        let mut rects = Vec::with_capacity(cell.len());
+        for i in 0..xs.len() {
+            for j in 0..ys.len() {
+                let v = (cell[i * ys.len() + j] - bottom) / (top - bottom).max(1e-12);
+                let (a0, a1) = half(&xs, i);
+                let (b0, b1) = half(&ys, j);
+                rects.push(((a0, b0), (a1, b1), plot::blue_to_red(v, 64)));
+            }
+        }
+        let caption = format!(
+            "uncompensated tip error over X-Y, worst over Z, A, C \
+             (blue {bottom:.1} .. red {top:.1} um)"
+        );
+        plot::svg(&path, (800, 700), |root| {
+            let mut chart = plot::Frame::new("X (mm)", "Y (mm)")
+                .caption(caption, 18)
+                .draw(root, x0..x1, y0..y1)?;
+            plot::cells(&mut chart, rects)
+        })?;
+        written.push(path.clone());
+    }
+    Ok(written)
+}
