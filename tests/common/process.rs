@@ -27,13 +27,31 @@ pub struct Gateway {
 impl Gateway {
     /// Starts the binary on `config` with `NOTIFY_SOCKET` bound in `dir`.
     pub fn start(dir: &Path, config: &Path, extra_env: &[(&str, &str)]) -> Self {
+        Self::start_with_nofile(dir, config, extra_env, None)
+    }
+
+    /// [`start`](Self::start), with the child's descriptor limit (`RLIMIT_NOFILE`, soft
+    /// and hard) set to `nofile` when given, as systemd's `LimitNOFILE=` would.
+    pub fn start_with_nofile(
+        dir: &Path,
+        config: &Path,
+        extra_env: &[(&str, &str)],
+        nofile: Option<u64>,
+    ) -> Self {
         let sock: PathBuf = dir.join(format!("notify-{}.sock", std::process::id()));
         let _ = std::fs::remove_file(&sock);
         let notify = UnixDatagram::bind(&sock).expect("bind notify socket");
         notify
             .set_read_timeout(Some(Duration::from_millis(100)))
             .unwrap();
-        let mut cmd = Command::new(BIN);
+        let mut cmd = match nofile {
+            None => Command::new(BIN),
+            Some(n) => {
+                let mut c = Command::new("sh");
+                c.args(["-c", &format!("ulimit -n {n} && exec \"$0\" \"$@\""), BIN]);
+                c
+            }
+        };
         cmd.args(["--log", "info", "run", "--config"])
             .arg(config)
             .env("NOTIFY_SOCKET", &sock)
@@ -115,6 +133,16 @@ impl Gateway {
             self.messages.iter().rev().take(5).collect::<Vec<_>>(),
             self.stderr_text()
         );
+    }
+
+    /// Bytes the gateway wrote to stderr so far (its log), newlines included.
+    pub fn stderr_bytes(&self) -> usize {
+        self.stderr
+            .lock()
+            .unwrap()
+            .iter()
+            .map(|l| l.len() + 1)
+            .sum()
     }
 
     pub fn stderr_text(&self) -> String {

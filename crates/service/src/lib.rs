@@ -2,6 +2,7 @@
 //! SIGHUP reload, and the observers (recorder, metrics, MQTT) behind the control loop.
 
 pub mod heap;
+pub mod http;
 pub mod metrics;
 pub mod mqtt;
 pub mod notify;
@@ -151,7 +152,7 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), ServiceError> {
         )));
     }
     if let Some(m) = &cfg.metrics {
-        metrics::install(&m.bind)?;
+        metrics::install(m).await?;
         let stats = recorder.as_ref().map(|r| r.sender().stats().clone());
         observers.push(Box::new(metrics::MetricsObserver::new(stats)));
     }
