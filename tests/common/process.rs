@@ -20,6 +20,8 @@ pub struct Gateway {
     /// Every notify datagram so far; a thread drains the socket so the gateway's
     /// (blocking) sd_notify never waits on the test.
     pub notified: Arc<Mutex<Vec<String>>>,
+    /// When each datagram of `notified` arrived, same order.
+    pub notified_at: Arc<Mutex<Vec<Instant>>>,
     /// Datagrams `wait_notify` has looked at.
     pub messages: Vec<String>,
 }
@@ -65,14 +67,17 @@ impl Gateway {
         let mut child = cmd.spawn().expect("spawn compgate");
         let notified = Arc::new(Mutex::new(Vec::new()));
         let sink = notified.clone();
+        let notified_at = Arc::new(Mutex::new(Vec::new()));
+        let times = notified_at.clone();
         std::thread::spawn(move || {
             let mut buf = vec![0u8; 4096];
             loop {
                 match notify.recv(&mut buf) {
-                    Ok(n) => sink
-                        .lock()
-                        .unwrap()
-                        .push(String::from_utf8_lossy(&buf[..n]).to_string()),
+                    Ok(n) => {
+                        let mut sink = sink.lock().unwrap();
+                        times.lock().unwrap().push(Instant::now());
+                        sink.push(String::from_utf8_lossy(&buf[..n]).to_string());
+                    }
                     Err(e)
                         if e.kind() == std::io::ErrorKind::WouldBlock
                             || e.kind() == std::io::ErrorKind::TimedOut =>
@@ -98,6 +103,7 @@ impl Gateway {
             child,
             stderr,
             notified,
+            notified_at,
             messages: Vec::new(),
         }
     }

@@ -166,6 +166,7 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), ServiceError> {
     let hooks = Hooks {
         observer: Box::new(Observers(observers)),
         reload: Some(reload_rx),
+        watchdog_interval: notify::watchdog_interval(),
     };
     // On a runtime worker, where the device tasks run: a sample then wakes the
     // control loop on the same thread, not `block_on`'s thread through a futex, once

@@ -435,6 +435,12 @@ async fn generation(
     let mut in_flight = vec![false; state.pipeline.axes.len()];
     let mut status_tick = tokio::time::interval(state.status_interval);
     status_tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
+    // Its own period, whatever the status interval: systemd's watchdog needs pings
+    // more often than a slow status tick would send them.
+    let watchdog_on = hooks.watchdog_interval.is_some();
+    let mut watchdog_tick =
+        tokio::time::interval(hooks.watchdog_interval.unwrap_or(Duration::from_secs(3600)));
+    watchdog_tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
     let far = now + Duration::from_secs(86_400 * 365);
     let mut events_open = true;
     let mut reload_to: Option<(Box<Config>, Box<Built>)> = None;
@@ -478,6 +484,10 @@ async fn generation(
                         in_flight[i] = true;
                     }
                 }
+            }
+            _ = watchdog_tick.tick(), if watchdog_on => {
+                // Called from the control loop itself: a stuck loop stops the pings.
+                observer.on_watchdog();
             }
             _ = status_tick.tick() => {
                 // Called from the control loop itself: a stuck loop stops the watchdog.
