@@ -153,6 +153,45 @@ async fn watchdog_pings_follow_watchdog_usec_not_the_status_interval() {
     drop(plant);
 }
 
+// A device that goes silent for many polls logs one warning, and one line when it is
+// back: transitions, never one line per poll.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_silent_device_logs_one_warning_and_one_recovery() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, path) = plant_and_file(dir.path(), &common::config("hold", "", "")).await;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+    plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::Silent);
+    tokio::task::block_in_place(|| {
+        gw.wait_notify(10.0, "6 failed cycles", |m| {
+            m.contains("ain1 down (6 failed)") || m.contains("ain1 down (7 failed)")
+        })
+    });
+    plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::None);
+    tokio::task::block_in_place(|| gw.wait_log(10.0, "device link up again"));
+    tokio::task::block_in_place(|| std::thread::sleep(Duration::from_millis(300)));
+    let log = gw.stderr_text();
+    let down: Vec<&str> = log
+        .lines()
+        .filter(|l| l.contains("device link down"))
+        .collect();
+    let up: Vec<&str> = log
+        .lines()
+        .filter(|l| l.contains("device link up again"))
+        .collect();
+    assert_eq!(down.len(), 1, "{log}");
+    assert!(
+        down[0].contains("WARN") && down[0].contains("ain1"),
+        "{log}"
+    );
+    assert_eq!(up.len(), 1, "{log}");
+    assert!(up[0].contains("INFO") && up[0].contains("ain1"), "{log}");
+    let warnings = log.lines().filter(|l| l.contains("WARN")).count();
+    assert_eq!(warnings, 1, "one warning for the whole outage:\n{log}");
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sighup_with_a_bad_config_keeps_the_old_one_running() {
     let dir = tempfile::tempdir().unwrap();
