@@ -8,10 +8,12 @@ cd "$(dirname "$0")"
 rustup component add rustfmt clippy >/dev/null 2>&1 || true
 
 # System tools the service tests use: systemd-analyze (unit exposure, offline) and
-# mosquitto (a real MQTT broker on loopback).
+# mosquitto (a real MQTT broker on loopback), promtool (package prometheus: checks a real
+# scrape of the metrics endpoint).
 need=()
 command -v systemd-analyze >/dev/null 2>&1 || need+=(systemd)
 command -v mosquitto >/dev/null 2>&1 || [[ -x /usr/sbin/mosquitto ]] || need+=(mosquitto)
+command -v promtool >/dev/null 2>&1 || need+=(prometheus)
 if ((${#need[@]})); then
     echo "== installing ${need[*]}"
     if [[ $(id -u) -eq 0 ]]; then sudo=(); else sudo=(sudo); fi

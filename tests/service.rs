@@ -111,6 +111,87 @@ async fn notify_ready_watchdog_and_status_from_the_real_binary() {
     drop(plant);
 }
 
+// With WatchdogSec=4s (WATCHDOG_USEC=2000000) and a status tick every 5 s, the control
+// loop still pings every second (half of WATCHDOG_USEC): systemd would not kill it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn watchdog_pings_follow_watchdog_usec_not_the_status_interval() {
+    let dir = tempfile::tempdir().unwrap();
+    let toml = common::config("hold", "", "")
+        .replace("status_interval_s = 0.05", "status_interval_s = 5.0");
+    let (plant, path) = plant_and_file(dir.path(), &toml).await;
+    let mut gw = Gateway::start(dir.path(), &path, &[("WATCHDOG_USEC", "2000000")]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+    let from = std::time::Instant::now();
+    tokio::task::block_in_place(|| std::thread::sleep(Duration::from_millis(5500)));
+    let to = std::time::Instant::now();
+    let pings: Vec<std::time::Instant> = {
+        let msgs = gw.notified.lock().unwrap();
+        let times = gw.notified_at.lock().unwrap();
+        msgs.iter()
+            .zip(times.iter())
+            .filter(|(m, t)| m.lines().any(|l| l == "WATCHDOG=1") && **t >= from)
+            .map(|(_, t)| *t)
+            .collect()
+    };
+    let mut gaps: Vec<Duration> = pings.windows(2).map(|w| w[1] - w[0]).collect();
+    if let (Some(first), Some(last)) = (pings.first(), pings.last()) {
+        gaps.push(*first - from);
+        gaps.push(to - *last);
+    }
+    let max = gaps.iter().max().copied().unwrap_or(to - from);
+    println!(
+        "{} WATCHDOG=1 in {:?}, largest gap {max:?}",
+        pings.len(),
+        to - from
+    );
+    assert!(pings.len() >= 5, "{} pings in {:?}", pings.len(), to - from);
+    assert!(
+        max <= Duration::from_millis(1100),
+        "a gap of {max:?} between pings"
+    );
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
+
+// A device that goes silent for many polls logs one warning, and one line when it is
+// back: transitions, never one line per poll.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_silent_device_logs_one_warning_and_one_recovery() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, path) = plant_and_file(dir.path(), &common::config("hold", "", "")).await;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+    plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::Silent);
+    tokio::task::block_in_place(|| {
+        gw.wait_notify(10.0, "6 failed cycles", |m| {
+            m.contains("ain1 down (6 failed)") || m.contains("ain1 down (7 failed)")
+        })
+    });
+    plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::None);
+    tokio::task::block_in_place(|| gw.wait_log(10.0, "device link up again"));
+    tokio::task::block_in_place(|| std::thread::sleep(Duration::from_millis(300)));
+    let log = gw.stderr_text();
+    let down: Vec<&str> = log
+        .lines()
+        .filter(|l| l.contains("device link down"))
+        .collect();
+    let up: Vec<&str> = log
+        .lines()
+        .filter(|l| l.contains("device link up again"))
+        .collect();
+    assert_eq!(down.len(), 1, "{log}");
+    assert!(
+        down[0].contains("WARN") && down[0].contains("ain1"),
+        "{log}"
+    );
+    assert_eq!(up.len(), 1, "{log}");
+    assert!(up[0].contains("INFO") && up[0].contains("ain1"), "{log}");
+    let warnings = log.lines().filter(|l| l.contains("WARN")).count();
+    assert_eq!(warnings, 1, "one warning for the whole outage:\n{log}");
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sighup_with_a_bad_config_keeps_the_old_one_running() {
     let dir = tempfile::tempdir().unwrap();

@@ -20,6 +20,8 @@ pub struct Gateway {
     /// Every notify datagram so far; a thread drains the socket so the gateway's
     /// (blocking) sd_notify never waits on the test.
     pub notified: Arc<Mutex<Vec<String>>>,
+    /// When each datagram of `notified` arrived, same order.
+    pub notified_at: Arc<Mutex<Vec<Instant>>>,
     /// Datagrams `wait_notify` has looked at.
     pub messages: Vec<String>,
 }
@@ -27,13 +29,31 @@ pub struct Gateway {
 impl Gateway {
     /// Starts the binary on `config` with `NOTIFY_SOCKET` bound in `dir`.
     pub fn start(dir: &Path, config: &Path, extra_env: &[(&str, &str)]) -> Self {
+        Self::start_with_nofile(dir, config, extra_env, None)
+    }
+
+    /// [`start`](Self::start), with the child's descriptor limit (`RLIMIT_NOFILE`, soft
+    /// and hard) set to `nofile` when given, as systemd's `LimitNOFILE=` would.
+    pub fn start_with_nofile(
+        dir: &Path,
+        config: &Path,
+        extra_env: &[(&str, &str)],
+        nofile: Option<u64>,
+    ) -> Self {
         let sock: PathBuf = dir.join(format!("notify-{}.sock", std::process::id()));
         let _ = std::fs::remove_file(&sock);
         let notify = UnixDatagram::bind(&sock).expect("bind notify socket");
         notify
             .set_read_timeout(Some(Duration::from_millis(100)))
             .unwrap();
-        let mut cmd = Command::new(BIN);
+        let mut cmd = match nofile {
+            None => Command::new(BIN),
+            Some(n) => {
+                let mut c = Command::new("sh");
+                c.args(["-c", &format!("ulimit -n {n} && exec \"$0\" \"$@\""), BIN]);
+                c
+            }
+        };
         cmd.args(["--log", "info", "run", "--config"])
             .arg(config)
             .env("NOTIFY_SOCKET", &sock)
@@ -47,14 +67,17 @@ impl Gateway {
         let mut child = cmd.spawn().expect("spawn compgate");
         let notified = Arc::new(Mutex::new(Vec::new()));
         let sink = notified.clone();
+        let notified_at = Arc::new(Mutex::new(Vec::new()));
+        let times = notified_at.clone();
         std::thread::spawn(move || {
             let mut buf = vec![0u8; 4096];
             loop {
                 match notify.recv(&mut buf) {
-                    Ok(n) => sink
-                        .lock()
-                        .unwrap()
-                        .push(String::from_utf8_lossy(&buf[..n]).to_string()),
+                    Ok(n) => {
+                        let mut sink = sink.lock().unwrap();
+                        times.lock().unwrap().push(Instant::now());
+                        sink.push(String::from_utf8_lossy(&buf[..n]).to_string());
+                    }
                     Err(e)
                         if e.kind() == std::io::ErrorKind::WouldBlock
                             || e.kind() == std::io::ErrorKind::TimedOut =>
@@ -80,6 +103,7 @@ impl Gateway {
             child,
             stderr,
             notified,
+            notified_at,
             messages: Vec::new(),
         }
     }
@@ -115,6 +139,16 @@ impl Gateway {
             self.messages.iter().rev().take(5).collect::<Vec<_>>(),
             self.stderr_text()
         );
+    }
+
+    /// Bytes the gateway wrote to stderr so far (its log), newlines included.
+    pub fn stderr_bytes(&self) -> usize {
+        self.stderr
+            .lock()
+            .unwrap()
+            .iter()
+            .map(|l| l.len() + 1)
+            .sum()
     }
 
     pub fn stderr_text(&self) -> String {

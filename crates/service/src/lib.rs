@@ -2,6 +2,7 @@
 //! SIGHUP reload, and the observers (recorder, metrics, MQTT) behind the control loop.
 
 pub mod heap;
+pub mod http;
 pub mod metrics;
 pub mod mqtt;
 pub mod notify;
@@ -151,7 +152,7 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), ServiceError> {
         )));
     }
     if let Some(m) = &cfg.metrics {
-        metrics::install(&m.bind)?;
+        metrics::install(m).await?;
         let stats = recorder.as_ref().map(|r| r.sender().stats().clone());
         observers.push(Box::new(metrics::MetricsObserver::new(stats)));
     }
@@ -165,6 +166,7 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), ServiceError> {
     let hooks = Hooks {
         observer: Box::new(Observers(observers)),
         reload: Some(reload_rx),
+        watchdog_interval: notify::watchdog_interval(),
     };
     // On a runtime worker, where the device tasks run: a sample then wakes the
     // control loop on the same thread, not `block_on`'s thread through a futex, once

@@ -1,5 +1,6 @@
-//! Prometheus metrics through the `metrics` facade and its Prometheus exporter (the
-//! exporter writes the text format and serves `GET /metrics`).
+//! Prometheus metrics through the `metrics` facade: the Prometheus exporter's recorder
+//! writes the text format, and [`crate::http`] serves it as `GET /metrics` under a
+//! connection limit and timeouts. Every metric has help text ([`describe`]).
 //!
 //! | metric | type | labels | meaning |
 //! |---|---|---|---|
@@ -13,6 +14,8 @@
 //! | `compgate_cycle_seconds` | histogram | | control loop: time to process one device sample |
 //! | `compgate_recorder_records_total` | counter | outcome (`written`, `dropped_queue`, `dropped_write`) | recorder |
 //! | `compgate_process_heap_bytes` | gauge | state (`in_use`, `free`) | glibc malloc: bytes allocated (the live heap) and bytes it holds free; RSS growing with `in_use` flat is the allocator, not a leak (glibc only) |
+//! | `compgate_http_connections_total` | counter | outcome (`accepted`, `evicted`, `refused`) | connections to this endpoint |
+//! | `compgate_http_accept_errors_total` | counter | | failed accepts (e.g. out of descriptors) |
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -21,33 +24,135 @@ use std::time::Instant;
 use metrics::{counter, gauge, histogram, Counter, Gauge, Histogram};
 use metrics_exporter_prometheus::{Matcher, PrometheusBuilder};
 
+use compgate_gateway::config::MetricsConfig;
+
 use crate::record::{quality_code, RecorderStats};
 use crate::ServiceError;
 use compgate_core::comp::CompParams;
 use compgate_gateway::nc::{JobReport, NcError};
 use compgate_gateway::runtime::{GatewayError, Observer, SampleReadings, Status};
 
-/// Starts the exporter on `bind` (inside the tokio runtime) and installs the global
-/// recorder.
-pub fn install(bind: &str) -> Result<(), ServiceError> {
+/// Seconds between the exporter's upkeep passes (histogram buffers drained).
+const UPKEEP_S: u64 = 5;
+
+/// Installs the global recorder with help text for every metric, and serves
+/// `GET /metrics` on `cfg.bind` (inside the tokio runtime).
+pub async fn install(cfg: &MetricsConfig) -> Result<(), ServiceError> {
+    let bind = cfg.bind.as_str();
     let addr: SocketAddr = bind.parse().map_err(|e| bind_err(bind, e))?;
     let buckets = [
         0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0,
     ];
-    let (recorder, exporter) = PrometheusBuilder::new()
-        .with_http_listener(addr)
+    let recorder = PrometheusBuilder::new()
         .set_buckets_for_metric(Matcher::Suffix("_seconds".into()), &buckets)
         .map_err(|e| ServiceError::Metrics(e.to_string()))?
-        .build()
+        .build_recorder();
+    let handle = recorder.handle();
+    let listener = tokio::net::TcpListener::bind(addr)
+        .await
         .map_err(|e| bind_err(bind, e))?;
+    metrics::set_global_recorder(recorder).map_err(|e| ServiceError::Metrics(e.to_string()))?;
+    describe();
+    let upkeep = handle.clone();
     tokio::spawn(async move {
-        if let Err(e) = exporter.await {
-            tracing::error!(error = ?e, "metrics endpoint stopped");
+        let mut tick = tokio::time::interval(std::time::Duration::from_secs(UPKEEP_S));
+        loop {
+            tick.tick().await;
+            upkeep.run_upkeep();
         }
     });
-    metrics::set_global_recorder(recorder).map_err(|e| ServiceError::Metrics(e.to_string()))?;
-    tracing::info!(bind = %addr, "Prometheus metrics on http://{addr}/metrics");
+    let router = crate::http::Router::new().get("/metrics", move || {
+        let mut r = crate::http::text(hyper::StatusCode::OK, handle.render());
+        r.headers_mut().insert(
+            hyper::header::CONTENT_TYPE,
+            hyper::header::HeaderValue::from_static("text/plain; version=0.0.4; charset=utf-8"),
+        );
+        r
+    });
+    let limits = crate::http::Limits {
+        max_connections: cfg.max_connections as usize,
+        ..crate::http::Limits::default()
+    };
+    tokio::spawn(crate::http::serve(
+        listener,
+        router,
+        limits,
+        Arc::default(),
+        tokio_util::sync::CancellationToken::new(),
+    ));
+    tracing::info!(bind = %addr, max_connections = cfg.max_connections, "Prometheus metrics on http://{addr}/metrics");
     Ok(())
+}
+
+/// Help text and units of every metric (Prometheus `# HELP`).
+pub fn describe() {
+    use metrics::{describe_counter, describe_gauge, describe_histogram, Unit};
+    describe_gauge!(
+        "compgate_device_link_up",
+        Unit::Count,
+        "1 when the device's last poll cycle read everything, else 0"
+    );
+    describe_histogram!(
+        "compgate_device_poll_seconds",
+        Unit::Seconds,
+        "Duration of a device poll cycle: its request round trips"
+    );
+    describe_counter!(
+        "compgate_device_errors_total",
+        Unit::Count,
+        "Failed device poll cycles by kind: timeout, transport, connect, exception, backoff"
+    );
+    describe_gauge!(
+        "compgate_channel_value_degc",
+        "Filtered channel temperature in degrees Celsius (NaN without a value)"
+    );
+    describe_gauge!(
+        "compgate_channel_quality",
+        Unit::Count,
+        "Channel quality: 0 good, 1 uncertain, 2 bad"
+    );
+    describe_gauge!(
+        "compgate_axis_sd43900_mm",
+        "SD43900 (K0, position-independent offset) in mm, last written and verified"
+    );
+    describe_gauge!(
+        "compgate_axis_sd43910",
+        "SD43910 (tan beta, position-dependent slope), last written and verified"
+    );
+    describe_gauge!(
+        "compgate_axis_sd43920_mm",
+        "SD43920 (P0, reference position) in mm, last written and verified"
+    );
+    describe_counter!(
+        "compgate_nc_jobs_total",
+        Unit::Count,
+        "NC jobs by axis and result (ok, failed)"
+    );
+    describe_histogram!(
+        "compgate_cycle_seconds",
+        Unit::Seconds,
+        "Control loop time to process one device sample"
+    );
+    describe_counter!(
+        "compgate_recorder_records_total",
+        Unit::Count,
+        "Recorder records by outcome: written, dropped_queue, dropped_write"
+    );
+    describe_gauge!(
+        "compgate_process_heap_bytes",
+        Unit::Bytes,
+        "glibc malloc heap: bytes in use (the live heap) and bytes held free"
+    );
+    describe_counter!(
+        "compgate_http_connections_total",
+        Unit::Count,
+        "Connections to the metrics endpoint by outcome: accepted, evicted (an idle or half-sent one closed for a new one), refused (closed at once)"
+    );
+    describe_counter!(
+        "compgate_http_accept_errors_total",
+        Unit::Count,
+        "Failed accepts on the metrics endpoint (e.g. out of descriptors)"
+    );
 }
 
 fn bind_err(bind: &str, e: impl std::fmt::Display) -> ServiceError {
@@ -205,10 +310,14 @@ impl Observer for MetricsObserver {
 mod tests {
     use super::*;
 
-    #[test]
-    fn a_bind_that_is_no_address_is_a_typed_error() {
+    #[tokio::test]
+    async fn a_bind_that_is_no_address_is_a_typed_error() {
+        let cfg = MetricsConfig {
+            bind: "localhost".into(),
+            ..MetricsConfig::default()
+        };
         assert_eq!(
-            install("localhost"),
+            install(&cfg).await,
             Err(ServiceError::MetricsBind {
                 bind: "localhost".into(),
                 message: "invalid socket address syntax".into(),

@@ -1,6 +1,8 @@
 //! systemd `Type=notify`: READY=1 once the first poll cycle succeeded, WATCHDOG=1 from
-//! the control loop's status tick, and a STATUS= line with link states and the last
-//! write. Without `NOTIFY_SOCKET` (not under systemd) every call does nothing.
+//! the control loop's own watchdog tick (every half `WATCHDOG_USEC`, see
+//! [`watchdog_interval`]) and with each status tick, and a STATUS= line with link
+//! states and the last write. Without `NOTIFY_SOCKET` (not under systemd) every call
+//! does nothing.
 
 use std::fmt::Write as _;
 
@@ -26,6 +28,12 @@ impl Notifier {
             tracing::warn!(error = %e, "sd_notify failed");
         }
     }
+}
+
+/// How often the control loop pings systemd's watchdog: half of `WATCHDOG_USEC` when
+/// systemd set it for this process (`WatchdogSec=`), else `None`.
+pub fn watchdog_interval() -> Option<std::time::Duration> {
+    sd_notify::watchdog_enabled().map(|d| d / 2)
 }
 
 /// The STATUS= line: each device's link state, then each axis' last write.
@@ -74,6 +82,10 @@ impl Observer for Notifier {
         } else {
             Self::send(&[NotifyState::Watchdog]);
         }
+    }
+
+    fn on_watchdog(&mut self) {
+        Self::send(&[NotifyState::Watchdog]);
     }
 
     fn on_reload(&mut self, result: &Result<(), GatewayError>) {

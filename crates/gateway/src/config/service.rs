@@ -78,14 +78,30 @@ pub struct MetricsConfig {
     /// further on purpose, e.g. `0.0.0.0:9464` behind the plant firewall).
     #[serde(default = "default_metrics_bind")]
     pub bind: String,
+    /// HTTP connections the endpoint holds open at most, 1..=256. Default 64. A new
+    /// connection beyond it closes the oldest one that is not being answered (e.g. a
+    /// client that sent half a request and waits), or is closed at once when every
+    /// held connection is being answered; none is ever queued. Kept far below the
+    /// unit's `LimitNOFILE=` so HTTP clients cannot starve the Modbus, CAN and NC links
+    /// of descriptors.
+    #[serde(default = "default_metrics_max_connections")]
+    pub max_connections: u32,
 }
 
 impl Default for MetricsConfig {
     fn default() -> Self {
         MetricsConfig {
             bind: default_metrics_bind(),
+            max_connections: default_metrics_max_connections(),
         }
     }
+}
+
+/// The largest `metrics.max_connections`.
+pub const METRICS_MAX_CONNECTIONS: u32 = 256;
+
+fn default_metrics_max_connections() -> u32 {
+    64
 }
 
 fn default_metrics_bind() -> String {
@@ -181,6 +197,15 @@ pub(super) fn validate_service(
                 format!(
                     "`{}` is not an `ip:port` address, e.g. `127.0.0.1:9464`",
                     m.bind
+                ),
+            );
+        }
+        if !(1..=METRICS_MAX_CONNECTIONS).contains(&m.max_connections) {
+            problem(
+                "metrics.max_connections",
+                format!(
+                    "{} is not within 1..={METRICS_MAX_CONNECTIONS}",
+                    m.max_connections
                 ),
             );
         }

@@ -20,6 +20,9 @@ pub trait Observer: Send {
     fn on_job(&mut self, _axis: &str, _params: &CompParams, _result: &Result<JobReport, NcError>) {}
     /// The status tick of the loop (every `gateway.status_interval_s`).
     fn on_status(&mut self, _status: &Status) {}
+    /// The liveness tick of the loop (every [`Hooks::watchdog_interval`]): called by
+    /// the core loop itself between samples, so it stops when the loop is stuck.
+    fn on_watchdog(&mut self) {}
     /// A reload took effect (`Ok`) or was refused and the old config stays (`Err`).
     fn on_reload(&mut self, _result: &Result<(), GatewayError>) {}
 }
@@ -47,6 +50,11 @@ impl Observer for Observers {
             o.on_status(status);
         }
     }
+    fn on_watchdog(&mut self) {
+        for o in &mut self.0 {
+            o.on_watchdog();
+        }
+    }
     fn on_reload(&mut self, result: &Result<(), GatewayError>) {
         for o in &mut self.0 {
             o.on_reload(result);
@@ -60,6 +68,9 @@ pub struct Hooks {
     pub observer: Box<dyn Observer>,
     /// New configurations (already loaded and validated), e.g. on SIGHUP.
     pub reload: Option<mpsc::Receiver<Config>>,
+    /// Period of [`Observer::on_watchdog`], independent of the status interval (e.g.
+    /// half of systemd's `WATCHDOG_USEC`). `None`: never called.
+    pub watchdog_interval: Option<std::time::Duration>,
 }
 
 impl Default for Hooks {
@@ -67,6 +78,7 @@ impl Default for Hooks {
         Hooks {
             observer: Box::new(()),
             reload: None,
+            watchdog_interval: None,
         }
     }
 }

@@ -120,7 +120,8 @@ async fn nc_task(
                 let result = nc.writer.write_job(&Job::thermal(&params)).await;
                 match &result {
                     Ok(r) => tracing::info!(module = %nc.name, job_id = r.job_id, sd43900_mm = params.k0_mm, sd43910 = params.tan_beta, sd43920_mm = params.p0_mm, elapsed_ms = r.elapsed.as_secs_f64() * 1e3, "NC job done, read-back verified"),
-                    Err(e) => tracing::warn!(module = %nc.name, error = %e, "NC job failed"),
+                    // The core loop logs the change from working to failing once.
+                    Err(e) => tracing::debug!(module = %nc.name, error = %e, "NC job failed"),
                 }
                 if tx.send(NcEvent::Written { axis, params, result }).await.is_err() {
                     break;
@@ -227,6 +228,10 @@ struct Running {
     device_names: Vec<Arc<str>>,
     /// The last sample's outcome (kept for its allocation).
     readings: SampleReadings,
+    /// NC module names by index, for the log.
+    nc_names: Vec<Arc<str>>,
+    /// Per NC module: whether its last snapshot failed (logged once per change).
+    nc_down: Vec<bool>,
 }
 
 impl Running {
@@ -263,6 +268,11 @@ impl Running {
             baselined: vec![false; pipeline.axes.len()],
             device_names: devices.iter().map(|d| Arc::from(d.poller.name())).collect(),
             readings: SampleReadings::default(),
+            nc_names: nc_modules
+                .iter()
+                .map(|n| Arc::from(n.name.as_str()))
+                .collect(),
+            nc_down: vec![false; nc_modules.len()],
             pipeline,
             devices: devices.into_iter().map(Some).collect(),
             sync_producers,
@@ -291,6 +301,19 @@ impl Running {
         let status = &mut self.status;
         status.samples += 1;
         if let Some(d) = status.devices.get_mut(r.device) {
+            // Logged once per change of the link, never once per poll.
+            let first = d.cycles == 0;
+            let was_down = !first && d.last_error.is_some();
+            match (&r.error, was_down) {
+                (Some(e), false) => {
+                    tracing::warn!(device = %d.name, kind = e.kind(), error = %e, "device link down: its channels hold their last values, then go bad")
+                }
+                (None, true) => {
+                    tracing::info!(device = %d.name, failed_cycles = d.failed_cycles, "device link up again")
+                }
+                (None, false) if first => tracing::info!(device = %d.name, "device link up"),
+                _ => {}
+            }
             d.cycles += 1;
             d.last_cycle = r.poll_elapsed;
             d.connects = r.connects;
@@ -316,6 +339,21 @@ impl Running {
     fn on_event(&mut self, event: NcEvent, in_flight: &mut [bool], observer: &mut dyn Observer) {
         match event {
             NcEvent::Snapshot { module, result } => {
+                if let (Some(down), Some(name)) =
+                    (self.nc_down.get_mut(module), self.nc_names.get(module))
+                {
+                    match (&result, *down) {
+                        (Err(e), false) => {
+                            tracing::warn!(module = %name, error = %e, "NC module unreachable: nothing is written to it");
+                            *down = true;
+                        }
+                        (Ok(_), true) => {
+                            tracing::info!(module = %name, "NC module reachable again");
+                            *down = false;
+                        }
+                        _ => {}
+                    }
+                }
                 for (i, axis) in self.pipeline.axes.iter_mut().enumerate() {
                     if axis.nc_module != module {
                         continue;
@@ -355,6 +393,16 @@ impl Running {
                 }
                 observer.on_job(&self.pipeline.axes[axis].name, &params, &result);
                 let st = &mut self.status.axes[axis];
+                let name = &self.pipeline.axes[axis].name;
+                // Logged once per change from working to failing and back.
+                match (&result, st.last_job_error.is_some()) {
+                    (Err(e @ NcError::Refused { .. }), false) => {
+                        tracing::warn!(axis = %name, error = %e, "NC refusing jobs");
+                    }
+                    (Err(e), false) => tracing::warn!(axis = %name, error = %e, "NC jobs failing"),
+                    (Ok(_), true) => tracing::info!(axis = %name, "NC jobs succeed again"),
+                    _ => {}
+                }
                 match result {
                     Ok(_) => {
                         self.pipeline.axes[axis].comp.confirm(params);
@@ -435,6 +483,12 @@ async fn generation(
     let mut in_flight = vec![false; state.pipeline.axes.len()];
     let mut status_tick = tokio::time::interval(state.status_interval);
     status_tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
+    // Its own period, whatever the status interval: systemd's watchdog needs pings
+    // more often than a slow status tick would send them.
+    let watchdog_on = hooks.watchdog_interval.is_some();
+    let mut watchdog_tick =
+        tokio::time::interval(hooks.watchdog_interval.unwrap_or(Duration::from_secs(3600)));
+    watchdog_tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
     let far = now + Duration::from_secs(86_400 * 365);
     let mut events_open = true;
     let mut reload_to: Option<(Box<Config>, Box<Built>)> = None;
@@ -478,6 +532,10 @@ async fn generation(
                         in_flight[i] = true;
                     }
                 }
+            }
+            _ = watchdog_tick.tick(), if watchdog_on => {
+                // Called from the control loop itself: a stuck loop stops the pings.
+                observer.on_watchdog();
             }
             _ = status_tick.tick() => {
                 // Called from the control loop itself: a stuck loop stops the watchdog.

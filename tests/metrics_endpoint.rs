@@ -1,0 +1,274 @@
+//! The metrics endpoint of the real binary under hostile clients, and its text
+//! against `promtool check metrics`.
+
+mod common;
+
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::time::{Duration, Instant};
+
+use common::process::Gateway;
+use compgate::plant::{Bind, Plant};
+use compgate_gateway::config;
+
+/// A running simulated plant and the config file naming its addresses, with
+/// `[metrics]` on `port`.
+async fn plant_and_file(dir: &std::path::Path, port: u16) -> (Plant, std::path::PathBuf) {
+    let toml = common::config("hold", "", "");
+    let cfg = config::load_str(&toml, "test.toml").expect("test config is valid");
+    let plant = Plant::start(&cfg, Bind::Ephemeral)
+        .await
+        .expect("plant starts");
+    let path = dir.join("compgate.toml");
+    let mut text = toml::to_string(&plant.config).expect("config serialises");
+    text.push_str(&format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"\n"));
+    std::fs::write(&path, text).expect("config file written");
+    (plant, path)
+}
+
+fn free_port() -> u16 {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind port 0");
+    l.local_addr().expect("local addr").port()
+}
+
+/// GET /metrics with every step bounded by `limit`: the status line and body, and how
+/// long it took; `Err` with what went wrong.
+fn scrape(port: u16, limit: Duration) -> Result<(String, Duration), String> {
+    let started = Instant::now();
+    let addr = std::net::SocketAddr::from(([127, 0, 0, 1], port));
+    let mut s = TcpStream::connect_timeout(&addr, limit).map_err(|e| format!("connect: {e}"))?;
+    s.set_read_timeout(Some(limit)).map_err(|e| e.to_string())?;
+    s.set_write_timeout(Some(limit))
+        .map_err(|e| e.to_string())?;
+    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
+        .map_err(|e| format!("request: {e}"))?;
+    let mut text = String::new();
+    s.read_to_string(&mut text)
+        .map_err(|e| format!("response after {:?}: {e}", started.elapsed()))?;
+    if !text.starts_with("HTTP/1.1 200") {
+        return Err(format!("not 200: {text}"));
+    }
+    let body = text
+        .split_once("\r\n\r\n")
+        .map(|(_, b)| b.to_string())
+        .unwrap_or_default();
+    Ok((body, started.elapsed()))
+}
+
+fn value(body: &str, series: &str) -> Option<f64> {
+    body.lines()
+        .filter_map(|l| l.rsplit_once(' '))
+        .find(|(k, _)| *k == series)
+        .and_then(|(_, v)| v.parse().ok())
+}
+
+/// Raises this process's soft descriptor limit to its hard limit; returns the new
+/// soft limit.
+#[allow(unsafe_code)]
+fn raise_nofile() -> u64 {
+    let mut lim = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit/setrlimit only read/write the struct passed by reference.
+    unsafe {
+        if libc::getrlimit(libc::RLIMIT_NOFILE, &mut lim) != 0 {
+            return 0;
+        }
+        lim.rlim_cur = lim.rlim_max;
+        if libc::setrlimit(libc::RLIMIT_NOFILE, &lim) != 0 {
+            return 0;
+        }
+    }
+    lim.rlim_cur
+}
+
+/// Descriptors the gateway runs with, as an unraised systemd or shell default would
+/// give it: 1100 held connections would exhaust them.
+const GATEWAY_NOFILE: u64 = 1024;
+const ATTACKERS: usize = 1100;
+
+// 1100 clients each send half a request and stay: the endpoint still answers scrapes
+// within 1 s, the device reconnects after a restart, every channel stays good, no NC
+// job fails, and the log stays small.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn half_sent_requests_on_1100_connections_starve_nothing() {
+    let nofile = raise_nofile();
+    if nofile < 2300 {
+        println!("SKIPPED: RLIMIT_NOFILE hard limit is {nofile}, the test needs 2300 descriptors");
+        return;
+    }
+    let test_started = Instant::now();
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let (plant, path) = plant_and_file(dir.path(), port).await;
+    let mut gw = Gateway::start_with_nofile(dir.path(), &path, &[], Some(GATEWAY_NOFILE));
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "first job", |m| m.contains("jobs 1 ok")));
+    let log_before = gw.stderr_bytes();
+
+    let attack_started = Instant::now();
+    let addr = std::net::SocketAddr::from(([127, 0, 0, 1], port));
+    let mut attackers = Vec::with_capacity(ATTACKERS);
+    let mut connect_failed = 0;
+    tokio::task::block_in_place(|| {
+        for _ in 0..ATTACKERS {
+            match TcpStream::connect_timeout(&addr, Duration::from_millis(500)) {
+                Ok(mut s) => {
+                    let _ = s.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n");
+                    attackers.push(s);
+                }
+                Err(_) => connect_failed += 1,
+            }
+        }
+    });
+    println!(
+        "attack: {} connections open, {connect_failed} connects failed, in {:?}",
+        attackers.len(),
+        attack_started.elapsed()
+    );
+
+    // During the attack: scrapes answer within 1 s; a device restart recovers.
+    let mut max_latency = Duration::ZERO;
+    let mut scrapes = 0;
+    let mut restarted = false;
+    let attack_for = Duration::from_secs(6);
+    while attack_started.elapsed() < attack_for {
+        let (body, took) = tokio::task::block_in_place(|| scrape(port, Duration::from_secs(1)))
+            .unwrap_or_else(|e| {
+                panic!(
+                    "scrape {scrapes} during the attack failed: {e}\nlog grew {} bytes",
+                    gw.stderr_bytes() - log_before
+                )
+            });
+        assert!(took < Duration::from_secs(1), "scrape took {took:?}");
+        max_latency = max_latency.max(took);
+        scrapes += 1;
+        let grown = gw.stderr_bytes() - log_before;
+        assert!(grown < 1_000_000, "the log grew {grown} bytes");
+        if !restarted && attack_started.elapsed() > Duration::from_secs(1) {
+            // The field device restarts: every connection to it is dropped.
+            plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::DropConnections);
+            tokio::time::sleep(Duration::from_millis(300)).await;
+            plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::None);
+            restarted = true;
+        }
+        assert!(body.contains("compgate_device_link_up"), "{body}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    // Still under attack: the device reconnected and every channel is good again.
+    let deadline = Instant::now() + Duration::from_secs(5);
+    let last = loop {
+        let (body, took) = tokio::task::block_in_place(|| scrape(port, Duration::from_secs(1)))
+            .unwrap_or_else(|e| panic!("scrape after the device restart failed: {e}"));
+        max_latency = max_latency.max(took);
+        scrapes += 1;
+        let good = value(&body, r#"compgate_device_link_up{device="ain1"}"#) == Some(1.0)
+            && ["T_bed", "T_screw", "T_col"].iter().all(|c| {
+                value(
+                    &body,
+                    &format!(r#"compgate_channel_quality{{channel="{c}"}}"#),
+                ) == Some(0.0)
+            });
+        if good {
+            break body;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the device did not come back during the attack:\n{body}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert_eq!(
+        value(&last, r#"compgate_nc_jobs_total{axis="X",result="failed"}"#).unwrap_or(0.0),
+        0.0,
+        "{last}"
+    );
+    assert!(restarted);
+    let grown = gw.stderr_bytes() - log_before;
+    let outcome = |o: &str| {
+        value(
+            &last,
+            &format!(r#"compgate_http_connections_total{{outcome="{o}"}}"#),
+        )
+        .unwrap_or(0.0)
+    };
+    println!(
+        "during the attack: {scrapes} scrapes, max latency {max_latency:?}, log grew {grown} bytes; \
+         connections accepted {}, evicted {}, refused {}; accept errors {}; test took {:?}",
+        outcome("accepted"),
+        outcome("evicted"),
+        outcome("refused"),
+        value(&last, "compgate_http_accept_errors_total").unwrap_or(0.0),
+        test_started.elapsed()
+    );
+    assert!(grown < 1_000_000, "the log grew {grown} bytes");
+    assert!(outcome("accepted") >= ATTACKERS as f64 - connect_failed as f64);
+    drop(attackers);
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
+
+// `promtool check metrics` accepts a real scrape: help text on every metric, valid
+// names. Without promtool the test is skipped, except under CI, where it must be there.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_real_scrape_passes_promtool_check_metrics() {
+    let promtool = std::process::Command::new("promtool")
+        .arg("--version")
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !promtool {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "CI is set and promtool is missing (./test.sh installs the prometheus package)"
+        );
+        println!("SKIPPED: promtool not installed (Debian package `prometheus`)");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let (plant, path) = plant_and_file(dir.path(), port).await;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "first job", |m| m.contains("jobs 1 ok")));
+    // Every kind of metric present: a failed poll counts a device error.
+    plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::Silent);
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::None);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let (body, _) =
+        tokio::task::block_in_place(|| scrape(port, Duration::from_secs(2))).expect("scrape");
+    for name in [
+        "compgate_device_link_up",
+        "compgate_device_errors_total",
+        "compgate_channel_quality",
+        "compgate_nc_jobs_total",
+        "compgate_cycle_seconds",
+        "compgate_http_connections_total",
+    ] {
+        assert!(
+            body.contains(&format!("# HELP {name} ")),
+            "no help text for {name}:\n{body}"
+        );
+    }
+    let mut child = std::process::Command::new("promtool")
+        .args(["check", "metrics"])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("promtool runs");
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(body.as_bytes())
+        .unwrap();
+    let out = child.wait_with_output().unwrap();
+    let said =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success() && said.trim().is_empty(),
+        "promtool check metrics: {said}\n{body}"
+    );
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
