@@ -20,8 +20,8 @@ const TAN_BETA_LIMIT_CEILING: f64 = 0.1;
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct AxisConfig {
-    /// Name of the NC module in `[nc_modules]` that carries this axis. Required; one
-    /// axis per module.
+    /// Name of the NC module in `[nc_modules]` that carries this axis. Required; at
+    /// most 64 characters; one axis per module.
     #[schemars(length(max = 64))]
     pub nc_module: String,
     /// MD32750 `$MA_TEMP_COMP_TYPE` the NC must have (bit 0: K0, bit 1: slope).
@@ -121,7 +121,7 @@ pub struct K0Model {
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct K0Term {
-    /// Name of the channel in `[channels]`. Required.
+    /// Name of the channel in `[channels]`. Required; at most 64 characters.
     #[schemars(length(max = 64))]
     pub channel: String,
     /// Temperature in degC at which the term is zero. Default 20.0 (ISO 1 reference
@@ -152,7 +152,7 @@ pub struct TanBetaModel {
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct TanBetaTerm {
-    /// Name of the channel in `[channels]`. Required.
+    /// Name of the channel in `[channels]`. Required; at most 64 characters.
     #[schemars(length(max = 64))]
     pub channel: String,
     /// Temperature in degC at which the term is zero. Default 20.0; -100..=500.

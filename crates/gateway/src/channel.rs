@@ -20,7 +20,8 @@ const MAX_MEDIAN_SAMPLES: u32 = 99;
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct ChannelConfig {
-    /// Name of the device in `[devices]` the value is read from. Required.
+    /// Name of the device in `[devices]` the value is read from. Required; at most 64
+    /// characters.
     #[schemars(length(max = 64))]
     pub device: String,
     /// Register table: `input` (function code 0x04) or `holding` (0x03). Required on
