@@ -51,7 +51,14 @@ fn node_id_interface_and_modbus_keys() {
     let p = problems(&example().replace("node_id = 5", "node_id = 128"));
     assert!(has(&p, "devices.can_ain.node_id", "1..=127"), "{p:#?}");
     let p = problems(&example().replace("node_id = 5", "node_id = 0"));
-    assert!(has(&p, "devices.can_ain.node_id", "got 0"), "{p:#?}");
+    assert!(
+        has(
+            &p,
+            "devices.can_ain.node_id",
+            "integer `0`, expected an integer 1..=127"
+        ),
+        "{p:#?}"
+    );
     let p = problems(&example().replace("node_id = 5\n", ""));
     assert!(has(&p, "devices.can_ain.node_id", "required"), "{p:#?}");
     let p = problems(&example().replace("interface = \"vcan0\"\n", ""));
@@ -73,7 +80,11 @@ fn node_id_interface_and_modbus_keys() {
     assert!(has(&p, "devices.can_ain.baud", "not used"), "{p:#?}");
     let p = problems(&example().replace("heartbeat_timeout_s = 1.5", "heartbeat_timeout_s = -1.0"));
     assert!(
-        has(&p, "devices.can_ain.heartbeat_timeout_s", ">= 0"),
+        has(
+            &p,
+            "devices.can_ain.heartbeat_timeout_s",
+            "`-1`, expected a number 0..=3600"
+        ),
         "{p:#?}"
     );
 }

@@ -3,14 +3,18 @@
 //!
 //! One header row, comma separated, one row per measurement in time order:
 //!
-//! | column      | unit | required | meaning                                                   |
-//! |-------------|------|----------|-----------------------------------------------------------|
-//! | `t_s`       | s    | yes      | time, non-decreasing                                      |
-//! | `pos_mm`    | mm   | yes      | axis position of the measurement                          |
-//! | `err_um`    | um   | yes      | positioning error, actual minus commanded                 |
-//! | `T_<name>`  | degC | >= 1     | a temperature sensor                                      |
-//! | `dir`       | -    | no       | +1/-1, direction of the last move; else the sign of the last non-zero position change |
-//! | `travel_mm` | mm   | no       | distance travelled since the previous row; else abs(delta pos_mm) |
+//! | column      | unit | required | plausible range      | meaning                                          |
+//! |-------------|------|----------|----------------------|--------------------------------------------------|
+//! | `t_s`       | s    | yes      | 0..=315576000 (10 a) | time since the start, non-decreasing             |
+//! | `pos_mm`    | mm   | yes      | -100000..=100000     | axis position of the measurement                 |
+//! | `err_um`    | um   | yes      | -100000..=100000     | positioning error, actual minus commanded        |
+//! | `T_<name>`  | degC | >= 1     | -100..=500           | a temperature sensor                             |
+//! | `dir`       | -    | no       | +1 or -1             | direction of the last move; else the sign of the last non-zero position change |
+//! | `travel_mm` | mm   | no       | 0..=1e9 (1000 km)    | distance travelled since the previous row; else abs(delta pos_mm) |
+//!
+//! Every value must be a finite number within its plausible range (the bounds are
+//! the `*_MIN`/`*_MAX` constants of this module): a value outside is refused with
+//! its line and column, never fed to a fit.
 //!
 //! Any other column is reported in [`Measurements::ignored_columns`] and skipped.
 
@@ -18,6 +22,20 @@ use std::io::{Read, Write};
 use std::path::Path;
 
 use thiserror::Error;
+
+/// Plausible `t_s`: 0 ..= 10 years (of 365.25 days) in seconds.
+pub const T_S_MAX: f64 = 315_576_000.0;
+/// Plausible |`pos_mm`|: 100 m, longer than any machine axis.
+pub const POS_MM_MAX: f64 = 100_000.0;
+/// Plausible |`err_um`|: 100 mm of positioning error.
+pub const ERR_UM_MAX: f64 = 100_000.0;
+/// Lowest plausible temperature, degC.
+pub const TEMP_DEGC_MIN: f64 = -100.0;
+/// Highest plausible temperature, degC.
+pub const TEMP_DEGC_MAX: f64 = 500.0;
+/// Plausible `travel_mm` of one row: 0 ..= 1000 km (the machine may run for hours
+/// between two rows).
+pub const TRAVEL_MM_MAX: f64 = 1e9;
 
 /// Errors reading or writing measurement CSV. Lines are 1-based file lines (the header
 /// is line 1), columns are header names.
@@ -151,28 +169,46 @@ impl Measurements {
         let mut last_dir: i8 = 0;
         while rdr.read_record(&mut record).map_err(csv_err)? {
             let line = record.position().map_or(0, |p| p.line());
+            let bad = |i: usize, reason| MeasureError::Field {
+                line,
+                column: header[i].to_string(),
+                value: record[i].to_string(),
+                reason,
+            };
             let num = |i: usize| -> Result<f64, MeasureError> {
-                let raw = &record[i];
-                let bad = |reason| MeasureError::Field {
-                    line,
-                    column: header[i].to_string(),
-                    value: raw.to_string(),
-                    reason,
-                };
-                let v: f64 = raw.parse().map_err(|_| bad("not a number"))?;
+                let v: f64 = record[i].parse().map_err(|_| bad(i, "not a number"))?;
                 if v.is_finite() {
                     Ok(v)
                 } else {
-                    Err(bad("not a finite number"))
+                    Err(bad(i, "not a finite number"))
                 }
             };
-            let t_s = num(i_t)?;
+            // A finite number within `lo..=hi`; `reason` states the range.
+            let within = |i: usize, lo: f64, hi: f64, reason| -> Result<f64, MeasureError> {
+                let v = num(i)?;
+                if (lo..=hi).contains(&v) {
+                    Ok(v)
+                } else {
+                    Err(bad(i, reason))
+                }
+            };
+            let t_s = within(
+                i_t,
+                0.0,
+                T_S_MAX,
+                "outside the plausible range 0..=315576000 s (10 years)",
+            )?;
             if let Some(&prev_s) = out.t_s.last() {
                 if t_s < prev_s {
                     return Err(MeasureError::TimeBackwards { line, t_s, prev_s });
                 }
             }
-            let pos_mm = num(i_pos)?;
+            let pos_mm = within(
+                i_pos,
+                -POS_MM_MAX,
+                POS_MM_MAX,
+                "outside the plausible range -100000..=100000 mm",
+            )?;
             let delta_mm = out.pos_mm.last().map_or(0.0, |p| pos_mm - p);
             let dir = match i_dir {
                 Some(i) => match num(i)? {
@@ -200,20 +236,30 @@ impl Measurements {
                 Some(i) => {
                     let v = num(i)?;
                     if v < 0.0 {
-                        return Err(MeasureError::Field {
-                            line,
-                            column: "travel_mm".into(),
-                            value: record[i].to_string(),
-                            reason: "must not be negative",
-                        });
+                        return Err(bad(i, "must not be negative"));
                     }
-                    v
+                    within(
+                        i,
+                        0.0,
+                        TRAVEL_MM_MAX,
+                        "outside the plausible range 0..=1e9 mm (1000 km)",
+                    )?
                 }
                 None => delta_mm.abs(),
             };
-            out.err_um.push(num(i_err)?);
+            out.err_um.push(within(
+                i_err,
+                -ERR_UM_MAX,
+                ERR_UM_MAX,
+                "outside the plausible range -100000..=100000 um",
+            )?);
             for (col, &i) in out.temps.iter_mut().zip(&temp_idx) {
-                col.degc.push(num(i)?);
+                col.degc.push(within(
+                    i,
+                    TEMP_DEGC_MIN,
+                    TEMP_DEGC_MAX,
+                    "outside the plausible range -100..=500 degC",
+                )?);
             }
             out.t_s.push(t_s);
             out.pos_mm.push(pos_mm);
@@ -331,5 +377,74 @@ mod tests {
         ));
         let e = read("t_s,pos_mm,err_um,T_a\n0,0,NaN,20\n").unwrap_err();
         assert!(e.to_string().contains("not a finite number"), "{e}");
+    }
+
+    /// The error of a file whose third line has `row` (header and a good line
+    /// before it).
+    fn third_line(row: &str) -> String {
+        let text = format!("t_s,pos_mm,dir,travel_mm,err_um,T_a\n0,0,1,0,1,20\n{row}\n");
+        read(&text).unwrap_err().to_string()
+    }
+
+    #[test]
+    fn implausible_positions_are_refused_with_line_and_column() {
+        assert_eq!(
+            third_line("1,1e308,1,0,1,20"),
+            "line 3, column `pos_mm`: outside the plausible range -100000..=100000 mm \
+             (value \"1e308\")"
+        );
+        assert!(third_line("1,-100000.5,1,0,1,20").starts_with("line 3, column `pos_mm`"));
+        assert!(read("t_s,pos_mm,err_um,T_a\n0,-100000,0,20\n0,100000,0,20\n").is_ok());
+    }
+
+    #[test]
+    fn implausible_errors_are_refused_with_line_and_column() {
+        assert_eq!(
+            third_line("1,0,1,0,-1e308,20"),
+            "line 3, column `err_um`: outside the plausible range -100000..=100000 um \
+             (value \"-1e308\")"
+        );
+        assert!(read("t_s,pos_mm,err_um,T_a\n0,0,-100000,20\n0,0,100000,20\n").is_ok());
+    }
+
+    #[test]
+    fn implausible_temperatures_are_refused_with_line_and_column() {
+        assert_eq!(
+            third_line("1,0,1,0,1,1e300"),
+            "line 3, column `T_a`: outside the plausible range -100..=500 degC \
+             (value \"1e300\")"
+        );
+        assert!(third_line("1,0,1,0,1,-100.1").starts_with("line 3, column `T_a`"));
+        assert!(read("t_s,pos_mm,err_um,T_a\n0,0,0,-100\n0,0,0,500\n").is_ok());
+    }
+
+    #[test]
+    fn implausible_times_are_refused_with_line_and_column() {
+        assert_eq!(
+            third_line("1e308,0,1,0,1,20"),
+            "line 3, column `t_s`: outside the plausible range 0..=315576000 s (10 years) \
+             (value \"1e308\")"
+        );
+        let e = read("t_s,pos_mm,err_um,T_a\n-1,0,1,20\n").unwrap_err();
+        assert!(
+            e.to_string()
+                .starts_with("line 2, column `t_s`: outside the plausible range"),
+            "{e}"
+        );
+        assert!(read("t_s,pos_mm,err_um,T_a\n0,0,0,20\n315576000,0,0,20\n").is_ok());
+    }
+
+    #[test]
+    fn implausible_travel_is_refused_with_line_and_column() {
+        assert_eq!(
+            third_line("1,0,1,1e308,1,20"),
+            "line 3, column `travel_mm`: outside the plausible range 0..=1e9 mm (1000 km) \
+             (value \"1e308\")"
+        );
+        assert_eq!(
+            third_line("1,0,1,-1,1,20"),
+            "line 3, column `travel_mm`: must not be negative (value \"-1\")"
+        );
+        assert!(read("t_s,pos_mm,dir,travel_mm,err_um,T_a\n0,0,1,1e9,0,20\n").is_ok());
     }
 }

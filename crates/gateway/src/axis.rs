@@ -20,52 +20,68 @@ const TAN_BETA_LIMIT_CEILING: f64 = 0.1;
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct AxisConfig {
-    /// Name of the NC module in `[nc_modules]` that carries this axis. Required; one
-    /// axis per module.
+    /// Name of the NC module in `[nc_modules]` that carries this axis. Required; at
+    /// most 64 characters; one axis per module.
+    #[schemars(length(max = 64))]
     pub nc_module: String,
     /// MD32750 `$MA_TEMP_COMP_TYPE` the NC must have (bit 0: K0, bit 1: slope).
     /// Checked against the NC at start. Required; 0..=7. A K0 model needs bit 0 and a
     /// tan(beta) model needs bit 1, otherwise the NC would ignore the value written.
+    #[schemars(range(max = 7))]
     pub md32750: u16,
-    /// SD43920 `$SA_TEMP_COMP_REF_POSITION`: reference position P0 in mm. Default 0.0.
+    /// SD43920 `$SA_TEMP_COMP_REF_POSITION`: reference position P0 in mm. Default 0.0;
+    /// -100000..=100000.
     #[serde(default)]
+    #[schemars(range(min = -100_000.0, max = 100_000.0))]
     pub p0_mm: f64,
-    /// Seconds between compensation updates. Default 10.0; > 0.
+    /// Seconds between compensation updates. Default 10.0; 0.001..=3600.
     #[serde(default = "default_update_interval_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
     pub update_interval_s: f64,
-    /// No write while K0 changed less than this (mm). Default 0.001; >= 0.
+    /// No write while K0 changed less than this (mm). Default 0.001; 0..=10.
     #[serde(default = "default_deadband_k0_mm")]
+    #[schemars(range(min = 0.0, max = 10.0))]
     pub deadband_k0_mm: f64,
     /// No write while tan(beta) changed less than this (dimensionless, mm/mm).
-    /// Default 0.000001; >= 0.
+    /// Default 0.000001; 0..=0.1.
     #[serde(default = "default_deadband_tan_beta")]
+    #[schemars(range(min = 0.0, max = 0.1))]
     pub deadband_tan_beta: f64,
     /// Hard limit of |K0| in mm; a computed value beyond it is clamped and logged.
-    /// Default 0.5; > 0.
+    /// Default 0.5; > 0 and <= 10 (SD43900 is limited to
+    /// 10 mm by the NC).
     #[serde(default = "default_max_abs_k0_mm")]
+    #[schemars(range(min = 0.0, max = 10.0))]
     pub max_abs_k0_mm: f64,
     /// Hard limit of |tan(beta)|; must stay below the NC's MD32760
     /// `$MA_COMP_ADD_VELO_FACTOR`. Default 0.01 (the MD32760 default); > 0 and
     /// <= 0.1.
     #[serde(default = "default_max_abs_tan_beta")]
+    #[schemars(range(min = 0.0, max = 0.1))]
     pub max_abs_tan_beta: f64,
-    /// Largest change of K0 in one update (mm). Default 0.02; > 0.
+    /// Largest change of K0 in one update (mm). Default 0.02; > 0 and <= 10.
     #[serde(default = "default_max_step_k0_mm")]
+    #[schemars(range(min = 0.0, max = 10.0))]
     pub max_step_k0_mm: f64,
-    /// Largest change of tan(beta) in one update. Default 0.00002; > 0.
+    /// Largest change of tan(beta) in one update. Default 0.00002; > 0 and
+    /// <= 0.1.
     #[serde(default = "default_max_step_tan_beta")]
+    #[schemars(range(min = 0.0, max = 0.1))]
     pub max_step_tan_beta: f64,
     /// What to do while an input channel is bad: `hold` the last value or
     /// `ramp_to_zero`. Default `hold`.
     #[serde(default)]
     pub on_bad_input: OnBadInput,
     /// Ramp rate of K0 towards zero in mm per second (`ramp_to_zero` only).
-    /// Default 0.0005; > 0 with `ramp_to_zero`.
+    /// Default 0.0005; 0..=10, > 0 with `ramp_to_zero`.
     #[serde(default = "default_ramp_k0_mm_per_s")]
+    #[schemars(range(min = 0.0, max = 10.0))]
     pub ramp_k0_mm_per_s: f64,
     /// Ramp rate of tan(beta) towards zero per second (`ramp_to_zero` only).
-    /// Default 0.0000005; > 0 with `ramp_to_zero`.
+    /// Default 0.0000005; 0..=0.1, > 0 with
+    /// `ramp_to_zero`.
     #[serde(default = "default_ramp_tan_beta_per_s")]
+    #[schemars(range(min = 0.0, max = 0.1))]
     pub ramp_tan_beta_per_s: f64,
     /// K0(T) model (SD43900). Optional table; default: offset 0, no terms (K0 = 0).
     #[serde(default)]
@@ -91,8 +107,10 @@ pub enum OnBadInput {
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq, Default)]
 #[serde(deny_unknown_fields)]
 pub struct K0Model {
-    /// Constant part of K0 in mm. Default 0.0.
+    /// Constant part of K0 in mm. Default 0.0; -10..=10 (SD43900 is limited
+    /// to 10 mm by the NC).
     #[serde(default)]
+    #[schemars(range(min = -10.0, max = 10.0))]
     pub offset_mm: f64,
     /// Linear temperature terms; each channel at most once. Default none.
     #[serde(default)]
@@ -103,13 +121,16 @@ pub struct K0Model {
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct K0Term {
-    /// Name of the channel in `[channels]`. Required.
+    /// Name of the channel in `[channels]`. Required; at most 64 characters.
+    #[schemars(length(max = 64))]
     pub channel: String,
     /// Temperature in degC at which the term is zero. Default 20.0 (ISO 1 reference
-    /// temperature).
+    /// temperature); -100..=500.
     #[serde(default = "default_ref_degc")]
+    #[schemars(range(min = -100.0, max = 500.0))]
     pub ref_degc: f64,
-    /// K0 change in mm per degC. Required.
+    /// K0 change in mm per degC. Required; -1..=1.
+    #[schemars(range(min = -1.0, max = 1.0))]
     pub coeff_mm_per_degc: f64,
 }
 
@@ -118,8 +139,9 @@ pub struct K0Term {
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq, Default)]
 #[serde(deny_unknown_fields)]
 pub struct TanBetaModel {
-    /// Constant part of tan(beta). Default 0.0.
+    /// Constant part of tan(beta). Default 0.0; -0.1..=0.1.
     #[serde(default)]
+    #[schemars(range(min = -0.1, max = 0.1))]
     pub offset: f64,
     /// Linear temperature terms; each channel at most once. Default none.
     #[serde(default)]
@@ -130,13 +152,16 @@ pub struct TanBetaModel {
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct TanBetaTerm {
-    /// Name of the channel in `[channels]`. Required.
+    /// Name of the channel in `[channels]`. Required; at most 64 characters.
+    #[schemars(length(max = 64))]
     pub channel: String,
-    /// Temperature in degC at which the term is zero. Default 20.0.
+    /// Temperature in degC at which the term is zero. Default 20.0; -100..=500.
     #[serde(default = "default_ref_degc")]
+    #[schemars(range(min = -100.0, max = 500.0))]
     pub ref_degc: f64,
     /// tan(beta) change per degC, e.g. 0.0000115 for a steel ball screw
-    /// (11.5 um/m/K). Required.
+    /// (11.5 um/m/K). Required; -0.01..=0.01.
+    #[schemars(range(min = -0.01, max = 0.01))]
     pub coeff_per_degc: f64,
 }
 

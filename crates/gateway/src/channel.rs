@@ -20,7 +20,9 @@ const MAX_MEDIAN_SAMPLES: u32 = 99;
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct ChannelConfig {
-    /// Name of the device in `[devices]` the value is read from. Required.
+    /// Name of the device in `[devices]` the value is read from. Required; at most 64
+    /// characters.
+    #[schemars(length(max = 64))]
     pub device: String,
     /// Register table: `input` (function code 0x04) or `holding` (0x03). Required on
     /// a Modbus device, not allowed on a CAN device.
@@ -240,21 +242,26 @@ impl Scaling {
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct TransmitterScaling {
-    /// ADC counts at the ADC's full scale, e.g. 4095 for 12 bit. Required; > 0 and
+    /// ADC counts at the ADC's full scale, e.g. 4095 for 12 bit. Required; >= 1 and
     /// representable in the channel's `data_type` (<= 65535 for u16, <= 32767 for i16).
     /// A `f32` channel is allowed: its value is taken as (fractional) counts.
+    #[schemars(range(min = 1))]
     pub adc_full_scale_counts: u32,
-    /// Current in mA at the ADC's full scale, e.g. 24.0. Required; >= 20 so the top of
+    /// Current in mA at the ADC's full scale, e.g. 24.0. Required; 20..=50 so the top of
     /// the range is reachable (above 21 keeps NAMUR NE43 over-range visible).
+    #[schemars(range(min = 20.0, max = 50.0))]
     pub adc_full_scale_ma: f64,
     /// `"4-20"` or `"0-20"` mA. Default `"4-20"`; NAMUR NE43 fault detection
     /// (< 3.6 mA or > 21 mA) needs 4-20.
     #[serde(default)]
     pub current_range: CurrentRange,
-    /// Temperature in degC at the bottom of the current range (4 or 0 mA). Required.
+    /// Temperature in degC at the bottom of the current range (4 or 0 mA). Required;
+    /// -273.15..=2000.
+    #[schemars(range(min = -273.15, max = 2000.0))]
     pub range_min_degc: f64,
     /// Temperature in degC at the top of the current range (20 mA). Required;
-    /// > `range_min_degc`.
+    /// -273.15..=2000 and > `range_min_degc`.
+    #[schemars(range(min = -273.15, max = 2000.0))]
     pub range_max_degc: f64,
 }
 
@@ -263,11 +270,13 @@ pub struct TransmitterScaling {
 #[serde(deny_unknown_fields)]
 pub struct DirectScaling {
     /// Factor from the raw value to degC, e.g. 0.1 for a module reporting tenths of a
-    /// degree. Default 1.0; finite and not 0.
+    /// degree. Default 1.0; -1e6..=1e6 and not 0.
     #[serde(default = "one")]
+    #[schemars(range(min = -1e6, max = 1e6))]
     pub gain: f64,
-    /// Offset in degC added after the gain. Default 0.0.
+    /// Offset in degC added after the gain. Default 0.0; -2000..=2000.
     #[serde(default)]
+    #[schemars(range(min = -2000.0, max = 2000.0))]
     pub offset_degc: f64,
 }
 
@@ -307,28 +316,37 @@ pub struct FilterConfig {
     /// 1..=99 (an even window has no middle sample: a median of 2 is a mean and
     /// rejects no spike, so even numbers are refused).
     #[serde(default = "default_median_samples")]
+    #[schemars(range(min = 1, max = 99))]
     pub median_samples: u32,
-    /// First-order low-pass time constant in seconds (0 = off). Default 10.0; >= 0.
+    /// First-order low-pass time constant in seconds (0 = off). Default 10.0;
+    /// 0..=86400.
     #[serde(default = "default_lowpass_tau_s")]
+    #[schemars(range(min = 0.0, max = 86400.0))]
     pub lowpass_tau_s: f64,
     /// Plausibility: a change faster than this (degC per second) is rejected as a
-    /// spike (0 = off). Default 0.5; >= 0.
+    /// spike (0 = off). Default 0.5; 0..=100000.
     #[serde(default = "default_max_rate_degc_per_s")]
+    #[schemars(range(min = 0.0, max = 100_000.0))]
     pub max_rate_degc_per_s: f64,
     /// Consecutive rejected samples after which the channel is bad and the filter
-    /// re-seeds on the new level. Default 5; >= 1.
+    /// re-seeds on the new level. Default 5; 1..=10000.
     #[serde(default = "default_max_rejected_samples")]
+    #[schemars(range(min = 1, max = 10_000))]
     pub max_rejected_samples: u32,
     /// Seconds the raw value may stay unchanged before the transmitter counts as
-    /// frozen and the channel turns bad (0 = off). Default 0.0 (off); >= 0.
+    /// frozen and the channel turns bad (0 = off). Default 0.0 (off); 0..=86400.
     #[serde(default)]
+    #[schemars(range(min = 0.0, max = 86400.0))]
     pub stale_after_s: f64,
-    /// Lowest plausible value in degC; below it a sample is bad. Default -20.0.
+    /// Lowest plausible value in degC; below it a sample is bad. Default -20.0;
+    /// -273.15..=2000.
     #[serde(default = "default_valid_min_degc")]
+    #[schemars(range(min = -273.15, max = 2000.0))]
     pub valid_min_degc: f64,
     /// Highest plausible value in degC; above it a sample is bad. Default 80.0;
-    /// > `valid_min_degc`.
+    /// -273.15..=2000 and > `valid_min_degc`.
     #[serde(default = "default_valid_max_degc")]
+    #[schemars(range(min = -273.15, max = 2000.0))]
     pub valid_max_degc: f64,
 }
 

@@ -19,7 +19,8 @@
 //!
 //! 1. **Structure** (against [`schema::json_schema`]): every key must be known (a
 //!    typo is an error, not a silently ignored key; so is a key of another transport),
-//!    every value must have the right type and every required key must be present.
+//!    every value must have the right type and lie within its documented range (a
+//!    number) or length (a text), and every required key must be present.
 //!    All such problems of the file are collected, each with the file name and the
 //!    dotted path of the key, e.g.
 //!

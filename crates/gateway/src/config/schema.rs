@@ -4,8 +4,12 @@
 //! The `///` comment of every field is the operator's manual for that key: meaning,
 //! unit, default and allowed range; [`json_schema`] carries them as descriptions.
 //! `config/example.toml` is the annotated example of the same schema; the names here
-//! match it exactly. Ranges stated as "allowed" are enforced by the stages'
-//! `validate`, not by the parser.
+//! match it exactly. Every numeric key's range and every text key's longest length
+//! is declared on its field (`#[schemars(range(..))]`, `#[schemars(length(..))]`),
+//! so the JSON Schema carries it and the loader's structural check enforces it;
+//! what the schema cannot say (a median window is odd, `backoff_initial_s <=
+//! backoff_max_s`, references between sections) is checked by the stages'
+//! `validate`.
 
 pub use super::keys::secs;
 pub use super::root::{Config, GatewayConfig};

@@ -14,27 +14,35 @@ use super::problem::ConfigProblem;
 pub struct RecorderConfig {
     /// Database file. A relative path is taken from `$STATE_DIRECTORY` (set by the
     /// unit's `StateDirectory=`, `/var/lib/compgate`), else from the working directory.
-    /// Default `compgate.db`.
+    /// Default `compgate.db`; at most 4096 characters.
     #[serde(default = "default_recorder_path")]
+    #[schemars(length(max = 4096))]
     pub path: String,
     /// Seconds between commits of the batched writes: a crash loses at most this much.
-    /// Default 0.5; > 0 and <= 1.
+    /// Default 0.5; 0.001..=1.
     #[serde(default = "default_commit_interval_s")]
+    #[schemars(range(min = 0.001, max = 1.0))]
     pub commit_interval_s: f64,
     /// Poll cycles the queue between the control loop and the writer holds. When it
     /// is full, cycles are dropped, counted and logged; the loop never waits. Default
-    /// 4096; >= 1.
+    /// 4096; 1..=1000000.
     #[serde(default = "default_queue_cycles")]
+    #[schemars(range(min = 1, max = 1_000_000))]
     pub queue_cycles: u32,
-    /// Days readings, jobs and NC positions are kept. Default 90; > 0.
+    /// Days readings, jobs and NC positions are kept. Default 90;
+    /// 0.001..=36500.
     #[serde(default = "default_retention_days")]
+    #[schemars(range(min = 0.001, max = 36_500.0))]
     pub retention_days: f64,
     /// Largest size of the data in the database, MB; beyond it the oldest records go
-    /// first. Default 2048; > 0.
+    /// first. Default 2048; 0.001..=1000000.
     #[serde(default = "default_max_size_mb")]
+    #[schemars(range(min = 0.001, max = 1_000_000.0))]
     pub max_size_mb: f64,
-    /// Seconds between retention passes (age and size). Default 60; > 0.
+    /// Seconds between retention passes (age and size). Default 60;
+    /// 0.001..=86400.
     #[serde(default = "default_retention_interval_s")]
+    #[schemars(range(min = 0.001, max = 86_400.0))]
     pub retention_interval_s: f64,
 }
 
@@ -74,9 +82,10 @@ fn default_retention_interval_s() -> f64 {
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct MetricsConfig {
-    /// `host:port` to listen on. Default `127.0.0.1:9464` (localhost only; expose it
+    /// `host:port` to listen on. Default `127.0.0.1:9464`; at most 300 characters (localhost only; expose it
     /// further on purpose, e.g. `0.0.0.0:9464` behind the plant firewall).
     #[serde(default = "default_metrics_bind")]
+    #[schemars(length(max = 300))]
     pub bind: String,
     /// HTTP connections the endpoint holds open at most, 1..=256. Default 64. A new
     /// connection beyond it closes the oldest one that is not being answered (e.g. a
@@ -114,30 +123,39 @@ fn default_metrics_bind() -> String {
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct MqttConfig {
-    /// Broker `host:port`, e.g. `"broker.plant.local:1883"`. Required.
+    /// Broker `host:port`, e.g. `"broker.plant.local:1883"`. Required; at
+    /// most 300 characters.
+    #[schemars(length(max = 300))]
     pub broker: String,
     /// Machine name in every topic, 1..=64 characters of `A-Z a-z 0-9 _ -`. Required.
+    #[schemars(length(max = 64))]
     pub machine: String,
-    /// First topic level(s). Default `compgate`; no `+`, `#` or leading/trailing `/`.
+    /// First topic level(s). Default `compgate`; at most 128 characters; no `+`, `#` or leading/trailing `/`.
     #[serde(default = "default_topic_prefix")]
+    #[schemars(length(max = 128))]
     pub topic_prefix: String,
-    /// MQTT client id. Default `compgate-<machine>`.
+    /// MQTT client id. Default `compgate-<machine>`; at most 128 characters.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(max = 128))]
     pub client_id: Option<String>,
     /// Seconds between readings messages per channel (the latest reading is sent).
-    /// Default 1.0; > 0.
+    /// Default 1.0; 0.001..=3600.
     #[serde(default = "default_publish_interval_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
     pub publish_interval_s: f64,
-    /// MQTT keep-alive, seconds. Default 10; >= 1.
+    /// MQTT keep-alive, seconds. Default 10; 1..=65535.
     #[serde(default = "default_keep_alive_s")]
+    #[schemars(range(min = 1.0, max = 65_535.0))]
     pub keep_alive_s: f64,
     /// Seconds before a message unacknowledged by a connected broker is sent again,
-    /// and between reconnect attempts. Default 2; > 0.
+    /// and between reconnect attempts. Default 2; 0.001..=3600.
     #[serde(default = "default_retry_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
     pub retry_s: f64,
     /// Messages kept for the broker at most (oldest dropped, counted and logged beyond).
-    /// Default 1000000; >= 1.
+    /// Default 1000000; 1..=100000000.
     #[serde(default = "default_outbox_max_messages")]
+    #[schemars(range(min = 1, max = 100_000_000))]
     pub outbox_max_messages: u64,
 }
 

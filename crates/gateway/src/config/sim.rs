@@ -61,21 +61,28 @@ pub struct SimChannelConfig {
     /// `constant`, `ramp` or `sine`. Default `constant`.
     #[serde(default)]
     pub profile: SimProfile,
-    /// Mean (constant, sine) or start value (ramp) in degC. Default 20.0.
+    /// Mean (constant, sine) or start value (ramp) in degC. Default 20.0;
+    /// -273.15..=2000.
     #[serde(default = "default_ref_degc")]
+    #[schemars(range(min = -273.15, max = 2000.0))]
     pub mean_degc: f64,
-    /// Amplitude of the sine in degC (`sine` only). Default 0.0; >= 0.
+    /// Amplitude of the sine in degC (`sine` only). Default 0.0; 0..=1000.
     #[serde(default)]
+    #[schemars(range(min = 0.0, max = 1000.0))]
     pub amplitude_degc: f64,
-    /// Period of the sine in seconds (`sine` only). Default 600.0; > 0.
+    /// Period of the sine in seconds (`sine` only). Default 600.0;
+    /// 0.001..=31536000 (a year).
     #[serde(default = "default_sim_period_s")]
+    #[schemars(range(min = 0.001, max = 31_536_000.0))]
     pub period_s: f64,
     /// Slope of the ramp in degC per second (`ramp` only; may be negative).
-    /// Default 0.0.
+    /// Default 0.0; -1000..=1000.
     #[serde(default)]
+    #[schemars(range(min = -1000.0, max = 1000.0))]
     pub rate_degc_per_s: f64,
-    /// Half-width of the uniform noise in degC. Default 0.0; >= 0.
+    /// Half-width of the uniform noise in degC. Default 0.0; 0..=1000.
     #[serde(default)]
+    #[schemars(range(min = 0.0, max = 1000.0))]
     pub noise_degc: f64,
 }
 
@@ -116,16 +123,22 @@ pub struct SimNcModuleConfig {
     pub referenced: bool,
     /// MD32750 `$MA_TEMP_COMP_TYPE` of the simulated NC. Default 3; 0..=7.
     #[serde(default = "default_sim_md32750")]
+    #[schemars(range(max = 7))]
     pub md32750: u16,
-    /// Lower end of the simulated back-and-forth motion in mm. Default 0.0.
+    /// Lower end of the simulated back-and-forth motion in mm. Default 0.0;
+    /// -100000..=100000.
     #[serde(default)]
+    #[schemars(range(min = -100_000.0, max = 100_000.0))]
     pub motion_min_mm: f64,
-    /// Upper end of the simulated motion in mm. Default 0.0; >= `motion_min_mm`.
+    /// Upper end of the simulated motion in mm. Default 0.0; -100000..=100000 and
+    /// >= `motion_min_mm`.
     #[serde(default)]
+    #[schemars(range(min = -100_000.0, max = 100_000.0))]
     pub motion_max_mm: f64,
     /// Speed of the simulated motion in mm per second (0 = the axis stands at
-    /// `motion_min_mm`). Default 0.0; >= 0.
+    /// `motion_min_mm`). Default 0.0; 0..=100000.
     #[serde(default)]
+    #[schemars(range(min = 0.0, max = 100_000.0))]
     pub motion_speed_mm_per_s: f64,
 }
 

@@ -10,7 +10,21 @@
 //! The schema is the subset of JSON Schema that `schemars` writes for the config
 //! structs: `$ref` into `$defs`, `allOf`, `oneOf` (tagged tables and documented enum
 //! values), `anyOf` (an optional value), `type`, `properties`, `required`,
-//! `additionalProperties`, `enum`, `const`, `minimum`, `maximum` and `items`.
+//! `additionalProperties`, `enum`, `const`, `minimum`, `maximum`, `maxLength` and
+//! `items`.
+//!
+//! # Ranges
+//!
+//! Every numeric key's range and every text key's longest length is declared once,
+//! on its field (`#[schemars(range(min = .., max = ..))]`,
+//! `#[schemars(length(max = ..))]`), so the JSON Schema carries it and this walker
+//! checks it: a value outside (integer or float, `nan` included) or a text longer
+//! than allowed is reported with its key and the range, e.g.
+//!
+//! ```text
+//! devices.ain1.timeout_s: invalid value: floating point `1e-320`, expected a number 0.001..=3600
+//! devices.ain1.serial_path: invalid value: a string of 1048576 characters, expected a string of at most 1024 characters
+//! ```
 
 use serde_json::Value as Json;
 
@@ -61,6 +75,7 @@ struct View<'s> {
     values: Option<Vec<&'s Json>>,
     min: Option<f64>,
     max: Option<f64>,
+    max_len: Option<u64>,
     items: Option<&'s Json>,
     tag: Option<Tag<'s>>,
 }
@@ -158,6 +173,9 @@ impl<'s> Walker<'s> {
         }
         if let Some(m) = o.get("maximum").and_then(Json::as_f64) {
             v.max = Some(m);
+        }
+        if let Some(m) = o.get("maxLength").and_then(Json::as_u64) {
+            v.max_len = Some(m);
         }
         if let Some(i) = o.get("items") {
             v.items = Some(i);
@@ -309,12 +327,38 @@ impl<'s> Walker<'s> {
             }
         }
         match inst {
-            toml::Value::Integer(i) => {
-                let x = *i as f64;
-                if v.min.is_some_and(|m| x < m) || v.max.is_some_and(|m| x > m) {
+            toml::Value::Integer(_) | toml::Value::Float(_) => {
+                let x = match inst {
+                    toml::Value::Integer(i) => *i as f64,
+                    toml::Value::Float(f) => *f,
+                    _ => f64::NAN,
+                };
+                // `nan` is outside every declared range.
+                let out = (x.is_nan() && (v.min.is_some() || v.max.is_some()))
+                    || v.min.is_some_and(|m| x < m)
+                    || v.max.is_some_and(|m| x > m);
+                if out {
                     self.push(
                         path,
-                        format!("invalid value: integer `{i}`, expected {}", expected(&v)),
+                        format!(
+                            "invalid value: {}, expected {}",
+                            describe(inst),
+                            expected(&v)
+                        ),
+                        Kind::Broken,
+                    );
+                }
+            }
+            toml::Value::String(s) => {
+                let n = s.chars().count();
+                if let Some(max) = v.max_len.filter(|m| n as u64 > *m) {
+                    // Not the text itself: it may be megabytes long.
+                    self.push(
+                        path,
+                        format!(
+                            "invalid value: a string of {n} characters, expected a string of at \
+                             most {max} characters"
+                        ),
                         Kind::Broken,
                     );
                 }
@@ -531,7 +575,7 @@ fn describe(inst: &toml::Value) -> String {
     match inst {
         toml::Value::String(s) => format!("string {s:?}"),
         toml::Value::Integer(i) => format!("integer `{i}`"),
-        toml::Value::Float(f) => format!("floating point `{f}`"),
+        toml::Value::Float(f) => format!("floating point `{}`", number(*f)),
         toml::Value::Boolean(b) => format!("boolean `{b}`"),
         toml::Value::Datetime(d) => format!("date-time `{d}`"),
         toml::Value::Array(_) => "an array".to_string(),
@@ -548,13 +592,12 @@ fn expected(v: &View<'_>) -> String {
         .types
         .iter()
         .map(|t| match *t {
-            "integer" => match (v.min, v.max) {
-                (Some(lo), Some(hi)) => format!("an integer {lo}..={hi}"),
-                (Some(lo), None) => format!("an integer >= {lo}"),
-                _ => "an integer".to_string(),
+            "integer" => format!("an integer{}", range_text(v)),
+            "number" => format!("a number{}", range_text(v)),
+            "string" => match v.max_len {
+                Some(max) => format!("a string of at most {max} characters"),
+                None => "a string".to_string(),
             },
-            "number" => "a number".to_string(),
-            "string" => "a string".to_string(),
             "boolean" => "a boolean".to_string(),
             "object" => "a table".to_string(),
             "array" => "an array".to_string(),
@@ -562,4 +605,25 @@ fn expected(v: &View<'_>) -> String {
         })
         .collect();
     texts.join(" or ")
+}
+
+/// ` lo..=hi`, ` >= lo`, ` <= hi` or nothing.
+fn range_text(v: &View<'_>) -> String {
+    match (v.min, v.max) {
+        (Some(lo), Some(hi)) => format!(" {}..={}", number(lo), number(hi)),
+        (Some(lo), None) => format!(" >= {}", number(lo)),
+        (None, Some(hi)) => format!(" <= {}", number(hi)),
+        (None, None) => String::new(),
+    }
+}
+
+/// A number as an operator writes it: `0.001`, `3600`, `1e308`, `1e-320` (never
+/// hundreds of digits).
+fn number(x: f64) -> String {
+    let a = x.abs();
+    if a != 0.0 && a.is_finite() && !(1e-6..1e15).contains(&a) {
+        format!("{x:e}")
+    } else {
+        format!("{x}")
+    }
 }

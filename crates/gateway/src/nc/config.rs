@@ -16,19 +16,26 @@ use crate::source::modbus::{Backoff, LinkSpec, ModbusLink};
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct NcModuleConfig {
-    /// `host:port` of the module's Modbus TCP interface. Required. Port 0 is accepted
+    /// `host:port` of the module's Modbus TCP interface. Required; at most
+    /// 300 characters. Port 0 is accepted
     /// only because the embedded demo replaces it with the port its simulator bound.
+    #[schemars(length(max = 300))]
     pub address: String,
     /// Modbus unit id, 0..=247. Required.
+    #[schemars(range(max = 247))]
     pub unit_id: u8,
-    /// Seconds one Modbus request may take. Default 1.0; > 0.
+    /// Seconds one Modbus request may take. Default 1.0; 0.001..=3600.
     #[serde(default = "default_nc_timeout_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
     pub timeout_s: f64,
-    /// Seconds a TCP connect may take. Default 2.0; > 0.
+    /// Seconds a TCP connect may take. Default 2.0; 0.001..=3600.
     #[serde(default = "default_connect_timeout_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
     pub connect_timeout_s: f64,
-    /// Seconds the whole FB3 job (REQ .. DONE/ERROR) may take. Default 2.0; > 0.
+    /// Seconds the whole FB3 job (REQ .. DONE/ERROR) may take. Default 2.0;
+    /// 0.001..=3600.
     #[serde(default = "default_job_timeout_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
     pub job_timeout_s: f64,
 }
 

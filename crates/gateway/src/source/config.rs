@@ -130,24 +130,31 @@ impl DeviceConfig {
 /// The keys of `[devices.NAME]` that every transport has.
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 pub struct DeviceCommon {
-    /// Seconds one request may take before it counts as failed. Default 1.0; > 0.
+    /// Seconds one request may take before it counts as failed. Default 1.0;
+    /// 0.001..=3600.
     #[serde(default = "default_device_timeout_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
     pub timeout_s: f64,
-    /// Seconds between poll cycles. Default 1.0; > 0. On `can` devices also the
+    /// Seconds between poll cycles. Default 1.0; 0.001..=3600. On `can` devices also the
     /// period of the interface's SYNC, so all CAN devices on one interface must use
     /// the same value.
     #[serde(default = "default_poll_interval_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
     pub poll_interval_s: f64,
     /// Reconnect backoff after a transport fault: first wait in seconds; it doubles
-    /// after every further fault up to `backoff_max_s`. Default 0.5; > 0.
+    /// after every further fault up to `backoff_max_s`. Default 0.5; 0.001..=3600.
     #[serde(default = "default_backoff_initial_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
     pub backoff_initial_s: f64,
-    /// Longest reconnect wait in seconds. Default 30.0; >= `backoff_initial_s`.
+    /// Longest reconnect wait in seconds. Default 30.0; 0.001..=3600 and
+    /// >= `backoff_initial_s`.
     #[serde(default = "default_backoff_max_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
     pub backoff_max_s: f64,
     /// After this many consecutive failed poll cycles the device's channels turn bad;
-    /// before that they hold their last value as uncertain. Default 3; >= 1.
+    /// before that they hold their last value as uncertain. Default 3; 1..=1000.
     #[serde(default = "default_degrade_after_cycles")]
+    #[schemars(range(min = 1, max = 1000))]
     pub degrade_after_cycles: u32,
 }
 

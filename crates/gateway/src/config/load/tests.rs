@@ -244,8 +244,12 @@ fn type_errors_and_typos_together() {
         p[1].message,
         "unknown value `tpc`, expected one of `tcp`, `rtu`, `can`"
     );
-    assert!(p[2].message.ends_with("expected a number"), "{}", p[2]);
-    assert!(p[3].message.contains("0..=255"), "{}", p[3]);
+    assert!(
+        p[2].message.ends_with("expected a number 0.001..=3600"),
+        "{}",
+        p[2]
+    );
+    assert!(p[3].message.contains("0..=247"), "{}", p[3]);
 }
 
 #[test]
@@ -547,5 +551,96 @@ fn type_errors_in_two_entries_are_both_reported() {
         keys(&p),
         ["axes.X.md32750", "devices.ain2.timeout_s"],
         "{p:#?}"
+    );
+}
+
+// ------------------------------------------------------------- hostile values --
+
+/// The one problem of the example with `from` replaced by `to`.
+fn only_problem(from: &str, to: &str) -> ConfigProblem {
+    let p = problems(&edit(from, to));
+    assert_eq!(p.len(), 1, "{p:#?}");
+    p.into_iter().next().unwrap()
+}
+
+#[test]
+fn a_tiny_timeout_names_the_key_and_the_range() {
+    let p = only_problem(
+        "timeout_s = 0.5\n# Connect",
+        "timeout_s = 1e-320\n# Connect",
+    );
+    assert_eq!(p.key, "devices.ain1.timeout_s", "{p}");
+    assert_eq!(
+        p.message,
+        "invalid value: floating point `1e-320`, expected a number 0.001..=3600"
+    );
+}
+
+#[test]
+fn a_huge_interval_names_the_key_and_the_range() {
+    let p = only_problem("status_interval_s = 1.0", "status_interval_s = 1e308");
+    assert_eq!(p.key, "gateway.status_interval_s", "{p}");
+    assert_eq!(
+        p.message,
+        "invalid value: floating point `1e308`, expected a number 0.001..=3600"
+    );
+}
+
+#[test]
+fn huge_retries_name_the_key_and_the_range() {
+    let p = only_problem("retries = 1\n# Seconds", "retries = 4000000000\n# Seconds");
+    assert_eq!(p.key, "devices.ain1.retries", "{p}");
+    assert_eq!(
+        p.message,
+        "invalid value: integer `4000000000`, expected an integer 0..=100"
+    );
+}
+
+#[test]
+fn a_huge_coefficient_names_the_key_and_the_range() {
+    let p = problems(&edit(
+        "coeff_mm_per_degc = 0.004",
+        "coeff_mm_per_degc = -1e308",
+    ));
+    assert_eq!(p.len(), 1, "{p:#?}");
+    assert_eq!(p[0].key, "axes.X.k0.terms[0].coeff_mm_per_degc", "{}", p[0]);
+    assert_eq!(
+        p[0].message,
+        "invalid value: floating point `-1e308`, expected a number -1..=1"
+    );
+}
+
+#[test]
+fn a_huge_limit_names_the_key_and_the_range() {
+    let p = only_problem("max_abs_k0_mm = 0.5", "max_abs_k0_mm = 1e308");
+    assert_eq!(p.key, "axes.X.max_abs_k0_mm", "{p}");
+    assert!(p.message.ends_with("expected a number 0..=10"), "{p}");
+}
+
+#[test]
+fn a_megabyte_serial_path_names_the_key_and_the_length() {
+    let long = "x".repeat(1 << 20);
+    let p = only_problem(
+        "serial_path = \"/dev/ttyUSB0\"",
+        &format!("serial_path = \"/dev/{long}\""),
+    );
+    assert_eq!(p.key, "devices.ain2.serial_path", "{p}");
+    assert_eq!(
+        p.message,
+        format!(
+            "invalid value: a string of {} characters, expected a string of at most 1024 \
+             characters",
+            (1 << 20) + 5
+        )
+    );
+}
+
+#[test]
+fn transport_true_says_which_transports_there_are() {
+    let p = only_problem("transport = \"tcp\"", "transport = true");
+    assert_eq!(p.key, "devices.ain1.transport", "{p}");
+    assert_eq!(
+        p.message,
+        "invalid type: boolean `true`, expected one of `tcp`, `rtu`, `can`"
     );
 }

@@ -16,21 +16,26 @@ use crate::source::plan::DataType;
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[schemars(deny_unknown_fields)]
 pub struct CanDeviceConfig {
-    /// SocketCAN interface of the CAN bus, e.g. `"can0"` or `"vcan0"`. Required. The
+    /// SocketCAN interface of the CAN bus, e.g. `"can0"` or `"vcan0"`. Required; 1..=15
+    /// characters, no `/`. The
     /// interface must be up with its bitrate set (see `deploy/`).
+    #[schemars(length(max = 15))]
     pub interface: String,
     /// CANopen node id of the device, 1..=127. Required. The gateway sends it NMT
     /// start and reads its TPDOs (COB-ID 0x180, 0x280, 0x380, 0x480 plus node id),
     /// SDOs (0x600 / 0x580 plus node id), heartbeat (0x700 plus node id) and EMCY
     /// (0x080 plus node id). Node ids on one interface must be distinct.
+    #[schemars(range(min = 1, max = 127))]
     pub node_id: u8,
     /// Heartbeat consumer timeout in seconds: a node whose heartbeat has been missing
     /// for longer has all its channels bad. 0 turns the check off. Default 1.5 (for
-    /// the common 1 s or faster producer heartbeat time, object 0x1017); >= 0. The
+    /// the common 1 s or faster producer heartbeat time, object 0x1017); 0 or
+    /// 0.001..=3600. The
     /// gateway sends each interface's SYNC from a timer of its own every
     /// `poll_interval_s`; `timeout_s` is the longest wait for the synchronous TPDOs
     /// after it and for each SDO answer.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(range(min = 0.0, max = 3600.0))]
     pub heartbeat_timeout_s: Option<f64>,
     /// Timeouts, poll interval (= SYNC period), backoff, degradation.
     #[serde(flatten)]
@@ -49,7 +54,7 @@ impl CanDeviceConfig {
         )
     }
 
-    /// An interface name, node id 1..=127, heartbeat timeout >= 0.
+    /// An interface name, node id 1..=127, heartbeat timeout 0 or 0.001..=3600 s.
     pub fn validate(&self, key: &str, out: &mut Problems<'_>) {
         let k = |f: &str| format!("{key}.{f}");
         let i = &self.interface;
@@ -66,10 +71,12 @@ impl CanDeviceConfig {
             );
         }
         if let Some(h) = self.heartbeat_timeout_s {
-            if !(h.is_finite() && h >= 0.0) {
+            // The schema holds it within 0..=3600; a tiny non-zero value would be a
+            // timeout that always fires.
+            if !(h == 0.0 || (0.001..=3600.0).contains(&h)) {
                 out.push(
                     k("heartbeat_timeout_s"),
-                    format!("must be >= 0 seconds (0 = no heartbeat check), got {h}"),
+                    format!("must be 0 (no heartbeat check) or 0.001..=3600 seconds, got {h}"),
                 );
             }
         }
@@ -97,10 +104,12 @@ pub struct CanChannelConfig {
     /// Synchronous TPDO number 1..=4 (COB-ID 0x180 + 0x100 * (pdo - 1) + node id)
     /// carrying the value, sent by the node after each SYNC.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(range(min = 1, max = 4))]
     pub pdo: Option<u8>,
     /// Byte offset of the value in the TPDO, 0..=7; the value must end within the
     /// 8 data bytes (offset + 2 for 16-bit, + 4 for 32-bit types).
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(range(max = 7))]
     pub offset_bytes: Option<u8>,
     /// Object dictionary index read by expedited SDO upload each poll cycle, e.g.
     /// `0x6401` (CiA 401 analogue input 16 bit).

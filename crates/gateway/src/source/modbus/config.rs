@@ -16,22 +16,28 @@ use crate::source::PollParams;
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[schemars(deny_unknown_fields)]
 pub struct TcpDeviceConfig {
-    /// `host:port` of the Modbus TCP server, e.g. `"192.168.0.10:502"`. Required.
+    /// `host:port` of the Modbus TCP server, e.g. `"192.168.0.10:502"`. Required; at most
+    /// 300 characters.
     /// Port 0 is accepted only because the embedded demo replaces it with the port its
     /// simulator bound.
+    #[schemars(length(max = 300))]
     pub address: String,
     /// Modbus unit id, 0..=247 (many TCP modules ignore it). Required.
+    #[schemars(range(max = 247))]
     pub unit_id: u8,
-    /// Seconds a TCP connect may take. Default 2.0; > 0.
+    /// Seconds a TCP connect may take. Default 2.0; 0.001..=3600.
     #[serde(default = "default_connect_timeout_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
     pub connect_timeout_s: f64,
     /// Extra attempts of a failed request within one poll cycle. Default 1 (two
-    /// attempts in all).
+    /// attempts in all); 0..=100.
     #[serde(default = "default_retries")]
+    #[schemars(range(max = 100))]
     pub retries: u32,
     /// Registers that may be read and discarded to merge two channels into one
-    /// request (0 = merge only adjacent channels). Default 8.
+    /// request (0 = merge only adjacent channels). Default 8; 0..=125.
     #[serde(default = "default_max_gap_registers")]
+    #[schemars(range(max = 125))]
     pub max_gap_registers: u16,
     /// Timeouts, poll interval, backoff, degradation.
     #[serde(flatten)]
@@ -78,15 +84,19 @@ impl TcpDeviceConfig {
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[schemars(deny_unknown_fields)]
 pub struct RtuDeviceConfig {
-    /// Serial device of the RS-485 line, e.g. `"/dev/ttyUSB0"`. Required. Several
+    /// Serial device of the RS-485 line, e.g. `"/dev/ttyUSB0"`. Required; at
+    /// most 1024 characters. Several
     /// devices on one path share the line: they must agree on baud, parity and stop
     /// bits and have distinct unit ids.
+    #[schemars(length(max = 1024))]
     pub serial_path: String,
     /// Modbus unit id (slave address), 1..=247 (0 is the broadcast address, which
     /// never answers). Required.
+    #[schemars(range(max = 247))]
     pub unit_id: u8,
     /// Baud rate, 1200..=115200. Default 19200 (the Modbus serial line default).
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(range(min = 1200, max = 115_200))]
     pub baud: Option<u32>,
     /// Parity: `none`, `even` or `odd`. Default `even` (the Modbus serial line
     /// default).
@@ -95,14 +105,17 @@ pub struct RtuDeviceConfig {
     /// Stop bits: 1 or 2. Default 1, or 2 when `parity = "none"` (as the Modbus serial
     /// line specification asks).
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(range(min = 1, max = 2))]
     pub stop_bits: Option<u8>,
     /// Extra attempts of a failed request within one poll cycle. Default 1 (two
-    /// attempts in all).
+    /// attempts in all); 0..=100.
     #[serde(default = "default_retries")]
+    #[schemars(range(max = 100))]
     pub retries: u32,
     /// Registers that may be read and discarded to merge two channels into one
-    /// request (0 = merge only adjacent channels). Default 8.
+    /// request (0 = merge only adjacent channels). Default 8; 0..=125.
     #[serde(default = "default_max_gap_registers")]
+    #[schemars(range(max = 125))]
     pub max_gap_registers: u16,
     /// Timeouts, poll interval, backoff, degradation.
     #[serde(flatten)]
