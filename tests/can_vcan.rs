@@ -28,8 +28,21 @@ fn interface() -> String {
 /// Node 5 on the test interface: T_bed in TPDO1 bytes 0..2, T_screw in TPDO1 bytes
 /// 2..4, T_col by SDO upload of 0x6401 sub 3.
 fn can_config(node: u8) -> String {
-    let scaling = r#"{ kind = "transmitter", adc_full_scale_counts = 4095, adc_full_scale_ma = 24.0, current_range = "4-20", range_min_degc = -50.0, range_max_degc = 150.0 }"#;
-    let filter = "{ median_samples = 1, lowpass_tau_s = 0.0, max_rate_degc_per_s = 0.0, max_rejected_samples = 5, stale_after_s = 0.0, valid_min_degc = -20.0, valid_max_degc = 100.0 }";
+    let channels: String = [
+        ("T_bed", "pdo = 1, offset_bytes = 0"),
+        ("T_screw", "pdo = 1, offset_bytes = 2"),
+        ("T_col", "sdo_index = 0x6401, sdo_subindex = 3"),
+    ]
+    .iter()
+    .map(|(name, can)| {
+        format!(
+            "[channels.{name}]\ndevice = \"node5\"\ndata_type = \"u16\"\ncan = {{ {can} }}\n\
+             scaling = {}\nfilter = {}\n\n",
+            common::SCALING,
+            common::FILTER
+        )
+    })
+    .collect();
     format!(
         r#"
 [gateway]
@@ -44,27 +57,7 @@ timeout_s = 0.2
 poll_interval_s = 0.1
 degrade_after_cycles = 3
 
-[channels.T_bed]
-device = "node5"
-data_type = "u16"
-can = {{ pdo = 1, offset_bytes = 0 }}
-scaling = {scaling}
-filter = {filter}
-
-[channels.T_screw]
-device = "node5"
-data_type = "u16"
-can = {{ pdo = 1, offset_bytes = 2 }}
-scaling = {scaling}
-filter = {filter}
-
-[channels.T_col]
-device = "node5"
-data_type = "u16"
-can = {{ sdo_index = 0x6401, sdo_subindex = 3 }}
-scaling = {scaling}
-filter = {filter}
-
+{channels}
 [nc_modules.nc_x]
 address = "127.0.0.1:0"
 unit_id = 1

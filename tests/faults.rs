@@ -70,14 +70,6 @@ async fn wait(
     }
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 /// Watches the NC's SD43900 every 2 ms and keeps every distinct value, in order.
 fn watch_nc(nc: NcAxisModule, stop: CancellationToken) -> Arc<Mutex<Vec<f64>>> {
     let seen = Arc::new(Mutex::new(vec![nc.state().sd43900_mm]));
@@ -108,7 +100,7 @@ fn max_jump(values: &[f64]) -> f64 {
 async fn modbus_server_process_killed_and_restarted() {
     // The field module runs as its own process (`compgate sim`) on a fixed port.
     let dir = tempfile::tempdir().unwrap();
-    let port = free_port();
+    let port = common::free_port();
     let mut field_cfg = cfgmod::load_str(&config("hold", "", ""), "test.toml").unwrap();
     field_cfg.nc_modules.clear();
     field_cfg.axes.clear();

@@ -8,28 +8,6 @@ use std::net::TcpStream;
 use std::time::{Duration, Instant};
 
 use common::process::Gateway;
-use compgate::plant::{Bind, Plant};
-use compgate_gateway::config;
-
-/// A running simulated plant and the config file naming its addresses, with
-/// `[metrics]` on `port`.
-async fn plant_and_file(dir: &std::path::Path, port: u16) -> (Plant, std::path::PathBuf) {
-    let toml = common::config("hold", "", "");
-    let cfg = config::load_str(&toml, "test.toml").expect("test config is valid");
-    let plant = Plant::start(&cfg, Bind::Ephemeral)
-        .await
-        .expect("plant starts");
-    let path = dir.join("compgate.toml");
-    let mut text = toml::to_string(&plant.config).expect("config serialises");
-    text.push_str(&format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"\n"));
-    std::fs::write(&path, text).expect("config file written");
-    (plant, path)
-}
-
-fn free_port() -> u16 {
-    let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind port 0");
-    l.local_addr().expect("local addr").port()
-}
 
 /// GET /metrics with every step bounded by `limit`: the status line and body, and how
 /// long it took; `Err` with what went wrong.
@@ -100,8 +78,13 @@ async fn half_sent_requests_on_1100_connections_starve_nothing() {
     }
     let test_started = Instant::now();
     let dir = tempfile::tempdir().unwrap();
-    let port = free_port();
-    let (plant, path) = plant_and_file(dir.path(), port).await;
+    let port = common::free_port();
+    let (plant, path) = common::plant_and_file(
+        dir.path(),
+        &common::config("hold", "", ""),
+        &format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"\n"),
+    )
+    .await;
     let mut gw = Gateway::start_with_nofile(dir.path(), &path, &[], Some(GATEWAY_NOFILE));
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "first job", |m| m.contains("jobs 1 ok")));
     let log_before = gw.stderr_bytes();
@@ -225,8 +208,13 @@ async fn a_real_scrape_passes_promtool_check_metrics() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let port = free_port();
-    let (plant, path) = plant_and_file(dir.path(), port).await;
+    let port = common::free_port();
+    let (plant, path) = common::plant_and_file(
+        dir.path(),
+        &common::config("hold", "", ""),
+        &format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"\n"),
+    )
+    .await;
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "first job", |m| m.contains("jobs 1 ok")));
     // Every kind of metric present: a failed poll counts a device error.

@@ -3,29 +3,10 @@
 
 mod common;
 
-use std::path::Path;
 use std::time::Duration;
 
 use common::broker::{subscribe, Broker, Received};
 use common::process::Gateway;
-use compgate::plant::{Bind, Plant};
-use compgate_gateway::config;
-
-async fn plant_and_file(dir: &Path, broker_port: u16) -> (Plant, std::path::PathBuf) {
-    let toml = common::config("hold", "", "");
-    let cfg = config::load_str(&toml, "test.toml").expect("test config is valid");
-    let plant = Plant::start(&cfg, Bind::Ephemeral)
-        .await
-        .expect("plant starts");
-    let path = dir.join("compgate.toml");
-    let text = toml::to_string(&plant.config).expect("config serialises")
-        + &format!(
-            "\n[recorder]\npath = {:?}\ncommit_interval_s = 0.2\n\n[mqtt]\nbroker = \"127.0.0.1:{broker_port}\"\nmachine = \"mill-7\"\npublish_interval_s = 0.2\nretry_s = 0.5\n",
-            dir.join("rec.db").display().to_string()
-        );
-    std::fs::write(&path, text).expect("config written");
-    (plant, path)
-}
 
 /// Times of the readings messages on `topic` that carry channel `T_bed`.
 fn times(got: &Received, topic: &str) -> Vec<i64> {
@@ -61,7 +42,13 @@ async fn readings_writes_and_health_survive_a_broker_outage() {
     let dir = tempfile::tempdir().unwrap();
     let mut broker = tokio::task::block_in_place(|| Broker::start(dir.path()));
     let (got, sub) = subscribe(broker.port, "compgate/#");
-    let (plant, path) = plant_and_file(dir.path(), broker.port).await;
+    let extra = format!(
+        "\n[recorder]\npath = {:?}\ncommit_interval_s = 0.2\n\n[mqtt]\nbroker = \"127.0.0.1:{}\"\nmachine = \"mill-7\"\npublish_interval_s = 0.2\nretry_s = 0.5\n",
+        dir.path().join("rec.db").display().to_string(),
+        broker.port
+    );
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), &extra).await;
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
 

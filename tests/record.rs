@@ -7,9 +7,7 @@ use std::path::Path;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use common::process::{Gateway, BIN};
-use compgate::plant::{Bind, Plant};
 use compgate_core::measure::Measurements;
-use compgate_gateway::config;
 use rusqlite::Connection;
 
 fn now_ms() -> i64 {
@@ -17,19 +15,6 @@ fn now_ms() -> i64 {
         .duration_since(UNIX_EPOCH)
         .expect("clock after 1970")
         .as_millis() as i64
-}
-
-/// The plant for `toml` + `extra` and the config file naming its addresses.
-async fn plant_and_file(dir: &Path, extra: &str) -> (Plant, std::path::PathBuf) {
-    let toml = common::config("hold", "", "");
-    let cfg = config::load_str(&toml, "test.toml").expect("test config is valid");
-    let plant = Plant::start(&cfg, Bind::Ephemeral)
-        .await
-        .expect("plant starts");
-    let path = dir.join("compgate.toml");
-    let text = toml::to_string(&plant.config).expect("config serialises") + extra;
-    std::fs::write(&path, text).expect("config written");
-    (plant, path)
 }
 
 fn recorder_section(db: &Path, extra: &str) -> String {
@@ -53,7 +38,12 @@ fn max_t(db: &Path) -> i64 {
 async fn kill_9_loses_at_most_the_last_second_and_the_database_opens_cleanly() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("rec.db");
-    let (plant, path) = plant_and_file(dir.path(), &recorder_section(&db, "")).await;
+    let (plant, path) = common::plant_and_file(
+        dir.path(),
+        &common::config("hold", "", ""),
+        &recorder_section(&db, ""),
+    )
+    .await;
     // Pseudo-random kill moments from the clock: 1.0 .. 3.0 s after READY.
     let mut seed = now_ms() as u64;
     let mut rows_before = 0i64;
@@ -90,7 +80,12 @@ async fn kill_9_loses_at_most_the_last_second_and_the_database_opens_cleanly() {
 async fn recorded_operation_exports_to_the_measurement_csv() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("rec.db");
-    let (plant, path) = plant_and_file(dir.path(), &recorder_section(&db, "")).await;
+    let (plant, path) = common::plant_and_file(
+        dir.path(),
+        &common::config("hold", "", ""),
+        &recorder_section(&db, ""),
+    )
+    .await;
     let since = now_ms() as f64 / 1000.0;
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     tokio::task::block_in_place(|| {
@@ -183,7 +178,12 @@ async fn retention_by_size_keeps_the_database_bounded() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("rec.db");
     let extra = "max_size_mb = 0.03\nretention_interval_s = 0.2";
-    let (plant, path) = plant_and_file(dir.path(), &recorder_section(&db, extra)).await;
+    let (plant, path) = common::plant_and_file(
+        dir.path(),
+        &common::config("hold", "", ""),
+        &recorder_section(&db, extra),
+    )
+    .await;
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
     // 3 channels at 20 Hz: about 80 kB in 6 s without retention.
@@ -249,7 +249,12 @@ async fn full_disk_loses_records_but_never_stops_the_gateway() {
     let dir = tempfile::tempdir().unwrap();
     let fs = SmallFs::mount(&dir.path().join("small"), "160k");
     let db = fs.0.join("rec.db");
-    let (plant, path) = plant_and_file(dir.path(), &recorder_section(&db, "")).await;
+    let (plant, path) = common::plant_and_file(
+        dir.path(),
+        &common::config("hold", "", ""),
+        &recorder_section(&db, ""),
+    )
+    .await;
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
     tokio::task::block_in_place(|| gw.wait_log(30.0, "recorder commit failed"));

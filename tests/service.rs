@@ -51,22 +51,11 @@ fn unit_file_exposure_is_at_most_2_0() {
     }
 }
 
-/// A running simulated plant and the config file naming its addresses.
-async fn plant_and_file(dir: &std::path::Path, toml: &str) -> (Plant, std::path::PathBuf) {
-    let cfg = config::load_str(toml, "test.toml").expect("test config is valid");
-    let plant = Plant::start(&cfg, Bind::Ephemeral)
-        .await
-        .expect("plant starts");
-    let path = dir.join("compgate.toml");
-    let text = toml::to_string(&plant.config).expect("config serialises");
-    std::fs::write(&path, text).expect("config file written");
-    (plant, path)
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn notify_ready_watchdog_and_status_from_the_real_binary() {
     let dir = tempfile::tempdir().unwrap();
-    let (plant, path) = plant_and_file(dir.path(), &common::config("hold", "", "")).await;
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), "").await;
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     let ready =
         tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
@@ -118,7 +107,7 @@ async fn watchdog_pings_follow_watchdog_usec_not_the_status_interval() {
     let dir = tempfile::tempdir().unwrap();
     let toml = common::config("hold", "", "")
         .replace("status_interval_s = 0.05", "status_interval_s = 5.0");
-    let (plant, path) = plant_and_file(dir.path(), &toml).await;
+    let (plant, path) = common::plant_and_file(dir.path(), &toml, "").await;
     let mut gw = Gateway::start(dir.path(), &path, &[("WATCHDOG_USEC", "2000000")]);
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
     let from = std::time::Instant::now();
@@ -158,7 +147,8 @@ async fn watchdog_pings_follow_watchdog_usec_not_the_status_interval() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_silent_device_logs_one_warning_and_one_recovery() {
     let dir = tempfile::tempdir().unwrap();
-    let (plant, path) = plant_and_file(dir.path(), &common::config("hold", "", "")).await;
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), "").await;
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
     plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::Silent);
@@ -195,7 +185,8 @@ async fn a_silent_device_logs_one_warning_and_one_recovery() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sighup_with_a_bad_config_keeps_the_old_one_running() {
     let dir = tempfile::tempdir().unwrap();
-    let (plant, path) = plant_and_file(dir.path(), &common::config("hold", "", "")).await;
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), "").await;
     let good = std::fs::read_to_string(&path).unwrap();
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
@@ -342,11 +333,6 @@ async fn reload_keeps_the_state_of_unchanged_channels_and_devices() {
         .unwrap();
 }
 
-fn free_port() -> u16 {
-    let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind port 0");
-    l.local_addr().expect("local addr").port()
-}
-
 /// GET /metrics over a plain TCP connection; the body's samples as (series, value).
 fn scrape(port: u16) -> Vec<(String, f64)> {
     use std::io::{Read, Write};
@@ -372,8 +358,9 @@ fn sample(m: &[(String, f64)], series: &str) -> Option<f64> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn prometheus_endpoint_shows_links_channels_jobs_and_cycle_times() {
     let dir = tempfile::tempdir().unwrap();
-    let (plant, path) = plant_and_file(dir.path(), &common::config("hold", "", "")).await;
-    let port = free_port();
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), "").await;
+    let port = common::free_port();
     let mut text = std::fs::read_to_string(&path).unwrap();
     text.push_str(&format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"\n"));
     std::fs::write(&path, text).unwrap();

@@ -79,6 +79,29 @@ impl Drop for Rig {
     }
 }
 
+/// A free TCP port on loopback (taken from port 0 and released again).
+pub fn free_port() -> u16 {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind port 0");
+    l.local_addr().expect("local addr").port()
+}
+
+/// A running simulated plant for `toml` and a config file in `dir` naming its
+/// addresses, with `extra` (more sections) appended.
+pub async fn plant_and_file(
+    dir: &std::path::Path,
+    toml: &str,
+    extra: &str,
+) -> (Plant, std::path::PathBuf) {
+    let cfg = config::load_str(toml, "test.toml").expect("test config is valid");
+    let plant = Plant::start(&cfg, Bind::Ephemeral)
+        .await
+        .expect("plant starts");
+    let path = dir.join("compgate.toml");
+    let text = toml::to_string(&plant.config).expect("config serialises") + extra;
+    std::fs::write(&path, text).expect("config file written");
+    (plant, path)
+}
+
 /// Starts the simulated plant for `toml` and the gateway against it.
 pub async fn start(toml: &str) -> Rig {
     let cfg = config::load_str(toml, "test.toml").expect("test config is valid");
@@ -100,16 +123,28 @@ pub async fn start(toml: &str) -> Rig {
     }
 }
 
+/// The test transmitters' scaling: 4-20 mA over -50..150 degC on a 12-bit ADC at 24 mA.
+pub const SCALING: &str = r#"{ kind = "transmitter", adc_full_scale_counts = 4095, adc_full_scale_ma = 24.0, current_range = "4-20", range_min_degc = -50.0, range_max_degc = 150.0 }"#;
+
+/// A filter that passes every sample through, so tests see the raw value at once.
+pub const FILTER: &str = "{ median_samples = 1, lowpass_tau_s = 0.0, max_rate_degc_per_s = 0.0, max_rejected_samples = 5, stale_after_s = 0.0, valid_min_degc = -20.0, valid_max_degc = 100.0 }";
+
 /// A fast test config: one TCP field device with three PT100 channels (T_bed at
 /// counts address 0, T_screw at 1, T_col at 2), one NC module, axis X.
 /// `extra_device` and `axis_extra` are appended to the device and axis tables.
 pub fn config(policy: &str, device_extra: &str, filter: &str) -> String {
-    let scaling = r#"{ kind = "transmitter", adc_full_scale_counts = 4095, adc_full_scale_ma = 24.0, current_range = "4-20", range_min_degc = -50.0, range_max_degc = 150.0 }"#;
-    let filter = if filter.is_empty() {
-        "{ median_samples = 1, lowpass_tau_s = 0.0, max_rate_degc_per_s = 0.0, max_rejected_samples = 5, stale_after_s = 0.0, valid_min_degc = -20.0, valid_max_degc = 100.0 }"
-    } else {
-        filter
-    };
+    let scaling = SCALING;
+    let filter = if filter.is_empty() { FILTER } else { filter };
+    let channels: String = ["T_bed", "T_screw", "T_col"]
+        .iter()
+        .enumerate()
+        .map(|(address, name)| {
+            format!(
+                "[channels.{name}]\ndevice = \"ain1\"\nregister = \"input\"\naddress = {address}\n\
+                 data_type = \"u16\"\nscaling = {scaling}\nfilter = {filter}\n\n"
+            )
+        })
+        .collect();
     format!(
         r#"
 [gateway]
@@ -128,30 +163,7 @@ backoff_max_s = 0.2
 degrade_after_cycles = 3
 {device_extra}
 
-[channels.T_bed]
-device = "ain1"
-register = "input"
-address = 0
-data_type = "u16"
-scaling = {scaling}
-filter = {filter}
-
-[channels.T_screw]
-device = "ain1"
-register = "input"
-address = 1
-data_type = "u16"
-scaling = {scaling}
-filter = {filter}
-
-[channels.T_col]
-device = "ain1"
-register = "input"
-address = 2
-data_type = "u16"
-scaling = {scaling}
-filter = {filter}
-
+{channels}
 [nc_modules.nc_x]
 address = "127.0.0.1:0"
 unit_id = 1
