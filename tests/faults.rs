@@ -15,20 +15,23 @@ use common::process::Gateway;
 use common::proxy::Proxy;
 use common::{config, COUNT_DEGC};
 use compgate::plant::{Bind, Plant};
-use compgate_core::channel::Quality;
+use compgate_core::channel::{Quality, Reading};
 use compgate_gateway::config as cfgmod;
 use compgate_gateway::runtime::{self, Status};
 use compgate_plc::nc::NcAxisModule;
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 
-fn q(s: &Status, ch: &str) -> Quality {
-    s.channels
+fn reading<'a>(s: &'a Status, ch: &str) -> &'a Reading {
+    &s.channels
         .iter()
         .find(|c| c.name == ch)
         .expect("channel")
         .reading
-        .quality
+}
+
+fn q(s: &Status, ch: &str) -> Quality {
+    reading(s, ch).quality
 }
 
 /// The gateway in-process on `cfg`; returns its status and a stopper.
@@ -180,14 +183,7 @@ async fn modbus_server_process_killed_and_restarted() {
         q(s, "T_bed") == Quality::Good && s.devices[0].connects >= 2
     })
     .await;
-    let v = s
-        .channels
-        .iter()
-        .find(|c| c.name == "T_bed")
-        .unwrap()
-        .reading
-        .value_degc
-        .unwrap();
+    let v = reading(&s, "T_bed").value_degc.expect("a value");
     assert!((v - 30.0).abs() <= COUNT_DEGC, "{v}");
     shutdown.cancel();
     h.await.unwrap();
@@ -229,14 +225,7 @@ async fn nc_unreachable_while_temperatures_change() {
     })
     .await;
     // The temperatures are still followed; nothing reaches the NC; nothing is taken as written.
-    let v = s
-        .channels
-        .iter()
-        .find(|c| c.name == "T_bed")
-        .unwrap()
-        .reading
-        .value_degc
-        .unwrap();
+    let v = reading(&s, "T_bed").value_degc.expect("a value");
     assert!((v - 40.0).abs() <= COUNT_DEGC);
     assert_eq!(nc.jobs_executed(), jobs);
     assert!((s.axes[0].written.unwrap().k0_mm - nc.state().sd43900_mm).abs() < 1e-12);

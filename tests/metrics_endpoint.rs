@@ -8,6 +8,19 @@ use std::net::TcpStream;
 use std::time::{Duration, Instant};
 
 use common::process::Gateway;
+use compgate::plant::Plant;
+
+/// The test plant and a config file with `[metrics]` on a free port.
+async fn plant_with_metrics(dir: &std::path::Path) -> (Plant, std::path::PathBuf, u16) {
+    let port = common::free_port();
+    let (plant, path) = common::plant_and_file(
+        dir,
+        &common::config("hold", "", ""),
+        &format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"\n"),
+    )
+    .await;
+    (plant, path, port)
+}
 
 /// GET /metrics with every step bounded by `limit`: the status line and body, and how
 /// long it took; `Err` with what went wrong.
@@ -78,13 +91,7 @@ async fn half_sent_requests_on_1100_connections_starve_nothing() {
     }
     let test_started = Instant::now();
     let dir = tempfile::tempdir().unwrap();
-    let port = common::free_port();
-    let (plant, path) = common::plant_and_file(
-        dir.path(),
-        &common::config("hold", "", ""),
-        &format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"\n"),
-    )
-    .await;
+    let (plant, path, port) = plant_with_metrics(dir.path()).await;
     let mut gw = Gateway::start_with_nofile(dir.path(), &path, &[], Some(GATEWAY_NOFILE));
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "first job", |m| m.contains("jobs 1 ok")));
     let log_before = gw.stderr_bytes();
@@ -208,13 +215,7 @@ async fn a_real_scrape_passes_promtool_check_metrics() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let port = common::free_port();
-    let (plant, path) = common::plant_and_file(
-        dir.path(),
-        &common::config("hold", "", ""),
-        &format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"\n"),
-    )
-    .await;
+    let (plant, path, port) = plant_with_metrics(dir.path()).await;
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "first job", |m| m.contains("jobs 1 ok")));
     // Every kind of metric present: a failed poll counts a device error.

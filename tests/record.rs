@@ -34,16 +34,25 @@ fn max_t(db: &Path) -> i64 {
         .expect("readings")
 }
 
+/// The test plant and a config file recording into `db` (with `extra` recorder keys).
+async fn plant_recording(
+    dir: &std::path::Path,
+    db: &std::path::Path,
+    extra: &str,
+) -> (compgate::plant::Plant, std::path::PathBuf) {
+    common::plant_and_file(
+        dir,
+        &common::config("hold", "", ""),
+        &recorder_section(db, extra),
+    )
+    .await
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn kill_9_loses_at_most_the_last_second_and_the_database_opens_cleanly() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("rec.db");
-    let (plant, path) = common::plant_and_file(
-        dir.path(),
-        &common::config("hold", "", ""),
-        &recorder_section(&db, ""),
-    )
-    .await;
+    let (plant, path) = plant_recording(dir.path(), &db, "").await;
     // Pseudo-random kill moments from the clock: 1.0 .. 3.0 s after READY.
     let mut seed = now_ms() as u64;
     let mut rows_before = 0i64;
@@ -80,12 +89,7 @@ async fn kill_9_loses_at_most_the_last_second_and_the_database_opens_cleanly() {
 async fn recorded_operation_exports_to_the_measurement_csv() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("rec.db");
-    let (plant, path) = common::plant_and_file(
-        dir.path(),
-        &common::config("hold", "", ""),
-        &recorder_section(&db, ""),
-    )
-    .await;
+    let (plant, path) = plant_recording(dir.path(), &db, "").await;
     let since = now_ms() as f64 / 1000.0;
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     tokio::task::block_in_place(|| {
@@ -178,12 +182,7 @@ async fn retention_by_size_keeps_the_database_bounded() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("rec.db");
     let extra = "max_size_mb = 0.03\nretention_interval_s = 0.2";
-    let (plant, path) = common::plant_and_file(
-        dir.path(),
-        &common::config("hold", "", ""),
-        &recorder_section(&db, extra),
-    )
-    .await;
+    let (plant, path) = plant_recording(dir.path(), &db, extra).await;
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
     // 3 channels at 20 Hz: about 80 kB in 6 s without retention.
@@ -249,12 +248,7 @@ async fn full_disk_loses_records_but_never_stops_the_gateway() {
     let dir = tempfile::tempdir().unwrap();
     let fs = SmallFs::mount(&dir.path().join("small"), "160k");
     let db = fs.0.join("rec.db");
-    let (plant, path) = common::plant_and_file(
-        dir.path(),
-        &common::config("hold", "", ""),
-        &recorder_section(&db, ""),
-    )
-    .await;
+    let (plant, path) = plant_recording(dir.path(), &db, "").await;
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
     tokio::task::block_in_place(|| gw.wait_log(30.0, "recorder commit failed"));

@@ -293,25 +293,16 @@ impl AxisConfig {
                 names.len() - 1
             }
         };
-        let k0_terms = self
-            .k0
-            .terms
-            .iter()
-            .map(|t| Term {
-                input: input(&t.channel),
-                ref_degc: t.ref_degc,
-                coeff: t.coeff_mm_per_degc,
-            })
+        let mut term = |channel: &str, ref_degc: f64, coeff: f64| Term {
+            input: input(channel),
+            ref_degc,
+            coeff,
+        };
+        let k0_terms = (self.k0.terms.iter())
+            .map(|t| term(&t.channel, t.ref_degc, t.coeff_mm_per_degc))
             .collect();
-        let tan_terms = self
-            .tan_beta
-            .terms
-            .iter()
-            .map(|t| Term {
-                input: input(&t.channel),
-                ref_degc: t.ref_degc,
-                coeff: t.coeff_per_degc,
-            })
+        let tan_terms = (self.tan_beta.terms.iter())
+            .map(|t| term(&t.channel, t.ref_degc, t.coeff_per_degc))
             .collect();
         let model = ThermalModel {
             k0_mm: Affine {

@@ -130,7 +130,7 @@ fn minimal_config_takes_the_documented_defaults() {
     assert_eq!(cfg.gateway, GatewayConfig::default());
     let d = cfg.devices["d"].tcp().expect("tcp");
     assert_eq!(d.common.timeout_s, 1.0);
-    assert_eq!(d.retries, 1);
+    assert_eq!(d.modbus.retries, 1);
     assert_eq!(
         (d.common.backoff_initial_s, d.common.backoff_max_s),
         (0.5, 30.0)

@@ -29,16 +29,9 @@ pub struct TcpDeviceConfig {
     #[serde(default = "default_connect_timeout_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub connect_timeout_s: f64,
-    /// Extra attempts of a failed request within one poll cycle. Default 1 (two
-    /// attempts in all); 0..=100.
-    #[serde(default = "default_retries")]
-    #[schemars(range(max = 100))]
-    pub retries: u32,
-    /// Registers that may be read and discarded to merge two channels into one
-    /// request (0 = merge only adjacent channels). Default 8; 0..=125.
-    #[serde(default = "default_max_gap_registers")]
-    #[schemars(range(max = 125))]
-    pub max_gap_registers: u16,
+    /// Retries and request merging.
+    #[serde(flatten)]
+    pub modbus: ModbusCommon,
     /// Timeouts, poll interval, backoff, degradation.
     #[serde(flatten)]
     pub common: DeviceCommon,
@@ -71,12 +64,7 @@ impl TcpDeviceConfig {
 
     /// The poller's parameters.
     pub fn poll_params(&self) -> PollParams {
-        PollParams {
-            unit_id: self.unit_id,
-            retries: self.retries,
-            degrade_after_cycles: self.common.degrade_after_cycles,
-            max_gap_registers: self.max_gap_registers,
-        }
+        self.modbus.poll_params(self.unit_id, &self.common)
     }
 }
 
@@ -107,16 +95,9 @@ pub struct RtuDeviceConfig {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(range(min = 1, max = 2))]
     pub stop_bits: Option<u8>,
-    /// Extra attempts of a failed request within one poll cycle. Default 1 (two
-    /// attempts in all); 0..=100.
-    #[serde(default = "default_retries")]
-    #[schemars(range(max = 100))]
-    pub retries: u32,
-    /// Registers that may be read and discarded to merge two channels into one
-    /// request (0 = merge only adjacent channels). Default 8; 0..=125.
-    #[serde(default = "default_max_gap_registers")]
-    #[schemars(range(max = 125))]
-    pub max_gap_registers: u16,
+    /// Retries and request merging.
+    #[serde(flatten)]
+    pub modbus: ModbusCommon,
     /// Timeouts, poll interval, backoff, degradation.
     #[serde(flatten)]
     pub common: DeviceCommon,
@@ -193,10 +174,32 @@ impl RtuDeviceConfig {
 
     /// The poller's parameters.
     pub fn poll_params(&self) -> PollParams {
+        self.modbus.poll_params(self.unit_id, &self.common)
+    }
+}
+
+/// The keys that TCP and RTU devices share and CAN devices do not have.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
+pub struct ModbusCommon {
+    /// Extra attempts of a failed request within one poll cycle. Default 1 (two
+    /// attempts in all); 0..=100.
+    #[serde(default = "default_retries")]
+    #[schemars(range(max = 100))]
+    pub retries: u32,
+    /// Registers that may be read and discarded to merge two channels into one
+    /// request (0 = merge only adjacent channels). Default 8; 0..=125.
+    #[serde(default = "default_max_gap_registers")]
+    #[schemars(range(max = 125))]
+    pub max_gap_registers: u16,
+}
+
+impl ModbusCommon {
+    /// The poller's parameters for the device at `unit_id`.
+    fn poll_params(&self, unit_id: u8, common: &DeviceCommon) -> PollParams {
         PollParams {
-            unit_id: self.unit_id,
+            unit_id,
             retries: self.retries,
-            degrade_after_cycles: self.common.degrade_after_cycles,
+            degrade_after_cycles: common.degrade_after_cycles,
             max_gap_registers: self.max_gap_registers,
         }
     }
