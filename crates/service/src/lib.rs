@@ -1,5 +1,17 @@
 //! The shop-floor service around the gateway: systemd notification, journald logging,
 //! SIGHUP reload, and the observers (recorder, metrics, MQTT) behind the control loop.
+//! Each observer receives every device sample's readings once from the core loop
+//! (`compgate_gateway::runtime::Observer`); none looks a channel up again.
+//!
+//! - [`notify`]: READY, STATUS and the watchdog for systemd.
+//! - [`record`]: durable recording into SQLite (WAL) off the control loop, retention,
+//!   and `compgate export` to the measurement CSV.
+//! - [`metrics`] and [`http`]: the Prometheus metrics and the listener that serves
+//!   them, with a connection limit and timeouts.
+//! - [`mqtt`]: readings, NC writes and health to an MQTT broker, through an outbox
+//!   that loses nothing across a broker outage.
+//! - [`status`]: the live status table on a terminal, plain lines in the journal.
+//! - [`heap`]: glibc malloc's figures and the service's one-arena setting.
 
 pub mod heap;
 pub mod http;
