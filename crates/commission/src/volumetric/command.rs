@@ -60,7 +60,7 @@ pub struct VolumetricArgs {
 pub const MAX_GRID_POSES: u64 = 2_000_000;
 
 /// Grid axes: the values of each of the five axes; refuses a grid of more than
-/// [`MAX_GRID_POSES`] poses and an axis named twice.
+/// `MAX_GRID_POSES` (2000000) poses and an axis named twice.
 pub fn parse_grid(spec: &str, travel: &[(f64, f64); 5]) -> Result<[Vec<f64>; 5], VolumetricError> {
     let grid = parse_grid_axes(spec, travel)?;
     // u64: five counts of at most 1000 multiply to at most 10^15.
