@@ -283,7 +283,12 @@ pub fn commissioning_model(
     Ok((AxisModel::from_fit(&fit), fit, m))
 }
 
-fn gateway_config(field: &str, nc: &str, sensors: &[&str], model: &AxisModel) -> String {
+fn gateway_config(
+    field: &str,
+    nc: &str,
+    sensors: &[&str],
+    model: &AxisModel,
+) -> Result<String, calibrate::ModelError> {
     let mut t = format!(
         "[devices.ain]\ntransport = \"tcp\"\naddress = \"{field}\"\nunit_id = 1\ntimeout_s = 1.0\npoll_interval_s = {TICK_S}\n\n\
          [nc_modules.nc_x]\naddress = \"{nc}\"\nunit_id = 1\ntimeout_s = 1.0\njob_timeout_s = 2.0\n\n"
@@ -301,10 +306,10 @@ fn gateway_config(field: &str, nc: &str, sensors: &[&str], model: &AxisModel) ->
     // and 0.2 um over the 2 m axis (slope); default step limits.
     let axis = "update_interval_s = 10.0\ndeadband_k0_mm = 0.0002\ndeadband_tan_beta = 0.0000001\n\
          max_step_k0_mm = 0.02\nmax_step_tan_beta = 0.00002\n";
-    let fragment = calibrate::model_toml("X", "nc_x", model, "");
+    let fragment = calibrate::model_toml("X", "nc_x", model, "")?;
     // Insert the tuning keys right after the [axes.X] header.
     t.push_str(&fragment.replacen("[axes.X]\n", &format!("[axes.X]\n{axis}"), 1));
-    t
+    Ok(t)
 }
 
 /// Parts of a run that stay the same for off and on.
@@ -358,7 +363,8 @@ async fn run_once(
     tokio::spawn(field.clone().serve_tcp(fl, shutdown.clone()));
     tokio::spawn(nc.clone().serve_tcp(nl, shutdown.clone()));
 
-    let text = gateway_config(&fa.to_string(), &na.to_string(), &sensors, s.model);
+    let text =
+        gateway_config(&fa.to_string(), &na.to_string(), &sensors, s.model).map_err(setup_err)?;
     let cfg = config::load_str(&text, "scenario").map_err(setup_err)?;
     let mut built = runtime::build(&cfg).map_err(setup_err)?;
     let update_every_s = cfg.axes["X"].update_interval_s;
@@ -565,8 +571,13 @@ pub async fn run_with(
                 "compgate scenario: commissioning fit, 24 h run of the same machine\nRMS residual {:.3} um, R^2 {:.6}",
                 fit.rms_um, fit.r2
             );
-            std::fs::write(&path, calibrate::model_toml("X", "nc_x", &model, &header))
-                .map_err(|e| io_err(&path, e))?;
+            let text = calibrate::model_toml("X", "nc_x", &model, &header).map_err(|source| {
+                ScenarioError::ModelFile(calibrate::CalibrateError::Model {
+                    path: path.display().to_string(),
+                    source: Box::new(source),
+                })
+            })?;
+            std::fs::write(&path, text).map_err(|e| io_err(&path, e))?;
             write_csv(&args.out.join("commissioning.csv"), &m)?;
             (
                 model,

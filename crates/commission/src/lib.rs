@@ -14,6 +14,7 @@
 //! NC client) in `command`, and what it shows and writes (text, CSV, SVG) in `report`
 //! (diagnose: `output`). They share:
 //!
+//! - [`args`]: range checks of numeric command-line flags, naming the flag;
 //! - [`plot`]: the one way to draw an SVG chart (also used by the root package's
 //!   scenario);
 //! - [`lsq`]: linear least squares by column-scaled SVD (calibrate, diagnose);
@@ -23,6 +24,7 @@
 //! The `synth` feature adds `diagnose::synth`, synthetic measurements (it pulls in
 //! rand); tests and examples enable it.
 
+pub mod args;
 pub mod backlash;
 pub mod calibrate;
 pub mod diagnose;

@@ -4,14 +4,40 @@
 //! to another); scaling keeps the SVD's tolerance meaningful and gives collinear
 //! columns the minimum-norm solution instead of exploding.
 
-use nalgebra::{DMatrix, DVector};
+use nalgebra::{DMatrix, DVector, SVD};
 
-/// The columns are linearly dependent beyond what the caller accepts.
+/// Iteration cap of the SVD. nalgebra's `svd()` iterates until convergence, which a
+/// matrix holding NaN or a huge value never reaches: the command hung. A well-posed
+/// design of this size converges in a few dozen sweeps; hitting the cap is a failed
+/// fit, reported as [`LsqError::NoConvergence`].
+pub const SVD_MAX_ITERATIONS: usize = 10_000;
+
+/// Why a least-squares problem has no usable solution.
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
-#[error("the columns are linearly dependent (condition number {condition:.1e})")]
-pub struct Collinear {
-    /// Condition number of the scaled design.
-    pub condition: f64,
+pub enum LsqError {
+    /// The columns are linearly dependent beyond what the caller accepts.
+    #[error("the columns are linearly dependent (condition number {condition:.1e})")]
+    Collinear {
+        /// Condition number of the scaled design.
+        condition: f64,
+    },
+    /// A value of the design or the response is NaN or infinite.
+    #[error("the design or the response holds a value that is not finite")]
+    NotFinite,
+    /// The SVD did not converge within [`SVD_MAX_ITERATIONS`].
+    #[error("the SVD did not converge within {SVD_MAX_ITERATIONS} iterations")]
+    NoConvergence,
+    /// The solution holds a value that is not finite (an overflow in the solve).
+    #[error("the solution is not finite")]
+    NonFiniteSolution,
+}
+
+/// The SVD with bounded iterations; `None` (not converged) becomes an error.
+fn bounded_svd(m: DMatrix<f64>) -> Result<SVD<f64, nalgebra::Dyn, nalgebra::Dyn>, LsqError> {
+    if m.iter().any(|v| !v.is_finite()) {
+        return Err(LsqError::NotFinite);
+    }
+    SVD::try_new(m, true, true, f64::EPSILON, SVD_MAX_ITERATIONS).ok_or(LsqError::NoConvergence)
 }
 
 /// A fitted design: coefficients, condition, and what standard errors need.
@@ -47,14 +73,17 @@ pub fn solve_design(
     x: &DMatrix<f64>,
     y: &[f64],
     max_condition: f64,
-) -> Result<DesignFit, Collinear> {
+) -> Result<DesignFit, LsqError> {
+    if y.iter().any(|v| !v.is_finite()) {
+        return Err(LsqError::NotFinite);
+    }
     let p = x.ncols();
     let inv = inverse_norms(p, |c| x.column(c).norm_squared());
     let mut xs = x.clone();
     for (c, s) in inv.iter().enumerate() {
         xs.column_mut(c).scale_mut(*s);
     }
-    let svd = xs.svd(true, true);
+    let svd = bounded_svd(xs)?;
     let sv = &svd.singular_values;
     let (s_max, s_min) = (sv.max(), sv.min());
     let condition = if s_min > 0.0 {
@@ -63,21 +92,25 @@ pub fn solve_design(
         f64::INFINITY
     };
     if !condition.is_finite() || condition > max_condition {
-        return Err(Collinear { condition });
+        return Err(LsqError::Collinear { condition });
     }
     let beta_s = svd
         .solve(&DVector::from_column_slice(y), 0.0)
-        .map_err(|_| Collinear { condition })?;
+        .map_err(|_| LsqError::Collinear { condition })?;
     // (Xs^T Xs)^-1 = V diag(1/s^2) V^T, then unscaled.
-    let v_t = svd.v_t.as_ref().ok_or(Collinear { condition })?;
+    let v_t = svd.v_t.as_ref().ok_or(LsqError::Collinear { condition })?;
     let inv_gram_diag = (0..p)
         .map(|c| {
             let var_s: f64 = (0..sv.len()).map(|k| (v_t[(k, c)] / sv[k]).powi(2)).sum();
             var_s * inv[c] * inv[c]
         })
         .collect();
+    let beta: Vec<f64> = (0..p).map(|c| beta_s[c] * inv[c]).collect();
+    if beta.iter().any(|b| !b.is_finite()) {
+        return Err(LsqError::NonFiniteSolution);
+    }
     Ok(DesignFit {
-        beta: (0..p).map(|c| beta_s[c] * inv[c]).collect(),
+        beta,
         condition,
         inv_gram_diag,
     })
@@ -85,17 +118,24 @@ pub fn solve_design(
 
 /// Solves the normal equations `X^T X beta = X^T y` given as `xx` and `xy`; singular
 /// values below 1e-12 of the largest are dropped (minimum-norm solution).
-pub fn solve_normal(xx: &DMatrix<f64>, xy: &DVector<f64>) -> DVector<f64> {
+pub fn solve_normal(xx: &DMatrix<f64>, xy: &DVector<f64>) -> Result<DVector<f64>, LsqError> {
+    if xy.iter().any(|v| !v.is_finite()) {
+        return Err(LsqError::NotFinite);
+    }
     let p = xy.len();
     let d = inverse_norms(p, |i| xx[(i, i)]);
     let scaled = DMatrix::from_fn(p, p, |i, j| xx[(i, j)] * d[i] * d[j]);
     let rhs = xy.component_mul(&d);
-    let svd = scaled.svd(true, true);
+    let svd = bounded_svd(scaled)?;
     let smax = svd.singular_values.max();
     let sol = svd
         .solve(&rhs, smax * 1e-12)
-        .unwrap_or_else(|_| DVector::zeros(p));
-    sol.component_mul(&d)
+        .unwrap_or_else(|_| DVector::zeros(p))
+        .component_mul(&d);
+    if sol.iter().any(|v| !v.is_finite()) {
+        return Err(LsqError::NonFiniteSolution);
+    }
+    Ok(sol)
 }
 
 /// Residuals `y - X beta` of columns `cols`.
@@ -123,7 +163,7 @@ mod tests {
         assert!((fit.beta[0] - 2.0).abs() < 1e-9 && (fit.beta[1] - 3000.0).abs() < 1e-6);
         let xx = x.transpose() * &x;
         let xy = x.transpose() * DVector::from_column_slice(&y);
-        let b = solve_normal(&xx, &xy);
+        let b = solve_normal(&xx, &xy).expect("finite");
         assert!((b[0] - 2.0).abs() < 1e-6 && (b[1] - 3000.0).abs() < 1e-3);
         let cols: Vec<Vec<f64>> = (0..2)
             .map(|c| x.column(c).iter().copied().collect())
@@ -139,7 +179,33 @@ mod tests {
         // The normal form gives the minimum-norm solution instead.
         let xx = x.transpose() * &x;
         let xy = x.transpose() * DVector::from_fn(5, |i, _| 2.0 * i as f64);
-        let b = solve_normal(&xx, &xy);
+        let b = solve_normal(&xx, &xy).expect("finite");
         assert!((b[0] - 1.0).abs() < 1e-9 && (b[1] - 1.0).abs() < 1e-9);
+    }
+
+    /// Before the iteration cap and the finiteness check, a NaN or a huge value made
+    /// nalgebra's SVD loop for ever (calibrate and diagnose never returned).
+    #[test]
+    fn non_finite_or_huge_input_is_an_error_not_a_hang() {
+        let x = DMatrix::from_fn(6, 2, |i, c| if c == 0 { 1.0 } else { i as f64 });
+        let mut bad = x.clone();
+        bad[(3, 1)] = f64::NAN;
+        assert_eq!(
+            solve_design(&bad, &[0.0; 6], 1e10),
+            Err(LsqError::NotFinite)
+        );
+        let y = [0.0, 1.0, 2.0, f64::INFINITY, 4.0, 5.0];
+        assert_eq!(solve_design(&x, &y, 1e10), Err(LsqError::NotFinite));
+        let mut huge = x.clone();
+        huge[(3, 1)] = 1e308;
+        // Finite but absurd: must return (an error or a finite fit), never hang.
+        if let Ok(f) = solve_design(&huge, &[0.0, 1.0, 2.0, 3.0, 4.0, 5.0], 1e10) {
+            assert!(f.beta.iter().all(|b| b.is_finite()));
+        }
+        let xx = DMatrix::from_row_slice(2, 2, &[1.0, f64::NAN, f64::NAN, 1.0]);
+        assert_eq!(
+            solve_normal(&xx, &DVector::from_element(2, 1.0)),
+            Err(LsqError::NotFinite)
+        );
     }
 }

@@ -51,7 +51,14 @@ pub fn run(args: &CalibrateArgs) -> Result<String, CalibrateError> {
         f.rms_um,
         f.r2
     );
-    let text = model_toml(&args.axis, &args.nc_module, &model, &header);
+    // Refused before anything is written: a model the gateway would load must
+    // never hold a NaN or an absurd coefficient.
+    let text = model_toml(&args.axis, &args.nc_module, &model, &header).map_err(|source| {
+        CalibrateError::Model {
+            path: args.out.display().to_string(),
+            source: Box::new(source),
+        }
+    })?;
     std::fs::write(&args.out, text).map_err(|source| CalibrateError::Io {
         path: args.out.display().to_string(),
         source,

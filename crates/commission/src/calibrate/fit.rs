@@ -41,6 +41,12 @@ pub enum FitError {
     /// A value is NaN or infinite.
     #[error("a value of `{0}` is not finite")]
     NotFinite(String),
+    /// The solver failed (no convergence, overflow): the data cannot be fitted.
+    #[error("least squares failed: {0}")]
+    Solver(lsq::LsqError),
+    /// A fitted figure came out NaN or infinite (an overflow on extreme data).
+    #[error("the fitted {0} is not finite: the data cannot be fitted (check for extreme values)")]
+    NonFiniteResult(&'static str),
 }
 
 /// One sensor's part of the fitted model.
@@ -186,8 +192,9 @@ pub fn fit(
             x[(i, 2 + m + j)] = dx[i] * dt;
         }
     }
-    let design = lsq::solve_design(&x, err_um, 1e10).map_err(|c| FitError::Collinear {
-        condition: c.condition,
+    let design = lsq::solve_design(&x, err_um, 1e10).map_err(|e| match e {
+        lsq::LsqError::Collinear { condition } => FitError::Collinear { condition },
+        other => FitError::Solver(other),
     })?;
     let beta = &design.beta;
     let condition = design.condition;
@@ -198,6 +205,20 @@ pub fn fit(
     let ss_tot: f64 = err_um.iter().map(|v| (v - y_mean).powi(2)).sum();
     let sigma2 = ss_res / (n - p) as f64;
     let se = |c: usize| (sigma2 * design.inv_gram_diag[c]).sqrt();
+    // Large-but-finite data can still overflow a sum of squares; a non-finite figure
+    // must fail the fit here rather than reach the report or the model file.
+    let figures = [
+        ("residual sum of squares", ss_res),
+        ("total sum of squares", ss_tot),
+    ];
+    for (what, v) in figures {
+        if !v.is_finite() {
+            return Err(FitError::NonFiniteResult(what));
+        }
+    }
+    if (0..p).any(|c| !se(c).is_finite()) {
+        return Err(FitError::NonFiniteResult("standard error"));
+    }
     // tan(beta) = slope_um_per_mm / 1000.
     let terms = sensors
         .iter()

@@ -16,7 +16,7 @@ use thiserror::Error;
 use crate::plot::PlotError;
 pub use command::{run, CalibrateArgs};
 pub use fit::{Fit, FitError};
-pub use model::{first_axis_model, load_model, model_toml, AxisModel, ModelError};
+pub use model::{bounds, first_axis_model, load_model, model_toml, AxisModel, ModelError};
 pub use report::{plot_curves, report};
 
 /// Errors of `calibrate` and of reading a model file.
@@ -28,6 +28,8 @@ pub enum CalibrateError {
     NoSensor(String, String),
     #[error("fit: {0}")]
     Fit(#[from] FitError),
+    #[error("{0}")]
+    Arg(#[from] crate::args::ArgError),
     #[error("{path}: {source}")]
     Io {
         path: String,
@@ -80,6 +82,10 @@ pub fn calibrate(
     sensors: &[String],
     p0_mm: Option<f64>,
 ) -> Result<Fit, CalibrateError> {
+    if let Some(p) = p0_mm {
+        // NaN made the SVD spin for ever; a P0 beyond the gateway's range is a typo.
+        crate::args::check_f64("--p0-mm", p, bounds::P0_MM.0, bounds::P0_MM.1, "mm")?;
+    }
     let cols = select_sensors(m, sensors)?;
     let p0_mm = p0_mm.unwrap_or_else(|| fit::choose_p0_mm(&m.pos_mm));
     Ok(fit::fit(&m.pos_mm, &m.err_um, &cols, p0_mm)?)

@@ -26,6 +26,19 @@ pub enum ModelError {
     /// `axes.NAME` is a value, not a table.
     #[error("axes.{0} is not a table")]
     NotATable(String),
+    /// A model value is NaN, infinite or outside the range the gateway's config
+    /// schema accepts for it.
+    #[error("{key} = {value:?}: must be a finite number in {min}..={max}")]
+    Implausible {
+        /// Key path, e.g. `axes.X.k0.terms[0].coeff_mm_per_degc`.
+        key: String,
+        /// The value found.
+        value: f64,
+        /// Smallest accepted value.
+        min: f64,
+        /// Largest accepted value.
+        max: f64,
+    },
     /// A model key of `axes.NAME` is malformed.
     #[error("axes.{axis}: {}", source.message())]
     Invalid {
@@ -52,7 +65,79 @@ pub struct AxisModel {
     pub tan_beta: TanBetaModel,
 }
 
+/// Plausible ranges of the model's values, the same as the gateway's config schema
+/// for `[axes.NAME]` (`p0_mm`, `k0`, `tan_beta` in the gateway's `axis` module): a
+/// model outside them would be refused by the gateway, or is a failed fit.
+pub mod bounds {
+    /// `p0_mm`, mm.
+    pub const P0_MM: (f64, f64) = (-100_000.0, 100_000.0);
+    /// `k0.offset_mm`, mm (SD43900 is limited to 10 mm by the NC).
+    pub const K0_OFFSET_MM: (f64, f64) = (-10.0, 10.0);
+    /// `k0.terms[].coeff_mm_per_degc`, mm/K.
+    pub const K0_COEFF_MM_PER_DEGC: (f64, f64) = (-1.0, 1.0);
+    /// `tan_beta.offset`.
+    pub const TAN_BETA_OFFSET: (f64, f64) = (-0.1, 0.1);
+    /// `tan_beta.terms[].coeff_per_degc`, 1/K.
+    pub const TAN_BETA_COEFF_PER_DEGC: (f64, f64) = (-0.01, 0.01);
+    /// `*.terms[].ref_degc`, degC.
+    pub const REF_DEGC: (f64, f64) = (-100.0, 500.0);
+}
+
 impl AxisModel {
+    /// Checks every value against [`bounds`]; the error names the key under
+    /// `axes.<axis>`. Both the writer and the reader call it, so a model file never
+    /// holds a value the gateway would refuse or a NaN.
+    pub fn check(&self, axis: &str) -> Result<(), ModelError> {
+        let one = |key: String, value: f64, (min, max): (f64, f64)| {
+            if value.is_finite() && (min..=max).contains(&value) {
+                Ok(())
+            } else {
+                Err(ModelError::Implausible {
+                    key: format!("axes.{axis}.{key}"),
+                    value,
+                    min,
+                    max,
+                })
+            }
+        };
+        one("p0_mm".into(), self.p0_mm, bounds::P0_MM)?;
+        one(
+            "k0.offset_mm".into(),
+            self.k0.offset_mm,
+            bounds::K0_OFFSET_MM,
+        )?;
+        for (i, t) in self.k0.terms.iter().enumerate() {
+            one(
+                format!("k0.terms[{i}].ref_degc"),
+                t.ref_degc,
+                bounds::REF_DEGC,
+            )?;
+            one(
+                format!("k0.terms[{i}].coeff_mm_per_degc"),
+                t.coeff_mm_per_degc,
+                bounds::K0_COEFF_MM_PER_DEGC,
+            )?;
+        }
+        one(
+            "tan_beta.offset".into(),
+            self.tan_beta.offset,
+            bounds::TAN_BETA_OFFSET,
+        )?;
+        for (i, t) in self.tan_beta.terms.iter().enumerate() {
+            one(
+                format!("tan_beta.terms[{i}].ref_degc"),
+                t.ref_degc,
+                bounds::REF_DEGC,
+            )?;
+            one(
+                format!("tan_beta.terms[{i}].coeff_per_degc"),
+                t.coeff_per_degc,
+                bounds::TAN_BETA_COEFF_PER_DEGC,
+            )?;
+        }
+        Ok(())
+    }
+
     /// The fitted model in config units (mm, mm/mm).
     pub fn from_fit(f: &Fit) -> Self {
         Self {
@@ -119,8 +204,15 @@ struct AxisOut<'a> {
     model: &'a AxisModel,
 }
 
-/// The model as a TOML fragment `[axes.<axis>]`, with a comment header.
-pub fn model_toml(axis: &str, nc_module: &str, model: &AxisModel, header: &str) -> String {
+/// The model as a TOML fragment `[axes.<axis>]`, with a comment header; refuses a
+/// model with a non-finite or implausible value ([`AxisModel::check`]).
+pub fn model_toml(
+    axis: &str,
+    nc_module: &str,
+    model: &AxisModel,
+    header: &str,
+) -> Result<String, ModelError> {
+    model.check(axis)?;
     let mut axes = BTreeMap::new();
     axes.insert(
         axis,
@@ -139,7 +231,7 @@ pub fn model_toml(axis: &str, nc_module: &str, model: &AxisModel, header: &str) 
         let _ = writeln!(s, "# {line}");
     }
     s.push_str(&body);
-    s
+    Ok(s)
 }
 
 /// Reads the first `[axes.NAME]` of a model file (from calibrate or diagnose) or of a
@@ -175,5 +267,6 @@ pub fn first_axis_model(root: &toml::Table) -> Result<(String, AxisModel), Model
                 axis: name.clone(),
                 source,
             })?;
+    model.check(name)?;
     Ok((name.clone(), model))
 }

@@ -158,3 +158,118 @@ fn bad_input_is_named() {
         .to_string();
     assert!(e.contains("T_spindle") && e.contains("T_screw"), "{e}");
 }
+
+fn args_for(dir: &std::path::Path, csv: std::path::PathBuf) -> CalibrateArgs {
+    CalibrateArgs {
+        data: csv,
+        out: dir.join("m.toml"),
+        sensors: vec![],
+        p0_mm: None,
+        axis: "X".into(),
+        nc_module: "nc_x".into(),
+        plot: None,
+    }
+}
+
+/// `--p0-mm nan` made the SVD spin for ever; now it is refused, naming the flag.
+#[test]
+fn non_finite_or_absurd_p0_is_refused_naming_the_flag() {
+    let (m, _) = commissioning(noiseless(), 1);
+    for (p0, what) in [
+        (f64::NAN, "--p0-mm NaN: not a finite number"),
+        (f64::INFINITY, "--p0-mm inf: not a finite number"),
+        (1e300, "--p0-mm 1e300: outside"),
+    ] {
+        let e = calibrate(&m, &[], Some(p0)).unwrap_err().to_string();
+        assert!(e.contains(what), "{e}");
+    }
+}
+
+/// 1e300 in the data once gave "linearly dependent" without a line; the reader now
+/// names the line and the column.
+#[test]
+fn huge_value_in_the_data_is_refused_with_line_and_column() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("huge.csv");
+    std::fs::write(
+        &csv,
+        "t_s,pos_mm,err_um,T_a\n0,0,1,20\n1,10,2,21\n2,1e300,3,22\n3,30,4,23\n",
+    )
+    .unwrap();
+    let e = run(&args_for(dir.path(), csv)).unwrap_err().to_string();
+    assert!(e.contains("huge.csv: line 4, column `pos_mm`"), "{e}");
+}
+
+fn hand_model() -> AxisModel {
+    AxisModel {
+        p0_mm: 0.0,
+        k0: compgate_gateway::config::K0Model {
+            offset_mm: 0.001,
+            terms: vec![compgate_gateway::config::K0Term {
+                channel: "a".into(),
+                ref_degc: 20.0,
+                coeff_mm_per_degc: 0.001,
+            }],
+        },
+        tan_beta: compgate_gateway::config::TanBetaModel {
+            offset: 1e-5,
+            terms: vec![compgate_gateway::config::TanBetaTerm {
+                channel: "a".into(),
+                ref_degc: 20.0,
+                coeff_per_degc: 1e-6,
+            }],
+        },
+    }
+}
+
+/// `err_um = 1e308` once wrote `offset_mm = -inf`, `coeff_mm_per_degc = nan`: the
+/// writer now refuses any non-finite or out-of-range value, naming the key.
+#[test]
+fn model_writer_refuses_non_finite_and_implausible_values() {
+    assert!(model_toml("X", "nc_x", &hand_model(), "").is_ok());
+    type Spoil = fn(&mut AxisModel);
+    let cases: [(Spoil, &str); 5] = [
+        (
+            |m| m.k0.offset_mm = f64::NEG_INFINITY,
+            "axes.X.k0.offset_mm = -inf",
+        ),
+        (
+            |m| m.k0.terms[0].coeff_mm_per_degc = f64::NAN,
+            "axes.X.k0.terms[0].coeff_mm_per_degc = NaN",
+        ),
+        (|m| m.tan_beta.offset = 0.2, "axes.X.tan_beta.offset = 0.2"),
+        (
+            |m| m.tan_beta.terms[0].coeff_per_degc = 0.02,
+            "axes.X.tan_beta.terms[0].coeff_per_degc",
+        ),
+        (|m| m.p0_mm = 1e6, "axes.X.p0_mm = 1000000.0"),
+    ];
+    for (spoil, key) in cases {
+        let mut m = hand_model();
+        spoil(&mut m);
+        let e = model_toml("X", "nc_x", &m, "").unwrap_err().to_string();
+        assert!(e.contains(key), "{e}");
+    }
+}
+
+/// The reader refuses `nan` and out-of-range values, naming the file and the key.
+#[test]
+fn model_reader_refuses_non_finite_values_naming_file_and_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = model_toml("X", "nc_x", &hand_model(), "").unwrap();
+    for (from, to, key) in [
+        (
+            "offset_mm = 0.001",
+            "offset_mm = nan",
+            "axes.X.k0.offset_mm = NaN",
+        ),
+        ("p0_mm = 0.0", "p0_mm = inf", "axes.X.p0_mm = inf"),
+        ("ref_degc = 20.0", "ref_degc = 1e300", "ref_degc = 1e300"),
+    ] {
+        assert!(good.contains(from), "{good}");
+        let path = dir.path().join("bad_model.toml");
+        std::fs::write(&path, good.replacen(from, to, 1)).unwrap();
+        let e = load_model(&path).unwrap_err().to_string();
+        assert!(e.contains("bad_model.toml") && e.contains(key), "{e}");
+    }
+}

@@ -280,9 +280,14 @@ impl Current {
         self.cv = self.gram.cv_mse(d.n);
     }
 
-    /// Residuals of the current fit.
-    pub fn residuals(&self, d: &Data) -> Vec<f64> {
-        residuals(&self.refs(), &d.y_um, &self.gram.solve().beta)
+    /// Residuals of the current fit; an error if the solver fails on it (a fit
+    /// that is reported must not be the search's infinite stand-in).
+    pub fn residuals(&self, d: &Data) -> Result<Vec<f64>, crate::lsq::LsqError> {
+        Ok(residuals(
+            &self.refs(),
+            &d.y_um,
+            &self.gram.try_solve()?.beta,
+        ))
     }
 }
 

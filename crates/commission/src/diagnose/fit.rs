@@ -5,7 +5,7 @@
 use nalgebra::{DMatrix, DVector};
 
 pub use crate::lsq::residuals;
-use crate::lsq::solve_normal;
+use crate::lsq::{solve_normal, LsqError};
 
 /// Cross products of a column set with itself and with the response, per block.
 #[derive(Debug, Clone)]
@@ -117,12 +117,25 @@ impl Gram {
         (xx, xy, yy)
     }
 
-    /// The fit on all rows.
-    pub fn solve(&self) -> Solution {
+    /// The fit on all rows; an error if the solver fails (no convergence, values
+    /// not finite). What is reported or written comes from here.
+    pub fn try_solve(&self) -> Result<Solution, LsqError> {
         let (xx, xy, yy) = self.total(None);
-        let beta = solve_normal(&xx, &xy);
+        let beta = solve_normal(&xx, &xy)?;
         let rss = sse(&xx, &xy, yy, &beta);
-        Solution { beta, rss }
+        if !rss.is_finite() {
+            return Err(LsqError::NonFiniteSolution);
+        }
+        Ok(Solution { beta, rss })
+    }
+
+    /// The fit on all rows for a search: a candidate the solver fails on gets an
+    /// infinite residual sum of squares, so it is never chosen.
+    pub fn solve(&self) -> Solution {
+        self.try_solve().unwrap_or_else(|_| Solution {
+            beta: DVector::zeros(self.xy[0].len()),
+            rss: f64::INFINITY,
+        })
     }
 
     /// Blocked cross-validation: mean squared held-out error, each block predicted by
@@ -134,7 +147,10 @@ impl Gram {
         let mut total = 0.0;
         for k in 0..self.xx.len() {
             let (xx, xy, _) = self.total(Some(k));
-            let beta = solve_normal(&xx, &xy);
+            // A fold the solver fails on makes the candidate unusable (never chosen).
+            let Ok(beta) = solve_normal(&xx, &xy) else {
+                return f64::INFINITY;
+            };
             total += sse(&self.xx[k], &self.xy[k], self.yy[k], &beta);
         }
         total / n as f64

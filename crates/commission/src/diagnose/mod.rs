@@ -65,6 +65,8 @@ pub enum DiagnoseError {
     },
     #[error("plot {0}")]
     Plot(#[from] crate::plot::PlotError),
+    #[error("fit: {0}")]
+    Fit(#[from] crate::lsq::LsqError),
 }
 
 /// Decision thresholds, calibrated on null data (see the README).
@@ -387,8 +389,8 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
     };
 
     let mut cur = Current::new(&d, d.baseline_columns());
-    let r0 = cur.residuals(&d);
-    let beta_baseline: Vec<f64> = cur.gram.solve().beta.iter().copied().collect();
+    let r0 = cur.residuals(&d)?;
+    let beta_baseline: Vec<f64> = cur.gram.try_solve()?.beta.iter().copied().collect();
     let baseline = Gap::of(&r0);
     let where_baseline = describe(&d, &r0);
 
@@ -498,11 +500,11 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
             signal_mean: mean,
         });
         cur = refine(&d, cur, &mut effects);
-        r_cur = cur.residuals(&d);
+        r_cur = cur.residuals(&d)?;
     }
 
-    let beta: Vec<f64> = cur.gram.solve().beta.iter().copied().collect();
-    let r_final = cur.residuals(&d);
+    let beta: Vec<f64> = cur.gram.try_solve()?.beta.iter().copied().collect();
+    let r_final = cur.residuals(&d)?;
     let half = 0.5 * (d.pos_max_mm - d.pos_min_mm);
     for e in &mut effects {
         let b = &beta[e.cols.0..e.cols.1];

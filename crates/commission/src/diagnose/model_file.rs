@@ -104,23 +104,55 @@ impl ModelFile {
                 return Err(err(format!("effects: unknown effect name `{}`", e.name)));
             }
         }
-        Ok(ModelFile {
+        let mf = ModelFile {
             axis,
             lagged_channels,
             effects,
-        })
+        };
+        mf.check_extras().map_err(err)?;
+        Ok(mf)
+    }
+
+    /// The values outside `[axes.X]` (the axis part has [`AxisModel::check`]) must
+    /// be finite, and a lag a positive time: they feed the prediction and the fit.
+    fn check_extras(&self) -> Result<(), String> {
+        for (i, l) in self.lagged_channels.iter().enumerate() {
+            let tau = l.lowpass_tau_s;
+            if !(tau.is_finite() && tau > 0.0) {
+                return Err(format!(
+                    "lagged_channels[{i}].lowpass_tau_s = {tau}: must be a finite time > 0 s"
+                ));
+            }
+        }
+        for (i, e) in self.effects.iter().enumerate() {
+            for (k, v) in &e.params {
+                if !v.is_finite() {
+                    return Err(format!(
+                        "effects[{i}].params.{k} = {v}: must be a finite number"
+                    ));
+                }
+            }
+        }
+        Ok(())
     }
 
     /// The TOML text: `[axes.X]` as calibrate writes it, then the lagged channels and
-    /// effects, with a header comment.
-    pub fn to_toml(&self) -> String {
+    /// effects, with a header comment. Refuses a model holding a NaN or a value
+    /// outside the gateway's ranges; `origin` names the file in the error.
+    pub fn to_toml(&self, origin: &str) -> Result<String, DiagnoseError> {
+        let err = |message: String| DiagnoseError::ModelFile {
+            path: origin.to_string(),
+            message,
+        };
+        self.check_extras().map_err(err)?;
         let header = "Thermal model written by `compgate diagnose`.\n\
              [axes.X] is the gateway's axis form (as calibrate writes it; scenario --model\n\
              reads it); channels are the data's sensors (column T_<name> -> channel <name>).\n\
              [[lagged_channels]]: a channel on the named sensor's transmitter with\n\
              filter.lowpass_tau_s. [[effects]]: terms outside K0/tan(beta), with the NC\n\
              function that carries them.\n";
-        let mut s = crate::calibrate::model_toml("X", "nc_x", &self.axis, header);
+        let mut s = crate::calibrate::model_toml("X", "nc_x", &self.axis, header)
+            .map_err(|e| err(e.to_string()))?;
         #[derive(Serialize)]
         struct Extra<'a> {
             #[serde(skip_serializing_if = "<[_]>::is_empty")]
@@ -137,7 +169,7 @@ impl ModelFile {
             s.push('\n');
             s.push_str(&extra);
         }
-        s
+        Ok(s)
     }
 
     /// The error the model predicts for every row, um.
@@ -405,7 +437,7 @@ mod tests {
     #[test]
     fn round_trips_and_its_axis_keys_load_as_a_gateway_axis() {
         let m = model();
-        let text = m.to_toml();
+        let text = m.to_toml("m.toml").expect("a valid model");
         let back = ModelFile::from_toml(&text, "m.toml").expect("parse");
         assert_eq!(back, m);
         // calibrate's reader (the one scenario --model uses) takes it too.

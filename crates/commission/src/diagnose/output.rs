@@ -246,11 +246,14 @@ pub fn write_out(dir: &Path, d: &Diagnosis) -> Result<Vec<PathBuf>, DiagnoseErro
     std::fs::create_dir_all(dir).map_err(io(dir))?;
     let mut written = Vec::new();
     let model_path = dir.join("model.toml");
-    std::fs::write(&model_path, ModelFile::from_diagnosis(d).to_toml()).map_err(io(&model_path))?;
+    let origin = model_path.display().to_string();
+    let model_text = ModelFile::from_diagnosis(d).to_toml(&origin)?;
+    std::fs::write(&model_path, &model_text).map_err(io(&model_path))?;
     written.push(model_path);
     let base_path = dir.join("baseline_model.toml");
-    std::fs::write(&base_path, ModelFile::baseline_from_diagnosis(d).to_toml())
-        .map_err(io(&base_path))?;
+    let base_text =
+        ModelFile::baseline_from_diagnosis(d).to_toml(&base_path.display().to_string())?;
+    std::fs::write(&base_path, base_text).map_err(io(&base_path))?;
     written.push(base_path);
 
     let s = &d.series;
@@ -318,7 +321,7 @@ pub fn write_out(dir: &Path, d: &Diagnosis) -> Result<Vec<PathBuf>, DiagnoseErro
     let _ = writeln!(
         html,
         "<h2>Updated model</h2>\n<pre>{}</pre>\n</body></html>",
-        escape(&ModelFile::from_diagnosis(d).to_toml())
+        escape(&model_text)
     );
     std::fs::write(&html_path, html).map_err(io(&html_path))?;
     written.push(html_path);

@@ -115,13 +115,36 @@ fn min(it: impl Iterator<Item = f64>) -> f64 {
     it.fold(f64::INFINITY, f64::min)
 }
 
+/// `pos_mm` rounded to 1 um; beyond 2^52 um an f64 has no fraction left to round.
+fn round_to_um(pos_mm: f64) -> f64 {
+    let um = pos_mm * 1000.0;
+    if um.abs() < 4.5e15 {
+        um.round() / 1000.0
+    } else {
+        pos_mm
+    }
+}
+
+/// A key ordering f64 values like `f64::total_cmp` (sign-magnitude bits made
+/// two's-complement), so that every value keeps its own group.
+fn total_order_key(v: f64) -> i64 {
+    let bits = v.to_bits() as i64;
+    bits ^ ((((bits >> 63) as u64) >> 1) as i64)
+}
+
 /// Evaluates rows of position, direction (+1/-1) and deviation (um).
 pub fn evaluate(pos_mm: &[f64], dir: &[i8], err_um: &[f64]) -> Result<Iso230, Iso230Error> {
     // Group by target (to 1 um) and direction, keeping file order = run order.
-    let mut groups: std::collections::BTreeMap<i64, (Vec<f64>, Vec<f64>)> = Default::default();
+    // Keyed by the target rounded to 1 um, as f64 bits in total order: an `as i64`
+    // cast saturated, so a 1e308 target printed as 9223372036854776 mm.
+    let mut groups: std::collections::BTreeMap<i64, (f64, Vec<f64>, Vec<f64>)> = Default::default();
     for (row, ((p, d), e)) in pos_mm.iter().zip(dir).zip(err_um).enumerate() {
-        let key = (p * 1000.0).round() as i64;
-        let g = groups.entry(key).or_default();
+        let target_mm = round_to_um(*p);
+        let g =
+            groups
+                .entry(total_order_key(target_mm))
+                .or_insert((target_mm, Vec::new(), Vec::new()));
+        let g = (&mut g.1, &mut g.2);
         match d {
             1 => g.0.push(*e),
             -1 => g.1.push(*e),
@@ -132,8 +155,7 @@ pub fn evaluate(pos_mm: &[f64], dir: &[i8], err_um: &[f64]) -> Result<Iso230, Is
         return Err(Iso230Error::TooFewTargets);
     }
     let mut targets = Vec::with_capacity(groups.len());
-    for (key, (up, down)) in groups {
-        let pos_mm = key as f64 / 1000.0;
+    for (pos_mm, up, down) in groups.into_values() {
         for (v, dir) in [(&up, "positive"), (&down, "negative")] {
             if v.len() < 2 {
                 return Err(Iso230Error::TooFewRuns {
@@ -201,6 +223,22 @@ pub fn evaluate(pos_mm: &[f64], dir: &[i8], err_um: &[f64]) -> Result<Iso230, Is
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A target beyond i64 um printed as 9223372036854776 mm (a saturating cast).
+    #[test]
+    fn a_huge_target_prints_as_itself() {
+        let e = evaluate(&[1.0, 1.0, 1.0, 1.0, 1e30], &[1, 1, -1, -1, 1], &[0.0; 5])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("target 1000000000000000000000000000000 mm has 1 run(s)"),
+            "{e}"
+        );
+        assert_eq!(round_to_um(1e308), 1e308);
+        assert_eq!(round_to_um(12.3456), 12.346);
+        assert!(total_order_key(-1.0) < total_order_key(0.0));
+        assert!(total_order_key(1.0) < total_order_key(1e308));
+    }
 
     fn close(a: f64, b: f64) -> bool {
         (a - b).abs() < 1e-12

@@ -36,7 +36,8 @@ pub struct VolumetricArgs {
     pub errors: PathBuf,
     /// Evaluation grid: a count of points per axis over its travel (e.g. `4`), or
     /// per-axis ranges `X=0:1000:5,A=-90:90:4` (start:end:count; axes not named get 3
-    /// points over their travel).
+    /// points over their travel). At most 2000000 poses (the product of the five
+    /// counts, e.g. `--grid 18`): larger grids are refused.
     #[arg(long, default_value = "4")]
     pub grid: String,
     /// Directory for the SVG error maps (created if missing).
@@ -51,8 +52,30 @@ pub struct VolumetricArgs {
     pub max_c_swing_deg: f64,
 }
 
-/// Grid axes: the values of each of the five axes.
+/// Largest number of poses (the product of the five axes' point counts) a grid may
+/// have. Memory and time grow with the pose count (about 150 bytes and 2 us per pose
+/// in a release build on two cores): `--grid 1000` (10^15 poses) grew to 22.7 GB
+/// before the kernel killed it. At this limit a run takes a few seconds and about
+/// 300 MB.
+pub const MAX_GRID_POSES: u64 = 2_000_000;
+
+/// Grid axes: the values of each of the five axes; refuses a grid of more than
+/// `MAX_GRID_POSES` (2000000) poses and an axis named twice.
 pub fn parse_grid(spec: &str, travel: &[(f64, f64); 5]) -> Result<[Vec<f64>; 5], VolumetricError> {
+    let grid = parse_grid_axes(spec, travel)?;
+    // u64: five counts of at most 1000 multiply to at most 10^15.
+    let poses: u64 = grid.iter().map(|a| a.len() as u64).product();
+    if poses > MAX_GRID_POSES {
+        return Err(VolumetricError::Grid(format!(
+            "--grid {}: {poses} poses exceed the limit of {MAX_GRID_POSES} (the product of \
+             the five axes' point counts); use fewer points per axis",
+            spec.trim()
+        )));
+    }
+    Ok(grid)
+}
+
+fn parse_grid_axes(spec: &str, travel: &[(f64, f64); 5]) -> Result<[Vec<f64>; 5], VolumetricError> {
     let lin = |lo: f64, hi: f64, n: usize| -> Vec<f64> {
         if n == 1 {
             vec![(lo + hi) / 2.0]
@@ -95,6 +118,13 @@ pub fn parse_grid(spec: &str, travel: &[(f64, f64); 5]) -> Result<[Vec<f64>; 5],
                 .filter(|v| v.is_finite())
                 .ok_or_else(|| VolumetricError::Grid(format!("{name}: not a number {s:?}")))
         };
+        if out[i].is_some() {
+            // The second range silently replaced the first one before.
+            return Err(VolumetricError::Grid(format!(
+                "--grid: axis {} given twice",
+                AXES[i]
+            )));
+        }
         let (lo, hi, n) = (num(f[0])?, num(f[1])?, count(f[2])?);
         let (tlo, thi) = travel[i];
         if lo < tlo || hi > thi || lo > hi {
@@ -114,20 +144,22 @@ pub fn parse_grid(spec: &str, travel: &[(f64, f64); 5]) -> Result<[Vec<f64>; 5],
 /// `compgate volumetric`: reads the error file, evaluates the grid uncompensated and
 /// compensated, writes the SVG maps with `--out`, and returns the report.
 pub fn run(args: &VolumetricArgs) -> Result<String, VolumetricError> {
-    let text = std::fs::read_to_string(&args.errors)
+    let bytes = std::fs::read(&args.errors)
         .map_err(|e| VolumetricError::Io(format!("{}: {e}", args.errors.display())))?;
-    let model = parse(&text).map_err(|e| match e {
-        VolumetricError::Parse {
-            line,
-            field,
-            message,
-        } => VolumetricError::Parse {
-            line,
-            field: format!("{}: {field}", args.errors.display()),
-            message,
-        },
-        other => other,
-    })?;
+    let model = super::format::decode(&bytes)
+        .and_then(parse)
+        .map_err(|e| match e {
+            VolumetricError::Parse {
+                line,
+                field,
+                message,
+            } => VolumetricError::Parse {
+                line,
+                field: format!("{}: {field}", args.errors.display()),
+                message,
+            },
+            other => other,
+        })?;
     let grid = parse_grid(&args.grid, &model.travel)?;
     let comp = VolumetricCompensator::new(model);
     let pole = Pole {
@@ -140,6 +172,9 @@ pub fn run(args: &VolumetricArgs) -> Result<String, VolumetricError> {
             pole.max_c_swing_deg
         )));
     }
+    // Beyond a full turn the limit means nothing; a huge value is a typo.
+    crate::args::check_f64("--max-c-swing", pole.max_c_swing_deg, 0.0, 360.0, "deg")
+        .map_err(|e| VolumetricError::Grid(e.to_string()))?;
     let ev = evaluate_pole(&comp, &grid, &pole);
     let mut s = report(&ev);
     if let Some(dir) = &args.out {

@@ -55,6 +55,19 @@ fn no_more<'a>(
     }
 }
 
+/// Decodes the bytes of an error file as UTF-8; the error names the first line that
+/// is not, so that a stray Latin-1 byte can be found.
+pub fn decode(bytes: &[u8]) -> Result<&str, VolumetricError> {
+    std::str::from_utf8(bytes).map_err(|e| {
+        let line = bytes[..e.valid_up_to()]
+            .iter()
+            .filter(|b| **b == b'\n')
+            .count()
+            + 1;
+        err(line, "text", "not valid UTF-8")
+    })
+}
+
 /// Parses an error parameter file. Every error names the 1-based line and the field.
 pub fn parse(text: &str) -> Result<ErrorModel, VolumetricError> {
     let mut lines = text
@@ -94,6 +107,9 @@ pub fn parse(text: &str) -> Result<ErrorModel, VolumetricError> {
     let mut loc_c = [0.0; 4];
     let mut loc_a = [0.0; 4];
     let mut tables: [Option<(usize, Table)>; 5] = Default::default();
+    // Line of each squareness/location error already read: a second line for the same
+    // name silently replaced the first before.
+    let mut named_seen: std::collections::BTreeMap<String, usize> = Default::default();
 
     while let Some((n, l)) = lines.next() {
         let mut t = l.split_whitespace();
@@ -159,6 +175,13 @@ pub fn parse(text: &str) -> Result<ErrorModel, VolumetricError> {
                         format!("unknown {key} error {name:?} (one of {})", names.join(", ")),
                     )
                 })?;
+                if let Some(first) = named_seen.insert(name.to_string(), n) {
+                    return Err(err(
+                        n,
+                        "name",
+                        format!("{key} {name} given twice (first on line {first})"),
+                    ));
+                }
                 slot[k] = number(n, name, t.next())? * units[k];
                 no_more(n, t)?;
             }

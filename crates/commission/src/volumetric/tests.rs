@@ -759,3 +759,50 @@ fn pole_band_of_grid_5() {
         assert_eq!((k.missed, k.above_minimum), (0, 0), "{k:?}");
     }
 }
+
+/// `--grid 1000` (10^15 poses) grew to 22.7 GB; a grid beyond the pose limit is now
+/// refused naming the flag, the pose count and the limit; an axis named twice too.
+#[test]
+fn oversized_grid_and_repeated_axis_are_refused() {
+    let model = synthetic::synthetic_model(1.0);
+    let e = command::parse_grid("1000", &model.travel)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("--grid 1000") && e.contains("1000000000000000 poses") && e.contains("2000000"),
+        "{e}"
+    );
+    let e = command::parse_grid("19", &model.travel)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("2476099 poses"), "{e}");
+    assert!(command::parse_grid("18", &model.travel).is_ok());
+    let e = command::parse_grid("X=0:100:2,X=0:200:3", &model.travel)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("--grid: axis X given twice"), "{e}");
+}
+
+/// A second `squareness EC0Y` silently replaced the first; now it names both lines.
+#[test]
+fn duplicated_squareness_is_refused_with_its_line() {
+    let text = write(&synthetic::synthetic_model(1.0));
+    let at = text.find("squareness EC0Y").unwrap();
+    let dup = format!("{}squareness EC0Y 3.0\n{}", &text[..at], &text[at..]);
+    let line = text[..at].lines().count() + 1;
+    let e = parse(&dup).unwrap_err().to_string();
+    assert!(
+        e.contains(&format!("line {}", line + 1)) && e.contains(&format!("first on line {line}")),
+        "{e}"
+    );
+}
+
+/// A non-UTF-8 error file was rejected without a line; the line is named now.
+#[test]
+fn non_utf8_error_file_names_the_line() {
+    let mut bytes = b"compgate-volumetric-errors 1\npivot_mm 0 0 0\n# caf".to_vec();
+    bytes.extend([0xe9, b'\n']);
+    let e = format::decode(&bytes).unwrap_err().to_string();
+    assert!(e.contains("line 3") && e.contains("UTF-8"), "{e}");
+    assert!(format::decode(b"ok\n").is_ok());
+}

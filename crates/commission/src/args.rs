@@ -1,0 +1,73 @@
+//! Checks of numeric command-line arguments shared by the tools: clap parses `nan`
+//! and `inf` as valid `f64`, and a non-finite or absurd value reaching a fit or a
+//! simulation makes it hang or produce garbage, so every numeric flag is checked
+//! against a plausible range before any work, and the message names the flag.
+
+use thiserror::Error;
+
+/// A numeric command-line argument that cannot be used.
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum ArgError {
+    /// NaN or infinite.
+    #[error("{flag} {value:?}: not a finite number")]
+    NotFinite {
+        /// The flag, e.g. `--p0-mm`.
+        flag: &'static str,
+        /// The value given.
+        value: f64,
+    },
+    /// Finite but outside what the flag can mean.
+    #[error("{flag} {value:?}: outside the plausible range {min}..={max} {unit}")]
+    OutOfRange {
+        /// The flag, e.g. `--p0-mm`.
+        flag: &'static str,
+        /// The value given.
+        value: f64,
+        /// Smallest accepted value.
+        min: f64,
+        /// Largest accepted value.
+        max: f64,
+        /// Unit of the range, for the message.
+        unit: &'static str,
+    },
+}
+
+/// `value` if it is finite and within `min..=max`, else the error naming `flag`.
+pub fn check_f64(
+    flag: &'static str,
+    value: f64,
+    min: f64,
+    max: f64,
+    unit: &'static str,
+) -> Result<f64, ArgError> {
+    if !value.is_finite() {
+        return Err(ArgError::NotFinite { flag, value });
+    }
+    if !(min..=max).contains(&value) {
+        return Err(ArgError::OutOfRange {
+            flag,
+            value,
+            min,
+            max,
+            unit,
+        });
+    }
+    Ok(value)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_the_flag() {
+        let e = check_f64("--p0-mm", f64::NAN, -1.0, 1.0, "mm").unwrap_err();
+        assert_eq!(e.to_string(), "--p0-mm NaN: not a finite number");
+        let e = check_f64("--p0-mm", 2.0, -1.0, 1.0, "mm").unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "--p0-mm 2.0: outside the plausible range -1..=1 mm"
+        );
+        assert_eq!(check_f64("--p0-mm", 1.0, -1.0, 1.0, "mm"), Ok(1.0));
+    }
+}
