@@ -14,6 +14,10 @@ use compgate_gateway::source::plan::RegisterKind;
 use super::math::{extract, Backlash, Extraction, Points, Procedure, Trace};
 use super::report::{report, write_csv, write_svg};
 use super::{BacklashError, Outcome};
+use crate::args::check_f64;
+
+/// Largest |position| a point may have, mm: beyond any machine's travel.
+const PLAUSIBLE_MM: f64 = 100_000.0;
 
 /// Arguments of `compgate backlash`.
 #[derive(Debug, Clone, clap::Args)]
@@ -352,10 +356,28 @@ pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, Backl
 /// Checks everything about the arguments that can be checked offline, before any
 /// connection is made.
 pub fn check_args(args: &BacklashArgs) -> Result<(), BacklashError> {
-    let mut problems = match Procedure::from_args(args).validate(None) {
-        Err(BacklashError::Invalid(p)) => p,
-        _ => Vec::new(),
-    };
+    // Flags first, by name: the procedure's own checks below only see the points.
+    let flags = [
+        ("--a", args.a, -PLAUSIBLE_MM, PLAUSIBLE_MM, "mm"),
+        ("--b", args.b, -PLAUSIBLE_MM, PLAUSIBLE_MM, "mm"),
+        ("--c", args.c, -PLAUSIBLE_MM, PLAUSIBLE_MM, "mm"),
+        ("--d", args.d, -PLAUSIBLE_MM, PLAUSIBLE_MM, "mm"),
+        ("--feed", args.feed, 0.0, 1e6, "mm/min"),
+        ("--dwell", args.dwell, 0.0, 3600.0, "s"),
+        ("--period-ms", args.period_ms, 0.0, 1000.0, "ms"),
+        ("--sim-backlash-um", args.sim_backlash_um, 0.0, 1000.0, "um"),
+        ("--sim-noise-um", args.sim_noise_um, 0.0, 100.0, "um"),
+        ("--sim-elastic-ms", args.sim_elastic_ms, 0.0, 1000.0, "ms"),
+        ("--sim-speed", args.sim_speed, 0.0, 1e6, "x"),
+    ];
+    let mut problems: Vec<String> = flags
+        .into_iter()
+        .filter_map(|(flag, v, min, max, unit)| check_f64(flag, v, min, max, unit).err())
+        .map(|e| e.to_string())
+        .collect();
+    if let Err(BacklashError::Invalid(p)) = Procedure::from_args(args).validate(None) {
+        problems.extend(p);
+    }
     match (&args.nc, args.sim) {
         (Some(_), true) => problems.push("--nc and --sim exclude each other".into()),
         (None, false) => problems.push("give --nc ADDRESS or --sim".into()),

@@ -370,3 +370,29 @@ fn iso230_reversal_value_agrees_with_f1_f2() {
         }
     }
 }
+
+#[test]
+fn non_finite_or_absurd_flags_are_refused_naming_the_flag() {
+    let args = BacklashArgs {
+        feed: f64::NAN,
+        a: 1e308,
+        sim_speed: f64::INFINITY,
+        sim: true,
+        ..BacklashArgs::default()
+    };
+    let Err(BacklashError::Invalid(problems)) = check_args(&args) else {
+        panic!("expected Invalid");
+    };
+    let has = |s: &str| problems.iter().any(|p| p.starts_with(s));
+    assert!(has("--feed NaN: not a finite number"), "{problems:?}");
+    assert!(
+        has("--a 1e308: outside the plausible range -100000..=100000 mm"),
+        "{problems:?}"
+    );
+    assert!(has("--sim-speed inf: not a finite number"), "{problems:?}");
+    assert!(check_args(&BacklashArgs {
+        sim: true,
+        ..BacklashArgs::default()
+    })
+    .is_ok());
+}
