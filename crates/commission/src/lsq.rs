@@ -12,11 +12,24 @@ use nalgebra::{DMatrix, DVector, SVD};
 /// fit, reported as [`LsqError::NoConvergence`].
 pub const SVD_MAX_ITERATIONS: usize = 10_000;
 
+/// A condition number for a message: an exactly singular design has an infinite one,
+/// which a report must not print as `inf`.
+pub(crate) fn condition_text(condition: f64) -> String {
+    if condition.is_finite() {
+        format!("{condition:.1e}")
+    } else {
+        "unbounded: exactly dependent".into()
+    }
+}
+
 /// Why a least-squares problem has no usable solution.
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
 pub enum LsqError {
     /// The columns are linearly dependent beyond what the caller accepts.
-    #[error("the columns are linearly dependent (condition number {condition:.1e})")]
+    #[error(
+        "the columns are linearly dependent (condition number {})",
+        condition_text(*condition)
+    )]
     Collinear {
         /// Condition number of the scaled design.
         condition: f64,

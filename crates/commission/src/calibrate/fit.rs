@@ -35,7 +35,8 @@ pub enum FitError {
     OnePosition,
     /// Sensors move together, so their coefficients cannot be told apart.
     #[error(
-        "the sensors are linearly dependent (condition number {condition:.1e}); use fewer sensors"
+        "the sensors are linearly dependent (condition number {}); use fewer sensors",
+        crate::lsq::condition_text(*condition)
     )]
     Collinear { condition: f64 },
     /// A value is NaN or infinite.
