@@ -35,8 +35,20 @@ fn number(line: usize, field: &str, token: Option<&str>) -> Result<f64, Volumetr
     if !v.is_finite() {
         return Err(err(line, field, format!("not finite: {t:?}")));
     }
+    // Wider than any machine's travel in mm or error in um or arcsec, and small
+    // enough that the kinematics stay finite.
+    if v.abs() > PLAUSIBLE_ABS {
+        return Err(err(
+            line,
+            field,
+            format!("{t:?} outside the plausible range -1e6..=1e6"),
+        ));
+    }
     Ok(v)
 }
+
+/// Largest magnitude of any number in an error file.
+const PLAUSIBLE_ABS: f64 = 1e6;
 
 fn axis_index(line: usize, field: &str, token: Option<&str>) -> Result<usize, VolumetricError> {
     let t = token.ok_or_else(|| err(line, field, "missing axis name"))?;

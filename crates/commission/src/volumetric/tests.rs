@@ -806,3 +806,20 @@ fn non_utf8_error_file_names_the_line() {
     assert!(e.contains("line 3") && e.contains("UTF-8"), "{e}");
     assert!(format::decode(b"ok\n").is_ok());
 }
+
+/// A finite but absurd number (1e300) passed the parser; it is refused with its line.
+#[test]
+fn implausible_numbers_are_refused_with_their_line() {
+    let text = write(&synthetic::synthetic_model(1.0));
+    let at = text.find("squareness EC0Y").unwrap();
+    let line = text[..at].lines().count() + 1;
+    let end = at + text[at..].find('\n').unwrap();
+    let bad = format!("{}squareness EC0Y 1e300{}", &text[..at], &text[end..]);
+    let e = parse(&bad).unwrap_err().to_string();
+    assert!(
+        e.contains(&format!("line {line}")) && e.contains("plausible range"),
+        "{e}"
+    );
+    let edge = format!("{}squareness EC0Y -1e6{}", &text[..at], &text[end..]);
+    assert!(parse(&edge).is_ok());
+}
