@@ -11,6 +11,8 @@
 use std::fmt::Write as _;
 use std::time::{Duration, Instant};
 
+use compgate_commission::table::Markdown;
+
 use compgate_plc::field::{FieldModule, FieldModuleSpec, Profile, TransmitterSpec};
 use tokio::net::TcpListener;
 use tokio::sync::mpsc;
@@ -100,13 +102,12 @@ impl BenchReport {
 
     /// A Markdown table, as in the README.
     pub fn table(&self) -> String {
-        let mut s = String::new();
-        let _ = writeln!(
-            s,
-            "| {} channels, loopback | cycles/s (median of rounds) | p50 latency | p99 latency |",
-            self.channels
-        );
-        s.push_str("|---|---|---|---|\n");
+        let mut table = Markdown::new([
+            format!("{} channels, loopback", self.channels),
+            "cycles/s (median of rounds)".into(),
+            "p50 latency".into(),
+            "p99 latency".into(),
+        ]);
         for (name, side) in [
             ("bare tokio-modbus read", &self.bare),
             (
@@ -119,19 +120,23 @@ impl BenchReport {
             ),
             ("the device poll alone", &self.poll_only),
         ] {
-            let _ = writeln!(
-                s,
-                "| {name} | {:.0} | {:.1} us | {:.1} us |",
-                side.median_rate_per_s(),
-                side.percentile(50.0).as_secs_f64() * 1e6,
-                side.percentile(99.0).as_secs_f64() * 1e6
-            );
+            table.row([
+                name.to_string(),
+                format!("{:.0}", side.median_rate_per_s()),
+                format!("{:.1} us", side.percentile(50.0).as_secs_f64() * 1e6),
+                format!("{:.1} us", side.percentile(99.0).as_secs_f64() * 1e6),
+            ]);
         }
-        let _ = writeln!(
-            s,
-            "| channel processing + decision alone | | {:.1} us (median of round means) | |",
-            self.pipeline_only.as_secs_f64() * 1e6
-        );
+        table.row([
+            "channel processing + decision alone".to_string(),
+            String::new(),
+            format!(
+                "{:.1} us (median of round means)",
+                self.pipeline_only.as_secs_f64() * 1e6
+            ),
+            String::new(),
+        ]);
+        let mut s = table.render();
         let _ = writeln!(
             s,
             "\nratio gateway/bare: {:.3} as the gateway runs (device task -> core task), {:.3} in one task",
