@@ -140,6 +140,16 @@ impl ModbusLink {
         }
     }
 
+    /// A link over a context already attached to a transport (an in-memory stream in
+    /// the fuzz targets and tests). `spec` is only used to reconnect after a fault.
+    #[doc(hidden)]
+    pub fn attached(spec: LinkSpec, timeout: Duration, ctx: Context) -> Self {
+        let mut link = Self::new(spec, timeout, Backoff::new(timeout, timeout));
+        link.ctx = Some(ctx);
+        link.connects = 1;
+        link
+    }
+
     /// Where the link goes.
     pub fn spec(&self) -> &LinkSpec {
         &self.spec
