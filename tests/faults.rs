@@ -293,20 +293,11 @@ async fn gateway_sigkill_and_restart_reads_the_nc_first_and_never_jumps() {
     assert!(tokio::task::block_in_place(|| gw.stop()));
 }
 
-/// Modbus CRC-16 (poly 0xA001, init 0xFFFF), low byte first on the wire.
-fn crc16(data: &[u8]) -> [u8; 2] {
-    let mut crc: u16 = 0xFFFF;
-    for b in data {
-        crc ^= u16::from(*b);
-        for _ in 0..8 {
-            crc = if crc & 1 != 0 {
-                (crc >> 1) ^ 0xA001
-            } else {
-                crc >> 1
-            };
-        }
-    }
-    crc.to_le_bytes()
+/// CRC-16/MODBUS, as it goes on the wire (low byte first).
+fn crc16(bytes: &[u8]) -> [u8; 2] {
+    crc::Crc::<u16>::new(&crc::CRC_16_MODBUS)
+        .checksum(bytes)
+        .to_le_bytes()
 }
 
 fn response(unit: u8, fc: u8, regs: &[u16]) -> Vec<u8> {

@@ -8,14 +8,6 @@
 use compgate_gateway::source::can::codec::{self, Message, RawFrame, SdoAnswer};
 use compgate_gateway::source::plan::DataType;
 
-const TYPES: [DataType; 5] = [
-    DataType::U16,
-    DataType::I16,
-    DataType::U32,
-    DataType::I32,
-    DataType::F32,
-];
-
 /// Decodes the frame and the values in it; any result but a panic is fine.
 pub fn run(data: &[u8]) {
     let [id_hi, id_lo, len, rest @ ..] = data else {
@@ -35,7 +27,7 @@ pub fn run(data: &[u8]) {
     match message {
         Message::Tpdo { data, len, .. } => {
             let payload = data.get(..usize::from(len)).unwrap_or(&data);
-            for ty in TYPES {
+            for ty in DataType::ALL {
                 for offset in [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, usize::MAX - 1, usize::MAX] {
                     if let Ok(v) = codec::decode_value(payload, offset, ty) {
                         assert!(offset + codec::value_size(ty) <= payload.len());
@@ -48,12 +40,12 @@ pub fn run(data: &[u8]) {
             answer: SdoAnswer::Upload { data, len, .. },
             ..
         } => {
-            for ty in TYPES {
+            for ty in DataType::ALL {
                 let _ = codec::decode_sdo_value(&data, len, ty);
             }
             // Any indicated size, not only the ones the decoder lets through.
             for l in [0, 1, 2, 3, 4, 5, 0xFF] {
-                for ty in TYPES {
+                for ty in DataType::ALL {
                     let _ = codec::decode_sdo_value(&data, l, ty);
                 }
             }

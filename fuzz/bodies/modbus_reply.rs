@@ -25,34 +25,11 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_modbus::client::{rtu, tcp};
 use tokio_modbus::Slave;
 
-const TYPES: [DataType; 5] = [
-    DataType::U16,
-    DataType::I16,
-    DataType::U32,
-    DataType::I32,
-    DataType::F32,
-];
-const ORDERS: [ByteOrder; 4] = [
-    ByteOrder::Abcd,
-    ByteOrder::Cdab,
-    ByteOrder::Badc,
-    ByteOrder::Dcba,
-];
-
 /// CRC-16/MODBUS, as it goes on the wire (low byte first).
 fn crc16(bytes: &[u8]) -> [u8; 2] {
-    let mut crc: u16 = 0xFFFF;
-    for &b in bytes {
-        crc ^= u16::from(b);
-        for _ in 0..8 {
-            crc = if crc & 1 != 0 {
-                (crc >> 1) ^ 0xA001
-            } else {
-                crc >> 1
-            };
-        }
-    }
-    crc.to_le_bytes()
+    crc::Crc::<u16>::new(&crc::CRC_16_MODBUS)
+        .checksum(bytes)
+        .to_le_bytes()
 }
 
 /// The registers of the first well-formed reply in `sent` for `unit`, `function` and
@@ -118,13 +95,13 @@ pub fn run(data: &[u8]) {
     let mut specs = Vec::with_capacity(n);
     let mut address = 0u16;
     for (i, d) in descriptors.iter().enumerate() {
-        let data_type = TYPES[usize::from(d % 5)];
+        let data_type = DataType::ALL[usize::from(d % 5)];
         specs.push(ChannelSpec {
             channel: i,
             kind,
             address,
             data_type,
-            byte_order: ORDERS[usize::from(d / 5 % 4)],
+            byte_order: ByteOrder::ALL[usize::from(d / 5 % 4)],
         });
         address += data_type.registers();
     }

@@ -39,6 +39,9 @@ pub enum DataType {
 }
 
 impl DataType {
+    /// Every type, e.g. for a probe that tries them all.
+    pub const ALL: [Self; 5] = [Self::U16, Self::I16, Self::U32, Self::I32, Self::F32];
+
     /// Registers the type occupies.
     pub fn registers(self) -> u16 {
         match self {
@@ -76,6 +79,11 @@ pub enum ByteOrder {
     /// Little-endian: D C, B A.
     #[serde(rename = "DCBA")]
     Dcba,
+}
+
+impl ByteOrder {
+    /// Every order, e.g. for a probe that names the plausible one.
+    pub const ALL: [Self; 4] = [Self::Abcd, Self::Cdab, Self::Badc, Self::Dcba];
 }
 
 /// Decodes a value from its registers (`regs.len()` must equal `ty.registers()`).
