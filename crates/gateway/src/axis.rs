@@ -20,10 +20,22 @@ const TAN_BETA_LIMIT_CEILING: f64 = 0.1;
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct AxisConfig {
-    /// Name of the NC module in `[nc_modules]` that carries this axis. Required; at
-    /// most 64 characters; one axis per module.
+    /// Name of the target in `[targets]` (or `[nc_modules]`) that carries this axis.
+    /// Required; at most 64 characters; one axis per Modbus NC module.
     #[schemars(length(max = 64))]
     pub nc_module: String,
+    /// The axis's number on its target's control: the `{axis}` of OPC UA node-id
+    /// templates, the axis of an S7 job, the per-axis step of ADS index groups and
+    /// offsets. Required on a target of kind `opcua`, `s7` or `ads`; unused on a Modbus
+    /// NC module. 1..=255; distinct per target.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(range(min = 1, max = 255))]
+    pub axis_number: Option<u16>,
+    /// The allow-list: which setting data may be written to the target, any of
+    /// `"sd43900"`, `"sd43910"`, `"sd43920"`. Default all three. A job is built from
+    /// these only, and one naming anything else is refused before it is sent.
+    #[serde(default = "default_nc_write")]
+    pub nc_write: Vec<NcVar>,
     /// MD32750 `$MA_TEMP_COMP_TYPE` the NC must have (bit 0: K0, bit 1: slope).
     /// Checked against the NC at start. Required; 0..=7. A K0 model needs bit 0 and a
     /// tan(beta) model needs bit 1, otherwise the NC would ignore the value written.
@@ -173,7 +185,42 @@ pub struct ChannelNames<'a> {
     pub list: &'a str,
 }
 
+/// A setting datum an axis may write (`axes.NAME.nc_write`).
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, Copy, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum NcVar {
+    /// SD43900 `$SA_TEMP_COMP_ABS_VALUE` (K0, mm).
+    Sd43900,
+    /// SD43910 `$SA_TEMP_COMP_SLOPE` (tan(beta), mm/mm).
+    Sd43910,
+    /// SD43920 `$SA_TEMP_COMP_REF_POSITION` (P0, mm).
+    Sd43920,
+}
+
+impl NcVar {
+    /// The variable id (`compgate_ncproto::var`).
+    pub fn id(self) -> u16 {
+        match self {
+            Self::Sd43900 => compgate_ncproto::var::SD43900,
+            Self::Sd43910 => compgate_ncproto::var::SD43910,
+            Self::Sd43920 => compgate_ncproto::var::SD43920,
+        }
+    }
+}
+
+fn default_nc_write() -> Vec<NcVar> {
+    vec![NcVar::Sd43900, NcVar::Sd43910, NcVar::Sd43920]
+}
+
 impl AxisConfig {
+    /// The variable ids of `nc_write`, each once.
+    pub fn nc_write_ids(&self) -> Vec<u16> {
+        let mut v: Vec<u16> = self.nc_write.iter().map(|n| n.id()).collect();
+        v.sort_unstable();
+        v.dedup();
+        v
+    }
+
     /// `update_interval_s` as a [`Duration`].
     pub fn update_interval(&self) -> Duration {
         secs(self.update_interval_s)

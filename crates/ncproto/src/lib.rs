@@ -50,6 +50,28 @@
 //! | 141 | referenced (1 = axis referenced) | u16 |
 //!
 //! The read-back block is read-only: writes to it are refused with exception 0x02.
+//! Registers 136..139 are not part of the map: a module may refuse a read that
+//! includes them (exception 0x02), so a client reads the block in two requests,
+//! [`READBACK`]`..+`[`RB_VALUES_LEN`] and [`RB_FLAGS`]`..+`[`RB_FLAGS_LEN`].
+//!
+//! # What the gateway's writer touches
+//!
+//! | when | function code | registers |
+//! |---|---|---|
+//! | each status interval (snapshot) | FC03 read holding | 100..=135, then 140..=141 |
+//! | job: is the module idle? | FC03 | 1 (`STATE`) |
+//! | job: clear a job left by an earlier run (only when `STATE` != 0) | FC06 write single | 0 (`REQ` = 0) |
+//! | job: parameters | FC16 write multiple | 6..=7 + 5 per pair (`JOB_ID`, `NUM_PAIRS`, pairs) |
+//! | job: start | FC06 | 0 (`REQ` = 1) |
+//! | job: wait for the end | FC03 | 1 (`STATE`), every 2 ms while busy |
+//! | job: result | FC03 | 1..=48 (`STATE` .. `JOB_ID_DONE`) |
+//! | job: acknowledge | FC06 | 0 (`REQ` = 0) |
+//! | job: read-back | FC03 | 100..=135 |
+//!
+//! `STATUS` 16 (value out of range) is answered for a non-finite value or one
+//! outside: |SD43900| <= [`SD43900_LIMIT_MM`] (10 mm), |SD43910| <=
+//! [`SD43910_LIMIT`] (0.1), |SD43920| <= [`SD43920_LIMIT_MM`] (100 000 mm),
+//! MD32450 in 0..=[`MD32450_LIMIT_MM`] (1 mm).
 //!
 //! # Servo block: move programme, servo trace, actual values (full-closed-loop axis)
 //!
@@ -153,8 +175,16 @@ pub const RB_MD32450: u16 = 132;
 pub const RB_MD32750: u16 = 140;
 /// Referenced flag (u16).
 pub const RB_REFERENCED: u16 = 141;
-/// Registers of the read-back block (READBACK..READBACK+READBACK_LEN).
+/// Registers of the read-back block (READBACK..READBACK+READBACK_LEN), 136..139
+/// included; a client reads only the mapped parts (below).
 pub const READBACK_LEN: u16 = 42;
+/// Registers of the f64 part of the read-back block, SD43900 .. MD32450
+/// (100..=135).
+pub const RB_VALUES_LEN: u16 = 36;
+/// Start of the u16 part of the read-back block (MD32750, referenced).
+pub const RB_FLAGS: u16 = RB_MD32750;
+/// Registers of the u16 part (140..=141).
+pub const RB_FLAGS_LEN: u16 = 2;
 
 /// Move programme command (write 1 start, 2 abort).
 pub const MV_CMD: u16 = 1000;
@@ -445,6 +475,8 @@ mod tests {
     fn pair_table_fits_before_job_id_done() {
         assert_eq!(PAIRS + PAIR_REGS * MAX_PAIRS as u16, JOB_ID_DONE);
         const { assert!(RB_REFERENCED < READBACK + READBACK_LEN) };
+        assert_eq!(READBACK + RB_VALUES_LEN, RB_MD32450 + 4);
+        assert_eq!(RB_FLAGS + RB_FLAGS_LEN, READBACK + READBACK_LEN);
     }
 
     #[test]

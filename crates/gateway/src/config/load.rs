@@ -156,7 +156,8 @@ pub fn load_str_with_env(
 }
 
 /// The sections every file must have; a missing or broken one becomes empty.
-const REQUIRED_SECTIONS: [&str; 4] = ["devices", "channels", "nc_modules", "axes"];
+/// (`[targets]` and its older spelling `[nc_modules]` are optional: serde defaults.)
+const REQUIRED_SECTIONS: [&str; 3] = ["devices", "channels", "axes"];
 
 /// Takes the unknown keys and the broken entries out of `tree` and deserializes the
 /// rest. Returns the configuration (or serde's error), the broken entries and the
@@ -189,7 +190,8 @@ fn clean(
         let names = match section {
             "devices" => &mut assumed.devices,
             "channels" => &mut assumed.channels,
-            "nc_modules" => &mut assumed.nc_modules,
+            // Targets and NC modules are one namespace for the axes.
+            "nc_modules" | "targets" => &mut assumed.nc_modules,
             _ => continue,
         };
         match name {
@@ -204,7 +206,6 @@ fn clean(
                 match section {
                     "devices" => assumed.devices.any = true,
                     "channels" => assumed.channels.any = true,
-                    "nc_modules" => assumed.nc_modules.any = true,
                     _ => {}
                 }
             }
@@ -222,8 +223,18 @@ fn broken_references(
     origin: &str,
 ) -> Vec<ConfigProblem> {
     let section = |name: &str| raw.get(name).and_then(toml::Value::as_table);
-    let names =
-        |name: &str| -> Option<Vec<String>> { section(name).map(|t| t.keys().cloned().collect()) };
+    let names = |name: &str| -> Option<Vec<String>> {
+        // An axis names a target in `[targets]` or in the older `[nc_modules]`.
+        if name == "nc_modules" {
+            let both: Vec<String> = ["targets", "nc_modules"]
+                .iter()
+                .filter_map(|s| section(s))
+                .flat_map(|t| t.keys().cloned())
+                .collect();
+            return Some(both);
+        }
+        section(name).map(|t| t.keys().cloned().collect())
+    };
     let mut out = Vec::new();
     let mut check = |key: String, value: Option<&toml::Value>, sec: &str, what: &str| {
         let (Some(v), Some(defined)) = (value.and_then(toml::Value::as_str), names(sec)) else {

@@ -15,14 +15,16 @@ use super::service::{validate_service, MetricsConfig, MqttConfig, RecorderConfig
 use super::sim::SimConfig;
 use crate::axis::{AxisConfig, ChannelNames};
 use crate::channel::ChannelConfig;
-use crate::nc::config::NcModuleConfig;
+use crate::nc::config::{NcModuleConfig, TargetConfig};
+use crate::nc::var_name;
 use crate::source::config::{validate_devices, DeviceConfig};
 
 /// Longest name accepted.
 const MAX_NAME_LEN: usize = 64;
 
 /// A whole configuration file: `[gateway]`, `[devices.NAME]`, `[channels.NAME]`,
-/// `[nc_modules.NAME]`, `[axes.NAME]` and the optional `[sim]`.
+/// `[targets.NAME]` (or the older `[nc_modules.NAME]`), `[axes.NAME]` and the optional
+/// `[sim]`.
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq, Default)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
@@ -36,8 +38,14 @@ pub struct Config {
     /// Measured values, by name (the name axes refer to). Required table; names as
     /// for devices.
     pub channels: BTreeMap<String, ChannelConfig>,
-    /// NC axis modules the compensation is written into, by name. Required table;
-    /// names as for devices.
+    /// NC targets the compensation is written into, by name, each with its `kind`
+    /// (`modbus`, `ads`). Optional table (a monitoring-only config has none); names as
+    /// for devices, distinct from the names in `[nc_modules]`.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub targets: BTreeMap<String, TargetConfig>,
+    /// NC axis modules over Modbus TCP, by name: the older spelling of a `[targets]`
+    /// entry with `kind = "modbus"`. Optional table; names as for devices.
+    #[serde(default)]
     pub nc_modules: BTreeMap<String, NcModuleConfig>,
     /// Compensated axes, by name (e.g. `X`). Required table; names as for devices.
     pub axes: BTreeMap<String, AxisConfig>,
@@ -85,6 +93,32 @@ impl GatewayConfig {
 
 fn default_status_interval_s() -> f64 {
     1.0
+}
+
+impl Config {
+    /// The target called `name`, from `[targets]` or `[nc_modules]` (a Modbus one).
+    pub fn target(&self, name: &str) -> Option<TargetConfig> {
+        self.targets.get(name).cloned().or_else(|| {
+            self.nc_modules
+                .get(name)
+                .map(|m| TargetConfig::Modbus(m.clone()))
+        })
+    }
+
+    /// Every target, `[targets]` then `[nc_modules]`, by name.
+    pub fn all_targets(&self) -> Vec<(String, TargetConfig)> {
+        let mut v: Vec<(String, TargetConfig)> = self
+            .targets
+            .iter()
+            .map(|(n, t)| (n.clone(), t.clone()))
+            .collect();
+        v.extend(
+            self.nc_modules
+                .iter()
+                .map(|(n, m)| (n.clone(), TargetConfig::Modbus(m.clone()))),
+        );
+        v
+    }
 }
 
 /// Checks the meaning of a parsed configuration and returns every problem found
@@ -167,7 +201,16 @@ pub(crate) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
     let mut out = Problems::new(file);
     names(&mut out, "devices", cfg.devices.keys());
     names(&mut out, "channels", cfg.channels.keys());
+    names(&mut out, "targets", cfg.targets.keys());
     names(&mut out, "nc_modules", cfg.nc_modules.keys());
+    for name in cfg.nc_modules.keys() {
+        if cfg.targets.contains_key(name) {
+            out.push(
+                entry("nc_modules", name),
+                format!("`{name}` is also a name in [targets]; a target has one name"),
+            );
+        }
+    }
     names(&mut out, "axes", cfg.axes.keys());
 
     out.positive(
@@ -196,6 +239,9 @@ pub(crate) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
     for (name, nc) in &cfg.nc_modules {
         nc.validate(&entry("nc_modules", name), &mut out);
     }
+    for (name, t) in &cfg.targets {
+        t.validate(&entry("targets", name), &mut out);
+    }
 
     let channel_list = list(cfg.channels.keys());
     let known = |c: &str| cfg.channels.contains_key(c) || assumed.channels.contains(c);
@@ -203,22 +249,55 @@ pub(crate) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
         known: &known,
         list: &channel_list,
     };
-    let mut carried: BTreeMap<&str, &str> = BTreeMap::new();
+    // (target, axis number) -> axis already on it.
+    let mut carried: BTreeMap<(&str, Option<u16>), &str> = BTreeMap::new();
     for (name, axis) in &cfg.axes {
         let module = axis.nc_module.as_str();
-        if !(cfg.nc_modules.contains_key(module) || assumed.nc_modules.contains(module)) {
-            out.push(
+        let target = cfg.target(module);
+        match &target {
+            None if !assumed.nc_modules.contains(module) => out.push(
                 field("axes", name, "nc_module"),
                 format!(
-                    "unknown NC module `{module}`; expected one of the names in [nc_modules]: {}",
-                    list(cfg.nc_modules.keys())
+                    "unknown target `{module}`; expected one of the names in [targets] or [nc_modules]: {}",
+                    list(cfg.targets.keys().chain(cfg.nc_modules.keys()))
                 ),
-            );
-        } else if let Some(other) = carried.insert(module, name) {
-            out.push(
-                field("axes", name, "nc_module"),
-                format!("NC module `{module}` already carries axis `{other}`; one axis per module"),
-            );
+            ),
+            None => {}
+            Some(t) => {
+                let number = if t.one_axis() { None } else { axis.axis_number };
+                if t.needs_axis_number() && axis.axis_number.is_none() {
+                    out.push(
+                        field("axes", name, "axis_number"),
+                        format!(
+                            "required: target `{module}` (kind = {}) carries several axes; \
+                             give this axis's number on the control",
+                            t.kind().name()
+                        ),
+                    );
+                } else if let Some(other) = carried.insert((module, number), name) {
+                    let message = if t.one_axis() {
+                        format!("NC module `{module}` already carries axis `{other}`; one axis per module")
+                    } else {
+                        format!(
+                            "axis `{other}` already has axis_number {} on target `{module}`",
+                            number.unwrap_or_default()
+                        )
+                    };
+                    out.push(field("axes", name, "nc_module"), message);
+                }
+                for &v in &axis.nc_write_ids() {
+                    if !t.has(v) {
+                        out.push(
+                            field("axes", name, "nc_write"),
+                            format!(
+                                "{} is to be written, but target `{module}` has no place for it; \
+                                 leave it out of nc_write or configure it on the target",
+                                var_name(v)
+                            ),
+                        );
+                    }
+                }
+            }
         }
         axis.validate(&entry("axes", name), &channels, &mut out);
     }

@@ -15,12 +15,14 @@ pub use super::keys::secs;
 pub use super::root::{Config, GatewayConfig};
 pub use super::service::{MetricsConfig, MqttConfig, RecorderConfig};
 pub use super::sim::{SimChannelConfig, SimConfig, SimNcModuleConfig, SimProfile};
+pub use crate::axis::NcVar;
 pub use crate::axis::{AxisConfig, K0Model, K0Term, OnBadInput, TanBetaModel, TanBetaTerm};
 pub use crate::channel::{
     ByteOrder, ChannelConfig, CurrentRange, DataType, DirectScaling, FilterConfig, RegisterKind,
     Scaling, TransmitterScaling,
 };
-pub use crate::nc::config::NcModuleConfig;
+pub use crate::nc::ads::{AdsTargetConfig, AdsValueAddress, AdsValueType};
+pub use crate::nc::config::{ModbusTargetConfig, NcModuleConfig, TargetConfig, TargetKind};
 pub use crate::source::can::config::{CanChannelConfig, CanDeviceConfig};
 pub use crate::source::config::{DeviceCommon, DeviceConfig, Transport};
 pub use crate::source::modbus::config::{Parity, RtuDeviceConfig, TcpDeviceConfig};

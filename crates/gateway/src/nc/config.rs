@@ -1,88 +1,104 @@
-//! `[nc_modules.NAME]`: an NC axis module's keys, their validation and the writer
-//! they build.
+//! `[targets.NAME]`: the NC targets, one struct per kind, tagged by the `kind` key (the
+//! keys stay flat in the target table; a key of another kind is reported as such by
+//! the structural check). `[nc_modules.NAME]` is the older spelling of a
+//! `kind = "modbus"` target and stays accepted.
 
 use std::time::Duration;
 
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
-use super::ModbusNcWriter;
-use crate::config::keys::secs;
+use super::ads::AdsTargetConfig;
+pub use super::modbus::ModbusTargetConfig;
+use super::{AnyNcWriter, NcError};
 use crate::config::problem::Problems;
-use crate::source::modbus::{Backoff, LinkSpec, ModbusLink};
 
-/// `[nc_modules.NAME]`: an NC axis module reached over Modbus TCP (one axis per
-/// module; see `compgate_ncproto`).
+/// The older name of [`ModbusTargetConfig`]: `[nc_modules.NAME]`.
+pub type NcModuleConfig = ModbusTargetConfig;
+
+/// `[targets.NAME]`: one NC target, by `kind`: `modbus` (the NC axis module's register
+/// map over Modbus TCP) or `ads` (Beckhoff TwinCAT over ADS). A key of another kind is
+/// an unknown key.
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
-#[serde(deny_unknown_fields)]
-pub struct NcModuleConfig {
-    /// `host:port` of the module's Modbus TCP interface. Required; at most
-    /// 300 characters. Port 0 is accepted
-    /// only because the embedded demo replaces it with the port its simulator bound.
-    #[schemars(length(max = 300))]
-    pub address: String,
-    /// Modbus unit id, 0..=247. Required.
-    #[schemars(range(max = 247))]
-    pub unit_id: u8,
-    /// Seconds one Modbus request may take. Default 1.0; 0.001..=3600.
-    #[serde(default = "default_nc_timeout_s")]
-    #[schemars(range(min = 0.001, max = 3600.0))]
-    pub timeout_s: f64,
-    /// Seconds a TCP connect may take. Default 2.0; 0.001..=3600.
-    #[serde(default = "default_connect_timeout_s")]
-    #[schemars(range(min = 0.001, max = 3600.0))]
-    pub connect_timeout_s: f64,
-    /// Seconds the whole FB3 job (REQ .. DONE/ERROR) may take. Default 2.0;
-    /// 0.001..=3600.
-    #[serde(default = "default_job_timeout_s")]
-    #[schemars(range(min = 0.001, max = 3600.0))]
-    pub job_timeout_s: f64,
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum TargetConfig {
+    /// `kind = "modbus"`: an NC axis module over Modbus TCP (`address`, `unit_id`), one
+    /// axis per module.
+    Modbus(ModbusTargetConfig),
+    /// `kind = "ads"`: a TwinCAT control over ADS (`address`, `ams_net_id`,
+    /// `ams_port`, index group and offset per value).
+    Ads(AdsTargetConfig),
 }
 
-impl NcModuleConfig {
-    /// `timeout_s` as a [`Duration`].
-    pub fn timeout(&self) -> Duration {
-        secs(self.timeout_s)
+/// The kind of a target: its `kind` key.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum TargetKind {
+    /// Modbus NC axis module.
+    Modbus,
+    /// Beckhoff ADS.
+    Ads,
+}
+
+impl TargetKind {
+    /// The `kind` value.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Modbus => "modbus",
+            Self::Ads => "ads",
+        }
     }
-    /// `connect_timeout_s` as a [`Duration`].
-    pub fn connect_timeout(&self) -> Duration {
-        secs(self.connect_timeout_s)
+}
+
+impl TargetConfig {
+    /// The kind.
+    pub fn kind(&self) -> TargetKind {
+        match self {
+            Self::Modbus(_) => TargetKind::Modbus,
+            Self::Ads(_) => TargetKind::Ads,
+        }
     }
-    /// `job_timeout_s` as a [`Duration`].
+
+    /// Whether each axis on this target needs `axes.NAME.axis_number` (a control with
+    /// several axes); a Modbus NC module carries one axis.
+    pub fn needs_axis_number(&self) -> bool {
+        !matches!(self, Self::Modbus(_))
+    }
+
+    /// Whether the target carries one axis only.
+    pub fn one_axis(&self) -> bool {
+        matches!(self, Self::Modbus(_))
+    }
+
+    /// Whether the target has a place for variable `var_id`.
+    pub fn has(&self, var_id: u16) -> bool {
+        match self {
+            // The module's map takes every variable of `compgate_ncproto::var`.
+            Self::Modbus(_) => true,
+            Self::Ads(c) => c.has(var_id),
+        }
+    }
+
+    /// Seconds a whole job (write and read-back) may take, as configured.
     pub fn job_timeout(&self) -> Duration {
-        secs(self.job_timeout_s)
+        match self {
+            Self::Modbus(c) => c.job_timeout(),
+            Self::Ads(c) => c.job_timeout(),
+        }
     }
 
-    /// `address` is `host:port`, unit id 0..=247, every time > 0.
+    /// Checks one target; `key` is its path, e.g. `targets.ctl`.
     pub fn validate(&self, key: &str, out: &mut Problems<'_>) {
-        let k = |f: &str| format!("{key}.{f}");
-        out.host_port(&k("address"), &self.address);
-        out.unit_id(&k("unit_id"), self.unit_id);
-        out.positive(&k("timeout_s"), self.timeout_s, "seconds");
-        out.positive(&k("connect_timeout_s"), self.connect_timeout_s, "seconds");
-        out.positive(&k("job_timeout_s"), self.job_timeout_s, "seconds");
+        match self {
+            Self::Modbus(c) => c.validate(key, out),
+            Self::Ads(c) => c.validate(key, out),
+        }
     }
 
-    /// The module's job writer (not connected yet).
-    pub fn build(&self) -> ModbusNcWriter {
-        let link = ModbusLink::new(
-            LinkSpec::Tcp {
-                address: self.address.clone(),
-                connect_timeout: self.connect_timeout(),
-            },
-            self.timeout(),
-            Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
-        );
-        ModbusNcWriter::new(link, self.unit_id, self.job_timeout())
+    /// The writer for one axis of this target (not connected yet).
+    pub fn build(&self, axis_name: &str, axis_number: u16) -> Result<AnyNcWriter, NcError> {
+        Ok(match self {
+            Self::Modbus(c) => AnyNcWriter::Modbus(c.build(axis_name, axis_number)?),
+            Self::Ads(c) => AnyNcWriter::Ads(c.build(axis_name, axis_number)?),
+        })
     }
-}
-
-fn default_nc_timeout_s() -> f64 {
-    1.0
-}
-fn default_connect_timeout_s() -> f64 {
-    2.0
-}
-fn default_job_timeout_s() -> f64 {
-    2.0
 }

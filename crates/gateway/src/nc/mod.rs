@@ -1,22 +1,28 @@
 //! Writing NC variables the way a Siemens PLC's FB3 (PUT) job does.
 //!
 //! A [`Job`] carries up to eight (variable, value) pairs that the NC applies all or
-//! none. [`NcWriter`] is the transport-neutral interface; [`ModbusNcWriter`] speaks
-//! the NC axis module's register map (`compgate_ncproto`) over Modbus TCP with
-//! the REQ/DONE/ERROR/STATE handshake, a job timeout and read-back verification.
+//! none. [`NcWriter`] is the transport-neutral interface, implemented once per target
+//! kind: [`ModbusNcWriter`] (the NC axis module's register map over Modbus TCP),
+//! [`ads::AdsNcWriter`] (Beckhoff ADS). [`config::TargetConfig`] is the
+//! `[targets.NAME]` table tagged by `kind`; [`guard::Guarded`] enforces, once for every
+//! kind, what no target may skip: the allow-list, finite values, the job timeout and
+//! the read-back check.
 
+pub mod ads;
 pub mod config;
+pub mod guard;
+pub mod modbus;
 
 use std::future::Future;
 use std::time::Duration;
 
-use compgate_ncproto::{self as ncmap, var, JobState, JobStatus};
-use tokio::time::Instant;
+use compgate_ncproto::{var, JobState, JobStatus};
 
-use crate::source::modbus::ModbusLink;
-use crate::source::plan::RegisterKind;
 use crate::source::SourceError;
 use compgate_core::comp::CompParams;
+
+pub use guard::{AnyNcWriter, Guarded};
+pub use modbus::ModbusNcWriter;
 
 /// Errors of the NC layer.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -60,6 +66,76 @@ pub enum NcError {
     /// The job itself is malformed (no pairs or more than eight).
     #[error("invalid job: {0}")]
     InvalidJob(String),
+    /// The job names a variable the axis's allow-list (`axes.NAME.nc_write`) leaves
+    /// out; nothing was sent.
+    #[error("variable {} is not in the allow-list (nc_write); nothing was written", var_name(*var))]
+    NotAllowed {
+        /// Variable id.
+        var: u16,
+    },
+    /// A target other than a Modbus NC module cannot be reached (connect, transport,
+    /// timeout of one request).
+    #[error("NC link: {0}")]
+    Unreachable(String),
+    /// The target answered, and refused the write or read of one value, with its own
+    /// code (an ADS error, an OPC UA status code).
+    #[error("{what}: {answer}")]
+    Answered {
+        /// What was asked, e.g. `write of SD43900 (ADS 0x4020:0x0)`.
+        what: String,
+        /// What the target answered, by name and code.
+        answer: String,
+    },
+}
+
+/// `SD43900` for a known variable id, the number otherwise.
+pub fn var_name(var_id: u16) -> String {
+    match var_id {
+        var::SD43900 | var::SD43910 | var::SD43920 => format!("SD{var_id}"),
+        var::MD32750 | var::MD32760 | var::MD32000 | var::MD32450 => format!("MD{var_id}"),
+        _ => format!("variable {var_id}"),
+    }
+}
+
+impl NcError {
+    /// Whether the target could not be reached at all (no answer), as opposed to
+    /// an answer that refused the request: the status says "unreachable" only then.
+    pub fn is_unreachable(&self) -> bool {
+        match self {
+            Self::Link(SourceError::Exception(_)) => false,
+            Self::Link(_) | Self::Unreachable(_) | Self::JobTimeout { .. } => true,
+            _ => false,
+        }
+    }
+}
+
+/// How a target stores the values: the precision the read-back is checked to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Precision {
+    /// f64 / LREAL: the value read back must be bit for bit the value written.
+    #[default]
+    F64,
+    /// f32 / REAL: the value read back must lie within one float32 ulp of the value
+    /// written (the target rounds it to its REAL).
+    F32,
+}
+
+impl Precision {
+    /// Whether `read` is what a target of this precision holds after `written`.
+    pub fn holds(self, written: f64, read: f64) -> bool {
+        match self {
+            Self::F64 => read.to_bits() == written.to_bits(),
+            Self::F32 => {
+                if !written.is_finite() || !read.is_finite() {
+                    return false;
+                }
+                let w = written as f32;
+                // One ulp of float32 at the value written (its rounding is within it).
+                let ulp = f64::from(f32::from_bits(w.abs().to_bits() + 1) - w.abs());
+                (read - written).abs() <= ulp
+            }
+        }
+    }
 }
 
 /// One FB3-style job: up to eight variables written atomically.
@@ -79,6 +155,13 @@ impl Job {
                 (var::SD43920, p.p0_mm),
             ],
         }
+    }
+
+    /// [`Job::thermal`] with only the variables in `allowed`.
+    pub fn thermal_allowed(p: &CompParams, allowed: &[u16]) -> Self {
+        let mut job = Self::thermal(p);
+        job.pairs.retain(|(v, _)| allowed.contains(v));
+        job
     }
 }
 
@@ -133,197 +216,17 @@ impl NcSnapshot {
 pub trait NcWriter: Send {
     /// Runs one job to completion, verified by read-back.
     fn write_job(&mut self, job: &Job) -> impl Future<Output = Result<JobReport, NcError>> + Send;
-    /// Reads what the NC shows of the axis.
+    /// Reads what the NC shows of the axis. A value the target does not have stays at
+    /// its default.
     fn read_snapshot(&mut self) -> impl Future<Output = Result<NcSnapshot, NcError>> + Send;
-}
-
-/// Read-back address of a variable, if the map has one.
-fn readback_address(var_id: u16) -> Option<u16> {
-    match var_id {
-        var::SD43900 => Some(ncmap::RB_SD43900),
-        var::SD43910 => Some(ncmap::RB_SD43910),
-        var::SD43920 => Some(ncmap::RB_SD43920),
-        var::MD32450 => Some(ncmap::RB_MD32450),
-        _ => None,
+    /// How the target stores the values (the read-back tolerance). Default: f64.
+    fn precision(&self) -> Precision {
+        Precision::F64
     }
-}
-
-fn f64_at(regs: &[u16], base: u16, addr: u16) -> Result<f64, NcError> {
-    let i = usize::from(addr - base);
-    regs.get(i..i + 4)
-        .and_then(|r| <[u16; 4]>::try_from(r).ok())
-        .map(ncmap::regs_to_f64)
-        .ok_or_else(|| NcError::Protocol(format!("register {addr} missing from read-back")))
-}
-
-/// FB3-style job client over Modbus TCP.
-#[derive(Debug)]
-pub struct ModbusNcWriter {
-    link: ModbusLink,
-    unit_id: u8,
-    job_timeout: Duration,
-    next_job_id: u16,
-}
-
-impl ModbusNcWriter {
-    /// A writer on `link` addressing unit `unit_id`.
-    pub fn new(link: ModbusLink, unit_id: u8, job_timeout: Duration) -> Self {
-        Self {
-            link,
-            unit_id,
-            job_timeout,
-            next_job_id: 1,
-        }
-    }
-
-    async fn read_holding(&mut self, start: u16, count: u16) -> Result<Vec<u16>, NcError> {
-        Ok(self
-            .link
-            .read(self.unit_id, RegisterKind::Holding, start, count)
-            .await?)
-    }
-
-    async fn state(&mut self) -> Result<JobState, NcError> {
-        let r = self.read_holding(ncmap::STATE, 1).await?;
-        let v = r.first().copied().unwrap_or(u16::MAX);
-        JobState::from_u16(v).ok_or_else(|| NcError::Protocol(format!("STATE = {v}")))
-    }
-
-    /// Waits until `done(state)` or the deadline; the module is polled briefly
-    /// because a job takes one or two IPO cycles.
-    async fn wait_state(
-        &mut self,
-        deadline: Instant,
-        job_id: u16,
-        done: impl Fn(JobState) -> bool,
-    ) -> Result<JobState, NcError> {
-        loop {
-            let s = self.state().await?;
-            if done(s) {
-                return Ok(s);
-            }
-            if Instant::now() >= deadline {
-                return Err(NcError::JobTimeout {
-                    job_id,
-                    timeout: self.job_timeout,
-                    state: Some(s),
-                });
-            }
-            tokio::time::sleep(Duration::from_millis(2)).await;
-        }
-    }
-
-    async fn run_job(&mut self, job: &Job, job_id: u16, deadline: Instant) -> Result<(), NcError> {
-        // A job left unacknowledged by an earlier run (crash, timeout) is cleared
-        // first; a busy module is waited for, never interrupted.
-        if self.state().await? != JobState::Idle {
-            self.link.write(self.unit_id, ncmap::REQ, &[0]).await?;
-            self.wait_state(deadline, job_id, |s| s == JobState::Idle)
-                .await?;
-        }
-        let mut block = vec![job_id, job.pairs.len() as u16];
-        for (var_id, value) in &job.pairs {
-            block.push(*var_id);
-            block.extend_from_slice(&ncmap::f64_to_regs(*value));
-        }
-        self.link.write(self.unit_id, ncmap::JOB_ID, &block).await?;
-        self.link.write(self.unit_id, ncmap::REQ, &[1]).await?;
-        self.wait_state(deadline, job_id, |s| {
-            matches!(s, JobState::Done | JobState::Error)
-        })
-        .await?;
-        let r = self
-            .read_holding(ncmap::STATE, ncmap::JOB_ID_DONE - ncmap::STATE + 1)
-            .await?;
-        let reg = |a: u16| r[usize::from(a - ncmap::STATE)];
-        // Acknowledge before judging, so the module is idle whatever happens next.
-        self.link.write(self.unit_id, ncmap::REQ, &[0]).await?;
-        if reg(ncmap::JOB_ID_DONE) != job_id {
-            return Err(NcError::Protocol(format!(
-                "JOB_ID_DONE = {}, expected {job_id}",
-                reg(ncmap::JOB_ID_DONE)
-            )));
-        }
-        let status = JobStatus::from_u16(reg(ncmap::STATUS))
-            .ok_or_else(|| NcError::Protocol(format!("STATUS = {}", reg(ncmap::STATUS))))?;
-        if reg(ncmap::ERROR) != 0 || status != JobStatus::Ok {
-            return Err(NcError::Refused {
-                job_id,
-                status,
-                index: reg(ncmap::ERROR_INDEX),
-            });
-        }
-        self.verify(job).await
-    }
-
-    async fn verify(&mut self, job: &Job) -> Result<(), NcError> {
-        let rb = self
-            .read_holding(ncmap::READBACK, ncmap::READBACK_LEN)
-            .await?;
-        for (var_id, written) in &job.pairs {
-            if let Some(addr) = readback_address(*var_id) {
-                let read = f64_at(&rb, ncmap::READBACK, addr)?;
-                if read.to_bits() != written.to_bits() {
-                    return Err(NcError::ReadBack {
-                        var: *var_id,
-                        written: *written,
-                        read,
-                    });
-                }
-            }
-        }
-        Ok(())
-    }
-}
-
-impl NcWriter for ModbusNcWriter {
-    async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
-        if job.pairs.is_empty() || job.pairs.len() > ncmap::MAX_PAIRS {
-            return Err(NcError::InvalidJob(format!(
-                "{} pairs; a job carries 1 to {}",
-                job.pairs.len(),
-                ncmap::MAX_PAIRS
-            )));
-        }
-        let job_id = self.next_job_id;
-        // Skip 0 so a fresh module's JOB_ID_DONE = 0 never matches.
-        self.next_job_id = self.next_job_id.checked_add(1).unwrap_or(1);
-        let started = Instant::now();
-        let deadline = started + self.job_timeout;
-        match tokio::time::timeout_at(deadline, self.run_job(job, job_id, deadline)).await {
-            Ok(Ok(())) => Ok(JobReport {
-                job_id,
-                elapsed: started.elapsed(),
-            }),
-            Ok(Err(e)) => Err(e),
-            Err(_) => {
-                // Cut off mid-request: the stream may hold a late reply.
-                self.link.disconnect();
-                Err(NcError::JobTimeout {
-                    job_id,
-                    timeout: self.job_timeout,
-                    state: None,
-                })
-            }
-        }
-    }
-
-    async fn read_snapshot(&mut self) -> Result<NcSnapshot, NcError> {
-        let base = ncmap::READBACK;
-        let rb = self.read_holding(base, ncmap::READBACK_LEN).await?;
-        let u = |a: u16| rb.get(usize::from(a - base)).copied().unwrap_or(0);
-        Ok(NcSnapshot {
-            sd43900_mm: f64_at(&rb, base, ncmap::RB_SD43900)?,
-            sd43910: f64_at(&rb, base, ncmap::RB_SD43910)?,
-            sd43920_mm: f64_at(&rb, base, ncmap::RB_SD43920)?,
-            md32760: f64_at(&rb, base, ncmap::RB_MD32760)?,
-            max_ax_velo_mm_per_min: f64_at(&rb, base, ncmap::RB_MAX_AX_VELO)?,
-            md32450_mm: f64_at(&rb, base, ncmap::RB_MD32450)?,
-            position_mm: f64_at(&rb, base, ncmap::RB_POSITION)?,
-            applied_comp_mm: f64_at(&rb, base, ncmap::RB_APPLIED_COMP)?,
-            target_comp_mm: f64_at(&rb, base, ncmap::RB_TARGET_COMP)?,
-            md32750: u(ncmap::RB_MD32750),
-            referenced: u(ncmap::RB_REFERENCED) != 0,
-        })
+    /// Whether the snapshot carries MD32750, MD32760, MD32000, the position, the
+    /// applied compensation and the referenced flag (the NC module does; a real
+    /// control reached for its setting data only does not). Default: false.
+    fn has_axis_state(&self) -> bool {
+        false
     }
 }

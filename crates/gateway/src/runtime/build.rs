@@ -7,7 +7,7 @@ use std::time::Duration;
 use tokio::sync::Mutex;
 
 use crate::config::{Config, DeviceConfig};
-use crate::nc::ModbusNcWriter;
+use crate::nc::{Guarded, NcWriter};
 use crate::source::can::sync::{self, SyncDevice, SyncParams};
 use crate::source::can::{CanChannelSpec, CanPoller};
 use crate::source::modbus::{Backoff, LinkSpec, ModbusLink};
@@ -64,13 +64,13 @@ pub struct DeviceRt {
     pub poll_interval: Duration,
 }
 
-/// An NC module's parts.
+/// The NC writer of one axis: its target's name and the guarded writer.
 #[derive(Debug)]
 pub struct NcModuleRt {
-    /// Module name.
+    /// Target name (`[targets]` or `[nc_modules]`).
     pub name: String,
-    /// The writer.
-    pub writer: ModbusNcWriter,
+    /// The writer, behind the guarantees every target shares.
+    pub writer: Guarded,
 }
 
 /// Everything [`run`](super::run) needs, built from a config.
@@ -82,7 +82,7 @@ pub struct Built {
     pub devices: Vec<DeviceRt>,
     /// One SYNC producer per CAN interface.
     pub sync_producers: Vec<SyncParams>,
-    /// NC modules.
+    /// One NC writer per axis, in axis order.
     pub nc_modules: Vec<NcModuleRt>,
     /// Time between status updates.
     pub status_interval: Duration,
@@ -200,29 +200,20 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
         });
     }
 
-    let nc_index: BTreeMap<&str, usize> = cfg
-        .nc_modules
-        .keys()
-        .enumerate()
-        .map(|(i, n)| (n.as_str(), i))
-        .collect();
-    let nc_modules = cfg
-        .nc_modules
-        .iter()
-        .map(|(name, m)| NcModuleRt {
-            name: name.clone(),
-            writer: m.build(),
-        })
-        .collect();
-
+    let mut nc_modules = Vec::with_capacity(cfg.axes.len());
     let mut axes = Vec::with_capacity(cfg.axes.len());
     for (name, ax) in &cfg.axes {
-        let nc_module = *nc_index.get(ax.nc_module.as_str()).ok_or_else(|| {
-            GatewayError::Config(format!(
-                "axes.{name}.nc_module: no NC module {}",
-                ax.nc_module
-            ))
+        let target = cfg.target(&ax.nc_module).ok_or_else(|| {
+            GatewayError::Config(format!("axes.{name}.nc_module: no target {}", ax.nc_module))
         })?;
+        let writer = target
+            .build(name, ax.axis_number.unwrap_or(0))
+            .map_err(|e| GatewayError::Config(format!("axes.{name}: {e}")))?;
+        let nc_module = nc_modules.len();
+        nc_modules.push(NcModuleRt {
+            name: ax.nc_module.clone(),
+            writer: Guarded::new(writer, ax.nc_write_ids(), target.job_timeout()),
+        });
         let (model, input_names) = ax.model();
         let inputs = input_names
             .iter()
@@ -240,6 +231,8 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             comp: AxisCompensator::new(model, ax.limits(), ax.policy()),
             md32750: ax.md32750,
             update_interval: ax.update_interval(),
+            nc_write: ax.nc_write_ids(),
+            axis_state: nc_modules[nc_module].writer.has_axis_state(),
         });
     }
 

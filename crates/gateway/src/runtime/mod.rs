@@ -44,7 +44,11 @@ pub enum GatewayError {
 pub const SAMPLE_QUEUE: usize = 64;
 /// What the core loop asks of an NC task.
 enum NcCommand {
-    Write { axis: usize, params: CompParams },
+    Write {
+        axis: usize,
+        job: Job,
+        params: CompParams,
+    },
 }
 
 /// What an NC task reports back to the core loop.
@@ -116,8 +120,8 @@ async fn nc_task(
     loop {
         tokio::select! {
             cmd = rx.recv() => {
-                let Some(NcCommand::Write { axis, params }) = cmd else { break };
-                let result = nc.writer.write_job(&Job::thermal(&params)).await;
+                let Some(NcCommand::Write { axis, job, params }) = cmd else { break };
+                let result = nc.writer.write_job(&job).await;
                 match &result {
                     Ok(r) => tracing::info!(module = %nc.name, job_id = r.job_id, sd43900_mm = params.k0_mm, sd43910 = params.tan_beta, sd43920_mm = params.p0_mm, elapsed_ms = r.elapsed.as_secs_f64() * 1e3, "NC job done, read-back verified"),
                     // The core loop logs the change from working to failing once.
@@ -343,8 +347,12 @@ impl Running {
                     (self.nc_down.get_mut(module), self.nc_names.get(module))
                 {
                     match (&result, *down) {
+                        (Err(e), false) if e.is_unreachable() => {
+                            tracing::warn!(target_name = %name, error = %e, "NC target unreachable: nothing is written to it");
+                            *down = true;
+                        }
                         (Err(e), false) => {
-                            tracing::warn!(module = %name, error = %e, "NC module unreachable: nothing is written to it");
+                            tracing::warn!(target_name = %name, error = %e, "NC target answered the read with an error: nothing is written to it");
                             *down = true;
                         }
                         (Ok(_), true) => {
@@ -368,18 +376,23 @@ impl Running {
                                 st.written = Some(snap.thermal());
                                 tracing::info!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, "NC parameters read at start");
                             }
-                            st.warning = (snap.md32750 != axis.md32750).then(|| {
-                                format!(
-                                    "MD32750 is {} on the NC, the config expects {}",
-                                    snap.md32750, axis.md32750
-                                )
-                            });
-                            if !snap.referenced {
+                            st.warning =
+                                (axis.axis_state && snap.md32750 != axis.md32750).then(|| {
+                                    format!(
+                                        "MD32750 is {} on the NC, the config expects {}",
+                                        snap.md32750, axis.md32750
+                                    )
+                                });
+                            if axis.axis_state && !snap.referenced {
                                 st.warning.get_or_insert_with(|| "axis not referenced: the NC applies no temperature compensation".into());
                             }
                             st.nc = Some(*snap);
                         }
-                        Err(e) => st.warning = Some(format!("NC unreachable: {e}")),
+                        Err(e) if e.is_unreachable() => {
+                            st.warning = Some(format!("NC unreachable: {e}"))
+                        }
+                        // It answered: say what, not "unreachable".
+                        Err(e) => st.warning = Some(format!("NC answered with an error: {e}")),
                     }
                 }
             }
@@ -528,7 +541,8 @@ async fn generation(
                         Decision::Write { params, .. } | Decision::Ramp { params, .. } => params,
                         Decision::WithinDeadband | Decision::Hold { .. } => continue,
                     };
-                    if nc_tx[axis.nc_module].try_send(NcCommand::Write { axis: i, params }).is_ok() {
+                    let job = Job::thermal_allowed(&params, &axis.nc_write);
+                    if nc_tx[axis.nc_module].try_send(NcCommand::Write { axis: i, job, params }).is_ok() {
                         in_flight[i] = true;
                     }
                 }

@@ -16,7 +16,7 @@ use super::{ChannelReading, ChannelStatus};
 pub struct AxisRt {
     /// Axis name.
     pub name: String,
-    /// Index of its NC module.
+    /// Index of its NC writer.
     pub nc_module: usize,
     /// Channel index of each model input.
     pub inputs: Vec<usize>,
@@ -26,6 +26,10 @@ pub struct AxisRt {
     pub md32750: u16,
     /// Time between updates.
     pub update_interval: Duration,
+    /// The variables it may write (its allow-list), as ids.
+    pub nc_write: Vec<u16>,
+    /// Whether its target reports MD32750 and the referenced flag.
+    pub axis_state: bool,
 }
 
 /// The synchronous part of the gateway: channel processors and axis compensators.

@@ -86,17 +86,19 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         }
     }
 
-    // NC modules: unchanged ones keep their connection and job counter.
-    let old_nc_index: BTreeMap<&str, usize> = old_cfg
-        .nc_modules
+    // NC writers (one per axis): an unchanged axis on an unchanged target keeps its
+    // connection.
+    let old_axis_index: BTreeMap<&str, usize> = old_cfg
+        .axes
         .keys()
         .enumerate()
         .map(|(i, n)| (n.as_str(), i))
         .collect();
     let mut same_nc = BTreeMap::new();
-    for (j, name) in new_cfg.nc_modules.keys().enumerate() {
-        let same = old_cfg.nc_modules.get(name) == new_cfg.nc_modules.get(name);
-        if let (true, Some(&i)) = (same, old_nc_index.get(name.as_str())) {
+    for (j, (name, axis)) in new_cfg.axes.iter().enumerate() {
+        let same = old_cfg.axes.get(name) == Some(axis)
+            && old_cfg.target(&axis.nc_module) == new_cfg.target(&axis.nc_module);
+        if let (true, Some(&i)) = (same, old_axis_index.get(name.as_str())) {
             if let Some(m) = old_nc.get_mut(i).and_then(Option::take) {
                 next.nc_modules[j] = Some(m);
                 same_nc.insert(name.clone(), ());
@@ -114,10 +116,7 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         .collect();
     for (j, axis) in next.pipeline.axes.iter_mut().enumerate() {
         let cfg_same = old_cfg.axes.get(&axis.name) == new_cfg.axes.get(&axis.name);
-        let nc_same = new_cfg
-            .axes
-            .get(&axis.name)
-            .is_some_and(|a| same_nc.contains_key(&a.nc_module));
+        let nc_same = same_nc.contains_key(&axis.name);
         if !(cfg_same && nc_same) {
             continue;
         }

@@ -215,7 +215,8 @@ fn missing_required_key_is_reported_with_its_path() {
     let p = problems(&text);
     assert_eq!(
         keys(&p),
-        ["devices", "channels", "nc_modules", "axes"],
+        // `[targets]` / `[nc_modules]` are optional (a monitoring-only config).
+        ["devices", "channels", "axes"],
         "missing sections: {p:#?}"
     );
 }
@@ -299,7 +300,7 @@ fn broken_reference_is_reported() {
     assert_eq!(keys(&p), ["axes.X.nc_module"], "{p:#?}");
     assert_eq!(
         p[0].to_string(),
-        "t.toml: axes.X.nc_module: unknown NC module `nc_y`; expected one of the names in \
+        "t.toml: axes.X.nc_module: unknown target `nc_y`; expected one of the names in [targets] or \
          [nc_modules]: `nc_x`"
     );
     let p = problems(&edit("device = \"ain2\"", "device = \"ain3\""));
@@ -643,4 +644,69 @@ fn transport_true_says_which_transports_there_are() {
         p.message,
         "invalid type: boolean `true`, expected one of `tcp`, `rtu`, `can`"
     );
+}
+
+/// The example with its `[nc_modules.nc_x]` table replaced by `target` (a `[targets]`
+/// entry named `nc_x`) and `axis` appended to `[axes.X]`.
+fn with_target(target: &str, axis: &str) -> String {
+    let start = EXAMPLE.find("[nc_modules.nc_x]").expect("nc_x in example");
+    let end = start + EXAMPLE[start..].find("\n\n").expect("end of the table");
+    let text = format!("{}{target}{}", &EXAMPLE[..start], &EXAMPLE[end..]);
+    text.replace(
+        "nc_module = \"nc_x\"\n",
+        &format!("nc_module = \"nc_x\"\n{axis}"),
+    )
+}
+
+const ADS: &str = "[targets.nc_x]\nkind = \"ads\"\naddress = \"127.0.0.1:48898\"\n\
+                   ams_net_id = \"127.0.0.1.1.1\"\nsd43900 = { index_group = 0x4020, index_offset = 0 }";
+
+#[test]
+fn a_target_table_takes_only_its_kinds_keys() {
+    // The same module as a `[targets]` entry loads and names the same writer.
+    let modbus = with_target(
+        "[targets.nc_x]\nkind = \"modbus\"\naddress = \"127.0.0.1:1502\"\nunit_id = 1",
+        "",
+    );
+    let cfg = load_str(&modbus, "t.toml").expect("modbus target loads");
+    assert_eq!(
+        cfg.target("nc_x").map(|t| t.kind()),
+        Some(TargetKind::Modbus)
+    );
+    assert!(cfg.nc_modules.is_empty());
+
+    // An ADS key on a Modbus target is named as such.
+    let p = problems(&with_target(
+        "[targets.nc_x]\nkind = \"modbus\"\naddress = \"127.0.0.1:1502\"\nunit_id = 1\nams_port = 851",
+        "",
+    ));
+    assert_eq!(keys(&p), ["targets.nc_x.ams_port"], "{p:#?}");
+    assert!(p[0].message.contains("ads"), "{}", p[0].message);
+
+    // An unknown kind names the kinds there are.
+    let p = problems(&modbus.replace("kind = \"modbus\"", "kind = \"fanuc\""));
+    assert_eq!(keys(&p), ["targets.nc_x.kind"], "{p:#?}");
+    assert!(p[0].message.contains("modbus"), "{}", p[0].message);
+}
+
+#[test]
+fn an_axis_on_a_several_axis_target_needs_its_number_and_a_place_for_each_value() {
+    let p = problems(&with_target(ADS, ""));
+    let k = keys(&p);
+    assert!(k.contains(&"axes.X.axis_number"), "{p:#?}");
+    // The example's X writes all three; this ADS target has a place for SD43900 only.
+    let p = problems(&with_target(ADS, "axis_number = 1\n"));
+    assert_eq!(keys(&p), ["axes.X.nc_write", "axes.X.nc_write"], "{p:#?}");
+    assert!(p[0].message.contains("SD43910"), "{}", p[0].message);
+    let cfg = load_str(
+        &with_target(ADS, "axis_number = 1\nnc_write = [\"sd43900\"]\n"),
+        "t.toml",
+    )
+    .expect("loads with an allow-list of SD43900");
+    assert_eq!(cfg.axes["X"].nc_write_ids(), [43900]);
+    let p = problems(&with_target(
+        &ADS.replace("127.0.0.1.1.1", "1.2.3"),
+        "axis_number = 1\nnc_write = [\"sd43900\"]\n",
+    ));
+    assert_eq!(keys(&p), ["targets.nc_x.ams_net_id"], "{p:#?}");
 }

@@ -1,0 +1,312 @@
+//! What every target guarantees, enforced here once rather than in each kind's writer:
+//! a job goes out only with 1..=8 finite values of allowed variables, finishes within
+//! the job timeout, and counts as written only when the target's read-back holds the
+//! values (bit for bit for f64, within one float32 ulp for REAL).
+//!
+//! The rest is the runtime's: step limits and the deadband start from what the target
+//! holds (its first snapshot), a refused or failed job is reported and not confirmed
+//! (the next update writes again), and each axis's writer runs in its own task, so a
+//! dead target never stops the polling.
+
+use std::time::Duration;
+
+use compgate_ncproto::{var, MAX_PAIRS};
+use tokio::time::Instant;
+
+use super::ads::AdsNcWriter;
+use super::{Job, JobReport, ModbusNcWriter, NcError, NcSnapshot, NcWriter, Precision};
+
+/// The three thermal setting data: the default allow-list.
+pub const THERMAL_VARS: [u16; 3] = [var::SD43900, var::SD43910, var::SD43920];
+
+/// A writer of any target kind.
+#[derive(Debug)]
+pub enum AnyNcWriter {
+    /// Modbus NC axis module.
+    Modbus(ModbusNcWriter),
+    /// Beckhoff ADS.
+    Ads(AdsNcWriter),
+}
+
+impl NcWriter for AnyNcWriter {
+    async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
+        match self {
+            Self::Modbus(w) => w.write_job(job).await,
+            Self::Ads(w) => w.write_job(job).await,
+        }
+    }
+
+    async fn read_snapshot(&mut self) -> Result<NcSnapshot, NcError> {
+        match self {
+            Self::Modbus(w) => w.read_snapshot().await,
+            Self::Ads(w) => w.read_snapshot().await,
+        }
+    }
+
+    fn precision(&self) -> Precision {
+        match self {
+            Self::Modbus(w) => w.precision(),
+            Self::Ads(w) => w.precision(),
+        }
+    }
+
+    fn has_axis_state(&self) -> bool {
+        match self {
+            Self::Modbus(w) => w.has_axis_state(),
+            Self::Ads(w) => w.has_axis_state(),
+        }
+    }
+}
+
+/// A writer behind the guarantees every target shares (see the module docs).
+#[derive(Debug)]
+pub struct Guarded<W = AnyNcWriter> {
+    writer: W,
+    allow: Vec<u16>,
+    job_timeout: Duration,
+    next_job_id: u16,
+}
+
+impl<W: NcWriter> Guarded<W> {
+    /// `writer` allowed to write the variables in `allow`, each job within
+    /// `job_timeout`.
+    pub fn new(writer: W, allow: Vec<u16>, job_timeout: Duration) -> Self {
+        Self {
+            writer,
+            allow,
+            job_timeout,
+            next_job_id: 1,
+        }
+    }
+
+    /// The writer inside.
+    pub fn inner(&self) -> &W {
+        &self.writer
+    }
+
+    /// The variables this writer may write.
+    pub fn allowed(&self) -> &[u16] {
+        &self.allow
+    }
+
+    /// Refuses a job that must not go out, before anything is sent.
+    pub fn check(&self, job: &Job) -> Result<(), NcError> {
+        if job.pairs.is_empty() || job.pairs.len() > MAX_PAIRS {
+            return Err(NcError::InvalidJob(format!(
+                "{} pairs; a job carries 1 to {MAX_PAIRS}",
+                job.pairs.len()
+            )));
+        }
+        for &(var_id, value) in &job.pairs {
+            if !self.allow.contains(&var_id) {
+                return Err(NcError::NotAllowed { var: var_id });
+            }
+            if !value.is_finite() {
+                return Err(NcError::InvalidJob(format!(
+                    "{} = {value}: not a finite number; nothing was written",
+                    super::var_name(var_id)
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    async fn write_and_verify(&mut self, job: &Job) -> Result<(), NcError> {
+        self.writer.write_job(job).await?;
+        let snap = self.writer.read_snapshot().await?;
+        let precision = self.writer.precision();
+        for &(var_id, written) in &job.pairs {
+            let read = match var_id {
+                var::SD43900 => snap.sd43900_mm,
+                var::SD43910 => snap.sd43910,
+                var::SD43920 => snap.sd43920_mm,
+                var::MD32450 => snap.md32450_mm,
+                _ => continue,
+            };
+            if !precision.holds(written, read) {
+                return Err(NcError::ReadBack {
+                    var: var_id,
+                    written,
+                    read,
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+impl<W: NcWriter> NcWriter for Guarded<W> {
+    async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
+        self.check(job)?;
+        let job_id = self.next_job_id;
+        self.next_job_id = self.next_job_id.checked_add(1).unwrap_or(1);
+        let started = Instant::now();
+        match tokio::time::timeout(self.job_timeout, self.write_and_verify(job)).await {
+            Ok(Ok(())) => Ok(JobReport {
+                job_id,
+                elapsed: started.elapsed(),
+            }),
+            Ok(Err(e)) => Err(e),
+            Err(_) => Err(NcError::JobTimeout {
+                job_id,
+                timeout: self.job_timeout,
+                state: None,
+            }),
+        }
+    }
+
+    async fn read_snapshot(&mut self) -> Result<NcSnapshot, NcError> {
+        self.writer.read_snapshot().await
+    }
+
+    fn precision(&self) -> Precision {
+        self.writer.precision()
+    }
+
+    fn has_axis_state(&self) -> bool {
+        self.writer.has_axis_state()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A target that records what reaches it and holds what it is told to hold.
+    #[derive(Debug, Default)]
+    struct Fake {
+        written: Vec<Job>,
+        holds: NcSnapshot,
+        /// Added to what it holds after a write (a target that rounds or corrupts).
+        skew: f64,
+        slow: Option<Duration>,
+        precision: Precision,
+    }
+
+    impl NcWriter for Fake {
+        async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
+            if let Some(d) = self.slow {
+                tokio::time::sleep(d).await;
+            }
+            self.written.push(job.clone());
+            for &(v, x) in &job.pairs {
+                let x = match self.precision {
+                    Precision::F64 => x,
+                    Precision::F32 => f64::from(x as f32),
+                } + self.skew;
+                match v {
+                    var::SD43900 => self.holds.sd43900_mm = x,
+                    var::SD43910 => self.holds.sd43910 = x,
+                    var::SD43920 => self.holds.sd43920_mm = x,
+                    _ => {}
+                }
+            }
+            Ok(JobReport {
+                job_id: 0,
+                elapsed: Duration::ZERO,
+            })
+        }
+        async fn read_snapshot(&mut self) -> Result<NcSnapshot, NcError> {
+            Ok(self.holds)
+        }
+        fn precision(&self) -> Precision {
+            self.precision
+        }
+    }
+
+    fn thermal(k0: f64) -> Job {
+        Job {
+            pairs: vec![
+                (var::SD43900, k0),
+                (var::SD43910, 1e-5),
+                (var::SD43920, 100.0),
+            ],
+        }
+    }
+
+    #[tokio::test]
+    async fn bad_jobs_never_reach_the_target() {
+        let mut g = Guarded::new(
+            Fake::default(),
+            THERMAL_VARS.to_vec(),
+            Duration::from_secs(1),
+        );
+        for (job, want) in [
+            (thermal(f64::NAN), "not a finite number"),
+            (thermal(f64::INFINITY), "not a finite number"),
+            (Job { pairs: vec![] }, "0 pairs"),
+            (
+                Job {
+                    pairs: vec![(var::MD32450, 0.01)],
+                },
+                "MD32450 is not in the allow-list",
+            ),
+        ] {
+            let e = g.write_job(&job).await.expect_err("refused");
+            assert!(e.to_string().contains(want), "{e}");
+        }
+        let mut only_k0 = Guarded::new(Fake::default(), vec![var::SD43900], Duration::from_secs(1));
+        let e = only_k0
+            .write_job(&thermal(0.01))
+            .await
+            .expect_err("refused");
+        assert_eq!(e, NcError::NotAllowed { var: var::SD43910 });
+        assert!(g.inner().written.is_empty());
+        assert!(only_k0.inner().written.is_empty());
+    }
+
+    #[tokio::test]
+    async fn read_back_is_exact_for_f64_and_one_ulp_for_real() {
+        let mut g = Guarded::new(
+            Fake::default(),
+            THERMAL_VARS.to_vec(),
+            Duration::from_secs(1),
+        );
+        g.write_job(&thermal(0.0123456789)).await.expect("exact");
+        // One f64 ulp off is a failed read-back on an f64 target.
+        g.writer.skew = 1e-18;
+        let e = g.write_job(&thermal(0.0123456789)).await.expect_err("off");
+        assert!(
+            matches!(
+                e,
+                NcError::ReadBack {
+                    var: var::SD43900,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+
+        let real = Fake {
+            precision: Precision::F32,
+            ..Fake::default()
+        };
+        let mut g = Guarded::new(real, THERMAL_VARS.to_vec(), Duration::from_secs(1));
+        g.write_job(&thermal(0.0123456789))
+            .await
+            .expect("rounded to REAL");
+        // Two float32 ulps off is not what the REAL holds.
+        g.writer.skew = 2.0 * f64::from(f32::EPSILON) * 0.0123456789;
+        assert!(g.write_job(&thermal(0.0123456789)).await.is_err());
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_slow_target_hits_the_job_timeout() {
+        let slow = Fake {
+            slow: Some(Duration::from_secs(5)),
+            ..Fake::default()
+        };
+        let mut g = Guarded::new(slow, THERMAL_VARS.to_vec(), Duration::from_millis(200));
+        let e = g.write_job(&thermal(0.01)).await.expect_err("timeout");
+        assert!(matches!(e, NcError::JobTimeout { .. }), "{e}");
+        assert!(e.is_unreachable());
+    }
+
+    #[test]
+    fn precision_bounds() {
+        let w = 0.1_f64;
+        assert!(Precision::F32.holds(w, f64::from(w as f32)));
+        assert!(!Precision::F64.holds(w, f64::from(w as f32)));
+        assert!(!Precision::F32.holds(w, f64::NAN));
+    }
+}

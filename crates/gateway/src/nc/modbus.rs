@@ -1,0 +1,306 @@
+//! The Modbus NC target: the NC axis module's register map (`compgate_ncproto`) over
+//! Modbus TCP with the REQ/DONE/ERROR/STATE handshake, a job timeout and read-back
+//! verification. Only the registers the map documents are read (see the table "What
+//! the gateway's writer touches" in `compgate_ncproto`).
+
+use std::time::Duration;
+
+use compgate_ncproto::{self as ncmap, var, JobState, JobStatus};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use tokio::time::Instant;
+
+use super::{Job, JobReport, NcError, NcSnapshot, NcWriter};
+use crate::config::keys::secs;
+use crate::config::problem::Problems;
+use crate::source::modbus::{Backoff, LinkSpec, ModbusLink};
+use crate::source::plan::RegisterKind;
+
+/// Read-back address of a variable, if the map has one.
+fn readback_address(var_id: u16) -> Option<u16> {
+    match var_id {
+        var::SD43900 => Some(ncmap::RB_SD43900),
+        var::SD43910 => Some(ncmap::RB_SD43910),
+        var::SD43920 => Some(ncmap::RB_SD43920),
+        var::MD32450 => Some(ncmap::RB_MD32450),
+        _ => None,
+    }
+}
+
+fn f64_at(regs: &[u16], base: u16, addr: u16) -> Result<f64, NcError> {
+    let i = usize::from(addr - base);
+    regs.get(i..i + 4)
+        .and_then(|r| <[u16; 4]>::try_from(r).ok())
+        .map(ncmap::regs_to_f64)
+        .ok_or_else(|| NcError::Protocol(format!("register {addr} missing from read-back")))
+}
+
+/// FB3-style job client over Modbus TCP.
+#[derive(Debug)]
+pub struct ModbusNcWriter {
+    link: ModbusLink,
+    unit_id: u8,
+    job_timeout: Duration,
+    next_job_id: u16,
+}
+
+impl ModbusNcWriter {
+    /// A writer on `link` addressing unit `unit_id`.
+    pub fn new(link: ModbusLink, unit_id: u8, job_timeout: Duration) -> Self {
+        Self {
+            link,
+            unit_id,
+            job_timeout,
+            next_job_id: 1,
+        }
+    }
+
+    async fn read_holding(&mut self, start: u16, count: u16) -> Result<Vec<u16>, NcError> {
+        Ok(self
+            .link
+            .read(self.unit_id, RegisterKind::Holding, start, count)
+            .await?)
+    }
+
+    async fn state(&mut self) -> Result<JobState, NcError> {
+        let r = self.read_holding(ncmap::STATE, 1).await?;
+        let v = r.first().copied().unwrap_or(u16::MAX);
+        JobState::from_u16(v).ok_or_else(|| NcError::Protocol(format!("STATE = {v}")))
+    }
+
+    /// Waits until `done(state)` or the deadline; the module is polled briefly
+    /// because a job takes one or two IPO cycles.
+    async fn wait_state(
+        &mut self,
+        deadline: Instant,
+        job_id: u16,
+        done: impl Fn(JobState) -> bool,
+    ) -> Result<JobState, NcError> {
+        loop {
+            let s = self.state().await?;
+            if done(s) {
+                return Ok(s);
+            }
+            if Instant::now() >= deadline {
+                return Err(NcError::JobTimeout {
+                    job_id,
+                    timeout: self.job_timeout,
+                    state: Some(s),
+                });
+            }
+            tokio::time::sleep(Duration::from_millis(2)).await;
+        }
+    }
+
+    async fn run_job(&mut self, job: &Job, job_id: u16, deadline: Instant) -> Result<(), NcError> {
+        // A job left unacknowledged by an earlier run (crash, timeout) is cleared
+        // first; a busy module is waited for, never interrupted.
+        if self.state().await? != JobState::Idle {
+            self.link.write(self.unit_id, ncmap::REQ, &[0]).await?;
+            self.wait_state(deadline, job_id, |s| s == JobState::Idle)
+                .await?;
+        }
+        let mut block = vec![job_id, job.pairs.len() as u16];
+        for (var_id, value) in &job.pairs {
+            block.push(*var_id);
+            block.extend_from_slice(&ncmap::f64_to_regs(*value));
+        }
+        self.link.write(self.unit_id, ncmap::JOB_ID, &block).await?;
+        self.link.write(self.unit_id, ncmap::REQ, &[1]).await?;
+        self.wait_state(deadline, job_id, |s| {
+            matches!(s, JobState::Done | JobState::Error)
+        })
+        .await?;
+        let r = self
+            .read_holding(ncmap::STATE, ncmap::JOB_ID_DONE - ncmap::STATE + 1)
+            .await?;
+        let reg = |a: u16| r[usize::from(a - ncmap::STATE)];
+        // Acknowledge before judging, so the module is idle whatever happens next.
+        self.link.write(self.unit_id, ncmap::REQ, &[0]).await?;
+        if reg(ncmap::JOB_ID_DONE) != job_id {
+            return Err(NcError::Protocol(format!(
+                "JOB_ID_DONE = {}, expected {job_id}",
+                reg(ncmap::JOB_ID_DONE)
+            )));
+        }
+        let status = JobStatus::from_u16(reg(ncmap::STATUS))
+            .ok_or_else(|| NcError::Protocol(format!("STATUS = {}", reg(ncmap::STATUS))))?;
+        if reg(ncmap::ERROR) != 0 || status != JobStatus::Ok {
+            return Err(NcError::Refused {
+                job_id,
+                status,
+                index: reg(ncmap::ERROR_INDEX),
+            });
+        }
+        self.verify(job).await
+    }
+
+    async fn verify(&mut self, job: &Job) -> Result<(), NcError> {
+        let rb = self
+            .read_holding(ncmap::READBACK, ncmap::RB_VALUES_LEN)
+            .await?;
+        for (var_id, written) in &job.pairs {
+            if let Some(addr) = readback_address(*var_id) {
+                let read = f64_at(&rb, ncmap::READBACK, addr)?;
+                if read.to_bits() != written.to_bits() {
+                    return Err(NcError::ReadBack {
+                        var: *var_id,
+                        written: *written,
+                        read,
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+impl NcWriter for ModbusNcWriter {
+    fn has_axis_state(&self) -> bool {
+        true
+    }
+
+    async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
+        if job.pairs.is_empty() || job.pairs.len() > ncmap::MAX_PAIRS {
+            return Err(NcError::InvalidJob(format!(
+                "{} pairs; a job carries 1 to {}",
+                job.pairs.len(),
+                ncmap::MAX_PAIRS
+            )));
+        }
+        let job_id = self.next_job_id;
+        // Skip 0 so a fresh module's JOB_ID_DONE = 0 never matches.
+        self.next_job_id = self.next_job_id.checked_add(1).unwrap_or(1);
+        let started = Instant::now();
+        let deadline = started + self.job_timeout;
+        match tokio::time::timeout_at(deadline, self.run_job(job, job_id, deadline)).await {
+            Ok(Ok(())) => Ok(JobReport {
+                job_id,
+                elapsed: started.elapsed(),
+            }),
+            Ok(Err(e)) => Err(e),
+            Err(_) => {
+                // Cut off mid-request: the stream may hold a late reply.
+                self.link.disconnect();
+                Err(NcError::JobTimeout {
+                    job_id,
+                    timeout: self.job_timeout,
+                    state: None,
+                })
+            }
+        }
+    }
+
+    async fn read_snapshot(&mut self) -> Result<NcSnapshot, NcError> {
+        let base = ncmap::READBACK;
+        // Two requests: 136..139 are not in the map, and a module serving exactly the
+        // map refuses a read that spans them.
+        let rb = self.read_holding(base, ncmap::RB_VALUES_LEN).await?;
+        let flags = self
+            .read_holding(ncmap::RB_FLAGS, ncmap::RB_FLAGS_LEN)
+            .await?;
+        let u = |a: u16| {
+            flags
+                .get(usize::from(a - ncmap::RB_FLAGS))
+                .copied()
+                .unwrap_or(0)
+        };
+        Ok(NcSnapshot {
+            sd43900_mm: f64_at(&rb, base, ncmap::RB_SD43900)?,
+            sd43910: f64_at(&rb, base, ncmap::RB_SD43910)?,
+            sd43920_mm: f64_at(&rb, base, ncmap::RB_SD43920)?,
+            md32760: f64_at(&rb, base, ncmap::RB_MD32760)?,
+            max_ax_velo_mm_per_min: f64_at(&rb, base, ncmap::RB_MAX_AX_VELO)?,
+            md32450_mm: f64_at(&rb, base, ncmap::RB_MD32450)?,
+            position_mm: f64_at(&rb, base, ncmap::RB_POSITION)?,
+            applied_comp_mm: f64_at(&rb, base, ncmap::RB_APPLIED_COMP)?,
+            target_comp_mm: f64_at(&rb, base, ncmap::RB_TARGET_COMP)?,
+            md32750: u(ncmap::RB_MD32750),
+            referenced: u(ncmap::RB_REFERENCED) != 0,
+        })
+    }
+}
+
+/// `[targets.NAME]` with `kind = "modbus"` (or the older `[nc_modules.NAME]`): an
+/// NC axis module reached over Modbus TCP (one axis per module; see
+/// `compgate_ncproto`).
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ModbusTargetConfig {
+    /// `host:port` of the module's Modbus TCP interface. Required; at most
+    /// 300 characters. Port 0 is accepted
+    /// only because the embedded demo replaces it with the port its simulator bound.
+    #[schemars(length(max = 300))]
+    pub address: String,
+    /// Modbus unit id, 0..=247. Required.
+    #[schemars(range(max = 247))]
+    pub unit_id: u8,
+    /// Seconds one Modbus request may take. Default 1.0; 0.001..=3600.
+    #[serde(default = "default_nc_timeout_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
+    pub timeout_s: f64,
+    /// Seconds a TCP connect may take. Default 2.0; 0.001..=3600.
+    #[serde(default = "default_connect_timeout_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
+    pub connect_timeout_s: f64,
+    /// Seconds the whole FB3 job (REQ .. DONE/ERROR) may take. Default 2.0;
+    /// 0.001..=3600.
+    #[serde(default = "default_job_timeout_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
+    pub job_timeout_s: f64,
+}
+
+impl ModbusTargetConfig {
+    /// `timeout_s` as a [`Duration`].
+    pub fn timeout(&self) -> Duration {
+        secs(self.timeout_s)
+    }
+    /// `connect_timeout_s` as a [`Duration`].
+    pub fn connect_timeout(&self) -> Duration {
+        secs(self.connect_timeout_s)
+    }
+    /// `job_timeout_s` as a [`Duration`].
+    pub fn job_timeout(&self) -> Duration {
+        secs(self.job_timeout_s)
+    }
+
+    /// `address` is `host:port`, unit id 0..=247, every time > 0.
+    pub fn validate(&self, key: &str, out: &mut Problems<'_>) {
+        let k = |f: &str| format!("{key}.{f}");
+        out.host_port(&k("address"), &self.address);
+        out.unit_id(&k("unit_id"), self.unit_id);
+        out.positive(&k("timeout_s"), self.timeout_s, "seconds");
+        out.positive(&k("connect_timeout_s"), self.connect_timeout_s, "seconds");
+        out.positive(&k("job_timeout_s"), self.job_timeout_s, "seconds");
+    }
+
+    /// The writer of the module's one axis (not connected yet; connects on first use
+    /// and reconnects with a backoff of 0.5 s doubling to 10 s). The module carries
+    /// one axis, so `axis_name` and `axis_number` select nothing.
+    pub fn build(&self, _axis_name: &str, _axis_number: u16) -> Result<ModbusNcWriter, NcError> {
+        Ok(self.writer())
+    }
+
+    /// The module's job writer (not connected yet).
+    pub fn writer(&self) -> ModbusNcWriter {
+        let link = ModbusLink::new(
+            LinkSpec::Tcp {
+                address: self.address.clone(),
+                connect_timeout: self.connect_timeout(),
+            },
+            self.timeout(),
+            Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
+        );
+        ModbusNcWriter::new(link, self.unit_id, self.job_timeout())
+    }
+}
+
+fn default_nc_timeout_s() -> f64 {
+    1.0
+}
+fn default_connect_timeout_s() -> f64 {
+    2.0
+}
+fn default_job_timeout_s() -> f64 {
+    2.0
+}
