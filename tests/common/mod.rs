@@ -3,6 +3,7 @@
 #![allow(dead_code)]
 
 pub mod broker;
+pub mod peer;
 pub mod process;
 pub mod proxy;
 

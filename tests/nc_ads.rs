@@ -1,0 +1,190 @@
+//! The ADS target against pyads' own test server (tests/peers/ads_server.py): the full
+//! chain lands bit for bit, and each guarantee of the target path holds on it.
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use std::time::Duration;
+
+use ads::{AmsAddr, Source, Timeouts};
+use common::peer::{self, Peer};
+use common::{config, start, COUNT_DEGC};
+
+/// Where the values sit for axis number 1: index group 0x5000 + axis, offsets 0, 8, 16.
+const GROUP: u32 = 0x5001;
+
+/// The test peer with the three values of axis 1 (`kind`: `"lreal"` or `"real"`)
+/// holding `k0`, 0 and 100; `more` are extra arguments.
+fn ads_peer(kind: &str, k0: f64, more: &[&str]) -> Option<Peer> {
+    let mut args: Vec<String> = [(0, k0), (8, 0.0), (16, 100.0)]
+        .iter()
+        .flat_map(|(o, v)| [format!("--{kind}"), format!("{GROUP:#x}:{o}={v}")])
+        .collect();
+    args.extend(more.iter().map(|s| s.to_string()));
+    peer::start("ads_server.py", &args)
+}
+
+/// The common test config with its NC module replaced by an ADS target at `address`.
+fn ads_config(address: &str, target_extra: &str) -> String {
+    let base = config("hold", "", "");
+    let start = base.find("[nc_modules.nc_x]").unwrap();
+    let end = start + base[start..].find("\n\n").unwrap();
+    let sim = base.find("[sim.nc_modules.nc_x]").unwrap();
+    let at = |o: u32| format!("{{ index_group = 0x5000, index_offset = {o}, group_per_axis = 1 }}");
+    let target = format!(
+        "[targets.nc_x]\nkind = \"ads\"\naddress = \"{address}\"\nams_net_id = \"127.0.0.1.1.1\"\n\
+         timeout_s = 1.0\njob_timeout_s = 1.0\nsd43900 = {}\nsd43910 = {}\nsd43920 = {}\n{target_extra}",
+        at(0),
+        at(8),
+        at(16)
+    );
+    format!("{}{target}{}", &base[..start], &base[end..sim])
+        .replace("nc_module = \"nc_x\"\n", "nc_module = \"nc_x\"\naxis_number = 1\n")
+}
+
+/// What the peer holds at `offset` of axis 1, read with a client of the test's own.
+fn held(peer: &Peer, offset: u32, real: bool) -> f64 {
+    let client = ads::Client::new(
+        peer.address(),
+        Timeouts::new(Duration::from_secs(1)),
+        Source::Auto,
+    )
+    .unwrap();
+    let dev = client.device(AmsAddr::new("127.0.0.1.1.1".parse().unwrap(), 851));
+    if real {
+        let mut b = [0; 4];
+        dev.read_exact(GROUP, offset, &mut b).unwrap();
+        f64::from(f32::from_le_bytes(b))
+    } else {
+        let mut b = [0; 8];
+        dev.read_exact(GROUP, offset, &mut b).unwrap();
+        f64::from_le_bytes(b)
+    }
+}
+
+fn value(s: &compgate_gateway::runtime::Status, ch: &str) -> f64 {
+    common::Rig::channel(s, ch).reading.value_degc.unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn full_chain_lands_bit_for_bit_on_the_ads_peer() {
+    for (kind, real) in [("lreal", false), ("real", true)] {
+        let Some(peer) = ads_peer(kind, 0.0, &[]) else {
+            return;
+        };
+        let cfg = ads_config(&peer.address(), &format!("value_type = \"{kind}\"\n"));
+        let mut rig = start(&cfg).await;
+        let s = rig
+            .wait_for(10.0, "a verified job on the ADS peer", |s| {
+                s.axes[0].jobs_ok >= 1
+            })
+            .await;
+        let written = s.axes[0].written.unwrap();
+        let t_bed = value(&s, "T_bed");
+        let t_screw = value(&s, "T_screw");
+        assert!((t_bed - 30.0).abs() <= COUNT_DEGC, "T_bed {t_bed}");
+        assert!((written.k0_mm - 0.004 * (t_bed - 20.0)).abs() < 1e-12);
+        assert!((written.tan_beta - 0.0000115 * (t_screw - 20.0)).abs() < 1e-15);
+        let stored = |x: f64| if real { f64::from(x as f32) } else { x };
+        let peer_k0 = held(&peer, 0, real);
+        // Bit for bit: LREAL holds the f64 written, REAL its float32 rounding.
+        assert_eq!(peer_k0.to_bits(), stored(written.k0_mm).to_bits(), "{kind}");
+        assert_eq!(
+            held(&peer, 8, real).to_bits(),
+            stored(written.tan_beta).to_bits(),
+            "{kind}"
+        );
+        assert_eq!(held(&peer, 16, real), 100.0);
+        let fin = rig.stop().await;
+        assert_eq!(fin.axes[0].jobs_failed, 0, "{:?}", fin.axes[0].last_job_error);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_refused_write_is_reported_retried_and_not_taken_as_written() {
+    // SD43910 is read-only on this control: the sum-up write is refused as a whole.
+    let Some(peer) = ads_peer("lreal", 0.0, &["--read-only", "0x5001:8"]) else {
+        return;
+    };
+    let mut rig = start(&ads_config(&peer.address(), "")).await;
+    let s = rig
+        .wait_for(10.0, "two refused jobs", |s| s.axes[0].jobs_failed >= 2)
+        .await;
+    let err = s.axes[0].last_job_error.clone().unwrap();
+    assert!(err.contains("ADS error 0x704"), "{err}");
+    assert!(err.contains("SD43910"), "{err}");
+    assert_eq!(s.axes[0].jobs_ok, 0);
+    // Not confirmed: the gateway still shows what the control held at start.
+    assert_eq!(s.axes[0].written.unwrap().k0_mm, 0.0);
+    assert_eq!(held(&peer, 0, false), 0.0);
+    rig.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn step_limits_start_from_what_the_control_holds() {
+    // The control holds K0 = 0.3 mm; the model wants 0.04 mm; one step is 0.01 mm.
+    let Some(peer) = ads_peer("lreal", 0.3, &[]) else {
+        return;
+    };
+    let cfg = ads_config(&peer.address(), "").replace(
+        "max_step_k0_mm = 0.5",
+        "max_step_k0_mm = 0.01",
+    );
+    let mut rig = start(&cfg).await;
+    let s = rig
+        .wait_for(10.0, "a first job", |s| s.axes[0].jobs_ok >= 1)
+        .await;
+    let first = held(&peer, 0, false);
+    assert!(
+        (first - 0.29).abs() < 0.0100001 && first < 0.3,
+        "first write {first} is one step from 0.3, not the model's 0.04"
+    );
+    assert!(s.axes[0].written.unwrap().k0_mm >= 0.28);
+    rig.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_slow_control_hits_the_job_timeout() {
+    // Every answer takes 0.15 s: a job (write + three reads) needs 0.6 s of a 0.4 s
+    // job timeout.
+    let Some(peer) = ads_peer("lreal", 0.0, &["--delay-s", "0.15"]) else {
+        return;
+    };
+    let cfg = ads_config(&peer.address(), "").replace("job_timeout_s = 1.0", "job_timeout_s = 0.4");
+    let mut rig = start(&cfg).await;
+    let s = rig
+        .wait_for(15.0, "a job timeout", |s| {
+            s.axes[0]
+                .last_job_error
+                .as_deref()
+                .is_some_and(|e| e.contains("did not finish within 400ms"))
+        })
+        .await;
+    assert_eq!(s.axes[0].jobs_ok, 0);
+    rig.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dead_control_never_stops_the_polling() {
+    // Nothing listens there.
+    let dead = format!("127.0.0.1:{}", common::free_port());
+    let mut rig = start(&ads_config(&dead, "")).await;
+    let s = rig
+        .wait_for(10.0, "the target shown unreachable", |s| {
+            s.axes[0]
+                .warning
+                .as_deref()
+                .is_some_and(|w| w.contains("NC unreachable"))
+        })
+        .await;
+    let before = s.samples;
+    let s = rig
+        .wait_for(10.0, "20 more samples", |s| s.samples >= before + 20)
+        .await;
+    assert_eq!(
+        common::Rig::channel(&s, "T_bed").reading.quality,
+        compgate_core::channel::Quality::Good
+    );
+    assert_eq!(s.axes[0].jobs_ok, 0);
+    rig.stop().await;
+}
