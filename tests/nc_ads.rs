@@ -38,8 +38,10 @@ fn ads_config(address: &str, target_extra: &str) -> String {
         at(8),
         at(16)
     );
-    format!("{}{target}{}", &base[..start], &base[end..sim])
-        .replace("nc_module = \"nc_x\"\n", "nc_module = \"nc_x\"\naxis_number = 1\n")
+    format!("{}{target}{}", &base[..start], &base[end..sim]).replace(
+        "nc_module = \"nc_x\"\n",
+        "nc_module = \"nc_x\"\naxis_number = 1\n",
+    )
 }
 
 /// What the peer holds at `offset` of axis 1, read with a client of the test's own.
@@ -96,7 +98,11 @@ async fn full_chain_lands_bit_for_bit_on_the_ads_peer() {
         );
         assert_eq!(held(&peer, 16, real), 100.0);
         let fin = rig.stop().await;
-        assert_eq!(fin.axes[0].jobs_failed, 0, "{:?}", fin.axes[0].last_job_error);
+        assert_eq!(
+            fin.axes[0].jobs_failed, 0,
+            "{:?}",
+            fin.axes[0].last_job_error
+        );
     }
 }
 
@@ -126,10 +132,8 @@ async fn step_limits_start_from_what_the_control_holds() {
     let Some(peer) = ads_peer("lreal", 0.3, &[]) else {
         return;
     };
-    let cfg = ads_config(&peer.address(), "").replace(
-        "max_step_k0_mm = 0.5",
-        "max_step_k0_mm = 0.01",
-    );
+    let cfg =
+        ads_config(&peer.address(), "").replace("max_step_k0_mm = 0.5", "max_step_k0_mm = 0.01");
     let mut rig = start(&cfg).await;
     let s = rig
         .wait_for(10.0, "a first job", |s| s.axes[0].jobs_ok >= 1)

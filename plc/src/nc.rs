@@ -338,6 +338,8 @@ struct ModuleState {
     servo_carry_s: f64,
     /// Set once a move programme ran: `RB_POSITION` then shows the scale position.
     servo_drives_position: bool,
+    /// Reads including 136..139 are refused (see `set_documented_only`).
+    documented_only: bool,
 }
 
 /// Most servo cycles one request advances (guards a huge simulation speed).
@@ -648,7 +650,10 @@ impl ModuleState {
         let job_len = usize::from(ncmap::JOB_BLOCK_LEN);
         let rb_start = usize::from(ncmap::READBACK);
         let rb_end = rb_start + usize::from(ncmap::READBACK_LEN);
-        if end <= job_len {
+        let gap = usize::from(ncmap::READBACK + ncmap::RB_VALUES_LEN)..usize::from(ncmap::RB_FLAGS);
+        if self.documented_only && start < gap.end && gap.start < end {
+            Err(ExceptionCode::IllegalDataAddress)
+        } else if end <= job_len {
             Ok(self.job_regs[start..end].to_vec())
         } else if start >= rb_start && end <= rb_end {
             Ok(self.axis.readback_regs()[start - rb_start..end - rb_start].to_vec())
@@ -719,6 +724,7 @@ impl NcAxisModule {
             servo_clock: None,
             servo_carry_s: 0.0,
             servo_drives_position: false,
+            documented_only: false,
         };
         Self {
             shared: Arc::new(Shared {
@@ -772,6 +778,13 @@ impl NcAxisModule {
         let mut state = self.lock();
         state.advance_servo(Instant::now());
         f(&mut state.servo)
+    }
+
+    /// Serves exactly the documented read-back registers: a read that includes one of
+    /// 136..139 (not in the map) is answered with exception 2, as a module written
+    /// from the map alone does. Off by default (reads of 100..141 in one request work).
+    pub fn set_documented_only(&self, on: bool) {
+        self.lock().documented_only = on;
     }
 
     /// `STATE` of the job block.

@@ -61,7 +61,9 @@ pub fn start(script: &str, args: &[String]) -> Option<Peer> {
         .expect("peer starts");
     let out = child.stdout.take().expect("stdout");
     let mut line = String::new();
-    BufReader::new(out).read_line(&mut line).expect("peer prints its port");
+    BufReader::new(out)
+        .read_line(&mut line)
+        .expect("peer prints its port");
     let port = line
         .trim()
         .strip_prefix("PORT ")
