@@ -35,6 +35,8 @@ pub enum Command {
         #[arg(long, short)]
         config: PathBuf,
     },
+    /// Read or write an axis's compensation values on its NC target (first dry-run).
+    Nc(crate::nc::NcArgs),
     /// Write recorded operation as the measurement CSV that calibrate and diagnose read.
     Export(compgate_service::record::export::ExportArgs),
     /// Fit K0(T) and tan(beta)(T) to measured error curves and write the axis model.
@@ -68,6 +70,7 @@ const GROUPS: [(&str, &[&str]); 3] = [
     (
         "Commissioning",
         &[
+            "nc",
             "calibrate",
             "diagnose",
             "iso230",

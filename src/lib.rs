@@ -24,12 +24,14 @@
 //!
 //! Modules of this package:
 //! - [`cli`]: the command line.
+//! - [`nc`]: `compgate nc read` / `nc write`, commissioning a real control.
 //! - `plant` (feature `sim`): the simulated plant for a config (demo, `sim`, tests) and
 //!   the simulated axis of `backlash --sim`.
 //! - `scenario` (feature `sim`): `compgate scenario`, the simulated machine's thermal
 //!   test with the real gateway in the loop, compensation off against on.
 
 pub mod cli;
+pub mod nc;
 #[cfg(feature = "sim")]
 pub mod plant;
 #[cfg(feature = "sim")]

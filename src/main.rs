@@ -76,6 +76,7 @@ async fn run(log: Option<String>, command: Command) -> ExitCode {
                 .map_err(|e| e.to_string()),
             Err(e) => Err(e.to_string()),
         },
+        Command::Nc(args) => compgate::nc::run(&args).await,
         Command::Validate { config: path } => match config::load(&path) {
             Ok(_) => {
                 println!("{}: OK", path.display());

@@ -43,6 +43,13 @@ impl NcWriter for AnyNcWriter {
         }
     }
 
+    async fn may_write(&mut self) -> Result<Option<bool>, NcError> {
+        match self {
+            Self::Modbus(w) => w.may_write().await,
+            Self::Ads(w) => w.may_write().await,
+        }
+    }
+
     fn precision(&self) -> Precision {
         match self {
             Self::Modbus(w) => w.precision(),
@@ -157,6 +164,10 @@ impl<W: NcWriter> NcWriter for Guarded<W> {
 
     async fn read_snapshot(&mut self) -> Result<NcSnapshot, NcError> {
         self.writer.read_snapshot().await
+    }
+
+    async fn may_write(&mut self) -> Result<Option<bool>, NcError> {
+        self.writer.may_write().await
     }
 
     fn precision(&self) -> Precision {

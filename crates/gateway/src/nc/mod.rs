@@ -16,11 +16,12 @@ pub mod modbus;
 use std::future::Future;
 use std::time::Duration;
 
-use compgate_ncproto::{var, JobState, JobStatus};
+use compgate_ncproto::{JobState, JobStatus};
 
 use crate::source::SourceError;
 use compgate_core::comp::CompParams;
 
+pub use compgate_ncproto::var;
 pub use guard::{AnyNcWriter, Guarded};
 pub use modbus::ModbusNcWriter;
 
@@ -219,6 +220,11 @@ pub trait NcWriter: Send {
     /// Reads what the NC shows of the axis. A value the target does not have stays at
     /// its default.
     fn read_snapshot(&mut self) -> impl Future<Output = Result<NcSnapshot, NcError>> + Send;
+    /// Whether this connection may write the values, when the target can tell
+    /// (an OPC UA session's access level); `None` when it cannot. Default: `None`.
+    fn may_write(&mut self) -> impl Future<Output = Result<Option<bool>, NcError>> + Send {
+        std::future::ready(Ok(None))
+    }
     /// How the target stores the values (the read-back tolerance). Default: f64.
     fn precision(&self) -> Precision {
         Precision::F64

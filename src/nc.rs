@@ -1,0 +1,233 @@
+//! `compgate nc read` and `compgate nc write`: the first look at a real control and the
+//! first dry-run write, through the same guarded writer the gateway uses.
+
+use std::io::{BufRead, Write};
+use std::path::PathBuf;
+
+use clap::{Args, Subcommand};
+use compgate_gateway::config::{self, Config};
+use compgate_gateway::nc::{var, Guarded, Job, NcSnapshot, NcWriter};
+
+/// `compgate nc`: read or write an axis's compensation values on its target.
+#[derive(Debug, Args)]
+pub struct NcArgs {
+    /// What to do.
+    #[command(subcommand)]
+    pub command: NcCommand,
+}
+
+/// `compgate nc` subcommands.
+#[derive(Debug, Subcommand)]
+pub enum NcCommand {
+    /// Connect and print each axis's SD43900/43910/43920 as the target holds them now.
+    Read {
+        /// Configuration file (TOML).
+        #[arg(long, short)]
+        config: PathBuf,
+        /// Only the axes on this target.
+        #[arg(long)]
+        target: Option<String>,
+    },
+    /// Show the change (old -> new) and write it once after confirmation.
+    Write {
+        /// Configuration file (TOML).
+        #[arg(long, short)]
+        config: PathBuf,
+        /// The axis (a name in [axes]).
+        #[arg(long)]
+        axis: String,
+        /// New SD43900 (K0), mm.
+        #[arg(long, allow_negative_numbers = true)]
+        k0_mm: f64,
+        /// New SD43910 (tan(beta)), mm/mm; unchanged when omitted.
+        #[arg(long, allow_negative_numbers = true)]
+        tan_beta: Option<f64>,
+        /// New SD43920 (P0), mm; unchanged when omitted.
+        #[arg(long, allow_negative_numbers = true)]
+        p0_mm: Option<f64>,
+        /// Write without asking.
+        #[arg(long)]
+        yes: bool,
+    },
+}
+
+/// Runs `compgate nc`; the text is printed as it goes.
+pub async fn run(args: &NcArgs) -> Result<(), String> {
+    match &args.command {
+        NcCommand::Read { config, target } => read(&load(config)?, target.as_deref()).await,
+        NcCommand::Write {
+            config,
+            axis,
+            k0_mm,
+            tan_beta,
+            p0_mm,
+            yes,
+        } => {
+            let cfg = load(config)?;
+            let change = [
+                (var::SD43900, Some(*k0_mm)),
+                (var::SD43910, *tan_beta),
+                (var::SD43920, *p0_mm),
+            ];
+            write(&cfg, axis, &change, *yes).await
+        }
+    }
+}
+
+fn load(path: &PathBuf) -> Result<Config, String> {
+    config::load(path).map_err(|e| e.to_string())
+}
+
+/// The guarded writer of `axis`, and a line naming it.
+fn writer(cfg: &Config, axis: &str) -> Result<(Guarded, String), String> {
+    let ax = cfg.axes.get(axis).ok_or_else(|| {
+        let names: Vec<&str> = cfg.axes.keys().map(String::as_str).collect();
+        format!(
+            "no axis `{axis}` in [axes]; there are: {}",
+            names.join(", ")
+        )
+    })?;
+    let target = cfg
+        .target(&ax.nc_module)
+        .ok_or_else(|| format!("axes.{axis}.nc_module: no target `{}`", ax.nc_module))?;
+    let w = target
+        .build(axis, ax.axis_number.unwrap_or(0))
+        .map_err(|e| format!("axes.{axis}: {e}"))?;
+    let label = match ax.axis_number {
+        Some(n) => format!(
+            "axis {axis} (axis {n} on target {}, kind = {})",
+            ax.nc_module,
+            target.kind().name()
+        ),
+        None => format!(
+            "axis {axis} (target {}, kind = {})",
+            ax.nc_module,
+            target.kind().name()
+        ),
+    };
+    Ok((
+        Guarded::new(w, ax.nc_write_ids(), target.job_timeout()),
+        label,
+    ))
+}
+
+fn values(s: &NcSnapshot) -> String {
+    format!(
+        "SD43900 = {} mm, SD43910 = {}, SD43920 = {} mm",
+        s.sd43900_mm, s.sd43910, s.sd43920_mm
+    )
+}
+
+async fn read(cfg: &Config, target: Option<&str>) -> Result<(), String> {
+    if let Some(t) = target {
+        if cfg.target(t).is_none() {
+            return Err(format!("no target `{t}` in [targets] or [nc_modules]"));
+        }
+    }
+    let mut failed = 0;
+    let mut shown = 0;
+    for (name, ax) in &cfg.axes {
+        if target.is_some_and(|t| t != ax.nc_module) {
+            continue;
+        }
+        shown += 1;
+        let (mut w, label) = writer(cfg, name)?;
+        match w.read_snapshot().await {
+            Ok(s) => {
+                println!("{label}: {}", values(&s));
+                if w.has_axis_state() {
+                    println!(
+                        "  MD32750 = {}, referenced = {}, applied compensation = {} mm",
+                        s.md32750, s.referenced, s.applied_comp_mm
+                    );
+                }
+                match w.may_write().await {
+                    Ok(Some(true)) => println!("  this session may write them"),
+                    Ok(Some(false)) => println!("  this session may NOT write them"),
+                    Ok(None) => {}
+                    Err(e) => println!("  write access unknown: {e}"),
+                }
+            }
+            Err(e) => {
+                failed += 1;
+                println!("{label}: {e}");
+            }
+        }
+    }
+    if shown == 0 {
+        return Err("no axis to read".into());
+    }
+    if failed > 0 {
+        return Err(format!("{failed} of {shown} axes could not be read"));
+    }
+    Ok(())
+}
+
+async fn write(
+    cfg: &Config,
+    axis: &str,
+    change: &[(u16, Option<f64>)],
+    yes: bool,
+) -> Result<(), String> {
+    let (mut w, label) = writer(cfg, axis)?;
+    let ax = &cfg.axes[axis];
+    // The axis's own limits hold for a value typed by hand too.
+    for &(v, value) in change {
+        let Some(x) = value else { continue };
+        let limit = match v {
+            var::SD43900 => Some(("--k0-mm", ax.max_abs_k0_mm)),
+            var::SD43910 => Some(("--tan-beta", ax.max_abs_tan_beta)),
+            _ => None,
+        };
+        if !x.is_finite() {
+            return Err(format!("{x} is not a finite number; nothing was written"));
+        }
+        if let Some((flag, max)) = limit {
+            if x.abs() > max {
+                return Err(format!(
+                    "{flag} {x}: beyond the axis's limit of {max} (axes.{axis}); nothing was written"
+                ));
+            }
+        }
+    }
+    let old = w
+        .read_snapshot()
+        .await
+        .map_err(|e| format!("{label}: {e}"))?;
+    let held = |v: u16| match v {
+        var::SD43900 => old.sd43900_mm,
+        var::SD43910 => old.sd43910,
+        _ => old.sd43920_mm,
+    };
+    println!("{label}:");
+    let mut job = Job { pairs: Vec::new() };
+    for &(v, value) in change {
+        let Some(x) = value else { continue };
+        println!(
+            "  {}: {} -> {x}",
+            compgate_gateway::nc::var_name(v),
+            held(v)
+        );
+        job.pairs.push((v, x));
+    }
+    w.check(&job).map_err(|e| e.to_string())?;
+    if !yes {
+        print!("write? [y/N] ");
+        std::io::stdout().flush().map_err(|e| e.to_string())?;
+        let mut answer = String::new();
+        std::io::stdin()
+            .lock()
+            .read_line(&mut answer)
+            .map_err(|e| e.to_string())?;
+        if !matches!(answer.trim(), "y" | "Y" | "yes") {
+            println!("nothing written");
+            return Ok(());
+        }
+    }
+    let report = w.write_job(&job).await.map_err(|e| e.to_string())?;
+    println!(
+        "written and read back in {:.1} ms",
+        report.elapsed.as_secs_f64() * 1e3
+    );
+    Ok(())
+}
