@@ -2,7 +2,7 @@
 //! first dry-run write, through the same guarded writer the gateway uses.
 
 use std::io::{BufRead, Write};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use clap::{Args, Subcommand};
 use compgate_gateway::config::{self, Config};
@@ -74,7 +74,7 @@ pub async fn run(args: &NcArgs) -> Result<(), String> {
     }
 }
 
-fn load(path: &PathBuf) -> Result<Config, String> {
+fn load(path: &Path) -> Result<Config, String> {
     config::load(path).map_err(|e| e.to_string())
 }
 
