@@ -3,8 +3,10 @@
 //! - `cycle`: full poll-filter-compute cycles against the bare Modbus request rate.
 //! - `soak`: the `compgate` binary as a real process against simulated field modules,
 //!   with recording, metrics and MQTT on; CPU and RSS over time.
+//! - `nc`: NC job latency per target kind against its peer (p50/p99).
 
 mod cycle;
+mod nc;
 mod soak;
 mod volumetric;
 
@@ -46,6 +48,15 @@ enum Command {
         #[arg(long)]
         compgate: Option<PathBuf>,
     },
+    /// NC job latency (write + verified read-back) per target kind against its peer.
+    Nc {
+        /// Measured jobs per kind.
+        #[arg(long, default_value_t = 1000)]
+        jobs: usize,
+        /// Python interpreter of the peers; default target/peers-venv/bin/python.
+        #[arg(long)]
+        python: Option<PathBuf>,
+    },
 }
 
 /// The `compgate` binary that cargo built beside this one.
@@ -86,6 +97,12 @@ fn main() -> ExitCode {
             .map_or_else(sibling_compgate, Ok)
             .and_then(|exe| soak::run(seconds, &exe))
             .map(|report| print!("{report}")),
+        Command::Nc { jobs, python } => tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| format!("cannot start the async runtime: {e}"))
+            .and_then(|rt| rt.block_on(nc::run(jobs, python)))
+            .map(|outcomes| print!("{}", nc::table(&outcomes))),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -1,0 +1,246 @@
+//! `compgate-bench nc`: NC job latency per target kind against its peer on loopback, a
+//! job being what the gateway counts as written: the write and the guard's read-back.
+//!
+//! Peers: the simulated NC axis module (`modbus`, in process) and pyads' test server
+//! (`ads`, `tests/peers/ads_server.py` run by the peers' Python). A kind whose peer is
+//! missing is reported as skipped, with the reason.
+
+use std::fmt::Write as _;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use compgate_gateway::config::TargetConfig;
+use compgate_gateway::nc::guard::THERMAL_VARS;
+use compgate_gateway::nc::{Guarded, Job, NcWriter};
+use compgate_plc::nc::{NcAxis, NcAxisModule};
+use tokio::time::Instant;
+
+/// Latency figures of one kind.
+#[derive(Debug, Clone, PartialEq)]
+pub struct KindLatency {
+    /// `kind` value.
+    pub kind: &'static str,
+    /// Jobs measured.
+    pub jobs: usize,
+    /// Median, ms.
+    pub p50_ms: f64,
+    /// 99th percentile, ms.
+    pub p99_ms: f64,
+    /// Slowest, ms.
+    pub max_ms: f64,
+}
+
+/// One kind's outcome.
+#[derive(Debug)]
+pub enum Outcome {
+    /// Measured.
+    Measured(KindLatency),
+    /// Not measured, and why.
+    Skipped(&'static str, String),
+}
+
+/// The value of percentile `p` (0..=1) of sorted `v`, nearest rank.
+fn percentile(v: &[f64], p: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let rank = (p * v.len() as f64).ceil() as usize;
+    v[rank.clamp(1, v.len()) - 1]
+}
+
+/// Runs `jobs` thermal jobs (after `warmup` unmeasured ones) through the guarded
+/// writer of `target`, each value different from the last so none is skipped.
+async fn measure(
+    kind: &'static str,
+    target: &TargetConfig,
+    jobs: usize,
+) -> Result<KindLatency, String> {
+    let writer = target.build("X", 1).map_err(|e| format!("{kind}: {e}"))?;
+    let mut w = Guarded::new(writer, THERMAL_VARS.to_vec(), target.job_timeout());
+    w.read_snapshot()
+        .await
+        .map_err(|e| format!("{kind}: first read: {e}"))?;
+    let warmup = 20;
+    let mut ms = Vec::with_capacity(jobs);
+    for i in 0..warmup + jobs {
+        let k0 = 0.001 * (i % 100) as f64;
+        let job = Job {
+            pairs: vec![
+                (THERMAL_VARS[0], k0),
+                (THERMAL_VARS[1], k0 * 1e-3),
+                (THERMAL_VARS[2], 100.0),
+            ],
+        };
+        let t = Instant::now();
+        w.write_job(&job)
+            .await
+            .map_err(|e| format!("{kind}: job {i}: {e}"))?;
+        if i >= warmup {
+            ms.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    ms.sort_by(f64::total_cmp);
+    Ok(KindLatency {
+        kind,
+        jobs,
+        p50_ms: percentile(&ms, 0.5),
+        p99_ms: percentile(&ms, 0.99),
+        max_ms: ms.last().copied().unwrap_or(f64::NAN),
+    })
+}
+
+fn toml_target(text: &str) -> Result<TargetConfig, String> {
+    toml::from_str(text).map_err(|e| format!("bench target config: {e}"))
+}
+
+/// A peer process, killed on drop.
+struct PeerProcess(Child);
+
+impl Drop for PeerProcess {
+    fn drop(&mut self) {
+        drop(self.0.stdin.take());
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Starts `script` under `python`; returns the process and its port.
+fn start_peer(python: &Path, script: &Path, args: &[&str]) -> Result<(PeerProcess, u16), String> {
+    let mut child = Command::new(python)
+        .arg(script)
+        .args(args)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .map_err(|e| format!("{}: {e}", python.display()))?;
+    let out = child.stdout.take().ok_or("peer stdout")?;
+    let peer = PeerProcess(child);
+    let mut line = String::new();
+    BufReader::new(out)
+        .read_line(&mut line)
+        .map_err(|e| format!("peer: {e}"))?;
+    let port = line
+        .trim()
+        .strip_prefix("PORT ")
+        .and_then(|p| p.parse().ok())
+        .ok_or_else(|| format!("{}: expected `PORT <n>`, got {line:?}", script.display()))?;
+    Ok((peer, port))
+}
+
+/// The workspace root (the peers' scripts and interpreter live under it).
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+async fn modbus(jobs: usize) -> Result<KindLatency, String> {
+    let module = NcAxisModule::new(NcAxis {
+        referenced: true,
+        md32750: 3,
+        ..NcAxis::default()
+    });
+    let (address, stop) = module
+        .serve_loopback()
+        .await
+        .map_err(|e| format!("modbus: NC module: {e}"))?;
+    let target = toml_target(&format!(
+        "kind = \"modbus\"\naddress = \"{address}\"\nunit_id = 1\n"
+    ))?;
+    let r = measure("modbus", &target, jobs).await;
+    stop.cancel();
+    r
+}
+
+async fn ads(jobs: usize, python: &Path) -> Result<Outcome, String> {
+    if !python.exists() {
+        return Ok(Outcome::Skipped(
+            "ads",
+            format!(
+                "no peer interpreter at {} (run tests/peers/install.sh)",
+                python.display()
+            ),
+        ));
+    }
+    let script = root().join("tests/peers/ads_server.py");
+    let (_peer, port) = start_peer(
+        python,
+        &script,
+        &[
+            "--lreal",
+            "0x5001:0=0",
+            "--lreal",
+            "0x5001:8=0",
+            "--lreal",
+            "0x5001:16=0",
+        ],
+    )?;
+    let at = |o: u32| format!("{{ index_group = 0x5000, index_offset = {o}, group_per_axis = 1 }}");
+    let target = toml_target(&format!(
+        "kind = \"ads\"\naddress = \"127.0.0.1:{port}\"\nams_net_id = \"127.0.0.1.1.1\"\n\
+         sd43900 = {}\nsd43910 = {}\nsd43920 = {}\n",
+        at(0),
+        at(8),
+        at(16)
+    ))?;
+    // The peer answers from Python threads: give it a moment on a loaded machine.
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    measure("ads", &target, jobs).await.map(Outcome::Measured)
+}
+
+/// Measures every kind with `jobs` jobs each; `python` runs the Python peers (default
+/// `target/peers-venv/bin/python` of the workspace).
+pub async fn run(jobs: usize, python: Option<PathBuf>) -> Result<Vec<Outcome>, String> {
+    let python = python.unwrap_or_else(|| root().join("target/peers-venv/bin/python"));
+    Ok(vec![
+        Outcome::Measured(modbus(jobs).await?),
+        ads(jobs, &python).await?,
+    ])
+}
+
+/// The report table.
+pub fn table(outcomes: &[Outcome]) -> String {
+    let mut s = String::from(
+        "NC job latency per target kind, loopback (a job = the write and its verified read-back)\n\
+         kind      jobs    p50 ms   p99 ms   max ms\n",
+    );
+    for o in outcomes {
+        let _ = match o {
+            Outcome::Measured(k) => writeln!(
+                s,
+                "{:<8} {:>5} {:>9.3} {:>8.3} {:>8.3}",
+                k.kind, k.jobs, k.p50_ms, k.p99_ms, k.max_ms
+            ),
+            Outcome::Skipped(kind, why) => writeln!(s, "{kind:<8} skipped: {why}"),
+        };
+    }
+    s.push_str(
+        "anchors (vendor figures): Neuron 3.2.1 API write 523 ms average, NG Gateway 75.6 ms average\n",
+    );
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percentiles_by_nearest_rank() {
+        let v: Vec<f64> = (1..=100).map(f64::from).collect();
+        assert_eq!(percentile(&v, 0.5), 50.0);
+        assert_eq!(percentile(&v, 0.99), 99.0);
+        assert_eq!(percentile(&[3.0], 0.99), 3.0);
+        assert!(percentile(&[], 0.5).is_nan());
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn modbus_jobs_are_measured() {
+        let k = modbus(30).await.expect("modbus bench");
+        assert_eq!(k.jobs, 30);
+        assert!(
+            k.p50_ms > 0.0 && k.p50_ms <= k.p99_ms && k.p99_ms <= k.max_ms,
+            "{k:?}"
+        );
+    }
+}
