@@ -6,6 +6,7 @@
 //! the REQ/DONE/ERROR/STATE handshake, a job timeout and read-back verification.
 
 pub mod config;
+pub mod opcua;
 
 use std::future::Future;
 use std::time::Duration;
@@ -60,6 +61,31 @@ pub enum NcError {
     /// The job itself is malformed (no pairs or more than eight).
     #[error("invalid job: {0}")]
     InvalidJob(String),
+    /// An OPC UA service, or one node of it, answered with a status other than Good.
+    #[error("OPC UA {service} {target}: {status}")]
+    OpcuaStatus {
+        /// The service ("write", "read").
+        service: &'static str,
+        /// What it addressed ("of NODE", "for axis X1").
+        target: String,
+        /// The status code's name.
+        status: String,
+    },
+    /// The OPC UA session's user may not write the setting data.
+    #[error(
+        "OPC UA write of {node}: BadUserAccessDenied: user {user} lacks the SeaWrite right \
+         (setting data); an administrator grants it by calling the server's method \
+         GiveUserAccess(user, \"SeaWrite\") (Sinumerik/Methods)"
+    )]
+    OpcuaAccessDenied {
+        /// The node refused.
+        node: String,
+        /// The session's user.
+        user: String,
+    },
+    /// The OPC UA target cannot be set up (credentials, namespace, node ids, client).
+    #[error("OPC UA target: {0}")]
+    OpcuaSetup(String),
 }
 
 /// One FB3-style job: up to eight variables written atomically.
