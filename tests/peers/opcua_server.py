@@ -17,6 +17,7 @@ Prints "ENDPOINT <url>" and "NS <index>" on stdout once listening, then reads co
 on stdin, one a line, and answers each with one line:
   dump             VALUES {"<node id>": "<16 hex digits of the f64 bits>", ...}
   delay <seconds>  OK   (every later Write answer is delayed that long)
+With --lossy, written values are kept rounded to float32, so a read-back differs.
   quit             BYE  (then exits; end of stdin exits too)
 """
 
@@ -59,6 +60,7 @@ async def main() -> None:
     ap.add_argument("--namespace-uri", default="SinumerikVarProvider")
     ap.add_argument("--decoys", type=int, default=2, help="namespaces registered before it")
     ap.add_argument("--write-delay-s", type=float, default=0.0, help="delay of every Write answer")
+    ap.add_argument("--lossy", action="store_true", help="keep written values as float32 (a REAL store)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR, stream=sys.stderr)
 
@@ -86,7 +88,14 @@ async def main() -> None:
 
     state = {"delay": args.write_delay_s}
 
-    async def slow_writes(event, _dispatcher):
+    async def before_write(event, _dispatcher):
+        if args.lossy:
+            # A store that keeps REAL (float32): what is read back is not what was written.
+            for wv in event.request_params.NodesToWrite:
+                v = wv.Value.Value
+                if wv.NodeId in nodes and v is not None and v.VariantType == ua.VariantType.Double:
+                    real = struct.unpack(">f", struct.pack(">f", v.Value))[0]
+                    wv.Value = ua.DataValue(ua.Variant(real, ua.VariantType.Double))
         if state["delay"] > 0:
             await asyncio.sleep(state["delay"])
 
@@ -100,7 +109,7 @@ async def main() -> None:
                     level |= ua.AccessLevel.CurrentWrite.mask
                 dv.Value = ua.Variant(level, ua.VariantType.Byte)
 
-    server.subscribe_server_callback(CallbackType.PreWrite, slow_writes)
+    server.subscribe_server_callback(CallbackType.PreWrite, before_write)
     server.subscribe_server_callback(CallbackType.PostRead, user_access_level)
 
     async with server:
