@@ -807,6 +807,10 @@ impl OpcuaNcWriter {
     /// the next call opens a new one.
     fn service_fault(&mut self, service: &'static str, e: opcua::types::Error) -> NcError {
         let status = e.status();
+        let node = self
+            .conn
+            .as_ref()
+            .map_or_else(|| self.templates[0].clone(), |c| c.nodes[0].to_string());
         let lost = self
             .conn
             .as_ref()
@@ -817,7 +821,7 @@ impl OpcuaNcWriter {
         match status {
             StatusCode::BadTimeout => SourceError::Timeout(self.request_timeout).into(),
             StatusCode::BadUserAccessDenied => NcError::OpcuaAccessDenied {
-                node: self.templates[0].clone(),
+                node,
                 user: self.user_label(),
             },
             s if is_session_fault(s) => {
