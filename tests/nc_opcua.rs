@@ -328,3 +328,42 @@ async fn a_value_the_server_does_not_hold_as_written_fails_the_read_back() {
     }
     assert_eq!(held(&mut peer, 1)[0], f64::from(0.1f32).to_bits());
 }
+
+#[tokio::test]
+async fn an_idle_session_is_kept_alive_and_a_closed_one_is_renewed() {
+    let Some(mut peer) = OpcuaPeer::start(&["--min-session-timeout-s", "0.5"]) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = OpcuaTargetConfig {
+        session_timeout_s: 1.0,
+        ..target(&peer, &dir, Some(("writer", "writer-pw")))
+    };
+    let mut w = writer_of(&cfg, 2);
+    let p = |k0_mm: f64| CompParams {
+        k0_mm,
+        tan_beta: 0.0,
+        p0_mm: 0.0,
+    };
+    w.write_job(&Job::thermal(&p(0.001))).await.unwrap();
+    // Idle for more than twice the session timeout: keep-alives must hold it open.
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    w.write_job(&Job::thermal(&p(0.002))).await.unwrap();
+    assert_eq!(w.connects(), 1, "the same session served both jobs");
+
+    // The server closes the session anyway: the writer opens a new one.
+    assert!(peer.expire_sessions() >= 1);
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(15);
+    loop {
+        match w.write_job(&Job::thermal(&p(0.003))).await {
+            Ok(_) => break,
+            Err(e) => assert!(
+                tokio::time::Instant::now() < deadline,
+                "no new session within 15 s: {e}"
+            ),
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert_eq!(w.connects(), 2);
+    assert_eq!(held(&mut peer, 2)[0], 0.003f64.to_bits());
+}

@@ -130,6 +130,12 @@ impl OpcuaPeer {
         self.command(&format!("delay {s}"), "OK");
     }
 
+    /// Closes every client session on the server side, as its session timeout would;
+    /// returns how many there were.
+    pub fn expire_sessions(&mut self) -> usize {
+        self.command("expire", "OK ").parse().unwrap()
+    }
+
     /// The node id of setting datum `name` (e.g. `$SA_TEMP_COMP_SLOPE`) of `axis`.
     pub fn node(&self, name: &str, axis: u16) -> String {
         format!("ns={};s=/NC/_N_AX_SEA_ACX/{name}[u{axis}]", self.ns)

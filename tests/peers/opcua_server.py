@@ -18,6 +18,7 @@ on stdin, one a line, and answers each with one line:
   dump             VALUES {"<node id>": "<16 hex digits of the f64 bits>", ...}
   delay <seconds>  OK   (every later Write answer is delayed that long)
 With --lossy, written values are kept rounded to float32, so a read-back differs.
+  expire           OK <n>  (closes every client session, as a session timeout would)
   quit             BYE  (then exits; end of stdin exits too)
 """
 
@@ -60,12 +61,14 @@ async def main() -> None:
     ap.add_argument("--namespace-uri", default="SinumerikVarProvider")
     ap.add_argument("--decoys", type=int, default=2, help="namespaces registered before it")
     ap.add_argument("--write-delay-s", type=float, default=0.0, help="delay of every Write answer")
+    ap.add_argument("--min-session-timeout-s", type=float, default=5.0, help="shortest session timeout granted")
     ap.add_argument("--lossy", action="store_true", help="keep written values as float32 (a REAL store)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR, stream=sys.stderr)
 
     server = Server(user_manager=Users())
     await server.init()
+    server.iserver.min_session_timeout_ms = args.min_session_timeout_s * 1000
     server.set_endpoint(f"opc.tcp://127.0.0.1:{args.port}/")
     server.set_server_name("compgate test SINUMERIK")
     server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
@@ -130,6 +133,11 @@ async def main() -> None:
             elif cmd[0] == "delay" and len(cmd) == 2:
                 state["delay"] = float(cmd[1])
                 print("OK", flush=True)
+            elif cmd[0] == "expire":
+                sessions = list(server.iserver._external_sessions.values())
+                for session in sessions:
+                    await session.close_session()
+                print(f"OK {len(sessions)}", flush=True)
             elif cmd[0] == "quit":
                 print("BYE", flush=True)
                 break

@@ -571,6 +571,11 @@ async fn drive(
     lost.store(true, Ordering::Relaxed);
 }
 
+/// A third of the session timeout, at most 10 s.
+fn keep_alive_interval(session_timeout_ms: u32) -> Duration {
+    Duration::from_millis(u64::from(session_timeout_ms / 3)).min(Duration::from_secs(10))
+}
+
 /// Service results after which the session cannot be used any more.
 fn is_session_fault(status: StatusCode) -> bool {
     matches!(
@@ -746,6 +751,10 @@ impl OpcuaNcWriter {
                 .session_retry_limit(0)
                 .request_timeout(self.request_timeout)
                 .session_timeout(self.session_timeout_ms)
+                // Keep-alive reads renew the session well within its timeout; three
+                // missed in a row close it, so a dead peer is noticed between jobs.
+                .keep_alive_interval(keep_alive_interval(self.session_timeout_ms))
+                .max_failed_keep_alive_count(3)
                 .client()
                 .map_err(|errors| {
                     NcError::OpcuaSetup(format!("OPC UA client: {}", errors.join("; ")))
