@@ -12,6 +12,7 @@ pub mod ads;
 pub mod config;
 pub mod guard;
 pub mod modbus;
+pub mod opcua;
 
 use std::future::Future;
 use std::time::Duration;
@@ -87,6 +88,31 @@ pub enum NcError {
         /// What the target answered, by name and code.
         answer: String,
     },
+    /// An OPC UA service, or one node of it, answered with a status other than Good.
+    #[error("OPC UA {service} {target}: {status}")]
+    OpcuaStatus {
+        /// The service ("write", "read").
+        service: &'static str,
+        /// What it addressed ("of NODE", "for axis X1").
+        target: String,
+        /// The status code's name.
+        status: String,
+    },
+    /// The OPC UA session's user may not write the setting data.
+    #[error(
+        "OPC UA write of {node}: BadUserAccessDenied: user {user} lacks the SeaWrite right \
+         (setting data); an administrator grants it by calling the server's method \
+         GiveUserAccess(user, \"SeaWrite\") (Sinumerik/Methods)"
+    )]
+    OpcuaAccessDenied {
+        /// The node refused.
+        node: String,
+        /// The session's user.
+        user: String,
+    },
+    /// The OPC UA target cannot be set up (credentials, namespace, node ids, client).
+    #[error("OPC UA target: {0}")]
+    OpcuaSetup(String),
 }
 
 /// `SD43900` for a known variable id, the number otherwise.

@@ -1,0 +1,1190 @@
+//! `kind = "opcua"`: one axis's SD43900/43910/43920 written through a SINUMERIK-style
+//! OPC UA server (route 2, option "Access MyMachine / OPC UA"), with `async-opcua`.
+//!
+//! The node ids come from templates in the config. The namespace index `{ns}` is looked
+//! up by its URI in the server's NamespaceArray at every connect, because a server may
+//! order its namespaces differently after a restart or an update. A job is one Write
+//! call carrying the values, then one Read (max age 0) that must return them bit for
+//! bit. The session is opened on first use; a lost connection or session is dropped and
+//! opened anew on the next call, after a capped backoff when connecting fails.
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use compgate_ncproto::var;
+use futures::StreamExt;
+use opcua::client::transport::TcpConnector;
+use opcua::client::{
+    Client, ClientBuilder, IdentityToken, Password, Session, SessionEventLoop, SessionPollResult,
+};
+use opcua::crypto::SecurityPolicy;
+use opcua::types::{
+    AttributeId, DataValue, EndpointDescription, MessageSecurityMode, NodeId, NumericRange,
+    QualifiedName, ReadValueId, StatusCode, TimestampsToReturn, UserTokenPolicy, VariableId,
+    Variant, WriteValue,
+};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+use tokio::time::Instant;
+
+use super::{Job, JobReport, NcError, NcSnapshot, NcWriter};
+use crate::config::keys::secs;
+use crate::config::problem::{check_host_port, Problems};
+use crate::source::modbus::Backoff;
+use crate::source::SourceError;
+
+/// Default node-id template of SD43900 (`$SA_TEMP_COMP_ABS_VALUE`). Inferred from
+/// Siemens' documented path pattern; browse a real control to confirm it.
+pub const DEFAULT_SD43900_NODE: &str =
+    "ns={ns};s=/NC/_N_AX_SEA_ACX/$SA_TEMP_COMP_ABS_VALUE[u{axis_number}]";
+/// Default node-id template of SD43910 (`$SA_TEMP_COMP_SLOPE`).
+pub const DEFAULT_SD43910_NODE: &str =
+    "ns={ns};s=/NC/_N_AX_SEA_ACX/$SA_TEMP_COMP_SLOPE[u{axis_number}]";
+/// Default node-id template of SD43920 (`$SA_TEMP_COMP_REF_POSITION`).
+pub const DEFAULT_SD43920_NODE: &str =
+    "ns={ns};s=/NC/_N_AX_SEA_ACX/$SA_TEMP_COMP_REF_POSITION[u{axis_number}]";
+
+/// The placeholders a node-id template may use.
+const PLACEHOLDERS: [&str; 3] = ["{ns}", "{axis_number}", "{axis_name}"];
+
+/// The setting data this target writes, in node order.
+const VARS: [u16; 3] = [var::SD43900, var::SD43910, var::SD43920];
+
+/// UserAccessLevel bit "CurrentWrite" (OPC UA Part 3, AccessLevelType).
+const ACCESS_CURRENT_WRITE: u8 = 0x02;
+
+/// How long a dropped session may take to close politely before its socket is cut.
+const CLOSE_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// Security policy of the OPC UA secure channel.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OpcuaSecurityPolicy {
+    /// No signing, no encryption: for tests on loopback only.
+    None,
+    /// Basic128Rsa15 (deprecated; older SINUMERIK versions).
+    Basic128Rsa15,
+    /// Basic256 (deprecated; older SINUMERIK versions).
+    Basic256,
+    /// Basic256Sha256.
+    Basic256Sha256,
+    /// Aes128_Sha256_RsaOaep.
+    Aes128Sha256RsaOaep,
+    /// Aes256_Sha256_RsaPss.
+    Aes256Sha256RsaPss,
+}
+
+impl OpcuaSecurityPolicy {
+    fn to_policy(self) -> SecurityPolicy {
+        match self {
+            Self::None => SecurityPolicy::None,
+            Self::Basic128Rsa15 => SecurityPolicy::Basic128Rsa15,
+            Self::Basic256 => SecurityPolicy::Basic256,
+            Self::Basic256Sha256 => SecurityPolicy::Basic256Sha256,
+            Self::Aes128Sha256RsaOaep => SecurityPolicy::Aes128Sha256RsaOaep,
+            Self::Aes256Sha256RsaPss => SecurityPolicy::Aes256Sha256RsaPss,
+        }
+    }
+}
+
+/// Message security mode of the OPC UA secure channel.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OpcuaSecurityMode {
+    /// Neither signed nor encrypted (only with `security_policy = "None"`).
+    None,
+    /// Signed.
+    Sign,
+    /// Signed and encrypted.
+    SignAndEncrypt,
+}
+
+impl OpcuaSecurityMode {
+    fn to_mode(self) -> MessageSecurityMode {
+        match self {
+            Self::None => MessageSecurityMode::None,
+            Self::Sign => MessageSecurityMode::Sign,
+            Self::SignAndEncrypt => MessageSecurityMode::SignAndEncrypt,
+        }
+    }
+}
+
+/// An OPC UA target: a SINUMERIK (or any) OPC UA server holding the axis setting data.
+/// One table serves every axis of that control; each axis gets its own writer.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct OpcuaTargetConfig {
+    /// Endpoint URL of the server, `opc.tcp://HOST:PORT[/PATH]` (a SINUMERIK listens
+    /// on port 4840). Required; at most 300 characters.
+    #[schemars(length(max = 300))]
+    pub endpoint_url: String,
+    /// URI of the namespace the node ids live in; its index replaces `{ns}` in the
+    /// templates, looked up in the server's NamespaceArray at every connect. Default
+    /// `SinumerikVarProvider`; 1..=300 characters.
+    #[serde(default = "default_namespace_uri")]
+    #[schemars(length(min = 1, max = 300))]
+    pub namespace_uri: String,
+    /// Node-id template of SD43900 (TEMP_COMP_ABS_VALUE). Must contain `{ns}`; may use
+    /// `{axis_number}` (the axis's number on the control, from 1) and `{axis_name}`.
+    /// Default `ns={ns};s=/NC/_N_AX_SEA_ACX/$SA_TEMP_COMP_ABS_VALUE[u{axis_number}]`;
+    /// at most 500 characters.
+    #[serde(default = "default_sd43900_node")]
+    #[schemars(length(min = 1, max = 500))]
+    pub sd43900_node: String,
+    /// Node-id template of SD43910 (TEMP_COMP_SLOPE), as `sd43900_node`. Default
+    /// `ns={ns};s=/NC/_N_AX_SEA_ACX/$SA_TEMP_COMP_SLOPE[u{axis_number}]`; at most 500
+    /// characters.
+    #[serde(default = "default_sd43910_node")]
+    #[schemars(length(min = 1, max = 500))]
+    pub sd43910_node: String,
+    /// Node-id template of SD43920 (TEMP_COMP_REF_POSITION), as `sd43900_node`.
+    /// Default `ns={ns};s=/NC/_N_AX_SEA_ACX/$SA_TEMP_COMP_REF_POSITION[u{axis_number}]`;
+    /// at most 500 characters.
+    #[serde(default = "default_sd43920_node")]
+    #[schemars(length(min = 1, max = 500))]
+    pub sd43920_node: String,
+    /// Security policy of the secure channel: `None`, `Basic128Rsa15`, `Basic256`,
+    /// `Basic256Sha256`, `Aes128Sha256RsaOaep` or `Aes256Sha256RsaPss`. Default
+    /// `Basic256Sha256`. `None` sends the password in clear: loopback tests only.
+    #[serde(default = "default_security_policy")]
+    pub security_policy: OpcuaSecurityPolicy,
+    /// Message security mode: `None` (only with policy `None`), `Sign` or
+    /// `SignAndEncrypt`. Default `SignAndEncrypt`.
+    #[serde(default = "default_security_mode")]
+    pub security_mode: OpcuaSecurityMode,
+    /// Folder of compgate's OPC UA certificates: its own certificate and key (created
+    /// on first connect when missing, unless the policy is `None`), `trusted/` and
+    /// `rejected/` server certificates. A relative path is taken from
+    /// `$STATE_DIRECTORY` (the unit's `StateDirectory=`), else from the working
+    /// directory. Default `opcua-pki`; 1..=4096 characters.
+    #[serde(default = "default_pki_dir")]
+    #[schemars(length(min = 1, max = 4096))]
+    pub pki_dir: String,
+    /// Trust a server certificate not yet in `trusted/` (and store it there). Default
+    /// false: the first connect fails and the certificate lands in `rejected/` until an
+    /// administrator moves it to `trusted/`.
+    #[serde(default)]
+    pub trust_server_certificate: bool,
+    /// File holding the user name on its first line and the password on its second
+    /// (keep it readable by compgate only). Not with `user_env`/`password_env`. Default
+    /// none: anonymous unless the two variables are named; at most 4096 characters.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = 4096))]
+    pub credentials_file: Option<String>,
+    /// Name of the environment variable holding the user name; requires
+    /// `password_env`. Default none; 1..=128 characters.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = 128))]
+    pub user_env: Option<String>,
+    /// Name of the environment variable holding the password; requires `user_env`.
+    /// Default none; 1..=128 characters.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = 128))]
+    pub password_env: Option<String>,
+    /// Seconds one OPC UA request may take. Default 1.0; 0.001..=3600.
+    #[serde(default = "default_request_timeout_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
+    pub request_timeout_s: f64,
+    /// Seconds a connect (endpoints, secure channel, session, namespace lookup) may
+    /// take. Default 5.0; 0.001..=3600.
+    #[serde(default = "default_connect_timeout_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
+    pub connect_timeout_s: f64,
+    /// Seconds a whole job (connect if needed, write, read-back) may take. Default 2.0;
+    /// 0.001..=3600.
+    #[serde(default = "default_job_timeout_s")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
+    pub job_timeout_s: f64,
+    /// Seconds the server keeps a session without requests (keep-alive reads renew
+    /// it); an abandoned session is freed after this. Default 60; 1..=3600.
+    #[serde(default = "default_session_timeout_s")]
+    #[schemars(range(min = 1.0, max = 3600.0))]
+    pub session_timeout_s: f64,
+}
+
+impl OpcuaTargetConfig {
+    /// A target at `endpoint_url` with every other key at its default.
+    pub fn new(endpoint_url: impl Into<String>) -> Self {
+        Self {
+            endpoint_url: endpoint_url.into(),
+            namespace_uri: default_namespace_uri(),
+            sd43900_node: default_sd43900_node(),
+            sd43910_node: default_sd43910_node(),
+            sd43920_node: default_sd43920_node(),
+            security_policy: default_security_policy(),
+            security_mode: default_security_mode(),
+            pki_dir: default_pki_dir(),
+            trust_server_certificate: false,
+            credentials_file: None,
+            user_env: None,
+            password_env: None,
+            request_timeout_s: default_request_timeout_s(),
+            connect_timeout_s: default_connect_timeout_s(),
+            job_timeout_s: default_job_timeout_s(),
+            session_timeout_s: default_session_timeout_s(),
+        }
+    }
+
+    /// `request_timeout_s` as a [`Duration`].
+    pub fn request_timeout(&self) -> Duration {
+        secs(self.request_timeout_s)
+    }
+    /// `connect_timeout_s` as a [`Duration`].
+    pub fn connect_timeout(&self) -> Duration {
+        secs(self.connect_timeout_s)
+    }
+    /// `job_timeout_s` as a [`Duration`].
+    pub fn job_timeout(&self) -> Duration {
+        secs(self.job_timeout_s)
+    }
+
+    fn templates(&self) -> [(&'static str, &str); 3] {
+        [
+            ("sd43900_node", &self.sd43900_node),
+            ("sd43910_node", &self.sd43910_node),
+            ("sd43920_node", &self.sd43920_node),
+        ]
+    }
+
+    /// The URL is `opc.tcp://host:port[/path]`, every template holds `{ns}` and parses
+    /// as a node id, policy and mode agree, the credentials come from one place, every
+    /// time > 0.
+    pub fn validate(&self, key: &str, out: &mut Problems<'_>) {
+        let k = |f: &str| format!("{key}.{f}");
+        if let Err(why) = check_endpoint_url(&self.endpoint_url) {
+            out.push(k("endpoint_url"), why);
+        }
+        if self.namespace_uri.trim().is_empty() {
+            out.push(k("namespace_uri"), "must not be empty");
+        }
+        for (name, template) in self.templates() {
+            if let Err(why) = check_template(template) {
+                out.push(k(name), why);
+            }
+        }
+        let none_policy = self.security_policy == OpcuaSecurityPolicy::None;
+        let none_mode = self.security_mode == OpcuaSecurityMode::None;
+        if none_policy != none_mode {
+            out.push(
+                k("security_mode"),
+                format!(
+                    "{:?} does not go with security_policy {:?}: mode None goes with policy \
+                     None only, and policy None with mode None only",
+                    self.security_mode, self.security_policy
+                ),
+            );
+        }
+        if self.pki_dir.trim().is_empty() {
+            out.push(k("pki_dir"), "must not be empty");
+        }
+        match (&self.credentials_file, &self.user_env, &self.password_env) {
+            (Some(_), Some(_), _) | (Some(_), _, Some(_)) => out.push(
+                k("credentials_file"),
+                "give the credentials either in a file or in user_env/password_env, not both",
+            ),
+            (None, Some(_), None) => out.push(k("password_env"), "required with user_env"),
+            (None, None, Some(_)) => out.push(k("user_env"), "required with password_env"),
+            _ => {}
+        }
+        if let Some(f) = &self.credentials_file {
+            if f.trim().is_empty() {
+                out.push(k("credentials_file"), "must not be empty");
+            }
+        }
+        for (name, v) in [
+            ("user_env", &self.user_env),
+            ("password_env", &self.password_env),
+        ] {
+            if let Some(v) = v {
+                if v.is_empty() || v.contains(['=', '\0']) {
+                    out.push(
+                        k(name),
+                        format!("`{v}` is not an environment variable name"),
+                    );
+                }
+            }
+        }
+        out.positive(&k("request_timeout_s"), self.request_timeout_s, "seconds");
+        out.positive(&k("connect_timeout_s"), self.connect_timeout_s, "seconds");
+        out.positive(&k("job_timeout_s"), self.job_timeout_s, "seconds");
+        if out.positive(&k("session_timeout_s"), self.session_timeout_s, "seconds")
+            && self.session_timeout_s < 1.0
+        {
+            out.push(
+                k("session_timeout_s"),
+                format!("must be >= 1 (seconds), got {}", self.session_timeout_s),
+            );
+        }
+    }
+
+    /// The writer of axis `axis_name`, number `axis_number` on the control (not
+    /// connected yet). Reads the credentials now, so a missing file or variable is
+    /// reported at start.
+    pub fn build(&self, axis_name: &str, axis_number: u16) -> Result<OpcuaNcWriter, NcError> {
+        let mut templates: [String; 3] = Default::default();
+        for (slot, (name, template)) in templates.iter_mut().zip(self.templates()) {
+            check_template(template)
+                .map_err(|why| NcError::OpcuaSetup(format!("{name}: {why}")))?;
+            *slot = template
+                .replace("{axis_number}", &axis_number.to_string())
+                .replace("{axis_name}", axis_name);
+        }
+        let credentials = self.credentials()?;
+        Ok(OpcuaNcWriter {
+            endpoint_url: self.endpoint_url.clone(),
+            namespace_uri: self.namespace_uri.clone(),
+            axis_name: axis_name.to_string(),
+            templates,
+            policy: self.security_policy.to_policy(),
+            mode: self.security_mode.to_mode(),
+            pki_dir: state_path(&self.pki_dir),
+            trust_server_certificate: self.trust_server_certificate,
+            credentials,
+            request_timeout: self.request_timeout(),
+            connect_timeout: self.connect_timeout(),
+            job_timeout: self.job_timeout(),
+            session_timeout_ms: (self.session_timeout_s.clamp(1.0, 3600.0) * 1000.0) as u32,
+            client: None,
+            conn: None,
+            backoff: Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
+            connects: 0,
+            next_job_id: 1,
+        })
+    }
+
+    fn credentials(&self) -> Result<Option<Credentials>, NcError> {
+        if let Some(file) = &self.credentials_file {
+            let path = state_path(file);
+            let text = std::fs::read_to_string(&path).map_err(|e| {
+                NcError::OpcuaSetup(format!("credentials_file {}: {e}", path.display()))
+            })?;
+            warn_if_readable_by_others(&path);
+            let mut lines = text.lines();
+            let user = lines.next().unwrap_or_default().to_string();
+            let password = lines.next().unwrap_or_default().to_string();
+            if user.is_empty() {
+                return Err(NcError::OpcuaSetup(format!(
+                    "credentials_file {}: the first line (user name) is empty",
+                    path.display()
+                )));
+            }
+            return Ok(Some(Credentials { user, password }));
+        }
+        match (&self.user_env, &self.password_env) {
+            (Some(u), Some(p)) => {
+                let get = |name: &str| {
+                    std::env::var(name).map_err(|e| {
+                        NcError::OpcuaSetup(format!("environment variable {name}: {e}"))
+                    })
+                };
+                Ok(Some(Credentials {
+                    user: get(u)?,
+                    password: get(p)?,
+                }))
+            }
+            _ => Ok(None),
+        }
+    }
+}
+
+/// `endpoint_url` is `opc.tcp://host:port[/path]`.
+fn check_endpoint_url(url: &str) -> Result<(), String> {
+    let Some(rest) = url.strip_prefix("opc.tcp://") else {
+        return Err(format!(
+            "`{url}` is not an opc.tcp URL; expected opc.tcp://HOST:PORT, e.g. \
+             \"opc.tcp://192.168.214.1:4840\""
+        ));
+    };
+    let authority = rest.split('/').next().unwrap_or_default();
+    check_host_port(authority).map_err(|e| format!("`{url}`: {e}"))
+}
+
+/// A template holds `{ns}`, no unknown placeholder, and gives a node id once filled.
+fn check_template(template: &str) -> Result<(), String> {
+    if !template.contains("{ns}") {
+        return Err(format!(
+            "`{template}` has no {{ns}}: the namespace index is looked up from \
+             namespace_uri at connect, never written into the node id"
+        ));
+    }
+    let mut rest = template.to_string();
+    for p in PLACEHOLDERS {
+        rest = rest.replace(p, "");
+    }
+    if let Some(start) = rest.find('{') {
+        let unknown: String = rest[start..].chars().take_while(|c| *c != '}').collect();
+        return Err(format!(
+            "`{template}`: unknown placeholder {unknown}}}; known are {}",
+            PLACEHOLDERS.join(", ")
+        ));
+    }
+    let sample = template
+        .replace("{ns}", "2")
+        .replace("{axis_number}", "1")
+        .replace("{axis_name}", "X1");
+    NodeId::from_str(&sample)
+        .map(|_| ())
+        .map_err(|_| format!("`{template}` does not give a node id such as `ns=2;s=/NC/...`"))
+}
+
+/// A relative path under `$STATE_DIRECTORY` when set (as the recorder's database).
+fn state_path(p: &str) -> PathBuf {
+    let path = Path::new(p);
+    match std::env::var_os("STATE_DIRECTORY") {
+        Some(dir) if path.is_relative() => Path::new(&dir).join(path),
+        _ => path.to_path_buf(),
+    }
+}
+
+#[cfg(unix)]
+fn warn_if_readable_by_others(path: &Path) {
+    use std::os::unix::fs::PermissionsExt;
+    if let Ok(meta) = std::fs::metadata(path) {
+        if meta.permissions().mode() & 0o077 != 0 {
+            tracing::warn!(
+                file = %path.display(),
+                "OPC UA credentials file is readable by group or others; chmod 600 it"
+            );
+        }
+    }
+}
+
+#[cfg(not(unix))]
+fn warn_if_readable_by_others(_path: &Path) {}
+
+fn default_namespace_uri() -> String {
+    "SinumerikVarProvider".into()
+}
+fn default_sd43900_node() -> String {
+    DEFAULT_SD43900_NODE.into()
+}
+fn default_sd43910_node() -> String {
+    DEFAULT_SD43910_NODE.into()
+}
+fn default_sd43920_node() -> String {
+    DEFAULT_SD43920_NODE.into()
+}
+fn default_security_policy() -> OpcuaSecurityPolicy {
+    OpcuaSecurityPolicy::Basic256Sha256
+}
+fn default_security_mode() -> OpcuaSecurityMode {
+    OpcuaSecurityMode::SignAndEncrypt
+}
+fn default_pki_dir() -> String {
+    "opcua-pki".into()
+}
+fn default_request_timeout_s() -> f64 {
+    1.0
+}
+fn default_connect_timeout_s() -> f64 {
+    5.0
+}
+fn default_job_timeout_s() -> f64 {
+    2.0
+}
+fn default_session_timeout_s() -> f64 {
+    60.0
+}
+
+/// User name and password; the password never appears in Debug output or logs.
+#[derive(Clone)]
+struct Credentials {
+    user: String,
+    password: String,
+}
+
+impl fmt::Debug for Credentials {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Credentials")
+            .field("user", &self.user)
+            .field("password", &"***")
+            .finish()
+    }
+}
+
+/// One open session: its event loop runs on a task of its own until the connection
+/// is lost; then `lost` is set and the session is not used again.
+struct Connection {
+    session: Arc<Session>,
+    event_loop: JoinHandle<()>,
+    lost: Arc<AtomicBool>,
+    /// Node ids of SD43900, SD43910, SD43920 with this session's namespace index.
+    nodes: [NodeId; 3],
+}
+
+impl Drop for Connection {
+    fn drop(&mut self) {
+        let event_loop = self.event_loop.abort_handle();
+        if self.lost.load(Ordering::Relaxed) {
+            event_loop.abort();
+            return;
+        }
+        // Close the session politely so the server frees it now rather than after
+        // its session timeout (a control admits only a few sessions).
+        let session = self.session.clone();
+        match tokio::runtime::Handle::try_current() {
+            Ok(rt) => {
+                rt.spawn(async move {
+                    let _ = tokio::time::timeout(CLOSE_TIMEOUT, session.disconnect()).await;
+                    event_loop.abort();
+                });
+            }
+            Err(_) => event_loop.abort(),
+        }
+    }
+}
+
+/// Drives a session's event loop: reports the first connect (or its failure) on
+/// `ready`, and stops at the first loss of the connection, which `lost` then shows.
+async fn drive(
+    event_loop: SessionEventLoop<TcpConnector>,
+    ready: oneshot::Sender<Result<(), StatusCode>>,
+    lost: Arc<AtomicBool>,
+) {
+    let mut ready = Some(ready);
+    let stream = event_loop.enter();
+    futures::pin_mut!(stream);
+    while let Some(event) = stream.next().await {
+        match event {
+            Ok(SessionPollResult::Reconnected(_)) => {
+                if let Some(tx) = ready.take() {
+                    let _ = tx.send(Ok(()));
+                }
+            }
+            Ok(SessionPollResult::ConnectionLost(status)) => {
+                tracing::warn!(%status, "OPC UA connection lost");
+                break;
+            }
+            Ok(_) => {}
+            Err(status) => {
+                if let Some(tx) = ready.take() {
+                    let _ = tx.send(Err(status));
+                }
+                break;
+            }
+        }
+    }
+    lost.store(true, Ordering::Relaxed);
+}
+
+/// A third of the session timeout, at most 10 s.
+fn keep_alive_interval(session_timeout_ms: u32) -> Duration {
+    Duration::from_millis(u64::from(session_timeout_ms / 3)).min(Duration::from_secs(10))
+}
+
+/// Service results after which the session cannot be used any more.
+fn is_session_fault(status: StatusCode) -> bool {
+    matches!(
+        status,
+        StatusCode::BadTimeout
+            | StatusCode::BadNotConnected
+            | StatusCode::BadConnectionClosed
+            | StatusCode::BadServerNotConnected
+            | StatusCode::BadCommunicationError
+            | StatusCode::BadSecureChannelClosed
+            | StatusCode::BadSecureChannelIdInvalid
+            | StatusCode::BadSessionIdInvalid
+            | StatusCode::BadSessionClosed
+            | StatusCode::BadSessionNotActivated
+            | StatusCode::BadTcpInternalError
+            | StatusCode::BadDisconnect
+            | StatusCode::BadShutdown
+    )
+}
+
+/// SD43900/43910/43920 of one axis over OPC UA (see the module docs).
+pub struct OpcuaNcWriter {
+    endpoint_url: String,
+    namespace_uri: String,
+    axis_name: String,
+    /// Node-id templates with the axis filled in; `{ns}` left for connect.
+    templates: [String; 3],
+    policy: SecurityPolicy,
+    mode: MessageSecurityMode,
+    pki_dir: PathBuf,
+    trust_server_certificate: bool,
+    credentials: Option<Credentials>,
+    request_timeout: Duration,
+    connect_timeout: Duration,
+    job_timeout: Duration,
+    session_timeout_ms: u32,
+    /// Made on first connect: it creates the pki folder and maybe a key pair.
+    client: Option<Client>,
+    conn: Option<Connection>,
+    backoff: Backoff,
+    connects: u64,
+    next_job_id: u16,
+}
+
+impl fmt::Debug for OpcuaNcWriter {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("OpcuaNcWriter")
+            .field("endpoint_url", &self.endpoint_url)
+            .field("axis", &self.axis_name)
+            .field("user", &self.credentials.as_ref().map(|c| c.user.as_str()))
+            .field("connected", &self.is_connected())
+            .field("connects", &self.connects)
+            .finish()
+    }
+}
+
+impl OpcuaNcWriter {
+    /// True while a session is open.
+    pub fn is_connected(&self) -> bool {
+        self.conn
+            .as_ref()
+            .is_some_and(|c| !c.lost.load(Ordering::Relaxed))
+    }
+
+    /// Sessions opened so far.
+    pub fn connects(&self) -> u64 {
+        self.connects
+    }
+
+    /// The node ids of SD43900, SD43910, SD43920 as the open session resolved them.
+    pub fn node_ids(&self) -> Option<[String; 3]> {
+        self.conn
+            .as_ref()
+            .map(|c| c.nodes.clone().map(|n| n.to_string()))
+    }
+
+    /// Whether this session's user may write the three setting data, from their
+    /// UserAccessLevel (on a SINUMERIK: whether the user holds SeaWrite).
+    pub async fn may_write(&mut self) -> Result<bool, NcError> {
+        self.ensure_connected().await?;
+        let (session, nodes) = self.session()?;
+        let reads: Vec<ReadValueId> = nodes
+            .iter()
+            .map(|n| read_id(n.clone(), AttributeId::UserAccessLevel))
+            .collect();
+        let values = match session.read(&reads, TimestampsToReturn::Neither, 0.0).await {
+            Ok(v) => v,
+            Err(e) => return Err(self.service_fault("read of UserAccessLevel", e)),
+        };
+        check_count(&values, nodes.len(), "read of UserAccessLevel")?;
+        let mut all = true;
+        for (node, dv) in nodes.iter().zip(&values) {
+            good(dv, node, "read of UserAccessLevel")?;
+            let level = match &dv.value {
+                Some(Variant::Byte(b)) => *b,
+                other => {
+                    return Err(NcError::Protocol(format!(
+                        "UserAccessLevel of {node} is {other:?}, expected a Byte"
+                    )))
+                }
+            };
+            all &= level & ACCESS_CURRENT_WRITE != 0;
+        }
+        Ok(all)
+    }
+
+    fn user_label(&self) -> String {
+        match &self.credentials {
+            Some(c) => format!("`{}`", c.user),
+            None => "anonymous".into(),
+        }
+    }
+
+    fn session(&self) -> Result<(Arc<Session>, [NodeId; 3]), NcError> {
+        self.conn
+            .as_ref()
+            .map(|c| (c.session.clone(), c.nodes.clone()))
+            .ok_or_else(|| SourceError::Transport("OPC UA session not open".into()).into())
+    }
+
+    /// Opens a session unless one is open and alive; backs off after failures.
+    async fn ensure_connected(&mut self) -> Result<(), NcError> {
+        if self
+            .conn
+            .as_ref()
+            .is_some_and(|c| c.lost.load(Ordering::Relaxed))
+        {
+            self.conn = None;
+        }
+        if self.conn.is_some() {
+            return Ok(());
+        }
+        if let Some(wait) = self.backoff.remaining(Instant::now()) {
+            return Err(SourceError::BackingOff(wait).into());
+        }
+        match tokio::time::timeout(self.connect_timeout, self.open()).await {
+            Ok(Ok(conn)) => {
+                self.backoff.reset();
+                self.connects += 1;
+                tracing::info!(
+                    endpoint = %self.endpoint_url,
+                    axis = %self.axis_name,
+                    user = %self.user_label(),
+                    nodes = ?conn.nodes.iter().map(|n| n.to_string()).collect::<Vec<_>>(),
+                    "OPC UA session open"
+                );
+                self.conn = Some(conn);
+                Ok(())
+            }
+            Ok(Err(e)) => {
+                self.backoff.failed(Instant::now());
+                Err(e)
+            }
+            Err(_) => {
+                self.backoff.failed(Instant::now());
+                Err(SourceError::ConnectTimeout.into())
+            }
+        }
+    }
+
+    fn client(&mut self) -> Result<&mut Client, NcError> {
+        if self.client.is_none() {
+            let secure = self.policy != SecurityPolicy::None;
+            let client = ClientBuilder::new()
+                .application_name("compgate")
+                .application_uri("urn:compgate")
+                .product_uri("urn:compgate")
+                .pki_dir(self.pki_dir.clone())
+                .create_sample_keypair(secure)
+                .trust_server_certs(self.trust_server_certificate)
+                // One try per connect: compgate's own backoff paces the retries, and a
+                // new session re-reads the namespace index.
+                .session_retry_limit(0)
+                .request_timeout(self.request_timeout)
+                .session_timeout(self.session_timeout_ms)
+                // Keep-alive reads renew the session well within its timeout; three
+                // missed in a row close it, so a dead peer is noticed between jobs.
+                .keep_alive_interval(keep_alive_interval(self.session_timeout_ms))
+                .max_failed_keep_alive_count(3)
+                .client()
+                .map_err(|errors| {
+                    NcError::OpcuaSetup(format!("OPC UA client: {}", errors.join("; ")))
+                })?;
+            self.client = Some(client);
+        }
+        self.client
+            .as_mut()
+            .ok_or_else(|| NcError::OpcuaSetup("OPC UA client missing".into()))
+    }
+
+    async fn open(&mut self) -> Result<Connection, NcError> {
+        let url = self.endpoint_url.clone();
+        let endpoint: EndpointDescription = (
+            url.as_str(),
+            self.policy.to_uri(),
+            self.mode,
+            UserTokenPolicy::anonymous(),
+        )
+            .into();
+        let identity = match &self.credentials {
+            Some(c) => IdentityToken::UserName(c.user.clone(), Password::new(c.password.clone())),
+            None => IdentityToken::Anonymous,
+        };
+        let user = self.user_label();
+        let client = self.client()?;
+        let (session, event_loop) = client
+            .connect_to_matching_endpoint(endpoint, identity)
+            .await
+            .map_err(|e| connect_error(&url, &user, e.status(), &e.to_string()))?;
+        let lost = Arc::new(AtomicBool::new(false));
+        let (tx, rx) = oneshot::channel();
+        let task = tokio::spawn(drive(event_loop, tx, lost.clone()));
+        let mut conn = Connection {
+            session,
+            event_loop: task,
+            lost,
+            nodes: Default::default(),
+        };
+        match rx.await {
+            Ok(Ok(())) => {}
+            Ok(Err(status)) => {
+                return Err(connect_error(&url, &user, status, "session not activated"))
+            }
+            Err(_) => {
+                return Err(SourceError::Connect(format!("{url}: session event loop ended")).into())
+            }
+        }
+        let ns = namespace_index(&conn.session, &self.namespace_uri).await?;
+        for (slot, template) in conn.nodes.iter_mut().zip(&self.templates) {
+            let id = template.replace("{ns}", &ns.to_string());
+            *slot = NodeId::from_str(&id)
+                .map_err(|_| NcError::OpcuaSetup(format!("`{id}` is not a node id")))?;
+        }
+        Ok(conn)
+    }
+
+    /// Maps a failed service call; a fault of the connection or session drops it, so
+    /// the next call opens a new one.
+    fn service_fault(&mut self, service: &'static str, e: opcua::types::Error) -> NcError {
+        let status = e.status();
+        let node = self
+            .conn
+            .as_ref()
+            .map_or_else(|| self.templates[0].clone(), |c| c.nodes[0].to_string());
+        let lost = self
+            .conn
+            .as_ref()
+            .is_some_and(|c| c.lost.load(Ordering::Relaxed));
+        if lost || is_session_fault(status) {
+            self.conn = None;
+        }
+        match status {
+            StatusCode::BadTimeout => SourceError::Timeout(self.request_timeout).into(),
+            StatusCode::BadUserAccessDenied => NcError::OpcuaAccessDenied {
+                node,
+                user: self.user_label(),
+            },
+            s if is_session_fault(s) => {
+                SourceError::Transport(format!("OPC UA {service}: {}", s)).into()
+            }
+            s => NcError::OpcuaStatus {
+                service,
+                target: format!("for axis {}", self.axis_name),
+                status: s.to_string(),
+            },
+        }
+    }
+
+    async fn read_values(&mut self, idx: &[usize]) -> Result<Vec<f64>, NcError> {
+        let (session, nodes) = self.session()?;
+        let reads: Vec<ReadValueId> = idx
+            .iter()
+            .map(|&i| read_id(nodes[i].clone(), AttributeId::Value))
+            .collect();
+        // Max age 0: the value the NC holds now, not a cached one.
+        let values = match session.read(&reads, TimestampsToReturn::Neither, 0.0).await {
+            Ok(v) => v,
+            Err(e) => return Err(self.service_fault("read", e)),
+        };
+        check_count(&values, idx.len(), "read")?;
+        idx.iter()
+            .zip(&values)
+            .map(|(&i, dv)| {
+                good(dv, &nodes[i], "read")?;
+                match &dv.value {
+                    Some(Variant::Double(v)) => Ok(*v),
+                    other => Err(NcError::Protocol(format!(
+                        "{} holds {other:?}, expected a Double",
+                        nodes[i]
+                    ))),
+                }
+            })
+            .collect()
+    }
+
+    async fn run_job(&mut self, pairs: &[(usize, f64)]) -> Result<(), NcError> {
+        self.ensure_connected().await?;
+        let (session, nodes) = self.session()?;
+        let writes: Vec<WriteValue> = pairs
+            .iter()
+            .map(|&(i, v)| WriteValue {
+                node_id: nodes[i].clone(),
+                attribute_id: AttributeId::Value as u32,
+                index_range: NumericRange::None,
+                // No timestamps: servers may refuse a write that sets them.
+                value: DataValue::value_only(Variant::Double(v)),
+            })
+            .collect();
+        let results = match session.write(&writes).await {
+            Ok(r) => r,
+            Err(e) => return Err(self.service_fault("write", e)),
+        };
+        check_count(&results, writes.len(), "write")?;
+        for (&(i, _), status) in pairs.iter().zip(&results) {
+            if status.is_good() {
+                continue;
+            }
+            return Err(if *status == StatusCode::BadUserAccessDenied {
+                NcError::OpcuaAccessDenied {
+                    node: nodes[i].to_string(),
+                    user: self.user_label(),
+                }
+            } else {
+                NcError::OpcuaStatus {
+                    service: "write",
+                    target: format!("of {}", nodes[i]),
+                    status: status.to_string(),
+                }
+            });
+        }
+        let idx: Vec<usize> = pairs.iter().map(|&(i, _)| i).collect();
+        let read = self.read_values(&idx).await?;
+        for (&(i, written), read) in pairs.iter().zip(read) {
+            if read.to_bits() != written.to_bits() {
+                return Err(NcError::ReadBack {
+                    var: VARS[i],
+                    written,
+                    read,
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+impl NcWriter for OpcuaNcWriter {
+    async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
+        let mut pairs = Vec::with_capacity(job.pairs.len());
+        for &(var_id, value) in &job.pairs {
+            let Some(i) = VARS.iter().position(|v| *v == var_id) else {
+                return Err(NcError::InvalidJob(format!(
+                    "variable {var_id} has no node on an OPC UA target (SD43900, SD43910, \
+                     SD43920 only)"
+                )));
+            };
+            if pairs.iter().any(|&(j, _)| j == i) {
+                return Err(NcError::InvalidJob(format!("variable {var_id} twice")));
+            }
+            if !value.is_finite() {
+                return Err(NcError::InvalidJob(format!(
+                    "variable {var_id} = {value}: not a finite number"
+                )));
+            }
+            pairs.push((i, value));
+        }
+        if pairs.is_empty() {
+            return Err(NcError::InvalidJob("no pairs".into()));
+        }
+        let job_id = self.next_job_id;
+        self.next_job_id = self.next_job_id.checked_add(1).unwrap_or(1);
+        let started = Instant::now();
+        match tokio::time::timeout(self.job_timeout, self.run_job(&pairs)).await {
+            Ok(Ok(())) => Ok(JobReport {
+                job_id,
+                elapsed: started.elapsed(),
+            }),
+            Ok(Err(e)) => Err(e),
+            Err(_) => {
+                // The server may still answer (or apply) the cut-off request: a new
+                // session starts clean, and the job counts as not written.
+                self.conn = None;
+                Err(NcError::JobTimeout {
+                    job_id,
+                    timeout: self.job_timeout,
+                    state: None,
+                })
+            }
+        }
+    }
+
+    async fn read_snapshot(&mut self) -> Result<NcSnapshot, NcError> {
+        self.ensure_connected().await?;
+        let v = self.read_values(&[0, 1, 2]).await?;
+        Ok(NcSnapshot {
+            sd43900_mm: v[0],
+            sd43910: v[1],
+            sd43920_mm: v[2],
+            ..NcSnapshot::default()
+        })
+    }
+}
+
+fn read_id(node_id: NodeId, attribute: AttributeId) -> ReadValueId {
+    ReadValueId {
+        node_id,
+        attribute_id: attribute as u32,
+        index_range: NumericRange::None,
+        data_encoding: QualifiedName::null(),
+    }
+}
+
+fn check_count<T>(results: &[T], want: usize, service: &str) -> Result<(), NcError> {
+    if results.len() == want {
+        Ok(())
+    } else {
+        Err(NcError::Protocol(format!(
+            "OPC UA {service}: {} results for {want} nodes",
+            results.len()
+        )))
+    }
+}
+
+fn good(dv: &DataValue, node: &NodeId, service: &'static str) -> Result<(), NcError> {
+    match dv.status {
+        Some(s) if !s.is_good() => Err(NcError::OpcuaStatus {
+            service,
+            target: format!("of {node}"),
+            status: s.to_string(),
+        }),
+        _ => Ok(()),
+    }
+}
+
+/// The index of `uri` in the server's NamespaceArray.
+async fn namespace_index(session: &Session, uri: &str) -> Result<u16, NcError> {
+    let node: NodeId = VariableId::Server_NamespaceArray.into();
+    let values = session
+        .read(
+            &[read_id(node, AttributeId::Value)],
+            TimestampsToReturn::Neither,
+            0.0,
+        )
+        .await
+        .map_err(|e| SourceError::Connect(format!("reading the NamespaceArray: {}", e.status())))?;
+    let uris: Vec<String> = match values.first().and_then(|dv| dv.value.as_ref()) {
+        Some(Variant::Array(a)) => a
+            .values
+            .iter()
+            .map(|v| match v {
+                Variant::String(s) => s.as_ref().to_string(),
+                other => format!("{other:?}"),
+            })
+            .collect(),
+        other => {
+            return Err(NcError::Protocol(format!(
+                "the server's NamespaceArray is {other:?}, expected an array of strings"
+            )))
+        }
+    };
+    uris.iter()
+        .position(|u| u == uri)
+        .and_then(|i| u16::try_from(i).ok())
+        .ok_or_else(|| {
+            NcError::OpcuaSetup(format!(
+                "namespace_uri `{uri}` is not in the server's NamespaceArray {uris:?}"
+            ))
+        })
+}
+
+/// A failed connect, named by its status; the hints cover what a commissioning
+/// engineer meets first.
+fn connect_error(url: &str, user: &str, status: StatusCode, detail: &str) -> NcError {
+    let hint = match status {
+        StatusCode::BadIdentityTokenRejected
+        | StatusCode::BadIdentityTokenInvalid
+        | StatusCode::BadUserAccessDenied => format!(
+            " (the server rejected user {user}: check the user name and password, or \
+             that the control admits this user)"
+        ),
+        StatusCode::BadCertificateUntrusted | StatusCode::BadSecurityChecksFailed => {
+            " (the server does not trust compgate's certificate yet: trust it on the \
+             control, or trust the server's certificate under pki_dir/trusted)"
+                .into()
+        }
+        StatusCode::BadTcpEndpointUrlInvalid | StatusCode::BadSecurityPolicyRejected => {
+            " (no endpoint with this security_policy and security_mode)".into()
+        }
+        _ => String::new(),
+    };
+    let detail = if detail.is_empty() {
+        String::new()
+    } else {
+        format!(": {detail}")
+    };
+    SourceError::Connect(format!("{url}: {status}{hint}{detail}")).into()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn problems(cfg: &OpcuaTargetConfig) -> Vec<String> {
+        let mut p = Problems::new("t.toml");
+        cfg.validate("targets.nc", &mut p);
+        p.into_vec().iter().map(|p| p.to_string()).collect()
+    }
+
+    fn plain() -> OpcuaTargetConfig {
+        OpcuaTargetConfig {
+            security_policy: OpcuaSecurityPolicy::None,
+            security_mode: OpcuaSecurityMode::None,
+            ..OpcuaTargetConfig::new("opc.tcp://127.0.0.1:4840")
+        }
+    }
+
+    #[test]
+    fn defaults_validate() {
+        assert_eq!(
+            problems(&OpcuaTargetConfig::new("opc.tcp://nc:4840")),
+            Vec::<String>::new()
+        );
+        assert_eq!(problems(&plain()), Vec::<String>::new());
+    }
+
+    #[test]
+    fn bad_keys_are_named() {
+        let cfg = OpcuaTargetConfig {
+            endpoint_url: "http://nc:4840".into(),
+            sd43910_node: "ns=2;s=/NC/x".into(),
+            sd43920_node: "ns={ns};s=/NC/{axis}".into(),
+            security_mode: OpcuaSecurityMode::None,
+            user_env: Some("U".into()),
+            job_timeout_s: 0.0,
+            ..OpcuaTargetConfig::new("")
+        };
+        let p = problems(&cfg).join("\n");
+        for key in [
+            "targets.nc.endpoint_url",
+            "targets.nc.sd43910_node",
+            "targets.nc.sd43920_node",
+            "targets.nc.security_mode",
+            "targets.nc.password_env",
+            "targets.nc.job_timeout_s",
+        ] {
+            assert!(p.contains(key), "{key} missing from:\n{p}");
+        }
+        assert!(p.contains("{axis}"), "{p}");
+        assert!(!p.contains("targets.nc.sd43900_node"), "{p}");
+    }
+
+    #[test]
+    fn unknown_keys_and_kind_rejected() {
+        let err = toml::from_str::<OpcuaTargetConfig>(
+            "endpoint_url = \"opc.tcp://nc:4840\"\nkind = \"opcua\"\n",
+        )
+        .expect_err("kind is not a key of this table");
+        assert!(err.to_string().contains("kind"), "{err}");
+        let cfg: OpcuaTargetConfig = toml::from_str(
+            "endpoint_url = \"opc.tcp://nc:4840\"\nsecurity_policy = \"None\"\n\
+             security_mode = \"None\"\n",
+        )
+        .expect("valid");
+        assert_eq!(cfg.security_policy, OpcuaSecurityPolicy::None);
+        assert_eq!(cfg.namespace_uri, "SinumerikVarProvider");
+    }
+
+    #[test]
+    fn build_fills_the_axis_and_hides_the_password() {
+        let dir = std::env::temp_dir().join(format!("compgate-opcua-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        let file = dir.join("cred");
+        std::fs::write(&file, "operator\ns3cret-pw\n").expect("write");
+        let cfg = OpcuaTargetConfig {
+            credentials_file: Some(file.display().to_string()),
+            ..plain()
+        };
+        let w = cfg.build("Z1", 3).expect("builds");
+        assert_eq!(
+            w.templates[1],
+            "ns={ns};s=/NC/_N_AX_SEA_ACX/$SA_TEMP_COMP_SLOPE[u3]"
+        );
+        let dbg = format!("{w:?} {:?}", w.credentials);
+        assert!(dbg.contains("operator"), "{dbg}");
+        assert!(!dbg.contains("s3cret"), "{dbg}");
+        let _ = std::fs::remove_dir_all(&dir);
+
+        let missing = OpcuaTargetConfig {
+            user_env: Some("COMPGATE_TEST_NO_SUCH_USER_VAR".into()),
+            password_env: Some("COMPGATE_TEST_NO_SUCH_PW_VAR".into()),
+            ..plain()
+        };
+        let err = missing.build("X1", 1).expect_err("no such variable");
+        assert!(
+            err.to_string().contains("COMPGATE_TEST_NO_SUCH_USER_VAR"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn access_denied_says_how_to_grant() {
+        let e = NcError::OpcuaAccessDenied {
+            node: "ns=3;s=/NC/x".into(),
+            user: "`op`".into(),
+        };
+        let s = e.to_string();
+        assert!(
+            s.contains("BadUserAccessDenied") && s.contains("SeaWrite"),
+            "{s}"
+        );
+        assert!(s.contains("GiveUserAccess"), "{s}");
+    }
+}

@@ -1,0 +1,149 @@
+"""A SINUMERIK-like OPC UA server for compgate's OPC UA target tests (asyncua).
+
+It holds the three temperature-compensation setting data per axis as Double variables
+under the node ids a SINUMERIK OPC UA server is expected to use,
+    ns=<SinumerikVarProvider>;s=/NC/_N_AX_SEA_ACX/$SA_TEMP_COMP_ABS_VALUE[u<axis>]
+    ...$SA_TEMP_COMP_SLOPE[u<axis>], ...$SA_TEMP_COMP_REF_POSITION[u<axis>]
+with the SinumerikVarProvider namespace registered behind decoy namespaces, so a client
+that assumes index 2 writes nowhere.
+
+Users (user name / password, security None):
+  writer / writer-pw   holds "SeaWrite": may write the setting data
+  reader / reader-pw   may read only: writes answer BadUserAccessDenied
+  anonymous            like reader
+UserAccessLevel of the setting data is answered per session, as on the control.
+
+Prints "ENDPOINT <url>" and "NS <index>" on stdout once listening, then reads commands
+on stdin, one a line, and answers each with one line:
+  dump             VALUES {"<node id>": "<16 hex digits of the f64 bits>", ...}
+  delay <seconds>  OK   (every later Write answer is delayed that long)
+With --lossy, written values are kept rounded to float32, so a read-back differs.
+  expire           OK <n>  (closes every client session, as a session timeout would)
+  quit             BYE  (then exits; end of stdin exits too)
+"""
+
+import argparse
+import asyncio
+import json
+import logging
+import struct
+import sys
+
+from asyncua import Server, ua
+from asyncua.common.callback import CallbackType
+from asyncua.crypto.permission_rules import User, UserRole
+from asyncua.server.user_managers import UserManager
+
+SETTING_DATA = ("$SA_TEMP_COMP_ABS_VALUE", "$SA_TEMP_COMP_SLOPE", "$SA_TEMP_COMP_REF_POSITION")
+USERS = {"writer": ("writer-pw", True), "reader": ("reader-pw", False)}
+
+
+class Users(UserManager):
+    """Writers get the Admin role (asyncua's write right), everyone else User."""
+
+    def get_user(self, iserver, username=None, password=None, certificate=None):
+        if username is None:
+            return User(role=UserRole.User)
+        entry = USERS.get(username)
+        if entry is None or entry[0] != password:
+            return None  # BadUserAccessDenied at ActivateSession
+        return User(role=UserRole.Admin if entry[1] else UserRole.User, name=username)
+
+
+def bits(value: float) -> str:
+    return struct.pack(">d", value).hex()
+
+
+async def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (0: any free one)")
+    ap.add_argument("--axes", type=int, default=3, help="axes 1..=N")
+    ap.add_argument("--namespace-uri", default="SinumerikVarProvider")
+    ap.add_argument("--decoys", type=int, default=2, help="namespaces registered before it")
+    ap.add_argument("--write-delay-s", type=float, default=0.0, help="delay of every Write answer")
+    ap.add_argument("--min-session-timeout-s", type=float, default=5.0, help="shortest session timeout granted")
+    ap.add_argument("--lossy", action="store_true", help="keep written values as float32 (a REAL store)")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.ERROR, stream=sys.stderr)
+
+    server = Server(user_manager=Users())
+    await server.init()
+    server.iserver.min_session_timeout_ms = args.min_session_timeout_s * 1000
+    server.set_endpoint(f"opc.tcp://127.0.0.1:{args.port}/")
+    server.set_server_name("compgate test SINUMERIK")
+    server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+    server.set_identity_tokens([ua.AnonymousIdentityToken, ua.UserNameIdentityToken])
+    for i in range(args.decoys):
+        await server.register_namespace(f"urn:compgate:test:decoy{i}")
+    ns = await server.register_namespace(args.namespace_uri)
+
+    sea = await server.nodes.objects.add_folder(ua.NodeId("/NC/_N_AX_SEA_ACX", ns), "SEA")
+    nodes = {}
+    for axis in range(1, args.axes + 1):
+        for name in SETTING_DATA:
+            nid = ua.NodeId(f"/NC/_N_AX_SEA_ACX/{name}[u{axis}]", ns)
+            var = await sea.add_variable(nid, f"{name}[u{axis}]", ua.Variant(0.0, ua.VariantType.Double))
+            # AccessLevel allows writing; the stored UserAccessLevel does not, so only
+            # Admin-role sessions (SeaWrite) pass asyncua's write check.
+            await var.set_attr_bit(ua.AttributeIds.AccessLevel, ua.AccessLevel.CurrentWrite)
+            await var.unset_attr_bit(ua.AttributeIds.UserAccessLevel, ua.AccessLevel.CurrentWrite)
+            nodes[nid] = var
+
+    state = {"delay": args.write_delay_s}
+
+    async def before_write(event, _dispatcher):
+        if args.lossy:
+            # A store that keeps REAL (float32): what is read back is not what was written.
+            for wv in event.request_params.NodesToWrite:
+                v = wv.Value.Value
+                if wv.NodeId in nodes and v is not None and v.VariantType == ua.VariantType.Double:
+                    real = struct.unpack(">f", struct.pack(">f", v.Value))[0]
+                    wv.Value = ua.DataValue(ua.Variant(real, ua.VariantType.Double))
+        if state["delay"] > 0:
+            await asyncio.sleep(state["delay"])
+
+    def user_access_level(event, _dispatcher):
+        # The control answers UserAccessLevel per user; asyncua stores one per node.
+        may_write = event.user is not None and event.user.role == UserRole.Admin
+        for rv, dv in zip(event.request_params.NodesToRead, event.response_params):
+            if rv.AttributeId == ua.AttributeIds.UserAccessLevel and rv.NodeId in nodes:
+                level = ua.AccessLevel.CurrentRead.mask
+                if may_write:
+                    level |= ua.AccessLevel.CurrentWrite.mask
+                dv.Value = ua.Variant(level, ua.VariantType.Byte)
+
+    server.subscribe_server_callback(CallbackType.PreWrite, before_write)
+    server.subscribe_server_callback(CallbackType.PostRead, user_access_level)
+
+    async with server:
+        port = server.bserver.port
+        print(f"ENDPOINT opc.tcp://127.0.0.1:{port}/", flush=True)
+        print(f"NS {ns}", flush=True)
+        loop = asyncio.get_running_loop()
+        while True:
+            line = await loop.run_in_executor(None, sys.stdin.readline)
+            if not line:
+                break
+            cmd = line.split()
+            if not cmd:
+                continue
+            if cmd[0] == "dump":
+                values = {nid.to_string(): bits(await var.read_value()) for nid, var in nodes.items()}
+                print("VALUES " + json.dumps(values), flush=True)
+            elif cmd[0] == "delay" and len(cmd) == 2:
+                state["delay"] = float(cmd[1])
+                print("OK", flush=True)
+            elif cmd[0] == "expire":
+                sessions = list(server.iserver._external_sessions.values())
+                for session in sessions:
+                    await session.close_session()
+                print(f"OK {len(sessions)}", flush=True)
+            elif cmd[0] == "quit":
+                print("BYE", flush=True)
+                break
+            else:
+                print(f"ERR unknown command {line.strip()!r}", flush=True)
+
+
+if __name__ == "__main__":
+    asyncio.run(main())
