@@ -6,6 +6,7 @@
 //! the REQ/DONE/ERROR/STATE handshake, a job timeout and read-back verification.
 
 pub mod config;
+pub mod s7;
 
 use std::future::Future;
 use std::time::Duration;
