@@ -3,8 +3,10 @@
 //! - `cycle`: full poll-filter-compute cycles against the bare Modbus request rate.
 //! - `soak`: the `compgate` binary as a real process against simulated field modules,
 //!   with recording, metrics and MQTT on; CPU and RSS over time.
+//! - `nc-s7`: job latency of the S7 data-block target against its test peer.
 
 mod cycle;
+mod nc_s7;
 mod soak;
 mod volumetric;
 
@@ -46,6 +48,16 @@ enum Command {
         #[arg(long)]
         compgate: Option<PathBuf>,
     },
+    /// Job latency (REQ to verified read-back) of the S7 data-block target against
+    /// its peer, python-snap7 from target/peers-venv (tests/peers/install.sh).
+    NcS7 {
+        /// Measured jobs per value type.
+        #[arg(long, default_value_t = 200)]
+        jobs: u32,
+        /// Scan cycle of the simulated PLC program, ms.
+        #[arg(long, default_value_t = 1.0)]
+        plc_cycle_ms: f64,
+    },
 }
 
 /// The `compgate` binary that cargo built beside this one.
@@ -86,6 +98,16 @@ fn main() -> ExitCode {
             .map_or_else(sibling_compgate, Ok)
             .and_then(|exe| soak::run(seconds, &exe))
             .map(|report| print!("{report}")),
+        Command::NcS7 { jobs, plc_cycle_ms } => tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| format!("cannot start the async runtime: {e}"))
+            .and_then(|rt| {
+                ["real", "lreal"].into_iter().try_for_each(|t| {
+                    rt.block_on(nc_s7::run(jobs, t, plc_cycle_ms))
+                        .map(|r| println!("{}", r.line()))
+                })
+            }),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
