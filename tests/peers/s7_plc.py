@@ -135,7 +135,7 @@ def main():
     p.add_argument("--port", type=int, default=0)
     p.add_argument("--db", type=int, default=100)
     p.add_argument("--start-byte", type=int, default=0)
-    p.add_argument("--stride", type=int, default=256)
+    p.add_argument("--stride", type=int, help="bytes from one axis block to the next; default: the block length")
     p.add_argument("--axes", type=int, default=1)
     p.add_argument("--value-type", choices=["real", "lreal"], default="real")
     p.add_argument("--mode", choices=["done", "error", "silent"], default="done")
@@ -146,6 +146,8 @@ def main():
     a = p.parse_args()
 
     lay = Layout(a.value_type)
+    if a.stride is None:
+        a.stride = lay.length
     db = bytearray(a.start_byte + (a.axes - 1) * a.stride + lay.length)
     blocks = [AxisBlock(db, a.start_byte + i * a.stride, lay, a) for i in range(a.axes)]
     for b in blocks:

@@ -107,7 +107,7 @@ pub async fn run(jobs: u32, value_type: &str, plc_cycle_ms: f64) -> Result<Repor
         local_tsap: 0x0100,
         db_number: 100,
         start_byte: 0,
-        block_stride_bytes: 256,
+        block_stride_bytes: None,
         value_type: match value_type {
             "lreal" => S7ValueType::Lreal,
             _ => S7ValueType::Real,

@@ -190,10 +190,11 @@ pub struct S7TargetConfig {
     #[serde(default)]
     pub start_byte: u16,
     /// Bytes from one axis' block to the next: axis `n` starts at
-    /// `start_byte + (n - 1) * block_stride_bytes`. Default 256; at least the block
-    /// length (108 for REAL, 176 for LREAL), at most 65535.
-    #[serde(default = "default_block_stride_bytes")]
-    pub block_stride_bytes: u16,
+    /// `start_byte + (n - 1) * block_stride_bytes`. Default: the block length (108
+    /// for REAL, 176 for LREAL: an array of blocks, as `deploy/plc/` declares it); at
+    /// least the block length, at most 65535.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub block_stride_bytes: Option<u16>,
     /// How the block holds values: `real` (32 bit, every S7 PLC) or `lreal` (64 bit,
     /// S7-1500 class). Default `real`.
     #[serde(default = "default_value_type")]
@@ -225,10 +226,16 @@ impl S7TargetConfig {
         }
     }
 
+    /// Bytes from one axis' block to the next.
+    pub fn block_stride_bytes(&self) -> u16 {
+        self.block_stride_bytes
+            .unwrap_or_else(|| self.layout().block_len())
+    }
+
     /// Start of axis `axis_number`'s block, if it fits in the data block.
     fn block_start(&self, axis_number: u16) -> Option<u16> {
         let start = u32::from(self.start_byte)
-            + u32::from(axis_number.checked_sub(1)?) * u32::from(self.block_stride_bytes);
+            + u32::from(axis_number.checked_sub(1)?) * u32::from(self.block_stride_bytes());
         (start + u32::from(self.layout().block_len()) <= MAX_BYTE)
             .then_some(start)
             .and_then(|s| u16::try_from(s).ok())
@@ -267,13 +274,13 @@ impl S7TargetConfig {
             out.push(k("db_number"), "must be 1..=65535 (there is no DB0)");
         }
         let len = self.layout().block_len();
-        if self.block_stride_bytes < len {
+        if self.block_stride_bytes() < len {
             out.push(
                 k("block_stride_bytes"),
                 format!(
                     "must be at least the block length, {len} bytes for value_type = \"{}\", got {}; consecutive axes' blocks would overlap",
                     self.value_type_name(),
-                    self.block_stride_bytes
+                    self.block_stride_bytes()
                 ),
             );
         }
@@ -307,7 +314,7 @@ impl S7TargetConfig {
                 "axis {axis_name} (NC axis {axis_number}): no room for its S7 block in DB{}: axis numbers start at 1 and the block (start_byte {} + (axis - 1) * block_stride_bytes {} + {} bytes) must end by byte {MAX_BYTE}",
                 self.db_number,
                 self.start_byte,
-                self.block_stride_bytes,
+                self.block_stride_bytes(),
                 self.layout().block_len()
             ))
         })?;
@@ -359,9 +366,6 @@ impl S7TargetConfig {
 
 fn default_local_tsap() -> u16 {
     0x0100
-}
-fn default_block_stride_bytes() -> u16 {
-    256
 }
 fn default_value_type() -> S7ValueType {
     S7ValueType::Real
@@ -912,11 +916,11 @@ mod tests {
     fn build_places_each_axis_block_and_refuses_what_does_not_fit() {
         let c = cfg("address = \"127.0.0.1:1102\"\ndb_number = 100\nstart_byte = 16");
         let w = c.build("X1", 3).expect("axis 3 fits");
-        assert_eq!(w.spec.block, 16 + 2 * 256);
+        assert_eq!(w.spec.block, 16 + 2 * 108);
         assert_eq!((w.spec.host.as_str(), w.spec.port), ("127.0.0.1", 1102));
         let e = c.build("X1", 0).expect_err("axis numbers start at 1");
         assert!(e.to_string().contains("axis X1"), "{e}");
-        let e = c.build("Z9", 300).expect_err("past byte 65535");
+        let e = c.build("Z9", 700).expect_err("past byte 65535");
         assert!(e.to_string().contains("DB100"), "{e}");
     }
 
