@@ -54,8 +54,8 @@ class Layout:
 class AxisBlock:
     """One axis' block and the state the PLC program keeps for it."""
 
-    def __init__(self, db, base, lay, args):
-        self.db, self.base, self.lay, self.args = db, base, lay, args
+    def __init__(self, db, base, axis_no, lay, args):
+        self.db, self.base, self.axis_no, self.lay, self.args = db, base, axis_no, lay, args
         self.prev_req = 0
         self.busy_scans = 0
 
@@ -94,7 +94,8 @@ class AxisBlock:
             self.finish(3, a.status, a.error_index)
             return
         n = self.word(lay.num_pairs)
-        if not 1 <= n <= MAX_PAIRS:
+        # A job for another axis means the PC and the PLC disagree on the layout.
+        if self.word(lay.axis) != self.axis_no or not 1 <= n <= MAX_PAIRS:
             self.finish(3, 5, 0)
             return
         pairs = []
@@ -149,7 +150,7 @@ def main():
     if a.stride is None:
         a.stride = lay.length
     db = bytearray(a.start_byte + (a.axes - 1) * a.stride + lay.length)
-    blocks = [AxisBlock(db, a.start_byte + i * a.stride, lay, a) for i in range(a.axes)]
+    blocks = [AxisBlock(db, a.start_byte + i * a.stride, i + 1, lay, a) for i in range(a.axes)]
     for b in blocks:
         b.init_readback()
 
