@@ -267,3 +267,67 @@ async fn nothing_listening_is_a_link_error() {
         "{e:?}"
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn read_back_tolerates_one_float32_step_for_real_and_none_for_lreal() {
+    if !s7_peer::available() {
+        return;
+    }
+    let p = awkward();
+    for (value_type, skew, ok) in [
+        ("real", "1", true),
+        ("real", "2", false),
+        ("lreal", "1", false),
+    ] {
+        let peer = S7Peer::start(&[
+            "--value-type",
+            value_type,
+            "--mode",
+            "done",
+            "--readback-skew-ulps",
+            skew,
+        ]);
+        let mut w = writer(&peer, &format!("value_type = \"{value_type}\""), 1);
+        let r = w.write_job(&Job::thermal(&p)).await;
+        match (r, ok) {
+            (Ok(_), true) => {}
+            (Err(NcError::ReadBack { var, written, .. }), false) => {
+                assert_eq!((var, written.to_bits()), (var::SD43900, p.k0_mm.to_bits()));
+            }
+            (r, _) => panic!("{value_type} read-back {skew} step(s) off: {r:?}"),
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_left_unacknowledged_is_waited_for_and_cleared_first() {
+    if !s7_peer::available() {
+        return;
+    }
+    // FB3 takes ~200 PLC cycles here: the first writer gives up while the PLC is busy
+    // and never acknowledges what the PLC then answers.
+    let peer = S7Peer::start(&["--value-type", "lreal", "--busy-scans", "200"]);
+    let mut quick = writer(&peer, "value_type = \"lreal\"\njob_timeout_s = 0.05", 1);
+    let e = quick
+        .write_job(&Job::thermal(&awkward()))
+        .await
+        .unwrap_err();
+    assert!(
+        matches!(
+            e,
+            NcError::JobTimeout {
+                state: Some(JobState::Busy),
+                ..
+            }
+        ),
+        "{e:?}"
+    );
+    let mut w = writer(&peer, "value_type = \"lreal\"\njob_timeout_s = 5.0", 1);
+    let q = CompParams {
+        k0_mm: 0.25,
+        tan_beta: 2e-5,
+        p0_mm: 100.0,
+    };
+    w.write_job(&Job::thermal(&q)).await.unwrap();
+    assert_eq!(w.read_snapshot().await.unwrap().thermal(), q);
+}

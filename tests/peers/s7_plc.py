@@ -11,6 +11,9 @@ Modes:
   error   answer ERROR with --status / --error-index, values untouched
   silent  never answer (the PLC program is not running)
 
+--readback-skew-ulps N makes the read-back of SD43900 differ from the value sent by N
+steps of the block's float type, for the read-back tolerance tests.
+
 Prints "PORT <n>" once the server listens; runs until stdin closes or SIGTERM.
 
     python s7_plc.py --port 0 --db 100 --value-type real --mode done
@@ -58,15 +61,13 @@ class AxisBlock:
         self.db, self.base, self.axis_no, self.lay, self.args = db, base, axis_no, lay, args
         self.prev_req = 0
         self.busy_scans = 0
+        self.latched = b""
 
     def word(self, off):
         return struct.unpack_from(">H", self.db, self.base + off)[0]
 
     def set_word(self, off, v):
         struct.pack_into(">H", self.db, self.base + off, v & 0xFFFF)
-
-    def real(self, off):
-        return struct.unpack_from(self.lay.fmt, self.db, self.base + off)[0]
 
     def set_real(self, off, v):
         struct.pack_into(self.lay.fmt, self.db, self.base + off, v)
@@ -79,29 +80,40 @@ class AxisBlock:
         for k, v in enumerate([0.0, 0.0, 0.0, 0.01, 10000.0, 0.0, 0.0, 0.0, 0.0]):
             self.set_real(lay.readback + k * lay.w, v)
 
+    def latch(self):
+        """The job as it stood at the rising edge of REQ: later writes do not alter it."""
+        lay = self.lay
+        self.latched = bytes(self.db[self.base + lay.job_id : self.base + lay.state])
+
+    def job_word(self, off):
+        return struct.unpack_from(">H", self.latched, off - self.lay.job_id)[0]
+
+    def job_real(self, off):
+        return struct.unpack_from(self.lay.fmt, self.latched, off - self.lay.job_id)[0]
+
     def finish(self, state, status, index):
         lay = self.lay
         self.set_word(lay.status, status)
         self.set_word(lay.error_index, index)
         self.set_word(lay.fb3_state, 0)
-        self.set_word(lay.job_id_done, self.word(lay.job_id))
+        self.set_word(lay.job_id_done, self.job_word(lay.job_id))
         self.set_word(lay.state, state)
 
     def execute(self):
-        """The job as FB3 PUT applies it: all pairs or none."""
+        """The latched job as FB3 PUT applies it: all pairs or none."""
         lay, a = self.lay, self.args
         if a.mode == "error":
             self.finish(3, a.status, a.error_index)
             return
-        n = self.word(lay.num_pairs)
+        n = self.job_word(lay.num_pairs)
         # A job for another axis means the PC and the PLC disagree on the layout.
-        if self.word(lay.axis) != self.axis_no or not 1 <= n <= MAX_PAIRS:
+        if self.job_word(lay.axis) != self.axis_no or not 1 <= n <= MAX_PAIRS:
             self.finish(3, 5, 0)
             return
         pairs = []
         for i in range(n):
-            var = self.word(lay.var_ids + 2 * i)
-            value = self.real(lay.values + lay.w * i)
+            var = self.job_word(lay.var_ids + 2 * i)
+            value = self.job_real(lay.values + lay.w * i)
             if var not in WRITABLE:
                 self.finish(3, 10, i + 1)
                 return
@@ -112,6 +124,12 @@ class AxisBlock:
             pairs.append((slot, value))
         for slot, value in pairs:
             self.set_real(lay.readback + slot * lay.w, value)
+        if a.readback_skew_ulps:
+            # An NC that holds SD43900 a few float steps off what was sent.
+            off = self.base + lay.readback
+            bits = "I" if lay.w == 4 else "Q"
+            (b,) = struct.unpack_from(">" + bits, self.db, off)
+            struct.pack_into(">" + bits, self.db, off, b + a.readback_skew_ulps)
         self.finish(2, 0, 0)
 
     def scan(self):
@@ -119,6 +137,7 @@ class AxisBlock:
         req = self.word(lay.req)
         state = self.word(lay.state)
         if state == 0 and req == 1 and self.prev_req == 0:
+            self.latch()
             self.set_word(lay.state, 1)
             self.busy_scans = a.busy_scans
         elif state == 1:
@@ -142,6 +161,7 @@ def main():
     p.add_argument("--mode", choices=["done", "error", "silent"], default="done")
     p.add_argument("--status", type=int, default=3)
     p.add_argument("--error-index", type=int, default=1)
+    p.add_argument("--readback-skew-ulps", type=int, default=0, help="done mode: SD43900's read-back this many float steps above the value sent")
     p.add_argument("--busy-scans", type=int, default=1, help="scans in BUSY, as FB3 takes a few PLC cycles")
     p.add_argument("--cycle-ms", type=float, default=1.0)
     a = p.parse_args()
