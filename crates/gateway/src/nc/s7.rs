@@ -252,6 +252,9 @@ impl S7TargetConfig {
     pub fn validate(&self, key: &str, out: &mut Problems<'_>) {
         let k = |f: &str| format!("{key}.{f}");
         out.host_port(&k("address"), &self.address);
+        if self.address.rsplit_once(':').is_some_and(|(_, p)| p == "0") {
+            out.push(k("address"), "port 0: the PLC's S7 port is 102");
+        }
         if let Some(rack) = self.rack.filter(|r| *r > 7) {
             out.push(k("rack"), format!("must be 0..=7 (S7 rack), got {rack}"));
         }
@@ -500,11 +503,9 @@ fn run_blocking<T>(
         },
     };
     let result = op(spec, &mut client);
-    // After a transport fault the stream may hold a late or partial reply.
-    let keep = !matches!(
-        result,
-        Err(NcError::Link(_)) | Err(NcError::JobTimeout { .. })
-    );
+    // After a transport fault the stream may hold a late or partial reply. A job
+    // timeout seen here fell between two requests: the stream is clean.
+    let keep = !matches!(result, Err(NcError::Link(_)));
     if !keep {
         client.disconnect();
     }
@@ -821,8 +822,9 @@ impl NcWriter for S7NcWriter {
     }
 
     async fn read_snapshot(&mut self) -> Result<NcSnapshot, NcError> {
-        // Connect plus one read, each bounded by the client's own socket timeouts.
-        let deadline = Instant::now() + self.spec.connect_timeout + 2 * self.spec.timeout;
+        // Connect (TCP, ISO and PDU negotiation) plus one read, each bounded by the
+        // client's own socket timeouts.
+        let deadline = Instant::now() + self.spec.connect_timeout + 3 * self.spec.timeout;
         let r = self
             .blocking(deadline, |spec, c| {
                 PlcArea::read(spec, c).map(|a| a.snapshot())
@@ -885,7 +887,7 @@ mod tests {
     #[test]
     fn validate_names_the_key_at_fault() {
         let c = cfg(
-            "address = \"plc\"\ndb_number = 0\nrack = 9\nslot = 1\nremote_tsap = 0x0302\nblock_stride_bytes = 100\nstart_byte = 65500\njob_timeout_s = 0.0",
+            "address = \"plc:0\"\ndb_number = 0\nrack = 9\nslot = 1\nremote_tsap = 0x0302\nblock_stride_bytes = 100\nstart_byte = 65500\njob_timeout_s = 0.0",
         );
         let p = problems(&c).join("\n");
         for key in [
