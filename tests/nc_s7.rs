@@ -183,6 +183,8 @@ async fn a_plc_that_never_answers_hits_the_job_timeout() {
         w.read_snapshot().await.unwrap().thermal(),
         CompParams::default()
     );
+    // The timeout fell between two requests: the connection stays.
+    assert_eq!(w.connects(), 1);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
