@@ -935,7 +935,7 @@ mod tests {
         assert!(read_back_ok(S7ValueType::Real, v, f64::from(f)));
         assert!(read_back_ok(S7ValueType::Real, v, f64::from(next)));
         assert!(!read_back_ok(S7ValueType::Real, v, f64::from(two)));
-        // Across zero: -0.0 and +0.0 are one step apart in the ordered image.
+        // Across zero: -0.0 and +0.0 are the same point of the ordered image.
         assert!(read_back_ok(S7ValueType::Real, 0.0, -0.0));
         assert!(!read_back_ok(S7ValueType::Lreal, v, f64::from(f)));
         assert!(read_back_ok(S7ValueType::Lreal, v, v));
