@@ -241,6 +241,12 @@ impl S7TargetConfig {
             .and_then(|s| u16::try_from(s).ok())
     }
 
+    /// Whether the block has a place for variable `var_id`: the three thermal setting
+    /// data, the only ones the PLC program of `deploy/plc/` passes to FB3.
+    pub fn has(&self, var_id: u16) -> bool {
+        matches!(var_id, var::SD43900 | var::SD43910 | var::SD43920)
+    }
+
     /// The remote TSAP: `remote_tsap`, or the PG connection to rack/slot.
     pub fn remote_tsap(&self) -> u16 {
         self.remote_tsap.unwrap_or_else(|| {
@@ -442,6 +448,12 @@ impl S7NcWriter {
     /// True while a connection is held.
     pub fn is_connected(&self) -> bool {
         self.client.is_some()
+    }
+
+    /// How the block holds the values (REAL: the read-back is checked to one float32
+    /// ulp).
+    pub fn value_type(&self) -> S7ValueType {
+        self.spec.layout.value_type
     }
 
     /// Runs `op` on the blocking pool with a connected client, giving up (and the
