@@ -4,9 +4,11 @@
 //! - `soak`: the `compgate` binary as a real process against simulated field modules,
 //!   with recording, metrics and MQTT on; CPU and RSS over time.
 //! - `nc`: NC job latency per target kind against its peer (p50/p99).
+//! - `nc-s7`: job latency of the S7 data-block target against its test peer.
 
 mod cycle;
 mod nc;
+mod nc_s7;
 mod soak;
 mod volumetric;
 
@@ -56,6 +58,15 @@ enum Command {
         /// Python interpreter of the peers; default target/peers-venv/bin/python.
         #[arg(long)]
         python: Option<PathBuf>,
+    /// Job latency (REQ to verified read-back) of the S7 data-block target against
+    /// its peer, python-snap7 from target/peers-venv (tests/peers/install.sh).
+    NcS7 {
+        /// Measured jobs per value type.
+        #[arg(long, default_value_t = 200)]
+        jobs: u32,
+        /// Scan cycle of the simulated PLC program, ms.
+        #[arg(long, default_value_t = 1.0)]
+        plc_cycle_ms: f64,
     },
 }
 
@@ -103,6 +114,16 @@ fn main() -> ExitCode {
             .map_err(|e| format!("cannot start the async runtime: {e}"))
             .and_then(|rt| rt.block_on(nc::run(jobs, python)))
             .map(|outcomes| print!("{}", nc::table(&outcomes))),
+        Command::NcS7 { jobs, plc_cycle_ms } => tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| format!("cannot start the async runtime: {e}"))
+            .and_then(|rt| {
+                ["real", "lreal"].into_iter().try_for_each(|t| {
+                    rt.block_on(nc_s7::run(jobs, t, plc_cycle_ms))
+                        .map(|r| println!("{}", r.line()))
+                })
+            }),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -10,6 +10,8 @@ use serde::{Deserialize, Serialize};
 
 use super::ads::AdsTargetConfig;
 pub use super::modbus::ModbusTargetConfig;
+use super::opcua::OpcuaTargetConfig;
+use super::s7::S7TargetConfig;
 use super::{AnyNcWriter, NcError};
 use crate::config::problem::Problems;
 
@@ -17,14 +19,21 @@ use crate::config::problem::Problems;
 pub type NcModuleConfig = ModbusTargetConfig;
 
 /// `[targets.NAME]`: one NC target, by `kind`: `modbus` (the NC axis module's register
-/// map over Modbus TCP) or `ads` (Beckhoff TwinCAT over ADS). A key of another kind is
-/// an unknown key.
+/// map over Modbus TCP), `opcua` (the SINUMERIK OPC UA server), `s7` (a PLC data block
+/// passed to FB3, over S7comm) or `ads` (Beckhoff TwinCAT over ADS). A key of another
+/// kind is an unknown key.
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(tag = "kind", rename_all = "lowercase")]
 pub enum TargetConfig {
     /// `kind = "modbus"`: an NC axis module over Modbus TCP (`address`, `unit_id`), one
     /// axis per module.
     Modbus(ModbusTargetConfig),
+    /// `kind = "opcua"`: a SINUMERIK OPC UA server (`endpoint_url`, node-id templates,
+    /// security, credentials).
+    Opcua(OpcuaTargetConfig),
+    /// `kind = "s7"`: a PLC data block over S7comm, passed to FB3 by the PLC program of
+    /// `deploy/plc/` (`address`, `db_number`, `value_type`).
+    S7(S7TargetConfig),
     /// `kind = "ads"`: a TwinCAT control over ADS (`address`, `ams_net_id`,
     /// `ams_port`, index group and offset per value).
     Ads(AdsTargetConfig),
@@ -35,6 +44,10 @@ pub enum TargetConfig {
 pub enum TargetKind {
     /// Modbus NC axis module.
     Modbus,
+    /// SINUMERIK OPC UA.
+    Opcua,
+    /// S7 data block + FB3.
+    S7,
     /// Beckhoff ADS.
     Ads,
 }
@@ -44,6 +57,8 @@ impl TargetKind {
     pub fn name(self) -> &'static str {
         match self {
             Self::Modbus => "modbus",
+            Self::Opcua => "opcua",
+            Self::S7 => "s7",
             Self::Ads => "ads",
         }
     }
@@ -54,6 +69,8 @@ impl TargetConfig {
     pub fn kind(&self) -> TargetKind {
         match self {
             Self::Modbus(_) => TargetKind::Modbus,
+            Self::Opcua(_) => TargetKind::Opcua,
+            Self::S7(_) => TargetKind::S7,
             Self::Ads(_) => TargetKind::Ads,
         }
     }
@@ -74,6 +91,12 @@ impl TargetConfig {
         match self {
             // The module's map takes every variable of `compgate_ncproto::var`.
             Self::Modbus(_) => true,
+            // The three node-id templates (defaults for each).
+            Self::Opcua(_) => matches!(
+                var_id,
+                super::var::SD43900 | super::var::SD43910 | super::var::SD43920
+            ),
+            Self::S7(c) => c.has(var_id),
             Self::Ads(c) => c.has(var_id),
         }
     }
@@ -82,6 +105,8 @@ impl TargetConfig {
     pub fn job_timeout(&self) -> Duration {
         match self {
             Self::Modbus(c) => c.job_timeout(),
+            Self::Opcua(c) => c.job_timeout(),
+            Self::S7(c) => c.job_timeout(),
             Self::Ads(c) => c.job_timeout(),
         }
     }
@@ -90,6 +115,8 @@ impl TargetConfig {
     pub fn validate(&self, key: &str, out: &mut Problems<'_>) {
         match self {
             Self::Modbus(c) => c.validate(key, out),
+            Self::Opcua(c) => c.validate(key, out),
+            Self::S7(c) => c.validate(key, out),
             Self::Ads(c) => c.validate(key, out),
         }
     }
@@ -98,6 +125,8 @@ impl TargetConfig {
     pub fn build(&self, axis_name: &str, axis_number: u16) -> Result<AnyNcWriter, NcError> {
         Ok(match self {
             Self::Modbus(c) => AnyNcWriter::Modbus(c.build(axis_name, axis_number)?),
+            Self::Opcua(c) => AnyNcWriter::Opcua(Box::new(c.build(axis_name, axis_number)?)),
+            Self::S7(c) => AnyNcWriter::S7(c.build(axis_name, axis_number)?),
             Self::Ads(c) => AnyNcWriter::Ads(c.build(axis_name, axis_number)?),
         })
     }

@@ -14,6 +14,8 @@ use compgate_ncproto::{var, MAX_PAIRS};
 use tokio::time::Instant;
 
 use super::ads::AdsNcWriter;
+use super::opcua::OpcuaNcWriter;
+use super::s7::{S7NcWriter, S7ValueType};
 use super::{Job, JobReport, ModbusNcWriter, NcError, NcSnapshot, NcWriter, Precision};
 
 /// The three thermal setting data: the default allow-list.
@@ -24,6 +26,10 @@ pub const THERMAL_VARS: [u16; 3] = [var::SD43900, var::SD43910, var::SD43920];
 pub enum AnyNcWriter {
     /// Modbus NC axis module.
     Modbus(ModbusNcWriter),
+    /// SINUMERIK OPC UA (boxed: the session state is large).
+    Opcua(Box<OpcuaNcWriter>),
+    /// S7 data block + FB3.
+    S7(S7NcWriter),
     /// Beckhoff ADS.
     Ads(AdsNcWriter),
 }
@@ -32,6 +38,8 @@ impl NcWriter for AnyNcWriter {
     async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
         match self {
             Self::Modbus(w) => w.write_job(job).await,
+            Self::Opcua(w) => w.write_job(job).await,
+            Self::S7(w) => w.write_job(job).await,
             Self::Ads(w) => w.write_job(job).await,
         }
     }
@@ -39,6 +47,8 @@ impl NcWriter for AnyNcWriter {
     async fn read_snapshot(&mut self) -> Result<NcSnapshot, NcError> {
         match self {
             Self::Modbus(w) => w.read_snapshot().await,
+            Self::Opcua(w) => w.read_snapshot().await,
+            Self::S7(w) => w.read_snapshot().await,
             Self::Ads(w) => w.read_snapshot().await,
         }
     }
@@ -46,6 +56,9 @@ impl NcWriter for AnyNcWriter {
     async fn may_write(&mut self) -> Result<Option<bool>, NcError> {
         match self {
             Self::Modbus(w) => w.may_write().await,
+            // The session's UserAccessLevel on the three nodes.
+            Self::Opcua(w) => w.may_write().await.map(Some),
+            Self::S7(w) => w.may_write().await,
             Self::Ads(w) => w.may_write().await,
         }
     }
@@ -53,6 +66,11 @@ impl NcWriter for AnyNcWriter {
     fn precision(&self) -> Precision {
         match self {
             Self::Modbus(w) => w.precision(),
+            Self::Opcua(w) => w.precision(),
+            Self::S7(w) => match w.value_type() {
+                S7ValueType::Real => Precision::F32,
+                S7ValueType::Lreal => Precision::F64,
+            },
             Self::Ads(w) => w.precision(),
         }
     }
@@ -60,6 +78,9 @@ impl NcWriter for AnyNcWriter {
     fn has_axis_state(&self) -> bool {
         match self {
             Self::Modbus(w) => w.has_axis_state(),
+            Self::Opcua(w) => w.has_axis_state(),
+            // The block carries MD32750 and the referenced flag the PLC program copies.
+            Self::S7(_) => true,
             Self::Ads(w) => w.has_axis_state(),
         }
     }

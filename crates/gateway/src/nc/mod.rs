@@ -3,7 +3,8 @@
 //! A [`Job`] carries up to eight (variable, value) pairs that the NC applies all or
 //! none. [`NcWriter`] is the transport-neutral interface, implemented once per target
 //! kind: [`ModbusNcWriter`] (the NC axis module's register map over Modbus TCP),
-//! [`ads::AdsNcWriter`] (Beckhoff ADS). [`config::TargetConfig`] is the
+//! [`ads::AdsNcWriter`] (Beckhoff ADS), [`opcua::OpcuaNcWriter`] (SINUMERIK OPC UA),
+//! [`s7::S7NcWriter`] (a PLC data block and FB3 over S7comm). [`config::TargetConfig`] is the
 //! `[targets.NAME]` table tagged by `kind`; [`guard::Guarded`] enforces, once for every
 //! kind, what no target may skip: the allow-list, finite values, the job timeout and
 //! the read-back check.
@@ -13,6 +14,7 @@ pub mod config;
 pub mod guard;
 pub mod modbus;
 pub mod opcua;
+pub mod s7;
 
 use std::future::Future;
 use std::time::Duration;
