@@ -58,6 +58,7 @@ enum Command {
         /// Python interpreter of the peers; default target/peers-venv/bin/python.
         #[arg(long)]
         python: Option<PathBuf>,
+    },
     /// Job latency (REQ to verified read-back) of the S7 data-block target against
     /// its peer, python-snap7 from target/peers-venv (tests/peers/install.sh).
     NcS7 {

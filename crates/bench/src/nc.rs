@@ -1,9 +1,11 @@
 //! `compgate-bench nc`: NC job latency per target kind against its peer on loopback, a
 //! job being what the gateway counts as written: the write and the guard's read-back.
 //!
-//! Peers: the simulated NC axis module (`modbus`, in process) and pyads' test server
-//! (`ads`, `tests/peers/ads_server.py` run by the peers' Python). A kind whose peer is
-//! missing is reported as skipped, with the reason.
+//! Peers: the simulated NC axis module (`modbus`, in process), the SINUMERIK-like
+//! asyncua server (`opcua`, `tests/peers/opcua_server.py`), python-snap7's server with
+//! the PLC program's handshake (`s7`, `tests/peers/s7_plc.py`, 1 ms scan) and pyads'
+//! test server (`ads`, `tests/peers/ads_server.py`), the Python ones run by the peers'
+//! interpreter. A kind whose peer is missing is reported as skipped, with the reason.
 
 use std::fmt::Write as _;
 use std::io::{BufRead, BufReader};
@@ -106,8 +108,26 @@ impl Drop for PeerProcess {
     }
 }
 
-/// Starts `script` under `python`; returns the process and its port.
+/// Starts `script` under `python`; returns the process and its port (from its first
+/// line, `PORT <n>`).
 fn start_peer(python: &Path, script: &Path, args: &[&str]) -> Result<(PeerProcess, u16), String> {
+    let (peer, lines) = start_peer_lines(python, script, args, 1)?;
+    let line = &lines[0];
+    let port = line
+        .trim()
+        .strip_prefix("PORT ")
+        .and_then(|p| p.parse().ok())
+        .ok_or_else(|| format!("{}: expected `PORT <n>`, got {line:?}", script.display()))?;
+    Ok((peer, port))
+}
+
+/// Starts `script` under `python` and returns its first `n` lines.
+fn start_peer_lines(
+    python: &Path,
+    script: &Path,
+    args: &[&str],
+    n: usize,
+) -> Result<(PeerProcess, Vec<String>), String> {
     let mut child = Command::new(python)
         .arg(script)
         .args(args)
@@ -118,16 +138,16 @@ fn start_peer(python: &Path, script: &Path, args: &[&str]) -> Result<(PeerProces
         .map_err(|e| format!("{}: {e}", python.display()))?;
     let out = child.stdout.take().ok_or("peer stdout")?;
     let peer = PeerProcess(child);
-    let mut line = String::new();
-    BufReader::new(out)
-        .read_line(&mut line)
-        .map_err(|e| format!("peer: {e}"))?;
-    let port = line
-        .trim()
-        .strip_prefix("PORT ")
-        .and_then(|p| p.parse().ok())
-        .ok_or_else(|| format!("{}: expected `PORT <n>`, got {line:?}", script.display()))?;
-    Ok((peer, port))
+    let mut reader = BufReader::new(out);
+    let mut lines = Vec::with_capacity(n);
+    for _ in 0..n {
+        let mut line = String::new();
+        reader
+            .read_line(&mut line)
+            .map_err(|e| format!("peer: {e}"))?;
+        lines.push(line.trim().to_string());
+    }
+    Ok((peer, lines))
 }
 
 /// The workspace root (the peers' scripts and interpreter live under it).
@@ -153,15 +173,70 @@ async fn modbus(jobs: usize) -> Result<KindLatency, String> {
     r
 }
 
-async fn ads(jobs: usize, python: &Path) -> Result<Outcome, String> {
-    if !python.exists() {
-        return Ok(Outcome::Skipped(
-            "ads",
+/// `Some(skipped)` when the peers' interpreter is missing.
+fn no_python(kind: &'static str, python: &Path) -> Option<Outcome> {
+    (!python.exists()).then(|| {
+        Outcome::Skipped(
+            kind,
             format!(
                 "no peer interpreter at {} (run tests/peers/install.sh)",
                 python.display()
             ),
-        ));
+        )
+    })
+}
+
+async fn opcua(jobs: usize, python: &Path) -> Result<Outcome, String> {
+    if let Some(skip) = no_python("opcua", python) {
+        return Ok(skip);
+    }
+    let script = root().join("tests/peers/opcua_server.py");
+    // ENDPOINT, then NS once it serves.
+    let (_peer, lines) = start_peer_lines(python, &script, &["--port", "0"], 2)?;
+    let endpoint = lines[0]
+        .strip_prefix("ENDPOINT ")
+        .ok_or_else(|| format!("opcua peer: expected `ENDPOINT <url>`, got {:?}", lines[0]))?
+        .to_string();
+    let dir = tempfile::tempdir().map_err(|e| format!("opcua: temp dir: {e}"))?;
+    let cred = dir.path().join("cred");
+    std::fs::write(&cred, "writer\nwriter-pw\n").map_err(|e| format!("opcua: {e}"))?;
+    let target = toml_target(&format!(
+        "kind = \"opcua\"\nendpoint_url = \"{endpoint}\"\nsecurity_policy = \"None\"\n\
+         security_mode = \"None\"\npki_dir = \"{}\"\ncredentials_file = \"{}\"\n",
+        dir.path().join("pki").display(),
+        cred.display()
+    ))?;
+    measure("opcua", &target, jobs).await.map(Outcome::Measured)
+}
+
+async fn s7(jobs: usize, python: &Path) -> Result<Outcome, String> {
+    if let Some(skip) = no_python("s7", python) {
+        return Ok(skip);
+    }
+    let script = root().join("tests/peers/s7_plc.py");
+    let (_peer, port) = start_peer(
+        python,
+        &script,
+        &[
+            "--port",
+            "0",
+            "--mode",
+            "done",
+            "--value-type",
+            "lreal",
+            "--cycle-ms",
+            "1",
+        ],
+    )?;
+    let target = toml_target(&format!(
+        "kind = \"s7\"\naddress = \"127.0.0.1:{port}\"\ndb_number = 100\nvalue_type = \"lreal\"\n"
+    ))?;
+    measure("s7", &target, jobs).await.map(Outcome::Measured)
+}
+
+async fn ads(jobs: usize, python: &Path) -> Result<Outcome, String> {
+    if let Some(skip) = no_python("ads", python) {
+        return Ok(skip);
     }
     let script = root().join("tests/peers/ads_server.py");
     let (_peer, port) = start_peer(
@@ -195,6 +270,8 @@ pub async fn run(jobs: usize, python: Option<PathBuf>) -> Result<Vec<Outcome>, S
     let python = python.unwrap_or_else(|| root().join("target/peers-venv/bin/python"));
     Ok(vec![
         Outcome::Measured(modbus(jobs).await?),
+        opcua(jobs, &python).await?,
+        s7(jobs, &python).await?,
         ads(jobs, &python).await?,
     ])
 }
