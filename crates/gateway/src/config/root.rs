@@ -39,8 +39,8 @@ pub struct Config {
     /// for devices.
     pub channels: BTreeMap<String, ChannelConfig>,
     /// NC targets the compensation is written into, by name, each with its `kind`
-    /// (`modbus`, `ads`). Optional table (a monitoring-only config has none); names as
-    /// for devices, distinct from the names in `[nc_modules]`.
+    /// (`modbus`, `opcua`, `s7`, `ads`). Optional table (a monitoring-only config has
+    /// none); names as for devices, distinct from the names in `[nc_modules]`.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub targets: BTreeMap<String, TargetConfig>,
     /// NC axis modules over Modbus TCP, by name: the older spelling of a `[targets]`
