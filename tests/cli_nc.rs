@@ -3,12 +3,15 @@
 #![allow(clippy::unwrap_used)]
 
 mod common;
+#[path = "common/opcua_peer.rs"]
+mod opcua_peer;
 
 use std::io::Write;
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
 
 use common::{config, plant_and_file};
+use opcua_peer::OpcuaPeer;
 
 const BIN: &str = env!("CARGO_BIN_EXE_compgate");
 
@@ -37,7 +40,7 @@ async fn nc(file: &Path, args: &[&str], stdin: &str) -> Output {
     .unwrap()
 }
 
-fn text(o: &Output) -> String {
+fn text_of(o: &Output) -> String {
     format!(
         "{}{}",
         String::from_utf8_lossy(&o.stdout),
@@ -54,7 +57,7 @@ async fn nc_read_prints_what_the_nc_holds() {
         a.sd43910 = -0.000025;
     });
     let out = nc(&file, &["read"], "").await;
-    let t = text(&out);
+    let t = text_of(&out);
     assert!(out.status.success(), "{t}");
     assert!(
         t.contains("axis X (target nc_x, kind = modbus): SD43900 = 0.0123 mm, SD43910 = -0.000025, SD43920 = 0 mm"),
@@ -64,12 +67,20 @@ async fn nc_read_prints_what_the_nc_holds() {
 
     let out = nc(&file, &["read", "--target", "nope"], "").await;
     assert_eq!(out.status.code(), Some(1));
-    assert!(text(&out).contains("no target `nope`"), "{}", text(&out));
+    assert!(
+        text_of(&out).contains("no target `nope`"),
+        "{}",
+        text_of(&out)
+    );
     // A dead NC: the read fails with the reason, exit 1.
     drop(plant);
     let out = nc(&file, &["read"], "").await;
-    assert_eq!(out.status.code(), Some(1), "{}", text(&out));
-    assert!(text(&out).contains("could not be read"), "{}", text(&out));
+    assert_eq!(out.status.code(), Some(1), "{}", text_of(&out));
+    assert!(
+        text_of(&out).contains("could not be read"),
+        "{}",
+        text_of(&out)
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -88,7 +99,7 @@ async fn nc_write_shows_the_change_and_writes_once_after_yes() {
     ];
 
     let out = nc(&file, &args, "n\n").await;
-    let t = text(&out);
+    let t = text_of(&out);
     assert!(out.status.success(), "{t}");
     assert!(t.contains("SD43900: 0 -> 0.02"), "{t}");
     assert!(t.contains("SD43910: 0 -> -0.0001"), "{t}");
@@ -97,7 +108,7 @@ async fn nc_write_shows_the_change_and_writes_once_after_yes() {
     assert_eq!(module.jobs_executed(), 0);
 
     let out = nc(&file, &args, "y\n").await;
-    let t = text(&out);
+    let t = text_of(&out);
     assert!(out.status.success(), "{t}");
     assert!(t.contains("written and read back"), "{t}");
     let s = module.state();
@@ -114,9 +125,9 @@ async fn nc_write_shows_the_change_and_writes_once_after_yes() {
     .await;
     assert_eq!(out.status.code(), Some(1));
     assert!(
-        text(&out).contains("beyond the axis's limit"),
+        text_of(&out).contains("beyond the axis's limit"),
         "{}",
-        text(&out)
+        text_of(&out)
     );
     let out = nc(
         &file,
@@ -125,14 +136,58 @@ async fn nc_write_shows_the_change_and_writes_once_after_yes() {
     )
     .await;
     assert_eq!(out.status.code(), Some(1));
-    assert!(text(&out).contains("not a finite number"), "{}", text(&out));
+    assert!(
+        text_of(&out).contains("not a finite number"),
+        "{}",
+        text_of(&out)
+    );
     let out = nc(
         &file,
         &["write", "--axis", "Y", "--k0-mm", "0.01", "--yes"],
         "",
     )
     .await;
-    assert!(text(&out).contains("no axis `Y`"), "{}", text(&out));
+    assert!(text_of(&out).contains("no axis `Y`"), "{}", text_of(&out));
     assert_eq!(module.jobs_executed(), 1);
     assert_eq!(module.state().sd43900_mm.to_bits(), 0.02_f64.to_bits());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nc_read_on_opcua_says_whether_the_session_may_write() {
+    let Some(peer) = OpcuaPeer::start(&[]) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let base = config("hold", "", "");
+    let start = base.find("[nc_modules.nc_x]").unwrap();
+    let end = start + base[start..].find("\n\n").unwrap();
+    let sim = base.find("[sim.nc_modules.nc_x]").unwrap();
+    for (user, may) in [
+        ("writer", "this session may write them"),
+        ("reader", "may NOT write"),
+    ] {
+        let cred = dir.path().join(format!("cred-{user}"));
+        std::fs::write(&cred, format!("{user}\n{user}-pw\n")).unwrap();
+        let target = format!(
+            "[targets.nc_x]\nkind = \"opcua\"\nendpoint_url = \"{}\"\nsecurity_policy = \"None\"\n\
+             security_mode = \"None\"\npki_dir = \"{}\"\ncredentials_file = \"{}\"\n",
+            peer.endpoint,
+            dir.path().join("pki").display(),
+            cred.display()
+        );
+        let text = format!("{}{target}{}", &base[..start], &base[end..sim]).replace(
+            "nc_module = \"nc_x\"\n",
+            "nc_module = \"nc_x\"\naxis_number = 1\n",
+        );
+        let file = dir.path().join(format!("{user}.toml"));
+        std::fs::write(&file, text).unwrap();
+        let out = nc(&file, &["read"], "").await;
+        let t = text_of(&out);
+        assert!(out.status.success(), "{t}");
+        assert!(
+            t.contains("axis X (axis 1 on target nc_x, kind = opcua): SD43900 = 0 mm"),
+            "{t}"
+        );
+        assert!(t.contains(may), "{user}: {t}");
+    }
 }
