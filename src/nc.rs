@@ -33,7 +33,7 @@ pub enum NcCommand {
         /// Configuration file (TOML).
         #[arg(long, short)]
         config: PathBuf,
-        /// The axis (a name in [axes]).
+        /// The axis (a name in `[axes]`).
         #[arg(long)]
         axis: String,
         /// New SD43900 (K0), mm.
