@@ -84,7 +84,7 @@ pub async fn sim(path: &std::path::Path) -> Result<(), String> {
         };
         println!("field module {name}: {at} (unit {unit})");
     }
-    for (name, m) in &plant.config.nc_modules {
+    for (name, m) in &plant.config.modbus_targets() {
         println!("NC axis module {name}: {}", m.address);
     }
     println!("simulated plant running; Ctrl-C stops.");

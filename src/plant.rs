@@ -300,7 +300,7 @@ impl Plant {
             tokio::spawn(field::serve_rtu(units, master, shutdown.clone()));
         }
 
-        for (name, m) in &cfg.nc_modules {
+        for (name, m) in &cfg.modbus_targets() {
             let s = sim.nc_module(name);
             let axis = NcAxis {
                 md32750: s.md32750,
@@ -322,8 +322,13 @@ impl Plant {
                 Bind::Ephemeral => "127.0.0.1:0".to_string(),
                 Bind::AsConfigured => m.address.clone(),
             };
-            let (listener, addr) = bind_tcp(&want, &format!("nc_modules.{name}")).await?;
-            if let Some(c) = config.nc_modules.get_mut(name) {
+            let section = if cfg.nc_modules.contains_key(name) {
+                "nc_modules"
+            } else {
+                "targets"
+            };
+            let (listener, addr) = bind_tcp(&want, &format!("{section}.{name}")).await?;
+            if let Some(c) = config.modbus_target_mut(name) {
                 c.address = addr;
             }
             tokio::spawn(module.clone().serve_tcp(listener, shutdown.clone()));

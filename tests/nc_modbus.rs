@@ -67,3 +67,23 @@ async fn an_nc_answering_with_an_exception_is_not_called_unreachable() {
     stop.cancel();
     gw.await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_modbus_target_table_is_the_same_module_as_nc_modules() {
+    // `[targets.nc_x] kind = "modbus"` instead of `[nc_modules.nc_x]`: the plant serves
+    // it and the chain lands on it bit for bit.
+    let cfg = config("hold", "", "")
+        .replace("[nc_modules.nc_x]\n", "[targets.nc_x]\nkind = \"modbus\"\n");
+    let mut rig = start(&cfg).await;
+    assert!(rig.plant.config.nc_modules.is_empty());
+    let s = rig
+        .wait_for(10.0, "a verified job on the target", |s| {
+            s.axes[0].jobs_ok >= 1
+        })
+        .await;
+    let nc = rig.plant.nc["nc_x"].state();
+    let w = s.axes[0].written.unwrap();
+    assert_eq!(nc.sd43900_mm.to_bits(), w.k0_mm.to_bits());
+    assert_eq!(nc.sd43910.to_bits(), w.tan_beta.to_bits());
+    rig.stop().await;
+}

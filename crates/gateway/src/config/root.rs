@@ -105,6 +105,33 @@ impl Config {
         })
     }
 
+    /// Every Modbus NC module, `[nc_modules]` and the `kind = "modbus"` entries of
+    /// `[targets]`, by name (what the simulated plant serves).
+    pub fn modbus_targets(&self) -> Vec<(String, NcModuleConfig)> {
+        let mut v: Vec<(String, NcModuleConfig)> = self
+            .nc_modules
+            .iter()
+            .map(|(n, m)| (n.clone(), m.clone()))
+            .collect();
+        for (n, t) in &self.targets {
+            if let TargetConfig::Modbus(m) = t {
+                v.push((n.clone(), m.clone()));
+            }
+        }
+        v
+    }
+
+    /// The Modbus NC module called `name` (in either table), to change it.
+    pub fn modbus_target_mut(&mut self, name: &str) -> Option<&mut NcModuleConfig> {
+        if let Some(m) = self.nc_modules.get_mut(name) {
+            return Some(m);
+        }
+        match self.targets.get_mut(name) {
+            Some(TargetConfig::Modbus(m)) => Some(m),
+            _ => None,
+        }
+    }
+
     /// Every target, `[targets]` then `[nc_modules]`, by name.
     pub fn all_targets(&self) -> Vec<(String, TargetConfig)> {
         let mut v: Vec<(String, TargetConfig)> = self
@@ -315,10 +342,14 @@ pub(crate) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
         }
         for (name, sn) in &sim.nc_modules {
             let key = entry("sim.nc_modules", name);
-            if !(cfg.nc_modules.contains_key(name) || assumed.nc_modules.contains(name)) {
+            let modbus = cfg.nc_modules.contains_key(name)
+                || matches!(cfg.targets.get(name), Some(TargetConfig::Modbus(_)));
+            if !(modbus || assumed.nc_modules.contains(name)) {
                 out.push(
                     key.clone(),
-                    format!("no NC module `{name}` in [nc_modules] to simulate"),
+                    format!(
+                        "no NC module `{name}` in [nc_modules] (or kind = \"modbus\" in [targets]) to simulate"
+                    ),
                 );
             }
             sn.validate(&key, &mut out);
