@@ -61,6 +61,25 @@ pub const VELOCITY_SPAN_S: f64 = 0.05;
 pub const POINT_TOLERANCE_MM: f64 = 0.1;
 /// In-position window of the single-sample extraction, mm.
 pub const ARRIVAL_WINDOW_MM: f64 = 0.005;
+/// Window over which a channel's drift is fitted when looking for the settled part of
+/// a dwell, s.
+pub const SETTLE_WINDOW_S: f64 = 0.2;
+/// A channel stands still when its fitted drift over the window (and over the rest of
+/// the dwell) stays below this, mm, or below four standard errors of the fit.
+pub const SETTLED_DRIFT_MM: f64 = 0.000_1;
+/// Smoothing of the encoder when checking that the motor never went back against the
+/// move during a dwell, s.
+pub const SMOOTH_S: f64 = 0.05;
+/// The motor may go back against the move by at most this (or five standard errors of
+/// its smoothed noise), mm.
+pub const BACKOFF_MM: f64 = 0.000_25;
+/// A command channel that changes by less than this between samples stands still, mm.
+pub const COMMAND_STILL_MM: f64 = 1e-6;
+/// Acceptance tolerance of F1 and F2: this, or [`TOLERANCE_FRACTION`] of the backlash,
+/// the larger; F1 and F2 further apart than it are flagged.
+pub const TOLERANCE_MM: f64 = 0.000_5;
+/// See [`TOLERANCE_MM`].
+pub const TOLERANCE_FRACTION: f64 = 0.02;
 
 /// Errors of the backlash test.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
