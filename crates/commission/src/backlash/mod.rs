@@ -19,7 +19,15 @@
 //! value is the mean over the settled part (second half) of the standstill plateau at
 //! the point, found in the trace from the scale velocity ([`extract`]).
 //!
+//! A point's values are taken only where encoder *and* scale stand still: on an
+//! underdamped or creeping axis the motor can still be crossing the gap while the
+//! table stands, and a plateau taken from the scale alone then reads the wrong gap
+//! (issue 25: 7.3 um read 4.11 um). A dwell that never settles, or in which the motor
+//! went back against the move (an overshooting loop), is refused with the reason,
+//! and F1 and F2 that differ by more than max(0.5 um, 2 %) are flagged.
+//!
 //! The parts: `math` (validation, extraction, the seed's formulas; pure, no tokio),
+//! `input` (`--trace FILE.csv`, a trace recorded on a real control),
 //! `report` (the table, the trace CSV, the SVG) and `command` (the arguments and the
 //! servo client): [`run`] drives an NC axis module over Modbus TCP: it commands the
 //! programme, arms and uploads the trace through the servo block of
@@ -27,6 +35,7 @@
 //! ([`compgate_gateway::nc::ModbusNcWriter`]).
 
 mod command;
+mod input;
 mod math;
 mod report;
 #[cfg(test)]
@@ -40,7 +49,8 @@ use compgate_ncproto::servo::TraceConfig;
 
 use crate::plot::PlotError;
 
-pub use command::{check_args, run, run_on, BacklashArgs};
+pub use command::{check_args, run, run_file, run_on, BacklashArgs};
+pub use input::{read_trace, PERIOD_TOLERANCE};
 pub use math::{extract, Backlash, Extraction, PointValue, Points, Procedure, Trace};
 pub use report::{report, write_csv, write_svg};
 
@@ -107,6 +117,28 @@ pub enum BacklashError {
     /// The trace does not show the plateaus the procedure needs.
     #[error("trace: {0}")]
     Extraction(String),
+    /// A trace file (`--trace`) is malformed.
+    #[error("{path}: line {line}, column `{column}`: {message}")]
+    TraceFile {
+        /// The file.
+        path: String,
+        /// 1-based line (the header is line 1).
+        line: u64,
+        /// The column at fault.
+        column: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// F1 and F2 disagree; MD32450 was not written.
+    #[error("F1 {f1_um:.3} um and F2 {f2_um:.3} um differ by more than the tolerance {tol_um:.3} um: MD32450 not written (see the report's warning)")]
+    Disagree {
+        /// F1, um.
+        f1_um: f64,
+        /// F2, um.
+        f2_um: f64,
+        /// The tolerance, um.
+        tol_um: f64,
+    },
     /// Writing the report files failed.
     #[error("output: {0}")]
     Io(String),
@@ -146,8 +178,11 @@ pub struct Outcome {
     pub backlash: Backlash,
     /// MD32450 written and read back, mm.
     pub md32450_written_mm: Option<f64>,
-    /// Machine time of the move programme (approach to A through the dwell at D), s.
+    /// Machine time of the move programme (approach to A through the dwell at D), s;
+    /// for a trace file, its duration.
     pub machine_time_s: f64,
+    /// The trace file analysed offline (`--trace`); None when the NC ran the test.
+    pub trace_file: Option<PathBuf>,
     /// Files written.
     pub files: Vec<PathBuf>,
 }

@@ -483,3 +483,122 @@ fn disagreeing_f1_f2_are_flagged() {
     let d = r.disagreement_mm().expect("1 um apart at 23.5 um");
     assert!((d - 0.001).abs() < 1e-9, "{d}");
 }
+
+#[test]
+fn a_trace_file_is_analysed_offline_like_the_uploaded_trace() {
+    let dir = tempfile::tempdir().unwrap();
+    let proc = Procedure::from_args(&BacklashArgs::default());
+    let mut sim = ServoSim::new(AxisParams {
+        backlash_mm: 0.023,
+        seed: 4,
+        ..AxisParams::default()
+    });
+    sim.arm_trace(proc.trace_config()).unwrap();
+    sim.start_program(&proc.program()).unwrap();
+    sim.run_until_idle(600.0);
+    let (encoder_mm, scale_mm) = sim.trace().iter().copied().unzip();
+    let mut trace = Trace {
+        period_s: proc.period_s,
+        encoder_mm,
+        scale_mm,
+        command_mm: Vec::new(),
+    };
+    let direct = Backlash::from_points(&extract(&trace, &proc, Extraction::Plateau).unwrap());
+    // With the command channel the dwells come from it.
+    trace.command_mm = sim.trace_command().to_vec();
+    let path = dir.path().join("x1.csv");
+    write_csv(&path, &trace).unwrap();
+    let args = BacklashArgs {
+        trace: Some(path.clone()),
+        ..BacklashArgs::default()
+    };
+    check_args(&args).unwrap();
+    let o = run_file(&args).unwrap();
+    assert!((o.trace.period_s - 0.002).abs() < 1e-9);
+    assert_eq!(o.trace.command_mm.len(), o.trace.scale_mm.len());
+    let tol = tolerance_mm(0.023);
+    for f in [o.backlash.f1_mm, o.backlash.f2_mm] {
+        assert!((f - 0.023).abs() <= tol, "{:?}", o.backlash);
+    }
+    assert!((o.backlash.md32450_mm() - direct.md32450_mm()).abs() < 0.0003);
+    let text = report("X1", &o, None);
+    assert!(text.contains("dwells from the command"), "{text}");
+    // --write and a second source are refused.
+    let bad = BacklashArgs {
+        write: true,
+        sim: true,
+        ..args.clone()
+    };
+    let Err(BacklashError::Invalid(p)) = check_args(&bad) else {
+        panic!()
+    };
+    assert!(p.iter().any(|p| p.contains("exclude each other")), "{p:?}");
+    assert!(p.iter().any(|p| p.contains("--write needs --nc")), "{p:?}");
+}
+
+#[test]
+fn bad_trace_files_are_refused_naming_line_and_column() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases = [
+        (
+            "t_s,encoder_mm\n0,1\n",
+            "line 1, column `scale_mm`: required column is missing",
+        ),
+        (
+            "t_s,encoder_mm,scale_mm\n0,1,1\n0.002,1,x1\n",
+            "line 3, column `scale_mm`: \"x1\" is not a number",
+        ),
+        (
+            "t_s,encoder_mm,scale_mm\n0,1,1\n0.002,NaN,1\n",
+            "line 3, column `encoder_mm`",
+        ),
+        (
+            "t_s,encoder_mm,scale_mm\n0,1,1\n0.002,1,1\n0.005,1,1\n",
+            "line 4, column `t_s`: time step",
+        ),
+        (
+            "t_s,encoder_mm,scale_mm\n0,1,1\n0,1,1\n",
+            "line 3, column `t_s`: time does not increase",
+        ),
+        ("t_s,encoder_mm,scale_mm\n0,1,1\n0.002,1\n", "line 3"),
+    ];
+    for (i, (text, want)) in cases.iter().enumerate() {
+        let path = dir.path().join(format!("bad{i}.csv"));
+        std::fs::write(&path, text).unwrap();
+        let e = read_trace(&path).unwrap_err().to_string();
+        assert!(e.contains(&format!("bad{i}.csv")), "{e}");
+        assert!(e.contains(want), "case {i}: {e}");
+    }
+}
+
+#[tokio::test]
+async fn a_refused_trace_is_kept_in_out() {
+    let module = NcAxisModule::new(NcAxis {
+        allow_md32450_write: true,
+        referenced: true,
+        ..NcAxis::default()
+    });
+    // Kv x tau = 0.4: the loop overshoots and the motor creeps across the gap.
+    module.set_servo(AxisParams {
+        backlash_mm: 0.05,
+        elastic_tau_s: 0.02,
+        ..AxisParams::default()
+    });
+    module.set_sim_speed(2000.0);
+    let (address, shutdown) = module.serve_loopback().await.unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let args = BacklashArgs {
+        write: true,
+        out: Some(dir.path().to_path_buf()),
+        ..BacklashArgs::default()
+    };
+    let e = run_on(&address, &args).await.unwrap_err().to_string();
+    assert!(
+        e.contains("never both stood still") || e.contains("went back"),
+        "{e}"
+    );
+    assert!(e.contains("trace kept in"), "{e}");
+    assert!(dir.path().join("backlash_X1_trace.csv").exists());
+    assert_eq!(module.state().md32450_mm, 0.0, "nothing written");
+    shutdown.cancel();
+}
