@@ -115,14 +115,14 @@ impl ErrorModel {
         let g = &self.geometry;
         let mut p = [0.0, 0.0, -g.tool_length_mm];
         let mut v = [0.0, 0.0, 1.0];
-        // A: T(pivot) L_A Rx(a) E_A L_A^-1
+        // A: T(pivot) L_A E_A Rx(a) L_A^-1
         let [yoa, zoa, boa, coa] = self.loc_a;
         let la = ([0.0, boa, coa], [0.0, yoa, zoa]);
         rotary_link(&self.tables[3], q[3], la, rot_x, &mut p, &mut v);
         for (pk, dk) in p.iter_mut().zip(&g.pivot_mm) {
             *pk += dk;
         }
-        // C: L_C Rz(c) E_C L_C^-1
+        // C: L_C E_C Rz(c) L_C^-1
         let [xoc, yoc, aoc, boc] = self.loc_c;
         let lc = ([aoc, boc, 0.0], [xoc, yoc, 0.0]);
         rotary_link(&self.tables[4], q[4], lc, rot_z, &mut p, &mut v);
@@ -146,8 +146,9 @@ impl ErrorModel {
     ///
     /// Turning A sweeps the tool over a cone about the actual A axis; turning C turns
     /// that cone about the actual C axis. The cone misses the C axis by
-    /// `EBA(A) - BOC + EBC(C)`: the tool's tilt out of the plane normal to A
-    /// (`EBA - BOA`) plus A's tilt out of the plane normal to C (`BOA - BOC - EBC`). So
+    /// `EBA(A) - BOC + EBC'(C)`: the tool's tilt out of the plane normal to A
+    /// (`EBA - BOA`) plus A's tilt out of the plane normal to C (`BOA - BOC + EBC'`,
+    /// `EBC' = cos(C) EBC - sin(C) EAC`, C's machine-frame tilt about its rotor's Y). So
     /// the directions within that angle of the actual C axis (a cap) are reached by no
     /// (A, C). With the nominal axis at `offset` from the actual C axis and at azimuth
     /// `phi` in the C rotor frame at C = 0, the tool misses it by
@@ -165,7 +166,13 @@ impl ErrorModel {
         let (sc, cc) = u[4].to_radians().sin_cos();
         let t = [sc * sa - (boc + sy), -cc * sa - (-aoc - sx)];
         let eba = self.tables[3].eval(u[3])[4];
-        let cap = |c_deg: f64| eba - boc + self.tables[4].eval(c_deg)[4];
+        // EAC, EBC act in the machine frame: their part about the C rotor's Y axis
+        // (normal to the A plane) is -sin(C) EAC + cos(C) EBC.
+        let cap = |c_deg: f64| {
+            let e = self.tables[4].eval(c_deg);
+            let (s, c) = c_deg.to_radians().sin_cos();
+            eba - boc - s * e[3] + c * e[4]
+        };
         let miss = |c_deg: f64| {
             let (s, c) = c_deg.to_radians().sin_cos();
             t[0] * c + t[1] * s - cap(c_deg)
@@ -312,7 +319,7 @@ fn small(e: &[f64; 6], p: &mut [f64; 3], v: &mut [f64; 3]) {
     *v = r(v);
 }
 
-/// Applies a rotary link `L Rot(angle) E(angle) L^-1` to a point and a vector: `loc`
+/// Applies a rotary link `L E(angle) Rot(angle) L^-1` to a point and a vector: `loc`
 /// is the location `L` (rotation, translation), `table` gives `E`, `rot` turns by the
 /// angle's sine and cosine.
 #[inline]
@@ -325,9 +332,11 @@ fn rotary_link(
     v: &mut [f64; 3],
 ) {
     inv_small(&loc_r, &loc_t, p, v);
-    small(&table.eval(angle_deg), p, v);
     let (s, c) = angle_deg.to_radians().sin_cos();
     rot(s, c, p, v);
+    // The error motions after the rotation: they are measured in the stator's frame
+    // (ISO 230-7), so a constant EAC/EBC tilts the axis line itself, like AOC/BOC.
+    small(&table.eval(angle_deg), p, v);
     let [tx, ty, tz] = loc_t;
     let [rx, ry, rz] = loc_r;
     small(&[tx, ty, tz, rx, ry, rz], p, v);

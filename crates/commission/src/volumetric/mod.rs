@@ -27,11 +27,18 @@
 //! - linear axis j at position q: translation `q * d_j + (EXj, EYj, EZj)`, rotation
 //!   `(EAj, EBj, ECj)`, with the direction `d_X = (1, 0, 0)`,
 //!   `d_Y = (-EC0Y, 1, 0)`, `d_Z = (EB0Z, -EA0Z, 1)` (squareness);
-//! - C at angle c: `L_C Rz(c) E_C(c) L_C^-1`, where `L_C` is the location of the C
+//! - C at angle c: `L_C E_C(c) Rz(c) L_C^-1`, where `L_C` is the location of the C
 //!   axis line (offset XOC, YOC; tilts AOC about X, BOC about Y) and `E_C` the
-//!   position-dependent errors (EXC, EYC, EZC; EAC, EBC, ECC);
-//! - A at angle a: `T(pivot) L_A Rx(a) E_A(a) L_A^-1`, `L_A` from YOA, ZOA, BOA (about
+//!   error motions over the angle (EXC, EYC, EZC; EAC, EBC, ECC);
+//! - A at angle a: `T(pivot) L_A E_A(a) Rx(a) L_A^-1`, `L_A` from YOA, ZOA, BOA (about
 //!   Y), COA (about Z), `E_A` from EXA..ECA.
+//!
+//! A rotary axis' error motions act in the frame of its stator (the body that carries
+//! it), not in the turning rotor's: they are what an instrument fixed to the stator
+//! reads (ISO 230-7), so EXC is along the machine's X at every C, and a constant
+//! EAC/EBC tilts the C axis line itself, like AOC/BOC. `E` therefore comes after the
+//! rotation. For C the stator frame is the machine frame; for A it is the C rotor's
+//! (the head housing), which C turns.
 //!
 //! Location errors thus vanish at the axis' zero angle and grow with the angle (the
 //! zero-angle offset belongs to the tool offsets).
@@ -67,9 +74,11 @@
 //! axis, and the cone misses the C axis by the cap radius
 //!
 //! ```text
-//! cap(C) = EBA(A) - BOC + EBC(C)
+//! cap(C) = EBA(A) - BOC + EBC'(C)
 //!        = (EBA - BOA)          tool tilted out of the plane normal to A
-//!        + (BOA - BOC - EBC)    A tilted out of the plane normal to C
+//!        + (BOA - BOC + EBC')   A tilted out of the plane normal to C
+//! EBC'(C) = cos(C) EBC(C) - sin(C) EAC(C)   (C's tilt error motion, machine frame,
+//!                                            about the C rotor's Y axis)
 //! ```
 //!
 //! No (A, C) puts the tool within `cap` of the actual C axis. The nominal axis lies
@@ -80,8 +89,8 @@
 //! least orientation error is its minimum, about `cap - offset`, and X, Y, Z still
 //! put the tip on the command. [`ErrorModel::pole_reach`] evaluates this from the
 //! parameters (first order in the errors; on the example file it agrees with a
-//! brute-force search over all drive positions within 0.002"). A file without
-//! out-of-plane head errors (EBA, EBC, BOC zero) has cap radius 0, and a C move
+//! brute-force search over all drive positions within 0.01"). A file without
+//! out-of-plane head errors (EBA, EAC, EBC, BOC zero) has cap radius 0, and a C move
 //! reaches every axis at the pole.
 //!
 //! # Error parameter file, version 1

@@ -823,3 +823,34 @@ fn implausible_numbers_are_refused_with_their_line() {
     let edge = format!("{}squareness EC0Y -1e6{}", &text[..at], &text[end..]);
     assert!(parse(&edge).is_ok());
 }
+
+/// The example's geometry and travel with only the C table's errors `row` (mm, rad),
+/// constant over C.
+fn only_c_errors(row: [f64; 6]) -> ErrorModel {
+    let s = synthetic_model(1.0);
+    let mut tables: [Table; 5] = Default::default();
+    tables[4] = Table::new(vec![-200.0, 200.0], vec![row, row]);
+    ErrorModel::new(s.geometry, s.travel, tables, [0.0; 3], [0.0; 4], [0.0; 4])
+}
+
+#[test]
+fn rotary_error_motions_act_in_the_machine_frame() {
+    // EXC: the C rotor displaced along machine X, whatever the angle (ISO 230-7
+    // error motions are measured from the stator).
+    let comp = VolumetricCompensator::new(only_c_errors([0.010, 0.0, 0.0, 0.0, 0.0, 0.0]));
+    for c in [0.0, 90.0, 180.0, -135.0] {
+        let (tip, w) = comp.pose_error(&[500.0, 400.0, 300.0, 30.0, c]);
+        assert!(
+            (tip[0] - 0.010).abs() < 1e-12 && tip[1].abs() < 1e-12,
+            "C {c}: {tip:?}"
+        );
+        assert!(w.iter().all(|x| x.abs() < 1e-15));
+    }
+    // EBC: a tilt about machine Y. At A = 90, C = 90 the tool points along +X, so it
+    // turns by EBC; in the rotor's frame the tilt would be about the tool itself.
+    let ebc = 5.0 * RAD_PER_ARCSEC;
+    let comp = VolumetricCompensator::new(only_c_errors([0.0, 0.0, 0.0, 0.0, ebc, 0.0]));
+    let (_, w) = comp.pose_error(&[500.0, 400.0, 300.0, 90.0, 90.0]);
+    assert!((w[1] - ebc).abs() < 1e-9 * ebc.max(1e-9) + 1e-15, "{w:?}");
+    assert!(w[0].abs() < 1e-12 && w[2].abs() < 1e-12, "{w:?}");
+}
