@@ -140,14 +140,15 @@ use crate::plot::PlotError;
 
 pub use command::{parse_grid, run, VolumetricArgs};
 pub use evaluation::{
-    evaluate, evaluate_pole, Evaluation, PoleClasses, Stats, POLE_TOL_ARCSEC, POLE_TOL_FRACTION,
+    evaluate, evaluate_pole, Acceptance, Evaluation, PoleClasses, Stats, ACCEPT_FLOOR_ARCSEC,
+    ACCEPT_FRACTION, POLE_TOL_ARCSEC, POLE_TOL_FRACTION,
 };
 pub use format::{parse, write, LOCATION_A, LOCATION_C, MAGIC, SQUARENESS, VERSION};
 pub use kinematics::{
     angle_rad, distance_mm, nominal_pose, ErrorModel, Geometry, Pole, PoleMode, PoleReach,
     PoleSolve, Solve, Table, VolumetricCompensator,
 };
-pub use report::{report, write_svgs};
+pub use report::{report, write_poses_csv, write_svgs, POSES_CSV_HEADER};
 pub use synthetic::{synthetic_model, synthetic_model_in_plane};
 
 /// Axis names in the order of every `[f64; 5]` (X, Y, Z in mm; A, C in degrees).
@@ -164,8 +165,9 @@ pub const COLUMNS: [[&str; 6]; 5] = [
 pub const MM_PER_UM: f64 = 1e-3;
 /// rad per arc-second.
 pub const RAD_PER_ARCSEC: f64 = PI / (180.0 * 3600.0);
-/// Within this many degrees of A = 0 the C axis is not corrected (see module doc).
-pub const SINGULAR_A_DEG: f64 = 1.0;
+/// The per-cycle feedback holds C where step 1 would move it by more than this, deg:
+/// the pole band, within about 0.01 deg of A = 0 on the example (module doc).
+pub const MAX_ONLINE_C_CORRECTION_DEG: f64 = 30.0;
 /// Convergence tolerance of the linear residual, um.
 pub const TOL_UM: f64 = 0.01;
 /// Convergence tolerance of the rotary residual, arc-seconds.
