@@ -496,3 +496,30 @@ fn per_pose_csv_agrees_with_an_independent_kinematic_model_and_meets_the_target(
         "{stdout}"
     );
 }
+
+#[test]
+fn the_servo_loop_on_the_feedback_corrects_the_orientation_half_a_degree_from_the_pole() {
+    // The simulated machine's drives close their loops on the compensator's feedback:
+    // at A = 0.5 deg the C correction is a fraction of a degree, and the tool axis
+    // lands on the command (hold used to leave 35").
+    let (comp, machine) = setup();
+    for u in [
+        [300.0, 400.0, 200.0, 0.5, 60.0],
+        [700.0, 100.0, 500.0, -0.5, -150.0],
+        [50.0, 750.0, 20.0, 0.05, 10.0],
+    ] {
+        let nominal = machine.nominal_pose(&u);
+        let unc = machine.move_to(&u, |q| *q).expect("settles");
+        let cmp = machine.move_to(&u, |q| comp.feedback(q)).expect("settles");
+        let orient =
+            |p: &compgate_plc::machine5::Pose| angle_rad(&p.axis, &nominal.axis) / RAD_PER_ARCSEC;
+        println!(
+            "{u:?}: orientation {:.4}\" -> {:.6}\", C moved {:.4} deg",
+            orient(&unc.pose),
+            orient(&cmp.pose),
+            cmp.axes[4] - u[4]
+        );
+        assert!(orient(&unc.pose) > 5.0);
+        assert!(orient(&cmp.pose) < 0.001, "{u:?}");
+    }
+}
