@@ -140,8 +140,8 @@ use crate::plot::PlotError;
 
 pub use command::{parse_grid, run, VolumetricArgs};
 pub use evaluation::{
-    evaluate, evaluate_pole, Acceptance, Evaluation, PoleClasses, Stats, ACCEPT_FLOOR_ARCSEC,
-    ACCEPT_FRACTION, POLE_TOL_ARCSEC, POLE_TOL_FRACTION,
+    evaluate, evaluate_pole, pole_floor_brute_force, Acceptance, Evaluation, PoleClasses, Stats,
+    ACCEPT_FLOOR_ARCSEC, ACCEPT_FRACTION, POLE_TOL_ARCSEC, POLE_TOL_FRACTION,
 };
 pub use format::{parse, write, LOCATION_A, LOCATION_C, MAGIC, SQUARENESS, VERSION};
 pub use kinematics::{

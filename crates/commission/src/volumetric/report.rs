@@ -65,11 +65,12 @@ pub fn report(ev: &Evaluation) -> String {
         s,
         "acceptance: {} of {} poses within {} % of their uncompensated error, or the \
          achievable minimum + {ACCEPT_FLOOR_ARCSEC}\" where the pole limits it (worst \
-         margin {:+.4}\")",
+         margin {:+.4}\"; minimum from the parameters, by brute force for {} poses)",
         acc.passed,
         acc.total,
         100.0 * ACCEPT_FRACTION,
-        acc.worst_orient_margin_arcsec
+        acc.worst_orient_margin_arcsec,
+        ev.floor_brute_force
     );
     if n_sing > 0 {
         let (uo, co) = (ev.uncompensated_stats(), ev.compensated_stats());
