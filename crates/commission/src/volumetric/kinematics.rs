@@ -511,17 +511,25 @@ impl VolumetricCompensator {
         let k = if q[3] < 0.0 { -1.0 } else { 1.0 };
         let rho = (v[0] * v[0] + v[1] * v[1]).sqrt();
         let c_q = q[4].to_radians();
-        let mut c = (k * v[0]).atan2(-k * v[1]);
-        c += 2.0 * PI * ((c_q - c) / (2.0 * PI)).round();
-        // NaN (a degenerate axis) counts as the band too.
-        let within = (c - c_q).abs() <= MAX_ONLINE_C_CORRECTION_DEG.to_radians();
-        let band = !within;
-        let (a, c) = if band {
-            let (sc, cc) = c_q.sin_cos();
-            let wy = -sc * v[0] + cc * v[1];
-            ((-wy).atan2(v[2]), c_q)
+        let mut c_reg = (k * v[0]).atan2(-k * v[1]);
+        c_reg += 2.0 * PI * ((c_q - c_reg) / (2.0 * PI)).round();
+        // The regular step 1 up to half the limit of the C correction, hold beyond
+        // the limit, blended linearly between: the feedback stays continuous, so a
+        // servo loop on it does not chatter at the band's edge. (NaN: hold.)
+        let limit = MAX_ONLINE_C_CORRECTION_DEG.to_radians();
+        let w = (2.0 - 2.0 * (c_reg - c_q).abs() / limit).clamp(0.0, 1.0);
+        let w = if w.is_nan() { 0.0 } else { w };
+        let band = w < 1.0;
+        let (sc, cc) = c_q.sin_cos();
+        let wy = -sc * v[0] + cc * v[1];
+        let a_hold = (-wy).atan2(v[2]);
+        let (a, c) = if w == 1.0 {
+            (k * rho.atan2(v[2]), c_reg)
+        } else if w == 0.0 {
+            (a_hold, c_q)
         } else {
-            (k * rho.atan2(v[2]), c)
+            let a_reg = k * rho.atan2(v[2]);
+            (w * a_reg + (1.0 - w) * a_hold, c_q + w * (c_reg - c_q))
         };
         // Step 2: linear positions putting the ideal tip there with A', C'.
         let (sa, ca) = a.sin_cos();

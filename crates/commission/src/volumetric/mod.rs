@@ -167,7 +167,7 @@ pub const MM_PER_UM: f64 = 1e-3;
 pub const RAD_PER_ARCSEC: f64 = PI / (180.0 * 3600.0);
 /// The per-cycle feedback holds C where step 1 would move it by more than this, deg:
 /// the pole band, within about 0.01 deg of A = 0 on the example (module doc).
-pub const MAX_ONLINE_C_CORRECTION_DEG: f64 = 30.0;
+pub const MAX_ONLINE_C_CORRECTION_DEG: f64 = 10.0;
 /// Convergence tolerance of the linear residual, um.
 pub const TOL_UM: f64 = 0.01;
 /// Convergence tolerance of the rotary residual, arc-seconds.

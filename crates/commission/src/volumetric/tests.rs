@@ -864,7 +864,8 @@ fn rotary_error_motions_act_in_the_machine_frame() {
 #[test]
 fn near_the_pole_the_online_path_reaches_the_floor() {
     // Issue 25: hold left 35.18" at A = 0.5 deg where a C move within travel reaches
-    // 0". Now only poses within about 0.01 deg of A = 0 are limited.
+    // 0". Now the drive loop alone corrects from 0.1 deg on, and the band's swing
+    // reaches the floor below it.
     let comp = VolumetricCompensator::new(parse(EXAMPLE).expect("example"));
     let m = comp.model();
     let pole = Pole::default();
@@ -888,7 +889,7 @@ fn near_the_pole_the_online_path_reaches_the_floor() {
                 let unc = err(&u);
                 // The drive loop on the per-cycle feedback alone.
                 let online = comp.drive_positions(&u);
-                if a.abs() >= 0.02 && c.abs() < 200.0 {
+                if a.abs() >= 0.1 && c.abs() < 200.0 {
                     assert!(!online.band, "{u:?} {online:?}");
                     let e = err(&online.drive);
                     assert!(e.0 <= 0.01 && e.1 <= 0.001, "{u:?} {e:?}");
@@ -914,5 +915,5 @@ fn near_the_pole_the_online_path_reaches_the_floor() {
             }
         }
     }
-    println!("online drive loop at 0.02 <= |A| <= 0.5 deg: worst {online_worst:.6}\"; worst margin to the target {worst_excess:+.5}\"");
+    println!("online drive loop at 0.1 <= |A| <= 0.5 deg: worst {online_worst:.6}\"; worst margin to the target {worst_excess:+.5}\"");
 }
