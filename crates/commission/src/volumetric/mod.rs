@@ -61,13 +61,16 @@
 //! # The A = 0 pole
 //!
 //! Near A = 0 the tool axis is parallel to C and an orientation error about the A
-//! plane's normal cannot be corrected without a large C move: within
-//! [`SINGULAR_A_DEG`] of A = 0 C is not corrected and A' takes only the in-plane
-//! part (`A' = atan2(-w_y, w_z)`, w the axis in the C frame). That is
-//! [`PoleMode::Hold`], the default and the only behaviour of `feedback`.
-//! [`PoleMode::Swing`] ([`VolumetricCompensator::drive_positions_pole`], offline)
-//! solves such commands with C free within [`Pole::c_range`]: within a limit of the
-//! commanded C and within the C travel.
+//! plane's normal needs a C move that grows as 1/sin(A). `feedback` uses step 1 as
+//! above while it moves C by at most half of [`MAX_ONLINE_C_CORRECTION_DEG`]; beyond
+//! the limit it holds C and A' takes only the in-plane part (`A' = atan2(-w_y, w_z)`,
+//! w the axis in the C frame), and between the two it blends linearly, so that the
+//! feedback stays continuous and a servo loop on it settles. Where the drive loop
+//! ends in that band (or takes C more than `TRAVEL_MARGIN_DEG` past its travel),
+//! [`PoleMode::Swing`], the default of [`VolumetricCompensator::drive_positions_pole`],
+//! solves the command with C free within [`Pole::c_range`]: within a limit of the
+//! commanded C and within the C travel. [`PoleMode::Hold`] keeps what the drive loop
+//! gives.
 //!
 //! Not every tool axis near the pole can be reached. Turning A sweeps the tool over
 //! a cone about the actual A axis, turning C turns that cone about the actual C
