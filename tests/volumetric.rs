@@ -215,7 +215,7 @@ mod independent {
         for col in 0..4 {
             let p = (col..4)
                 .max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))
-                .unwrap();
+                .expect("a pivot row");
             a.swap(col, p);
             r.swap(col, p);
             let d = a[col][col];
@@ -265,9 +265,9 @@ mod independent {
             };
             let mut table: Option<usize> = None;
             for line in text.lines() {
-                let line = line.split('#').next().unwrap().trim();
+                let line = line.split('#').next().unwrap_or("").trim();
                 let f: Vec<&str> = line.split_whitespace().collect();
-                let num = |i: usize| f[i].parse::<f64>().unwrap();
+                let num = |i: usize| f[i].parse::<f64>().expect("a number in the example");
                 if f.is_empty() {
                     continue;
                 }
@@ -293,7 +293,7 @@ mod independent {
                     "travel" if f[1] == "C" => m.travel_c = (num(2), num(3)),
                     "squareness" => {
                         let i = ["EC0Y", "EB0Z", "EA0Z"].iter().position(|n| *n == f[1]);
-                        m.sq[i.unwrap()] = num(2) * AS;
+                        m.sq[i.expect("a squareness name")] = num(2) * AS;
                     }
                     "location" => match f[1] {
                         "XOC" => m.loc_c[0] = num(2) * UM,
