@@ -342,7 +342,7 @@ pub fn extract(
         let (from, to) = match how {
             Extraction::Plateau => {
                 let from = settle(trace, first, last).map_err(|why| {
-                    BacklashError::Extraction(format!("{name} = {target_mm} mm: {why}; lengthen --dwell, lower the feed or the position loop gain, or refuse the axis"))
+                    BacklashError::Extraction(format!("{name} = {target_mm} mm: {why}; lengthen --dwell, or lower the feed or the position loop gain"))
                 })?;
                 backed_off(trace, first, from, last, dir).map_err(|why| {
                     BacklashError::Extraction(format!("{name} = {target_mm} mm: {why}"))

@@ -16,8 +16,9 @@
 //!
 //! L and M are not single samples: the drive train is elastic, so while the axis
 //! still creeps into position the motor leads the table by more than the gap. Each
-//! value is the mean over the settled part (second half) of the standstill plateau at
-//! the point, found in the trace from the scale velocity ([`extract`]).
+//! value is the mean over the settled part of the dwell at the point (the dwell found
+//! from the command channel where the trace has one, else from the scale velocity),
+//! from where both channels stand still to the dwell's end ([`extract`]).
 //!
 //! A point's values are taken only where encoder *and* scale stand still: on an
 //! underdamped or creeping axis the motor can still be crossing the gap while the
