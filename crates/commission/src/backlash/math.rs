@@ -255,25 +255,27 @@ fn slope_sd(v: &[f64]) -> (f64, f64) {
 }
 
 /// How far a channel drifts over `v`, mm, and the limit its noise allows, mm: the
-/// fitted drift must stay under [`SETTLED_DRIFT_MM`] or four standard errors of it.
+/// fitted drift must stay under [`SETTLED_DRIFT_MM`] or three standard errors of it.
 fn drift(v: &[f64]) -> (f64, f64) {
     let (b, sd) = slope_sd(v);
     let n = v.len() as f64;
     let span = n - 1.0;
     let se = sd * (12.0 / n).sqrt();
-    ((b * span).abs(), SETTLED_DRIFT_MM.max(4.0 * se))
+    ((b * span).abs(), SETTLED_DRIFT_MM.max(3.0 * se))
 }
 
 /// The settled part of the dwell `first..=last` at a point: the earliest start from
-/// which both channels stand still to the dwell's end. Err names the channel still
-/// moving at the end and how fast.
+/// which both channels stand still to the dwell's end, no later than half the dwell
+/// (the settling limit: a slow creep hides in the noise of a short tail, so at least
+/// half the dwell must be still). Err names the channel still moving and how fast.
 fn settle(trace: &Trace, first: usize, last: usize) -> Result<usize, String> {
     let window = ((SETTLE_WINDOW_S / trace.period_s).round() as usize).max(MIN_PLATEAU_SAMPLES);
     let step = (window / 4).max(1);
+    let latest = first + (last + 1 - first) / 2;
     let mut s = first;
-    while last + 1 >= s + window.max(MIN_PLATEAU_SAMPLES) {
+    while s <= latest && last + 1 >= s + window {
         let still = |v: &[f64]| {
-            let (d, lim) = drift(&v[s..(s + window).min(last + 1)]);
+            let (d, lim) = drift(&v[s..s + window]);
             let (dt, limt) = drift(&v[s..=last]);
             d <= lim && dt <= limt
         };
@@ -282,15 +284,15 @@ fn settle(trace: &Trace, first: usize, last: usize) -> Result<usize, String> {
         }
         s += step;
     }
-    // Never settled: name what still moves over the dwell's last window.
-    let from = (last + 1).saturating_sub(window).max(first);
+    // Never settled: name what still moves over the dwell's second half.
+    let from = latest.min(last);
     let rate = |v: &[f64]| {
         let (b, _) = slope_sd(&v[from..=last]);
         b / trace.period_s * 1000.0
     };
     let (enc, scale) = (rate(&trace.encoder_mm), rate(&trace.scale_mm));
     Err(format!(
-        "encoder and scale never both stood still during the {:.3} s dwell; at its end the encoder moves {enc:+.2} um/s and the scale {scale:+.2} um/s{}",
+        "encoder and scale never both stood still over the second half of the {:.3} s dwell; there the encoder moves {enc:+.2} um/s and the scale {scale:+.2} um/s{}",
         (last + 1 - first) as f64 * trace.period_s,
         if enc.abs() > 3.0 * scale.abs() {
             " (the motor is still creeping across the gap while the table stands)"

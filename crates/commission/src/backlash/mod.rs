@@ -76,7 +76,7 @@ pub const ARRIVAL_WINDOW_MM: f64 = 0.005;
 /// a dwell, s.
 pub const SETTLE_WINDOW_S: f64 = 0.2;
 /// A channel stands still when its fitted drift over the window (and over the rest of
-/// the dwell) stays below this, mm, or below four standard errors of the fit.
+/// the dwell) stays below this, mm, or below three standard errors of the fit.
 pub const SETTLED_DRIFT_MM: f64 = 0.000_1;
 /// Smoothing of the encoder when checking that the motor never went back against the
 /// move during a dwell, s.

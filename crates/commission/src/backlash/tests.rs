@@ -602,3 +602,100 @@ async fn a_refused_trace_is_kept_in_out() {
     assert_eq!(module.state().md32450_mm, 0.0, "nothing written");
     shutdown.cancel();
 }
+
+/// A trace made without the simulated axis: ramps between the points at the feed and
+/// dwells in which the table stands on the point while the motor is still creeping
+/// across the last `creep_fraction` of the gap with time constant `creep_s`; encoder
+/// and scale carry Gaussian noise of `noise_um`. Ground truth: the gap.
+fn creeping_trace(gap_um: f64, creep_fraction: f64, creep_s: f64, noise_um: f64) -> Trace {
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+    let proc = Procedure::from_args(&BacklashArgs::default());
+    let p = proc.points;
+    let dt = proc.period_s;
+    let v = proc.feed_mm_per_min / 60.0;
+    let half = gap_um / 2000.0;
+    let mut rng = rand::rngs::SmallRng::seed_from_u64(11);
+    let noise = Normal::new(0.0, noise_um / 1000.0).unwrap();
+    let mut trace = Trace {
+        period_s: dt,
+        ..Trace::default()
+    };
+    let mut push = |enc: f64, scale: f64, cmd: f64| {
+        trace.encoder_mm.push(enc + noise.sample(&mut rng));
+        trace.scale_mm.push(scale + noise.sample(&mut rng));
+        trace.command_mm.push(cmd);
+    };
+    let mut at = p.a_mm;
+    let mut dir = 1.0;
+    for (target, d) in [(p.a_mm, 1.0), (p.b_mm, 1.0), (p.c_mm, -1.0), (p.d_mm, 1.0)] {
+        // The move: at a reversal the motor first crosses the gap with the table still.
+        if d != dir {
+            let steps = (2.0 * half / v / dt).ceil() as usize;
+            for k in 0..steps {
+                let m = at + dir * half - d * v * dt * k as f64;
+                // The command moves on while the table waits for the gap.
+                push(m, at, at + d * v * dt * (k + 1) as f64);
+            }
+            dir = d;
+        }
+        let steps = ((target - at).abs() / v / dt).ceil() as usize;
+        for k in 0..steps {
+            let x = at + d * v * dt * k as f64;
+            push(x + d * half, x, x);
+        }
+        // The dwell: the table stands, the motor creeps over the gap's last part.
+        let n = (proc.dwell_s / dt) as usize;
+        for k in 0..n {
+            let left = creep_fraction * 2.0 * half * (-(k as f64) * dt / creep_s.max(1e-9)).exp();
+            push(target + d * (half - left), target, target);
+        }
+        at = target;
+    }
+    trace
+}
+
+#[test]
+fn traces_from_outside_the_simulator_are_measured_or_refused_never_wrong() {
+    let proc = Procedure::from_args(&BacklashArgs::default());
+    let (mut measured, mut refused) = (0, 0);
+    for (gap_um, fraction, noise_um) in (0..12).map(|i| {
+        (
+            [7.3, 23.0, 50.0][i % 3],
+            [0.5, 1.0][i / 3 % 2],
+            [0.3, 1.0][i / 6],
+        )
+    }) {
+        for creep_s in [0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 3.0] {
+            let trace = creeping_trace(gap_um, fraction, creep_s, noise_um);
+            let case = format!(
+                "gap {gap_um} um, {fraction} of it crept with {creep_s} s, noise {noise_um} um"
+            );
+            match extract(&trace, &proc, Extraction::Plateau) {
+                Ok(points) => {
+                    let r = Backlash::from_points(&points);
+                    let tol = tolerance_mm(gap_um / 1000.0);
+                    for f in [r.f1_mm, r.f2_mm] {
+                        assert!(
+                            (f - gap_um / 1000.0).abs() <= tol,
+                            "{case}: F1 {} F2 {} um",
+                            r.f1_mm * 1000.0,
+                            r.f2_mm * 1000.0
+                        );
+                    }
+                    measured += 1;
+                }
+                Err(BacklashError::Extraction(why)) => {
+                    assert!(why.contains("never both stood still"), "{case}: {why}");
+                    assert!(creep_s >= 0.2, "{case}: {why}");
+                    refused += 1;
+                }
+                Err(e) => panic!("{case}: {e}"),
+            }
+        }
+    }
+    eprintln!(
+        "independent creeping traces: {measured} measured within tolerance, {refused} refused"
+    );
+    assert!(measured >= 48 && refused >= 12, "{measured} {refused}");
+}
