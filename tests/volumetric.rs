@@ -366,40 +366,61 @@ mod independent {
         }
 
         /// Least orientation error at the command u over C in its travel and A near u's
-        /// (the pole's floor), by brute force: a 2 deg scan of C with the best A for
-        /// each (golden section), then golden section over C around the best cells.
+        /// with the tip on the command (the pole's floor), by brute force: a 2 deg scan
+        /// of C with the best A for each (golden section), golden section over C
+        /// around the best cells, then X, Y, Z solved for the tip and C refined again.
         pub fn pole_floor_arcsec(&self, u: &[f64; 5]) -> f64 {
             let span = 0.02; // deg of A either side: 72", beyond any error here
-            let best_a = |c: f64| {
+            let best_a = |xyz: &[f64; 3], c: f64| {
                 golden(
-                    |a| self.errors(&[u[0], u[1], u[2], a, c], u).1,
+                    |a| self.errors(&[xyz[0], xyz[1], xyz[2], a, c], u).1,
                     u[3] - span,
                     u[3] + span,
                 )
             };
             let (lo, hi) = self.travel_c;
+            let mut xyz = [u[0], u[1], u[2]];
             let n = ((hi - lo) / 2.0).round() as usize;
-            let scan: Vec<(f64, f64)> = (0..=n)
+            let mut scan: Vec<(f64, f64)> = (0..=n)
                 .map(|i| {
                     let c = lo + (hi - lo) * i as f64 / n as f64;
-                    (c, best_a(c))
+                    (c, best_a(&xyz, c).1)
                 })
                 .collect();
-            let mut order: Vec<usize> = (0..scan.len()).collect();
-            order.sort_by(|&i, &j| scan[i].1.total_cmp(&scan[j].1));
-            order
+            scan.sort_by(|a, b| a.1.total_cmp(&b.1));
+            let mut best = scan
                 .iter()
                 .take(6)
-                .map(|&i| {
-                    let c0 = scan[i].0;
-                    golden(best_a, (c0 - 2.0).max(lo), (c0 + 2.0).min(hi))
+                .map(|&(c0, _)| {
+                    golden(
+                        |c| best_a(&xyz, c).1,
+                        (c0 - 2.0).max(lo),
+                        (c0 + 2.0).min(hi),
+                    )
                 })
-                .fold(f64::INFINITY, f64::min)
+                .fold((0.0, f64::INFINITY), |b, x| if x.1 < b.1 { x } else { b });
+            for _ in 0..2 {
+                let mut q = [xyz[0], xyz[1], xyz[2], best_a(&xyz, best.0).0, best.0];
+                let (pn, _) = self.pose(u, false);
+                for _ in 0..5 {
+                    let (p, _) = self.pose(&q, true);
+                    for k in 0..3 {
+                        q[k] -= p[k] - pn[k];
+                    }
+                }
+                xyz = [q[0], q[1], q[2]];
+                best = golden(
+                    |c| best_a(&xyz, c).1,
+                    (best.0 - 1.0).max(lo),
+                    (best.0 + 1.0).min(hi),
+                );
+            }
+            best.1
         }
     }
 
-    /// Least value of f on [a, b] by golden section (40 steps).
-    fn golden(f: impl Fn(f64) -> f64, mut a: f64, mut b: f64) -> f64 {
+    /// Least value of f on [a, b] by golden section (40 steps): (x, f(x)).
+    fn golden(f: impl Fn(f64) -> f64, mut a: f64, mut b: f64) -> (f64, f64) {
         let r = (5f64.sqrt() - 1.0) / 2.0;
         let (mut x1, mut x2) = (b - r * (b - a), a + r * (b - a));
         let (mut f1, mut f2) = (f(x1), f(x2));
@@ -416,7 +437,11 @@ mod independent {
                 f2 = f(x2);
             }
         }
-        f1.min(f2)
+        if f1 < f2 {
+            (x1, f1)
+        } else {
+            (x2, f2)
+        }
     }
 }
 

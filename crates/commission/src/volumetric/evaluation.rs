@@ -339,36 +339,62 @@ pub fn evaluate_pole(
 }
 
 /// The least orientation error at the command u over C in `c_range` and A within
-/// 0.05 deg of u's, arc-seconds, by brute force on the forward kinematics alone: a
-/// 2 deg scan of C, the best A for each by golden section, then golden section over C
-/// around the six best cells. X, Y, Z stay at the command: the micrometres they move
-/// for the tip turn the slides' angular errors by nothing measurable.
+/// 0.05 deg of u's, with the tip on the command, arc-seconds, by brute force on the
+/// forward kinematics alone: a 2 deg scan of C, the best A for each by golden
+/// section, then golden section over C around the six best cells; then X, Y, Z are
+/// solved for the tip (they move by up to a tenth of a millimetre, which turns the
+/// slides' angular errors by thousandths of an arc-second) and C and A refined again.
 pub fn pole_floor_brute_force(model: &ErrorModel, u: &[f64; 5], c_range: (f64, f64)) -> f64 {
-    let (_, vn) = nominal_pose(&model.geometry, u);
-    let orient = |a: f64, c: f64| {
-        angle_rad(&model.actual_pose(&[u[0], u[1], u[2], a, c]).1, &vn) / RAD_PER_ARCSEC
+    let (pn, vn) = nominal_pose(&model.geometry, u);
+    let orient = |xyz: &[f64; 3], a: f64, c: f64| {
+        angle_rad(&model.actual_pose(&[xyz[0], xyz[1], xyz[2], a, c]).1, &vn) / RAD_PER_ARCSEC
     };
     let span_deg = 0.05;
-    let best_a = |c: f64| golden(u[3] - span_deg, u[3] + span_deg, 40, &mut |a| orient(a, c)).1;
+    let best_a = |xyz: &[f64; 3], c: f64| {
+        golden(u[3] - span_deg, u[3] + span_deg, 40, &mut |a| {
+            orient(xyz, a, c)
+        })
+    };
     let (lo, hi) = c_range;
     let n = (((hi - lo) / 2.0).ceil() as usize).max(1);
     let step = (hi - lo) / n as f64;
+    let mut xyz = [u[0], u[1], u[2]];
     let mut scan: Vec<(f64, f64)> = (0..=n)
         .map(|i| {
             let c = lo + step * i as f64;
-            (c, best_a(c))
+            (c, best_a(&xyz, c).1)
         })
         .collect();
     scan.sort_by(|a, b| a.1.total_cmp(&b.1));
-    scan.iter()
+    let refine = |xyz: &[f64; 3], c0: f64, e0: f64, half: f64| -> (f64, f64) {
+        let (a, b) = ((c0 - half).max(lo), (c0 + half).min(hi));
+        if b <= a {
+            return (c0, e0);
+        }
+        let (c, e) = golden(a, b, 40, &mut |c| best_a(xyz, c).1);
+        if e < e0 {
+            (c, e)
+        } else {
+            (c0, e0)
+        }
+    };
+    let mut best = scan
+        .iter()
         .take(6)
-        .map(|&(c0, e0)| {
-            let (a, b) = ((c0 - step).max(lo), (c0 + step).min(hi));
-            if b > a {
-                golden(a, b, 40, &mut |c| best_a(c)).1.min(e0)
-            } else {
-                e0
+        .map(|&(c0, e0)| refine(&xyz, c0, e0, step))
+        .fold((u[4], f64::INFINITY), |b, x| if x.1 < b.1 { x } else { b });
+    for _ in 0..2 {
+        let a = best_a(&xyz, best.0).0;
+        let mut q = [xyz[0], xyz[1], xyz[2], a, best.0];
+        for _ in 0..5 {
+            let (p, _) = model.actual_pose(&q);
+            for k in 0..3 {
+                q[k] -= p[k] - pn[k];
             }
-        })
-        .fold(f64::INFINITY, f64::min)
+        }
+        xyz = [q[0], q[1], q[2]];
+        let e0 = best_a(&xyz, best.0).1;
+        best = refine(&xyz, best.0, e0, 0.5 * step);
+    }
+    best.1
 }
