@@ -520,16 +520,18 @@ impl VolumetricCompensator {
         let w = (2.0 - 2.0 * (c_reg - c_q).abs() / limit).clamp(0.0, 1.0);
         let w = if w.is_nan() { 0.0 } else { w };
         let band = w < 1.0;
-        let (sc, cc) = c_q.sin_cos();
-        let wy = -sc * v[0] + cc * v[1];
-        let a_hold = (-wy).atan2(v[2]);
-        let (a, c) = if w == 1.0 {
+        // Hold: A' takes the in-plane part, -w_y with w the axis in the C frame.
+        let a_hold = || {
+            let (sc, cc) = c_q.sin_cos();
+            (sc * v[0] - cc * v[1]).atan2(v[2])
+        };
+        let (a, c) = if !band {
             (k * rho.atan2(v[2]), c_reg)
         } else if w == 0.0 {
-            (a_hold, c_q)
+            (a_hold(), c_q)
         } else {
             let a_reg = k * rho.atan2(v[2]);
-            (w * a_reg + (1.0 - w) * a_hold, c_q + w * (c_reg - c_q))
+            (w * a_reg + (1.0 - w) * a_hold(), c_q + w * (c_reg - c_q))
         };
         // Step 2: linear positions putting the ideal tip there with A', C'.
         let (sa, ca) = a.sin_cos();
