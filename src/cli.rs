@@ -28,6 +28,10 @@ pub enum Command {
         /// Configuration file (TOML).
         #[arg(long, short)]
         config: PathBuf,
+        /// Shadow mode for every axis: compute, record and publish what would be
+        /// written, never write the NC (as `gateway.shadow = true`; kept on reload).
+        #[arg(long)]
+        shadow: bool,
     },
     /// Check a configuration and print every problem with its key and file.
     Validate {

@@ -70,8 +70,11 @@ async fn run(log: Option<String>, command: Command) -> ExitCode {
     let result = match command {
         #[cfg(feature = "sim")]
         Command::Demo => demo::demo().await,
-        Command::Run { config: path } => match config::load(&path) {
-            Ok(cfg) => compgate_service::run(&path, cfg)
+        Command::Run {
+            config: path,
+            shadow,
+        } => match config::load(&path) {
+            Ok(cfg) => compgate_service::run(&path, cfg, compgate_service::RunOptions { shadow })
                 .await
                 .map_err(|e| e.to_string()),
             Err(e) => Err(e.to_string()),

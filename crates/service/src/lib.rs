@@ -103,7 +103,7 @@ pub fn init_tracing(filter: Option<&str>, default: &str) {
 
 /// Cancels the returned token on Ctrl-C or SIGTERM; sends the reloaded config on
 /// SIGHUP. A config that does not load is logged and not sent: the old one stays.
-fn signals(path: PathBuf, reload: mpsc::Sender<Config>) -> CancellationToken {
+fn signals(path: PathBuf, reload: mpsc::Sender<Config>, opts: RunOptions) -> CancellationToken {
     use tokio::signal::unix::{signal, SignalKind};
     let token = CancellationToken::new();
     let t = token.clone();
@@ -127,7 +127,8 @@ fn signals(path: PathBuf, reload: mpsc::Sender<Config>) -> CancellationToken {
                 _ = hup.recv() => {
                     tracing::info!(file = %path.display(), "SIGHUP: reloading the configuration");
                     match config::load(&path) {
-                        Ok(cfg) => {
+                        Ok(mut cfg) => {
+                            opts.apply(&mut cfg);
                             let _ = reload.send(cfg).await;
                         }
                         Err(e) => tracing::error!(error = %e, "reload refused: the running configuration stays"),
@@ -140,11 +141,26 @@ fn signals(path: PathBuf, reload: mpsc::Sender<Config>) -> CancellationToken {
     token
 }
 
+/// What the command line sets over the config file, for the run and every reload.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct RunOptions {
+    /// `--shadow`: every axis in shadow mode (as `gateway.shadow = true`).
+    pub shadow: bool,
+}
+
+impl RunOptions {
+    /// Sets what the options force in `cfg`.
+    pub fn apply(&self, cfg: &mut Config) {
+        cfg.gateway.shadow |= self.shadow;
+    }
+}
+
 /// `compgate run`: the gateway on `cfg` (loaded from `path`) as a service, until
 /// SIGTERM or Ctrl-C.
-pub async fn run(path: &Path, cfg: Config) -> Result<(), ServiceError> {
+pub async fn run(path: &Path, mut cfg: Config, opts: RunOptions) -> Result<(), ServiceError> {
+    opts.apply(&mut cfg);
     let (reload_tx, reload_rx) = mpsc::channel(1);
-    let shutdown = signals(path.to_path_buf(), reload_tx);
+    let shutdown = signals(path.to_path_buf(), reload_tx, opts);
     let mut observers: Vec<Box<dyn Observer>> = vec![Box::new(notify::Notifier::new())];
     let recorder = match &cfg.recorder {
         Some(r) => Some(Recorder::start(r)?),

@@ -10,7 +10,9 @@
 //! | `compgate_channel_value_degc` | gauge | channel | filtered temperature (NaN without a value) |
 //! | `compgate_channel_quality` | gauge | channel | 0 good, 1 uncertain, 2 bad |
 //! | `compgate_axis_sd43900_mm`, `compgate_axis_sd43910`, `compgate_axis_sd43920_mm` | gauge | axis | parameters last written and verified |
-//! | `compgate_nc_jobs_total` | counter | axis, result (`ok`/`failed`) | NC job outcomes |
+//! | `compgate_axis_shadow` | gauge | axis | 1 when the axis runs in shadow mode (computes, never writes the NC) |
+//! | `compgate_axis_shadow_sd43900_mm`, `compgate_axis_shadow_sd43910`, `compgate_axis_shadow_sd43920_mm` | gauge | axis | shadow mode: the parameters the axis would have written last |
+//! | `compgate_nc_jobs_total` | counter | axis, result (`ok`/`failed`/`shadow`) | NC job outcomes; `shadow`: computed, not sent |
 //! | `compgate_cycle_seconds` | histogram | | control loop: time to process one device sample |
 //! | `compgate_recorder_records_total` | counter | outcome (`written`, `dropped_queue`, `dropped_write`) | recorder |
 //! | `compgate_process_heap_bytes` | gauge | state (`in_use`, `free`) | glibc malloc: bytes allocated (the live heap) and bytes it holds free; RSS growing with `in_use` flat is the allocator, not a leak (glibc only) |
@@ -126,7 +128,24 @@ pub fn describe() {
     describe_counter!(
         "compgate_nc_jobs_total",
         Unit::Count,
-        "NC jobs by axis and result (ok, failed)"
+        "NC jobs by axis and result (ok, failed, shadow: computed in shadow mode, not sent)"
+    );
+    describe_gauge!(
+        "compgate_axis_shadow",
+        Unit::Count,
+        "1 when the axis runs in shadow mode: it computes and records, never writes the NC"
+    );
+    describe_gauge!(
+        "compgate_axis_shadow_sd43900_mm",
+        "Shadow mode: SD43900 in mm the axis would have written last"
+    );
+    describe_gauge!(
+        "compgate_axis_shadow_sd43910",
+        "Shadow mode: SD43910 the axis would have written last"
+    );
+    describe_gauge!(
+        "compgate_axis_shadow_sd43920_mm",
+        "Shadow mode: SD43920 in mm the axis would have written last"
     );
     describe_histogram!(
         "compgate_cycle_seconds",
@@ -251,6 +270,14 @@ impl Observer for MetricsObserver {
         }
     }
 
+    fn on_shadow(&mut self, axis: &str, params: &CompParams) {
+        counter!("compgate_nc_jobs_total", "axis" => axis.to_string(), "result" => "shadow")
+            .increment(1);
+        gauge!("compgate_axis_shadow_sd43900_mm", "axis" => axis.to_string()).set(params.k0_mm);
+        gauge!("compgate_axis_shadow_sd43910", "axis" => axis.to_string()).set(params.tan_beta);
+        gauge!("compgate_axis_shadow_sd43920_mm", "axis" => axis.to_string()).set(params.p0_mm);
+    }
+
     fn on_status(&mut self, status: &Status) {
         if self.devices.len() != status.devices.len()
             || self
@@ -273,6 +300,11 @@ impl Observer for MetricsObserver {
                 if let Some(p) = &a.written {
                     set_params(&a.name, p);
                 }
+                gauge!("compgate_axis_shadow", "axis" => a.name.clone()).set(if a.shadow {
+                    1.0
+                } else {
+                    0.0
+                });
             }
         }
         if let Some(stats) = &self.recorder {
