@@ -43,10 +43,8 @@ fn shutdown_on_signals() -> CancellationToken {
 async fn run_gateway(cfg: &config::Config) -> Result<(), String> {
     let shutdown = shutdown_on_signals();
     let (tx, rx) = watch::channel(runtime::Status::default());
-    let interval = std::time::Duration::from_secs_f64(cfg.gateway.status_interval_s);
     let printer = tokio::spawn(status::print_loop(
         rx,
-        interval,
         std::io::stdout().is_terminal(),
         shutdown.clone(),
     ));

@@ -187,7 +187,6 @@ pub async fn run(path: &Path, mut cfg: Config, opts: RunOptions) -> Result<(), S
     let (tx, rx) = watch::channel(runtime::Status::default());
     let printer = tokio::spawn(crate::status::print_loop(
         rx,
-        cfg.gateway.status_interval(),
         std::io::stdout().is_terminal(),
         shutdown.clone(),
     ));
