@@ -38,8 +38,12 @@ use compgate_gateway::runtime::{GatewayError, Observer, SampleReadings, Status};
 const UPKEEP_S: u64 = 5;
 
 /// Installs the global recorder with help text for every metric, and serves
-/// `GET /metrics` on `cfg.bind` (inside the tokio runtime).
-pub async fn install(cfg: &MetricsConfig) -> Result<(), ServiceError> {
+/// `GET /metrics` on `cfg.bind` (inside the tokio runtime), with the status page's
+/// routes when `page` is given. Returns the address bound (port 0 takes a free one).
+pub async fn install(
+    cfg: &MetricsConfig,
+    page: Option<crate::page::Page>,
+) -> Result<SocketAddr, ServiceError> {
     let bind = cfg.bind.as_str();
     let addr: SocketAddr = bind.parse().map_err(|e| bind_err(bind, e))?;
     let buckets = [
@@ -71,6 +75,11 @@ pub async fn install(cfg: &MetricsConfig) -> Result<(), ServiceError> {
         );
         r
     });
+    let router = match page {
+        Some(page) => crate::page::routes(router, page),
+        None => router,
+    };
+    let addr = listener.local_addr().map_err(|e| bind_err(bind, e))?;
     let limits = crate::http::Limits {
         max_connections: cfg.max_connections as usize,
         ..crate::http::Limits::default()
@@ -83,7 +92,7 @@ pub async fn install(cfg: &MetricsConfig) -> Result<(), ServiceError> {
         tokio_util::sync::CancellationToken::new(),
     ));
     tracing::info!(bind = %addr, max_connections = cfg.max_connections, "Prometheus metrics on http://{addr}/metrics");
-    Ok(())
+    Ok(addr)
 }
 
 /// Help text and units of every metric (Prometheus `# HELP`).
@@ -349,7 +358,7 @@ mod tests {
             ..MetricsConfig::default()
         };
         assert_eq!(
-            install(&cfg).await,
+            install(&cfg, None).await,
             Err(ServiceError::MetricsBind {
                 bind: "localhost".into(),
                 message: "invalid socket address syntax".into(),
