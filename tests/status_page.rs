@@ -131,11 +131,27 @@ fn look(chromium: &Path, url: &str, budget_ms: u32, screenshot: Option<&Path>) -
             cmd.arg("--dump-dom");
         }
     }
-    let out = cmd
+    let mut child = cmd
         .arg(url)
         .stdin(Stdio::null())
-        .output()
-        .expect("chromium runs");
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("chromium starts");
+    // A browser that hangs must fail the test, not stall it.
+    let pid = child.id();
+    let (done_tx, done_rx) = std::sync::mpsc::channel::<()>();
+    std::thread::spawn(move || {
+        if let Err(std::sync::mpsc::RecvTimeoutError::Timeout) =
+            done_rx.recv_timeout(Duration::from_secs(120))
+        {
+            let _ = Command::new("kill")
+                .args(["-KILL", &pid.to_string()])
+                .status();
+        }
+    });
+    let out = child.wait_with_output().expect("chromium output");
+    let _ = done_tx.send(());
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(
         out.status.success(),
