@@ -104,7 +104,7 @@ struct Look {
 
 /// Loads `url` in a fresh headless Chromium, lets the page run for `budget_ms` of
 /// virtual time (the page's fetches complete first) and returns what it showed.
-fn look(chromium: &Path, url: &str, budget_ms: u32, screenshot: Option<&Path>) -> Look {
+fn look(chromium: &Path, url: &str, budget_ms: u32) -> Look {
     let profile = tempfile::tempdir().expect("profile dir");
     let mut cmd = Command::new(chromium);
     cmd.args([
@@ -121,16 +121,8 @@ fn look(chromium: &Path, url: &str, budget_ms: u32, screenshot: Option<&Path>) -
         "--v=0",
     ])
     .arg(format!("--user-data-dir={}", profile.path().display()))
-    .arg(format!("--virtual-time-budget={budget_ms}"));
-    match screenshot {
-        Some(p) => {
-            cmd.arg(format!("--screenshot={}", p.display()))
-                .arg("--window-size=1280,900");
-        }
-        None => {
-            cmd.arg("--dump-dom");
-        }
-    }
+    .arg(format!("--virtual-time-budget={budget_ms}"))
+    .arg("--dump-dom");
     let mut child = cmd
         .arg(url)
         .stdin(Stdio::null())
@@ -197,15 +189,18 @@ async fn the_page_in_chromium_loads_clean_updates_and_shows_a_ne43_fault_as_bad(
     let dir = tempfile::tempdir().expect("tempdir");
     let (plant, path, port) = plant(dir.path(), DEMO, "").await;
     let gateway = Gateway::start(dir.path(), &path, &[]);
-    wait_api(port, 20.0, "every channel good", |s| {
-        s["channels"]
-            .as_array()
-            .is_some_and(|c| !c.is_empty() && c.iter().all(|c| c["quality"] == "good"))
+    wait_api(port, 20.0, "every channel good with a trend", |s| {
+        s["channels"].as_array().is_some_and(|c| {
+            !c.is_empty()
+                && c.iter().all(|c| {
+                    c["quality"] == "good" && c["trend"].as_array().is_some_and(|t| t.len() >= 3)
+                })
+        })
     });
     let url = format!("http://127.0.0.1:{port}/");
 
     // The page loads, draws every channel from /api/status and logs nothing.
-    let first = look(&chromium, &url, 3000, None);
+    let first = look(&chromium, &url, 3000);
     assert!(first.console.is_empty(), "console: {:#?}", first.console);
     let names = ["T_bed", "T_column", "T_screw", "T_ambient"];
     for name in names {
@@ -226,7 +221,7 @@ async fn the_page_in_chromium_loads_clean_updates_and_shows_a_ne43_fault_as_bad(
 
     // A second look some status intervals later shows other values.
     std::thread::sleep(Duration::from_secs(3));
-    let second = look(&chromium, &url, 3000, None);
+    let second = look(&chromium, &url, 3000);
     assert!(second.console.is_empty(), "console: {:#?}", second.console);
     let values = |l: &Look| -> Vec<String> {
         names
@@ -251,7 +246,7 @@ async fn the_page_in_chromium_loads_clean_updates_and_shows_a_ne43_fault_as_bad(
     wait_api(port, 10.0, "T_bed bad", |s| {
         channel(s, "T_bed")["quality"] == "bad"
     });
-    let faulted = look(&chromium, &url, 3000, None);
+    let faulted = look(&chromium, &url, 3000);
     assert!(
         faulted.console.is_empty(),
         "console: {:#?}",
@@ -269,15 +264,6 @@ async fn the_page_in_chromium_loads_clean_updates_and_shows_a_ne43_fault_as_bad(
         Some("good")
     );
 
-    // With COMPGATE_SCREENSHOT=path, a picture of the page for the docs (with the
-    // fault cleared again).
-    if let Some(shot) = std::env::var_os("COMPGATE_SCREENSHOT") {
-        plant.field["ain1"]
-            .set_sensor_fault(t_bed, SensorFault::None)
-            .expect("fault cleared");
-        std::thread::sleep(Duration::from_secs(30));
-        look(&chromium, &url, 3000, Some(Path::new(&shot)));
-    }
     drop(gateway);
 }
 
@@ -372,6 +358,20 @@ async fn shadow_mode_records_and_shows_what_it_would_write_and_leaves_the_nc_alo
             .any(|l| l.starts_with("compgate_nc_jobs_total{axis=\"X\",result=\"shadow\"}")),
         "{metrics}"
     );
+    // The page says so too (where a browser is at hand; the first test requires it).
+    if let Some(chromium) = chromium() {
+        let page = look(&chromium, &format!("http://127.0.0.1:{port}/"), 3000);
+        assert!(page.console.is_empty(), "console: {:#?}", page.console);
+        assert!(page.dom.contains("data-shadow=\"true\""), "{}", page.dom);
+        assert!(page.dom.contains("would write"), "{}", page.dom);
+        assert!(
+            !page
+                .dom
+                .contains("id=\"shadow-banner\" class=\"banner\" hidden"),
+            "{}",
+            page.dom
+        );
+    }
     std::thread::sleep(Duration::from_millis(500));
     let nc = plant.nc["nc_x"].state();
     assert_eq!(

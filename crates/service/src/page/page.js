@@ -110,7 +110,8 @@ function axes(list) {
 
 function jobs(list) {
   $("no-jobs").hidden = list.length > 0;
-  $("jobs").tBodies[0].innerHTML = list.map((j) => {
+  // The newest dozen fit the screen; /api/status has all it keeps.
+  $("jobs").tBodies[0].innerHTML = list.slice(0, 12).map((j) => {
     const result = j.shadow ? "shadow" : (j.ok ? "ok" : "failed");
     return `<tr data-result="${result}">
       <td>${clock(j.t_unix_ms)}</td>
