@@ -59,9 +59,9 @@ impl History {
         }
     }
 
-    /// Adds `status` at `t_unix_ms`: one point per channel, at most one per
-    /// window / [`TREND_POINTS`] (a point that would come sooner replaces the last
-    /// one, so the newest value always shows).
+    /// Adds `status` at `t_unix_ms`: one point per channel, kept points at least
+    /// window / [`TREND_POINTS`] apart (the newest point is replaced until it is, so
+    /// the newest value always shows).
     pub fn push(&mut self, status: &Status, t_unix_ms: i64) {
         let names_changed = self.names.len() != status.channels.len()
             || self
@@ -92,8 +92,10 @@ impl History {
                 value_degc: c.reading.value_degc.filter(|v| v.is_finite()),
                 quality: quality_code(&c.reading.quality).0,
             };
-            let second_last = points.len().checked_sub(2).map(|i| points[i].t_unix_ms);
-            if second_last.is_some_and(|t| t_unix_ms - t < spacing_ms) {
+            // The newest point moves on until it is `spacing_ms` after the one
+            // before it; then it stays and the next one starts.
+            let n = points.len();
+            if n >= 2 && points[n - 1].t_unix_ms - points[n - 2].t_unix_ms < spacing_ms {
                 points.pop_back();
             }
             points.push_back(p);
