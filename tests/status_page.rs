@@ -321,7 +321,12 @@ async fn shadow_mode_records_and_shows_what_it_would_write_and_leaves_the_nc_alo
     let (plant, path, port) = plant(
         dir.path(),
         &common::config("hold", "", ""),
-        &format!("\n[recorder]\npath = \"{}\"\n", db.display()),
+        // A broker that is not there: MQTT messages stay in the outbox to be read.
+        &format!(
+            "\n[recorder]\npath = \"{}\"\n\n[mqtt]\nbroker = \"127.0.0.1:{}\"\nmachine = \"m1\"\n",
+            db.display(),
+            common::free_port()
+        ),
     )
     .await;
     let nc_before = plant.nc["nc_x"].state();
@@ -397,6 +402,19 @@ async fn shadow_mode_records_and_shows_what_it_would_write_and_leaves_the_nc_alo
     assert!(shadow >= 1, "no shadow job recorded");
     assert_eq!(sent, 0, "a job recorded as sent");
     assert!((k0 - 0.04).abs() < 0.001, "recorded K0 {k0}");
+    let payload: String = conn
+        .query_row(
+            "SELECT payload FROM mqtt_outbox WHERE topic = 'compgate/m1/writes/X' LIMIT 1",
+            [],
+            |r| r.get(0),
+        )
+        .expect("a writes message");
+    let msg: Value = serde_json::from_str(&payload).expect("json");
+    assert_eq!(msg["shadow"], true, "{msg}");
+    assert_eq!(msg["ok"], false, "{msg}");
+    assert!(msg["sd43900_mm"]
+        .as_f64()
+        .is_some_and(|k0| (k0 - 0.04).abs() < 0.001));
 }
 
 // `[axes.X] shadow = true` alone, in the library: the status carries the would-be
