@@ -363,6 +363,10 @@ async fn shadow_mode_records_and_shows_what_it_would_write_and_leaves_the_nc_alo
             .any(|l| l.starts_with("compgate_nc_jobs_total{axis=\"X\",result=\"shadow\"}")),
         "{metrics}"
     );
+    // systemd's STATUS= line says so.
+    gateway.wait_notify(10.0, "STATUS= with SHADOW", |m| {
+        m.contains("STATUS=") && m.contains("X SHADOW (NC not written): would write SD43900=")
+    });
     // The page says so too (where a browser is at hand; the first test requires it).
     if let Some(chromium) = chromium() {
         let page = look(&chromium, &format!("http://127.0.0.1:{port}/"), 3000);
