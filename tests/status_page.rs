@@ -123,7 +123,7 @@ fn look(chromium: &Path, url: &str, budget_ms: u32) -> Look {
     .arg(format!("--user-data-dir={}", profile.path().display()))
     .arg(format!("--virtual-time-budget={budget_ms}"))
     .arg("--dump-dom");
-    let mut child = cmd
+    let child = cmd
         .arg(url)
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
