@@ -109,3 +109,31 @@ impl Status {
         self.jobs.push_back(job);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    // The job history keeps the newest JOB_HISTORY jobs, oldest first.
+    #[test]
+    fn the_job_history_keeps_the_newest_jobs() {
+        let mut s = Status::default();
+        for id in 0..(JOB_HISTORY as u16 + 5) {
+            s.push_job(JobStatus {
+                axis: "X".into(),
+                at: SystemTime::UNIX_EPOCH,
+                params: CompParams::default(),
+                shadow: false,
+                job_id: Some(id),
+                elapsed: None,
+                error: None,
+            });
+        }
+        assert_eq!(s.jobs.len(), JOB_HISTORY);
+        assert_eq!(s.jobs.front().and_then(|j| j.job_id), Some(5));
+        assert_eq!(
+            s.jobs.back().and_then(|j| j.job_id),
+            Some(JOB_HISTORY as u16 + 4)
+        );
+    }
+}
