@@ -721,6 +721,42 @@ mod tests {
         assert_eq!(p.reading(ch).expect("reading").quality, Quality::Good);
     }
 
+    // Shadow mode on or off by reload: the axis starts again from what the NC holds
+    // (its would-be values are no baseline for real writes); an unchanged reload
+    // keeps the axis and the job history.
+    #[test]
+    fn a_reload_into_shadow_mode_starts_the_axis_from_the_nc_again() {
+        let cfg = demo();
+        let running = |cfg: &Config| {
+            let mut r = Running::new(build(cfg).expect("build"));
+            r.baselined[0] = true;
+            r.status.axes[0].jobs_ok = 3;
+            r.status.push_job(JobStatus {
+                axis: "X".into(),
+                at: std::time::SystemTime::UNIX_EPOCH,
+                params: CompParams::default(),
+                shadow: false,
+                job_id: Some(1),
+                elapsed: None,
+                error: None,
+            });
+            r
+        };
+        let same = reload::transplant(&cfg, &cfg, running(&cfg), build(&cfg).expect("build"));
+        assert!(same.baselined[0]);
+        assert_eq!(same.status.axes[0].jobs_ok, 3);
+        assert!(!same.pipeline.axes[0].shadow);
+
+        let mut shadow = cfg.clone();
+        shadow.gateway.shadow = true;
+        let next = reload::transplant(&cfg, &shadow, running(&cfg), build(&shadow).expect("build"));
+        assert!(next.pipeline.axes[0].shadow);
+        assert!(next.status.axes[0].shadow);
+        assert!(!next.baselined[0], "carried a baseline into shadow mode");
+        assert_eq!(next.status.axes[0].jobs_ok, 0);
+        assert_eq!(next.status.jobs.len(), 1, "job history kept");
+    }
+
     // The core loop builds one value per sample: the link outcome and the new reading
     // of exactly the sample's channels; the status shows the same.
     #[test]
