@@ -151,6 +151,7 @@ impl AxisModel {
                         channel: t.name.clone(),
                         ref_degc: t.ref_degc,
                         coeff_mm_per_degc: t.k0_um_per_degc / 1000.0,
+                        lag_tau_s: 0.0,
                     })
                     .collect(),
             },
@@ -163,6 +164,7 @@ impl AxisModel {
                         channel: t.name.clone(),
                         ref_degc: t.ref_degc,
                         coeff_per_degc: t.tan_beta_per_degc,
+                        lag_tau_s: 0.0,
                     })
                     .collect(),
             },

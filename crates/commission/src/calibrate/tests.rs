@@ -209,6 +209,7 @@ fn hand_model() -> AxisModel {
                 channel: "a".into(),
                 ref_degc: 20.0,
                 coeff_mm_per_degc: 0.001,
+                lag_tau_s: 0.0,
             }],
         },
         tan_beta: compgate_gateway::config::TanBetaModel {
@@ -217,6 +218,7 @@ fn hand_model() -> AxisModel {
                 channel: "a".into(),
                 ref_degc: 20.0,
                 coeff_per_degc: 1e-6,
+                lag_tau_s: 0.0,
             }],
         },
     }

@@ -283,11 +283,13 @@ impl ModelFile {
                 channel: channel.clone(),
                 ref_degc,
                 coeff_mm_per_degc: k0 / 1000.0,
+                lag_tau_s: 0.0,
             });
             mf.axis.tan_beta.terms.push(TanBetaTerm {
                 channel,
                 ref_degc,
                 coeff_per_degc: slope / 1000.0,
+                lag_tau_s: 0.0,
             });
         };
         for (j, &s) in d.sensor_idx.iter().enumerate() {
@@ -404,11 +406,13 @@ mod tests {
                             channel: "a".into(),
                             ref_degc: 20.0,
                             coeff_mm_per_degc: 0.002,
+                            lag_tau_s: 0.0,
                         },
                         K0Term {
                             channel: "a_lag100s".into(),
                             ref_degc: 20.0,
                             coeff_mm_per_degc: -0.001,
+                            lag_tau_s: 0.0,
                         },
                     ],
                 },
@@ -418,6 +422,7 @@ mod tests {
                         channel: "a".into(),
                         ref_degc: 20.0,
                         coeff_per_degc: 1e-5,
+                        lag_tau_s: 0.0,
                     }],
                 },
             },

@@ -1,6 +1,6 @@
 //! From temperatures to what to write: limits, deadband, bad-input policy.
 
-use super::{CompError, CompParams, ThermalModel};
+use super::{CompError, CompParams, Dynamics, ThermalModel};
 
 /// Safety limits of one axis' compensation.
 ///
@@ -110,6 +110,8 @@ pub struct AxisCompensator {
     inputs: Vec<usize>,
     baseline: Option<CompParams>,
     last_decide_s: Option<f64>,
+    /// Lagged inputs and motion heat (empty: the plain model).
+    dynamics: Dynamics,
 }
 
 impl AxisCompensator {
@@ -123,7 +125,24 @@ impl AxisCompensator {
             policy,
             baseline: None,
             last_decide_s: None,
+            dynamics: Dynamics::default(),
         }
+    }
+
+    /// With lagged inputs (model inputs beyond the real ones) and motion heat.
+    pub fn with_dynamics(mut self, dynamics: Dynamics) -> Self {
+        self.dynamics = dynamics;
+        self
+    }
+
+    /// The lags and motion heat.
+    pub fn dynamics(&self) -> &Dynamics {
+        &self.dynamics
+    }
+
+    /// The NC's actual position at `now_s` (for the motion heat term).
+    pub fn on_position(&mut self, now_s: f64, pos_mm: f64) {
+        self.dynamics.on_position(now_s, pos_mm);
     }
 
     /// Sets what the NC holds now (read at start-up).
@@ -140,6 +159,16 @@ impl AxisCompensator {
             .last_decide_s
             .map_or(0.0, |t0_s| (now_s - t0_s).max(0.0));
         self.last_decide_s = Some(now_s);
+        // Lagged inputs fill their slots after the real ones.
+        let lagged;
+        let temps_degc = if self.dynamics.lags().is_empty() {
+            temps_degc
+        } else {
+            let mut t = temps_degc.to_vec();
+            self.dynamics.apply_lags(now_s, &mut t);
+            lagged = t;
+            &lagged[..]
+        };
 
         let bad_inputs: Vec<usize> = self
             .inputs
@@ -158,7 +187,10 @@ impl AxisCompensator {
         }
         // Unused inputs may be None: NaN is never read by the model.
         let temps: Vec<f64> = temps_degc.iter().map(|t| t.unwrap_or(f64::NAN)).collect();
-        let target = self.model.params(&temps);
+        let mut target = self.model.params(&temps);
+        let (k0_mm, tan_beta) = self.dynamics.motion_terms();
+        target.k0_mm += k0_mm;
+        target.tan_beta += tan_beta;
         if !target.is_finite() {
             return Decision::Hold { bad_inputs };
         }

@@ -354,6 +354,7 @@ impl Running {
                         _ => {}
                     }
                 }
+                let now_s = self.pipeline.now_s(Instant::now());
                 for (i, axis) in self.pipeline.axes.iter_mut().enumerate() {
                     if axis.nc_module != module {
                         continue;
@@ -361,6 +362,8 @@ impl Running {
                     let st = &mut self.status.axes[i];
                     match &result {
                         Ok(snap) => {
+                            // The motion heat term counts travel between snapshots.
+                            axis.comp.on_position(now_s, snap.position_mm);
                             if !self.baselined[i] {
                                 // Step limits and the deadband start from what the NC holds.
                                 axis.comp.set_baseline(snap.thermal());
