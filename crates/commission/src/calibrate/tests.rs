@@ -221,6 +221,7 @@ fn hand_model() -> AxisModel {
                 lag_tau_s: 0.0,
             }],
         },
+        motion_heat: None,
     }
 }
 
