@@ -277,7 +277,7 @@ pub fn commissioning_model(
 ) -> Result<(AxisModel, calibrate::Fit, Measurements), ScenarioError> {
     let mut machine = ThermalMachine::new(params.clone(), *effects, seed ^ 0x5EED_C0DE);
     let plan = SweepPlan::irregular(params.axis_length_mm, TARGETS, 1800.0);
-    let s = measurement_run(&mut machine, &DutyCycle::commissioning(24.0), &plan, 30.0);
+    let s = measurement_run(&mut machine, &DutyCycle::commissioning(24.0), &plan);
     let m = Measurements::from(&s);
     let fit = calibrate::calibrate(&m, sensors, None).map_err(ScenarioError::Fit)?;
     Ok((AxisModel::from_fit(&fit), fit, m))

@@ -8,7 +8,7 @@ fn commissioning(params: ThermalParams, seed: u64) -> (Measurements, ThermalMach
     let mut machine = ThermalMachine::new(params, Effects::default(), seed);
     let cycle = DutyCycle::commissioning(24.0);
     let plan = SweepPlan::irregular(2000.0, 9, 1800.0);
-    let s = measurement_run(&mut machine, &cycle, &plan, 30.0);
+    let s = measurement_run(&mut machine, &cycle, &plan);
     (Measurements::from(&s), machine)
 }
 
