@@ -285,8 +285,18 @@ impl Effects {
         Ok(e)
     }
 
-    /// Names of the effects that are on, in [`Self::NAMES`] order.
+    /// Names of the effects that are on, in [`Self::NAMES`] order, then `spindle`
+    /// (the shop plant's head, no diagnose effect of its own).
     pub fn names(&self) -> Vec<&'static str> {
+        let mut names = self.diagnose_names();
+        if self.spindle.is_some() {
+            names.push("spindle");
+        }
+        names
+    }
+
+    /// Names of the diagnose effects that are on, in [`Self::NAMES`] order.
+    pub fn diagnose_names(&self) -> Vec<&'static str> {
         let on = [
             self.thermal_lag.is_some(),
             self.nonlinear_position.is_some(),

@@ -4,7 +4,10 @@ fn args(dir: &Path, hours: f64) -> ScenarioArgs {
     ScenarioArgs {
         hours,
         seed: 3,
+        plant: "ideal".into(),
         effects: vec![],
+        closed_loop: false,
+        record_hours: 24.0,
         model: None,
         sensors: vec!["column".into(), "screw".into()],
         out: dir.to_path_buf(),
