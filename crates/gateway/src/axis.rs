@@ -519,3 +519,72 @@ fn default_ramp_tan_beta_per_s() -> f64 {
 fn default_ref_degc() -> f64 {
     20.0
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn axis(text: &str) -> AxisConfig {
+        let base = "nc_module = \"nc\"\nmd32750 = 3\n";
+        toml::from_str(&format!("{base}{text}")).expect("axis toml")
+    }
+
+    fn problems(a: &AxisConfig) -> Vec<String> {
+        let known = |c: &str| ["column", "screw", "spindle"].contains(&c);
+        let names = ChannelNames {
+            known: &known,
+            list: "`column`, `screw`, `spindle`",
+        };
+        let mut out = Problems::new("t.toml");
+        a.validate("axes.X", &names, &mut out);
+        out.into_vec().into_iter().map(|p| p.key).collect()
+    }
+
+    const LAGGED: &str = "[k0]\nterms = [\
+        { channel = \"column\", coeff_mm_per_degc = 0.009 },\
+        { channel = \"column\", lag_tau_s = 1200.0, coeff_mm_per_degc = -0.004 },\
+        { channel = \"spindle\", coeff_mm_per_degc = 0.0015 }]\n\
+        [tan_beta]\nterms = [{ channel = \"screw\", lag_tau_s = 1200.0, coeff_per_degc = 0.0000115 }]\n\
+        [motion_heat]\ntau_s = 2400.0\nref_mm_per_s = 30.0\nk0_mm_per_mm_per_s = 0.00006\n";
+
+    #[test]
+    fn lagged_terms_get_slots_after_the_channels() {
+        let a = axis(LAGGED);
+        assert!(problems(&a).is_empty(), "{:?}", problems(&a));
+        let (model, names, dynamics) = a.model_parts();
+        assert_eq!(names, ["column", "spindle", "screw"]);
+        // column lagged 1200 s and screw lagged 1200 s: two slots after the 3 inputs.
+        let lags: Vec<(usize, usize)> =
+            dynamics.lags().iter().map(|l| (l.source, l.slot)).collect();
+        assert_eq!(lags, [(0, 3), (2, 4)]);
+        let k0_inputs: Vec<usize> = model.k0_mm.terms.iter().map(|t| t.input).collect();
+        assert_eq!(k0_inputs, [0, 3, 1]);
+        assert_eq!(model.tan_beta.terms[0].input, 4);
+        let m = dynamics.motion().expect("motion heat");
+        assert_eq!((m.tau_s, m.ref_mm_per_s), (2400.0, 30.0));
+        // Round trip: lag_tau_s = 0 is left out, motion_heat kept.
+        let text = toml::to_string(&a).expect("serialize");
+        assert_eq!(text.matches("lag_tau_s").count(), 2, "{text}");
+        assert_eq!(toml::from_str::<AxisConfig>(&text).expect("parse"), a);
+    }
+
+    #[test]
+    fn bad_lags_and_motion_heat_name_their_key() {
+        let a = axis(
+            "[k0]\nterms = [\
+             { channel = \"column\", lag_tau_s = 600.0, coeff_mm_per_degc = 0.009 },\
+             { channel = \"column\", lag_tau_s = 600.0, coeff_mm_per_degc = 0.001 },\
+             { channel = \"screw\", lag_tau_s = -1.0, coeff_mm_per_degc = 0.001 }]\n\
+             [motion_heat]\ntau_s = 0.5\nref_mm_per_s = -1.0\n",
+        );
+        assert_eq!(
+            problems(&a),
+            [
+                "axes.X.k0.terms[1].channel",
+                "axes.X.k0.terms[2].lag_tau_s",
+                "axes.X.motion_heat.tau_s",
+                "axes.X.motion_heat.ref_mm_per_s",
+            ]
+        );
+    }
+}

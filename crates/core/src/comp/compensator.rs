@@ -769,4 +769,48 @@ mod tests {
         assert!(writes > 1000, "{writes}");
         assert!(ramps > 100, "{ramps}");
     }
+
+    #[test]
+    fn lagged_inputs_and_motion_heat_reach_the_parameters() {
+        use super::super::{Dynamics, InputLag, MotionHeat};
+        // K0 = 0.004 * (lag(T0) - 20); input 2 is T0 through a 100 s lag.
+        let mut m = model();
+        m.k0_mm.terms[0].input = 2;
+        let dynamics = Dynamics::new(
+            vec![InputLag {
+                source: 0,
+                slot: 2,
+                tau_s: 100.0,
+            }],
+            Some(MotionHeat {
+                tau_s: 1000.0,
+                ref_mm_per_s: 0.0,
+                k0_mm_per_mm_per_s: 0.001,
+                tan_beta_per_mm_per_s: 0.0,
+            }),
+        );
+        let mut c = AxisCompensator::new(m, limits(), BadInputPolicy::Hold).with_dynamics(dynamics);
+        let k0 = |d: Decision| match d {
+            Decision::Write { params, .. } => params.k0_mm,
+            other => panic!("{other:?}"),
+        };
+        // At rest and 20 degC: nothing.
+        assert!(close(k0(c.decide(0.0, &[Some(20.0), Some(20.0)])), 0.0));
+        // T0 steps to 21 degC: after one time constant the lag has 63 %.
+        let got = k0(c.decide(100.0, &[Some(21.0), Some(20.0)]));
+        assert!(close(got, 0.004 * (1.0 - (-1.0f64).exp())), "{got}");
+        // 1000 mm of travel in one step: h = 1 mm/s -> K0 += 0.001 mm.
+        c.on_position(100.0, 0.0);
+        c.on_position(100.0, 1000.0);
+        c.confirm(CompParams::default());
+        let got = k0(c.decide(100.0, &[Some(21.0), Some(20.0)]));
+        assert!(close(got, 0.004 * (1.0 - (-1.0f64).exp()) + 0.001), "{got}");
+        // A bad source makes its lagged slot bad: hold.
+        assert_eq!(
+            c.decide(110.0, &[None, Some(20.0)]),
+            Decision::Hold {
+                bad_inputs: vec![2]
+            }
+        );
+    }
 }
