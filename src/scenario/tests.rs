@@ -100,7 +100,28 @@ async fn the_closed_loop_improves_on_the_baseline() {
     let rec = Measurements::read_path(&dir.path().join("recorded.csv")).unwrap();
     assert_eq!(rec.len(), l.rows);
     assert!(rec.temp("spindle").is_some() && rec.temp(LASER_CHANNEL).is_none());
-    assert!(rec.travel_mm.iter().sum::<f64>() > 100_000.0);
+    let travel_mm: f64 = rec.travel_mm.iter().sum();
+    assert!(travel_mm > 100_000.0);
+    // The travel is every recorded move, whatever the export's step.
+    let coarse = compgate_service::record::export::measurements(
+        &compgate_service::record::export::ExportArgs {
+            db: dir.path().join("record.sqlite"),
+            since: "0".into(),
+            until: "9999999999".into(),
+            csv: true,
+            out: None,
+            axis: Some("X".into()),
+            err_channel: Some(LASER_CHANNEL.into()),
+            step_s: 60.0,
+        },
+    )
+    .unwrap()
+    .0;
+    let coarse_mm: f64 = coarse.travel_mm.iter().sum();
+    assert!(
+        (coarse_mm - travel_mm).abs() < 0.01 * travel_mm,
+        "{coarse_mm} {travel_mm}"
+    );
     // The shop plant is beyond the baseline; the loop closes most of the gap.
     let off = r.off.stats.peak_to_peak_um;
     assert!(r.on.stats.peak_to_peak_um < off, "{text}");
