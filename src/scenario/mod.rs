@@ -12,7 +12,13 @@
 //!
 //! The same machine (same seed) runs twice: compensation off, then on. Each run ends
 //! with an ISO 230-2 test: [`ISO_RUNS`] bidirectional runs back to back over the
-//! same targets, evaluated by [`compgate_commission::iso230`].
+//! same targets, evaluated by [`compgate_commission::iso230`]. The duty is a function
+//! of time alone; the interferometer only samples the machine.
+//!
+//! `--plant` picks the machine (`shop`: beyond the patent model; `ideal`: exactly
+//! it). `--loop` closes the commissioning loop on the gateway's own records: a
+//! recorded run (the service's recorder, the interferometer as a laser channel),
+//! `export`, `calibrate`, `diagnose`, then a third run with the diagnosed model.
 
 mod plot;
 
