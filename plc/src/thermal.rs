@@ -814,6 +814,50 @@ impl DutyCycle {
         Self { phases }
     }
 
+    /// A commissioning run for the gateway's recorder, `hours` long: 40-minute
+    /// blocks cycling through nine combinations of axis load, spindle load and
+    /// standstill (a 6-hour cycle), so that every few hours of the record excite
+    /// every lump apart. Blocked cross-validation holds hours out at a time; with the
+    /// 1.5-hour blocks of [`Self::commissioning`] a held-out block could show
+    /// combinations the rest never did.
+    pub fn recording(hours: f64) -> Self {
+        let block_s = 40.0 * 60.0;
+        let loads = [
+            (200.0, 0.9, 0.2),
+            (0.0, 0.0, 0.9),
+            (120.0, 0.5, 0.6),
+            (0.0, 0.0, 0.0),
+            (200.0, 0.6, 1.0),
+            (60.0, 0.8, 0.0),
+            (0.0, 0.0, 0.5),
+            (150.0, 0.9, 0.8),
+            (0.0, 0.0, 0.0),
+        ];
+        let mut phases = Vec::new();
+        let mut left_s = hours.max(0.0) * 3600.0;
+        let mut i = 0;
+        while left_s > 0.0 {
+            let (speed_mm_per_s, duty, spindle_load) = loads[i % loads.len()];
+            let d = left_s.min(block_s);
+            phases.push(Phase {
+                name: if duty > 0.0 {
+                    "machining"
+                } else {
+                    "standstill"
+                },
+                duration_s: d,
+                motion: Motion {
+                    speed_mm_per_s,
+                    duty,
+                    spindle_load,
+                },
+            });
+            left_s -= d;
+            i += 1;
+        }
+        Self { phases }
+    }
+
     /// Total duration, s.
     pub fn duration_s(&self) -> f64 {
         self.phases.iter().map(|p| p.duration_s).sum()

@@ -882,7 +882,7 @@ async fn commission_from_records(
     let mode = Mode {
         model: &AxisModel::default(),
         compensate: false,
-        cycle: DutyCycle::commissioning(args.record_hours),
+        cycle: DutyCycle::recording(args.record_hours),
         sweeps: false,
         record: Some((&rec, epoch_ms)),
     };
