@@ -95,6 +95,11 @@ pub struct AxisConfig {
     /// `motion_heating`). Optional table; default: none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub motion_heat: Option<MotionHeatModel>,
+    /// Shadow mode: compute, record and publish the parameters this axis would
+    /// write, and never write its NC module (jobs are recorded as shadow). The NC
+    /// is still read: what it holds is the start of the step limits. Default false.
+    #[serde(default)]
+    pub shadow: bool,
 }
 
 /// `[axes.NAME.motion_heat]`: travel from the NC's actual position (read every
