@@ -223,7 +223,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
                 ax.nc_module
             ))
         })?;
-        let (model, input_names) = ax.model();
+        let (model, input_names, dynamics) = ax.model_parts();
         let inputs = input_names
             .iter()
             .map(|n| {
@@ -237,7 +237,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             name: name.clone(),
             nc_module,
             inputs,
-            comp: AxisCompensator::new(model, ax.limits(), ax.policy()),
+            comp: AxisCompensator::new(model, ax.limits(), ax.policy()).with_dynamics(dynamics),
             md32750: ax.md32750,
             update_interval: ax.update_interval(),
             shadow: ax.shadow || cfg.gateway.shadow,

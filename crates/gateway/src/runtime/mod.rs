@@ -381,6 +381,7 @@ impl Running {
                         _ => {}
                     }
                 }
+                let now_s = self.pipeline.now_s(Instant::now());
                 for (i, axis) in self.pipeline.axes.iter_mut().enumerate() {
                     if axis.nc_module != module {
                         continue;
@@ -388,6 +389,8 @@ impl Running {
                     let st = &mut self.status.axes[i];
                     match &result {
                         Ok(snap) => {
+                            // The motion heat term counts travel between snapshots.
+                            axis.comp.on_position(now_s, snap.position_mm);
                             if !self.baselined[i] {
                                 // Step limits and the deadband start from what the NC holds.
                                 axis.comp.set_baseline(snap.thermal());
@@ -793,5 +796,38 @@ mod tests {
         assert_eq!((d.cycles, d.failed_cycles, d.connects), (1, 1, 2));
         assert_eq!(d.last_error, s.error.as_ref().map(ToString::to_string));
         assert_eq!(state.status.samples, 1);
+    }
+
+    // Each NC snapshot's actual position feeds the axis' motion heat term.
+    #[test]
+    fn nc_snapshots_feed_the_motion_heat_term() {
+        let mut cfg = demo();
+        let axis = cfg.axes.values_mut().next().expect("an axis");
+        axis.motion_heat = Some(crate::axis::MotionHeatModel {
+            tau_s: 100.0,
+            ref_mm_per_s: 0.0,
+            k0_mm_per_mm_per_s: 0.001,
+            tan_beta_per_mm_per_s: 0.0,
+        });
+        let mut state = Running::new(build(&cfg).expect("build"));
+        let module = state.pipeline.axes[0].nc_module;
+        let mut in_flight = vec![false];
+        for pos_mm in [0.0, 500.0, 200.0] {
+            let snap = NcSnapshot {
+                position_mm: pos_mm,
+                ..NcSnapshot::default()
+            };
+            state.on_event(
+                NcEvent::Snapshot {
+                    module,
+                    result: Ok(snap),
+                },
+                &mut in_flight,
+                &mut (),
+            );
+        }
+        // 800 mm of travel into a 100 s store, well within one time constant.
+        let heat = state.pipeline.axes[0].comp.dynamics().heat_mm_per_s();
+        assert!(heat > 7.0 && heat <= 8.0, "{heat}");
     }
 }
