@@ -193,8 +193,9 @@ impl ChannelProcessor {
         let rate = self.params.max_rate_degc_per_s;
         match self.accepted {
             Some((t0_s, v0_degc)) if rate > 0.0 => {
-                // dt < 0 (time going backwards) allows no change at all.
-                (degc - v0_degc).abs() > rate * (t_s - t0_s).max(0.0)
+                // dt < 0 (time going backwards) allows no change but the noise.
+                let allowed = rate * (t_s - t0_s).max(0.0) + self.params.rate_tolerance_degc;
+                (degc - v0_degc).abs() > allowed
             }
             _ => false,
         }
@@ -407,6 +408,23 @@ mod tests {
         let r = p.on_sample(3.0, 20.9);
         assert_eq!(r.quality, Quality::Good);
         assert!(close(r.value_degc, 20.9));
+    }
+
+    #[test]
+    fn rate_tolerance_accepts_noise_but_not_a_spike() {
+        let mut p = proc_with(FilterParams {
+            rate_tolerance_degc: 0.15,
+            ..rate_params()
+        });
+        p.on_sample(0.0, 20.0);
+        // 0.24 in 0.1 s: 0.1 of change plus 0.14 of noise.
+        assert_eq!(p.on_sample(0.1, 20.24).quality, Quality::Good);
+        // Backwards in time only the noise is allowed.
+        assert_eq!(p.on_sample(0.05, 20.1).quality, Quality::Good);
+        assert_eq!(
+            p.on_sample(0.2, 20.6).quality,
+            Quality::Uncertain(Reason::RateRejected)
+        );
     }
 
     #[test]

@@ -114,6 +114,14 @@ impl Scaling {
         }
     }
 
+    /// Degrees Celsius per unit of the raw value (one ADC count of a transmitter, one
+    /// unit of a direct value times its gain): the scaling's resolution, which the rate
+    /// check tolerates as converter noise.
+    pub fn degc_per_raw_unit(&self) -> f64 {
+        let l = self.linear();
+        (l.mul / l.div / l.span_in * l.span_out_degc).abs()
+    }
+
     /// Scales one raw value. NE43 is checked before the temperature is computed:
     /// a fault current carries no temperature. Currents between 3.6 and 4 mA or
     /// 20 and 21 mA are valid saturated readings and scale linearly (slightly
@@ -176,6 +184,24 @@ mod tests {
 
     fn close(a: f64, b: f64) -> bool {
         (a - b).abs() < 1e-9
+    }
+
+    #[test]
+    fn one_raw_unit_in_degc() {
+        // 1 uA of a 16 mA span over 200 degC.
+        assert!(close(
+            pt100(CurrentRange::FourTo20).degc_per_raw_unit(),
+            0.0125
+        ));
+        assert!(close(
+            pt100(CurrentRange::ZeroTo20).degc_per_raw_unit(),
+            0.01
+        ));
+        let tenths = Scaling::Direct {
+            gain: -0.1,
+            offset_degc: 5.0,
+        };
+        assert!(close(tenths.degc_per_raw_unit(), 0.1));
     }
 
     #[test]
