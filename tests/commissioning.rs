@@ -133,3 +133,72 @@ async fn a_monitoring_only_config_polls_filters_records_and_serves_metrics() {
         .unwrap();
     assert!(good > 10, "{good} good T_screw readings recorded");
 }
+
+/// A monitoring config with a float channel `T_amb` the plant serves in word order
+/// CDAB at 23.45 degC (no noise), plus a counts channel `T_bed`; a running plant for
+/// it and a config file in `dir` that reads `T_amb` as ABCD, `extra` appended.
+async fn plant_with_swapped_float(
+    dir: &std::path::Path,
+    extra: &str,
+) -> (compgate::plant::Plant, std::path::PathBuf) {
+    let float = r#"
+[channels.T_amb]
+device = "ain1"
+register = "holding"
+address = 1004
+data_type = "f32"
+byte_order = "CDAB"
+scaling = { kind = "direct" }
+
+[sim.channels.T_amb]
+profile = "constant"
+mean_degc = 23.45
+"#;
+    let text = monitoring_config("", "") + float;
+    let (plant, path) = common::plant_and_file(dir, &text, extra).await;
+    let written = std::fs::read_to_string(&path).unwrap();
+    assert_eq!(
+        written.matches("byte_order = \"CDAB\"").count(),
+        1,
+        "{written}"
+    );
+    std::fs::write(
+        &path,
+        written.replace("byte_order = \"CDAB\"", "byte_order = \"ABCD\""),
+    )
+    .unwrap();
+    (plant, path)
+}
+
+// Trap 2: a CDAB float configured as ABCD read -1.6e-23 degC with quality good, and an
+// axis was written from it. It is bad now, and the log names the word order.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_float_in_the_wrong_word_order_is_bad_and_the_log_names_the_order() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = common::free_port();
+    let metrics = format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"\n");
+    let (_plant, path) = plant_with_swapped_float(dir.path(), &metrics).await;
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    let line = tokio::task::block_in_place(|| gw.wait_log(10.0, "check `byte_order`"));
+    assert!(
+        line.contains("T_amb") && line.contains("as ABCD; as CDAB it would read 23.4"),
+        "{line}"
+    );
+    let quality = "compgate_channel_quality{channel=\"T_amb\"}";
+    let good = "compgate_channel_quality{channel=\"T_bed\"}";
+    let mut seen = (None, None);
+    for _ in 0..50 {
+        let body = tokio::task::block_in_place(|| scrape(port)).unwrap_or_default();
+        seen = (value(&body, quality), value(&body, good));
+        if seen.0.is_some() && seen.1 == Some(0.0) {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert_eq!(seen, (Some(2.0), Some(0.0)), "T_amb bad, T_bed good");
+    // Logged once, not once per poll.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let hints = gw.stderr_text().matches("check `byte_order`").count();
+    assert_eq!(hints, 1, "{}", gw.stderr_text());
+    println!("{line}");
+}

@@ -24,7 +24,7 @@ mod scaling;
 pub use filter::{LowPass, LowPassGain, MedianWindow};
 pub use processor::ChannelProcessor;
 pub use quality::{Quality, Reason};
-pub use scaling::{CurrentRange, Scaled, Scaling, NE43_HIGH_MA, NE43_LOW_MA};
+pub use scaling::{CurrentRange, Scaled, Scaling, MIN_RAW_MAGNITUDE, NE43_HIGH_MA, NE43_LOW_MA};
 
 /// Filter and plausibility settings of one channel. A value of 0 switches a
 /// stage off where noted.

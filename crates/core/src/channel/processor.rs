@@ -127,6 +127,16 @@ impl ChannelProcessor {
         &self.scaling
     }
 
+    /// The temperature `raw` scales to if it passes the checks that need no history
+    /// (NE43, finiteness, a raw value a sensor produces, the plausible range): how a
+    /// probe or a word-order hint judges a value without feeding it.
+    pub fn plausible_degc(&self, raw: f64) -> Option<f64> {
+        let degc = self.scaling.scale(raw).degc.ok()?;
+        (self.params.valid_min_degc..=self.params.valid_max_degc)
+            .contains(&degc)
+            .then_some(degc)
+    }
+
     /// The filter settings this processor applies.
     pub fn filter_params(&self) -> &FilterParams {
         &self.params
