@@ -71,13 +71,21 @@ async fn run(log: Option<String>, command: Command) -> ExitCode {
         #[cfg(feature = "sim")]
         Command::Demo => demo::demo().await,
         Command::Run { config: path } => match config::load(&path) {
-            Ok(cfg) => compgate_service::run(&path, cfg)
-                .await
-                .map_err(|e| e.to_string()),
+            Ok(cfg) => {
+                for w in config::warnings(&cfg, &path.display().to_string()) {
+                    tracing::warn!(file = %w.file, key = %w.key, "{}", w.message);
+                }
+                compgate_service::run(&path, cfg)
+                    .await
+                    .map_err(|e| e.to_string())
+            }
             Err(e) => Err(e.to_string()),
         },
         Command::Validate { config: path } => match config::load(&path) {
-            Ok(_) => {
+            Ok(cfg) => {
+                for w in config::warnings(&cfg, &path.display().to_string()) {
+                    eprintln!("warning: {w}");
+                }
                 println!("{}: OK", path.display());
                 Ok(())
             }

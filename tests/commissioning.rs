@@ -202,3 +202,33 @@ async fn a_float_in_the_wrong_word_order_is_bad_and_the_log_names_the_order() {
     assert_eq!(hints, 1, "{}", gw.stderr_text());
     println!("{line}");
 }
+
+// Trap 5: `address = 30013` passed `validate` and failed at run time with exception 2.
+// `validate` still accepts it (a device may have that many registers) but warns with
+// the likely 0-based address.
+#[test]
+fn validate_warns_about_a_1_based_address_and_names_the_0_based_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("plant.toml");
+    let text = monitoring_config("", "").replacen("address = 1\n", "address = 30013\n", 1);
+    assert!(text.contains("address = 30013"));
+    std::fs::write(&path, text).unwrap();
+    let out = std::process::Command::new(common::process::BIN)
+        .args(["validate", "--config"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    let file = path.display().to_string();
+    assert!(
+        err.contains(&format!(
+            "warning: {file}: channels.T_screw.address: 30013 looks like"
+        )),
+        "{err}"
+    );
+    assert!(
+        err.contains("input register 13") && err.contains("address = 12."),
+        "{err}"
+    );
+}

@@ -72,11 +72,13 @@ pub mod schema;
 mod service;
 mod sim;
 mod structure;
+mod warnings;
 
 pub use load::{load, load_str, load_str_with_env, load_with_env};
 pub use problem::{ConfigError, ConfigProblem};
 pub use root::validate;
 pub use schema::*;
+pub use warnings::warnings;
 
 /// Prefix of environment overrides, followed by [`ENV_SEPARATOR`].
 pub const ENV_PREFIX: &str = "COMPGATE";
