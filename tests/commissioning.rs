@@ -232,3 +232,85 @@ fn validate_warns_about_a_1_based_address_and_names_the_0_based_one() {
         "{err}"
     );
 }
+
+// Trap 3: a silent device took blocks x (timeout + retry) to be noticed: each read
+// block waited its full timeout and reconnected before the cycle counted as failed.
+// Here the device is read in 3 blocks (counts, a CDAB float, an ABCD float) with
+// timeout_s = 0.2, one retry and poll_interval_s = 0.05: a cycle used to take
+// 3 x 2 x 0.2 = 1.2 s, so uncertain came after 1.2 s and bad after 3.6 s. With the
+// cycle deadline D = max(poll_interval_s, timeout_s) = 0.2 s the documented bounds are
+// P + D = 0.25 s to uncertain and P + 3 D = 0.65 s to bad (plus one status interval).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_silent_device_is_bad_after_degrade_after_cycles_deadlines_not_blocks_x_timeouts() {
+    use compgate_core::channel::{Quality, Reason};
+    let floats = r#"
+[channels.T_cdab]
+device = "ain1"
+register = "holding"
+address = 1004
+data_type = "f32"
+byte_order = "CDAB"
+scaling = { kind = "direct" }
+
+[channels.T_abcd]
+device = "ain1"
+register = "holding"
+address = 2006
+data_type = "f32"
+byte_order = "ABCD"
+scaling = { kind = "direct" }
+"#;
+    let mut rig = common::start(&(monitoring_config("", "") + floats)).await;
+    let quality =
+        |s: &compgate_gateway::runtime::Status| common::Rig::channel(s, "T_bed").reading.quality;
+    rig.wait_for(10.0, "all good", |s| {
+        s.channels
+            .iter()
+            .all(|c| c.reading.quality == Quality::Good)
+    })
+    .await;
+    let started = std::time::Instant::now();
+    rig.plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::Silent);
+    rig.wait_for(5.0, "uncertain", |s| {
+        quality(s) == Quality::Uncertain(Reason::Comm)
+    })
+    .await;
+    let to_uncertain = started.elapsed();
+    let s = rig
+        .wait_for(10.0, "bad", |s| {
+            quality(s) == Quality::Bad(Reason::DeviceDegraded)
+        })
+        .await;
+    let to_bad = started.elapsed();
+    let d = &s.devices[0];
+    println!(
+        "3 blocks, D = 0.2 s: uncertain after {:.3} s, bad after {:.3} s, last cycle {:.3} s, error: {:?}",
+        to_uncertain.as_secs_f64(),
+        to_bad.as_secs_f64(),
+        d.last_cycle.as_secs_f64(),
+        d.last_error
+    );
+    assert!(
+        d.last_cycle < Duration::from_millis(300),
+        "{:?}",
+        d.last_cycle
+    );
+    assert!(
+        to_uncertain < Duration::from_millis(700),
+        "{to_uncertain:?}"
+    );
+    assert!(to_bad < Duration::from_millis(1200), "{to_bad:?}");
+    // Every channel of the device went bad together, and it recovers.
+    assert!(s
+        .channels
+        .iter()
+        .all(|c| c.reading.quality == Quality::Bad(Reason::DeviceDegraded)));
+    rig.plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::None);
+    rig.wait_for(10.0, "good again", |s| {
+        s.channels
+            .iter()
+            .all(|c| c.reading.quality == Quality::Good)
+    })
+    .await;
+    rig.stop().await;
+}
