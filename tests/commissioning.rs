@@ -156,7 +156,7 @@ mean_degc = 23.45
 "#;
     let text = monitoring_config("", "") + float;
     let (plant, path) = common::plant_and_file(dir, &text, extra).await;
-    let written = std::fs::read_to_string(&path).unwrap();
+    let written = std::fs::read_to_string(&path).expect("config file");
     assert_eq!(
         written.matches("byte_order = \"CDAB\"").count(),
         1,
@@ -166,7 +166,7 @@ mean_degc = 23.45
         &path,
         written.replace("byte_order = \"CDAB\"", "byte_order = \"ABCD\""),
     )
-    .unwrap();
+    .expect("config file written");
     (plant, path)
 }
 

@@ -64,6 +64,7 @@
 //! `config/minimal.toml`); addresses, unit ids, register addresses, data types,
 //! scaling ranges and model coefficients are required.
 
+pub mod example;
 pub mod keys;
 mod load;
 pub mod problem;
