@@ -176,6 +176,7 @@ async fn probe_channel(
                 continue;
             };
             let judged = match processor.plausible_degc(v) {
+                Some(d) if d != 0.0 && d.abs() < 0.01 => format!("{d:.2e} degC"),
                 Some(d) => format!("{d:.2} degC"),
                 None => "not plausible".into(),
             };

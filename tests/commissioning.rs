@@ -314,3 +314,76 @@ scaling = { kind = "direct" }
     .await;
     rig.stop().await;
 }
+
+// `compgate probe` against the plant with the CDAB float misconfigured as ABCD: it
+// shows the registers, names CDAB as the plausible order, and exits non-zero because
+// the channel is bad; the counts channel shows its mA and degC.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn probe_names_the_word_order_of_a_misconfigured_float_and_exits_1() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_plant, path) = plant_with_swapped_float(dir.path(), "").await;
+    let out = tokio::task::block_in_place(|| {
+        std::process::Command::new(common::process::BIN)
+            .args(["probe", "--config"])
+            .arg(&path)
+            .output()
+            .unwrap()
+    });
+    let text = String::from_utf8_lossy(&out.stdout);
+    let err = String::from_utf8_lossy(&out.stderr);
+    println!("{text}{err}");
+    assert_eq!(out.status.code(), Some(1), "{text}{err}");
+    assert!(err.contains("1 channel bad: T_amb"), "{err}");
+    let amb = text
+        .split("  T_amb:")
+        .nth(1)
+        .unwrap_or_else(|| panic!("no T_amb section:\n{text}"));
+    let amb = amb.split("\n  T_").next().unwrap_or_default();
+    assert!(amb.contains("holding register 1004, f32 ABCD"), "{amb}");
+    // About 23.44 degC after the ADC (0x41BB....), published as f32 CDAB: the low
+    // word first.
+    assert!(
+        amb.contains("registers  0x") && amb.contains(" 0x41BB\n"),
+        "{amb}"
+    );
+    let marked: Vec<&str> = amb.lines().filter(|l| l.contains("<- plausible")).collect();
+    assert_eq!(marked.len(), 1, "{amb}");
+    assert!(
+        marked[0].trim_start().starts_with("as CDAB") && marked[0].contains("23.4"),
+        "{amb}"
+    );
+    assert!(amb.contains("set byte_order = \"CDAB\""), "{amb}");
+    assert!(amb.contains("quality    bad"), "{amb}");
+    // The counts channel: good, with its loop current.
+    let bed = text.split("  T_bed:").nth(1).unwrap_or_default();
+    let bed = bed.split("\n  T_").next().unwrap_or_default();
+    assert!(
+        bed.contains("quality    good") && bed.contains(" mA"),
+        "{bed}"
+    );
+    assert!(bed.contains("30.0") || bed.contains("29.9"), "{bed}");
+
+    // One channel, configured right: exit 0.
+    let fixed = dir.path().join("fixed.toml");
+    let text = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("byte_order = \"ABCD\"", "byte_order = \"CDAB\"");
+    std::fs::write(&fixed, text).unwrap();
+    let out = tokio::task::block_in_place(|| {
+        std::process::Command::new(common::process::BIN)
+            .args(["probe", "--channel", "T_amb", "--config"])
+            .arg(&fixed)
+            .output()
+            .unwrap()
+    });
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        !text.contains("T_bed") && text.contains("quality    good"),
+        "{text}"
+    );
+}

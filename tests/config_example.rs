@@ -7,7 +7,10 @@ const BIN: &str = env!("CARGO_BIN_EXE_compgate");
 const ANNOTATED: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/config/annotated.toml");
 
 fn stdout_of(args: &[&str]) -> String {
-    let out = Command::new(BIN).args(args).output().expect("compgate runs");
+    let out = Command::new(BIN)
+        .args(args)
+        .output()
+        .expect("compgate runs");
     assert!(
         out.status.success(),
         "compgate {args:?}: {}",
