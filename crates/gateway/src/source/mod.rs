@@ -249,22 +249,10 @@ impl DevicePoller {
         let mut link = link.lock().await;
         // One deadline for all blocks, counted from when the line is ours: a silent
         // device costs one deadline per cycle, not a timeout (and a reconnect) per block.
-        let deadline = Instant::now() + self.params.cycle_deadline;
+        let length = self.params.cycle_deadline;
+        link.set_cycle_deadline(Some((Instant::now() + length, length)));
         for block in &self.blocks {
-            let result = if Instant::now() >= deadline {
-                Err(SourceError::Deadline(self.params.cycle_deadline))
-            } else {
-                match tokio::time::timeout_at(deadline, self.read_block(&mut link, block)).await {
-                    Ok(r) => r,
-                    Err(_) => {
-                        // A request may be in flight: its late reply must not answer
-                        // the next one.
-                        link.disconnect();
-                        Err(SourceError::Deadline(self.params.cycle_deadline))
-                    }
-                }
-            };
-            match result {
+            match self.read_block(&mut link, block).await {
                 Ok(regs) => {
                     for (slot, offset) in &block.members {
                         let spec = &self.specs[slot.channel];
@@ -299,6 +287,7 @@ impl DevicePoller {
                 .into_iter()
                 .map(|(ch, reason)| (ch, Err(Fault { reason, degraded }))),
         );
+        link.set_cycle_deadline(None);
         let connects = link.connects();
         drop(link);
         DeviceSample {
