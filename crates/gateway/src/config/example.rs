@@ -141,6 +141,9 @@ impl<'a> Renderer<'a> {
                 }
                 self.table(out, path, resolved, map);
             }
+            // An empty map (no NC targets yet) or list: nothing to show.
+            Value::Object(map) if map.is_empty() => {}
+            Value::Array(items) if items.is_empty() => {}
             Value::Object(map) => {
                 // A map of named entries (`[devices.NAME]`): its documentation once.
                 let items = resolved.get("additionalProperties").unwrap_or(&Value::Null);
@@ -293,6 +296,23 @@ fn toml_value(v: &Value) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_monitoring_only_config_shows_no_empty_sections() {
+        let mut cfg = load_str(EXAMPLE_TOML, "example.toml").expect("example loads");
+        cfg.axes.clear();
+        cfg.nc_modules.clear();
+        let text = annotated(&cfg);
+        assert!(
+            !text.contains("# NC axis modules the compensation"),
+            "{text}"
+        );
+        assert!(
+            !text.contains("\n[axes") && !text.contains("\n[nc_modules"),
+            "{text}"
+        );
+        assert_eq!(load_str(&text, "monitor.toml").expect("loads"), cfg);
+    }
 
     #[test]
     fn the_annotated_example_loads_to_the_same_config() {
