@@ -451,6 +451,44 @@ mod tests {
         peer.abort();
     }
 
+    // A silent server: the cycle's end cuts the request short of its own timeout, drops
+    // the connection, and a later request of the same cycle fails at once.
+    #[tokio::test]
+    async fn the_cycle_deadline_cuts_a_request_and_the_rest_of_the_cycle() {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap().to_string();
+        let peer = tokio::spawn(async move {
+            let mut held = Vec::new();
+            while let Ok((s, _)) = listener.accept().await {
+                held.push(s);
+            }
+        });
+        let mut link = ModbusLink::new(
+            LinkSpec::Tcp {
+                address,
+                connect_timeout: Duration::from_secs(5),
+            },
+            Duration::from_secs(5),
+            Backoff::new(Duration::from_millis(10), Duration::from_millis(10)),
+        );
+        let length = Duration::from_millis(50);
+        link.set_cycle_deadline(Some((Instant::now() + length, length)));
+        let err = link.read(1, RegisterKind::Input, 0, 1).await.unwrap_err();
+        assert_eq!(err, SourceError::Deadline(length));
+        assert!(
+            !link.is_connected(),
+            "the stream is dropped with the request"
+        );
+        let err = link.read(1, RegisterKind::Input, 1, 1).await.unwrap_err();
+        assert_eq!(err, SourceError::Deadline(length));
+        assert_eq!(link.connects(), 1, "no reconnect after the cycle's end");
+        // The next cycle connects again and gets its own deadline.
+        link.set_cycle_deadline(Some((Instant::now() + length, length)));
+        assert!(link.read(1, RegisterKind::Input, 0, 1).await.is_err());
+        assert_eq!(link.connects(), 2);
+        peer.abort();
+    }
+
     #[test]
     fn backoff_doubles_and_caps_and_resets() {
         let t0 = Instant::now();
