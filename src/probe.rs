@@ -14,6 +14,7 @@ use compgate_gateway::channel::ChannelConfig;
 use compgate_gateway::config::{self, Config, DeviceConfig};
 use compgate_gateway::source::modbus::{Backoff, ModbusLink};
 use compgate_gateway::source::plan::{self, ByteOrder, DataType};
+use compgate_gateway::source::SourceError;
 
 /// `compgate probe` arguments.
 #[derive(Debug, clap::Args)]
@@ -105,10 +106,27 @@ pub async fn probe(
             common.timeout(),
             Backoff::new(Duration::ZERO, Duration::ZERO),
         );
+        // After a device did not answer, its other channels are not tried: each would
+        // wait for the same timeout.
+        let mut silent: Option<SourceError> = None;
         for (name, ch) in selected {
-            let bad = probe_channel(&mut link, unit, name, ch, &mut report.text).await;
-            if bad {
+            if let Some(e) = &silent {
+                let _ = writeln!(
+                    report.text,
+                    "  {name}: not read, the device did not answer ({e})"
+                );
                 report.bad.push(name.clone());
+                continue;
+            }
+            match probe_channel(&mut link, unit, name, ch, &mut report.text).await {
+                Ok(true) => {}
+                Ok(false) => report.bad.push(name.clone()),
+                Err(e) => {
+                    report.bad.push(name.clone());
+                    if !matches!(e, SourceError::Exception(_)) {
+                        silent = Some(e);
+                    }
+                }
             }
         }
         report.text.push('\n');
@@ -116,16 +134,16 @@ pub async fn probe(
     Ok(report)
 }
 
-/// Reads and shows one channel; true when its quality is bad.
+/// Reads and shows one channel: whether its quality is usable, or the read's error.
 async fn probe_channel(
     link: &mut ModbusLink,
     unit: u8,
     name: &str,
     ch: &ChannelConfig,
     out: &mut String,
-) -> bool {
+) -> Result<bool, SourceError> {
     let (Some(kind), Some(address)) = (ch.register, ch.address) else {
-        return true;
+        return Ok(false);
     };
     let ty = ch.data_type;
     let order = ch.byte_order;
@@ -144,7 +162,7 @@ async fn probe_channel(
         Err(e) => {
             let _ = writeln!(out, "    error      {e}");
             let _ = writeln!(out, "    quality    bad ({})", e.reason());
-            return true;
+            return Err(e);
         }
     };
     let hex: Vec<String> = regs.iter().map(|r| format!("0x{r:04X}")).collect();
@@ -152,7 +170,7 @@ async fn probe_channel(
     let mut processor = ch.build();
     let Some(raw) = plan::decode(&regs, ty, order) else {
         let _ = writeln!(out, "    quality    bad (comm: short reply)");
-        return true;
+        return Ok(false);
     };
     let _ = writeln!(
         out,
@@ -212,7 +230,7 @@ async fn probe_channel(
     let _ = writeln!(out, "    temp       {degc}");
     let quality = describe(&r.quality);
     let _ = writeln!(out, "    quality    {quality}");
-    matches!(r.quality, Quality::Bad(_))
+    Ok(r.quality.is_usable())
 }
 
 /// A raw value as its type shows it: integers whole, floats in single precision

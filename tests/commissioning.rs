@@ -330,7 +330,7 @@ scaling = { kind = "direct" }
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn probe_names_the_word_order_of_a_misconfigured_float_and_exits_1() {
     let dir = tempfile::tempdir().unwrap();
-    let (_plant, path) = plant_with_swapped_float(dir.path(), "").await;
+    let (plant, path) = plant_with_swapped_float(dir.path(), "").await;
     let out = tokio::task::block_in_place(|| {
         std::process::Command::new(common::process::BIN)
             .args(["probe", "--config"])
@@ -393,6 +393,24 @@ async fn probe_names_the_word_order_of_a_misconfigured_float_and_exits_1() {
     );
     assert!(
         !text.contains("T_bed") && text.contains("quality    good"),
+        "{text}"
+    );
+
+    // A silent device: the first read times out, the others are not tried; exit 1.
+    plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::Silent);
+    let out = tokio::task::block_in_place(|| {
+        std::process::Command::new(common::process::BIN)
+            .args(["probe", "--config"])
+            .arg(&fixed)
+            .output()
+            .unwrap()
+    });
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(1), "{text}");
+    assert!(text.contains("error      no reply within 200ms"), "{text}");
+    assert_eq!(
+        text.matches("not read, the device did not answer").count(),
+        2,
         "{text}"
     );
 }
