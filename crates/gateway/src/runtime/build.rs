@@ -105,6 +105,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
         .collect();
 
     let mut processors = Vec::with_capacity(cfg.channels.len());
+    let mut encodings = Vec::with_capacity(cfg.channels.len());
     let mut specs: Vec<Vec<ChannelSpec>> = vec![Vec::new(); cfg.devices.len()];
     let mut can_specs: Vec<Vec<CanChannelSpec>> = vec![Vec::new(); cfg.devices.len()];
     for (i, (name, ch)) in cfg.channels.iter().enumerate() {
@@ -138,6 +139,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             }
         }
         processors.push(ch.build());
+        encodings.push(ch.can.is_none().then_some((ch.data_type, ch.byte_order)));
     }
 
     // One SYNC per interface at its devices' poll interval (validation makes it one
@@ -245,7 +247,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
     }
 
     Ok(Built {
-        pipeline: Pipeline::new(channel_names, processors, axes),
+        pipeline: Pipeline::new(channel_names, processors, axes, encodings),
         devices,
         sync_producers,
         nc_modules,

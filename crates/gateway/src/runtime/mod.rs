@@ -232,6 +232,9 @@ struct Running {
     nc_names: Vec<Arc<str>>,
     /// Per NC module: whether its last snapshot failed (logged once per change).
     nc_down: Vec<bool>,
+    /// Per channel: a byte-order hint was logged and the channel has not been good
+    /// since (logged once, not once per poll).
+    byte_order_hinted: Vec<bool>,
 }
 
 impl Running {
@@ -275,6 +278,7 @@ impl Running {
                 .map(|n| Arc::from(n.name.as_str()))
                 .collect(),
             nc_down: vec![false; nc_modules.len()],
+            byte_order_hinted: vec![false; pipeline.channel_names.len()],
             pipeline,
             devices: devices.into_iter().map(Some).collect(),
             sync_producers,
@@ -334,6 +338,17 @@ impl Running {
         for c in &r.channels {
             if let Some(cs) = status.channels.get_mut(c.channel) {
                 cs.reading.clone_from(&c.reading);
+            }
+            if let Some(hinted) = self.byte_order_hinted.get_mut(c.channel) {
+                if c.reading.quality.is_good() {
+                    *hinted = false;
+                } else if !*hinted {
+                    if let Some(hint) = self.pipeline.byte_order_hint(c.channel, &c.reading) {
+                        let channel = &self.pipeline.channel_names[c.channel];
+                        tracing::warn!(%channel, device = %r.device_name, "channel {channel} {hint}");
+                        *hinted = true;
+                    }
+                }
             }
         }
     }
