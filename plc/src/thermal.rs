@@ -16,8 +16,13 @@
 //! - ball screw follows the bed plus a rise proportional to the axis load
 //!   `speed / full_speed * duty`; the motor follows ambient plus its own rise.
 //!
-//! Sensors (`ambient`, `bed`, `column`, `screw`, `motor`, and `extra` with that effect)
-//! read their node through a first-order lag with Gaussian noise.
+//! - with `spindle` (the shop plant), the spindle head follows ambient plus a rise
+//!   proportional to the spindle load.
+//!
+//! Sensors (`ambient`, `bed`, `column`, `screw`, `motor`, and `extra` and `spindle`
+//! with those effects) read their node through a first-order lag with Gaussian noise.
+//! [`Plant`] names the presets: `ideal` (exactly the straight-line model below) and
+//! `shop` (what it cannot express).
 //!
 //! # Error field
 //!
@@ -888,7 +893,8 @@ pub struct SweepPlan {
     pub targets_mm: Vec<f64>,
     /// Time between the starts of two sweeps, s.
     pub every_s: f64,
-    /// Time at each target (move and settle), s.
+    /// Time at each target (move and settle), s; [`measurement_run`] steps the
+    /// machine on this grid.
     pub dwell_s: f64,
     /// Bidirectional runs per sweep (ISO 230-2 asks for 5).
     pub runs: usize,

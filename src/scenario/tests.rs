@@ -79,6 +79,15 @@ async fn a_model_reading_an_unknown_channel_is_refused() {
     a.effects = vec!["warp".into()];
     let e = run(&a).await.unwrap_err().to_string();
     assert!(e.contains("unknown effect `warp`"), "{e}");
+    a.effects.clear();
+    a.plant = "lab".into();
+    let e = run(&a).await.unwrap_err().to_string();
+    assert!(e.contains("--plant: unknown plant `lab`"), "{e}");
+    a.plant = "shop".into();
+    a.closed_loop = true;
+    a.record_hours = 0.0;
+    let e = run(&a).await.unwrap_err().to_string();
+    assert!(e.contains("--record-hours must be > 0"), "{e}");
 }
 
 /// The closed loop on the shop plant, through the gateway's recorder, export,

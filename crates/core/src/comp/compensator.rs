@@ -170,7 +170,7 @@ impl AxisCompensator {
             &lagged[..]
         };
 
-        let bad_inputs: Vec<usize> = self
+        let mut bad_inputs: Vec<usize> = self
             .inputs
             .iter()
             .copied()
@@ -183,6 +183,15 @@ impl AxisCompensator {
             })
             .collect();
         if !bad_inputs.is_empty() {
+            // A lagged slot is bad because its source is: name the source, a real
+            // input the caller can map to its channel.
+            for i in &mut bad_inputs {
+                if let Some(l) = self.dynamics.lags().iter().find(|l| l.slot == *i) {
+                    *i = l.source;
+                }
+            }
+            bad_inputs.sort_unstable();
+            bad_inputs.dedup();
             return self.on_bad_inputs(dt_s, bad_inputs);
         }
         // Unused inputs may be None: NaN is never read by the model.
@@ -805,11 +814,11 @@ mod tests {
         c.confirm(CompParams::default());
         let got = k0(c.decide(100.0, &[Some(21.0), Some(20.0)]));
         assert!(close(got, 0.004 * (1.0 - (-1.0f64).exp()) + 0.001), "{got}");
-        // A bad source makes its lagged slot bad: hold.
+        // A bad source makes its lagged slot bad: hold, naming the source.
         assert_eq!(
             c.decide(110.0, &[None, Some(20.0)]),
             Decision::Hold {
-                bad_inputs: vec![2]
+                bad_inputs: vec![0]
             }
         );
     }
