@@ -25,6 +25,7 @@
 //! Modules of this package:
 //! - [`cli`]: the command line.
 //! - [`nc`]: `compgate nc read` / `nc write`, commissioning a real control.
+//! - [`probe`]: `compgate probe`, one poll of every channel shown in full.
 //! - `plant` (feature `sim`): the simulated plant for a config (demo, `sim`, tests) and
 //!   the simulated axis of `backlash --sim`.
 //! - `scenario` (feature `sim`): `compgate scenario`, the simulated machine's thermal
@@ -34,5 +35,6 @@ pub mod cli;
 pub mod nc;
 #[cfg(feature = "sim")]
 pub mod plant;
+pub mod probe;
 #[cfg(feature = "sim")]
 pub mod scenario;

@@ -155,9 +155,10 @@ pub fn load_str_with_env(
     }
 }
 
-/// The sections every file must have; a missing or broken one becomes empty.
-/// (`[targets]` and its older spelling `[nc_modules]` are optional: serde defaults.)
-const REQUIRED_SECTIONS: [&str; 3] = ["devices", "channels", "axes"];
+/// The sections every file must have; a missing or broken one becomes empty. NC
+/// targets (`[targets]`, `[nc_modules]`) and axes are optional: a monitoring-only
+/// config has neither.
+const REQUIRED_SECTIONS: [&str; 2] = ["devices", "channels"];
 
 /// Takes the unknown keys and the broken entries out of `tree` and deserializes the
 /// rest. Returns the configuration (or serde's error), the broken entries and the
