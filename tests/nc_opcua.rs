@@ -367,3 +367,62 @@ async fn an_idle_session_is_kept_alive_and_a_closed_one_is_renewed() {
     assert_eq!(w.connects(), 2);
     assert_eq!(held(&mut peer, 2)[0], 0.003f64.to_bits());
 }
+
+#[tokio::test]
+async fn signed_and_encrypted_once_the_server_certificate_is_trusted() {
+    if opcua_peer::python().is_none() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let pki = dir.path().join("pki");
+    opcua_peer::make_client_cert(&pki);
+    let server_dir = dir.path().display().to_string();
+    let Some(mut peer) = OpcuaPeer::start(&["--secure", &server_dir]) else {
+        return;
+    };
+    let plain = target(&peer, &dir, Some(("writer", "writer-pw")));
+    let secure = OpcuaTargetConfig {
+        security_policy: OpcuaSecurityPolicy::Basic256Sha256,
+        security_mode: OpcuaSecurityMode::SignAndEncrypt,
+        ..plain.clone()
+    };
+    let p = CompParams {
+        k0_mm: 0.031_25,
+        tan_beta: -7e-6,
+        p0_mm: 250.0,
+    };
+
+    // The server offers no unsecured endpoint.
+    let err = writer_of(&plain, 1)
+        .write_job(&Job::thermal(&p))
+        .await
+        .expect_err("no None endpoint");
+    assert!(err.to_string().contains("security_policy"), "{err}");
+
+    // The server's certificate is not trusted yet: refused, and kept in rejected/.
+    let err = writer_of(&secure, 1)
+        .write_job(&Job::thermal(&p))
+        .await
+        .expect_err("untrusted server certificate");
+    let rejected: Vec<_> = std::fs::read_dir(pki.join("rejected"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    assert_eq!(rejected.len(), 1, "{err}");
+    let msg = err.to_string();
+    assert!(
+        msg.contains("BadCertificateUntrusted") && msg.contains("pki_dir"),
+        "{msg}"
+    );
+    assert_eq!(held(&mut peer, 1), [0; 3], "nothing written: {err}");
+
+    // The administrator moves it to trusted/: the next session is signed and encrypted.
+    std::fs::create_dir_all(pki.join("trusted")).unwrap();
+    for cert in &rejected {
+        std::fs::rename(cert, pki.join("trusted").join(cert.file_name().unwrap())).unwrap();
+    }
+    let mut w = writer_of(&secure, 1);
+    w.write_job(&Job::thermal(&p)).await.unwrap();
+    assert_eq!(held(&mut peer, 1), bits(&p));
+    assert!(w.may_write().await.unwrap());
+}

@@ -784,7 +784,13 @@ impl OpcuaNcWriter {
         let (session, event_loop) = client
             .connect_to_matching_endpoint(endpoint, identity)
             .await
-            .map_err(|e| connect_error(&url, &user, e.status(), &e.to_string()))?;
+            .map_err(|e| {
+                // The error's text repeats its status first.
+                let text = e.to_string();
+                let prefix = format!("{}: ", e.status());
+                let detail = text.strip_prefix(&prefix).unwrap_or(&text);
+                connect_error(&url, &user, e.status(), detail)
+            })?;
         let lost = Arc::new(AtomicBool::new(false));
         let (tx, rx) = oneshot::channel();
         let task = tokio::spawn(drive(event_loop, tx, lost.clone()));
@@ -1056,8 +1062,9 @@ fn connect_error(url: &str, user: &str, status: StatusCode, detail: &str) -> NcE
              that the control admits this user)"
         ),
         StatusCode::BadCertificateUntrusted | StatusCode::BadSecurityChecksFailed => {
-            " (the server does not trust compgate's certificate yet: trust it on the \
-             control, or trust the server's certificate under pki_dir/trusted)"
+            " (a certificate is not trusted yet: move the control's certificate from \
+             pki_dir/rejected to pki_dir/trusted, and trust compgate's certificate on the \
+             control)"
                 .into()
         }
         StatusCode::BadTcpEndpointUrlInvalid | StatusCode::BadSecurityPolicyRejected => {
