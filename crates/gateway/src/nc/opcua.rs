@@ -242,6 +242,11 @@ impl OpcuaTargetConfig {
         secs(self.job_timeout_s)
     }
 
+    /// Whether the target has a node for variable `var_id` (SD43900, SD43910, SD43920).
+    pub fn has(&self, var_id: u16) -> bool {
+        VARS.contains(&var_id)
+    }
+
     fn templates(&self) -> [(&'static str, &str); 3] {
         [
             ("sd43900_node", &self.sd43900_node),
