@@ -170,8 +170,9 @@ pub struct OpcuaTargetConfig {
     #[serde(default)]
     pub trust_server_certificate: bool,
     /// File holding the user name on its first line and the password on its second
-    /// (keep it readable by compgate only). Not with `user_env`/`password_env`. Default
-    /// none: anonymous unless the two variables are named; at most 4096 characters.
+    /// (keep it readable by compgate only); a relative path is taken as `pki_dir` is.
+    /// Not with `user_env`/`password_env`. Default none: anonymous unless the two
+    /// variables are named; at most 4096 characters.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(length(min = 1, max = 4096))]
     pub credentials_file: Option<String>,
