@@ -28,6 +28,10 @@ pub enum Command {
         /// Configuration file (TOML).
         #[arg(long, short)]
         config: PathBuf,
+        /// Shadow mode for every axis: compute, record and publish what would be
+        /// written, never write the NC (as `gateway.shadow = true`; kept on reload).
+        #[arg(long)]
+        shadow: bool,
     },
     /// Check a configuration and print every problem with its key and file.
     Validate {
@@ -52,7 +56,7 @@ pub enum Command {
     Scenario(crate::scenario::ScenarioArgs),
     /// Run the gateway against the embedded simulated plant (the default).
     #[cfg(feature = "sim")]
-    Demo,
+    Demo(DemoArgs),
     /// Run only the simulated plant on the addresses the config names.
     #[cfg(feature = "sim")]
     Sim {
@@ -60,6 +64,27 @@ pub enum Command {
         #[arg(long, short)]
         config: PathBuf,
     },
+}
+
+/// `compgate demo`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct DemoArgs {
+    /// Where the live status page (and `/metrics`) listens; port 0 takes a free port,
+    /// `off` serves none. A busy port is reported and the demo runs without the page.
+    #[arg(long, default_value = "127.0.0.1:9464")]
+    pub http: String,
+    /// Shadow mode: compute and show what would be written, never write the NC.
+    #[arg(long)]
+    pub shadow: bool,
+}
+
+impl Default for DemoArgs {
+    fn default() -> Self {
+        DemoArgs {
+            http: "127.0.0.1:9464".into(),
+            shadow: false,
+        }
+    }
 }
 
 /// The groups `compgate --help` lists the commands in.

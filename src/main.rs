@@ -27,7 +27,9 @@ async fn run_backlash(args: &backlash::BacklashArgs) -> Result<String, backlash:
 fn main() -> ExitCode {
     let cli = cli::parse();
     #[cfg(feature = "sim")]
-    let command = cli.command.unwrap_or(Command::Demo);
+    let command = cli
+        .command
+        .unwrap_or(Command::Demo(cli::DemoArgs::default()));
     #[cfg(not(feature = "sim"))]
     let Some(command) = cli.command
     else {
@@ -58,7 +60,7 @@ fn main() -> ExitCode {
 
 async fn run(log: Option<String>, command: Command) -> ExitCode {
     #[cfg(feature = "sim")]
-    let default_log = if matches!(command, Command::Demo) {
+    let default_log = if matches!(command, Command::Demo(_)) {
         "warn"
     } else {
         "info"
@@ -69,9 +71,12 @@ async fn run(log: Option<String>, command: Command) -> ExitCode {
 
     let result = match command {
         #[cfg(feature = "sim")]
-        Command::Demo => demo::demo().await,
-        Command::Run { config: path } => match config::load(&path) {
-            Ok(cfg) => compgate_service::run(&path, cfg)
+        Command::Demo(args) => demo::demo(&args).await,
+        Command::Run {
+            config: path,
+            shadow,
+        } => match config::load(&path) {
+            Ok(cfg) => compgate_service::run(&path, cfg, compgate_service::RunOptions { shadow })
                 .await
                 .map_err(|e| e.to_string()),
             Err(e) => Err(e.to_string()),

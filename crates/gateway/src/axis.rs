@@ -89,6 +89,11 @@ pub struct AxisConfig {
     /// tan(beta)(T) model (SD43910). Optional table; default: offset 0, no terms.
     #[serde(default)]
     pub tan_beta: TanBetaModel,
+    /// Shadow mode: compute, record and publish the parameters this axis would
+    /// write, and never write its NC module (jobs are recorded as shadow). The NC
+    /// is still read: what it holds is the start of the step limits. Default false.
+    #[serde(default)]
+    pub shadow: bool,
 }
 
 /// Reaction to a bad input channel.

@@ -66,12 +66,18 @@ pub struct GatewayConfig {
     #[serde(default = "default_status_interval_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub status_interval_s: f64,
+    /// Shadow mode for every axis: compute, record and publish the parameters the
+    /// gateway would write, and never write the NC (a first commissioning dry run).
+    /// `compgate run --shadow` sets it too. Default false.
+    #[serde(default)]
+    pub shadow: bool,
 }
 
 impl Default for GatewayConfig {
     fn default() -> Self {
         GatewayConfig {
             status_interval_s: default_status_interval_s(),
+            shadow: false,
         }
     }
 }

@@ -240,6 +240,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             comp: AxisCompensator::new(model, ax.limits(), ax.policy()),
             md32750: ax.md32750,
             update_interval: ax.update_interval(),
+            shadow: ax.shadow || cfg.gateway.shadow,
         });
     }
 

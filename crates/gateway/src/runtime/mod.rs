@@ -259,10 +259,12 @@ impl Running {
                 .map(|a| AxisStatus {
                     name: a.name.clone(),
                     decision: "waiting for the NC".into(),
+                    shadow: a.shadow,
                     ..AxisStatus::default()
                 })
                 .collect(),
             samples: 0,
+            jobs: Default::default(),
         };
         Running {
             baselined: vec![false; pipeline.axes.len()],
@@ -336,6 +338,31 @@ impl Running {
         }
     }
 
+    /// Shadow mode: `params` are recorded and shown as what would be written, and the
+    /// compensator goes on as if the NC had accepted them (so the would-be values
+    /// follow the same limits and deadband as real writes); the NC is never written.
+    fn on_shadow(&mut self, axis: usize, params: CompParams, observer: &mut dyn Observer) {
+        let Some(a) = self.pipeline.axes.get_mut(axis) else {
+            return;
+        };
+        a.comp.confirm(params);
+        observer.on_shadow(&a.name, &params);
+        tracing::info!(axis = %a.name, sd43900_mm = params.k0_mm, sd43910 = params.tan_beta, sd43920_mm = params.p0_mm, "shadow mode: would write (the NC is not written)");
+        let job = JobStatus {
+            axis: a.name.clone(),
+            at: std::time::SystemTime::now(),
+            params,
+            shadow: true,
+            job_id: None,
+            elapsed: None,
+            error: None,
+        };
+        if let Some(st) = self.status.axes.get_mut(axis) {
+            st.would_write = Some(params);
+        }
+        self.status.push_job(job);
+    }
+
     fn on_event(&mut self, event: NcEvent, in_flight: &mut [bool], observer: &mut dyn Observer) {
         match event {
             NcEvent::Snapshot { module, result } => {
@@ -403,18 +430,31 @@ impl Running {
                     (Ok(_), true) => tracing::info!(axis = %name, "NC jobs succeed again"),
                     _ => {}
                 }
+                let mut job = JobStatus {
+                    axis: name.clone(),
+                    at: std::time::SystemTime::now(),
+                    params,
+                    shadow: false,
+                    job_id: None,
+                    elapsed: None,
+                    error: None,
+                };
                 match result {
-                    Ok(_) => {
+                    Ok(report) => {
                         self.pipeline.axes[axis].comp.confirm(params);
                         st.written = Some(params);
                         st.jobs_ok += 1;
                         st.last_job_error = None;
+                        job.job_id = Some(report.job_id);
+                        job.elapsed = Some(report.elapsed);
                     }
                     Err(e) => {
                         st.jobs_failed += 1;
                         st.last_job_error = Some(e.to_string());
+                        job.error = st.last_job_error.clone();
                     }
                 }
+                self.status.push_job(job);
             }
         }
     }
@@ -512,23 +552,28 @@ async fn generation(
             }
             _ = tokio::time::sleep_until(next), if next < far => {
                 let at = Instant::now();
-                let pipeline = &mut state.pipeline;
-                for i in 0..pipeline.axes.len() {
+                for i in 0..state.pipeline.axes.len() {
                     if next_update[i] > at {
                         continue;
                     }
-                    next_update[i] = at + pipeline.axes[i].update_interval;
+                    next_update[i] = at + state.pipeline.axes[i].update_interval;
                     if !state.baselined[i] || in_flight[i] {
                         continue;
                     }
+                    let pipeline = &mut state.pipeline;
                     let decision = pipeline.decide(i, at);
                     let axis = &pipeline.axes[i];
+                    let (shadow, module) = (axis.shadow, axis.nc_module);
                     state.status.axes[i].decision = describe(&decision, &pipeline.channel_names, &axis.inputs);
                     let params = match decision {
                         Decision::Write { params, .. } | Decision::Ramp { params, .. } => params,
                         Decision::WithinDeadband | Decision::Hold { .. } => continue,
                     };
-                    if nc_tx[axis.nc_module].try_send(NcCommand::Write { axis: i, params }).is_ok() {
+                    if shadow {
+                        state.on_shadow(i, params, observer);
+                        continue;
+                    }
+                    if nc_tx[module].try_send(NcCommand::Write { axis: i, params }).is_ok() {
                         in_flight[i] = true;
                     }
                 }
@@ -674,6 +719,42 @@ mod tests {
         let mut p = next.pipeline;
         p.ingest(&sample(&p, &channels, 31, None), &mut out);
         assert_eq!(p.reading(ch).expect("reading").quality, Quality::Good);
+    }
+
+    // Shadow mode on or off by reload: the axis starts again from what the NC holds
+    // (its would-be values are no baseline for real writes); an unchanged reload
+    // keeps the axis and the job history.
+    #[test]
+    fn a_reload_into_shadow_mode_starts_the_axis_from_the_nc_again() {
+        let cfg = demo();
+        let running = |cfg: &Config| {
+            let mut r = Running::new(build(cfg).expect("build"));
+            r.baselined[0] = true;
+            r.status.axes[0].jobs_ok = 3;
+            r.status.push_job(JobStatus {
+                axis: "X".into(),
+                at: std::time::SystemTime::UNIX_EPOCH,
+                params: CompParams::default(),
+                shadow: false,
+                job_id: Some(1),
+                elapsed: None,
+                error: None,
+            });
+            r
+        };
+        let same = reload::transplant(&cfg, &cfg, running(&cfg), build(&cfg).expect("build"));
+        assert!(same.baselined[0]);
+        assert_eq!(same.status.axes[0].jobs_ok, 3);
+        assert!(!same.pipeline.axes[0].shadow);
+
+        let mut shadow = cfg.clone();
+        shadow.gateway.shadow = true;
+        let next = reload::transplant(&cfg, &shadow, running(&cfg), build(&shadow).expect("build"));
+        assert!(next.pipeline.axes[0].shadow);
+        assert!(next.status.axes[0].shadow);
+        assert!(!next.baselined[0], "carried a baseline into shadow mode");
+        assert_eq!(next.status.axes[0].jobs_ok, 0);
+        assert_eq!(next.status.jobs.len(), 1, "job history kept");
     }
 
     // The core loop builds one value per sample: the link outcome and the new reading

@@ -26,6 +26,8 @@ pub struct AxisRt {
     pub md32750: u16,
     /// Time between updates.
     pub update_interval: Duration,
+    /// Shadow mode: compute and record, never write the NC.
+    pub shadow: bool,
 }
 
 /// The synchronous part of the gateway: channel processors and axis compensators.

@@ -106,6 +106,9 @@ pub enum Record {
         elapsed_ms: Option<f64>,
         /// `None` when the NC accepted and the read-back matched.
         error: Option<String>,
+        /// Shadow mode: computed, not sent to the NC (`job_id`, `elapsed_ms` and
+        /// `error` are `None`).
+        shadow: bool,
     },
     /// The NC's state of one axis.
     Nc {
@@ -354,6 +357,19 @@ impl Observer for RecordObserver {
             job_id,
             elapsed_ms,
             error,
+            shadow: false,
+        });
+    }
+
+    fn on_shadow(&mut self, axis: &str, params: &CompParams) {
+        self.tx.send(Record::Job {
+            t_unix_ms: now_unix_ms(),
+            axis: axis.to_string(),
+            params: *params,
+            job_id: None,
+            elapsed_ms: None,
+            error: None,
+            shadow: true,
         });
     }
 

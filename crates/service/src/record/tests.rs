@@ -100,3 +100,47 @@ fn multi_row_inserts_keep_every_reading_under_its_channel_name() {
         .expect("channels");
     assert_eq!(channels, 131);
 }
+
+// A database recorded before shadow mode gets the `shadow` column on open, its old
+// jobs counted as sent; shadow jobs are recorded with shadow 1 and ok 0.
+#[test]
+fn an_old_database_gets_the_shadow_column_and_shadow_jobs_are_marked() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("old.db");
+    {
+        let old = rusqlite::Connection::open(&path).expect("create");
+        old.execute_batch(
+            "CREATE TABLE jobs (t_unix_ms INTEGER NOT NULL, axis TEXT NOT NULL,
+                sd43900_mm REAL NOT NULL, sd43910 REAL NOT NULL, sd43920_mm REAL NOT NULL,
+                ok INTEGER NOT NULL, job_id INTEGER, elapsed_ms REAL, error TEXT);
+             INSERT INTO jobs VALUES (1, 'X', 0.01, 0.0, 0.0, 1, 7, 1.0, NULL);",
+        )
+        .expect("old schema");
+    }
+    let mut conn = open(&path).expect("opens and migrates");
+    let job = |shadow: bool| Record::Job {
+        t_unix_ms: 2,
+        axis: "X".into(),
+        params: CompParams {
+            k0_mm: 0.04,
+            tan_beta: 0.0,
+            p0_mm: 0.0,
+        },
+        job_id: None,
+        elapsed_ms: None,
+        error: None,
+        shadow,
+    };
+    schema::insert(&mut conn, &mut schema::Statements::default(), &[job(true)]).expect("insert");
+    let rows: Vec<(i64, i64, f64)> = conn
+        .prepare("SELECT shadow, ok, sd43900_mm FROM jobs ORDER BY t_unix_ms")
+        .expect("query")
+        .query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))
+        .expect("rows")
+        .collect::<Result<_, _>>()
+        .expect("rows");
+    assert_eq!(rows, vec![(0, 1, 0.01), (1, 0, 0.04)]);
+    // Opening again does not add it twice.
+    drop(conn);
+    open(&path).expect("opens again");
+}

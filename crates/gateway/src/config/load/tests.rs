@@ -644,3 +644,17 @@ fn transport_true_says_which_transports_there_are() {
         "invalid type: boolean `true`, expected one of `tcp`, `rtu`, `can`"
     );
 }
+
+#[test]
+fn a_trend_span_out_of_range_names_the_key() {
+    let p = problems(&format!("{EXAMPLE}\n[metrics]\ntrend_s = 5.0\n"));
+    assert_eq!(keys(&p), vec!["metrics.trend_s"], "{p:#?}");
+    let cfg = load_str(
+        &format!("{EXAMPLE}\n[metrics]\nstatus_page = false\n"),
+        "t.toml",
+    )
+    .expect("valid");
+    let m = cfg.metrics.expect("metrics");
+    assert!(!m.status_page);
+    assert_eq!((m.bind.as_str(), m.trend_s), ("127.0.0.1:9464", 300.0));
+}
