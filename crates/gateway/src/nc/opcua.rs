@@ -1188,6 +1188,20 @@ mod tests {
     }
 
     #[test]
+    fn every_key_documents_its_default() {
+        let schema = schemars::schema_for!(OpcuaTargetConfig).to_value();
+        let props = schema["properties"].as_object().expect("properties");
+        assert_eq!(props.len(), 16);
+        for (key, p) in props {
+            let doc = p["description"].as_str().unwrap_or_default();
+            assert!(
+                doc.contains("Default") || doc.contains("Required"),
+                "{key}: {doc}"
+            );
+        }
+    }
+
+    #[test]
     fn access_denied_says_how_to_grant() {
         let e = NcError::OpcuaAccessDenied {
             node: "ns=3;s=/NC/x".into(),
