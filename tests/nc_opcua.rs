@@ -426,3 +426,38 @@ async fn signed_and_encrypted_once_the_server_certificate_is_trusted() {
     assert_eq!(held(&mut peer, 1), bits(&p));
     assert!(w.may_write().await.unwrap());
 }
+
+#[tokio::test]
+async fn a_connect_outlasting_the_callers_timeout_is_kept_not_restarted() {
+    let Some(mut peer) = OpcuaPeer::start(&[]) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let mut w = writer_of(&target(&peer, &dir, Some(("writer", "writer-pw"))), 1);
+    let p = CompParams {
+        k0_mm: 0.042,
+        tan_beta: 0.0,
+        p0_mm: 1.0,
+    };
+    // A caller (the runtime's guard) that gives up after 5 ms, far less than a connect
+    // takes: every cut-off call leaves the connect running for the next one.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+    let mut cut_off = 0;
+    loop {
+        match tokio::time::timeout(Duration::from_millis(5), w.write_job(&Job::thermal(&p))).await {
+            Ok(Ok(_)) => break,
+            Ok(Err(e)) => panic!("{e}"),
+            Err(_) => cut_off += 1,
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "never connected within 20 s ({cut_off} calls cut off)"
+        );
+    }
+    assert!(
+        cut_off > 0,
+        "the first call was not cut off: the test proves nothing"
+    );
+    assert_eq!(w.connects(), 1, "one session, not one per cut-off call");
+    assert_eq!(held(&mut peer, 1), bits(&p));
+}
