@@ -429,7 +429,8 @@ async fn signed_and_encrypted_once_the_server_certificate_is_trusted() {
 
 #[tokio::test]
 async fn a_connect_outlasting_the_callers_timeout_is_kept_not_restarted() {
-    let Some(mut peer) = OpcuaPeer::start(&[]) else {
+    // Every session takes 0.4 s to create, as a busy control's might.
+    let Some(mut peer) = OpcuaPeer::start(&["--session-delay-s", "0.4"]) else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
@@ -439,12 +440,13 @@ async fn a_connect_outlasting_the_callers_timeout_is_kept_not_restarted() {
         tan_beta: 0.0,
         p0_mm: 1.0,
     };
-    // A caller (the runtime's guard) that gives up after 5 ms, far less than a connect
+    // A caller (the runtime's guard) that gives up after 100 ms, less than a connect
     // takes: every cut-off call leaves the connect running for the next one.
     let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
     let mut cut_off = 0;
     loop {
-        match tokio::time::timeout(Duration::from_millis(5), w.write_job(&Job::thermal(&p))).await {
+        match tokio::time::timeout(Duration::from_millis(100), w.write_job(&Job::thermal(&p))).await
+        {
             Ok(Ok(_)) => break,
             Ok(Err(e)) => panic!("{e}"),
             Err(_) => cut_off += 1,

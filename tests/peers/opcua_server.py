@@ -41,6 +41,7 @@ from cryptography import x509
 from cryptography.hazmat.primitives.serialization import Encoding
 from cryptography.x509.oid import ExtendedKeyUsageOID
 from asyncua.crypto.permission_rules import User, UserRole
+from asyncua.server.internal_session import InternalSession
 from asyncua.server.user_managers import UserManager
 
 SETTING_DATA = ("$SA_TEMP_COMP_ABS_VALUE", "$SA_TEMP_COMP_SLOPE", "$SA_TEMP_COMP_REF_POSITION")
@@ -93,6 +94,7 @@ async def main() -> None:
         metavar="PKI_DIR",
         help="write a client certificate for urn:compgate into PKI_DIR (own/, private/) and exit",
     )
+    ap.add_argument("--session-delay-s", type=float, default=0.0, help="delay of every CreateSession answer")
     ap.add_argument("--lossy", action="store_true", help="keep written values as float32 (a REAL store)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR, stream=sys.stderr)
@@ -103,6 +105,15 @@ async def main() -> None:
         )
         print("OK", flush=True)
         return
+
+    if args.session_delay_s > 0:
+        create_session = InternalSession.create_session
+
+        async def slow_create_session(self, *a, **kw):
+            await asyncio.sleep(args.session_delay_s)
+            return await create_session(self, *a, **kw)
+
+        InternalSession.create_session = slow_create_session
 
     server = Server(user_manager=Users())
     await server.init()
