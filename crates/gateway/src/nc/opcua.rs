@@ -552,6 +552,7 @@ async fn drive(
     event_loop: SessionEventLoop<TcpConnector>,
     ready: oneshot::Sender<Result<(), StatusCode>>,
     lost: Arc<AtomicBool>,
+    endpoint: String,
 ) {
     let mut ready = Some(ready);
     let stream = event_loop.enter();
@@ -564,7 +565,7 @@ async fn drive(
                 }
             }
             Ok(SessionPollResult::ConnectionLost(status)) => {
-                tracing::warn!(%status, "OPC UA connection lost");
+                tracing::warn!(%endpoint, %status, "OPC UA connection lost");
                 break;
             }
             Ok(_) => {}
@@ -771,7 +772,7 @@ impl OpcuaNcWriter {
                 }
                 let spec = self.spec.clone();
                 self.connecting.insert(tokio::spawn(async move {
-                    tokio::time::timeout(spec.connect_timeout, open(&spec))
+                    tokio::time::timeout(spec.connect_timeout, open(spec.clone()))
                         .await
                         .unwrap_or_else(|_| Err(SourceError::ConnectTimeout.into()))
                 }))
@@ -974,7 +975,7 @@ impl NcWriter for OpcuaNcWriter {
 }
 
 /// Connects: endpoints, secure channel, session, then the namespace lookup.
-async fn open(spec: &Spec) -> Result<Connection, NcError> {
+async fn open(spec: Arc<Spec>) -> Result<Connection, NcError> {
     let url = spec.endpoint_url.as_str();
     let endpoint: EndpointDescription = (
         url,
@@ -988,7 +989,13 @@ async fn open(spec: &Spec) -> Result<Connection, NcError> {
         None => IdentityToken::Anonymous,
     };
     let user = spec.user_label();
-    let mut client = spec.client()?;
+    // Reads the pki folder, maybe makes a key pair: off the runtime's threads.
+    let mut client = {
+        let spec = spec.clone();
+        tokio::task::spawn_blocking(move || spec.client())
+            .await
+            .map_err(|e| NcError::OpcuaSetup(format!("OPC UA client: {e}")))??
+    };
     let (session, event_loop) = client
         .connect_to_matching_endpoint(endpoint, identity)
         .await
@@ -1001,7 +1008,7 @@ async fn open(spec: &Spec) -> Result<Connection, NcError> {
         })?;
     let lost = Arc::new(AtomicBool::new(false));
     let (tx, rx) = oneshot::channel();
-    let task = tokio::spawn(drive(event_loop, tx, lost.clone()));
+    let task = tokio::spawn(drive(event_loop, tx, lost.clone(), url.to_string()));
     let mut conn = Connection {
         session,
         event_loop: task,
