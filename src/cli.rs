@@ -39,6 +39,11 @@ pub enum Command {
         #[arg(long, short)]
         config: PathBuf,
     },
+    /// Poll every channel once and show registers, byte orders, mA, degC and quality.
+    Probe(crate::probe::ProbeArgs),
+    /// Print the annotated example configuration or the JSON Schema of the config.
+    #[command(subcommand)]
+    Config(ConfigCommand),
     /// Write recorded operation as the measurement CSV that calibrate and diagnose read.
     Export(compgate_service::record::export::ExportArgs),
     /// Fit K0(T) and tan(beta)(T) to measured error curves and write the axis model.
@@ -66,6 +71,17 @@ pub enum Command {
     },
 }
 
+/// `compgate config ...`.
+#[derive(Debug, Subcommand)]
+pub enum ConfigCommand {
+    /// Print an example configuration with every key, annotated with its documentation
+    /// (the doc comments of the config structs): `config/annotated.toml`.
+    Example,
+    /// Print the JSON Schema (draft 2020-12) of the configuration, for TOML editors'
+    /// completion and checking.
+    Schema,
+}
+
 /// `compgate demo`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct DemoArgs {
@@ -89,10 +105,11 @@ impl Default for DemoArgs {
 
 /// The groups `compgate --help` lists the commands in.
 const GROUPS: [(&str, &[&str]); 3] = [
-    ("Service", &["run", "validate", "export"]),
+    ("Service", &["run", "validate", "config", "export"]),
     (
         "Commissioning",
         &[
+            "probe",
             "calibrate",
             "diagnose",
             "iso230",

@@ -232,6 +232,9 @@ struct Running {
     nc_names: Vec<Arc<str>>,
     /// Per NC module: whether its last snapshot failed (logged once per change).
     nc_down: Vec<bool>,
+    /// Per channel: a byte-order hint was logged and the channel has not been good
+    /// since (logged once, not once per poll).
+    byte_order_hinted: Vec<bool>,
 }
 
 impl Running {
@@ -275,6 +278,7 @@ impl Running {
                 .map(|n| Arc::from(n.name.as_str()))
                 .collect(),
             nc_down: vec![false; nc_modules.len()],
+            byte_order_hinted: vec![false; pipeline.channel_names.len()],
             pipeline,
             devices: devices.into_iter().map(Some).collect(),
             sync_producers,
@@ -335,6 +339,17 @@ impl Running {
             if let Some(cs) = status.channels.get_mut(c.channel) {
                 cs.reading.clone_from(&c.reading);
             }
+            if let Some(hinted) = self.byte_order_hinted.get_mut(c.channel) {
+                if c.reading.quality.is_good() {
+                    *hinted = false;
+                } else if !*hinted {
+                    if let Some(hint) = self.pipeline.byte_order_hint(c.channel, &c.reading) {
+                        let channel = &self.pipeline.channel_names[c.channel];
+                        tracing::warn!(%channel, device = %r.device_name, "channel {channel} {hint}");
+                        *hinted = true;
+                    }
+                }
+            }
         }
     }
 
@@ -381,6 +396,7 @@ impl Running {
                         _ => {}
                     }
                 }
+                let now_s = self.pipeline.now_s(Instant::now());
                 for (i, axis) in self.pipeline.axes.iter_mut().enumerate() {
                     if axis.nc_module != module {
                         continue;
@@ -388,6 +404,8 @@ impl Running {
                     let st = &mut self.status.axes[i];
                     match &result {
                         Ok(snap) => {
+                            // The motion heat term counts travel between snapshots.
+                            axis.comp.on_position(now_s, snap.position_mm);
                             if !self.baselined[i] {
                                 // Step limits and the deadband start from what the NC holds.
                                 axis.comp.set_baseline(snap.thermal());
@@ -793,5 +811,38 @@ mod tests {
         assert_eq!((d.cycles, d.failed_cycles, d.connects), (1, 1, 2));
         assert_eq!(d.last_error, s.error.as_ref().map(ToString::to_string));
         assert_eq!(state.status.samples, 1);
+    }
+
+    // Each NC snapshot's actual position feeds the axis' motion heat term.
+    #[test]
+    fn nc_snapshots_feed_the_motion_heat_term() {
+        let mut cfg = demo();
+        let axis = cfg.axes.values_mut().next().expect("an axis");
+        axis.motion_heat = Some(crate::axis::MotionHeatModel {
+            tau_s: 100.0,
+            ref_mm_per_s: 0.0,
+            k0_mm_per_mm_per_s: 0.001,
+            tan_beta_per_mm_per_s: 0.0,
+        });
+        let mut state = Running::new(build(&cfg).expect("build"));
+        let module = state.pipeline.axes[0].nc_module;
+        let mut in_flight = vec![false];
+        for pos_mm in [0.0, 500.0, 200.0] {
+            let snap = NcSnapshot {
+                position_mm: pos_mm,
+                ..NcSnapshot::default()
+            };
+            state.on_event(
+                NcEvent::Snapshot {
+                    module,
+                    result: Ok(snap),
+                },
+                &mut in_flight,
+                &mut (),
+            );
+        }
+        // 800 mm of travel into a 100 s store, well within one time constant.
+        let heat = state.pipeline.axes[0].comp.dynamics().heat_mm_per_s();
+        assert!(heat > 7.0 && heat <= 8.0, "{heat}");
     }
 }

@@ -289,7 +289,19 @@ impl Recorder {
 
     /// The observer that records what the control loop sees.
     pub fn observer(&self) -> RecordObserver {
-        RecordObserver { tx: self.sender() }
+        RecordObserver {
+            tx: self.sender(),
+            clock: None,
+        }
+    }
+
+    /// The observer with its own clock (ms since the Unix epoch): a simulation that
+    /// runs hours in seconds stamps its records with the simulated instant.
+    pub fn observer_with_clock(&self, clock: Clock) -> RecordObserver {
+        RecordObserver {
+            tx: self.sender(),
+            clock: Some(clock),
+        }
     }
 
     /// Closes the queue and waits for the writer's last commit.
@@ -316,15 +328,34 @@ impl Drop for Recorder {
     }
 }
 
+/// A clock of the recorder: ms since the Unix epoch.
+pub type Clock = Arc<dyn Fn() -> i64 + Send + Sync>;
+
 /// Records cycles, jobs and the NC's position from the control loop.
-#[derive(Debug)]
 pub struct RecordObserver {
     tx: RecordSender,
+    /// `None`: the wall clock.
+    clock: Option<Clock>,
+}
+
+impl std::fmt::Debug for RecordObserver {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RecordObserver")
+            .field("tx", &self.tx)
+            .field("clock", &self.clock.as_ref().map(|_| "simulated"))
+            .finish()
+    }
+}
+
+impl RecordObserver {
+    fn now_unix_ms(&self) -> i64 {
+        self.clock.as_ref().map_or_else(now_unix_ms, |c| c())
+    }
 }
 
 impl Observer for RecordObserver {
     fn on_sample(&mut self, readings: &SampleReadings) {
-        let t_unix_ms = now_unix_ms();
+        let t_unix_ms = self.now_unix_ms();
         let mut rows = Vec::with_capacity(readings.channels.len());
         rows.extend(readings.channels.iter().filter_map(|c| {
             let r = &c.reading;
@@ -351,7 +382,7 @@ impl Observer for RecordObserver {
             Err(e) => (None, None, Some(e.to_string())),
         };
         self.tx.send(Record::Job {
-            t_unix_ms: now_unix_ms(),
+            t_unix_ms: self.now_unix_ms(),
             axis: axis.to_string(),
             params: *params,
             job_id,
@@ -374,7 +405,7 @@ impl Observer for RecordObserver {
     }
 
     fn on_status(&mut self, status: &Status) {
-        let t_unix_ms = now_unix_ms();
+        let t_unix_ms = self.now_unix_ms();
         for a in &status.axes {
             if let Some(nc) = &a.nc {
                 self.tx.send(Record::Nc {
