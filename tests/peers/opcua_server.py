@@ -20,9 +20,12 @@ Prints "ENDPOINT <url>" and "NS <index>" on stdout once listening, then reads co
 on stdin, one a line, and answers each with one line:
   dump             VALUES {"<node id>": "<16 hex digits of the f64 bits>", ...}
   delay <seconds>  OK   (every later Write answer is delayed that long)
-With --lossy, written values are kept rounded to float32, so a read-back differs.
   expire           OK <n>  (closes every client session, as a session timeout would)
   quit             BYE  (then exits; end of stdin exits too)
+
+Test hooks: --write-delay-s (late Write answers), --session-delay-s (slow
+CreateSession), --min-session-timeout-s, --lossy (written values kept rounded to
+float32, so a read-back differs).
 """
 
 import argparse
