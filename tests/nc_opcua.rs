@@ -367,3 +367,99 @@ async fn an_idle_session_is_kept_alive_and_a_closed_one_is_renewed() {
     assert_eq!(w.connects(), 2);
     assert_eq!(held(&mut peer, 2)[0], 0.003f64.to_bits());
 }
+
+#[tokio::test]
+async fn signed_and_encrypted_once_the_server_certificate_is_trusted() {
+    if opcua_peer::python().is_none() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let pki = dir.path().join("pki");
+    opcua_peer::make_client_cert(&pki);
+    let server_dir = dir.path().display().to_string();
+    let Some(mut peer) = OpcuaPeer::start(&["--secure", &server_dir]) else {
+        return;
+    };
+    let plain = target(&peer, &dir, Some(("writer", "writer-pw")));
+    let secure = OpcuaTargetConfig {
+        security_policy: OpcuaSecurityPolicy::Basic256Sha256,
+        security_mode: OpcuaSecurityMode::SignAndEncrypt,
+        ..plain.clone()
+    };
+    let p = CompParams {
+        k0_mm: 0.031_25,
+        tan_beta: -7e-6,
+        p0_mm: 250.0,
+    };
+
+    // The server offers no unsecured endpoint.
+    let err = writer_of(&plain, 1)
+        .write_job(&Job::thermal(&p))
+        .await
+        .expect_err("no None endpoint");
+    assert!(err.to_string().contains("security_policy"), "{err}");
+
+    // The server's certificate is not trusted yet: refused, and kept in rejected/.
+    let err = writer_of(&secure, 1)
+        .write_job(&Job::thermal(&p))
+        .await
+        .expect_err("untrusted server certificate");
+    let rejected: Vec<_> = std::fs::read_dir(pki.join("rejected"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    assert_eq!(rejected.len(), 1, "{err}");
+    let msg = err.to_string();
+    assert!(
+        msg.contains("BadCertificateUntrusted") && msg.contains("pki_dir"),
+        "{msg}"
+    );
+    assert_eq!(held(&mut peer, 1), [0; 3], "nothing written: {err}");
+
+    // The administrator moves it to trusted/: the next session is signed and encrypted.
+    std::fs::create_dir_all(pki.join("trusted")).unwrap();
+    for cert in &rejected {
+        std::fs::rename(cert, pki.join("trusted").join(cert.file_name().unwrap())).unwrap();
+    }
+    let mut w = writer_of(&secure, 1);
+    w.write_job(&Job::thermal(&p)).await.unwrap();
+    assert_eq!(held(&mut peer, 1), bits(&p));
+    assert!(w.may_write().await.unwrap());
+}
+
+#[tokio::test]
+async fn a_connect_outlasting_the_callers_timeout_is_kept_not_restarted() {
+    // Every session takes 0.4 s to create, as a busy control's might.
+    let Some(mut peer) = OpcuaPeer::start(&["--session-delay-s", "0.4"]) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let mut w = writer_of(&target(&peer, &dir, Some(("writer", "writer-pw"))), 1);
+    let p = CompParams {
+        k0_mm: 0.042,
+        tan_beta: 0.0,
+        p0_mm: 1.0,
+    };
+    // A caller (the runtime's guard) that gives up after 100 ms, less than a connect
+    // takes: every cut-off call leaves the connect running for the next one.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+    let mut cut_off = 0;
+    loop {
+        match tokio::time::timeout(Duration::from_millis(100), w.write_job(&Job::thermal(&p))).await
+        {
+            Ok(Ok(_)) => break,
+            Ok(Err(e)) => panic!("{e}"),
+            Err(_) => cut_off += 1,
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "never connected within 20 s ({cut_off} calls cut off)"
+        );
+    }
+    assert!(
+        cut_off > 0,
+        "the first call was not cut off: the test proves nothing"
+    );
+    assert_eq!(w.connects(), 1, "one session, not one per cut-off call");
+    assert_eq!(held(&mut peer, 1), bits(&p));
+}

@@ -34,6 +34,21 @@ pub fn python() -> Option<PathBuf> {
     None
 }
 
+/// Writes a client certificate and key for `urn:compgate` into `pki_dir` (`own/`,
+/// `private/`), made by the peer's Python (a key made by a debug build would be slow).
+pub fn make_client_cert(pki_dir: &std::path::Path) {
+    let py = python().expect("checked by the caller");
+    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/peers/opcua_server.py");
+    let status = Command::new(py)
+        .arg(script)
+        .arg("--make-client-cert")
+        .arg(pki_dir)
+        .stdout(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success(), "making the client certificate failed");
+}
+
 /// A running peer; dropping it kills it.
 pub struct OpcuaPeer {
     child: Child,

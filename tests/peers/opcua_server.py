@@ -7,7 +7,10 @@ under the node ids a SINUMERIK OPC UA server is expected to use,
 with the SinumerikVarProvider namespace registered behind decoy namespaces, so a client
 that assumes index 2 writes nowhere.
 
-Users (user name / password, security None):
+Security None by default; with --secure DIR only Basic256Sha256 SignAndEncrypt, with a
+self-signed server certificate made in DIR (any client certificate is accepted).
+
+Users (user name / password):
   writer / writer-pw   holds "SeaWrite": may write the setting data
   reader / reader-pw   may read only: writes answer BadUserAccessDenied
   anonymous            like reader
@@ -17,21 +20,31 @@ Prints "ENDPOINT <url>" and "NS <index>" on stdout once listening, then reads co
 on stdin, one a line, and answers each with one line:
   dump             VALUES {"<node id>": "<16 hex digits of the f64 bits>", ...}
   delay <seconds>  OK   (every later Write answer is delayed that long)
-With --lossy, written values are kept rounded to float32, so a read-back differs.
   expire           OK <n>  (closes every client session, as a session timeout would)
   quit             BYE  (then exits; end of stdin exits too)
+
+Test hooks: --write-delay-s (late Write answers), --session-delay-s (slow
+CreateSession), --min-session-timeout-s, --lossy (written values kept rounded to
+float32, so a read-back differs).
 """
 
 import argparse
 import asyncio
+import ipaddress
 import json
 import logging
 import struct
 import sys
+from pathlib import Path
 
 from asyncua import Server, ua
 from asyncua.common.callback import CallbackType
+from asyncua.crypto import cert_gen
+from cryptography import x509
+from cryptography.hazmat.primitives.serialization import Encoding
+from cryptography.x509.oid import ExtendedKeyUsageOID
 from asyncua.crypto.permission_rules import User, UserRole
+from asyncua.server.internal_session import InternalSession
 from asyncua.server.user_managers import UserManager
 
 SETTING_DATA = ("$SA_TEMP_COMP_ABS_VALUE", "$SA_TEMP_COMP_SLOPE", "$SA_TEMP_COMP_REF_POSITION")
@@ -54,6 +67,22 @@ def bits(value: float) -> str:
     return struct.pack(">d", value).hex()
 
 
+def make_certificate(key_file: Path, cert_file: Path, app_uri: str, usage) -> None:
+    """A self-signed application certificate for 127.0.0.1 (key PEM, certificate DER)."""
+    key = cert_gen.generate_private_key()
+    names = [
+        x509.UniformResourceIdentifier(app_uri),
+        x509.DNSName("127.0.0.1"),
+        x509.DNSName("localhost"),
+        x509.IPAddress(ipaddress.ip_address("127.0.0.1")),
+    ]
+    cert = cert_gen.generate_self_signed_app_certificate(key, app_uri, {}, names, [usage])
+    key_file.parent.mkdir(parents=True, exist_ok=True)
+    cert_file.parent.mkdir(parents=True, exist_ok=True)
+    key_file.write_bytes(cert_gen.dump_private_key_as_pem(key))
+    cert_file.write_bytes(cert.public_bytes(Encoding.DER))
+
+
 async def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (0: any free one)")
@@ -62,16 +91,48 @@ async def main() -> None:
     ap.add_argument("--decoys", type=int, default=2, help="namespaces registered before it")
     ap.add_argument("--write-delay-s", type=float, default=0.0, help="delay of every Write answer")
     ap.add_argument("--min-session-timeout-s", type=float, default=5.0, help="shortest session timeout granted")
+    ap.add_argument("--secure", metavar="DIR", help="Basic256Sha256 SignAndEncrypt only; server key in DIR")
+    ap.add_argument(
+        "--make-client-cert",
+        metavar="PKI_DIR",
+        help="write a client certificate for urn:compgate into PKI_DIR (own/, private/) and exit",
+    )
+    ap.add_argument("--session-delay-s", type=float, default=0.0, help="delay of every CreateSession answer")
     ap.add_argument("--lossy", action="store_true", help="keep written values as float32 (a REAL store)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR, stream=sys.stderr)
+    if args.make_client_cert:
+        pki = Path(args.make_client_cert)
+        make_certificate(
+            pki / "private/private.pem", pki / "own/cert.der", "urn:compgate", ExtendedKeyUsageOID.CLIENT_AUTH
+        )
+        print("OK", flush=True)
+        return
+
+    if args.session_delay_s > 0:
+        create_session = InternalSession.create_session
+
+        async def slow_create_session(self, *a, **kw):
+            await asyncio.sleep(args.session_delay_s)
+            return await create_session(self, *a, **kw)
+
+        InternalSession.create_session = slow_create_session
 
     server = Server(user_manager=Users())
     await server.init()
     server.iserver.min_session_timeout_ms = args.min_session_timeout_s * 1000
     server.set_endpoint(f"opc.tcp://127.0.0.1:{args.port}/")
     server.set_server_name("compgate test SINUMERIK")
-    server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+    if args.secure:
+        app_uri = "urn:compgate:test:sinumerik"
+        await server.set_application_uri(app_uri)
+        key_file, cert_file = Path(args.secure) / "server-key.pem", Path(args.secure) / "server-cert.der"
+        make_certificate(key_file, cert_file, app_uri, ExtendedKeyUsageOID.SERVER_AUTH)
+        await server.load_certificate(str(cert_file))
+        await server.load_private_key(str(key_file))
+        server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+    else:
+        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
     server.set_identity_tokens([ua.AnonymousIdentityToken, ua.UserNameIdentityToken])
     for i in range(args.decoys):
         await server.register_namespace(f"urn:compgate:test:decoy{i}")

@@ -170,8 +170,9 @@ pub struct OpcuaTargetConfig {
     #[serde(default)]
     pub trust_server_certificate: bool,
     /// File holding the user name on its first line and the password on its second
-    /// (keep it readable by compgate only). Not with `user_env`/`password_env`. Default
-    /// none: anonymous unless the two variables are named; at most 4096 characters.
+    /// (keep it readable by compgate only); a relative path is taken as `pki_dir` is.
+    /// Not with `user_env`/`password_env`. Default none: anonymous unless the two
+    /// variables are named; at most 4096 characters.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(length(min = 1, max = 4096))]
     pub credentials_file: Option<String>,
@@ -194,8 +195,8 @@ pub struct OpcuaTargetConfig {
     #[serde(default = "default_connect_timeout_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub connect_timeout_s: f64,
-    /// Seconds a whole job (connect if needed, write, read-back) may take. Default 2.0;
-    /// 0.001..=3600.
+    /// Seconds a job (write and read-back; a connect has `connect_timeout_s`) may take.
+    /// Default 2.0; 0.001..=3600.
     #[serde(default = "default_job_timeout_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub job_timeout_s: f64,
@@ -240,6 +241,11 @@ impl OpcuaTargetConfig {
     /// `job_timeout_s` as a [`Duration`].
     pub fn job_timeout(&self) -> Duration {
         secs(self.job_timeout_s)
+    }
+
+    /// Whether the target has a node for variable `var_id` (SD43900, SD43910, SD43920).
+    pub fn has(&self, var_id: u16) -> bool {
+        VARS.contains(&var_id)
     }
 
     fn templates(&self) -> [(&'static str, &str); 3] {
@@ -335,21 +341,23 @@ impl OpcuaTargetConfig {
         }
         let credentials = self.credentials()?;
         Ok(OpcuaNcWriter {
-            endpoint_url: self.endpoint_url.clone(),
-            namespace_uri: self.namespace_uri.clone(),
-            axis_name: axis_name.to_string(),
-            templates,
-            policy: self.security_policy.to_policy(),
-            mode: self.security_mode.to_mode(),
-            pki_dir: state_path(&self.pki_dir),
-            trust_server_certificate: self.trust_server_certificate,
-            credentials,
-            request_timeout: self.request_timeout(),
-            connect_timeout: self.connect_timeout(),
+            spec: Arc::new(Spec {
+                endpoint_url: self.endpoint_url.clone(),
+                namespace_uri: self.namespace_uri.clone(),
+                axis_name: axis_name.to_string(),
+                templates,
+                policy: self.security_policy.to_policy(),
+                mode: self.security_mode.to_mode(),
+                pki_dir: state_path(&self.pki_dir),
+                trust_server_certificate: self.trust_server_certificate,
+                credentials,
+                request_timeout: self.request_timeout(),
+                connect_timeout: self.connect_timeout(),
+                session_timeout_ms: (self.session_timeout_s.clamp(1.0, 3600.0) * 1000.0) as u32,
+            }),
             job_timeout: self.job_timeout(),
-            session_timeout_ms: (self.session_timeout_s.clamp(1.0, 3600.0) * 1000.0) as u32,
-            client: None,
             conn: None,
+            connecting: None,
             backoff: Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
             connects: 0,
             next_job_id: 1,
@@ -544,6 +552,7 @@ async fn drive(
     event_loop: SessionEventLoop<TcpConnector>,
     ready: oneshot::Sender<Result<(), StatusCode>>,
     lost: Arc<AtomicBool>,
+    endpoint: String,
 ) {
     let mut ready = Some(ready);
     let stream = event_loop.enter();
@@ -556,7 +565,7 @@ async fn drive(
                 }
             }
             Ok(SessionPollResult::ConnectionLost(status)) => {
-                tracing::warn!(%status, "OPC UA connection lost");
+                tracing::warn!(%endpoint, %status, "OPC UA connection lost");
                 break;
             }
             Ok(_) => {}
@@ -596,8 +605,8 @@ fn is_session_fault(status: StatusCode) -> bool {
     )
 }
 
-/// SD43900/43910/43920 of one axis over OPC UA (see the module docs).
-pub struct OpcuaNcWriter {
+/// What a writer connects with; shared with its connecting task.
+struct Spec {
     endpoint_url: String,
     namespace_uri: String,
     axis_name: String,
@@ -610,22 +619,72 @@ pub struct OpcuaNcWriter {
     credentials: Option<Credentials>,
     request_timeout: Duration,
     connect_timeout: Duration,
-    job_timeout: Duration,
     session_timeout_ms: u32,
-    /// Made on first connect: it creates the pki folder and maybe a key pair.
-    client: Option<Client>,
+}
+
+impl Spec {
+    fn user_label(&self) -> String {
+        match &self.credentials {
+            Some(c) => format!("`{}`", c.user),
+            None => "anonymous".into(),
+        }
+    }
+
+    /// A client (it creates the pki folder, and a key pair when a secure policy needs
+    /// one and none is there yet).
+    fn client(&self) -> Result<Client, NcError> {
+        let secure = self.policy != SecurityPolicy::None;
+        ClientBuilder::new()
+            .application_name("compgate")
+            .application_uri("urn:compgate")
+            .product_uri("urn:compgate")
+            .pki_dir(self.pki_dir.clone())
+            .create_sample_keypair(secure)
+            .trust_server_certs(self.trust_server_certificate)
+            // One try per connect: compgate's own backoff paces the retries, and a new
+            // session re-reads the namespace index.
+            .session_retry_limit(0)
+            .request_timeout(self.request_timeout)
+            .session_timeout(self.session_timeout_ms)
+            // Keep-alive reads renew the session well within its timeout; three missed
+            // in a row close it, so a dead peer is noticed between jobs.
+            .keep_alive_interval(keep_alive_interval(self.session_timeout_ms))
+            .max_failed_keep_alive_count(3)
+            .client()
+            .map_err(|errors| NcError::OpcuaSetup(format!("OPC UA client: {}", errors.join("; "))))
+    }
+}
+
+/// SD43900/43910/43920 of one axis over OPC UA (see the module docs).
+pub struct OpcuaNcWriter {
+    spec: Arc<Spec>,
+    job_timeout: Duration,
     conn: Option<Connection>,
+    /// A connect under way. It runs on a task of its own, so a caller that gives up
+    /// (a job timeout) does not throw it away: the next call takes it over.
+    connecting: Option<JoinHandle<Result<Connection, NcError>>>,
     backoff: Backoff,
     connects: u64,
     next_job_id: u16,
 }
 
+impl Drop for OpcuaNcWriter {
+    fn drop(&mut self) {
+        if let Some(task) = self.connecting.take() {
+            task.abort();
+        }
+    }
+}
+
 impl fmt::Debug for OpcuaNcWriter {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.debug_struct("OpcuaNcWriter")
-            .field("endpoint_url", &self.endpoint_url)
-            .field("axis", &self.axis_name)
-            .field("user", &self.credentials.as_ref().map(|c| c.user.as_str()))
+            .field("endpoint_url", &self.spec.endpoint_url)
+            .field("axis", &self.spec.axis_name)
+            .field(
+                "user",
+                &self.spec.credentials.as_ref().map(|c| c.user.as_str()),
+            )
             .field("connected", &self.is_connected())
             .field("connects", &self.connects)
             .finish()
@@ -683,10 +742,7 @@ impl OpcuaNcWriter {
     }
 
     fn user_label(&self) -> String {
-        match &self.credentials {
-            Some(c) => format!("`{}`", c.user),
-            None => "anonymous".into(),
-        }
+        self.spec.user_label()
     }
 
     fn session(&self) -> Result<(Arc<Session>, [NodeId; 3]), NcError> {
@@ -708,16 +764,30 @@ impl OpcuaNcWriter {
         if self.conn.is_some() {
             return Ok(());
         }
-        if let Some(wait) = self.backoff.remaining(Instant::now()) {
-            return Err(SourceError::BackingOff(wait).into());
-        }
-        match tokio::time::timeout(self.connect_timeout, self.open()).await {
+        let task = match &mut self.connecting {
+            Some(task) => task,
+            None => {
+                if let Some(wait) = self.backoff.remaining(Instant::now()) {
+                    return Err(SourceError::BackingOff(wait).into());
+                }
+                let spec = self.spec.clone();
+                self.connecting.insert(tokio::spawn(async move {
+                    tokio::time::timeout(spec.connect_timeout, open(spec.clone()))
+                        .await
+                        .unwrap_or_else(|_| Err(SourceError::ConnectTimeout.into()))
+                }))
+            }
+        };
+        // Awaiting through `&mut` leaves the task in place if this call is cancelled.
+        let result = task.await;
+        self.connecting = None;
+        match result {
             Ok(Ok(conn)) => {
                 self.backoff.reset();
                 self.connects += 1;
                 tracing::info!(
-                    endpoint = %self.endpoint_url,
-                    axis = %self.axis_name,
+                    endpoint = %self.spec.endpoint_url,
+                    axis = %self.spec.axis_name,
                     user = %self.user_label(),
                     nodes = ?conn.nodes.iter().map(|n| n.to_string()).collect::<Vec<_>>(),
                     "OPC UA session open"
@@ -729,97 +799,21 @@ impl OpcuaNcWriter {
                 self.backoff.failed(Instant::now());
                 Err(e)
             }
-            Err(_) => {
+            Err(join) => {
                 self.backoff.failed(Instant::now());
-                Err(SourceError::ConnectTimeout.into())
+                Err(SourceError::Connect(format!("OPC UA connect task: {join}")).into())
             }
         }
-    }
-
-    fn client(&mut self) -> Result<&mut Client, NcError> {
-        if self.client.is_none() {
-            let secure = self.policy != SecurityPolicy::None;
-            let client = ClientBuilder::new()
-                .application_name("compgate")
-                .application_uri("urn:compgate")
-                .product_uri("urn:compgate")
-                .pki_dir(self.pki_dir.clone())
-                .create_sample_keypair(secure)
-                .trust_server_certs(self.trust_server_certificate)
-                // One try per connect: compgate's own backoff paces the retries, and a
-                // new session re-reads the namespace index.
-                .session_retry_limit(0)
-                .request_timeout(self.request_timeout)
-                .session_timeout(self.session_timeout_ms)
-                // Keep-alive reads renew the session well within its timeout; three
-                // missed in a row close it, so a dead peer is noticed between jobs.
-                .keep_alive_interval(keep_alive_interval(self.session_timeout_ms))
-                .max_failed_keep_alive_count(3)
-                .client()
-                .map_err(|errors| {
-                    NcError::OpcuaSetup(format!("OPC UA client: {}", errors.join("; ")))
-                })?;
-            self.client = Some(client);
-        }
-        self.client
-            .as_mut()
-            .ok_or_else(|| NcError::OpcuaSetup("OPC UA client missing".into()))
-    }
-
-    async fn open(&mut self) -> Result<Connection, NcError> {
-        let url = self.endpoint_url.clone();
-        let endpoint: EndpointDescription = (
-            url.as_str(),
-            self.policy.to_uri(),
-            self.mode,
-            UserTokenPolicy::anonymous(),
-        )
-            .into();
-        let identity = match &self.credentials {
-            Some(c) => IdentityToken::UserName(c.user.clone(), Password::new(c.password.clone())),
-            None => IdentityToken::Anonymous,
-        };
-        let user = self.user_label();
-        let client = self.client()?;
-        let (session, event_loop) = client
-            .connect_to_matching_endpoint(endpoint, identity)
-            .await
-            .map_err(|e| connect_error(&url, &user, e.status(), &e.to_string()))?;
-        let lost = Arc::new(AtomicBool::new(false));
-        let (tx, rx) = oneshot::channel();
-        let task = tokio::spawn(drive(event_loop, tx, lost.clone()));
-        let mut conn = Connection {
-            session,
-            event_loop: task,
-            lost,
-            nodes: Default::default(),
-        };
-        match rx.await {
-            Ok(Ok(())) => {}
-            Ok(Err(status)) => {
-                return Err(connect_error(&url, &user, status, "session not activated"))
-            }
-            Err(_) => {
-                return Err(SourceError::Connect(format!("{url}: session event loop ended")).into())
-            }
-        }
-        let ns = namespace_index(&conn.session, &self.namespace_uri).await?;
-        for (slot, template) in conn.nodes.iter_mut().zip(&self.templates) {
-            let id = template.replace("{ns}", &ns.to_string());
-            *slot = NodeId::from_str(&id)
-                .map_err(|_| NcError::OpcuaSetup(format!("`{id}` is not a node id")))?;
-        }
-        Ok(conn)
     }
 
     /// Maps a failed service call; a fault of the connection or session drops it, so
     /// the next call opens a new one.
     fn service_fault(&mut self, service: &'static str, e: opcua::types::Error) -> NcError {
         let status = e.status();
-        let node = self
-            .conn
-            .as_ref()
-            .map_or_else(|| self.templates[0].clone(), |c| c.nodes[0].to_string());
+        let node = self.conn.as_ref().map_or_else(
+            || self.spec.templates[0].clone(),
+            |c| c.nodes[0].to_string(),
+        );
         let lost = self
             .conn
             .as_ref()
@@ -828,7 +822,7 @@ impl OpcuaNcWriter {
             self.conn = None;
         }
         match status {
-            StatusCode::BadTimeout => SourceError::Timeout(self.request_timeout).into(),
+            StatusCode::BadTimeout => SourceError::Timeout(self.spec.request_timeout).into(),
             StatusCode::BadUserAccessDenied => NcError::OpcuaAccessDenied {
                 node,
                 user: self.user_label(),
@@ -838,7 +832,7 @@ impl OpcuaNcWriter {
             }
             s => NcError::OpcuaStatus {
                 service,
-                target: format!("for axis {}", self.axis_name),
+                target: format!("for axis {}", self.spec.axis_name),
                 status: s.to_string(),
             },
         }
@@ -872,7 +866,6 @@ impl OpcuaNcWriter {
     }
 
     async fn run_job(&mut self, pairs: &[(usize, f64)]) -> Result<(), NcError> {
-        self.ensure_connected().await?;
         let (session, nodes) = self.session()?;
         let writes: Vec<WriteValue> = pairs
             .iter()
@@ -946,6 +939,9 @@ impl NcWriter for OpcuaNcWriter {
         }
         let job_id = self.next_job_id;
         self.next_job_id = self.next_job_id.checked_add(1).unwrap_or(1);
+        // A (re)connect has its own timeout and is not part of the job: a control whose
+        // secure handshake takes longer than a job must still get connected.
+        self.ensure_connected().await?;
         let started = Instant::now();
         match tokio::time::timeout(self.job_timeout, self.run_job(&pairs)).await {
             Ok(Ok(())) => Ok(JobReport {
@@ -976,6 +972,63 @@ impl NcWriter for OpcuaNcWriter {
             ..NcSnapshot::default()
         })
     }
+}
+
+/// Connects: endpoints, secure channel, session, then the namespace lookup.
+async fn open(spec: Arc<Spec>) -> Result<Connection, NcError> {
+    let url = spec.endpoint_url.as_str();
+    let endpoint: EndpointDescription = (
+        url,
+        spec.policy.to_uri(),
+        spec.mode,
+        UserTokenPolicy::anonymous(),
+    )
+        .into();
+    let identity = match &spec.credentials {
+        Some(c) => IdentityToken::UserName(c.user.clone(), Password::new(c.password.clone())),
+        None => IdentityToken::Anonymous,
+    };
+    let user = spec.user_label();
+    // Reads the pki folder, maybe makes a key pair: off the runtime's threads.
+    let mut client = {
+        let spec = spec.clone();
+        tokio::task::spawn_blocking(move || spec.client())
+            .await
+            .map_err(|e| NcError::OpcuaSetup(format!("OPC UA client: {e}")))??
+    };
+    let (session, event_loop) = client
+        .connect_to_matching_endpoint(endpoint, identity)
+        .await
+        .map_err(|e| {
+            // The error's text repeats its status first.
+            let text = e.to_string();
+            let prefix = format!("{}: ", e.status());
+            let detail = text.strip_prefix(&prefix).unwrap_or(&text);
+            connect_error(url, &user, e.status(), detail)
+        })?;
+    let lost = Arc::new(AtomicBool::new(false));
+    let (tx, rx) = oneshot::channel();
+    let task = tokio::spawn(drive(event_loop, tx, lost.clone(), url.to_string()));
+    let mut conn = Connection {
+        session,
+        event_loop: task,
+        lost,
+        nodes: Default::default(),
+    };
+    match rx.await {
+        Ok(Ok(())) => {}
+        Ok(Err(status)) => return Err(connect_error(url, &user, status, "session not activated")),
+        Err(_) => {
+            return Err(SourceError::Connect(format!("{url}: session event loop ended")).into())
+        }
+    }
+    let ns = namespace_index(&conn.session, &spec.namespace_uri).await?;
+    for (slot, template) in conn.nodes.iter_mut().zip(&spec.templates) {
+        let id = template.replace("{ns}", &ns.to_string());
+        *slot = NodeId::from_str(&id)
+            .map_err(|_| NcError::OpcuaSetup(format!("`{id}` is not a node id")))?;
+    }
+    Ok(conn)
 }
 
 fn read_id(node_id: NodeId, attribute: AttributeId) -> ReadValueId {
@@ -1056,8 +1109,9 @@ fn connect_error(url: &str, user: &str, status: StatusCode, detail: &str) -> NcE
              that the control admits this user)"
         ),
         StatusCode::BadCertificateUntrusted | StatusCode::BadSecurityChecksFailed => {
-            " (the server does not trust compgate's certificate yet: trust it on the \
-             control, or trust the server's certificate under pki_dir/trusted)"
+            " (a certificate is not trusted yet: move the control's certificate from \
+             pki_dir/rejected to pki_dir/trusted, and trust compgate's certificate on the \
+             control)"
                 .into()
         }
         StatusCode::BadTcpEndpointUrlInvalid | StatusCode::BadSecurityPolicyRejected => {
@@ -1154,10 +1208,10 @@ mod tests {
         };
         let w = cfg.build("Z1", 3).expect("builds");
         assert_eq!(
-            w.templates[1],
+            w.spec.templates[1],
             "ns={ns};s=/NC/_N_AX_SEA_ACX/$SA_TEMP_COMP_SLOPE[u3]"
         );
-        let dbg = format!("{w:?} {:?}", w.credentials);
+        let dbg = format!("{w:?} {:?}", w.spec.credentials);
         assert!(dbg.contains("operator"), "{dbg}");
         assert!(!dbg.contains("s3cret"), "{dbg}");
         let _ = std::fs::remove_dir_all(&dir);
@@ -1172,6 +1226,20 @@ mod tests {
             err.to_string().contains("COMPGATE_TEST_NO_SUCH_USER_VAR"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn every_key_documents_its_default() {
+        let schema = schemars::schema_for!(OpcuaTargetConfig).to_value();
+        let props = schema["properties"].as_object().expect("properties");
+        assert_eq!(props.len(), 16);
+        for (key, p) in props {
+            let doc = p["description"].as_str().unwrap_or_default();
+            assert!(
+                doc.contains("Default") || doc.contains("Required"),
+                "{key}: {doc}"
+            );
+        }
     }
 
     #[test]
