@@ -150,8 +150,8 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), ServiceError> {
         Some(r) => Some(Recorder::start(r)?),
         None => None,
     };
-    if let Some(r) = &recorder {
-        observers.push(Box::new(r.observer()));
+    if let (Some(r), Some(c)) = (&recorder, &cfg.recorder) {
+        observers.push(Box::new(r.observer(config::secs(c.interval_s))));
     }
     let mut publisher = None;
     if let (Some(m), Some(r)) = (&cfg.mqtt, &recorder) {

@@ -284,9 +284,14 @@ impl Recorder {
         self.outbox.clone()
     }
 
-    /// The observer that records what the control loop sees.
-    pub fn observer(&self) -> RecordObserver {
-        RecordObserver { tx: self.sender() }
+    /// The observer that records what the control loop sees, a device's cycle at
+    /// most every `interval` (zero: every cycle).
+    pub fn observer(&self, interval: Duration) -> RecordObserver {
+        RecordObserver {
+            tx: self.sender(),
+            interval,
+            next_due: Vec::new(),
+        }
     }
 
     /// Closes the queue and waits for the writer's last commit.
@@ -317,10 +322,44 @@ impl Drop for Recorder {
 #[derive(Debug)]
 pub struct RecordObserver {
     tx: RecordSender,
+    /// Least time between two recorded cycles of a device.
+    interval: Duration,
+    /// Per device index: when its next cycle is due to be recorded.
+    next_due: Vec<Option<Instant>>,
+}
+
+impl RecordObserver {
+    /// Whether the cycle of `device` at `now` is one to record.
+    fn due(&mut self, device: usize, now: Instant) -> bool {
+        if self.interval.is_zero() {
+            return true;
+        }
+        if self.next_due.len() <= device {
+            self.next_due.resize(device + 1, None);
+        }
+        let slot = &mut self.next_due[device];
+        match *slot {
+            Some(due) if now < due => false,
+            _ => {
+                // On the grid of the first recorded cycle, so poll jitter does not
+                // stretch the spacing; a device that was away starts a new grid.
+                let next = slot.unwrap_or(now) + self.interval;
+                *slot = Some(if next <= now {
+                    now + self.interval
+                } else {
+                    next
+                });
+                true
+            }
+        }
+    }
 }
 
 impl Observer for RecordObserver {
     fn on_sample(&mut self, readings: &SampleReadings) {
+        if !self.due(readings.device, Instant::now()) {
+            return;
+        }
         let t_unix_ms = now_unix_ms();
         let mut rows = Vec::with_capacity(readings.channels.len());
         rows.extend(readings.channels.iter().filter_map(|c| {
