@@ -35,7 +35,7 @@ pub(crate) fn free_port() -> Result<u16, String> {
         .map_err(|e| format!("no free port: {e}"))
 }
 
-pub(crate) fn clock_ticks_per_s() -> u64 {
+fn clock_ticks_per_s() -> u64 {
     Command::new("getconf")
         .arg("CLK_TCK")
         .output()
