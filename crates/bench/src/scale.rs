@@ -483,7 +483,7 @@ fn gateway_config(
     let _ = write!(
         t,
         "[nc_modules.nc_x]\naddress = \"127.0.0.1:{}\"\nunit_id = 1\n\n\
-         [axes.X]\nnc_module = \"nc_x\"\nmd32750 = 3\np0_mm = 0.0\nupdate_interval_s = 0.002\nmax_step_k0_mm = 0.1\n\
+         [axes.X]\nnc_module = \"nc_x\"\nmd32750 = 3\np0_mm = 0.0\nupdate_interval_s = 0.001\nmax_step_k0_mm = 0.1\n\
          k0 = {{ offset_mm = 0.0, terms = [{{ channel = \"T_0_0\", ref_degc = {STEP_REF_DEGC:.1}, coeff_mm_per_degc = {STEP_COEFF_MM_PER_DEGC} }}] }}\n\
          tan_beta = {{ offset = 0.0, terms = [{{ channel = \"T_0_1\", ref_degc = 20.0, coeff_per_degc = 0.0000115 }}] }}\n\n",
         plant.nc_port
