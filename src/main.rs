@@ -5,7 +5,7 @@ mod demo;
 
 use std::process::ExitCode;
 
-use compgate::cli::{self, Command};
+use compgate::cli::{self, Command, ConfigCommand};
 #[cfg(feature = "sim")]
 use compgate::scenario;
 use compgate_commission::{backlash, calibrate, iso230, volumetric};
@@ -27,7 +27,9 @@ async fn run_backlash(args: &backlash::BacklashArgs) -> Result<String, backlash:
 fn main() -> ExitCode {
     let cli = cli::parse();
     #[cfg(feature = "sim")]
-    let command = cli.command.unwrap_or(Command::Demo);
+    let command = cli
+        .command
+        .unwrap_or(Command::Demo(cli::DemoArgs::default()));
     #[cfg(not(feature = "sim"))]
     let Some(command) = cli.command
     else {
@@ -60,7 +62,7 @@ fn main() -> ExitCode {
 
 async fn run(log: Option<String>, command: Command) -> ExitCode {
     #[cfg(feature = "sim")]
-    let default_log = if matches!(command, Command::Demo) {
+    let default_log = if matches!(command, Command::Demo(_)) {
         "warn"
     } else {
         "info"
@@ -71,15 +73,26 @@ async fn run(log: Option<String>, command: Command) -> ExitCode {
 
     let result = match command {
         #[cfg(feature = "sim")]
-        Command::Demo => demo::demo().await,
-        Command::Run { config: path } => match config::load(&path) {
-            Ok(cfg) => compgate_service::run(&path, cfg)
-                .await
-                .map_err(|e| e.to_string()),
+        Command::Demo(args) => demo::demo(&args).await,
+        Command::Run {
+            config: path,
+            shadow,
+        } => match config::load(&path) {
+            Ok(cfg) => {
+                for w in config::warnings(&cfg, &path.display().to_string()) {
+                    tracing::warn!(file = %w.file, key = %w.key, "{}", w.message);
+                }
+                compgate_service::run(&path, cfg, compgate_service::RunOptions { shadow })
+                    .await
+                    .map_err(|e| e.to_string())
+            }
             Err(e) => Err(e.to_string()),
         },
         Command::Validate { config: path } => match config::load(&path) {
-            Ok(_) => {
+            Ok(cfg) => {
+                for w in config::warnings(&cfg, &path.display().to_string()) {
+                    eprintln!("warning: {w}");
+                }
                 println!("{}: OK", path.display());
                 Ok(())
             }
@@ -87,6 +100,32 @@ async fn run(log: Option<String>, command: Command) -> ExitCode {
         },
         #[cfg(feature = "sim")]
         Command::Sim { config: path } => demo::sim(&path).await,
+        Command::Probe(args) => match compgate::probe::run(&args).await {
+            Ok(report) => {
+                print!("{}", report.text);
+                match report.bad.len() {
+                    0 => Ok(()),
+                    n => Err(format!(
+                        "{n} channel{} bad: {}",
+                        if n == 1 { "" } else { "s" },
+                        report.bad.join(", ")
+                    )),
+                }
+            }
+            Err(e) => Err(e),
+        },
+        Command::Config(ConfigCommand::Example) => config::example::annotated_example()
+            .map(|text| print!("{text}"))
+            .map_err(|e| e.to_string()),
+        Command::Config(ConfigCommand::Schema) => {
+            match serde_json::to_string_pretty(&config::json_schema()) {
+                Ok(text) => {
+                    println!("{text}");
+                    Ok(())
+                }
+                Err(e) => Err(e.to_string()),
+            }
+        }
         Command::Backlash(args) => match run_backlash(&args).await {
             Ok(report) => {
                 print!("{report}");

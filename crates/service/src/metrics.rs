@@ -10,7 +10,9 @@
 //! | `compgate_channel_value_degc` | gauge | channel | filtered temperature (NaN without a value), every `gateway.status_interval_s` |
 //! | `compgate_channel_quality` | gauge | channel | 0 good, 1 uncertain, 2 bad, every `gateway.status_interval_s` |
 //! | `compgate_axis_sd43900_mm`, `compgate_axis_sd43910`, `compgate_axis_sd43920_mm` | gauge | axis | parameters last written and verified |
-//! | `compgate_nc_jobs_total` | counter | axis, result (`ok`/`failed`) | NC job outcomes |
+//! | `compgate_axis_shadow` | gauge | axis | 1 when the axis runs in shadow mode (computes, never writes the NC) |
+//! | `compgate_axis_shadow_sd43900_mm`, `compgate_axis_shadow_sd43910`, `compgate_axis_shadow_sd43920_mm` | gauge | axis | shadow mode: the parameters the axis would have written last |
+//! | `compgate_nc_jobs_total` | counter | axis, result (`ok`/`failed`/`shadow`) | NC job outcomes; `shadow`: computed, not sent |
 //! | `compgate_cycle_seconds` | histogram | | control loop: time to process one device sample |
 //! | `compgate_recorder_records_total` | counter | outcome (`written`, `dropped_queue`, `dropped_write`) | recorder |
 //! | `compgate_process_heap_bytes` | gauge | state (`in_use`, `free`) | glibc malloc: bytes allocated (the live heap) and bytes it holds free; RSS growing with `in_use` flat is the allocator, not a leak (glibc only) |
@@ -36,8 +38,12 @@ use compgate_gateway::runtime::{GatewayError, Observer, SampleReadings, Status};
 const UPKEEP_S: u64 = 5;
 
 /// Installs the global recorder with help text for every metric, and serves
-/// `GET /metrics` on `cfg.bind` (inside the tokio runtime).
-pub async fn install(cfg: &MetricsConfig) -> Result<(), ServiceError> {
+/// `GET /metrics` on `cfg.bind` (inside the tokio runtime), with the status page's
+/// routes when `page` is given. Returns the address bound (port 0 takes a free one).
+pub async fn install(
+    cfg: &MetricsConfig,
+    page: Option<crate::page::Page>,
+) -> Result<SocketAddr, ServiceError> {
     let bind = cfg.bind.as_str();
     let addr: SocketAddr = bind.parse().map_err(|e| bind_err(bind, e))?;
     let buckets = [
@@ -69,6 +75,11 @@ pub async fn install(cfg: &MetricsConfig) -> Result<(), ServiceError> {
         );
         r
     });
+    let router = match page {
+        Some(page) => crate::page::routes(router, page),
+        None => router,
+    };
+    let addr = listener.local_addr().map_err(|e| bind_err(bind, e))?;
     let limits = crate::http::Limits {
         max_connections: cfg.max_connections as usize,
         ..crate::http::Limits::default()
@@ -81,7 +92,7 @@ pub async fn install(cfg: &MetricsConfig) -> Result<(), ServiceError> {
         tokio_util::sync::CancellationToken::new(),
     ));
     tracing::info!(bind = %addr, max_connections = cfg.max_connections, "Prometheus metrics on http://{addr}/metrics");
-    Ok(())
+    Ok(addr)
 }
 
 /// Help text and units of every metric (Prometheus `# HELP`).
@@ -126,7 +137,24 @@ pub fn describe() {
     describe_counter!(
         "compgate_nc_jobs_total",
         Unit::Count,
-        "NC jobs by axis and result (ok, failed)"
+        "NC jobs by axis and result (ok, failed, shadow: computed in shadow mode, not sent)"
+    );
+    describe_gauge!(
+        "compgate_axis_shadow",
+        Unit::Count,
+        "1 when the axis runs in shadow mode: it computes and records, never writes the NC"
+    );
+    describe_gauge!(
+        "compgate_axis_shadow_sd43900_mm",
+        "Shadow mode: SD43900 in mm the axis would have written last"
+    );
+    describe_gauge!(
+        "compgate_axis_shadow_sd43910",
+        "Shadow mode: SD43910 the axis would have written last"
+    );
+    describe_gauge!(
+        "compgate_axis_shadow_sd43920_mm",
+        "Shadow mode: SD43920 in mm the axis would have written last"
     );
     describe_histogram!(
         "compgate_cycle_seconds",
@@ -228,6 +256,14 @@ impl Observer for MetricsObserver {
         }
     }
 
+    fn on_shadow(&mut self, axis: &str, params: &CompParams) {
+        counter!("compgate_nc_jobs_total", "axis" => axis.to_string(), "result" => "shadow")
+            .increment(1);
+        gauge!("compgate_axis_shadow_sd43900_mm", "axis" => axis.to_string()).set(params.k0_mm);
+        gauge!("compgate_axis_shadow_sd43910", "axis" => axis.to_string()).set(params.tan_beta);
+        gauge!("compgate_axis_shadow_sd43920_mm", "axis" => axis.to_string()).set(params.p0_mm);
+    }
+
     fn on_status(&mut self, status: &Status) {
         // The channel gauges once per status interval, from the snapshot: set per
         // sample they were a tenth of the gateway's CPU at 100k points/s (two atomic
@@ -273,6 +309,11 @@ impl Observer for MetricsObserver {
                 if let Some(p) = &a.written {
                     set_params(&a.name, p);
                 }
+                gauge!("compgate_axis_shadow", "axis" => a.name.clone()).set(if a.shadow {
+                    1.0
+                } else {
+                    0.0
+                });
             }
         }
         if let Some(stats) = &self.recorder {
@@ -317,7 +358,7 @@ mod tests {
             ..MetricsConfig::default()
         };
         assert_eq!(
-            install(&cfg).await,
+            install(&cfg, None).await,
             Err(ServiceError::MetricsBind {
                 bind: "localhost".into(),
                 message: "invalid socket address syntax".into(),

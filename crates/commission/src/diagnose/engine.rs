@@ -316,7 +316,9 @@ fn search_log(lo: f64, hi: f64, n: usize, f: &mut dyn FnMut(f64) -> f64) -> (f64
 }
 
 /// Range of periods a position series can resolve: from three times the typical
-/// spacing of distinct positions (or 1/500 of the span) up to the span.
+/// spacing of distinct positions up to the span. The lower end comes from the
+/// sampling alone: a fixed fraction of the span (it was span/500) lands on common
+/// screw pitches (8 mm on a 4 m axis, 5 mm on 2.5 m) and rejects them as "at the edge".
 pub fn period_range(d: &Data) -> Option<(f64, f64)> {
     let span = d.pos_max_mm - d.pos_min_mm;
     if span <= 0.0 {
@@ -336,7 +338,7 @@ pub fn period_range(d: &Data) -> Option<(f64, f64)> {
     let mut sorted = gaps.clone();
     sorted.sort_by(f64::total_cmp);
     let typical = sorted[sorted.len() / 2];
-    let lo = (3.0 * typical).max(span / 500.0);
+    let lo = 3.0 * typical;
     (lo < span / 3.0).then_some((lo, span))
 }
 
@@ -345,7 +347,9 @@ pub fn period_range(d: &Data) -> Option<(f64, f64)> {
 /// maxima only.
 pub fn periodogram(d: &Data, r: &[f64], range: (f64, f64)) -> Vec<(f64, f64)> {
     let span = d.pos_max_mm - d.pos_min_mm;
-    let nb = 4096usize;
+    // Bins an eighth of the shortest period wide (at least 4096 over the span), so the
+    // binning never blurs the periods searched.
+    let nb = ((8.0 * span / range.0).ceil() as usize).clamp(4096, 1 << 17);
     let mut sum = vec![0.0; nb];
     let mut cnt = vec![0.0; nb];
     for (p, ri) in d.pos_mm.iter().zip(r) {

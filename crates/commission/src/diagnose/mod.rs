@@ -474,9 +474,15 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
         let (ev, cols, mean) = evs[best].clone();
         let mut ambiguous_with: Vec<&'static str> = Vec::new();
         for (other, _, _) in evs.iter() {
+            // A candidate that passes every test but the edge of its search range, and
+            // fits better than the one named, is as much a rival as a near tie.
+            let edge_rival = other.checks.at_edge
+                && other.checks.passes_ic
+                && other.checks.passes_cv
+                && other.checks.passes_size
+                && other.delta_ic < ev.delta_ic;
             if other.kind != ev.kind
-                && other.passes()
-                && other.delta_ic - ev.delta_ic < th.tie_ic
+                && (edge_rival || (other.passes() && other.delta_ic - ev.delta_ic < th.tie_ic))
                 && !ambiguous_with.contains(&other.kind.name())
             {
                 ambiguous_with.push(other.kind.name());
@@ -570,7 +576,31 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
 
     let final_gap = Gap::of(&r_final);
     let where_final = describe(&d, &r_final);
-    let verdict = if effects.is_empty() {
+    // The last round's candidates that pass every test but the edge of their search
+    // range: the data cannot tell such an effect apart, but it must not read as noise.
+    let edge_rivals: Vec<&CandidateReport> = rounds
+        .last()
+        .map(|r| {
+            r.candidates
+                .iter()
+                .filter(|c| {
+                    let k = &c.checks;
+                    k.at_edge && k.passes_ic && k.passes_cv && k.passes_size
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    let verdict = if let (true, Some(c)) = (effects.is_empty(), edge_rivals.first()) {
+        format!(
+            "no effect named, but {} fits better (residual RMS {:.3} -> {:.3} um) with its {} \
+             at the edge of the range the data resolves ({:.4}); measure with finer steps to tell",
+            c.name,
+            c.rms_before_um,
+            c.rms_after_um,
+            c.param_name.unwrap_or("parameter"),
+            c.param.unwrap_or(f64::NAN),
+        )
+    } else if effects.is_empty() {
         format!(
             "no missing effect: the baseline explains the data to within its noise (residual RMS {:.3} um)",
             baseline.rms_um

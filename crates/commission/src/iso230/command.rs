@@ -4,7 +4,9 @@ use std::path::PathBuf;
 
 use compgate_core::measure::Measurements;
 
-use super::{evaluate, report, Iso230Error};
+use crate::args::check_f64;
+
+use super::{evaluate_grouped, report, Grouping, Iso230Error};
 
 /// `compgate iso230` arguments.
 #[derive(Debug, Clone, clap::Args)]
@@ -12,11 +14,36 @@ pub struct Iso230Args {
     /// Measured-error CSV (t_s,pos_mm,err_um,T_...; dir recommended).
     #[arg(long)]
     pub data: PathBuf,
+    /// The nominal target positions, mm, comma-separated; each row is taken by the
+    /// nearest within the tolerance. Default: targets found by clustering.
+    #[arg(long, value_delimiter = ',')]
+    pub targets: Vec<f64>,
+    /// How far a recorded position may lie from its target (with --targets) or from
+    /// its neighbour in the same cluster (without), mm.
+    #[arg(long, default_value_t = super::DEFAULT_TOLERANCE_MM)]
+    pub target_tolerance_mm: f64,
 }
 
 /// Runs the command.
 pub fn run(args: &Iso230Args) -> Result<String, Iso230Error> {
+    // Checked before the file is read: a bad flag is the user's first fix.
+    let grouping = Grouping {
+        targets_mm: args
+            .targets
+            .iter()
+            .map(|&t| check_f64("--targets", t, -1e9, 1e9, "mm"))
+            .collect::<Result<_, _>>()?,
+        tolerance_mm: check_f64(
+            "--target-tolerance-mm",
+            args.target_tolerance_mm,
+            1e-9,
+            1e3,
+            "mm",
+        )?,
+    };
     let m = Measurements::read_path(&args.data)
         .map_err(|e| Iso230Error::Data(args.data.display().to_string(), e))?;
-    Ok(report(&evaluate(&m.pos_mm, &m.dir, &m.err_um)?))
+    Ok(report(&evaluate_grouped(
+        &m.pos_mm, &m.dir, &m.err_um, &grouping,
+    )?))
 }

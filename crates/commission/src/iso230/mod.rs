@@ -3,7 +3,13 @@
 //! Input is the measured-error CSV ([`compgate_core::measure`]). How rows map to the
 //! standard's terms:
 //!
-//! - a **target position** P_i is a distinct `pos_mm` value (to 1 um);
+//! - a **target position** P_i is a nominal position: either one of a given target
+//!   list, each row taken by the nearest listed target within the tolerance, or a
+//!   cluster of `pos_mm` values (sorted positions whose neighbours lie within the
+//!   tolerance, default [`DEFAULT_TOLERANCE_MM`], form one target; its nominal is
+//!   their mean). Recorded positions jitter by a few tenths of a micrometre, so a
+//!   target is not an exact value; a cluster wider than the tolerance is refused
+//!   rather than guessed at;
 //! - the **direction** is the row's `dir` (+1 approached upwards, -1 downwards;
 //!   without the column, the direction of the last move);
 //! - the **runs** j = 1..n of a target in a direction are its approaches in that
@@ -40,6 +46,30 @@ pub use report::report;
 /// Runs the standard asks for, each way per target.
 pub const RUNS_REQUIRED: usize = 5;
 
+/// How far a recorded position may lie from its target by default, mm: well above
+/// the jitter of a recorded commanded position (tenths of a micrometre), well below
+/// any target spacing ISO 230-2 uses (millimetres and more).
+pub const DEFAULT_TOLERANCE_MM: f64 = 0.01;
+
+/// How rows are grouped into target positions.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Grouping {
+    /// The nominal targets, mm; empty: found by clustering.
+    pub targets_mm: Vec<f64>,
+    /// How far a row's position may lie from its target (or, clustering, from its
+    /// neighbour), mm.
+    pub tolerance_mm: f64,
+}
+
+impl Default for Grouping {
+    fn default() -> Self {
+        Self {
+            targets_mm: Vec::new(),
+            tolerance_mm: DEFAULT_TOLERANCE_MM,
+        }
+    }
+}
+
 /// Errors of the evaluation.
 #[derive(Debug, Error)]
 pub enum Iso230Error {
@@ -57,6 +87,31 @@ pub enum Iso230Error {
     NoDirection { row: usize },
     #[error("fewer than 2 target positions")]
     TooFewTargets,
+    #[error(
+        "row {row}: position {pos_mm} mm is {off_mm:.6} mm from the nearest target \
+         {target_mm} mm, beyond the tolerance of {tolerance_mm} mm"
+    )]
+    OffTarget {
+        row: usize,
+        pos_mm: f64,
+        target_mm: f64,
+        off_mm: f64,
+        tolerance_mm: f64,
+    },
+    #[error(
+        "positions {from_mm} mm to {to_mm} mm chain together within the tolerance of \
+         {tolerance_mm} mm but span more than it: give the targets (--targets) or a \
+         smaller tolerance"
+    )]
+    AmbiguousTarget {
+        from_mm: f64,
+        to_mm: f64,
+        tolerance_mm: f64,
+    },
+    #[error("target tolerance {0} mm: give a finite value above 0")]
+    BadTolerance(f64),
+    #[error(transparent)]
+    Arg(#[from] crate::args::ArgError),
 }
 
 /// One target position's figures, um.
@@ -115,39 +170,103 @@ fn min(it: impl Iterator<Item = f64>) -> f64 {
     it.fold(f64::INFINITY, f64::min)
 }
 
-/// `pos_mm` rounded to 1 um; beyond 2^52 um an f64 has no fraction left to round.
-fn round_to_um(pos_mm: f64) -> f64 {
-    let um = pos_mm * 1000.0;
-    if um.abs() < 4.5e15 {
-        um.round() / 1000.0
-    } else {
-        pos_mm
+/// The target index of every row, and the targets' nominal positions (ascending).
+fn assign_targets(pos_mm: &[f64], g: &Grouping) -> Result<(Vec<usize>, Vec<f64>), Iso230Error> {
+    let tol = g.tolerance_mm;
+    if !(tol.is_finite() && tol > 0.0) {
+        return Err(Iso230Error::BadTolerance(tol));
     }
+    if !g.targets_mm.is_empty() {
+        let mut targets = g.targets_mm.clone();
+        targets.sort_by(f64::total_cmp);
+        targets.dedup();
+        let index = pos_mm
+            .iter()
+            .enumerate()
+            .map(|(row, &p)| {
+                let (i, off) = targets
+                    .iter()
+                    .map(|t| (p - t).abs())
+                    .enumerate()
+                    .min_by(|a, b| a.1.total_cmp(&b.1))
+                    .unwrap_or((0, f64::INFINITY));
+                if off <= tol {
+                    Ok(i)
+                } else {
+                    Err(Iso230Error::OffTarget {
+                        row: row + 1,
+                        pos_mm: p,
+                        target_mm: targets.get(i).copied().unwrap_or(f64::NAN),
+                        off_mm: off,
+                        tolerance_mm: tol,
+                    })
+                }
+            })
+            .collect::<Result<_, _>>()?;
+        return Ok((index, targets));
+    }
+    let mut order: Vec<usize> = (0..pos_mm.len()).collect();
+    order.sort_by(|&a, &b| pos_mm[a].total_cmp(&pos_mm[b]));
+    let mut index = vec![0; pos_mm.len()];
+    let mut nominal = Vec::new();
+    let mut cluster: Vec<usize> = Vec::new();
+    let mut close = |cluster: &mut Vec<usize>, nominal: &mut Vec<f64>| {
+        let (from, to) = (pos_mm[cluster[0]], pos_mm[cluster[cluster.len() - 1]]);
+        if to - from > tol {
+            return Err(Iso230Error::AmbiguousTarget {
+                from_mm: from,
+                to_mm: to,
+                tolerance_mm: tol,
+            });
+        }
+        for &r in cluster.iter() {
+            index[r] = nominal.len();
+        }
+        let mean = cluster.iter().map(|&r| pos_mm[r]).sum::<f64>() / cluster.len() as f64;
+        // An exact target stays exact (no 1e-13 residue from the mean's rounding).
+        nominal.push(if from == to { from } else { mean });
+        cluster.clear();
+        Ok(())
+    };
+    for &r in &order {
+        if let Some(&last) = cluster.last() {
+            if pos_mm[r] - pos_mm[last] > tol {
+                close(&mut cluster, &mut nominal)?;
+            }
+        }
+        cluster.push(r);
+    }
+    if !cluster.is_empty() {
+        close(&mut cluster, &mut nominal)?;
+    }
+    Ok((index, nominal))
 }
 
-/// A key ordering f64 values like `f64::total_cmp` (sign-magnitude bits made
-/// two's-complement), so that every value keeps its own group.
-fn total_order_key(v: f64) -> i64 {
-    let bits = v.to_bits() as i64;
-    bits ^ ((((bits >> 63) as u64) >> 1) as i64)
-}
-
-/// Evaluates rows of position, direction (+1/-1) and deviation (um).
+/// Evaluates rows of position, direction (+1/-1) and deviation (um), targets found by
+/// clustering with the default tolerance.
 pub fn evaluate(pos_mm: &[f64], dir: &[i8], err_um: &[f64]) -> Result<Iso230, Iso230Error> {
-    // Group by target (to 1 um) and direction, keeping file order = run order.
-    // Keyed by the target rounded to 1 um, as f64 bits in total order: an `as i64`
-    // cast saturated, so a 1e308 target printed as 9223372036854776 mm.
-    let mut groups: std::collections::BTreeMap<i64, (f64, Vec<f64>, Vec<f64>)> = Default::default();
-    for (row, ((p, d), e)) in pos_mm.iter().zip(dir).zip(err_um).enumerate() {
-        let target_mm = round_to_um(*p);
-        let g =
-            groups
-                .entry(total_order_key(target_mm))
-                .or_insert((target_mm, Vec::new(), Vec::new()));
-        let g = (&mut g.1, &mut g.2);
+    evaluate_grouped(pos_mm, dir, err_um, &Grouping::default())
+}
+
+/// Evaluates rows of position, direction (+1/-1) and deviation (um), grouped into
+/// targets as `grouping` says.
+pub fn evaluate_grouped(
+    pos_mm: &[f64],
+    dir: &[i8],
+    err_um: &[f64],
+    grouping: &Grouping,
+) -> Result<Iso230, Iso230Error> {
+    let (index, nominal) = assign_targets(pos_mm, grouping)?;
+    // Per target and direction, in file order = run order.
+    let mut groups: Vec<(f64, Vec<f64>, Vec<f64>)> = nominal
+        .iter()
+        .map(|&p| (p, Vec::new(), Vec::new()))
+        .collect();
+    for (row, ((&i, d), e)) in index.iter().zip(dir).zip(err_um).enumerate() {
+        let g = &mut groups[i];
         match d {
-            1 => g.0.push(*e),
-            -1 => g.1.push(*e),
+            1 => g.1.push(*e),
+            -1 => g.2.push(*e),
             _ => return Err(Iso230Error::NoDirection { row: row + 1 }),
         }
     }
@@ -155,7 +274,7 @@ pub fn evaluate(pos_mm: &[f64], dir: &[i8], err_um: &[f64]) -> Result<Iso230, Is
         return Err(Iso230Error::TooFewTargets);
     }
     let mut targets = Vec::with_capacity(groups.len());
-    for (pos_mm, up, down) in groups.into_values() {
+    for (pos_mm, up, down) in groups {
         for (v, dir) in [(&up, "positive"), (&down, "negative")] {
             if v.len() < 2 {
                 return Err(Iso230Error::TooFewRuns {
@@ -234,10 +353,6 @@ mod tests {
             e.starts_with("target 1000000000000000000000000000000 mm has 1 run(s)"),
             "{e}"
         );
-        assert_eq!(round_to_um(1e308), 1e308);
-        assert_eq!(round_to_um(12.3456), 12.346);
-        assert!(total_order_key(-1.0) < total_order_key(0.0));
-        assert!(total_order_key(1.0) < total_order_key(1e308));
     }
 
     fn close(a: f64, b: f64) -> bool {
@@ -347,7 +462,12 @@ mod tests {
             }
         }
         std::fs::write(&path, csv).unwrap();
-        let text = run(&Iso230Args { data: path.clone() }).unwrap();
+        let text = run(&Iso230Args {
+            data: path.clone(),
+            targets: Vec::new(),
+            target_tolerance_mm: DEFAULT_TOLERANCE_MM,
+        })
+        .unwrap();
         assert!(
             text.contains("| A accuracy | 4.000 | 11.000 | 11.000 |"),
             "{text}"
@@ -357,8 +477,107 @@ mod tests {
             "{text}"
         );
         std::fs::write(&path, "t_s,pos_mm,dir,err_um,T_a\n0,0,1,1,20\n1,0,2,1,20\n").unwrap();
-        let e = run(&Iso230Args { data: path }).unwrap_err().to_string();
+        let e = run(&Iso230Args {
+            data: path,
+            targets: Vec::new(),
+            target_tolerance_mm: DEFAULT_TOLERANCE_MM,
+        })
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("runs.csv: line 3, column `dir`"), "{e}");
+    }
+
+    /// Five bidirectional runs over targets 0, 600.0005 and 1200 mm, every recorded
+    /// position off its target by a jitter of up to `jitter_um`.
+    fn jittered_runs(jitter_um: f64) -> (Vec<f64>, Vec<i8>, Vec<f64>) {
+        let (mut pos, mut dir, mut err) = (Vec::new(), Vec::new(), Vec::new());
+        let mut k = 0.0_f64;
+        for run in 0..5 {
+            for (p, d) in [
+                (0.0, 1),
+                (600.0005, 1),
+                (1200.0, 1),
+                (1200.0, -1),
+                (600.0005, -1),
+                (0.0, -1),
+            ] {
+                // A deterministic spread over [-jitter, +jitter].
+                k += 1.0;
+                let j_mm = jitter_um * 1e-3 * (k * 0.7).sin();
+                pos.push(p + j_mm);
+                dir.push(d);
+                err.push(f64::from(d) * 1.5 + f64::from(run));
+            }
+        }
+        (pos, dir, err)
+    }
+
+    /// Rounding to 1 um split 600.0005 mm with +-0.1 um jitter into two targets of one
+    /// run each, and refused +-2 um jitter.
+    #[test]
+    fn jittered_positions_group_by_nominal_target() {
+        for jitter_um in [0.0, 0.1, 2.0] {
+            let (pos, dir, err) = jittered_runs(jitter_um);
+            let r = evaluate(&pos, &dir, &err).unwrap_or_else(|e| panic!("{jitter_um} um: {e}"));
+            assert_eq!(r.targets.len(), 3, "{jitter_um} um");
+            for t in &r.targets {
+                assert_eq!((t.runs_up, t.runs_down), (5, 5), "{jitter_um} um");
+            }
+            assert!(
+                (r.targets[1].pos_mm - 600.0005).abs() < 2e-3,
+                "{:?}",
+                r.targets[1]
+            );
+            // The runs differ by 1 um each: s = sqrt(2.5), reversal 3 um everywhere.
+            assert!(close(r.b_um, 3.0) && close(r.targets[0].s_up_um, 2.5_f64.sqrt()));
+            let listed = Grouping {
+                targets_mm: vec![1200.0, 0.0, 600.0005],
+                tolerance_mm: 0.005,
+            };
+            assert_eq!(
+                evaluate_grouped(&pos, &dir, &err, &listed).unwrap().targets,
+                r.targets
+                    .iter()
+                    .enumerate()
+                    .map(|(i, t)| Target {
+                        pos_mm: [0.0, 600.0005, 1200.0][i],
+                        ..t.clone()
+                    })
+                    .collect::<Vec<_>>()
+            );
+        }
+    }
+
+    #[test]
+    fn refuses_rows_off_every_target_and_chained_clusters() {
+        let (pos, dir, err) = jittered_runs(2.0);
+        let listed = Grouping {
+            targets_mm: vec![0.0, 600.0, 1200.0],
+            tolerance_mm: 0.0001,
+        };
+        let e = evaluate_grouped(&pos, &dir, &err, &listed)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("row 1: position") && e.contains("beyond the tolerance of 0.0001 mm"),
+            "{e}"
+        );
+        // 0, 0.008, 0.016 mm: each within 0.01 mm of the next, 0.016 mm end to end.
+        let e = evaluate(&[0.0, 0.008, 0.016, 5.0], &[1, 1, 1, 1], &[0.0; 4])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("positions 0 mm to 0.016 mm chain together"),
+            "{e}"
+        );
+        let bad = Grouping {
+            targets_mm: vec![],
+            tolerance_mm: f64::NAN,
+        };
+        assert!(matches!(
+            evaluate_grouped(&pos, &dir, &err, &bad),
+            Err(Iso230Error::BadTolerance(_))
+        ));
     }
 
     #[test]

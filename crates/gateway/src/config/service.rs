@@ -90,8 +90,10 @@ fn default_retention_interval_s() -> f64 {
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct MetricsConfig {
-    /// `host:port` to listen on. Default `127.0.0.1:9464`; at most 300 characters (localhost only; expose it
-    /// further on purpose, e.g. `0.0.0.0:9464` behind the plant firewall).
+    /// `host:port` the HTTP listener (`/metrics` and the status page) listens on.
+    /// Default `127.0.0.1:9464`; at most 300 characters (localhost only; expose it
+    /// further on purpose, e.g. `0.0.0.0:9464` behind the plant firewall). Port 0
+    /// takes a free port, logged at start.
     #[serde(default = "default_metrics_bind")]
     #[schemars(length(max = 300))]
     pub bind: String,
@@ -103,6 +105,16 @@ pub struct MetricsConfig {
     /// of descriptors.
     #[serde(default = "default_metrics_max_connections")]
     pub max_connections: u32,
+    /// Serve the live status page on the same listener: `GET /` (devices, channels
+    /// with trends, axes, NC, last NC jobs; read-only, no internet needed) and
+    /// `GET /api/status` (the same as JSON). Default true.
+    #[serde(default = "default_status_page")]
+    pub status_page: bool,
+    /// Seconds of history the status page's channel trends show. Default 300;
+    /// 10..=3600.
+    #[serde(default = "default_trend_s")]
+    #[schemars(range(min = 10.0, max = 3600.0))]
+    pub trend_s: f64,
 }
 
 impl Default for MetricsConfig {
@@ -110,8 +122,18 @@ impl Default for MetricsConfig {
         MetricsConfig {
             bind: default_metrics_bind(),
             max_connections: default_metrics_max_connections(),
+            status_page: default_status_page(),
+            trend_s: default_trend_s(),
         }
     }
+}
+
+fn default_status_page() -> bool {
+    true
+}
+
+fn default_trend_s() -> f64 {
+    300.0
 }
 
 /// The largest `metrics.max_connections`.
@@ -230,6 +252,12 @@ pub(super) fn validate_service(
                     "`{}` is not an `ip:port` address, e.g. `127.0.0.1:9464`",
                     m.bind
                 ),
+            );
+        }
+        if !(m.trend_s.is_finite() && (10.0..=3600.0).contains(&m.trend_s)) {
+            problem(
+                "metrics.trend_s",
+                format!("{} is not within 10..=3600 seconds", m.trend_s),
             );
         }
         if !(1..=METRICS_MAX_CONNECTIONS).contains(&m.max_connections) {
