@@ -281,9 +281,9 @@ impl Page {
 
 /// Keeps `page` up to date from `rx` until the gateway's status sender is gone:
 /// the trends are extended here, once per published status, never in the control
-/// loop. The JSON is built only when a browser asks: built every tick it cost the
-/// gateway a third of its CPU at 10k points/s (1000 channels with their trends),
-/// with nobody looking.
+/// loop. The JSON is built only when a browser asks: built every tick, with nobody
+/// looking, it took the gateway from 0.52 % to 1.16 % of one core at 10k points/s
+/// (1000 channels with their trends; scale benchmark).
 pub async fn track(
     mut rx: watch::Receiver<Status>,
     page: Page,
