@@ -40,13 +40,15 @@ fn main() -> ExitCode {
     };
     let mut runtime = tokio::runtime::Builder::new_multi_thread();
     if matches!(command, Command::Run { .. }) {
-        // The service does little work in many small wake-ups (8 devices at 10 Hz:
-        // a timer and a reply each). On one worker they follow each other on one
-        // thread; with a worker per core they also wake idle workers to steal work,
-        // which cost a fifth of the soak's CPU (1.60 % -> 1.35 % of one core).
+        // Both settings stay because the scale benchmark shows a gain at its load
+        // points (docs/benchmarks.md, two rounds of each combination side by side).
+        // One malloc arena (set before any thread exists) keeps RSS at 24.8-26.5 MB
+        // at 100k points/s instead of 30.2-31.2 MB, and 117 MB instead of 145-154 MB
+        // at 1M, and it stops the soak's RSS creep (`compgate_service::heap::
+        // use_one_arena`); it costs about 0.3 % of one core at 100k points/s. With
+        // it, one runtime worker takes 2.67-2.77 % of one core at 100k points/s
+        // where a worker per core takes 3.25-3.29 % (the recorder has its own thread).
         runtime.worker_threads(1);
-        // Before any thread exists: per-thread malloc arenas made the service's RSS
-        // creep upward with a flat live heap (see `compgate_service::heap::use_one_arena`).
         compgate_service::heap::use_one_arena();
     }
     match runtime.enable_all().build() {

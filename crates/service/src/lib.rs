@@ -190,8 +190,10 @@ pub async fn run(path: &Path, mut cfg: Config, opts: RunOptions) -> Result<(), S
         Some(r) => Some(Recorder::start(r)?),
         None => None,
     };
-    if let Some(r) = &recorder {
-        observers.push(Box::new(r.observer()));
+    if let (Some(r), Some(c)) = (&recorder, &cfg.recorder) {
+        observers.push(Box::new(
+            r.observer().with_interval(config::secs(c.interval_s)),
+        ));
     }
     let mut publisher = None;
     if let (Some(m), Some(r)) = (&cfg.mqtt, &recorder) {

@@ -23,6 +23,13 @@ pub struct RecorderConfig {
     #[serde(default = "default_commit_interval_s")]
     #[schemars(range(min = 0.001, max = 1.0))]
     pub commit_interval_s: f64,
+    /// Seconds between the recorded poll cycles of one device: a cycle is recorded
+    /// when this long has passed since the device's last recorded one, so a device
+    /// polled every 10 ms can be kept once a second (0 = every cycle). Jobs and NC
+    /// positions are always recorded. Default 0; 0..=3600.
+    #[serde(default)]
+    #[schemars(range(min = 0.0, max = 3600.0))]
+    pub interval_s: f64,
     /// Poll cycles the queue between the control loop and the writer holds. When it
     /// is full, cycles are dropped, counted and logged; the loop never waits. Default
     /// 4096; 1..=1000000.
@@ -51,6 +58,7 @@ impl Default for RecorderConfig {
         RecorderConfig {
             path: default_recorder_path(),
             commit_interval_s: default_commit_interval_s(),
+            interval_s: 0.0,
             queue_cycles: default_queue_cycles(),
             retention_days: default_retention_days(),
             max_size_mb: default_max_size_mb(),
@@ -215,6 +223,12 @@ pub(super) fn validate_service(
             problem(
                 "recorder.commit_interval_s",
                 format!("{} is not within 0 < s <= 1 seconds", r.commit_interval_s),
+            );
+        }
+        if !(r.interval_s.is_finite() && (0.0..=3600.0).contains(&r.interval_s)) {
+            problem(
+                "recorder.interval_s",
+                format!("{} is not within 0..=3600 seconds", r.interval_s),
             );
         }
         if r.queue_cycles == 0 {

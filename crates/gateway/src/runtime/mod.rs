@@ -491,6 +491,51 @@ impl Running {
     }
 }
 
+/// How long past its due time an axis waits for a sample of its inputs before the
+/// timer decides without one (at least its own update interval).
+const DECIDE_FALLBACK: Duration = Duration::from_secs(1);
+
+/// Runs axis `i`'s decision at `at` and hands a write to its NC task (one job in
+/// flight per axis), or, in shadow mode, only reports it.
+fn decide_axis(
+    state: &mut Running,
+    i: usize,
+    at: Instant,
+    next_update: &mut [Instant],
+    in_flight: &mut [bool],
+    nc_tx: &[mpsc::Sender<NcCommand>],
+    observer: &mut dyn Observer,
+) {
+    let pipeline = &mut state.pipeline;
+    next_update[i] = at + pipeline.axes[i].update_interval;
+    if !state.baselined[i] || in_flight[i] {
+        return;
+    }
+    let decision = pipeline.decide(i, at);
+    let axis = &pipeline.axes[i];
+    let (shadow, module) = (axis.shadow, axis.nc_module);
+    state.status.axes[i].decision = describe(&decision, &pipeline.channel_names, &axis.inputs);
+    let params = match decision {
+        Decision::Write { params, .. } | Decision::Ramp { params, .. } => params,
+        Decision::WithinDeadband | Decision::Hold { .. } => return,
+    };
+    if shadow {
+        state.on_shadow(i, params, observer);
+        return;
+    }
+    let job = Job::thermal_allowed(&params, &state.pipeline.axes[i].nc_write);
+    if nc_tx[module]
+        .try_send(NcCommand::Write {
+            axis: i,
+            job,
+            params,
+        })
+        .is_ok()
+    {
+        in_flight[i] = true;
+    }
+}
+
 async fn next_reload(reload: &mut Option<mpsc::Receiver<Config>>) -> Config {
     if let Some(rx) = reload {
         if let Some(cfg) = rx.recv().await {
@@ -552,6 +597,8 @@ async fn generation(
         .map(|a| now + a.update_interval)
         .collect();
     let mut in_flight = vec![false; state.pipeline.axes.len()];
+    // Per device: the axes its channels feed, learnt from its first sample.
+    let mut feeds: Vec<Option<Vec<usize>>> = Vec::new();
     let mut status_tick = tokio::time::interval(state.status_interval);
     status_tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
     // Its own period, whatever the status interval: systemd's watchdog needs pings
@@ -566,12 +613,42 @@ async fn generation(
     let observer = &mut *hooks.observer;
 
     loop {
-        let next = next_update.iter().copied().min().unwrap_or(far);
+        // An axis decides when a sample of its inputs arrives and its interval is up,
+        // so a change reaches the NC one poll after it happens. The timer only stands
+        // in when no input sample came for a while past the due time (an input device
+        // that stopped sending), so hold and ramp still go on.
+        let fallback = state
+            .pipeline
+            .axes
+            .iter()
+            .zip(&next_update)
+            .map(|(a, &due)| due + a.update_interval.max(DECIDE_FALLBACK))
+            .min()
+            .unwrap_or(far);
         tokio::select! {
             sample = sample_rx.recv() => {
                 let Some(sample) = sample else { break };
                 state.on_sample(&sample);
                 observer.on_sample(&state.readings);
+                if feeds.len() <= sample.device {
+                    feeds.resize(sample.device + 1, None);
+                }
+                let axes = feeds[sample.device].get_or_insert_with(|| {
+                    state
+                        .pipeline
+                        .axes
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, a)| sample.values.iter().any(|(ch, _)| a.inputs.contains(ch)))
+                        .map(|(i, _)| i)
+                        .collect()
+                });
+                let at = Instant::now();
+                for &i in axes.iter() {
+                    if next_update[i] <= at {
+                        decide_axis(state, i, at, &mut next_update, &mut in_flight, &nc_tx, observer);
+                    }
+                }
             }
             event = event_rx.recv(), if events_open => {
                 // No NC modules (a monitoring-only config): the channel closes at once.
@@ -581,32 +658,12 @@ async fn generation(
                 };
                 state.on_event(event, &mut in_flight, observer);
             }
-            _ = tokio::time::sleep_until(next), if next < far => {
+            _ = tokio::time::sleep_until(fallback), if fallback < far => {
                 let at = Instant::now();
                 for i in 0..state.pipeline.axes.len() {
-                    if next_update[i] > at {
-                        continue;
-                    }
-                    next_update[i] = at + state.pipeline.axes[i].update_interval;
-                    if !state.baselined[i] || in_flight[i] {
-                        continue;
-                    }
-                    let pipeline = &mut state.pipeline;
-                    let decision = pipeline.decide(i, at);
-                    let axis = &pipeline.axes[i];
-                    let (shadow, module) = (axis.shadow, axis.nc_module);
-                    state.status.axes[i].decision = describe(&decision, &pipeline.channel_names, &axis.inputs);
-                    let params = match decision {
-                        Decision::Write { params, .. } | Decision::Ramp { params, .. } => params,
-                        Decision::WithinDeadband | Decision::Hold { .. } => continue,
-                    };
-                    if shadow {
-                        state.on_shadow(i, params, observer);
-                        continue;
-                    }
-                    let job = Job::thermal_allowed(&params, &state.pipeline.axes[i].nc_write);
-                    if nc_tx[module].try_send(NcCommand::Write { axis: i, job, params }).is_ok() {
-                        in_flight[i] = true;
+                    let a = &state.pipeline.axes[i];
+                    if next_update[i] + a.update_interval.max(DECIDE_FALLBACK) <= at {
+                        decide_axis(state, i, at, &mut next_update, &mut in_flight, &nc_tx, observer);
                     }
                 }
             }

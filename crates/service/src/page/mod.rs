@@ -248,40 +248,66 @@ pub fn to_json(s: &Status, history: &History, interval_s: f64, t_unix_ms: i64) -
     })
 }
 
-/// What the page's routes answer from: the latest `/api/status` body.
+/// What the page's routes answer from: the latest status and the trends; the
+/// `/api/status` body is built from them when asked for, at most once per status.
 #[derive(Debug, Clone, Default)]
 pub struct Page {
-    json: Arc<Mutex<Bytes>>,
+    inner: Arc<Mutex<Latest>>,
+}
+
+#[derive(Debug, Default)]
+struct Latest {
+    status: Status,
+    history: History,
+    interval_s: f64,
+    t_unix_ms: i64,
+    /// The body of this status, once built.
+    body: Option<Bytes>,
 }
 
 impl Page {
     /// The latest `/api/status` body.
     pub fn json(&self) -> Bytes {
-        self.json.lock().unwrap_or_else(|p| p.into_inner()).clone()
+        let mut l = self.inner.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(b) = &l.body {
+            return b.clone();
+        }
+        let body =
+            Bytes::from(to_json(&l.status, &l.history, l.interval_s, l.t_unix_ms).to_string());
+        l.body = Some(body.clone());
+        body
     }
 }
 
 /// Keeps `page` up to date from `rx` until the gateway's status sender is gone:
-/// trends and the JSON are built here, once per published status, never per request
-/// or in the control loop.
+/// the trends are extended here, once per published status, never in the control
+/// loop. The JSON is built only when a browser asks: built every tick, with nobody
+/// looking, it took the gateway from 0.52 % to 1.16 % of one core at 10k points/s
+/// (1000 channels with their trends; scale benchmark).
 pub async fn track(
     mut rx: watch::Receiver<Status>,
     page: Page,
     window: Duration,
     interval: Duration,
 ) {
-    let mut history = History::new(window);
+    {
+        let mut l = page.inner.lock().unwrap_or_else(|p| p.into_inner());
+        l.history = History::new(window);
+        l.interval_s = interval.as_secs_f64();
+    }
     loop {
-        let body = {
+        {
             let s = rx.borrow_and_update();
             let now = unix_ms(SystemTime::now());
+            let mut l = page.inner.lock().unwrap_or_else(|p| p.into_inner());
             // Before the first sample every channel is "no data": not a trend point.
             if s.samples > 0 {
-                history.push(&s, now);
+                l.history.push(&s, now);
             }
-            to_json(&s, &history, interval.as_secs_f64(), now).to_string()
-        };
-        *page.json.lock().unwrap_or_else(|p| p.into_inner()) = Bytes::from(body);
+            l.status.clone_from(&s);
+            l.t_unix_ms = now;
+            l.body = None;
+        }
         if rx.changed().await.is_err() {
             break;
         }

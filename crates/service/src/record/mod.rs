@@ -292,6 +292,8 @@ impl Recorder {
         RecordObserver {
             tx: self.sender(),
             clock: None,
+            interval: Duration::ZERO,
+            next_due: Vec::new(),
         }
     }
 
@@ -301,6 +303,8 @@ impl Recorder {
         RecordObserver {
             tx: self.sender(),
             clock: Some(clock),
+            interval: Duration::ZERO,
+            next_due: Vec::new(),
         }
     }
 
@@ -336,6 +340,10 @@ pub struct RecordObserver {
     tx: RecordSender,
     /// `None`: the wall clock.
     clock: Option<Clock>,
+    /// Least time between two recorded cycles of a device.
+    interval: Duration,
+    /// Per device index: when its next cycle is due to be recorded.
+    next_due: Vec<Option<Instant>>,
 }
 
 impl std::fmt::Debug for RecordObserver {
@@ -343,6 +351,7 @@ impl std::fmt::Debug for RecordObserver {
         f.debug_struct("RecordObserver")
             .field("tx", &self.tx)
             .field("clock", &self.clock.as_ref().map(|_| "simulated"))
+            .field("interval", &self.interval)
             .finish()
     }
 }
@@ -351,10 +360,45 @@ impl RecordObserver {
     fn now_unix_ms(&self) -> i64 {
         self.clock.as_ref().map_or_else(now_unix_ms, |c| c())
     }
+
+    /// Records a device's cycle at most every `interval` (zero, the default: every
+    /// cycle).
+    pub fn with_interval(mut self, interval: Duration) -> Self {
+        self.interval = interval;
+        self
+    }
+
+    /// Whether the cycle of `device` at `now` is one to record.
+    fn due(&mut self, device: usize, now: Instant) -> bool {
+        if self.interval.is_zero() {
+            return true;
+        }
+        if self.next_due.len() <= device {
+            self.next_due.resize(device + 1, None);
+        }
+        let slot = &mut self.next_due[device];
+        match *slot {
+            Some(due) if now < due => false,
+            _ => {
+                // On the grid of the first recorded cycle, so poll jitter does not
+                // stretch the spacing; a device that was away starts a new grid.
+                let next = slot.unwrap_or(now) + self.interval;
+                *slot = Some(if next <= now {
+                    now + self.interval
+                } else {
+                    next
+                });
+                true
+            }
+        }
+    }
 }
 
 impl Observer for RecordObserver {
     fn on_sample(&mut self, readings: &SampleReadings) {
+        if !self.due(readings.device, Instant::now()) {
+            return;
+        }
         let t_unix_ms = self.now_unix_ms();
         let mut rows = Vec::with_capacity(readings.channels.len());
         rows.extend(readings.channels.iter().filter_map(|c| {

@@ -101,6 +101,35 @@ fn multi_row_inserts_keep_every_reading_under_its_channel_name() {
     assert_eq!(channels, 131);
 }
 
+// A device polled every 10 ms, recorded once a second: on a grid, so poll jitter does
+// not stretch the spacing; each device on its own grid; zero records every cycle.
+#[test]
+fn the_observer_records_a_device_at_most_every_interval() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cfg = RecorderConfig {
+        path: dir.path().join("r.db").display().to_string(),
+        ..RecorderConfig::default()
+    };
+    let rec = Recorder::start(&cfg).expect("starts");
+    let mut obs = rec.observer().with_interval(Duration::from_secs(1));
+    let t0 = Instant::now();
+    let ms = |m: u64| t0 + Duration::from_millis(m);
+    let recorded: Vec<u64> = (0..300u64)
+        // Every other poll 1 ms early: 999 ms is not yet due, 1010 is.
+        .map(|k| k * 10 - u64::from(k % 2 == 0 && k > 0))
+        .filter(|&m| obs.due(0, ms(m)))
+        .collect();
+    assert_eq!(recorded, [0, 1010, 2010]);
+    assert!(obs.due(3, ms(5)), "another device has its own grid");
+    assert!(!obs.due(3, ms(900)));
+    // Back after an outage: a new grid from its first cycle.
+    assert!(obs.due(0, ms(7777)));
+    assert!(!obs.due(0, ms(8700)));
+    assert!(obs.due(0, ms(8777)));
+    let mut every = rec.observer();
+    assert!((0..5).all(|k| every.due(0, ms(k))));
+}
+
 // A database recorded before shadow mode gets the `shadow` column on open, its old
 // jobs counted as sent; shadow jobs are recorded with shadow 1 and ok 0.
 #[test]
