@@ -11,11 +11,12 @@ rustup component add rustfmt clippy >/dev/null 2>&1 || true
 
 # System tools the service tests use: systemd-analyze (unit exposure, offline) and
 # mosquitto (a real MQTT broker on loopback), promtool (package prometheus: checks a real
-# scrape of the metrics endpoint).
+# scrape of the metrics endpoint), chromium (headless: loads the live status page).
 need=()
 command -v systemd-analyze >/dev/null 2>&1 || need+=(systemd)
 command -v mosquitto >/dev/null 2>&1 || [[ -x /usr/sbin/mosquitto ]] || need+=(mosquitto)
 command -v promtool >/dev/null 2>&1 || need+=(prometheus)
+command -v chromium >/dev/null 2>&1 || need+=(chromium)
 if ((${#need[@]})); then
     echo "== installing ${need[*]}"
     if [[ $(id -u) -eq 0 ]]; then sudo=(); else sudo=(sudo); fi

@@ -28,6 +28,10 @@ pub enum Command {
         /// Configuration file (TOML).
         #[arg(long, short)]
         config: PathBuf,
+        /// Shadow mode for every axis: compute, record and publish what would be
+        /// written, never write the NC (as `gateway.shadow = true`; kept on reload).
+        #[arg(long)]
+        shadow: bool,
     },
     /// Check a configuration and print every problem with its key and file.
     Validate {
@@ -35,6 +39,11 @@ pub enum Command {
         #[arg(long, short)]
         config: PathBuf,
     },
+    /// Poll every channel once and show registers, byte orders, mA, degC and quality.
+    Probe(crate::probe::ProbeArgs),
+    /// Print the annotated example configuration or the JSON Schema of the config.
+    #[command(subcommand)]
+    Config(ConfigCommand),
     /// Write recorded operation as the measurement CSV that calibrate and diagnose read.
     Export(compgate_service::record::export::ExportArgs),
     /// Fit K0(T) and tan(beta)(T) to measured error curves and write the axis model.
@@ -52,7 +61,7 @@ pub enum Command {
     Scenario(crate::scenario::ScenarioArgs),
     /// Run the gateway against the embedded simulated plant (the default).
     #[cfg(feature = "sim")]
-    Demo,
+    Demo(DemoArgs),
     /// Run only the simulated plant on the addresses the config names.
     #[cfg(feature = "sim")]
     Sim {
@@ -62,12 +71,45 @@ pub enum Command {
     },
 }
 
+/// `compgate config ...`.
+#[derive(Debug, Subcommand)]
+pub enum ConfigCommand {
+    /// Print an example configuration with every key, annotated with its documentation
+    /// (the doc comments of the config structs): `config/annotated.toml`.
+    Example,
+    /// Print the JSON Schema (draft 2020-12) of the configuration, for TOML editors'
+    /// completion and checking.
+    Schema,
+}
+
+/// `compgate demo`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct DemoArgs {
+    /// Where the live status page (and `/metrics`) listens; port 0 takes a free port,
+    /// `off` serves none. A busy port is reported and the demo runs without the page.
+    #[arg(long, default_value = "127.0.0.1:9464")]
+    pub http: String,
+    /// Shadow mode: compute and show what would be written, never write the NC.
+    #[arg(long)]
+    pub shadow: bool,
+}
+
+impl Default for DemoArgs {
+    fn default() -> Self {
+        DemoArgs {
+            http: "127.0.0.1:9464".into(),
+            shadow: false,
+        }
+    }
+}
+
 /// The groups `compgate --help` lists the commands in.
 const GROUPS: [(&str, &[&str]); 3] = [
-    ("Service", &["run", "validate", "export"]),
+    ("Service", &["run", "validate", "config", "export"]),
     (
         "Commissioning",
         &[
+            "probe",
             "calibrate",
             "diagnose",
             "iso230",

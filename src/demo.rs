@@ -39,33 +39,47 @@ fn shutdown_on_signals() -> CancellationToken {
     token
 }
 
-/// Runs the gateway on `cfg` with the status printer until a signal.
-async fn run_gateway(cfg: &config::Config) -> Result<(), String> {
+/// Runs the gateway on `cfg` with the status printer, and the status page on `http`
+/// (unless `off`), until a signal.
+async fn run_gateway(cfg: &config::Config, http: &str) -> Result<(), String> {
     let shutdown = shutdown_on_signals();
     let (tx, rx) = watch::channel(runtime::Status::default());
-    let interval = std::time::Duration::from_secs_f64(cfg.gateway.status_interval_s);
+    let mut hooks = runtime::Hooks::default();
+    if http != "off" {
+        let m = config::MetricsConfig {
+            bind: http.to_string(),
+            ..config::MetricsConfig::default()
+        };
+        match compgate_service::http_listener(&m, &rx, cfg.gateway.status_interval()).await {
+            Ok(addr) => {
+                eprintln!("compgate demo: live status page on http://{addr}/");
+                hooks.observer = Box::new(compgate_service::metrics::MetricsObserver::new(None));
+            }
+            Err(e) => eprintln!("compgate demo: no status page ({e}); see --http"),
+        }
+    }
     let printer = tokio::spawn(status::print_loop(
         rx,
-        interval,
         std::io::stdout().is_terminal(),
         shutdown.clone(),
     ));
-    let result = runtime::run(cfg, shutdown.clone(), tx).await;
+    let result = runtime::run_with(cfg, shutdown.clone(), tx, hooks).await;
     shutdown.cancel();
     let _ = printer.await;
     result.map_err(|e| e.to_string())
 }
 
-pub async fn demo() -> Result<(), String> {
-    let cfg =
+pub async fn demo(args: &compgate::cli::DemoArgs) -> Result<(), String> {
+    let mut cfg =
         config::load_str(DEMO_CONFIG, "config/demo.toml (embedded)").map_err(|e| e.to_string())?;
+    cfg.gateway.shadow |= args.shadow;
     let plant = Plant::start(&cfg, Bind::Ephemeral)
         .await
         .map_err(|e| e.to_string())?;
     eprintln!(
         "compgate demo: simulated field module and NC axis module on loopback; Ctrl-C stops."
     );
-    run_gateway(&plant.config).await
+    run_gateway(&plant.config, &args.http).await
 }
 
 pub async fn sim(path: &std::path::Path) -> Result<(), String> {

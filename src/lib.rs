@@ -24,6 +24,7 @@
 //!
 //! Modules of this package:
 //! - [`cli`]: the command line.
+//! - [`probe`]: `compgate probe`, one poll of every channel shown in full.
 //! - `plant` (feature `sim`): the simulated plant for a config (demo, `sim`, tests) and
 //!   the simulated axis of `backlash --sim`.
 //! - `scenario` (feature `sim`): `compgate scenario`, the simulated machine's thermal
@@ -32,5 +33,6 @@
 pub mod cli;
 #[cfg(feature = "sim")]
 pub mod plant;
+pub mod probe;
 #[cfg(feature = "sim")]
 pub mod scenario;

@@ -5,7 +5,7 @@ mod demo;
 
 use std::process::ExitCode;
 
-use compgate::cli::{self, Command};
+use compgate::cli::{self, Command, ConfigCommand};
 #[cfg(feature = "sim")]
 use compgate::scenario;
 use compgate_commission::{backlash, calibrate, iso230, volumetric};
@@ -27,7 +27,9 @@ async fn run_backlash(args: &backlash::BacklashArgs) -> Result<String, backlash:
 fn main() -> ExitCode {
     let cli = cli::parse();
     #[cfg(feature = "sim")]
-    let command = cli.command.unwrap_or(Command::Demo);
+    let command = cli
+        .command
+        .unwrap_or(Command::Demo(cli::DemoArgs::default()));
     #[cfg(not(feature = "sim"))]
     let Some(command) = cli.command
     else {
@@ -38,13 +40,15 @@ fn main() -> ExitCode {
     };
     let mut runtime = tokio::runtime::Builder::new_multi_thread();
     if matches!(command, Command::Run { .. }) {
-        // The service does little work in many small wake-ups (8 devices at 10 Hz:
-        // a timer and a reply each). On one worker they follow each other on one
-        // thread; with a worker per core they also wake idle workers to steal work,
-        // which cost a fifth of the soak's CPU (1.60 % -> 1.35 % of one core).
+        // Both settings stay because the scale benchmark shows a gain at its load
+        // points (docs/benchmarks.md, two rounds of each combination side by side).
+        // One malloc arena (set before any thread exists) keeps RSS at 24.8-26.5 MB
+        // at 100k points/s instead of 30.2-31.2 MB, and 117 MB instead of 145-154 MB
+        // at 1M, and it stops the soak's RSS creep (`compgate_service::heap::
+        // use_one_arena`); it costs about 0.3 % of one core at 100k points/s. With
+        // it, one runtime worker takes 2.67-2.77 % of one core at 100k points/s
+        // where a worker per core takes 3.25-3.29 % (the recorder has its own thread).
         runtime.worker_threads(1);
-        // Before any thread exists: per-thread malloc arenas made the service's RSS
-        // creep upward with a flat live heap (see `compgate_service::heap::use_one_arena`).
         compgate_service::heap::use_one_arena();
     }
     match runtime.enable_all().build() {
@@ -58,7 +62,7 @@ fn main() -> ExitCode {
 
 async fn run(log: Option<String>, command: Command) -> ExitCode {
     #[cfg(feature = "sim")]
-    let default_log = if matches!(command, Command::Demo) {
+    let default_log = if matches!(command, Command::Demo(_)) {
         "warn"
     } else {
         "info"
@@ -69,15 +73,26 @@ async fn run(log: Option<String>, command: Command) -> ExitCode {
 
     let result = match command {
         #[cfg(feature = "sim")]
-        Command::Demo => demo::demo().await,
-        Command::Run { config: path } => match config::load(&path) {
-            Ok(cfg) => compgate_service::run(&path, cfg)
-                .await
-                .map_err(|e| e.to_string()),
+        Command::Demo(args) => demo::demo(&args).await,
+        Command::Run {
+            config: path,
+            shadow,
+        } => match config::load(&path) {
+            Ok(cfg) => {
+                for w in config::warnings(&cfg, &path.display().to_string()) {
+                    tracing::warn!(file = %w.file, key = %w.key, "{}", w.message);
+                }
+                compgate_service::run(&path, cfg, compgate_service::RunOptions { shadow })
+                    .await
+                    .map_err(|e| e.to_string())
+            }
             Err(e) => Err(e.to_string()),
         },
         Command::Validate { config: path } => match config::load(&path) {
-            Ok(_) => {
+            Ok(cfg) => {
+                for w in config::warnings(&cfg, &path.display().to_string()) {
+                    eprintln!("warning: {w}");
+                }
                 println!("{}: OK", path.display());
                 Ok(())
             }
@@ -85,6 +100,32 @@ async fn run(log: Option<String>, command: Command) -> ExitCode {
         },
         #[cfg(feature = "sim")]
         Command::Sim { config: path } => demo::sim(&path).await,
+        Command::Probe(args) => match compgate::probe::run(&args).await {
+            Ok(report) => {
+                print!("{}", report.text);
+                match report.bad.len() {
+                    0 => Ok(()),
+                    n => Err(format!(
+                        "{n} channel{} bad: {}",
+                        if n == 1 { "" } else { "s" },
+                        report.bad.join(", ")
+                    )),
+                }
+            }
+            Err(e) => Err(e),
+        },
+        Command::Config(ConfigCommand::Example) => config::example::annotated_example()
+            .map(|text| print!("{text}"))
+            .map_err(|e| e.to_string()),
+        Command::Config(ConfigCommand::Schema) => {
+            match serde_json::to_string_pretty(&config::json_schema()) {
+                Ok(text) => {
+                    println!("{text}");
+                    Ok(())
+                }
+                Err(e) => Err(e.to_string()),
+            }
+        }
         Command::Backlash(args) => match run_backlash(&args).await {
             Ok(report) => {
                 print!("{report}");

@@ -141,3 +141,64 @@ fn demo_prints_plain_lines_when_piped_and_stops_on_sigterm() {
         std::thread::sleep(Duration::from_millis(50));
     }
 }
+
+#[test]
+fn backlash_trace_file_is_analysed_offline_and_a_creeping_axis_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    // A well-damped simulated axis; its trace written with --out and read back.
+    let ok = Command::new(BIN)
+        .args(["backlash", "--sim", "--sim-backlash-um", "23", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let csv = dir.path().join("backlash_X1_trace.csv");
+    let offline = Command::new(BIN)
+        .args(["backlash", "--trace"])
+        .arg(&csv)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&offline.stdout);
+    assert!(
+        offline.status.success(),
+        "{}",
+        String::from_utf8_lossy(&offline.stderr)
+    );
+    let f: Vec<f64> = text
+        .lines()
+        .filter_map(|l| l.split_once(" F1 ").or_else(|| l.split_once(" F2 ")))
+        .map(|(_, rest)| rest.split_whitespace().next().unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(f.len(), 2, "{text}");
+    assert!(f.iter().all(|f| (f - 23.0).abs() <= 0.5), "{text}");
+    // Kv x tau = 0.4 (20 ms at Kv 20 1/s): refused with the reason, the trace kept,
+    // and the kept trace refused alike offline.
+    let creep_dir = dir.path().join("creep");
+    let creep = Command::new(BIN)
+        .args(["backlash", "--sim", "--sim-backlash-um", "50"])
+        .args(["--sim-elastic-ms", "20", "--out"])
+        .arg(&creep_dir)
+        .output()
+        .unwrap();
+    assert_eq!(creep.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&creep.stderr);
+    assert!(
+        err.contains("never both stood still") || err.contains("went back"),
+        "{err}"
+    );
+    let again = Command::new(BIN)
+        .args(["backlash", "--trace"])
+        .arg(creep_dir.join("backlash_X1_trace.csv"))
+        .output()
+        .unwrap();
+    assert_eq!(again.status.code(), Some(1));
+    let err2 = String::from_utf8_lossy(&again.stderr);
+    assert!(
+        err2.contains("never both stood still") || err2.contains("went back"),
+        "{err2}"
+    );
+}

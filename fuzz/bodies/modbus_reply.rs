@@ -161,6 +161,7 @@ pub fn run(data: &[u8]) {
             retries: 0,
             degrade_after_cycles: 1,
             max_gap_registers: 0,
+            cycle_deadline: timeout,
         };
         let mut poller = DevicePoller::new(
             0,

@@ -46,8 +46,9 @@ pub struct AxisParams {
     pub encoder_noise_mm: f64,
     /// Standard deviation of the linear scale's measurement noise, mm.
     pub scale_noise_mm: f64,
-    /// Position loop gain Kv, 1/s. Keep `kv_per_s * elastic_tau_s < 0.25` (overdamped
-    /// loop, no overshoot).
+    /// Position loop gain Kv, 1/s. Below `kv_per_s * elastic_tau_s = 0.25` the loop is
+    /// overdamped; above it the table overshoots the target and the motor creeps back
+    /// across the gap during the dwell (what the backlash test must refuse).
     pub kv_per_s: f64,
     /// Axis acceleration, mm/s^2.
     pub accel_mm_per_s2: f64,
@@ -241,6 +242,8 @@ pub struct ServoSim {
     trace_trigger_time_s: f64,
     trace_start_time_s: f64,
     trace: Vec<(f64, f64)>,
+    /// The position command at each trace sample, mm.
+    trace_command: Vec<f64>,
 }
 
 impl ServoSim {
@@ -274,6 +277,7 @@ impl ServoSim {
             trace_trigger_time_s: 0.0,
             trace_start_time_s: 0.0,
             trace: Vec::new(),
+            trace_command: Vec::new(),
         };
         sim.measure();
         sim
@@ -354,6 +358,12 @@ impl ServoSim {
     /// Recorded samples: (encoder mm, scale mm).
     pub fn trace(&self) -> &[(f64, f64)] {
         &self.trace
+    }
+
+    /// The position command (interpolator output) at each recorded sample, mm: the
+    /// third channel a control's servo trace can record.
+    pub fn trace_command(&self) -> &[f64] {
+        &self.trace_command
     }
 
     /// Machine time of the trigger, s.
@@ -443,6 +453,7 @@ impl ServoSim {
                 self.trace_period_cycles = period_cycles;
                 self.trace_target = samples;
                 self.trace.clear();
+                self.trace_command.clear();
                 self.trace_status = 0;
                 self.trace_trigger_time_s = 0.0;
                 self.trace_start_time_s = 0.0;
@@ -516,6 +527,7 @@ impl ServoSim {
     fn record_sample(&mut self) {
         if self.trace_countdown == 0 {
             self.trace.push((self.enc_meas_mm, self.scale_meas_mm));
+            self.trace_command.push(self.cmd_mm);
             self.trace_countdown = self.trace_period_cycles;
             if self.trace.len() >= self.trace_target {
                 self.trace_state = TraceState::Complete;

@@ -413,6 +413,19 @@ struct Inner {
     kill_connections: CancellationToken,
     requests_received: u64,
     requests_served: u64,
+    /// Arrival of every read request while logging is on (benchmarks).
+    request_log: Option<Vec<RequestArrival>>,
+}
+
+/// One read request as it arrived at the module: when, and which registers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RequestArrival {
+    /// Arrival time (tokio clock).
+    pub at: Instant,
+    /// First register asked for.
+    pub address: u16,
+    /// Registers asked for.
+    pub quantity: u16,
 }
 
 /// Cloneable handle of a simulated field I/O module; clones share one module.
@@ -443,6 +456,7 @@ impl FieldModule {
             kill_connections: CancellationToken::new(),
             requests_received: 0,
             requests_served: 0,
+            request_log: None,
         };
         Ok(Self {
             inner: Arc::new(Mutex::new(inner)),
@@ -526,6 +540,22 @@ impl FieldModule {
         self.lock().requests_received
     }
 
+    /// Starts logging the arrival of every read request (`true`, an empty log) or
+    /// stops it. The scale benchmark measures poll periods from the device's side
+    /// with it, so the clients under test need no instrumentation.
+    pub fn log_requests(&self, on: bool) {
+        self.lock().request_log = on.then(Vec::new);
+    }
+
+    /// The arrivals logged since the last call (or since logging started).
+    pub fn take_request_log(&self) -> Vec<RequestArrival> {
+        self.lock()
+            .request_log
+            .as_mut()
+            .map(std::mem::take)
+            .unwrap_or_default()
+    }
+
     /// Handles one request, with the communication fault applied. `Ok(None)`: no
     /// answer. `kill` ends a delayed reply early when the connection is dropped.
     async fn answer(
@@ -536,6 +566,17 @@ impl FieldModule {
         let (fault, reply) = {
             let mut inner = self.lock();
             inner.requests_received += 1;
+            if let (
+                Some(log),
+                Request::ReadInputRegisters(a, q) | Request::ReadHoldingRegisters(a, q),
+            ) = (&mut inner.request_log, request)
+            {
+                log.push(RequestArrival {
+                    at: Instant::now(),
+                    address: *a,
+                    quantity: *q,
+                });
+            }
             let fault = inner.comm_fault;
             let reply = match fault {
                 CommFault::Exception(code) => Err(code),

@@ -16,8 +16,13 @@
 //! - ball screw follows the bed plus a rise proportional to the axis load
 //!   `speed / full_speed * duty`; the motor follows ambient plus its own rise.
 //!
-//! Sensors (`ambient`, `bed`, `column`, `screw`, `motor`, and `extra` with that effect)
-//! read their node through a first-order lag with Gaussian noise.
+//! - with `spindle` (the shop plant), the spindle head follows ambient plus a rise
+//!   proportional to the spindle load.
+//!
+//! Sensors (`ambient`, `bed`, `column`, `screw`, `motor`, and `extra` and `spindle`
+//! with those effects) read their node through a first-order lag with Gaussian noise.
+//! [`Plant`] names the presets: `ideal` (exactly the straight-line model below) and
+//! `shop` (what it cannot express).
 //!
 //! # Error field
 //!
@@ -193,6 +198,22 @@ pub struct ExtraSensorParams {
     pub um_per_degc: f64,
 }
 
+/// `spindle`: the spindle head, a lump of its own heated by the spindle's load
+/// ([`Motion::spindle_load`]), seen by sensor `spindle`; its growth shifts the tool
+/// along the axis by `k0_um_per_degc * (T_spindle - ambient)` everywhere and tilts the
+/// column by `slope_um_per_m_per_degc` per K, so the shift grows along the axis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SpindleParams {
+    /// Time constant of the head, s.
+    pub tau_s: f64,
+    /// Steady rise over ambient at spindle load 1, K.
+    pub rise_degc: f64,
+    /// Shift per K of the head's rise, um/K.
+    pub k0_um_per_degc: f64,
+    /// Tilt per K of the head's rise: extra error per m of position, um/m/K.
+    pub slope_um_per_m_per_degc: f64,
+}
+
 /// Optional effects beyond the straight-line model; `None` = off.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Effects {
@@ -208,6 +229,8 @@ pub struct Effects {
     pub motion_heating: Option<MotionHeatingParams>,
     /// `extra_sensor`.
     pub extra_sensor: Option<ExtraSensorParams>,
+    /// The spindle head (not a diagnose effect name: physics of the shop plant).
+    pub spindle: Option<SpindleParams>,
 }
 
 /// An effect name that [`Effects::from_names`] does not know.
@@ -267,8 +290,18 @@ impl Effects {
         Ok(e)
     }
 
-    /// Names of the effects that are on, in [`Self::NAMES`] order.
+    /// Names of the effects that are on, in [`Self::NAMES`] order, then `spindle`
+    /// (the shop plant's head, no diagnose effect of its own).
     pub fn names(&self) -> Vec<&'static str> {
+        let mut names = self.diagnose_names();
+        if self.spindle.is_some() {
+            names.push("spindle");
+        }
+        names
+    }
+
+    /// Names of the diagnose effects that are on, in [`Self::NAMES`] order.
+    pub fn diagnose_names(&self) -> Vec<&'static str> {
         let on = [
             self.thermal_lag.is_some(),
             self.nonlinear_position.is_some(),
@@ -285,6 +318,69 @@ impl Effects {
     }
 }
 
+/// Which simulated machine: the one the patent model describes exactly, or a shop
+/// machine it cannot.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Plant {
+    /// Exactly the model's form: K0 from the column, tan(beta) from the screw.
+    Ideal,
+    /// Several lumps with their own time constants: the structure lags its sensors
+    /// (`thermal_lag` 1200 s), a nut/guideway no sensor sees warms with the axis'
+    /// travel (`motion_heating`), the spindle head warms with the spindle and shifts
+    /// and tilts the tool (`spindle`, sensor `spindle`), and the screw's rise bows the
+    /// error curve (`nonlinear_position`), over the ambient's daily swing and drift.
+    #[default]
+    Shop,
+}
+
+impl Plant {
+    /// The names, as `--plant` spells them.
+    pub const NAMES: [&'static str; 2] = ["ideal", "shop"];
+
+    /// The preset of a name.
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name.trim() {
+            "ideal" => Some(Plant::Ideal),
+            "shop" => Some(Plant::Shop),
+            _ => None,
+        }
+    }
+
+    /// Its name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Plant::Ideal => "ideal",
+            Plant::Shop => "shop",
+        }
+    }
+
+    /// Parameters and effects of the preset.
+    pub fn build(self) -> (ThermalParams, Effects) {
+        match self {
+            Plant::Ideal => (ThermalParams::default(), Effects::default()),
+            Plant::Shop => (
+                ThermalParams::default(),
+                Effects {
+                    thermal_lag: Some(ThermalLagParams { tau_s: 1200.0 }),
+                    nonlinear_position: Some(NonlinearPositionParams { um_per_degc: 1.0 }),
+                    motion_heating: Some(MotionHeatingParams {
+                        tau_s: 2400.0,
+                        rise_degc: 4.0,
+                        um_per_degc: 3.0,
+                    }),
+                    spindle: Some(SpindleParams {
+                        tau_s: 1500.0,
+                        rise_degc: 12.0,
+                        k0_um_per_degc: 1.5,
+                        slope_um_per_m_per_degc: 2.0,
+                    }),
+                    ..Effects::default()
+                },
+            ),
+        }
+    }
+}
+
 /// Axis motion during a step: the load that heats screw and motor.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Motion {
@@ -292,6 +388,8 @@ pub struct Motion {
     pub speed_mm_per_s: f64,
     /// Fraction of the step spent moving, 0..=1.
     pub duty: f64,
+    /// Spindle load, 0..=1 (heats the spindle head, with that effect).
+    pub spindle_load: f64,
 }
 
 impl Motion {
@@ -299,7 +397,17 @@ impl Motion {
     pub const STOPPED: Motion = Motion {
         speed_mm_per_s: 0.0,
         duty: 0.0,
+        spindle_load: 0.0,
     };
+
+    /// The axis moving at `speed_mm_per_s` for `duty` of the time, spindle off.
+    pub const fn axis(speed_mm_per_s: f64, duty: f64) -> Self {
+        Motion {
+            speed_mm_per_s,
+            duty,
+            spindle_load: 0.0,
+        }
+    }
 
     /// Distance travelled in `dt_s`, mm.
     pub fn travel_mm(&self, dt_s: f64) -> f64 {
@@ -329,6 +437,7 @@ const COL: usize = 2;
 const SCREW: usize = 3;
 const MOTOR: usize = 4;
 const EXTRA: usize = 5;
+const SPINDLE: usize = 6;
 
 /// The simulated machine.
 #[derive(Debug, Clone)]
@@ -339,8 +448,14 @@ pub struct ThermalMachine {
     t_s: f64,
     /// Ambient wander, K.
     wander_degc: f64,
-    /// Node temperatures (AMB..=EXTRA; EXTRA unused without the effect).
-    node_degc: [f64; 6],
+    /// Node temperatures (AMB..=SPINDLE; EXTRA and SPINDLE unused without their
+    /// effect).
+    node_degc: [f64; 7],
+    /// The interferometer's own noise source: measuring never changes the machine.
+    meas_rng: SmallRng,
+    /// Distance the axis travelled since `t = 0`, mm (its position is a triangle
+    /// wave of it over the travel).
+    travel_total_mm: f64,
     /// Lagged column and screw as the error sees them (`thermal_lag`).
     struct_col_degc: f64,
     struct_screw_degc: f64,
@@ -375,7 +490,9 @@ impl ThermalMachine {
             rng: SmallRng::seed_from_u64(seed),
             t_s: 0.0,
             wander_degc: 0.0,
-            node_degc: [0.0; 6],
+            node_degc: [0.0; 7],
+            meas_rng: SmallRng::seed_from_u64(seed ^ 0x1A5E_5EED),
+            travel_total_mm: 0.0,
             struct_col_degc: 0.0,
             struct_screw_degc: 0.0,
             hidden_rise_degc: 0.0,
@@ -383,7 +500,7 @@ impl ThermalMachine {
             sensors: Vec::new(),
         };
         let amb = m.ambient_degc();
-        m.node_degc = [amb; 6];
+        m.node_degc = [amb; 7];
         m.struct_col_degc = amb;
         m.struct_screw_degc = amb;
         let names = m.sensor_names();
@@ -414,11 +531,35 @@ impl ThermalMachine {
         if self.effects.extra_sensor.is_some() {
             n.push("extra");
         }
+        if self.effects.spindle.is_some() {
+            n.push("spindle");
+        }
         n
     }
 
-    fn sensor_node(i: usize) -> usize {
-        [AMB, BED, COL, SCREW, MOTOR, EXTRA][i]
+    fn sensor_node(&self, i: usize) -> usize {
+        match i {
+            0..=4 => [AMB, BED, COL, SCREW, MOTOR][i],
+            5 if self.effects.extra_sensor.is_some() => EXTRA,
+            _ => SPINDLE,
+        }
+    }
+
+    /// The axis' actual position, mm: it runs back and forth over the travel as the
+    /// duty moves it (a triangle wave of the distance travelled).
+    pub fn axis_position_mm(&self) -> (f64, i8) {
+        let l = self.params.axis_length_mm.max(1e-9);
+        let s = self.travel_total_mm % (2.0 * l);
+        if s < l {
+            (s, 1)
+        } else {
+            (2.0 * l - s, -1)
+        }
+    }
+
+    /// Distance travelled since `t = 0`, mm.
+    pub fn travel_total_mm(&self) -> f64 {
+        self.travel_total_mm
     }
 
     /// Ambient at the current time (deterministic part plus wander), degC.
@@ -461,6 +602,7 @@ impl ThermalMachine {
             self.wander_degc = self.wander_degc * decay + normal(&mut self.rng, sd);
         }
         self.t_s += dt_s;
+        self.travel_total_mm += motion.travel_mm(dt_s);
         let amb = self.ambient_degc();
         let p = &self.params;
         let n = &mut self.node_degc;
@@ -486,14 +628,24 @@ impl ThermalMachine {
         } else {
             n[EXTRA] = amb;
         }
+        if let Some(sp) = self.effects.spindle {
+            let source = amb + sp.rise_degc * motion.spindle_load.clamp(0.0, 1.0);
+            n[SPINDLE] = relax(n[SPINDLE], source, dt_s, sp.tau_s);
+        } else {
+            n[SPINDLE] = amb;
+        }
         let lag_s = self.effects.thermal_lag.map_or(0.0, |l| l.tau_s);
         self.struct_col_degc = relax(self.struct_col_degc, n[COL], dt_s, lag_s);
         self.struct_screw_degc = relax(self.struct_screw_degc, n[SCREW], dt_s, lag_s);
         if let Some(h) = self.effects.motion_heating {
             self.hidden_rise_degc = relax(self.hidden_rise_degc, h.rise_degc * load, dt_s, h.tau_s);
         }
-        for (i, s) in self.sensed_degc.iter_mut().enumerate() {
-            *s = relax(*s, n[Self::sensor_node(i)], dt_s, p.sensor_tau_s);
+        let nodes: Vec<f64> = (0..self.sensed_degc.len())
+            .map(|i| self.node_degc[self.sensor_node(i)])
+            .collect();
+        let tau_s = self.params.sensor_tau_s;
+        for (s, node) in self.sensed_degc.iter_mut().zip(nodes) {
+            *s = relax(*s, node, dt_s, tau_s);
         }
         self.add_sensor_noise();
     }
@@ -558,13 +710,18 @@ impl ThermalMachine {
         if let Some(x) = e.extra_sensor {
             err_um += x.um_per_degc * (self.node_degc[EXTRA] - self.node_degc[AMB]);
         }
+        if let Some(sp) = e.spindle {
+            let rise = self.node_degc[SPINDLE] - self.node_degc[AMB];
+            err_um += rise * (sp.k0_um_per_degc + sp.slope_um_per_m_per_degc * pos_mm / 1000.0);
+        }
         err_um
     }
 
-    /// The laser interferometer: true error plus measurement noise, um.
+    /// The laser interferometer: true error plus measurement noise, um. Its noise has
+    /// a source of its own, so how often one measures never changes the machine.
     pub fn measure(&mut self, pos_mm: f64, dir: i8) -> f64 {
         let sd = self.params.interferometer_noise_um;
-        self.true_error_um(pos_mm, dir) + normal(&mut self.rng, sd)
+        self.true_error_um(pos_mm, dir) + normal(&mut self.meas_rng, sd)
     }
 }
 
@@ -589,12 +746,13 @@ pub struct DutyCycle {
 impl DutyCycle {
     /// The default scenario for `hours`: warm-up (1/8), heavy steady machining (3/8),
     /// cool-down at standstill (2/8), medium machining again (2/8), over the ambient
-    /// swing of the day.
+    /// swing of the day. The spindle runs with the machining (load 0.5, 0.9, 0, 0.6).
     pub fn scenario(hours: f64) -> Self {
         let h_s = hours.max(0.0) * 3600.0;
-        let m = |speed_mm_per_s, duty| Motion {
+        let m = |speed_mm_per_s, duty: f64| Motion {
             speed_mm_per_s,
             duty,
+            spindle_load: (duty + 0.1).min(1.0),
         };
         Self {
             phases: vec![
@@ -623,21 +781,24 @@ impl DutyCycle {
     }
 
     /// A commissioning measurement run of `hours`: blocks of machining at several
-    /// loads and standstill, so that screw and structure temperatures vary apart.
+    /// axis and spindle loads and standstill, so that screw, structure and spindle
+    /// temperatures vary apart.
     pub fn commissioning(hours: f64) -> Self {
         let block_s = 1.5 * 3600.0;
         let loads = [
-            (200.0, 0.9),
-            (0.0, 0.0),
-            (120.0, 0.5),
-            (200.0, 0.6),
-            (0.0, 0.0),
+            (200.0, 0.9, 0.3),
+            (0.0, 0.0, 0.0),
+            (120.0, 0.5, 1.0),
+            (200.0, 0.6, 0.6),
+            (0.0, 0.0, 0.8),
+            (60.0, 0.8, 0.0),
+            (0.0, 0.0, 0.0),
         ];
         let mut phases = Vec::new();
         let mut left_s = hours.max(0.0) * 3600.0;
         let mut i = 0;
         while left_s > 0.0 {
-            let (speed_mm_per_s, duty) = loads[i % loads.len()];
+            let (speed_mm_per_s, duty, spindle_load) = loads[i % loads.len()];
             let d = left_s.min(block_s);
             phases.push(Phase {
                 name: if duty > 0.0 {
@@ -649,6 +810,51 @@ impl DutyCycle {
                 motion: Motion {
                     speed_mm_per_s,
                     duty,
+                    spindle_load,
+                },
+            });
+            left_s -= d;
+            i += 1;
+        }
+        Self { phases }
+    }
+
+    /// A commissioning run for the gateway's recorder, `hours` long: 40-minute
+    /// blocks cycling through nine combinations of axis load, spindle load and
+    /// standstill (a 6-hour cycle), so that every few hours of the record excite
+    /// every lump apart. Blocked cross-validation holds hours out at a time; with the
+    /// 1.5-hour blocks of [`Self::commissioning`] a held-out block could show
+    /// combinations the rest never did.
+    pub fn recording(hours: f64) -> Self {
+        let block_s = 40.0 * 60.0;
+        let loads = [
+            (200.0, 0.9, 0.2),
+            (0.0, 0.0, 0.9),
+            (120.0, 0.5, 0.6),
+            (0.0, 0.0, 0.0),
+            (200.0, 0.6, 1.0),
+            (60.0, 0.8, 0.0),
+            (0.0, 0.0, 0.5),
+            (150.0, 0.9, 0.8),
+            (0.0, 0.0, 0.0),
+        ];
+        let mut phases = Vec::new();
+        let mut left_s = hours.max(0.0) * 3600.0;
+        let mut i = 0;
+        while left_s > 0.0 {
+            let (speed_mm_per_s, duty, spindle_load) = loads[i % loads.len()];
+            let d = left_s.min(block_s);
+            phases.push(Phase {
+                name: if duty > 0.0 {
+                    "machining"
+                } else {
+                    "standstill"
+                },
+                duration_s: d,
+                motion: Motion {
+                    speed_mm_per_s,
+                    duty,
+                    spindle_load,
                 },
             });
             left_s -= d;
@@ -687,7 +893,8 @@ pub struct SweepPlan {
     pub targets_mm: Vec<f64>,
     /// Time between the starts of two sweeps, s.
     pub every_s: f64,
-    /// Time at each target (move and settle), s.
+    /// Time at each target (move and settle), s; [`measurement_run`] steps the
+    /// machine on this grid.
     pub dwell_s: f64,
     /// Bidirectional runs per sweep (ISO 230-2 asks for 5).
     pub runs: usize,
@@ -768,14 +975,15 @@ impl Series {
     }
 }
 
-/// Runs `machine` through `cycle`, measuring with the interferometer as `plan` says,
-/// stepping the thermal network every `dt_s` in between. The machining motion pauses
-/// during a sweep (the sweep moves slowly, `plan.dwell_s` per target).
+/// Runs `machine` through `cycle`, measuring with the interferometer as `plan` says.
+/// The machine steps on a fixed grid of `plan.dwell_s` and always runs the duty
+/// cycle: a sweep only samples the error field, one target per step, so how often one
+/// measures never changes the machine. `travel_mm` is the machining travel since the
+/// previous row (the sweep's own slow moves heat nothing worth counting).
 pub fn measurement_run(
     machine: &mut ThermalMachine,
     cycle: &DutyCycle,
     plan: &SweepPlan,
-    dt_s: f64,
 ) -> Series {
     let mut s = Series {
         sensor_names: machine.sensor_names(),
@@ -783,34 +991,34 @@ pub fn measurement_run(
         ..Series::default()
     };
     let end_s = cycle.duration_s();
-    let dt_s = if dt_s > 0.0 { dt_s } else { 10.0 };
-    let sweep_speed = Motion {
-        speed_mm_per_s: 50.0,
-        duty: 0.2,
-    };
+    let step_s = plan.dwell_s.max(1e-3);
+    let targets: Vec<(f64, i8)> = (0..plan.runs.max(1))
+        .flat_map(|_| {
+            let up = plan.targets_mm.iter().map(|&p| (p, 1i8));
+            let down = plan.targets_mm.iter().rev().map(|&p| (p, -1i8));
+            up.chain(down)
+        })
+        .collect();
     let mut travel_mm = 0.0;
-    let mut pos_mm = plan.targets_mm.first().copied().unwrap_or(0.0);
     let mut next_sweep_s = 0.0;
-    while machine.t_s() < end_s {
-        if machine.t_s() + 1e-9 >= next_sweep_s && !plan.targets_mm.is_empty() {
-            next_sweep_s += plan.every_s.max(dt_s);
-            for _ in 0..plan.runs.max(1) {
-                let up = plan.targets_mm.iter().map(|&p| (p, 1i8));
-                let down = plan.targets_mm.iter().rev().map(|&p| (p, -1i8));
-                for (target_mm, dir) in up.chain(down) {
-                    machine.step(plan.dwell_s.max(1e-3), &sweep_speed);
-                    travel_mm += (target_mm - pos_mm).abs();
-                    pos_mm = target_mm;
-                    let err_um = machine.measure(pos_mm, dir);
-                    s.push(machine, pos_mm, dir, travel_mm, err_um);
-                    travel_mm = 0.0;
-                }
-            }
-        } else {
-            let motion = cycle.motion_at(machine.t_s());
-            let step_s = dt_s.min(next_sweep_s - machine.t_s()).max(1e-3);
-            machine.step(step_s, &motion);
-            travel_mm += motion.travel_mm(step_s);
+    let mut sweep_at: Option<usize> = None;
+    let mut k: u64 = 0;
+    while machine.t_s() < end_s - 1e-9 {
+        let t0 = k as f64 * step_s;
+        if sweep_at.is_none() && !targets.is_empty() && t0 + 1e-9 >= next_sweep_s {
+            sweep_at = Some(0);
+            next_sweep_s += plan.every_s.max(step_s);
+        }
+        let motion = cycle.motion_at(t0);
+        machine.step(step_s, &motion);
+        k += 1;
+        travel_mm += motion.travel_mm(step_s);
+        if let Some(i) = sweep_at {
+            let (pos_mm, dir) = targets[i];
+            let err_um = machine.measure(pos_mm, dir);
+            s.push(machine, pos_mm, dir, travel_mm, err_um);
+            travel_mm = 0.0;
+            sweep_at = (i + 1 < targets.len()).then_some(i + 1);
         }
     }
     s
@@ -867,10 +1075,7 @@ mod tests {
             .unwrap_or(f64::NAN)
     }
 
-    const FULL: Motion = Motion {
-        speed_mm_per_s: 200.0,
-        duty: 1.0,
-    };
+    const FULL: Motion = Motion::axis(200.0, 1.0);
 
     #[test]
     fn steady_state_rises_and_time_constant() {
@@ -1035,22 +1240,75 @@ mod tests {
         let mut m = ThermalMachine::new(ThermalParams::default(), Effects::default(), 2);
         let cycle = DutyCycle::scenario(2.0);
         let plan = SweepPlan::even(2000.0, 5, 1800.0);
-        let s = measurement_run(&mut m, &cycle, &plan, 30.0);
+        let s = measurement_run(&mut m, &cycle, &plan);
         // 4 sweeps of 5 targets up and down.
         assert_eq!(s.len(), 4 * 10);
         assert_eq!(s.temps_degc.len(), 5);
         assert!(s.temps_degc.iter().all(|c| c.len() == s.len()));
         assert!(s.t_s.windows(2).all(|w| w[1] >= w[0]));
         assert_eq!(&s.dir[..10], &[1, 1, 1, 1, 1, -1, -1, -1, -1, -1]);
-        // Between sweeps the axis machined: 1800 s x 100 mm/s x 0.5 for the warm-up.
+        // Between sweeps the axis machined: 1800 s x 100 mm/s x 0.5 for the warm-up,
+        // and it went on machining during the sweep (4 s per target).
         assert!(s.travel_mm[10] > 80_000.0, "{}", s.travel_mm[10]);
-        assert!((s.travel_mm[1] - 500.0).abs() < 1e-9);
+        assert!((s.travel_mm[1] - 200.0).abs() < 1e-9, "{}", s.travel_mm[1]);
         // The screw warmed up: the far end's error grew.
         let far: Vec<f64> = (0..s.len())
             .filter(|&i| s.pos_mm[i] == 2000.0)
             .map(|i| s.err_um[i])
             .collect();
         assert!(far.last().unwrap_or(&0.0) - far[0] > 20.0, "{far:?}");
+    }
+
+    #[test]
+    fn sampling_more_often_does_not_change_the_machine() {
+        let (params, effects) = Plant::Shop.build();
+        let cycle = DutyCycle::scenario(3.0);
+        let run = |every_s| {
+            let mut m = ThermalMachine::new(params.clone(), effects, 4);
+            let plan = SweepPlan::irregular(2000.0, 9, every_s);
+            measurement_run(&mut m, &cycle, &plan)
+        };
+        let (a, b) = (run(600.0), run(120.0));
+        assert!(b.len() > 4 * a.len());
+        // Every row of the sparse run is in the dense one, with the same sensors
+        // and the same error (the noise of the interferometer aside).
+        let mut common = 0;
+        for i in 0..a.len() {
+            let j = (0..b.len())
+                .find(|&j| b.t_s[j] == a.t_s[i] && b.pos_mm[j] == a.pos_mm[i])
+                .unwrap_or_else(|| panic!("row {i} at {} s missing", a.t_s[i]));
+            for c in 0..a.temps_degc.len() {
+                assert_eq!(a.temps_degc[c][i], b.temps_degc[c][j]);
+            }
+            assert!((a.err_um[i] - b.err_um[j]).abs() < 3.0, "{i}");
+            common += 1;
+        }
+        assert_eq!(common, a.len());
+    }
+
+    #[test]
+    fn the_spindle_head_warms_with_the_spindle_and_shifts_the_tool() {
+        let (_, mut effects) = Plant::Shop.build();
+        effects.thermal_lag = None;
+        let spin = Motion {
+            spindle_load: 1.0,
+            ..Motion::STOPPED
+        };
+        let mut m = ThermalMachine::new(quiet(), effects, 1);
+        let e0 = m.true_error_um(1000.0, 1);
+        for _ in 0..200 {
+            m.step(60.0, &spin);
+        }
+        // 12 K at load 1 after many time constants; the axis did not move.
+        assert!((m.sensor_degc("spindle").unwrap_or(0.0) - 32.0).abs() < 0.05);
+        assert_eq!(m.travel_total_mm(), 0.0);
+        // 12 K x (1.5 um/K + 2 um/m/K x 1 m) = 42 um at 1000 mm.
+        let d = m.true_error_um(1000.0, 1) - e0;
+        assert!((d - 42.0).abs() < 0.2, "{d}");
+        // Plant names round-trip.
+        for n in Plant::NAMES {
+            assert_eq!(Plant::from_name(n).map(Plant::name), Some(n));
+        }
     }
 
     #[test]

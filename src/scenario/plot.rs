@@ -6,7 +6,7 @@ use std::ops::Range;
 
 use compgate_commission::plot::{self, Area, Chart, Color as _, DrawError, PlotError, RGBColor};
 
-use super::{RunData, ScenarioReport};
+use super::{LoopReport, RunData, ScenarioReport};
 
 /// A panel of the scenario's charts: error (um) against `x_desc`.
 fn panel<'a, 'p>(
@@ -145,6 +145,52 @@ pub fn error_vs_position(path: &Path, r: &ScenarioReport) -> Result<(), PlotErro
             &right,
             &format!("compensation on: p-p {:.1} um", r.on.stats.peak_to_peak_um),
             &r.on,
+            r.hours,
+        )
+    })
+}
+
+/// The loop's before and after against time: baseline model (calibrate on the
+/// records) and diagnosed model, at both ends of the axis.
+pub fn loop_vs_time(path: &Path, r: &ScenarioReport, l: &LoopReport) -> Result<(), PlotError> {
+    let green = RGBColor(0, 140, 60);
+    plot::svg(path, (1000, 420), |root| {
+        time_panel(
+            root,
+            &format!(
+                "closed loop, {} h: baseline p-p {:.1} um ({:.1} % less than off), diagnosed p-p {:.1} um ({:.1} % less)",
+                r.hours,
+                r.on.stats.peak_to_peak_um,
+                r.reduction_pp_percent(),
+                l.updated.stats.peak_to_peak_um,
+                r.reduction_pp_updated_percent().unwrap_or(0.0)
+            ),
+            r,
+            &[
+                ("baseline", &r.on, plot::BLUE),
+                ("diagnosed", &l.updated, green),
+            ],
+        )
+    })
+}
+
+/// The loop's before and after along the axis: baseline and diagnosed model.
+pub fn loop_vs_position(path: &Path, r: &ScenarioReport, l: &LoopReport) -> Result<(), PlotError> {
+    plot::svg(path, (1200, 560), |root| {
+        let (left, right) = root.split_horizontally(600);
+        position_panel(
+            &left,
+            &format!("baseline model: p-p {:.1} um", r.on.stats.peak_to_peak_um),
+            &r.on,
+            r.hours,
+        )?;
+        position_panel(
+            &right,
+            &format!(
+                "diagnosed model: p-p {:.1} um",
+                l.updated.stats.peak_to_peak_um
+            ),
+            &l.updated,
             r.hours,
         )
     })

@@ -4,7 +4,10 @@ fn args(dir: &Path, hours: f64) -> ScenarioArgs {
     ScenarioArgs {
         hours,
         seed: 3,
+        plant: "ideal".into(),
         effects: vec![],
+        closed_loop: false,
+        record_hours: 24.0,
         model: None,
         sensors: vec!["column".into(), "screw".into()],
         out: dir.to_path_buf(),
@@ -76,4 +79,115 @@ async fn a_model_reading_an_unknown_channel_is_refused() {
     a.effects = vec!["warp".into()];
     let e = run(&a).await.unwrap_err().to_string();
     assert!(e.contains("unknown effect `warp`"), "{e}");
+    a.effects.clear();
+    a.plant = "lab".into();
+    let e = run(&a).await.unwrap_err().to_string();
+    assert!(e.contains("--plant: unknown plant `lab`"), "{e}");
+    a.plant = "shop".into();
+    a.closed_loop = true;
+    a.record_hours = 0.0;
+    let e = run(&a).await.unwrap_err().to_string();
+    assert!(e.contains("--record-hours must be > 0"), "{e}");
+}
+
+/// The closed loop on the shop plant, through the gateway's recorder, export,
+/// calibrate and diagnose: the diagnosed model, applied by the gateway, beats the
+/// baseline calibrated from the same records.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_closed_loop_improves_on_the_baseline() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut a = args(dir.path(), 2.0);
+    a.plant = "shop".into();
+    a.closed_loop = true;
+    a.record_hours = 8.0;
+    let r = run(&a).await.unwrap();
+    let text = r.text();
+    let l = r.closed_loop.clone().unwrap();
+    // The records are complete and went through export.
+    assert_eq!(l.dropped, 0, "{text}");
+    assert!(l.records.0 > 10_000 && l.records.2 > 1_000, "{text}");
+    let rec = Measurements::read_path(&dir.path().join("recorded.csv")).unwrap();
+    assert_eq!(rec.len(), l.rows);
+    assert!(rec.temp("spindle").is_some() && rec.temp(LASER_CHANNEL).is_none());
+    let travel_mm: f64 = rec.travel_mm.iter().sum();
+    assert!(travel_mm > 100_000.0);
+    // The travel is every recorded move, whatever the export's step.
+    let coarse = compgate_service::record::export::measurements(
+        &compgate_service::record::export::ExportArgs {
+            db: dir.path().join("record.sqlite"),
+            since: "0".into(),
+            until: "9999999999".into(),
+            csv: true,
+            out: None,
+            axis: Some("X".into()),
+            err_channel: Some(LASER_CHANNEL.into()),
+            step_s: 60.0,
+        },
+    )
+    .unwrap()
+    .0;
+    let coarse_mm: f64 = coarse.travel_mm.iter().sum();
+    assert!(
+        (coarse_mm - travel_mm).abs() < 0.01 * travel_mm,
+        "{coarse_mm} {travel_mm}"
+    );
+    // The shop plant is beyond the baseline; the loop closes most of the gap.
+    let off = r.off.stats.peak_to_peak_um;
+    assert!(r.on.stats.peak_to_peak_um < off, "{text}");
+    assert!(
+        l.updated.stats.peak_to_peak_um < 0.5 * r.on.stats.peak_to_peak_um,
+        "{text}"
+    );
+    assert!(l.updated.stats.rms_um < 0.5 * r.on.stats.rms_um, "{text}");
+    assert!(
+        l.updated.jobs_ok > 5 && l.updated.jobs_failed == 0,
+        "{text}"
+    );
+    // What diagnose named is what the gateway ran: its model file, read back.
+    let mf = ModelFile::read_path(&dir.path().join("model_diagnosed.toml")).unwrap();
+    assert_eq!(mf, l.model);
+    assert!(!mf.applied.is_empty(), "{text}");
+    let dynamic = mf.axis.motion_heat.is_some()
+        || mf
+            .axis
+            .k0
+            .terms
+            .iter()
+            .any(|t| t.lag_tau_s > 0.0 || !["column", "screw"].contains(&t.channel.as_str()));
+    assert!(dynamic, "{mf:?}");
+    for f in ["loop_vs_time.svg", "loop_vs_position.svg", "record.sqlite"] {
+        assert!(dir.path().join(f).exists(), "{f}");
+    }
+    let md = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
+    assert!(
+        md.contains("closed loop") && md.contains("loop_vs_time.svg"),
+        "{md}"
+    );
+}
+
+/// How often the interferometer samples does not change the machine: the rows both
+/// runs share have the same temperatures and (up to the interferometer's noise) the
+/// same error.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_sampling_rates_see_the_same_machine() {
+    let (d1, d2) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let mut a = args(d1.path(), 1.0);
+    a.plant = "shop".into();
+    a.sample_every_s = 600.0;
+    let sparse = run(&a).await.unwrap();
+    a.out = d2.path().to_path_buf();
+    a.sample_every_s = 120.0;
+    let dense = run(&a).await.unwrap();
+    let (s, d) = (&sparse.off.series, &dense.off.series);
+    assert!(d.len() > 4 * s.len());
+    for i in 0..s.len() {
+        let j = (0..d.len())
+            .find(|&j| d.t_s[j] == s.t_s[i] && d.pos_mm[j] == s.pos_mm[i])
+            .unwrap_or_else(|| panic!("row {i} missing"));
+        for (a, b) in s.temps.iter().zip(&d.temps) {
+            assert_eq!(a.degc[i], b.degc[j]);
+        }
+        assert!((s.err_um[i] - d.err_um[j]).abs() < 3.0);
+        assert!((sparse.on.series.err_um[i] - dense.on.series.err_um[j]).abs() < 3.0);
+    }
 }

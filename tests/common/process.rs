@@ -40,6 +40,21 @@ impl Gateway {
         extra_env: &[(&str, &str)],
         nofile: Option<u64>,
     ) -> Self {
+        Self::start_full(dir, config, extra_env, nofile, &[])
+    }
+
+    /// [`start`](Self::start) with more arguments of `run` (e.g. `--shadow`).
+    pub fn start_with_args(dir: &Path, config: &Path, args: &[&str]) -> Self {
+        Self::start_full(dir, config, &[], None, args)
+    }
+
+    fn start_full(
+        dir: &Path,
+        config: &Path,
+        extra_env: &[(&str, &str)],
+        nofile: Option<u64>,
+        args: &[&str],
+    ) -> Self {
         let sock: PathBuf = dir.join(format!("notify-{}.sock", std::process::id()));
         let _ = std::fs::remove_file(&sock);
         let notify = UnixDatagram::bind(&sock).expect("bind notify socket");
@@ -56,6 +71,7 @@ impl Gateway {
         };
         cmd.args(["--log", "info", "run", "--config"])
             .arg(config)
+            .args(args)
             .env("NOTIFY_SOCKET", &sock)
             .env_remove("JOURNAL_STREAM")
             .env_remove("RUST_LOG")

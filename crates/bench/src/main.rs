@@ -4,9 +4,12 @@
 //! - `soak`: the `compgate` binary as a real process against simulated field modules,
 //!   with recording, metrics and MQTT on; CPU and RSS over time.
 //! - `nc-s7`: job latency of the S7 data-block target against its test peer.
+//! - `scale`: points per second per core at 10k, 100k and 1M points/s, against a
+//!   bare tokio-modbus client, and the step-to-NC latency.
 
 mod cycle;
 mod nc_s7;
+mod scale;
 mod soak;
 mod volumetric;
 
@@ -58,6 +61,43 @@ enum Command {
         #[arg(long, default_value_t = 1.0)]
         plc_cycle_ms: f64,
     },
+    /// The gateway process at 10k, 100k and 1M points/s against simulated field
+    /// modules, beside a bare tokio-modbus client: CPU, RSS, jitter, points lost and
+    /// the step-to-NC latency.
+    Scale {
+        /// Measured seconds per client and load point (at least 2).
+        #[arg(long, default_value_t = 12.0)]
+        seconds: f64,
+        /// Reply delay of every simulated field module, ms (0..=1000).
+        #[arg(long, default_value_t = 1.0)]
+        delay_ms: f64,
+        /// The gateway's `recorder.interval_s`: seconds between the recorded cycles of
+        /// a device (0: every poll).
+        #[arg(long, default_value_t = 1.0)]
+        record_interval_s: f64,
+        /// The load points to run, by name (10k, 100k, 1M); all by default.
+        #[arg(long, value_delimiter = ',')]
+        loads: Vec<String>,
+        /// Also write the figures per load point as JSON to this file.
+        #[arg(long)]
+        json: Option<PathBuf>,
+        /// The `compgate` binary; by default the one beside this binary.
+        #[arg(long)]
+        compgate: Option<PathBuf>,
+    },
+    /// The bare client of `scale` (started by it): polls and discards.
+    #[command(hide = true)]
+    ScaleBare {
+        /// A field module, host:port; repeat for each.
+        #[arg(long)]
+        address: Vec<String>,
+        /// Poll interval, seconds.
+        #[arg(long)]
+        interval_s: f64,
+        /// Registers read per device, from 0, 125 per request.
+        #[arg(long)]
+        points: u16,
+    },
 }
 
 /// The `compgate` binary that cargo built beside this one.
@@ -72,6 +112,44 @@ fn sibling_compgate() -> Result<PathBuf, String> {
             path.display()
         ))
     }
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime, String> {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .map_err(|e| format!("cannot start the async runtime: {e}"))
+}
+
+/// The options of `scale`, with `--loads` names checked.
+fn scale_options(
+    seconds: f64,
+    delay_ms: f64,
+    record_interval_s: f64,
+    names: &[String],
+    compgate: PathBuf,
+) -> Result<scale::Options, String> {
+    let loads = if names.is_empty() {
+        scale::LOADS.to_vec()
+    } else {
+        names
+            .iter()
+            .map(|n| {
+                scale::LOADS
+                    .iter()
+                    .find(|l| l.name.eq_ignore_ascii_case(n))
+                    .copied()
+                    .ok_or_else(|| format!("--loads {n}: not one of 10k, 100k, 1M"))
+            })
+            .collect::<Result<_, _>>()?
+    };
+    Ok(scale::Options {
+        seconds,
+        delay_ms,
+        compgate,
+        loads,
+        record_interval_s,
+    })
 }
 
 fn main() -> ExitCode {
@@ -108,6 +186,34 @@ fn main() -> ExitCode {
                         .map(|r| println!("{}", r.line()))
                 })
             }),
+        Command::Scale {
+            seconds,
+            delay_ms,
+            record_interval_s,
+            loads,
+            json,
+            compgate,
+        } => compgate
+            .map_or_else(sibling_compgate, Ok)
+            .and_then(|exe| scale_options(seconds, delay_ms, record_interval_s, &loads, exe))
+            .and_then(|opts| {
+                let report = runtime()?.block_on(scale::run(&opts))?;
+                print!("{}", report.table());
+                match json {
+                    Some(path) => std::fs::write(&path, format!("{:#}\n", report.json()))
+                        .map_err(|e| format!("{}: {e}", path.display())),
+                    None => Ok(()),
+                }
+            }),
+        Command::ScaleBare {
+            address,
+            interval_s,
+            points,
+        } => tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| format!("cannot start the async runtime: {e}"))
+            .and_then(|rt| rt.block_on(scale::bare_client(address, interval_s, points))),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

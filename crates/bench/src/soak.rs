@@ -22,13 +22,13 @@ pub const CHANNELS: usize = 64;
 
 /// One `/proc` sample of the gateway.
 #[derive(Debug, Clone, Copy)]
-struct Sample {
-    at: Instant,
-    cpu_ticks: u64,
-    rss_kb: u64,
+pub(crate) struct Sample {
+    pub(crate) at: Instant,
+    pub(crate) cpu_ticks: u64,
+    pub(crate) rss_kb: u64,
 }
 
-fn free_port() -> Result<u16, String> {
+pub(crate) fn free_port() -> Result<u16, String> {
     std::net::TcpListener::bind("127.0.0.1:0")
         .and_then(|l| l.local_addr())
         .map(|a| a.port())
@@ -56,7 +56,7 @@ fn stat_name_ticks(stat: &str) -> Option<(&str, u64)> {
     Some((name, utime + stime))
 }
 
-fn sample(pid: u32) -> Option<Sample> {
+pub(crate) fn sample(pid: u32) -> Option<Sample> {
     let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
     let (_, cpu_ticks) = stat_name_ticks(&stat)?;
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;

@@ -10,7 +10,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::config::keys::secs;
 use crate::config::problem::Problems;
-use compgate_core::comp::{Affine, BadInputPolicy, Limits, Term, ThermalModel};
+use compgate_core::comp::{
+    Affine, BadInputPolicy, Dynamics, InputLag, Limits, MotionHeat, Term, ThermalModel,
+};
 
 /// Above this |tan(beta)| limit the value cannot be a thermal slope.
 const TAN_BETA_LIMIT_CEILING: f64 = 0.1;
@@ -89,6 +91,40 @@ pub struct AxisConfig {
     /// tan(beta)(T) model (SD43910). Optional table; default: offset 0, no terms.
     #[serde(default)]
     pub tan_beta: TanBetaModel,
+    /// Heat of axis motion, from the NC's actual position (diagnose's
+    /// `motion_heating`). Optional table; default: none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub motion_heat: Option<MotionHeatModel>,
+    /// Shadow mode: compute, record and publish the parameters this axis would
+    /// write, and never write its NC module (jobs are recorded as shadow). The NC
+    /// is still read: what it holds is the start of the step limits. Default false.
+    #[serde(default)]
+    pub shadow: bool,
+}
+
+/// `[axes.NAME.motion_heat]`: travel from the NC's actual position (read every
+/// `gateway.status_interval_s`) heats a store no sensor sees,
+/// `h <- h exp(-dt/tau_s) + |dpos| / tau_s` (h: travel rate through the lag, mm/s);
+/// `K0 += k0_mm_per_mm_per_s (h - ref_mm_per_s)` and `tan(beta) +=
+/// tan_beta_per_mm_per_s (h - ref_mm_per_s)`.
+#[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct MotionHeatModel {
+    /// Time constant of the store, s. Required; 1..=86400.
+    #[schemars(range(min = 1.0, max = 86_400.0))]
+    pub tau_s: f64,
+    /// Travel rate at which the term is zero, mm/s. Default 0.0; 0..=10000.
+    #[serde(default)]
+    #[schemars(range(min = 0.0, max = 10_000.0))]
+    pub ref_mm_per_s: f64,
+    /// K0 change in mm per mm/s of travel rate. Default 0.0; -0.01..=0.01.
+    #[serde(default)]
+    #[schemars(range(min = -0.01, max = 0.01))]
+    pub k0_mm_per_mm_per_s: f64,
+    /// tan(beta) change per mm/s of travel rate. Default 0.0; -0.0001..=0.0001.
+    #[serde(default)]
+    #[schemars(range(min = -0.0001, max = 0.0001))]
+    pub tan_beta_per_mm_per_s: f64,
 }
 
 /// Reaction to a bad input channel.
@@ -132,6 +168,12 @@ pub struct K0Term {
     /// K0 change in mm per degC. Required; -1..=1.
     #[schemars(range(min = -1.0, max = 1.0))]
     pub coeff_mm_per_degc: f64,
+    /// The term reads the channel through a first-order lag of this time constant,
+    /// s (diagnose's `thermal_lag`: the structure follows its sensor late). Default
+    /// 0.0 (no lag); 0..=86400.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    #[schemars(range(min = 0.0, max = 86_400.0))]
+    pub lag_tau_s: f64,
 }
 
 /// `[axes.NAME.tan_beta]`: `tan(beta)(T) = offset + sum(coeff_per_degc * (T[channel] -
@@ -163,6 +205,15 @@ pub struct TanBetaTerm {
     /// (11.5 um/m/K). Required; -0.01..=0.01.
     #[schemars(range(min = -0.01, max = 0.01))]
     pub coeff_per_degc: f64,
+    /// The term reads the channel through a first-order lag of this time constant,
+    /// s. Default 0.0 (no lag); 0..=86400.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    #[schemars(range(min = 0.0, max = 86_400.0))]
+    pub lag_tau_s: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 /// What an axis' validation needs to know about the channels.
@@ -270,6 +321,7 @@ impl AxisConfig {
                 t.channel.as_str(),
                 t.ref_degc,
                 ("coeff_mm_per_degc", t.coeff_mm_per_degc),
+                t.lag_tau_s,
             )
         });
         terms(&k("k0.terms"), k0_terms, channels, out);
@@ -278,31 +330,86 @@ impl AxisConfig {
                 t.channel.as_str(),
                 t.ref_degc,
                 ("coeff_per_degc", t.coeff_per_degc),
+                t.lag_tau_s,
             )
         });
         terms(&k("tan_beta.terms"), tb_terms, channels, out);
+        if let Some(m) = &self.motion_heat {
+            if out.positive(&k("motion_heat.tau_s"), m.tau_s, "seconds") && m.tau_s < 1.0 {
+                out.push(
+                    k("motion_heat.tau_s"),
+                    format!("must be 1..=86400 s, got {}", m.tau_s),
+                );
+            }
+            out.non_negative(&k("motion_heat.ref_mm_per_s"), m.ref_mm_per_s, "mm/s");
+            out.finite(&k("motion_heat.k0_mm_per_mm_per_s"), m.k0_mm_per_mm_per_s);
+            out.finite(
+                &k("motion_heat.tan_beta_per_mm_per_s"),
+                m.tan_beta_per_mm_per_s,
+            );
+            if m.k0_mm_per_mm_per_s != 0.0 && self.md32750 & 1 == 0 {
+                out.push(
+                    k("motion_heat.k0_mm_per_mm_per_s"),
+                    "md32750 has bit 0 clear: the NC would ignore SD43900".to_string(),
+                );
+            }
+        }
     }
 
     /// The axis' thermal model and the channel name behind each model input.
     pub fn model(&self) -> (ThermalModel, Vec<String>) {
+        let (model, names, _) = self.model_parts();
+        (model, names)
+    }
+
+    /// The thermal model, the channel behind each real model input, and the lags
+    /// (model inputs after the real ones) and motion heat term.
+    pub fn model_parts(&self) -> (ThermalModel, Vec<String>, Dynamics) {
         let mut names: Vec<String> = Vec::new();
-        let mut input = |ch: &str| match names.iter().position(|n| n == ch) {
-            Some(i) => i,
-            None => {
-                names.push(ch.to_string());
-                names.len() - 1
+        let all = (self.k0.terms.iter().map(|t| (&t.channel, t.lag_tau_s))).chain(
+            self.tan_beta
+                .terms
+                .iter()
+                .map(|t| (&t.channel, t.lag_tau_s)),
+        );
+        for (ch, _) in all.clone() {
+            if !names.contains(ch) {
+                names.push(ch.clone());
+            }
+        }
+        // One slot per (channel, lag), after the real inputs.
+        let mut lags: Vec<InputLag> = Vec::new();
+        for (ch, tau_s) in all.filter(|(_, tau)| *tau > 0.0) {
+            let source = names.iter().position(|n| n == ch).unwrap_or(0);
+            if !lags.iter().any(|l| l.source == source && l.tau_s == tau_s) {
+                let slot = names.len() + lags.len();
+                lags.push(InputLag {
+                    source,
+                    slot,
+                    tau_s,
+                });
+            }
+        }
+        let input = |ch: &str, tau_s: f64| {
+            let source = names.iter().position(|n| n == ch).unwrap_or(0);
+            match lags
+                .iter()
+                .find(|l| tau_s > 0.0 && l.source == source && l.tau_s == tau_s)
+            {
+                Some(l) => l.slot,
+                None => source,
             }
         };
-        let mut term = |channel: &str, ref_degc: f64, coeff: f64| Term {
-            input: input(channel),
+        let term = |channel: &str, ref_degc: f64, coeff: f64, tau_s: f64| Term {
+            input: input(channel, tau_s),
             ref_degc,
             coeff,
         };
         let k0_terms = (self.k0.terms.iter())
-            .map(|t| term(&t.channel, t.ref_degc, t.coeff_mm_per_degc))
+            .map(|t| term(&t.channel, t.ref_degc, t.coeff_mm_per_degc, t.lag_tau_s))
             .collect();
         let tan_terms = (self.tan_beta.terms.iter())
-            .map(|t| term(&t.channel, t.ref_degc, t.coeff_per_degc))
+            .map(|t| term(&t.channel, t.ref_degc, t.coeff_per_degc, t.lag_tau_s))
             .collect();
         let model = ThermalModel {
             k0_mm: Affine {
@@ -315,7 +422,13 @@ impl AxisConfig {
             },
             p0_mm: self.p0_mm,
         };
-        (model, names)
+        let motion = self.motion_heat.as_ref().map(|m| MotionHeat {
+            tau_s: m.tau_s,
+            ref_mm_per_s: m.ref_mm_per_s,
+            k0_mm_per_mm_per_s: m.k0_mm_per_mm_per_s,
+            tan_beta_per_mm_per_s: m.tan_beta_per_mm_per_s,
+        });
+        (model, names, Dynamics::new(lags, motion))
     }
 
     /// The axis' limits and deadbands.
@@ -342,15 +455,15 @@ impl AxisConfig {
     }
 }
 
-/// Every term's channel exists and appears once; numbers finite.
+/// Every term's channel exists and appears once per lag; numbers finite.
 fn terms<'t>(
     key: &str,
-    terms: impl Iterator<Item = (&'t str, f64, (&'static str, f64))>,
+    terms: impl Iterator<Item = (&'t str, f64, (&'static str, f64), f64)>,
     channels: &ChannelNames<'_>,
     out: &mut Problems<'_>,
 ) {
-    let mut seen: BTreeMap<&str, usize> = BTreeMap::new();
-    for (i, (channel, ref_degc, (coeff_name, coeff))) in terms.enumerate() {
+    let mut seen: BTreeMap<(&str, u64), usize> = BTreeMap::new();
+    for (i, (channel, ref_degc, (coeff_name, coeff), lag_tau_s)) in terms.enumerate() {
         let tk = |f: &str| format!("{key}[{i}].{f}");
         if !(channels.known)(channel) {
             out.push(
@@ -361,13 +474,19 @@ fn terms<'t>(
                     channels.list
                 ),
             );
-        } else if let Some(first) = seen.insert(channel, i) {
+        } else if let Some(first) = seen.insert((channel, lag_tau_s.to_bits()), i) {
             out.push(
                 tk("channel"),
                 format!(
-                    "channel `{channel}` already has term [{first}]; combine the \
-                     coefficients into one term"
+                    "channel `{channel}` already has term [{first}] with the same \
+                     lag_tau_s; combine the coefficients into one term"
                 ),
+            );
+        }
+        if !(lag_tau_s.is_finite() && (0.0..=86_400.0).contains(&lag_tau_s)) {
+            out.push(
+                tk("lag_tau_s"),
+                format!("must be 0..=86400 s (0: no lag), got {lag_tau_s}"),
             );
         }
         out.finite(&tk("ref_degc"), ref_degc);
@@ -404,4 +523,73 @@ fn default_ramp_tan_beta_per_s() -> f64 {
 }
 fn default_ref_degc() -> f64 {
     20.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn axis(text: &str) -> AxisConfig {
+        let base = "nc_module = \"nc\"\nmd32750 = 3\n";
+        toml::from_str(&format!("{base}{text}")).expect("axis toml")
+    }
+
+    fn problems(a: &AxisConfig) -> Vec<String> {
+        let known = |c: &str| ["column", "screw", "spindle"].contains(&c);
+        let names = ChannelNames {
+            known: &known,
+            list: "`column`, `screw`, `spindle`",
+        };
+        let mut out = Problems::new("t.toml");
+        a.validate("axes.X", &names, &mut out);
+        out.into_vec().into_iter().map(|p| p.key).collect()
+    }
+
+    const LAGGED: &str = "[k0]\nterms = [\
+        { channel = \"column\", coeff_mm_per_degc = 0.009 },\
+        { channel = \"column\", lag_tau_s = 1200.0, coeff_mm_per_degc = -0.004 },\
+        { channel = \"spindle\", coeff_mm_per_degc = 0.0015 }]\n\
+        [tan_beta]\nterms = [{ channel = \"screw\", lag_tau_s = 1200.0, coeff_per_degc = 0.0000115 }]\n\
+        [motion_heat]\ntau_s = 2400.0\nref_mm_per_s = 30.0\nk0_mm_per_mm_per_s = 0.00006\n";
+
+    #[test]
+    fn lagged_terms_get_slots_after_the_channels() {
+        let a = axis(LAGGED);
+        assert!(problems(&a).is_empty(), "{:?}", problems(&a));
+        let (model, names, dynamics) = a.model_parts();
+        assert_eq!(names, ["column", "spindle", "screw"]);
+        // column lagged 1200 s and screw lagged 1200 s: two slots after the 3 inputs.
+        let lags: Vec<(usize, usize)> =
+            dynamics.lags().iter().map(|l| (l.source, l.slot)).collect();
+        assert_eq!(lags, [(0, 3), (2, 4)]);
+        let k0_inputs: Vec<usize> = model.k0_mm.terms.iter().map(|t| t.input).collect();
+        assert_eq!(k0_inputs, [0, 3, 1]);
+        assert_eq!(model.tan_beta.terms[0].input, 4);
+        let m = dynamics.motion().expect("motion heat");
+        assert_eq!((m.tau_s, m.ref_mm_per_s), (2400.0, 30.0));
+        // Round trip: lag_tau_s = 0 is left out, motion_heat kept.
+        let text = toml::to_string(&a).expect("serialize");
+        assert_eq!(text.matches("lag_tau_s").count(), 2, "{text}");
+        assert_eq!(toml::from_str::<AxisConfig>(&text).expect("parse"), a);
+    }
+
+    #[test]
+    fn bad_lags_and_motion_heat_name_their_key() {
+        let a = axis(
+            "[k0]\nterms = [\
+             { channel = \"column\", lag_tau_s = 600.0, coeff_mm_per_degc = 0.009 },\
+             { channel = \"column\", lag_tau_s = 600.0, coeff_mm_per_degc = 0.001 },\
+             { channel = \"screw\", lag_tau_s = -1.0, coeff_mm_per_degc = 0.001 }]\n\
+             [motion_heat]\ntau_s = 0.5\nref_mm_per_s = -1.0\n",
+        );
+        assert_eq!(
+            problems(&a),
+            [
+                "axes.X.k0.terms[1].channel",
+                "axes.X.k0.terms[2].lag_tau_s",
+                "axes.X.motion_heat.tau_s",
+                "axes.X.motion_heat.ref_mm_per_s",
+            ]
+        );
+    }
 }

@@ -16,6 +16,9 @@ use compgate_core::channel as rt;
 /// Largest median window accepted.
 const MAX_MEDIAN_SAMPLES: u32 = 99;
 
+/// Counts of converter noise the rate check tolerates between two samples (+-1 count).
+pub const RATE_NOISE_COUNTS: f64 = 2.0;
+
 /// `[channels.NAME]`: one value read from one device.
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -138,7 +141,22 @@ impl ChannelConfig {
 
     /// The channel's processing (scaling and filters).
     pub fn build(&self) -> rt::ChannelProcessor {
-        rt::ChannelProcessor::new(self.scaling.build(), self.filter.build())
+        let scaling = self.scaling.build();
+        let mut filter = self.filter.build();
+        filter.rate_tolerance_degc = self.rate_tolerance_degc(&scaling);
+        rt::ChannelProcessor::new(scaling, filter)
+    }
+
+    /// What the rate check accepts on top of `max_rate_degc_per_s`: two counts of the
+    /// converter in degC. With +-1 count of noise two samples of a steady temperature
+    /// differ by up to two counts; on a 12-bit ADC (4095 counts at 24 mA, -50..150 degC)
+    /// that is 0.147 degC, more than 0.5 degC/s allows in a 0.2 s poll. A float from a
+    /// module that scales it itself has no known count: no tolerance.
+    fn rate_tolerance_degc(&self, scaling: &rt::Scaling) -> f64 {
+        match (&self.scaling, self.data_type) {
+            (Scaling::Direct(_), DataType::F32) => 0.0,
+            _ => RATE_NOISE_COUNTS * scaling.degc_per_raw_unit(),
+        }
     }
 }
 
@@ -324,7 +342,10 @@ pub struct FilterConfig {
     #[schemars(range(min = 0.0, max = 86400.0))]
     pub lowpass_tau_s: f64,
     /// Plausibility: a change faster than this (degC per second) is rejected as a
-    /// spike (0 = off). Default 0.5; 0..=100000.
+    /// spike (0 = off). Default 0.5; 0..=100000. A change within two counts of the
+    /// converter (+-1 count of noise; 0.147 degC for 4095 counts at 24 mA over
+    /// -50..150 degC) is always accepted on top, except on a `f32` channel with
+    /// `direct` scaling, which has no counts.
     #[serde(default = "default_max_rate_degc_per_s")]
     #[schemars(range(min = 0.0, max = 100_000.0))]
     pub max_rate_degc_per_s: f64,
@@ -420,6 +441,8 @@ impl FilterConfig {
             median_samples: self.median_samples.max(1) as usize,
             lowpass_tau_s: self.lowpass_tau_s,
             max_rate_degc_per_s: self.max_rate_degc_per_s,
+            // Depends on the scaling: set by `ChannelConfig::build`.
+            rate_tolerance_degc: 0.0,
             max_rejected_samples: self.max_rejected_samples,
             stale_after_s: self.stale_after_s,
             valid_min_degc: self.valid_min_degc,
@@ -448,4 +471,71 @@ fn default_valid_min_degc() -> f64 {
 }
 fn default_valid_max_degc() -> f64 {
     80.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use compgate_core::channel::{Quality, Reason};
+
+    /// A 12-bit PT100 channel with the default filter.
+    fn pt100_with_defaults() -> ChannelConfig {
+        crate::config::load_str(
+            r#"
+[devices.ain1]
+transport = "tcp"
+address = "127.0.0.1:502"
+unit_id = 1
+
+[channels.T]
+device = "ain1"
+register = "input"
+address = 0
+data_type = "u16"
+scaling = { kind = "transmitter", adc_full_scale_counts = 4095, adc_full_scale_ma = 24.0, range_min_degc = -50.0, range_max_degc = 150.0 }
+"#,
+            "t.toml",
+        )
+        .expect("valid")
+        .channels["T"]
+            .clone()
+    }
+
+    // Issue 23, trap 6: with +-1 count of noise, the default rate limit and a 0.2 s
+    // poll, about 10 % of the readings were `uncertain(rate rejected)`. The converter's
+    // own quantisation is tolerated; a real spike is still rejected.
+    #[test]
+    fn the_default_filter_tolerates_one_count_of_noise_at_a_fast_poll() {
+        let mut p = pt100_with_defaults().build();
+        // 30 degC = 8.8 mA = 1501.5 counts; noise -1, 0, +1 counts from an LCG.
+        let mut x: u64 = 42;
+        let mut rejected = 0;
+        for k in 0..5000 {
+            x = x
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            let noise = f64::from((x >> 33) as u32 % 3) - 1.0;
+            let r = p.on_sample(0.2 * f64::from(k), 1501.0 + noise);
+            if r.quality != Quality::Good {
+                rejected += 1;
+            }
+        }
+        assert_eq!(rejected, 0, "samples not good out of 5000");
+        // 10 counts (0.73 degC) in 0.2 s is a spike.
+        let r = p.on_sample(1000.0, 1511.0);
+        assert_eq!(r.quality, Quality::Uncertain(Reason::RateRejected));
+    }
+
+    #[test]
+    fn a_float_in_degc_has_no_count_to_tolerate() {
+        let mut ch = pt100_with_defaults();
+        ch.data_type = DataType::F32;
+        ch.scaling = Scaling::Direct(DirectScaling {
+            gain: 1.0,
+            offset_degc: 0.0,
+        });
+        assert_eq!(ch.build().filter_params().rate_tolerance_degc, 0.0);
+        ch.data_type = DataType::I16;
+        assert_eq!(ch.build().filter_params().rate_tolerance_degc, 2.0);
+    }
 }

@@ -10,6 +10,8 @@
 //!   them, with a connection limit and timeouts.
 //! - [`mqtt`]: readings, NC writes and health to an MQTT broker, through an outbox
 //!   that loses nothing across a broker outage.
+//! - [`page`]: the live status page (`GET /`) and `GET /api/status` on the metrics
+//!   listener.
 //! - [`status`]: the live status table on a terminal, plain lines in the journal.
 //! - [`heap`]: glibc malloc's figures and the service's one-arena setting.
 
@@ -18,6 +20,7 @@ pub mod http;
 pub mod metrics;
 pub mod mqtt;
 pub mod notify;
+pub mod page;
 pub mod record;
 pub mod status;
 
@@ -103,7 +106,7 @@ pub fn init_tracing(filter: Option<&str>, default: &str) {
 
 /// Cancels the returned token on Ctrl-C or SIGTERM; sends the reloaded config on
 /// SIGHUP. A config that does not load is logged and not sent: the old one stays.
-fn signals(path: PathBuf, reload: mpsc::Sender<Config>) -> CancellationToken {
+fn signals(path: PathBuf, reload: mpsc::Sender<Config>, opts: RunOptions) -> CancellationToken {
     use tokio::signal::unix::{signal, SignalKind};
     let token = CancellationToken::new();
     let t = token.clone();
@@ -127,7 +130,8 @@ fn signals(path: PathBuf, reload: mpsc::Sender<Config>) -> CancellationToken {
                 _ = hup.recv() => {
                     tracing::info!(file = %path.display(), "SIGHUP: reloading the configuration");
                     match config::load(&path) {
-                        Ok(cfg) => {
+                        Ok(mut cfg) => {
+                            opts.apply(&mut cfg);
                             let _ = reload.send(cfg).await;
                         }
                         Err(e) => tracing::error!(error = %e, "reload refused: the running configuration stays"),
@@ -140,18 +144,56 @@ fn signals(path: PathBuf, reload: mpsc::Sender<Config>) -> CancellationToken {
     token
 }
 
+/// Starts the HTTP listener of `[metrics]`: `/metrics`, and the status page fed by
+/// `status` unless `metrics.status_page = false`. Returns the address bound.
+pub async fn http_listener(
+    m: &config::MetricsConfig,
+    status: &watch::Receiver<runtime::Status>,
+    status_interval: std::time::Duration,
+) -> Result<std::net::SocketAddr, ServiceError> {
+    let page = m.status_page.then(page::Page::default);
+    let addr = metrics::install(m, page.clone()).await?;
+    if let Some(page) = page {
+        tokio::spawn(page::track(
+            status.clone(),
+            page,
+            std::time::Duration::from_secs_f64(m.trend_s),
+            status_interval,
+        ));
+        tracing::info!(bind = %addr, "status page on http://{addr}/");
+    }
+    Ok(addr)
+}
+
+/// What the command line sets over the config file, for the run and every reload.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct RunOptions {
+    /// `--shadow`: every axis in shadow mode (as `gateway.shadow = true`).
+    pub shadow: bool,
+}
+
+impl RunOptions {
+    /// Sets what the options force in `cfg`.
+    pub fn apply(&self, cfg: &mut Config) {
+        cfg.gateway.shadow |= self.shadow;
+    }
+}
+
 /// `compgate run`: the gateway on `cfg` (loaded from `path`) as a service, until
 /// SIGTERM or Ctrl-C.
-pub async fn run(path: &Path, cfg: Config) -> Result<(), ServiceError> {
+pub async fn run(path: &Path, mut cfg: Config, opts: RunOptions) -> Result<(), ServiceError> {
+    opts.apply(&mut cfg);
     let (reload_tx, reload_rx) = mpsc::channel(1);
-    let shutdown = signals(path.to_path_buf(), reload_tx);
+    let shutdown = signals(path.to_path_buf(), reload_tx, opts);
     let mut observers: Vec<Box<dyn Observer>> = vec![Box::new(notify::Notifier::new())];
     let recorder = match &cfg.recorder {
         Some(r) => Some(Recorder::start(r)?),
         None => None,
     };
-    if let Some(r) = &recorder {
-        observers.push(Box::new(r.observer()));
+    if let (Some(r), Some(c)) = (&recorder, &cfg.recorder) {
+        observers.push(Box::new(
+            r.observer().with_interval(config::secs(c.interval_s)),
+        ));
     }
     let mut publisher = None;
     if let (Some(m), Some(r)) = (&cfg.mqtt, &recorder) {
@@ -163,15 +205,19 @@ pub async fn run(path: &Path, cfg: Config) -> Result<(), ServiceError> {
             shutdown.clone(),
         )));
     }
+    let (tx, rx) = watch::channel(runtime::Status::default());
     if let Some(m) = &cfg.metrics {
-        metrics::install(m).await?;
+        http_listener(m, &rx, cfg.gateway.status_interval()).await?;
         let stats = recorder.as_ref().map(|r| r.sender().stats().clone());
         observers.push(Box::new(metrics::MetricsObserver::new(stats)));
     }
-    let (tx, rx) = watch::channel(runtime::Status::default());
+    for (name, a) in &cfg.axes {
+        if a.shadow || cfg.gateway.shadow {
+            tracing::warn!(axis = %name, "shadow mode: the axis computes and records what it would write; its NC is never written");
+        }
+    }
     let printer = tokio::spawn(crate::status::print_loop(
         rx,
-        cfg.gateway.status_interval(),
         std::io::stdout().is_terminal(),
         shutdown.clone(),
     ));

@@ -7,10 +7,12 @@
 //! | `compgate_device_link_up` | gauge | device | 1 when the last poll cycle read everything |
 //! | `compgate_device_poll_seconds` | histogram | device | duration of a poll cycle: the request round trips |
 //! | `compgate_device_errors_total` | counter | device, kind | failed cycles by kind: timeout, transport, connect, exception, backoff |
-//! | `compgate_channel_value_degc` | gauge | channel | filtered temperature (NaN without a value) |
-//! | `compgate_channel_quality` | gauge | channel | 0 good, 1 uncertain, 2 bad |
+//! | `compgate_channel_value_degc` | gauge | channel | filtered temperature (NaN without a value), every `gateway.status_interval_s` |
+//! | `compgate_channel_quality` | gauge | channel | 0 good, 1 uncertain, 2 bad, every `gateway.status_interval_s` |
 //! | `compgate_axis_sd43900_mm`, `compgate_axis_sd43910`, `compgate_axis_sd43920_mm` | gauge | axis | parameters last written and verified |
-//! | `compgate_nc_jobs_total` | counter | axis, result (`ok`/`failed`) | NC job outcomes |
+//! | `compgate_axis_shadow` | gauge | axis | 1 when the axis runs in shadow mode (computes, never writes the NC) |
+//! | `compgate_axis_shadow_sd43900_mm`, `compgate_axis_shadow_sd43910`, `compgate_axis_shadow_sd43920_mm` | gauge | axis | shadow mode: the parameters the axis would have written last |
+//! | `compgate_nc_jobs_total` | counter | axis, result (`ok`/`failed`/`shadow`) | NC job outcomes; `shadow`: computed, not sent |
 //! | `compgate_cycle_seconds` | histogram | | control loop: time to process one device sample |
 //! | `compgate_recorder_records_total` | counter | outcome (`written`, `dropped_queue`, `dropped_write`) | recorder |
 //! | `compgate_process_heap_bytes` | gauge | state (`in_use`, `free`) | glibc malloc: bytes allocated (the live heap) and bytes it holds free; RSS growing with `in_use` flat is the allocator, not a leak (glibc only) |
@@ -36,8 +38,12 @@ use compgate_gateway::runtime::{GatewayError, Observer, SampleReadings, Status};
 const UPKEEP_S: u64 = 5;
 
 /// Installs the global recorder with help text for every metric, and serves
-/// `GET /metrics` on `cfg.bind` (inside the tokio runtime).
-pub async fn install(cfg: &MetricsConfig) -> Result<(), ServiceError> {
+/// `GET /metrics` on `cfg.bind` (inside the tokio runtime), with the status page's
+/// routes when `page` is given. Returns the address bound (port 0 takes a free one).
+pub async fn install(
+    cfg: &MetricsConfig,
+    page: Option<crate::page::Page>,
+) -> Result<SocketAddr, ServiceError> {
     let bind = cfg.bind.as_str();
     let addr: SocketAddr = bind.parse().map_err(|e| bind_err(bind, e))?;
     let buckets = [
@@ -69,6 +75,11 @@ pub async fn install(cfg: &MetricsConfig) -> Result<(), ServiceError> {
         );
         r
     });
+    let router = match page {
+        Some(page) => crate::page::routes(router, page),
+        None => router,
+    };
+    let addr = listener.local_addr().map_err(|e| bind_err(bind, e))?;
     let limits = crate::http::Limits {
         max_connections: cfg.max_connections as usize,
         ..crate::http::Limits::default()
@@ -81,7 +92,7 @@ pub async fn install(cfg: &MetricsConfig) -> Result<(), ServiceError> {
         tokio_util::sync::CancellationToken::new(),
     ));
     tracing::info!(bind = %addr, max_connections = cfg.max_connections, "Prometheus metrics on http://{addr}/metrics");
-    Ok(())
+    Ok(addr)
 }
 
 /// Help text and units of every metric (Prometheus `# HELP`).
@@ -126,7 +137,24 @@ pub fn describe() {
     describe_counter!(
         "compgate_nc_jobs_total",
         Unit::Count,
-        "NC jobs by axis and result (ok, failed)"
+        "NC jobs by axis and result (ok, failed, shadow: computed in shadow mode, not sent)"
+    );
+    describe_gauge!(
+        "compgate_axis_shadow",
+        Unit::Count,
+        "1 when the axis runs in shadow mode: it computes and records, never writes the NC"
+    );
+    describe_gauge!(
+        "compgate_axis_shadow_sd43900_mm",
+        "Shadow mode: SD43900 in mm the axis would have written last"
+    );
+    describe_gauge!(
+        "compgate_axis_shadow_sd43910",
+        "Shadow mode: SD43910 the axis would have written last"
+    );
+    describe_gauge!(
+        "compgate_axis_shadow_sd43920_mm",
+        "Shadow mode: SD43920 in mm the axis would have written last"
     );
     describe_histogram!(
         "compgate_cycle_seconds",
@@ -166,7 +194,7 @@ struct ChannelHandles {
     value: Gauge,
     quality: Gauge,
     /// Quality code last set: it rarely changes, and setting a gauge is two atomic
-    /// writes, 512 channels x 10 Hz of them.
+    /// writes.
     last_quality: Option<u8>,
 }
 
@@ -206,29 +234,6 @@ fn set_params(axis: &str, p: &CompParams) {
 impl Observer for MetricsObserver {
     fn on_sample(&mut self, readings: &SampleReadings) {
         let started = Instant::now();
-        if self.channels.len() != readings.channel_names.len() {
-            self.channels = readings
-                .channel_names
-                .iter()
-                .map(|n| ChannelHandles {
-                    value: gauge!("compgate_channel_value_degc", "channel" => n.clone()),
-                    quality: gauge!("compgate_channel_quality", "channel" => n.clone()),
-                    last_quality: None,
-                })
-                .collect();
-        }
-        for c in &readings.channels {
-            let Some(h) = self.channels.get_mut(c.channel) else {
-                continue;
-            };
-            let r = &c.reading;
-            h.value.set(r.value_degc.unwrap_or(f64::NAN));
-            let q = quality_code(&r.quality).0;
-            if h.last_quality != Some(q) {
-                h.quality.set(f64::from(q));
-                h.last_quality = Some(q);
-            }
-        }
         if let Some(d) = self.devices.get(readings.device) {
             d.up.set(if readings.error.is_none() { 1.0 } else { 0.0 });
             d.poll.record(readings.poll_elapsed.as_secs_f64());
@@ -251,7 +256,38 @@ impl Observer for MetricsObserver {
         }
     }
 
+    fn on_shadow(&mut self, axis: &str, params: &CompParams) {
+        counter!("compgate_nc_jobs_total", "axis" => axis.to_string(), "result" => "shadow")
+            .increment(1);
+        gauge!("compgate_axis_shadow_sd43900_mm", "axis" => axis.to_string()).set(params.k0_mm);
+        gauge!("compgate_axis_shadow_sd43910", "axis" => axis.to_string()).set(params.tan_beta);
+        gauge!("compgate_axis_shadow_sd43920_mm", "axis" => axis.to_string()).set(params.p0_mm);
+    }
+
     fn on_status(&mut self, status: &Status) {
+        // The channel gauges once per status interval, from the snapshot: set per
+        // sample they were a tenth of the gateway's CPU at 100k points/s (two atomic
+        // writes per point), for a value a scrape reads every few seconds.
+        if self.channels.len() != status.channels.len() {
+            self.channels = status
+                .channels
+                .iter()
+                .map(|c| ChannelHandles {
+                    value: gauge!("compgate_channel_value_degc", "channel" => c.name.clone()),
+                    quality: gauge!("compgate_channel_quality", "channel" => c.name.clone()),
+                    last_quality: None,
+                })
+                .collect();
+        }
+        for (h, c) in self.channels.iter_mut().zip(&status.channels) {
+            let r = &c.reading;
+            h.value.set(r.value_degc.unwrap_or(f64::NAN));
+            let q = quality_code(&r.quality).0;
+            if h.last_quality != Some(q) {
+                h.quality.set(f64::from(q));
+                h.last_quality = Some(q);
+            }
+        }
         if self.devices.len() != status.devices.len()
             || self
                 .devices
@@ -273,6 +309,11 @@ impl Observer for MetricsObserver {
                 if let Some(p) = &a.written {
                     set_params(&a.name, p);
                 }
+                gauge!("compgate_axis_shadow", "axis" => a.name.clone()).set(if a.shadow {
+                    1.0
+                } else {
+                    0.0
+                });
             }
         }
         if let Some(stats) = &self.recorder {
@@ -317,7 +358,7 @@ mod tests {
             ..MetricsConfig::default()
         };
         assert_eq!(
-            install(&cfg).await,
+            install(&cfg, None).await,
             Err(ServiceError::MetricsBind {
                 bind: "localhost".into(),
                 message: "invalid socket address syntax".into(),

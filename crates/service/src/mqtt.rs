@@ -146,6 +146,29 @@ impl Observer for MqttObserver {
             "elapsed_ms": result.as_ref().ok().map(|r| r.elapsed.as_secs_f64() * 1e3),
             "error": result.as_ref().err().map(ToString::to_string),
             "quality": if result.is_ok() { "good" } else { "bad" },
+            "shadow": false,
+        });
+        self.tx.send(Record::Outbox {
+            topic: format!("{}/writes/{axis}", self.base),
+            payload: payload.to_string(),
+        });
+    }
+
+    fn on_shadow(&mut self, axis: &str, params: &CompParams) {
+        // The same topic and fields as a real write, marked: a dashboard shows the
+        // would-be values of a dry run without mistaking them for written ones.
+        let payload = json!({
+            "t_unix_ms": now_unix_ms(),
+            "axis": axis,
+            "sd43900_mm": params.k0_mm,
+            "sd43910": params.tan_beta,
+            "sd43920_mm": params.p0_mm,
+            "ok": false,
+            "job_id": null,
+            "elapsed_ms": null,
+            "error": null,
+            "quality": "good",
+            "shadow": true,
         });
         self.tx.send(Record::Outbox {
             topic: format!("{}/writes/{axis}", self.base),

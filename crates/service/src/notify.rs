@@ -61,6 +61,15 @@ pub fn status_line(s: &Status) -> String {
                 let _ = write!(out, "{}: nothing written yet; ", a.name);
             }
         }
+        if let (true, Some(p)) = (a.shadow, &a.would_write) {
+            let _ = write!(
+                out,
+                "{} SHADOW (NC not written): would write SD43900={:.4}mm SD43910={:.3e} SD43920={:.1}mm; ",
+                a.name, p.k0_mm, p.tan_beta, p.p0_mm
+            );
+        } else if a.shadow {
+            let _ = write!(out, "{} SHADOW (NC not written); ", a.name);
+        }
     }
     out.trim_end_matches([' ', ';']).to_string()
 }

@@ -1,18 +1,24 @@
-//! The status line: temperatures with quality, the SD43900/43910/43920 values last
+//! The status on stdout: temperatures with quality, the SD43900/43910/43920 values last
 //! written, and the compensation the NC applies now.
 //!
-//! On a terminal the line is redrawn in place; otherwise (journal, pipe, file) one
-//! plain line is printed per update, naming every value so it can be grepped.
+//! On a terminal a small table ([`render_table`]) is redrawn in place ([`redraw`]:
+//! cursor up by the height drawn last, every line cleared and drawn again), so nothing
+//! wraps and no trail is left. Otherwise (journal, pipe, file) one plain line
+//! ([`render`]) is printed per status update, naming every value so it can be
+//! grepped. Both are printed from the snapshot the control loop publishes at each
+//! status tick, the one the metrics see at the same moment: no lag behind them.
 
 use std::fmt::Write as _;
-use std::io::Write as _;
-use std::time::Duration;
+use std::io::Write;
 
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 
 use compgate_core::channel::Quality;
-use compgate_gateway::runtime::Status;
+use compgate_gateway::runtime::{AxisStatus, Status};
+
+/// Characters of the widest line of the terminal table: fits an 80-column terminal.
+pub const TABLE_WIDTH: usize = 78;
 
 fn quality_word(q: &Quality) -> String {
     match q {
@@ -22,7 +28,7 @@ fn quality_word(q: &Quality) -> String {
     }
 }
 
-/// One line describing the gateway's state.
+/// One line describing the gateway's state (the journal's form).
 pub fn render(s: &Status) -> String {
     let mut out = String::new();
     for c in &s.channels {
@@ -49,6 +55,16 @@ pub fn render(s: &Status) -> String {
                 );
             }
             None => out.push_str("SD43900=- SD43910=- SD43920=- "),
+        }
+        if a.shadow {
+            out.push_str("SHADOW ");
+            if let Some(p) = &a.would_write {
+                let _ = write!(
+                    out,
+                    "would_write SD43900={:.4}mm SD43910={:.3e} SD43920={:.1}mm ",
+                    p.k0_mm, p.tan_beta, p.p0_mm
+                );
+            }
         }
         match &a.nc {
             Some(nc) => {
@@ -82,34 +98,353 @@ pub fn render(s: &Status) -> String {
     out.trim_end().to_string()
 }
 
-/// Prints the status every `interval` until `shutdown`, then once more.
-pub async fn print_loop(
-    mut rx: watch::Receiver<Status>,
-    interval: Duration,
+/// `s` cut to `width` characters, the cut marked with `~`.
+fn fit(s: &str, width: usize) -> String {
+    if s.chars().count() <= width {
+        return s.to_string();
+    }
+    let mut out: String = s.chars().take(width.saturating_sub(1)).collect();
+    out.push('~');
+    out
+}
+
+fn params_cells(a: &AxisStatus) -> String {
+    match &a.written {
+        Some(p) => format!(
+            "SD43900 {:>8.4} mm  SD43910 {:>10.3e}  SD43920 {:>7.1} mm",
+            p.k0_mm, p.tan_beta, p.p0_mm
+        ),
+        None => "SD43900 -  SD43910 -  SD43920 -".into(),
+    }
+}
+
+/// The terminal table: devices, channels, axes. Every line is at most
+/// [`TABLE_WIDTH`] characters (longer texts are cut), so the table never wraps and
+/// [`redraw`] can move over it by its line count.
+pub fn render_table(s: &Status) -> Vec<String> {
+    let mut lines = Vec::new();
+    let rule = "-".repeat(TABLE_WIDTH);
+    lines.push(format!(
+        "{:<16} {:>10}  {:<22} samples {}",
+        "channel", "degC", "quality", s.samples
+    ));
+    lines.push(rule.clone());
+    for c in &s.channels {
+        let v = c
+            .reading
+            .value_degc
+            .map_or_else(|| "-".to_string(), |v| format!("{v:.2}"));
+        lines.push(format!(
+            "{:<16} {:>10}  {}",
+            fit(&c.name, 16),
+            v,
+            c.reading.quality
+        ));
+    }
+    lines.push(rule.clone());
+    for d in &s.devices {
+        let state = match &d.last_error {
+            None if d.cycles == 0 => "connecting".to_string(),
+            None => "up".to_string(),
+            Some(e) => format!("DOWN: {e}"),
+        };
+        lines.push(format!("device {:<9} {state}", fit(&d.name, 9)));
+    }
+    for a in &s.axes {
+        lines.push(format!("axis {:<11}{}", fit(&a.name, 11), params_cells(a)));
+        if a.shadow {
+            lines.push(match &a.would_write {
+                Some(p) => format!(
+                    "  SHADOW: would SD43900 {:>8.4} mm  SD43910 {:>10.3e}  SD43920 {:>7.1} mm",
+                    p.k0_mm, p.tan_beta, p.p0_mm
+                ),
+                None => "  SHADOW: nothing to write yet; the NC is never written".into(),
+            });
+        }
+        let nc = match &a.nc {
+            Some(nc) => format!(
+                "NC applies {:.4} mm at {:.1} mm",
+                nc.applied_comp_mm, nc.position_mm
+            ),
+            None => "NC -".into(),
+        };
+        lines.push(format!(
+            "  {nc}; jobs {} ok, {} failed; {}",
+            a.jobs_ok, a.jobs_failed, a.decision
+        ));
+        if let Some(w) = &a.warning {
+            lines.push(format!("  WARNING: {w}"));
+        }
+        if let Some(e) = &a.last_job_error {
+            lines.push(format!("  last job: {e}"));
+        }
+    }
+    lines.iter().map(|l| fit(l, TABLE_WIDTH)).collect()
+}
+
+/// The bytes that replace a table of `previous` lines (0: none drawn yet) by `lines`,
+/// with the cursor left on the line below the table: up `previous` lines, each line
+/// cleared and drawn, and the rest of a taller previous table cleared.
+pub fn redraw(previous: usize, lines: &[String]) -> String {
+    let mut out = String::new();
+    if previous > 0 {
+        let _ = write!(out, "\r\x1b[{previous}A");
+    }
+    for l in lines {
+        let _ = write!(out, "\r\x1b[2K{l}\n");
+    }
+    if previous > lines.len() {
+        // The table shrank (a warning went away): clear what is left below it and
+        // come back up.
+        let extra = previous - lines.len();
+        for _ in 0..extra {
+            out.push_str("\r\x1b[2K\n");
+        }
+        let _ = write!(out, "\x1b[{extra}A");
+    }
+    out
+}
+
+/// Prints to `out` as it appears: on a terminal (`tty`) the table redrawn in place,
+/// otherwise one line per status update.
+pub struct Printer<W> {
+    out: W,
     tty: bool,
+    /// Lines of the table on screen.
+    drawn: usize,
+}
+
+impl<W: Write> Printer<W> {
+    /// A printer to `out`.
+    pub fn new(out: W, tty: bool) -> Self {
+        Printer { out, tty, drawn: 0 }
+    }
+
+    /// Shows `s`.
+    pub fn show(&mut self, s: &Status) {
+        // A closed stdout (pipe reader gone) is not worth stopping the gateway for.
+        let _ = if self.tty {
+            let lines = render_table(s);
+            let text = redraw(self.drawn, &lines);
+            self.drawn = lines.len();
+            self.out.write_all(text.as_bytes())
+        } else {
+            writeln!(self.out, "{}", render(s))
+        };
+        let _ = self.out.flush();
+    }
+
+    /// The writer.
+    pub fn into_inner(self) -> W {
+        self.out
+    }
+}
+
+/// Prints every status the gateway publishes (once per `gateway.status_interval_s`)
+/// until `shutdown` or the gateway's end, then the last one.
+pub async fn print_loop(rx: watch::Receiver<Status>, tty: bool, shutdown: CancellationToken) {
+    print_to(rx, Printer::new(std::io::stdout(), tty), shutdown).await;
+}
+
+/// [`print_loop`] to any printer; returns it at the end.
+pub async fn print_to<W: Write>(
+    mut rx: watch::Receiver<Status>,
+    mut printer: Printer<W>,
     shutdown: CancellationToken,
-) {
-    let mut tick = tokio::time::interval(interval);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+) -> Printer<W> {
     loop {
         let stop = tokio::select! {
             _ = shutdown.cancelled() => true,
-            _ = tick.tick() => false,
+            changed = rx.changed() => changed.is_err(),
         };
-        let line = render(&rx.borrow_and_update());
-        let mut out = std::io::stdout().lock();
-        // A closed stdout (pipe reader gone) is not worth stopping the gateway for.
-        let _ = if tty {
-            write!(out, "\r\x1b[K{line}")
-        } else {
-            writeln!(out, "{line}")
-        };
-        let _ = out.flush();
         if stop {
-            if tty {
-                let _ = writeln!(out);
+            // The gateway publishes its final status as it stops.
+            if rx.has_changed().unwrap_or(true) {
+                printer.show(&rx.borrow_and_update());
             }
             break;
+        }
+        printer.show(&rx.borrow_and_update());
+    }
+    printer
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use compgate_core::channel::{Reading, Reason};
+    use compgate_core::comp::CompParams;
+    use compgate_gateway::nc::NcSnapshot;
+    use compgate_gateway::runtime::{ChannelStatus, DeviceStatus};
+
+    fn status(t_bed: f64, warning: Option<&str>) -> Status {
+        let reading = |v: f64, q: Quality| Reading {
+            value_degc: Some(v),
+            quality: q,
+            ..Reading::no_data()
+        };
+        Status {
+            channels: vec![
+                ChannelStatus {
+                    name: "T_bed".into(),
+                    reading: reading(t_bed, Quality::Good),
+                },
+                ChannelStatus {
+                    name: "T_a_channel_with_a_very_long_name_indeed".into(),
+                    reading: reading(21.5, Quality::Bad(Reason::Ne43Low)),
+                },
+            ],
+            devices: vec![DeviceStatus {
+                name: "ain1".into(),
+                cycles: 5,
+                last_error: Some("timeout after 0.5 s reading input registers 0..4 of a device far away on the plant network".into()),
+                ..DeviceStatus::default()
+            }],
+            axes: vec![AxisStatus {
+                name: "X".into(),
+                written: Some(CompParams {
+                    k0_mm: 0.0123,
+                    tan_beta: 1.15e-4,
+                    p0_mm: 100.0,
+                }),
+                decision: "write".into(),
+                jobs_ok: 3,
+                nc: Some(NcSnapshot {
+                    applied_comp_mm: 0.0345,
+                    position_mm: 1234.5,
+                    ..NcSnapshot::default()
+                }),
+                warning: warning.map(str::to_string),
+                shadow: true,
+                would_write: Some(CompParams {
+                    k0_mm: 0.02,
+                    tan_beta: 2e-4,
+                    p0_mm: 100.0,
+                }),
+                ..AxisStatus::default()
+            }],
+            samples: 42,
+            jobs: Default::default(),
+        }
+    }
+
+    #[test]
+    fn the_table_is_no_wider_than_its_width_and_shows_every_value() {
+        let s = status(24.31, Some(&"x".repeat(300)));
+        let lines = render_table(&s);
+        for l in &lines {
+            assert!(l.chars().count() <= TABLE_WIDTH, "{} chars: {l}", l.len());
+            assert!(!l.contains('\n') && !l.contains('\r'), "{l:?}");
+        }
+        let text = lines.join("\n");
+        for want in [
+            "T_bed",
+            "24.31",
+            "bad (NE43 low)",
+            "SD43900   0.0123 mm",
+            "SHADOW: would SD43900   0.0200 mm",
+            "NC applies 0.0345 mm at 1234.5 mm",
+            "SHADOW",
+            "WARNING: xxx",
+            "DOWN: timeout",
+        ] {
+            assert!(text.contains(want), "{want:?} missing from\n{text}");
+        }
+    }
+
+    /// The `n` of every cursor-up sequence `ESC [ n A`, in order.
+    fn ups(s: &str) -> Vec<usize> {
+        s.split("\x1b[")
+            .skip(1)
+            .filter_map(|rest| {
+                let digits: String = rest.chars().take_while(char::is_ascii_digit).collect();
+                (rest[digits.len()..].starts_with('A')).then(|| digits.parse().ok())?
+            })
+            .collect()
+    }
+
+    // The redraw goes up exactly the height drawn before, draws every line on a
+    // cleared line, and clears what a taller previous table left.
+    #[test]
+    fn the_redraw_moves_up_exactly_the_tables_height() {
+        let tall = render_table(&status(24.0, Some("NC unreachable")));
+        let short = render_table(&status(24.0, None));
+        assert_eq!(tall.len(), short.len() + 1);
+
+        let first = redraw(0, &tall);
+        assert_eq!(ups(&first), Vec::<usize>::new());
+        assert_eq!(first.matches('\n').count(), tall.len());
+
+        let again = redraw(tall.len(), &tall);
+        assert_eq!(ups(&again), vec![tall.len()], "{again:?}");
+        assert!(again.starts_with(&format!("\r\x1b[{}A", tall.len())));
+        assert_eq!(again.matches("\x1b[2K").count(), tall.len());
+        assert_eq!(again.matches('\n').count(), tall.len());
+
+        // Shrinking: the leftover line is cleared, and the cursor comes back up to the
+        // line below the new table.
+        let shrink = redraw(tall.len(), &short);
+        assert_eq!(ups(&shrink), vec![tall.len(), 1], "{shrink:?}");
+        assert_eq!(shrink.matches("\x1b[2K").count(), tall.len());
+        assert_eq!(shrink.matches('\n').count(), tall.len());
+    }
+
+    /// A writer the test can read while the printer owns it.
+    #[derive(Clone, Default)]
+    struct Shared(std::sync::Arc<std::sync::Mutex<Vec<u8>>>);
+
+    impl Write for Shared {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            self.0.lock().expect("lock").extend_from_slice(buf);
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    impl Shared {
+        fn lines(&self) -> Vec<String> {
+            let text = String::from_utf8(self.0.lock().expect("lock").clone()).expect("utf-8");
+            text.lines().map(str::to_string).collect()
+        }
+    }
+
+    // Journal mode: one line per published status, with that status' values (not
+    // an older one's), and the final status once more at the end.
+    #[tokio::test]
+    async fn plain_mode_prints_one_line_per_status_with_current_values() {
+        let (tx, rx) = watch::channel(Status::default());
+        let shutdown = CancellationToken::new();
+        let out = Shared::default();
+        let printer = tokio::spawn(print_to(
+            rx,
+            Printer::new(out.clone(), false),
+            shutdown.clone(),
+        ));
+        for k in 0..5 {
+            tx.send_replace(status(20.0 + f64::from(k), None));
+            // The next status tick comes after the printer printed this one.
+            let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+            while out.lines().len() < k as usize + 1 {
+                assert!(std::time::Instant::now() < deadline, "{:?}", out.lines());
+                tokio::time::sleep(std::time::Duration::from_millis(1)).await;
+            }
+        }
+        tx.send_replace(status(30.0, None));
+        shutdown.cancel();
+        printer.await.expect("printer");
+        let lines = out.lines();
+        assert_eq!(lines.len(), 6, "{lines:#?}");
+        for (k, l) in lines.iter().enumerate() {
+            let want = if k == 5 {
+                "T_bed=30.00degC[good]".to_string()
+            } else {
+                format!("T_bed={:.2}degC[good]", 20.0 + k as f64)
+            };
+            assert!(l.starts_with(&want), "line {k}: {l}");
+            assert!(l.contains("SHADOW would_write SD43900=0.0200mm"), "{l}");
+            assert!(!l.contains('\r') && !l.contains('\x1b'), "{l:?}");
         }
     }
 }

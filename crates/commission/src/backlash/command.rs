@@ -11,6 +11,9 @@ use compgate_gateway::nc::{Job, ModbusNcWriter, NcError, NcWriter};
 use compgate_gateway::source::modbus::{Backoff, LinkSpec, ModbusLink};
 use compgate_gateway::source::plan::RegisterKind;
 
+use compgate_ncproto::servo::TraceConfig;
+
+use super::input::read_trace;
 use super::math::{extract, Backlash, Extraction, Points, Procedure, Trace};
 use super::report::{report, write_csv, write_svg};
 use super::{BacklashError, Outcome};
@@ -62,13 +65,19 @@ pub struct BacklashArgs {
     /// Run against an in-process simulated axis instead of --nc.
     #[arg(long)]
     pub sim: bool,
+    /// Analyse a servo trace recorded on a control instead of running the test:
+    /// CSV with t_s, encoder_mm, scale_mm and optionally command_mm. The points,
+    /// feed and dwell flags describe the programme that was run.
+    #[arg(long, value_name = "FILE.csv")]
+    pub trace: Option<PathBuf>,
     /// Simulated axis: backlash, um.
     #[arg(long, default_value_t = 20.0)]
     pub sim_backlash_um: f64,
     /// Simulated axis: measurement noise (standard deviation) of encoder and scale, um.
     #[arg(long, default_value_t = 0.3)]
     pub sim_noise_um: f64,
-    /// Simulated axis: drive-train elasticity time constant, ms (table lag = v * tau).
+    /// Simulated axis: drive-train elasticity time constant, ms (table lag = v * tau);
+    /// 0..=25 at the simulated Kv of 20 1/s, beyond 12.5 the loop overshoots.
     #[arg(long, default_value_t = 8.0)]
     pub sim_elastic_ms: f64,
     /// Simulated axis: noise seed.
@@ -95,6 +104,7 @@ impl Default for BacklashArgs {
             unit: 1,
             out: None,
             sim: false,
+            trace: None,
             sim_backlash_um: 20.0,
             sim_noise_um: 0.3,
             sim_elastic_ms: 8.0,
@@ -294,28 +304,20 @@ pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, Backl
     let machine_time_s =
         f64_reg(&status, ncmap::MV_END_TIME_S) - f64_reg(&status, ncmap::MV_START_TIME_S);
 
-    let points = extract(&trace, &procedure, Extraction::Plateau)?;
+    let points = extract(&trace, &procedure, Extraction::Plateau)
+        .map_err(|e| keep_trace_on_refusal(args, &trace, e))?;
     let backlash = Backlash::from_points(&points);
-
-    let mut files = Vec::new();
-    if let Some(dir) = &args.out {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| BacklashError::Io(format!("{}: {e}", dir.display())))?;
-        let stem: String = args
-            .axis
-            .chars()
-            .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
-            .collect();
-        let svg = dir.join(format!("backlash_{stem}.svg"));
-        write_svg(&svg, &args.axis, &trace, &points)?;
-        let csv = dir.join(format!("backlash_{stem}_trace.csv"));
-        write_csv(&csv, &trace)?;
-        files.push(svg);
-        files.push(csv);
-    }
+    let files = write_files(args, &trace, &points)?;
 
     let mut md32450_written_mm = None;
     if args.write {
+        if backlash.disagreement_mm().is_some() {
+            return Err(BacklashError::Disagree {
+                f1_um: backlash.f1_mm * 1000.0,
+                f2_um: backlash.f2_mm * 1000.0,
+                tol_um: backlash.tolerance_mm() * 1000.0,
+            });
+        }
         let value = backlash.md32450_mm();
         if !(0.0..=compgate_ncproto::MD32450_LIMIT_MM).contains(&value) {
             return Err(BacklashError::Invalid(vec![format!(
@@ -349,6 +351,84 @@ pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, Backl
         backlash,
         md32450_written_mm,
         machine_time_s,
+        trace_file: None,
+        files,
+    })
+}
+
+/// A refused trace is still written to `--out` (it was recorded: nothing is lost, and
+/// it shows why); the refusal is returned, with the file named.
+fn keep_trace_on_refusal(args: &BacklashArgs, trace: &Trace, e: BacklashError) -> BacklashError {
+    let Some(dir) = &args.out else { return e };
+    let csv = dir.join(format!("backlash_{}_trace.csv", file_stem(&args.axis)));
+    let kept = std::fs::create_dir_all(dir)
+        .map_err(|e| BacklashError::Io(format!("{}: {e}", dir.display())))
+        .and_then(|()| write_csv(&csv, trace));
+    match (e, kept) {
+        (BacklashError::Extraction(why), Ok(())) => {
+            BacklashError::Extraction(format!("{why} (trace kept in {})", csv.display()))
+        }
+        (e, _) => e,
+    }
+}
+
+fn file_stem(axis: &str) -> String {
+    axis.chars()
+        .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+        .collect()
+}
+
+/// Writes the SVG and the trace CSV into `--out`, if given.
+fn write_files(
+    args: &BacklashArgs,
+    trace: &Trace,
+    points: &[super::math::PointValue; 3],
+) -> Result<Vec<PathBuf>, BacklashError> {
+    let mut files = Vec::new();
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| BacklashError::Io(format!("{}: {e}", dir.display())))?;
+        let stem = file_stem(&args.axis);
+        let svg = dir.join(format!("backlash_{stem}.svg"));
+        write_svg(&svg, &args.axis, trace, points)?;
+        let csv = dir.join(format!("backlash_{stem}_trace.csv"));
+        write_csv(&csv, trace)?;
+        files.push(svg);
+        files.push(csv);
+    }
+    Ok(files)
+}
+
+/// `compgate backlash --trace FILE.csv`: the analysis of a trace recorded on a
+/// control, offline. The procedure flags describe the programme that was run; the
+/// sample period comes from the file.
+pub fn run_file(args: &BacklashArgs) -> Result<Outcome, BacklashError> {
+    let Some(path) = &args.trace else {
+        return Err(BacklashError::Invalid(vec!["give --trace FILE.csv".into()]));
+    };
+    let trace = read_trace(path)?;
+    let procedure = Procedure {
+        period_s: trace.period_s,
+        ..Procedure::from_args(args)
+    };
+    procedure.validate(None)?;
+    let points = extract(&trace, &procedure, Extraction::Plateau)?;
+    let backlash = Backlash::from_points(&points);
+    let files = write_files(args, &trace, &points)?;
+    let n = trace.scale_mm.len();
+    Ok(Outcome {
+        procedure,
+        trace_config: TraceConfig {
+            period_s: trace.period_s,
+            record_s: n as f64 * trace.period_s,
+            ..TraceConfig::default()
+        },
+        machine_time_s: (n.saturating_sub(1)) as f64 * trace.period_s,
+        trace,
+        points,
+        backlash,
+        md32450_written_mm: None,
+        trace_file: Some(path.clone()),
         files,
     })
 }
@@ -378,10 +458,15 @@ pub fn check_args(args: &BacklashArgs) -> Result<(), BacklashError> {
     if let Err(BacklashError::Invalid(p)) = Procedure::from_args(args).validate(None) {
         problems.extend(p);
     }
-    match (&args.nc, args.sim) {
-        (Some(_), true) => problems.push("--nc and --sim exclude each other".into()),
-        (None, false) => problems.push("give --nc ADDRESS or --sim".into()),
-        _ => {}
+    match (&args.nc, args.sim, &args.trace) {
+        (None, false, None) => {
+            problems.push("give --nc ADDRESS or --sim, or --trace FILE.csv".into())
+        }
+        (Some(_), false, None) | (None, true, None) | (None, false, Some(_)) => {}
+        _ => problems.push("--nc, --sim and --trace exclude each other".into()),
+    }
+    if args.trace.is_some() && args.write {
+        problems.push("--write needs --nc: a trace file is analysed offline".into());
     }
     if problems.is_empty() {
         Ok(())
@@ -390,11 +475,15 @@ pub fn check_args(args: &BacklashArgs) -> Result<(), BacklashError> {
     }
 }
 
-/// `compgate backlash --nc ADDRESS`: runs the test on the NC and returns the report
-/// table. (`--sim` is the binary's: it serves the simulated axis, then calls
+/// `compgate backlash --nc ADDRESS` (or `--trace FILE.csv`): runs the test on the NC
+/// (or analyses the file) and returns the report table. (`--sim` is the binary's: it serves the simulated axis, then calls
 /// [`run_on`].)
 pub async fn run(args: &BacklashArgs) -> Result<String, BacklashError> {
     check_args(args)?;
+    if args.trace.is_some() {
+        let outcome = run_file(args)?;
+        return Ok(report(&args.axis, &outcome, None));
+    }
     let Some(address) = &args.nc else {
         return Err(BacklashError::Invalid(vec!["give --nc ADDRESS".into()]));
     };

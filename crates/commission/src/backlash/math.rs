@@ -4,8 +4,10 @@
 use compgate_ncproto::servo::{MoveStep, TraceConfig, Trigger};
 
 use super::{
-    BacklashError, ARRIVAL_WINDOW_MM, MIN_DWELL_S, MIN_PLATEAU_SAMPLES, MIN_STROKE_MM,
-    POINT_TOLERANCE_MM, PRE_TRAVEL_MM, TRIGGER_BELOW_A_MM, VELOCITY_SPAN_S,
+    BacklashError, ARRIVAL_WINDOW_MM, BACKOFF_MM, COMMAND_STILL_MM, MIN_DWELL_S,
+    MIN_PLATEAU_SAMPLES, MIN_STROKE_MM, POINT_TOLERANCE_MM, PRE_TRAVEL_MM, SETTLED_DRIFT_MM,
+    SETTLE_WINDOW_S, SMOOTH_S, TOLERANCE_FRACTION, TOLERANCE_MM, TRIGGER_BELOW_A_MM,
+    VELOCITY_SPAN_S,
 };
 use crate::stats::mean;
 
@@ -154,12 +156,16 @@ pub struct Trace {
     pub encoder_mm: Vec<f64>,
     /// Linear scale actual position per sample, mm.
     pub scale_mm: Vec<f64>,
+    /// Position command (interpolator output) per sample, mm; empty when the trace
+    /// has no command channel. Where present it marks the dwells.
+    pub command_mm: Vec<f64>,
 }
 
 /// How L and M are taken from the trace.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Extraction {
-    /// Mean over the second half of the standstill plateau at each point.
+    /// Mean over the settled part of the dwell at each point: where encoder and scale
+    /// both stand still.
     Plateau,
     /// One sample: the first inside the in-position window of the point. Kept to show
     /// why the plateau is needed.
@@ -179,26 +185,38 @@ pub struct PointValue {
     pub scale_mm: f64,
     /// Encoder value M, mm.
     pub encoder_mm: f64,
+    /// Time from the start of the dwell until encoder and scale both stood still, s.
+    pub settle_s: f64,
 }
 
-/// Standstill runs (first, last inclusive) of the scale channel.
+/// Standstill runs (first, last inclusive): of the command where the trace has one,
+/// else of the scale.
 fn standstill_runs(trace: &Trace, feed_mm_per_min: f64) -> Vec<(usize, usize)> {
     let n = trace.scale_mm.len();
-    let w = ((VELOCITY_SPAN_S / trace.period_s / 2.0).round() as usize).max(1);
-    let v_limit = (0.01 * feed_mm_per_min / 60.0).max(0.02);
+    let still: Vec<bool> = if trace.command_mm.len() == n {
+        (0..n)
+            .map(|i| {
+                let lo = i.saturating_sub(1);
+                let hi = (i + 1).min(n - 1);
+                (trace.command_mm[hi] - trace.command_mm[lo]).abs() < COMMAND_STILL_MM
+            })
+            .collect()
+    } else {
+        let w = ((VELOCITY_SPAN_S / trace.period_s / 2.0).round() as usize).max(1);
+        let v_limit = (0.01 * feed_mm_per_min / 60.0).max(0.02);
+        (0..n)
+            .map(|i| {
+                let lo = i.saturating_sub(w);
+                let hi = (i + w).min(n - 1);
+                let span_s = (hi - lo) as f64 * trace.period_s;
+                hi == lo || (trace.scale_mm[hi] - trace.scale_mm[lo]).abs() / span_s < v_limit
+            })
+            .collect()
+    };
     let mut runs = Vec::new();
     let mut start = None;
-    for i in 0..n {
-        let lo = i.saturating_sub(w);
-        let hi = (i + w).min(n - 1);
-        let span_s = (hi - lo) as f64 * trace.period_s;
-        let v = if hi > lo {
-            (trace.scale_mm[hi] - trace.scale_mm[lo]).abs() / span_s
-        } else {
-            0.0
-        };
-        let still = v < v_limit;
-        match (still, start) {
+    for (i, s) in still.iter().enumerate() {
+        match (*s, start) {
             (true, None) => start = Some(i),
             (false, Some(s)) => {
                 runs.push((s, i - 1));
@@ -213,7 +231,84 @@ fn standstill_runs(trace: &Trace, feed_mm_per_min: f64) -> Vec<(usize, usize)> {
     runs
 }
 
+/// Least-squares slope (mm per sample) and residual standard deviation (mm) of `v`.
+fn slope_sd(v: &[f64]) -> (f64, f64) {
+    let n = v.len() as f64;
+    if v.len() < 3 {
+        return (0.0, 0.0);
+    }
+    let xm = (n - 1.0) / 2.0;
+    let ym = mean(v);
+    let (mut sxy, mut sxx) = (0.0, 0.0);
+    for (i, y) in v.iter().enumerate() {
+        let dx = i as f64 - xm;
+        sxy += dx * (y - ym);
+        sxx += dx * dx;
+    }
+    let b = sxy / sxx;
+    let ss: f64 = v
+        .iter()
+        .enumerate()
+        .map(|(i, y)| (y - ym - b * (i as f64 - xm)).powi(2))
+        .sum();
+    (b, (ss / (n - 2.0)).sqrt())
+}
+
+/// How far a channel drifts over `v`, mm, and the limit its noise allows, mm: the
+/// fitted drift must stay under [`SETTLED_DRIFT_MM`] or three standard errors of it.
+fn drift(v: &[f64]) -> (f64, f64) {
+    let (b, sd) = slope_sd(v);
+    let n = v.len() as f64;
+    let span = n - 1.0;
+    let se = sd * (12.0 / n).sqrt();
+    ((b * span).abs(), SETTLED_DRIFT_MM.max(3.0 * se))
+}
+
+/// The settled part of the dwell `first..=last` at a point: the earliest start from
+/// which both channels stand still to the dwell's end, no later than half the dwell
+/// (the settling limit: a slow creep hides in the noise of a short tail, so at least
+/// half the dwell must be still). Err names the channel still moving and how fast.
+fn settle(trace: &Trace, first: usize, last: usize) -> Result<usize, String> {
+    let window = ((SETTLE_WINDOW_S / trace.period_s).round() as usize).max(MIN_PLATEAU_SAMPLES);
+    let step = (window / 4).max(1);
+    let latest = first + (last + 1 - first) / 2;
+    let mut s = first;
+    while s <= latest && last + 1 >= s + window {
+        let still = |v: &[f64]| {
+            let (d, lim) = drift(&v[s..s + window]);
+            let (dt, limt) = drift(&v[s..=last]);
+            d <= lim && dt <= limt
+        };
+        if still(&trace.encoder_mm) && still(&trace.scale_mm) {
+            return Ok(s);
+        }
+        s += step;
+    }
+    // Never settled: name what still moves over the dwell's second half.
+    let from = latest.min(last);
+    let rate = |v: &[f64]| {
+        let (b, _) = slope_sd(&v[from..=last]);
+        b / trace.period_s * 1000.0
+    };
+    let (enc, scale) = (rate(&trace.encoder_mm), rate(&trace.scale_mm));
+    Err(format!(
+        "encoder and scale never both stood still over the second half of the {:.3} s dwell; there the encoder moves {enc:+.2} um/s and the scale {scale:+.2} um/s{}",
+        (last + 1 - first) as f64 * trace.period_s,
+        if enc.abs() > 3.0 * scale.abs() {
+            " (the motor is still creeping across the gap while the table stands)"
+        } else {
+            ""
+        }
+    ))
+}
+
 /// Takes L1..L3 and M1..M3 at B, C, D from the trace.
+///
+/// With [`Extraction::Plateau`] each value is the mean over the dwell's settled part,
+/// where encoder and scale both stand still (drift within [`SETTLED_DRIFT_MM`] or the
+/// noise). Refused, with the reason, when a point never settles within its dwell, or
+/// when the motor backed off against the move during the dwell (an overshooting loop:
+/// the motor then sits inside the gap or on its far side, and F is not the backlash).
 pub fn extract(
     trace: &Trace,
     proc: &Procedure,
@@ -228,12 +323,12 @@ pub fn extract(
         )));
     }
     let p = proc.points;
-    let targets = [("B", p.b_mm), ("C", p.c_mm), ("D", p.d_mm)];
+    let targets = [("B", p.b_mm, 1.0), ("C", p.c_mm, -1.0), ("D", p.d_mm, 1.0)];
     let runs = standstill_runs(trace, proc.feed_mm_per_min);
     let min_run = ((0.25 * proc.dwell_s / trace.period_s) as usize).max(2 * MIN_PLATEAU_SAMPLES);
     let mut out = Vec::with_capacity(3);
     let mut after = 0;
-    for (name, target_mm) in targets {
+    for (name, target_mm, dir) in targets {
         let run = runs.iter().find(|&&(first, last)| {
             first >= after
                 && last + 1 - first >= min_run
@@ -247,7 +342,15 @@ pub fn extract(
             )));
         };
         let (from, to) = match how {
-            Extraction::Plateau => (first + (last + 1 - first) / 2, last),
+            Extraction::Plateau => {
+                let from = settle(trace, first, last).map_err(|why| {
+                    BacklashError::Extraction(format!("{name} = {target_mm} mm: {why}; lengthen --dwell, or lower the feed or the position loop gain"))
+                })?;
+                backed_off(trace, first, from, last, dir).map_err(|why| {
+                    BacklashError::Extraction(format!("{name} = {target_mm} mm: {why}"))
+                })?;
+                (from, last)
+            }
             Extraction::ArrivalSample => {
                 let i = (after..=last)
                     .find(|&i| (trace.scale_mm[i] - target_mm).abs() <= ARRIVAL_WINDOW_MM)
@@ -261,6 +364,7 @@ pub fn extract(
             last: to,
             scale_mm: mean(&trace.scale_mm[from..=to]),
             encoder_mm: mean(&trace.encoder_mm[from..=to]),
+            settle_s: (from - first) as f64 * trace.period_s,
         });
         after = last + 1;
     }
@@ -268,6 +372,42 @@ pub fn extract(
         Ok(values) => Ok(values),
         Err(_) => Err(BacklashError::Extraction("three points expected".into())),
     }
+}
+
+/// Refuses a dwell in which the motor went back against the move (direction `dir`)
+/// by more than the noise allows: then it no longer sits at the gap's far side.
+/// Smoothed over [`SMOOTH_S`] so that noise alone does not trip it.
+fn backed_off(
+    trace: &Trace,
+    first: usize,
+    settled: usize,
+    last: usize,
+    dir: f64,
+) -> Result<(), String> {
+    let enc = &trace.encoder_mm;
+    let settled_mm = mean(&enc[settled..=last]);
+    let k = ((SMOOTH_S / trace.period_s).round() as usize).clamp(1, last + 1 - first);
+    let (_, sd) = slope_sd(&enc[settled..=last]);
+    let limit_mm = BACKOFF_MM.max(5.0 * sd / (k as f64).sqrt());
+    let mut sum: f64 = enc[first..first + k].iter().sum();
+    let mut worst = (0.0f64, first);
+    for i in first + k..=last + 1 {
+        let beyond = dir * (sum / k as f64 - settled_mm);
+        if beyond > worst.0 {
+            worst = (beyond, i - k);
+        }
+        if i <= last {
+            sum += enc[i] - enc[i - k];
+        }
+    }
+    if worst.0 > limit_mm {
+        return Err(format!(
+            "the motor went back {:.2} um against the move during the dwell ({:.3} s after it began) while the table stood: the position loop overshoots and the motor no longer rests on the far side of the gap, so F would not be the backlash; lower the position loop gain or damp the axis",
+            worst.0 * 1000.0,
+            (worst.1 - first) as f64 * trace.period_s
+        ));
+    }
+    Ok(())
 }
 
 /// The seed's displacements and backlash values, mm.
@@ -315,6 +455,20 @@ impl Backlash {
     /// From extracted point values.
     pub fn from_points(points: &[PointValue; 3]) -> Self {
         Self::from_values(points.map(|p| p.scale_mm), points.map(|p| p.encoder_mm))
+    }
+
+    /// The acceptance tolerance at this backlash: max([`TOLERANCE_MM`],
+    /// [`TOLERANCE_FRACTION`] of the mean of F1 and F2), mm.
+    pub fn tolerance_mm(&self) -> f64 {
+        TOLERANCE_MM.max(TOLERANCE_FRACTION * self.md32450_mm())
+    }
+
+    /// F1 and F2 differ by more than [`Self::tolerance_mm`]: one backlash value for
+    /// the axis does not describe it (friction windup, lead error, or an axis that
+    /// did not settle). Returns the difference, mm.
+    pub fn disagreement_mm(&self) -> Option<f64> {
+        let d = (self.f1_mm - self.f2_mm).abs();
+        (d > self.tolerance_mm()).then_some(d)
     }
 
     /// The value for MD32450 (one value per axis): mean of F1 and F2, mm.

@@ -16,10 +16,19 @@
 //!
 //! L and M are not single samples: the drive train is elastic, so while the axis
 //! still creeps into position the motor leads the table by more than the gap. Each
-//! value is the mean over the settled part (second half) of the standstill plateau at
-//! the point, found in the trace from the scale velocity ([`extract`]).
+//! value is the mean over the settled part of the dwell at the point (the dwell found
+//! from the command channel where the trace has one, else from the scale velocity),
+//! from where both channels stand still to the dwell's end ([`extract`]).
+//!
+//! A point's values are taken only where encoder *and* scale stand still: on an
+//! underdamped or creeping axis the motor can still be crossing the gap while the
+//! table stands, and a plateau taken from the scale alone then reads the wrong gap
+//! (issue 25: 7.3 um read 4.11 um). A dwell that never settles, or in which the motor
+//! went back against the move (an overshooting loop), is refused with the reason,
+//! and F1 and F2 that differ by more than max(0.5 um, 2 %) are flagged.
 //!
 //! The parts: `math` (validation, extraction, the seed's formulas; pure, no tokio),
+//! `input` (`--trace FILE.csv`, a trace recorded on a real control),
 //! `report` (the table, the trace CSV, the SVG) and `command` (the arguments and the
 //! servo client): [`run`] drives an NC axis module over Modbus TCP: it commands the
 //! programme, arms and uploads the trace through the servo block of
@@ -27,6 +36,7 @@
 //! ([`compgate_gateway::nc::ModbusNcWriter`]).
 
 mod command;
+mod input;
 mod math;
 mod report;
 #[cfg(test)]
@@ -40,7 +50,8 @@ use compgate_ncproto::servo::TraceConfig;
 
 use crate::plot::PlotError;
 
-pub use command::{check_args, run, run_on, BacklashArgs};
+pub use command::{check_args, run, run_file, run_on, BacklashArgs};
+pub use input::{read_trace, PERIOD_TOLERANCE};
 pub use math::{extract, Backlash, Extraction, PointValue, Points, Procedure, Trace};
 pub use report::{report, write_csv, write_svg};
 
@@ -61,6 +72,25 @@ pub const VELOCITY_SPAN_S: f64 = 0.05;
 pub const POINT_TOLERANCE_MM: f64 = 0.1;
 /// In-position window of the single-sample extraction, mm.
 pub const ARRIVAL_WINDOW_MM: f64 = 0.005;
+/// Window over which a channel's drift is fitted when looking for the settled part of
+/// a dwell, s.
+pub const SETTLE_WINDOW_S: f64 = 0.2;
+/// A channel stands still when its fitted drift over the window (and over the rest of
+/// the dwell) stays below this, mm, or below three standard errors of the fit.
+pub const SETTLED_DRIFT_MM: f64 = 0.000_1;
+/// Smoothing of the encoder when checking that the motor never went back against the
+/// move during a dwell, s.
+pub const SMOOTH_S: f64 = 0.05;
+/// The motor may go back against the move by at most this (or five standard errors of
+/// its smoothed noise), mm.
+pub const BACKOFF_MM: f64 = 0.000_25;
+/// A command channel that changes by less than this between samples stands still, mm.
+pub const COMMAND_STILL_MM: f64 = 1e-6;
+/// Acceptance tolerance of F1 and F2: this, or [`TOLERANCE_FRACTION`] of the backlash,
+/// the larger; F1 and F2 further apart than it are flagged.
+pub const TOLERANCE_MM: f64 = 0.000_5;
+/// See [`TOLERANCE_MM`].
+pub const TOLERANCE_FRACTION: f64 = 0.02;
 
 /// Errors of the backlash test.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -88,6 +118,28 @@ pub enum BacklashError {
     /// The trace does not show the plateaus the procedure needs.
     #[error("trace: {0}")]
     Extraction(String),
+    /// A trace file (`--trace`) is malformed.
+    #[error("{path}: line {line}, column `{column}`: {message}")]
+    TraceFile {
+        /// The file.
+        path: String,
+        /// 1-based line (the header is line 1).
+        line: u64,
+        /// The column at fault.
+        column: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// F1 and F2 disagree; MD32450 was not written.
+    #[error("F1 {f1_um:.3} um and F2 {f2_um:.3} um differ by more than the tolerance {tol_um:.3} um: MD32450 not written (see the report's warning)")]
+    Disagree {
+        /// F1, um.
+        f1_um: f64,
+        /// F2, um.
+        f2_um: f64,
+        /// The tolerance, um.
+        tol_um: f64,
+    },
     /// Writing the report files failed.
     #[error("output: {0}")]
     Io(String),
@@ -127,8 +179,11 @@ pub struct Outcome {
     pub backlash: Backlash,
     /// MD32450 written and read back, mm.
     pub md32450_written_mm: Option<f64>,
-    /// Machine time of the move programme (approach to A through the dwell at D), s.
+    /// Machine time of the move programme (approach to A through the dwell at D), s;
+    /// for a trace file, its duration.
     pub machine_time_s: f64,
+    /// The trace file analysed offline (`--trace`); None when the NC ran the test.
+    pub trace_file: Option<PathBuf>,
     /// Files written.
     pub files: Vec<PathBuf>,
 }

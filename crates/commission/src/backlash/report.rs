@@ -25,7 +25,21 @@ pub fn report(axis: &str, o: &Outcome, sim_note: Option<&str>) -> String {
         p.a_mm, p.b_mm, p.c_mm, p.d_mm, o.procedure.feed_mm_per_min, o.procedure.dwell_s
     );
     let t = &o.trace_config;
-    let _ = writeln!(
+    if let Some(file) = &o.trace_file {
+        let _ = writeln!(
+            s,
+            "trace      file {}, {} samples at {:.4} ms{}",
+            file.display(),
+            o.trace.scale_mm.len(),
+            t.period_s * 1000.0,
+            if o.trace.command_mm.is_empty() {
+                " (encoder, scale; dwells found from the scale)"
+            } else {
+                " (encoder, scale, command; dwells from the command)"
+            }
+        );
+    } else {
+        let _ = writeln!(
         s,
         "trace      2 channels (encoder, scale), period {} ms, record {:.3} s, trigger scale rising through {:.3} mm, post-trigger delay {} s, {} samples",
         t.period_s * 1000.0,
@@ -34,16 +48,21 @@ pub fn report(axis: &str, o: &Outcome, sim_note: Option<&str>) -> String {
         t.delay_s,
         o.trace.scale_mm.len()
     );
+    }
     let _ = writeln!(s);
-    let _ = writeln!(s, "point  scale L (mm)    encoder M (mm)  plateau (s)");
+    let _ = writeln!(
+        s,
+        "point  scale L (mm)    encoder M (mm)  plateau (s)      settled after (s)"
+    );
     for (i, (name, v)) in ["B", "C", "D"].iter().zip(&o.points).enumerate() {
         let _ = writeln!(
             s,
-            "{name}  L{n} {:>13.6}  M{n} {:>13.6}  {:.3} .. {:.3}",
+            "{name}  L{n} {:>13.6}  M{n} {:>13.6}  {:.3} .. {:.3}  {:.3}",
             v.scale_mm,
             v.encoder_mm,
             v.first as f64 * o.trace.period_s,
             v.last as f64 * o.trace.period_s,
+            v.settle_s,
             n = i + 1
         );
     }
@@ -66,6 +85,14 @@ pub fn report(axis: &str, o: &Outcome, sim_note: Option<&str>) -> String {
         b.encoder_h2_mm,
         um(b.f2_mm)
     );
+    if let Some(d) = b.disagreement_mm() {
+        let _ = writeln!(
+            s,
+            "WARNING: F1 and F2 differ by {:.3} um, more than the tolerance {:.3} um (max 0.5 um, 2 %): one MD32450 value does not describe this axis. Friction windup adds to both, a lead error over B..C or C..D to one; check the dwells in the plot. MD32450 is not written.",
+            d * 1000.0,
+            b.tolerance_mm() * 1000.0
+        );
+    }
     let _ = writeln!(s);
     match o.md32450_written_mm {
         Some(v) => {
@@ -82,22 +109,34 @@ pub fn report(axis: &str, o: &Outcome, sim_note: Option<&str>) -> String {
             );
         }
     }
-    let _ = writeln!(
-        s,
-        "machine time of the programme (approach to A through the dwell at D): {:.1} s",
-        o.machine_time_s
-    );
+    if o.trace_file.is_none() {
+        let _ = writeln!(
+            s,
+            "machine time of the programme (approach to A through the dwell at D): {:.1} s",
+            o.machine_time_s
+        );
+    }
     for f in &o.files {
         let _ = writeln!(s, "wrote {}", f.display());
     }
     s
 }
 
-/// Writes the trace as CSV: time (s), encoder (mm), scale (mm).
+/// Writes the trace as CSV: time (s), encoder (mm), scale (mm), and the command (mm)
+/// where the trace has one; `--trace` reads it back.
 pub fn write_csv(path: &Path, trace: &Trace) -> Result<(), BacklashError> {
-    let mut s = String::from("t_s,encoder_mm,scale_mm\n");
+    let with_command = trace.command_mm.len() == trace.scale_mm.len();
+    let mut s = String::from(if with_command {
+        "t_s,encoder_mm,scale_mm,command_mm\n"
+    } else {
+        "t_s,encoder_mm,scale_mm\n"
+    });
     for (i, (e, l)) in trace.encoder_mm.iter().zip(&trace.scale_mm).enumerate() {
-        let _ = writeln!(s, "{:.6},{e:.7},{l:.7}", i as f64 * trace.period_s);
+        let _ = write!(s, "{:.6},{e:.7},{l:.7}", i as f64 * trace.period_s);
+        if with_command {
+            let _ = write!(s, ",{:.7}", trace.command_mm[i]);
+        }
+        s.push('\n');
     }
     std::fs::write(path, s).map_err(|e| BacklashError::Io(format!("{}: {e}", path.display())))
 }

@@ -32,6 +32,7 @@ fn simulate(backlash_um: f64, noise_um: f64, elastic_ms: f64, seed: u64) -> (Tra
             period_s: proc.period_s,
             encoder_mm,
             scale_mm,
+            command_mm: Vec::new(),
         },
         machine_s,
     )
@@ -395,4 +396,306 @@ fn non_finite_or_absurd_flags_are_refused_naming_the_flag() {
         ..BacklashArgs::default()
     })
     .is_ok());
+}
+
+/// Runs the default procedure on a simulated axis with loop gain `kv_per_s`.
+fn simulate_kv(backlash_um: f64, elastic_ms: f64, kv_per_s: f64, seed: u64) -> Trace {
+    let proc = Procedure::from_args(&BacklashArgs::default());
+    let mut sim = ServoSim::new(AxisParams {
+        backlash_mm: backlash_um / 1000.0,
+        encoder_noise_mm: 0.0003,
+        scale_noise_mm: 0.0003,
+        elastic_tau_s: elastic_ms / 1000.0,
+        kv_per_s,
+        seed,
+        ..AxisParams::default()
+    });
+    sim.arm_trace(proc.trace_config()).unwrap();
+    sim.start_program(&proc.program()).unwrap();
+    sim.run_until_idle(600.0);
+    let (encoder_mm, scale_mm) = sim.trace().iter().copied().unzip();
+    Trace {
+        period_s: proc.period_s,
+        encoder_mm,
+        scale_mm,
+        command_mm: Vec::new(),
+    }
+}
+
+#[test]
+fn creeping_axes_are_measured_within_tolerance_or_refused_with_the_reason() {
+    // Elastic time constants 0..20 ms at two loop gains: Kv x tau from 0 to 0.6, well
+    // past the 0.25 where the loop starts to overshoot and the motor creeps across the
+    // gap during the dwell (issue 25: 7.3 um read 4.11, 23 read 10.56, 50 read 33.65).
+    let proc = Procedure::from_args(&BacklashArgs::default());
+    let (mut measured, mut refused) = (0, 0);
+    for kv_per_s in [20.0, 30.0] {
+        for elastic_ms in [0.0, 2.0, 5.0, 8.0, 10.0, 12.0, 15.0, 18.0, 20.0] {
+            for backlash_um in [7.3, 23.0, 50.0] {
+                let trace = simulate_kv(backlash_um, elastic_ms, kv_per_s, 3);
+                let case = format!("Kv {kv_per_s} 1/s, tau {elastic_ms} ms, gap {backlash_um} um");
+                match extract(&trace, &proc, Extraction::Plateau) {
+                    Ok(points) => {
+                        let r = Backlash::from_points(&points);
+                        let tol = tolerance_mm(backlash_um / 1000.0);
+                        eprintln!(
+                            "{case}: F1 {:.3} F2 {:.3} um",
+                            r.f1_mm * 1000.0,
+                            r.f2_mm * 1000.0
+                        );
+                        for f in [r.f1_mm, r.f2_mm] {
+                            assert!(
+                                (f - backlash_um / 1000.0).abs() <= tol,
+                                "{case}: F1 {} F2 {} um",
+                                r.f1_mm * 1000.0,
+                                r.f2_mm * 1000.0
+                            );
+                        }
+                        assert_eq!(r.disagreement_mm(), None, "{case}");
+                        measured += 1;
+                    }
+                    Err(BacklashError::Extraction(why)) => {
+                        eprintln!("{case}: refused: {why}");
+                        assert!(
+                            why.contains("never both stood still") || why.contains("went back"),
+                            "{case}: {why}"
+                        );
+                        // A well-damped loop is never refused.
+                        assert!(kv_per_s * elastic_ms / 1000.0 > 0.25, "{case}: {why}");
+                        refused += 1;
+                    }
+                    Err(e) => panic!("{case}: {e}"),
+                }
+            }
+        }
+    }
+    eprintln!("{measured} measured within tolerance, {refused} refused");
+    assert!(measured >= 30, "{measured}");
+}
+
+#[test]
+fn disagreeing_f1_f2_are_flagged() {
+    // A lead error over B..C adds to h1 only: F1 = gap + error, F2 = gap.
+    let r = Backlash::from_values([60.0, 30.0, 60.0], [60.01, 29.987, 60.01]);
+    assert!((r.f1_mm - 0.023).abs() < 1e-9 && (r.f2_mm - 0.023).abs() < 1e-9);
+    assert_eq!(r.disagreement_mm(), None);
+    let r = Backlash::from_values([60.0, 30.0, 60.0], [60.011, 29.987, 60.01]);
+    let d = r.disagreement_mm().expect("1 um apart at 23.5 um");
+    assert!((d - 0.001).abs() < 1e-9, "{d}");
+}
+
+#[test]
+fn a_trace_file_is_analysed_offline_like_the_uploaded_trace() {
+    let dir = tempfile::tempdir().unwrap();
+    let proc = Procedure::from_args(&BacklashArgs::default());
+    let mut sim = ServoSim::new(AxisParams {
+        backlash_mm: 0.023,
+        seed: 4,
+        ..AxisParams::default()
+    });
+    sim.arm_trace(proc.trace_config()).unwrap();
+    sim.start_program(&proc.program()).unwrap();
+    sim.run_until_idle(600.0);
+    let (encoder_mm, scale_mm) = sim.trace().iter().copied().unzip();
+    let mut trace = Trace {
+        period_s: proc.period_s,
+        encoder_mm,
+        scale_mm,
+        command_mm: Vec::new(),
+    };
+    let direct = Backlash::from_points(&extract(&trace, &proc, Extraction::Plateau).unwrap());
+    // With the command channel the dwells come from it.
+    trace.command_mm = sim.trace_command().to_vec();
+    let path = dir.path().join("x1.csv");
+    write_csv(&path, &trace).unwrap();
+    let args = BacklashArgs {
+        trace: Some(path.clone()),
+        ..BacklashArgs::default()
+    };
+    check_args(&args).unwrap();
+    let o = run_file(&args).unwrap();
+    assert!((o.trace.period_s - 0.002).abs() < 1e-9);
+    assert_eq!(o.trace.command_mm.len(), o.trace.scale_mm.len());
+    let tol = tolerance_mm(0.023);
+    for f in [o.backlash.f1_mm, o.backlash.f2_mm] {
+        assert!((f - 0.023).abs() <= tol, "{:?}", o.backlash);
+    }
+    assert!((o.backlash.md32450_mm() - direct.md32450_mm()).abs() < 0.0003);
+    let text = report("X1", &o, None);
+    assert!(text.contains("dwells from the command"), "{text}");
+    // --write and a second source are refused.
+    let bad = BacklashArgs {
+        write: true,
+        sim: true,
+        ..args.clone()
+    };
+    let Err(BacklashError::Invalid(p)) = check_args(&bad) else {
+        panic!()
+    };
+    assert!(p.iter().any(|p| p.contains("exclude each other")), "{p:?}");
+    assert!(p.iter().any(|p| p.contains("--write needs --nc")), "{p:?}");
+}
+
+#[test]
+fn bad_trace_files_are_refused_naming_line_and_column() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases = [
+        (
+            "t_s,encoder_mm\n0,1\n",
+            "line 1, column `scale_mm`: required column is missing",
+        ),
+        (
+            "t_s,encoder_mm,scale_mm\n0,1,1\n0.002,1,x1\n",
+            "line 3, column `scale_mm`: \"x1\" is not a number",
+        ),
+        (
+            "t_s,encoder_mm,scale_mm\n0,1,1\n0.002,NaN,1\n",
+            "line 3, column `encoder_mm`",
+        ),
+        (
+            "t_s,encoder_mm,scale_mm\n0,1,1\n0.002,1,1\n0.005,1,1\n",
+            "line 4, column `t_s`: time step",
+        ),
+        (
+            "t_s,encoder_mm,scale_mm\n0,1,1\n0,1,1\n",
+            "line 3, column `t_s`: time does not increase",
+        ),
+        ("t_s,encoder_mm,scale_mm\n0,1,1\n0.002,1\n", "line 3"),
+    ];
+    for (i, (text, want)) in cases.iter().enumerate() {
+        let path = dir.path().join(format!("bad{i}.csv"));
+        std::fs::write(&path, text).unwrap();
+        let e = read_trace(&path).unwrap_err().to_string();
+        assert!(e.contains(&format!("bad{i}.csv")), "{e}");
+        assert!(e.contains(want), "case {i}: {e}");
+    }
+}
+
+#[tokio::test]
+async fn a_refused_trace_is_kept_in_out() {
+    let module = NcAxisModule::new(NcAxis {
+        allow_md32450_write: true,
+        referenced: true,
+        ..NcAxis::default()
+    });
+    // Kv x tau = 0.4: the loop overshoots and the motor creeps across the gap.
+    module.set_servo(AxisParams {
+        backlash_mm: 0.05,
+        elastic_tau_s: 0.02,
+        ..AxisParams::default()
+    });
+    module.set_sim_speed(2000.0);
+    let (address, shutdown) = module.serve_loopback().await.unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let args = BacklashArgs {
+        write: true,
+        out: Some(dir.path().to_path_buf()),
+        ..BacklashArgs::default()
+    };
+    let e = run_on(&address, &args).await.unwrap_err().to_string();
+    assert!(
+        e.contains("never both stood still") || e.contains("went back"),
+        "{e}"
+    );
+    assert!(e.contains("trace kept in"), "{e}");
+    assert!(dir.path().join("backlash_X1_trace.csv").exists());
+    assert_eq!(module.state().md32450_mm, 0.0, "nothing written");
+    shutdown.cancel();
+}
+
+/// A trace made without the simulated axis: ramps between the points at the feed and
+/// dwells in which the table stands on the point while the motor is still creeping
+/// across the last `creep_fraction` of the gap with time constant `creep_s`; encoder
+/// and scale carry Gaussian noise of `noise_um`. Ground truth: the gap.
+fn creeping_trace(gap_um: f64, creep_fraction: f64, creep_s: f64, noise_um: f64) -> Trace {
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+    let proc = Procedure::from_args(&BacklashArgs::default());
+    let p = proc.points;
+    let dt = proc.period_s;
+    let v = proc.feed_mm_per_min / 60.0;
+    let half = gap_um / 2000.0;
+    let mut rng = rand::rngs::SmallRng::seed_from_u64(11);
+    let noise = Normal::new(0.0, noise_um / 1000.0).unwrap();
+    let mut trace = Trace {
+        period_s: dt,
+        ..Trace::default()
+    };
+    let mut push = |enc: f64, scale: f64, cmd: f64| {
+        trace.encoder_mm.push(enc + noise.sample(&mut rng));
+        trace.scale_mm.push(scale + noise.sample(&mut rng));
+        trace.command_mm.push(cmd);
+    };
+    let mut at = p.a_mm;
+    let mut dir = 1.0;
+    for (target, d) in [(p.a_mm, 1.0), (p.b_mm, 1.0), (p.c_mm, -1.0), (p.d_mm, 1.0)] {
+        // The move: at a reversal the motor first crosses the gap with the table still.
+        if d != dir {
+            let steps = (2.0 * half / v / dt).ceil() as usize;
+            for k in 0..steps {
+                let m = at + dir * half - d * v * dt * k as f64;
+                // The command moves on while the table waits for the gap.
+                push(m, at, at + d * v * dt * (k + 1) as f64);
+            }
+            dir = d;
+        }
+        let steps = ((target - at).abs() / v / dt).ceil() as usize;
+        for k in 0..steps {
+            let x = at + d * v * dt * k as f64;
+            push(x + d * half, x, x);
+        }
+        // The dwell: the table stands, the motor creeps over the gap's last part.
+        let n = (proc.dwell_s / dt) as usize;
+        for k in 0..n {
+            let left = creep_fraction * 2.0 * half * (-(k as f64) * dt / creep_s.max(1e-9)).exp();
+            push(target + d * (half - left), target, target);
+        }
+        at = target;
+    }
+    trace
+}
+
+#[test]
+fn traces_from_outside_the_simulator_are_measured_or_refused_never_wrong() {
+    let proc = Procedure::from_args(&BacklashArgs::default());
+    let (mut measured, mut refused) = (0, 0);
+    for (gap_um, fraction, noise_um) in (0..12).map(|i| {
+        (
+            [7.3, 23.0, 50.0][i % 3],
+            [0.5, 1.0][i / 3 % 2],
+            [0.3, 1.0][i / 6],
+        )
+    }) {
+        for creep_s in [0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 3.0] {
+            let trace = creeping_trace(gap_um, fraction, creep_s, noise_um);
+            let case = format!(
+                "gap {gap_um} um, {fraction} of it crept with {creep_s} s, noise {noise_um} um"
+            );
+            match extract(&trace, &proc, Extraction::Plateau) {
+                Ok(points) => {
+                    let r = Backlash::from_points(&points);
+                    let tol = tolerance_mm(gap_um / 1000.0);
+                    for f in [r.f1_mm, r.f2_mm] {
+                        assert!(
+                            (f - gap_um / 1000.0).abs() <= tol,
+                            "{case}: F1 {} F2 {} um",
+                            r.f1_mm * 1000.0,
+                            r.f2_mm * 1000.0
+                        );
+                    }
+                    measured += 1;
+                }
+                Err(BacklashError::Extraction(why)) => {
+                    assert!(why.contains("never both stood still"), "{case}: {why}");
+                    assert!(creep_s >= 0.2, "{case}: {why}");
+                    refused += 1;
+                }
+                Err(e) => panic!("{case}: {e}"),
+            }
+        }
+    }
+    eprintln!(
+        "independent creeping traces: {measured} measured within tolerance, {refused} refused"
+    );
+    assert!(measured >= 48 && refused >= 12, "{measured} {refused}");
 }

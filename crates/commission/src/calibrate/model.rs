@@ -7,7 +7,8 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use compgate_gateway::config::{K0Model, K0Term, TanBetaModel, TanBetaTerm};
+use compgate_core::measure::Measurements;
+use compgate_gateway::config::{K0Model, K0Term, MotionHeatModel, TanBetaModel, TanBetaTerm};
 
 use super::{CalibrateError, Fit};
 
@@ -63,6 +64,9 @@ pub struct AxisModel {
     /// tan(beta)(T) -> SD43910.
     #[serde(default)]
     pub tan_beta: TanBetaModel,
+    /// Heat of axis motion from the NC's actual position (diagnose adds it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub motion_heat: Option<MotionHeatModel>,
 }
 
 /// Plausible ranges of the model's values, the same as the gateway's config schema
@@ -81,6 +85,16 @@ pub mod bounds {
     pub const TAN_BETA_COEFF_PER_DEGC: (f64, f64) = (-0.01, 0.01);
     /// `*.terms[].ref_degc`, degC.
     pub const REF_DEGC: (f64, f64) = (-100.0, 500.0);
+    /// `*.terms[].lag_tau_s`, s.
+    pub const LAG_TAU_S: (f64, f64) = (0.0, 86_400.0);
+    /// `motion_heat.tau_s`, s.
+    pub const MOTION_TAU_S: (f64, f64) = (1.0, 86_400.0);
+    /// `motion_heat.ref_mm_per_s`, mm/s.
+    pub const MOTION_REF_MM_PER_S: (f64, f64) = (0.0, 10_000.0);
+    /// `motion_heat.k0_mm_per_mm_per_s`.
+    pub const MOTION_K0_MM_PER_MM_PER_S: (f64, f64) = (-0.01, 0.01);
+    /// `motion_heat.tan_beta_per_mm_per_s`.
+    pub const MOTION_TAN_BETA_PER_MM_PER_S: (f64, f64) = (-0.0001, 0.0001);
 }
 
 impl AxisModel {
@@ -135,6 +149,42 @@ impl AxisModel {
                 bounds::TAN_BETA_COEFF_PER_DEGC,
             )?;
         }
+        let lags = (self.k0.terms.iter().map(|t| ("k0", t.lag_tau_s))).chain(
+            self.tan_beta
+                .terms
+                .iter()
+                .map(|t| ("tan_beta", t.lag_tau_s)),
+        );
+        for (i, (part, lag)) in lags.enumerate() {
+            let i = if part == "k0" {
+                i
+            } else {
+                i - self.k0.terms.len()
+            };
+            one(
+                format!("{part}.terms[{i}].lag_tau_s"),
+                lag,
+                bounds::LAG_TAU_S,
+            )?;
+        }
+        if let Some(h) = &self.motion_heat {
+            one("motion_heat.tau_s".into(), h.tau_s, bounds::MOTION_TAU_S)?;
+            one(
+                "motion_heat.ref_mm_per_s".into(),
+                h.ref_mm_per_s,
+                bounds::MOTION_REF_MM_PER_S,
+            )?;
+            one(
+                "motion_heat.k0_mm_per_mm_per_s".into(),
+                h.k0_mm_per_mm_per_s,
+                bounds::MOTION_K0_MM_PER_MM_PER_S,
+            )?;
+            one(
+                "motion_heat.tan_beta_per_mm_per_s".into(),
+                h.tan_beta_per_mm_per_s,
+                bounds::MOTION_TAN_BETA_PER_MM_PER_S,
+            )?;
+        }
         Ok(())
     }
 
@@ -151,6 +201,7 @@ impl AxisModel {
                         channel: t.name.clone(),
                         ref_degc: t.ref_degc,
                         coeff_mm_per_degc: t.k0_um_per_degc / 1000.0,
+                        lag_tau_s: 0.0,
                     })
                     .collect(),
             },
@@ -163,9 +214,11 @@ impl AxisModel {
                         channel: t.name.clone(),
                         ref_degc: t.ref_degc,
                         coeff_per_degc: t.tan_beta_per_degc,
+                        lag_tau_s: 0.0,
                     })
                     .collect(),
             },
+            motion_heat: None,
         }
     }
 
@@ -181,6 +234,43 @@ impl AxisModel {
             tan += t.coeff_per_degc * (temp_degc(&t.channel)? - t.ref_degc);
         }
         Some(1000.0 * (k0_mm + tan * (pos_mm - self.p0_mm)))
+    }
+
+    /// Error the model predicts for every row of `m`, um, as the gateway computes it
+    /// online: lagged terms read their channel through the lag, the motion heat term
+    /// the travel column. `Err(channel)` names a channel the data lacks.
+    pub fn predict_series_um(&self, m: &Measurements) -> Result<Vec<f64>, String> {
+        let n = m.len();
+        let signal = |ch: &str, tau_s: f64| -> Result<Vec<f64>, String> {
+            let x = m.temp(ch).ok_or_else(|| ch.to_string())?;
+            Ok(if tau_s > 0.0 {
+                crate::diagnose::effects::lag(&m.t_s, x, tau_s)
+            } else {
+                x.to_vec()
+            })
+        };
+        let mut k0_mm = vec![self.k0.offset_mm; n];
+        for t in &self.k0.terms {
+            for (k, x) in k0_mm.iter_mut().zip(signal(&t.channel, t.lag_tau_s)?) {
+                *k += t.coeff_mm_per_degc * (x - t.ref_degc);
+            }
+        }
+        let mut tan = vec![self.tan_beta.offset; n];
+        for t in &self.tan_beta.terms {
+            for (k, x) in tan.iter_mut().zip(signal(&t.channel, t.lag_tau_s)?) {
+                *k += t.coeff_per_degc * (x - t.ref_degc);
+            }
+        }
+        if let Some(h) = &self.motion_heat {
+            let heat = crate::diagnose::effects::motion_heat(&m.t_s, &m.travel_mm, h.tau_s);
+            for i in 0..n {
+                k0_mm[i] += h.k0_mm_per_mm_per_s * (heat[i] - h.ref_mm_per_s);
+                tan[i] += h.tan_beta_per_mm_per_s * (heat[i] - h.ref_mm_per_s);
+            }
+        }
+        Ok((0..n)
+            .map(|i| 1000.0 * (k0_mm[i] + tan[i] * (m.pos_mm[i] - self.p0_mm)))
+            .collect())
     }
 
     /// Channels the model reads, each once.
@@ -235,7 +325,8 @@ pub fn model_toml(
 }
 
 /// Reads the first `[axes.NAME]` of a model file (from calibrate or diagnose) or of a
-/// whole gateway config; keys other than `p0_mm`, `k0` and `tan_beta` are ignored.
+/// whole gateway config; keys other than `p0_mm`, `k0`, `tan_beta` and `motion_heat`
+/// are ignored.
 pub fn load_model(path: &Path) -> Result<(String, AxisModel), CalibrateError> {
     let read = || -> Result<_, ModelError> {
         let text = std::fs::read_to_string(path)?;
@@ -259,7 +350,7 @@ pub fn first_axis_model(root: &toml::Table) -> Result<(String, AxisModel), Model
         .as_table()
         .cloned()
         .ok_or_else(|| ModelError::NotATable(name.clone()))?;
-    t.retain(|k, _| matches!(k, "p0_mm" | "k0" | "tan_beta"));
+    t.retain(|k, _| matches!(k, "p0_mm" | "k0" | "tan_beta" | "motion_heat"));
     let model: AxisModel =
         toml::Value::Table(t)
             .try_into()

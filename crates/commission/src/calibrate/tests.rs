@@ -8,7 +8,7 @@ fn commissioning(params: ThermalParams, seed: u64) -> (Measurements, ThermalMach
     let mut machine = ThermalMachine::new(params, Effects::default(), seed);
     let cycle = DutyCycle::commissioning(24.0);
     let plan = SweepPlan::irregular(2000.0, 9, 1800.0);
-    let s = measurement_run(&mut machine, &cycle, &plan, 30.0);
+    let s = measurement_run(&mut machine, &cycle, &plan);
     (Measurements::from(&s), machine)
 }
 
@@ -209,6 +209,7 @@ fn hand_model() -> AxisModel {
                 channel: "a".into(),
                 ref_degc: 20.0,
                 coeff_mm_per_degc: 0.001,
+                lag_tau_s: 0.0,
             }],
         },
         tan_beta: compgate_gateway::config::TanBetaModel {
@@ -217,8 +218,10 @@ fn hand_model() -> AxisModel {
                 channel: "a".into(),
                 ref_degc: 20.0,
                 coeff_per_degc: 1e-6,
+                lag_tau_s: 0.0,
             }],
         },
+        motion_heat: None,
     }
 }
 

@@ -19,7 +19,9 @@ use super::effects::{lag, legendre_2_4, motion_heat, EffectKind};
 use super::{DiagnoseError, Diagnosis};
 use crate::calibrate::AxisModel;
 use compgate_core::measure::Measurements;
-use compgate_gateway::config::schema::{K0Model, K0Term, TanBetaModel, TanBetaTerm};
+use compgate_gateway::config::schema::{
+    K0Model, K0Term, MotionHeatModel, TanBetaModel, TanBetaTerm,
+};
 
 /// A thermal model file: the axis model `calibrate` writes, plus what only diagnose
 /// adds (lagged channels, effects outside the K0/tan(beta) form).
@@ -32,6 +34,8 @@ pub struct ModelFile {
     pub lagged_channels: Vec<LaggedChannel>,
     /// Effects outside the K0/tan(beta) form, with the NC function that carries them.
     pub effects: Vec<EffectTerm>,
+    /// Effects the gateway applies online (in `[axes.X]`), one line each.
+    pub applied: Vec<String>,
 }
 
 /// A lagged view of a sensor.
@@ -104,10 +108,18 @@ impl ModelFile {
                 return Err(err(format!("effects: unknown effect name `{}`", e.name)));
             }
         }
+        let applied: Vec<String> = match root.get("applied") {
+            Some(v) => v
+                .clone()
+                .try_into()
+                .map_err(|e: toml::de::Error| err(format!("applied: {}", e.message())))?,
+            None => Vec::new(),
+        };
         let mf = ModelFile {
             axis,
             lagged_channels,
             effects,
+            applied,
         };
         mf.check_extras().map_err(err)?;
         Ok(mf)
@@ -148,9 +160,10 @@ impl ModelFile {
         let header = "Thermal model written by `compgate diagnose`.\n\
              [axes.X] is the gateway's axis form (as calibrate writes it; scenario --model\n\
              reads it); channels are the data's sensors (column T_<name> -> channel <name>).\n\
-             [[lagged_channels]]: a channel on the named sensor's transmitter with\n\
-             filter.lowpass_tau_s. [[effects]]: terms outside K0/tan(beta), with the NC\n\
-             function that carries them.\n";
+             lag_tau_s on a term: the gateway reads that channel through a first-order lag;\n\
+             [axes.X.motion_heat]: heat of axis motion from the NC's actual position.\n\
+             applied: the effects the gateway applies online. [[effects]]: terms outside\n\
+             what the gateway applies, with the NC function that carries them.\n";
         let mut s = crate::calibrate::model_toml("X", "nc_x", &self.axis, header)
             .map_err(|e| err(e.to_string()))?;
         #[derive(Serialize)]
@@ -159,6 +172,19 @@ impl ModelFile {
             lagged_channels: &'a [LaggedChannel],
             #[serde(skip_serializing_if = "<[_]>::is_empty")]
             effects: &'a [EffectTerm],
+        }
+        // A plain key must stand before the first table.
+        if !self.applied.is_empty() {
+            #[derive(Serialize)]
+            struct Applied<'a> {
+                applied: &'a [String],
+            }
+            let applied = toml::to_string(&Applied {
+                applied: &self.applied,
+            })
+            .unwrap_or_default();
+            let at = s.find("\n[axes").map_or(0, |i| i + 1);
+            s.insert_str(at, &format!("{applied}\n"));
         }
         let extra = toml::to_string(&Extra {
             lagged_channels: &self.lagged_channels,
@@ -176,18 +202,24 @@ impl ModelFile {
     // Index loops: several row-aligned series at once.
     #[allow(clippy::needless_range_loop)]
     pub fn predict_um(&self, m: &Measurements) -> Result<Vec<f64>, DiagnoseError> {
-        let mut signals: BTreeMap<String, Vec<f64>> = BTreeMap::new();
-        for c in &m.temps {
-            signals.insert(c.name.clone(), c.degc.clone());
-        }
-        for l in &self.lagged_channels {
-            let src = m
-                .temp(&l.sensor)
-                .ok_or_else(|| DiagnoseError::UnknownChannel {
-                    channel: l.sensor.clone(),
-                    key: format!("lagged_channels `{}`", l.channel),
-                })?;
-            signals.insert(l.channel.clone(), lag(&m.t_s, src, l.lowpass_tau_s));
+        // Lagged channels (older model files) become columns of their own.
+        let mut with_lags;
+        let mut data = m;
+        if !self.lagged_channels.is_empty() {
+            with_lags = m.clone();
+            for l in &self.lagged_channels {
+                let src = m
+                    .temp(&l.sensor)
+                    .ok_or_else(|| DiagnoseError::UnknownChannel {
+                        channel: l.sensor.clone(),
+                        key: format!("lagged_channels `{}`", l.channel),
+                    })?;
+                with_lags.temps.push(compgate_core::measure::TempColumn {
+                    name: l.channel.clone(),
+                    degc: lag(&m.t_s, src, l.lowpass_tau_s),
+                });
+            }
+            data = &with_lags;
         }
         // Every channel the axis reads must exist, named with its key, before any row.
         let k0 = self.axis.k0.terms.iter().map(|t| (&t.channel, "k0.terms"));
@@ -198,7 +230,7 @@ impl ModelFile {
             .iter()
             .map(|t| (&t.channel, "tan_beta.terms"));
         for (ch, key) in k0.chain(tan) {
-            if !signals.contains_key(ch) {
+            if data.temp(ch).is_none() {
                 return Err(DiagnoseError::UnknownChannel {
                     channel: ch.clone(),
                     key: key.to_string(),
@@ -206,13 +238,13 @@ impl ModelFile {
             }
         }
         let n = m.len();
-        let mut out: Vec<f64> = (0..n)
-            .map(|i| {
-                self.axis
-                    .predict_um(m.pos_mm[i], |ch| signals.get(ch).map(|z| z[i]))
-                    .unwrap_or(f64::NAN) // every channel checked above
-            })
-            .collect();
+        let mut out =
+            self.axis
+                .predict_series_um(data)
+                .map_err(|channel| DiagnoseError::UnknownChannel {
+                    channel,
+                    key: "k0/tan_beta terms".into(),
+                })?;
         for e in &self.effects {
             let p = &e.params;
             match EffectKind::from_name(&e.name) {
@@ -275,19 +307,27 @@ impl ModelFile {
                     offset: b[1] / 1000.0,
                     terms: Vec::new(),
                 },
+                motion_heat: None,
             },
             ..Default::default()
         };
-        let push = |mf: &mut ModelFile, channel: String, ref_degc: f64, k0: f64, slope: f64| {
+        let push = |mf: &mut ModelFile,
+                    channel: String,
+                    ref_degc: f64,
+                    k0: f64,
+                    slope: f64,
+                    lag_tau_s: f64| {
             mf.axis.k0.terms.push(K0Term {
                 channel: channel.clone(),
                 ref_degc,
                 coeff_mm_per_degc: k0 / 1000.0,
+                lag_tau_s,
             });
             mf.axis.tan_beta.terms.push(TanBetaTerm {
                 channel,
                 ref_degc,
                 coeff_per_degc: slope / 1000.0,
+                lag_tau_s,
             });
         };
         for (j, &s) in d.sensor_idx.iter().enumerate() {
@@ -297,6 +337,7 @@ impl ModelFile {
                 d.temp_mean_degc[s],
                 b[2 + 2 * j],
                 b[3 + 2 * j],
+                0.0,
             );
         }
         for e in effects {
@@ -309,17 +350,17 @@ impl ModelFile {
                         None => d.sensor_idx.clone(),
                     };
                     let tau = e.param.unwrap_or(0.0);
+                    let mut names = Vec::new();
                     for (k, s) in which.into_iter().enumerate() {
                         let sensor = d.temp_names[s].clone();
-                        let channel = format!("{sensor}_lag{}s", tau.round());
-                        mf.lagged_channels.push(LaggedChannel {
-                            channel: channel.clone(),
-                            sensor,
-                            lowpass_tau_s: tau,
-                        });
+                        names.push(sensor.clone());
                         let mean = e.signal_mean.get(k).copied().unwrap_or(0.0);
-                        push(&mut mf, channel, mean, c[2 * k], c[2 * k + 1]);
+                        push(&mut mf, sensor, mean, c[2 * k], c[2 * k + 1], tau);
                     }
+                    mf.applied.push(format!(
+                        "thermal_lag: {} through a {tau:.0} s lag (terms with lag_tau_s)",
+                        names.join(", ")
+                    ));
                 }
                 EffectKind::ExtraSensor => {
                     let s = e.sensor.unwrap_or(0);
@@ -329,7 +370,12 @@ impl ModelFile {
                         d.temp_mean_degc[s],
                         c[0],
                         c[1],
+                        0.0,
                     );
+                    mf.applied.push(format!(
+                        "extra_sensor: {} (k0 and tan_beta terms)",
+                        d.temp_names[s]
+                    ));
                 }
                 EffectKind::Reversal => mf.effects.push(EffectTerm {
                     name: e.name.into(),
@@ -366,21 +412,19 @@ impl ModelFile {
                     .map(|k| (k.to_string(), p(k)))
                     .collect(),
                 }),
-                EffectKind::MotionHeating => mf.effects.push(EffectTerm {
-                    name: e.name.into(),
-                    carried_by: "no sensor sees it: needs a motion-heat model fed with the \
-                                 axis travel; not applied by the gateway"
-                        .into(),
-                    params: BTreeMap::from([
-                        ("tau_s".into(), p("tau_s")),
-                        (
-                            "ref_mm_per_s".into(),
-                            e.signal_mean.first().copied().unwrap_or(0.0),
-                        ),
-                        ("k0_um_per_mm_per_s".into(), c[0]),
-                        ("slope_um_per_mm_per_mm_per_s".into(), c[1]),
-                    ]),
-                }),
+                EffectKind::MotionHeating => {
+                    let tau_s = p("tau_s");
+                    mf.axis.motion_heat = Some(MotionHeatModel {
+                        tau_s,
+                        ref_mm_per_s: e.signal_mean.first().copied().unwrap_or(0.0),
+                        k0_mm_per_mm_per_s: c[0] / 1000.0,
+                        tan_beta_per_mm_per_s: c[1] / 1000.0,
+                    });
+                    mf.applied.push(format!(
+                        "motion_heating: travel from the NC's actual position through a \
+                         {tau_s:.0} s store ([axes.X.motion_heat])"
+                    ));
+                }
             }
         }
         mf
@@ -404,11 +448,13 @@ mod tests {
                             channel: "a".into(),
                             ref_degc: 20.0,
                             coeff_mm_per_degc: 0.002,
+                            lag_tau_s: 0.0,
                         },
                         K0Term {
-                            channel: "a_lag100s".into(),
+                            channel: "a".into(),
                             ref_degc: 20.0,
                             coeff_mm_per_degc: -0.001,
+                            lag_tau_s: 100.0,
                         },
                     ],
                 },
@@ -418,14 +464,13 @@ mod tests {
                         channel: "a".into(),
                         ref_degc: 20.0,
                         coeff_per_degc: 1e-5,
+                        lag_tau_s: 0.0,
                     }],
                 },
+                motion_heat: None,
             },
-            lagged_channels: vec![LaggedChannel {
-                channel: "a_lag100s".into(),
-                sensor: "a".into(),
-                lowpass_tau_s: 100.0,
-            }],
+            lagged_channels: vec![],
+            applied: vec!["thermal_lag: a through a 100 s lag".into()],
             effects: vec![EffectTerm {
                 name: "reversal".into(),
                 carried_by: "MD32450".into(),

@@ -8,7 +8,7 @@ use clap::builder::PossibleValue;
 
 use super::evaluation::evaluate_pole;
 use super::kinematics::{Pole, PoleMode, VolumetricCompensator};
-use super::report::{report, write_svgs};
+use super::report::{report, write_poses_csv, write_svgs};
 use super::{parse, VolumetricError, AXES};
 
 /// `--pole hold|swing`; implemented here so that the kinematics stay free of clap.
@@ -19,11 +19,9 @@ impl clap::ValueEnum for PoleMode {
 
     fn to_possible_value(&self) -> Option<PossibleValue> {
         Some(match self {
-            PoleMode::Hold => {
-                PossibleValue::new("hold").help("C is not corrected near A = 0 (safe online)")
-            }
+            PoleMode::Hold => PossibleValue::new("hold").help("C is not corrected at the pole"),
             PoleMode::Swing => PossibleValue::new("swing")
-                .help("solve for the drive positions even if C must swing"),
+                .help("C swings within its travel to the least orientation error"),
         })
     }
 }
@@ -43,13 +41,21 @@ pub struct VolumetricArgs {
     /// Directory for the SVG error maps (created if missing).
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
-    /// Within 1 deg of A = 0 (the pole): `hold` leaves C alone (safe online), `swing`
-    /// solves for the drive positions even if C must swing.
-    #[arg(long, value_enum, default_value_t = PoleMode::Hold)]
+    /// In the pole band near A = 0 (where step 1 would move C by more than 30 deg):
+    /// `swing` (default) solves for the drive positions that reach the nominal tool
+    /// axis, or the least error the head allows, with C within its travel; `hold`
+    /// leaves C alone.
+    #[arg(long, value_enum, default_value_t = PoleMode::Swing)]
     pub pole: PoleMode,
-    /// Largest C move a pole swing may make, deg (beyond it Hold is kept).
-    #[arg(long = "max-c-swing", value_name = "DEG", default_value_t = 180.0)]
+    /// Largest C move a pole swing may make, deg (the C travel bounds it too; beyond
+    /// it Hold is kept). Set it from C's speed and the time the path spends at the
+    /// pole.
+    #[arg(long = "max-c-swing", value_name = "DEG", default_value_t = 720.0)]
     pub max_c_swing_deg: f64,
+    /// Per-pose CSV: commanded X Y Z A C, the drive positions, iterations, residual
+    /// and uncompensated tip and orientation errors, pole band and floor.
+    #[arg(long, value_name = "FILE.csv")]
+    pub csv: Option<PathBuf>,
 }
 
 /// Largest number of poses (the product of the five axes' point counts) a grid may
@@ -172,11 +178,16 @@ pub fn run(args: &VolumetricArgs) -> Result<String, VolumetricError> {
             pole.max_c_swing_deg
         )));
     }
-    // Beyond a full turn the limit means nothing; a huge value is a typo.
-    crate::args::check_f64("--max-c-swing", pole.max_c_swing_deg, 0.0, 360.0, "deg")
+    // Beyond two turns (more than any C travel) the limit means nothing; a huge value
+    // is a typo.
+    crate::args::check_f64("--max-c-swing", pole.max_c_swing_deg, 0.0, 720.0, "deg")
         .map_err(|e| VolumetricError::Grid(e.to_string()))?;
     let ev = evaluate_pole(&comp, &grid, &pole);
     let mut s = report(&ev);
+    if let Some(path) = &args.csv {
+        write_poses_csv(path, &ev)?;
+        let _ = writeln!(s, "wrote {}", path.display());
+    }
     if let Some(dir) = &args.out {
         for p in write_svgs(dir, &ev)? {
             let _ = writeln!(s, "wrote {}", p.display());

@@ -2,9 +2,10 @@
 //! statistics of the errors (pure, no I/O).
 
 use super::kinematics::{
-    angle_rad, distance_mm, nominal_pose, Pole, PoleReach, VolumetricCompensator,
+    angle_rad, distance_mm, nominal_pose, ErrorModel, Pole, PoleReach, VolumetricCompensator,
 };
-use super::{MM_PER_UM, RAD_PER_ARCSEC, SINGULAR_A_DEG, TOL_ARCSEC};
+use super::{MM_PER_UM, RAD_PER_ARCSEC, TOL_ARCSEC};
+use crate::stats::golden;
 
 /// Statistics of one evaluation.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -32,8 +33,9 @@ pub struct Evaluation {
     pub max_iterations: usize,
     /// Largest final residual, um and arc-seconds.
     pub max_residual: (f64, f64),
-    /// Per pose: within [`SINGULAR_A_DEG`] of A = 0, where the orientation is only
-    /// partly correctable; the statistics report these poses apart.
+    /// Per pose: in the pole band near A = 0 ([`Solve::band`](super::Solve::band)),
+    /// where the orientation is only partly correctable online; the statistics
+    /// report these poses apart.
     pub singular: Vec<bool>,
     /// The pole policy used.
     pub pole: Pole,
@@ -45,6 +47,18 @@ pub struct Evaluation {
     pub pole_fallbacks: usize,
     /// Band poses whose nominal tool axis no C reaches (least error taken).
     pub pole_unreachable: usize,
+    /// Per pose: the drive positions the compensated pose settles at.
+    pub drives: Vec<[f64; 5]>,
+    /// Per pose: iterations of the solve (drive loop steps, or fixed-C solves of a
+    /// pole swing).
+    pub iterations: Vec<usize>,
+    /// Per pose: the least orientation error any drive positions leave (the floor),
+    /// arc-seconds; 0 off the band. From [`super::ErrorModel::pole_reach`] (first
+    /// order), or from [`pole_floor_brute_force`] where the compensated error is above
+    /// the first-order floor plus [`ACCEPT_FLOOR_ARCSEC`].
+    pub floor: Vec<f64>,
+    /// Poses whose floor came from the brute force.
+    pub floor_brute_force: usize,
     /// Per pose in the A = 0 band, what the pole allows ([`super::ErrorModel::pole_reach`]):
     /// with C in the policy's range ([`Pole::c_range`]) and with C over its whole
     /// travel; None off the band.
@@ -87,6 +101,25 @@ pub struct PoleClasses {
     pub cap_arcsec: (f64, f64),
     /// See `cap_arcsec`.
     pub offset_arcsec: (f64, f64),
+}
+
+/// The acceptance's fraction of the uncompensated error.
+pub const ACCEPT_FRACTION: f64 = 0.01;
+/// The acceptance's margin over the floor, arc-seconds.
+pub const ACCEPT_FLOOR_ARCSEC: f64 = 0.001;
+
+/// Result of [`Evaluation::acceptance`].
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Acceptance {
+    /// Poses checked.
+    pub total: usize,
+    /// Poses within the limits.
+    pub passed: usize,
+    /// Indices of the poses outside.
+    pub failed: Vec<usize>,
+    /// Largest compensated orientation error minus its limit, arc-seconds (negative:
+    /// every pose is inside).
+    pub worst_orient_margin_arcsec: f64,
 }
 
 pub(super) fn stats<'a>(e: impl Iterator<Item = &'a (f64, f64)>) -> Stats {
@@ -176,6 +209,45 @@ impl Evaluation {
         k
     }
 
+    /// Statistics of every pose, the A = 0 band included: (uncompensated,
+    /// compensated).
+    pub fn all_stats(&self) -> (Stats, Stats) {
+        (
+            stats(self.uncompensated.iter()),
+            stats(self.compensated.iter()),
+        )
+    }
+
+    /// The least orientation error any drive positions leave at pose `i`, arc-seconds
+    /// ([`Evaluation::floor`]).
+    pub fn floor_arcsec(&self, i: usize) -> f64 {
+        self.floor.get(i).copied().unwrap_or(0.0)
+    }
+
+    /// The acceptance, pose by pose: the compensated tip error at most
+    /// [`ACCEPT_FRACTION`] of the uncompensated one (or [`super::TOL_UM`]), and the
+    /// orientation error at most that fraction or the floor plus
+    /// [`ACCEPT_FLOOR_ARCSEC`], the larger.
+    pub fn acceptance(&self) -> Acceptance {
+        let mut a = Acceptance {
+            worst_orient_margin_arcsec: f64::NEG_INFINITY,
+            ..Acceptance::default()
+        };
+        for (i, (unc, comp)) in self.uncompensated.iter().zip(&self.compensated).enumerate() {
+            let tip_ok = comp.0 <= (ACCEPT_FRACTION * unc.0).max(super::TOL_UM);
+            let limit = (ACCEPT_FRACTION * unc.1).max(self.floor_arcsec(i) + ACCEPT_FLOOR_ARCSEC);
+            let orient_ok = comp.1 <= limit;
+            a.total += 1;
+            if tip_ok && orient_ok {
+                a.passed += 1;
+            } else {
+                a.failed.push(i);
+            }
+            a.worst_orient_margin_arcsec = a.worst_orient_margin_arcsec.max(comp.1 - limit);
+        }
+        a
+    }
+
     /// Poses within the A = 0 band: their count and (uncompensated, compensated)
     /// statistics.
     pub fn singular_stats(&self) -> (usize, Stats, Stats) {
@@ -205,6 +277,7 @@ pub fn evaluate_pole(
         pole: *pole,
         ..Evaluation::default()
     };
+    ev.poses.reserve(grid.iter().map(Vec::len).product());
     let err = |q: &[f64; 5], u: &[f64; 5]| {
         let (p, v) = model.actual_pose(q);
         let (pn, vn) = nominal_pose(g, u);
@@ -226,15 +299,31 @@ pub fn evaluate_pole(
                         ev.pole_fallbacks += usize::from(ps.fallback);
                         ev.pole_unreachable += usize::from(!ps.reached);
                         ev.poses.push(u);
-                        ev.singular.push(a.abs() < SINGULAR_A_DEG);
+                        let band = ps.solve.band || ps.newton_iterations > 0 || ps.fallback;
+                        ev.singular.push(band);
                         let travel_c = model.travel[4];
-                        ev.pole_reach
-                            .push((a.abs() < SINGULAR_A_DEG && !model.zero).then(|| {
-                                let range = pole.c_range(c, travel_c).unwrap_or((c, c));
-                                (model.pole_reach(&u, range), model.pole_reach(&u, travel_c))
-                            }));
-                        ev.uncompensated.push(err(&u, &u));
-                        ev.compensated.push(err(&s.drive, &u));
+                        ev.pole_reach.push((band && !model.zero).then(|| {
+                            let range = pole.c_range(c, travel_c).unwrap_or((c, c));
+                            (model.pole_reach(&u, range), model.pole_reach(&u, travel_c))
+                        }));
+                        ev.drives.push(s.drive);
+                        ev.iterations.push(s.iterations);
+                        let unc = err(&u, &u);
+                        let comp = err(&s.drive, &u);
+                        let mut floor = match ev.pole_reach.last() {
+                            Some(Some((r, _))) => r.min_arcsec,
+                            _ => 0.0,
+                        };
+                        if band
+                            && comp.1 > (ACCEPT_FRACTION * unc.1).max(floor + ACCEPT_FLOOR_ARCSEC)
+                        {
+                            let range = pole.c_range(c, model.travel[4]).unwrap_or((c, c));
+                            floor = pole_floor_brute_force(model, &u, range);
+                            ev.floor_brute_force += 1;
+                        }
+                        ev.floor.push(floor);
+                        ev.uncompensated.push(unc);
+                        ev.compensated.push(comp);
                         // Swing solves count apart (Newton steps, pose residuals).
                         if ps.newton_iterations == 0 {
                             ev.max_iterations = ev.max_iterations.max(s.iterations);
@@ -247,4 +336,65 @@ pub fn evaluate_pole(
         }
     }
     ev
+}
+
+/// The least orientation error at the command u over C in `c_range` and A within
+/// 0.05 deg of u's, with the tip on the command, arc-seconds, by brute force on the
+/// forward kinematics alone: a 2 deg scan of C, the best A for each by golden
+/// section, then golden section over C around the six best cells; then X, Y, Z are
+/// solved for the tip (they move by up to a tenth of a millimetre, which turns the
+/// slides' angular errors by thousandths of an arc-second) and C and A refined again.
+pub fn pole_floor_brute_force(model: &ErrorModel, u: &[f64; 5], c_range: (f64, f64)) -> f64 {
+    let (pn, vn) = nominal_pose(&model.geometry, u);
+    let orient = |xyz: &[f64; 3], a: f64, c: f64| {
+        angle_rad(&model.actual_pose(&[xyz[0], xyz[1], xyz[2], a, c]).1, &vn) / RAD_PER_ARCSEC
+    };
+    let span_deg = 0.05;
+    let best_a = |xyz: &[f64; 3], c: f64| {
+        golden(u[3] - span_deg, u[3] + span_deg, 40, &mut |a| {
+            orient(xyz, a, c)
+        })
+    };
+    let (lo, hi) = c_range;
+    let n = (((hi - lo) / 2.0).ceil() as usize).max(1);
+    let step = (hi - lo) / n as f64;
+    let mut xyz = [u[0], u[1], u[2]];
+    let mut scan: Vec<(f64, f64)> = (0..=n)
+        .map(|i| {
+            let c = lo + step * i as f64;
+            (c, best_a(&xyz, c).1)
+        })
+        .collect();
+    scan.sort_by(|a, b| a.1.total_cmp(&b.1));
+    let refine = |xyz: &[f64; 3], c0: f64, e0: f64, half: f64| -> (f64, f64) {
+        let (a, b) = ((c0 - half).max(lo), (c0 + half).min(hi));
+        if b <= a {
+            return (c0, e0);
+        }
+        let (c, e) = golden(a, b, 40, &mut |c| best_a(xyz, c).1);
+        if e < e0 {
+            (c, e)
+        } else {
+            (c0, e0)
+        }
+    };
+    let mut best = scan
+        .iter()
+        .take(6)
+        .map(|&(c0, e0)| refine(&xyz, c0, e0, step))
+        .fold((u[4], f64::INFINITY), |b, x| if x.1 < b.1 { x } else { b });
+    for _ in 0..2 {
+        let a = best_a(&xyz, best.0).0;
+        let mut q = [xyz[0], xyz[1], xyz[2], a, best.0];
+        for _ in 0..5 {
+            let (p, _) = model.actual_pose(&q);
+            for k in 0..3 {
+                q[k] -= p[k] - pn[k];
+            }
+        }
+        xyz = [q[0], q[1], q[2]];
+        let e0 = best_a(&xyz, best.0).1;
+        best = refine(&xyz, best.0, e0, 0.5 * step);
+    }
+    best.1
 }

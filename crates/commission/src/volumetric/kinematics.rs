@@ -3,7 +3,9 @@
 
 use std::f64::consts::PI;
 
-use super::{MAX_ITERATIONS, MM_PER_UM, RAD_PER_ARCSEC, SINGULAR_A_DEG, TOL_ARCSEC, TOL_UM};
+use super::{
+    MAX_ITERATIONS, MAX_ONLINE_C_CORRECTION_DEG, MM_PER_UM, RAD_PER_ARCSEC, TOL_ARCSEC, TOL_UM,
+};
 use crate::stats;
 
 /// Nominal geometry of the head.
@@ -115,14 +117,14 @@ impl ErrorModel {
         let g = &self.geometry;
         let mut p = [0.0, 0.0, -g.tool_length_mm];
         let mut v = [0.0, 0.0, 1.0];
-        // A: T(pivot) L_A Rx(a) E_A L_A^-1
+        // A: T(pivot) L_A E_A Rx(a) L_A^-1
         let [yoa, zoa, boa, coa] = self.loc_a;
         let la = ([0.0, boa, coa], [0.0, yoa, zoa]);
         rotary_link(&self.tables[3], q[3], la, rot_x, &mut p, &mut v);
         for (pk, dk) in p.iter_mut().zip(&g.pivot_mm) {
             *pk += dk;
         }
-        // C: L_C Rz(c) E_C L_C^-1
+        // C: L_C E_C Rz(c) L_C^-1
         let [xoc, yoc, aoc, boc] = self.loc_c;
         let lc = ([aoc, boc, 0.0], [xoc, yoc, 0.0]);
         rotary_link(&self.tables[4], q[4], lc, rot_z, &mut p, &mut v);
@@ -146,8 +148,9 @@ impl ErrorModel {
     ///
     /// Turning A sweeps the tool over a cone about the actual A axis; turning C turns
     /// that cone about the actual C axis. The cone misses the C axis by
-    /// `EBA(A) - BOC + EBC(C)`: the tool's tilt out of the plane normal to A
-    /// (`EBA - BOA`) plus A's tilt out of the plane normal to C (`BOA - BOC - EBC`). So
+    /// `EBA(A) - BOC + EBC'(C)`: the tool's tilt out of the plane normal to A
+    /// (`EBA - BOA`) plus A's tilt out of the plane normal to C (`BOA - BOC + EBC'`,
+    /// `EBC' = cos(C) EBC - sin(C) EAC`, C's machine-frame tilt about its rotor's Y). So
     /// the directions within that angle of the actual C axis (a cap) are reached by no
     /// (A, C). With the nominal axis at `offset` from the actual C axis and at azimuth
     /// `phi` in the C rotor frame at C = 0, the tool misses it by
@@ -165,7 +168,13 @@ impl ErrorModel {
         let (sc, cc) = u[4].to_radians().sin_cos();
         let t = [sc * sa - (boc + sy), -cc * sa - (-aoc - sx)];
         let eba = self.tables[3].eval(u[3])[4];
-        let cap = |c_deg: f64| eba - boc + self.tables[4].eval(c_deg)[4];
+        // EAC, EBC act in the machine frame: their part about the C rotor's Y axis
+        // (normal to the A plane) is -sin(C) EAC + cos(C) EBC.
+        let cap = |c_deg: f64| {
+            let e = self.tables[4].eval(c_deg);
+            let (s, c) = c_deg.to_radians().sin_cos();
+            eba - boc - s * e[3] + c * e[4]
+        };
         let miss = |c_deg: f64| {
             let (s, c) = c_deg.to_radians().sin_cos();
             t[0] * c + t[1] * s - cap(c_deg)
@@ -201,6 +210,12 @@ pub struct PoleReach {
     /// C of that least error (where reached, the root nearest the command), deg.
     pub c_deg: f64,
 }
+
+/// How far beyond its programmed travel the drive loop may take C before the pose
+/// counts as limited, deg: near the pole the C correction grows as 1/sin(A) (0.16
+/// deg at A = 1 deg on the example), and the NC's software limits must leave this
+/// margin beyond the travel of the error file.
+pub const TRAVEL_MARGIN_DEG: f64 = 1.0;
 
 /// Scan step over C of the pole solves, deg.
 const POLE_SCAN_DEG: f64 = 1.0;
@@ -312,7 +327,7 @@ fn small(e: &[f64; 6], p: &mut [f64; 3], v: &mut [f64; 3]) {
     *v = r(v);
 }
 
-/// Applies a rotary link `L Rot(angle) E(angle) L^-1` to a point and a vector: `loc`
+/// Applies a rotary link `L E(angle) Rot(angle) L^-1` to a point and a vector: `loc`
 /// is the location `L` (rotation, translation), `table` gives `E`, `rot` turns by the
 /// angle's sine and cosine.
 #[inline]
@@ -325,9 +340,11 @@ fn rotary_link(
     v: &mut [f64; 3],
 ) {
     inv_small(&loc_r, &loc_t, p, v);
-    small(&table.eval(angle_deg), p, v);
     let (s, c) = angle_deg.to_radians().sin_cos();
     rot(s, c, p, v);
+    // The error motions after the rotation: they are measured in the stator's frame
+    // (ISO 230-7), so a constant EAC/EBC tilts the axis line itself, like AOC/BOC.
+    small(&table.eval(angle_deg), p, v);
     let [tx, ty, tz] = loc_t;
     let [rx, ry, rz] = loc_r;
     small(&[tx, ty, tz, rx, ry, rz], p, v);
@@ -385,19 +402,24 @@ pub struct Solve {
     pub residual_um: f64,
     /// Remaining rotary residual of A, C, arc-seconds.
     pub residual_arcsec: f64,
+    /// The drive positions lie in the pole band ([`VolumetricCompensator::feedback_at_pole`]),
+    /// where the feedback holds C: the orientation is only partly corrected.
+    pub band: bool,
 }
 
-/// What the compensator does with a command within [`SINGULAR_A_DEG`] of A = 0 (the
-/// pole, tool axis parallel to C), where an orientation error about the A plane's
-/// normal can only be removed by a finite C move.
+/// What the compensator does with a command in the pole band near A = 0 (the tool
+/// axis so close to C that the feedback holds C, [`VolumetricCompensator::feedback_at_pole`]),
+/// where an orientation error about the A plane's normal can only be removed by a
+/// finite C move.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum PoleMode {
-    /// C is not corrected, A takes the in-plane part only: safe in a moving servo loop
-    /// (the online `feedback` path).
-    #[default]
+    /// C is not corrected, A takes the in-plane part only: what the per-cycle
+    /// `feedback` does in the band.
     Hold,
-    /// Solve for the drive positions that put the actual pose on the nominal one, even
-    /// if C must swing (bounded by [`Pole::max_c_swing_deg`]).
+    /// Solve for the drive positions that put the actual pose on the nominal one, or
+    /// at the least orientation error the head allows, even if C must swing (bounded
+    /// by [`Pole::max_c_swing_deg`] and the C travel). The default.
+    #[default]
     Swing,
 }
 
@@ -424,8 +446,8 @@ impl Pole {
 impl Default for Pole {
     fn default() -> Self {
         Self {
-            mode: PoleMode::Hold,
-            max_c_swing_deg: 180.0,
+            mode: PoleMode::Swing,
+            max_c_swing_deg: 720.0,
         }
     }
 }
@@ -471,36 +493,60 @@ impl VolumetricCompensator {
     /// unchanged, bit for bit.
     #[inline]
     pub fn feedback(&self, q: &[f64; 5]) -> [f64; 5] {
+        self.feedback_at_pole(q).0
+    }
+
+    /// [`Self::feedback`], and whether q lies in the pole band: there the C' of step 1
+    /// would differ from C by more than [`MAX_ONLINE_C_CORRECTION_DEG`] (the tool axis
+    /// is so close to C that its azimuth is ill-conditioned), so C is held and A' takes
+    /// the in-plane part only.
+    #[inline]
+    pub fn feedback_at_pole(&self, q: &[f64; 5]) -> ([f64; 5], bool) {
         if self.model.zero {
-            return *q;
+            return (*q, false);
         }
         let g = &self.model.geometry;
         let (p, v) = self.model.actual_pose(q);
         // Step 1: rotary angles giving the actual tool axis on the ideal machine.
         let k = if q[3] < 0.0 { -1.0 } else { 1.0 };
         let rho = (v[0] * v[0] + v[1] * v[1]).sqrt();
-        let (a, c) = if q[3].abs() < SINGULAR_A_DEG {
-            let (sc, cc) = q[4].to_radians().sin_cos();
-            let wy = -sc * v[0] + cc * v[1];
-            ((-wy).atan2(v[2]), q[4].to_radians())
+        let c_q = q[4].to_radians();
+        let mut c_reg = (k * v[0]).atan2(-k * v[1]);
+        c_reg += 2.0 * PI * ((c_q - c_reg) / (2.0 * PI)).round();
+        // The regular step 1 up to half the limit of the C correction, hold beyond
+        // the limit, blended linearly between: the feedback stays continuous, so a
+        // servo loop on it does not chatter at the band's edge. (NaN: hold.)
+        let limit = MAX_ONLINE_C_CORRECTION_DEG.to_radians();
+        let w = (2.0 - 2.0 * (c_reg - c_q).abs() / limit).clamp(0.0, 1.0);
+        let w = if w.is_nan() { 0.0 } else { w };
+        let band = w < 1.0;
+        // Hold: A' takes the in-plane part, -w_y with w the axis in the C frame.
+        let a_hold = || {
+            let (sc, cc) = c_q.sin_cos();
+            (sc * v[0] - cc * v[1]).atan2(v[2])
+        };
+        let (a, c) = if !band {
+            (k * rho.atan2(v[2]), c_reg)
+        } else if w == 0.0 {
+            (a_hold(), c_q)
         } else {
-            let a = k * rho.atan2(v[2]);
-            let mut c = (k * v[0]).atan2(-k * v[1]);
-            let c_q = q[4].to_radians();
-            c += 2.0 * PI * ((c_q - c) / (2.0 * PI)).round();
-            (a, c)
+            let a_reg = k * rho.atan2(v[2]);
+            (w * a_reg + (1.0 - w) * a_hold(), c_q + w * (c_reg - c_q))
         };
         // Step 2: linear positions putting the ideal tip there with A', C'.
         let (sa, ca) = a.sin_cos();
         let (sc, cc) = c.sin_cos();
         let off = head_offset(g, sa, ca, sc, cc);
-        [
-            p[0] - off[0],
-            p[1] - off[1],
-            p[2] - off[2],
-            a.to_degrees(),
-            c.to_degrees(),
-        ]
+        (
+            [
+                p[0] - off[0],
+                p[1] - off[1],
+                p[2] - off[2],
+                a.to_degrees(),
+                c.to_degrees(),
+            ],
+            band,
+        )
     }
 
     /// Correction of each axis at scale positions q: `q - feedback(q)` (mm, deg).
@@ -516,7 +562,7 @@ impl VolumetricCompensator {
         let mut q = *u;
         let mut iterations = 0;
         loop {
-            let f = self.feedback(&q);
+            let (f, band) = self.feedback_at_pole(&q);
             let r: [f64; 5] = std::array::from_fn(|i| f[i] - u[i]);
             let lin_um = (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt() / MM_PER_UM;
             let rot_as = r[3].abs().max(r[4].abs()) * 3600.0;
@@ -526,6 +572,7 @@ impl VolumetricCompensator {
                     iterations,
                     residual_um: lin_um,
                     residual_arcsec: rot_as,
+                    band,
                 };
             }
             for i in 0..5 {
@@ -537,6 +584,8 @@ impl VolumetricCompensator {
 
     /// Drive positions for a commanded pose u under a pole policy: outside the
     /// A = 0 band, and always in [`PoleMode::Hold`], exactly [`Self::drive_positions`].
+    /// The band: the drive loop ends where the feedback holds C, does not converge, or
+    /// leaves the C travel.
     /// In [`PoleMode::Swing`] a command inside the band is solved with C free within
     /// [`Pole::c_range`]: C is the root, nearest the command, of the out-of-plane axis
     /// residual (tip and in-plane axis by Newton with C held). Where no C in the range
@@ -553,7 +602,15 @@ impl VolumetricCompensator {
             fallback: false,
             reached: true,
         };
-        if pole.mode == PoleMode::Hold || self.model.zero || u[3].abs() >= SINGULAR_A_DEG {
+        // Near the pole step 1 may move C out of its travel (or not converge): the
+        // band, solved with C bounded. At the travel's ends a correction of
+        // arc-seconds beyond it is what the NC's software limit margin is for.
+        let (c_lo, c_hi) = self.model.travel[4];
+        let off_band = !hold.band
+            && hold.residual_um <= TOL_UM
+            && hold.residual_arcsec <= TOL_ARCSEC
+            && (c_lo - TRAVEL_MARGIN_DEG..=c_hi + TRAVEL_MARGIN_DEG).contains(&hold.drive[4]);
+        if pole.mode == PoleMode::Hold || self.model.zero || off_band {
             return plain;
         }
         let swung = pole
@@ -601,6 +658,7 @@ impl VolumetricCompensator {
                 iterations: evals,
                 residual_um: tip_um,
                 residual_arcsec: orient_as,
+                band: true,
             },
             newton_iterations: evals,
             c_swing_deg: (drive[4] - u[4]).abs(),

@@ -27,11 +27,18 @@
 //! - linear axis j at position q: translation `q * d_j + (EXj, EYj, EZj)`, rotation
 //!   `(EAj, EBj, ECj)`, with the direction `d_X = (1, 0, 0)`,
 //!   `d_Y = (-EC0Y, 1, 0)`, `d_Z = (EB0Z, -EA0Z, 1)` (squareness);
-//! - C at angle c: `L_C Rz(c) E_C(c) L_C^-1`, where `L_C` is the location of the C
+//! - C at angle c: `L_C E_C(c) Rz(c) L_C^-1`, where `L_C` is the location of the C
 //!   axis line (offset XOC, YOC; tilts AOC about X, BOC about Y) and `E_C` the
-//!   position-dependent errors (EXC, EYC, EZC; EAC, EBC, ECC);
-//! - A at angle a: `T(pivot) L_A Rx(a) E_A(a) L_A^-1`, `L_A` from YOA, ZOA, BOA (about
+//!   error motions over the angle (EXC, EYC, EZC; EAC, EBC, ECC);
+//! - A at angle a: `T(pivot) L_A E_A(a) Rx(a) L_A^-1`, `L_A` from YOA, ZOA, BOA (about
 //!   Y), COA (about Z), `E_A` from EXA..ECA.
+//!
+//! A rotary axis' error motions act in the frame of its stator (the body that carries
+//! it), not in the turning rotor's: they are what an instrument fixed to the stator
+//! reads (ISO 230-7), so EXC is along the machine's X at every C, and a constant
+//! EAC/EBC tilts the C axis line itself, like AOC/BOC. `E` therefore comes after the
+//! rotation. For C the stator frame is the machine frame; for A it is the C rotor's
+//! (the head housing), which C turns.
 //!
 //! Location errors thus vanish at the axis' zero angle and grow with the angle (the
 //! zero-angle offset belongs to the tool offsets).
@@ -54,22 +61,27 @@
 //! # The A = 0 pole
 //!
 //! Near A = 0 the tool axis is parallel to C and an orientation error about the A
-//! plane's normal cannot be corrected without a large C move: within
-//! [`SINGULAR_A_DEG`] of A = 0 C is not corrected and A' takes only the in-plane
-//! part (`A' = atan2(-w_y, w_z)`, w the axis in the C frame). That is
-//! [`PoleMode::Hold`], the default and the only behaviour of `feedback`.
-//! [`PoleMode::Swing`] ([`VolumetricCompensator::drive_positions_pole`], offline)
-//! solves such commands with C free within [`Pole::c_range`]: within a limit of the
-//! commanded C and within the C travel.
+//! plane's normal needs a C move that grows as 1/sin(A). `feedback` uses step 1 as
+//! above while it moves C by at most half of [`MAX_ONLINE_C_CORRECTION_DEG`]; beyond
+//! the limit it holds C and A' takes only the in-plane part (`A' = atan2(-w_y, w_z)`,
+//! w the axis in the C frame), and between the two it blends linearly, so that the
+//! feedback stays continuous and a servo loop on it settles. Where the drive loop
+//! ends in that band (or takes C more than `TRAVEL_MARGIN_DEG` past its travel),
+//! [`PoleMode::Swing`], the default of [`VolumetricCompensator::drive_positions_pole`],
+//! solves the command with C free within [`Pole::c_range`]: within a limit of the
+//! commanded C and within the C travel. [`PoleMode::Hold`] keeps what the drive loop
+//! gives.
 //!
 //! Not every tool axis near the pole can be reached. Turning A sweeps the tool over
 //! a cone about the actual A axis, turning C turns that cone about the actual C
 //! axis, and the cone misses the C axis by the cap radius
 //!
 //! ```text
-//! cap(C) = EBA(A) - BOC + EBC(C)
+//! cap(C) = EBA(A) - BOC + EBC'(C)
 //!        = (EBA - BOA)          tool tilted out of the plane normal to A
-//!        + (BOA - BOC - EBC)    A tilted out of the plane normal to C
+//!        + (BOA - BOC + EBC')   A tilted out of the plane normal to C
+//! EBC'(C) = cos(C) EBC(C) - sin(C) EAC(C)   (C's tilt error motion, machine frame,
+//!                                            about the C rotor's Y axis)
 //! ```
 //!
 //! No (A, C) puts the tool within `cap` of the actual C axis. The nominal axis lies
@@ -80,8 +92,8 @@
 //! least orientation error is its minimum, about `cap - offset`, and X, Y, Z still
 //! put the tip on the command. [`ErrorModel::pole_reach`] evaluates this from the
 //! parameters (first order in the errors; on the example file it agrees with a
-//! brute-force search over all drive positions within 0.002"). A file without
-//! out-of-plane head errors (EBA, EBC, BOC zero) has cap radius 0, and a C move
+//! brute-force search over all drive positions within 0.01"). A file without
+//! out-of-plane head errors (EBA, EAC, EBC, BOC zero) has cap radius 0, and a C move
 //! reaches every axis at the pole.
 //!
 //! # Error parameter file, version 1
@@ -131,14 +143,15 @@ use crate::plot::PlotError;
 
 pub use command::{parse_grid, run, VolumetricArgs};
 pub use evaluation::{
-    evaluate, evaluate_pole, Evaluation, PoleClasses, Stats, POLE_TOL_ARCSEC, POLE_TOL_FRACTION,
+    evaluate, evaluate_pole, pole_floor_brute_force, Acceptance, Evaluation, PoleClasses, Stats,
+    ACCEPT_FLOOR_ARCSEC, ACCEPT_FRACTION, POLE_TOL_ARCSEC, POLE_TOL_FRACTION,
 };
 pub use format::{parse, write, LOCATION_A, LOCATION_C, MAGIC, SQUARENESS, VERSION};
 pub use kinematics::{
     angle_rad, distance_mm, nominal_pose, ErrorModel, Geometry, Pole, PoleMode, PoleReach,
     PoleSolve, Solve, Table, VolumetricCompensator,
 };
-pub use report::{report, write_svgs};
+pub use report::{report, write_poses_csv, write_svgs, POSES_CSV_HEADER};
 pub use synthetic::{synthetic_model, synthetic_model_in_plane};
 
 /// Axis names in the order of every `[f64; 5]` (X, Y, Z in mm; A, C in degrees).
@@ -155,8 +168,9 @@ pub const COLUMNS: [[&str; 6]; 5] = [
 pub const MM_PER_UM: f64 = 1e-3;
 /// rad per arc-second.
 pub const RAD_PER_ARCSEC: f64 = PI / (180.0 * 3600.0);
-/// Within this many degrees of A = 0 the C axis is not corrected (see module doc).
-pub const SINGULAR_A_DEG: f64 = 1.0;
+/// The per-cycle feedback holds C where step 1 would move it by more than this, deg:
+/// the pole band, within about 0.01 deg of A = 0 on the example (module doc).
+pub const MAX_ONLINE_C_CORRECTION_DEG: f64 = 10.0;
 /// Convergence tolerance of the linear residual, um.
 pub const TOL_UM: f64 = 0.01;
 /// Convergence tolerance of the rotary residual, arc-seconds.

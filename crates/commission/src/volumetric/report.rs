@@ -3,24 +3,29 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use super::evaluation::{Evaluation, POLE_TOL_ARCSEC, POLE_TOL_FRACTION};
+use super::evaluation::{
+    Evaluation, ACCEPT_FLOOR_ARCSEC, ACCEPT_FRACTION, POLE_TOL_ARCSEC, POLE_TOL_FRACTION,
+};
 use super::kinematics::PoleMode;
-use super::{VolumetricError, SINGULAR_A_DEG, TOL_ARCSEC, TOL_UM};
+use super::{VolumetricError, MAX_ONLINE_C_CORRECTION_DEG, TOL_ARCSEC, TOL_UM};
 use crate::plot;
 use crate::table::{plain_line, Column};
 
 /// The report of an evaluation.
 pub fn report(ev: &Evaluation) -> String {
-    let (u, c) = (ev.uncompensated_stats(), ev.compensated_stats());
+    let (u, c) = ev.all_stats();
     let pct = |a: f64, b: f64| if b > 0.0 { 100.0 * a / b } else { 0.0 };
     let mut s = String::new();
     let (n_sing, su, sc) = ev.singular_stats();
     let _ = writeln!(
         s,
         "volumetric compensation over {} grid poses{}",
-        ev.poses.len() - n_sing,
+        ev.poses.len(),
         if n_sing > 0 {
-            format!(" ({n_sing} more within {SINGULAR_A_DEG} deg of A = 0, below)")
+            format!(
+                " ({n_sing} of them in the A = 0 pole band, where step 1 would move C by \
+                 more than {MAX_ONLINE_C_CORRECTION_DEG} deg: also below)"
+            )
         } else {
             String::new()
         }
@@ -54,6 +59,31 @@ pub fn report(ev: &Evaluation) -> String {
             format!("{:.4}%", pct(comp, uncomp)),
         ];
         let _ = writeln!(s, "{}", plain_line(&COLUMNS, cells));
+    }
+    let acc = ev.acceptance();
+    let _ = writeln!(
+        s,
+        "acceptance: {} of {} poses within {} % of their uncompensated error, or the \
+         achievable minimum + {ACCEPT_FLOOR_ARCSEC}\" where the pole limits it (worst \
+         margin {:+.4}\"; minimum from the parameters, by brute force for {} poses)",
+        acc.passed,
+        acc.total,
+        100.0 * ACCEPT_FRACTION,
+        acc.worst_orient_margin_arcsec,
+        ev.floor_brute_force
+    );
+    if n_sing > 0 {
+        let (uo, co) = (ev.uncompensated_stats(), ev.compensated_stats());
+        let _ = writeln!(
+            s,
+            "off the band ({} poses): tip max {:.4} -> {:.6} um, orientation max {:.4} -> \
+             {:.6}\"",
+            ev.poses.len() - n_sing,
+            uo.max_tip_um,
+            co.max_tip_um,
+            uo.max_orient_arcsec,
+            co.max_orient_arcsec
+        );
     }
     let _ = writeln!(
         s,
@@ -140,6 +170,48 @@ pub fn report(ev: &Evaluation) -> String {
         }
     }
     s
+}
+
+/// The per-pose CSV's header: the commanded pose, the drive positions it settles at,
+/// the iterations, the compensated (residual) and uncompensated tip and orientation
+/// errors, whether the pose is in the pole band, and the floor there.
+pub const POSES_CSV_HEADER: &str = "x_mm,y_mm,z_mm,a_deg,c_deg,\
+drive_x_mm,drive_y_mm,drive_z_mm,drive_a_deg,drive_c_deg,iterations,\
+tip_um,orient_arcsec,uncomp_tip_um,uncomp_orient_arcsec,pole_band,floor_arcsec";
+
+/// Writes one row per grid pose ([`POSES_CSV_HEADER`]), every number in full
+/// precision (shortest round-trip form), so that the result can be checked by an
+/// independent kinematic model.
+pub fn write_poses_csv(path: &Path, ev: &Evaluation) -> Result<(), VolumetricError> {
+    let mut s = String::with_capacity(200 * (ev.poses.len() + 1));
+    s.push_str(POSES_CSV_HEADER);
+    s.push('\n');
+    for (i, u) in ev.poses.iter().enumerate() {
+        let d = ev.drives[i];
+        let (comp, unc) = (ev.compensated[i], ev.uncompensated[i]);
+        let _ = writeln!(
+            s,
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            u[0],
+            u[1],
+            u[2],
+            u[3],
+            u[4],
+            d[0],
+            d[1],
+            d[2],
+            d[3],
+            d[4],
+            ev.iterations[i],
+            comp.0,
+            comp.1,
+            unc.0,
+            unc.1,
+            u8::from(ev.singular[i]),
+            ev.floor_arcsec(i)
+        );
+    }
+    std::fs::write(path, s).map_err(|e| VolumetricError::Io(format!("{}: {e}", path.display())))
 }
 
 /// Writes the SVG error maps into `dir`: `tip-error.svg` and `orientation-error.svg`

@@ -102,17 +102,21 @@ pub fn synthetic_model(scale: f64) -> ErrorModel {
     )
 }
 
-/// [`synthetic_model`] without the head's out-of-plane errors (EBA, EBC, BOA, BOC
-/// zero): the cone the tool sweeps about A then passes through the C axis (cap
-/// radius 0, [`ErrorModel::pole_reach`]), so a C move reaches every tool axis at the
-/// pole; the source of `config/volumetric-in-plane.errors`.
+/// [`synthetic_model`] without the head's out-of-plane errors (EBA, EAC, EBC, BOA,
+/// BOC zero; EAC too because C's error motions act in the machine frame, so EAC
+/// turns out of the A plane as C turns): the cone the tool sweeps about A then passes
+/// through the C axis (cap radius 0, [`ErrorModel::pole_reach`]), so a C move
+/// reaches every tool axis at the pole; the source of
+/// `config/volumetric-in-plane.errors`.
 pub fn synthetic_model_in_plane(scale: f64) -> ErrorModel {
     let m = synthetic_model(scale);
     let mut tables = m.tables.clone();
-    for t in &mut tables[3..] {
-        for row in &mut t.val {
-            row[4] = 0.0;
-        }
+    for row in &mut tables[3].val {
+        row[4] = 0.0;
+    }
+    for row in &mut tables[4].val {
+        row[3] = 0.0;
+        row[4] = 0.0;
     }
     let [xoc, yoc, aoc, _] = m.loc_c;
     let [yoa, zoa, _, coa] = m.loc_a;

@@ -24,7 +24,7 @@ mod scaling;
 pub use filter::{LowPass, LowPassGain, MedianWindow};
 pub use processor::ChannelProcessor;
 pub use quality::{Quality, Reason};
-pub use scaling::{CurrentRange, Scaled, Scaling, NE43_HIGH_MA, NE43_LOW_MA};
+pub use scaling::{CurrentRange, Scaled, Scaling, MIN_RAW_MAGNITUDE, NE43_HIGH_MA, NE43_LOW_MA};
 
 /// Filter and plausibility settings of one channel. A value of 0 switches a
 /// stage off where noted.
@@ -37,6 +37,9 @@ pub struct FilterParams {
     /// Fastest plausible change, degC/s (0 = off): a sample with
     /// `|value - last accepted| > rate * dt` is rejected.
     pub max_rate_degc_per_s: f64,
+    /// Change always accepted by the rate check on top of `max_rate_degc_per_s * dt`,
+    /// degC: the converter's own noise (0 = none).
+    pub rate_tolerance_degc: f64,
     /// Consecutive rate rejections after which the channel turns
     /// `Bad(RateRejected)` and the filters re-seed on the new level (0 acts as 1).
     pub max_rejected_samples: u32,
@@ -56,6 +59,7 @@ impl Default for FilterParams {
             median_samples: 1,
             lowpass_tau_s: 0.0,
             max_rate_degc_per_s: 0.0,
+            rate_tolerance_degc: 0.0,
             max_rejected_samples: 1,
             stale_after_s: 0.0,
             valid_min_degc: f64::NEG_INFINITY,

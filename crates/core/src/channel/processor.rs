@@ -127,6 +127,16 @@ impl ChannelProcessor {
         &self.scaling
     }
 
+    /// The temperature `raw` scales to if it passes the checks that need no history
+    /// (NE43, finiteness, a raw value a sensor produces, the plausible range): how a
+    /// probe or a word-order hint judges a value without feeding it.
+    pub fn plausible_degc(&self, raw: f64) -> Option<f64> {
+        let degc = self.scaling.scale(raw).degc.ok()?;
+        (self.params.valid_min_degc..=self.params.valid_max_degc)
+            .contains(&degc)
+            .then_some(degc)
+    }
+
     /// The filter settings this processor applies.
     pub fn filter_params(&self) -> &FilterParams {
         &self.params
@@ -193,8 +203,9 @@ impl ChannelProcessor {
         let rate = self.params.max_rate_degc_per_s;
         match self.accepted {
             Some((t0_s, v0_degc)) if rate > 0.0 => {
-                // dt < 0 (time going backwards) allows no change at all.
-                (degc - v0_degc).abs() > rate * (t_s - t0_s).max(0.0)
+                // dt < 0 (time going backwards) allows no change but the noise.
+                let allowed = rate * (t_s - t0_s).max(0.0) + self.params.rate_tolerance_degc;
+                (degc - v0_degc).abs() > allowed
             }
             _ => false,
         }
@@ -407,6 +418,23 @@ mod tests {
         let r = p.on_sample(3.0, 20.9);
         assert_eq!(r.quality, Quality::Good);
         assert!(close(r.value_degc, 20.9));
+    }
+
+    #[test]
+    fn rate_tolerance_accepts_noise_but_not_a_spike() {
+        let mut p = proc_with(FilterParams {
+            rate_tolerance_degc: 0.15,
+            ..rate_params()
+        });
+        p.on_sample(0.0, 20.0);
+        // 0.24 in 0.1 s: 0.1 of change plus 0.14 of noise.
+        assert_eq!(p.on_sample(0.1, 20.24).quality, Quality::Good);
+        // Backwards in time only the noise is allowed.
+        assert_eq!(p.on_sample(0.05, 20.1).quality, Quality::Good);
+        assert_eq!(
+            p.on_sample(0.2, 20.6).quality,
+            Quality::Uncertain(Reason::RateRejected)
+        );
     }
 
     #[test]

@@ -19,6 +19,9 @@ pub enum Reason {
     NotFinite,
     /// The scaled value is outside the channel's plausible range.
     OutOfRange,
+    /// The raw value is one no sensor produces (a float of magnitude below 1e-6 but
+    /// not 0): most likely a 32-bit value read in the wrong word order.
+    Implausible,
     /// The value changed faster than the plausible rate (a spike or a jump).
     RateRejected,
     /// The raw value stayed bit-identical for too long: a frozen transmitter.
@@ -38,6 +41,7 @@ impl Reason {
             Self::Ne43High => "NE43 high",
             Self::NotFinite => "not finite",
             Self::OutOfRange => "out of range",
+            Self::Implausible => "implausible raw value",
             Self::RateRejected => "rate rejected",
             Self::Stale => "stale",
             Self::NoData => "no data",

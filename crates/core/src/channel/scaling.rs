@@ -7,6 +7,13 @@ pub const NE43_LOW_MA: f64 = 3.6;
 /// Above this loop current a 4-20 mA transmitter signals a fault (NAMUR NE43).
 pub const NE43_HIGH_MA: f64 = 21.0;
 
+/// Smallest magnitude of a raw value other than 0 that a sensor produces. A float
+/// read in the wrong word order takes its exponent from mantissa bits and lands
+/// anywhere in 1e-38..1e38: 23.45 degC as CDAB read as ABCD is -1.6e-23, which every
+/// plausible range would let through. No converter or module resolves 1e-6 of its
+/// unit.
+pub const MIN_RAW_MAGNITUDE: f64 = 1e-6;
+
 /// Output current range of a transmitter.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum CurrentRange {
@@ -114,8 +121,17 @@ impl Scaling {
         }
     }
 
+    /// Degrees Celsius per unit of the raw value (one ADC count of a transmitter, one
+    /// unit of a direct value times its gain): the scaling's resolution, which the rate
+    /// check tolerates as converter noise.
+    pub fn degc_per_raw_unit(&self) -> f64 {
+        let l = self.linear();
+        (l.mul / l.div / l.span_in * l.span_out_degc).abs()
+    }
+
     /// Scales one raw value. NE43 is checked before the temperature is computed:
-    /// a fault current carries no temperature. Currents between 3.6 and 4 mA or
+    /// a fault current carries no temperature. A raw value closer to 0 than
+    /// [`MIN_RAW_MAGNITUDE`] (but not 0) is [`Reason::Implausible`]. Currents between 3.6 and 4 mA or
     /// 20 and 21 mA are valid saturated readings and scale linearly (slightly
     /// outside the range); the channel's plausible range decides about them.
     pub fn scale(&self, raw: f64) -> Scaled {
@@ -132,6 +148,12 @@ impl Scaling {
         }
         if ma > l.ne43_high_ma {
             return fault(ma, Reason::Ne43High);
+        }
+        if raw != 0.0 && raw.abs() < MIN_RAW_MAGNITUDE {
+            return Scaled {
+                current_ma: Some(ma).filter(|_| l.has_current),
+                degc: Err(Reason::Implausible),
+            };
         }
         let degc = l.base_degc + (ma - l.zero) / l.span_in * l.span_out_degc;
         Scaled {
@@ -176,6 +198,40 @@ mod tests {
 
     fn close(a: f64, b: f64) -> bool {
         (a - b).abs() < 1e-9
+    }
+
+    // Issue 23, trap 2: a CDAB float (23.45 degC) read as ABCD is -1.595e-23, inside
+    // every plausible range; it used to be a good reading.
+    #[test]
+    fn a_float_no_sensor_produces_is_implausible() {
+        let direct = Scaling::Direct {
+            gain: 1.0,
+            offset_degc: 0.0,
+        };
+        let swapped = f64::from(f32::from_bits(0x999A_41BB));
+        assert!((swapped + 1.595e-23).abs() < 1e-26, "{swapped}");
+        assert_eq!(direct.scale(swapped).degc, Err(Reason::Implausible));
+        assert_eq!(direct.scale(-swapped).degc, Err(Reason::Implausible));
+        assert_eq!(direct.scale(0.0).degc, Ok(0.0));
+        assert_eq!(direct.scale(1e-6).degc, Ok(1e-6));
+    }
+
+    #[test]
+    fn one_raw_unit_in_degc() {
+        // 1 uA of a 16 mA span over 200 degC.
+        assert!(close(
+            pt100(CurrentRange::FourTo20).degc_per_raw_unit(),
+            0.0125
+        ));
+        assert!(close(
+            pt100(CurrentRange::ZeroTo20).degc_per_raw_unit(),
+            0.01
+        ));
+        let tenths = Scaling::Direct {
+            gain: -0.1,
+            offset_degc: 5.0,
+        };
+        assert!(close(tenths.degc_per_raw_unit(), 0.1));
     }
 
     #[test]

@@ -1,6 +1,6 @@
 //! From temperatures to what to write: limits, deadband, bad-input policy.
 
-use super::{CompError, CompParams, ThermalModel};
+use super::{CompError, CompParams, Dynamics, ThermalModel};
 
 /// Safety limits of one axis' compensation.
 ///
@@ -110,6 +110,8 @@ pub struct AxisCompensator {
     inputs: Vec<usize>,
     baseline: Option<CompParams>,
     last_decide_s: Option<f64>,
+    /// Lagged inputs and motion heat (empty: the plain model).
+    dynamics: Dynamics,
 }
 
 impl AxisCompensator {
@@ -123,7 +125,24 @@ impl AxisCompensator {
             policy,
             baseline: None,
             last_decide_s: None,
+            dynamics: Dynamics::default(),
         }
+    }
+
+    /// With lagged inputs (model inputs beyond the real ones) and motion heat.
+    pub fn with_dynamics(mut self, dynamics: Dynamics) -> Self {
+        self.dynamics = dynamics;
+        self
+    }
+
+    /// The lags and motion heat.
+    pub fn dynamics(&self) -> &Dynamics {
+        &self.dynamics
+    }
+
+    /// The NC's actual position at `now_s` (for the motion heat term).
+    pub fn on_position(&mut self, now_s: f64, pos_mm: f64) {
+        self.dynamics.on_position(now_s, pos_mm);
     }
 
     /// Sets what the NC holds now (read at start-up).
@@ -140,8 +159,18 @@ impl AxisCompensator {
             .last_decide_s
             .map_or(0.0, |t0_s| (now_s - t0_s).max(0.0));
         self.last_decide_s = Some(now_s);
+        // Lagged inputs fill their slots after the real ones.
+        let lagged;
+        let temps_degc = if self.dynamics.lags().is_empty() {
+            temps_degc
+        } else {
+            let mut t = temps_degc.to_vec();
+            self.dynamics.apply_lags(now_s, &mut t);
+            lagged = t;
+            &lagged[..]
+        };
 
-        let bad_inputs: Vec<usize> = self
+        let mut bad_inputs: Vec<usize> = self
             .inputs
             .iter()
             .copied()
@@ -154,11 +183,23 @@ impl AxisCompensator {
             })
             .collect();
         if !bad_inputs.is_empty() {
+            // A lagged slot is bad because its source is: name the source, a real
+            // input the caller can map to its channel.
+            for i in &mut bad_inputs {
+                if let Some(l) = self.dynamics.lags().iter().find(|l| l.slot == *i) {
+                    *i = l.source;
+                }
+            }
+            bad_inputs.sort_unstable();
+            bad_inputs.dedup();
             return self.on_bad_inputs(dt_s, bad_inputs);
         }
         // Unused inputs may be None: NaN is never read by the model.
         let temps: Vec<f64> = temps_degc.iter().map(|t| t.unwrap_or(f64::NAN)).collect();
-        let target = self.model.params(&temps);
+        let mut target = self.model.params(&temps);
+        let (k0_mm, tan_beta) = self.dynamics.motion_terms();
+        target.k0_mm += k0_mm;
+        target.tan_beta += tan_beta;
         if !target.is_finite() {
             return Decision::Hold { bad_inputs };
         }
@@ -736,5 +777,49 @@ mod tests {
         // The generator really exercised both paths.
         assert!(writes > 1000, "{writes}");
         assert!(ramps > 100, "{ramps}");
+    }
+
+    #[test]
+    fn lagged_inputs_and_motion_heat_reach_the_parameters() {
+        use super::super::{Dynamics, InputLag, MotionHeat};
+        // K0 = 0.004 * (lag(T0) - 20); input 2 is T0 through a 100 s lag.
+        let mut m = model();
+        m.k0_mm.terms[0].input = 2;
+        let dynamics = Dynamics::new(
+            vec![InputLag {
+                source: 0,
+                slot: 2,
+                tau_s: 100.0,
+            }],
+            Some(MotionHeat {
+                tau_s: 1000.0,
+                ref_mm_per_s: 0.0,
+                k0_mm_per_mm_per_s: 0.001,
+                tan_beta_per_mm_per_s: 0.0,
+            }),
+        );
+        let mut c = AxisCompensator::new(m, limits(), BadInputPolicy::Hold).with_dynamics(dynamics);
+        let k0 = |d: Decision| match d {
+            Decision::Write { params, .. } => params.k0_mm,
+            other => panic!("{other:?}"),
+        };
+        // At rest and 20 degC: nothing.
+        assert!(close(k0(c.decide(0.0, &[Some(20.0), Some(20.0)])), 0.0));
+        // T0 steps to 21 degC: after one time constant the lag has 63 %.
+        let got = k0(c.decide(100.0, &[Some(21.0), Some(20.0)]));
+        assert!(close(got, 0.004 * (1.0 - (-1.0f64).exp())), "{got}");
+        // 1000 mm of travel in one step: h = 1 mm/s -> K0 += 0.001 mm.
+        c.on_position(100.0, 0.0);
+        c.on_position(100.0, 1000.0);
+        c.confirm(CompParams::default());
+        let got = k0(c.decide(100.0, &[Some(21.0), Some(20.0)]));
+        assert!(close(got, 0.004 * (1.0 - (-1.0f64).exp()) + 0.001), "{got}");
+        // A bad source makes its lagged slot bad: hold, naming the source.
+        assert_eq!(
+            c.decide(110.0, &[None, Some(20.0)]),
+            Decision::Hold {
+                bad_inputs: vec![0]
+            }
+        );
     }
 }

@@ -5,11 +5,15 @@
 //!   SD43900/SD43910/SD43920 set and [`CompParams::dk_mm`] what the NC makes of it.
 //! - [`AxisCompensator`]: from temperatures to a [`Decision`]: absolute and step
 //!   limits, deadband, and hold or ramp-to-zero while an input is bad.
+//! - [`Dynamics`]: terms with a memory (a lagged input, motion heat from the NC's
+//!   actual position) that the compensator adds to the model.
 
 mod compensator;
+mod dynamics;
 mod model;
 
 pub use compensator::{AxisCompensator, BadInputPolicy, Decision, Limits};
+pub use dynamics::{Dynamics, InputLag, MotionHeat};
 pub use model::{Affine, CompParams, Term, ThermalModel};
 
 /// Errors of the compensation layer: settings that cannot work.

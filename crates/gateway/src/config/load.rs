@@ -155,8 +155,9 @@ pub fn load_str_with_env(
     }
 }
 
-/// The sections every file must have; a missing or broken one becomes empty.
-const REQUIRED_SECTIONS: [&str; 4] = ["devices", "channels", "nc_modules", "axes"];
+/// The sections every file must have; a missing or broken one becomes empty. NC
+/// modules and axes are optional: a monitoring-only config has neither.
+const REQUIRED_SECTIONS: [&str; 2] = ["devices", "channels"];
 
 /// Takes the unknown keys and the broken entries out of `tree` and deserializes the
 /// rest. Returns the configuration (or serde's error), the broken entries and the

@@ -64,6 +64,7 @@
 //! `config/minimal.toml`); addresses, unit ids, register addresses, data types,
 //! scaling ranges and model coefficients are required.
 
+pub mod example;
 pub mod keys;
 mod load;
 pub mod problem;
@@ -72,11 +73,13 @@ pub mod schema;
 mod service;
 mod sim;
 mod structure;
+mod warnings;
 
 pub use load::{load, load_str, load_str_with_env, load_with_env};
 pub use problem::{ConfigError, ConfigProblem};
 pub use root::validate;
 pub use schema::*;
+pub use warnings::warnings;
 
 /// Prefix of environment overrides, followed by [`ENV_SEPARATOR`].
 pub const ENV_PREFIX: &str = "COMPGATE";

@@ -36,10 +36,14 @@ pub struct Config {
     /// Measured values, by name (the name axes refer to). Required table; names as
     /// for devices.
     pub channels: BTreeMap<String, ChannelConfig>,
-    /// NC axis modules the compensation is written into, by name. Required table;
-    /// names as for devices.
+    /// NC axis modules the compensation is written into, by name; names as for
+    /// devices. Optional: without NC modules and axes the gateway only monitors (it
+    /// polls, filters, records and serves metrics), the first commissioning step.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub nc_modules: BTreeMap<String, NcModuleConfig>,
-    /// Compensated axes, by name (e.g. `X`). Required table; names as for devices.
+    /// Compensated axes, by name (e.g. `X`); names as for devices. Optional (see
+    /// `nc_modules`); every axis needs an NC module.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub axes: BTreeMap<String, AxisConfig>,
     /// Simulated plant (demo, tests, commissioning dry runs). Absent by default; the
     /// gateway itself ignores it.
@@ -66,12 +70,18 @@ pub struct GatewayConfig {
     #[serde(default = "default_status_interval_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub status_interval_s: f64,
+    /// Shadow mode for every axis: compute, record and publish the parameters the
+    /// gateway would write, and never write the NC (a first commissioning dry run).
+    /// `compgate run --shadow` sets it too. Default false.
+    #[serde(default)]
+    pub shadow: bool,
 }
 
 impl Default for GatewayConfig {
     fn default() -> Self {
         GatewayConfig {
             status_interval_s: default_status_interval_s(),
+            shadow: false,
         }
     }
 }

@@ -15,7 +15,9 @@ pub use super::keys::secs;
 pub use super::root::{Config, GatewayConfig};
 pub use super::service::{MetricsConfig, MqttConfig, RecorderConfig};
 pub use super::sim::{SimChannelConfig, SimConfig, SimNcModuleConfig, SimProfile};
-pub use crate::axis::{AxisConfig, K0Model, K0Term, OnBadInput, TanBetaModel, TanBetaTerm};
+pub use crate::axis::{
+    AxisConfig, K0Model, K0Term, MotionHeatModel, OnBadInput, TanBetaModel, TanBetaTerm,
+};
 pub use crate::channel::{
     ByteOrder, ChannelConfig, CurrentRange, DataType, DirectScaling, FilterConfig, RegisterKind,
     Scaling, TransmitterScaling,

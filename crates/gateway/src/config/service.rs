@@ -23,6 +23,13 @@ pub struct RecorderConfig {
     #[serde(default = "default_commit_interval_s")]
     #[schemars(range(min = 0.001, max = 1.0))]
     pub commit_interval_s: f64,
+    /// Seconds between the recorded poll cycles of one device: a cycle is recorded
+    /// when this long has passed since the device's last recorded one, so a device
+    /// polled every 10 ms can be kept once a second (0 = every cycle). Jobs and NC
+    /// positions are always recorded. Default 0; 0..=3600.
+    #[serde(default)]
+    #[schemars(range(min = 0.0, max = 3600.0))]
+    pub interval_s: f64,
     /// Poll cycles the queue between the control loop and the writer holds. When it
     /// is full, cycles are dropped, counted and logged; the loop never waits. Default
     /// 4096; 1..=1000000.
@@ -51,6 +58,7 @@ impl Default for RecorderConfig {
         RecorderConfig {
             path: default_recorder_path(),
             commit_interval_s: default_commit_interval_s(),
+            interval_s: 0.0,
             queue_cycles: default_queue_cycles(),
             retention_days: default_retention_days(),
             max_size_mb: default_max_size_mb(),
@@ -82,8 +90,10 @@ fn default_retention_interval_s() -> f64 {
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct MetricsConfig {
-    /// `host:port` to listen on. Default `127.0.0.1:9464`; at most 300 characters (localhost only; expose it
-    /// further on purpose, e.g. `0.0.0.0:9464` behind the plant firewall).
+    /// `host:port` the HTTP listener (`/metrics` and the status page) listens on.
+    /// Default `127.0.0.1:9464`; at most 300 characters (localhost only; expose it
+    /// further on purpose, e.g. `0.0.0.0:9464` behind the plant firewall). Port 0
+    /// takes a free port, logged at start.
     #[serde(default = "default_metrics_bind")]
     #[schemars(length(max = 300))]
     pub bind: String,
@@ -95,6 +105,16 @@ pub struct MetricsConfig {
     /// of descriptors.
     #[serde(default = "default_metrics_max_connections")]
     pub max_connections: u32,
+    /// Serve the live status page on the same listener: `GET /` (devices, channels
+    /// with trends, axes, NC, last NC jobs; read-only, no internet needed) and
+    /// `GET /api/status` (the same as JSON). Default true.
+    #[serde(default = "default_status_page")]
+    pub status_page: bool,
+    /// Seconds of history the status page's channel trends show. Default 300;
+    /// 10..=3600.
+    #[serde(default = "default_trend_s")]
+    #[schemars(range(min = 10.0, max = 3600.0))]
+    pub trend_s: f64,
 }
 
 impl Default for MetricsConfig {
@@ -102,8 +122,18 @@ impl Default for MetricsConfig {
         MetricsConfig {
             bind: default_metrics_bind(),
             max_connections: default_metrics_max_connections(),
+            status_page: default_status_page(),
+            trend_s: default_trend_s(),
         }
     }
+}
+
+fn default_status_page() -> bool {
+    true
+}
+
+fn default_trend_s() -> f64 {
+    300.0
 }
 
 /// The largest `metrics.max_connections`.
@@ -195,6 +225,12 @@ pub(super) fn validate_service(
                 format!("{} is not within 0 < s <= 1 seconds", r.commit_interval_s),
             );
         }
+        if !(r.interval_s.is_finite() && (0.0..=3600.0).contains(&r.interval_s)) {
+            problem(
+                "recorder.interval_s",
+                format!("{} is not within 0..=3600 seconds", r.interval_s),
+            );
+        }
         if r.queue_cycles == 0 {
             problem("recorder.queue_cycles", "must be at least 1".into());
         }
@@ -216,6 +252,12 @@ pub(super) fn validate_service(
                     "`{}` is not an `ip:port` address, e.g. `127.0.0.1:9464`",
                     m.bind
                 ),
+            );
+        }
+        if !(m.trend_s.is_finite() && (10.0..=3600.0).contains(&m.trend_s)) {
+            problem(
+                "metrics.trend_s",
+                format!("{} is not within 10..=3600 seconds", m.trend_s),
             );
         }
         if !(1..=METRICS_MAX_CONNECTIONS).contains(&m.max_connections) {

@@ -105,6 +105,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
         .collect();
 
     let mut processors = Vec::with_capacity(cfg.channels.len());
+    let mut encodings = Vec::with_capacity(cfg.channels.len());
     let mut specs: Vec<Vec<ChannelSpec>> = vec![Vec::new(); cfg.devices.len()];
     let mut can_specs: Vec<Vec<CanChannelSpec>> = vec![Vec::new(); cfg.devices.len()];
     for (i, (name, ch)) in cfg.channels.iter().enumerate() {
@@ -138,6 +139,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             }
         }
         processors.push(ch.build());
+        encodings.push(ch.can.is_none().then_some((ch.data_type, ch.byte_order)));
     }
 
     // One SYNC per interface at its devices' poll interval (validation makes it one
@@ -223,7 +225,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
                 ax.nc_module
             ))
         })?;
-        let (model, input_names) = ax.model();
+        let (model, input_names, dynamics) = ax.model_parts();
         let inputs = input_names
             .iter()
             .map(|n| {
@@ -237,14 +239,15 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             name: name.clone(),
             nc_module,
             inputs,
-            comp: AxisCompensator::new(model, ax.limits(), ax.policy()),
+            comp: AxisCompensator::new(model, ax.limits(), ax.policy()).with_dynamics(dynamics),
             md32750: ax.md32750,
             update_interval: ax.update_interval(),
+            shadow: ax.shadow || cfg.gateway.shadow,
         });
     }
 
     Ok(Built {
-        pipeline: Pipeline::new(channel_names, processors, axes),
+        pipeline: Pipeline::new(channel_names, processors, axes, encodings),
         devices,
         sync_producers,
         nc_modules,

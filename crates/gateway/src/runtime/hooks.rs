@@ -18,6 +18,8 @@ pub trait Observer: Send {
     fn on_sample(&mut self, _readings: &SampleReadings) {}
     /// An NC job for axis `axis` ended.
     fn on_job(&mut self, _axis: &str, _params: &CompParams, _result: &Result<JobReport, NcError>) {}
+    /// Shadow mode: axis `axis` would have written `params` now (the NC is not written).
+    fn on_shadow(&mut self, _axis: &str, _params: &CompParams) {}
     /// The status tick of the loop (every `gateway.status_interval_s`).
     fn on_status(&mut self, _status: &Status) {}
     /// The liveness tick of the loop (every [`Hooks::watchdog_interval`]): called by
@@ -43,6 +45,11 @@ impl Observer for Observers {
     fn on_job(&mut self, axis: &str, params: &CompParams, result: &Result<JobReport, NcError>) {
         for o in &mut self.0 {
             o.on_job(axis, params, result);
+        }
+    }
+    fn on_shadow(&mut self, axis: &str, params: &CompParams) {
+        for o in &mut self.0 {
+            o.on_shadow(axis, params);
         }
     }
     fn on_status(&mut self, status: &Status) {

@@ -232,6 +232,9 @@ struct Running {
     nc_names: Vec<Arc<str>>,
     /// Per NC module: whether its last snapshot failed (logged once per change).
     nc_down: Vec<bool>,
+    /// Per channel: a byte-order hint was logged and the channel has not been good
+    /// since (logged once, not once per poll).
+    byte_order_hinted: Vec<bool>,
 }
 
 impl Running {
@@ -259,10 +262,12 @@ impl Running {
                 .map(|a| AxisStatus {
                     name: a.name.clone(),
                     decision: "waiting for the NC".into(),
+                    shadow: a.shadow,
                     ..AxisStatus::default()
                 })
                 .collect(),
             samples: 0,
+            jobs: Default::default(),
         };
         Running {
             baselined: vec![false; pipeline.axes.len()],
@@ -273,6 +278,7 @@ impl Running {
                 .map(|n| Arc::from(n.name.as_str()))
                 .collect(),
             nc_down: vec![false; nc_modules.len()],
+            byte_order_hinted: vec![false; pipeline.channel_names.len()],
             pipeline,
             devices: devices.into_iter().map(Some).collect(),
             sync_producers,
@@ -333,7 +339,43 @@ impl Running {
             if let Some(cs) = status.channels.get_mut(c.channel) {
                 cs.reading.clone_from(&c.reading);
             }
+            if let Some(hinted) = self.byte_order_hinted.get_mut(c.channel) {
+                if c.reading.quality.is_good() {
+                    *hinted = false;
+                } else if !*hinted {
+                    if let Some(hint) = self.pipeline.byte_order_hint(c.channel, &c.reading) {
+                        let channel = &self.pipeline.channel_names[c.channel];
+                        tracing::warn!(%channel, device = %r.device_name, "channel {channel} {hint}");
+                        *hinted = true;
+                    }
+                }
+            }
         }
+    }
+
+    /// Shadow mode: `params` are recorded and shown as what would be written, and the
+    /// compensator goes on as if the NC had accepted them (so the would-be values
+    /// follow the same limits and deadband as real writes); the NC is never written.
+    fn on_shadow(&mut self, axis: usize, params: CompParams, observer: &mut dyn Observer) {
+        let Some(a) = self.pipeline.axes.get_mut(axis) else {
+            return;
+        };
+        a.comp.confirm(params);
+        observer.on_shadow(&a.name, &params);
+        tracing::info!(axis = %a.name, sd43900_mm = params.k0_mm, sd43910 = params.tan_beta, sd43920_mm = params.p0_mm, "shadow mode: would write (the NC is not written)");
+        let job = JobStatus {
+            axis: a.name.clone(),
+            at: std::time::SystemTime::now(),
+            params,
+            shadow: true,
+            job_id: None,
+            elapsed: None,
+            error: None,
+        };
+        if let Some(st) = self.status.axes.get_mut(axis) {
+            st.would_write = Some(params);
+        }
+        self.status.push_job(job);
     }
 
     fn on_event(&mut self, event: NcEvent, in_flight: &mut [bool], observer: &mut dyn Observer) {
@@ -354,6 +396,7 @@ impl Running {
                         _ => {}
                     }
                 }
+                let now_s = self.pipeline.now_s(Instant::now());
                 for (i, axis) in self.pipeline.axes.iter_mut().enumerate() {
                     if axis.nc_module != module {
                         continue;
@@ -361,6 +404,8 @@ impl Running {
                     let st = &mut self.status.axes[i];
                     match &result {
                         Ok(snap) => {
+                            // The motion heat term counts travel between snapshots.
+                            axis.comp.on_position(now_s, snap.position_mm);
                             if !self.baselined[i] {
                                 // Step limits and the deadband start from what the NC holds.
                                 axis.comp.set_baseline(snap.thermal());
@@ -403,20 +448,73 @@ impl Running {
                     (Ok(_), true) => tracing::info!(axis = %name, "NC jobs succeed again"),
                     _ => {}
                 }
+                let mut job = JobStatus {
+                    axis: name.clone(),
+                    at: std::time::SystemTime::now(),
+                    params,
+                    shadow: false,
+                    job_id: None,
+                    elapsed: None,
+                    error: None,
+                };
                 match result {
-                    Ok(_) => {
+                    Ok(report) => {
                         self.pipeline.axes[axis].comp.confirm(params);
                         st.written = Some(params);
                         st.jobs_ok += 1;
                         st.last_job_error = None;
+                        job.job_id = Some(report.job_id);
+                        job.elapsed = Some(report.elapsed);
                     }
                     Err(e) => {
                         st.jobs_failed += 1;
                         st.last_job_error = Some(e.to_string());
+                        job.error = st.last_job_error.clone();
                     }
                 }
+                self.status.push_job(job);
             }
         }
+    }
+}
+
+/// How long past its due time an axis waits for a sample of its inputs before the
+/// timer decides without one (at least its own update interval).
+const DECIDE_FALLBACK: Duration = Duration::from_secs(1);
+
+/// Runs axis `i`'s decision at `at` and hands a write to its NC task (one job in
+/// flight per axis), or, in shadow mode, only reports it.
+fn decide_axis(
+    state: &mut Running,
+    i: usize,
+    at: Instant,
+    next_update: &mut [Instant],
+    in_flight: &mut [bool],
+    nc_tx: &[mpsc::Sender<NcCommand>],
+    observer: &mut dyn Observer,
+) {
+    let pipeline = &mut state.pipeline;
+    next_update[i] = at + pipeline.axes[i].update_interval;
+    if !state.baselined[i] || in_flight[i] {
+        return;
+    }
+    let decision = pipeline.decide(i, at);
+    let axis = &pipeline.axes[i];
+    let (shadow, module) = (axis.shadow, axis.nc_module);
+    state.status.axes[i].decision = describe(&decision, &pipeline.channel_names, &axis.inputs);
+    let params = match decision {
+        Decision::Write { params, .. } | Decision::Ramp { params, .. } => params,
+        Decision::WithinDeadband | Decision::Hold { .. } => return,
+    };
+    if shadow {
+        state.on_shadow(i, params, observer);
+        return;
+    }
+    if nc_tx[module]
+        .try_send(NcCommand::Write { axis: i, params })
+        .is_ok()
+    {
+        in_flight[i] = true;
     }
 }
 
@@ -481,6 +579,8 @@ async fn generation(
         .map(|a| now + a.update_interval)
         .collect();
     let mut in_flight = vec![false; state.pipeline.axes.len()];
+    // Per device: the axes its channels feed, learnt from its first sample.
+    let mut feeds: Vec<Option<Vec<usize>>> = Vec::new();
     let mut status_tick = tokio::time::interval(state.status_interval);
     status_tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
     // Its own period, whatever the status interval: systemd's watchdog needs pings
@@ -495,12 +595,42 @@ async fn generation(
     let observer = &mut *hooks.observer;
 
     loop {
-        let next = next_update.iter().copied().min().unwrap_or(far);
+        // An axis decides when a sample of its inputs arrives and its interval is up,
+        // so a change reaches the NC one poll after it happens. The timer only stands
+        // in when no input sample came for a while past the due time (an input device
+        // that stopped sending), so hold and ramp still go on.
+        let fallback = state
+            .pipeline
+            .axes
+            .iter()
+            .zip(&next_update)
+            .map(|(a, &due)| due + a.update_interval.max(DECIDE_FALLBACK))
+            .min()
+            .unwrap_or(far);
         tokio::select! {
             sample = sample_rx.recv() => {
                 let Some(sample) = sample else { break };
                 state.on_sample(&sample);
                 observer.on_sample(&state.readings);
+                if feeds.len() <= sample.device {
+                    feeds.resize(sample.device + 1, None);
+                }
+                let axes = feeds[sample.device].get_or_insert_with(|| {
+                    state
+                        .pipeline
+                        .axes
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, a)| sample.values.iter().any(|(ch, _)| a.inputs.contains(ch)))
+                        .map(|(i, _)| i)
+                        .collect()
+                });
+                let at = Instant::now();
+                for &i in axes.iter() {
+                    if next_update[i] <= at {
+                        decide_axis(state, i, at, &mut next_update, &mut in_flight, &nc_tx, observer);
+                    }
+                }
             }
             event = event_rx.recv(), if events_open => {
                 // No NC modules (a monitoring-only config): the channel closes at once.
@@ -510,26 +640,12 @@ async fn generation(
                 };
                 state.on_event(event, &mut in_flight, observer);
             }
-            _ = tokio::time::sleep_until(next), if next < far => {
+            _ = tokio::time::sleep_until(fallback), if fallback < far => {
                 let at = Instant::now();
-                let pipeline = &mut state.pipeline;
-                for i in 0..pipeline.axes.len() {
-                    if next_update[i] > at {
-                        continue;
-                    }
-                    next_update[i] = at + pipeline.axes[i].update_interval;
-                    if !state.baselined[i] || in_flight[i] {
-                        continue;
-                    }
-                    let decision = pipeline.decide(i, at);
-                    let axis = &pipeline.axes[i];
-                    state.status.axes[i].decision = describe(&decision, &pipeline.channel_names, &axis.inputs);
-                    let params = match decision {
-                        Decision::Write { params, .. } | Decision::Ramp { params, .. } => params,
-                        Decision::WithinDeadband | Decision::Hold { .. } => continue,
-                    };
-                    if nc_tx[axis.nc_module].try_send(NcCommand::Write { axis: i, params }).is_ok() {
-                        in_flight[i] = true;
+                for i in 0..state.pipeline.axes.len() {
+                    let a = &state.pipeline.axes[i];
+                    if next_update[i] + a.update_interval.max(DECIDE_FALLBACK) <= at {
+                        decide_axis(state, i, at, &mut next_update, &mut in_flight, &nc_tx, observer);
                     }
                 }
             }
@@ -676,6 +792,42 @@ mod tests {
         assert_eq!(p.reading(ch).expect("reading").quality, Quality::Good);
     }
 
+    // Shadow mode on or off by reload: the axis starts again from what the NC holds
+    // (its would-be values are no baseline for real writes); an unchanged reload
+    // keeps the axis and the job history.
+    #[test]
+    fn a_reload_into_shadow_mode_starts_the_axis_from_the_nc_again() {
+        let cfg = demo();
+        let running = |cfg: &Config| {
+            let mut r = Running::new(build(cfg).expect("build"));
+            r.baselined[0] = true;
+            r.status.axes[0].jobs_ok = 3;
+            r.status.push_job(JobStatus {
+                axis: "X".into(),
+                at: std::time::SystemTime::UNIX_EPOCH,
+                params: CompParams::default(),
+                shadow: false,
+                job_id: Some(1),
+                elapsed: None,
+                error: None,
+            });
+            r
+        };
+        let same = reload::transplant(&cfg, &cfg, running(&cfg), build(&cfg).expect("build"));
+        assert!(same.baselined[0]);
+        assert_eq!(same.status.axes[0].jobs_ok, 3);
+        assert!(!same.pipeline.axes[0].shadow);
+
+        let mut shadow = cfg.clone();
+        shadow.gateway.shadow = true;
+        let next = reload::transplant(&cfg, &shadow, running(&cfg), build(&shadow).expect("build"));
+        assert!(next.pipeline.axes[0].shadow);
+        assert!(next.status.axes[0].shadow);
+        assert!(!next.baselined[0], "carried a baseline into shadow mode");
+        assert_eq!(next.status.axes[0].jobs_ok, 0);
+        assert_eq!(next.status.jobs.len(), 1, "job history kept");
+    }
+
     // The core loop builds one value per sample: the link outcome and the new reading
     // of exactly the sample's channels; the status shows the same.
     #[test]
@@ -712,5 +864,38 @@ mod tests {
         assert_eq!((d.cycles, d.failed_cycles, d.connects), (1, 1, 2));
         assert_eq!(d.last_error, s.error.as_ref().map(ToString::to_string));
         assert_eq!(state.status.samples, 1);
+    }
+
+    // Each NC snapshot's actual position feeds the axis' motion heat term.
+    #[test]
+    fn nc_snapshots_feed_the_motion_heat_term() {
+        let mut cfg = demo();
+        let axis = cfg.axes.values_mut().next().expect("an axis");
+        axis.motion_heat = Some(crate::axis::MotionHeatModel {
+            tau_s: 100.0,
+            ref_mm_per_s: 0.0,
+            k0_mm_per_mm_per_s: 0.001,
+            tan_beta_per_mm_per_s: 0.0,
+        });
+        let mut state = Running::new(build(&cfg).expect("build"));
+        let module = state.pipeline.axes[0].nc_module;
+        let mut in_flight = vec![false];
+        for pos_mm in [0.0, 500.0, 200.0] {
+            let snap = NcSnapshot {
+                position_mm: pos_mm,
+                ..NcSnapshot::default()
+            };
+            state.on_event(
+                NcEvent::Snapshot {
+                    module,
+                    result: Ok(snap),
+                },
+                &mut in_flight,
+                &mut (),
+            );
+        }
+        // 800 mm of travel into a 100 s store, well within one time constant.
+        let heat = state.pipeline.axes[0].comp.dynamics().heat_mm_per_s();
+        assert!(heat > 7.0 && heat <= 8.0, "{heat}");
     }
 }

@@ -5,8 +5,9 @@ use std::time::Duration;
 
 use tokio::time::Instant;
 
+use crate::source::plan::{self, ByteOrder, DataType};
 use crate::source::DeviceSample;
-use compgate_core::channel::{ChannelProcessor, LowPassGain, Reading};
+use compgate_core::channel::{ChannelProcessor, LowPassGain, Quality, Reading, Reason};
 use compgate_core::comp::{AxisCompensator, Decision};
 
 use super::{ChannelReading, ChannelStatus};
@@ -26,6 +27,8 @@ pub struct AxisRt {
     pub md32750: u16,
     /// Time between updates.
     pub update_interval: Duration,
+    /// Shadow mode: compute and record, never write the NC.
+    pub shadow: bool,
 }
 
 /// The synchronous part of the gateway: channel processors and axis compensators.
@@ -41,6 +44,9 @@ pub struct Pipeline {
     /// Model inputs of the last decision (kept for its allocation).
     pub(super) temps_degc: Vec<Option<f64>>,
     pub(super) epoch: Instant,
+    /// Per channel, config order: how a Modbus channel's registers encode its value
+    /// (`None` on CAN), to name the likely byte order of an implausible value.
+    pub(super) encodings: Vec<Option<(DataType, ByteOrder)>>,
 }
 
 impl Pipeline {
@@ -54,6 +60,7 @@ impl Pipeline {
         channel_names: Vec<String>,
         processors: Vec<ChannelProcessor>,
         axes: Vec<AxisRt>,
+        encodings: Vec<Option<(DataType, ByteOrder)>>,
     ) -> Self {
         Self {
             channel_names: channel_names.into(),
@@ -61,7 +68,46 @@ impl Pipeline {
             axes,
             temps_degc: Vec::new(),
             epoch: Instant::now(),
+            encodings,
         }
+    }
+
+    /// When channel `ch`'s `reading` is bad in a way a wrong byte order produces (an
+    /// implausible raw value, out of range, NE43, not finite) and another order of its
+    /// registers gives a plausible temperature: a sentence naming that order, e.g.
+    /// "reads raw -1.595e-23 as ABCD; as CDAB it would read 23.45 degC: check
+    /// `byte_order`".
+    pub fn byte_order_hint(&self, ch: usize, reading: &Reading) -> Option<String> {
+        let Quality::Bad(
+            Reason::Implausible
+            | Reason::OutOfRange
+            | Reason::Ne43Low
+            | Reason::Ne43High
+            | Reason::NotFinite,
+        ) = reading.quality
+        else {
+            return None;
+        };
+        let (ty, configured) = (*self.encodings.get(ch)?)?;
+        let raw = reading.raw?;
+        let p = self.processors.get(ch)?;
+        let regs = plan::encode(raw, ty, configured)?;
+        let f = p.filter_params();
+        let middle_degc = (f.valid_min_degc + f.valid_max_degc) / 2.0;
+        let (order, degc) =
+            plan::likely_order(&regs, ty, configured, |r| p.plausible_degc(r), middle_degc)?;
+        if order == configured {
+            return None;
+        }
+        let now = match reading.unfiltered_degc {
+            Some(d) => format!("{d:.2} degC"),
+            None => format!("raw {raw:.4e}"),
+        };
+        Some(format!(
+            "reads {now} as {}; as {} it would read {degc:.2} degC: check `byte_order`",
+            configured.name(),
+            order.name()
+        ))
     }
 
     /// The latest reading of channel `ch` (config order); `None` past the last channel.

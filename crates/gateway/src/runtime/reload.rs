@@ -121,6 +121,14 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         if !(cfg_same && nc_same) {
             continue;
         }
+        // Into or out of shadow mode (`gateway.shadow`): the compensator's baseline
+        // must come from the NC again, not from the would-be values.
+        if old_axes
+            .get(&axis.name)
+            .is_some_and(|(_, a)| a.shadow != axis.shadow)
+        {
+            continue;
+        }
         if let Some((i, old_axis)) = old_axes.remove(&axis.name) {
             axis.comp = old_axis.comp;
             next.baselined[j] = old_baselined.get(i).copied().unwrap_or(false);
@@ -130,6 +138,7 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         }
     }
     next.status.samples = old_status.samples;
+    next.status.jobs = old_status.jobs;
     tracing::info!(
         channels_kept = kept_channels,
         channels = next.pipeline.channel_names.len(),

@@ -1,7 +1,7 @@
 //! What the running gateway shows: the status snapshot of devices, channels and axes.
 
-use std::collections::BTreeMap;
-use std::time::Duration;
+use std::collections::{BTreeMap, VecDeque};
+use std::time::{Duration, SystemTime};
 
 use crate::nc::NcSnapshot;
 use compgate_core::channel::Reading;
@@ -56,6 +56,33 @@ pub struct AxisStatus {
     pub nc: Option<NcSnapshot>,
     /// A warning a commissioning engineer must see (MD32750 mismatch, NC unreachable).
     pub warning: Option<String>,
+    /// Shadow mode: the axis computes and records what it would write, and never
+    /// writes the NC.
+    pub shadow: bool,
+    /// Shadow mode: the parameters the gateway would have written last.
+    pub would_write: Option<CompParams>,
+}
+
+/// NC jobs kept in [`Status::jobs`].
+pub const JOB_HISTORY: usize = 20;
+
+/// One NC job, or in shadow mode one write the gateway would have made.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JobStatus {
+    /// Axis name.
+    pub axis: String,
+    /// When the job ended (shadow: when it was decided).
+    pub at: SystemTime,
+    /// The parameters written (shadow: that would have been written).
+    pub params: CompParams,
+    /// Not sent: the axis runs in shadow mode.
+    pub shadow: bool,
+    /// The NC's job id (a verified job only).
+    pub job_id: Option<u16>,
+    /// Time from the first request to the verified read-back (a verified job only).
+    pub elapsed: Option<Duration>,
+    /// Why the job failed.
+    pub error: Option<String>,
 }
 
 /// Everything the status line, logs and tests look at.
@@ -69,4 +96,44 @@ pub struct Status {
     pub axes: Vec<AxisStatus>,
     /// Device samples processed.
     pub samples: u64,
+    /// The last [`JOB_HISTORY`] NC jobs of every axis, oldest first.
+    pub jobs: VecDeque<JobStatus>,
+}
+
+impl Status {
+    /// Adds `job` to [`Self::jobs`], dropping the oldest beyond [`JOB_HISTORY`].
+    pub fn push_job(&mut self, job: JobStatus) {
+        while self.jobs.len() >= JOB_HISTORY {
+            self.jobs.pop_front();
+        }
+        self.jobs.push_back(job);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    // The job history keeps the newest JOB_HISTORY jobs, oldest first.
+    #[test]
+    fn the_job_history_keeps_the_newest_jobs() {
+        let mut s = Status::default();
+        for id in 0..(JOB_HISTORY as u16 + 5) {
+            s.push_job(JobStatus {
+                axis: "X".into(),
+                at: SystemTime::UNIX_EPOCH,
+                params: CompParams::default(),
+                shadow: false,
+                job_id: Some(id),
+                elapsed: None,
+                error: None,
+            });
+        }
+        assert_eq!(s.jobs.len(), JOB_HISTORY);
+        assert_eq!(s.jobs.front().and_then(|j| j.job_id), Some(5));
+        assert_eq!(
+            s.jobs.back().and_then(|j| j.job_id),
+            Some(JOB_HISTORY as u16 + 4)
+        );
+    }
 }

@@ -131,7 +131,8 @@ impl DeviceConfig {
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 pub struct DeviceCommon {
     /// Seconds one request may take before it counts as failed. Default 1.0;
-    /// 0.001..=3600.
+    /// 0.001..=3600. On Modbus devices a whole poll cycle (every read, retry and
+    /// reconnect) ends after the larger of `poll_interval_s` and `timeout_s`.
     #[serde(default = "default_device_timeout_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub timeout_s: f64,
@@ -186,6 +187,14 @@ impl DeviceCommon {
     /// `backoff_max_s` as a [`Duration`].
     pub fn backoff_max(&self) -> Duration {
         secs(self.backoff_max_s)
+    }
+
+    /// The deadline of one Modbus poll cycle: the larger of `poll_interval_s` and
+    /// `timeout_s`. Every read, retry and reconnect of the cycle shares it, so a silent
+    /// device is noticed after one deadline however many reads a cycle makes; a single
+    /// request still gets its whole timeout.
+    pub fn cycle_deadline(&self) -> Duration {
+        secs(self.poll_interval_s.max(self.timeout_s))
     }
 
     /// Times > 0, `backoff_initial_s <= backoff_max_s`, `degrade_after_cycles >= 1`.

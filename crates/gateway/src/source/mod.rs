@@ -36,6 +36,10 @@ pub enum SourceError {
     /// No reply within the request timeout.
     #[error("no reply within {0:?}")]
     Timeout(Duration),
+    /// The poll cycle's deadline passed before every read was answered; the reads
+    /// left were given up for this cycle.
+    #[error("poll cycle deadline of {0:?} passed before every read was answered")]
+    Deadline(Duration),
     /// The transport failed (reset, EOF, garbled frame).
     #[error("transport fault: {0}")]
     Transport(String),
@@ -63,7 +67,7 @@ impl SourceError {
     pub fn kind(&self) -> &'static str {
         match self {
             Self::ConnectTimeout | Self::Connect(_) => "connect",
-            Self::Timeout(_) => "timeout",
+            Self::Timeout(_) | Self::Deadline(_) => "timeout",
             Self::Transport(_) => "transport",
             Self::Exception(_) => "exception",
             Self::BackingOff(_) => "backoff",
@@ -127,6 +131,9 @@ pub struct PollParams {
     pub degrade_after_cycles: u32,
     /// Largest gap merged into one read.
     pub max_gap_registers: u16,
+    /// Longest time one poll cycle may take, every read, retry and reconnect
+    /// included; the reads not done by then fail for this cycle.
+    pub cycle_deadline: Duration,
 }
 
 /// Polls one device.
@@ -240,6 +247,10 @@ impl DevicePoller {
         // out back to back.
         let link = self.link.clone();
         let mut link = link.lock().await;
+        // One deadline for all blocks, counted from when the line is ours: a silent
+        // device costs one deadline per cycle, not a timeout (and a reconnect) per block.
+        let length = self.params.cycle_deadline;
+        link.set_cycle_deadline(Some((Instant::now() + length, length)));
         for block in &self.blocks {
             match self.read_block(&mut link, block).await {
                 Ok(regs) => {
@@ -276,6 +287,7 @@ impl DevicePoller {
                 .into_iter()
                 .map(|(ch, reason)| (ch, Err(Fault { reason, degraded }))),
         );
+        link.set_cycle_deadline(None);
         let connects = link.connects();
         drop(link);
         DeviceSample {

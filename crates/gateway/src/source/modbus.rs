@@ -5,6 +5,8 @@
 //! any transport error or timeout the context is dropped and rebuilt, because a late
 //! reply left in the old stream would otherwise be read as the answer to the next
 //! request (tokio-modbus issue 324). Reconnects back off exponentially up to a cap.
+//! While a poll cycle runs, its deadline also bounds every request and connect, so a
+//! cycle of many reads to a silent device ends after one deadline.
 
 pub mod config;
 
@@ -112,6 +114,9 @@ pub struct ModbusLink {
     /// each time (a few tenths of a microsecond on a 9 us loopback read). Made on first
     /// use, inside the runtime.
     deadline: Option<Pin<Box<Sleep>>>,
+    /// The end of the poll cycle under way and its length: no request or connect
+    /// outlasts it (see [`Self::set_cycle_deadline`]).
+    cycle: Option<(Instant, Duration)>,
     backoff: Backoff,
     /// Connections made so far, for status and tests.
     connects: u64,
@@ -135,6 +140,7 @@ impl ModbusLink {
             timeout,
             ctx: None,
             deadline: None,
+            cycle: None,
             backoff,
             connects: 0,
         }
@@ -171,10 +177,18 @@ impl ModbusLink {
                 address,
                 connect_timeout,
             } => {
-                let stream = tokio::time::timeout(*connect_timeout, TcpStream::connect(address))
-                    .await
-                    .map_err(|_| SourceError::ConnectTimeout)?
-                    .map_err(|e| SourceError::Connect(e.to_string()))?;
+                let at = Instant::now() + *connect_timeout;
+                let cut = self.cycle_cut(at);
+                let stream = tokio::time::timeout_at(
+                    cut.map_or(at, |(end, _)| end),
+                    TcpStream::connect(address),
+                )
+                .await
+                .map_err(|_| match cut {
+                    Some((_, length)) => SourceError::Deadline(length),
+                    None => SourceError::ConnectTimeout,
+                })?
+                .map_err(|e| SourceError::Connect(e.to_string()))?;
                 // Small request/response frames: Nagle would add up to 40 ms each.
                 stream
                     .set_nodelay(true)
@@ -199,6 +213,19 @@ impl ModbusLink {
                 Ok(rtu::attach(port))
             }
         }
+    }
+
+    /// Bounds every request and connect until `None` by `at`, the end of a poll cycle
+    /// of length `length`: one deadline for all reads of a cycle, their retries and
+    /// reconnects. A request cut by it fails with [`SourceError::Deadline`] and drops
+    /// the connection like a timeout.
+    pub fn set_cycle_deadline(&mut self, cycle: Option<(Instant, Duration)>) {
+        self.cycle = cycle;
+    }
+
+    /// The cycle deadline if it comes before `at`.
+    fn cycle_cut(&self, at: Instant) -> Option<(Instant, Duration)> {
+        self.cycle.filter(|(end, _)| *end < at)
     }
 
     /// Drops the context so the next request starts on a fresh connection.
@@ -236,9 +263,13 @@ impl ModbusLink {
     /// malformed reply (a wrong byte count on RTU) breaks with a panic. The callers
     /// check the shape and treat a mismatch as a transport fault.
     async fn call(&mut self, unit: u8, request: Request<'_>) -> Result<Response, SourceError> {
+        if let Some((_, length)) = self.cycle.filter(|(end, _)| Instant::now() >= *end) {
+            return Err(SourceError::Deadline(length));
+        }
         self.ensure_connected().await?;
         let timeout = self.timeout;
-        let at = Instant::now() + timeout;
+        let cut = self.cycle_cut(Instant::now() + timeout);
+        let at = cut.map_or(Instant::now() + timeout, |(end, _)| end);
         let deadline = self
             .deadline
             .get_or_insert_with(|| Box::pin(tokio::time::sleep_until(at)));
@@ -269,7 +300,10 @@ impl ModbusLink {
             }
             None => {
                 self.disconnect();
-                Err(SourceError::Timeout(timeout))
+                Err(match cut {
+                    Some((_, length)) => SourceError::Deadline(length),
+                    None => SourceError::Timeout(timeout),
+                })
             }
         }
     }
@@ -413,6 +447,44 @@ mod tests {
         // The stream is not trusted after a mismatch: the next request reconnects.
         assert!(!link.is_connected());
         assert!(link.write(1, 7, &[1]).await.is_err());
+        assert_eq!(link.connects(), 2);
+        peer.abort();
+    }
+
+    // A silent server: the cycle's end cuts the request short of its own timeout, drops
+    // the connection, and a later request of the same cycle fails at once.
+    #[tokio::test]
+    async fn the_cycle_deadline_cuts_a_request_and_the_rest_of_the_cycle() {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap().to_string();
+        let peer = tokio::spawn(async move {
+            let mut held = Vec::new();
+            while let Ok((s, _)) = listener.accept().await {
+                held.push(s);
+            }
+        });
+        let mut link = ModbusLink::new(
+            LinkSpec::Tcp {
+                address,
+                connect_timeout: Duration::from_secs(5),
+            },
+            Duration::from_secs(5),
+            Backoff::new(Duration::from_millis(10), Duration::from_millis(10)),
+        );
+        let length = Duration::from_millis(50);
+        link.set_cycle_deadline(Some((Instant::now() + length, length)));
+        let err = link.read(1, RegisterKind::Input, 0, 1).await.unwrap_err();
+        assert_eq!(err, SourceError::Deadline(length));
+        assert!(
+            !link.is_connected(),
+            "the stream is dropped with the request"
+        );
+        let err = link.read(1, RegisterKind::Input, 1, 1).await.unwrap_err();
+        assert_eq!(err, SourceError::Deadline(length));
+        assert_eq!(link.connects(), 1, "no reconnect after the cycle's end");
+        // The next cycle connects again and gets its own deadline.
+        link.set_cycle_deadline(Some((Instant::now() + length, length)));
+        assert!(link.read(1, RegisterKind::Input, 0, 1).await.is_err());
         assert_eq!(link.connects(), 2);
         peer.abort();
     }

@@ -84,6 +84,16 @@ pub enum ByteOrder {
 impl ByteOrder {
     /// Every order, e.g. for a probe that names the plausible one.
     pub const ALL: [Self; 4] = [Self::Abcd, Self::Cdab, Self::Badc, Self::Dcba];
+
+    /// The name used in the configuration (`ABCD`, `CDAB`, ...).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Abcd => "ABCD",
+            Self::Cdab => "CDAB",
+            Self::Badc => "BADC",
+            Self::Dcba => "DCBA",
+        }
+    }
 }
 
 /// Decodes a value from its registers (`regs.len()` must equal `ty.registers()`).
@@ -108,6 +118,71 @@ pub fn decode(regs: &[u16], ty: DataType, order: ByteOrder) -> Option<f64> {
         }
         _ => None,
     }
+}
+
+/// The registers `value` occupies as `ty` in `order`: the inverse of [`decode`].
+/// `None` when `value` is not exactly a `ty` (a fraction for an integer type, a number
+/// out of its range, a double that is no `f32`).
+pub fn encode(value: f64, ty: DataType, order: ByteOrder) -> Option<Vec<u16>> {
+    let swap_bytes = matches!(order, ByteOrder::Badc | ByteOrder::Dcba);
+    let fix = |w: u16| if swap_bytes { w.swap_bytes() } else { w };
+    let exact =
+        |v: f64, lo: f64, hi: f64| (v.fract() == 0.0 && (lo..=hi).contains(&v)).then_some(v);
+    let bits: u32 = match ty {
+        DataType::U16 => return Some(vec![fix(exact(value, 0.0, 65535.0)? as u16)]),
+        DataType::I16 => {
+            let v = exact(value, -32768.0, 32767.0)? as i16;
+            return Some(vec![fix(v as u16)]);
+        }
+        DataType::U32 => exact(value, 0.0, f64::from(u32::MAX))? as u32,
+        DataType::I32 => exact(value, f64::from(i32::MIN), f64::from(i32::MAX))? as i32 as u32,
+        DataType::F32 => {
+            let f = value as f32;
+            if f64::from(f).to_bits() != value.to_bits() && !value.is_nan() {
+                return None;
+            }
+            f.to_bits()
+        }
+    };
+    let (hi, lo) = (fix((bits >> 16) as u16), fix(bits as u16));
+    Some(match order {
+        ByteOrder::Abcd | ByteOrder::Badc => vec![hi, lo],
+        ByteOrder::Cdab | ByteOrder::Dcba => vec![lo, hi],
+    })
+}
+
+/// The byte order in which `regs` most likely hold a `ty` value: of the orders whose
+/// value `plausible` turns into a temperature, `configured` if it is one, else the one
+/// closest to `reference_degc` (e.g. the middle of the plausible range). `None` when
+/// no order gives a plausible value. Only 32-bit types have a word order to get wrong.
+pub fn likely_order(
+    regs: &[u16],
+    ty: DataType,
+    configured: ByteOrder,
+    plausible: impl Fn(f64) -> Option<f64>,
+    reference_degc: f64,
+) -> Option<(ByteOrder, f64)> {
+    let orders: &[ByteOrder] = if ty.registers() == 2 {
+        &ByteOrder::ALL
+    } else {
+        &[configured]
+    };
+    let candidates = orders.iter().filter_map(|&o| {
+        let degc = decode(regs, ty, o).and_then(&plausible)?;
+        Some((o, degc))
+    });
+    let mut best: Option<(ByteOrder, f64)> = None;
+    for (o, degc) in candidates {
+        if o == configured {
+            return Some((o, degc));
+        }
+        let closer =
+            best.is_none_or(|(_, b)| (degc - reference_degc).abs() < (b - reference_degc).abs());
+        if closer {
+            best = Some((o, degc));
+        }
+    }
+    best
 }
 
 /// One channel's place in the register space.
@@ -195,6 +270,53 @@ mod tests {
                 "{order:?}"
             );
         }
+    }
+
+    #[test]
+    fn encode_is_the_inverse_of_decode() {
+        for ty in DataType::ALL {
+            for order in ByteOrder::ALL {
+                for v in [0.0, 1.0, 1501.0, -2.0, 23.45f32 as f64, 65535.0] {
+                    let Some(regs) = encode(v, ty, order) else {
+                        continue;
+                    };
+                    assert_eq!(decode(&regs, ty, order), Some(v), "{ty:?} {order:?} {v}");
+                }
+            }
+        }
+        assert_eq!(encode(-1.0, DataType::U16, ByteOrder::Abcd), None);
+        assert_eq!(encode(0.5, DataType::I32, ByteOrder::Abcd), None);
+        assert_eq!(encode(0.1, DataType::F32, ByteOrder::Abcd), None);
+        assert_eq!(
+            encode(f64::from(123.456f32), DataType::F32, ByteOrder::Cdab),
+            Some(vec![0xE979, 0x42F6])
+        );
+    }
+
+    #[test]
+    fn the_likely_order_of_a_swapped_float() {
+        // 23.45 degC as CDAB; read as ABCD it is -1.6e-23, as BADC -0.003, as DCBA
+        // -1.6e-23 again.
+        let regs = [0x999A, 0x41BB];
+        let plausible = |raw: f64| {
+            (raw == 0.0 || raw.abs() >= 1e-6)
+                .then_some(raw)
+                .filter(|d| (-20.0..=80.0).contains(d))
+        };
+        let (order, degc) =
+            likely_order(&regs, DataType::F32, ByteOrder::Abcd, plausible, 30.0).expect("an order");
+        assert_eq!(order, ByteOrder::Cdab);
+        assert!((degc - 23.45).abs() < 1e-5, "{degc}");
+        // Configured right: stays.
+        assert_eq!(
+            likely_order(&regs, DataType::F32, ByteOrder::Cdab, plausible, 30.0).map(|o| o.0),
+            Some(ByteOrder::Cdab)
+        );
+        // Nothing plausible.
+        assert_eq!(
+            likely_order(&[0x7FC0, 0], DataType::F32, ByteOrder::Abcd, |_| None, 30.0),
+            None
+        );
     }
 
     #[test]

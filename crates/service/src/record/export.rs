@@ -10,6 +10,8 @@
 //!   column `T_bed`, a channel `bed` gives `T_bed` too).
 //! - `pos_mm`: the NC's actual position of `--axis`, as recorded each status tick;
 //!   0 without `--axis` (stated on stderr).
+//! - `travel_mm`, `dir`: the sum of every recorded position change since the previous
+//!   row, and the sign of the last one (so the travel does not depend on `--step-s`).
 //! - `err_um`: the filtered value of `--err-channel` (a channel that measures the
 //!   error, e.g. a probe or a laser interface, scaled to um); 0 without it (stated
 //!   on stderr): the gateway cannot know the error without a sensor for it.
@@ -202,6 +204,7 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
     let mut last: Vec<Option<f64>> = vec![None; temp_ids.len()];
     let mut last_err: Option<f64> = None;
     let mut last_pos: Option<f64> = None;
+    let mut moved_mm = 0.0;
 
     let mut m = Measurements {
         temps: temp_ids
@@ -242,6 +245,14 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             if t > grid {
                 break;
             }
+            if let Some(prev) = last_pos {
+                moved_mm += (p - prev).abs();
+                if p > prev {
+                    dir = 1;
+                } else if p < prev {
+                    dir = -1;
+                }
+            }
             last_pos = Some(p);
             pi += 1;
         }
@@ -251,14 +262,10 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             && (args.axis.is_none() || last_pos.is_some());
         if ready {
             let pos = last_pos.unwrap_or(0.0);
-            let travel = m.pos_mm.last().map_or(0.0, |p: &f64| (pos - p).abs());
-            if let Some(prev) = m.pos_mm.last() {
-                if pos > *prev {
-                    dir = 1;
-                } else if pos < *prev {
-                    dir = -1;
-                }
-            }
+            // The first row starts the count: what moved before it is no travel of
+            // the exported window.
+            let travel = if m.is_empty() { 0.0 } else { moved_mm };
+            moved_mm = 0.0;
             m.t_s.push((grid - since) as f64 / 1000.0);
             m.pos_mm.push(pos);
             m.err_um.push(last_err.unwrap_or(0.0));

@@ -106,6 +106,9 @@ pub enum Record {
         elapsed_ms: Option<f64>,
         /// `None` when the NC accepted and the read-back matched.
         error: Option<String>,
+        /// Shadow mode: computed, not sent to the NC (`job_id`, `elapsed_ms` and
+        /// `error` are `None`).
+        shadow: bool,
     },
     /// The NC's state of one axis.
     Nc {
@@ -286,7 +289,23 @@ impl Recorder {
 
     /// The observer that records what the control loop sees.
     pub fn observer(&self) -> RecordObserver {
-        RecordObserver { tx: self.sender() }
+        RecordObserver {
+            tx: self.sender(),
+            clock: None,
+            interval: Duration::ZERO,
+            next_due: Vec::new(),
+        }
+    }
+
+    /// The observer with its own clock (ms since the Unix epoch): a simulation that
+    /// runs hours in seconds stamps its records with the simulated instant.
+    pub fn observer_with_clock(&self, clock: Clock) -> RecordObserver {
+        RecordObserver {
+            tx: self.sender(),
+            clock: Some(clock),
+            interval: Duration::ZERO,
+            next_due: Vec::new(),
+        }
     }
 
     /// Closes the queue and waits for the writer's last commit.
@@ -313,15 +332,74 @@ impl Drop for Recorder {
     }
 }
 
+/// A clock of the recorder: ms since the Unix epoch.
+pub type Clock = Arc<dyn Fn() -> i64 + Send + Sync>;
+
 /// Records cycles, jobs and the NC's position from the control loop.
-#[derive(Debug)]
 pub struct RecordObserver {
     tx: RecordSender,
+    /// `None`: the wall clock.
+    clock: Option<Clock>,
+    /// Least time between two recorded cycles of a device.
+    interval: Duration,
+    /// Per device index: when its next cycle is due to be recorded.
+    next_due: Vec<Option<Instant>>,
+}
+
+impl std::fmt::Debug for RecordObserver {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RecordObserver")
+            .field("tx", &self.tx)
+            .field("clock", &self.clock.as_ref().map(|_| "simulated"))
+            .field("interval", &self.interval)
+            .finish()
+    }
+}
+
+impl RecordObserver {
+    fn now_unix_ms(&self) -> i64 {
+        self.clock.as_ref().map_or_else(now_unix_ms, |c| c())
+    }
+
+    /// Records a device's cycle at most every `interval` (zero, the default: every
+    /// cycle).
+    pub fn with_interval(mut self, interval: Duration) -> Self {
+        self.interval = interval;
+        self
+    }
+
+    /// Whether the cycle of `device` at `now` is one to record.
+    fn due(&mut self, device: usize, now: Instant) -> bool {
+        if self.interval.is_zero() {
+            return true;
+        }
+        if self.next_due.len() <= device {
+            self.next_due.resize(device + 1, None);
+        }
+        let slot = &mut self.next_due[device];
+        match *slot {
+            Some(due) if now < due => false,
+            _ => {
+                // On the grid of the first recorded cycle, so poll jitter does not
+                // stretch the spacing; a device that was away starts a new grid.
+                let next = slot.unwrap_or(now) + self.interval;
+                *slot = Some(if next <= now {
+                    now + self.interval
+                } else {
+                    next
+                });
+                true
+            }
+        }
+    }
 }
 
 impl Observer for RecordObserver {
     fn on_sample(&mut self, readings: &SampleReadings) {
-        let t_unix_ms = now_unix_ms();
+        if !self.due(readings.device, Instant::now()) {
+            return;
+        }
+        let t_unix_ms = self.now_unix_ms();
         let mut rows = Vec::with_capacity(readings.channels.len());
         rows.extend(readings.channels.iter().filter_map(|c| {
             let r = &c.reading;
@@ -348,17 +426,30 @@ impl Observer for RecordObserver {
             Err(e) => (None, None, Some(e.to_string())),
         };
         self.tx.send(Record::Job {
-            t_unix_ms: now_unix_ms(),
+            t_unix_ms: self.now_unix_ms(),
             axis: axis.to_string(),
             params: *params,
             job_id,
             elapsed_ms,
             error,
+            shadow: false,
+        });
+    }
+
+    fn on_shadow(&mut self, axis: &str, params: &CompParams) {
+        self.tx.send(Record::Job {
+            t_unix_ms: now_unix_ms(),
+            axis: axis.to_string(),
+            params: *params,
+            job_id: None,
+            elapsed_ms: None,
+            error: None,
+            shadow: true,
         });
     }
 
     fn on_status(&mut self, status: &Status) {
-        let t_unix_ms = now_unix_ms();
+        let t_unix_ms = self.now_unix_ms();
         for a in &status.axes {
             if let Some(nc) = &a.nc {
                 self.tx.send(Record::Nc {

@@ -33,7 +33,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     ok         INTEGER NOT NULL,
     job_id     INTEGER,
     elapsed_ms REAL,
-    error      TEXT
+    error      TEXT,
+    shadow     INTEGER NOT NULL DEFAULT 0 -- 1: shadow mode, computed and not sent (ok 0)
 );
 CREATE INDEX IF NOT EXISTS jobs_t ON jobs(t_unix_ms);
 CREATE TABLE IF NOT EXISTS nc (
@@ -92,6 +93,18 @@ pub fn open(path: &Path) -> Result<Connection, RecordError> {
     // outbox queries: more than the default 16 would evict each other.
     conn.set_prepared_statement_cache_capacity(STATEMENT_CACHE);
     conn.execute_batch(SCHEMA).map_err(err)?;
+    // Databases recorded before shadow mode lack the column: their jobs were all sent.
+    let has_shadow: bool = conn
+        .query_row(
+            "SELECT COUNT(*) > 0 FROM pragma_table_info('jobs') WHERE name = 'shadow'",
+            [],
+            |r| r.get(0),
+        )
+        .map_err(err)?;
+    if !has_shadow {
+        conn.execute_batch("ALTER TABLE jobs ADD COLUMN shadow INTEGER NOT NULL DEFAULT 0;")
+            .map_err(err)?;
+    }
     Ok(conn)
 }
 
@@ -219,9 +232,11 @@ pub fn insert(
                 job_id,
                 elapsed_ms,
                 error,
+                shadow,
             } => {
-                tx.prepare_cached("INSERT INTO jobs(t_unix_ms, axis, sd43900_mm, sd43910, sd43920_mm, ok, job_id, elapsed_ms, error) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)")?
-                    .execute(params![t_unix_ms, axis, p.k0_mm, p.tan_beta, p.p0_mm, error.is_none(), job_id, elapsed_ms, error])?;
+                let ok = error.is_none() && !shadow;
+                tx.prepare_cached("INSERT INTO jobs(t_unix_ms, axis, sd43900_mm, sd43910, sd43920_mm, ok, job_id, elapsed_ms, error, shadow) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)")?
+                    .execute(params![t_unix_ms, axis, p.k0_mm, p.tan_beta, p.p0_mm, ok, job_id, elapsed_ms, error, shadow])?;
             }
             Record::Nc {
                 t_unix_ms,

@@ -100,3 +100,76 @@ fn multi_row_inserts_keep_every_reading_under_its_channel_name() {
         .expect("channels");
     assert_eq!(channels, 131);
 }
+
+// A device polled every 10 ms, recorded once a second: on a grid, so poll jitter does
+// not stretch the spacing; each device on its own grid; zero records every cycle.
+#[test]
+fn the_observer_records_a_device_at_most_every_interval() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cfg = RecorderConfig {
+        path: dir.path().join("r.db").display().to_string(),
+        ..RecorderConfig::default()
+    };
+    let rec = Recorder::start(&cfg).expect("starts");
+    let mut obs = rec.observer().with_interval(Duration::from_secs(1));
+    let t0 = Instant::now();
+    let ms = |m: u64| t0 + Duration::from_millis(m);
+    let recorded: Vec<u64> = (0..300u64)
+        // Every other poll 1 ms early: 999 ms is not yet due, 1010 is.
+        .map(|k| k * 10 - u64::from(k % 2 == 0 && k > 0))
+        .filter(|&m| obs.due(0, ms(m)))
+        .collect();
+    assert_eq!(recorded, [0, 1010, 2010]);
+    assert!(obs.due(3, ms(5)), "another device has its own grid");
+    assert!(!obs.due(3, ms(900)));
+    // Back after an outage: a new grid from its first cycle.
+    assert!(obs.due(0, ms(7777)));
+    assert!(!obs.due(0, ms(8700)));
+    assert!(obs.due(0, ms(8777)));
+    let mut every = rec.observer();
+    assert!((0..5).all(|k| every.due(0, ms(k))));
+}
+
+// A database recorded before shadow mode gets the `shadow` column on open, its old
+// jobs counted as sent; shadow jobs are recorded with shadow 1 and ok 0.
+#[test]
+fn an_old_database_gets_the_shadow_column_and_shadow_jobs_are_marked() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("old.db");
+    {
+        let old = rusqlite::Connection::open(&path).expect("create");
+        old.execute_batch(
+            "CREATE TABLE jobs (t_unix_ms INTEGER NOT NULL, axis TEXT NOT NULL,
+                sd43900_mm REAL NOT NULL, sd43910 REAL NOT NULL, sd43920_mm REAL NOT NULL,
+                ok INTEGER NOT NULL, job_id INTEGER, elapsed_ms REAL, error TEXT);
+             INSERT INTO jobs VALUES (1, 'X', 0.01, 0.0, 0.0, 1, 7, 1.0, NULL);",
+        )
+        .expect("old schema");
+    }
+    let mut conn = open(&path).expect("opens and migrates");
+    let job = |shadow: bool| Record::Job {
+        t_unix_ms: 2,
+        axis: "X".into(),
+        params: CompParams {
+            k0_mm: 0.04,
+            tan_beta: 0.0,
+            p0_mm: 0.0,
+        },
+        job_id: None,
+        elapsed_ms: None,
+        error: None,
+        shadow,
+    };
+    schema::insert(&mut conn, &mut schema::Statements::default(), &[job(true)]).expect("insert");
+    let rows: Vec<(i64, i64, f64)> = conn
+        .prepare("SELECT shadow, ok, sd43900_mm FROM jobs ORDER BY t_unix_ms")
+        .expect("query")
+        .query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))
+        .expect("rows")
+        .collect::<Result<_, _>>()
+        .expect("rows");
+    assert_eq!(rows, vec![(0, 1, 0.01), (1, 0, 0.04)]);
+    // Opening again does not add it twice.
+    drop(conn);
+    open(&path).expect("opens again");
+}

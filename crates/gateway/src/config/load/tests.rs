@@ -215,9 +215,29 @@ fn missing_required_key_is_reported_with_its_path() {
     let p = problems(&text);
     assert_eq!(
         keys(&p),
-        ["devices", "channels", "nc_modules", "axes"],
+        ["devices", "channels"],
         "missing sections: {p:#?}"
     );
+}
+
+// Issue 23, trap 4: reading and recording temperatures before an NC is connected is
+// the first commissioning step. Without `[nc_modules]` and `[axes]` the file used to be
+// refused with "required key is missing" twice.
+#[test]
+fn a_monitoring_only_config_without_nc_modules_and_axes_is_valid() {
+    let text: String = EXAMPLE
+        .split("# ----------------------------------------------------------------- NC modules")
+        .next()
+        .unwrap_or_default()
+        .to_string();
+    let cfg = load_str(&text, "monitor.toml").expect("monitoring-only config loads");
+    assert!(cfg.nc_modules.is_empty() && cfg.axes.is_empty());
+    assert_eq!(cfg.channels.len(), 3);
+    // An axis still needs its NC module: no section is assumed to exist.
+    let axis = "[axes.X]\nnc_module = \"nc_x\"\nmd32750 = 2\n\
+                [axes.X.tan_beta]\nterms = [{ channel = \"T_screw\", coeff_per_degc = 0.00001 }]\n";
+    let p = problems(&format!("{text}\n{axis}"));
+    assert_eq!(keys(&p), ["axes.X.nc_module"], "{p:#?}");
 }
 
 #[test]
@@ -643,4 +663,18 @@ fn transport_true_says_which_transports_there_are() {
         p.message,
         "invalid type: boolean `true`, expected one of `tcp`, `rtu`, `can`"
     );
+}
+
+#[test]
+fn a_trend_span_out_of_range_names_the_key() {
+    let p = problems(&format!("{EXAMPLE}\n[metrics]\ntrend_s = 5.0\n"));
+    assert_eq!(keys(&p), vec!["metrics.trend_s"], "{p:#?}");
+    let cfg = load_str(
+        &format!("{EXAMPLE}\n[metrics]\nstatus_page = false\n"),
+        "t.toml",
+    )
+    .expect("valid");
+    let m = cfg.metrics.expect("metrics");
+    assert!(!m.status_page);
+    assert_eq!((m.bind.as_str(), m.trend_s), ("127.0.0.1:9464", 300.0));
 }

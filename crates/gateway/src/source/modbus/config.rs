@@ -201,6 +201,7 @@ impl ModbusCommon {
             retries: self.retries,
             degrade_after_cycles: common.degrade_after_cycles,
             max_gap_registers: self.max_gap_registers,
+            cycle_deadline: common.cycle_deadline(),
         }
     }
 }

@@ -1,0 +1,113 @@
+//! `--trace FILE.csv`: a servo trace recorded on a real control, read for offline
+//! analysis.
+//!
+//! One header row, comma separated, one row per sample in time order:
+//!
+//! | column       | unit | required | meaning                                        |
+//! |--------------|------|----------|------------------------------------------------|
+//! | `t_s`        | s    | yes      | sample time, increasing at a fixed period      |
+//! | `encoder_mm` | mm   | yes      | motor encoder actual position                  |
+//! | `scale_mm`   | mm   | yes      | linear scale actual position                   |
+//! | `command_mm` | mm   | no       | position command; where present it marks the dwells |
+//!
+//! The trace CSV that `--out` writes has this form. Other columns are ignored. Every
+//! value must be a finite number (positions within +-100 m); the sample period must
+//! not change by more than [`PERIOD_TOLERANCE`] from the first step. Each refusal
+//! names the file, the line and the column.
+
+use std::path::Path;
+
+use super::math::Trace;
+use super::BacklashError;
+
+/// Largest |position| in a trace file, mm.
+const POSITION_MAX_MM: f64 = 100_000.0;
+/// A time step may differ from the first one by this fraction.
+pub const PERIOD_TOLERANCE: f64 = 0.01;
+
+/// Reads a trace file; errors name the file, line and column.
+pub fn read_trace(path: &Path) -> Result<Trace, BacklashError> {
+    let file_err = |line: u64, column: &str, message: String| BacklashError::TraceFile {
+        path: path.display().to_string(),
+        line,
+        column: column.to_string(),
+        message,
+    };
+    let file = std::fs::File::open(path)
+        .map_err(|e| BacklashError::Io(format!("{}: {e}", path.display())))?;
+    let mut rdr = csv::ReaderBuilder::new()
+        .trim(csv::Trim::All)
+        .flexible(false)
+        .from_reader(std::io::BufReader::new(file));
+    let csv_err = |e: csv::Error| {
+        let line = e.position().map_or(1, |p| p.line());
+        file_err(line, "-", e.to_string())
+    };
+    let header = rdr.headers().map_err(csv_err)?.clone();
+    let find = |name: &str| header.iter().position(|h| h == name);
+    let mut columns = [0usize; 3];
+    for (slot, name) in columns.iter_mut().zip(["t_s", "encoder_mm", "scale_mm"]) {
+        *slot = find(name)
+            .ok_or_else(|| file_err(1, name, "required column is missing".to_string()))?;
+    }
+    let command = find("command_mm");
+    let mut trace = Trace::default();
+    let mut times: Vec<f64> = Vec::new();
+    let mut record = csv::StringRecord::new();
+    while rdr.read_record(&mut record).map_err(csv_err)? {
+        let line = record.position().map_or(0, |p| p.line());
+        let num = |i: usize, max: f64| -> Result<f64, BacklashError> {
+            let cell = &record[i];
+            let v: f64 = cell
+                .parse()
+                .map_err(|_| file_err(line, &header[i], format!("{cell:?} is not a number")))?;
+            if !v.is_finite() || v.abs() > max {
+                return Err(file_err(
+                    line,
+                    &header[i],
+                    format!("{cell:?} is not a finite number within +-{max}"),
+                ));
+            }
+            Ok(v)
+        };
+        let t_s = num(columns[0], 1e9)?;
+        if let Some(&prev) = times.last() {
+            let step = t_s - prev;
+            if step <= 0.0 {
+                return Err(file_err(
+                    line,
+                    "t_s",
+                    format!("time does not increase ({t_s} s after {prev} s)"),
+                ));
+            }
+            if times.len() >= 2 {
+                let period = times[1] - times[0];
+                if (step - period).abs() > PERIOD_TOLERANCE * period {
+                    return Err(file_err(
+                        line,
+                        "t_s",
+                        format!(
+                            "time step {step} s differs from the trace period {period} s (the first step): a servo trace is sampled at a fixed period"
+                        ),
+                    ));
+                }
+            }
+        }
+        times.push(t_s);
+        trace.encoder_mm.push(num(columns[1], POSITION_MAX_MM)?);
+        trace.scale_mm.push(num(columns[2], POSITION_MAX_MM)?);
+        if let Some(i) = command {
+            trace.command_mm.push(num(i, POSITION_MAX_MM)?);
+        }
+    }
+    if times.len() < 2 {
+        return Err(file_err(
+            2,
+            "t_s",
+            format!("{} samples: a trace needs at least two", times.len()),
+        ));
+    }
+    // The mean step: rounding of the written times does not bias the period.
+    trace.period_s = (times[times.len() - 1] - times[0]) / (times.len() - 1) as f64;
+    Ok(trace)
+}

@@ -1,0 +1,435 @@
+//! The live status page on the HTTP listener that serves `/metrics`:
+//!
+//! - `GET /`: one HTML page (HTML, CSS and JavaScript embedded in the binary, no
+//!   internet and no build step needed) that polls `/api/status` once per status
+//!   interval and draws devices, channels with a trend, axes, the NC and the last NC
+//!   jobs.
+//! - `GET /api/status`: the same as JSON ([`to_json`]).
+//!
+//! Read-only: the router answers GET and HEAD only. The data is the status snapshot
+//! the control loop publishes at each status tick; the trend history is kept here, in
+//! a task of its own ([`track`]), not in the control loop.
+
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use bytes::Bytes;
+use http_body_util::Full;
+use hyper::header::{HeaderValue, CACHE_CONTROL, CONTENT_TYPE};
+use hyper::{Response, StatusCode};
+use serde_json::{json, Value};
+use tokio::sync::watch;
+
+use crate::http::Router;
+use crate::record::quality_code;
+use compgate_core::comp::CompParams;
+use compgate_gateway::runtime::Status;
+
+const INDEX_HTML: &str = include_str!("index.html");
+const PAGE_CSS: &str = include_str!("page.css");
+const PAGE_JS: &str = include_str!("page.js");
+
+/// Points a channel's trend keeps at most: the trend window is sampled this finely.
+pub const TREND_POINTS: usize = 300;
+
+/// One point of a channel's trend.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Point {
+    t_unix_ms: i64,
+    value_degc: Option<f64>,
+    /// 0 good, 1 uncertain, 2 bad.
+    quality: u8,
+}
+
+/// The trends of every channel, by index.
+#[derive(Debug, Clone, Default)]
+pub struct History {
+    window: Duration,
+    names: Vec<String>,
+    points: Vec<VecDeque<Point>>,
+}
+
+impl History {
+    /// History over `window` (the trend's span).
+    pub fn new(window: Duration) -> Self {
+        History {
+            window,
+            ..Self::default()
+        }
+    }
+
+    /// Adds `status` at `t_unix_ms`: one point per channel, kept points at least
+    /// window / [`TREND_POINTS`] apart (the newest point is replaced until it is, so
+    /// the newest value always shows).
+    pub fn push(&mut self, status: &Status, t_unix_ms: i64) {
+        let names_changed = self.names.len() != status.channels.len()
+            || self
+                .names
+                .iter()
+                .zip(&status.channels)
+                .any(|(n, c)| *n != c.name);
+        if names_changed {
+            // A reload with other channels: keep the trends of the names kept.
+            let mut old: Vec<(String, VecDeque<Point>)> = std::mem::take(&mut self.names)
+                .into_iter()
+                .zip(std::mem::take(&mut self.points))
+                .collect();
+            for c in &status.channels {
+                self.names.push(c.name.clone());
+                let kept = old
+                    .iter()
+                    .position(|(n, _)| *n == c.name)
+                    .map(|i| old.swap_remove(i).1);
+                self.points.push(kept.unwrap_or_default());
+            }
+        }
+        let window_ms = i64::try_from(self.window.as_millis()).unwrap_or(i64::MAX);
+        let spacing_ms = window_ms / TREND_POINTS as i64;
+        for (c, points) in status.channels.iter().zip(&mut self.points) {
+            let p = Point {
+                t_unix_ms,
+                value_degc: c.reading.value_degc.filter(|v| v.is_finite()),
+                quality: quality_code(&c.reading.quality).0,
+            };
+            // The newest point moves on until it is `spacing_ms` after the one
+            // before it; then it stays and the next one starts.
+            let n = points.len();
+            if n >= 2 && points[n - 1].t_unix_ms - points[n - 2].t_unix_ms < spacing_ms {
+                points.pop_back();
+            }
+            points.push_back(p);
+            while points
+                .front()
+                .is_some_and(|f| t_unix_ms - f.t_unix_ms > window_ms)
+                || points.len() > TREND_POINTS + 1
+            {
+                points.pop_front();
+            }
+        }
+    }
+
+    /// Trend of channel `i`: `[[t_unix_ms, value_degc or null, quality], ...]`.
+    fn trend(&self, i: usize) -> Value {
+        self.points.get(i).map_or_else(
+            || json!([]),
+            |p| {
+                Value::Array(
+                    p.iter()
+                        .map(|p| json!([p.t_unix_ms, p.value_degc, p.quality]))
+                        .collect(),
+                )
+            },
+        )
+    }
+}
+
+fn unix_ms(t: SystemTime) -> i64 {
+    t.duration_since(UNIX_EPOCH)
+        .ok()
+        .and_then(|d| i64::try_from(d.as_millis()).ok())
+        .unwrap_or(0)
+}
+
+fn params(p: &CompParams) -> Value {
+    json!({ "sd43900_mm": p.k0_mm, "sd43910": p.tan_beta, "sd43920_mm": p.p0_mm })
+}
+
+/// A JSON number, or null for NaN and infinities (JSON has none).
+fn num(v: f64) -> Value {
+    if v.is_finite() {
+        json!(v)
+    } else {
+        Value::Null
+    }
+}
+
+/// `/api/status`: the status with the trends, at `t_unix_ms`.
+pub fn to_json(s: &Status, history: &History, interval_s: f64, t_unix_ms: i64) -> Value {
+    let trend_s = history.window.as_secs_f64();
+    let devices: Vec<Value> = s
+        .devices
+        .iter()
+        .map(|d| {
+            let state = match (&d.last_error, d.cycles) {
+                (Some(_), _) => "down",
+                (None, 0) => "connecting",
+                (None, _) => "up",
+            };
+            json!({
+                "name": d.name,
+                "link": d.link,
+                "state": state,
+                "cycles": d.cycles,
+                "failed_cycles": d.failed_cycles,
+                "connects": d.connects,
+                "last_cycle_ms": d.last_cycle.as_secs_f64() * 1e3,
+                "last_error": d.last_error,
+                "errors": d.errors,
+            })
+        })
+        .collect();
+    let channels: Vec<Value> = s
+        .channels
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let r = &c.reading;
+            let (code, reason) = quality_code(&r.quality);
+            let quality = ["good", "uncertain", "bad"][usize::from(code.min(2))];
+            json!({
+                "name": c.name,
+                "value_degc": r.value_degc.map(num),
+                "unfiltered_degc": r.unfiltered_degc.map(num),
+                "current_ma": r.current_ma.map(num),
+                "raw": r.raw.map(num),
+                "quality": quality,
+                "reason": reason,
+                "quality_text": r.quality.to_string(),
+                "trend": history.trend(i),
+            })
+        })
+        .collect();
+    let axes: Vec<Value> = s
+        .axes
+        .iter()
+        .map(|a| {
+            json!({
+                "name": a.name,
+                "shadow": a.shadow,
+                "written": a.written.as_ref().map(params),
+                "would_write": a.would_write.as_ref().map(params),
+                "decision": a.decision,
+                "jobs_ok": a.jobs_ok,
+                "jobs_failed": a.jobs_failed,
+                "last_job_error": a.last_job_error,
+                "warning": a.warning,
+                "nc": a.nc.as_ref().map(|nc| json!({
+                    "sd43900_mm": num(nc.sd43900_mm),
+                    "sd43910": num(nc.sd43910),
+                    "sd43920_mm": num(nc.sd43920_mm),
+                    "md32750": nc.md32750,
+                    "position_mm": num(nc.position_mm),
+                    "applied_comp_mm": num(nc.applied_comp_mm),
+                    "target_comp_mm": num(nc.target_comp_mm),
+                    "referenced": nc.referenced,
+                })),
+            })
+        })
+        .collect();
+    // Newest first: the page lists them so.
+    let jobs: Vec<Value> = s
+        .jobs
+        .iter()
+        .rev()
+        .map(|j| {
+            json!({
+                "t_unix_ms": unix_ms(j.at),
+                "axis": j.axis,
+                "shadow": j.shadow,
+                "ok": j.error.is_none() && !j.shadow,
+                "job_id": j.job_id,
+                "elapsed_ms": j.elapsed.map(|e| e.as_secs_f64() * 1e3),
+                "error": j.error,
+                "params": params(&j.params),
+            })
+        })
+        .collect();
+    json!({
+        "t_unix_ms": t_unix_ms,
+        "interval_s": interval_s,
+        "trend_s": trend_s,
+        "samples": s.samples,
+        "shadow": s.axes.iter().any(|a| a.shadow),
+        "devices": devices,
+        "channels": channels,
+        "axes": axes,
+        "jobs": jobs,
+    })
+}
+
+/// What the page's routes answer from: the latest status and the trends; the
+/// `/api/status` body is built from them when asked for, at most once per status.
+#[derive(Debug, Clone, Default)]
+pub struct Page {
+    inner: Arc<Mutex<Latest>>,
+}
+
+#[derive(Debug, Default)]
+struct Latest {
+    status: Status,
+    history: History,
+    interval_s: f64,
+    t_unix_ms: i64,
+    /// The body of this status, once built.
+    body: Option<Bytes>,
+}
+
+impl Page {
+    /// The latest `/api/status` body.
+    pub fn json(&self) -> Bytes {
+        let mut l = self.inner.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(b) = &l.body {
+            return b.clone();
+        }
+        let body =
+            Bytes::from(to_json(&l.status, &l.history, l.interval_s, l.t_unix_ms).to_string());
+        l.body = Some(body.clone());
+        body
+    }
+}
+
+/// Keeps `page` up to date from `rx` until the gateway's status sender is gone:
+/// the trends are extended here, once per published status, never in the control
+/// loop. The JSON is built only when a browser asks: built every tick, with nobody
+/// looking, it took the gateway from 0.52 % to 1.16 % of one core at 10k points/s
+/// (1000 channels with their trends; scale benchmark).
+pub async fn track(
+    mut rx: watch::Receiver<Status>,
+    page: Page,
+    window: Duration,
+    interval: Duration,
+) {
+    {
+        let mut l = page.inner.lock().unwrap_or_else(|p| p.into_inner());
+        l.history = History::new(window);
+        l.interval_s = interval.as_secs_f64();
+    }
+    loop {
+        {
+            let s = rx.borrow_and_update();
+            let now = unix_ms(SystemTime::now());
+            let mut l = page.inner.lock().unwrap_or_else(|p| p.into_inner());
+            // Before the first sample every channel is "no data": not a trend point.
+            if s.samples > 0 {
+                l.history.push(&s, now);
+            }
+            l.status.clone_from(&s);
+            l.t_unix_ms = now;
+            l.body = None;
+        }
+        if rx.changed().await.is_err() {
+            break;
+        }
+    }
+}
+
+fn with_type(body: impl Into<Bytes>, content_type: &'static str) -> Response<Full<Bytes>> {
+    let mut r = Response::new(Full::new(body.into()));
+    *r.status_mut() = StatusCode::OK;
+    let h = r.headers_mut();
+    h.insert(CONTENT_TYPE, HeaderValue::from_static(content_type));
+    h.insert(CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    r
+}
+
+/// `router` with the page's routes: `/`, `/page.css`, `/page.js`, `/api/status`.
+pub fn routes(router: Router, page: Page) -> Router {
+    router
+        .get("/", || with_type(INDEX_HTML, "text/html; charset=utf-8"))
+        .get("/page.css", || {
+            with_type(PAGE_CSS, "text/css; charset=utf-8")
+        })
+        .get("/page.js", || {
+            with_type(PAGE_JS, "text/javascript; charset=utf-8")
+        })
+        .get("/api/status", move || {
+            with_type(page.json(), "application/json")
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use compgate_core::channel::{Quality, Reading, Reason};
+    use compgate_gateway::runtime::{AxisStatus, ChannelStatus, JobStatus};
+
+    fn status(v: f64, q: Quality) -> Status {
+        let mut s = Status {
+            channels: vec![ChannelStatus {
+                name: "T_bed".into(),
+                reading: Reading {
+                    value_degc: Some(v),
+                    quality: q,
+                    ..Reading::no_data()
+                },
+            }],
+            axes: vec![AxisStatus {
+                name: "X".into(),
+                shadow: true,
+                would_write: Some(CompParams {
+                    k0_mm: 0.02,
+                    tan_beta: 1e-5,
+                    p0_mm: 0.0,
+                }),
+                ..AxisStatus::default()
+            }],
+            ..Status::default()
+        };
+        s.push_job(JobStatus {
+            axis: "X".into(),
+            at: UNIX_EPOCH + Duration::from_secs(10),
+            params: CompParams::default(),
+            shadow: true,
+            job_id: None,
+            elapsed: None,
+            error: None,
+        });
+        s
+    }
+
+    #[test]
+    fn the_json_carries_values_quality_trend_shadow_and_jobs() {
+        let mut h = History::new(Duration::from_secs(300));
+        for k in 0..5 {
+            h.push(&status(20.0 + f64::from(k), Quality::Good), 1_000 * k64(k));
+        }
+        let s = status(25.0, Quality::Bad(Reason::Ne43Low));
+        h.push(&s, 5_000);
+        let j = to_json(&s, &h, 1.0, 5_000);
+        let c = &j["channels"][0];
+        assert_eq!(c["value_degc"], 25.0);
+        assert_eq!(c["quality"], "bad");
+        assert_eq!(c["reason"], "NE43 low");
+        let trend = c["trend"].as_array().expect("trend");
+        assert_eq!(trend.len(), 6);
+        assert_eq!(trend[0], json!([0, 20.0, 0]));
+        assert_eq!(trend[5], json!([5000, 25.0, 2]));
+        assert_eq!(j["shadow"], true);
+        assert_eq!(j["axes"][0]["would_write"]["sd43900_mm"], 0.02);
+        assert_eq!(j["jobs"][0]["shadow"], true);
+        assert_eq!(j["jobs"][0]["ok"], false);
+        assert_eq!(j["jobs"][0]["t_unix_ms"], 10_000);
+    }
+
+    fn k64(k: u32) -> i64 {
+        i64::from(k)
+    }
+
+    // The trend spans the window with at most TREND_POINTS + 1 points, however
+    // often the status comes, and its newest point is the newest status.
+    #[test]
+    fn the_trend_is_bounded_by_window_and_points() {
+        let mut h = History::new(Duration::from_secs(60));
+        for k in 0..10_000u32 {
+            h.push(&status(f64::from(k), Quality::Good), i64::from(k) * 50);
+        }
+        let p = &h.points[0];
+        assert!(p.len() <= TREND_POINTS + 1, "{}", p.len());
+        assert!(p.len() >= TREND_POINTS / 2, "{}", p.len());
+        let last = p.back().expect("points");
+        assert_eq!(last.value_degc, Some(9999.0));
+        let first = p.front().expect("points");
+        assert!(last.t_unix_ms - first.t_unix_ms <= 60_000);
+        assert!(last.t_unix_ms - first.t_unix_ms >= 59_000);
+    }
+
+    #[test]
+    fn not_finite_values_are_json_null() {
+        let s = status(f64::NAN, Quality::Bad(Reason::NotFinite));
+        let j = to_json(&s, &History::default(), 1.0, 0);
+        assert_eq!(j["channels"][0]["value_degc"], Value::Null);
+        // serde_json writes NaN as null too; what matters is valid JSON text.
+        assert!(serde_json::from_str::<Value>(&j.to_string()).is_ok());
+    }
+}

@@ -1,0 +1,262 @@
+//! `compgate probe`: poll every Modbus channel of a config once and show what the
+//! gateway would make of it: the raw registers, the value in the configured type and,
+//! for 32-bit types, in every byte order with the plausible one marked, the loop
+//! current, the temperature and the quality. The first thing to run against a new
+//! device: a wrong `byte_order`, a 1-based `address` or a wrong scaling shows here,
+//! before any NC is written.
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use compgate_core::channel::{Quality, Reason};
+use compgate_gateway::channel::ChannelConfig;
+use compgate_gateway::config::{self, Config, DeviceConfig};
+use compgate_gateway::source::modbus::{Backoff, ModbusLink};
+use compgate_gateway::source::plan::{self, ByteOrder, DataType};
+use compgate_gateway::source::SourceError;
+
+/// `compgate probe` arguments.
+#[derive(Debug, clap::Args)]
+pub struct ProbeArgs {
+    /// Configuration file (TOML).
+    #[arg(long, short)]
+    pub config: PathBuf,
+    /// Probe only this device.
+    #[arg(long)]
+    pub device: Option<String>,
+    /// Probe only this channel.
+    #[arg(long)]
+    pub channel: Option<String>,
+}
+
+/// What a probe found.
+#[derive(Debug)]
+pub struct ProbeReport {
+    /// The text to print.
+    pub text: String,
+    /// Channels whose quality is bad.
+    pub bad: Vec<String>,
+}
+
+/// Loads the config, polls the selected channels once and reports them.
+pub async fn run(args: &ProbeArgs) -> Result<ProbeReport, String> {
+    let cfg = config::load(&args.config).map_err(|e| e.to_string())?;
+    for w in config::warnings(&cfg, &args.config.display().to_string()) {
+        eprintln!("warning: {w}");
+    }
+    probe(&cfg, args.device.as_deref(), args.channel.as_deref()).await
+}
+
+/// Polls the channels of `cfg` (only `device`'s, only `channel`, when given) once.
+pub async fn probe(
+    cfg: &Config,
+    device: Option<&str>,
+    channel: Option<&str>,
+) -> Result<ProbeReport, String> {
+    let names = |m: &mut dyn Iterator<Item = &String>| {
+        m.map(|n| format!("`{n}`")).collect::<Vec<_>>().join(", ")
+    };
+    if let Some(d) = device.filter(|d| !cfg.devices.contains_key(*d)) {
+        return Err(format!(
+            "--device {d}: no such device in [devices]; expected one of {}",
+            names(&mut cfg.devices.keys())
+        ));
+    }
+    if let Some(c) = channel.filter(|c| !cfg.channels.contains_key(*c)) {
+        return Err(format!(
+            "--channel {c}: no such channel in [channels]; expected one of {}",
+            names(&mut cfg.channels.keys())
+        ));
+    }
+    let mut report = ProbeReport {
+        text: String::new(),
+        bad: Vec::new(),
+    };
+    for (dev_name, dev) in &cfg.devices {
+        if device.is_some_and(|d| d != dev_name) {
+            continue;
+        }
+        let selected: Vec<(&String, &ChannelConfig)> = cfg
+            .channels
+            .iter()
+            .filter(|(n, c)| &c.device == dev_name && channel.is_none_or(|w| w == n.as_str()))
+            .collect();
+        if selected.is_empty() {
+            continue;
+        }
+        let (spec, unit) = match dev {
+            DeviceConfig::Tcp(t) => (t.link_spec(), t.unit_id),
+            DeviceConfig::Rtu(r) => (r.link_spec(), r.unit_id),
+            DeviceConfig::Can(c) => {
+                let _ = writeln!(
+                    report.text,
+                    "device {dev_name}: CANopen node {} on {}: not probed (probe reads Modbus \
+                     registers); `compgate run` shows its channels\n",
+                    c.node_id, c.interface
+                );
+                continue;
+            }
+        };
+        let common = dev.common();
+        let _ = writeln!(report.text, "device {dev_name}: {spec}, unit {unit}");
+        // No reconnect wait: one attempt per channel.
+        let mut link = ModbusLink::new(
+            spec,
+            common.timeout(),
+            Backoff::new(Duration::ZERO, Duration::ZERO),
+        );
+        // After a device did not answer, its other channels are not tried: each would
+        // wait for the same timeout.
+        let mut silent: Option<SourceError> = None;
+        for (name, ch) in selected {
+            if let Some(e) = &silent {
+                let _ = writeln!(
+                    report.text,
+                    "  {name}: not read, the device did not answer ({e})"
+                );
+                report.bad.push(name.clone());
+                continue;
+            }
+            match probe_channel(&mut link, unit, name, ch, &mut report.text).await {
+                Ok(true) => {}
+                Ok(false) => report.bad.push(name.clone()),
+                Err(e) => {
+                    report.bad.push(name.clone());
+                    if !matches!(e, SourceError::Exception(_)) {
+                        silent = Some(e);
+                    }
+                }
+            }
+        }
+        report.text.push('\n');
+    }
+    Ok(report)
+}
+
+/// Reads and shows one channel: whether its quality is usable, or the read's error.
+async fn probe_channel(
+    link: &mut ModbusLink,
+    unit: u8,
+    name: &str,
+    ch: &ChannelConfig,
+    out: &mut String,
+) -> Result<bool, SourceError> {
+    let (Some(kind), Some(address)) = (ch.register, ch.address) else {
+        return Ok(false);
+    };
+    let ty = ch.data_type;
+    let order = ch.byte_order;
+    let kind_name = match kind {
+        plan::RegisterKind::Input => "input",
+        plan::RegisterKind::Holding => "holding",
+    };
+    let _ = writeln!(
+        out,
+        "  {name}: {kind_name} register {address}, {} {}",
+        ty.name(),
+        order.name()
+    );
+    let regs = match link.read(unit, kind, address, ty.registers()).await {
+        Ok(regs) => regs,
+        Err(e) => {
+            let _ = writeln!(out, "    error      {e}");
+            let _ = writeln!(out, "    quality    bad ({})", e.reason());
+            return Err(e);
+        }
+    };
+    let hex: Vec<String> = regs.iter().map(|r| format!("0x{r:04X}")).collect();
+    let _ = writeln!(out, "    registers  {}", hex.join(" "));
+    let mut processor = ch.build();
+    let Some(raw) = plan::decode(&regs, ty, order) else {
+        let _ = writeln!(out, "    quality    bad (comm: short reply)");
+        return Ok(false);
+    };
+    let _ = writeln!(
+        out,
+        "    value      {} ({} {})",
+        show(raw, ty),
+        ty.name(),
+        order.name()
+    );
+    if ty.registers() == 2 {
+        let f = processor.filter_params();
+        let middle_degc = (f.valid_min_degc + f.valid_max_degc) / 2.0;
+        let likely = plan::likely_order(
+            &regs,
+            ty,
+            order,
+            |r| processor.plausible_degc(r),
+            middle_degc,
+        );
+        for o in ByteOrder::ALL {
+            let Some(v) = plan::decode(&regs, ty, o) else {
+                continue;
+            };
+            let judged = match processor.plausible_degc(v) {
+                Some(d) if d != 0.0 && d.abs() < 0.01 => format!("{d:.2e} degC"),
+                Some(d) => format!("{d:.2} degC"),
+                None => "not plausible".into(),
+            };
+            let mark = if likely.is_some_and(|(l, _)| l == o) {
+                "  <- plausible"
+            } else {
+                ""
+            };
+            let _ = writeln!(
+                out,
+                "    as {}    {:<14} {judged}{mark}",
+                o.name(),
+                show(v, ty)
+            );
+        }
+        if let Some((l, degc)) = likely.filter(|(l, _)| *l != order) {
+            let _ = writeln!(
+                out,
+                "    hint       as {} it reads {degc:.2} degC: set byte_order = \"{}\"",
+                l.name(),
+                l.name()
+            );
+        }
+    }
+    let r = processor.on_sample(0.0, raw);
+    let ma = r
+        .current_ma
+        .map_or_else(|| "-".to_string(), |ma| format!("{ma:.3} mA"));
+    let degc = r
+        .unfiltered_degc
+        .map_or_else(|| "-".to_string(), |d| format!("{d:.2} degC"));
+    let _ = writeln!(out, "    current    {ma}");
+    let _ = writeln!(out, "    temp       {degc}");
+    let quality = describe(&r.quality);
+    let _ = writeln!(out, "    quality    {quality}");
+    Ok(r.quality.is_usable())
+}
+
+/// A raw value as its type shows it: integers whole, floats in single precision
+/// (shortest form), tiny or huge ones with an exponent.
+fn show(v: f64, ty: DataType) -> String {
+    match ty {
+        DataType::F32 => {
+            let f = v as f32;
+            let a = f.abs();
+            if a != 0.0 && !(1e-4..1e7).contains(&a) {
+                format!("{f:e}")
+            } else {
+                format!("{f}")
+            }
+        }
+        _ => format!("{v}"),
+    }
+}
+
+fn describe(q: &Quality) -> String {
+    match q {
+        Quality::Good => "good".into(),
+        Quality::Uncertain(r) => format!("uncertain ({r})"),
+        Quality::Bad(r @ Reason::Implausible) => {
+            format!("bad ({r}: no sensor produces it; see the byte orders above)")
+        }
+        Quality::Bad(r) => format!("bad ({r})"),
+    }
+}

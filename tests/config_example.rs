@@ -1,0 +1,59 @@
+//! `compgate config example` and `compgate config schema` from the real binary: the
+//! annotated example is the file shipped in `config/`, and it is a valid config.
+
+use std::process::Command;
+
+const BIN: &str = env!("CARGO_BIN_EXE_compgate");
+const ANNOTATED: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/config/annotated.toml");
+
+fn stdout_of(args: &[&str]) -> String {
+    let out = Command::new(BIN)
+        .args(args)
+        .output()
+        .expect("compgate runs");
+    assert!(
+        out.status.success(),
+        "compgate {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout).expect("UTF-8 output")
+}
+
+#[test]
+fn config_example_is_the_shipped_annotated_file_and_validates() {
+    let printed = stdout_of(&["config", "example"]);
+    let shipped = std::fs::read_to_string(ANNOTATED).unwrap();
+    assert!(
+        printed == shipped,
+        "config/annotated.toml differs from `compgate config example` (the config structs' \
+         doc comments or config/example.toml changed); regenerate it with\n  \
+         cargo run -- config example > config/annotated.toml"
+    );
+    assert!(
+        printed.contains("# Seconds between poll cycles."),
+        "{printed}"
+    );
+    let ok = stdout_of(&["validate", "--config", ANNOTATED]);
+    assert!(ok.contains("OK"), "{ok}");
+}
+
+#[test]
+fn config_schema_is_the_json_schema_with_every_key_documented() {
+    let text = stdout_of(&["config", "schema"]);
+    let schema: serde_json::Value = serde_json::from_str(&text).expect("JSON");
+    assert_eq!(
+        schema["$schema"],
+        "https://json-schema.org/draft/2020-12/schema"
+    );
+    for section in ["gateway", "devices", "channels", "axes"] {
+        assert!(
+            schema["properties"][section]["description"].is_string(),
+            "{section}"
+        );
+    }
+    let timeout = &schema["$defs"]["DeviceConfig"]["oneOf"][0]["properties"]["timeout_s"];
+    assert_eq!(timeout["default"], 1.0);
+    assert!(timeout["description"]
+        .as_str()
+        .is_some_and(|d| d.contains("poll cycle")));
+}
