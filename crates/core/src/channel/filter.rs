@@ -3,8 +3,9 @@
 /// Median of the last up-to-N accepted samples (fewer while the window fills).
 ///
 /// Runs for every channel on every poll. Windows of up to five samples (the usual
-/// 3 or 5) keep the samples oldest first and take the median through a fixed network
-/// of compare-exchanges: no branch depends on the values, which change order from one
+/// 3 or 5) live inline in the struct, so a gateway with thousands of channels chases
+/// no pointer per sample, and take the median through a fixed network of
+/// compare-exchanges: no branch depends on the values, which change order from one
 /// noisy sample to the next. Longer windows keep a ring and a sorted copy and move
 /// the newest value to its rank in one pass. No allocation after construction.
 ///
@@ -13,10 +14,14 @@
 #[derive(Debug, Clone, PartialEq)]
 pub struct MedianWindow {
     len: usize,
-    /// The samples: oldest first in a short window; a ring in a long one, `next`
-    /// being where the next sample goes.
-    ring_degc: Vec<f64>,
+    /// Samples in the window.
+    count: usize,
+    /// Where the next sample goes in the ring.
     next: usize,
+    /// The ring of a short window; `short_degc[..count]` are its samples.
+    short_degc: [f64; NETWORK_MAX_LEN],
+    /// The ring of a long window (`len` slots; the first `count` hold samples).
+    ring_degc: Vec<f64>,
     /// The same values in `f64::total_cmp` order (long windows only).
     sorted_degc: Vec<f64>,
 }
@@ -31,11 +36,14 @@ impl MedianWindow {
     /// A window over `len` samples; 0 and 1 both mean "off" (the median of one).
     pub fn new(len: usize) -> Self {
         let len = len.max(1);
+        let long = len > NETWORK_MAX_LEN;
         Self {
             len,
-            ring_degc: Vec::with_capacity(len),
+            count: 0,
             next: 0,
-            sorted_degc: if len > NETWORK_MAX_LEN {
+            short_degc: [0.0; NETWORK_MAX_LEN],
+            ring_degc: if long { vec![0.0; len] } else { Vec::new() },
+            sorted_degc: if long {
                 Vec::with_capacity(len)
             } else {
                 Vec::new()
@@ -47,7 +55,7 @@ impl MedianWindow {
     pub fn push(&mut self, value_degc: f64) -> f64 {
         let dropped = self.put_in_ring(value_degc);
         if self.len <= NETWORK_MAX_LEN {
-            return network_median(&self.ring_degc).unwrap_or(value_degc);
+            return network_median(&self.short_degc[..self.count]).unwrap_or(value_degc);
         }
         let s = &mut self.sorted_degc;
         let mut i = match dropped {
@@ -78,27 +86,24 @@ impl MedianWindow {
     }
 
     /// Puts a sample into the ring; returns the one it replaced once the ring is full.
+    /// While the window fills, the samples sit in `ring[..count]`.
     fn put_in_ring(&mut self, value_degc: f64) -> Option<f64> {
-        if self.ring_degc.len() < self.len {
-            self.ring_degc.push(value_degc);
-            return None;
-        }
-        if self.len <= NETWORK_MAX_LEN {
-            // Short windows keep arrival order (oldest first): shifting up to four
-            // values costs less than keeping a ring index, and the network needs no
-            // particular order.
-            let old = self.ring_degc[0];
-            self.ring_degc.copy_within(1.., 0);
-            self.ring_degc[self.len - 1] = value_degc;
-            return Some(old);
-        }
-        let old = std::mem::replace(&mut self.ring_degc[self.next], value_degc);
+        let ring = if self.len <= NETWORK_MAX_LEN {
+            &mut self.short_degc[..self.len]
+        } else {
+            &mut self.ring_degc[..]
+        };
+        let old = std::mem::replace(&mut ring[self.next], value_degc);
         // A compare instead of `%`, which is an integer division.
         self.next = if self.next + 1 == self.len {
             0
         } else {
             self.next + 1
         };
+        if self.count < self.len {
+            self.count += 1;
+            return None;
+        }
         Some(old)
     }
 
@@ -106,7 +111,7 @@ impl MedianWindow {
     /// values for an even count. `None` when empty.
     pub fn median(&self) -> Option<f64> {
         if self.len <= NETWORK_MAX_LEN {
-            return network_median(&self.ring_degc);
+            return network_median(&self.short_degc[..self.count]);
         }
         let s = &self.sorted_degc;
         let n = s.len();
@@ -119,14 +124,14 @@ impl MedianWindow {
 
     /// Forgets every sample.
     pub fn clear(&mut self) {
-        self.ring_degc.clear();
-        self.sorted_degc.clear();
+        self.count = 0;
         self.next = 0;
+        self.sorted_degc.clear();
     }
 
     /// Samples in the window.
     pub fn count(&self) -> usize {
-        self.ring_degc.len()
+        self.count
     }
 }
 

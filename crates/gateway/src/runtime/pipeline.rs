@@ -131,6 +131,13 @@ impl Pipeline {
             .collect()
     }
 
+    /// Copies every channel's latest reading into `statuses` (config order).
+    pub(super) fn copy_readings_into(&self, statuses: &mut [ChannelStatus]) {
+        for (s, p) in statuses.iter_mut().zip(&self.processors) {
+            s.reading.clone_from(p.last());
+        }
+    }
+
     /// The channel processors, taken out (the pipeline is left without channels):
     /// what a reload carries over.
     pub(super) fn take_processors(&mut self) -> Vec<ChannelProcessor> {
