@@ -231,6 +231,8 @@ pub async fn run(path: &Path, mut cfg: Config, opts: RunOptions) -> Result<(), S
     // per poll cycle.
     let gateway_cfg = cfg.clone();
     let gateway_shutdown = shutdown.clone();
+    // The configuration's parse is over: its peak goes back to the system.
+    heap::release_free();
     let result =
         tokio::spawn(
             async move { runtime::run_with(&gateway_cfg, gateway_shutdown, tx, hooks).await },
