@@ -3,15 +3,13 @@
 #![allow(clippy::unwrap_used)]
 
 mod common;
-#[path = "common/opcua_peer.rs"]
-mod opcua_peer;
 
 use std::io::Write;
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
 
+use common::opcua_peer::OpcuaPeer;
 use common::{config, plant_and_file};
-use opcua_peer::OpcuaPeer;
 
 const BIN: &str = env!("CARGO_BIN_EXE_compgate");
 

@@ -5,10 +5,9 @@
 
 mod common;
 
-use std::io::{Read, Write};
-use std::net::TcpStream;
 use std::time::Duration;
 
+use common::metrics::{scrape, value};
 use common::process::Gateway;
 use rusqlite::Connection;
 
@@ -62,31 +61,6 @@ mean_degc = 25.0
     )
 }
 
-/// GET /metrics; the body.
-fn scrape(port: u16) -> Result<String, String> {
-    let addr = std::net::SocketAddr::from(([127, 0, 0, 1], port));
-    let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(1))
-        .map_err(|e| format!("connect: {e}"))?;
-    s.set_read_timeout(Some(Duration::from_secs(2)))
-        .map_err(|e| e.to_string())?;
-    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
-        .map_err(|e| format!("request: {e}"))?;
-    let mut text = String::new();
-    s.read_to_string(&mut text)
-        .map_err(|e| format!("response: {e}"))?;
-    Ok(text
-        .split_once("\r\n\r\n")
-        .map(|(_, b)| b.to_string())
-        .unwrap_or_default())
-}
-
-fn value(body: &str, series: &str) -> Option<f64> {
-    body.lines()
-        .filter_map(|l| l.rsplit_once(' '))
-        .find(|(k, _)| *k == series)
-        .and_then(|(_, v)| v.parse().ok())
-}
-
 // Trap 4: a config without `[nc_modules]` and `[axes]` used to be refused ("required
 // key is missing"). It runs: the device is polled, the values filtered, recorded and
 // served as metrics.
@@ -107,7 +81,9 @@ async fn a_monitoring_only_config_polls_filters_records_and_serves_metrics() {
     let series = "compgate_channel_value_degc{channel=\"T_bed\"}";
     let mut last = None;
     for _ in 0..100 {
-        let body = tokio::task::block_in_place(|| scrape(port)).unwrap_or_default();
+        let body = tokio::task::block_in_place(|| scrape(port, Duration::from_secs(2)))
+            .map(|(body, _)| body)
+            .unwrap_or_default();
         last = value(&body, series);
         if last.is_some_and(|v| (v - 30.0).abs() < 0.5) {
             break;
@@ -197,7 +173,9 @@ async fn a_float_in_the_wrong_word_order_is_bad_and_the_log_names_the_order() {
     let good = "compgate_channel_quality{channel=\"T_bed\"}";
     let mut seen = (None, None);
     for _ in 0..50 {
-        let body = tokio::task::block_in_place(|| scrape(port)).unwrap_or_default();
+        let body = tokio::task::block_in_place(|| scrape(port, Duration::from_secs(2)))
+            .map(|(body, _)| body)
+            .unwrap_or_default();
         seen = (value(&body, quality), value(&body, good));
         if seen.0.is_some() && seen.1 == Some(0.0) {
             break;

@@ -4,40 +4,19 @@
 #![allow(clippy::unwrap_used)]
 
 mod common;
-#[path = "common/opcua_peer.rs"]
-mod opcua_peer;
-#[path = "common/s7_peer.rs"]
-mod s7_peer;
 
-use common::{config, start, COUNT_DEGC};
+use common::opcua_peer::OpcuaPeer;
+use common::s7_peer::{self, S7Peer};
+use common::{start, with_target, Rig, COUNT_DEGC};
 use compgate_gateway::nc::s7::S7TargetConfig;
 use compgate_gateway::nc::NcWriter;
 use compgate_gateway::runtime::Status;
-use opcua_peer::OpcuaPeer;
-use s7_peer::S7Peer;
-
-/// The common test config with its NC module replaced by `target` (a `[targets.nc_x]`
-/// table) and axis X given axis number `axis`.
-fn with_target(target: &str, axis: u16) -> String {
-    let base = config("hold", "", "");
-    let start = base.find("[nc_modules.nc_x]").unwrap();
-    let end = start + base[start..].find("\n\n").unwrap();
-    let sim = base.find("[sim.nc_modules.nc_x]").unwrap();
-    format!("{}{target}{}", &base[..start], &base[end..sim]).replace(
-        "nc_module = \"nc_x\"\n",
-        &format!("nc_module = \"nc_x\"\naxis_number = {axis}\n"),
-    )
-}
-
-fn value(s: &Status, ch: &str) -> f64 {
-    common::Rig::channel(s, ch).reading.value_degc.unwrap()
-}
 
 /// The written parameters are the model on the readings.
 fn check_model(s: &Status) -> compgate_core::comp::CompParams {
     let w = s.axes[0].written.unwrap();
-    let t_bed = value(s, "T_bed");
-    let t_screw = value(s, "T_screw");
+    let t_bed = Rig::value(s, "T_bed");
+    let t_screw = Rig::value(s, "T_screw");
     assert!((t_bed - 30.0).abs() <= COUNT_DEGC, "T_bed {t_bed}");
     assert!((w.k0_mm - 0.004 * (t_bed - 20.0)).abs() < 1e-12, "{w:?}");
     assert!(

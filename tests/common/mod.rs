@@ -3,9 +3,12 @@
 #![allow(dead_code)]
 
 pub mod broker;
+pub mod metrics;
+pub mod opcua_peer;
 pub mod peer;
 pub mod process;
 pub mod proxy;
+pub mod s7_peer;
 
 use std::time::Duration;
 
@@ -71,6 +74,19 @@ impl Rig {
             .iter()
             .find(|c| c.name == name)
             .expect("channel exists")
+    }
+
+    /// The quality of channel `name`.
+    pub fn quality(s: &Status, name: &str) -> compgate_core::channel::Quality {
+        Self::channel(s, name).reading.quality
+    }
+
+    /// The value of channel `name`, degC.
+    pub fn value(s: &Status, name: &str) -> f64 {
+        Self::channel(s, name)
+            .reading
+            .value_degc
+            .expect("channel has a value")
     }
 }
 
@@ -210,6 +226,19 @@ motion_min_mm = 500.0
 motion_max_mm = 500.0
 motion_speed_mm_per_s = 0.0
 "#
+    )
+}
+
+/// [`config`] (policy `hold`) with its NC module replaced by `target` (a
+/// `[targets.nc_x]` table) and axis X given axis number `axis`.
+pub fn with_target(target: &str, axis: u16) -> String {
+    let base = config("hold", "", "");
+    let start = base.find("[nc_modules.nc_x]").expect("an NC module");
+    let end = start + base[start..].find("\n\n").expect("a blank line after it");
+    let sim = base.find("[sim.nc_modules.nc_x]").expect("its simulation");
+    format!("{}{target}{}", &base[..start], &base[end..sim]).replace(
+        "nc_module = \"nc_x\"\n",
+        &format!("nc_module = \"nc_x\"\naxis_number = {axis}\n"),
     )
 }
 
