@@ -33,15 +33,7 @@ async fn full_chain_lands_bit_for_bit_on_the_opcua_peer() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let cred = dir.path().join("cred");
-    std::fs::write(&cred, "writer\nwriter-pw\n").unwrap();
-    let target = format!(
-        "[targets.nc_x]\nkind = \"opcua\"\nendpoint_url = \"{}\"\nsecurity_policy = \"None\"\n\
-         security_mode = \"None\"\npki_dir = \"{}\"\ncredentials_file = \"{}\"\n",
-        peer.endpoint,
-        dir.path().join("pki").display(),
-        cred.display()
-    );
+    let target = peer.target_table(dir.path(), "writer");
     let mut rig = start(&with_target(&target, 2)).await;
     let s = rig
         .wait_for(20.0, "a verified job on the OPC UA peer", |s| {

@@ -129,6 +129,21 @@ impl OpcuaPeer {
         self.command("expire", "OK ").parse().unwrap()
     }
 
+    /// A `[targets.nc_x]` table for this peer without security, logging in as `user`
+    /// (password `<user>-pw`, as the peer knows it) from a credentials file written
+    /// into `dir`.
+    pub fn target_table(&self, dir: &std::path::Path, user: &str) -> String {
+        let cred = dir.join(format!("cred-{user}"));
+        std::fs::write(&cred, format!("{user}\n{user}-pw\n")).unwrap();
+        format!(
+            "[targets.nc_x]\nkind = \"opcua\"\nendpoint_url = \"{}\"\nsecurity_policy = \"None\"\n\
+             security_mode = \"None\"\npki_dir = \"{}\"\ncredentials_file = \"{}\"\n",
+            self.endpoint,
+            dir.join("pki").display(),
+            cred.display()
+        )
+    }
+
     /// The node id of setting datum `name` (e.g. `$SA_TEMP_COMP_SLOPE`) of `axis`.
     pub fn node(&self, name: &str, axis: u16) -> String {
         format!("ns={};s=/NC/_N_AX_SEA_ACX/{name}[u{axis}]", self.ns)
