@@ -7,25 +7,9 @@ mod common;
 
 use common::opcua_peer::OpcuaPeer;
 use common::s7_peer::{self, S7Peer};
-use common::{start, with_target, Rig, COUNT_DEGC};
+use common::{start, with_target, written_by_model};
 use compgate_gateway::nc::s7::S7TargetConfig;
 use compgate_gateway::nc::NcWriter;
-use compgate_gateway::runtime::Status;
-
-/// The written parameters are the model on the readings.
-fn check_model(s: &Status) -> compgate_core::comp::CompParams {
-    let w = s.axes[0].written.unwrap();
-    let t_bed = Rig::value(s, "T_bed");
-    let t_screw = Rig::value(s, "T_screw");
-    assert!((t_bed - 30.0).abs() <= COUNT_DEGC, "T_bed {t_bed}");
-    assert!((w.k0_mm - 0.004 * (t_bed - 20.0)).abs() < 1e-12, "{w:?}");
-    assert!(
-        (w.tan_beta - 0.0000115 * (t_screw - 20.0)).abs() < 1e-15,
-        "{w:?}"
-    );
-    assert_eq!(w.p0_mm, 100.0);
-    w
-}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn full_chain_lands_bit_for_bit_on_the_opcua_peer() {
@@ -40,7 +24,8 @@ async fn full_chain_lands_bit_for_bit_on_the_opcua_peer() {
             s.axes[0].jobs_ok >= 1
         })
         .await;
-    let w = check_model(&s);
+    let w = written_by_model(&s);
+    assert_eq!(w.p0_mm, 100.0);
     let dump = peer.dump();
     let held = |name: &str| dump[&peer.node(name, 2)];
     assert_eq!(held("$SA_TEMP_COMP_ABS_VALUE"), w.k0_mm.to_bits());
@@ -51,12 +36,7 @@ async fn full_chain_lands_bit_for_bit_on_the_opcua_peer() {
         dump[&peer.node("$SA_TEMP_COMP_ABS_VALUE", 1)],
         0.0_f64.to_bits()
     );
-    let fin = rig.stop().await;
-    assert_eq!(
-        fin.axes[0].jobs_failed, 0,
-        "{:?}",
-        fin.axes[0].last_job_error
-    );
+    rig.stop_without_failed_jobs().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -77,7 +57,8 @@ async fn full_chain_lands_bit_for_bit_on_the_s7_peer() {
                 s.axes[0].jobs_ok >= 1
             })
             .await;
-        let w = check_model(&s);
+        let w = written_by_model(&s);
+        assert_eq!(w.p0_mm, 100.0);
         // What the block holds, read by a reader of the test's own.
         let reader: S7TargetConfig = toml::from_str(&format!(
             "address = \"{}\"\ndb_number = 100\nvalue_type = \"{value_type}\"\n",
@@ -97,11 +78,6 @@ async fn full_chain_lands_bit_for_bit_on_the_s7_peer() {
             "{value_type}"
         );
         assert_eq!(held.sd43920_mm, 100.0);
-        let fin = rig.stop().await;
-        assert_eq!(
-            fin.axes[0].jobs_failed, 0,
-            "{:?}",
-            fin.axes[0].last_job_error
-        );
+        rig.stop_without_failed_jobs().await;
     }
 }

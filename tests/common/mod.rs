@@ -40,6 +40,17 @@ impl Rig {
         self.status.borrow().clone()
     }
 
+    /// Stops the gateway; asserts that no job of the first axis failed.
+    pub async fn stop_without_failed_jobs(self) -> Status {
+        let fin = self.stop().await;
+        assert_eq!(
+            fin.axes[0].jobs_failed, 0,
+            "{:?}",
+            fin.axes[0].last_job_error
+        );
+        fin
+    }
+
     /// Waits until `pred` holds for the published status; panics with the last status
     /// and `what` after `secs`.
     pub async fn wait_for(
@@ -240,6 +251,21 @@ pub fn with_target(target: &str, axis: u16) -> String {
         "nc_module = \"nc_x\"\n",
         &format!("nc_module = \"nc_x\"\naxis_number = {axis}\n"),
     )
+}
+
+/// What the first axis was written, checked to be the model of [`config`] on the
+/// readings (T_bed at 30 degC within one ADC count).
+pub fn written_by_model(s: &Status) -> compgate_core::comp::CompParams {
+    let w = s.axes[0].written.expect("a written job");
+    let t_bed = Rig::value(s, "T_bed");
+    let t_screw = Rig::value(s, "T_screw");
+    assert!((t_bed - 30.0).abs() <= COUNT_DEGC, "T_bed {t_bed}");
+    assert!((w.k0_mm - 0.004 * (t_bed - 20.0)).abs() < 1e-12, "{w:?}");
+    assert!(
+        (w.tan_beta - 0.0000115 * (t_screw - 20.0)).abs() < 1e-15,
+        "{w:?}"
+    );
+    w
 }
 
 /// One ADC count in degC for the test transmitters (24 mA / 4095 counts, 200 degC / 16 mA).
