@@ -8,7 +8,7 @@ mod common;
 use std::time::Duration;
 
 use common::metrics::{scrape, value};
-use common::process::Gateway;
+use common::process::{assert_success, Gateway};
 use rusqlite::Connection;
 
 /// One TCP field device with two PT100 channels and nothing else: no NC module, no
@@ -363,12 +363,7 @@ async fn probe_names_the_word_order_of_a_misconfigured_float_and_exits_1() {
             .output()
             .unwrap()
     });
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{text}{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let text = assert_success(&out);
     assert!(
         !text.contains("T_bed") && text.contains("quality    good"),
         "{text}"
