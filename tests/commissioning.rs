@@ -302,6 +302,19 @@ scaling = { kind = "direct" }
     rig.stop().await;
 }
 
+/// `compgate probe ARGS --config CONFIG`, off the runtime's threads.
+fn probe(args: &[&str], config: &std::path::Path) -> std::process::Output {
+    tokio::task::block_in_place(|| {
+        std::process::Command::new(common::process::BIN)
+            .arg("probe")
+            .args(args)
+            .arg("--config")
+            .arg(config)
+            .output()
+            .expect("compgate probe runs")
+    })
+}
+
 // `compgate probe` against the plant with the CDAB float misconfigured as ABCD: it
 // shows the registers, names CDAB as the plausible order, and exits non-zero because
 // the channel is bad; the counts channel shows its mA and degC.
@@ -309,13 +322,7 @@ scaling = { kind = "direct" }
 async fn probe_names_the_word_order_of_a_misconfigured_float_and_exits_1() {
     let dir = tempfile::tempdir().unwrap();
     let (plant, path) = plant_with_swapped_float(dir.path(), "").await;
-    let out = tokio::task::block_in_place(|| {
-        std::process::Command::new(common::process::BIN)
-            .args(["probe", "--config"])
-            .arg(&path)
-            .output()
-            .unwrap()
-    });
+    let out = probe(&[], &path);
     let text = String::from_utf8_lossy(&out.stdout);
     let err = String::from_utf8_lossy(&out.stderr);
     println!("{text}{err}");
@@ -356,13 +363,7 @@ async fn probe_names_the_word_order_of_a_misconfigured_float_and_exits_1() {
         .unwrap()
         .replace("byte_order = \"ABCD\"", "byte_order = \"CDAB\"");
     std::fs::write(&fixed, text).unwrap();
-    let out = tokio::task::block_in_place(|| {
-        std::process::Command::new(common::process::BIN)
-            .args(["probe", "--channel", "T_amb", "--config"])
-            .arg(&fixed)
-            .output()
-            .unwrap()
-    });
+    let out = probe(&["--channel", "T_amb"], &fixed);
     let text = assert_success(&out);
     assert!(
         !text.contains("T_bed") && text.contains("quality    good"),
@@ -371,13 +372,7 @@ async fn probe_names_the_word_order_of_a_misconfigured_float_and_exits_1() {
 
     // A silent device: the first read times out, the others are not tried; exit 1.
     plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::Silent);
-    let out = tokio::task::block_in_place(|| {
-        std::process::Command::new(common::process::BIN)
-            .args(["probe", "--config"])
-            .arg(&fixed)
-            .output()
-            .unwrap()
-    });
+    let out = probe(&[], &fixed);
     let text = String::from_utf8_lossy(&out.stdout);
     assert_eq!(out.status.code(), Some(1), "{text}");
     assert!(text.contains("error      no reply within 200ms"), "{text}");
