@@ -892,6 +892,56 @@ mod tests {
         assert_eq!(state.status.samples, 1);
     }
 
+    // A device's values come in channel (config) order, whatever the register order:
+    // the core loop walks its processors front to back. Each channel still gets the
+    // value of its own register.
+    #[tokio::test]
+    async fn a_sample_lists_channels_in_config_order_each_with_its_own_register() {
+        use compgate_plc::field::{FieldModule, FieldModuleSpec, Profile, TransmitterSpec};
+        let n = 12;
+        let degc = |address: usize| 10.0 + 5.0 * address as f64;
+        let module = FieldModule::new(FieldModuleSpec::new(
+            (0..n)
+                .map(|a| TransmitterSpec::new(Profile::Constant { degc: degc(a) }, -50.0, 150.0))
+                .collect(),
+            1,
+        ))
+        .expect("field module");
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+            .await
+            .expect("bind");
+        let port = listener.local_addr().expect("address").port();
+        let stop = CancellationToken::new();
+        tokio::spawn(module.serve_tcp(listener, stop.clone()));
+
+        // Names sort against the addresses: "c11" holds register 0, "c00" register 11,
+        // and "c05" sits between "c04" and "c06" only by name.
+        let mut text = format!(
+            "[devices.d]\ntransport = \"tcp\"\naddress = \"127.0.0.1:{port}\"\nunit_id = 1\n\n"
+        );
+        for a in 0..n {
+            text.push_str(&format!(
+                "[channels.c{:02}]\ndevice = \"d\"\nregister = \"input\"\naddress = {a}\ndata_type = \"u16\"\nscaling = {{ kind = \"transmitter\", adc_full_scale_counts = 4095, adc_full_scale_ma = 24.0, current_range = \"4-20\", range_min_degc = -50.0, range_max_degc = 150.0 }}\n\n",
+                n - 1 - a
+            ));
+        }
+        let cfg = crate::config::load_str(&text, "order.toml").expect("config");
+        let mut built = build(&cfg).expect("build");
+        let sample = built.devices[0].poller.poll().await;
+        stop.cancel();
+        assert_eq!(sample.error, None);
+        let order: Vec<usize> = sample.values.iter().map(|(ch, _)| *ch).collect();
+        assert_eq!(order, (0..n).collect::<Vec<_>>());
+        let mut out = Vec::new();
+        built.pipeline.ingest(&sample, &mut out);
+        for (name, c) in built.pipeline.channel_names.iter().zip(&out) {
+            let address = n - 1 - name[1..].parse::<usize>().expect("number");
+            let got = c.reading.unfiltered_degc.expect("a value");
+            // One ADC count is about 0.06 degC on this range.
+            assert!((got - degc(address)).abs() < 0.1, "{name}: {got} degC");
+        }
+    }
+
     // Each NC snapshot's actual position feeds the axis' motion heat term.
     #[test]
     fn nc_snapshots_feed_the_motion_heat_term() {
