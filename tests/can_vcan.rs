@@ -93,27 +93,16 @@ motion_max_mm = 500.0
     )
 }
 
-fn quality(s: &Status, ch: &str) -> Quality {
-    Rig::channel(s, ch).reading.quality
-}
-
-fn value(s: &Status, ch: &str) -> f64 {
-    Rig::channel(s, ch)
-        .reading
-        .value_degc
-        .expect("channel has a value")
-}
-
 fn all_good(s: &Status) -> bool {
     ["T_bed", "T_screw", "T_col"]
         .iter()
-        .all(|c| quality(s, c) == Quality::Good)
+        .all(|c| Rig::quality(s, c) == Quality::Good)
 }
 
 fn all_bad(s: &Status) -> bool {
     ["T_bed", "T_screw", "T_col"]
         .iter()
-        .all(|c| matches!(quality(s, c), Quality::Bad(_)))
+        .all(|c| matches!(Rig::quality(s, c), Quality::Bad(_)))
 }
 
 fn cansend(frame: &str) {
@@ -151,26 +140,26 @@ async fn node_to_nc_then_silence_recovery_emcy_and_sdo_abort() {
     );
     // TPDO and SDO values within one ADC count of the simulated temperatures.
     assert!(
-        (value(&s, "T_bed") - 30.0).abs() <= COUNT_DEGC,
+        (Rig::value(&s, "T_bed") - 30.0).abs() <= COUNT_DEGC,
         "{}",
-        value(&s, "T_bed")
+        Rig::value(&s, "T_bed")
     );
-    assert!((value(&s, "T_screw") - 25.0).abs() <= COUNT_DEGC);
-    assert!((value(&s, "T_col") - 60.0).abs() <= COUNT_DEGC);
+    assert!((Rig::value(&s, "T_screw") - 25.0).abs() <= COUNT_DEGC);
+    assert!((Rig::value(&s, "T_col") - 60.0).abs() <= COUNT_DEGC);
     assert_eq!(s.devices[0].link, format!("can:{} node 5", interface()));
     let node = rig.plant.can["node5"].clone();
     assert_eq!(
         node.nmt_state(),
         compgate_plc::canopen::NmtState::Operational
     );
-    let k0 = 0.004 * (value(&s, "T_bed") - 20.0);
+    let k0 = 0.004 * (Rig::value(&s, "T_bed") - 20.0);
     let nc = rig.plant.nc["nc_x"].state();
     assert!(
         (nc.sd43900_mm - k0).abs() < 1e-12,
         "SD43900 {} vs {k0}",
         nc.sd43900_mm
     );
-    let tan = 0.0000115 * (value(&s, "T_screw") - 20.0);
+    let tan = 0.0000115 * (Rig::value(&s, "T_screw") - 20.0);
     assert!((nc.sd43910 - tan).abs() < 1e-15);
 
     // Node silence: heartbeat timeout -> every channel bad -> compensation held.
@@ -193,7 +182,10 @@ async fn node_to_nc_then_silence_recovery_emcy_and_sdo_abort() {
         "CAN e2e: channels bad {:.2} s after the node went silent (heartbeat timeout 0.6 s)",
         t_silent.elapsed().as_secs_f64()
     );
-    assert_eq!(quality(&s, "T_bed"), Quality::Bad(Reason::DeviceDegraded));
+    assert_eq!(
+        Rig::quality(&s, "T_bed"),
+        Quality::Bad(Reason::DeviceDegraded)
+    );
     let held = rig.plant.nc["nc_x"].state().sd43900_mm;
     let jobs = rig.plant.nc["nc_x"].jobs_executed();
     rig.wait_for(5.0, "axis holds", |s| {
@@ -251,13 +243,13 @@ async fn node_to_nc_then_silence_recovery_emcy_and_sdo_abort() {
     node.set_sdo_abort(Some((0x6401, 3, 0x0606_0000)));
     let s = rig
         .wait_for(10.0, "SDO abort named and T_col bad", |s| {
-            matches!(quality(s, "T_col"), Quality::Bad(_))
+            matches!(Rig::quality(s, "T_col"), Quality::Bad(_))
                 && s.devices[0].last_error.as_deref().is_some_and(|e| {
                     e.contains("abort 06060000h: access failed due to a hardware error")
                 })
         })
         .await;
-    assert_eq!(quality(&s, "T_bed"), Quality::Good);
+    assert_eq!(Rig::quality(&s, "T_bed"), Quality::Good);
     node.set_sdo_abort(None);
     rig.wait_for(10.0, "T_col good again", all_good).await;
     let fin = rig.stop().await;

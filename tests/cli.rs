@@ -1,11 +1,13 @@
 //! The `compgate` binary as an operator meets it: validate, and the demo run as a
 //! real process with stdout on a pipe, stopped by SIGTERM.
 
+mod common;
+
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-const BIN: &str = env!("CARGO_BIN_EXE_compgate");
+use common::process::{assert_success, BIN};
 
 #[test]
 fn validate_reports_every_problem_with_file_and_key_and_exits_1() {
@@ -39,11 +41,7 @@ fn validate_reports_every_problem_with_file_and_key_and_exits_1() {
         .args(["validate", "--config", "config/example.toml"])
         .output()
         .unwrap();
-    assert!(
-        ok.status.success(),
-        "{}",
-        String::from_utf8_lossy(&ok.stderr)
-    );
+    assert_success(&ok);
 }
 
 #[test]
@@ -52,12 +50,7 @@ fn backlash_with_sim_reports_the_table_and_without_a_target_exits_1() {
         .args(["backlash", "--sim", "--sim-backlash-um", "12"])
         .output()
         .unwrap();
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let text = assert_success(&out);
     assert!(
         text.contains("H1") && text.contains("h2") && text.contains("F2"),
         "{text}"
@@ -151,23 +144,14 @@ fn backlash_trace_file_is_analysed_offline_and_a_creeping_axis_is_refused() {
         .arg(dir.path())
         .output()
         .unwrap();
-    assert!(
-        ok.status.success(),
-        "{}",
-        String::from_utf8_lossy(&ok.stderr)
-    );
+    assert_success(&ok);
     let csv = dir.path().join("backlash_X1_trace.csv");
     let offline = Command::new(BIN)
         .args(["backlash", "--trace"])
         .arg(&csv)
         .output()
         .unwrap();
-    let text = String::from_utf8_lossy(&offline.stdout);
-    assert!(
-        offline.status.success(),
-        "{}",
-        String::from_utf8_lossy(&offline.stderr)
-    );
+    let text = assert_success(&offline);
     let f: Vec<f64> = text
         .lines()
         .filter_map(|l| l.split_once(" F1 ").or_else(|| l.split_once(" F2 ")))

@@ -3,15 +3,13 @@
 #![allow(clippy::unwrap_used)]
 
 mod common;
-#[path = "common/opcua_peer.rs"]
-mod opcua_peer;
 
 use std::io::Write;
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
 
-use common::{config, plant_and_file};
-use opcua_peer::OpcuaPeer;
+use common::opcua_peer::OpcuaPeer;
+use common::{config, plant_and_file, with_target};
 
 const BIN: &str = env!("CARGO_BIN_EXE_compgate");
 
@@ -158,27 +156,11 @@ async fn nc_read_on_opcua_says_whether_the_session_may_write() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let base = config("hold", "", "");
-    let start = base.find("[nc_modules.nc_x]").unwrap();
-    let end = start + base[start..].find("\n\n").unwrap();
-    let sim = base.find("[sim.nc_modules.nc_x]").unwrap();
     for (user, may) in [
         ("writer", "this session may write them"),
         ("reader", "may NOT write"),
     ] {
-        let cred = dir.path().join(format!("cred-{user}"));
-        std::fs::write(&cred, format!("{user}\n{user}-pw\n")).unwrap();
-        let target = format!(
-            "[targets.nc_x]\nkind = \"opcua\"\nendpoint_url = \"{}\"\nsecurity_policy = \"None\"\n\
-             security_mode = \"None\"\npki_dir = \"{}\"\ncredentials_file = \"{}\"\n",
-            peer.endpoint,
-            dir.path().join("pki").display(),
-            cred.display()
-        );
-        let text = format!("{}{target}{}", &base[..start], &base[end..sim]).replace(
-            "nc_module = \"nc_x\"\n",
-            "nc_module = \"nc_x\"\naxis_number = 1\n",
-        );
+        let text = with_target(&peer.target_table(dir.path(), user), 1);
         let file = dir.path().join(format!("{user}.toml"));
         std::fs::write(&file, text).unwrap();
         let out = nc(&file, &["read"], "").await;

@@ -5,11 +5,10 @@
 
 mod common;
 
-use std::io::{Read, Write};
-use std::net::TcpStream;
 use std::time::Duration;
 
-use common::process::Gateway;
+use common::metrics::{scrape, value};
+use common::process::{assert_success, Gateway};
 use rusqlite::Connection;
 
 /// One TCP field device with two PT100 channels and nothing else: no NC module, no
@@ -62,31 +61,6 @@ mean_degc = 25.0
     )
 }
 
-/// GET /metrics; the body.
-fn scrape(port: u16) -> Result<String, String> {
-    let addr = std::net::SocketAddr::from(([127, 0, 0, 1], port));
-    let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(1))
-        .map_err(|e| format!("connect: {e}"))?;
-    s.set_read_timeout(Some(Duration::from_secs(2)))
-        .map_err(|e| e.to_string())?;
-    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
-        .map_err(|e| format!("request: {e}"))?;
-    let mut text = String::new();
-    s.read_to_string(&mut text)
-        .map_err(|e| format!("response: {e}"))?;
-    Ok(text
-        .split_once("\r\n\r\n")
-        .map(|(_, b)| b.to_string())
-        .unwrap_or_default())
-}
-
-fn value(body: &str, series: &str) -> Option<f64> {
-    body.lines()
-        .filter_map(|l| l.rsplit_once(' '))
-        .find(|(k, _)| *k == series)
-        .and_then(|(_, v)| v.parse().ok())
-}
-
 // Trap 4: a config without `[nc_modules]` and `[axes]` used to be refused ("required
 // key is missing"). It runs: the device is polled, the values filtered, recorded and
 // served as metrics.
@@ -107,7 +81,9 @@ async fn a_monitoring_only_config_polls_filters_records_and_serves_metrics() {
     let series = "compgate_channel_value_degc{channel=\"T_bed\"}";
     let mut last = None;
     for _ in 0..100 {
-        let body = tokio::task::block_in_place(|| scrape(port)).unwrap_or_default();
+        let body = tokio::task::block_in_place(|| scrape(port, Duration::from_secs(2)))
+            .map(|(body, _)| body)
+            .unwrap_or_default();
         last = value(&body, series);
         if last.is_some_and(|v| (v - 30.0).abs() < 0.5) {
             break;
@@ -197,7 +173,9 @@ async fn a_float_in_the_wrong_word_order_is_bad_and_the_log_names_the_order() {
     let good = "compgate_channel_quality{channel=\"T_bed\"}";
     let mut seen = (None, None);
     for _ in 0..50 {
-        let body = tokio::task::block_in_place(|| scrape(port)).unwrap_or_default();
+        let body = tokio::task::block_in_place(|| scrape(port, Duration::from_secs(2)))
+            .map(|(body, _)| body)
+            .unwrap_or_default();
         seen = (value(&body, quality), value(&body, good));
         if seen.0.is_some() && seen.1 == Some(0.0) {
             break;
@@ -324,6 +302,19 @@ scaling = { kind = "direct" }
     rig.stop().await;
 }
 
+/// `compgate probe ARGS --config CONFIG`, off the runtime's threads.
+fn probe(args: &[&str], config: &std::path::Path) -> std::process::Output {
+    tokio::task::block_in_place(|| {
+        std::process::Command::new(common::process::BIN)
+            .arg("probe")
+            .args(args)
+            .arg("--config")
+            .arg(config)
+            .output()
+            .expect("compgate probe runs")
+    })
+}
+
 // `compgate probe` against the plant with the CDAB float misconfigured as ABCD: it
 // shows the registers, names CDAB as the plausible order, and exits non-zero because
 // the channel is bad; the counts channel shows its mA and degC.
@@ -331,13 +322,7 @@ scaling = { kind = "direct" }
 async fn probe_names_the_word_order_of_a_misconfigured_float_and_exits_1() {
     let dir = tempfile::tempdir().unwrap();
     let (plant, path) = plant_with_swapped_float(dir.path(), "").await;
-    let out = tokio::task::block_in_place(|| {
-        std::process::Command::new(common::process::BIN)
-            .args(["probe", "--config"])
-            .arg(&path)
-            .output()
-            .unwrap()
-    });
+    let out = probe(&[], &path);
     let text = String::from_utf8_lossy(&out.stdout);
     let err = String::from_utf8_lossy(&out.stderr);
     println!("{text}{err}");
@@ -378,19 +363,8 @@ async fn probe_names_the_word_order_of_a_misconfigured_float_and_exits_1() {
         .unwrap()
         .replace("byte_order = \"ABCD\"", "byte_order = \"CDAB\"");
     std::fs::write(&fixed, text).unwrap();
-    let out = tokio::task::block_in_place(|| {
-        std::process::Command::new(common::process::BIN)
-            .args(["probe", "--channel", "T_amb", "--config"])
-            .arg(&fixed)
-            .output()
-            .unwrap()
-    });
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{text}{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = probe(&["--channel", "T_amb"], &fixed);
+    let text = assert_success(&out);
     assert!(
         !text.contains("T_bed") && text.contains("quality    good"),
         "{text}"
@@ -398,13 +372,7 @@ async fn probe_names_the_word_order_of_a_misconfigured_float_and_exits_1() {
 
     // A silent device: the first read times out, the others are not tried; exit 1.
     plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::Silent);
-    let out = tokio::task::block_in_place(|| {
-        std::process::Command::new(common::process::BIN)
-            .args(["probe", "--config"])
-            .arg(&fixed)
-            .output()
-            .unwrap()
-    });
+    let out = probe(&[], &fixed);
     let text = String::from_utf8_lossy(&out.stdout);
     assert_eq!(out.status.code(), Some(1), "{text}");
     assert!(text.contains("error      no reply within 200ms"), "{text}");

@@ -1,8 +1,11 @@
 //! `compgate diagnose` on data with hidden effects. Every case is generated, written
 //! as CSV, and diagnosed from the CSV alone; the verdict is checked against the truth.
 
+mod common;
+
 use std::process::Command;
 
+use common::process::assert_success;
 use compgate_commission::diagnose::synth::{generate, SynthSpec};
 use compgate_commission::diagnose::{diagnose, EffectKind, Options};
 use compgate_core::measure::Measurements;
@@ -158,12 +161,7 @@ fn cli_writes_json_plots_report_and_a_model_that_reproduces_the_fit() {
         .arg(&json)
         .output()
         .expect("run");
-    let stdout = String::from_utf8_lossy(&run.stdout);
-    assert!(
-        run.status.success(),
-        "{stdout} {}",
-        String::from_utf8_lossy(&run.stderr)
-    );
+    let stdout = assert_success(&run);
     assert!(stdout.contains("ignored columns: operator"), "{stdout}");
     assert!(stdout.contains("verdict: missing: thermal_lag"), "{stdout}");
 
@@ -205,11 +203,7 @@ fn cli_writes_json_plots_report_and_a_model_that_reproduces_the_fit() {
         .arg(&json)
         .output()
         .expect("run");
-    assert!(
-        again.status.success(),
-        "{}",
-        String::from_utf8_lossy(&again.stderr)
-    );
+    assert_success(&again);
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("parse");
     let gap = v["model_gap"]["rms_um"].as_f64().expect("model gap");

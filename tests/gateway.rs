@@ -13,17 +13,6 @@ use compgate_plc::field::{CommFault, SensorFault};
 use compgate_plc::nc::JobFault;
 use tokio_modbus::ExceptionCode;
 
-fn quality(s: &compgate_gateway::runtime::Status, ch: &str) -> Quality {
-    Rig::channel(s, ch).reading.quality
-}
-
-fn value(s: &compgate_gateway::runtime::Status, ch: &str) -> f64 {
-    Rig::channel(s, ch)
-        .reading
-        .value_degc
-        .expect("channel has a value")
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn full_chain_tcp_transmitters_to_applied_nc_compensation() {
     let mut rig = start(&config("hold", "", "")).await;
@@ -37,12 +26,12 @@ async fn full_chain_tcp_transmitters_to_applied_nc_compensation() {
         .await;
 
     // Temperatures read through the 12-bit ADC within one count of the truth.
-    let t_bed = value(&s, "T_bed");
-    let t_screw = value(&s, "T_screw");
+    let t_bed = Rig::value(&s, "T_bed");
+    let t_screw = Rig::value(&s, "T_screw");
     assert!((t_bed - 30.0).abs() <= COUNT_DEGC, "T_bed {t_bed}");
     assert!((t_screw - 25.0).abs() <= COUNT_DEGC, "T_screw {t_screw}");
-    assert!((value(&s, "T_col") - 60.0).abs() <= COUNT_DEGC);
-    assert_eq!(quality(&s, "T_bed"), Quality::Good);
+    assert!((Rig::value(&s, "T_col") - 60.0).abs() <= COUNT_DEGC);
+    assert_eq!(Rig::quality(&s, "T_bed"), Quality::Good);
 
     // What the NC holds is the model evaluated on those readings, bit for bit through
     // the f64 job encoding.
@@ -109,10 +98,10 @@ async fn full_chain_over_modbus_rtu_on_a_pty_pair() {
             s.axes[0].jobs_ok >= 1
         })
         .await;
-    assert!((value(&s, "T_bed") - 30.0).abs() <= COUNT_DEGC);
-    assert!((value(&s, "T_col") - 60.0).abs() <= COUNT_DEGC);
+    assert!((Rig::value(&s, "T_bed") - 30.0).abs() <= COUNT_DEGC);
+    assert!((Rig::value(&s, "T_col") - 60.0).abs() <= COUNT_DEGC);
     let nc = rig.plant.nc["nc_x"].state();
-    assert!((nc.sd43900_mm - 0.004 * (value(&s, "T_bed") - 20.0)).abs() < 1e-12);
+    assert!((nc.sd43900_mm - 0.004 * (Rig::value(&s, "T_bed") - 20.0)).abs() < 1e-12);
     rig.stop().await;
 }
 
@@ -132,7 +121,7 @@ async fn timeout_holds_uncertain_then_bad_and_holds_compensation() {
         .wait_for(
             10.0,
             "channels bad after degrade_after_cycles timeouts",
-            |s| quality(s, "T_bed") == Quality::Bad(Reason::DeviceDegraded),
+            |s| Rig::quality(s, "T_bed") == Quality::Bad(Reason::DeviceDegraded),
         )
         .await;
     assert!(
@@ -141,7 +130,7 @@ async fn timeout_holds_uncertain_then_bad_and_holds_compensation() {
         s.devices[0].errors
     );
     // The held value is the last good one.
-    assert!((value(&s, "T_bed") - 30.0).abs() <= COUNT_DEGC);
+    assert!((Rig::value(&s, "T_bed") - 30.0).abs() <= COUNT_DEGC);
     let s = rig
         .wait_for(5.0, "axis holds", |s| {
             s.axes[0].decision.starts_with("hold: bad input")
@@ -162,7 +151,7 @@ async fn timeout_holds_uncertain_then_bad_and_holds_compensation() {
 
     field.set_comm_fault(CommFault::None);
     rig.wait_for(10.0, "recovered and following 45 degC", |s| {
-        quality(s, "T_bed") == Quality::Good
+        Rig::quality(s, "T_bed") == Quality::Good
             && s.axes[0]
                 .written
                 .is_some_and(|p| (p.k0_mm - 0.1).abs() <= 0.004 * COUNT_DEGC)
@@ -183,7 +172,7 @@ async fn exception_is_not_a_transport_fault() {
     field.set_comm_fault(CommFault::Exception(ExceptionCode::ServerDeviceBusy));
     let s = rig
         .wait_for(10.0, "exception leads to degraded channels", |s| {
-            quality(s, "T_screw") == Quality::Bad(Reason::DeviceDegraded)
+            Rig::quality(s, "T_screw") == Quality::Bad(Reason::DeviceDegraded)
                 && s.devices[0].errors.get("exception").copied().unwrap_or(0) >= 3
         })
         .await;
@@ -195,7 +184,7 @@ async fn exception_is_not_a_transport_fault() {
     field.set_comm_fault(CommFault::None);
     let s = rig
         .wait_for(10.0, "good again", |s| {
-            quality(s, "T_screw") == Quality::Good
+            Rig::quality(s, "T_screw") == Quality::Good
         })
         .await;
     // The device answered every time: the connection was never rebuilt.
@@ -216,20 +205,20 @@ async fn dropped_connection_reconnects_with_backoff() {
             s.devices[0].errors.get("transport").copied().unwrap_or(0)
                 + s.devices[0].errors.get("connect").copied().unwrap_or(0)
                 >= 2
-                && !quality(s, "T_bed").is_good()
+                && !Rig::quality(s, "T_bed").is_good()
         })
         .await;
     assert_eq!(
-        quality(&s, "T_bed").is_usable(),
-        !matches!(quality(&s, "T_bed"), Quality::Bad(_))
+        Rig::quality(&s, "T_bed").is_usable(),
+        !matches!(Rig::quality(&s, "T_bed"), Quality::Bad(_))
     );
     field.set_comm_fault(CommFault::None);
     let s = rig
         .wait_for(10.0, "reconnected and good", |s| {
-            s.devices[0].connects >= 2 && quality(s, "T_bed") == Quality::Good
+            s.devices[0].connects >= 2 && Rig::quality(s, "T_bed") == Quality::Good
         })
         .await;
-    assert!((value(&s, "T_bed") - 30.0).abs() <= COUNT_DEGC);
+    assert!((Rig::value(&s, "T_bed") - 30.0).abs() <= COUNT_DEGC);
     rig.stop().await;
 }
 
@@ -273,11 +262,13 @@ async fn late_reply_is_never_taken_for_the_next_answer() {
     field.set_comm_fault(CommFault::None);
     let s = rig
         .wait_for(10.0, "all good again", |s| {
-            truth.iter().all(|(c, _)| quality(s, c) == Quality::Good)
+            truth
+                .iter()
+                .all(|(c, _)| Rig::quality(s, c) == Quality::Good)
         })
         .await;
     for (ch, t) in truth {
-        assert!((value(&s, ch) - t).abs() <= 2.0 * COUNT_DEGC, "{ch}");
+        assert!((Rig::value(&s, ch) - t).abs() <= 2.0 * COUNT_DEGC, "{ch}");
     }
     rig.stop().await;
 }
@@ -291,7 +282,7 @@ async fn ne43_open_sensor_makes_channel_bad_and_ramps_to_zero() {
     field.set_sensor_fault(0, SensorFault::Open).unwrap();
     let s = rig
         .wait_for(5.0, "NE43 low", |s| {
-            quality(s, "T_bed") == Quality::Bad(Reason::Ne43Low)
+            Rig::quality(s, "T_bed") == Quality::Bad(Reason::Ne43Low)
         })
         .await;
     assert!(Rig::channel(&s, "T_bed").reading.current_ma.unwrap() < 3.6);
@@ -311,7 +302,7 @@ async fn ne43_open_sensor_makes_channel_bad_and_ramps_to_zero() {
     assert_eq!(rig.plant.nc["nc_x"].state().sd43900_mm, 0.0);
     assert_eq!(rig.plant.nc["nc_x"].state().sd43920_mm, 100.0);
     // The unaffected channel stays good.
-    assert_eq!(quality(&s, "T_screw"), Quality::Good);
+    assert_eq!(Rig::quality(&s, "T_screw"), Quality::Good);
     field.set_sensor_fault(0, SensorFault::None).unwrap();
     rig.wait_for(10.0, "compensation back", |s| {
         s.axes[0]
@@ -335,14 +326,14 @@ async fn stale_sensor_is_detected() {
     field.set_sensor_fault(0, SensorFault::Frozen).unwrap();
     let s = rig
         .wait_for(5.0, "stale", |s| {
-            quality(s, "T_bed") == Quality::Bad(Reason::Stale)
+            Rig::quality(s, "T_bed") == Quality::Bad(Reason::Stale)
         })
         .await;
     assert!(s.axes[0].decision.starts_with("hold") || s.axes[0].decision.starts_with("within"));
     rig.wait_for(5.0, "axis holds", |s| s.axes[0].decision.contains("T_bed"))
         .await;
     field.set_sensor_fault(0, SensorFault::None).unwrap();
-    rig.wait_for(5.0, "fresh again", |s| quality(s, "T_bed").is_usable())
+    rig.wait_for(5.0, "fresh again", |s| Rig::quality(s, "T_bed").is_usable())
         .await;
     rig.stop().await;
 }
@@ -398,7 +389,7 @@ async fn one_dead_device_does_not_stop_the_other() {
     rig.plant.field["ain2"].set_comm_fault(CommFault::Silent);
     let s = rig
         .wait_for(10.0, "ain2 degraded", |s| {
-            quality(s, "T_col") == Quality::Bad(Reason::DeviceDegraded)
+            Rig::quality(s, "T_col") == Quality::Bad(Reason::DeviceDegraded)
         })
         .await;
     let ain1_cycles = s.devices.iter().find(|d| d.name == "ain1").unwrap().cycles;
@@ -407,7 +398,7 @@ async fn one_dead_device_does_not_stop_the_other() {
             s.devices.iter().find(|d| d.name == "ain1").unwrap().cycles >= ain1_cycles + 10
         })
         .await;
-    assert_eq!(quality(&s, "T_bed"), Quality::Good);
+    assert_eq!(Rig::quality(&s, "T_bed"), Quality::Good);
     // The axis uses only ain1's channels: it keeps writing.
     let jobs = s.axes[0].jobs_ok;
     rig.plant.field["ain1"]
@@ -465,7 +456,7 @@ async fn monitoring_only_config_without_axes_runs_and_stops() {
     let mut rig = start(&toml).await;
     let s = rig
         .wait_for(10.0, "readings without any axis", |s| {
-            s.samples >= 5 && quality(s, "T_bed") == Quality::Good
+            s.samples >= 5 && Rig::quality(s, "T_bed") == Quality::Good
         })
         .await;
     assert!(s.axes.is_empty());

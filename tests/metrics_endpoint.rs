@@ -3,10 +3,11 @@
 
 mod common;
 
-use std::io::{Read, Write};
+use std::io::Write;
 use std::net::TcpStream;
 use std::time::{Duration, Instant};
 
+use common::metrics::{scrape, value};
 use common::process::Gateway;
 use compgate::plant::Plant;
 
@@ -20,37 +21,6 @@ async fn plant_with_metrics(dir: &std::path::Path) -> (Plant, std::path::PathBuf
     )
     .await;
     (plant, path, port)
-}
-
-/// GET /metrics with every step bounded by `limit`: the status line and body, and how
-/// long it took; `Err` with what went wrong.
-fn scrape(port: u16, limit: Duration) -> Result<(String, Duration), String> {
-    let started = Instant::now();
-    let addr = std::net::SocketAddr::from(([127, 0, 0, 1], port));
-    let mut s = TcpStream::connect_timeout(&addr, limit).map_err(|e| format!("connect: {e}"))?;
-    s.set_read_timeout(Some(limit)).map_err(|e| e.to_string())?;
-    s.set_write_timeout(Some(limit))
-        .map_err(|e| e.to_string())?;
-    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
-        .map_err(|e| format!("request: {e}"))?;
-    let mut text = String::new();
-    s.read_to_string(&mut text)
-        .map_err(|e| format!("response after {:?}: {e}", started.elapsed()))?;
-    if !text.starts_with("HTTP/1.1 200") {
-        return Err(format!("not 200: {text}"));
-    }
-    let body = text
-        .split_once("\r\n\r\n")
-        .map(|(_, b)| b.to_string())
-        .unwrap_or_default();
-    Ok((body, started.elapsed()))
-}
-
-fn value(body: &str, series: &str) -> Option<f64> {
-    body.lines()
-        .filter_map(|l| l.rsplit_once(' '))
-        .find(|(k, _)| *k == series)
-        .and_then(|(_, v)| v.parse().ok())
 }
 
 /// Raises this process's soft descriptor limit to its hard limit; returns the new

@@ -4,49 +4,12 @@
 #![allow(clippy::unwrap_used)]
 
 mod common;
-#[path = "common/opcua_peer.rs"]
-mod opcua_peer;
-#[path = "common/s7_peer.rs"]
-mod s7_peer;
 
-use common::{config, start, COUNT_DEGC};
+use common::opcua_peer::OpcuaPeer;
+use common::s7_peer::{self, S7Peer};
+use common::{start, with_target, written_by_model};
 use compgate_gateway::nc::s7::S7TargetConfig;
 use compgate_gateway::nc::NcWriter;
-use compgate_gateway::runtime::Status;
-use opcua_peer::OpcuaPeer;
-use s7_peer::S7Peer;
-
-/// The common test config with its NC module replaced by `target` (a `[targets.nc_x]`
-/// table) and axis X given axis number `axis`.
-fn with_target(target: &str, axis: u16) -> String {
-    let base = config("hold", "", "");
-    let start = base.find("[nc_modules.nc_x]").unwrap();
-    let end = start + base[start..].find("\n\n").unwrap();
-    let sim = base.find("[sim.nc_modules.nc_x]").unwrap();
-    format!("{}{target}{}", &base[..start], &base[end..sim]).replace(
-        "nc_module = \"nc_x\"\n",
-        &format!("nc_module = \"nc_x\"\naxis_number = {axis}\n"),
-    )
-}
-
-fn value(s: &Status, ch: &str) -> f64 {
-    common::Rig::channel(s, ch).reading.value_degc.unwrap()
-}
-
-/// The written parameters are the model on the readings.
-fn check_model(s: &Status) -> compgate_core::comp::CompParams {
-    let w = s.axes[0].written.unwrap();
-    let t_bed = value(s, "T_bed");
-    let t_screw = value(s, "T_screw");
-    assert!((t_bed - 30.0).abs() <= COUNT_DEGC, "T_bed {t_bed}");
-    assert!((w.k0_mm - 0.004 * (t_bed - 20.0)).abs() < 1e-12, "{w:?}");
-    assert!(
-        (w.tan_beta - 0.0000115 * (t_screw - 20.0)).abs() < 1e-15,
-        "{w:?}"
-    );
-    assert_eq!(w.p0_mm, 100.0);
-    w
-}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn full_chain_lands_bit_for_bit_on_the_opcua_peer() {
@@ -54,22 +17,15 @@ async fn full_chain_lands_bit_for_bit_on_the_opcua_peer() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let cred = dir.path().join("cred");
-    std::fs::write(&cred, "writer\nwriter-pw\n").unwrap();
-    let target = format!(
-        "[targets.nc_x]\nkind = \"opcua\"\nendpoint_url = \"{}\"\nsecurity_policy = \"None\"\n\
-         security_mode = \"None\"\npki_dir = \"{}\"\ncredentials_file = \"{}\"\n",
-        peer.endpoint,
-        dir.path().join("pki").display(),
-        cred.display()
-    );
+    let target = peer.target_table(dir.path(), "writer");
     let mut rig = start(&with_target(&target, 2)).await;
     let s = rig
         .wait_for(20.0, "a verified job on the OPC UA peer", |s| {
             s.axes[0].jobs_ok >= 1
         })
         .await;
-    let w = check_model(&s);
+    let w = written_by_model(&s);
+    assert_eq!(w.p0_mm, 100.0);
     let dump = peer.dump();
     let held = |name: &str| dump[&peer.node(name, 2)];
     assert_eq!(held("$SA_TEMP_COMP_ABS_VALUE"), w.k0_mm.to_bits());
@@ -80,12 +36,7 @@ async fn full_chain_lands_bit_for_bit_on_the_opcua_peer() {
         dump[&peer.node("$SA_TEMP_COMP_ABS_VALUE", 1)],
         0.0_f64.to_bits()
     );
-    let fin = rig.stop().await;
-    assert_eq!(
-        fin.axes[0].jobs_failed, 0,
-        "{:?}",
-        fin.axes[0].last_job_error
-    );
+    rig.stop_without_failed_jobs().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -106,7 +57,8 @@ async fn full_chain_lands_bit_for_bit_on_the_s7_peer() {
                 s.axes[0].jobs_ok >= 1
             })
             .await;
-        let w = check_model(&s);
+        let w = written_by_model(&s);
+        assert_eq!(w.p0_mm, 100.0);
         // What the block holds, read by a reader of the test's own.
         let reader: S7TargetConfig = toml::from_str(&format!(
             "address = \"{}\"\ndb_number = 100\nvalue_type = \"{value_type}\"\n",
@@ -126,11 +78,6 @@ async fn full_chain_lands_bit_for_bit_on_the_s7_peer() {
             "{value_type}"
         );
         assert_eq!(held.sd43920_mm, 100.0);
-        let fin = rig.stop().await;
-        assert_eq!(
-            fin.axes[0].jobs_failed, 0,
-            "{:?}",
-            fin.axes[0].last_job_error
-        );
+        rig.stop_without_failed_jobs().await;
     }
 }

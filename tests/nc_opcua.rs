@@ -4,17 +4,16 @@
 // Test code: a panic with the message is the wanted failure.
 #![allow(clippy::unwrap_used)]
 
-#[path = "common/opcua_peer.rs"]
-mod opcua_peer;
+mod common;
 
 use std::time::Duration;
 
+use common::opcua_peer::{self, OpcuaPeer};
 use compgate_core::comp::CompParams;
 use compgate_gateway::nc::opcua::{
     OpcuaNcWriter, OpcuaSecurityMode, OpcuaSecurityPolicy, OpcuaTargetConfig,
 };
 use compgate_gateway::nc::{Job, NcError, NcWriter};
-use opcua_peer::OpcuaPeer;
 
 const ABS: &str = "$SA_TEMP_COMP_ABS_VALUE";
 const SLOPE: &str = "$SA_TEMP_COMP_SLOPE";

@@ -4,17 +4,16 @@
 // Test code: a panic with the message is the wanted failure.
 #![allow(clippy::unwrap_used)]
 
-#[path = "common/s7_peer.rs"]
-mod s7_peer;
+mod common;
 
 use std::time::{Duration, Instant};
 
+use common::s7_peer::{self, S7Peer};
 use compgate_core::comp::CompParams;
 use compgate_gateway::nc::s7::{S7NcWriter, S7TargetConfig};
 use compgate_gateway::nc::{Job, NcError, NcWriter};
 use compgate_gateway::source::SourceError;
 use compgate_ncproto::{var, JobState, JobStatus};
-use s7_peer::S7Peer;
 
 fn writer(peer: &S7Peer, extra: &str, axis_number: u16) -> S7NcWriter {
     let text = format!(

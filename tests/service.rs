@@ -5,6 +5,7 @@ mod common;
 
 use std::time::Duration;
 
+use common::metrics::value;
 use common::process::Gateway;
 use compgate::plant::{Bind, Plant};
 use compgate_gateway::config;
@@ -333,26 +334,11 @@ async fn reload_keeps_the_state_of_unchanged_channels_and_devices() {
         .unwrap();
 }
 
-/// GET /metrics over a plain TCP connection; the body's samples as (series, value).
-fn scrape(port: u16) -> Vec<(String, f64)> {
-    use std::io::{Read, Write};
-    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).expect("metrics endpoint");
-    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
-        .expect("request");
-    let mut text = String::new();
-    s.read_to_string(&mut text).expect("response");
-    assert!(text.starts_with("HTTP/1.1 200"), "{text}");
-    text.lines()
-        .filter(|l| l.starts_with("compgate_"))
-        .filter_map(|l| {
-            let (k, v) = l.rsplit_once(' ')?;
-            Some((k.to_string(), v.parse().ok()?))
-        })
-        .collect()
-}
-
-fn sample(m: &[(String, f64)], series: &str) -> Option<f64> {
-    m.iter().find(|(k, _)| k == series).map(|(_, v)| *v)
+/// GET /metrics; the body.
+fn scrape(port: u16) -> String {
+    common::metrics::scrape(port, Duration::from_secs(2))
+        .expect("metrics endpoint")
+        .0
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -369,40 +355,40 @@ async fn prometheus_endpoint_shows_links_channels_jobs_and_cycle_times() {
     tokio::time::sleep(Duration::from_millis(300)).await;
     let m = tokio::task::block_in_place(|| scrape(port));
     assert_eq!(
-        sample(&m, r#"compgate_device_link_up{device="ain1"}"#),
+        value(&m, r#"compgate_device_link_up{device="ain1"}"#),
         Some(1.0),
         "{m:?}"
     );
-    let bed = sample(&m, r#"compgate_channel_value_degc{channel="T_bed"}"#).unwrap();
+    let bed = value(&m, r#"compgate_channel_value_degc{channel="T_bed"}"#).unwrap();
     assert!((bed - 30.0).abs() < 0.1, "{bed}");
     assert_eq!(
-        sample(&m, r#"compgate_channel_quality{channel="T_bed"}"#),
+        value(&m, r#"compgate_channel_quality{channel="T_bed"}"#),
         Some(0.0)
     );
-    assert!(sample(&m, r#"compgate_nc_jobs_total{axis="X",result="ok"}"#).unwrap() >= 1.0);
-    let k0 = sample(&m, r#"compgate_axis_sd43900_mm{axis="X"}"#).unwrap();
+    assert!(value(&m, r#"compgate_nc_jobs_total{axis="X",result="ok"}"#).unwrap() >= 1.0);
+    let k0 = value(&m, r#"compgate_axis_sd43900_mm{axis="X"}"#).unwrap();
     assert!((k0 - 0.04).abs() < 0.001, "{k0}");
-    assert!(sample(&m, r#"compgate_cycle_seconds_count"#).unwrap() > 0.0);
+    assert!(value(&m, r#"compgate_cycle_seconds_count"#).unwrap() > 0.0);
     // glibc's figures: the gateway's live heap is megabytes, not zero.
     if cfg!(all(target_os = "linux", target_env = "gnu")) {
-        let in_use = sample(&m, r#"compgate_process_heap_bytes{state="in_use"}"#).unwrap();
+        let in_use = value(&m, r#"compgate_process_heap_bytes{state="in_use"}"#).unwrap();
         assert!(in_use > 100_000.0, "{in_use}");
-        assert!(sample(&m, r#"compgate_process_heap_bytes{state="free"}"#).is_some());
+        assert!(value(&m, r#"compgate_process_heap_bytes{state="free"}"#).is_some());
     }
     assert!(m
-        .iter()
-        .any(|(k, _)| k.starts_with("compgate_device_poll_seconds_bucket{device=\"ain1\"")));
+        .lines()
+        .any(|l| l.starts_with("compgate_device_poll_seconds_bucket{device=\"ain1\"")));
 
     // The device stops answering: link down, timeouts counted, channels bad.
     plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::Silent);
     tokio::time::sleep(Duration::from_millis(1500)).await;
     let m = tokio::task::block_in_place(|| scrape(port));
     assert_eq!(
-        sample(&m, r#"compgate_device_link_up{device="ain1"}"#),
+        value(&m, r#"compgate_device_link_up{device="ain1"}"#),
         Some(0.0)
     );
     assert!(
-        sample(
+        value(
             &m,
             r#"compgate_device_errors_total{device="ain1",kind="timeout"}"#
         )
@@ -410,7 +396,7 @@ async fn prometheus_endpoint_shows_links_channels_jobs_and_cycle_times() {
             >= 3.0
     );
     assert_eq!(
-        sample(&m, r#"compgate_channel_quality{channel="T_bed"}"#),
+        value(&m, r#"compgate_channel_quality{channel="T_bed"}"#),
         Some(2.0)
     );
     assert!(tokio::task::block_in_place(|| gw.stop()));

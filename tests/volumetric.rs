@@ -1,8 +1,11 @@
 //! The volumetric compensator between the scales and the drives of the simulated
 //! 5-axis machine: the actual tool pose lands on the commanded nominal one.
 
+mod common;
+
 use std::sync::Arc;
 
+use common::process::{assert_success, BIN};
 use compgate_commission::volumetric::{
     angle_rad, distance_mm, parse, VolumetricCompensator, MM_PER_UM, RAD_PER_ARCSEC,
 };
@@ -68,8 +71,6 @@ fn servo_and_solver_agree() {
     }
 }
 
-const BIN: &str = env!("CARGO_BIN_EXE_compgate");
-
 #[test]
 fn cli_reports_the_grid_and_writes_maps() {
     let dir = tempfile::tempdir().unwrap();
@@ -85,12 +86,7 @@ fn cli_reports_the_grid_and_writes_maps() {
         .arg(dir.path())
         .output()
         .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{stdout}{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let stdout = assert_success(&out);
     // Every "remaining" figure (compensated over uncompensated) is under 1 %.
     let remaining: Vec<f64> = stdout
         .lines()
@@ -457,12 +453,7 @@ fn per_pose_csv_agrees_with_an_independent_kinematic_model_and_meets_the_target(
         .arg(&csv)
         .output()
         .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{stdout}{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let stdout = assert_success(&out);
     let model = independent::Model::read(EXAMPLE);
     let text = std::fs::read_to_string(&csv).unwrap();
     let mut lines = text.lines();

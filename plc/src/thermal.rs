@@ -794,29 +794,7 @@ impl DutyCycle {
             (60.0, 0.8, 0.0),
             (0.0, 0.0, 0.0),
         ];
-        let mut phases = Vec::new();
-        let mut left_s = hours.max(0.0) * 3600.0;
-        let mut i = 0;
-        while left_s > 0.0 {
-            let (speed_mm_per_s, duty, spindle_load) = loads[i % loads.len()];
-            let d = left_s.min(block_s);
-            phases.push(Phase {
-                name: if duty > 0.0 {
-                    "machining"
-                } else {
-                    "standstill"
-                },
-                duration_s: d,
-                motion: Motion {
-                    speed_mm_per_s,
-                    duty,
-                    spindle_load,
-                },
-            });
-            left_s -= d;
-            i += 1;
-        }
-        Self { phases }
+        Self::cycling(hours, block_s, &loads)
     }
 
     /// A commissioning run for the gateway's recorder, `hours` long: 40-minute
@@ -838,11 +816,19 @@ impl DutyCycle {
             (150.0, 0.9, 0.8),
             (0.0, 0.0, 0.0),
         ];
+        Self::cycling(hours, block_s, &loads)
+    }
+
+    /// `hours` of blocks of `block_s` cycling through `loads` (axis speed mm/s, duty,
+    /// spindle load): machining where the duty is above 0, standstill otherwise; the
+    /// last block is cut short at the end.
+    fn cycling(hours: f64, block_s: f64, loads: &[(f64, f64, f64)]) -> Self {
         let mut phases = Vec::new();
         let mut left_s = hours.max(0.0) * 3600.0;
-        let mut i = 0;
-        while left_s > 0.0 {
-            let (speed_mm_per_s, duty, spindle_load) = loads[i % loads.len()];
+        for &(speed_mm_per_s, duty, spindle_load) in loads.iter().cycle() {
+            if left_s <= 0.0 {
+                break;
+            }
             let d = left_s.min(block_s);
             phases.push(Phase {
                 name: if duty > 0.0 {
@@ -858,7 +844,6 @@ impl DutyCycle {
                 },
             });
             left_s -= d;
-            i += 1;
         }
         Self { phases }
     }

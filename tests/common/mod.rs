@@ -3,9 +3,12 @@
 #![allow(dead_code)]
 
 pub mod broker;
+pub mod metrics;
+pub mod opcua_peer;
 pub mod peer;
 pub mod process;
 pub mod proxy;
+pub mod s7_peer;
 
 use std::time::Duration;
 
@@ -35,6 +38,17 @@ impl Rig {
                 .expect("gateway task did not panic");
         }
         self.status.borrow().clone()
+    }
+
+    /// Stops the gateway; asserts that no job of the first axis failed.
+    pub async fn stop_without_failed_jobs(self) -> Status {
+        let fin = self.stop().await;
+        assert_eq!(
+            fin.axes[0].jobs_failed, 0,
+            "{:?}",
+            fin.axes[0].last_job_error
+        );
+        fin
     }
 
     /// Waits until `pred` holds for the published status; panics with the last status
@@ -71,6 +85,19 @@ impl Rig {
             .iter()
             .find(|c| c.name == name)
             .expect("channel exists")
+    }
+
+    /// The quality of channel `name`.
+    pub fn quality(s: &Status, name: &str) -> compgate_core::channel::Quality {
+        Self::channel(s, name).reading.quality
+    }
+
+    /// The value of channel `name`, degC.
+    pub fn value(s: &Status, name: &str) -> f64 {
+        Self::channel(s, name)
+            .reading
+            .value_degc
+            .expect("channel has a value")
     }
 }
 
@@ -211,6 +238,34 @@ motion_max_mm = 500.0
 motion_speed_mm_per_s = 0.0
 "#
     )
+}
+
+/// [`config`] (policy `hold`) with its NC module replaced by `target` (a
+/// `[targets.nc_x]` table) and axis X given axis number `axis`.
+pub fn with_target(target: &str, axis: u16) -> String {
+    let base = config("hold", "", "");
+    let start = base.find("[nc_modules.nc_x]").expect("an NC module");
+    let end = start + base[start..].find("\n\n").expect("a blank line after it");
+    let sim = base.find("[sim.nc_modules.nc_x]").expect("its simulation");
+    format!("{}{target}{}", &base[..start], &base[end..sim]).replace(
+        "nc_module = \"nc_x\"\n",
+        &format!("nc_module = \"nc_x\"\naxis_number = {axis}\n"),
+    )
+}
+
+/// What the first axis was written, checked to be the model of [`config`] on the
+/// readings (T_bed at 30 degC within one ADC count).
+pub fn written_by_model(s: &Status) -> compgate_core::comp::CompParams {
+    let w = s.axes[0].written.expect("a written job");
+    let t_bed = Rig::value(s, "T_bed");
+    let t_screw = Rig::value(s, "T_screw");
+    assert!((t_bed - 30.0).abs() <= COUNT_DEGC, "T_bed {t_bed}");
+    assert!((w.k0_mm - 0.004 * (t_bed - 20.0)).abs() < 1e-12, "{w:?}");
+    assert!(
+        (w.tan_beta - 0.0000115 * (t_screw - 20.0)).abs() < 1e-15,
+        "{w:?}"
+    );
+    w
 }
 
 /// One ADC count in degC for the test transmitters (24 mA / 4095 counts, 200 degC / 16 mA).

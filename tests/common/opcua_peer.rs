@@ -1,46 +1,31 @@
-//! The SINUMERIK-like OPC UA peer (`tests/peers/opcua_server.py`, asyncua) as a child
-//! process on 127.0.0.1. Include it with `#[path = "common/opcua_peer.rs"] mod opcua_peer;`.
-#![allow(dead_code)]
+//! The SINUMERIK-like OPC UA peer (`tests/peers/opcua_server.py`, asyncua) on
+//! 127.0.0.1, with the commands it takes on its standard input.
 // Test harness: a panic with the message is the wanted failure.
 #![allow(clippy::unwrap_used)]
 
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader, Write};
 use std::path::PathBuf;
-use std::process::{Child, ChildStdin, Command, Stdio};
+use std::process::{ChildStdin, Command, Stdio};
 use std::sync::mpsc;
 use std::time::Duration;
 
-/// The peers' interpreter (installed by `tests/peers/install.sh`), or `None` with the
-/// reason printed; with `CI` set a missing peer fails the test instead.
+use super::peer::{self, Peer};
+
+const SCRIPT: &str = "opcua_server.py";
+
+/// The peers' interpreter, or `None` with the reason printed; with `CI` set a missing
+/// peer fails the test instead.
 pub fn python() -> Option<PathBuf> {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    let py = root.join("target/peers-venv/bin/python");
-    let ok = py.is_file()
-        && Command::new(&py)
-            .args(["-c", "import asyncua"])
-            .stderr(Stdio::null())
-            .status()
-            .is_ok_and(|s| s.success());
-    if ok {
-        return Some(py);
-    }
-    let why =
-        "the OPC UA peer (asyncua in target/peers-venv) is missing; run tests/peers/install.sh";
-    if std::env::var_os("CI").is_some() {
-        panic!("{why}");
-    }
-    eprintln!("SKIP: {why}");
-    None
+    peer::python("asyncua")
 }
 
 /// Writes a client certificate and key for `urn:compgate` into `pki_dir` (`own/`,
 /// `private/`), made by the peer's Python (a key made by a debug build would be slow).
 pub fn make_client_cert(pki_dir: &std::path::Path) {
     let py = python().expect("checked by the caller");
-    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/peers/opcua_server.py");
     let status = Command::new(py)
-        .arg(script)
+        .arg(peer::script_path(SCRIPT))
         .arg("--make-client-cert")
         .arg(pki_dir)
         .stdout(Stdio::null())
@@ -51,7 +36,7 @@ pub fn make_client_cert(pki_dir: &std::path::Path) {
 
 /// A running peer; dropping it kills it.
 pub struct OpcuaPeer {
-    child: Child,
+    process: Peer,
     stdin: ChildStdin,
     lines: mpsc::Receiver<String>,
     /// `opc.tcp://127.0.0.1:PORT/`.
@@ -72,18 +57,10 @@ impl OpcuaPeer {
     /// Starts the peer on `port` (0: any free one).
     pub fn start_on(port: u16, args: &[&str]) -> Option<Self> {
         let py = python()?;
-        let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/peers/opcua_server.py");
-        let mut child = Command::new(py)
-            .arg(script)
-            .args(["--port", &port.to_string()])
-            .args(args)
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .expect("spawn the OPC UA peer");
-        let stdin = child.stdin.take().unwrap();
-        let stdout = child.stdout.take().unwrap();
+        let mut all = vec!["--port".to_string(), port.to_string()];
+        all.extend(args.iter().map(|s| s.to_string()));
+        let mut process = Peer::spawn(&py, SCRIPT, &all);
+        let (stdin, stdout) = process.take_stdio();
         let (tx, lines) = mpsc::channel();
         std::thread::spawn(move || {
             for line in BufReader::new(stdout).lines().map_while(Result::ok) {
@@ -93,7 +70,7 @@ impl OpcuaPeer {
             }
         });
         let mut peer = OpcuaPeer {
-            child,
+            process,
             stdin,
             lines,
             endpoint: String::new(),
@@ -108,6 +85,7 @@ impl OpcuaPeer {
             .next()
             .and_then(|p| p.parse().ok())
             .unwrap_or_else(|| panic!("no port in {endpoint}"));
+        peer.process.port = peer.port;
         peer.endpoint = endpoint;
         peer.ns = ns.parse().unwrap();
         Some(peer)
@@ -151,6 +129,21 @@ impl OpcuaPeer {
         self.command("expire", "OK ").parse().unwrap()
     }
 
+    /// A `[targets.nc_x]` table for this peer without security, logging in as `user`
+    /// (password `<user>-pw`, as the peer knows it) from a credentials file written
+    /// into `dir`.
+    pub fn target_table(&self, dir: &std::path::Path, user: &str) -> String {
+        let cred = dir.join(format!("cred-{user}"));
+        std::fs::write(&cred, format!("{user}\n{user}-pw\n")).unwrap();
+        format!(
+            "[targets.nc_x]\nkind = \"opcua\"\nendpoint_url = \"{}\"\nsecurity_policy = \"None\"\n\
+             security_mode = \"None\"\npki_dir = \"{}\"\ncredentials_file = \"{}\"\n",
+            self.endpoint,
+            dir.join("pki").display(),
+            cred.display()
+        )
+    }
+
     /// The node id of setting datum `name` (e.g. `$SA_TEMP_COMP_SLOPE`) of `axis`.
     pub fn node(&self, name: &str, axis: u16) -> String {
         format!("ns={};s=/NC/_N_AX_SEA_ACX/{name}[u{axis}]", self.ns)
@@ -158,13 +151,6 @@ impl OpcuaPeer {
 
     /// Kills the peer at once, as a crash or power loss would.
     pub fn kill(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-impl Drop for OpcuaPeer {
-    fn drop(&mut self) {
-        self.kill();
+        self.process.kill();
     }
 }

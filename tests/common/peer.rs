@@ -1,73 +1,115 @@
 //! Python protocol peers (tests/peers/*.py) from `target/peers-venv`, installed by
-//! `tests/peers/install.sh`. Each prints `PORT <n>` once listening on 127.0.0.1 and
-//! serves until its standard input closes; dropping a [`Peer`] closes it and kills
-//! the process.
+//! `tests/peers/install.sh`: the one way the tests find the interpreter, start a peer
+//! on 127.0.0.1 and stop it. A peer serves until its standard input closes; dropping a
+//! [`Peer`] closes it and kills the process.
 #![allow(dead_code)]
 #![allow(clippy::unwrap_used)]
 
 use std::io::{BufRead, BufReader};
-use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
 
 /// A running peer.
 pub struct Peer {
     child: Child,
-    /// The port it listens on (127.0.0.1).
+    /// The port it listens on (127.0.0.1); 0 until known.
     pub port: u16,
 }
 
 impl Peer {
+    /// Starts `tests/peers/<script>` under `python` with `args`, its standard input and
+    /// output piped; `port` stays 0 (see [`start`] for peers that print `PORT <n>`).
+    pub fn spawn(python: &Path, script: &str, args: &[String]) -> Self {
+        let child = Command::new(python)
+            .arg(script_path(script))
+            .args(args)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap_or_else(|e| panic!("starting tests/peers/{script}: {e}"));
+        Self { child, port: 0 }
+    }
+
+    /// Starts `script` as [`Peer::spawn`] does and reads the `PORT <n>` line it prints
+    /// once it listens.
+    pub fn start_with(python: &Path, script: &str, args: &[String]) -> Self {
+        let mut peer = Self::spawn(python, script, args);
+        let mut line = String::new();
+        BufReader::new(peer.child.stdout.take().unwrap())
+            .read_line(&mut line)
+            .unwrap_or_else(|e| panic!("{script}: reading its PORT line: {e}"));
+        peer.port = line
+            .trim()
+            .strip_prefix("PORT ")
+            .and_then(|p| p.parse().ok())
+            .unwrap_or_else(|| panic!("{script}: expected `PORT <n>`, got {line:?}"));
+        peer
+    }
+
+    /// Its standard input and output, for peers that take commands.
+    pub fn take_stdio(&mut self) -> (ChildStdin, ChildStdout) {
+        (
+            self.child.stdin.take().unwrap(),
+            self.child.stdout.take().unwrap(),
+        )
+    }
+
     /// `127.0.0.1:port`.
     pub fn address(&self) -> String {
         format!("127.0.0.1:{}", self.port)
+    }
+
+    /// Kills the peer at once, as a crash or power loss would.
+    pub fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
     }
 }
 
 impl Drop for Peer {
     fn drop(&mut self) {
         drop(self.child.stdin.take());
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+        self.kill();
     }
 }
 
-fn root() -> PathBuf {
+/// `tests/peers/<script>`.
+pub fn script_path(script: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/peers")
+        .join(script)
 }
 
-/// The peers' interpreter, or `None` (after saying why) when it is not installed; with
-/// `CI` set a missing peer fails the test.
-pub fn python() -> Option<PathBuf> {
-    let py = root().join("target/peers-venv/bin/python");
-    if py.exists() {
+/// Where `tests/peers/install.sh` puts the peers' interpreter.
+pub fn interpreter() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("target/peers-venv/bin/python")
+}
+
+/// The peers' interpreter if it can import `module`, or `None` after printing why;
+/// with `CI` set a missing peer fails the test instead.
+pub fn python(module: &str) -> Option<PathBuf> {
+    let py = interpreter();
+    let ok = py.is_file()
+        && Command::new(&py)
+            .args(["-c", &format!("import {module}")])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success());
+    if ok {
         return Some(py);
     }
-    let why = "the Python test peers are not installed: run tests/peers/install.sh";
+    let why = format!(
+        "the Python test peer ({module} in target/peers-venv) is missing: run tests/peers/install.sh"
+    );
     assert!(std::env::var_os("CI").is_none(), "{why} (CI is set)");
     eprintln!("skipped: {why}");
     None
 }
 
-/// Starts `tests/peers/<script>` with `args`; `None` when the peers are not installed.
-pub fn start(script: &str, args: &[String]) -> Option<Peer> {
-    let py = python()?;
-    let mut child = Command::new(py)
-        .arg(root().join("tests/peers").join(script))
-        .args(args)
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .expect("peer starts");
-    let out = child.stdout.take().expect("stdout");
-    let mut line = String::new();
-    BufReader::new(out)
-        .read_line(&mut line)
-        .expect("peer prints its port");
-    let port = line
-        .trim()
-        .strip_prefix("PORT ")
-        .and_then(|p| p.parse().ok())
-        .unwrap_or_else(|| panic!("{script}: expected `PORT <n>`, got {line:?}"));
-    Some(Peer { child, port })
+/// Starts `tests/peers/<script>`, which needs `module`, with `args` and reads its
+/// port; `None` when the peer is not installed.
+pub fn start(script: &str, module: &str, args: &[String]) -> Option<Peer> {
+    Some(Peer::start_with(&python(module)?, script, args))
 }

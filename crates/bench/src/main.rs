@@ -4,13 +4,11 @@
 //! - `soak`: the `compgate` binary as a real process against simulated field modules,
 //!   with recording, metrics and MQTT on; CPU and RSS over time.
 //! - `nc`: NC job latency per target kind against its peer (p50/p99).
-//! - `nc-s7`: job latency of the S7 data-block target against its test peer.
 //! - `scale`: points per second per core at 10k, 100k and 1M points/s, against a
 //!   bare tokio-modbus client, and the step-to-NC latency.
 
 mod cycle;
 mod nc;
-mod nc_s7;
 mod scale;
 mod soak;
 mod volumetric;
@@ -61,14 +59,13 @@ enum Command {
         /// Python interpreter of the peers; default target/peers-venv/bin/python.
         #[arg(long)]
         python: Option<PathBuf>,
-    },
-    /// Job latency (REQ to verified read-back) of the S7 data-block target against
-    /// its peer, python-snap7 from target/peers-venv (tests/peers/install.sh).
-    NcS7 {
-        /// Measured jobs per value type.
-        #[arg(long, default_value_t = 200)]
-        jobs: u32,
-        /// Scan cycle of the simulated PLC program, ms.
+        /// The kinds to measure, in this order; all by default.
+        #[arg(long, value_enum, value_delimiter = ',')]
+        kinds: Vec<nc::Kind>,
+        /// Value types of the S7 data block, each measured on its own; lreal by default.
+        #[arg(long, value_enum, value_delimiter = ',')]
+        s7_types: Vec<nc::S7Type>,
+        /// Scan cycle of the S7 peer's PLC program, ms (0..=1000).
         #[arg(long, default_value_t = 1.0)]
         plc_cycle_ms: f64,
     },
@@ -170,10 +167,7 @@ fn main() -> ExitCode {
             channels,
             cycles,
             rounds,
-        } => tokio::runtime::Builder::new_multi_thread()
-            .enable_all()
-            .build()
-            .map_err(|e| format!("cannot start the async runtime: {e}"))
+        } => runtime()
             .and_then(|rt| {
                 rt.block_on(cycle::run(channels, cycles, rounds))
                     .map_err(|e| e.to_string())
@@ -187,22 +181,25 @@ fn main() -> ExitCode {
             .map_or_else(sibling_compgate, Ok)
             .and_then(|exe| soak::run(seconds, &exe))
             .map(|report| print!("{report}")),
-        Command::Nc { jobs, python } => tokio::runtime::Builder::new_multi_thread()
-            .enable_all()
-            .build()
-            .map_err(|e| format!("cannot start the async runtime: {e}"))
-            .and_then(|rt| rt.block_on(nc::run(jobs, python)))
-            .map(|outcomes| print!("{}", nc::table(&outcomes))),
-        Command::NcS7 { jobs, plc_cycle_ms } => tokio::runtime::Builder::new_multi_thread()
-            .enable_all()
-            .build()
-            .map_err(|e| format!("cannot start the async runtime: {e}"))
-            .and_then(|rt| {
-                ["real", "lreal"].into_iter().try_for_each(|t| {
-                    rt.block_on(nc_s7::run(jobs, t, plc_cycle_ms))
-                        .map(|r| println!("{}", r.line()))
-                })
-            }),
+        Command::Nc {
+            jobs,
+            python,
+            kinds,
+            s7_types,
+            plc_cycle_ms,
+        } => {
+            let mut opts = nc::Options::new(jobs, python);
+            if !kinds.is_empty() {
+                opts.kinds = kinds;
+            }
+            if !s7_types.is_empty() {
+                opts.s7_types = s7_types;
+            }
+            opts.plc_cycle_ms = plc_cycle_ms;
+            runtime()
+                .and_then(|rt| rt.block_on(nc::run(&opts)))
+                .map(|outcomes| print!("{}", nc::table(&outcomes, plc_cycle_ms)))
+        }
         Command::Scale {
             seconds,
             delay_ms,

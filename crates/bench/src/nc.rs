@@ -3,9 +3,13 @@
 //!
 //! Peers: the simulated NC axis module (`modbus`, in process), the SINUMERIK-like
 //! asyncua server (`opcua`, `tests/peers/opcua_server.py`), python-snap7's server with
-//! the PLC program's handshake (`s7`, `tests/peers/s7_plc.py`, 1 ms scan) and pyads'
-//! test server (`ads`, `tests/peers/ads_server.py`), the Python ones run by the peers'
+//! the PLC program's handshake (`s7`, `tests/peers/s7_plc.py`) and pyads' test server
+//! (`ads`, `tests/peers/ads_server.py`), the Python ones run by the peers'
 //! interpreter. A kind whose peer is missing is reported as skipped, with the reason.
+//!
+//! The S7 peer scans every `--plc-cycle-ms` (default 1) and stays BUSY for one scan, as
+//! FB3 takes a PLC cycle or more: an S7 job spans about three scans plus the gateway's
+//! S7 requests, not a real PLC's FB3 time (several PLC cycles of a few ms each).
 
 use std::fmt::Write as _;
 use std::io::{BufRead, BufReader};
@@ -19,11 +23,72 @@ use compgate_gateway::nc::{Guarded, Job, NcWriter};
 use compgate_plc::nc::{NcAxis, NcAxisModule};
 use tokio::time::Instant;
 
+/// A target kind to measure.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Kind {
+    /// The simulated NC axis module over Modbus/TCP.
+    Modbus,
+    /// The asyncua server.
+    Opcua,
+    /// python-snap7's server with the PLC program's handshake.
+    S7,
+    /// pyads' test server.
+    Ads,
+}
+
+/// The float type of the S7 data block.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum S7Type {
+    /// 32-bit REAL.
+    Real,
+    /// 64-bit LREAL.
+    Lreal,
+}
+
+impl S7Type {
+    /// The name in the target config and the peer's `--value-type`.
+    fn name(self) -> &'static str {
+        match self {
+            Self::Real => "real",
+            Self::Lreal => "lreal",
+        }
+    }
+}
+
+/// What one `nc` run measures.
+#[derive(Debug, Clone)]
+pub struct Options {
+    /// Measured jobs per kind (and S7 value type).
+    pub jobs: usize,
+    /// Interpreter of the Python peers.
+    pub python: PathBuf,
+    /// The kinds, in this order.
+    pub kinds: Vec<Kind>,
+    /// The S7 block's value types, each measured on its own.
+    pub s7_types: Vec<S7Type>,
+    /// Scan cycle of the S7 peer's PLC program, ms.
+    pub plc_cycle_ms: f64,
+}
+
+impl Options {
+    /// Every kind, S7 with LREAL at a 1 ms scan; `python` by default the workspace's
+    /// `target/peers-venv/bin/python`.
+    pub fn new(jobs: usize, python: Option<PathBuf>) -> Self {
+        Self {
+            jobs,
+            python: python.unwrap_or_else(|| root().join("target/peers-venv/bin/python")),
+            kinds: vec![Kind::Modbus, Kind::Opcua, Kind::S7, Kind::Ads],
+            s7_types: vec![S7Type::Lreal],
+            plc_cycle_ms: 1.0,
+        }
+    }
+}
+
 /// Latency figures of one kind.
 #[derive(Debug, Clone, PartialEq)]
 pub struct KindLatency {
-    /// `kind` value.
-    pub kind: &'static str,
+    /// `kind` value (for S7 with the value type).
+    pub kind: String,
     /// Jobs measured.
     pub jobs: usize,
     /// Median, ms.
@@ -39,8 +104,8 @@ pub struct KindLatency {
 pub enum Outcome {
     /// Measured.
     Measured(KindLatency),
-    /// Not measured, and why.
-    Skipped(&'static str, String),
+    /// Not measured (kind), and why.
+    Skipped(String, String),
 }
 
 /// The value of percentile `p` (0..=1) of sorted `v`, nearest rank.
@@ -54,11 +119,7 @@ fn percentile(v: &[f64], p: f64) -> f64 {
 
 /// Runs `jobs` thermal jobs (after `warmup` unmeasured ones) through the guarded
 /// writer of `target`, each value different from the last so none is skipped.
-async fn measure(
-    kind: &'static str,
-    target: &TargetConfig,
-    jobs: usize,
-) -> Result<KindLatency, String> {
+async fn measure(kind: &str, target: &TargetConfig, jobs: usize) -> Result<KindLatency, String> {
     let writer = target.build("X", 1).map_err(|e| format!("{kind}: {e}"))?;
     let mut w = Guarded::new(writer, THERMAL_VARS.to_vec(), target.job_timeout());
     w.read_snapshot()
@@ -85,7 +146,7 @@ async fn measure(
     }
     ms.sort_by(f64::total_cmp);
     Ok(KindLatency {
-        kind,
+        kind: kind.to_string(),
         jobs,
         p50_ms: percentile(&ms, 0.5),
         p99_ms: percentile(&ms, 0.99),
@@ -174,10 +235,10 @@ async fn modbus(jobs: usize) -> Result<KindLatency, String> {
 }
 
 /// `Some(skipped)` when the peers' interpreter is missing.
-fn no_python(kind: &'static str, python: &Path) -> Option<Outcome> {
+fn no_python(kind: &str, python: &Path) -> Option<Outcome> {
     (!python.exists()).then(|| {
         Outcome::Skipped(
-            kind,
+            kind.to_string(),
             format!(
                 "no peer interpreter at {} (run tests/peers/install.sh)",
                 python.display()
@@ -209,11 +270,18 @@ async fn opcua(jobs: usize, python: &Path) -> Result<Outcome, String> {
     measure("opcua", &target, jobs).await.map(Outcome::Measured)
 }
 
-async fn s7(jobs: usize, python: &Path) -> Result<Outcome, String> {
-    if let Some(skip) = no_python("s7", python) {
+async fn s7(
+    jobs: usize,
+    python: &Path,
+    value_type: S7Type,
+    cycle_ms: f64,
+) -> Result<Outcome, String> {
+    let kind = format!("s7 {}", value_type.name());
+    if let Some(skip) = no_python(&kind, python) {
         return Ok(skip);
     }
     let script = root().join("tests/peers/s7_plc.py");
+    let cycle_ms = cycle_ms.to_string();
     let (_peer, port) = start_peer(
         python,
         &script,
@@ -223,15 +291,16 @@ async fn s7(jobs: usize, python: &Path) -> Result<Outcome, String> {
             "--mode",
             "done",
             "--value-type",
-            "lreal",
+            value_type.name(),
             "--cycle-ms",
-            "1",
+            &cycle_ms,
         ],
     )?;
     let target = toml_target(&format!(
-        "kind = \"s7\"\naddress = \"127.0.0.1:{port}\"\ndb_number = 100\nvalue_type = \"lreal\"\n"
+        "kind = \"s7\"\naddress = \"127.0.0.1:{port}\"\ndb_number = 100\nvalue_type = \"{}\"\n",
+        value_type.name()
     ))?;
-    measure("s7", &target, jobs).await.map(Outcome::Measured)
+    measure(&kind, &target, jobs).await.map(Outcome::Measured)
 }
 
 async fn ads(jobs: usize, python: &Path) -> Result<Outcome, String> {
@@ -264,20 +333,33 @@ async fn ads(jobs: usize, python: &Path) -> Result<Outcome, String> {
     measure("ads", &target, jobs).await.map(Outcome::Measured)
 }
 
-/// Measures every kind with `jobs` jobs each; `python` runs the Python peers (default
-/// `target/peers-venv/bin/python` of the workspace).
-pub async fn run(jobs: usize, python: Option<PathBuf>) -> Result<Vec<Outcome>, String> {
-    let python = python.unwrap_or_else(|| root().join("target/peers-venv/bin/python"));
-    Ok(vec![
-        Outcome::Measured(modbus(jobs).await?),
-        opcua(jobs, &python).await?,
-        s7(jobs, &python).await?,
-        ads(jobs, &python).await?,
-    ])
+/// Measures the kinds of `opts`, one after the other.
+pub async fn run(opts: &Options) -> Result<Vec<Outcome>, String> {
+    if !(opts.plc_cycle_ms > 0.0 && opts.plc_cycle_ms <= 1000.0) {
+        return Err(format!(
+            "--plc-cycle-ms {}: not in 0 (exclusive) ..= 1000",
+            opts.plc_cycle_ms
+        ));
+    }
+    let (jobs, python) = (opts.jobs, opts.python.as_path());
+    let mut outcomes = Vec::new();
+    for kind in &opts.kinds {
+        match kind {
+            Kind::Modbus => outcomes.push(Outcome::Measured(modbus(jobs).await?)),
+            Kind::Opcua => outcomes.push(opcua(jobs, python).await?),
+            Kind::S7 => {
+                for &t in &opts.s7_types {
+                    outcomes.push(s7(jobs, python, t, opts.plc_cycle_ms).await?);
+                }
+            }
+            Kind::Ads => outcomes.push(ads(jobs, python).await?),
+        }
+    }
+    Ok(outcomes)
 }
 
-/// The report table.
-pub fn table(outcomes: &[Outcome]) -> String {
+/// The report table; `plc_cycle_ms` is the S7 peer's scan cycle.
+pub fn table(outcomes: &[Outcome], plc_cycle_ms: f64) -> String {
     let mut s = String::from(
         "NC job latency per target kind, loopback (a job = the write and its verified read-back)\n\
          kind      jobs    p50 ms   p99 ms   max ms\n",
@@ -291,6 +373,15 @@ pub fn table(outcomes: &[Outcome]) -> String {
             ),
             Outcome::Skipped(kind, why) => writeln!(s, "{kind:<8} skipped: {why}"),
         };
+    }
+    if outcomes.iter().any(|o| match o {
+        Outcome::Measured(k) => k.kind.starts_with("s7"),
+        Outcome::Skipped(..) => false,
+    }) {
+        let _ = writeln!(
+            s,
+            "s7: the peer's PLC program scans every {plc_cycle_ms} ms"
+        );
     }
     s.push_str(
         "anchors (vendor figures): Neuron 3.2.1 API write 523 ms average, NG Gateway 75.6 ms average\n",

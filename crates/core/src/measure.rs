@@ -387,64 +387,58 @@ mod tests {
     }
 
     #[test]
-    fn implausible_positions_are_refused_with_line_and_column() {
-        assert_eq!(
-            third_line("1,1e308,1,0,1,20"),
-            "line 3, column `pos_mm`: outside the plausible range -100000..=100000 mm \
-             (value \"1e308\")"
-        );
+    fn implausible_values_are_refused_with_line_and_column() {
+        for (row, want) in [
+            (
+                "1,1e308,1,0,1,20",
+                "line 3, column `pos_mm`: outside the plausible range -100000..=100000 mm \
+                 (value \"1e308\")",
+            ),
+            (
+                "1,0,1,0,-1e308,20",
+                "line 3, column `err_um`: outside the plausible range -100000..=100000 um \
+                 (value \"-1e308\")",
+            ),
+            (
+                "1,0,1,0,1,1e300",
+                "line 3, column `T_a`: outside the plausible range -100..=500 degC \
+                 (value \"1e300\")",
+            ),
+            (
+                "1e308,0,1,0,1,20",
+                "line 3, column `t_s`: outside the plausible range 0..=315576000 s (10 years) \
+                 (value \"1e308\")",
+            ),
+            (
+                "1,0,1,1e308,1,20",
+                "line 3, column `travel_mm`: outside the plausible range 0..=1e9 mm (1000 km) \
+                 (value \"1e308\")",
+            ),
+            (
+                "1,0,1,-1,1,20",
+                "line 3, column `travel_mm`: must not be negative (value \"-1\")",
+            ),
+        ] {
+            assert_eq!(third_line(row), want);
+        }
+        // Just past a bound.
         assert!(third_line("1,-100000.5,1,0,1,20").starts_with("line 3, column `pos_mm`"));
-        assert!(read("t_s,pos_mm,err_um,T_a\n0,-100000,0,20\n0,100000,0,20\n").is_ok());
-    }
-
-    #[test]
-    fn implausible_errors_are_refused_with_line_and_column() {
-        assert_eq!(
-            third_line("1,0,1,0,-1e308,20"),
-            "line 3, column `err_um`: outside the plausible range -100000..=100000 um \
-             (value \"-1e308\")"
-        );
-        assert!(read("t_s,pos_mm,err_um,T_a\n0,0,-100000,20\n0,0,100000,20\n").is_ok());
-    }
-
-    #[test]
-    fn implausible_temperatures_are_refused_with_line_and_column() {
-        assert_eq!(
-            third_line("1,0,1,0,1,1e300"),
-            "line 3, column `T_a`: outside the plausible range -100..=500 degC \
-             (value \"1e300\")"
-        );
         assert!(third_line("1,0,1,0,1,-100.1").starts_with("line 3, column `T_a`"));
-        assert!(read("t_s,pos_mm,err_um,T_a\n0,0,0,-100\n0,0,0,500\n").is_ok());
-    }
-
-    #[test]
-    fn implausible_times_are_refused_with_line_and_column() {
-        assert_eq!(
-            third_line("1e308,0,1,0,1,20"),
-            "line 3, column `t_s`: outside the plausible range 0..=315576000 s (10 years) \
-             (value \"1e308\")"
-        );
         let e = read("t_s,pos_mm,err_um,T_a\n-1,0,1,20\n").unwrap_err();
         assert!(
             e.to_string()
                 .starts_with("line 2, column `t_s`: outside the plausible range"),
             "{e}"
         );
-        assert!(read("t_s,pos_mm,err_um,T_a\n0,0,0,20\n315576000,0,0,20\n").is_ok());
-    }
-
-    #[test]
-    fn implausible_travel_is_refused_with_line_and_column() {
-        assert_eq!(
-            third_line("1,0,1,1e308,1,20"),
-            "line 3, column `travel_mm`: outside the plausible range 0..=1e9 mm (1000 km) \
-             (value \"1e308\")"
-        );
-        assert_eq!(
-            third_line("1,0,1,-1,1,20"),
-            "line 3, column `travel_mm`: must not be negative (value \"-1\")"
-        );
-        assert!(read("t_s,pos_mm,dir,travel_mm,err_um,T_a\n0,0,1,1e9,0,20\n").is_ok());
+        // The bounds themselves are plausible.
+        for text in [
+            "t_s,pos_mm,err_um,T_a\n0,-100000,0,20\n0,100000,0,20\n",
+            "t_s,pos_mm,err_um,T_a\n0,0,-100000,20\n0,0,100000,20\n",
+            "t_s,pos_mm,err_um,T_a\n0,0,0,-100\n0,0,0,500\n",
+            "t_s,pos_mm,err_um,T_a\n0,0,0,20\n315576000,0,0,20\n",
+            "t_s,pos_mm,dir,travel_mm,err_um,T_a\n0,0,1,1e9,0,20\n",
+        ] {
+            assert!(read(text).is_ok(), "{text}");
+        }
     }
 }

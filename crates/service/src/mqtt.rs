@@ -92,6 +92,35 @@ impl MqttObserver {
         }
     }
 
+    /// The write message of `axis`; `result` is `None` for a shadow write, which has
+    /// the same topic and fields as a real one, marked: a dashboard shows the would-be
+    /// values of a dry run without mistaking them for written ones.
+    fn publish_write(
+        &mut self,
+        axis: &str,
+        params: &CompParams,
+        result: Option<&Result<JobReport, NcError>>,
+    ) {
+        let report = result.and_then(|r| r.as_ref().ok());
+        let payload = json!({
+            "t_unix_ms": now_unix_ms(),
+            "axis": axis,
+            "sd43900_mm": params.k0_mm,
+            "sd43910": params.tan_beta,
+            "sd43920_mm": params.p0_mm,
+            "ok": report.is_some(),
+            "job_id": report.map(|r| r.job_id),
+            "elapsed_ms": report.map(|r| r.elapsed.as_secs_f64() * 1e3),
+            "error": result.and_then(|r| r.as_ref().err()).map(ToString::to_string),
+            "quality": if result.is_some_and(|r| r.is_err()) { "bad" } else { "good" },
+            "shadow": result.is_none(),
+        });
+        self.tx.send(Record::Outbox {
+            topic: format!("{}/writes/{axis}", self.base),
+            payload: payload.to_string(),
+        });
+    }
+
     fn due(last: Option<&Instant>, interval: Duration, now: Instant) -> bool {
         last.is_none_or(|t| now.saturating_duration_since(*t) >= interval)
     }
@@ -135,45 +164,11 @@ impl Observer for MqttObserver {
     }
 
     fn on_job(&mut self, axis: &str, params: &CompParams, result: &Result<JobReport, NcError>) {
-        let payload = json!({
-            "t_unix_ms": now_unix_ms(),
-            "axis": axis,
-            "sd43900_mm": params.k0_mm,
-            "sd43910": params.tan_beta,
-            "sd43920_mm": params.p0_mm,
-            "ok": result.is_ok(),
-            "job_id": result.as_ref().ok().map(|r| r.job_id),
-            "elapsed_ms": result.as_ref().ok().map(|r| r.elapsed.as_secs_f64() * 1e3),
-            "error": result.as_ref().err().map(ToString::to_string),
-            "quality": if result.is_ok() { "good" } else { "bad" },
-            "shadow": false,
-        });
-        self.tx.send(Record::Outbox {
-            topic: format!("{}/writes/{axis}", self.base),
-            payload: payload.to_string(),
-        });
+        self.publish_write(axis, params, Some(result));
     }
 
     fn on_shadow(&mut self, axis: &str, params: &CompParams) {
-        // The same topic and fields as a real write, marked: a dashboard shows the
-        // would-be values of a dry run without mistaking them for written ones.
-        let payload = json!({
-            "t_unix_ms": now_unix_ms(),
-            "axis": axis,
-            "sd43900_mm": params.k0_mm,
-            "sd43910": params.tan_beta,
-            "sd43920_mm": params.p0_mm,
-            "ok": false,
-            "job_id": null,
-            "elapsed_ms": null,
-            "error": null,
-            "quality": "good",
-            "shadow": true,
-        });
-        self.tx.send(Record::Outbox {
-            topic: format!("{}/writes/{axis}", self.base),
-            payload: payload.to_string(),
-        });
+        self.publish_write(axis, params, None);
     }
 
     fn on_status(&mut self, status: &Status) {

@@ -1,7 +1,7 @@
 //! What every target guarantees, enforced here once rather than in each kind's writer:
 //! a job goes out only with 1..=8 finite values of allowed variables, finishes within
 //! the job timeout, and counts as written only when the target's read-back holds the
-//! values (bit for bit for f64, within one float32 ulp for REAL).
+//! values (bit for bit for f64, for REAL within one float32 step of the REAL sent).
 //!
 //! The rest is the runtime's: step limits and the deadband start from what the target
 //! holds (its first snapshot), a refused or failed job is reported and not confirmed
@@ -10,13 +10,13 @@
 
 use std::time::Duration;
 
-use compgate_ncproto::{var, MAX_PAIRS};
+use compgate_ncproto::var;
 use tokio::time::Instant;
 
 use super::ads::AdsNcWriter;
 use super::opcua::OpcuaNcWriter;
-use super::s7::{S7NcWriter, S7ValueType};
-use super::{Job, JobReport, ModbusNcWriter, NcError, NcSnapshot, NcWriter, Precision};
+use super::s7::S7NcWriter;
+use super::{Job, JobIds, JobReport, ModbusNcWriter, NcError, NcSnapshot, NcWriter, Precision};
 
 /// The three thermal setting data: the default allow-list.
 pub const THERMAL_VARS: [u16; 3] = [var::SD43900, var::SD43910, var::SD43920];
@@ -67,10 +67,7 @@ impl NcWriter for AnyNcWriter {
         match self {
             Self::Modbus(w) => w.precision(),
             Self::Opcua(w) => w.precision(),
-            Self::S7(w) => match w.value_type() {
-                S7ValueType::Real => Precision::F32,
-                S7ValueType::Lreal => Precision::F64,
-            },
+            Self::S7(w) => w.precision(),
             Self::Ads(w) => w.precision(),
         }
     }
@@ -79,8 +76,7 @@ impl NcWriter for AnyNcWriter {
         match self {
             Self::Modbus(w) => w.has_axis_state(),
             Self::Opcua(w) => w.has_axis_state(),
-            // The block carries MD32750 and the referenced flag the PLC program copies.
-            Self::S7(_) => true,
+            Self::S7(w) => w.has_axis_state(),
             Self::Ads(w) => w.has_axis_state(),
         }
     }
@@ -92,7 +88,7 @@ pub struct Guarded<W = AnyNcWriter> {
     writer: W,
     allow: Vec<u16>,
     job_timeout: Duration,
-    next_job_id: u16,
+    job_ids: JobIds,
 }
 
 impl<W: NcWriter> Guarded<W> {
@@ -103,7 +99,7 @@ impl<W: NcWriter> Guarded<W> {
             writer,
             allow,
             job_timeout,
-            next_job_id: 1,
+            job_ids: JobIds::default(),
         }
     }
 
@@ -119,12 +115,7 @@ impl<W: NcWriter> Guarded<W> {
 
     /// Refuses a job that must not go out, before anything is sent.
     pub fn check(&self, job: &Job) -> Result<(), NcError> {
-        if job.pairs.is_empty() || job.pairs.len() > MAX_PAIRS {
-            return Err(NcError::InvalidJob(format!(
-                "{} pairs; a job carries 1 to {MAX_PAIRS}",
-                job.pairs.len()
-            )));
-        }
+        job.check_pair_count()?;
         for &(var_id, value) in &job.pairs {
             if !self.allow.contains(&var_id) {
                 return Err(NcError::NotAllowed { var: var_id });
@@ -142,32 +133,25 @@ impl<W: NcWriter> Guarded<W> {
     async fn write_and_verify(&mut self, job: &Job) -> Result<(), NcError> {
         self.writer.write_job(job).await?;
         let snap = self.writer.read_snapshot().await?;
-        let precision = self.writer.precision();
-        for &(var_id, written) in &job.pairs {
-            let read = match var_id {
-                var::SD43900 => snap.sd43900_mm,
-                var::SD43910 => snap.sd43910,
-                var::SD43920 => snap.sd43920_mm,
-                var::MD32450 => snap.md32450_mm,
-                _ => continue,
-            };
-            if !precision.holds(written, read) {
-                return Err(NcError::ReadBack {
-                    var: var_id,
-                    written,
-                    read,
-                });
-            }
-        }
-        Ok(())
+        self.writer
+            .precision()
+            .check_read_back(job.pairs.iter().filter_map(|&(var_id, written)| {
+                let read = match var_id {
+                    var::SD43900 => snap.sd43900_mm,
+                    var::SD43910 => snap.sd43910,
+                    var::SD43920 => snap.sd43920_mm,
+                    var::MD32450 => snap.md32450_mm,
+                    _ => return None,
+                };
+                Some((var_id, written, read))
+            }))
     }
 }
 
 impl<W: NcWriter> NcWriter for Guarded<W> {
     async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
         self.check(job)?;
-        let job_id = self.next_job_id;
-        self.next_job_id = self.next_job_id.checked_add(1).unwrap_or(1);
+        let job_id = self.job_ids.issue();
         let started = Instant::now();
         match tokio::time::timeout(self.job_timeout, self.write_and_verify(job)).await {
             Ok(Ok(())) => Ok(JobReport {

@@ -19,7 +19,7 @@ pub mod s7;
 use std::future::Future;
 use std::time::Duration;
 
-use compgate_ncproto::{JobState, JobStatus};
+use compgate_ncproto::{JobState, JobStatus, MAX_PAIRS};
 
 use crate::source::SourceError;
 use compgate_core::comp::CompParams;
@@ -138,14 +138,15 @@ impl NcError {
     }
 }
 
-/// How a target stores the values: the precision the read-back is checked to.
+/// How a target stores the values: the precision the read-back is checked to, the one
+/// tolerance of every target kind and of [`Guarded`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Precision {
     /// f64 / LREAL: the value read back must be bit for bit the value written.
     #[default]
     F64,
-    /// f32 / REAL: the value read back must lie within one float32 ulp of the value
-    /// written (the target rounds it to its REAL).
+    /// f32 / REAL: the value read back must be the REAL the value written rounds to,
+    /// or one of its two neighbours (one float32 step either way).
     F32,
 }
 
@@ -155,15 +156,33 @@ impl Precision {
         match self {
             Self::F64 => read.to_bits() == written.to_bits(),
             Self::F32 => {
-                if !written.is_finite() || !read.is_finite() {
-                    return false;
-                }
-                let w = written as f32;
-                // One ulp of float32 at the value written (its rounding is within it).
-                let ulp = f64::from(f32::from_bits(w.abs().to_bits() + 1) - w.abs());
-                (read - written).abs() <= ulp
+                // Ordered integer image of a float32: adjacent floats differ by 1.
+                let key = |f: f32| {
+                    let b = f.to_bits() as i32;
+                    if b < 0 {
+                        i64::from(i32::MIN) - i64::from(b)
+                    } else {
+                        i64::from(b)
+                    }
+                };
+                let (w, r) = (written as f32, read as f32);
+                w.is_finite() && r.is_finite() && (key(w) - key(r)).abs() <= 1
             }
         }
+    }
+
+    /// Checks `(variable, written, read back)` triples: the first value the target
+    /// does not hold is the error.
+    pub fn check_read_back(
+        self,
+        values: impl IntoIterator<Item = (u16, f64, f64)>,
+    ) -> Result<(), NcError> {
+        for (var, written, read) in values {
+            if !self.holds(written, read) {
+                return Err(NcError::ReadBack { var, written, read });
+            }
+        }
+        Ok(())
     }
 }
 
@@ -186,11 +205,42 @@ impl Job {
         }
     }
 
+    /// Refuses a job without pairs or with more than eight, before anything is sent.
+    pub fn check_pair_count(&self) -> Result<(), NcError> {
+        if self.pairs.is_empty() || self.pairs.len() > MAX_PAIRS {
+            return Err(NcError::InvalidJob(format!(
+                "{} pairs; a job carries 1 to {MAX_PAIRS}",
+                self.pairs.len()
+            )));
+        }
+        Ok(())
+    }
+
     /// [`Job::thermal`] with only the variables in `allowed`.
     pub fn thermal_allowed(p: &CompParams, allowed: &[u16]) -> Self {
         let mut job = Self::thermal(p);
         job.pairs.retain(|(v, _)| allowed.contains(v));
         job
+    }
+}
+
+/// The ids a writer gives its jobs: 1, 2, .. 65535, then 1 again, never 0, so a fresh
+/// target's `JOB_ID_DONE` of 0 never matches a job.
+#[derive(Debug, Clone)]
+pub struct JobIds(u16);
+
+impl Default for JobIds {
+    fn default() -> Self {
+        Self(1)
+    }
+}
+
+impl JobIds {
+    /// The id of the next job.
+    pub fn issue(&mut self) -> u16 {
+        let id = self.0;
+        self.0 = self.0.checked_add(1).unwrap_or(1);
+        id
     }
 }
 
@@ -262,5 +312,31 @@ pub trait NcWriter: Send {
     /// control reached for its setting data only does not). Default: false.
     fn has_axis_state(&self) -> bool {
         false
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn job_ids_skip_zero_when_they_wrap() {
+        let mut ids = JobIds(u16::MAX - 1);
+        let got: Vec<u16> = (0..3).map(|_| ids.issue()).collect();
+        assert_eq!(got, [u16::MAX - 1, u16::MAX, 1]);
+        assert_eq!(JobIds::default().issue(), 1);
+    }
+
+    #[test]
+    fn a_job_carries_one_to_eight_pairs() {
+        let job = |n: usize| Job {
+            pairs: vec![(var::SD43900, 0.0); n],
+        };
+        assert!(job(1).check_pair_count().is_ok());
+        assert!(job(MAX_PAIRS).check_pair_count().is_ok());
+        for n in [0, MAX_PAIRS + 1] {
+            let e = job(n).check_pair_count().expect_err("refused");
+            assert!(e.to_string().contains(&format!("{n} pairs")), "{e}");
+        }
     }
 }

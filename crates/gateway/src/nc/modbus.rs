@@ -10,7 +10,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use tokio::time::Instant;
 
-use super::{Job, JobReport, NcError, NcSnapshot, NcWriter};
+use super::{Job, JobIds, JobReport, NcError, NcSnapshot, NcWriter, Precision};
 use crate::config::keys::secs;
 use crate::config::problem::Problems;
 use crate::source::modbus::{Backoff, LinkSpec, ModbusLink};
@@ -41,7 +41,7 @@ pub struct ModbusNcWriter {
     link: ModbusLink,
     unit_id: u8,
     job_timeout: Duration,
-    next_job_id: u16,
+    job_ids: JobIds,
 }
 
 impl ModbusNcWriter {
@@ -51,7 +51,7 @@ impl ModbusNcWriter {
             link,
             unit_id,
             job_timeout,
-            next_job_id: 1,
+            job_ids: JobIds::default(),
         }
     }
 
@@ -139,19 +139,15 @@ impl ModbusNcWriter {
         let rb = self
             .read_holding(ncmap::READBACK, ncmap::RB_VALUES_LEN)
             .await?;
-        for (var_id, written) in &job.pairs {
-            if let Some(addr) = readback_address(*var_id) {
-                let read = f64_at(&rb, ncmap::READBACK, addr)?;
-                if read.to_bits() != written.to_bits() {
-                    return Err(NcError::ReadBack {
-                        var: *var_id,
-                        written: *written,
-                        read,
-                    });
-                }
-            }
-        }
-        Ok(())
+        let values = job
+            .pairs
+            .iter()
+            .filter_map(|&(var_id, written)| {
+                let addr = readback_address(var_id)?;
+                Some(f64_at(&rb, ncmap::READBACK, addr).map(|read| (var_id, written, read)))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Precision::F64.check_read_back(values)
     }
 }
 
@@ -161,16 +157,8 @@ impl NcWriter for ModbusNcWriter {
     }
 
     async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
-        if job.pairs.is_empty() || job.pairs.len() > ncmap::MAX_PAIRS {
-            return Err(NcError::InvalidJob(format!(
-                "{} pairs; a job carries 1 to {}",
-                job.pairs.len(),
-                ncmap::MAX_PAIRS
-            )));
-        }
-        let job_id = self.next_job_id;
-        // Skip 0 so a fresh module's JOB_ID_DONE = 0 never matches.
-        self.next_job_id = self.next_job_id.checked_add(1).unwrap_or(1);
+        job.check_pair_count()?;
+        let job_id = self.job_ids.issue();
         let started = Instant::now();
         let deadline = started + self.job_timeout;
         match tokio::time::timeout_at(deadline, self.run_job(job, job_id, deadline)).await {

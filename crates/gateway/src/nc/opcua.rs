@@ -33,7 +33,7 @@ use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
 
-use super::{Job, JobReport, NcError, NcSnapshot, NcWriter};
+use super::{Job, JobIds, JobReport, NcError, NcSnapshot, NcWriter, Precision};
 use crate::config::keys::secs;
 use crate::config::problem::{check_host_port, Problems};
 use crate::source::modbus::Backoff;
@@ -360,7 +360,7 @@ impl OpcuaTargetConfig {
             connecting: None,
             backoff: Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
             connects: 0,
-            next_job_id: 1,
+            job_ids: JobIds::default(),
         })
     }
 
@@ -665,7 +665,7 @@ pub struct OpcuaNcWriter {
     connecting: Option<JoinHandle<Result<Connection, NcError>>>,
     backoff: Backoff,
     connects: u64,
-    next_job_id: u16,
+    job_ids: JobIds,
 }
 
 impl Drop for OpcuaNcWriter {
@@ -901,16 +901,12 @@ impl OpcuaNcWriter {
         }
         let idx: Vec<usize> = pairs.iter().map(|&(i, _)| i).collect();
         let read = self.read_values(&idx).await?;
-        for (&(i, written), read) in pairs.iter().zip(read) {
-            if read.to_bits() != written.to_bits() {
-                return Err(NcError::ReadBack {
-                    var: VARS[i],
-                    written,
-                    read,
-                });
-            }
-        }
-        Ok(())
+        Precision::F64.check_read_back(
+            pairs
+                .iter()
+                .zip(read)
+                .map(|(&(i, written), read)| (VARS[i], written, read)),
+        )
     }
 }
 
@@ -937,8 +933,7 @@ impl NcWriter for OpcuaNcWriter {
         if pairs.is_empty() {
             return Err(NcError::InvalidJob("no pairs".into()));
         }
-        let job_id = self.next_job_id;
-        self.next_job_id = self.next_job_id.checked_add(1).unwrap_or(1);
+        let job_id = self.job_ids.issue();
         // A (re)connect has its own timeout and is not part of the job: a control whose
         // secure handshake takes longer than a job must still get connected.
         self.ensure_connected().await?;

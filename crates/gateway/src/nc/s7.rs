@@ -45,7 +45,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use tokio::time::Instant;
 
-use super::{Job, JobReport, NcError, NcSnapshot, NcWriter};
+use super::{Job, JobIds, JobReport, NcError, NcSnapshot, NcWriter, Precision};
 use crate::config::keys::secs;
 use crate::config::problem::Problems;
 use crate::source::modbus::Backoff;
@@ -63,6 +63,14 @@ pub enum S7ValueType {
 }
 
 impl S7ValueType {
+    /// The read-back tolerance of this type.
+    pub fn precision(self) -> Precision {
+        match self {
+            Self::Real => Precision::F32,
+            Self::Lreal => Precision::F64,
+        }
+    }
+
     /// Bytes of one value.
     pub fn size(self) -> u16 {
         match self {
@@ -354,7 +362,7 @@ impl S7TargetConfig {
             job_timeout: self.job_timeout(),
             client: None,
             backoff: Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
-            next_job_id: 1,
+            job_ids: JobIds::default(),
             connects: 0,
         })
     }
@@ -412,7 +420,7 @@ pub struct S7NcWriter {
     /// None while disconnected, and while a blocking call holds it.
     client: Option<S7Client>,
     backoff: Backoff,
-    next_job_id: u16,
+    job_ids: JobIds,
     connects: u64,
 }
 
@@ -651,27 +659,6 @@ fn encode(value_type: S7ValueType, v: f64) -> Option<Vec<u8>> {
     }
 }
 
-/// Whether `read` is what the NC holds after `written` went through the block:
-/// bit-exact for LREAL, within one float32 ulp of the REAL sent for REAL.
-fn read_back_ok(value_type: S7ValueType, written: f64, read: f64) -> bool {
-    match value_type {
-        S7ValueType::Lreal => read.to_bits() == written.to_bits(),
-        S7ValueType::Real => {
-            // Ordered integer image of a float32: adjacent floats differ by 1.
-            let key = |f: f32| {
-                let b = f.to_bits() as i32;
-                if b < 0 {
-                    i64::from(i32::MIN) - i64::from(b)
-                } else {
-                    i64::from(b)
-                }
-            };
-            let (w, r) = (written as f32, read as f32);
-            w.is_finite() && r.is_finite() && (key(w) - key(r)).abs() <= 1
-        }
-    }
-}
-
 /// The PC part of the block: `JOB_ID` .. `VALUE[8]`.
 fn job_bytes(spec: &Spec, job: &Job, job_id: u16) -> Result<Vec<u8>, NcError> {
     let layout = spec.layout;
@@ -780,32 +767,17 @@ fn run_job(
             });
         }
     }
-    for (var_id, written) in &job.pairs {
-        if let Some(k) = readback_index(*var_id) {
-            let read = area.value(k);
-            if !read_back_ok(l.value_type, *written, read) {
-                return Err(NcError::ReadBack {
-                    var: *var_id,
-                    written: *written,
-                    read,
-                });
-            }
-        }
-    }
-    Ok(())
+    l.value_type
+        .precision()
+        .check_read_back(job.pairs.iter().filter_map(|&(var_id, written)| {
+            readback_index(var_id).map(|k| (var_id, written, area.value(k)))
+        }))
 }
 
 impl NcWriter for S7NcWriter {
     async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
-        if job.pairs.is_empty() || job.pairs.len() > MAX_PAIRS {
-            return Err(NcError::InvalidJob(format!(
-                "{} pairs; a job carries 1 to {MAX_PAIRS}",
-                job.pairs.len()
-            )));
-        }
-        let job_id = self.next_job_id;
-        // Skip 0 so a fresh block's JOB_ID_DONE = 0 never matches.
-        self.next_job_id = self.next_job_id.checked_add(1).unwrap_or(1);
+        job.check_pair_count()?;
+        let job_id = self.job_ids.issue();
         let started = Instant::now();
         let deadline = started + self.job_timeout;
         let timeout = self.job_timeout;
@@ -843,6 +815,15 @@ impl NcWriter for S7NcWriter {
             })
             .await;
         r.unwrap_or(Err(NcError::Link(SourceError::Timeout(self.spec.timeout))))
+    }
+
+    fn precision(&self) -> Precision {
+        self.spec.layout.value_type.precision()
+    }
+
+    /// The block carries MD32750 and the referenced flag the PLC program copies.
+    fn has_axis_state(&self) -> bool {
+        true
     }
 }
 
@@ -944,6 +925,8 @@ mod tests {
         let f = v as f32;
         let next = f32::from_bits(f.to_bits() + 1);
         let two = f32::from_bits(f.to_bits() + 2);
+        let read_back_ok =
+            |t: S7ValueType, written: f64, read: f64| t.precision().holds(written, read);
         assert!(read_back_ok(S7ValueType::Real, v, f64::from(f)));
         assert!(read_back_ok(S7ValueType::Real, v, f64::from(next)));
         assert!(!read_back_ok(S7ValueType::Real, v, f64::from(two)));
