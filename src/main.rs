@@ -40,14 +40,12 @@ fn main() -> ExitCode {
     };
     let mut runtime = tokio::runtime::Builder::new_multi_thread();
     if matches!(command, Command::Run { .. }) {
-        // Both settings stay because the scale benchmark shows a gain at its load
-        // points (docs/benchmarks.md, two rounds of each combination side by side).
-        // One malloc arena (set before any thread exists) keeps RSS at 24.8-26.5 MB
-        // at 100k points/s instead of 30.2-31.2 MB, and 117 MB instead of 145-154 MB
-        // at 1M, and it stops the soak's RSS creep (`compgate_service::heap::
-        // use_one_arena`); it costs about 0.3 % of one core at 100k points/s. With
-        // it, one runtime worker takes 2.67-2.77 % of one core at 100k points/s
-        // where a worker per core takes 3.25-3.29 % (the recorder has its own thread).
+        // Both settings stay because the scale benchmark showed a gain at its load
+        // points (docs/benchmarks.md, "The runtime settings, measured"): one worker
+        // took 2.67-2.77 % of one core at 100k points/s where a worker per core took
+        // 3.25-3.29 %; one malloc arena (set before any thread exists) kept RSS about
+        // 5 MB lower at 100k and stops the soak's RSS creep
+        // (`compgate_service::heap::use_one_arena`).
         runtime.worker_threads(1);
         compgate_service::heap::use_one_arena();
     }
