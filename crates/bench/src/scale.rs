@@ -658,23 +658,6 @@ async fn measure_client(
     })
 }
 
-/// A number from the metrics endpoint: the sum over the lines starting with `prefix`.
-fn metric_sum(metrics_port: u16, prefix: &str) -> Option<f64> {
-    use std::io::{Read, Write};
-    let mut s = std::net::TcpStream::connect(("127.0.0.1", metrics_port)).ok()?;
-    s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
-    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
-        .ok()?;
-    let mut body = String::new();
-    s.read_to_string(&mut body).ok()?;
-    Some(
-        body.lines()
-            .filter(|l| l.starts_with(prefix))
-            .filter_map(|l| l.rsplit_once(' ')?.1.trim().parse::<f64>().ok())
-            .sum(),
-    )
-}
-
 /// Seconds of warm-up before a measurement: connections made, caches filled.
 const WARMUP: Duration = Duration::from_secs(3);
 
@@ -761,7 +744,7 @@ async fn run_gateway(
 /// Seconds the gateway spent in poll cycles of `device` so far, and their count.
 fn poll_seconds(metrics_port: u16, device: &str) -> (f64, f64) {
     let get = |what: &str| {
-        metric_sum(
+        soak::metric_sum(
             metrics_port,
             &format!("compgate_device_poll_seconds_{what}{{device=\"{device}\"}}"),
         )
@@ -775,7 +758,7 @@ fn recorder_dropped(metrics_port: u16) -> u64 {
     ["outcome=\"dropped_queue\"", "outcome=\"dropped_write\""]
         .iter()
         .filter_map(|o| {
-            metric_sum(
+            soak::metric_sum(
                 metrics_port,
                 &format!("compgate_recorder_records_total{{{o}}}"),
             )

@@ -141,6 +141,16 @@ const HEAP_EVERY: Duration = Duration::from_secs(60);
 /// The gateway's live heap in kB, from `compgate_process_heap_bytes{state="in_use"}`
 /// on its metrics endpoint; `None` when it cannot be read (or off glibc).
 fn heap_in_use_kb(metrics_port: u16) -> Option<u64> {
+    metric_sum(
+        metrics_port,
+        "compgate_process_heap_bytes{state=\"in_use\"} ",
+    )
+    .map(|b| (b / 1024.0) as u64)
+}
+
+/// A number from the metrics endpoint: the sum over the lines starting with `prefix`;
+/// `None` when it cannot be read or no line has a value.
+pub fn metric_sum(metrics_port: u16, prefix: &str) -> Option<f64> {
     use std::io::{Read, Write};
     let mut s = std::net::TcpStream::connect(("127.0.0.1", metrics_port)).ok()?;
     s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
@@ -149,9 +159,9 @@ fn heap_in_use_kb(metrics_port: u16) -> Option<u64> {
     let mut body = String::new();
     s.read_to_string(&mut body).ok()?;
     body.lines()
-        .find_map(|l| l.strip_prefix("compgate_process_heap_bytes{state=\"in_use\"} "))
-        .and_then(|v| v.trim().parse::<f64>().ok())
-        .map(|b| (b / 1024.0) as u64)
+        .filter(|l| l.starts_with(prefix))
+        .filter_map(|l| l.rsplit_once(' ')?.1.trim().parse::<f64>().ok())
+        .reduce(|a, b| a + b)
 }
 
 fn mosquitto() -> Option<PathBuf> {
