@@ -68,6 +68,7 @@ pub async fn install(
         }
     });
     let router = crate::http::Router::new().get("/metrics", move || {
+        set_heap_gauges();
         let mut r = crate::http::text(hyper::StatusCode::OK, handle.render());
         r.headers_mut().insert(
             hyper::header::CONTENT_TYPE,
@@ -93,6 +94,16 @@ pub async fn install(
     ));
     tracing::info!(bind = %addr, max_connections = cfg.max_connections, "Prometheus metrics on http://{addr}/metrics");
     Ok(addr)
+}
+
+/// The heap gauges, read when scraped: `mallinfo2` walks every free chunk under the
+/// arena's lock (0.8 ms at 1M points/s, where the allocating threads wait for it), so
+/// it runs as often as somebody looks, not on every status tick.
+fn set_heap_gauges() {
+    if let Some(h) = crate::heap::stats() {
+        gauge!("compgate_process_heap_bytes", "state" => "in_use").set(h.in_use_bytes as f64);
+        gauge!("compgate_process_heap_bytes", "state" => "free").set(h.free_bytes as f64);
+    }
 }
 
 /// Help text and units of every metric (Prometheus `# HELP`).
@@ -212,7 +223,6 @@ pub struct MetricsObserver {
     cycle: Option<Histogram>,
     recorder: Option<Arc<RecorderStats>>,
     recorder_counters: Option<[Counter; 3]>,
-    heap: Option<[Gauge; 2]>,
 }
 
 impl MetricsObserver {
@@ -328,16 +338,6 @@ impl Observer for MetricsObserver {
             c[0].absolute(stats.written.load(Relaxed));
             c[1].absolute(stats.dropped_queue.load(Relaxed));
             c[2].absolute(stats.dropped_write.load(Relaxed));
-        }
-        if let Some(h) = crate::heap::stats() {
-            let g = self.heap.get_or_insert_with(|| {
-                [
-                    gauge!("compgate_process_heap_bytes", "state" => "in_use"),
-                    gauge!("compgate_process_heap_bytes", "state" => "free"),
-                ]
-            });
-            g[0].set(h.in_use_bytes as f64);
-            g[1].set(h.free_bytes as f64);
         }
     }
 
