@@ -326,6 +326,8 @@ struct ModuleState {
     job_fault: JobFault,
     jobs_executed: u64,
     jobs_refused: u64,
+    /// When the last job that ended with DONE was applied.
+    last_done_at: Option<Instant>,
     /// The full-closed-loop axis behind the servo block.
     servo: ServoSim,
     /// Writable registers of the servo block as last written (SERVO..+SERVO_LEN).
@@ -577,6 +579,7 @@ impl ModuleState {
         match result {
             Ok(()) => {
                 tracing::debug!(job_id = job.job_id, "NC job done");
+                self.last_done_at = Some(now);
                 self.set(ncmap::STATE, JobState::Done as u16);
                 self.set(ncmap::DONE, 1);
             }
@@ -718,6 +721,7 @@ impl NcAxisModule {
             job_fault: JobFault::None,
             jobs_executed: 0,
             jobs_refused: 0,
+            last_done_at: None,
             servo: ServoSim::new(AxisParams::default()),
             servo_regs: vec![0; usize::from(ncmap::SERVO_LEN)],
             sim_speed: 1.0,
@@ -817,6 +821,14 @@ impl NcAxisModule {
     /// Jobs that ended with ERROR.
     pub fn jobs_refused(&self) -> u64 {
         self.lock().jobs_refused
+    }
+
+    /// SD43900 (mm) and when the last job that ended with DONE was applied, read
+    /// together: a latency measurement gets the instant a value took effect without
+    /// polling as finely as it wants to resolve.
+    pub fn sd43900_and_last_done(&self) -> (f64, Option<Instant>) {
+        let state = self.lock();
+        (state.axis.sd43900_mm, state.last_done_at)
     }
 
     /// Serves this module on a fresh loopback port until the returned token is

@@ -285,6 +285,7 @@ async fn delayed_job_is_busy_for_a_while_then_done() {
     let raised_at = tokio::time::Instant::now();
     set_req(ctx, 1).await;
     assert_eq!(status(ctx).await.state, JobState::Busy);
+    assert_eq!(run.module.sd43900_and_last_done(), (0.0, None));
     let finished = timeout(STEP, async {
         loop {
             let s = status(ctx).await;
@@ -299,6 +300,10 @@ async fn delayed_job_is_busy_for_a_while_then_done() {
     assert!(raised_at.elapsed() >= Duration::from_millis(300));
     assert_eq!((finished.state, finished.job_id_done), (JobState::Done, 9));
     assert_eq!(run.module.state().sd43920_mm, 12.5);
+    // The instant the job took effect: not before its delay, not after it was seen.
+    let done_at = run.module.sd43900_and_last_done().1.expect("a job done");
+    assert!(done_at >= raised_at + Duration::from_millis(300));
+    assert!(done_at <= tokio::time::Instant::now());
 }
 
 #[tokio::test]

@@ -73,9 +73,13 @@ enum Command {
     /// modules, beside a bare tokio-modbus client: CPU, RSS, jitter, points lost and
     /// the step-to-NC latency.
     Scale {
-        /// Measured seconds per client and load point (at least 2).
+        /// Measured seconds per client and load point, over all rounds (at least 2
+        /// per round).
         #[arg(long, default_value_t = 12.0)]
         seconds: f64,
+        /// Rounds per load point, each the gateway then the bare client (1..=20).
+        #[arg(long, default_value_t = 3)]
+        rounds: usize,
         /// Reply delay of every simulated field module, ms (0..=1000).
         #[arg(long, default_value_t = 1.0)]
         delay_ms: f64,
@@ -132,6 +136,7 @@ fn runtime() -> Result<tokio::runtime::Runtime, String> {
 /// The options of `scale`, with `--loads` names checked.
 fn scale_options(
     seconds: f64,
+    rounds: usize,
     delay_ms: f64,
     record_interval_s: f64,
     names: &[String],
@@ -153,6 +158,7 @@ fn scale_options(
     };
     Ok(scale::Options {
         seconds,
+        rounds,
         delay_ms,
         compgate,
         loads,
@@ -202,6 +208,7 @@ fn main() -> ExitCode {
         }
         Command::Scale {
             seconds,
+            rounds,
             delay_ms,
             record_interval_s,
             loads,
@@ -209,7 +216,9 @@ fn main() -> ExitCode {
             compgate,
         } => compgate
             .map_or_else(sibling_compgate, Ok)
-            .and_then(|exe| scale_options(seconds, delay_ms, record_interval_s, &loads, exe))
+            .and_then(|exe| {
+                scale_options(seconds, rounds, delay_ms, record_interval_s, &loads, exe)
+            })
             .and_then(|opts| {
                 let report = runtime()?.block_on(scale::run(&opts))?;
                 print!("{}", report.table());

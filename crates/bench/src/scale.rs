@@ -144,20 +144,71 @@ pub struct PointResult {
     pub recorded: u64,
     /// Step-to-NC latency.
     pub latency: Latency,
+    /// CPU share of one core of each round, (gateway, bare), in the order run.
+    pub cpu_rounds: Vec<(f64, f64)>,
 }
 
 impl PointResult {
-    /// CPU of the gateway over that of the bare client.
+    /// CPU of the gateway over that of the bare client: the median over the rounds
+    /// of each round's pair, measured back to back, so a host that slows down or
+    /// speeds up between rounds weighs on both sides of a ratio alike.
     pub fn cpu_ratio(&self) -> f64 {
-        self.gateway.cpu_share_of_core / self.bare.cpu_share_of_core.max(1e-9)
+        median(
+            self.cpu_rounds
+                .iter()
+                .map(|(g, b)| g / b.max(1e-9))
+                .collect(),
+        )
+    }
+
+    /// Lowest and highest gateway CPU share of the rounds.
+    fn gateway_cpu_range(&self) -> (f64, f64) {
+        self.cpu_rounds
+            .iter()
+            .fold((f64::INFINITY, 0.0), |(lo, hi), (g, _)| {
+                (lo.min(*g), hi.max(*g))
+            })
+    }
+}
+
+/// The median of `v` (the mean of the middle two for an even count), 0 when empty.
+fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        (v[n / 2 - 1] + v[n / 2]) / 2.0
+    }
+}
+
+/// One client's rounds as one set of figures: CPU the median of the rounds, RSS and
+/// jitter p99 the worst round, jitter p50 the median, points read a mean, points
+/// lost and late the sum.
+fn combine(rounds: &[ClientFigures]) -> ClientFigures {
+    let n = rounds.len().max(1) as f64;
+    ClientFigures {
+        cpu_share_of_core: median(rounds.iter().map(|r| r.cpu_share_of_core).collect()),
+        rss_mb: rounds.iter().map(|r| r.rss_mb).fold(0.0, f64::max),
+        jitter_p50_ms: median(rounds.iter().map(|r| r.jitter_p50_ms).collect()),
+        jitter_p99_ms: rounds.iter().map(|r| r.jitter_p99_ms).fold(0.0, f64::max),
+        points_per_s: rounds.iter().map(|r| r.points_per_s).sum::<f64>() / n,
+        points_lost: rounds.iter().map(|r| r.points_lost).sum(),
+        points_late: rounds.iter().map(|r| r.points_late).sum(),
     }
 }
 
 /// Options of a run.
 #[derive(Debug, Clone)]
 pub struct Options {
-    /// Measured seconds per client and load point.
+    /// Measured seconds per client and load point, over all rounds.
     pub seconds: f64,
+    /// Rounds per load point, each the gateway then the bare client, with fresh
+    /// processes: alternating them evens out a shared host's drift.
+    pub rounds: usize,
     /// Reply delay of every field module, ms.
     pub delay_ms: f64,
     /// The `compgate` binary.
@@ -176,6 +227,8 @@ pub struct Report {
     pub points: Vec<PointResult>,
     /// Measured seconds per client and load point.
     pub seconds: f64,
+    /// Rounds per load point.
+    pub rounds: usize,
     /// Reply delay of the field modules, ms.
     pub delay_ms: f64,
     /// The gateway's `recorder.interval_s`.
@@ -208,7 +261,15 @@ impl Report {
                     l.name, l.devices, l.points, l.rate_hz
                 ),
                 format!("{:.0} / {:.0}", l.points_per_s(), p.gateway.points_per_s),
-                format!("{:.2} %", 100.0 * p.gateway.cpu_share_of_core),
+                {
+                    let (lo, hi) = p.gateway_cpu_range();
+                    format!(
+                        "{:.2} % ({:.2}-{:.2})",
+                        100.0 * p.gateway.cpu_share_of_core,
+                        100.0 * lo,
+                        100.0 * hi
+                    )
+                },
                 format!("{:.2} %", 100.0 * p.bare.cpu_share_of_core),
                 format!("{:.2}", p.cpu_ratio()),
                 format!("{:.1} MB", p.gateway.rss_mb),
@@ -241,8 +302,9 @@ impl Report {
         let mut s = t.render();
         let _ = writeln!(
             s,
-            "\n{} s measured per client and load; field modules reply after {} ms; the gateway records a device's cycle {}; bare client: jitter p99 {}, points lost {}",
+            "\n{} s measured per client and load in {} rounds (CPU: the median round, the gateway's range in brackets; ratio: the median of the rounds' ratios); field modules reply after {} ms; the gateway records a device's cycle {}; bare client: jitter p99 {}, points lost {}",
             self.seconds,
+            self.rounds,
             self.delay_ms,
             if self.record_interval_s > 0.0 {
                 format!("every {} s", self.record_interval_s)
@@ -300,6 +362,8 @@ impl Report {
                     "bare_points_per_s": p.bare.points_per_s,
                     "bare_points_lost": p.bare.points_lost,
                     "cpu_ratio": p.cpu_ratio(),
+                    "cpu_share_of_core_rounds": p.cpu_rounds.iter().map(|r| r.0).collect::<Vec<_>>(),
+                    "bare_cpu_share_of_core_rounds": p.cpu_rounds.iter().map(|r| r.1).collect::<Vec<_>>(),
                     "readings_recorded": p.recorded,
                     "step_to_nc_p50_ms": p.latency.p50_ms,
                     "step_to_nc_p99_ms": p.latency.p99_ms,
@@ -314,6 +378,7 @@ impl Report {
             .collect();
         serde_json::json!({
             "seconds_per_client": self.seconds,
+            "rounds": self.rounds,
             "reply_delay_ms": self.delay_ms,
             "record_interval_s": self.record_interval_s,
             "load_average": [self.load_avg.0, self.load_avg.1],
@@ -529,8 +594,12 @@ fn step_driver(
         }
         let t0 = Instant::now();
         loop {
-            if (nc.state().sd43900_mm - want_mm).abs() < STEP_TOLERANCE_MM {
-                latencies.push(t0.elapsed().as_secs_f64() * 1e3);
+            // The module notes when a job took effect, so this thread can look once a
+            // millisecond instead of spinning beside the gateway it measures.
+            let (sd43900_mm, done_at) = nc.sd43900_and_last_done();
+            if (sd43900_mm - want_mm).abs() < STEP_TOLERANCE_MM {
+                let done_at = done_at.map_or_else(Instant::now, |t| t.into_std());
+                latencies.push(done_at.saturating_duration_since(t0).as_secs_f64() * 1e3);
                 break;
             }
             if stop.load(Ordering::Relaxed) {
@@ -541,7 +610,7 @@ fn step_driver(
                 missed += 1;
                 break;
             }
-            std::thread::sleep(Duration::from_micros(200));
+            std::thread::sleep(Duration::from_millis(1));
         }
     }
     (latencies, missed)
@@ -661,11 +730,27 @@ async fn measure_client(
 /// Seconds of warm-up before a measurement: connections made, caches filled.
 const WARMUP: Duration = Duration::from_secs(3);
 
+/// What one round of the gateway measured.
+struct GatewayRound {
+    figures: ClientFigures,
+    /// Readings in its database.
+    recorded: u64,
+    /// Step-to-NC latencies, ms.
+    latencies_ms: Vec<f64>,
+    /// Steps the NC did not follow in time.
+    missed: usize,
+    /// Round trips of its NC jobs, ms.
+    job_rtts_ms: Vec<f64>,
+    /// Mean poll cycle of the stepped device, ms.
+    poll_ms: f64,
+}
+
 async fn run_gateway(
     opts: &Options,
     load: &Load,
     plant: &Plant,
-) -> Result<(ClientFigures, u64, Latency), String> {
+    seconds: f64,
+) -> Result<GatewayRound, String> {
     let dir = tempfile::tempdir().map_err(|e| format!("temporary directory: {e}"))?;
     let metrics_port = soak::free_port()?;
     let cfg_path = dir.path().join("scale.toml");
@@ -702,9 +787,9 @@ async fn run_gateway(
         std::thread::spawn(move || step_driver(field, nc, interval, stop))
     };
     let t_start_ms = compgate_service::record::now_unix_ms();
-    let mut figures = measure_client(plant, load, gw.0.id(), opts.seconds).await?;
+    let mut figures = measure_client(plant, load, gw.0.id(), seconds).await?;
     stop.store(true, Ordering::Relaxed);
-    let (mut latencies, missed) = driver
+    let (latencies_ms, missed) = driver
         .join()
         .map_err(|_| "the step driver panicked".to_string())?;
     // The recorder's drops are points lost too: each is a device's cycle.
@@ -720,7 +805,7 @@ async fn run_gateway(
     let recorded: i64 = db
         .query_row("SELECT count(*) FROM readings", [], |r| r.get(0))
         .map_err(|e| format!("the gateway's database: {e}"))?;
-    let mut rtts: Vec<f64> = {
+    let job_rtts_ms: Vec<f64> = {
         let mut st = db
             .prepare("SELECT elapsed_ms FROM jobs WHERE ok = 1 AND elapsed_ms IS NOT NULL AND t_unix_ms >= ?1")
             .map_err(|e| format!("the gateway's database: {e}"))?;
@@ -730,15 +815,14 @@ async fn run_gateway(
         rows.filter_map(Result::ok).collect()
     };
     drop(gw);
-    let latency = Latency {
-        steps: latencies.len(),
+    Ok(GatewayRound {
+        figures,
+        recorded: u64::try_from(recorded).unwrap_or(0),
+        latencies_ms,
         missed,
-        p50_ms: percentile(&mut latencies, 50.0),
-        p99_ms: percentile(&mut latencies, 99.0),
-        job_rtt_ms: percentile(&mut rtts, 50.0),
+        job_rtts_ms,
         poll_ms,
-    };
-    Ok((figures, u64::try_from(recorded).unwrap_or(0), latency))
+    })
 }
 
 /// Seconds the gateway spent in poll cycles of `device` so far, and their count.
@@ -766,7 +850,7 @@ fn recorder_dropped(metrics_port: u16) -> u64 {
         .sum::<f64>() as u64
 }
 
-async fn run_bare(opts: &Options, load: &Load, plant: &Plant) -> Result<ClientFigures, String> {
+async fn run_bare(load: &Load, plant: &Plant, seconds: f64) -> Result<ClientFigures, String> {
     let exe = std::env::current_exe().map_err(|e| format!("own binary: {e}"))?;
     let mut cmd = Command::new(exe);
     cmd.args([
@@ -787,7 +871,7 @@ async fn run_bare(opts: &Options, load: &Load, plant: &Plant) -> Result<ClientFi
     );
     wait_polled(&plant.modules, "the bare client").await?;
     tokio::time::sleep(WARMUP).await;
-    let figures = measure_client(plant, load, bare.0.id(), opts.seconds).await?;
+    let figures = measure_client(plant, load, bare.0.id(), seconds).await?;
     drop(bare);
     Ok(figures)
 }
@@ -798,10 +882,17 @@ fn uptime() -> String {
         .unwrap_or_default()
 }
 
-/// Runs every load point: the gateway, then the bare client, against one plant each.
+/// Runs every load point against one plant each: rounds of the gateway, then the
+/// bare client.
 pub async fn run(opts: &Options) -> Result<Report, String> {
-    if !(opts.seconds.is_finite() && opts.seconds >= 2.0) {
-        return Err(format!("--seconds {}: at least 2", opts.seconds));
+    if !(1..=20).contains(&opts.rounds) {
+        return Err(format!("--rounds {}: 1..=20", opts.rounds));
+    }
+    if !(opts.seconds.is_finite() && opts.seconds >= 2.0 * opts.rounds as f64) {
+        return Err(format!(
+            "--seconds {}: at least 2 per round ({} rounds)",
+            opts.seconds, opts.rounds
+        ));
     }
     if !(opts.record_interval_s.is_finite() && (0.0..=3600.0).contains(&opts.record_interval_s)) {
         return Err(format!(
@@ -817,14 +908,41 @@ pub async fn run(opts: &Options) -> Result<Report, String> {
     let mut points = Vec::new();
     for load in &opts.loads {
         let plant = start_plant(load, delay).await?;
-        let (gateway, recorded, latency) = run_gateway(opts, load, &plant).await?;
-        let bare = run_bare(opts, load, &plant).await?;
+        let seconds = opts.seconds / opts.rounds as f64;
+        let (mut gateway, mut bare) = (Vec::new(), Vec::new());
+        for _ in 0..opts.rounds {
+            gateway.push(run_gateway(opts, load, &plant, seconds).await?);
+            bare.push(run_bare(load, &plant, seconds).await?);
+        }
+        let mut latencies_ms: Vec<f64> = gateway
+            .iter()
+            .flat_map(|g| g.latencies_ms.iter().copied())
+            .collect();
+        let mut job_rtts_ms: Vec<f64> = gateway
+            .iter()
+            .flat_map(|g| g.job_rtts_ms.iter().copied())
+            .collect();
+        let latency = Latency {
+            steps: latencies_ms.len(),
+            missed: gateway.iter().map(|g| g.missed).sum(),
+            p50_ms: percentile(&mut latencies_ms, 50.0),
+            p99_ms: percentile(&mut latencies_ms, 99.0),
+            job_rtt_ms: percentile(&mut job_rtts_ms, 50.0),
+            poll_ms: gateway.iter().map(|g| g.poll_ms).sum::<f64>() / opts.rounds as f64,
+        };
+        let gateway_figures: Vec<ClientFigures> =
+            gateway.iter().map(|g| g.figures.clone()).collect();
         let p = PointResult {
             load: *load,
-            gateway,
-            bare,
-            recorded,
+            gateway: combine(&gateway_figures),
+            bare: combine(&bare),
+            recorded: gateway.iter().map(|g| g.recorded).sum(),
             latency,
+            cpu_rounds: gateway_figures
+                .iter()
+                .zip(&bare)
+                .map(|(g, b)| (g.cpu_share_of_core, b.cpu_share_of_core))
+                .collect(),
         };
         eprintln!(
             "{}: gateway {:.2} % of one core, bare {:.2} %, ratio {:.2}",
@@ -838,6 +956,7 @@ pub async fn run(opts: &Options) -> Result<Report, String> {
     Ok(Report {
         points,
         seconds: opts.seconds,
+        rounds: opts.rounds,
         delay_ms: opts.delay_ms,
         record_interval_s: opts.record_interval_s,
         load_avg: (before, uptime()),
@@ -943,6 +1062,45 @@ mod tests {
         assert_eq!(late, 100);
         assert!(p50.abs() < 1e-6, "{p50}");
         assert!((p99 - 30.0).abs() < 1e-6, "{p99}");
+    }
+
+    #[test]
+    fn rounds_combine_to_medians_worst_cases_and_sums() {
+        let round = |cpu, rss_mb, p99, lost| ClientFigures {
+            cpu_share_of_core: cpu,
+            rss_mb,
+            jitter_p50_ms: cpu * 10.0,
+            jitter_p99_ms: p99,
+            points_per_s: 1000.0 * cpu,
+            points_lost: lost,
+            points_late: lost / 2,
+        };
+        let rounds = [
+            round(0.02, 20.0, 1.0, 0),
+            round(0.05, 21.5, 3.0, 100),
+            round(0.03, 20.5, 2.0, 10),
+        ];
+        let c = combine(&rounds);
+        assert_eq!(c.cpu_share_of_core, 0.03);
+        assert_eq!((c.rss_mb, c.jitter_p99_ms), (21.5, 3.0));
+        assert_eq!(c.jitter_p50_ms, 0.3);
+        assert!((c.points_per_s - 100.0 / 3.0).abs() < 1e-9);
+        assert_eq!((c.points_lost, c.points_late), (110, 55));
+
+        // The ratio pairs each gateway round with the bare round after it: a host
+        // twice as slow in round 2 leaves that round's ratio as it was.
+        let p = PointResult {
+            load: LOADS[0],
+            gateway: c,
+            bare: ClientFigures::default(),
+            recorded: 0,
+            latency: Latency::default(),
+            cpu_rounds: vec![(0.02, 0.01), (0.04, 0.02), (0.045, 0.01)],
+        };
+        assert_eq!(p.cpu_ratio(), 2.0);
+        assert_eq!(p.gateway_cpu_range(), (0.02, 0.045));
+        assert_eq!(median(vec![4.0, 1.0, 3.0, 2.0]), 2.5);
+        assert_eq!(median(Vec::new()), 0.0);
     }
 
     #[test]
