@@ -171,18 +171,9 @@ impl PointResult {
     }
 }
 
-/// The median of `v` (the mean of the middle two for an even count), 0 when empty.
+/// The median of `v` (nearest rank), 0 when empty.
 fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        (v[n / 2 - 1] + v[n / 2]) / 2.0
-    }
+    percentile(&mut v, 50.0)
 }
 
 /// One client's rounds as one set of figures: CPU the median of the rounds, RSS and
@@ -1099,7 +1090,6 @@ mod tests {
         };
         assert_eq!(p.cpu_ratio(), 2.0);
         assert_eq!(p.gateway_cpu_range(), (0.02, 0.045));
-        assert_eq!(median(vec![4.0, 1.0, 3.0, 2.0]), 2.5);
         assert_eq!(median(Vec::new()), 0.0);
     }
 
