@@ -68,15 +68,15 @@ mean_degc = 25.0
 async fn a_monitoring_only_config_polls_filters_records_and_serves_metrics() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("rec.db");
-    let port = common::free_port();
     let extra = format!(
-        "\n[recorder]\npath = {:?}\ncommit_interval_s = 0.2\n\n[metrics]\nbind = \"127.0.0.1:{port}\"\n",
+        "\n[recorder]\npath = {:?}\ncommit_interval_s = 0.2\n\n[metrics]\nbind = \"127.0.0.1:0\"\n",
         db.display().to_string()
     );
     let (_plant, path) =
         common::plant_and_file(dir.path(), &monitoring_config("", ""), &extra).await;
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+    let port = gw.metrics_port(1.0);
 
     let series = "compgate_channel_value_degc{channel=\"T_bed\"}";
     let mut last = None;
@@ -160,10 +160,10 @@ mean_degc = 23.45
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_float_in_the_wrong_word_order_is_bad_and_the_log_names_the_order() {
     let dir = tempfile::tempdir().unwrap();
-    let port = common::free_port();
-    let metrics = format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"\n");
-    let (_plant, path) = plant_with_swapped_float(dir.path(), &metrics).await;
+    let metrics = "\n[metrics]\nbind = \"127.0.0.1:0\"\n";
+    let (_plant, path) = plant_with_swapped_float(dir.path(), metrics).await;
     let gw = Gateway::start(dir.path(), &path, &[]);
+    let port = tokio::task::block_in_place(|| gw.metrics_port(10.0));
     let line = tokio::task::block_in_place(|| gw.wait_log(10.0, "check `byte_order`"));
     assert!(
         line.contains("T_amb") && line.contains("as ABCD; as CDAB it would read 23.4"),

@@ -11,16 +11,15 @@ use common::metrics::{scrape, value};
 use common::process::Gateway;
 use compgate::plant::Plant;
 
-/// The test plant and a config file with `[metrics]` on a free port.
-async fn plant_with_metrics(dir: &std::path::Path) -> (Plant, std::path::PathBuf, u16) {
-    let port = common::free_port();
-    let (plant, path) = common::plant_and_file(
+/// The test plant and a config file with `[metrics]` on port 0
+/// ([`Gateway::metrics_port`] tells which one it got).
+async fn plant_with_metrics(dir: &std::path::Path) -> (Plant, std::path::PathBuf) {
+    common::plant_and_file(
         dir,
         &common::config("hold", "", ""),
-        &format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"\n"),
+        "\n[metrics]\nbind = \"127.0.0.1:0\"\n",
     )
-    .await;
-    (plant, path, port)
+    .await
 }
 
 /// Raises this process's soft descriptor limit to its hard limit; returns the new
@@ -61,8 +60,9 @@ async fn half_sent_requests_on_1100_connections_starve_nothing() {
     }
     let test_started = Instant::now();
     let dir = tempfile::tempdir().unwrap();
-    let (plant, path, port) = plant_with_metrics(dir.path()).await;
+    let (plant, path) = plant_with_metrics(dir.path()).await;
     let mut gw = Gateway::start_with_nofile(dir.path(), &path, &[], Some(GATEWAY_NOFILE));
+    let port = tokio::task::block_in_place(|| gw.metrics_port(10.0));
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "first job", |m| m.contains("jobs 1 ok")));
     let log_before = gw.stderr_bytes();
 
@@ -185,8 +185,9 @@ async fn a_real_scrape_passes_promtool_check_metrics() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let (plant, path, port) = plant_with_metrics(dir.path()).await;
+    let (plant, path) = plant_with_metrics(dir.path()).await;
     let mut gw = Gateway::start(dir.path(), &path, &[]);
+    let port = tokio::task::block_in_place(|| gw.metrics_port(10.0));
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "first job", |m| m.contains("jobs 1 ok")));
     // Every kind of metric present: a failed poll counts a device error.
     plant.field["ain1"].set_comm_fault(compgate_plc::field::CommFault::Silent);

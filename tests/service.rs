@@ -346,12 +346,12 @@ async fn prometheus_endpoint_shows_links_channels_jobs_and_cycle_times() {
     let dir = tempfile::tempdir().unwrap();
     let (plant, path) =
         common::plant_and_file(dir.path(), &common::config("hold", "", ""), "").await;
-    let port = common::free_port();
     let mut text = std::fs::read_to_string(&path).unwrap();
-    text.push_str(&format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"\n"));
+    text.push_str("\n[metrics]\nbind = \"127.0.0.1:0\"\n");
     std::fs::write(&path, text).unwrap();
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "first job", |m| m.contains("jobs 1 ok")));
+    let port = gw.metrics_port(1.0);
     tokio::time::sleep(Duration::from_millis(300)).await;
     let m = tokio::task::block_in_place(|| scrape(port));
     assert_eq!(

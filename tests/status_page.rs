@@ -49,8 +49,15 @@ fn api_status(port: u16) -> Option<Value> {
     serde_json::from_str(&body).ok()
 }
 
-/// Polls `/api/status` until `pred` holds; panics with the last answer after `secs`.
-fn wait_api(port: u16, secs: f64, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
+/// Polls `/api/status` until `pred` holds; panics with the last answer and the
+/// gateway's log after `secs`.
+fn wait_api(
+    gateway: &Gateway,
+    port: u16,
+    secs: f64,
+    what: &str,
+    pred: impl Fn(&Value) -> bool,
+) -> Value {
     let deadline = Instant::now() + Duration::from_secs_f64(secs);
     let mut last = None;
     while Instant::now() < deadline {
@@ -62,7 +69,10 @@ fn wait_api(port: u16, secs: f64, what: &str, pred: impl Fn(&Value) -> bool) -> 
         }
         std::thread::sleep(Duration::from_millis(100));
     }
-    panic!("timed out after {secs} s waiting for {what}; last /api/status: {last:#?}");
+    panic!(
+        "timed out after {secs} s waiting for {what}; last /api/status: {last:#?}\ngateway log:\n{}",
+        gateway.stderr_text()
+    );
 }
 
 fn channel<'a>(status: &'a Value, name: &str) -> &'a Value {
@@ -72,16 +82,15 @@ fn channel<'a>(status: &'a Value, name: &str) -> &'a Value {
         .unwrap_or_else(|| panic!("no channel {name} in {status}"))
 }
 
-/// The plant of `toml` and a config file for it with `[metrics]` on a free port.
-async fn plant(dir: &Path, toml: &str, extra: &str) -> (Plant, PathBuf, u16) {
-    let port = common::free_port();
-    let (plant, path) = common::plant_and_file(
+/// The plant of `toml` and a config file for it with `[metrics]` on port 0
+/// ([`Gateway::metrics_port`] tells which one it got).
+async fn plant(dir: &Path, toml: &str, extra: &str) -> (Plant, PathBuf) {
+    common::plant_and_file(
         dir,
         toml,
-        &format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"\n{extra}"),
+        &format!("\n[metrics]\nbind = \"127.0.0.1:0\"\n{extra}"),
     )
-    .await;
-    (plant, path, port)
+    .await
 }
 
 /// Debian's chromium, or why not.
@@ -187,16 +196,24 @@ async fn the_page_in_chromium_loads_clean_updates_and_shows_a_ne43_fault_as_bad(
         return;
     };
     let dir = tempfile::tempdir().expect("tempdir");
-    let (plant, path, port) = plant(dir.path(), DEMO, "").await;
+    let (plant, path) = plant(dir.path(), DEMO, "").await;
     let gateway = Gateway::start(dir.path(), &path, &[]);
-    wait_api(port, 20.0, "every channel good with a trend", |s| {
-        s["channels"].as_array().is_some_and(|c| {
-            !c.is_empty()
-                && c.iter().all(|c| {
-                    c["quality"] == "good" && c["trend"].as_array().is_some_and(|t| t.len() >= 3)
-                })
-        })
-    });
+    let port = gateway.metrics_port(20.0);
+    wait_api(
+        &gateway,
+        port,
+        20.0,
+        "every channel good with a trend",
+        |s| {
+            s["channels"].as_array().is_some_and(|c| {
+                !c.is_empty()
+                    && c.iter().all(|c| {
+                        c["quality"] == "good"
+                            && c["trend"].as_array().is_some_and(|t| t.len() >= 3)
+                    })
+            })
+        },
+    );
     let url = format!("http://127.0.0.1:{port}/");
 
     // The page loads, draws every channel from /api/status and logs nothing.
@@ -243,7 +260,7 @@ async fn the_page_in_chromium_loads_clean_updates_and_shows_a_ne43_fault_as_bad(
     plant.field["ain1"]
         .set_sensor_fault(t_bed, SensorFault::Open)
         .expect("fault set");
-    wait_api(port, 10.0, "T_bed bad", |s| {
+    wait_api(&gateway, port, 10.0, "T_bed bad", |s| {
         channel(s, "T_bed")["quality"] == "bad"
     });
     let faulted = look(&chromium, &url, 3000);
@@ -272,9 +289,10 @@ async fn the_page_in_chromium_loads_clean_updates_and_shows_a_ne43_fault_as_bad(
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_api_answers_json_and_the_listener_is_read_only() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let (_plant, path, port) = plant(dir.path(), DEMO, "").await;
-    let _gateway = Gateway::start(dir.path(), &path, &[]);
-    let s = wait_api(port, 20.0, "a job done", |s| {
+    let (_plant, path) = plant(dir.path(), DEMO, "").await;
+    let gateway = Gateway::start(dir.path(), &path, &[]);
+    let port = gateway.metrics_port(20.0);
+    let s = wait_api(&gateway, port, 20.0, "a job done", |s| {
         s["jobs"].as_array().is_some_and(|j| !j.is_empty())
     });
     for key in ["devices", "channels", "axes", "jobs"] {
@@ -318,7 +336,7 @@ async fn the_api_answers_json_and_the_listener_is_read_only() {
 async fn shadow_mode_records_and_shows_what_it_would_write_and_leaves_the_nc_alone() {
     let dir = tempfile::tempdir().expect("tempdir");
     let db = dir.path().join("rec.sqlite");
-    let (plant, path, port) = plant(
+    let (plant, path) = plant(
         dir.path(),
         &common::config("hold", "", ""),
         // A broker that is not there: MQTT messages stay in the outbox to be read.
@@ -331,8 +349,9 @@ async fn shadow_mode_records_and_shows_what_it_would_write_and_leaves_the_nc_alo
     .await;
     let nc_before = plant.nc["nc_x"].state();
     let mut gateway = Gateway::start_with_args(dir.path(), &path, &["--shadow"]);
+    let port = gateway.metrics_port(20.0);
     // T_bed 30 degC, coeff 0.004 mm/degC from 20 degC: K0 0.04 mm would be written.
-    let s = wait_api(port, 20.0, "a shadow write of K0 0.04 mm", |s| {
+    let s = wait_api(&gateway, port, 20.0, "a shadow write of K0 0.04 mm", |s| {
         s["axes"][0]["would_write"]["sd43900_mm"]
             .as_f64()
             .is_some_and(|k0| (k0 - 0.04).abs() < 0.001)

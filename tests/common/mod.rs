@@ -107,7 +107,9 @@ impl Drop for Rig {
     }
 }
 
-/// A free TCP port on loopback (taken from port 0 and released again).
+/// A free TCP port on loopback (taken from port 0 and released again), for an address
+/// that must stay dead or that a restarted process binds again. Anything else binds
+/// port 0 itself: another listener can take this one before it is used.
 pub fn free_port() -> u16 {
     let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind port 0");
     l.local_addr().expect("local addr").port()

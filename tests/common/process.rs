@@ -205,6 +205,19 @@ impl Gateway {
         );
     }
 
+    /// The port of the metrics listener, as the gateway logs it once bound. Configs in
+    /// tests bind port 0: a port picked by the test and released again can be taken
+    /// by any other listener before the gateway binds it.
+    pub fn metrics_port(&self, secs: f64) -> u16 {
+        let line = self.wait_log(secs, "Prometheus metrics on http://");
+        line.split("http://")
+            .nth(1)
+            .and_then(|rest| rest.split('/').next())
+            .and_then(|addr| addr.parse::<std::net::SocketAddr>().ok())
+            .map(|a| a.port())
+            .unwrap_or_else(|| panic!("no address in the metrics log line: {line}"))
+    }
+
     /// SIGTERM and wait; returns whether it exited successfully.
     pub fn stop(mut self) -> bool {
         self.signal("TERM");
