@@ -66,7 +66,16 @@ impl Broker {
             .expect("mosquitto runs (./test.sh installs the mosquitto package)");
         self.child = Some(child);
         for _ in 0..100 {
+            // mosquitto exits when its port was taken between picking and binding it;
+            // a listener there then is somebody else's.
+            if let Some(st) = self.child.as_mut().and_then(|c| c.try_wait().unwrap()) {
+                panic!("mosquitto exited ({st}): port {} taken?", self.port);
+            }
             if std::net::TcpStream::connect(("127.0.0.1", self.port)).is_ok() {
+                std::thread::sleep(Duration::from_millis(100));
+                if let Some(st) = self.child.as_mut().and_then(|c| c.try_wait().unwrap()) {
+                    panic!("mosquitto exited ({st}): port {} taken?", self.port);
+                }
                 return;
             }
             std::thread::sleep(Duration::from_millis(20));
