@@ -126,15 +126,8 @@ async fn modbus_server_process_killed_and_restarted() {
             .stderr(std::process::Stdio::null())
             .spawn()
             .unwrap();
-        for _ in 0..200 {
-            if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
-                return child;
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        let _ = child.kill();
-        let _ = child.wait();
-        panic!("compgate sim did not listen");
+        common::process::wait_listening(&mut child, port, 4.0, "compgate sim");
+        child
     };
     let mut sim = tokio::task::block_in_place(start_sim);
 

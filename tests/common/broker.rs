@@ -64,23 +64,8 @@ impl Broker {
             .stderr(Stdio::null())
             .spawn()
             .expect("mosquitto runs (./test.sh installs the mosquitto package)");
-        self.child = Some(child);
-        for _ in 0..100 {
-            // mosquitto exits when its port was taken between picking and binding it;
-            // a listener there then is somebody else's.
-            if let Some(st) = self.child.as_mut().and_then(|c| c.try_wait().unwrap()) {
-                panic!("mosquitto exited ({st}): port {} taken?", self.port);
-            }
-            if std::net::TcpStream::connect(("127.0.0.1", self.port)).is_ok() {
-                std::thread::sleep(Duration::from_millis(100));
-                if let Some(st) = self.child.as_mut().and_then(|c| c.try_wait().unwrap()) {
-                    panic!("mosquitto exited ({st}): port {} taken?", self.port);
-                }
-                return;
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        panic!("mosquitto did not listen on port {}", self.port);
+        let child = self.child.insert(child);
+        super::process::wait_listening(child, self.port, 2.0, "mosquitto");
     }
 
     /// SIGTERM: mosquitto saves its persistence file and exits.

@@ -26,6 +26,31 @@ pub fn assert_success(out: &Output) -> String {
     stdout
 }
 
+/// Waits until `child` listens on 127.0.0.1:`port`; panics after `secs` or when it
+/// exits. A child that must bind a port picked beforehand (to be restarted on it)
+/// exits when somebody took the port meanwhile, and a connect then reaches that other
+/// listener: so the child must still run a moment after the port answers.
+pub fn wait_listening(child: &mut Child, port: u16, secs: f64, what: &str) {
+    let deadline = Instant::now() + Duration::from_secs_f64(secs);
+    let exited = |child: &mut Child| {
+        if let Some(st) = child.try_wait().unwrap() {
+            panic!("{what} exited ({st}) before listening on port {port}: port taken?");
+        }
+    };
+    while Instant::now() < deadline {
+        exited(child);
+        if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
+            std::thread::sleep(Duration::from_millis(100));
+            exited(child);
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let _ = child.kill();
+    let _ = child.wait();
+    panic!("{what} did not listen on port {port} within {secs} s");
+}
+
 /// A running `compgate run --config FILE`; dropping it kills it.
 pub struct Gateway {
     pub child: Child,
