@@ -402,3 +402,51 @@ async fn prometheus_endpoint_shows_links_channels_jobs_and_cycle_times() {
     assert!(tokio::task::block_in_place(|| gw.stop()));
     drop(plant);
 }
+
+// Under systemd, stdout is the journal (`JOURNAL_STREAM` names it): a line of every
+// channel per status update would bury the journal's events, so none is printed
+// there. On a file or a pipe there is one per update.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn no_status_line_per_update_when_stdout_is_the_journal() {
+    use std::os::unix::fs::MetadataExt;
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), "").await;
+    let field = &plant.field["ain1"];
+    // Runs the gateway 1.5 s with stdout on a file, `JOURNAL_STREAM` naming that file
+    // (`journal`) or another inode; its stdout, and the polls it made meanwhile.
+    let run = |journal: bool| {
+        let out = dir.path().join(format!("stdout-{journal}.txt"));
+        let file = std::fs::File::create(&out).unwrap();
+        let m = file.metadata().unwrap();
+        let ino = if journal { m.ino() } else { m.ino() + 1 };
+        let polls_before = field.requests_served();
+        let mut child = std::process::Command::new(common::process::BIN)
+            .args(["--log", "warn", "run", "--config"])
+            .arg(&path)
+            .env("JOURNAL_STREAM", format!("{}:{ino}", m.dev()))
+            .env_remove("NOTIFY_SOCKET")
+            .env_remove("RUST_LOG")
+            .stdout(file)
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(Duration::from_millis(1500));
+        let term = std::process::Command::new("kill")
+            .args(["-TERM", &child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(term.success());
+        let exit = child.wait().unwrap();
+        assert!(exit.success(), "journal {journal}: {exit}");
+        let polls = field.requests_served() - polls_before;
+        (std::fs::read_to_string(&out).unwrap(), polls)
+    };
+    let (text, polls) = tokio::task::block_in_place(|| run(false));
+    assert!(polls >= 5, "{polls} polls in 1.5 s");
+    let lines = text.lines().filter(|l| l.contains("T_bed=")).count();
+    assert!(lines >= 5, "{lines} status lines on a file:\n{text}");
+    let (text, polls) = tokio::task::block_in_place(|| run(true));
+    assert!(polls >= 5, "{polls} polls in 1.5 s with stdout the journal");
+    assert_eq!(text, "", "stdout is the journal");
+}

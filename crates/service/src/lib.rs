@@ -216,11 +216,16 @@ pub async fn run(path: &Path, mut cfg: Config, opts: RunOptions) -> Result<(), S
             tracing::warn!(axis = %name, "shadow mode: the axis computes and records what it would write; its NC is never written");
         }
     }
-    let printer = tokio::spawn(crate::status::print_loop(
-        rx,
-        std::io::stdout().is_terminal(),
-        shutdown.clone(),
-    ));
+    let printer = if crate::status::stdout_is_journal() {
+        tracing::info!("stdout is the journal: no status line per update (systemctl status, the status page and /metrics show the status)");
+        None
+    } else {
+        Some(tokio::spawn(crate::status::print_loop(
+            rx,
+            std::io::stdout().is_terminal(),
+            shutdown.clone(),
+        )))
+    };
     let hooks = Hooks {
         observer: Box::new(Observers(observers)),
         reload: Some(reload_rx),
@@ -251,6 +256,8 @@ pub async fn run(path: &Path, mut cfg: Config, opts: RunOptions) -> Result<(), S
             .map_err(task_err)?;
     }
     shutdown.cancel();
-    let _ = printer.await;
+    if let Some(p) = printer {
+        let _ = p.await;
+    }
     Ok(result??)
 }

@@ -3,9 +3,9 @@
 //!
 //! On a terminal a small table ([`render_table`]) is redrawn in place ([`redraw`]:
 //! cursor up by the height drawn last, every line cleared and drawn again), so nothing
-//! wraps and no trail is left. Otherwise (journal, pipe, file) one plain line
-//! ([`render`]) is printed per status update, naming every value so it can be
-//! grepped. Both are printed from the snapshot the control loop publishes at each
+//! wraps and no trail is left. On a pipe or a file one plain line ([`render`]) is
+//! printed per status update, naming every value so it can be grepped. In the journal
+//! nothing is ([`stdout_is_journal`]). Both are printed from the snapshot the control loop publishes at each
 //! status tick, the one the metrics see at the same moment: no lag behind them.
 
 use std::fmt::Write as _;
@@ -240,6 +240,28 @@ impl<W: Write> Printer<W> {
     }
 }
 
+/// Whether `journal_stream` (systemd's `JOURNAL_STREAM`, `DEV:INODE` of the stream it
+/// connected to the journal) names the file `dev`/`ino`.
+pub fn is_journal_stream(journal_stream: &str, dev: u64, ino: u64) -> bool {
+    journal_stream
+        .split_once(':')
+        .and_then(|(d, i)| Some((d.parse::<u64>().ok()?, i.parse::<u64>().ok()?)))
+        == Some((dev, ino))
+}
+
+/// Whether stdout is the journal: then the per-update line is not printed. With a
+/// line of every channel each `gateway.status_interval_s`, the journal would hold
+/// more status than events (1000 channels: 23 KB a second, 2 GB a day) and rotate
+/// the warnings out; `systemctl status`, the status page and `/metrics` show it.
+pub fn stdout_is_journal() -> bool {
+    use std::os::unix::fs::MetadataExt;
+    let Some(stream) = std::env::var_os("JOURNAL_STREAM") else {
+        return false;
+    };
+    std::fs::metadata("/proc/self/fd/1")
+        .is_ok_and(|m| is_journal_stream(&stream.to_string_lossy(), m.dev(), m.ino()))
+}
+
 /// Prints every status the gateway publishes (once per `gateway.status_interval_s`)
 /// until `shutdown` or the gateway's end, then the last one.
 pub async fn print_loop(rx: watch::Receiver<Status>, tty: bool, shutdown: CancellationToken) {
@@ -272,6 +294,15 @@ pub async fn print_to<W: Write>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn journal_stream_names_the_file_by_device_and_inode() {
+        assert!(is_journal_stream("25:1234567", 25, 1_234_567));
+        assert!(!is_journal_stream("25:1234567", 25, 1_234_568));
+        assert!(!is_journal_stream("26:1234567", 25, 1_234_567));
+        assert!(!is_journal_stream("", 25, 1_234_567));
+        assert!(!is_journal_stream("25", 25, 1_234_567));
+    }
     use compgate_core::channel::{Reading, Reason};
     use compgate_core::comp::CompParams;
     use compgate_gateway::nc::NcSnapshot;
