@@ -25,7 +25,7 @@ use tokio_util::sync::CancellationToken;
 fn reading<'a>(s: &'a Status, ch: &str) -> &'a Reading {
     &s.channels
         .iter()
-        .find(|c| c.name == ch)
+        .find(|c| &*c.name == ch)
         .expect("channel")
         .reading
 }

@@ -83,7 +83,7 @@ impl Rig {
     pub fn channel<'a>(s: &'a Status, name: &str) -> &'a runtime::ChannelStatus {
         s.channels
             .iter()
-            .find(|c| c.name == name)
+            .find(|c| &*c.name == name)
             .expect("channel exists")
     }
 

@@ -125,7 +125,7 @@ impl Pipeline {
             .iter()
             .zip(&self.processors)
             .map(|(name, p)| ChannelStatus {
-                name: name.clone(),
+                name: name.as_str().into(),
                 reading: p.last().clone(),
             })
             .collect()

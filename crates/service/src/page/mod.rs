@@ -46,7 +46,7 @@ struct Point {
 #[derive(Debug, Clone, Default)]
 pub struct History {
     window: Duration,
-    names: Vec<String>,
+    names: Vec<Arc<str>>,
     points: Vec<VecDeque<Point>>,
 }
 
@@ -68,10 +68,11 @@ impl History {
                 .names
                 .iter()
                 .zip(&status.channels)
-                .any(|(n, c)| *n != c.name);
+                // The same shared name unless a reload changed the channels.
+                .any(|(n, c)| !Arc::ptr_eq(n, &c.name) && n != &c.name);
         if names_changed {
             // A reload with other channels: keep the trends of the names kept.
-            let mut old: Vec<(String, VecDeque<Point>)> = std::mem::take(&mut self.names)
+            let mut old: Vec<(Arc<str>, VecDeque<Point>)> = std::mem::take(&mut self.names)
                 .into_iter()
                 .zip(std::mem::take(&mut self.points))
                 .collect();
@@ -178,7 +179,7 @@ pub fn to_json(s: &Status, history: &History, interval_s: f64, t_unix_ms: i64) -
             let (code, reason) = quality_code(&r.quality);
             let quality = ["good", "uncertain", "bad"][usize::from(code.min(2))];
             json!({
-                "name": c.name,
+                "name": &*c.name,
                 "value_degc": r.value_degc.map(num),
                 "unfiltered_degc": r.unfiltered_degc.map(num),
                 "current_ma": r.current_ma.map(num),
