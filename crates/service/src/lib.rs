@@ -154,6 +154,7 @@ pub async fn http_listener(
     let page = m.status_page.then(page::Page::default);
     let addr = metrics::install(m, page.clone()).await?;
     if let Some(page) = page {
+        // Detached: it ends when the gateway drops the status' sender.
         drop(status_reader(
             "status-page",
             page::track(

@@ -4,9 +4,10 @@
 //! On a terminal a small table ([`render_table`]) is redrawn in place ([`redraw`]:
 //! cursor up by the height drawn last, every line cleared and drawn again), so nothing
 //! wraps and no trail is left. On a pipe or a file one plain line ([`render`]) is
-//! printed per status update, naming every value so it can be grepped. In the journal
-//! nothing is ([`stdout_is_journal`]). Both are printed from the snapshot the control loop publishes at each
-//! status tick, the one the metrics see at the same moment: no lag behind them.
+//! printed per status update, naming every value so it can be grepped; in the journal
+//! nothing is ([`stdout_is_journal`]). Both are printed from the snapshot the control
+//! loop publishes at each status tick, the one the metrics see at the same moment: no
+//! lag behind them.
 
 use std::fmt::Write as _;
 use std::io::Write;
@@ -294,6 +295,10 @@ pub async fn print_to<W: Write>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use compgate_core::channel::{Reading, Reason};
+    use compgate_core::comp::CompParams;
+    use compgate_gateway::nc::NcSnapshot;
+    use compgate_gateway::runtime::{ChannelStatus, DeviceStatus};
 
     #[test]
     fn journal_stream_names_the_file_by_device_and_inode() {
@@ -303,10 +308,6 @@ mod tests {
         assert!(!is_journal_stream("", 25, 1_234_567));
         assert!(!is_journal_stream("25", 25, 1_234_567));
     }
-    use compgate_core::channel::{Reading, Reason};
-    use compgate_core::comp::CompParams;
-    use compgate_gateway::nc::NcSnapshot;
-    use compgate_gateway::runtime::{ChannelStatus, DeviceStatus};
 
     fn status(t_bed: f64, warning: Option<&str>) -> Status {
         let reading = |v: f64, q: Quality| Reading {
