@@ -773,8 +773,7 @@ async fn run_gateway(
     );
     wait_polled(&plant.modules, "the gateway").await?;
     tokio::time::sleep(WARMUP).await;
-    let dropped_before = recorder_dropped(metrics_port);
-    let polls_before = poll_seconds(metrics_port, "d0");
+    let before = Counters::scrape(metrics_port);
 
     let stop = Arc::new(AtomicBool::new(false));
     let driver = {
@@ -788,11 +787,13 @@ async fn run_gateway(
     let (latencies_ms, missed) = driver
         .join()
         .map_err(|_| "the step driver panicked".to_string())?;
+    let after = Counters::scrape(metrics_port);
     // The recorder's drops are points lost too: each is a device's cycle.
-    let dropped = recorder_dropped(metrics_port).saturating_sub(dropped_before);
-    let polls_after = poll_seconds(metrics_port, "d0");
+    let dropped = after
+        .recorder_dropped
+        .saturating_sub(before.recorder_dropped);
     let poll_ms =
-        1e3 * (polls_after.0 - polls_before.0) / (polls_after.1 - polls_before.1).max(1.0);
+        1e3 * (after.d0_poll_s - before.d0_poll_s) / (after.d0_polls - before.d0_polls).max(1.0);
     figures.points_lost += dropped * load.points as u64;
     // Let the last commit land before reading the database.
     tokio::time::sleep(Duration::from_millis(700)).await;
@@ -821,29 +822,29 @@ async fn run_gateway(
     })
 }
 
-/// Seconds the gateway spent in poll cycles of `device` so far, and their count.
-fn poll_seconds(metrics_port: u16, device: &str) -> (f64, f64) {
-    let get = |what: &str| {
-        soak::metric_sum(
-            metrics_port,
-            &format!("compgate_device_poll_seconds_{what}{{device=\"{device}\"}}"),
-        )
-        .unwrap_or(0.0)
-    };
-    (get("sum"), get("count"))
+/// The gateway's counters around a measurement window, from one scrape (zero when
+/// it cannot be read).
+struct Counters {
+    /// Records the recorder dropped (queue full or failed commits).
+    recorder_dropped: u64,
+    /// Seconds spent in poll cycles of device `d0`, the stepped one.
+    d0_poll_s: f64,
+    /// Poll cycles of `d0`.
+    d0_polls: f64,
 }
 
-/// Records the gateway's recorder dropped so far (queue full or failed commits).
-fn recorder_dropped(metrics_port: u16) -> u64 {
-    ["outcome=\"dropped_queue\"", "outcome=\"dropped_write\""]
-        .iter()
-        .filter_map(|o| {
-            soak::metric_sum(
-                metrics_port,
-                &format!("compgate_recorder_records_total{{{o}}}"),
-            )
-        })
-        .sum::<f64>() as u64
+impl Counters {
+    fn scrape(metrics_port: u16) -> Self {
+        let text = soak::scrape(metrics_port).unwrap_or_default();
+        let sum = |prefix: &str| soak::metric_sum(&text, prefix).unwrap_or(0.0);
+        Self {
+            recorder_dropped: (sum("compgate_recorder_records_total{outcome=\"dropped_queue\"}")
+                + sum("compgate_recorder_records_total{outcome=\"dropped_write\"}"))
+                as u64,
+            d0_poll_s: sum("compgate_device_poll_seconds_sum{device=\"d0\"}"),
+            d0_polls: sum("compgate_device_poll_seconds_count{device=\"d0\"}"),
+        }
+    }
 }
 
 async fn run_bare(load: &Load, plant: &Plant, seconds: f64) -> Result<ClientFigures, String> {

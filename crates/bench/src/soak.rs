@@ -142,15 +142,14 @@ const HEAP_EVERY: Duration = Duration::from_secs(60);
 /// on its metrics endpoint; `None` when it cannot be read (or off glibc).
 fn heap_in_use_kb(metrics_port: u16) -> Option<u64> {
     metric_sum(
-        metrics_port,
+        &scrape(metrics_port)?,
         "compgate_process_heap_bytes{state=\"in_use\"} ",
     )
     .map(|b| (b / 1024.0) as u64)
 }
 
-/// A number from the metrics endpoint: the sum over the lines starting with `prefix`;
-/// `None` when it cannot be read or no line has a value.
-pub fn metric_sum(metrics_port: u16, prefix: &str) -> Option<f64> {
+/// The text of the metrics endpoint; `None` when it cannot be read.
+pub fn scrape(metrics_port: u16) -> Option<String> {
     use std::io::{Read, Write};
     let mut s = std::net::TcpStream::connect(("127.0.0.1", metrics_port)).ok()?;
     s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
@@ -158,7 +157,14 @@ pub fn metric_sum(metrics_port: u16, prefix: &str) -> Option<f64> {
         .ok()?;
     let mut body = String::new();
     s.read_to_string(&mut body).ok()?;
-    body.lines()
+    Some(body)
+}
+
+/// A number of a scrape: the sum over the lines starting with `prefix`; `None` when no
+/// line has a value.
+pub fn metric_sum(scrape: &str, prefix: &str) -> Option<f64> {
+    scrape
+        .lines()
         .filter(|l| l.starts_with(prefix))
         .filter_map(|l| l.rsplit_once(' ')?.1.trim().parse::<f64>().ok())
         .reduce(|a, b| a + b)
