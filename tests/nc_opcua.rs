@@ -10,10 +10,11 @@ use std::time::Duration;
 
 use common::opcua_peer::{self, OpcuaPeer};
 use compgate_core::comp::CompParams;
+use compgate_gateway::nc::guard::THERMAL_VARS;
 use compgate_gateway::nc::opcua::{
     OpcuaNcWriter, OpcuaSecurityMode, OpcuaSecurityPolicy, OpcuaTargetConfig,
 };
-use compgate_gateway::nc::{Job, NcError, NcWriter};
+use compgate_gateway::nc::{Guarded, Job, NcError, NcWriter};
 
 const ABS: &str = "$SA_TEMP_COMP_ABS_VALUE";
 const SLOPE: &str = "$SA_TEMP_COMP_SLOPE";
@@ -307,7 +308,12 @@ async fn a_value_the_server_does_not_hold_as_written_fails_the_read_back() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let mut w = writer_of(&target(&peer, &dir, Some(("writer", "writer-pw"))), 1);
+    // Through the guard, as the gateway writes: the read-back check is its.
+    let mut w = Guarded::new(
+        writer_of(&target(&peer, &dir, Some(("writer", "writer-pw"))), 1),
+        THERMAL_VARS.to_vec(),
+        Duration::from_secs(5),
+    );
     let p = CompParams {
         k0_mm: 0.1,
         tan_beta: 0.5,

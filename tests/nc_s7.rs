@@ -10,8 +10,9 @@ use std::time::{Duration, Instant};
 
 use common::s7_peer::{self, S7Peer};
 use compgate_core::comp::CompParams;
+use compgate_gateway::nc::guard::THERMAL_VARS;
 use compgate_gateway::nc::s7::{S7NcWriter, S7TargetConfig};
-use compgate_gateway::nc::{Job, NcError, NcWriter};
+use compgate_gateway::nc::{Guarded, Job, NcError, NcWriter};
 use compgate_gateway::source::SourceError;
 use compgate_ncproto::{var, JobState, JobStatus};
 
@@ -288,7 +289,9 @@ async fn read_back_tolerates_one_float32_step_for_real_and_none_for_lreal() {
             "--readback-skew-ulps",
             skew,
         ]);
-        let mut w = writer(&peer, &format!("value_type = \"{value_type}\""), 1);
+        // Through the guard, as the gateway writes: the read-back check is its.
+        let w = writer(&peer, &format!("value_type = \"{value_type}\""), 1);
+        let mut w = Guarded::new(w, THERMAL_VARS.to_vec(), Duration::from_secs(5));
         let r = w.write_job(&Job::thermal(&p)).await;
         match (r, ok) {
             (Ok(_), true) => {}

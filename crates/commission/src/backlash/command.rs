@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use compgate_ncproto::{self as ncmap, var};
 
-use compgate_gateway::nc::{Job, ModbusNcWriter, NcError, NcWriter};
+use compgate_gateway::nc::{Guarded, Job, ModbusNcWriter, NcWriter};
 use compgate_gateway::source::modbus::{Backoff, LinkSpec, ModbusLink};
 use compgate_gateway::source::plan::RegisterKind;
 
@@ -325,22 +325,18 @@ pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, Backl
                 compgate_ncproto::MD32450_LIMIT_MM
             )]));
         }
-        let mut writer = ModbusNcWriter::new(link_to(address), args.unit, Duration::from_secs(5));
+        // The guard checks the read-back bit for bit, as for every job.
+        let mut writer = Guarded::new(
+            ModbusNcWriter::new(link_to(address), args.unit, Duration::from_secs(5)),
+            vec![var::MD32450],
+            Duration::from_secs(5),
+        );
         writer
             .write_job(&Job {
                 pairs: vec![(var::MD32450, value)],
             })
             .await?;
-        let snapshot = writer.read_snapshot().await?;
-        if snapshot.md32450_mm.to_bits() != value.to_bits() {
-            return Err(NcError::ReadBack {
-                var: var::MD32450,
-                written: value,
-                read: snapshot.md32450_mm,
-            }
-            .into());
-        }
-        md32450_written_mm = Some(snapshot.md32450_mm);
+        md32450_written_mm = Some(value);
     }
 
     Ok(Outcome {

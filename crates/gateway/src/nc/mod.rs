@@ -249,7 +249,8 @@ impl JobIds {
 pub struct JobReport {
     /// Job id used.
     pub job_id: u16,
-    /// Time from the first request to the verified read-back.
+    /// Time from the first request to the end of the job (through [`Guarded`]: to
+    /// the verified read-back).
     pub elapsed: Duration,
 }
 
@@ -293,7 +294,8 @@ impl NcSnapshot {
 
 /// Writes jobs to an NC and reads its state. One job at a time: `&mut self`.
 pub trait NcWriter: Send {
-    /// Runs one job to completion, verified by read-back.
+    /// Runs one job until the target has taken it (or refused it). The read-back
+    /// check is [`Guarded`]'s, once for every kind.
     fn write_job(&mut self, job: &Job) -> impl Future<Output = Result<JobReport, NcError>> + Send;
     /// Reads what the NC shows of the axis. A value the target does not have stays at
     /// its default.

@@ -1,31 +1,20 @@
 //! The Modbus NC target: the NC axis module's register map (`compgate_ncproto`) over
-//! Modbus TCP with the REQ/DONE/ERROR/STATE handshake, a job timeout and read-back
-//! verification. Only the registers the map documents are read (see the table "What
+//! Modbus TCP with the REQ/DONE/ERROR/STATE handshake and a job timeout (the read-back
+//! is [`Guarded`](super::Guarded)'s). Only the registers the map documents are read (see the table "What
 //! the gateway's writer touches" in `compgate_ncproto`).
 
 use std::time::Duration;
 
-use compgate_ncproto::{self as ncmap, var, JobState, JobStatus};
+use compgate_ncproto::{self as ncmap, JobState, JobStatus};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use tokio::time::Instant;
 
-use super::{Job, JobIds, JobReport, NcError, NcSnapshot, NcWriter, Precision};
+use super::{Job, JobIds, JobReport, NcError, NcSnapshot, NcWriter};
 use crate::config::keys::secs;
 use crate::config::problem::Problems;
 use crate::source::modbus::{Backoff, LinkSpec, ModbusLink};
 use crate::source::plan::RegisterKind;
-
-/// Read-back address of a variable, if the map has one.
-fn readback_address(var_id: u16) -> Option<u16> {
-    match var_id {
-        var::SD43900 => Some(ncmap::RB_SD43900),
-        var::SD43910 => Some(ncmap::RB_SD43910),
-        var::SD43920 => Some(ncmap::RB_SD43920),
-        var::MD32450 => Some(ncmap::RB_MD32450),
-        _ => None,
-    }
-}
 
 fn f64_at(regs: &[u16], base: u16, addr: u16) -> Result<f64, NcError> {
     let i = usize::from(addr - base);
@@ -62,24 +51,29 @@ impl ModbusNcWriter {
             .await?)
     }
 
-    async fn state(&mut self) -> Result<JobState, NcError> {
-        let r = self.read_holding(ncmap::STATE, 1).await?;
+    /// `STATE ..= JOB_ID_DONE`: the state and, once a job ended, its result, in one
+    /// read (the job's end needs no second request).
+    async fn handshake(&mut self) -> Result<(JobState, Vec<u16>), NcError> {
+        let r = self
+            .read_holding(ncmap::STATE, ncmap::JOB_ID_DONE - ncmap::STATE + 1)
+            .await?;
         let v = r.first().copied().unwrap_or(u16::MAX);
-        JobState::from_u16(v).ok_or_else(|| NcError::Protocol(format!("STATE = {v}")))
+        let s = JobState::from_u16(v).ok_or_else(|| NcError::Protocol(format!("STATE = {v}")))?;
+        Ok((s, r))
     }
 
     /// Waits until `done(state)` or the deadline; the module is polled briefly
-    /// because a job takes one or two IPO cycles.
+    /// because a job takes one or two IPO cycles. Returns the last handshake read.
     async fn wait_state(
         &mut self,
         deadline: Instant,
         job_id: u16,
         done: impl Fn(JobState) -> bool,
-    ) -> Result<JobState, NcError> {
+    ) -> Result<Vec<u16>, NcError> {
         loop {
-            let s = self.state().await?;
+            let (s, regs) = self.handshake().await?;
             if done(s) {
-                return Ok(s);
+                return Ok(regs);
             }
             if Instant::now() >= deadline {
                 return Err(NcError::JobTimeout {
@@ -95,7 +89,7 @@ impl ModbusNcWriter {
     async fn run_job(&mut self, job: &Job, job_id: u16, deadline: Instant) -> Result<(), NcError> {
         // A job left unacknowledged by an earlier run (crash, timeout) is cleared
         // first; a busy module is waited for, never interrupted.
-        if self.state().await? != JobState::Idle {
+        if self.handshake().await?.0 != JobState::Idle {
             self.link.write(self.unit_id, ncmap::REQ, &[0]).await?;
             self.wait_state(deadline, job_id, |s| s == JobState::Idle)
                 .await?;
@@ -107,12 +101,10 @@ impl ModbusNcWriter {
         }
         self.link.write(self.unit_id, ncmap::JOB_ID, &block).await?;
         self.link.write(self.unit_id, ncmap::REQ, &[1]).await?;
-        self.wait_state(deadline, job_id, |s| {
-            matches!(s, JobState::Done | JobState::Error)
-        })
-        .await?;
         let r = self
-            .read_holding(ncmap::STATE, ncmap::JOB_ID_DONE - ncmap::STATE + 1)
+            .wait_state(deadline, job_id, |s| {
+                matches!(s, JobState::Done | JobState::Error)
+            })
             .await?;
         let reg = |a: u16| r[usize::from(a - ncmap::STATE)];
         // Acknowledge before judging, so the module is idle whatever happens next.
@@ -132,22 +124,7 @@ impl ModbusNcWriter {
                 index: reg(ncmap::ERROR_INDEX),
             });
         }
-        self.verify(job).await
-    }
-
-    async fn verify(&mut self, job: &Job) -> Result<(), NcError> {
-        let rb = self
-            .read_holding(ncmap::READBACK, ncmap::RB_VALUES_LEN)
-            .await?;
-        let values = job
-            .pairs
-            .iter()
-            .filter_map(|&(var_id, written)| {
-                let addr = readback_address(var_id)?;
-                Some(f64_at(&rb, ncmap::READBACK, addr).map(|read| (var_id, written, read)))
-            })
-            .collect::<Result<Vec<_>, _>>()?;
-        Precision::F64.check_read_back(values)
+        Ok(())
     }
 }
 

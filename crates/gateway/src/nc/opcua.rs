@@ -33,7 +33,7 @@ use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
 
-use super::{Job, JobIds, JobReport, NcError, NcSnapshot, NcWriter, Precision};
+use super::{Job, JobIds, JobReport, NcError, NcSnapshot, NcWriter};
 use crate::config::keys::secs;
 use crate::config::problem::{check_host_port, Problems};
 use crate::source::modbus::Backoff;
@@ -899,14 +899,7 @@ impl OpcuaNcWriter {
                 }
             });
         }
-        let idx: Vec<usize> = pairs.iter().map(|&(i, _)| i).collect();
-        let read = self.read_values(&idx).await?;
-        Precision::F64.check_read_back(
-            pairs
-                .iter()
-                .zip(read)
-                .map(|(&(i, written), read)| (VARS[i], written, read)),
-        )
+        Ok(())
     }
 }
 

@@ -151,17 +151,6 @@ impl S7Layout {
     }
 }
 
-/// Index in the read-back of a variable the PC writes.
-fn readback_index(var_id: u16) -> Option<u16> {
-    match var_id {
-        var::SD43900 => Some(0),
-        var::SD43910 => Some(1),
-        var::SD43920 => Some(2),
-        var::MD32450 => Some(5),
-        _ => None,
-    }
-}
-
 /// `kind = "s7"`: a PLC data block reached over S7comm (ISO-on-TCP), one block per
 /// axis, handed to FB3 PUT by the PLC program of `deploy/plc/`.
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
@@ -755,23 +744,18 @@ fn run_job(
                 "ERROR with STATUS 0 (FB3 State W#16#{fb3:04X}, pair {index})"
             )))
         }
-        (_, JobStatus::Ok) => {}
+        (_, JobStatus::Ok) => Ok(()),
         (_, status) => {
             if fb3 != 0 {
                 tracing::warn!(job_id, fb3_state = %format_args!("W#16#{fb3:04X}"), "FB3 PUT refused the job");
             }
-            return Err(NcError::Refused {
+            Err(NcError::Refused {
                 job_id,
                 status,
                 index,
-            });
+            })
         }
     }
-    l.value_type
-        .precision()
-        .check_read_back(job.pairs.iter().filter_map(|&(var_id, written)| {
-            readback_index(var_id).map(|k| (var_id, written, area.value(k)))
-        }))
 }
 
 impl NcWriter for S7NcWriter {
