@@ -739,11 +739,9 @@ fn run_job(
         .ok_or_else(|| NcError::Protocol(format!("STATUS = {code} (FB3 State W#16#{fb3:04X})")))?;
     let index = area.word(l.error_index());
     match (area.state()?, status) {
-        (JobState::Error, JobStatus::Ok) => {
-            return Err(NcError::Protocol(format!(
-                "ERROR with STATUS 0 (FB3 State W#16#{fb3:04X}, pair {index})"
-            )))
-        }
+        (JobState::Error, JobStatus::Ok) => Err(NcError::Protocol(format!(
+            "ERROR with STATUS 0 (FB3 State W#16#{fb3:04X}, pair {index})"
+        ))),
         (_, JobStatus::Ok) => Ok(()),
         (_, status) => {
             if fb3 != 0 {
