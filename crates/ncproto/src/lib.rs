@@ -58,15 +58,13 @@
 //!
 //! | when | function code | registers |
 //! |---|---|---|
-//! | each status interval (snapshot) | FC03 read holding | 100..=135, then 140..=141 |
-//! | job: is the module idle? | FC03 | 1 (`STATE`) |
+//! | every status interval (snapshot), and after each job (the guard's read-back) | FC03 read holding | 100..=135, then 140..=141 |
+//! | job: is the module idle? | FC03 | 1..=48 (`STATE` .. `JOB_ID_DONE`) |
 //! | job: clear a job left by an earlier run (only when `STATE` != 0) | FC06 write single | 0 (`REQ` = 0) |
 //! | job: parameters | FC16 write multiple | 6..=7 + 5 per pair (`JOB_ID`, `NUM_PAIRS`, pairs) |
 //! | job: start | FC06 | 0 (`REQ` = 1) |
-//! | job: wait for the end | FC03 | 1 (`STATE`), every 2 ms while busy |
-//! | job: result | FC03 | 1..=48 (`STATE` .. `JOB_ID_DONE`) |
+//! | job: wait for the end, and its result | FC03 | 1..=48, every 2 ms while busy |
 //! | job: acknowledge | FC06 | 0 (`REQ` = 0) |
-//! | job: read-back | FC03 | 100..=135 |
 //!
 //! `STATUS` 16 (value out of range) is answered for a non-finite value or one
 //! outside: |SD43900| <= [`SD43900_LIMIT_MM`] (10 mm), |SD43910| <=
