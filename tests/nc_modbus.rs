@@ -5,7 +5,14 @@
 
 mod common;
 
+use std::time::Duration;
+
 use common::{config, start};
+use compgate_core::comp::CompParams;
+use compgate_gateway::nc::guard::THERMAL_VARS;
+use compgate_gateway::nc::modbus::ModbusTargetConfig;
+use compgate_gateway::nc::{Guarded, Job, NcWriter};
+use compgate_plc::nc::{NcAxis, NcAxisModule};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_module_serving_only_the_documented_registers_is_written() {
@@ -86,4 +93,36 @@ async fn a_modbus_target_table_is_the_same_module_as_nc_modules() {
     assert_eq!(nc.sd43900_mm.to_bits(), w.k0_mm.to_bits());
     assert_eq!(nc.sd43910.to_bits(), w.tan_beta.to_bits());
     rig.stop().await;
+}
+
+#[tokio::test]
+async fn a_guarded_job_costs_the_module_seven_requests() {
+    // Is the module idle, the job block, REQ, the read that sees DONE with the result,
+    // the acknowledge, and the guard's read-back (values, then MD32750 and the
+    // referenced flag): the read-back is checked once.
+    let module = NcAxisModule::new(NcAxis {
+        referenced: true,
+        md32750: 3,
+        ..NcAxis::default()
+    });
+    let (address, stop) = module.serve_loopback().await.unwrap();
+    let target: ModbusTargetConfig =
+        toml::from_str(&format!("address = \"{address}\"\nunit_id = 1\n")).unwrap();
+    let mut w = Guarded::new(
+        target.writer(),
+        THERMAL_VARS.to_vec(),
+        Duration::from_secs(5),
+    );
+    for k in 1..=3 {
+        let before = module.requests();
+        let p = CompParams {
+            k0_mm: 0.01 * f64::from(k),
+            tan_beta: 1e-5,
+            p0_mm: 10.0,
+        };
+        w.write_job(&Job::thermal(&p)).await.unwrap();
+        assert_eq!(module.requests() - before, 7, "job {k}");
+        assert_eq!(module.state().sd43900_mm.to_bits(), p.k0_mm.to_bits());
+    }
+    stop.cancel();
 }

@@ -326,6 +326,8 @@ struct ModuleState {
     job_fault: JobFault,
     jobs_executed: u64,
     jobs_refused: u64,
+    /// Modbus requests answered (with data or an exception).
+    requests: u64,
     /// When the last job that ended with DONE was applied.
     last_done_at: Option<Instant>,
     /// The full-closed-loop axis behind the servo block.
@@ -676,6 +678,7 @@ impl ModuleState {
     }
 
     fn reply(&mut self, request: &Request<'_>, now: Instant) -> Result<Response, ExceptionCode> {
+        self.requests += 1;
         self.advance_servo(now);
         match request {
             Request::ReadHoldingRegisters(address, quantity) => self
@@ -720,6 +723,7 @@ impl NcAxisModule {
             job: None,
             job_fault: JobFault::None,
             jobs_executed: 0,
+            requests: 0,
             jobs_refused: 0,
             last_done_at: None,
             servo: ServoSim::new(AxisParams::default()),
@@ -816,6 +820,12 @@ impl NcAxisModule {
     /// Jobs that ended, with DONE or with ERROR.
     pub fn jobs_executed(&self) -> u64 {
         self.lock().jobs_executed
+    }
+
+    /// Modbus requests answered, with data or an exception: what a client costs the
+    /// module.
+    pub fn requests(&self) -> u64 {
+        self.lock().requests
     }
 
     /// Jobs that ended with ERROR.

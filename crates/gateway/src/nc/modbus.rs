@@ -1,7 +1,7 @@
 //! The Modbus NC target: the NC axis module's register map (`compgate_ncproto`) over
-//! Modbus TCP with the REQ/DONE/ERROR/STATE handshake and a job timeout (the read-back
-//! is [`Guarded`](super::Guarded)'s). Only the registers the map documents are read (see the table "What
-//! the gateway's writer touches" in `compgate_ncproto`).
+//! Modbus TCP with the REQ/DONE/ERROR/STATE handshake and a job timeout; the read-back
+//! is [`Guarded`](super::Guarded)'s. Only the registers the map documents are read
+//! (see the table "What the gateway's writer touches" in `compgate_ncproto`).
 
 use std::time::Duration;
 
