@@ -136,6 +136,19 @@ pub struct PollParams {
     pub cycle_deadline: Duration,
 }
 
+/// One channel's value in a poll cycle's reads.
+#[derive(Debug, Clone)]
+struct Decode {
+    /// Index of the channel in the gateway.
+    channel: usize,
+    /// The read that holds it.
+    block: usize,
+    /// Its registers in that read.
+    registers: std::ops::Range<usize>,
+    data_type: DataType,
+    byte_order: ByteOrder,
+}
+
 /// Polls one device.
 #[derive(Debug)]
 pub struct DevicePoller {
@@ -144,9 +157,9 @@ pub struct DevicePoller {
     params: PollParams,
     link: SharedLink,
     blocks: Vec<ReadBlock>,
-    /// Every block member as (block, member), in channel order: see [`Self::poll`].
-    decode_order: Vec<(usize, usize)>,
-    specs: Vec<ChannelSpec>,
+    /// Where each channel's value is and how it is encoded, in channel order: see
+    /// [`Self::poll`].
+    decode: Vec<Decode>,
     failed_cycles: u32,
 }
 
@@ -170,20 +183,34 @@ impl DevicePoller {
             })
             .collect();
         let blocks = plan::plan(&slots, params.max_gap_registers);
-        let mut decode_order: Vec<(usize, usize)> = blocks
+        let mut decode: Vec<Decode> = blocks
             .iter()
             .enumerate()
-            .flat_map(|(b, block)| (0..block.members.len()).map(move |m| (b, m)))
+            .flat_map(|(b, block)| {
+                block
+                    .members
+                    .iter()
+                    .map(move |(slot, offset)| (b, slot, *offset))
+            })
+            .map(|(block, slot, offset)| {
+                let spec = &specs[slot.channel];
+                Decode {
+                    channel: spec.channel,
+                    block,
+                    registers: usize::from(offset)..usize::from(offset + slot.len),
+                    data_type: spec.data_type,
+                    byte_order: spec.byte_order,
+                }
+            })
             .collect();
-        decode_order.sort_by_key(|&(b, m)| blocks[b].members[m].0.channel);
+        decode.sort_by_key(|d| d.channel);
         Self {
             index,
             name,
             params,
             link,
             blocks,
-            decode_order,
-            specs,
+            decode,
             failed_cycles: 0,
         }
     }
@@ -276,23 +303,19 @@ impl DevicePoller {
         // its channel processors front to back, as the CPU's prefetcher expects. In
         // register order, channels whose names do not sort like their addresses are
         // visited at random (about 8 % of the gateway's CPU at 1M points/s).
-        let mut values = Vec::with_capacity(self.decode_order.len());
+        let mut values = Vec::with_capacity(self.decode.len());
         let mut failed = false;
-        for &(b, m) in &self.decode_order {
-            let (slot, offset) = &self.blocks[b].members[m];
-            let spec = &self.specs[slot.channel];
-            let value = match &reads[b] {
-                Ok(regs) => {
-                    let at = usize::from(*offset);
-                    regs.get(at..at + usize::from(slot.len))
-                        .and_then(|r| plan::decode(r, spec.data_type, spec.byte_order))
-                        .ok_or(Reason::Comm)
-                }
+        for d in &self.decode {
+            let value = match &reads[d.block] {
+                Ok(regs) => regs
+                    .get(d.registers.clone())
+                    .and_then(|r| plan::decode(r, d.data_type, d.byte_order))
+                    .ok_or(Reason::Comm),
                 Err(reason) => Err(*reason),
             };
             failed |= value.is_err();
             values.push((
-                spec.channel,
+                d.channel,
                 value.map_err(|reason| Fault {
                     reason,
                     degraded: false,
