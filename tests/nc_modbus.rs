@@ -114,14 +114,14 @@ async fn a_guarded_job_costs_the_module_seven_requests() {
         Duration::from_secs(5),
     );
     for k in 1..=3 {
-        let before = module.requests();
+        let before = module.requests_served();
         let p = CompParams {
             k0_mm: 0.01 * f64::from(k),
             tan_beta: 1e-5,
             p0_mm: 10.0,
         };
         w.write_job(&Job::thermal(&p)).await.unwrap();
-        assert_eq!(module.requests() - before, 7, "job {k}");
+        assert_eq!(module.requests_served() - before, 7, "job {k}");
         assert_eq!(module.state().sd43900_mm.to_bits(), p.k0_mm.to_bits());
     }
     stop.cancel();

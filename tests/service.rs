@@ -432,11 +432,7 @@ async fn no_status_line_per_update_when_stdout_is_the_journal() {
             .spawn()
             .unwrap();
         std::thread::sleep(Duration::from_millis(1500));
-        let term = std::process::Command::new("kill")
-            .args(["-TERM", &child.id().to_string()])
-            .status()
-            .unwrap();
-        assert!(term.success());
+        common::process::signal(child.id(), "TERM");
         let exit = child.wait().unwrap();
         assert!(exit.success(), "journal {journal}: {exit}");
         let polls = field.requests_served() - polls_before;

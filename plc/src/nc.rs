@@ -327,7 +327,7 @@ struct ModuleState {
     jobs_executed: u64,
     jobs_refused: u64,
     /// Modbus requests answered (with data or an exception).
-    requests: u64,
+    requests_served: u64,
     /// When the last job that ended with DONE was applied.
     last_done_at: Option<Instant>,
     /// The full-closed-loop axis behind the servo block.
@@ -678,7 +678,7 @@ impl ModuleState {
     }
 
     fn reply(&mut self, request: &Request<'_>, now: Instant) -> Result<Response, ExceptionCode> {
-        self.requests += 1;
+        self.requests_served += 1;
         self.advance_servo(now);
         match request {
             Request::ReadHoldingRegisters(address, quantity) => self
@@ -723,7 +723,7 @@ impl NcAxisModule {
             job: None,
             job_fault: JobFault::None,
             jobs_executed: 0,
-            requests: 0,
+            requests_served: 0,
             jobs_refused: 0,
             last_done_at: None,
             servo: ServoSim::new(AxisParams::default()),
@@ -824,8 +824,8 @@ impl NcAxisModule {
 
     /// Modbus requests answered, with data or an exception: what a client costs the
     /// module.
-    pub fn requests(&self) -> u64 {
-        self.lock().requests
+    pub fn requests_served(&self) -> u64 {
+        self.lock().requests_served
     }
 
     /// Jobs that ended with ERROR.

@@ -51,6 +51,16 @@ pub fn wait_listening(child: &mut Child, port: u16, secs: f64, what: &str) {
     panic!("{what} did not listen on port {port} within {secs} s");
 }
 
+/// Sends `sig` (e.g. `TERM`) to process `pid`; panics when `kill` fails.
+pub fn signal(pid: u32, sig: &str) {
+    let ok = Command::new("kill")
+        .args([&format!("-{sig}"), &pid.to_string()])
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "kill -{sig} {pid}");
+}
+
 /// A running `compgate run --config FILE`; dropping it kills it.
 pub struct Gateway {
     pub child: Child,
@@ -167,12 +177,7 @@ impl Gateway {
     }
 
     pub fn signal(&self, sig: &str) {
-        let ok = Command::new("kill")
-            .args([&format!("-{sig}"), &self.pid().to_string()])
-            .status()
-            .unwrap()
-            .success();
-        assert!(ok, "kill -{sig}");
+        signal(self.pid(), sig);
     }
 
     /// Receives notify datagrams until one satisfies `pred`; panics after `secs`.
