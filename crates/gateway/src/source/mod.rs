@@ -183,24 +183,21 @@ impl DevicePoller {
             })
             .collect();
         let blocks = plan::plan(&slots, params.max_gap_registers);
+        let specs = &specs;
         let mut decode: Vec<Decode> = blocks
             .iter()
             .enumerate()
-            .flat_map(|(b, block)| {
-                block
-                    .members
-                    .iter()
-                    .map(move |(slot, offset)| (b, slot, *offset))
-            })
-            .map(|(block, slot, offset)| {
-                let spec = &specs[slot.channel];
-                Decode {
-                    channel: spec.channel,
-                    block,
-                    registers: usize::from(offset)..usize::from(offset + slot.len),
-                    data_type: spec.data_type,
-                    byte_order: spec.byte_order,
-                }
+            .flat_map(|(block, b)| {
+                b.members.iter().map(move |(slot, offset)| {
+                    let spec = &specs[slot.channel];
+                    Decode {
+                        channel: spec.channel,
+                        block,
+                        registers: usize::from(*offset)..usize::from(offset + slot.len),
+                        data_type: spec.data_type,
+                        byte_order: spec.byte_order,
+                    }
+                })
             })
             .collect();
         decode.sort_by_key(|d| d.channel);
