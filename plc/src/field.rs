@@ -589,7 +589,7 @@ impl FieldModule {
             (fault, reply)
         };
         if let CommFault::Delay(delay) = fault {
-            let sleep = tokio::time::sleep(delay);
+            let sleep = hold_reply(delay);
             match kill {
                 Some(kill) => {
                     tokio::select! {
@@ -782,6 +782,21 @@ pub fn f32_to_regs_abcd(v: f32) -> [u16; 2] {
 /// Decodes two registers in word order CDAB (low word first).
 pub fn regs_cdab_to_f32(r: [u16; 2]) -> f32 {
     regs_abcd_to_f32([r[1], r[0]])
+}
+
+/// Waits `delay` on a timerfd of its own: tokio's timer wheel ticks once a
+/// millisecond and rounds a 1 ms sleep up to 1-2 ms, which would make a device's
+/// reply time twice what was set and its spread that of the timer, not the device.
+async fn hold_reply(delay: Duration) {
+    let deadline = std::time::Instant::now() + delay;
+    let precise = match tokio_timerfd::Delay::new(deadline) {
+        Ok(timer) => timer.await,
+        Err(e) => Err(e),
+    };
+    if let Err(e) = precise {
+        tracing::debug!(%e, "timerfd failed; the delayed reply waits on tokio's timer");
+        tokio::time::sleep_until(deadline.into()).await;
+    }
 }
 
 /// Decodes two registers in word order ABCD (high word first).
