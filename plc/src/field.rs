@@ -789,10 +789,7 @@ pub fn regs_cdab_to_f32(r: [u16; 2]) -> f32 {
 /// reply time twice what was set and its spread that of the timer, not the device.
 async fn hold_reply(delay: Duration) {
     let deadline = std::time::Instant::now() + delay;
-    let precise = match tokio_timerfd::Delay::new(deadline) {
-        Ok(timer) => timer.await,
-        Err(e) => Err(e),
-    };
+    let precise: std::io::Result<()> = async { tokio_timerfd::Delay::new(deadline)?.await }.await;
     if let Err(e) = precise {
         tracing::debug!(%e, "timerfd failed; the delayed reply waits on tokio's timer");
         tokio::time::sleep_until(deadline.into()).await;
