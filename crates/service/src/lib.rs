@@ -237,6 +237,9 @@ pub async fn run(path: &Path, mut cfg: Config, opts: RunOptions) -> Result<(), S
     let printer = if crate::status::stdout_is_journal() {
         tracing::info!("stdout is the journal: no status line per update (systemctl status, the status page and /metrics show the status)");
         None
+    } else if crate::status::stdout_is_null() {
+        tracing::info!("stdout is /dev/null: no status line per update");
+        None
     } else {
         Some(status_reader(
             "status-line",

@@ -5,9 +5,9 @@
 //! cursor up by the height drawn last, every line cleared and drawn again), so nothing
 //! wraps and no trail is left. On a pipe or a file one plain line ([`render`]) is
 //! printed per status update, naming every value so it can be grepped; in the journal
-//! nothing is ([`stdout_is_journal`]). Both are printed from the snapshot the control
-//! loop publishes at each status tick, the one the metrics see at the same moment: no
-//! lag behind them.
+//! or `/dev/null` nothing is ([`stdout_is_journal`], [`stdout_is_null`]). Both are
+//! printed from the snapshot the control loop publishes at each status tick, the one
+//! the metrics see at the same moment: no lag behind them.
 
 use std::fmt::Write as _;
 use std::io::Write;
@@ -261,6 +261,20 @@ pub fn stdout_is_journal() -> bool {
     };
     std::fs::metadata("/proc/self/fd/1")
         .is_ok_and(|m| is_journal_stream(&stream.to_string_lossy(), m.dev(), m.ino()))
+}
+
+/// Whether stdout is `/dev/null`: then the line is not rendered either. Nobody reads
+/// it, and rendering is not free: at 1000 channels the line took a seventh of the
+/// gateway's instructions at 10k points/s (callgrind).
+pub fn stdout_is_null() -> bool {
+    use std::os::unix::fs::{FileTypeExt, MetadataExt};
+    match (
+        std::fs::metadata("/proc/self/fd/1"),
+        std::fs::metadata("/dev/null"),
+    ) {
+        (Ok(out), Ok(null)) => out.file_type().is_char_device() && out.rdev() == null.rdev(),
+        _ => false,
+    }
 }
 
 /// Prints every status the gateway publishes (once per `gateway.status_interval_s`)
