@@ -44,22 +44,27 @@ pub type Chart<'a, 'p> =
     ChartContext<'a, SVGBackend<'p>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
 
 /// Draws an SVG of `size_px` (width, height) on a white canvas and writes it to
-/// `path`.
+/// `path`, whole ([`compgate_core::outputs::write`]): a failed drawing leaves the
+/// file as it was.
 pub fn svg(
     path: &Path,
     size_px: (u32, u32),
     draw: impl FnOnce(&Area<'_>) -> Result<(), DrawError>,
 ) -> Result<(), PlotError> {
-    let root = SVGBackend::new(path, size_px).into_drawing_area();
-    let drawn = root
-        .fill(&WHITE)
-        .map_err(fail)
-        .and_then(|()| draw(&root))
-        .and_then(|()| root.present().map_err(fail));
-    drawn.map_err(|DrawError(message)| PlotError {
-        path: path.display().to_string(),
-        message,
-    })
+    let mut text = String::new();
+    let drawn = {
+        let root = SVGBackend::with_string(&mut text, size_px).into_drawing_area();
+        root.fill(&WHITE)
+            .map_err(fail)
+            .and_then(|()| draw(&root))
+            .and_then(|()| root.present().map_err(fail))
+    };
+    drawn
+        .and_then(|()| compgate_core::outputs::write(path, &text).map_err(fail))
+        .map_err(|DrawError(message)| PlotError {
+            path: path.display().to_string(),
+            message,
+        })
 }
 
 /// How a panel is framed: caption, axis descriptions, margins. The defaults are

@@ -6,6 +6,8 @@
 //!   deadband, hold or ramp on bad inputs.
 //! - [`measure`]: the measured-error CSV (`t_s,pos_mm,err_um,T_*`) that the
 //!   commissioning tools read and the recorder's export writes.
+//! - [`outputs`]: the files a command writes, checked against its inputs before
+//!   anything is written, and replaced whole.
 //!
 //! The gateway runs these stages inside its tasks; the simulator and the
 //! commissioning tools reuse them without a runtime.
@@ -13,3 +15,4 @@
 pub mod channel;
 pub mod comp;
 pub mod measure;
+pub mod outputs;

@@ -185,6 +185,7 @@ fn link_to(address: &str) -> ModbusLink {
 pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, BacklashError> {
     let procedure = Procedure::from_args(args);
     procedure.validate(None)?;
+    prepare_out(args, &[])?;
     let mut nc = ServoClient {
         link: link_to(address),
         unit: args.unit,
@@ -355,12 +356,10 @@ pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, Backl
 /// A refused trace is still written to `--out` (it was recorded: nothing is lost, and
 /// it shows why); the refusal is returned, with the file named.
 fn keep_trace_on_refusal(args: &BacklashArgs, trace: &Trace, e: BacklashError) -> BacklashError {
-    let Some(dir) = &args.out else { return e };
-    let csv = dir.join(format!("backlash_{}_trace.csv", file_stem(&args.axis)));
-    let kept = std::fs::create_dir_all(dir)
-        .map_err(|e| BacklashError::Io(format!("{}: {e}", dir.display())))
-        .and_then(|()| write_csv(&csv, trace));
-    match (e, kept) {
+    let Some((_, csv)) = out_files(args) else {
+        return e;
+    };
+    match (e, write_csv(&csv, trace)) {
         (BacklashError::Extraction(why), Ok(())) => {
             BacklashError::Extraction(format!("{why} (trace kept in {})", csv.display()))
         }
@@ -374,25 +373,39 @@ fn file_stem(axis: &str) -> String {
         .collect()
 }
 
-/// Writes the SVG and the trace CSV into `--out`, if given.
+/// The files `--out` receives: the SVG and the trace CSV.
+fn out_files(args: &BacklashArgs) -> Option<(PathBuf, PathBuf)> {
+    let dir = args.out.as_ref()?;
+    let stem = file_stem(&args.axis);
+    Some((
+        dir.join(format!("backlash_{stem}.svg")),
+        dir.join(format!("backlash_{stem}_trace.csv")),
+    ))
+}
+
+/// Creates `--out` and checks its files against `inputs` before anything is read or
+/// moved: a trace given as `--trace` must not be overwritten by its own re-export.
+fn prepare_out(args: &BacklashArgs, inputs: &[&std::path::Path]) -> Result<(), BacklashError> {
+    let (Some(dir), Some((svg, csv))) = (&args.out, out_files(args)) else {
+        return Ok(());
+    };
+    std::fs::create_dir_all(dir)
+        .map_err(|e| BacklashError::Io(format!("{}: {e}", dir.display())))?;
+    Ok(compgate_core::outputs::check(inputs, &[&svg, &csv])?)
+}
+
+/// Writes the SVG and the trace CSV into `--out` (made by [`prepare_out`]), if given.
 fn write_files(
     args: &BacklashArgs,
     trace: &Trace,
     points: &[super::math::PointValue; 3],
 ) -> Result<Vec<PathBuf>, BacklashError> {
-    let mut files = Vec::new();
-    if let Some(dir) = &args.out {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| BacklashError::Io(format!("{}: {e}", dir.display())))?;
-        let stem = file_stem(&args.axis);
-        let svg = dir.join(format!("backlash_{stem}.svg"));
-        write_svg(&svg, &args.axis, trace, points)?;
-        let csv = dir.join(format!("backlash_{stem}_trace.csv"));
-        write_csv(&csv, trace)?;
-        files.push(svg);
-        files.push(csv);
-    }
-    Ok(files)
+    let Some((svg, csv)) = out_files(args) else {
+        return Ok(Vec::new());
+    };
+    write_svg(&svg, &args.axis, trace, points)?;
+    write_csv(&csv, trace)?;
+    Ok(vec![svg, csv])
 }
 
 /// `compgate backlash --trace FILE.csv`: the analysis of a trace recorded on a
@@ -402,6 +415,7 @@ pub fn run_file(args: &BacklashArgs) -> Result<Outcome, BacklashError> {
     let Some(path) = &args.trace else {
         return Err(BacklashError::Invalid(vec!["give --trace FILE.csv".into()]));
     };
+    prepare_out(args, &[path])?;
     let trace = read_trace(path)?;
     let procedure = Procedure {
         period_s: trace.period_s,

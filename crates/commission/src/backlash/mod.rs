@@ -115,6 +115,9 @@ pub enum BacklashError {
     /// The programme or the trace did not finish in time.
     #[error("timed out: {0}")]
     Timeout(String),
+    /// An output path names the trace read or a missing directory.
+    #[error("{0}")]
+    Output(#[from] compgate_core::outputs::OutputError),
     /// The trace does not show the plateaus the procedure needs.
     #[error("trace: {0}")]
     Extraction(String),

@@ -138,7 +138,8 @@ pub fn write_csv(path: &Path, trace: &Trace) -> Result<(), BacklashError> {
         }
         s.push('\n');
     }
-    std::fs::write(path, s).map_err(|e| BacklashError::Io(format!("{}: {e}", path.display())))
+    compgate_core::outputs::write(path, s)
+        .map_err(|e| BacklashError::Io(format!("{}: {e}", path.display())))
 }
 
 /// Writes the position-time SVG: both channels, the plateaus at B, C, D marked, and

@@ -39,6 +39,9 @@ pub struct CalibrateArgs {
 
 /// Runs the command: read, fit, write the model (and plot); returns the report.
 pub fn run(args: &CalibrateArgs) -> Result<String, CalibrateError> {
+    let mut outputs = vec![args.out.as_path()];
+    outputs.extend(args.plot.as_deref());
+    compgate_core::outputs::check(&[&args.data], &outputs)?;
     let m = Measurements::read_path(&args.data)
         .map_err(|e| CalibrateError::Data(args.data.display().to_string(), e))?;
     let f = calibrate(&m, &args.sensors, args.p0_mm)?;
@@ -59,7 +62,7 @@ pub fn run(args: &CalibrateArgs) -> Result<String, CalibrateError> {
             source: Box::new(source),
         }
     })?;
-    std::fs::write(&args.out, text).map_err(|source| CalibrateError::Io {
+    compgate_core::outputs::write(&args.out, text).map_err(|source| CalibrateError::Io {
         path: args.out.display().to_string(),
         source,
     })?;

@@ -38,6 +38,8 @@ pub enum CalibrateError {
     },
     #[error("{0}")]
     Plot(#[from] PlotError),
+    #[error("{0}")]
+    Output(#[from] compgate_core::outputs::OutputError),
     #[error("{path}: {source}")]
     Model {
         path: String,

@@ -28,6 +28,20 @@ pub struct DiagnoseArgs {
 
 /// Runs the command; the report goes to stdout.
 pub fn run(args: &DiagnoseArgs) -> Result<(), DiagnoseError> {
+    let mut outputs: Vec<PathBuf> = args.json.iter().cloned().collect();
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir).map_err(|source| DiagnoseError::Io {
+            path: dir.display().to_string(),
+            source,
+        })?;
+        outputs.extend(output::OUT_FILES.iter().map(|f| dir.join(f)));
+    }
+    let mut inputs = vec![args.data.as_path()];
+    inputs.extend(args.model.as_deref());
+    compgate_core::outputs::check(
+        &inputs,
+        &outputs.iter().map(PathBuf::as_path).collect::<Vec<_>>(),
+    )?;
     let m = Measurements::read_path(&args.data).map_err(|source| DiagnoseError::Data {
         path: args.data.display().to_string(),
         source,
@@ -44,16 +58,19 @@ pub fn run(args: &DiagnoseArgs) -> Result<(), DiagnoseError> {
     };
     let d = diagnose(&m, &opts)?;
     print!("{}", output::text_report(&d));
-    if let Some(path) = &args.json {
-        std::fs::write(path, output::json(&d)).map_err(|source| DiagnoseError::Io {
-            path: path.display().to_string(),
-            source,
-        })?;
-    }
+    // The directory first: its model check is the one that can refuse.
     if let Some(dir) = &args.out {
         for p in output::write_out(dir, &d)? {
             println!("wrote {}", p.display());
         }
+    }
+    if let Some(path) = &args.json {
+        compgate_core::outputs::write(path, output::json(&d)).map_err(|source| {
+            DiagnoseError::Io {
+                path: path.display().to_string(),
+                source,
+            }
+        })?;
     }
     Ok(())
 }

@@ -65,6 +65,8 @@ pub enum DiagnoseError {
     },
     #[error("plot {0}")]
     Plot(#[from] crate::plot::PlotError),
+    #[error("{0}")]
+    Output(#[from] compgate_core::outputs::OutputError),
     #[error("fit: {0}")]
     Fit(#[from] crate::lsq::LsqError),
 }

@@ -237,23 +237,35 @@ fn scatter_svg(
     Ok(())
 }
 
-/// Writes the model file, the plots and `report.html` into `dir`; returns the paths.
+/// The files [`write_out`] writes into its directory: the updated model, the
+/// baseline model, the three residual plots and the report.
+pub const OUT_FILES: [&str; 6] = [
+    "model.toml",
+    "baseline_model.toml",
+    "residual_time.svg",
+    "residual_position.svg",
+    "residual_direction.svg",
+    "report.html",
+];
+
+/// Writes [`OUT_FILES`] into `dir` (which must exist); returns the paths.
 pub fn write_out(dir: &Path, d: &Diagnosis) -> Result<Vec<PathBuf>, DiagnoseError> {
     let io = |path: &Path| {
         let path = path.display().to_string();
         move |source| DiagnoseError::Io { path, source }
     };
-    std::fs::create_dir_all(dir).map_err(io(dir))?;
+    let [model_file, base_file, time_svg, position_svg, direction_svg, html_file] = OUT_FILES;
     let mut written = Vec::new();
-    let model_path = dir.join("model.toml");
-    let origin = model_path.display().to_string();
-    let model_text = ModelFile::from_diagnosis(d).to_toml(&origin)?;
-    std::fs::write(&model_path, &model_text).map_err(io(&model_path))?;
-    written.push(model_path);
-    let base_path = dir.join("baseline_model.toml");
+    let model_path = dir.join(model_file);
+    let base_path = dir.join(base_file);
+    // Both models are checked before either is written: a refused one leaves the
+    // directory as it was.
+    let model_text = ModelFile::from_diagnosis(d).to_toml(&model_path.display().to_string())?;
     let base_text =
         ModelFile::baseline_from_diagnosis(d).to_toml(&base_path.display().to_string())?;
-    std::fs::write(&base_path, base_text).map_err(io(&base_path))?;
+    compgate_core::outputs::write(&model_path, &model_text).map_err(io(&model_path))?;
+    written.push(model_path);
+    compgate_core::outputs::write(&base_path, base_text).map_err(io(&base_path))?;
     written.push(base_path);
 
     let s = &d.series;
@@ -267,21 +279,21 @@ pub fn write_out(dir: &Path, d: &Diagnosis) -> Result<Vec<PathBuf>, DiagnoseErro
     let jitter = |i: usize| f64::from(s.dir[i]) + 0.3 * (((i * 7919) % 1000) as f64 / 1000.0 - 0.5);
     let plots: [PlotSpec; 3] = [
         (
-            "residual_time.svg",
+            time_svg,
             "residual against time",
             "t (s)",
             Box::new(|i| s.t_s[i]),
             (s.t_s[0], t_end),
         ),
         (
-            "residual_position.svg",
+            position_svg,
             "residual against position",
             "position (mm)",
             Box::new(|i| s.pos_mm[i]),
             (p_lo - p_pad, p_hi + p_pad),
         ),
         (
-            "residual_direction.svg",
+            direction_svg,
             "residual against direction of approach",
             "direction (-1 / +1)",
             Box::new(jitter),
@@ -298,7 +310,7 @@ pub fn write_out(dir: &Path, d: &Diagnosis) -> Result<Vec<PathBuf>, DiagnoseErro
         svgs.push((title, text));
         written.push(path);
     }
-    let html_path = dir.join("report.html");
+    let html_path = dir.join(html_file);
     let mut html = String::from(
         "<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>compgate diagnose</title>\
          <style>body{font-family:sans-serif;margin:2em;max-width:1000px}pre{background:#f4f4f4;padding:1em;overflow-x:auto}</style>\
@@ -323,7 +335,7 @@ pub fn write_out(dir: &Path, d: &Diagnosis) -> Result<Vec<PathBuf>, DiagnoseErro
         "<h2>Updated model</h2>\n<pre>{}</pre>\n</body></html>",
         escape(&model_text)
     );
-    std::fs::write(&html_path, html).map_err(io(&html_path))?;
+    compgate_core::outputs::write(&html_path, html).map_err(io(&html_path))?;
     written.push(html_path);
     Ok(written)
 }

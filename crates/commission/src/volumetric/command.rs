@@ -8,7 +8,7 @@ use clap::builder::PossibleValue;
 
 use super::evaluation::evaluate_pole;
 use super::kinematics::{Pole, PoleMode, VolumetricCompensator};
-use super::report::{report, write_poses_csv, write_svgs};
+use super::report::{report, write_poses_csv, write_svgs, SVG_FILES};
 use super::{parse, VolumetricError, AXES};
 
 /// `--pole hold|swing`; implemented here so that the kinematics stay free of clap.
@@ -150,6 +150,16 @@ fn parse_grid_axes(spec: &str, travel: &[(f64, f64); 5]) -> Result<[Vec<f64>; 5]
 /// `compgate volumetric`: reads the error file, evaluates the grid uncompensated and
 /// compensated, writes the SVG maps with `--out`, and returns the report.
 pub fn run(args: &VolumetricArgs) -> Result<String, VolumetricError> {
+    let mut outputs: Vec<PathBuf> = args.csv.iter().cloned().collect();
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| VolumetricError::Io(format!("{}: {e}", dir.display())))?;
+        outputs.extend(SVG_FILES.iter().map(|f| dir.join(f)));
+    }
+    compgate_core::outputs::check(
+        &[&args.errors],
+        &outputs.iter().map(PathBuf::as_path).collect::<Vec<_>>(),
+    )?;
     let bytes = std::fs::read(&args.errors)
         .map_err(|e| VolumetricError::Io(format!("{}: {e}", args.errors.display())))?;
     let model = super::format::decode(&bytes)

@@ -200,4 +200,7 @@ pub enum VolumetricError {
     /// Drawing an error map failed.
     #[error("{0}")]
     Plot(#[from] PlotError),
+    /// An output path names an input or another output, or a missing directory.
+    #[error("{0}")]
+    Output(#[from] compgate_core::outputs::OutputError),
 }

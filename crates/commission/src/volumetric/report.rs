@@ -211,19 +211,23 @@ pub fn write_poses_csv(path: &Path, ev: &Evaluation) -> Result<(), VolumetricErr
             ev.floor_arcsec(i)
         );
     }
-    std::fs::write(path, s).map_err(|e| VolumetricError::Io(format!("{}: {e}", path.display())))
+    compgate_core::outputs::write(path, s)
+        .map_err(|e| VolumetricError::Io(format!("{}: {e}", path.display())))
 }
 
-/// Writes the SVG error maps into `dir`: `tip-error.svg` and `orientation-error.svg`
-/// (error per grid pose, uncompensated and compensated) and `tip-error-xy.svg` (the
-/// uncompensated tip error over X and Y, worst over the other axes).
+/// The maps [`write_svgs`] writes.
+pub const SVG_FILES: [&str; 3] = ["tip-error.svg", "orientation-error.svg", "tip-error-xy.svg"];
+
+/// Writes the SVG error maps into `dir` (which must exist): `tip-error.svg` and
+/// `orientation-error.svg` (error per grid pose, uncompensated and compensated) and
+/// `tip-error-xy.svg` (the uncompensated tip error over X and Y, worst over the other
+/// axes).
 pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, VolumetricError> {
-    std::fs::create_dir_all(dir)
-        .map_err(|e| VolumetricError::Io(format!("{}: {e}", dir.display())))?;
+    let [tip, orientation, tip_xy] = SVG_FILES;
     let mut written = Vec::new();
     for (name, pick, unit) in [
-        ("tip-error.svg", 0usize, "tip error (um)"),
-        ("orientation-error.svg", 1, "orientation error (arcsec)"),
+        (tip, 0usize, "tip error (um)"),
+        (orientation, 1, "orientation error (arcsec)"),
     ] {
         let path = dir.join(name);
         let get = |t: &(f64, f64)| if pick == 0 { t.0 } else { t.1 };
@@ -248,7 +252,7 @@ pub fn write_svgs(dir: &Path, ev: &Evaluation) -> Result<Vec<PathBuf>, Volumetri
         written.push(path.clone());
     }
     // X-Y map of the worst uncompensated tip error.
-    let path = dir.join("tip-error-xy.svg");
+    let path = dir.join(tip_xy);
     let mut xs: Vec<f64> = ev.poses.iter().map(|p| p[0]).collect();
     let mut ys: Vec<f64> = ev.poses.iter().map(|p| p[1]).collect();
     for v in [&mut xs, &mut ys] {
