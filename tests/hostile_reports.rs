@@ -162,3 +162,102 @@ fn hostile_but_accepted_data_never_gives_nan_or_infinity() {
         }
     }
 }
+
+/// An output path that names an input (the easiest typo on a shop-floor PC) is
+/// refused before anything is written, and the input keeps every byte; so is an
+/// output in a directory that does not exist, before the other outputs are written.
+#[test]
+fn an_output_naming_an_input_is_refused_and_the_input_kept() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    let data = p("m.csv");
+    let measured = runs(
+        1000.0,
+        |t, p| 5.0 * (t / 1800.0) * 30.0 + 0.01 * p,
+        |t| 20.0 + t / 1800.0 * 30.0,
+        |t| 22.0 + 3.0 * (t / 400.0).sin(),
+    );
+    std::fs::write(&data, &measured).unwrap();
+    let errors = p("machine.errors");
+    let errors_text = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/config/volumetric-example.errors"
+    ))
+    .unwrap();
+    std::fs::write(&errors, &errors_text).unwrap();
+    let out = p("out");
+    std::fs::create_dir(&out).unwrap();
+    let trace = format!("{out}/backlash_X1_trace.csv");
+    let trace_text = "t_s,encoder_mm,scale_mm\n0,0,0\n0.001,0,0\n";
+    std::fs::write(&trace, trace_text).unwrap();
+    let model = p("model.toml");
+    std::fs::write(&model, "kept").unwrap();
+    let cases: [(&[&str], &str, &str); 7] = [
+        (
+            &["calibrate", "--data", &data, "--out", &data],
+            &data,
+            &measured,
+        ),
+        (
+            &[
+                "calibrate",
+                "--data",
+                &data,
+                "--out",
+                &model,
+                "--plot",
+                &data,
+            ],
+            &data,
+            &measured,
+        ),
+        (
+            &["diagnose", "--data", &data, "--json", &data],
+            &data,
+            &measured,
+        ),
+        (
+            &["volumetric", "--errors", &errors, "--csv", &errors],
+            &errors,
+            &errors_text,
+        ),
+        (
+            &["backlash", "--trace", &trace, "--out", &out],
+            &trace,
+            trace_text,
+        ),
+        (
+            &[
+                "export", "--db", &data, "--since", "0", "--until", "1", "--csv", "-o", &data,
+            ],
+            &data,
+            &measured,
+        ),
+        // The plot's directory is missing: refused before the model is written.
+        (
+            &[
+                "calibrate",
+                "--data",
+                &data,
+                "--out",
+                &model,
+                "--plot",
+                &p("no/p.svg"),
+            ],
+            &model,
+            "kept",
+        ),
+    ];
+    for (args, kept, text) in cases {
+        let run = Command::new(BIN).args(args).output().expect("runs");
+        let stderr = String::from_utf8_lossy(&run.stderr);
+        assert_eq!(run.status.code(), Some(1), "{args:?}: {stderr}");
+        let why = if kept == model {
+            "does not exist"
+        } else {
+            "refusing to overwrite"
+        };
+        assert!(stderr.contains(why), "{args:?}: {stderr}");
+        assert_eq!(std::fs::read_to_string(kept).unwrap(), text, "{args:?}");
+    }
+}

@@ -909,6 +909,7 @@ async fn commission_from_records(
         axis: Some("X".into()),
         err_channel: Some(LASER_CHANNEL.into()),
         step_s: 10.0,
+        max_hold_s: 60.0,
     };
     let summary = export::run(&ex).map_err(|e| lerr(&e))?;
     // What the tools read: the CSV file.

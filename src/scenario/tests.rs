@@ -122,6 +122,7 @@ async fn the_closed_loop_improves_on_the_baseline() {
             axis: Some("X".into()),
             err_channel: Some(LASER_CHANNEL.into()),
             step_s: 60.0,
+            max_hold_s: 60.0,
         },
     )
     .unwrap()

@@ -3,8 +3,11 @@
 //!
 //! Rows lie on a grid of `step_s` from `--since`; each row holds, per channel, the
 //! last filtered value recorded at or before that time with a usable quality
-//! (good or uncertain), so a bad reading never reaches a model fit. Rows before every
-//! channel has had a usable value are left out.
+//! (good or uncertain), so a bad reading never reaches a model fit. Rows where a
+//! channel has had no usable value yet, or none for `--max-hold-s`, are left out: a
+//! value held across a gap in the record (the gateway stopped, a sensor bad for an
+//! hour) would be a measurement nobody made. An export without a row is an error, and
+//! so is one whose grid is too large to be a typo-free window.
 //!
 //! - `T_<name>`: one column per recorded channel (a channel named `T_bed` gives the
 //!   column `T_bed`, a channel `bed` gives `T_bed` too).
@@ -50,7 +53,15 @@ pub struct ExportArgs {
     /// Seconds between rows.
     #[arg(long, default_value_t = 1.0)]
     pub step_s: f64,
+    /// Longest a recorded value (temperature, error, position) is held to fill the
+    /// grid, s; raise it for a recorder that records less often (`recorder.interval_s`).
+    #[arg(long, default_value_t = 60.0)]
+    pub max_hold_s: f64,
 }
+
+/// Grid rows an export may span: a week at 0.1 s. More is a mistyped step (and hours
+/// of work before the first row).
+pub const MAX_GRID_ROWS: i64 = 6_048_000;
 
 /// Errors of `export`, each naming what is at fault.
 #[derive(Debug, thiserror::Error)]
@@ -71,9 +82,12 @@ pub enum ExportError {
         /// What failed.
         message: String,
     },
-    /// Writing the CSV failed.
+    /// Writing the CSV failed, or its file would be the database.
     #[error("{0}")]
     Write(String),
+    /// No row could be exported; nothing was written.
+    #[error("no row to export between --since and --until: {0}")]
+    Empty(String),
 }
 
 /// What `export` did, for the operator.
@@ -123,6 +137,12 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             message: format!("{} must be > 0", args.step_s),
         });
     }
+    if !(args.max_hold_s.is_finite() && args.max_hold_s > 0.0) {
+        return Err(ExportError::Arg {
+            flag: "max-hold-s",
+            message: format!("{} must be > 0", args.max_hold_s),
+        });
+    }
     let conn =
         Connection::open_with_flags(&args.db, OpenFlags::SQLITE_OPEN_READ_ONLY).map_err(db)?;
     let since = parse_time(&conn, "since", &args.since)?;
@@ -133,6 +153,8 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             message: format!("`{}` is not after --since `{}`", args.until, args.since),
         });
     }
+    let step_ms = (args.step_s * 1000.0).round().max(1.0) as i64;
+    let hold_ms = (args.max_hold_s * 1000.0).round() as i64;
     let names: BTreeMap<i64, String> = conn
         .prepare("SELECT id, name FROM channels")
         .and_then(|mut s| {
@@ -191,6 +213,26 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
         None => Vec::new(),
     };
 
+    // The grid spans the record within the window, not the window: one wider than the
+    // record (a mistyped year, or "everything") costs nothing beyond it.
+    let (Some(first), Some(last_t)) = (readings.first(), readings.last()) else {
+        return Err(ExportError::Empty(
+            "the record holds no reading in the window".into(),
+        ));
+    };
+    let grid_start = since + (first.0 - since) / step_ms * step_ms;
+    let grid_end = until.min(last_t.0 + hold_ms + 1);
+    let grid_rows = (grid_end - grid_start) / step_ms;
+    if grid_rows > MAX_GRID_ROWS {
+        return Err(ExportError::Arg {
+            flag: "step-s",
+            message: format!(
+                "the record in the window spans {grid_rows} rows of {} s; at most {MAX_GRID_ROWS} (narrow --since and --until, or raise --step-s)",
+                args.step_s
+            ),
+        });
+    }
+
     // Temperature channels: every channel with a reading in the window, but the error channel.
     let mut temp_ids: Vec<i64> = readings.iter().map(|r| r.1).collect();
     temp_ids.sort_unstable();
@@ -201,9 +243,11 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
         .enumerate()
         .map(|(i, id)| (*id, i))
         .collect();
-    let mut last: Vec<Option<f64>> = vec![None; temp_ids.len()];
-    let mut last_err: Option<f64> = None;
-    let mut last_pos: Option<f64> = None;
+    // Each with the time it was recorded, to leave out rows it is too old for.
+    let mut last: Vec<Option<(i64, f64)>> = vec![None; temp_ids.len()];
+    let mut last_err: Option<(i64, f64)> = None;
+    let mut last_pos: Option<(i64, f64)> = None;
+    let mut stale_rows = 0usize;
     let mut moved_mm = 0.0;
 
     let mut m = Measurements {
@@ -222,11 +266,10 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             .collect(),
         ..Measurements::default()
     };
-    let step_ms = (args.step_s * 1000.0).round().max(1.0) as i64;
     let (mut ri, mut pi) = (0, 0);
-    let mut grid = since;
+    let mut grid = grid_start;
     let mut dir: i8 = 0;
-    while grid < until {
+    while grid < grid_end {
         while let Some(&(t, ch, v, q)) = readings.get(ri) {
             if t > grid {
                 break;
@@ -234,9 +277,9 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             let usable = v.filter(|x| q < 2 && x.is_finite());
             if let Some(v) = usable {
                 if Some(ch) == err_id {
-                    last_err = Some(v);
+                    last_err = Some((t, v));
                 } else if let Some(&c) = col.get(&ch) {
-                    last[c] = Some(v);
+                    last[c] = Some((t, v));
                 }
             }
             ri += 1;
@@ -245,7 +288,7 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             if t > grid {
                 break;
             }
-            if let Some(prev) = last_pos {
+            if let Some((_, prev)) = last_pos {
                 moved_mm += (p - prev).abs();
                 if p > prev {
                     dir = 1;
@@ -253,29 +296,76 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
                     dir = -1;
                 }
             }
-            last_pos = Some(p);
+            last_pos = Some((t, p));
             pi += 1;
         }
-        let ready = !last.is_empty()
+        let fresh = |v: &Option<(i64, f64)>| v.is_some_and(|(t, _)| grid - t <= hold_ms);
+        let seen = !last.is_empty()
             && last.iter().all(Option::is_some)
             && (err_id.is_none() || last_err.is_some())
             && (args.axis.is_none() || last_pos.is_some());
+        let ready = seen
+            && last.iter().all(fresh)
+            && (err_id.is_none() || fresh(&last_err))
+            && (args.axis.is_none() || fresh(&last_pos));
+        if seen && !ready {
+            stale_rows += 1;
+        }
         if ready {
-            let pos = last_pos.unwrap_or(0.0);
+            let pos = last_pos.map_or(0.0, |(_, p)| p);
             // The first row starts the count: what moved before it is no travel of
             // the exported window.
             let travel = if m.is_empty() { 0.0 } else { moved_mm };
             moved_mm = 0.0;
             m.t_s.push((grid - since) as f64 / 1000.0);
             m.pos_mm.push(pos);
-            m.err_um.push(last_err.unwrap_or(0.0));
+            m.err_um.push(last_err.map_or(0.0, |(_, v)| v));
             m.dir.push(dir);
             m.travel_mm.push(travel);
             for (c, v) in m.temps.iter_mut().zip(&last) {
-                c.degc.push(v.unwrap_or(f64::NAN));
+                c.degc.push(v.map_or(f64::NAN, |(_, v)| v));
             }
         }
         grid += step_ms;
+    }
+    if stale_rows > 0 {
+        notes.push(format!(
+            "{stale_rows} rows left out: a value in them was older than --max-hold-s {} s (a gap in the record)",
+            args.max_hold_s
+        ));
+    }
+    if m.is_empty() {
+        let never: Vec<String> = temp_ids
+            .iter()
+            .zip(&last)
+            .filter(|(_, v)| v.is_none())
+            .map(|(id, _)| {
+                names
+                    .get(id)
+                    .cloned()
+                    .unwrap_or_else(|| format!("channel{id}"))
+            })
+            .chain(
+                (err_id.is_some() && last_err.is_none())
+                    .then(|| args.err_channel.clone().unwrap_or_default()),
+            )
+            .collect();
+        let why = if temp_ids.is_empty() {
+            "no temperature channel has a reading in the window".to_string()
+        } else if !never.is_empty() {
+            format!(
+                "no usable (good or uncertain) value of {} in the window",
+                never.join(", ")
+            )
+        } else if stale_rows > 0 {
+            format!(
+                "every row had a value older than --max-hold-s {} s",
+                args.max_hold_s
+            )
+        } else {
+            "no recorded NC position of --axis in the window".to_string()
+        };
+        return Err(ExportError::Empty(why));
     }
     let summary = ExportSummary {
         rows: m.len(),
@@ -290,13 +380,18 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
 
 /// `compgate export`: writes the CSV to `args.out` or standard output.
 pub fn run(args: &ExportArgs) -> Result<ExportSummary, ExportError> {
+    if let Some(p) = &args.out {
+        compgate_core::outputs::check(&[&args.db], &[p])
+            .map_err(|e| ExportError::Write(e.to_string()))?;
+    }
     let (m, summary) = measurements(args)?;
     let werr = |e: compgate_core::measure::MeasureError| ExportError::Write(e.to_string());
     match &args.out {
         Some(p) => {
-            let f = std::fs::File::create(p)
+            let mut csv = Vec::new();
+            m.write(&mut csv).map_err(werr)?;
+            compgate_core::outputs::write(p, csv)
                 .map_err(|e| ExportError::Write(format!("{}: {e}", p.display())))?;
-            m.write(std::io::BufWriter::new(f)).map_err(werr)?;
         }
         None => m.write(std::io::stdout().lock()).map_err(werr)?,
     }

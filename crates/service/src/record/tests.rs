@@ -173,3 +173,85 @@ fn an_old_database_gets_the_shadow_column_and_shadow_jobs_are_marked() {
     drop(conn);
     open(&path).expect("opens again");
 }
+
+/// A database holding channel `T_a`, read once a second over `spans` (start, end in
+/// s, end exclusive), value 20 + t / 1000.
+fn recorded(spans: &[(i64, i64)]) -> (tempfile::TempDir, std::path::PathBuf) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("r.db");
+    let conn = schema::open(&path).expect("opens");
+    conn.execute("INSERT INTO channels(id, name) VALUES (1, 'T_a')", [])
+        .unwrap();
+    for &(from_s, to_s) in spans {
+        for t in from_s..to_s {
+            conn.execute(
+                "INSERT INTO readings(t_unix_ms, channel, value_degc, quality) VALUES (?1, 1, ?2, 0)",
+                rusqlite::params![t * 1000, 20.0 + t as f64 / 1000.0],
+            )
+            .unwrap();
+        }
+    }
+    (dir, path)
+}
+
+fn export_args(db: &std::path::Path, since_s: i64, until_s: i64) -> export::ExportArgs {
+    export::ExportArgs {
+        db: db.to_path_buf(),
+        since: since_s.to_string(),
+        until: until_s.to_string(),
+        csv: true,
+        out: None,
+        axis: None,
+        err_channel: None,
+        step_s: 1.0,
+        max_hold_s: 60.0,
+    }
+}
+
+#[test]
+fn export_holds_a_value_at_most_max_hold_s_across_a_gap() {
+    // Recorded 0..10 s, nothing for an hour, then 4000..4010 s.
+    let (_dir, db) = recorded(&[(0, 10), (4000, 4010)]);
+    let (m, summary) = export::measurements(&export_args(&db, 0, 100_000)).unwrap();
+    // Each span, and 60 s held after its last reading; neither the gap nor the window
+    // past the record is filled.
+    let t_s = &m.t_s;
+    assert_eq!(m.len(), 2 * (10 + 60), "{t_s:?}");
+    assert!(t_s
+        .iter()
+        .all(|t| *t <= 69.0 || (4000.0..=4069.0).contains(t)));
+    let held = m.temp("a").unwrap();
+    assert_eq!(held[69], 20.009, "the last reading of the first span, held");
+    assert!(
+        summary.notes.iter().any(|n| n.contains("--max-hold-s 60")),
+        "{:?}",
+        summary.notes
+    );
+    // A longer hold fills the gap, and the window's end bounds it.
+    let mut args = export_args(&db, 0, 5000);
+    args.max_hold_s = 4000.0;
+    assert_eq!(export::measurements(&args).unwrap().0.len(), 5000);
+}
+
+#[test]
+fn an_export_without_a_row_is_an_error_and_writes_nothing() {
+    let (dir, db) = recorded(&[(0, 10)]);
+    let out = dir.path().join("m.csv");
+    std::fs::write(&out, "kept").unwrap();
+    let mut args = export_args(&db, 100, 200);
+    args.out = Some(out.clone());
+    let e = export::run(&args).unwrap_err();
+    assert!(e.to_string().contains("no reading in the window"), "{e}");
+    assert_eq!(std::fs::read_to_string(&out).unwrap(), "kept");
+    // The database as the output: refused before anything is read or written.
+    args.out = Some(db.clone());
+    let e = export::run(&args).unwrap_err();
+    assert!(e.to_string().contains("refusing to overwrite"), "{e}");
+    assert!(schema::open(&db).is_ok());
+    // A step that makes the record's span absurdly long is refused, naming the flag.
+    let (_dir, db) = recorded(&[(0, 2), (7000, 7002)]);
+    let mut args = export_args(&db, 0, 8000);
+    args.step_s = 0.001;
+    let e = export::run(&args).unwrap_err();
+    assert!(e.to_string().contains("--step-s"), "{e}");
+}
