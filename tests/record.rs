@@ -277,3 +277,40 @@ async fn full_disk_loses_records_but_never_stops_the_gateway() {
     drop(fs);
     drop(plant);
 }
+
+// An error after the recorder started (here the metrics port in use) ends the run
+// with the error; it used to hang, the recorder waiting for an observer's sender
+// that the unwinding had not dropped yet.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_metrics_port_in_use_ends_a_recording_run_with_the_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("rec.db");
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = taken.local_addr().unwrap().port();
+    let extra = format!("\n[metrics]\nbind = \"127.0.0.1:{port}\"");
+    let (plant, path) = plant_recording(dir.path(), &db, &extra).await;
+    let out = tokio::task::block_in_place(|| {
+        let mut child = std::process::Command::new(BIN)
+            .args(["--log", "warn", "run", "--config"])
+            .arg(&path)
+            .env_remove("NOTIFY_SOCKET")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let deadline = std::time::Instant::now() + Duration::from_secs(20);
+        while child.try_wait().unwrap().is_none() {
+            if std::time::Instant::now() > deadline {
+                let _ = child.kill();
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        child.wait_with_output().unwrap()
+    });
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("Address already in use"), "{err}");
+    drop(taken);
+    drop(plant);
+}

@@ -203,11 +203,14 @@ pub async fn run(path: &Path, mut cfg: Config, opts: RunOptions) -> Result<(), S
     opts.apply(&mut cfg);
     let (reload_tx, reload_rx) = mpsc::channel(1);
     let shutdown = signals(path.to_path_buf(), reload_tx, opts);
-    let mut observers: Vec<Box<dyn Observer>> = vec![Box::new(notify::Notifier::new())];
     let recorder = match &cfg.recorder {
         Some(r) => Some(Recorder::start(r)?),
         None => None,
     };
+    // Declared after the recorder, so dropped before it: on an early return (the
+    // metrics port in use) the recorder's drop waits for its writer, which waits for
+    // the observers' senders to go.
+    let mut observers: Vec<Box<dyn Observer>> = vec![Box::new(notify::Notifier::new())];
     if let (Some(r), Some(c)) = (&recorder, &cfg.recorder) {
         observers.push(Box::new(
             r.observer().with_interval(config::secs(c.interval_s)),
