@@ -1,5 +1,7 @@
-//! The command line.
+//! The command line, and how its commands write to standard output and error.
 
+use std::fmt::Display;
+use std::io::{self, Write};
 use std::path::PathBuf;
 
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
@@ -152,4 +154,53 @@ pub fn command() -> clap::Command {
 pub fn parse() -> Cli {
     let matches = command().get_matches();
     Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit())
+}
+
+/// Exit status after a write to a closed pipe (`compgate config schema | head -1`):
+/// 128 + SIGPIPE, what a shell reports for a C tool the signal ended, so a `set -o
+/// pipefail` script sees the same as with `cat`. Rust ignores SIGPIPE and restoring
+/// its default takes `unsafe`, so the write fails with EPIPE instead: see [`print()`].
+pub const EXIT_BROKEN_PIPE: u8 = 141;
+
+/// A command's output could not be written.
+#[derive(Debug, thiserror::Error)]
+#[error("cannot write to standard {stream}: {source}")]
+pub struct OutputError {
+    /// "output" or "error".
+    stream: &'static str,
+    #[source]
+    source: io::Error,
+}
+
+impl OutputError {
+    /// The reader went away: the program ends quietly with [`EXIT_BROKEN_PIPE`]
+    /// (nobody is left to read a message); any other error is reported, status 1.
+    pub fn is_broken_pipe(&self) -> bool {
+        self.source.kind() == io::ErrorKind::BrokenPipe
+    }
+
+    /// A write error of standard output.
+    pub fn stdout(source: io::Error) -> Self {
+        OutputError {
+            stream: "output",
+            source,
+        }
+    }
+}
+
+/// Writes `text` to standard output, flushed: `print!` without its panic when the
+/// write fails.
+pub fn print(text: impl Display) -> Result<(), OutputError> {
+    let mut out = io::stdout().lock();
+    write!(out, "{text}")
+        .and_then(|()| out.flush())
+        .map_err(OutputError::stdout)
+}
+
+/// Writes `text` and a newline to standard error: `eprintln!` without its panic.
+pub fn eprintln(text: impl Display) -> Result<(), OutputError> {
+    writeln!(io::stderr().lock(), "{text}").map_err(|source| OutputError {
+        stream: "error",
+        source,
+    })
 }

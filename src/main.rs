@@ -3,13 +3,103 @@
 #[cfg(feature = "sim")]
 mod demo;
 
+use std::io::{self, Write};
 use std::process::ExitCode;
 
-use compgate::cli::{self, Command, ConfigCommand};
+use compgate::cli::{self, Command, ConfigCommand, OutputError, EXIT_BROKEN_PIPE};
 #[cfg(feature = "sim")]
 use compgate::scenario;
 use compgate_commission::{backlash, calibrate, iso230, volumetric};
 use compgate_gateway::config;
+use compgate_service::record::export;
+
+/// Why a command failed.
+#[derive(Debug, thiserror::Error)]
+enum CommandError {
+    /// The command's own error, worded by its layer.
+    #[error("{0}")]
+    Failed(String),
+    /// Its output could not be written.
+    #[error(transparent)]
+    Output(#[from] OutputError),
+}
+
+/// The command's error, as the operator reads it.
+fn failed(e: impl std::fmt::Display) -> CommandError {
+    CommandError::Failed(e.to_string())
+}
+
+/// The exit status of a command's `result`, its error reported on stderr. A closed
+/// pipe, on stdout or stderr, ends quietly with [`EXIT_BROKEN_PIPE`] (see
+/// [`OutputError::is_broken_pipe`]); every other failure is status 1.
+fn exit_code(result: Result<(), CommandError>) -> ExitCode {
+    let e = match result {
+        Ok(()) => return ExitCode::SUCCESS,
+        Err(CommandError::Output(e)) if e.is_broken_pipe() => {
+            return ExitCode::from(EXIT_BROKEN_PIPE)
+        }
+        Err(e) => e,
+    };
+    match cli::eprintln(format_args!("error: {e}")) {
+        Err(e) if e.is_broken_pipe() => ExitCode::from(EXIT_BROKEN_PIPE),
+        _ => ExitCode::FAILURE,
+    }
+}
+
+/// A writer that keeps its first error: `Measurements::write` words a CSV
+/// writer's error as text, which would hide a closed pipe.
+struct KeepError<W> {
+    inner: W,
+    error: Option<io::Error>,
+}
+
+impl<W: Write> Write for KeepError<W> {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        self.inner.write(buf).map_err(|e| self.keep(e))
+    }
+
+    fn flush(&mut self) -> io::Result<()> {
+        self.inner.flush().map_err(|e| self.keep(e))
+    }
+}
+
+impl<W> KeepError<W> {
+    fn keep(&mut self, e: io::Error) -> io::Error {
+        let kind = e.kind();
+        self.error.get_or_insert(e);
+        kind.into()
+    }
+}
+
+/// `compgate export`. To stdout it writes the CSV here, not in `export::run`, so
+/// that a closed pipe or a full disk are told apart from the export's own errors.
+fn run_export(args: &export::ExportArgs) -> Result<(), CommandError> {
+    let summary = if args.out.is_some() {
+        export::run(args).map_err(failed)?
+    } else {
+        let (m, summary) = export::measurements(args).map_err(failed)?;
+        let mut out = KeepError {
+            inner: io::stdout().lock(),
+            error: None,
+        };
+        if let Err(e) = m.write(&mut out) {
+            return Err(match out.error {
+                Some(io) => OutputError::stdout(io).into(),
+                None => failed(e),
+            });
+        }
+        summary
+    };
+    for n in &summary.notes {
+        cli::eprintln(format_args!("note: {n}"))?;
+    }
+    cli::eprintln(format_args!(
+        "{} rows, channels: {}",
+        summary.rows,
+        summary.channels.join(", ")
+    ))?;
+    Ok(())
+}
 
 /// `compgate backlash`: on `--nc`, or with `--sim` on an in-process simulated axis.
 async fn run_backlash(args: &backlash::BacklashArgs) -> Result<String, backlash::BacklashError> {
@@ -33,10 +123,9 @@ fn main() -> ExitCode {
     #[cfg(not(feature = "sim"))]
     let Some(command) = cli.command
     else {
-        eprintln!(
-            "error: give a command (see --help); this build has no simulated plant for the demo"
-        );
-        return ExitCode::FAILURE;
+        return exit_code(Err(failed(
+            "give a command (see --help); this build has no simulated plant for the demo",
+        )));
     };
     let mut runtime = tokio::runtime::Builder::new_multi_thread();
     if matches!(command, Command::Run { .. }) {
@@ -50,15 +139,14 @@ fn main() -> ExitCode {
         compgate_service::heap::use_one_arena();
     }
     match runtime.enable_all().build() {
-        Ok(rt) => rt.block_on(run(cli.log, command)),
-        Err(e) => {
-            eprintln!("error: cannot start the async runtime: {e}");
-            ExitCode::FAILURE
-        }
+        Ok(rt) => exit_code(rt.block_on(run(cli.log, command))),
+        Err(e) => exit_code(Err(failed(format_args!(
+            "cannot start the async runtime: {e}"
+        )))),
     }
 }
 
-async fn run(log: Option<String>, command: Command) -> ExitCode {
+async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> {
     #[cfg(feature = "sim")]
     let default_log = if matches!(command, Command::Demo(_)) {
         "warn"
@@ -69,114 +157,68 @@ async fn run(log: Option<String>, command: Command) -> ExitCode {
     let default_log = "info";
     compgate_service::init_tracing(log.as_deref(), default_log);
 
-    let result = match command {
+    match command {
         #[cfg(feature = "sim")]
-        Command::Demo(args) => demo::demo(&args).await,
+        Command::Demo(args) => demo::demo(&args).await.map_err(failed),
         Command::Run {
             config: path,
             shadow,
-        } => match config::load(&path) {
-            Ok(cfg) => {
-                for w in config::warnings(&cfg, &path.display().to_string()) {
-                    tracing::warn!(file = %w.file, key = %w.key, "{}", w.message);
-                }
-                compgate_service::run(&path, cfg, compgate_service::RunOptions { shadow })
-                    .await
-                    .map_err(|e| e.to_string())
+        } => {
+            let cfg = config::load(&path).map_err(failed)?;
+            for w in config::warnings(&cfg, &path.display().to_string()) {
+                tracing::warn!(file = %w.file, key = %w.key, "{}", w.message);
             }
-            Err(e) => Err(e.to_string()),
-        },
-        Command::Nc(args) => compgate::nc::run(&args).await,
-        Command::Validate { config: path } => match config::load(&path) {
-            Ok(cfg) => {
-                for w in config::warnings(&cfg, &path.display().to_string()) {
-                    eprintln!("warning: {w}");
-                }
-                println!("{}: OK", path.display());
-                Ok(())
+            compgate_service::run(&path, cfg, compgate_service::RunOptions { shadow })
+                .await
+                .map_err(failed)
+        }
+        Command::Nc(args) => compgate::nc::run(&args).await.map_err(failed),
+        Command::Validate { config: path } => {
+            let cfg = config::load(&path).map_err(failed)?;
+            for w in config::warnings(&cfg, &path.display().to_string()) {
+                cli::eprintln(format_args!("warning: {w}"))?;
             }
-            Err(e) => Err(e.to_string()),
-        },
+            Ok(cli::print(format_args!("{}: OK\n", path.display()))?)
+        }
         #[cfg(feature = "sim")]
-        Command::Sim { config: path } => demo::sim(&path).await,
-        Command::Probe(args) => match compgate::probe::run(&args).await {
-            Ok(report) => {
-                print!("{}", report.text);
-                match report.bad.len() {
-                    0 => Ok(()),
-                    n => Err(format!(
-                        "{n} channel{} bad: {}",
-                        if n == 1 { "" } else { "s" },
-                        report.bad.join(", ")
-                    )),
-                }
+        Command::Sim { config: path } => demo::sim(&path).await.map_err(failed),
+        Command::Probe(args) => {
+            let report = compgate::probe::run(&args).await.map_err(failed)?;
+            cli::print(&report.text)?;
+            match report.bad.len() {
+                0 => Ok(()),
+                n => Err(failed(format_args!(
+                    "{n} channel{} bad: {}",
+                    if n == 1 { "" } else { "s" },
+                    report.bad.join(", ")
+                ))),
             }
-            Err(e) => Err(e),
-        },
-        Command::Config(ConfigCommand::Example) => config::example::annotated_example()
-            .map(|text| print!("{text}"))
-            .map_err(|e| e.to_string()),
+        }
+        Command::Config(ConfigCommand::Example) => Ok(cli::print(
+            config::example::annotated_example().map_err(failed)?,
+        )?),
         Command::Config(ConfigCommand::Schema) => {
-            match serde_json::to_string_pretty(&config::json_schema()) {
-                Ok(text) => {
-                    println!("{text}");
-                    Ok(())
-                }
-                Err(e) => Err(e.to_string()),
-            }
+            let text = serde_json::to_string_pretty(&config::json_schema()).map_err(failed)?;
+            Ok(cli::print(format_args!("{text}\n"))?)
         }
-        Command::Backlash(args) => match run_backlash(&args).await {
-            Ok(report) => {
-                print!("{report}");
-                Ok(())
-            }
-            Err(e) => Err(e.to_string()),
-        },
-        Command::Volumetric(args) => match volumetric::run(&args) {
-            Ok(report) => {
-                print!("{report}");
-                Ok(())
-            }
-            Err(e) => Err(e.to_string()),
-        },
-        Command::Calibrate(args) => calibrate::run(&args)
-            .map(|report| print!("{report}"))
-            .map_err(|e| e.to_string()),
+        Command::Backlash(args) => Ok(cli::print(run_backlash(&args).await.map_err(failed)?)?),
+        Command::Volumetric(args) => Ok(cli::print(volumetric::run(&args).map_err(failed)?)?),
+        Command::Calibrate(args) => Ok(cli::print(calibrate::run(&args).map_err(failed)?)?),
         #[cfg(feature = "sim")]
-        Command::Scenario(args) => match scenario::run(&args).await {
-            Ok(report) => {
-                print!("{}", report.text());
-                println!("written to {}", args.out.display());
-                Ok(())
-            }
-            Err(e) => Err(e.to_string()),
-        },
-        Command::Iso230(args) => iso230::run(&args)
-            .map(|report| print!("{report}"))
-            .map_err(|e| e.to_string()),
-        Command::Export(args) => match compgate_service::record::export::run(&args) {
-            Ok(summary) => {
-                for n in &summary.notes {
-                    eprintln!("note: {n}");
-                }
-                eprintln!(
-                    "{} rows, channels: {}",
-                    summary.rows,
-                    summary.channels.join(", ")
-                );
-                Ok(())
-            }
-            Err(e) => Err(e.to_string()),
-        },
-        Command::Diagnose(args) => {
-            compgate_commission::diagnose::command::run(&args).map_err(|e| e.to_string())
+        Command::Scenario(args) => {
+            let report = scenario::run(&args).await.map_err(failed)?;
+            Ok(cli::print(format_args!(
+                "{}written to {}\n",
+                report.text(),
+                args.out.display()
+            ))?)
         }
-    };
-    match result {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {e}");
-            ExitCode::FAILURE
+        Command::Iso230(args) => Ok(cli::print(iso230::run(&args).map_err(failed)?)?),
+        Command::Export(args) => run_export(&args),
+        // Prints its report with `print!` inside the commission crate: a closed stdout
+        // still panics there.
+        Command::Diagnose(args) => {
+            compgate_commission::diagnose::command::run(&args).map_err(failed)
         }
     }
 }

@@ -3,8 +3,8 @@
 
 mod common;
 
-use std::io::{BufRead, BufReader};
-use std::process::{Command, Stdio};
+use std::io::{BufRead, BufReader, Read};
+use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 use common::process::{assert_success, BIN};
@@ -185,4 +185,121 @@ fn backlash_trace_file_is_analysed_offline_and_a_creeping_axis_is_refused() {
         err2.contains("never both stood still") || err2.contains("went back"),
         "{err2}"
     );
+}
+
+/// The write end of a pipe whose reader is already gone: every write fails with EPIPE.
+fn closed_pipe() -> std::io::PipeWriter {
+    let (reader, writer) = std::io::pipe().expect("a pipe");
+    drop(reader);
+    writer
+}
+
+/// `/dev/full`: every write fails with ENOSPC.
+fn full() -> Stdio {
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open("/dev/full")
+        .expect("/dev/full opens")
+        .into()
+}
+
+/// Runs the binary with `args`, stdout on `stdout`, stderr collected.
+fn run_to(args: &[&str], stdout: impl Into<Stdio>) -> Output {
+    Command::new(BIN)
+        .args(args)
+        .stdout(stdout)
+        .stderr(Stdio::piped())
+        .output()
+        .expect("the binary runs")
+}
+
+/// A recorder database of one channel, a reading a second for `seconds` from Unix
+/// time 1e9 s: an export of it is about 20 bytes a row.
+fn recording(dir: &std::path::Path, seconds: i64) -> std::path::PathBuf {
+    let db = dir.join("rec.db");
+    let mut conn = compgate_service::record::open(&db).expect("a new recording");
+    let tx = conn.transaction().expect("a transaction");
+    tx.execute("INSERT INTO channels(id, name) VALUES (1, 'T_bed')", [])
+        .expect("the channel");
+    for i in 0..seconds {
+        tx.execute(
+            "INSERT INTO readings VALUES (?1, 1, 12000.0, 20.5, 20.5, 0, NULL)",
+            [1_000_000_000_000 + i * 1000],
+        )
+        .expect("a reading");
+    }
+    tx.commit().expect("committed");
+    db
+}
+
+// `compgate config schema | head -1`, `... > /dev/full`: a closed pipe ends quietly
+// with 141 (128 + SIGPIPE, as a tool the signal ended), a failed write with one error
+// naming stdout and 1; never the panic of `print!` (101 and a backtrace).
+#[test]
+fn a_closed_or_full_stdout_ends_quietly_or_with_one_error_never_a_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = recording(dir.path(), 20_000);
+    let export = [
+        "export",
+        "--csv",
+        "--since",
+        "1000000000",
+        "--until",
+        "1000020000",
+        "--db",
+        db.to_str().unwrap(),
+    ];
+    for args in [&["config", "schema"][..], &["config", "example"], &export] {
+        let out = run_to(args, closed_pipe());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(141), "{args:?}: {err}");
+        assert_eq!(err, "", "{args:?}: nothing on stderr");
+
+        let out = run_to(args, full());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {err}");
+        assert_eq!(
+            err.lines().collect::<Vec<_>>(),
+            ["error: cannot write to standard output: No space left on device (os error 28)"],
+            "{args:?}"
+        );
+    }
+
+    // As `| head -1`: the reader takes a line and goes; the export (about 400 kB, far more
+    // than a pipe holds) is still writing then.
+    let mut child = Command::new(BIN)
+        .args(export)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut first = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut first)
+        .unwrap();
+    assert!(first.starts_with("t_s,pos_mm,"), "{first}");
+    let mut err = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    let status = child.wait().unwrap();
+    assert_eq!((status.code(), err.as_str()), (Some(141), ""));
+
+    // `validate 2>&1 | head`: a report of thousands of problems to a closed pipe on
+    // stderr ends the same way.
+    let config = dir.path().join("many.toml");
+    let keys: String = (0..3000).map(|i| format!("bogus_{i} = 1\n")).collect();
+    std::fs::write(&config, format!("[gateway]\n{keys}")).unwrap();
+    let pipe = closed_pipe();
+    let status = Command::new(BIN)
+        .args(["validate", "--config"])
+        .arg(&config)
+        .stdout(pipe.try_clone().unwrap())
+        .stderr(pipe)
+        .status()
+        .unwrap();
+    assert_eq!(status.code(), Some(141));
 }
