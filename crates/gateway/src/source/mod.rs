@@ -49,6 +49,15 @@ pub enum SourceError {
     /// Reconnect is backing off after failed attempts.
     #[error("reconnect backing off, next attempt in {0:?}")]
     BackingOff(Duration),
+    /// Reconnect is backing off after the connect failure `cause`, kept so that the
+    /// wait does not hide why the link is down.
+    #[error("{cause} (next attempt in {:.1} s)", tenth_s_up(*next_attempt_in))]
+    BackingOffAfter {
+        /// The last connect attempt's error.
+        cause: Box<SourceError>,
+        /// Time left before the next attempt.
+        next_attempt_in: Duration,
+    },
     /// A CANopen node or its bus failed.
     #[error("{0}")]
     Can(can::CanError),
@@ -70,10 +79,17 @@ impl SourceError {
             Self::Timeout(_) | Self::Deadline(_) => "timeout",
             Self::Transport(_) => "transport",
             Self::Exception(_) => "exception",
-            Self::BackingOff(_) => "backoff",
+            // Counted as the cycles the backoff failed (`compgate_device_errors_total`),
+            // not as connect attempts.
+            Self::BackingOff(_) | Self::BackingOffAfter { .. } => "backoff",
             Self::Can(e) => e.kind(),
         }
     }
+}
+
+/// `d` in s, rounded up to 0.1 s: an attempt a few ms away does not read "in 0.0 s".
+fn tenth_s_up(d: Duration) -> f64 {
+    (d.as_secs_f64() * 10.0).ceil() / 10.0
 }
 
 /// A link shared by the devices on it.
@@ -338,6 +354,87 @@ impl DevicePoller {
             elapsed: started.elapsed(),
             values,
             error: first_error,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::modbus::{Backoff, LinkSpec};
+    use super::*;
+
+    /// A poller of two reads (channels 100 registers apart) over `spec`, retrying once.
+    fn poller(spec: LinkSpec) -> DevicePoller {
+        let link = ModbusLink::new(
+            spec,
+            Duration::from_secs(1),
+            Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
+        );
+        let spec = |channel, address| ChannelSpec {
+            channel,
+            kind: RegisterKind::Input,
+            address,
+            data_type: DataType::U16,
+            byte_order: ByteOrder::Abcd,
+        };
+        DevicePoller::new(
+            0,
+            "ain1".into(),
+            PollParams {
+                unit_id: 1,
+                retries: 1,
+                degrade_after_cycles: 3,
+                max_gap_registers: 0,
+                cycle_deadline: Duration::from_secs(2),
+            },
+            Arc::new(Mutex::new(link)),
+            vec![spec(0, 0), spec(1, 100)],
+        )
+    }
+
+    // The retry of a failed connect, and every cycle after it, meet the backoff: they
+    // must still say why the link is down, not only when it tries again.
+    #[tokio::test]
+    async fn a_failed_connect_stays_the_reported_error_while_backing_off() {
+        let closed = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let address = closed.local_addr().unwrap().to_string();
+        drop(closed);
+        let cases = [
+            (
+                LinkSpec::Tcp {
+                    address: address.clone(),
+                    connect_timeout: Duration::from_secs(1),
+                },
+                format!("connect failed: {address}: Connection refused"),
+            ),
+            (
+                LinkSpec::Rtu {
+                    path: "/dev/ttyNOPE0".into(),
+                    baud: 9600,
+                    parity: tokio_serial::Parity::None,
+                    stop_bits: tokio_serial::StopBits::One,
+                },
+                "connect failed: /dev/ttyNOPE0: ".to_string(),
+            ),
+        ];
+        for (spec, cause) in cases {
+            let mut poller = poller(spec);
+            // The first cycle connects and fails; the second falls in the backoff.
+            for cycle in 0..2 {
+                let sample = poller.poll().await;
+                let error = sample.error.expect("the cycle failed");
+                let text = error.to_string();
+                assert!(
+                    text.starts_with(&cause) && text.ends_with(" s)"),
+                    "cycle {cycle}: {text}"
+                );
+                assert!(
+                    text.contains("(next attempt in 0."),
+                    "cycle {cycle}: {text}"
+                );
+                assert_eq!(error.kind(), "backoff");
+                assert!(sample.values.iter().all(|(_, v)| v.is_err()));
+            }
         }
     }
 }

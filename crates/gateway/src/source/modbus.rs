@@ -118,6 +118,9 @@ pub struct ModbusLink {
     /// outlasts it (see [`Self::set_cycle_deadline`]).
     cycle: Option<(Instant, Duration)>,
     backoff: Backoff,
+    /// Why the last connect failed, until one succeeds: what a request refused by the
+    /// backoff reports.
+    connect_error: Option<SourceError>,
     /// Connections made so far, for status and tests.
     connects: u64,
 }
@@ -142,6 +145,7 @@ impl ModbusLink {
             deadline: None,
             cycle: None,
             backoff,
+            connect_error: None,
             connects: 0,
         }
     }
@@ -188,11 +192,11 @@ impl ModbusLink {
                     Some((_, length)) => SourceError::Deadline(length),
                     None => SourceError::ConnectTimeout,
                 })?
-                .map_err(|e| SourceError::Connect(e.to_string()))?;
+                .map_err(|e| SourceError::Connect(format!("{address}: {e}")))?;
                 // Small request/response frames: Nagle would add up to 40 ms each.
                 stream
                     .set_nodelay(true)
-                    .map_err(|e| SourceError::Connect(e.to_string()))?;
+                    .map_err(|e| SourceError::Connect(format!("{address}: {e}")))?;
                 Ok(tcp::attach(stream))
             }
             LinkSpec::Rtu {
@@ -239,10 +243,17 @@ impl ModbusLink {
             return Ok(());
         }
         if let Some(left) = self.backoff.remaining(Instant::now()) {
-            return Err(SourceError::BackingOff(left));
+            return Err(match &self.connect_error {
+                Some(cause) => SourceError::BackingOffAfter {
+                    cause: Box::new(cause.clone()),
+                    next_attempt_in: left,
+                },
+                None => SourceError::BackingOff(left),
+            });
         }
         match self.connect().await {
             Ok(ctx) => {
+                self.connect_error = None;
                 self.connects += 1;
                 tracing::debug!(link = %self.spec, connects = self.connects, "connected");
                 self.ctx = Some(ctx);
@@ -251,6 +262,7 @@ impl ModbusLink {
             Err(e) => {
                 self.backoff.failed(Instant::now());
                 tracing::debug!(link = %self.spec, error = %e, retry_in_s = self.backoff.current().as_secs_f64(), "connect failed");
+                self.connect_error = Some(e.clone());
                 Err(e)
             }
         }
