@@ -227,7 +227,9 @@ struct Running {
     nc_modules: Vec<Option<NcModuleRt>>,
     status_interval: Duration,
     status: Status,
-    /// Per axis: whether its step limits start from what the NC holds yet.
+    /// Per axis: whether its step limits start from what the NC holds: set by a
+    /// snapshot, cleared by a failed one, so after an outage nothing is written
+    /// before the NC has been read again.
     baselined: Vec<bool>,
     /// Device names by index, for [`SampleReadings::device_name`].
     device_names: Vec<Arc<str>>,
@@ -420,12 +422,31 @@ impl Running {
                         Ok(snap) => {
                             // The motion heat term counts travel between snapshots.
                             axis.comp.on_position(now_s, snap.position_mm);
-                            if !self.baselined[i] {
+                            let held = snap.thermal();
+                            // A restarted NC (or a value changed at the HMI) no longer
+                            // holds what it confirmed: a baseline it does not hold
+                            // would let a step be any size, and its deadband would
+                            // leave the NC uncompensated. A job in flight may not have
+                            // landed yet, so only compare without one.
+                            let moved = self.baselined[i]
+                                && !in_flight[i]
+                                && axis
+                                    .comp
+                                    .baseline()
+                                    .is_some_and(|b| !holds(&b, &held, &axis.nc_write));
+                            if !self.baselined[i] || moved {
                                 // Step limits and the deadband start from what the NC holds.
-                                axis.comp.set_baseline(snap.thermal());
+                                axis.comp.set_baseline(held);
                                 self.baselined[i] = true;
-                                st.written = Some(snap.thermal());
-                                tracing::info!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, "NC parameters read at start");
+                                if moved {
+                                    let was = st.written.unwrap_or_default();
+                                    tracing::warn!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, confirmed_sd43900_mm = was.k0_mm, confirmed_sd43910 = was.tan_beta, confirmed_sd43920_mm = was.p0_mm, "the NC no longer holds what it confirmed (restarted, or changed by hand): steps start again from what it holds");
+                                } else if st.written.is_some() {
+                                    tracing::info!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, "NC parameters read again after the outage");
+                                } else {
+                                    tracing::info!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, "NC parameters read at start");
+                                }
+                                st.written = Some(held);
                             }
                             st.warning =
                                 (axis.axis_state && snap.md32750 != axis.md32750).then(|| {
@@ -440,10 +461,14 @@ impl Running {
                             st.nc = Some(*snap);
                         }
                         Err(e) if e.is_unreachable() => {
-                            st.warning = Some(format!("NC unreachable: {e}"))
+                            self.baselined[i] = false;
+                            st.warning = Some(format!("NC unreachable: {e}"));
                         }
                         // It answered: say what, not "unreachable".
-                        Err(e) => st.warning = Some(format!("NC answered with an error: {e}")),
+                        Err(e) => {
+                            self.baselined[i] = false;
+                            st.warning = Some(format!("NC answered with an error: {e}"));
+                        }
                     }
                 }
             }
@@ -495,6 +520,16 @@ impl Running {
             }
         }
     }
+}
+
+/// Whether the NC holding `held` holds `written` in every variable the axis writes
+/// (to one float32 step: the loosest precision of any target).
+fn holds(written: &CompParams, held: &CompParams, nc_write: &[u16]) -> bool {
+    let w = Job::thermal_allowed(written, nc_write).pairs;
+    let h = Job::thermal_allowed(held, nc_write).pairs;
+    w.iter()
+        .zip(&h)
+        .all(|((_, w), (_, h))| crate::nc::Precision::F32.holds(*w, *h))
 }
 
 /// How long past its due time an axis waits for a sample of its inputs before the
