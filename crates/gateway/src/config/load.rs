@@ -182,6 +182,19 @@ fn clean(
     }
     let mut assumed = Assumed::default();
     for b in &broken {
+        if let [Seg::Key(section), Seg::Key(name)] = b.as_slice() {
+            if section == "channels" {
+                let device = tree
+                    .get("channels")
+                    .and_then(|c| c.get(name))
+                    .and_then(|c| c.get("device"))
+                    .and_then(toml::Value::as_str);
+                match device {
+                    Some(d) => assumed.devices_read.insert(d.to_string()),
+                    None => assumed.devices_read.any = true,
+                }
+            }
+        }
         remove(&mut tree, b);
         let (section, name) = match b.as_slice() {
             [Seg::Key(section)] => (section.as_str(), None),
@@ -353,6 +366,9 @@ struct EnvOverride {
     path: Vec<Seg>,
     /// The value as the `config` crate parsed it (bool, integer, float or string).
     value: config::Value,
+    /// The table above `path` the file does not have, which the override creates
+    /// (e.g. `devices.ain2` for `COMPGATE__DEVICES__AIN2__TIMEOUT_S`).
+    creates: Option<Vec<Seg>>,
 }
 
 /// The `config` crate's [`Environment`] source does the parsing (prefix, `__`
@@ -420,6 +436,7 @@ fn env_overrides(
             Ok(path) => out.push(EnvOverride {
                 var,
                 raw,
+                creates: created_table(&root, &path),
                 path,
                 value,
             }),
@@ -495,6 +512,23 @@ fn restore_case(root: &toml::Value, key: &str) -> Result<Vec<Seg>, EnvKeyError> 
     Ok(path)
 }
 
+/// The first table on `path` that `root` lacks, when it lies above the key itself.
+fn created_table(root: &toml::Value, path: &[Seg]) -> Option<Vec<Seg>> {
+    let mut node = root;
+    for (i, seg) in path.iter().enumerate() {
+        let next = match (node, seg) {
+            (toml::Value::Table(t), Seg::Key(k)) => t.get(k),
+            (toml::Value::Array(a), Seg::Index(i)) => a.get(*i),
+            _ => None,
+        };
+        match next {
+            Some(n) => node = n,
+            None => return (i + 1 < path.len()).then(|| path[..=i].to_vec()),
+        }
+    }
+    None
+}
+
 /// The overrides as a `config` source, keys in the file's spelling.
 #[derive(Debug, Clone)]
 struct CaseRestoredEnv(config::Map<String, config::Value>);
@@ -509,15 +543,21 @@ impl Source for CaseRestoredEnv {
     }
 }
 
-/// Says which environment variables touched the key of a problem.
+/// Says which environment variables touched the key of a problem, and which created
+/// the entry it lies in: a key missing from an entry the file does not have is not the
+/// file's fault.
 fn annotate_env(p: &mut ConfigProblem, overrides: &[EnvOverride]) {
-    let vars: Vec<&str> = overrides
+    let vars: Vec<String> = overrides
         .iter()
-        .filter(|o| {
+        .filter_map(|o| {
+            if let Some(table) = o.creates.as_deref().map(render) {
+                if is_under(&p.key, &table) {
+                    return Some(format!("{} creates `{table}` which the file lacks", o.var));
+                }
+            }
             let k = render(&o.path);
-            is_under(&p.key, &k) || is_under(&k, &p.key)
+            (is_under(&p.key, &k) || is_under(&k, &p.key)).then(|| o.var.clone())
         })
-        .map(|o| o.var.as_str())
         .collect();
     if !vars.is_empty() {
         p.message

@@ -2,7 +2,7 @@
 //! stages' `validate` functions report into.
 
 use std::fmt;
-use std::net::SocketAddr;
+use std::net::{Ipv4Addr, SocketAddr};
 
 /// One thing wrong with a configuration.
 #[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -92,6 +92,8 @@ impl fmt::Display for ProblemList<'_> {
 pub struct Problems<'a> {
     file: &'a str,
     out: Vec<ConfigProblem>,
+    /// [`Problems::host_port`] lets port 0 pass (see [`Problems::port_zero_for_sim`]).
+    port_zero_for_sim: bool,
 }
 
 impl<'a> Problems<'a> {
@@ -100,7 +102,16 @@ impl<'a> Problems<'a> {
         Problems {
             file,
             out: Vec::new(),
+            port_zero_for_sim: false,
         }
+    }
+
+    /// With `sim` (the file has `[sim]`), [`Problems::host_port`] lets port 0 pass:
+    /// the simulated plant binds any free port for it and writes the port it got into
+    /// the address before the gateway connects (`config/demo.toml`).
+    pub fn port_zero_for_sim(mut self, sim: bool) -> Self {
+        self.port_zero_for_sim = sim;
+        self
     }
 
     /// Adds a problem of `key`.
@@ -143,10 +154,12 @@ impl<'a> Problems<'a> {
         }
     }
 
-    /// `addr` is `host:port`.
+    /// `addr` is `host:port` the gateway connects to (see [`check_host_port`]).
     pub fn host_port(&mut self, key: &str, addr: &str) {
-        if let Err(why) = check_host_port(addr) {
-            self.push(key, why.to_string());
+        match check_host_port(addr) {
+            Ok(()) => {}
+            Err(HostPortError::PortZero(_)) if self.port_zero_for_sim => {}
+            Err(why) => self.push(key, why.to_string()),
         }
     }
 
@@ -181,25 +194,55 @@ pub enum HostPortError {
         "`{0}` is not a valid host name or IP address; expected host:port, e.g. \"192.168.0.10:502\""
     )]
     BadHost(String),
+    /// Ends in a number but is not an IPv4 address.
+    #[error(
+        "`{0}` is not an IPv4 address: four numbers 0..=255 without leading zeros, e.g. \
+         \"192.168.0.10:502\" (a host name does not end in a number)"
+    )]
+    NotIpv4(String),
+    /// Port 0: nothing listens there.
+    #[error("`{0}`: port 0 cannot be connected to; give the port the peer listens on, e.g. \"192.168.0.10:502\"")]
+    PortZero(String),
 }
 
-/// Accepts `host:port` with a host name, an IPv4 address or a bracketed IPv6
-/// address, and a port 0..=65535.
+/// Accepts `host:port` the gateway connects to: a host name, an IPv4 address or a
+/// bracketed IPv6 address, and a port 1..=65535.
+///
+/// A host whose last label is a number must be an IPv4 address: top-level domains are
+/// never numeric (RFC 3696), and the resolver would not refuse `192.168.0` or
+/// `3232235530` but read them its own way (`inet_aton`: 192.168.0.0, 192.168.0.10).
 pub fn check_host_port(addr: &str) -> Result<(), HostPortError> {
-    if addr.parse::<SocketAddr>().is_ok() {
-        return Ok(());
+    let port = match addr.parse::<SocketAddr>() {
+        Ok(a) => a.port(),
+        Err(_) => host_name_port(addr)?,
+    };
+    if port == 0 {
+        return Err(HostPortError::PortZero(addr.into()));
     }
+    Ok(())
+}
+
+/// The port of `host:port` whose host is not an IP address literal.
+fn host_name_port(addr: &str) -> Result<u16, HostPortError> {
     let Some((host, port)) = addr.rsplit_once(':') else {
         return Err(HostPortError::NoPort(addr.into()));
     };
-    if port.parse::<u16>().is_err() {
+    let Ok(port) = port.parse::<u16>() else {
         return Err(HostPortError::BadPort(port.into()));
-    }
+    };
     if host.is_empty() {
         return Err(HostPortError::NoHost(addr.into()));
     }
     if host.contains(':') {
         return Err(HostPortError::Ipv6(addr.into()));
+    }
+    let last = host.rsplit('.').next().unwrap_or_default();
+    if !last.is_empty() && last.bytes().all(|b| b.is_ascii_digit()) {
+        // A valid address with this port would have parsed as a SocketAddr.
+        return match host.parse::<Ipv4Addr>() {
+            Ok(_) => Ok(port),
+            Err(_) => Err(HostPortError::NotIpv4(host.into())),
+        };
     }
     let label_ok = |l: &str| {
         !l.is_empty()
@@ -211,7 +254,7 @@ pub fn check_host_port(addr: &str) -> Result<(), HostPortError> {
     if host.len() > 253 || !host.split('.').all(label_ok) {
         return Err(HostPortError::BadHost(host.into()));
     }
-    Ok(())
+    Ok(port)
 }
 
 #[cfg(test)]
@@ -222,10 +265,11 @@ mod tests {
     fn host_port_forms() {
         for ok in [
             "127.0.0.1:502",
-            "127.0.0.1:0",
             "[::1]:5020",
             "plc-7.hall2.local:502",
             "localhost:1502",
+            "192.168.0.255:502",
+            "4plc.hall2:502",
         ] {
             assert_eq!(check_host_port(ok), Ok(()), "{ok}");
         }
@@ -239,5 +283,58 @@ mod tests {
         ] {
             assert!(check_host_port(bad).is_err(), "{bad}");
         }
+    }
+
+    #[test]
+    fn a_numeric_host_must_be_an_ipv4_address() {
+        for bad in [
+            "192.168.0.300:502",
+            "999.1.1.1:502",
+            "192.168.0:502",
+            "192.168.0.010:502",
+            "3232235530:502",
+            "plc.7:502",
+        ] {
+            let host = bad.rsplit_once(':').map_or("", |(h, _)| h);
+            assert_eq!(
+                check_host_port(bad),
+                Err(HostPortError::NotIpv4(host.into())),
+                "{bad}"
+            );
+        }
+        let why = check_host_port("192.168.0.300:502")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            why.contains("`192.168.0.300` is not an IPv4 address"),
+            "{why}"
+        );
+    }
+
+    #[test]
+    fn port_0_is_refused_unless_the_simulated_plant_binds_it() {
+        for zero in ["127.0.0.1:0", "[::1]:0", "plc:0"] {
+            assert_eq!(
+                check_host_port(zero),
+                Err(HostPortError::PortZero(zero.into())),
+                "{zero}"
+            );
+        }
+        let mut out = Problems::new("t.toml");
+        out.host_port("devices.ain1.address", "127.0.0.1:0");
+        let p = out.into_vec();
+        assert_eq!(p.len(), 1, "{p:?}");
+        assert!(p[0].message.contains("port 0"), "{}", p[0]);
+        let mut out = Problems::new("t.toml").port_zero_for_sim(true);
+        out.host_port("devices.ain1.address", "127.0.0.1:0");
+        out.host_port("devices.ain2.address", "999.1.1.1:0");
+        assert_eq!(
+            out.into_vec()
+                .iter()
+                .map(|p| p.key.as_str())
+                .collect::<Vec<_>>(),
+            ["devices.ain2.address"],
+            "only port 0 is left to the simulator"
+        );
     }
 }

@@ -13,7 +13,7 @@ use super::keys::{entry, field, secs};
 use super::problem::{ConfigProblem, Problems};
 use super::service::{validate_service, MetricsConfig, MqttConfig, RecorderConfig};
 use super::sim::SimConfig;
-use crate::axis::{AxisConfig, ChannelNames};
+use crate::axis::{AxisConfig, ChannelNames, NcVar};
 use crate::channel::ChannelConfig;
 use crate::nc::config::{NcModuleConfig, TargetConfig};
 use crate::nc::var_name;
@@ -166,6 +166,10 @@ impl Config {
 /// - **Names** of devices, channels, NC modules and axes: 1..=64 characters of
 ///   `A-Z a-z 0-9 _ -`, no `__` (the environment separator), unique ignoring case
 ///   (environment overrides match names ignoring case).
+/// - **Something to do**: at least one device and one channel (without, `run` would
+///   start and stop at once), and every Modbus device read by a channel (its poller
+///   would read nothing and never connect; a CAN node alone still gets its NMT start
+///   and heartbeat watch).
 /// - **References**: `channels.*.device`, `axes.*.nc_module`, every channel of a
 ///   `k0`/`tan_beta` term, and the names under `[sim.channels]`/`[sim.nc_modules]`
 ///   must exist. One axis per NC module; a channel at most once per model.
@@ -189,7 +193,12 @@ impl Config {
 /// - **Axes** (`axis`): `md32750` 0..=7 and its bits enabling every model in use,
 ///   limits and steps > 0, deadbands >= 0, `max_abs_tan_beta <= 0.1` (MD32760 is 0.01
 ///   by default; above 0.1 is not a thermal slope), ramp rates > 0 with
-///   `ramp_to_zero`.
+///   `ramp_to_zero`. `nc_write` holds every value the model sets: SD43900 with a K0
+///   model, SD43910 and SD43920 with a tan(beta) model, SD43920 with `p0_mm` != 0
+///   (motion heat counts towards the model it adds to); its target has a place for
+///   each value in `nc_write`.
+/// - **Addresses** the gateway connects to: port 0 only in a file with `[sim]`, whose
+///   simulated plant binds a free port for it.
 /// - **Sim**: `period_s > 0`, amplitude and noise >= 0, `md32750` 0..=7,
 ///   `motion_min_mm <= motion_max_mm`, speed >= 0.
 /// - Every number finite (TOML allows `nan` and `inf`).
@@ -205,6 +214,9 @@ pub(crate) struct Assumed {
     pub devices: Names,
     pub channels: Names,
     pub nc_modules: Names,
+    /// The devices the left-out channels read (`any`: the device of one of them is
+    /// unknown), so that no device counts as unread because its channel is broken.
+    pub devices_read: Names,
 }
 
 /// A set of names, or every name.
@@ -222,6 +234,10 @@ impl Names {
     pub fn contains(&self, name: &str) -> bool {
         self.any || self.names.contains(name)
     }
+    /// No name counts as defined.
+    pub fn is_empty(&self) -> bool {
+        !self.any && self.names.is_empty()
+    }
 }
 
 /// `` `a`, `b` `` or "(none defined)".
@@ -235,7 +251,7 @@ pub(crate) fn list<'a>(names: impl Iterator<Item = &'a String>) -> String {
 }
 
 pub(crate) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> Vec<ConfigProblem> {
-    let mut out = Problems::new(file);
+    let mut out = Problems::new(file).port_zero_for_sim(cfg.sim.is_some());
     names(&mut out, "devices", cfg.devices.keys());
     names(&mut out, "channels", cfg.channels.keys());
     names(&mut out, "targets", cfg.targets.keys());
@@ -257,6 +273,12 @@ pub(crate) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
     );
 
     validate_devices(&cfg.devices, &mut out);
+    if cfg.devices.is_empty() && assumed.devices.is_empty() {
+        out.push(
+            "devices",
+            "no device defined; the gateway needs at least one [devices.NAME] to read",
+        );
+    }
 
     for (name, ch) in &cfg.channels {
         let device = cfg.devices.get(&ch.device);
@@ -271,6 +293,15 @@ pub(crate) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
             );
         }
         ch.validate(&entry("channels", name), device, &mut out);
+    }
+    if cfg.channels.is_empty() && assumed.channels.is_empty() {
+        out.push(
+            "channels",
+            "no channel defined; the gateway needs at least one [channels.NAME] to read, \
+             otherwise it starts and stops at once with nothing to do",
+        );
+    } else if !assumed.channels.any && !assumed.devices_read.any {
+        unread_devices(cfg, assumed, &mut out);
     }
 
     for (name, nc) in &cfg.nc_modules {
@@ -337,6 +368,7 @@ pub(crate) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
             }
         }
         axis.validate(&entry("axes", name), &channels, &mut out);
+        nc_write_covers_model(name, axis, &mut out);
     }
 
     if let Some(sim) = &cfg.sim {
@@ -373,6 +405,94 @@ pub(crate) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
         file,
     ));
     out
+}
+
+/// Every Modbus device is read by a channel: without one its poller reads nothing and
+/// never even connects, yet the status shows it polling. A CAN node without channels
+/// still does something (NMT start, heartbeat watch), so it may stand alone. Not
+/// checked while a channel names an unknown device: that typo most likely meant the
+/// device that looks unread.
+fn unread_devices(cfg: &Config, assumed: &Assumed, out: &mut Problems<'_>) {
+    let defined = |d: &String| cfg.devices.contains_key(d) || assumed.devices.contains(d);
+    let named = cfg.channels.values().map(|ch| &ch.device);
+    if !named.chain(&assumed.devices_read.names).all(defined) {
+        return;
+    }
+    let modbus = cfg.devices.iter().filter(|(_, d)| d.can().is_none());
+    for (name, _) in modbus {
+        let read = cfg.channels.values().any(|ch| &ch.device == name)
+            || assumed.devices_read.contains(name);
+        if !read {
+            out.push(
+                entry("devices", name),
+                format!(
+                    "no channel reads device `{name}`; the gateway would never even connect \
+                     to it: add a [channels.NAME] with device = \"{name}\" or remove the device"
+                ),
+            );
+        }
+    }
+}
+
+/// `nc_write` leaves out no value the axis' model sets: a job is cut down to
+/// `nc_write`, so a value left out never reaches the NC while the job still reads
+/// back as verified. Leaving out a value the axis does not model is fine (a K0-only
+/// axis on a control without a slope).
+fn nc_write_covers_model(name: &str, axis: &AxisConfig, out: &mut Problems<'_>) {
+    let heat = axis.motion_heat.as_ref();
+    let k0 = axis.k0.offset_mm != 0.0
+        || !axis.k0.terms.is_empty()
+        || heat.is_some_and(|m| m.k0_mm_per_mm_per_s != 0.0);
+    let slope = axis.tan_beta.offset != 0.0
+        || !axis.tan_beta.terms.is_empty()
+        || heat.is_some_and(|m| m.tan_beta_per_mm_per_s != 0.0);
+    // (value, why the NC needs it, the other way out)
+    let mut needed: Vec<(NcVar, String, &str)> = Vec::new();
+    if k0 {
+        needed.push((
+            NcVar::Sd43900,
+            "the axis models K0: the NC would never receive it".into(),
+            "take K0 out of the model",
+        ));
+    }
+    if slope {
+        needed.push((
+            NcVar::Sd43910,
+            "the axis models tan(beta): the NC would never receive it".into(),
+            "take tan(beta) out of the model",
+        ));
+        needed.push((
+            NcVar::Sd43920,
+            format!(
+                "the axis models tan(beta): the NC would apply the slope about the P0 it \
+                 holds instead of p0_mm = {}",
+                axis.p0_mm
+            ),
+            "take tan(beta) out of the model",
+        ));
+    } else if axis.p0_mm != 0.0 {
+        needed.push((
+            NcVar::Sd43920,
+            format!(
+                "p0_mm = {} is set: the NC would never receive it",
+                axis.p0_mm
+            ),
+            "remove p0_mm",
+        ));
+    }
+    let written = axis.nc_write_ids();
+    for (var, why, or) in needed {
+        if !written.contains(&var.id()) {
+            let sd = var_name(var.id());
+            out.push(
+                field("axes", name, "nc_write"),
+                format!(
+                    "leaves out {sd}, but {why}; add \"{}\" to nc_write or {or}",
+                    sd.to_lowercase()
+                ),
+            );
+        }
+    }
 }
 
 fn names<'n>(out: &mut Problems<'_>, section: &str, names: impl Iterator<Item = &'n String>) {

@@ -719,17 +719,92 @@ fn an_axis_on_a_several_axis_target_needs_its_number_and_a_place_for_each_value(
     let p = problems(&with_target(ADS, "axis_number = 1\n"));
     assert_eq!(keys(&p), ["axes.X.nc_write", "axes.X.nc_write"], "{p:#?}");
     assert!(p[0].message.contains("SD43910"), "{}", p[0].message);
-    let cfg = load_str(
-        &with_target(ADS, "axis_number = 1\nnc_write = [\"sd43900\"]\n"),
-        "t.toml",
-    )
-    .expect("loads with an allow-list of SD43900");
+    // Leaving them out is right for a K0-only axis, and not for X's slope model.
+    let only_k0 = "axis_number = 1\nnc_write = [\"sd43900\"]\n";
+    let p = problems(&with_target(ADS, only_k0));
+    assert_eq!(keys(&p), ["axes.X.nc_write", "axes.X.nc_write"], "{p:#?}");
+    assert!(p[0].message.starts_with("leaves out SD43910"), "{}", p[0]);
+    let cfg = load_str(&without_slope(&with_target(ADS, only_k0)), "t.toml")
+        .expect("a K0-only axis loads with an allow-list of SD43900");
     assert_eq!(cfg.axes["X"].nc_write_ids(), [43900]);
-    let p = problems(&with_target(
+    let p = problems(&without_slope(&with_target(
         &ADS.replace("127.0.0.1.1.1", "1.2.3"),
-        "axis_number = 1\nnc_write = [\"sd43900\"]\n",
-    ));
+        only_k0,
+    )));
     assert_eq!(keys(&p), ["targets.nc_x.ams_net_id"], "{p:#?}");
+}
+
+/// `text` (the example) without axis X's tan(beta) model.
+fn without_slope(text: &str) -> String {
+    let start = text.find("[axes.X.tan_beta]").expect("X has a slope");
+    let end = start + text[start..].find("]\n").expect("end of the terms") + 2;
+    let end = end + text[end..].find("]\n").expect("end of the table") + 2;
+    format!("{}{}", &text[..start], &text[end..])
+}
+
+const MINIMAL: &str = include_str!("../../../../../config/minimal.toml");
+
+// minimal.toml's X models tan(beta) only; `nc_write = ["sd43900"]` validated, and the
+// NC never received SD43910 while the log said every job was written and verified.
+#[test]
+fn nc_write_leaving_out_the_modelled_slope_is_refused() {
+    let text = MINIMAL.replace("md32750 = 2\n", "md32750 = 2\nnc_write = [\"sd43900\"]\n");
+    let p = problems(&text);
+    assert_eq!(keys(&p), ["axes.X.nc_write", "axes.X.nc_write"], "{p:#?}");
+    assert_eq!(
+        p[0].to_string(),
+        "t.toml: axes.X.nc_write: leaves out SD43910, but the axis models tan(beta): the NC \
+         would never receive it; add \"sd43910\" to nc_write or take tan(beta) out of the model"
+    );
+    assert!(p[1].message.starts_with("leaves out SD43920"), "{}", p[1]);
+    let text = MINIMAL.replace(
+        "md32750 = 2\n",
+        "md32750 = 2\nnc_write = [\"sd43910\", \"sd43920\"]\n",
+    );
+    load_str(&text, "t.toml").expect("K0 is not modelled: leaving out SD43900 is fine");
+}
+
+// A channel left out for a type error still reads its device.
+#[test]
+fn a_broken_channel_still_reads_its_device() {
+    let text = EXAMPLE.replace("address = 1000\n", "address = \"x\"\n");
+    let p = problems(&text);
+    assert_eq!(keys(&p), ["channels.T_ambient.address"], "{p:#?}");
+    let p = problems(&edit("device = \"ain2\"\n", ""));
+    assert_eq!(
+        keys(&p),
+        ["channels.T_ambient.device"],
+        "the device the broken channel reads is unknown: no device counts as unread"
+    );
+}
+
+#[test]
+fn empty_device_and_channel_tables_are_refused() {
+    let p = problems("[devices]\n[channels]\n");
+    assert_eq!(keys(&p), ["devices", "channels"], "{p:#?}");
+    assert!(p[0].message.starts_with("no device defined"), "{}", p[0]);
+}
+
+// `COMPGATE__DEVICES__AIN2__TIMEOUT_S` with no `[devices.ain2]` in the file: the
+// missing transport was blamed on the file.
+#[test]
+fn an_entry_created_by_the_environment_says_so() {
+    let p = problems_env(MINIMAL, &[("COMPGATE__DEVICES__AIN2__TIMEOUT_S", "1")]);
+    assert_eq!(keys(&p), ["devices.ain2.transport"], "{p:#?}");
+    assert_eq!(
+        p[0].to_string(),
+        "t.toml: devices.ain2.transport: required key is missing (environment: \
+         COMPGATE__DEVICES__AIN2__TIMEOUT_S creates `devices.ain2` which the file lacks)"
+    );
+    // An override of an entry the file has keeps the plain note.
+    let p = problems_env(MINIMAL, &[("COMPGATE__DEVICES__AIN1__TIMEOUT_S", "-1")]);
+    assert_eq!(keys(&p), ["devices.ain1.timeout_s"], "{p:#?}");
+    assert!(
+        p[0].message
+            .ends_with("(environment: COMPGATE__DEVICES__AIN1__TIMEOUT_S)"),
+        "{}",
+        p[0]
+    );
 }
 
 #[test]
@@ -744,4 +819,14 @@ fn a_trend_span_out_of_range_names_the_key() {
     let m = cfg.metrics.expect("metrics");
     assert!(!m.status_page);
     assert_eq!((m.bind.as_str(), m.trend_s), ("127.0.0.1:9464", 300.0));
+}
+
+// A CAN node without channels is still started (NMT) and its heartbeat watched.
+#[test]
+fn a_can_node_without_channels_may_stand_alone() {
+    let text = format!(
+        "{}\n[devices.can_b]\ntransport = \"can\"\ninterface = \"vcan1\"\nnode_id = 5\n",
+        include_str!("../../../../../config/can-example.toml")
+    );
+    load_str(&text, "can.toml").expect("a lone CAN node loads");
 }

@@ -55,6 +55,12 @@ fn ch<'a>(cfg: &'a mut Config, name: &str) -> &'a mut ChannelConfig {
 fn x(cfg: &mut Config) -> &mut AxisConfig {
     cfg.axes.get_mut("X").expect("axis in example")
 }
+/// Adds a channel `T_<device>` reading `device`, so that the device is not unread.
+fn read_by_channel(cfg: &mut Config, device: &str) {
+    let mut t = cfg.channels["T_ambient"].clone();
+    t.device = device.into();
+    cfg.channels.insert(format!("T_{device}"), t);
+}
 
 #[test]
 fn example_is_clean() {
@@ -137,6 +143,7 @@ fn shared_serial_line() {
         other.parity = Some(Parity::None);
         other.stop_bits = None; // 2 without parity
         c.devices.insert("ain3".into(), DeviceConfig::Rtu(other));
+        read_by_channel(c, "ain3");
     });
     assert_eq!(
         keys,
@@ -156,6 +163,7 @@ fn shared_serial_line() {
             other.stop_bits = None;
             other.unit_id = 8;
             c.devices.insert("ain3".into(), DeviceConfig::Rtu(other));
+            read_by_channel(c, "ain3");
         }),
         Vec::<String>::new()
     );
@@ -353,5 +361,165 @@ fn sim_section() {
             "sim.nc_modules.nc_x.motion_max_mm",
             "sim.nc_modules.nc_x.motion_speed_mm_per_s",
         ]
+    );
+}
+
+/// The problems (key, message) after `change` was applied to the example.
+fn messages_after(change: impl FnOnce(&mut Config)) -> Vec<(String, String)> {
+    let mut cfg = example();
+    change(&mut cfg);
+    validate(&cfg, "v.toml")
+        .into_iter()
+        .map(|p| (p.key, p.message))
+        .collect()
+}
+
+// A config without devices or channels passed `validate`, and `run` then stopped at
+// once with exit code 0 and no reason.
+#[test]
+fn a_config_needs_a_device_and_a_channel() {
+    let p = messages_after(|c| {
+        c.devices.clear();
+        c.channels.clear();
+        c.axes.clear();
+    });
+    let keys: Vec<&str> = p.iter().map(|(k, _)| k.as_str()).collect();
+    assert_eq!(keys, ["devices", "channels"], "{p:#?}");
+    assert!(p[0].1.contains("at least one [devices.NAME]"), "{}", p[0].1);
+    assert!(
+        p[1].1.contains("at least one [channels.NAME]"),
+        "{}",
+        p[1].1
+    );
+    assert_eq!(
+        problems_after(|c| {
+            c.channels.clear();
+            c.axes.clear();
+        }),
+        ["channels"],
+        "no channel: one problem, not one per device"
+    );
+}
+
+// A device no channel reads gets a poller and a link, and nothing is ever read.
+#[test]
+fn a_device_no_channel_reads_is_a_problem() {
+    let p = messages_after(|c| {
+        c.channels.retain(|_, ch| ch.device != "ain2");
+        c.axes.clear();
+    });
+    assert_eq!(p.len(), 1, "{p:#?}");
+    assert_eq!(p[0].0, "devices.ain2");
+    assert!(
+        p[0].1.starts_with("no channel reads device `ain2`"),
+        "{}",
+        p[0].1
+    );
+    // A channel naming an unknown device most likely meant the unread one: only the
+    // reference is reported.
+    assert_eq!(
+        problems_after(|c| {
+            for ch in c.channels.values_mut().filter(|ch| ch.device == "ain2") {
+                ch.device = "ain3".into();
+            }
+        }),
+        ["channels.T_ambient.device"]
+    );
+}
+
+fn nc_write_messages(change: impl FnOnce(&mut AxisConfig)) -> Vec<String> {
+    messages_after(|c| change(x(c)))
+        .into_iter()
+        .map(|(k, m)| {
+            assert_eq!(k, "axes.X.nc_write", "{m}");
+            m
+        })
+        .collect()
+}
+
+// nc_write cuts every job down to its values: one the model sets but nc_write leaves
+// out never reached the NC, while the job was logged as written and verified.
+#[test]
+fn nc_write_must_hold_every_value_the_model_sets() {
+    // The example's X models K0 and tan(beta), about p0_mm = 0.
+    let m = nc_write_messages(|a| a.nc_write = vec![NcVar::Sd43900]);
+    assert_eq!(m.len(), 2, "{m:#?}");
+    assert!(m[0].starts_with("leaves out SD43910") && m[0].contains("\"sd43910\""));
+    assert!(
+        m[1].starts_with("leaves out SD43920") && m[1].contains("P0"),
+        "{}",
+        m[1]
+    );
+    let m = nc_write_messages(|a| a.nc_write = vec![NcVar::Sd43910, NcVar::Sd43920]);
+    assert_eq!(m.len(), 1, "{m:#?}");
+    assert!(m[0].starts_with("leaves out SD43900"), "{}", m[0]);
+    // Motion heat adds to the model it names.
+    let m = nc_write_messages(|a| {
+        a.k0 = K0Model::default();
+        a.tan_beta = TanBetaModel::default();
+        a.md32750 = 1;
+        a.motion_heat = Some(MotionHeatModel {
+            tau_s: 600.0,
+            ref_mm_per_s: 0.0,
+            k0_mm_per_mm_per_s: 0.001,
+            tan_beta_per_mm_per_s: 0.0,
+        });
+        a.nc_write = vec![NcVar::Sd43910, NcVar::Sd43920];
+    });
+    assert_eq!(m.len(), 1, "{m:#?}");
+    assert!(m[0].starts_with("leaves out SD43900"), "{}", m[0]);
+    // A set P0 without a slope still has to reach the NC.
+    let m = nc_write_messages(|a| {
+        a.tan_beta = TanBetaModel::default();
+        a.p0_mm = 100.0;
+        a.nc_write = vec![NcVar::Sd43900];
+    });
+    assert_eq!(m.len(), 1, "{m:#?}");
+    assert!(m[0].contains("p0_mm = 100"), "{}", m[0]);
+}
+
+#[test]
+fn nc_write_may_leave_out_what_the_model_does_not_set() {
+    // A K0-only axis on a control without a slope (documented for ADS).
+    assert_eq!(
+        nc_write_messages(|a| {
+            a.tan_beta = TanBetaModel::default();
+            a.md32750 = 1;
+            a.nc_write = vec![NcVar::Sd43900];
+        }),
+        Vec::<String>::new()
+    );
+    // A slope-only axis (config/minimal.toml) need not write K0.
+    assert_eq!(
+        nc_write_messages(|a| {
+            a.k0 = K0Model::default();
+            a.md32750 = 2;
+            a.nc_write = vec![NcVar::Sd43910, NcVar::Sd43920];
+        }),
+        Vec::<String>::new()
+    );
+}
+
+#[test]
+fn port_0_is_left_to_the_simulated_plant() {
+    assert_eq!(
+        problems_after(|c| {
+            tcp(c, "ain1").address = "127.0.0.1:0".into();
+            c.nc_modules.get_mut("nc_x").expect("nc").address = "127.0.0.1:0".into();
+        }),
+        ["devices.ain1.address", "nc_modules.nc_x.address"]
+    );
+    assert_eq!(
+        problems_after(|c| {
+            tcp(c, "ain1").address = "127.0.0.1:0".into();
+            c.nc_modules.get_mut("nc_x").expect("nc").address = "127.0.0.1:0".into();
+            c.sim = Some(SimConfig::default());
+        }),
+        Vec::<String>::new(),
+        "with [sim] the plant binds a free port and writes it in"
+    );
+    assert_eq!(
+        problems_after(|c| tcp(c, "ain1").address = "192.168.0.300:502".into()),
+        ["devices.ain1.address"]
     );
 }
