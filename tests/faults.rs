@@ -210,13 +210,18 @@ async fn nc_unreachable_while_temperatures_change() {
         .set_temperature_override(plant.transmitter["T_bed"], Some(40.0))
         .unwrap();
     // Jobs may fail before the first failed read; after it none is tried.
-    let s = wait(&rx, 10.0, "NC unreachable shown", |s| {
+    let s = wait(&rx, 10.0, "NC unreachable shown, 40 degC read", |s| {
         s.axes[0]
             .warning
             .as_deref()
             .is_some_and(|w| w.contains("NC unreachable"))
+            && reading(s, "T_bed")
+                .value_degc
+                .is_some_and(|v| (v - 40.0).abs() <= COUNT_DEGC)
     })
     .await;
+    // The last position read is not shown as if it were live.
+    assert!(s.axes[0].nc.is_none(), "{:?}", s.axes[0].nc);
     // The temperatures are still followed; nothing reaches the NC; nothing is taken as written.
     let v = reading(&s, "T_bed").value_degc.expect("a value");
     assert!((v - 40.0).abs() <= COUNT_DEGC);

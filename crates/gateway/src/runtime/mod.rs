@@ -460,13 +460,17 @@ impl Running {
                             }
                             st.nc = Some(*snap);
                         }
+                        // The last snapshot is no longer what the NC holds: shown or
+                        // recorded, it would pass for a live position.
                         Err(e) if e.is_unreachable() => {
                             self.baselined[i] = false;
+                            st.nc = None;
                             st.warning = Some(format!("NC unreachable: {e}"));
                         }
                         // It answered: say what, not "unreachable".
                         Err(e) => {
                             self.baselined[i] = false;
+                            st.nc = None;
                             st.warning = Some(format!("NC answered with an error: {e}"));
                         }
                     }
