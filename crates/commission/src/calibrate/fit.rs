@@ -18,6 +18,14 @@ use thiserror::Error;
 use crate::lsq;
 use crate::stats::mean;
 
+/// Largest condition number of the column-scaled design a fit accepts: beyond it
+/// the sensors' coefficients trade against each other and mean nothing.
+pub const MAX_CONDITION: f64 = 1e10;
+
+/// A column counts as constant when its values span less than this (um, mm or K):
+/// far below any instrument's resolution.
+const CONSTANT_SPAN: f64 = 1e-9;
+
 /// Why a fit is impossible.
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum FitError {
@@ -27,18 +35,30 @@ pub enum FitError {
     /// Columns of unequal length.
     #[error("column `{0}` has a different number of rows")]
     Length(String),
+    /// The error never changes: nothing to fit, and R^2 (1 - RSS/0) is undefined.
+    #[error(
+        "column `err_um` is constant ({value_um} um on every row): there is no error to fit and R^2 \
+         is undefined; was the file exported without --err-channel (err_um is then 0 throughout)?"
+    )]
+    ConstantErr { value_um: f64 },
     /// A sensor's temperature never changes, so its coefficient is undetermined.
-    #[error("sensor `{0}` is constant over the data: its coefficient cannot be fitted; drop it with --sensors")]
+    #[error("column `T_{0}` is constant over the data: its coefficient cannot be fitted; drop the sensor with --sensors")]
     ConstantSensor(String),
     /// All measurements at one position.
-    #[error("every measurement is at one position: tan(beta) cannot be fitted")]
+    #[error("column `pos_mm`: every measurement is at one position: tan(beta) cannot be fitted")]
     OnePosition,
     /// Sensors move together, so their coefficients cannot be told apart.
     #[error(
-        "the sensors are linearly dependent (condition number {}); use fewer sensors",
-        crate::lsq::condition_text(*condition)
+        "the sensors are linearly dependent (condition number {}){}; use fewer sensors",
+        crate::lsq::condition_text(*condition),
+        dependent_text(sensor.as_deref())
     )]
-    Collinear { condition: f64 },
+    Collinear {
+        condition: f64,
+        /// The first sensor column (`T_<name>`) that moves with the position and the
+        /// sensors before it, when one alone does.
+        sensor: Option<String>,
+    },
     /// A value is NaN or infinite.
     #[error("a value of `{0}` is not finite")]
     NotFinite(String),
@@ -48,6 +68,12 @@ pub enum FitError {
     /// A fitted figure came out NaN or infinite (an overflow on extreme data).
     #[error("the fitted {0} is not finite: the data cannot be fitted (check for extreme values)")]
     NonFiniteResult(&'static str),
+}
+
+fn dependent_text(sensor: Option<&str>) -> String {
+    sensor.map_or(String::new(), |s| {
+        format!(": column `{s}` moves with the position and the sensors before it")
+    })
 }
 
 /// One sensor's part of the fitted model.
@@ -136,17 +162,9 @@ pub fn choose_p0_mm(pos_mm: &[f64]) -> f64 {
         .unwrap_or(0.0)
 }
 
-/// Fits the model to rows of `pos_mm`, `err_um` and one temperature column per
-/// sensor `(name, degc)`, with reference position `p0_mm`.
-pub fn fit(
-    pos_mm: &[f64],
-    err_um: &[f64],
-    sensors: &[(&str, &[f64])],
-    p0_mm: f64,
-) -> Result<Fit, FitError> {
+/// Lengths and finiteness of the columns.
+fn check_shape(pos_mm: &[f64], err_um: &[f64], sensors: &[(&str, &[f64])]) -> Result<(), FitError> {
     let n = pos_mm.len();
-    let m = sensors.len();
-    let p = 2 + 2 * m;
     if err_um.len() != n {
         return Err(FitError::Length("err_um".into()));
     }
@@ -164,26 +182,54 @@ pub fn fit(
     if err_um.iter().any(|v| !v.is_finite()) {
         return Err(FitError::NotFinite("err_um".into()));
     }
-    if n < p + 1 {
-        return Err(FitError::TooFewRows { rows: n, coeffs: p });
+    Ok(())
+}
+
+fn span(v: &[f64]) -> f64 {
+    let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
+    hi - lo
+}
+
+/// Columns that leave a coefficient undetermined whatever the solver: a constant
+/// `err_um` (first: a file without the error is the likeliest mistake), one
+/// position, a constant sensor.
+fn check_degenerate(
+    pos_mm: &[f64],
+    err_um: &[f64],
+    sensors: &[(&str, &[f64])],
+) -> Result<(), FitError> {
+    if !err_um.is_empty() && span(err_um) < CONSTANT_SPAN {
+        return Err(FitError::ConstantErr {
+            value_um: err_um[0],
+        });
     }
-    let refs: Vec<f64> = sensors
-        .iter()
-        .map(|(_, col)| (mean(col) * 100.0).round() / 100.0)
-        .collect();
-    for ((name, col), r) in sensors.iter().zip(&refs) {
-        let spread = col.iter().map(|v| (v - r).abs()).fold(0.0, f64::max);
-        if spread < 1e-9 {
+    if !pos_mm.is_empty() && span(pos_mm) < CONSTANT_SPAN {
+        return Err(FitError::OnePosition);
+    }
+    for (name, col) in sensors {
+        // The span, not the distance from the rounded reference: a sensor constant
+        // at 20.004 degC once passed and surfaced as "linearly dependent".
+        if span(col) < CONSTANT_SPAN {
             return Err(FitError::ConstantSensor((*name).to_string()));
         }
     }
-    let dx: Vec<f64> = pos_mm.iter().map(|x| x - p0_mm).collect();
-    if dx.iter().all(|d| (d - dx[0]).abs() < 1e-9) {
-        return Err(FitError::OnePosition);
-    }
+    Ok(())
+}
 
-    // Columns: 1, dT_j..., dx, dx * dT_j...  (um per unit of each column).
-    let mut x = DMatrix::<f64>::zeros(n, p);
+/// Reference temperature of every sensor: its mean, to 0.01 K.
+fn reference_degc(sensors: &[(&str, &[f64])]) -> Vec<f64> {
+    sensors
+        .iter()
+        .map(|(_, col)| (mean(col) * 100.0).round() / 100.0)
+        .collect()
+}
+
+/// The design: columns 1, dT_j..., dx, dx * dT_j...  (um per unit of each column).
+fn design(dx: &[f64], sensors: &[(&str, &[f64])], refs: &[f64]) -> DMatrix<f64> {
+    let n = dx.len();
+    let m = sensors.len();
+    let mut x = DMatrix::<f64>::zeros(n, 2 + 2 * m);
     for i in 0..n {
         x[(i, 0)] = 1.0;
         x[(i, 1 + m)] = dx[i];
@@ -193,10 +239,70 @@ pub fn fit(
             x[(i, 2 + m + j)] = dx[i] * dt;
         }
     }
-    let design = lsq::solve_design(&x, err_um, 1e10).map_err(|e| match e {
-        lsq::LsqError::Collinear { condition } => FitError::Collinear { condition },
-        other => FitError::Solver(other),
-    })?;
+    x
+}
+
+/// Solves the design, naming the first dependent sensor when it is collinear.
+fn solve(
+    dx: &[f64],
+    err_um: &[f64],
+    sensors: &[(&str, &[f64])],
+    refs: &[f64],
+) -> Result<(DMatrix<f64>, lsq::DesignFit), FitError> {
+    let x = design(dx, sensors, refs);
+    match lsq::solve_design(&x, err_um, MAX_CONDITION) {
+        Ok(fit) => Ok((x, fit)),
+        Err(lsq::LsqError::Collinear { condition }) => {
+            // Only on failure: grow the sensor set until it turns dependent.
+            let sensor = (1..=sensors.len())
+                .find(|&k| {
+                    let x = design(dx, &sensors[..k], &refs[..k]);
+                    matches!(
+                        lsq::solve_design(&x, &vec![0.0; dx.len()], MAX_CONDITION),
+                        Err(lsq::LsqError::Collinear { .. })
+                    )
+                })
+                .map(|k| format!("T_{}", sensors[k - 1].0));
+            Err(FitError::Collinear { condition, sensor })
+        }
+        Err(other) => Err(FitError::Solver(other)),
+    }
+}
+
+/// Refuses what [`fit`] refuses for the data itself (constant `err_um`, one position,
+/// a constant sensor, sensors that move together), without fitting. `diagnose` fits
+/// the same baseline in its own way and uses this so both tools refuse alike.
+pub fn check_fittable(
+    pos_mm: &[f64],
+    err_um: &[f64],
+    sensors: &[(&str, &[f64])],
+    p0_mm: f64,
+) -> Result<(), FitError> {
+    check_shape(pos_mm, err_um, sensors)?;
+    check_degenerate(pos_mm, err_um, sensors)?;
+    let dx: Vec<f64> = pos_mm.iter().map(|x| x - p0_mm).collect();
+    solve(&dx, err_um, sensors, &reference_degc(sensors)).map(|_| ())
+}
+
+/// Fits the model to rows of `pos_mm`, `err_um` and one temperature column per
+/// sensor `(name, degc)`, with reference position `p0_mm`.
+pub fn fit(
+    pos_mm: &[f64],
+    err_um: &[f64],
+    sensors: &[(&str, &[f64])],
+    p0_mm: f64,
+) -> Result<Fit, FitError> {
+    let n = pos_mm.len();
+    let m = sensors.len();
+    let p = 2 + 2 * m;
+    check_shape(pos_mm, err_um, sensors)?;
+    if n < p + 1 {
+        return Err(FitError::TooFewRows { rows: n, coeffs: p });
+    }
+    check_degenerate(pos_mm, err_um, sensors)?;
+    let refs = reference_degc(sensors);
+    let dx: Vec<f64> = pos_mm.iter().map(|x| x - p0_mm).collect();
+    let (x, design) = solve(&dx, err_um, sensors, &refs)?;
     let beta = &design.beta;
     let condition = design.condition;
     let fitted = &x * DVector::from_column_slice(beta);
@@ -243,11 +349,8 @@ pub fn fit(
         rows: n,
         rms_um: (ss_res / n as f64).sqrt(),
         max_abs_um: residuals_um.iter().map(|r| r.abs()).fold(0.0, f64::max),
-        r2: if ss_tot > 0.0 {
-            1.0 - ss_res / ss_tot
-        } else {
-            1.0
-        },
+        // ss_tot > 0: a constant err_um is refused above.
+        r2: 1.0 - ss_res / ss_tot,
         condition,
         residuals_um,
     })
@@ -291,7 +394,7 @@ mod tests {
     #[test]
     fn refuses_what_cannot_be_fitted() {
         let pos = [0.0, 1.0, 2.0, 0.0, 1.0, 2.0, 0.0, 1.0];
-        let err = [0.0; 8];
+        let err = [0.5, 1.0, 0.0, 2.0, 1.5, 0.2, 0.3, 0.9];
         let t = [20.0; 8];
         assert_eq!(
             fit(&pos, &err, &[("bed", &t)], 0.0),
@@ -302,14 +405,73 @@ mod tests {
             fit(&[5.0; 8], &err, &[("bed", &t2)], 0.0),
             Err(FitError::OnePosition)
         );
-        assert!(matches!(
-            fit(&pos, &err, &[("a", &t2), ("b", &t2)], 0.0),
-            Err(FitError::Collinear { .. })
-        ));
+        let e = fit(&pos, &err, &[("a", &t2), ("b", &t2)], 0.0).unwrap_err();
+        assert!(
+            matches!(&e, FitError::Collinear { sensor: Some(s), .. } if s == "T_b"),
+            "{e:?}"
+        );
+        assert!(e.to_string().contains("column `T_b` moves with"), "{e}");
         assert!(matches!(
             fit(&pos[..4], &err[..4], &[("a", &t2[..4])], 0.0),
             Err(FitError::TooFewRows { .. })
         ));
         assert_eq!(choose_p0_mm(&[300.0, -20.0, 50.0]), -20.0);
+    }
+
+    /// err_um 0 on every row (an export without --err-channel) fitted "exactly":
+    /// R^2 1, RMS 0, an all-zero model. A constant error is refused, whatever its value.
+    #[test]
+    fn constant_err_is_refused() {
+        let pos = [0.0, 1.0, 2.0, 0.0, 1.0, 2.0, 0.0, 1.0];
+        let t = [20.0, 21.0, 22.0, 23.0, 24.0, 25.0, 26.0, 27.0];
+        for v in [0.0, 3.5] {
+            let e = fit(&pos, &[v; 8], &[("a", &t)], 0.0).unwrap_err();
+            assert_eq!(e, FitError::ConstantErr { value_um: v });
+            let text = e.to_string();
+            assert!(
+                text.contains("column `err_um` is constant") && text.contains("--err-channel"),
+                "{text}"
+            );
+        }
+    }
+
+    /// A sensor constant at 20.004 degC (mean rounded to 20.00 for its reference) was
+    /// reported as "linearly dependent"; it is a constant column.
+    #[test]
+    fn a_constant_sensor_off_its_rounded_reference_is_named_constant() {
+        let pos = [0.0, 1.0, 2.0, 0.0, 1.0, 2.0, 0.0, 1.0];
+        let err = [0.5, 1.0, 0.0, 2.0, 1.5, 0.2, 0.3, 0.9];
+        let t = [20.004; 8];
+        let e = fit(&pos, &err, &[("bed", &t)], 0.0).unwrap_err();
+        assert_eq!(e, FitError::ConstantSensor("bed".into()));
+        assert!(
+            e.to_string().starts_with("column `T_bed` is constant"),
+            "{e}"
+        );
+    }
+
+    /// `check_fittable` refuses exactly what `fit` refuses for the data, and passes
+    /// what `fit` fits.
+    #[test]
+    fn check_fittable_agrees_with_fit() {
+        let pos = [0.0, 1.0, 2.0, 0.0, 1.0, 2.0, 0.0, 1.0];
+        let err = [0.5, 1.0, 0.0, 2.0, 1.5, 0.2, 0.3, 0.9];
+        let t = [20.0, 21.0, 22.0, 23.0, 24.0, 25.0, 26.0, 27.0];
+        let t_sin: Vec<f64> = (0..8).map(|i| 20.0 + (i as f64 * 1.7).sin()).collect();
+        type Case<'a> = (&'a [f64], &'a [f64], Vec<(&'a str, &'a [f64])>);
+        let cases: [Case; 5] = [
+            (&pos, &err, vec![("a", &t), ("b", &t_sin)]),
+            (&pos, &[0.0; 8], vec![("a", &t)]),
+            (&[5.0; 8], &err, vec![("a", &t)]),
+            (&pos, &err, vec![("a", &[20.0; 8])]),
+            (&pos, &err, vec![("a", &t), ("b", &t)]),
+        ];
+        for (p, e, s) in cases {
+            assert_eq!(
+                check_fittable(p, e, &s, 0.0).err(),
+                fit(p, e, &s, 0.0).err(),
+                "{s:?}"
+            );
+        }
     }
 }

@@ -276,3 +276,26 @@ fn model_reader_refuses_non_finite_values_naming_file_and_key() {
         assert!(e.contains("bad_model.toml") && e.contains(key), "{e}");
     }
 }
+
+/// What `compgate export` writes without --err-channel (err_um 0 on every row) was
+/// fitted with "R^2 1.000000, RMS 0.000" and an all-zero model written: now refused,
+/// and no model file is written.
+#[test]
+fn an_export_without_the_error_channel_is_refused_and_no_model_written() {
+    let (m, _) = commissioning(noiseless(), 1);
+    let zero = Measurements {
+        err_um: vec![0.0; m.len()],
+        ..m
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("export.csv");
+    zero.write(std::fs::File::create(&csv).unwrap()).unwrap();
+    let args = args_for(dir.path(), csv);
+    let e = run(&args).unwrap_err().to_string();
+    assert!(
+        e.contains("column `err_um` is constant (0 um on every row)")
+            && e.contains("--err-channel"),
+        "{e}"
+    );
+    assert!(!args.out.exists());
+}

@@ -73,6 +73,14 @@ impl Data {
         let pos_min_mm = m.pos_mm.iter().copied().fold(f64::INFINITY, f64::min);
         let pos_max_mm = m.pos_mm.iter().copied().fold(f64::NEG_INFINITY, f64::max);
         let p0_mm = p0_mm.unwrap_or(0.5 * (pos_min_mm + pos_max_mm));
+        // The baseline is calibrate's model: refuse the data calibrate refuses
+        // (constant err_um, one position, a constant or a duplicated sensor) rather
+        // than let the minimum-norm solver split or zero a coefficient silently.
+        let baseline: Vec<(&str, &[f64])> = sensors
+            .iter()
+            .map(|&s| (names[s].as_str(), m.temps[s].degc.as_slice()))
+            .collect();
+        crate::calibrate::fit::check_fittable(&m.pos_mm, &m.err_um, &baseline, p0_mm)?;
         let half = (0.5 * (pos_max_mm - pos_min_mm)).max(1e-9);
         let mid = 0.5 * (pos_min_mm + pos_max_mm);
         let temps_degc: Vec<Vec<f64>> = m.temps.iter().map(|c| c.degc.clone()).collect();
@@ -519,12 +527,13 @@ mod tests {
         let m = Measurements {
             t_s: (0..n).map(|i| i as f64).collect(),
             pos_mm: (0..n).map(|i| ((i * 7919) % 1000) as f64 * 0.5).collect(),
-            err_um: vec![0.0; n],
+            // Neither constant: the baseline would be refused.
+            err_um: (0..n).map(|i| (i as f64 * 0.01).sin()).collect(),
             dir: vec![1; n],
             travel_mm: vec![1.0; n],
             temps: vec![compgate_core::measure::TempColumn {
                 name: "a".into(),
-                degc: vec![20.0; n],
+                degc: (0..n).map(|i| 20.0 + i as f64 * 1e-3).collect(),
             }],
             ignored_columns: vec![],
         };
@@ -541,5 +550,80 @@ mod tests {
             (period - 37.0).abs() < 0.5 && (amp - 2.0).abs() < 0.2,
             "{period} {amp}"
         );
+    }
+
+    /// Rows of two sensors a and b over 5 positions, as `calibrate` fits them.
+    fn two_sensor_rows(n: usize) -> Measurements {
+        let t_a: Vec<f64> = (0..n).map(|i| 20.0 + i as f64 * 0.05).collect();
+        let t_b: Vec<f64> = (0..n).map(|i| 22.0 + (i as f64 * 0.3).sin()).collect();
+        let pos_mm: Vec<f64> = (0..n).map(|i| (i % 5) as f64 * 250.0).collect();
+        let err_um = (0..n)
+            .map(|i| 3.0 * (t_a[i] - 20.0) + 0.01 * (t_b[i] - 22.0) * pos_mm[i] + (i as f64).cos())
+            .collect();
+        Measurements {
+            t_s: (0..n).map(|i| 2.0 * i as f64).collect(),
+            pos_mm,
+            err_um,
+            dir: vec![1; n],
+            travel_mm: vec![0.0; n],
+            temps: vec![
+                compgate_core::measure::TempColumn {
+                    name: "a".into(),
+                    degc: t_a,
+                },
+                compgate_core::measure::TempColumn {
+                    name: "b".into(),
+                    degc: t_b,
+                },
+            ],
+            ignored_columns: vec![],
+        }
+    }
+
+    /// diagnose wrote a model with exit 0 for data calibrate refuses: all rows alike,
+    /// constant temperatures, one position, T_b equal to T_a (its coefficient split
+    /// between the two). It refuses them as calibrate does, naming the column.
+    #[test]
+    fn refuses_the_data_calibrate_refuses() {
+        let n = 100;
+        let good = two_sensor_rows(n);
+        assert!(super::super::diagnose(&good, &Default::default()).is_ok());
+        type Spoil = fn(&mut Measurements);
+        let cases: [(Spoil, &str); 5] = [
+            (
+                |m| {
+                    m.pos_mm = vec![0.0; m.len()];
+                    m.err_um = vec![0.0; m.len()];
+                    for c in &mut m.temps {
+                        c.degc = vec![20.0; c.degc.len()];
+                    }
+                },
+                "column `err_um` is constant",
+            ),
+            (
+                |m| m.err_um = vec![0.0; m.len()],
+                "column `err_um` is constant (0 um on every row)",
+            ),
+            (
+                |m| m.temps[1].degc = vec![20.0; m.len()],
+                "column `T_b` is constant",
+            ),
+            (
+                |m| m.pos_mm = vec![100.0; m.len()],
+                "column `pos_mm`: every measurement is at one position",
+            ),
+            (
+                |m| m.temps[1].degc = m.temps[0].degc.clone(),
+                "column `T_b` moves with the position and the sensors before it",
+            ),
+        ];
+        for (spoil, want) in cases {
+            let mut m = good.clone();
+            spoil(&mut m);
+            let e = super::super::diagnose(&m, &Default::default())
+                .expect_err(want)
+                .to_string();
+            assert!(e.starts_with("fit: ") && e.contains(want), "{want}: {e}");
+        }
     }
 }

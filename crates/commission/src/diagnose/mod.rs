@@ -69,6 +69,9 @@ pub enum DiagnoseError {
     Output(#[from] compgate_core::outputs::OutputError),
     #[error("fit: {0}")]
     Fit(#[from] crate::lsq::LsqError),
+    /// The baseline cannot be fitted to the data (refused as `calibrate` refuses it).
+    #[error("fit: {0}")]
+    Unfittable(#[from] crate::calibrate::FitError),
 }
 
 /// Decision thresholds, calibrated on null data (see the README).
