@@ -11,7 +11,8 @@ use super::{evaluate_grouped, report, Grouping, Iso230Error};
 /// `compgate iso230` arguments.
 #[derive(Debug, Clone, clap::Args)]
 pub struct Iso230Args {
-    /// Measured-error CSV (t_s,pos_mm,err_um,T_...; dir recommended).
+    /// Measured-error CSV (t_s,pos_mm,dir,err_um,T_...; dir required: +1 approached
+    /// upwards, -1 downwards).
     #[arg(long)]
     pub data: PathBuf,
     /// The nominal target positions, mm, comma-separated; each row is taken by the

@@ -10,8 +10,10 @@
 //!   their mean). Recorded positions jitter by a few tenths of a micrometre, so a
 //!   target is not an exact value; a cluster wider than the tolerance is refused
 //!   rather than guessed at;
-//! - the **direction** is the row's `dir` (+1 approached upwards, -1 downwards;
-//!   without the column, the direction of the last move);
+//! - the **direction** is the row's `dir` (+1 approached upwards, -1 downwards),
+//!   a required column here: the positions alone cannot tell it, because a target at
+//!   a reversal is approached from both sides in a row and the overshoot between the
+//!   two rows is not recorded (the same position twice, no move in between);
 //! - the **runs** j = 1..n of a target in a direction are its approaches in that
 //!   direction in file order; `err_um` is the deviation x_ij = actual - target.
 //!
@@ -35,12 +37,14 @@
 mod command;
 mod report;
 
+use std::path::Path;
+
 use thiserror::Error;
 
 use compgate_core::measure::MeasureError;
 
 use crate::stats::mean_sd;
-pub use command::{run, Iso230Args};
+pub use command::Iso230Args;
 pub use report::report;
 
 /// Runs the standard asks for, each way per target.
@@ -70,11 +74,18 @@ impl Default for Grouping {
     }
 }
 
-/// Errors of the evaluation.
+/// Errors of the evaluation. Rows are reported as the lines of the measurement CSV
+/// they come from (the header is line 1, the first row line 2).
 #[derive(Debug, Error)]
 pub enum Iso230Error {
     #[error("{0}: {1}")]
     Data(String, MeasureError),
+    /// An error of the evaluation, with the file evaluated.
+    #[error("{path}: {source}")]
+    InFile {
+        path: String,
+        source: Box<Iso230Error>,
+    },
     #[error(
         "target {pos_mm} mm has {n} run(s) in the {dir} direction; at least 2 each way are needed"
     )]
@@ -83,16 +94,22 @@ pub enum Iso230Error {
         dir: &'static str,
         n: usize,
     },
-    #[error("row {row}: direction unknown (no `dir` column and no move before it)")]
-    NoDirection { row: usize },
+    /// A row without a direction: the reader gives 0 only when the file has no `dir`
+    /// column, and then on its first row at the latest.
+    #[error(
+        "line {line}, column `dir`: the approach direction is unknown: iso230 requires a \
+         `dir` column (+1 approached upwards, -1 downwards); the positions alone cannot \
+         tell the two approaches of a target at a reversal apart"
+    )]
+    NoDirection { line: usize },
     #[error("fewer than 2 target positions")]
     TooFewTargets,
     #[error(
-        "row {row}: position {pos_mm} mm is {off_mm:.6} mm from the nearest target \
-         {target_mm} mm, beyond the tolerance of {tolerance_mm} mm"
+        "line {line}, column `pos_mm`: position {pos_mm} mm is {off_mm:.6} mm from the \
+         nearest target {target_mm} mm, beyond the tolerance of {tolerance_mm} mm"
     )]
     OffTarget {
-        row: usize,
+        line: usize,
         pos_mm: f64,
         target_mm: f64,
         off_mm: f64,
@@ -162,6 +179,28 @@ pub struct Iso230 {
     pub m_um: f64,
 }
 
+/// The CSV line of the 0-based data row `row`: the header is line 1.
+fn csv_line(row: usize) -> usize {
+    row + 2
+}
+
+/// Runs the command; an error of the evaluation names the file evaluated.
+pub fn run(args: &Iso230Args) -> Result<String, Iso230Error> {
+    command::run(args).map_err(|e| in_file(e, &args.data))
+}
+
+/// Adds the file to an error that does not name it (the reader's errors do; a flag's
+/// error is not about the file).
+fn in_file(e: Iso230Error, path: &Path) -> Iso230Error {
+    match e {
+        Iso230Error::Data(..) | Iso230Error::Arg(_) | Iso230Error::InFile { .. } => e,
+        other => Iso230Error::InFile {
+            path: path.display().to_string(),
+            source: Box::new(other),
+        },
+    }
+}
+
 fn max(it: impl Iterator<Item = f64>) -> f64 {
     it.fold(f64::NEG_INFINITY, f64::max)
 }
@@ -194,7 +233,7 @@ fn assign_targets(pos_mm: &[f64], g: &Grouping) -> Result<(Vec<usize>, Vec<f64>)
                     Ok(i)
                 } else {
                     Err(Iso230Error::OffTarget {
-                        row: row + 1,
+                        line: csv_line(row),
                         pos_mm: p,
                         target_mm: targets.get(i).copied().unwrap_or(f64::NAN),
                         off_mm: off,
@@ -256,18 +295,24 @@ pub fn evaluate_grouped(
     err_um: &[f64],
     grouping: &Grouping,
 ) -> Result<Iso230, Iso230Error> {
+    // First: a file without `dir` fails on its first row whatever its positions.
+    if let Some(row) = dir.iter().position(|d| !matches!(d, 1 | -1)) {
+        return Err(Iso230Error::NoDirection {
+            line: csv_line(row),
+        });
+    }
     let (index, nominal) = assign_targets(pos_mm, grouping)?;
     // Per target and direction, in file order = run order.
     let mut groups: Vec<(f64, Vec<f64>, Vec<f64>)> = nominal
         .iter()
         .map(|&p| (p, Vec::new(), Vec::new()))
         .collect();
-    for (row, ((&i, d), e)) in index.iter().zip(dir).zip(err_um).enumerate() {
+    for ((&i, &d), e) in index.iter().zip(dir).zip(err_um) {
         let g = &mut groups[i];
-        match d {
-            1 => g.1.push(*e),
-            -1 => g.2.push(*e),
-            _ => return Err(Iso230Error::NoDirection { row: row + 1 }),
+        if d > 0 {
+            g.1.push(*e);
+        } else {
+            g.2.push(*e);
         }
     }
     if groups.len() < 2 {
@@ -559,7 +604,8 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(
-            e.starts_with("row 1: position") && e.contains("beyond the tolerance of 0.0001 mm"),
+            e.starts_with("line 2, column `pos_mm`: position")
+                && e.contains("beyond the tolerance of 0.0001 mm"),
             "{e}"
         );
         // 0, 0.008, 0.016 mm: each within 0.01 mm of the next, 0.016 mm end to end.
@@ -588,7 +634,63 @@ mod tests {
                 .contains("target 0 mm has 1 run(s) in the positive"),
             "{e}"
         );
-        let e = evaluate(&[0.0, 1.0], &[0, 1], &[0.0; 2]).unwrap_err();
-        assert!(e.to_string().contains("row 1"), "{e}");
+        let e = evaluate(&[0.0, 1.0, 1.0], &[1, 1, 0], &[0.0; 3]).unwrap_err();
+        assert!(e.to_string().starts_with("line 4, column `dir`"), "{e}");
+    }
+
+    fn run_file(path: &std::path::Path, targets: Vec<f64>) -> Result<String, Iso230Error> {
+        run(&Iso230Args {
+            data: path.to_path_buf(),
+            targets,
+            target_tolerance_mm: DEFAULT_TOLERANCE_MM,
+        })
+    }
+
+    /// Without `dir` every file failed with "row 1: direction unknown", a data row
+    /// and no file, while the help called `dir` "recommended". The direction cannot be
+    /// derived at a reversal (the same position twice, in the two directions), so the
+    /// column is required, and the refusal says so with file, line and column.
+    #[test]
+    fn a_file_without_dir_is_refused_saying_the_column_is_required() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("nodir.csv");
+        // Two runs of an up-down cycle over 0 and 100 mm: 100 is approached up and
+        // then down with no move recorded in between.
+        let mut csv = String::from("t_s,pos_mm,err_um,T_a\n");
+        for (t, p) in [0.0, 100.0, 100.0, 0.0, 0.0, 100.0, 100.0, 0.0]
+            .iter()
+            .enumerate()
+        {
+            csv.push_str(&format!("{t},{p},{},20\n", t % 3));
+        }
+        std::fs::write(&path, &csv).unwrap();
+        let e = run_file(&path, vec![]).unwrap_err().to_string();
+        assert!(
+            e.contains(
+                "nodir.csv: line 2, column `dir`: the approach direction is unknown: \
+                 iso230 requires a `dir` column"
+            ),
+            "{e}"
+        );
+    }
+
+    /// "row 3: position ... beyond the tolerance" gave a data-row number and no file.
+    #[test]
+    fn evaluation_errors_name_the_file_and_the_csv_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("off.csv");
+        std::fs::write(
+            &path,
+            "t_s,pos_mm,dir,err_um,T_a\n0,0,1,1,20\n1,100,1,1,20\n2,100.5,-1,1,20\n",
+        )
+        .unwrap();
+        let e = run_file(&path, vec![0.0, 100.0]).unwrap_err().to_string();
+        assert!(
+            e.contains("off.csv: line 4, column `pos_mm`: position 100.5 mm is 0.500000 mm"),
+            "{e}"
+        );
+        // Errors that are not about one row name the file too.
+        let e = run_file(&path, vec![]).unwrap_err().to_string();
+        assert!(e.contains("off.csv: target 0 mm has 1 run(s)"), "{e}");
     }
 }
