@@ -1,7 +1,9 @@
 //! Measured error data: the CSV format `calibrate` and `diagnose` read and `export`
 //! writes, so that recorded operation and laser measurements feed commissioning alike.
 //!
-//! One header row, comma separated, one row per measurement in time order:
+//! One header row, comma separated with a decimal point (a header split on `;` or
+//! tabs, a spreadsheet's decimal-comma export, is refused as such), one row per
+//! measurement in time order:
 //!
 //! | column      | unit | required | plausible range      | meaning                                          |
 //! |-------------|------|----------|----------------------|--------------------------------------------------|
@@ -51,6 +53,19 @@ pub enum MeasureError {
     Csv { line: u64, message: String },
     #[error("line 1: required column `{0}` is missing")]
     MissingColumn(&'static str),
+    /// The header splits on another delimiter: an export of a spreadsheet set to a
+    /// locale with decimal commas, which would otherwise read as one odd column.
+    #[error(
+        "line {line}: the header is separated by {delimiter}: compgate reads comma-separated \
+         files with a decimal point"
+    )]
+    Delimiter {
+        line: u64,
+        /// `';'` or `tabs`.
+        delimiter: &'static str,
+    },
+    #[error("the file is empty: expected a header line t_s,pos_mm,err_um,T_<name>")]
+    EmptyFile,
     #[error("line 1: no temperature column (a column named T_<name>)")]
     NoTemperature,
     #[error("line 1: column `{0}` appears twice")]
@@ -130,6 +145,21 @@ impl Measurements {
             message: e.to_string(),
         };
         let header = rdr.headers().map_err(csv_err)?.clone();
+        if header.is_empty() {
+            return Err(MeasureError::EmptyFile);
+        }
+        // Checked before the columns: a file split on ';' or tabs has one column whose
+        // name holds the delimiter, and "t_s is missing" would not say why.
+        if !header.iter().any(|h| h == "t_s") {
+            for (sep, delimiter) in [(';', "';'"), ('\t', "tabs")] {
+                if header.iter().any(|h| h.contains(sep)) {
+                    return Err(MeasureError::Delimiter {
+                        line: header.position().map_or(1, |p| p.line()),
+                        delimiter,
+                    });
+                }
+            }
+        }
 
         let mut seen = std::collections::HashSet::new();
         let (mut i_t, mut i_pos, mut i_err, mut i_dir, mut i_travel) =
@@ -377,6 +407,36 @@ mod tests {
         ));
         let e = read("t_s,pos_mm,err_um,T_a\n0,0,NaN,20\n").unwrap_err();
         assert!(e.to_string().contains("not a finite number"), "{e}");
+    }
+
+    /// A semicolon or tab separated file (a spreadsheet export in a decimal-comma
+    /// locale) said "required column `t_s` is missing"; an empty file said so too.
+    #[test]
+    fn other_delimiters_and_an_empty_file_are_named() {
+        let want = "line 1: the header is separated by ';': compgate reads comma-separated \
+                    files with a decimal point";
+        for text in [
+            "t_s;pos_mm;err_um;T_a\n0;0;1;20\n",
+            // German decimal commas: the header is what gives it away.
+            "t_s;pos_mm;err_um;T_a\n0;0;1,5;20,25\n",
+            "\u{feff}t_s;pos_mm;err_um;T_a\r\n0;0;1;20\r\n",
+        ] {
+            assert_eq!(read(text).unwrap_err().to_string(), want, "{text:?}");
+        }
+        let e = read("t_s\tpos_mm\terr_um\tT_a\n0\t0\t1\t20\n").unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "line 1: the header is separated by tabs: compgate reads comma-separated files \
+             with a decimal point"
+        );
+        for text in ["", "\n", "\r\n\n"] {
+            let e = read(text).unwrap_err();
+            assert!(matches!(e, MeasureError::EmptyFile), "{text:?}: {e}");
+            assert!(e.to_string().starts_with("the file is empty"), "{e}");
+        }
+        // A comma header whose other names hold a ';' is not misread as one.
+        let e = read("t_s,pos_mm,a;b,T_a\n0,0,x,20\n").unwrap_err();
+        assert!(e.to_string().contains("`err_um` is missing"), "{e}");
     }
 
     /// The error of a file whose third line has `row` (header and a good line
