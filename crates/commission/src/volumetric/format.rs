@@ -82,6 +82,9 @@ pub fn decode(bytes: &[u8]) -> Result<&str, VolumetricError> {
 
 /// Parses an error parameter file. Every error names the 1-based line and the field.
 pub fn parse(text: &str) -> Result<ErrorModel, VolumetricError> {
+    // A byte order mark (Windows editors write one) is not part of the header; the
+    // measurement CSV reader skips it too.
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     let mut lines = text
         .lines()
         .enumerate()
@@ -113,8 +116,9 @@ pub fn parse(text: &str) -> Result<ErrorModel, VolumetricError> {
 
     let mut travel: [Option<(f64, f64)>; 5] = [None; 5];
     let mut travel_line = [0usize; 5];
-    let mut pivot_mm = None;
-    let mut tool_length_mm = None;
+    // With the line each came from: a second line silently replaced the first.
+    let mut pivot_mm: Option<([f64; 3], usize)> = None;
+    let mut tool_length_mm: Option<(f64, usize)> = None;
     let mut squareness_rad = [0.0; 3];
     let mut loc_c = [0.0; 4];
     let mut loc_a = [0.0; 4];
@@ -149,7 +153,14 @@ pub fn parse(text: &str) -> Result<ErrorModel, VolumetricError> {
                     number(n, "pivot z (mm)", t.next())?,
                 ];
                 no_more(n, t)?;
-                pivot_mm = Some(v);
+                if let Some((_, first)) = pivot_mm {
+                    return Err(err(
+                        n,
+                        "pivot_mm",
+                        format!("pivot_mm given twice (first on line {first})"),
+                    ));
+                }
+                pivot_mm = Some((v, n));
             }
             "tool_length_mm" => {
                 let v = number(n, "tool length (mm)", t.next())?;
@@ -157,7 +168,14 @@ pub fn parse(text: &str) -> Result<ErrorModel, VolumetricError> {
                 if v < 0.0 {
                     return Err(err(n, "tool length (mm)", "negative"));
                 }
-                tool_length_mm = Some(v);
+                if let Some((_, first)) = tool_length_mm {
+                    return Err(err(
+                        n,
+                        "tool_length_mm",
+                        format!("tool_length_mm given twice (first on line {first})"),
+                    ));
+                }
+                tool_length_mm = Some((v, n));
             }
             "squareness" | "location" => {
                 let name = t
@@ -308,9 +326,12 @@ pub fn parse(text: &str) -> Result<ErrorModel, VolumetricError> {
     }
     Ok(ErrorModel::new(
         Geometry {
-            pivot_mm: pivot_mm.ok_or_else(|| err(end_line, "pivot_mm", "missing pivot_mm line"))?,
+            pivot_mm: pivot_mm
+                .ok_or_else(|| err(end_line, "pivot_mm", "missing pivot_mm line"))?
+                .0,
             tool_length_mm: tool_length_mm
-                .ok_or_else(|| err(end_line, "tool_length_mm", "missing tool_length_mm line"))?,
+                .ok_or_else(|| err(end_line, "tool_length_mm", "missing tool_length_mm line"))?
+                .0,
         },
         tr,
         out_tables,
@@ -366,4 +387,54 @@ pub fn write(model: &ErrorModel) -> String {
         s.push_str("end\n");
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::volumetric::synthetic_model;
+
+    fn text() -> String {
+        write(&synthetic_model(1.0))
+    }
+
+    /// A file saved with a byte order mark failed with `header: expected
+    /// "compgate-volumetric-errors 1"`.
+    #[test]
+    fn a_byte_order_mark_is_skipped() {
+        let plain = parse(&text()).unwrap();
+        let with_bom = parse(&format!("\u{feff}{}", text())).unwrap();
+        assert_eq!(write(&with_bom), write(&plain));
+        // Only at the start: elsewhere it is an unknown keyword, named with its line.
+        let inside = text().replacen("pivot_mm", "\u{feff}pivot_mm", 1);
+        let e = parse(&inside).unwrap_err().to_string();
+        assert!(e.starts_with("line 4, keyword: unknown keyword"), "{e}");
+    }
+
+    /// A second pivot_mm or tool_length_mm line silently replaced the first, while a
+    /// second travel, squareness, location or table line is refused.
+    #[test]
+    fn duplicate_geometry_lines_are_refused_naming_both_lines() {
+        let t = text();
+        assert!(t.lines().nth(3).unwrap().starts_with("pivot_mm"), "{t}");
+        assert!(
+            t.lines().nth(4).unwrap().starts_with("tool_length_mm"),
+            "{t}"
+        );
+        for (extra, want) in [
+            (
+                "pivot_mm 1 2 3",
+                "pivot_mm: pivot_mm given twice (first on line 4)",
+            ),
+            (
+                "tool_length_mm 100",
+                "tool_length_mm: tool_length_mm given twice (first on line 5)",
+            ),
+        ] {
+            let doubled = format!("{t}{extra}\n");
+            let line = doubled.lines().count();
+            let e = parse(&doubled).unwrap_err().to_string();
+            assert_eq!(e, format!("line {line}, {want}"));
+        }
+    }
 }
