@@ -12,8 +12,8 @@
 //!
 //! The trace CSV that `--out` writes has this form. Other columns are ignored. Every
 //! value must be a finite number (positions within +-100 m); the sample period must
-//! not change by more than [`PERIOD_TOLERANCE`] from the first step. Each refusal
-//! names the file, the line and the column.
+//! not change by more than [`PERIOD_TOLERANCE`] from the first step; no column may
+//! appear twice. Each refusal names the file, the line and the column.
 
 use std::path::Path;
 
@@ -44,6 +44,17 @@ pub fn read_trace(path: &Path) -> Result<Trace, BacklashError> {
         file_err(line, "-", e.to_string())
     };
     let header = rdr.headers().map_err(csv_err)?.clone();
+    // A duplicated column was read from its first copy only: which of two
+    // `encoder_mm` columns is the encoder is not ours to guess.
+    for (i, name) in header.iter().enumerate() {
+        if let Some(first) = header.iter().take(i).position(|h| h == name) {
+            return Err(file_err(
+                1,
+                name,
+                format!("column appears twice (columns {} and {})", first + 1, i + 1),
+            ));
+        }
+    }
     let find = |name: &str| header.iter().position(|h| h == name);
     let mut columns = [0usize; 3];
     for (slot, name) in columns.iter_mut().zip(["t_s", "encoder_mm", "scale_mm"]) {
@@ -110,4 +121,28 @@ pub fn read_trace(path: &Path) -> Result<Trace, BacklashError> {
     // The mean step: rounding of the written times does not bias the period.
     trace.period_s = (times[times.len() - 1] - times[0]) / (times.len() - 1) as f64;
     Ok(trace)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A second `encoder_mm` column was ignored silently (the first one was read).
+    #[test]
+    fn a_duplicated_column_is_refused_naming_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("dup.csv");
+        let rows = "0,10,10,11\n0.002,10,10,11\n0.004,10,10,11\n";
+        std::fs::write(&path, format!("t_s,encoder_mm,scale_mm,encoder_mm\n{rows}")).unwrap();
+        let e = read_trace(&path).unwrap_err().to_string();
+        assert!(
+            e.ends_with(
+                "dup.csv: line 1, column `encoder_mm`: column appears twice (columns 2 and 4)"
+            ),
+            "{e}"
+        );
+        // The same rows with distinct names are read.
+        std::fs::write(&path, format!("t_s,encoder_mm,scale_mm,other\n{rows}")).unwrap();
+        assert_eq!(read_trace(&path).unwrap().encoder_mm, vec![10.0; 3]);
+    }
 }
