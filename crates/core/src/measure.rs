@@ -140,9 +140,21 @@ impl Measurements {
             .trim(csv::Trim::All)
             .flexible(false)
             .from_reader(reader);
-        let csv_err = |e: csv::Error| MeasureError::Csv {
-            line: e.position().map_or(1, |p| p.line()),
-            message: e.to_string(),
+        let csv_err = |e: csv::Error| {
+            // More cells than the header names: most often decimal commas ("1,5"),
+            // which split every number in two.
+            let hint = match e.kind() {
+                csv::ErrorKind::UnequalLengths {
+                    expected_len, len, ..
+                } if len > expected_len => {
+                    " (decimal commas? compgate reads numbers with a decimal point)"
+                }
+                _ => "",
+            };
+            MeasureError::Csv {
+                line: e.position().map_or(1, |p| p.line()),
+                message: format!("{e}{hint}"),
+            }
         };
         let header = rdr.headers().map_err(csv_err)?.clone();
         if header.is_empty() {
@@ -437,6 +449,13 @@ mod tests {
         // A comma header whose other names hold a ';' is not misread as one.
         let e = read("t_s,pos_mm,a;b,T_a\n0,0,x,20\n").unwrap_err();
         assert!(e.to_string().contains("`err_um` is missing"), "{e}");
+        // Decimal commas under a comma header: more cells than names.
+        let e = read("t_s,pos_mm,err_um,T_a\n0,0,1,5,20,25\n").unwrap_err();
+        assert!(e.to_string().starts_with("line 2: "), "{e}");
+        assert!(e.to_string().contains("decimal commas?"), "{e}");
+        // Fewer cells is no decimal comma.
+        let e = read("t_s,pos_mm,err_um,T_a\n0,0,1\n").unwrap_err();
+        assert!(!e.to_string().contains("decimal commas?"), "{e}");
     }
 
     /// The error of a file whose third line has `row` (header and a good line
