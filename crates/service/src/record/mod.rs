@@ -6,7 +6,10 @@
 //! commits the queue in one transaction every `commit_interval_s` (a crash loses at
 //! most that much; `synchronous = NORMAL` in WAL mode survives a killed process) and
 //! applies retention by age and by size. A failed commit (disk full) drops its batch,
-//! is counted and logged, and the writer carries on.
+//! is counted and logged, and the writer carries on. A database file deleted or
+//! replaced while open (its path no longer names the file the writer has open) is
+//! logged and created again at its path at the next commit; what was committed to
+//! the deleted file is gone, what comes after is not.
 //!
 //! The same database holds the MQTT outbox, written in the same transaction as the
 //! readings, so what was recorded is also what will be published.
@@ -143,6 +146,9 @@ pub struct RecorderStats {
     pub written: AtomicU64,
     /// Commits that failed.
     pub failed_commits: AtomicU64,
+    /// Times the database file was found deleted or replaced under the writer and
+    /// opened again at its path.
+    pub reopened: AtomicU64,
 }
 
 /// What the queue's ends share besides the queue: how full it is and who to wake.
@@ -244,7 +250,9 @@ impl Recorder {
         });
         let outbox = Arc::new(tokio::sync::Notify::new());
         let writer = Writer {
-            conn,
+            files: DbFiles::at(&path),
+            conn: Some(conn),
+            path: path.clone(),
             commit_interval: compgate_gateway::config::secs(cfg.commit_interval_s),
             retention_interval: compgate_gateway::config::secs(cfg.retention_interval_s),
             retention_ms: (cfg.retention_days * 86_400_000.0) as i64,
@@ -464,8 +472,47 @@ impl Observer for RecordObserver {
     }
 }
 
+/// (device, inode) of the file at `path`; `None` when there is none.
+fn file_id(path: &Path) -> Option<(u64, u64)> {
+    use std::os::unix::fs::MetadataExt;
+    std::fs::metadata(path).ok().map(|m| (m.dev(), m.ino()))
+}
+
+/// `path` with `suffix` appended to its file name, as SQLite names its `-wal` and
+/// `-shm` files.
+fn with_suffix(path: &Path, suffix: &str) -> PathBuf {
+    let mut name = path.as_os_str().to_owned();
+    name.push(suffix);
+    PathBuf::from(name)
+}
+
+/// Which files the writer's connection has open, taken when it opened them: the
+/// path naming another file (or none) means the database was deleted or replaced
+/// under it, and every later commit would go to a file nobody can open again.
+#[derive(Debug, Clone, Copy)]
+struct DbFiles {
+    db: Option<(u64, u64)>,
+    wal: Option<(u64, u64)>,
+    shm: Option<(u64, u64)>,
+}
+
+impl DbFiles {
+    fn at(path: &Path) -> Self {
+        DbFiles {
+            db: file_id(path),
+            wal: file_id(&with_suffix(path, "-wal")),
+            shm: file_id(&with_suffix(path, "-shm")),
+        }
+    }
+}
+
 struct Writer {
-    conn: Connection,
+    /// `None` while the database cannot be opened again after it vanished.
+    conn: Option<Connection>,
+    /// The database file.
+    path: PathBuf,
+    /// What `conn` has open.
+    files: DbFiles,
     commit_interval: Duration,
     retention_interval: Duration,
     retention_ms: i64,
@@ -506,6 +553,9 @@ impl Writer {
             }
             self.shared.pending.fetch_sub(taken, Ordering::Relaxed);
             let now = Instant::now();
+            // After taking the batch: a record sent after the file was deleted is
+            // never committed to the deleted file.
+            self.reopen_if_gone();
             self.commit(&mut batch);
             next_commit = now + self.commit_interval;
             if now >= next_retention || closed {
@@ -519,10 +569,49 @@ impl Writer {
             }
         }
         // A clean stop leaves no WAL behind.
-        let _ = self
-            .conn
-            .query_row("PRAGMA wal_checkpoint(TRUNCATE)", [], |_| Ok(()));
+        if let Some(conn) = &self.conn {
+            let _ = conn.query_row("PRAGMA wal_checkpoint(TRUNCATE)", [], |_| Ok(()));
+        }
         tracing::info!("recorder stopped");
+    }
+
+    /// Opens the database again when its file was deleted or replaced (one `stat` a
+    /// commit), or when opening it again failed before.
+    fn reopen_if_gone(&mut self) {
+        if self.conn.is_some() && file_id(&self.path) == self.files.db {
+            return;
+        }
+        let first = self.conn.is_some();
+        if let Some(conn) = self.conn.take() {
+            let n = self.stats.reopened.fetch_add(1, Ordering::Relaxed) + 1;
+            tracing::error!(path = %self.path.display(), reopened = n, "recorder database deleted or replaced while the gateway runs: what was committed to it is lost; creating it again at its path");
+            // Closed before the new one opens: SQLite's last connection to a database
+            // removes its -wal and -shm files by name, which would be the new ones.
+            drop(conn);
+            // Another connection (the MQTT outbox) may still hold the old database,
+            // and then its -wal and -shm stay at the path: opened with the new file,
+            // SQLite would replay the old WAL into it.
+            for (suffix, id) in [("-wal", self.files.wal), ("-shm", self.files.shm)] {
+                let stale = with_suffix(&self.path, suffix);
+                if id.is_some() && file_id(&stale) == id {
+                    let _ = std::fs::remove_file(&stale);
+                }
+            }
+            // Channel ids of the old database.
+            self.statements.forget_channels();
+        }
+        match open(&self.path) {
+            Ok(conn) => {
+                self.files = DbFiles::at(&self.path);
+                self.conn = Some(conn);
+                tracing::info!(path = %self.path.display(), "recording into SQLite (WAL) again");
+            }
+            // Tried again every commit; the dropped batches are counted and logged.
+            Err(e) if first => {
+                tracing::error!(error = %e, "recorder database cannot be created again: records are dropped until it can")
+            }
+            Err(_) => {}
+        }
     }
 
     fn commit(&mut self, batch: &mut Vec<Record>) {
@@ -531,7 +620,16 @@ impl Writer {
         }
         let n = batch.len() as u64;
         let outbox = batch.iter().any(|r| matches!(r, Record::Outbox { .. }));
-        match schema::insert(&mut self.conn, &mut self.statements, batch) {
+        let result = match self.conn.as_mut() {
+            Some(conn) => {
+                schema::insert(conn, &mut self.statements, batch).map_err(RecordError::from)
+            }
+            None => Err(RecordError::Open {
+                path: self.path.display().to_string(),
+                message: "deleted while open and not created again".into(),
+            }),
+        };
+        match result {
             Ok(()) => {
                 self.stats.written.fetch_add(n, Ordering::Relaxed);
                 if outbox {
@@ -552,15 +650,18 @@ impl Writer {
     }
 
     fn retention(&mut self) -> Result<(), RecordError> {
+        let Some(conn) = &self.conn else {
+            return Ok(());
+        };
         let cutoff = now_unix_ms() - self.retention_ms;
-        schema::delete_before(&self.conn, cutoff)?;
+        schema::delete_before(conn, cutoff)?;
         // Oldest tenth of the time range at a time until the data fits.
         for _ in 0..10 {
-            let used = schema::data_bytes(&self.conn)?;
+            let used = schema::data_bytes(conn)?;
             if used <= self.max_bytes {
                 break;
             }
-            let Some((first, last)) = schema::time_range(&self.conn)? else {
+            let Some((first, last)) = schema::time_range(conn)? else {
                 break;
             };
             // Never the newest records: a limit below the schema's own pages would
@@ -574,12 +675,10 @@ impl Writer {
                 max_bytes = self.max_bytes,
                 "recorder over its size: deleting the oldest records"
             );
-            schema::delete_before(&self.conn, cut)?;
+            schema::delete_before(conn, cut)?;
         }
-        self.conn.execute_batch("PRAGMA incremental_vacuum;")?;
-        let _ = self
-            .conn
-            .query_row("PRAGMA wal_checkpoint(TRUNCATE)", [], |_| Ok(()));
+        conn.execute_batch("PRAGMA incremental_vacuum;")?;
+        let _ = conn.query_row("PRAGMA wal_checkpoint(TRUNCATE)", [], |_| Ok(()));
         Ok(())
     }
 }

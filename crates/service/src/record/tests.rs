@@ -1,3 +1,4 @@
+use std::path::Path;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
@@ -254,4 +255,140 @@ fn an_export_without_a_row_is_an_error_and_writes_nothing() {
     args.step_s = 0.001;
     let e = export::run(&args).unwrap_err();
     assert!(e.to_string().contains("--step-s"), "{e}");
+}
+
+/// Waits up to 5 s for the writer to have committed `n` records in all.
+fn wait_written(stats: &RecorderStats, n: u64) {
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while stats.written.load(Ordering::Relaxed) < n && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert_eq!(
+        stats.written.load(Ordering::Relaxed),
+        n,
+        "records committed"
+    );
+}
+
+/// The readings of channel `T_a` in `path`, oldest first.
+fn values_of_t_a(path: &Path) -> Vec<f64> {
+    let conn = open(path).expect("opens");
+    let integrity: String = conn
+        .query_row("PRAGMA integrity_check", [], |r| r.get(0))
+        .expect("integrity check");
+    assert_eq!(integrity, "ok");
+    let values = conn
+        .prepare(
+            "SELECT value_degc FROM readings r JOIN channels c ON c.id = r.channel
+         WHERE c.name = 'T_a' ORDER BY t_unix_ms",
+        )
+        .expect("query")
+        .query_map([], |r| r.get(0))
+        .expect("rows")
+        .collect::<Result<_, _>>()
+        .expect("rows");
+    values
+}
+
+/// Starts a recorder committing every 50 ms, sends readings 0..5 of `T_a` (on their
+/// own channel table, so `T_a` is not channel 1 and a stale channel id shows), runs
+/// `delete` on the database path once they are committed, then sends 10..15 and
+/// waits for their commit. Returns the path and the recorder's counters.
+fn record_across(
+    dir: &tempfile::TempDir,
+    delete: impl FnOnce(&Path),
+) -> (PathBuf, Arc<RecorderStats>) {
+    let cfg = RecorderConfig {
+        path: dir.path().join("r.db").display().to_string(),
+        commit_interval_s: 0.05,
+        ..RecorderConfig::default()
+    };
+    let rec = Recorder::start(&cfg).expect("starts");
+    let tx = rec.sender();
+    let stats = tx.stats().clone();
+    let name: Arc<[String]> = Arc::from(vec!["T_other".to_string(), "T_a".to_string()]);
+    let send = |v: f64| {
+        let mut c = cycle(&name, v);
+        if let Record::Cycle { rows, .. } = &mut c {
+            rows[0].channel = 1;
+        }
+        tx.send(c);
+        // Distinct milliseconds: the time and channel are the readings' key.
+        std::thread::sleep(Duration::from_millis(2));
+    };
+    (0..5).for_each(|i| send(f64::from(i)));
+    wait_written(&stats, 5);
+    delete(rec.path());
+    (10..15).for_each(|i| send(f64::from(i)));
+    wait_written(&stats, 10);
+    let path = rec.path().to_path_buf();
+    drop(tx);
+    rec.finish();
+    (path, stats)
+}
+
+// `rm r.db*` while recording: the writer notices at its next commit, creates the
+// database again at its path, and what was sent after the deletion is in it.
+#[test]
+fn a_database_deleted_while_recording_is_created_again() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (path, stats) = record_across(&dir, |db| {
+        for suffix in ["", "-wal", "-shm"] {
+            std::fs::remove_file(with_suffix(db, suffix)).expect("deleted");
+        }
+    });
+    assert!(path.exists(), "the database is created again");
+    assert_eq!(values_of_t_a(&path), [10.0, 11.0, 12.0, 13.0, 14.0]);
+    assert_eq!(stats.reopened.load(Ordering::Relaxed), 1);
+    assert_eq!(stats.dropped_write.load(Ordering::Relaxed), 0);
+}
+
+// The database replaced (a backup moved over it) while another connection (the MQTT
+// outbox) holds the old one: the old -wal and -shm stay at the path, and must not be
+// paired with the new file (SQLite would replay the old WAL into it).
+#[test]
+fn a_replaced_database_is_not_paired_with_the_old_wal() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let backup = dir.path().join("backup.db");
+    open(&backup)
+        .expect("opens")
+        .execute_batch("INSERT INTO mqtt_outbox(topic, payload) VALUES ('t', 'backup');")
+        .expect("writes");
+    let mut outbox = None;
+    let (path, stats) = record_across(&dir, |db| {
+        let conn = open(db).expect("opens");
+        // Frames in the old WAL, not checkpointed into the old file.
+        conn.execute_batch(
+            "PRAGMA wal_autocheckpoint = 0;
+             INSERT INTO mqtt_outbox(topic, payload) VALUES ('t', 'old');",
+        )
+        .expect("writes");
+        std::fs::rename(&backup, db).expect("replaced");
+        outbox = Some(conn);
+    });
+    assert_eq!(values_of_t_a(&path), [10.0, 11.0, 12.0, 13.0, 14.0]);
+    let payloads: Vec<String> = open(&path)
+        .expect("opens")
+        .prepare("SELECT payload FROM mqtt_outbox")
+        .expect("query")
+        .query_map([], |r| r.get(0))
+        .expect("rows")
+        .collect::<Result<_, _>>()
+        .expect("rows");
+    assert_eq!(
+        payloads,
+        ["backup"],
+        "the backup and nothing of the old file"
+    );
+    assert_eq!(stats.reopened.load(Ordering::Relaxed), 1);
+    drop(outbox);
+}
+
+// Nothing deleted: no reopening, however many commits and retention passes.
+#[test]
+fn a_database_left_alone_is_not_reopened() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (path, stats) = record_across(&dir, |_| {});
+    assert_eq!(values_of_t_a(&path).len(), 10);
+    assert_eq!(stats.reopened.load(Ordering::Relaxed), 0);
 }
