@@ -3,6 +3,7 @@
 
 use std::io::IsTerminal;
 
+use compgate::cli;
 use compgate::plant::{Bind, Plant};
 use compgate_commission::backlash;
 use compgate_gateway::config::DeviceConfig;
@@ -10,6 +11,8 @@ use compgate_gateway::{config, runtime};
 use compgate_service::status;
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
+
+use crate::{failed, CommandError};
 
 /// The demo's configuration, embedded so `cargo run --release` needs no file.
 const DEMO_CONFIG: &str = include_str!("../config/demo.toml");
@@ -41,7 +44,7 @@ fn shutdown_on_signals() -> CancellationToken {
 
 /// Runs the gateway on `cfg` with the status printer, and the status page on `http`
 /// (unless `off`), until a signal.
-async fn run_gateway(cfg: &config::Config, http: &str) -> Result<(), String> {
+async fn run_gateway(cfg: &config::Config, http: &str) -> Result<(), CommandError> {
     let shutdown = shutdown_on_signals();
     let (tx, rx) = watch::channel(runtime::Status::default());
     let mut hooks = runtime::Hooks::default();
@@ -52,10 +55,14 @@ async fn run_gateway(cfg: &config::Config, http: &str) -> Result<(), String> {
         };
         match compgate_service::http_listener(&m, &rx, cfg.gateway.status_interval()).await {
             Ok(addr) => {
-                eprintln!("compgate demo: live status page on http://{addr}/");
+                cli::eprintln(format_args!(
+                    "compgate demo: live status page on http://{addr}/"
+                ))?;
                 hooks.observer = Box::new(compgate_service::metrics::MetricsObserver::new(None));
             }
-            Err(e) => eprintln!("compgate demo: no status page ({e}); see --http"),
+            Err(e) => cli::eprintln(format_args!(
+                "compgate demo: no status page ({e}); see --http"
+            ))?,
         }
     }
     let printer = tokio::spawn(status::print_loop(
@@ -66,42 +73,42 @@ async fn run_gateway(cfg: &config::Config, http: &str) -> Result<(), String> {
     let result = runtime::run_with(cfg, shutdown.clone(), tx, hooks).await;
     shutdown.cancel();
     let _ = printer.await;
-    result.map_err(|e| e.to_string())
+    result.map_err(failed)
 }
 
-pub async fn demo(args: &compgate::cli::DemoArgs) -> Result<(), String> {
-    let mut cfg =
-        config::load_str(DEMO_CONFIG, "config/demo.toml (embedded)").map_err(|e| e.to_string())?;
+pub async fn demo(args: &cli::DemoArgs) -> Result<(), CommandError> {
+    let mut cfg = config::load_str(DEMO_CONFIG, "config/demo.toml (embedded)").map_err(failed)?;
     cfg.gateway.shadow |= args.shadow;
-    let plant = Plant::start(&cfg, Bind::Ephemeral)
-        .await
-        .map_err(|e| e.to_string())?;
-    eprintln!(
-        "compgate demo: simulated field module and NC axis module on loopback; Ctrl-C stops."
-    );
+    let plant = Plant::start(&cfg, Bind::Ephemeral).await.map_err(failed)?;
+    cli::eprintln(
+        "compgate demo: simulated field module and NC axis module on loopback; Ctrl-C stops.",
+    )?;
     run_gateway(&plant.config, &args.http).await
 }
 
-pub async fn sim(path: &std::path::Path) -> Result<(), String> {
-    let cfg = config::load(path).map_err(|e| e.to_string())?;
+pub async fn sim(path: &std::path::Path) -> Result<(), CommandError> {
+    let cfg = config::load(path).map_err(failed)?;
     let plant = Plant::start(&cfg, Bind::AsConfigured)
         .await
-        .map_err(|e| e.to_string())?;
+        .map_err(failed)?;
     for (name, d) in &plant.config.devices {
         let (at, unit) = match d {
             DeviceConfig::Can(c) => {
-                println!("CANopen node {name}: {} node {}", c.interface, c.node_id);
+                cli::print(format_args!(
+                    "CANopen node {name}: {} node {}\n",
+                    c.interface, c.node_id
+                ))?;
                 continue;
             }
             DeviceConfig::Tcp(t) => (&t.address, t.unit_id),
             DeviceConfig::Rtu(r) => (&r.serial_path, r.unit_id),
         };
-        println!("field module {name}: {at} (unit {unit})");
+        cli::print(format_args!("field module {name}: {at} (unit {unit})\n"))?;
     }
     for (name, m) in &plant.config.modbus_targets() {
-        println!("NC axis module {name}: {}", m.address);
+        cli::print(format_args!("NC axis module {name}: {}\n", m.address))?;
     }
-    println!("simulated plant running; Ctrl-C stops.");
+    cli::print("simulated plant running; Ctrl-C stops.\n")?;
     shutdown_on_signals().cancelled().await;
     drop(plant);
     Ok(())

@@ -7,9 +7,10 @@ use std::io::{self, Write};
 use std::process::ExitCode;
 
 use compgate::cli::{self, Command, ConfigCommand, OutputError, EXIT_BROKEN_PIPE};
+use compgate::nc::NcError;
 #[cfg(feature = "sim")]
 use compgate::scenario;
-use compgate_commission::{backlash, calibrate, iso230, volumetric};
+use compgate_commission::{backlash, calibrate, diagnose, iso230, volumetric};
 use compgate_gateway::config;
 use compgate_service::record::export;
 
@@ -159,7 +160,7 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
 
     match command {
         #[cfg(feature = "sim")]
-        Command::Demo(args) => demo::demo(&args).await.map_err(failed),
+        Command::Demo(args) => demo::demo(&args).await,
         Command::Run {
             config: path,
             shadow,
@@ -172,7 +173,10 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
                 .await
                 .map_err(failed)
         }
-        Command::Nc(args) => compgate::nc::run(&args).await.map_err(failed),
+        Command::Nc(args) => compgate::nc::run(&args).await.map_err(|e| match e {
+            NcError::Output(e) => e.into(),
+            e => failed(e),
+        }),
         Command::Validate { config: path } => {
             let cfg = config::load(&path).map_err(failed)?;
             for w in config::warnings(&cfg, &path.display().to_string()) {
@@ -181,7 +185,7 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
             Ok(cli::print(format_args!("{}: OK\n", path.display()))?)
         }
         #[cfg(feature = "sim")]
-        Command::Sim { config: path } => demo::sim(&path).await.map_err(failed),
+        Command::Sim { config: path } => demo::sim(&path).await,
         Command::Probe(args) => {
             let report = compgate::probe::run(&args).await.map_err(failed)?;
             cli::print(&report.text)?;
@@ -215,10 +219,13 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
         }
         Command::Iso230(args) => Ok(cli::print(iso230::run(&args).map_err(failed)?)?),
         Command::Export(args) => run_export(&args),
-        // Prints its report with `print!` inside the commission crate: a closed stdout
-        // still panics there.
         Command::Diagnose(args) => {
-            compgate_commission::diagnose::command::run(&args).map_err(failed)
+            let diagnosed = diagnose::command::run(&args).map_err(failed)?;
+            cli::print(diagnosed.report())?;
+            for p in diagnosed.write_out().map_err(failed)? {
+                cli::print(format_args!("wrote {}\n", p.display()))?;
+            }
+            diagnosed.write_json().map_err(failed)
         }
     }
 }

@@ -1,10 +1,12 @@
 //! `compgate nc read` and `compgate nc write`: the first look at a real control and the
 //! first dry-run write, through the same guarded writer the gateway uses.
 
-use std::io::{BufRead, Write};
+use std::io::BufRead;
 use std::path::{Path, PathBuf};
 
 use clap::{Args, Subcommand};
+
+use crate::cli::{self, OutputError};
 use compgate_gateway::config::{self, Config};
 use compgate_gateway::nc::{var, Guarded, Job, NcSnapshot, NcWriter};
 
@@ -51,8 +53,25 @@ pub enum NcCommand {
     },
 }
 
+/// Why `compgate nc` failed.
+#[derive(Debug, thiserror::Error)]
+pub enum NcError {
+    /// The command's own error, worded for the operator.
+    #[error("{0}")]
+    Failed(String),
+    /// Its text could not be written: kept apart so that a closed pipe ends quietly.
+    #[error(transparent)]
+    Output(#[from] OutputError),
+}
+
+impl From<String> for NcError {
+    fn from(message: String) -> Self {
+        NcError::Failed(message)
+    }
+}
+
 /// Runs `compgate nc`; the text is printed as it goes.
-pub async fn run(args: &NcArgs) -> Result<(), String> {
+pub async fn run(args: &NcArgs) -> Result<(), NcError> {
     match &args.command {
         NcCommand::Read { config, target } => read(&load(config)?, target.as_deref()).await,
         NcCommand::Write {
@@ -118,10 +137,10 @@ fn values(s: &NcSnapshot) -> String {
     )
 }
 
-async fn read(cfg: &Config, target: Option<&str>) -> Result<(), String> {
+async fn read(cfg: &Config, target: Option<&str>) -> Result<(), NcError> {
     if let Some(t) = target {
         if cfg.target(t).is_none() {
-            return Err(format!("no target `{t}` in [targets] or [nc_modules]"));
+            return Err(format!("no target `{t}` in [targets] or [nc_modules]").into());
         }
     }
     let mut failed = 0;
@@ -134,31 +153,31 @@ async fn read(cfg: &Config, target: Option<&str>) -> Result<(), String> {
         let (mut w, label) = writer(cfg, name)?;
         match w.read_snapshot().await {
             Ok(s) => {
-                println!("{label}: {}", values(&s));
+                cli::print(format_args!("{label}: {}\n", values(&s)))?;
                 if w.has_axis_state() {
-                    println!(
-                        "  MD32750 = {}, referenced = {}, applied compensation = {} mm",
+                    cli::print(format_args!(
+                        "  MD32750 = {}, referenced = {}, applied compensation = {} mm\n",
                         s.md32750, s.referenced, s.applied_comp_mm
-                    );
+                    ))?;
                 }
                 match w.may_write().await {
-                    Ok(Some(true)) => println!("  this session may write them"),
-                    Ok(Some(false)) => println!("  this session may NOT write them"),
+                    Ok(Some(true)) => cli::print("  this session may write them\n")?,
+                    Ok(Some(false)) => cli::print("  this session may NOT write them\n")?,
                     Ok(None) => {}
-                    Err(e) => println!("  write access unknown: {e}"),
+                    Err(e) => cli::print(format_args!("  write access unknown: {e}\n"))?,
                 }
             }
             Err(e) => {
                 failed += 1;
-                println!("{label}: {e}");
+                cli::print(format_args!("{label}: {e}\n"))?;
             }
         }
     }
     if shown == 0 {
-        return Err("no axis to read".into());
+        return Err(String::from("no axis to read").into());
     }
     if failed > 0 {
-        return Err(format!("{failed} of {shown} axes could not be read"));
+        return Err(format!("{failed} of {shown} axes could not be read").into());
     }
     Ok(())
 }
@@ -168,7 +187,7 @@ async fn write(
     axis: &str,
     change: &[(u16, Option<f64>)],
     yes: bool,
-) -> Result<(), String> {
+) -> Result<(), NcError> {
     let (mut w, label) = writer(cfg, axis)?;
     let ax = &cfg.axes[axis];
     // The axis's own limits hold for a value typed by hand too.
@@ -180,13 +199,14 @@ async fn write(
             _ => None,
         };
         if !x.is_finite() {
-            return Err(format!("{x} is not a finite number; nothing was written"));
+            return Err(format!("{x} is not a finite number; nothing was written").into());
         }
         if let Some((flag, max)) = limit {
             if x.abs() > max {
                 return Err(format!(
                     "{flag} {x}: beyond the axis's limit of {max} (axes.{axis}); nothing was written"
-                ));
+                )
+                .into());
             }
         }
     }
@@ -199,35 +219,34 @@ async fn write(
         var::SD43910 => old.sd43910,
         _ => old.sd43920_mm,
     };
-    println!("{label}:");
+    cli::print(format_args!("{label}:\n"))?;
     let mut job = Job { pairs: Vec::new() };
     for &(v, value) in change {
         let Some(x) = value else { continue };
-        println!(
-            "  {}: {} -> {x}",
+        cli::print(format_args!(
+            "  {}: {} -> {x}\n",
             compgate_gateway::nc::var_name(v),
             held(v)
-        );
+        ))?;
         job.pairs.push((v, x));
     }
     w.check(&job).map_err(|e| e.to_string())?;
     if !yes {
-        print!("write? [y/N] ");
-        std::io::stdout().flush().map_err(|e| e.to_string())?;
+        cli::print("write? [y/N] ")?;
         let mut answer = String::new();
         std::io::stdin()
             .lock()
             .read_line(&mut answer)
             .map_err(|e| e.to_string())?;
         if !matches!(answer.trim(), "y" | "Y" | "yes") {
-            println!("nothing written");
+            cli::print("nothing written\n")?;
             return Ok(());
         }
     }
     let report = w.write_job(&job).await.map_err(|e| e.to_string())?;
-    println!(
-        "written and read back in {:.1} ms",
+    cli::print(format_args!(
+        "written and read back in {:.1} ms\n",
         report.elapsed.as_secs_f64() * 1e3
-    );
+    ))?;
     Ok(())
 }

@@ -232,6 +232,53 @@ fn recording(dir: &std::path::Path, seconds: i64) -> std::path::PathBuf {
     db
 }
 
+/// A measurement CSV `diagnose` accepts: 10 bidirectional runs over 9 targets, a row
+/// every 10 s, the error growing with one temperature and the position.
+fn measurement_csv(dir: &std::path::Path) -> std::path::PathBuf {
+    let mut text = String::from("t_s,pos_mm,dir,err_um,T_a,T_b\n");
+    let mut t_s = 0.0_f64;
+    for _ in 0..10 {
+        for (dir, targets) in [
+            (1, [0, 1, 2, 3, 4, 5, 6, 7, 8]),
+            (-1, [8, 7, 6, 5, 4, 3, 2, 1, 0]),
+        ] {
+            for k in targets {
+                let pos_mm = -1000.0 + f64::from(k) * 250.0;
+                t_s += 10.0;
+                let t_a = 20.0 + t_s / 60.0;
+                let t_b = 22.0 + 3.0 * (t_s / 400.0).sin();
+                let err_um = 5.0 * (t_a - 20.0) + 0.01 * pos_mm;
+                text.push_str(&format!("{t_s},{pos_mm},{dir},{err_um},{t_a},{t_b}\n"));
+            }
+        }
+    }
+    let path = dir.join("measured.csv");
+    std::fs::write(&path, text).expect("the CSV written");
+    path
+}
+
+/// A configuration whose NC axis module is at a loopback port where nothing listens:
+/// `nc read` prints the axis's failure on stdout, then fails.
+fn dead_nc_config(dir: &std::path::Path) -> std::path::PathBuf {
+    // A port just freed: nothing listens on it.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a free loopback port")
+        .port();
+    let text = common::config("hold", "", "").replacen(
+        "[nc_modules.nc_x]\naddress = \"127.0.0.1:0\"",
+        &format!("[nc_modules.nc_x]\naddress = \"127.0.0.1:{port}\""),
+        1,
+    );
+    assert!(
+        text.contains(&format!(":{port}")),
+        "the NC address replaced"
+    );
+    let path = dir.join("dead_nc.toml");
+    std::fs::write(&path, text).expect("the config written");
+    path
+}
+
 // `compgate config schema | head -1`, `... > /dev/full`: a closed pipe ends quietly
 // with 141 (128 + SIGPIPE, as a tool the signal ended), a failed write with one error
 // naming stdout and 1; never the panic of `print!` (101 and a backtrace).
@@ -239,6 +286,16 @@ fn recording(dir: &std::path::Path, seconds: i64) -> std::path::PathBuf {
 fn a_closed_or_full_stdout_ends_quietly_or_with_one_error_never_a_panic() {
     let dir = tempfile::tempdir().unwrap();
     let db = recording(dir.path(), 20_000);
+    let data = measurement_csv(dir.path());
+    let diagnose = ["diagnose", "--data", data.to_str().unwrap()];
+    let nc_config = dead_nc_config(dir.path());
+    let nc_read = ["nc", "read", "--config", nc_config.to_str().unwrap()];
+    // Both print on a normal stdout: what the closed one refuses.
+    for (args, printed) in [(&diagnose[..], "verdict"), (&nc_read, "axis X")] {
+        let out = Command::new(BIN).args(args).output().unwrap();
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(text.contains(printed), "{args:?}: {text}");
+    }
     let export = [
         "export",
         "--csv",
@@ -249,7 +306,13 @@ fn a_closed_or_full_stdout_ends_quietly_or_with_one_error_never_a_panic() {
         "--db",
         db.to_str().unwrap(),
     ];
-    for args in [&["config", "schema"][..], &["config", "example"], &export] {
+    for args in [
+        &["config", "schema"][..],
+        &["config", "example"],
+        &export,
+        &diagnose,
+        &nc_read,
+    ] {
         let out = run_to(args, closed_pipe());
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(141), "{args:?}: {err}");

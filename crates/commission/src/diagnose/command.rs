@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use super::{diagnose, output, DiagnoseError, ModelFile, Options};
+use super::{diagnose, output, DiagnoseError, Diagnosis, ModelFile, Options};
 use compgate_core::measure::Measurements;
 
 /// Arguments of `compgate diagnose`.
@@ -26,8 +26,18 @@ pub struct DiagnoseArgs {
     pub json: Option<PathBuf>,
 }
 
-/// Runs the command; the report goes to stdout.
-pub fn run(args: &DiagnoseArgs) -> Result<(), DiagnoseError> {
+/// A diagnosis whose report is still to be shown and whose files are still to be
+/// written. The caller prints: the command line's stdout handles a closed pipe and
+/// a full disk, which `print!` here would panic on.
+#[derive(Debug)]
+pub struct Diagnosed<'a> {
+    args: &'a DiagnoseArgs,
+    diagnosis: Diagnosis,
+}
+
+/// Runs the command up to its outputs: checks them (before any input is read),
+/// reads the data and the model, diagnoses.
+pub fn run(args: &DiagnoseArgs) -> Result<Diagnosed<'_>, DiagnoseError> {
     let mut outputs: Vec<PathBuf> = args.json.iter().cloned().collect();
     if let Some(dir) = &args.out {
         std::fs::create_dir_all(dir).map_err(|source| DiagnoseError::Io {
@@ -56,21 +66,38 @@ pub fn run(args: &DiagnoseArgs) -> Result<(), DiagnoseError> {
         model,
         ..Default::default()
     };
-    let d = diagnose(&m, &opts)?;
-    print!("{}", output::text_report(&d));
-    // The directory first: its model check is the one that can refuse.
-    if let Some(dir) = &args.out {
-        for p in output::write_out(dir, &d)? {
-            println!("wrote {}", p.display());
+    Ok(Diagnosed {
+        args,
+        diagnosis: diagnose(&m, &opts)?,
+    })
+}
+
+impl Diagnosed<'_> {
+    /// The text report, for stdout, shown before the files are written: a file
+    /// that cannot be written is told after the report it would have held.
+    pub fn report(&self) -> String {
+        output::text_report(&self.diagnosis)
+    }
+
+    /// Writes `--out`'s files, if asked; returns their paths in the order written.
+    /// The directory before `--json`: its model check is the one that can refuse.
+    pub fn write_out(&self) -> Result<Vec<PathBuf>, DiagnoseError> {
+        match &self.args.out {
+            Some(dir) => output::write_out(dir, &self.diagnosis),
+            None => Ok(Vec::new()),
         }
     }
-    if let Some(path) = &args.json {
-        compgate_core::outputs::write(path, output::json(&d)).map_err(|source| {
+
+    /// Writes `--json`, if asked.
+    pub fn write_json(&self) -> Result<(), DiagnoseError> {
+        let Some(path) = &self.args.json else {
+            return Ok(());
+        };
+        compgate_core::outputs::write(path, output::json(&self.diagnosis)).map_err(|source| {
             DiagnoseError::Io {
                 path: path.display().to_string(),
                 source,
             }
-        })?;
+        })
     }
-    Ok(())
 }

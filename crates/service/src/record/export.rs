@@ -378,23 +378,25 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
     Ok((m, summary))
 }
 
-/// `compgate export`: writes the CSV to `args.out` or standard output.
+/// `compgate export --out FILE`: writes the CSV to `args.out`. Standard output is the
+/// command line's to write (it tells a closed pipe from the export's own errors), so
+/// a missing `--out` is an error, told after the export's own (`record::tests`
+/// reaches those through here without `--out`).
 pub fn run(args: &ExportArgs) -> Result<ExportSummary, ExportError> {
-    if let Some(p) = &args.out {
-        compgate_core::outputs::check(&[&args.db], &[p])
+    if let Some(out) = &args.out {
+        compgate_core::outputs::check(&[&args.db], &[out])
             .map_err(|e| ExportError::Write(e.to_string()))?;
     }
     let (m, summary) = measurements(args)?;
-    let werr = |e: compgate_core::measure::MeasureError| ExportError::Write(e.to_string());
-    match &args.out {
-        Some(p) => {
-            let mut csv = Vec::new();
-            m.write(&mut csv).map_err(werr)?;
-            compgate_core::outputs::write(p, csv)
-                .map_err(|e| ExportError::Write(format!("{}: {e}", p.display())))?;
-        }
-        None => m.write(std::io::stdout().lock()).map_err(werr)?,
-    }
+    let out = args.out.as_ref().ok_or_else(|| ExportError::Arg {
+        flag: "out",
+        message: "required: the CSV is written to a file".into(),
+    })?;
+    let mut csv = Vec::new();
+    m.write(&mut csv)
+        .map_err(|e| ExportError::Write(e.to_string()))?;
+    compgate_core::outputs::write(out, csv)
+        .map_err(|e| ExportError::Write(format!("{}: {e}", out.display())))?;
     Ok(summary)
 }
 
