@@ -24,7 +24,7 @@ use std::path::{Path, PathBuf};
 
 use rusqlite::{params, Connection, OpenFlags};
 
-use compgate_core::measure::{Measurements, TempColumn};
+use compgate_core::measure::{Measurements, TempColumn, TEMP_DEGC_MAX, TEMP_DEGC_MIN};
 
 /// Arguments of `compgate export`.
 #[derive(Debug, Clone, clap::Args)]
@@ -238,6 +238,31 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
     temp_ids.sort_unstable();
     temp_ids.dedup();
     temp_ids.retain(|id| Some(*id) != err_id);
+    // A channel that reads no temperature (a laser or probe channel not given as
+    // --err-channel) would make calibrate refuse the whole file: it is left out, and
+    // said. Its most extreme usable value names it.
+    let mut not_degc: BTreeMap<i64, f64> = BTreeMap::new();
+    for &(_, ch, v, q) in &readings {
+        let Some(v) = v.filter(|x| q < 2 && x.is_finite()) else {
+            continue;
+        };
+        if Some(ch) != err_id && !(TEMP_DEGC_MIN..=TEMP_DEGC_MAX).contains(&v) {
+            let worst = not_degc.entry(ch).or_insert(v);
+            if v.abs() > worst.abs() {
+                *worst = v;
+            }
+        }
+    }
+    temp_ids.retain(|id| !not_degc.contains_key(id));
+    for (id, v) in &not_degc {
+        let name = names
+            .get(id)
+            .cloned()
+            .unwrap_or_else(|| format!("channel{id}"));
+        notes.push(format!(
+            "channel `{name}` left out: it reads {v}, no temperature ({TEMP_DEGC_MIN}..={TEMP_DEGC_MAX} degC); give it as --err-channel if it measures the error"
+        ));
+    }
     let col: BTreeMap<i64, usize> = temp_ids
         .iter()
         .enumerate()

@@ -235,6 +235,36 @@ fn export_holds_a_value_at_most_max_hold_s_across_a_gap() {
 }
 
 #[test]
+fn a_channel_reading_no_temperature_is_left_out_and_named() {
+    let (_dir, db) = recorded(&[(0, 10)]);
+    let conn = schema::open(&db).unwrap();
+    conn.execute("INSERT INTO channels(id, name) VALUES (2, 'laser_um')", [])
+        .unwrap();
+    for t in 0..10 {
+        conn.execute(
+            "INSERT INTO readings(t_unix_ms, channel, value_degc, quality) VALUES (?1, 2, ?2, 0)",
+            rusqlite::params![t * 1000, -250.0 + t as f64],
+        )
+        .unwrap();
+    }
+    let (m, summary) = export::measurements(&export_args(&db, 0, 10)).unwrap();
+    assert!(m.temp("a").is_some() && m.temp("laser_um").is_none());
+    assert!(
+        summary
+            .notes
+            .iter()
+            .any(|n| n.contains("`laser_um` left out: it reads -250")),
+        "{:?}",
+        summary.notes
+    );
+    // Given as the error channel, it is the error.
+    let mut args = export_args(&db, 0, 10);
+    args.err_channel = Some("laser_um".into());
+    let (m, _) = export::measurements(&args).unwrap();
+    assert_eq!(m.err_um.first(), Some(&-250.0));
+}
+
+#[test]
 fn an_export_without_a_row_is_an_error_and_writes_nothing() {
     let (dir, db) = recorded(&[(0, 10)]);
     let out = dir.path().join("m.csv");
