@@ -188,6 +188,9 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
         Command::Sim { config: path } => demo::sim(&path).await,
         Command::Probe(args) => {
             let report = compgate::probe::run(&args).await.map_err(failed)?;
+            for w in &report.warnings {
+                cli::eprintln(format_args!("warning: {w}"))?;
+            }
             cli::print(&report.text)?;
             match report.bad.len() {
                 0 => Ok(()),

@@ -37,15 +37,19 @@ pub struct ProbeReport {
     pub text: String,
     /// Channels whose quality is bad.
     pub bad: Vec<String>,
+    /// The config's warnings, for standard error.
+    pub warnings: Vec<String>,
 }
 
 /// Loads the config, polls the selected channels once and reports them.
 pub async fn run(args: &ProbeArgs) -> Result<ProbeReport, String> {
     let cfg = config::load(&args.config).map_err(|e| e.to_string())?;
-    for w in config::warnings(&cfg, &args.config.display().to_string()) {
-        eprintln!("warning: {w}");
-    }
-    probe(&cfg, args.device.as_deref(), args.channel.as_deref()).await
+    let warnings = config::warnings(&cfg, &args.config.display().to_string())
+        .into_iter()
+        .map(|w| w.to_string())
+        .collect();
+    let report = probe(&cfg, args.device.as_deref(), args.channel.as_deref()).await?;
+    Ok(ProbeReport { warnings, ..report })
 }
 
 /// Polls the channels of `cfg` (only `device`'s, only `channel`, when given) once.
@@ -72,6 +76,7 @@ pub async fn probe(
     let mut report = ProbeReport {
         text: String::new(),
         bad: Vec::new(),
+        warnings: Vec::new(),
     };
     for (dev_name, dev) in &cfg.devices {
         if device.is_some_and(|d| d != dev_name) {
