@@ -7,6 +7,7 @@
 //! sees its input close, finishes, and drops the NC command channels, so an NC job in
 //! flight completes before the NC tasks stop.
 
+use std::fmt::Write as _;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -18,6 +19,7 @@ use crate::config::Config;
 use crate::nc::{Job, JobReport, NcError, NcSnapshot, NcWriter};
 use crate::source::can::sync::{self, SyncParams};
 use crate::source::DeviceSample;
+use compgate_core::channel::Quality;
 use compgate_core::comp::{CompParams, Decision};
 
 mod build;
@@ -123,7 +125,9 @@ async fn nc_task(
                 let Some(NcCommand::Write { axis, job, params }) = cmd else { break };
                 let result = nc.writer.write_job(&job).await;
                 match &result {
-                    Ok(r) => tracing::info!(module = %nc.name, job_id = r.job_id, sd43900_mm = params.k0_mm, sd43910 = params.tan_beta, sd43920_mm = params.p0_mm, elapsed_ms = r.elapsed.as_secs_f64() * 1e3, "NC job done, read-back verified"),
+                    // The job's pairs, not the parameter set: `nc_write` may leave
+                    // variables out, and those were not written.
+                    Ok(r) => tracing::info!(module = %nc.name, job_id = r.job_id, written = written(&job).as_str(), elapsed_ms = r.elapsed.as_secs_f64() * 1e3, "NC job done, read-back verified"),
                     // The core loop logs the change from working to failing once.
                     Err(e) => tracing::debug!(module = %nc.name, error = %e, "NC job failed"),
                 }
@@ -142,6 +146,20 @@ async fn nc_task(
     Returned::Nc(module, nc)
 }
 
+/// The variables `job` writes with their values, e.g. `SD43900=0.04 mm, SD43920=100 mm`.
+fn written(job: &Job) -> String {
+    let mut out = String::new();
+    for (var, value) in &job.pairs {
+        let unit = match *var {
+            compgate_ncproto::var::SD43900 | compgate_ncproto::var::SD43920 => " mm",
+            _ => "",
+        };
+        let sep = if out.is_empty() { "" } else { ", " };
+        let _ = write!(out, "{sep}{}={value}{unit}", crate::nc::var_name(*var));
+    }
+    out
+}
+
 fn describe(d: &Decision, names: &[String], inputs: &[usize]) -> String {
     let bad = |idx: &[usize]| {
         idx.iter()
@@ -154,6 +172,9 @@ fn describe(d: &Decision, names: &[String], inputs: &[usize]) -> String {
         Decision::Write { clamped: false, .. } => "write".into(),
         Decision::Write { clamped: true, .. } => "write (limited)".into(),
         Decision::WithinDeadband => "within deadband".into(),
+        Decision::Hold { bad_inputs } if bad_inputs.is_empty() => {
+            "hold: the model value is not finite".into()
+        }
         Decision::Hold { bad_inputs } => format!("hold: bad input {}", bad(bad_inputs)),
         Decision::Ramp { bad_inputs, .. } => format!("ramp to zero: bad input {}", bad(bad_inputs)),
     }
@@ -242,6 +263,11 @@ struct Running {
     /// Per channel: a byte-order hint was logged and the channel has not been good
     /// since (logged once, not once per poll).
     byte_order_hinted: Vec<bool>,
+    /// Per channel: whether it is usable, as the journal was told. A reload starts
+    /// afresh (usable): a channel still bad is named again after it.
+    channel_logs: Vec<ChangeLog<bool>>,
+    /// Per axis: whether it follows its model, as the journal was told.
+    axis_logs: Vec<ChangeLog<AxisCourse>>,
 }
 
 impl Running {
@@ -286,6 +312,8 @@ impl Running {
                 .collect(),
             nc_down: vec![false; nc_modules.len()],
             byte_order_hinted: vec![false; pipeline.channel_names.len()],
+            channel_logs: vec![ChangeLog::new(true); pipeline.channel_names.len()],
+            axis_logs: vec![ChangeLog::new(AxisCourse::Model); pipeline.axes.len()],
             pipeline,
             devices: devices.into_iter().map(Some).collect(),
             sync_producers,
@@ -343,6 +371,16 @@ impl Running {
             }
         }
         for c in &r.channels {
+            // Per sample only the compare inside `note`; a line is built on a change.
+            if let (Some(usable), Some(log)) = (
+                journal_usable(&c.reading.quality),
+                self.channel_logs.get_mut(c.channel),
+            ) {
+                if let Some(more) = log.note(usable, c.reading.t_s) {
+                    let channel = &self.pipeline.channel_names[c.channel];
+                    log_channel(channel, Some(&r.device_name), &c.reading.quality, more);
+                }
+            }
             if let Some(hinted) = self.byte_order_hinted.get_mut(c.channel) {
                 if c.reading.quality.is_good() {
                     *hinted = false;
@@ -353,6 +391,28 @@ impl Running {
                         *hinted = true;
                     }
                 }
+            }
+        }
+    }
+
+    /// Logs what the change logs saw but did not log yet (rate limited): they are
+    /// dropped at a reload, and the journal's last word must be the state as it is.
+    fn flush_change_logs(&mut self) {
+        for (ch, log) in self.channel_logs.iter_mut().enumerate() {
+            let (Some((_, more)), Some(reading)) = (log.take_unlogged(), self.pipeline.reading(ch))
+            else {
+                continue;
+            };
+            // A link failure since is its device's to log.
+            if journal_usable(&reading.quality).is_some() {
+                let channel = &self.pipeline.channel_names[ch];
+                log_channel(channel, None, &reading.quality, more);
+            }
+        }
+        for (i, log) in self.axis_logs.iter_mut().enumerate() {
+            if let (Some((course, more)), Some(st)) = (log.take_unlogged(), self.status.axes.get(i))
+            {
+                log_axis(&st.name, course, &st.decision, false, more);
             }
         }
     }
@@ -559,7 +619,24 @@ fn decide_axis(
     let decision = pipeline.decide(i, at);
     let axis = &pipeline.axes[i];
     let (shadow, module) = (axis.shadow, axis.nc_module);
-    state.status.axes[i].decision = describe(&decision, &pipeline.channel_names, &axis.inputs);
+    let text = describe(&decision, &pipeline.channel_names, &axis.inputs);
+    let course = AxisCourse::of(&decision);
+    if let Some(more) = state.axis_logs[i].note(course, pipeline.now_s(at)) {
+        // Inputs bad only because their device's link is down: the device's line
+        // warned already, this one says what the axis does about it.
+        let link_only = match &decision {
+            Decision::Hold { bad_inputs } | Decision::Ramp { bad_inputs, .. } => {
+                !bad_inputs.is_empty()
+                    && bad_inputs.iter().all(|&k| {
+                        let quality = axis.inputs.get(k).and_then(|&ch| pipeline.quality(ch));
+                        quality.is_some_and(|q| journal_usable(&q).is_none())
+                    })
+            }
+            _ => false,
+        };
+        log_axis(&axis.name, course, &text, link_only, more);
+    }
+    state.status.axes[i].decision = text;
     let params = match decision {
         Decision::Write { params, .. } | Decision::Ramp { params, .. } => params,
         Decision::WithinDeadband | Decision::Hold { .. } => return,
@@ -578,6 +655,37 @@ fn decide_axis(
         .is_ok()
     {
         in_flight[i] = true;
+    }
+}
+
+/// A channel's change to bad (WARN) or back to usable (INFO); `device` when known.
+fn log_channel(channel: &str, device: Option<&str>, quality: &Quality, more: u32) {
+    let more = unlogged_suffix(more);
+    match quality {
+        Quality::Bad(reason) => {
+            tracing::warn!(%channel, device, reason = reason.as_str(), "channel {channel} bad: {reason}{more}")
+        }
+        q => {
+            tracing::info!(%channel, device, quality = %q, "channel {channel} usable again ({q}){more}")
+        }
+    }
+}
+
+/// An axis' change from following its model to hold or ramp to zero (WARN; INFO when
+/// `link_only`: its inputs are bad only because their device's link is down) or back
+/// (INFO); `decision` is its [`describe`] text, naming the bad inputs.
+fn log_axis(axis: &str, course: AxisCourse, decision: &str, link_only: bool, more: u32) {
+    let more = unlogged_suffix(more);
+    match course {
+        AxisCourse::Fallback if link_only => {
+            tracing::info!(%axis, decision, "axis {axis} no longer follows its model: {decision} (inputs lost with their device){more}")
+        }
+        AxisCourse::Fallback => {
+            tracing::warn!(%axis, decision, "axis {axis} no longer follows its model: {decision}{more}")
+        }
+        AxisCourse::Model => {
+            tracing::info!(%axis, decision, "axis {axis} follows its model again: {decision}{more}")
+        }
     }
 }
 
@@ -753,6 +861,7 @@ async fn generation(
     if shutdown.is_cancelled() {
         return None;
     }
+    state.flush_change_logs();
     reload_to
 }
 

@@ -166,6 +166,11 @@ impl Pipeline {
         }
     }
 
+    /// The quality of channel `ch`'s latest reading; `None` past the last channel.
+    pub fn quality(&self, ch: usize) -> Option<Quality> {
+        Some(self.processors.get(ch)?.last().quality)
+    }
+
     /// The value of channel `ch` if its quality allows using it.
     pub fn usable_degc(&self, ch: usize) -> Option<f64> {
         self.processors.get(ch)?.last().usable_degc()

@@ -5,8 +5,8 @@ use std::sync::Arc;
 use std::time::{Duration, SystemTime};
 
 use crate::nc::NcSnapshot;
-use compgate_core::channel::Reading;
-use compgate_core::comp::CompParams;
+use compgate_core::channel::{Quality, Reading, Reason};
+use compgate_core::comp::{CompParams, Decision};
 
 /// What the gateway shows of one channel.
 #[derive(Debug, Clone, PartialEq)]
@@ -112,9 +112,192 @@ impl Status {
     }
 }
 
+/// A channel or an axis logs at most [`CHANGE_LOG_LINES`] changes per this many
+/// seconds; the next line counts the changes in between.
+pub(super) const CHANGE_LOG_WINDOW_S: f64 = 10.0;
+/// Two: a fault and its recovery are both logged when they happen.
+pub(super) const CHANGE_LOG_LINES: u32 = 2;
+
+/// What the journal says of a channel (`Some(usable)`), or `None` when its reading
+/// only says that its device's link failed: the device's own line covers that, and a
+/// device with many channels would otherwise log one line for each.
+#[inline]
+pub(super) fn journal_usable(q: &Quality) -> Option<bool> {
+    match q {
+        Quality::Bad(
+            Reason::Comm | Reason::DeviceException | Reason::DeviceDegraded | Reason::NoData,
+        ) => None,
+        q => Some(q.is_usable()),
+    }
+}
+
+/// What the journal says of an axis' decisions: only a change between these is logged,
+/// not one between writing and within deadband, nor a ramp that reached zero and holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum AxisCourse {
+    /// Writing, or within the deadband: the axis follows its model.
+    Model,
+    /// Holding or ramping to zero: a bad input (or a model value not finite).
+    Fallback,
+}
+
+impl AxisCourse {
+    pub(super) fn of(d: &Decision) -> Self {
+        match d {
+            Decision::Write { .. } | Decision::WithinDeadband => Self::Model,
+            Decision::Hold { .. } | Decision::Ramp { .. } => Self::Fallback,
+        }
+    }
+}
+
+/// Logs a state once per change, never once per sample, and at most
+/// [`CHANGE_LOG_LINES`] times per [`CHANGE_LOG_WINDOW_S`]: a state flapping every
+/// sample must not flood the journal.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct ChangeLog<S> {
+    /// The state last seen (logged or not).
+    seen: S,
+    /// Changes since the last line that were not logged yet.
+    unlogged: u32,
+    /// Lines in the window that ends at `window_end_s`.
+    lines: u32,
+    window_end_s: f64,
+}
+
+impl<S: Copy + PartialEq> ChangeLog<S> {
+    /// A log that takes `seen` as said already (nothing is logged while it holds).
+    pub(super) fn new(seen: S) -> Self {
+        Self {
+            seen,
+            unlogged: 0,
+            lines: 0,
+            window_end_s: f64::NEG_INFINITY,
+        }
+    }
+
+    /// `state` seen at `t_s`: `Some(n)` when it is to be logged now, `n` being the
+    /// changes before it that were not logged. In the steady state this is two
+    /// compares: it runs for every channel of every sample.
+    #[inline]
+    pub(super) fn note(&mut self, state: S, t_s: f64) -> Option<u32> {
+        if state == self.seen && self.unlogged == 0 {
+            return None;
+        }
+        self.note_change(state, t_s)
+    }
+
+    #[cold]
+    fn note_change(&mut self, state: S, t_s: f64) -> Option<u32> {
+        if state != self.seen {
+            self.seen = state;
+            self.unlogged = self.unlogged.saturating_add(1);
+        }
+        if t_s >= self.window_end_s {
+            self.window_end_s = t_s + CHANGE_LOG_WINDOW_S;
+            self.lines = 0;
+        }
+        // Past the limit the line waits for the next window, even for a state that
+        // settled back to what was logged: the journal's last word is the state as
+        // it is, with the count of what it missed.
+        if self.lines >= CHANGE_LOG_LINES {
+            return None;
+        }
+        self.lines += 1;
+        let more = self.unlogged.saturating_sub(1);
+        self.unlogged = 0;
+        Some(more)
+    }
+
+    /// The state and the changes before it, when changes were seen but not logged
+    /// yet (for a last line before this log is dropped); marks them logged.
+    pub(super) fn take_unlogged(&mut self) -> Option<(S, u32)> {
+        let n = std::mem::take(&mut self.unlogged);
+        (n > 0).then(|| (self.seen, n - 1))
+    }
+}
+
+/// `""`, or how many changes before this line were not logged.
+pub(super) fn unlogged_suffix(more: u32) -> String {
+    if more == 0 {
+        String::new()
+    } else {
+        format!(" ({more} more changes since the last line: at most {CHANGE_LOG_LINES} lines per {CHANGE_LOG_WINDOW_S} s)")
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    // A change is logged once, however many samples repeat it, and a fault and its
+    // recovery both when they happen; the state at start is taken as said.
+    #[test]
+    fn a_change_is_logged_once_when_it_happens() {
+        let mut log = ChangeLog::new(true);
+        assert_eq!(log.note(true, 0.0), None);
+        assert_eq!(log.note(false, 1.0), Some(0));
+        for k in 0..100 {
+            assert_eq!(log.note(false, 1.0 + 0.01 * f64::from(k)), None);
+        }
+        assert_eq!(log.note(true, 2.0), Some(0));
+        assert_eq!(log.note(true, 2.1), None);
+    }
+
+    // A state flapping every sample gets two lines per window, the first of which
+    // counts the changes in between; it settles with one line more, on the state as
+    // it is.
+    #[test]
+    fn a_flapping_state_is_logged_twice_per_window_with_a_count() {
+        let mut log = ChangeLog::new(true);
+        let mut lines = Vec::new();
+        // A change every 0.125 s sample for 25 s.
+        for k in 0..200 {
+            let t_s = 0.125 * f64::from(k);
+            if let Some(more) = log.note(k % 2 == 0, t_s) {
+                lines.push((t_s, k % 2 == 0, more));
+            }
+        }
+        assert_eq!(
+            lines,
+            [
+                (0.125, false, 0),
+                (0.25, true, 0),
+                (10.125, false, 78),
+                (10.25, true, 0),
+                (20.125, false, 78),
+                (20.25, true, 0)
+            ]
+        );
+        // It settles on the last state seen: one line when the window is over.
+        let mut settled = Vec::new();
+        for k in 200..400 {
+            let t_s = 0.125 * f64::from(k);
+            settled.extend(log.note(false, t_s).map(|more| (t_s, more)));
+        }
+        assert_eq!(settled, [(30.125, 36)]);
+        assert_eq!(log.take_unlogged(), None);
+        // Seen but not logged yet: handed out once.
+        assert_eq!(log.note(true, 41.0), Some(0));
+        assert_eq!(log.note(false, 42.0), Some(0));
+        assert_eq!(log.note(true, 43.0), None);
+        assert_eq!(log.take_unlogged(), Some((true, 0)));
+        assert_eq!(log.take_unlogged(), None);
+    }
+
+    // A device's link failure is left to the device's line; a sensor's own fault is
+    // the channel's.
+    #[test]
+    fn link_failures_are_left_to_the_device() {
+        assert_eq!(journal_usable(&Quality::Good), Some(true));
+        assert_eq!(
+            journal_usable(&Quality::Uncertain(Reason::Comm)),
+            Some(true)
+        );
+        assert_eq!(journal_usable(&Quality::Bad(Reason::Ne43Low)), Some(false));
+        assert_eq!(journal_usable(&Quality::Bad(Reason::Stale)), Some(false));
+        assert_eq!(journal_usable(&Quality::Bad(Reason::DeviceDegraded)), None);
+        assert_eq!(journal_usable(&Quality::Bad(Reason::NoData)), None);
+    }
 
     // The job history keeps the newest JOB_HISTORY jobs, oldest first.
     #[test]

@@ -1,0 +1,103 @@
+//! What the journal (the gateway's log) records with real processes: under systemd
+//! the per-update status line is off, so the log is the operator's running record.
+
+// Test helpers: a panic with the message is the wanted failure.
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use std::time::Duration;
+
+use common::process::Gateway;
+use compgate_plc::field::SensorFault;
+
+/// The log lines so far that contain `needle`.
+fn count(gw: &Gateway, needle: &str) -> usize {
+    gw.stderr
+        .lock()
+        .unwrap()
+        .iter()
+        .filter(|l| l.contains(needle))
+        .count()
+}
+
+/// Asserts that exactly one log line contains `needle`; that line.
+fn once(gw: &Gateway, needle: &str) -> String {
+    let n = count(gw, needle);
+    assert_eq!(n, 1, "{n} lines with `{needle}`\n{}", gw.stderr_text());
+    gw.wait_log(1.0, needle)
+}
+
+// An open sensor (NE43 low) is logged once when it happens, naming the channel, its
+// device and the reason, and so is the axis' change to ramp to zero, naming the input;
+// its recovery likewise. Not once per sample: the poll is 50 ms, the update 100 ms.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_sensor_fault_and_its_recovery_are_logged_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let toml = common::config("ramp_to_zero", "", "");
+    let (plant, path) = common::plant_and_file(dir.path(), &toml, "").await;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| {
+        gw.wait_notify(10.0, "a verified write", |m| m.contains("jobs 1 ok"))
+    });
+    assert_eq!(count(&gw, "channel T_bed"), 0, "{}", gw.stderr_text());
+    assert_eq!(count(&gw, "axis X"), 0, "{}", gw.stderr_text());
+
+    let field = plant.field["ain1"].clone();
+    let t_bed = plant.transmitter["T_bed"];
+    field.set_sensor_fault(t_bed, SensorFault::Open).unwrap();
+    tokio::task::block_in_place(|| {
+        gw.wait_log(5.0, "channel T_bed bad");
+        gw.wait_log(5.0, "axis X no longer follows its model");
+    });
+    // Ramped to zero and holding there: many samples and decisions later.
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let line = once(&gw, "channel T_bed bad");
+    assert!(line.contains("WARN"), "{line}");
+    assert!(line.contains("NE43 low"), "{line}");
+    assert!(line.contains("device=\"ain1\""), "{line}");
+    let line = once(&gw, "axis X no longer follows its model");
+    assert!(line.contains("WARN"), "{line}");
+    assert!(line.contains("ramp to zero: bad input T_bed"), "{line}");
+    assert_eq!(plant.nc["nc_x"].state().sd43900_mm, 0.0);
+
+    field.set_sensor_fault(t_bed, SensorFault::None).unwrap();
+    tokio::task::block_in_place(|| {
+        gw.wait_log(5.0, "channel T_bed usable again");
+        gw.wait_log(5.0, "axis X follows its model again");
+    });
+    tokio::time::sleep(Duration::from_millis(1000)).await;
+    let line = once(&gw, "channel T_bed usable again");
+    assert!(line.contains("INFO"), "{line}");
+    assert!(line.contains("device=\"ain1\""), "{line}");
+    let line = once(&gw, "axis X follows its model again");
+    assert!(line.contains("INFO"), "{line}");
+    // Nothing more of either, and nothing of the channels that stayed good.
+    assert_eq!(count(&gw, "channel T_bed"), 2, "{}", gw.stderr_text());
+    assert_eq!(count(&gw, "axis X "), 2, "{}", gw.stderr_text());
+    assert_eq!(count(&gw, "channel T_screw"), 0, "{}", gw.stderr_text());
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
+
+// An axis that writes only SD43910 and SD43920 (`nc_write`): the job line names those
+// and their values, not the SD43900 of the parameter set, which was not written.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_job_line_names_only_the_variables_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let base = common::config("hold", "", "");
+    let k0 = base.lines().find(|l| l.starts_with("k0 = ")).unwrap();
+    let toml = base.replace(&format!("{k0}\n"), "").replace(
+        "md32750 = 3\np0_mm",
+        "md32750 = 2\nnc_write = [\"sd43910\", \"sd43920\"]\np0_mm",
+    );
+    assert!(toml.contains("nc_write"), "{toml}");
+    let (plant, path) = common::plant_and_file(dir.path(), &toml, "").await;
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    let line = tokio::task::block_in_place(|| gw.wait_log(10.0, "NC job done"));
+    assert!(line.contains("written=\"SD43910="), "{line}");
+    assert!(line.contains(", SD43920=100 mm\""), "{line}");
+    assert!(!line.to_lowercase().contains("sd43900"), "{line}");
+    drop(gw);
+    drop(plant);
+}
