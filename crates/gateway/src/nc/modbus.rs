@@ -269,3 +269,46 @@ fn default_connect_timeout_s() -> f64 {
 fn default_job_timeout_s() -> f64 {
     2.0
 }
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::Arc;
+
+    use super::*;
+
+    // The NC target shares the field's link: a module that accepts and closes at once
+    // is retried with the growing backoff, not once per read-back.
+    #[tokio::test]
+    async fn a_module_that_accepts_and_closes_is_retried_with_a_growing_backoff() {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap().to_string();
+        let accepts = Arc::new(AtomicUsize::new(0));
+        let counted = accepts.clone();
+        let peer = tokio::spawn(async move {
+            while let Ok((stream, _)) = listener.accept().await {
+                counted.fetch_add(1, Ordering::SeqCst);
+                drop(stream);
+            }
+        });
+        let cfg = ModbusTargetConfig {
+            address: address.clone(),
+            unit_id: 1,
+            timeout_s: 1.0,
+            connect_timeout_s: 1.0,
+            job_timeout_s: 1.0,
+        };
+        let mut writer = cfg.writer();
+        let closed = format!("NC link: connection closed by the peer at {address}");
+        let end = Instant::now() + Duration::from_secs(2);
+        while Instant::now() < end {
+            let error = writer.read_snapshot().await.unwrap_err().to_string();
+            assert!(error.starts_with(&closed), "{error}");
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        // Attempts at 0, 0.5 and 1.5 s.
+        let accepts = accepts.load(Ordering::SeqCst);
+        assert!((2..6).contains(&accepts), "{accepts} connects in 2 s");
+        peer.abort();
+    }
+}

@@ -43,6 +43,17 @@ pub enum SourceError {
     /// The transport failed (reset, EOF, garbled frame).
     #[error("transport fault: {0}")]
     Transport(String),
+    /// The TCP peer at this address closed the connection with a request unanswered.
+    #[error("connection closed by the peer at {0}")]
+    PeerClosed(String),
+    /// The TCP peer at `address` answered bytes no Modbus TCP frame begins with.
+    #[error("the peer at {address} does not speak Modbus TCP: {detail}")]
+    NotModbus {
+        /// "host:port".
+        address: String,
+        /// What it answered.
+        detail: String,
+    },
     /// The device answered with a Modbus exception.
     #[error("device exception {}", exception_name(*.0))]
     Exception(ExceptionCode),
@@ -77,7 +88,7 @@ impl SourceError {
         match self {
             Self::ConnectTimeout | Self::Connect(_) => "connect",
             Self::Timeout(_) | Self::Deadline(_) => "timeout",
-            Self::Transport(_) => "transport",
+            Self::Transport(_) | Self::PeerClosed(_) | Self::NotModbus { .. } => "transport",
             Self::Exception(_) => "exception",
             // Counted as the cycles the backoff failed (`compgate_device_errors_total`),
             // not as connect attempts.
@@ -275,6 +286,8 @@ impl DevicePoller {
                 Err(
                     e @ (SourceError::Timeout(_)
                     | SourceError::Transport(_)
+                    | SourceError::PeerClosed(_)
+                    | SourceError::NotModbus { .. }
                     | SourceError::Connect(_)
                     | SourceError::ConnectTimeout),
                 ) if attempt < self.params.retries => {
@@ -360,6 +373,10 @@ impl DevicePoller {
 
 #[cfg(test)]
 mod tests {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
     use super::modbus::{Backoff, LinkSpec};
     use super::*;
 
@@ -390,6 +407,82 @@ mod tests {
             Arc::new(Mutex::new(link)),
             vec![spec(0, 0), spec(1, 100)],
         )
+    }
+
+    /// A TCP listener on loopback that runs `serve` on every connection it accepts;
+    /// returns its address and the count of accepts.
+    async fn listener<F, Fut>(serve: F) -> (String, Arc<AtomicUsize>, tokio::task::JoinHandle<()>)
+    where
+        F: Fn(tokio::net::TcpStream) -> Fut + Send + 'static,
+        Fut: std::future::Future<Output = ()> + Send + 'static,
+    {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap().to_string();
+        let accepts = Arc::new(AtomicUsize::new(0));
+        let counted = accepts.clone();
+        let task = tokio::spawn(async move {
+            while let Ok((stream, _)) = listener.accept().await {
+                counted.fetch_add(1, Ordering::SeqCst);
+                tokio::spawn(serve(stream));
+            }
+        });
+        (address, accepts, task)
+    }
+
+    fn tcp(address: &str) -> LinkSpec {
+        LinkSpec::Tcp {
+            address: address.into(),
+            connect_timeout: Duration::from_secs(1),
+        }
+    }
+
+    // A peer that accepts and closes at once used to be reconnected twice a cycle (the
+    // read and its retry) forever, and reported "Operation now in progress (os error
+    // 115)": tokio-modbus's stale errno for an end of stream.
+    #[tokio::test]
+    async fn a_peer_that_accepts_and_closes_is_retried_with_a_growing_backoff() {
+        let (address, accepts, peer) = listener(|stream| async move { drop(stream) }).await;
+        let mut poller = poller(tcp(&address));
+        let closed = format!("connection closed by the peer at {address}");
+        let end = Instant::now() + Duration::from_secs(3);
+        let mut cycles = 0u32;
+        while Instant::now() < end {
+            let sample = poller.poll().await;
+            let error = sample.error.expect("the cycle failed");
+            assert!(error.to_string().starts_with(&closed), "{error}");
+            cycles += 1;
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        // Attempts at 0, 0.5, 1.5 and 3.5 s (0.5 s doubling): 3, give or take one.
+        let accepts = accepts.load(Ordering::SeqCst);
+        assert!(cycles > 30, "{cycles} cycles");
+        assert!((2..10).contains(&accepts), "{accepts} connects in 3 s");
+        peer.abort();
+    }
+
+    // An HTTP server answers the Modbus request with a 400 and closes: tokio-modbus
+    // said "bytes remaining on stream".
+    #[tokio::test]
+    async fn a_peer_answering_http_does_not_speak_modbus() {
+        let (address, accepts, peer) = listener(|mut stream| async move {
+            let mut request = [0u8; 64];
+            let _ = stream.read(&mut request).await;
+            let _ = stream.write_all(b"HTTP/1.1 400 Bad Request\r\n\r\n").await;
+        })
+        .await;
+        let mut poller = poller(tcp(&address));
+        let expected = format!(
+            "the peer at {address} does not speak Modbus TCP: it answered \"HTTP/1.1 400 Bad Request\\r\\n\\r\\n\""
+        );
+        for cycle in 0..3 {
+            let error = poller.poll().await.error.expect("the cycle failed");
+            assert!(
+                error.to_string().starts_with(&expected),
+                "cycle {cycle}: {error}"
+            );
+        }
+        assert_eq!(accepts.load(Ordering::SeqCst), 1, "backing off");
+        peer.abort();
     }
 
     // The retry of a failed connect, and every cycle after it, meet the backoff: they
