@@ -366,6 +366,12 @@ async fn rejected_nc_job_is_reported_retried_and_not_confirmed() {
     assert_eq!(s.axes[0].jobs_ok, 0);
 
     nc.set_job_fault(JobFault::None);
+    // The job that timed out may have taken effect on the NC: the gateway then takes
+    // it from there, and may have nothing left to write. A new temperature calls for
+    // a new value.
+    rig.plant.field["ain1"]
+        .set_temperature_override(0, Some(35.0))
+        .unwrap();
     let s = rig
         .wait_for(10.0, "job accepted once the NC allows it", |s| {
             s.axes[0].jobs_ok >= 1
@@ -452,7 +458,15 @@ fn render_has_no_warning(s: &compgate_gateway::runtime::Status) -> bool {
 async fn monitoring_only_config_without_axes_runs_and_stops() {
     let full = config("hold", "", "");
     let cut = full.find("[nc_modules.nc_x]").unwrap();
-    let toml = format!("{}\n[nc_modules]\n[axes]\n", &full[..cut]);
+    // The simulated plant stays (it gives the devices' port 0 a free port), without
+    // its NC module.
+    let sim = full.find("[sim]").unwrap();
+    let sim_nc = full.find("[sim.nc_modules.nc_x]").unwrap();
+    let toml = format!(
+        "{}\n[nc_modules]\n[axes]\n\n{}",
+        &full[..cut],
+        &full[sim..sim_nc]
+    );
     let mut rig = start(&toml).await;
     let s = rig
         .wait_for(10.0, "readings without any axis", |s| {

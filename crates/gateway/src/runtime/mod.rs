@@ -500,7 +500,7 @@ impl Running {
                                 self.baselined[i] = true;
                                 if moved {
                                     let was = st.written.unwrap_or_default();
-                                    tracing::warn!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, confirmed_sd43900_mm = was.k0_mm, confirmed_sd43910 = was.tan_beta, confirmed_sd43920_mm = was.p0_mm, "the NC no longer holds what it confirmed (restarted, or changed by hand): steps start again from what it holds");
+                                    tracing::warn!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, confirmed_sd43900_mm = was.k0_mm, confirmed_sd43910 = was.tan_beta, confirmed_sd43920_mm = was.p0_mm, "the NC holds other values than it confirmed (restarted, changed by hand, or a job that failed took effect): steps start again from what it holds");
                                 } else if st.written.is_some() {
                                     tracing::info!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, "NC parameters read again after the outage");
                                 } else {
