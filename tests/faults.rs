@@ -99,6 +99,19 @@ fn max_jump(values: &[f64]) -> f64 {
         .fold(0.0, f64::max)
 }
 
+/// Stops [`watch_nc`]'s watch and returns what the NC held, checked to have moved by at
+/// most `max_step_mm` at a time.
+fn stepped(seen: &Mutex<Vec<f64>>, stop: &CancellationToken, max_step_mm: f64) -> Vec<f64> {
+    stop.cancel();
+    let seen = seen.lock().unwrap().clone();
+    assert!(
+        max_jump(&seen) <= max_step_mm + 1e-9,
+        "jump {} in {seen:?}",
+        max_jump(&seen)
+    );
+    seen
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn modbus_server_process_killed_and_restarted() {
     // The field module runs as its own process (`compgate sim`) on a fixed port.
@@ -236,13 +249,7 @@ async fn nc_unreachable_while_temperatures_change() {
             && s.axes[0].warning.is_none()
     })
     .await;
-    stop_watch.cancel();
-    let seen = seen.lock().unwrap().clone();
-    assert!(
-        max_jump(&seen) <= 0.01 + 1e-9,
-        "jump {} in {seen:?}",
-        max_jump(&seen)
-    );
+    let seen = stepped(&seen, &stop_watch, 0.01);
     assert!(seen.len() >= 8, "ramped in steps: {seen:?}");
     shutdown.cancel();
     h.await.unwrap();
@@ -280,13 +287,7 @@ async fn an_nc_that_lost_its_values_is_ramped_again_from_what_it_holds() {
         );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    stop_watch.cancel();
-    let seen = seen.lock().unwrap().clone();
-    assert!(
-        max_jump(&seen) <= 0.01 + 1e-9,
-        "jump {} in {seen:?}",
-        max_jump(&seen)
-    );
+    let seen = stepped(&seen, &stop_watch, 0.01);
     assert!(seen.len() >= 4, "ramped in steps: {seen:?}");
     shutdown.cancel();
     h.await.unwrap();
@@ -324,13 +325,7 @@ async fn gateway_sigkill_and_restart_reads_the_nc_first_and_never_jumps() {
     tokio::task::block_in_place(|| {
         gw.wait_notify(20.0, "the ramp completed", |m| m.contains("SD43900=0.160"))
     });
-    stop_watch.cancel();
-    let seen = seen.lock().unwrap().clone();
-    assert!(
-        max_jump(&seen) <= 0.005 + 1e-9,
-        "jump {} in {seen:?}",
-        max_jump(&seen)
-    );
+    let seen = stepped(&seen, &stop_watch, 0.005);
     assert!(seen.contains(&held));
     assert!(tokio::task::block_in_place(|| gw.stop()));
 }
