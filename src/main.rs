@@ -12,7 +12,7 @@ use compgate::nc::NcError;
 use compgate::scenario;
 use compgate_commission::{backlash, calibrate, diagnose, iso230, volumetric};
 use compgate_gateway::config;
-use compgate_service::record::export;
+use compgate_service::record::{self, export};
 
 /// Why a command failed.
 #[derive(Debug, thiserror::Error)]
@@ -179,6 +179,11 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
         }),
         Command::Validate { config: path } => {
             let cfg = config::load(&path).map_err(failed)?;
+            // What `run` needs of the file system, so that ExecStartPre catches it.
+            if let Some(r) = &cfg.recorder {
+                record::check_path(&record::resolve_path(&r.path))
+                    .map_err(|e| failed(format_args!("{}: {e}", path.display())))?;
+            }
             for w in config::warnings(&cfg, &path.display().to_string()) {
                 cli::eprintln(format_args!("warning: {w}"))?;
             }

@@ -237,6 +237,17 @@ impl SmallFs {
     }
 }
 
+impl SmallFs {
+    fn remount_read_only(&self) {
+        let st = std::process::Command::new("mount")
+            .args(["-o", "remount,ro"])
+            .arg(&self.0)
+            .status()
+            .expect("mount runs");
+        assert!(st.success(), "remounting read-only");
+    }
+}
+
 impl Drop for SmallFs {
     fn drop(&mut self) {
         let _ = std::process::Command::new("umount").arg(&self.0).status();
@@ -313,4 +324,128 @@ async fn a_metrics_port_in_use_ends_a_recording_run_with_the_error() {
     assert!(err.contains("Address already in use"), "{err}");
     drop(taken);
     drop(plant);
+}
+
+/// Runs the binary with `args` to its end (at most 20 s, then killed).
+fn run_to_end(args: &[&str]) -> std::process::Output {
+    let mut child = std::process::Command::new(BIN)
+        .args(args)
+        .env_remove("NOTIFY_SOCKET")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("the binary starts");
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    while child.try_wait().expect("waitpid").is_none() {
+        if std::time::Instant::now() > deadline {
+            let _ = child.kill();
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    child.wait_with_output().expect("its output")
+}
+
+// Two gateways recording into one database mixed their rows with nothing to tell
+// them apart (and lost some). The second now refuses to start, naming the database;
+// `export` (read-only) still works while the first records.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_second_gateway_on_the_same_database_is_refused_and_export_still_works() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("rec.db");
+    let (plant, path) = plant_recording(dir.path(), &db, "").await;
+    let since = now_ms() / 1000;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+    let config = path.to_str().unwrap();
+    let out =
+        tokio::task::block_in_place(|| run_to_end(&["--log", "warn", "run", "--config", config]));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains(&db.display().to_string()) && err.contains("another gateway records into it"),
+        "{err}"
+    );
+    // Recorded readings to export: wait for the first commit.
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    let readings = || {
+        let conn = Connection::open(&db).unwrap();
+        compgate_service::record::counts(&conn).unwrap().0
+    };
+    while readings() == 0 && std::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let csv = dir.path().join("live.csv");
+    let (db_s, csv_s) = (db.to_str().unwrap(), csv.to_str().unwrap());
+    let (from, to) = (since.to_string(), (since + 600).to_string());
+    let out = tokio::task::block_in_place(|| {
+        run_to_end(&[
+            "export", "--db", db_s, "--since", &from, "--until", &to, "--csv", "--out", csv_s,
+        ])
+    });
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(!Measurements::read_path(&csv).unwrap().is_empty());
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
+
+// `validate` (the unit's ExecStartPre) passed recorder paths that `run` refused: a
+// missing directory, a read-only database or directory. It now refuses them too,
+// naming recorder.path and the file, and creates nothing.
+#[test]
+fn validate_refuses_a_recorder_path_that_run_cannot_write() {
+    let dir = tempfile::tempdir().unwrap();
+    let write_config = |db: &Path| {
+        let path = dir.path().join("plant.toml");
+        let text = common::config("hold", "", "") + &recorder_section(db, "");
+        std::fs::write(&path, text).unwrap();
+        path
+    };
+    let validate_fails = |config: &Path, db: &Path, why: &str| {
+        let out = run_to_end(&["validate", "--config", config.to_str().unwrap()]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        assert!(
+            err.contains("recorder.path")
+                && err.contains(&db.display().to_string())
+                && err.contains(why),
+            "{err}"
+        );
+        // `run` refuses it with the same words.
+        let out = run_to_end(&["--log", "warn", "run", "--config", config.to_str().unwrap()]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        assert!(err.contains(why), "{err}");
+    };
+
+    let missing = dir.path().join("nodir").join("sub").join("g.db");
+    let config = write_config(&missing);
+    let why = format!(
+        "the directory {} does not exist",
+        missing.parent().unwrap().display()
+    );
+    validate_fails(&config, &missing, &why);
+    assert!(!dir.path().join("nodir").exists(), "nothing created");
+
+    // A read-only file system (root writes any file that its mode forbids).
+    let fs = SmallFs::mount(&dir.path().join("ro"), "1m");
+    let db = fs.0.join("g.db");
+    let config = write_config(&db);
+    let ok = run_to_end(&["validate", "--config", config.to_str().unwrap()]);
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    compgate_service::record::open(&db).unwrap();
+    fs.remount_read_only();
+    validate_fails(&config, &db, "the database is not writable");
+    let fresh = fs.0.join("new.db");
+    let config = write_config(&fresh);
+    validate_fails(&config, &fresh, "is not writable");
+    drop(fs);
 }

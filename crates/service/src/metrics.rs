@@ -15,6 +15,7 @@
 //! | `compgate_nc_jobs_total` | counter | axis, result (`ok`/`failed`/`shadow`) | NC job outcomes; `shadow`: computed, not sent |
 //! | `compgate_cycle_seconds` | histogram | | control loop: time to process one device sample |
 //! | `compgate_recorder_records_total` | counter | outcome (`written`, `dropped_queue`, `dropped_write`) | recorder |
+//! | `compgate_recorder_duplicate_readings_total` | counter | | readings not stored: the database held their channel at the same millisecond (the wall clock set back) |
 //! | `compgate_process_heap_bytes` | gauge | state (`in_use`, `free`) | glibc malloc: bytes allocated (the live heap) and bytes it holds free; RSS growing with `in_use` flat is the allocator, not a leak (glibc only) |
 //! | `compgate_http_connections_total` | counter | outcome (`accepted`, `evicted`, `refused`) | connections to this endpoint |
 //! | `compgate_http_accept_errors_total` | counter | | failed accepts (e.g. out of descriptors) |
@@ -177,6 +178,11 @@ pub fn describe() {
         Unit::Count,
         "Recorder records by outcome: written, dropped_queue, dropped_write"
     );
+    describe_counter!(
+        "compgate_recorder_duplicate_readings_total",
+        Unit::Count,
+        "Readings the recorder did not store: the database already held their channel at the same millisecond (the wall clock set back); the first one is kept"
+    );
     describe_gauge!(
         "compgate_process_heap_bytes",
         Unit::Bytes,
@@ -222,7 +228,7 @@ pub struct MetricsObserver {
     devices: Vec<DeviceHandles>,
     cycle: Option<Histogram>,
     recorder: Option<Arc<RecorderStats>>,
-    recorder_counters: Option<[Counter; 3]>,
+    recorder_counters: Option<[Counter; 4]>,
 }
 
 impl MetricsObserver {
@@ -332,12 +338,14 @@ impl Observer for MetricsObserver {
                     counter!("compgate_recorder_records_total", "outcome" => "written"),
                     counter!("compgate_recorder_records_total", "outcome" => "dropped_queue"),
                     counter!("compgate_recorder_records_total", "outcome" => "dropped_write"),
+                    counter!("compgate_recorder_duplicate_readings_total"),
                 ]
             });
             use std::sync::atomic::Ordering::Relaxed;
             c[0].absolute(stats.written.load(Relaxed));
             c[1].absolute(stats.dropped_queue.load(Relaxed));
             c[2].absolute(stats.dropped_write.load(Relaxed));
+            c[3].absolute(stats.duplicate_readings.load(Relaxed));
         }
     }
 

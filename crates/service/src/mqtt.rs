@@ -281,7 +281,10 @@ async fn exchange(
         let mut conn = db.lock().map_err(outbox_err)?;
         let mut dropped = 0;
         if !ex.acked.is_empty() || ex.cap.is_some() {
-            let tx = conn.transaction().map_err(outbox_err)?;
+            // IMMEDIATE: wait out the recorder's commit at BEGIN (busy timeout).
+            let tx = conn
+                .transaction_with_behavior(rusqlite::TransactionBehavior::Immediate)
+                .map_err(outbox_err)?;
             {
                 let mut del = tx
                     .prepare_cached("DELETE FROM mqtt_outbox WHERE id = ?1")

@@ -14,6 +14,8 @@ use super::problem::ConfigProblem;
 pub struct RecorderConfig {
     /// Database file. A relative path is taken from `$STATE_DIRECTORY` (set by the
     /// unit's `StateDirectory=`, `/var/lib/compgate`), else from the working directory.
+    /// Its directory must exist and be writable (`validate` checks it). One gateway
+    /// per database: a second one refuses to start (lock file `<path>.lock`).
     /// Default `compgate.db`; at most 4096 characters.
     #[serde(default = "default_recorder_path")]
     #[schemars(length(max = 4096))]

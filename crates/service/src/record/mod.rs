@@ -44,6 +44,22 @@ pub enum RecordError {
         /// What failed.
         message: String,
     },
+    /// `recorder.path` names a database the gateway cannot create or write.
+    #[error("recorder.path: {path}: {message}")]
+    Path {
+        /// The database file.
+        path: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// Another process records into the database.
+    #[error("recorder database {path}: another gateway records into it (it holds {lock}); give each gateway its own recorder.path")]
+    InUse {
+        /// The database file.
+        path: String,
+        /// The lock file the other process holds.
+        lock: String,
+    },
     /// A query failed.
     #[error("recorder database: {0}")]
     Sqlite(#[from] rusqlite::Error),
@@ -149,6 +165,10 @@ pub struct RecorderStats {
     /// Times the database file was found deleted or replaced under the writer and
     /// opened again at its path.
     pub reopened: AtomicU64,
+    /// Readings not stored because the database already held one of the same
+    /// channel at the same millisecond (the wall clock set back); the one recorded
+    /// first is kept.
+    pub duplicate_readings: AtomicU64,
 }
 
 /// What the queue's ends share besides the queue: how full it is and who to wake.
@@ -232,12 +252,95 @@ pub struct Recorder {
     thread: Option<std::thread::JoinHandle<()>>,
     path: PathBuf,
     outbox: Arc<tokio::sync::Notify>,
+    /// The database's lock, held while the recorder lives: dropped after
+    /// `Drop::drop` joined the writer, so after its last commit.
+    _lock: std::fs::File,
+}
+
+/// Checks, creating nothing, that the recorder can create or write its database at
+/// `path` (as [`resolve_path`] gives it): its directory exists and is writable
+/// (SQLite creates the `-wal` and `-shm` files there, the recorder its lock file),
+/// and the database, if it exists, is a writable file. `validate` runs it, so a
+/// config that `run` would refuse does not pass.
+pub fn check_path(path: &Path) -> Result<(), RecordError> {
+    let problem = |message: String| RecordError::Path {
+        path: path.display().to_string(),
+        message,
+    };
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    match std::fs::metadata(dir) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(problem(format!(
+                "the directory {} does not exist (the recorder creates the database file, not its directory)",
+                dir.display()
+            )))
+        }
+        Err(e) => return Err(problem(format!("the directory {}: {e}", dir.display()))),
+        Ok(m) if !m.is_dir() => {
+            return Err(problem(format!("{} is not a directory", dir.display())))
+        }
+        Ok(_) => {}
+    }
+    if let Ok(m) = std::fs::metadata(path) {
+        if m.is_dir() {
+            return Err(problem("is a directory, not a database file".into()));
+        }
+        writable(path).map_err(|e| problem(format!("the database is not writable: {e}")))?;
+    }
+    writable(dir).map_err(|e| {
+        problem(format!(
+            "the directory {} is not writable (the database, its -wal and -shm files are created there): {e}",
+            dir.display()
+        ))
+    })
+}
+
+/// Whether this process may write `path` (permissions, ACLs, a read-only mount),
+/// asked without opening it.
+fn writable(path: &Path) -> std::io::Result<()> {
+    use rustix::fs::{accessat, Access, AtFlags, CWD};
+    accessat(CWD, path, Access::WRITE_OK, AtFlags::EACCESS).map_err(std::io::Error::from)
+}
+
+/// Takes the lock that makes this process the database's only recorder: an
+/// advisory lock on `<db>.lock`, which the kernel releases when the process ends,
+/// however it ends. Two gateways recording into one database would mix their rows
+/// with nothing to tell them apart. Readers (`export`) do not take it.
+fn lock(path: &Path) -> Result<std::fs::File, RecordError> {
+    let lock_path = with_suffix(path, ".lock");
+    let err = |message: String| RecordError::Open {
+        path: path.display().to_string(),
+        message,
+    };
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(&lock_path)
+        .map_err(|e| err(format!("lock file {}: {e}", lock_path.display())))?;
+    match file.try_lock() {
+        Ok(()) => Ok(file),
+        Err(std::fs::TryLockError::WouldBlock) => Err(RecordError::InUse {
+            path: path.display().to_string(),
+            lock: lock_path.display().to_string(),
+        }),
+        Err(std::fs::TryLockError::Error(e)) => {
+            Err(err(format!("lock file {}: {e}", lock_path.display())))
+        }
+    }
 }
 
 impl Recorder {
-    /// Opens (creating if needed) the database and starts the writer thread.
+    /// Checks the path, takes the database's lock, opens (creating if needed) the
+    /// database and starts the writer thread.
     pub fn start(cfg: &RecorderConfig) -> Result<Self, RecordError> {
         let path = resolve_path(&cfg.path);
+        check_path(&path)?;
+        let lock = lock(&path)?;
         let conn = open(&path)?;
         let queue = usize::try_from(cfg.queue_cycles).unwrap_or(usize::MAX);
         let (tx, rx) = mpsc::sync_channel(queue);
@@ -276,6 +379,7 @@ impl Recorder {
             thread: Some(thread),
             path,
             outbox,
+            _lock: lock,
         })
     }
 
@@ -630,8 +734,18 @@ impl Writer {
             }),
         };
         match result {
-            Ok(()) => {
+            Ok(ignored) => {
                 self.stats.written.fetch_add(n, Ordering::Relaxed);
+                if ignored > 0 {
+                    let before = self
+                        .stats
+                        .duplicate_readings
+                        .fetch_add(ignored, Ordering::Relaxed);
+                    // The first and then one line per 1000 more, not one per commit.
+                    if before == 0 || before / 1000 != (before + ignored) / 1000 {
+                        tracing::warn!(duplicates = before + ignored, "recorder: readings not stored, the database already holds their channel at the same millisecond (the wall clock set back?); the ones recorded first are kept");
+                    }
+                }
                 if outbox {
                     self.outbox.notify_one();
                 }

@@ -3,7 +3,7 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use rusqlite::{params, Connection, OptionalExtension};
+use rusqlite::{params, Connection, OptionalExtension, TransactionBehavior};
 
 use super::{Record, RecordError};
 
@@ -176,7 +176,7 @@ impl Statements {
         while self.inserts.len() < rows {
             let n = self.inserts.len() + 1;
             let mut sql = String::from(
-                "INSERT OR REPLACE INTO readings(t_unix_ms, channel, raw, unfiltered_degc, value_degc, quality, reason) VALUES ",
+                "INSERT OR IGNORE INTO readings(t_unix_ms, channel, raw, unfiltered_degc, value_degc, quality, reason) VALUES ",
             );
             for k in 0..n {
                 sql.push_str(if k == 0 {
@@ -191,13 +191,24 @@ impl Statements {
     }
 }
 
-/// Inserts `batch` in one transaction.
+/// Inserts `batch` in one transaction. Returns the readings not stored because the
+/// database holds one of the same channel at the same millisecond.
+///
+/// Such a duplicate is kept, never replaced: (time, channel) is the readings' key
+/// (one b-tree, no separate index), and a plain `INSERT` would fail the whole batch
+/// on it. It happens when the wall clock is set back over recorded time, or when a
+/// device polled every millisecond yields two cycles in one.
 pub fn insert(
     conn: &mut Connection,
     statements: &mut Statements,
     batch: &[Record],
-) -> rusqlite::Result<()> {
-    let tx = conn.transaction()?;
+) -> rusqlite::Result<u64> {
+    // IMMEDIATE: the write lock is taken at BEGIN, where SQLite waits out the busy
+    // timeout. A deferred transaction whose first statement reads (the channel id
+    // lookup) gets SQLITE_BUSY at once when another connection (the MQTT outbox)
+    // writes, without waiting.
+    let tx = conn.transaction_with_behavior(TransactionBehavior::Immediate)?;
+    let mut ignored = 0u64;
     let mut ids: Vec<i64> = Vec::with_capacity(ROWS_PER_INSERT);
     for rec in batch {
         match rec {
@@ -222,7 +233,8 @@ pub fn insert(
                         stmt.raw_bind_parameter(at + 6, row.quality)?;
                         stmt.raw_bind_parameter(at + 7, row.reason)?;
                     }
-                    stmt.raw_execute()?;
+                    let stored = stmt.raw_execute()?;
+                    ignored += chunk.len().saturating_sub(stored) as u64;
                 }
             }
             Record::Job {
@@ -254,7 +266,8 @@ pub fn insert(
             }
         }
     }
-    tx.commit()
+    tx.commit()?;
+    Ok(ignored)
 }
 
 /// Deletes readings, jobs and NC rows older than `cutoff_unix_ms`.

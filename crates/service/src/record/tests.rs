@@ -186,7 +186,7 @@ fn recorded(spans: &[(i64, i64)]) -> (tempfile::TempDir, std::path::PathBuf) {
     for &(from_s, to_s) in spans {
         for t in from_s..to_s {
             conn.execute(
-                "INSERT INTO readings(t_unix_ms, channel, value_degc, quality) VALUES (?1, 1, ?2, 0)",
+                "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 1, 12000.0, ?2, 0)",
                 rusqlite::params![t * 1000, 20.0 + t as f64 / 1000.0],
             )
             .unwrap();
@@ -242,7 +242,7 @@ fn a_channel_reading_no_temperature_is_left_out_and_named() {
         .unwrap();
     for t in 0..10 {
         conn.execute(
-            "INSERT INTO readings(t_unix_ms, channel, value_degc, quality) VALUES (?1, 2, ?2, 0)",
+            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 2, 0.0, ?2, 0)",
             rusqlite::params![t * 1000, -250.0 + t as f64],
         )
         .unwrap();
@@ -421,4 +421,147 @@ fn a_database_left_alone_is_not_reopened() {
     let (path, stats) = record_across(&dir, |_| {});
     assert_eq!(values_of_t_a(&path).len(), 10);
     assert_eq!(stats.reopened.load(Ordering::Relaxed), 0);
+}
+
+// Two gateways on one database would mix their rows: the second recorder is refused
+// while the first lives, naming the database; once the first is gone (its process
+// ended, here its recorder dropped) the lock is free again.
+#[test]
+fn a_second_recorder_on_one_database_is_refused_while_the_first_runs() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cfg = RecorderConfig {
+        path: dir.path().join("r.db").display().to_string(),
+        ..RecorderConfig::default()
+    };
+    let first = Recorder::start(&cfg).expect("starts");
+    let e = Recorder::start(&cfg).expect_err("a second recorder is refused");
+    assert!(matches!(e, RecordError::InUse { .. }), "{e:?}");
+    let text = e.to_string();
+    assert!(
+        text.contains(&cfg.path) && text.contains("another gateway records into it"),
+        "{text}"
+    );
+    // Readers are not locked out.
+    assert!(export::open_read_only(first.path()).is_ok());
+    first.finish();
+    Recorder::start(&cfg)
+        .expect("starts after the first stopped")
+        .finish();
+}
+
+// A reading whose channel the database already holds at the same millisecond (the
+// wall clock set back) is not stored and counted; the one recorded first stays.
+// Before, `INSERT OR REPLACE` overwrote the recorded row silently.
+#[test]
+fn a_duplicate_reading_never_replaces_a_recorded_one_and_is_counted() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut conn = open(&dir.path().join("d.db")).expect("opens");
+    let mut statements = schema::Statements::default();
+    let names: Arc<[String]> = Arc::from(vec!["T_a".to_string(), "T_b".to_string()]);
+    let at = |t_unix_ms: i64, v: f64| Record::Cycle {
+        t_unix_ms,
+        names: names.clone(),
+        rows: vec![reading(0, v, 0), reading(1, v, 0)],
+    };
+    let ignored = schema::insert(&mut conn, &mut statements, &[at(1_000, 20.0)]).expect("insert");
+    assert_eq!(ignored, 0);
+    let ignored = schema::insert(
+        &mut conn,
+        &mut statements,
+        &[at(1_000, 99.0), at(2_000, 21.0)],
+    )
+    .expect("insert");
+    assert_eq!(ignored, 2, "both channels of the repeated millisecond");
+    let values: Vec<f64> = conn
+        .prepare("SELECT value_degc FROM readings WHERE channel = (SELECT id FROM channels WHERE name = 'T_a') ORDER BY t_unix_ms")
+        .expect("query")
+        .query_map([], |r| r.get(0))
+        .expect("rows")
+        .collect::<Result<_, _>>()
+        .expect("rows");
+    assert_eq!(values, [20.0, 21.0], "the first recording kept");
+
+    // Through the writer: counted in the stats.
+    let cfg = RecorderConfig {
+        path: dir.path().join("w.db").display().to_string(),
+        commit_interval_s: 0.05,
+        ..RecorderConfig::default()
+    };
+    let rec = Recorder::start(&cfg).expect("starts");
+    let tx = rec.sender();
+    let stats = tx.stats().clone();
+    tx.send(at(5_000, 20.0));
+    tx.send(at(5_000, 30.0));
+    drop(tx);
+    rec.finish();
+    assert_eq!(stats.duplicate_readings.load(Ordering::Relaxed), 2);
+    assert_eq!(stats.dropped_write.load(Ordering::Relaxed), 0);
+}
+
+// Another connection (the MQTT outbox) holds the write lock when a commit starts:
+// the commit waits for it (busy timeout) instead of failing at once. A deferred
+// transaction that first read the channel ids got SQLITE_BUSY on its first insert
+// without waiting, and the batch was dropped.
+#[test]
+fn a_commit_waits_for_another_writer_instead_of_failing() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("busy.db");
+    let mut conn = open(&path).expect("opens");
+    let other = open(&path).expect("opens");
+    other
+        .execute_batch(
+            "BEGIN IMMEDIATE; INSERT INTO mqtt_outbox(topic, payload) VALUES ('t', 'p');",
+        )
+        .expect("holds the write lock");
+    let (started_tx, started_rx) = mpsc::channel();
+    let writer = std::thread::spawn(move || {
+        let names: Arc<[String]> = Arc::from(vec!["T_a".to_string()]);
+        started_tx.send(()).expect("main waits");
+        // A fresh statement cache: the transaction starts with the channel id lookup.
+        schema::insert(
+            &mut conn,
+            &mut schema::Statements::default(),
+            &[cycle(&names, 1.0)],
+        )
+    });
+    started_rx.recv().expect("writer started");
+    // Long enough for the insert to meet the lock (it does not matter if it does
+    // not: the test then passes either way, it cannot fail spuriously).
+    std::thread::sleep(Duration::from_millis(200));
+    other.execute_batch("COMMIT;").expect("commits");
+    let result = writer.join().expect("writer thread");
+    assert_eq!(result.expect("the commit waited for the lock"), 0);
+}
+
+// `validate` runs this check: a database in a missing directory, or one this process
+// cannot write, is refused naming recorder.path and the file, and nothing is
+// created.
+#[test]
+fn check_path_refuses_a_missing_directory_and_creates_nothing() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let missing = dir.path().join("nodir").join("sub").join("g.db");
+    let e = check_path(&missing).expect_err("refused");
+    let text = e.to_string();
+    assert!(
+        text.starts_with("recorder.path")
+            && text.contains(&missing.display().to_string())
+            && text.contains(&format!(
+                "the directory {} does not exist",
+                missing.parent().unwrap().display()
+            )),
+        "{text}"
+    );
+    assert!(!dir.path().join("nodir").exists(), "nothing created");
+    let e = check_path(dir.path()).expect_err("a directory is no database");
+    assert!(e.to_string().contains("is a directory"), "{e}");
+    let fresh = dir.path().join("g.db");
+    check_path(&fresh).expect("a new database in a writable directory");
+    assert!(!fresh.exists(), "nothing created");
+    // The same check in `run`: the message names the directory.
+    let cfg = RecorderConfig {
+        path: missing.display().to_string(),
+        ..RecorderConfig::default()
+    };
+    let e = Recorder::start(&cfg).expect_err("refused");
+    assert!(e.to_string().contains("does not exist"), "{e}");
 }
