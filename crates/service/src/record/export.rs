@@ -1,14 +1,19 @@
 //! `compgate export`: recorded operation as the measurement CSV that `calibrate` and
 //! `diagnose` read ([`compgate_core::measure`]).
 //!
-//! Rows lie on a grid of `step_s` from `--since`; each row holds, per channel, the
-//! last filtered value recorded at or before that time with a usable quality
-//! (good or uncertain), so a bad reading never reaches a model fit. Rows where a
-//! channel has had no usable value yet, or none for `--max-hold-s`, are left out: a
-//! value held across a gap in the record (the gateway stopped, a sensor bad for an
-//! hour) would be a measurement nobody made. An export without a row is an error, and
-//! so is one whose grid is too large to be a typo-free window.
+//! Rows lie on a grid of `step_s` from `--since`, up to the last reading in the
+//! window; each row holds, per channel, the last filtered value measured at or
+//! before that time with a usable quality (good or uncertain), so a bad reading
+//! never reaches a model fit. A reading without a raw value (the device did not
+//! answer: the gateway held the value, quality `comm` and the like) is no
+//! measurement: it does not refresh the value's age. Rows where a channel has had no
+//! usable value yet, or none for `--max-hold-s`, are left out: a value held across a
+//! gap in the record (the gateway stopped, a device away, a sensor bad for an hour)
+//! would be a measurement nobody made. An export without a row is an error, and so is
+//! one whose grid is too large to be a typo-free window.
 //!
+//! - `t_s`: seconds since the first exported row (so an early `--since` does not
+//!   push it past what `calibrate` takes).
 //! - `T_<name>`: one column per recorded channel (a channel named `T_bed` gives the
 //!   column `T_bed`, a channel `bed` gives `T_bed` too).
 //! - `pos_mm`: the NC's actual position of `--axis`, as recorded each status tick;
@@ -124,6 +129,13 @@ fn parse_time(conn: &Connection, flag: &'static str, text: &str) -> Result<i64, 
     })
 }
 
+/// The filtered value of a recorded reading if it is a measurement of its cycle: a
+/// usable quality (good or uncertain) and a raw value. Without one the device did not
+/// answer and the gateway held its last value: a gap, not a measurement.
+fn measured(value_degc: Option<f64>, quality: u8, sampled: bool) -> Option<f64> {
+    value_degc.filter(|v| sampled && quality < 2 && v.is_finite())
+}
+
 /// Reads the record between `since` and `until` into a measurement series.
 pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), ExportError> {
     let path = args.db.display().to_string();
@@ -185,11 +197,13 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
 
     // Readings in the window, in time order.
     let mut stmt = conn
-        .prepare("SELECT t_unix_ms, channel, value_degc, quality FROM readings WHERE t_unix_ms >= ?1 AND t_unix_ms < ?2 ORDER BY t_unix_ms")
+        .prepare("SELECT t_unix_ms, channel, value_degc, quality, raw IS NOT NULL FROM readings WHERE t_unix_ms >= ?1 AND t_unix_ms < ?2 ORDER BY t_unix_ms")
         .map_err(db)?;
-    let readings: Vec<(i64, i64, Option<f64>, u8)> = stmt
+    // The value only when it was measured in that cycle with a usable quality.
+    let readings: Vec<(i64, i64, Option<f64>)> = stmt
         .query_map(params![since, until], |r| {
-            Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?))
+            let (v, q, sampled): (Option<f64>, u8, bool) = (r.get(2)?, r.get(3)?, r.get(4)?);
+            Ok((r.get(0)?, r.get(1)?, measured(v, q, sampled)))
         })
         .and_then(|rows| rows.collect())
         .map_err(db)?;
@@ -221,7 +235,8 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
         ));
     };
     let grid_start = since + (first.0 - since) / step_ms * step_ms;
-    let grid_end = until.min(last_t.0 + hold_ms + 1);
+    // No row after the last reading: past it the gateway recorded nothing.
+    let grid_end = until.min(last_t.0 + 1);
     let grid_rows = (grid_end - grid_start) / step_ms;
     if grid_rows > MAX_GRID_ROWS {
         return Err(ExportError::Arg {
@@ -242,8 +257,8 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
     // --err-channel) would make calibrate refuse the whole file: it is left out, and
     // said. Its most extreme usable value names it.
     let mut not_degc: BTreeMap<i64, f64> = BTreeMap::new();
-    for &(_, ch, v, q) in &readings {
-        let Some(v) = v.filter(|x| q < 2 && x.is_finite()) else {
+    for &(_, ch, v) in &readings {
+        let Some(v) = v else {
             continue;
         };
         if Some(ch) != err_id && !(TEMP_DEGC_MIN..=TEMP_DEGC_MAX).contains(&v) {
@@ -294,13 +309,13 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
     let (mut ri, mut pi) = (0, 0);
     let mut grid = grid_start;
     let mut dir: i8 = 0;
+    let mut first_row: Option<i64> = None;
     while grid < grid_end {
-        while let Some(&(t, ch, v, q)) = readings.get(ri) {
+        while let Some(&(t, ch, v)) = readings.get(ri) {
             if t > grid {
                 break;
             }
-            let usable = v.filter(|x| q < 2 && x.is_finite());
-            if let Some(v) = usable {
+            if let Some(v) = v {
                 if Some(ch) == err_id {
                     last_err = Some((t, v));
                 } else if let Some(&c) = col.get(&ch) {
@@ -342,7 +357,8 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             // the exported window.
             let travel = if m.is_empty() { 0.0 } else { moved_mm };
             moved_mm = 0.0;
-            m.t_s.push((grid - since) as f64 / 1000.0);
+            let t0 = *first_row.get_or_insert(grid);
+            m.t_s.push((grid - t0) as f64 / 1000.0);
             m.pos_mm.push(pos);
             m.err_um.push(last_err.map_or(0.0, |(_, v)| v));
             m.dir.push(dir);
@@ -379,7 +395,7 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             "no temperature channel has a reading in the window".to_string()
         } else if !never.is_empty() {
             format!(
-                "no usable (good or uncertain) value of {} in the window",
+                "no measured value of usable quality (good or uncertain) of {} in the window",
                 never.join(", ")
             )
         } else if stale_rows > 0 {
@@ -409,6 +425,7 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
 /// reaches those through here without `--out`).
 pub fn run(args: &ExportArgs) -> Result<ExportSummary, ExportError> {
     if let Some(out) = &args.out {
+        refuse_database_files(&args.db, out)?;
         compgate_core::outputs::check(&[&args.db], &[out])
             .map_err(|e| ExportError::Write(e.to_string()))?;
     }
@@ -423,6 +440,42 @@ pub fn run(args: &ExportArgs) -> Result<ExportSummary, ExportError> {
     compgate_core::outputs::write(out, csv)
         .map_err(|e| ExportError::Write(format!("{}: {e}", out.display())))?;
     Ok(summary)
+}
+
+/// Files SQLite and the recorder keep beside the database: written over while a
+/// gateway records, the WAL's committed transactions would be lost.
+const DATABASE_SUFFIXES: [&str; 5] = ["", "-wal", "-shm", "-journal", ".lock"];
+
+/// Refuses an `out` that names the database or one of its companion files, however
+/// spelled (`./db/../db/g.db-wal`): the directories are compared canonicalized, the
+/// file names as given. The companions may not exist yet when the export runs, so
+/// comparing files (as `outputs::check` does) does not catch them.
+fn refuse_database_files(db: &Path, out: &Path) -> Result<(), ExportError> {
+    let split = |p: &Path| -> Option<(PathBuf, std::ffi::OsString)> {
+        let dir = match p.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => Path::new("."),
+        };
+        Some((dir.canonicalize().ok()?, p.file_name()?.to_owned()))
+    };
+    let (Some((db_dir, db_name)), Some((out_dir, out_name))) = (split(db), split(out)) else {
+        return Ok(());
+    };
+    if db_dir != out_dir {
+        return Ok(());
+    }
+    for suffix in DATABASE_SUFFIXES {
+        let mut name = db_name.clone();
+        name.push(suffix);
+        if name == out_name {
+            return Err(ExportError::Write(format!(
+                "--out {}: is the recorder database {}{suffix}; refusing to overwrite it",
+                out.display(),
+                db.display()
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// Opens `path` read-only, for tests and tools.

@@ -214,13 +214,13 @@ fn export_holds_a_value_at_most_max_hold_s_across_a_gap() {
     // Recorded 0..10 s, nothing for an hour, then 4000..4010 s.
     let (_dir, db) = recorded(&[(0, 10), (4000, 4010)]);
     let (m, summary) = export::measurements(&export_args(&db, 0, 100_000)).unwrap();
-    // Each span, and 60 s held after its last reading; neither the gap nor the window
-    // past the record is filled.
+    // Each span, the first held 60 s into the gap; neither the rest of the gap nor
+    // the window past the record's last reading is filled.
     let t_s = &m.t_s;
-    assert_eq!(m.len(), 2 * (10 + 60), "{t_s:?}");
+    assert_eq!(m.len(), 10 + 60 + 10, "{t_s:?}");
     assert!(t_s
         .iter()
-        .all(|t| *t <= 69.0 || (4000.0..=4069.0).contains(t)));
+        .all(|t| *t <= 69.0 || (4000.0..=4009.0).contains(t)));
     let held = m.temp("a").unwrap();
     assert_eq!(held[69], 20.009, "the last reading of the first span, held");
     assert!(
@@ -228,10 +228,10 @@ fn export_holds_a_value_at_most_max_hold_s_across_a_gap() {
         "{:?}",
         summary.notes
     );
-    // A longer hold fills the gap, and the window's end bounds it.
+    // A longer hold fills the gap; the last reading ends the rows.
     let mut args = export_args(&db, 0, 5000);
     args.max_hold_s = 4000.0;
-    assert_eq!(export::measurements(&args).unwrap().0.len(), 5000);
+    assert_eq!(export::measurements(&args).unwrap().0.len(), 4010);
 }
 
 #[test]
@@ -564,4 +564,107 @@ fn check_path_refuses_a_missing_directory_and_creates_nothing() {
     };
     let e = Recorder::start(&cfg).expect_err("refused");
     assert!(e.to_string().contains("does not exist"), "{e}");
+}
+
+// A device outage: the gateway records its channels' held values as uncertain (comm)
+// without a raw value. Those are no measurements: the rows of the outage are left out
+// once the last measured value is older than --max-hold-s, as for a gap in the
+// record. Before, each comm row counted as fresh and the outage was exported as a
+// constant temperature.
+#[test]
+fn held_values_of_a_device_outage_are_a_gap_not_measurements() {
+    // Measured 0..10 s, then 20 s of comm rows holding 20.009, then measured again.
+    let (_dir, db) = recorded(&[(0, 10), (30, 40)]);
+    let conn = schema::open(&db).unwrap();
+    for t in 10..30 {
+        conn.execute(
+            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality, reason) VALUES (?1, 1, NULL, 20.009, 1, 'comm')",
+            [t * 1000],
+        )
+        .unwrap();
+    }
+    let mut args = export_args(&db, 0, 100);
+    args.max_hold_s = 2.0;
+    let (m, summary) = export::measurements(&args).unwrap();
+    let t_s = &m.t_s;
+    // 0..=9 measured, 10 and 11 within the 2 s hold, then nothing until 30.
+    assert_eq!(m.len(), 12 + 10, "{t_s:?}");
+    assert!(
+        t_s.iter().all(|t| *t <= 11.0 || *t >= 30.0),
+        "no row in the outage: {t_s:?}"
+    );
+    assert!(
+        summary
+            .notes
+            .iter()
+            .any(|n| n.starts_with("18 rows left out")),
+        "{:?}",
+        summary.notes
+    );
+}
+
+// The rows end at the last reading, not --max-hold-s after it; t_s counts from the
+// first row, so an early --since gives times `calibrate` takes.
+#[test]
+fn rows_stop_at_the_last_reading_and_t_s_counts_from_the_first_row() {
+    let (dir, db) = recorded(&[(1_000_000_000, 1_000_000_010)]);
+    schema::open(&db)
+        .unwrap()
+        .execute(
+            "UPDATE readings SET value_degc = 25.0 + (t_unix_ms % 10000) / 1000.0",
+            [],
+        )
+        .unwrap();
+    let (m, _) = export::measurements(&export_args(&db, 0, 2_000_000_000)).unwrap();
+    assert_eq!(m.t_s, (0..10).map(f64::from).collect::<Vec<_>>());
+    assert_eq!(m.temp("a").unwrap().last(), Some(&34.0), "the last reading");
+    // The written file is one calibrate reads back.
+    let out = dir.path().join("m.csv");
+    let mut args = export_args(&db, 0, 2_000_000_000);
+    args.out = Some(out.clone());
+    export::run(&args).unwrap();
+    let back = compgate_core::measure::Measurements::read_path(&out).expect("reads back");
+    assert_eq!(back.len(), 10);
+}
+
+// `--out` naming the database's -wal, -shm, -journal or lock file, in any spelling,
+// is refused whether or not that file exists now (a running gateway's WAL holds
+// committed transactions not yet in the database).
+#[test]
+fn an_output_on_the_databases_companion_files_is_refused() {
+    let (dir, db) = recorded(&[(0, 10)]);
+    let sub = dir.path().join("sub");
+    std::fs::create_dir(&sub).unwrap();
+    // A connection keeps the -wal and -shm files in place.
+    let live = schema::open(&db).unwrap();
+    assert!(with_suffix(&db, "-wal").exists());
+    for suffix in ["", "-wal", "-shm", "-journal", ".lock"] {
+        let name = format!("r.db{suffix}");
+        for out in [
+            dir.path().join(&name),
+            sub.join("..").join(&name),
+            dir.path().join(".").join("sub").join("..").join(&name),
+        ] {
+            let before = std::fs::read(&out).ok();
+            let mut args = export_args(&db, 0, 10);
+            args.out = Some(out.clone());
+            let e = export::run(&args).unwrap_err();
+            assert!(
+                e.to_string().contains("refusing to overwrite"),
+                "{}: {e}",
+                out.display()
+            );
+            assert_eq!(
+                std::fs::read(&out).ok(),
+                before,
+                "{} untouched",
+                out.display()
+            );
+        }
+    }
+    // Another name in the same directory is fine.
+    let mut args = export_args(&db, 0, 10);
+    args.out = Some(sub.join("..").join("r.db.csv"));
+    export::run(&args).unwrap();
+    drop(live);
 }
