@@ -155,6 +155,12 @@ async fn readings_writes_and_health_survive_a_broker_outage() {
         "the write made during the outage was published"
     );
     drop(g);
+    // Logged once going down and once coming back, not at every retry (the broker
+    // was away for about six `retry_s`).
+    tokio::task::block_in_place(|| gw.wait_log(10.0, "MQTT: broker reachable again"));
+    let log = gw.stderr_text();
+    let down = log.matches("MQTT: broker unreachable").count();
+    assert_eq!(down, 1, "{log}");
     assert!(tokio::task::block_in_place(|| gw.stop()));
     sub.abort();
     drop(plant);

@@ -239,16 +239,50 @@ pub async fn publisher(
             return;
         }
     };
+    let mut link = BrokerLink::default();
     while !shutdown.is_cancelled() {
-        match session(&cfg, &db, &outbox, &shutdown, &mut dropped_total).await {
+        match session(&cfg, &db, &outbox, &shutdown, &mut dropped_total, &mut link).await {
             Ok(()) => break,
-            Err(e) => {
-                tracing::warn!(broker = %cfg.broker, error = %e, retry_s = cfg.retry_s, "MQTT: broker unreachable; messages wait in the outbox");
-            }
+            Err(e) => link.failed(&cfg, &e),
         }
         tokio::select! {
             _ = shutdown.cancelled() => break,
             _ = tokio::time::sleep(retry) => {}
+        }
+    }
+}
+
+/// The broker link's state, so that it is logged once per change (down, up again),
+/// never once per retry.
+#[derive(Debug, Default)]
+struct BrokerLink {
+    /// Since when the broker is unreachable, and the connection attempts failed since.
+    down: Option<(Instant, u64)>,
+}
+
+impl BrokerLink {
+    fn failed(&mut self, cfg: &MqttConfig, e: &ServiceError) {
+        match &mut self.down {
+            None => {
+                tracing::warn!(broker = %cfg.broker, error = %e, retry_s = cfg.retry_s, "MQTT: broker unreachable; messages wait in the outbox");
+                self.down = Some((Instant::now(), 1));
+            }
+            Some((_, attempts)) => {
+                *attempts += 1;
+                tracing::debug!(broker = %cfg.broker, error = %e, attempts = *attempts, "MQTT: broker still unreachable");
+            }
+        }
+    }
+
+    fn connected(&mut self, cfg: &MqttConfig) {
+        match self.down.take() {
+            Some((since, attempts)) => tracing::info!(
+                broker = %cfg.broker,
+                down_s = (since.elapsed().as_secs_f64() * 10.0).round() / 10.0,
+                failed_attempts = attempts,
+                "MQTT: broker reachable again; the outbox backlog goes out"
+            ),
+            None => tracing::info!(broker = %cfg.broker, "MQTT connected"),
         }
     }
 }
@@ -335,6 +369,7 @@ async fn session(
     outbox: &Notify,
     shutdown: &CancellationToken,
     dropped_total: &mut u64,
+    link: &mut BrokerLink,
 ) -> Result<(), ServiceError> {
     let (host, port) = cfg
         .broker
@@ -376,7 +411,7 @@ async fn session(
                 match ev.map_err(|e| ServiceError::Mqtt(e.to_string()))? {
                     Event::Incoming(Packet::ConnAck(_)) => {
                         connected = true;
-                        tracing::info!(broker = %cfg.broker, "MQTT connected");
+                        link.connected(cfg);
                     }
                     Event::Outgoing(Outgoing::Publish(pkid)) => {
                         if let Some(row) = sent.pop_front() {
