@@ -65,22 +65,22 @@ pub struct AxisConfig {
     /// Default 0.5; > 0 and <= 10 (SD43900 is limited to
     /// 10 mm by the NC).
     #[serde(default = "default_max_abs_k0_mm")]
-    #[schemars(range(min = 0.0, max = 10.0))]
+    #[schemars(range(max = 10.0), extend("exclusiveMinimum" = 0.0))]
     pub max_abs_k0_mm: f64,
     /// Hard limit of |tan(beta)|; must stay below the NC's MD32760
     /// `$MA_COMP_ADD_VELO_FACTOR`. Default 0.01 (the MD32760 default); > 0 and
     /// <= 0.1.
     #[serde(default = "default_max_abs_tan_beta")]
-    #[schemars(range(min = 0.0, max = 0.1))]
+    #[schemars(range(max = 0.1), extend("exclusiveMinimum" = 0.0))]
     pub max_abs_tan_beta: f64,
     /// Largest change of K0 in one update (mm). Default 0.02; > 0 and <= 10.
     #[serde(default = "default_max_step_k0_mm")]
-    #[schemars(range(min = 0.0, max = 10.0))]
+    #[schemars(range(max = 10.0), extend("exclusiveMinimum" = 0.0))]
     pub max_step_k0_mm: f64,
     /// Largest change of tan(beta) in one update. Default 0.00002; > 0 and
     /// <= 0.1.
     #[serde(default = "default_max_step_tan_beta")]
-    #[schemars(range(min = 0.0, max = 0.1))]
+    #[schemars(range(max = 0.1), extend("exclusiveMinimum" = 0.0))]
     pub max_step_tan_beta: f64,
     /// What to do while an input channel is bad: `hold` the last value or
     /// `ramp_to_zero`. Default `hold`.

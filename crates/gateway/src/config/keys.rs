@@ -5,8 +5,19 @@
 use std::borrow::Cow;
 use std::time::Duration;
 
-/// A key as written in a dotted path: bare when TOML allows it, else quoted.
+/// Longest key written out in a path: every valid key and name fits. A longer one
+/// (a name over the limit, perhaps megabytes) is shown by its first characters and
+/// its length, never echoed.
+const MAX_SHOWN_KEY_CHARS: usize = 64;
+
+/// A key as written in a dotted path: bare when TOML allows it, else quoted; one
+/// longer than [`MAX_SHOWN_KEY_CHARS`] as `<first 16 characters…, N characters>`.
 pub fn key_segment(k: &str) -> Cow<'_, str> {
+    let n = k.chars().count();
+    if n > MAX_SHOWN_KEY_CHARS {
+        let head: String = k.chars().take(16).collect();
+        return Cow::Owned(format!("<{}…, {n} characters>", key_segment(&head)));
+    }
     if !k.is_empty()
         && k.chars()
             .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')

@@ -503,10 +503,11 @@ fn names<'n>(out: &mut Problems<'_>, section: &str, names: impl Iterator<Item = 
             out.push(key, "name must not be empty");
             continue;
         }
-        if name.chars().count() > MAX_NAME_LEN {
+        let len = name.chars().count();
+        if len > MAX_NAME_LEN {
             out.push(
                 key.clone(),
-                format!("name is longer than {MAX_NAME_LEN} characters"),
+                format!("name of {len} characters, longer than {MAX_NAME_LEN}"),
             );
         }
         if !name

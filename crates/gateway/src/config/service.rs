@@ -106,6 +106,7 @@ pub struct MetricsConfig {
     /// unit's `LimitNOFILE=` so HTTP clients cannot starve the Modbus, CAN and NC links
     /// of descriptors.
     #[serde(default = "default_metrics_max_connections")]
+    #[schemars(range(min = 1, max = METRICS_MAX_CONNECTIONS))]
     pub max_connections: u32,
     /// Serve the live status page on the same listener: `GET /` (devices, channels
     /// with trends, axes, NC, last NC jobs; read-only, no internet needed) and

@@ -10,13 +10,14 @@
 //! The schema is the subset of JSON Schema that `schemars` writes for the config
 //! structs: `$ref` into `$defs`, `allOf`, `oneOf` (tagged tables and documented enum
 //! values), `anyOf` (an optional value), `type`, `properties`, `required`,
-//! `additionalProperties`, `enum`, `const`, `minimum`, `maximum`, `maxLength` and
-//! `items`.
+//! `additionalProperties`, `enum`, `const`, `minimum`, `exclusiveMinimum`, `maximum`,
+//! `maxLength` and `items`.
 //!
 //! # Ranges
 //!
 //! Every numeric key's range and every text key's longest length is declared once,
-//! on its field (`#[schemars(range(min = .., max = ..))]`,
+//! on its field (`#[schemars(range(min = .., max = ..))]`, a key that must be > 0
+//! `#[schemars(range(max = ..), extend("exclusiveMinimum" = 0.0))]`,
 //! `#[schemars(length(max = ..))]`), so the JSON Schema carries it and this walker
 //! checks it: a value outside (integer or float, `nan` included) or a text longer
 //! than allowed is reported with its key and the range, e.g.
@@ -74,6 +75,8 @@ struct View<'s> {
     additional: Option<&'s Json>,
     values: Option<Vec<&'s Json>>,
     min: Option<f64>,
+    /// `exclusiveMinimum`: the value must be above it.
+    above: Option<f64>,
     max: Option<f64>,
     max_len: Option<u64>,
     items: Option<&'s Json>,
@@ -170,6 +173,9 @@ impl<'s> Walker<'s> {
         }
         if let Some(m) = o.get("minimum").and_then(Json::as_f64) {
             v.min = Some(m);
+        }
+        if let Some(m) = o.get("exclusiveMinimum").and_then(Json::as_f64) {
+            v.above = Some(m);
         }
         if let Some(m) = o.get("maximum").and_then(Json::as_f64) {
             v.max = Some(m);
@@ -334,8 +340,9 @@ impl<'s> Walker<'s> {
                     _ => f64::NAN,
                 };
                 // `nan` is outside every declared range.
-                let out = (x.is_nan() && (v.min.is_some() || v.max.is_some()))
+                let out = (x.is_nan() && (v.min.is_some() || v.above.is_some() || v.max.is_some()))
                     || v.min.is_some_and(|m| x < m)
+                    || v.above.is_some_and(|m| x <= m)
                     || v.max.is_some_and(|m| x > m);
                 if out {
                     self.push(
@@ -607,13 +614,16 @@ fn expected(v: &View<'_>) -> String {
     texts.join(" or ")
 }
 
-/// ` lo..=hi`, ` >= lo`, ` <= hi` or nothing.
+/// ` lo..=hi`, ` > lo and <= hi`, ` >= lo`, ` > lo`, ` <= hi` or nothing: the
+/// words the stages' validation uses for the same range.
 fn range_text(v: &View<'_>) -> String {
-    match (v.min, v.max) {
-        (Some(lo), Some(hi)) => format!(" {}..={}", number(lo), number(hi)),
-        (Some(lo), None) => format!(" >= {}", number(lo)),
-        (None, Some(hi)) => format!(" <= {}", number(hi)),
-        (None, None) => String::new(),
+    match (v.min, v.above, v.max) {
+        (_, Some(lo), Some(hi)) => format!(" > {} and <= {}", number(lo), number(hi)),
+        (_, Some(lo), None) => format!(" > {}", number(lo)),
+        (Some(lo), None, Some(hi)) => format!(" {}..={}", number(lo), number(hi)),
+        (Some(lo), None, None) => format!(" >= {}", number(lo)),
+        (None, None, Some(hi)) => format!(" <= {}", number(hi)),
+        (None, None, None) => String::new(),
     }
 }
 

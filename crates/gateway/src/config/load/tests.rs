@@ -636,7 +636,89 @@ fn a_huge_coefficient_names_the_key_and_the_range() {
 fn a_huge_limit_names_the_key_and_the_range() {
     let p = only_problem("max_abs_k0_mm = 0.5", "max_abs_k0_mm = 1e308");
     assert_eq!(p.key, "axes.X.max_abs_k0_mm", "{p}");
-    assert!(p.message.ends_with("expected a number 0..=10"), "{p}");
+    assert!(
+        p.message.ends_with("expected a number > 0 and <= 10"),
+        "{p}"
+    );
+}
+
+// A limit that must be > 0: the JSON Schema says `exclusiveMinimum` (an editor
+// checking against it accepted 0, which validate refused), and the structural check
+// and a type error state the range validation states: > 0 and <= 10.
+#[test]
+fn a_limit_that_must_be_positive_says_so_in_the_schema_and_every_message() {
+    let schema = crate::config::json_schema();
+    let axis = &schema["$defs"]["AxisConfig"]["properties"];
+    for (key, max) in [
+        ("max_abs_k0_mm", 10.0),
+        ("max_step_k0_mm", 10.0),
+        ("max_abs_tan_beta", 0.1),
+        ("max_step_tan_beta", 0.1),
+    ] {
+        assert_eq!(axis[key]["exclusiveMinimum"], 0.0, "{key}: {}", axis[key]);
+        assert!(axis[key].get("minimum").is_none(), "{key}: {}", axis[key]);
+        assert_eq!(axis[key]["maximum"], max, "{key}");
+    }
+    let p = only_problem("max_step_k0_mm = 0.02", "max_step_k0_mm = 0");
+    assert_eq!(p.key, "axes.X.max_step_k0_mm", "{p}");
+    assert_eq!(
+        p.message,
+        "invalid value: integer `0`, expected a number > 0 and <= 10"
+    );
+    let p = only_problem("max_step_k0_mm = 0.02", "max_step_k0_mm = \"abc\"");
+    assert_eq!(
+        p.message,
+        "invalid type: string \"abc\", expected a number > 0 and <= 10"
+    );
+    let p = only_problem("max_abs_tan_beta = 0.01", "max_abs_tan_beta = -0.0");
+    assert!(
+        p.message.ends_with("expected a number > 0 and <= 0.1"),
+        "{p}"
+    );
+}
+
+// metrics.max_connections had no range in the schema (an editor accepted 0 and 10^9;
+// a type error said ">= 0").
+#[test]
+fn metrics_max_connections_has_its_range_in_the_schema() {
+    let p = problems(&format!("{EXAMPLE}\n[metrics]\nmax_connections = 0\n"));
+    assert_eq!(p.len(), 1, "{p:#?}");
+    assert_eq!(p[0].key, "metrics.max_connections");
+    assert_eq!(
+        p[0].message,
+        "invalid value: integer `0`, expected an integer 1..=256"
+    );
+}
+
+// A name over 64 characters (perhaps megabytes) is reported by its length and first
+// characters, in its key path too, never echoed.
+#[test]
+fn a_name_too_long_is_reported_by_its_length_not_echoed() {
+    let long = format!("T_{}", "t".repeat(1 << 20));
+    let text = EXAMPLE.replace("T_bed", &long);
+    let p = problems(&text);
+    assert!(!p.is_empty());
+    for problem in &p {
+        let shown = problem.to_string();
+        assert!(
+            shown.len() < 300,
+            "{} bytes: {}",
+            shown.len(),
+            &shown[..300]
+        );
+    }
+    let name = p
+        .iter()
+        .find(|p| p.key.starts_with("channels."))
+        .expect("the channel's own problem");
+    assert_eq!(
+        name.key,
+        format!("channels.<T_tttttttttttttt…, {} characters>", (1 << 20) + 2)
+    );
+    assert_eq!(
+        name.message,
+        format!("name of {} characters, longer than 64", (1 << 20) + 2)
+    );
 }
 
 #[test]

@@ -313,7 +313,7 @@ fn names() {
         [
             "channels.\"\"",
             "channels.\"T bed\"",
-            format!("channels.{}", "T".repeat(65)).as_str(),
+            "channels.<TTTTTTTTTTTTTTTT…, 65 characters>",
             "channels.T__bed",
             "channels.t_bed",
         ]
