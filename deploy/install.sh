@@ -54,7 +54,10 @@ install -m 0644 README.md /usr/local/share/doc/compgate/README.md
 cp -r docs /usr/local/share/doc/compgate/
 install -m 0644 deploy/compgate.service /etc/systemd/system/compgate.service
 
-/usr/local/bin/compgate validate --config /etc/compgate/compgate.toml
+# validate checks that the recorder can write its database: the state directory as
+# the unit's StateDirectory= makes it, and a relative recorder.path taken from it.
+install -d -m 0750 -o compgate -g compgate /var/lib/compgate
+STATE_DIRECTORY=/var/lib/compgate /usr/local/bin/compgate validate --config /etc/compgate/compgate.toml
 systemctl daemon-reload
 systemctl enable --now compgate.service
 systemctl --no-pager status compgate.service || true
