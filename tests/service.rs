@@ -554,6 +554,37 @@ async fn a_reload_does_not_wait_for_an_outstanding_nc_read() {
         .unwrap();
 }
 
+// A reload that changes [recorder] or [metrics] says they take effect at the next
+// restart, naming them; it used to keep the old ones in silence.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reload_names_the_sections_that_wait_for_a_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let extra = format!(
+        "\n[recorder]\npath = \"{}\"\n\n[metrics]\nbind = \"127.0.0.1:0\"\n",
+        dir.path().join("a.db").display()
+    );
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), &extra).await;
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+    std::fs::write(
+        &path,
+        text.replace("a.db", "b.db")
+            .replace("bind = \"127.0.0.1:0\"", "bind = \"127.0.0.1:1\""),
+    )
+    .unwrap();
+    gw.signal("HUP");
+    let line = tokio::task::block_in_place(|| gw.wait_log(10.0, "take effect at the next restart"));
+    assert!(line.contains("WARN"), "{line}");
+    assert!(line.contains("[recorder], [metrics]"), "{line}");
+    assert!(!line.contains("[mqtt]"), "{line}");
+    tokio::task::block_in_place(|| gw.wait_log(10.0, "configuration reloaded"));
+    assert!(!dir.path().join("b.db").exists());
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
+
 /// GET /metrics; the body.
 fn scrape(port: u16) -> String {
     common::metrics::scrape(port, Duration::from_secs(2))

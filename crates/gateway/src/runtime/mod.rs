@@ -283,6 +283,7 @@ async fn run_built_with(
         match generation(&mut state, &shutdown, &status_tx, &mut hooks).await {
             None => break,
             Some((new_cfg, new_built)) => {
+                reload::warn_restart_only(&cfg, &new_cfg);
                 state = reload::transplant(&cfg, &new_cfg, state, *new_built);
                 cfg = *new_cfg;
                 tracing::info!("configuration reloaded");

@@ -151,3 +151,21 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
     );
     next
 }
+
+/// Logs a WARN naming the service sections that differ in `new_cfg`: they are set up
+/// once at start, and a reload that ignored them silently left the old database,
+/// port or broker in use with nothing saying so.
+pub(super) fn warn_restart_only(old_cfg: &Config, new_cfg: &Config) {
+    let changed: Vec<&str> = [
+        ("[recorder]", old_cfg.recorder != new_cfg.recorder),
+        ("[metrics]", old_cfg.metrics != new_cfg.metrics),
+        ("[mqtt]", old_cfg.mqtt != new_cfg.mqtt),
+    ]
+    .into_iter()
+    .filter_map(|(name, changed)| changed.then_some(name))
+    .collect();
+    if !changed.is_empty() {
+        let sections = changed.join(", ");
+        tracing::warn!(%sections, "reload: {sections} changed in the file and take effect at the next restart; the running ones stay");
+    }
+}
