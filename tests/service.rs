@@ -484,6 +484,26 @@ async fn sigterm_abandons_a_job_in_flight_after_a_short_grace() {
     drop(plant);
 }
 
+// A second stop signal does not wait for the job's grace: the gateway stops at once
+// (after the recorder's final commit). It used to be ignored.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_second_stop_signal_stops_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, mut gw) = gateway_with_a_job_in_flight(dir.path()).await;
+    gw.signal("TERM");
+    tokio::task::block_in_place(|| gw.wait_log(10.0, "SIGTERM: stopping"));
+    // The first signal's grace is 2 s: a machine stalled longer than that lets the
+    // gateway stop before the second signal, and there is nothing to check.
+    let running = gw.child.try_wait().unwrap().is_none();
+    gw.signal("INT");
+    assert!(tokio::task::block_in_place(|| wait_exit(&mut gw)));
+    if running {
+        let line = gw.wait_log(1.0, "Ctrl-C again: stopping now");
+        assert!(line.contains("WARN"), "{line}");
+    }
+    drop(plant);
+}
+
 /// Counts the reloads that took effect.
 struct Reloads(std::sync::Arc<std::sync::atomic::AtomicUsize>);
 
