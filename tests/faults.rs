@@ -233,8 +233,9 @@ async fn nc_unreachable_while_temperatures_change() {
                 .is_some_and(|v| (v - 40.0).abs() <= COUNT_DEGC)
     })
     .await;
-    // The last position read is not shown as if it were live.
+    // The last position read is not shown as if it were live, nor the last decision.
     assert!(s.axes[0].nc.is_none(), "{:?}", s.axes[0].nc);
+    assert_eq!(s.axes[0].decision, "hold: NC unreachable");
     // The temperatures are still followed; nothing reaches the NC; nothing is taken as written.
     let v = reading(&s, "T_bed").value_degc.expect("a value");
     assert!((v - 40.0).abs() <= COUNT_DEGC);
@@ -267,10 +268,13 @@ async fn an_nc_that_lost_its_values_is_ramped_again_from_what_it_holds() {
         .unwrap();
     let nc = plant.nc["nc_x"].clone();
     let (rx, shutdown, h) = run_gateway(plant.config.clone());
-    wait(&rx, 10.0, "ramped to 0.04", |s| {
+    // Done ramping: no job is on its way when the NC loses its values (one decided
+    // from the old baseline before the next snapshot would still land in one step).
+    wait(&rx, 10.0, "ramped to 0.04 and within the deadband", |s| {
         s.axes[0]
             .written
             .is_some_and(|p| (p.k0_mm - 0.04).abs() < 0.001)
+            && s.axes[0].decision == "within deadband"
     })
     .await;
     let jobs = nc.jobs_executed();

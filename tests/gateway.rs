@@ -415,6 +415,9 @@ async fn one_dead_device_does_not_stop_the_other() {
     rig.stop().await;
 }
 
+// An NC whose MD32750 is not the config's runs another compensation type: the axis
+// holds and says why. An axis not referenced still gets its setting data (the NC
+// applies them once referenced), with a warning of its own next to the MD32750 one.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn md32750_mismatch_and_unreferenced_axis_are_shown() {
     let toml = config("hold", "", "").replace(
@@ -423,30 +426,88 @@ async fn md32750_mismatch_and_unreferenced_axis_are_shown() {
     );
     let mut rig = start(&toml).await;
     let s = rig
-        .wait_for(10.0, "a warning about the NC", |s| {
-            s.axes[0].warning.is_some()
+        .wait_for(10.0, "the axis holding for MD32750", |s| {
+            s.axes[0].decision.contains("MD32750")
         })
         .await;
+    assert_eq!(
+        s.axes[0].decision,
+        "hold: MD32750 is 1 on the NC, the config expects 3"
+    );
     let w = s.axes[0].warning.clone().unwrap();
     assert!(
         w.contains("MD32750 is 1 on the NC, the config expects 3"),
         "{w}"
     );
-    // The settings are still written; the NC applies nothing until referenced.
+    assert!(w.contains("axis not referenced"), "{w}");
+    // Many updates later (polls are 50 ms, updates 100 ms): still nothing written.
+    let samples = s.samples;
     let s = rig
-        .wait_for(10.0, "a job", |s| s.axes[0].jobs_ok >= 1)
+        .wait_for(10.0, "40 more samples", |s| s.samples >= samples + 40)
         .await;
+    assert_eq!(rig.plant.nc["nc_x"].jobs_executed(), 0);
+    assert_eq!(s.axes[0].jobs_ok + s.axes[0].jobs_failed, 0);
+    assert_eq!(rig.plant.nc["nc_x"].state().sd43900_mm, 0.0);
+
+    // MD32750 put right, the axis still not referenced: the settings are written; the
+    // NC applies nothing until referenced.
+    rig.plant.nc["nc_x"].with_state(|a| a.md32750 = 3);
+    let s = rig
+        .wait_for(10.0, "a job once MD32750 matches", |s| {
+            s.axes[0].jobs_ok >= 1
+        })
+        .await;
+    let w = s.axes[0].warning.clone().unwrap_or_default();
+    assert!(w.contains("axis not referenced"), "{w}");
+    assert!(!w.contains("MD32750"), "{w}");
     assert_eq!(s.axes[0].nc.map(|nc| nc.applied_comp_mm), Some(0.0));
-    rig.plant.nc["nc_x"].with_state(|a| {
-        a.md32750 = 3;
-        a.referenced = true;
-    });
+    rig.plant.nc["nc_x"].with_state(|a| a.referenced = true);
     let s = rig
         .wait_for(10.0, "warnings clear once the NC is right", |s| {
             s.axes[0].warning.is_none() && s.axes[0].nc.is_some_and(|nc| nc.applied_comp_mm > 0.0)
         })
         .await;
     assert!(render_has_no_warning(&s));
+    rig.stop().await;
+}
+
+// `gateway.status_interval_s` is a display setting: at 1 ms it must not read the NC
+// once per millisecond. Over a stretch of at least 2 s (40 polls of 50 ms) the NC
+// serves a snapshot (2 requests) at most once a second, plus what the jobs cost.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fast_status_interval_does_not_flood_the_nc() {
+    let toml =
+        config("hold", "", "").replace("status_interval_s = 0.05", "status_interval_s = 0.001");
+    assert!(toml.contains("status_interval_s = 0.001"));
+    let mut rig = start(&toml).await;
+    let s = rig
+        .wait_for(10.0, "a verified job", |s| s.axes[0].jobs_ok >= 1)
+        .await;
+    let nc = rig.plant.nc["nc_x"].clone();
+    let (requests, jobs, samples) = (nc.requests_served(), nc.jobs_executed(), s.samples);
+    let started = std::time::Instant::now();
+    // A new temperature: a job must get through at once, not behind snapshot reads.
+    rig.plant.field["ain1"]
+        .set_temperature_override(0, Some(35.0))
+        .unwrap();
+    rig.wait_for(10.0, "the new temperature written", |s| {
+        s.axes[0]
+            .written
+            .is_some_and(|p| (p.k0_mm - 0.06).abs() <= 0.004 * COUNT_DEGC)
+    })
+    .await;
+    rig.wait_for(20.0, "40 more samples", |s| s.samples >= samples + 40)
+        .await;
+    let served = nc.requests_served() - requests;
+    let jobs = nc.jobs_executed() - jobs;
+    let elapsed_s = started.elapsed().as_secs_f64();
+    // A job: the idle check, the pairs, REQ, at least one wait read, the acknowledge
+    // and the read-back (2): at most 20 with waits, generously.
+    let bound = 2.0 * (elapsed_s + 2.0) + 20.0 * jobs as f64;
+    assert!(
+        (served as f64) <= bound,
+        "{served} NC requests in {elapsed_s:.1} s with {jobs} jobs (bound {bound:.0})"
+    );
     rig.stop().await;
 }
 

@@ -87,17 +87,68 @@ async fn the_job_line_names_only_the_variables_written() {
     let dir = tempfile::tempdir().unwrap();
     let base = common::config("hold", "", "");
     let k0 = base.lines().find(|l| l.starts_with("k0 = ")).unwrap();
-    let toml = base.replace(&format!("{k0}\n"), "").replace(
-        "md32750 = 3\np0_mm",
-        "md32750 = 2\nnc_write = [\"sd43910\", \"sd43920\"]\np0_mm",
-    );
+    // The NC runs the position-dependent part only, as the axis expects.
+    let toml = base
+        .replace(&format!("{k0}\n"), "")
+        .replace(
+            "md32750 = 3\np0_mm",
+            "md32750 = 2\nnc_write = [\"sd43910\", \"sd43920\"]\np0_mm",
+        )
+        .replace(
+            "referenced = true\nmd32750 = 3",
+            "referenced = true\nmd32750 = 2",
+        );
     assert!(toml.contains("nc_write"), "{toml}");
+    assert!(!toml.contains("md32750 = 3"), "{toml}");
     let (plant, path) = common::plant_and_file(dir.path(), &toml, "").await;
     let gw = Gateway::start(dir.path(), &path, &[]);
     let line = tokio::task::block_in_place(|| gw.wait_log(10.0, "NC job done"));
+    // Two axes on one target must be told apart: the line names the axis.
+    assert!(line.contains("axis=X"), "{line}");
+    assert!(line.contains("target_name=nc_x"), "{line}");
     assert!(line.contains("written=\"SD43910="), "{line}");
     assert!(line.contains(", SD43920=100 mm\""), "{line}");
     assert!(!line.to_lowercase().contains("sd43900"), "{line}");
+    drop(gw);
+    drop(plant);
+}
+
+// A wrong MD32750 holds the axis: one WARN when it is seen, one INFO when it matches
+// again and the writes resume. An axis not referenced is warned of on its own line,
+// not hidden behind the MD32750 one.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_wrong_md32750_and_an_unreferenced_axis_are_logged_once_per_change() {
+    let dir = tempfile::tempdir().unwrap();
+    let toml = common::config("hold", "", "").replace(
+        "referenced = true\nmd32750 = 3",
+        "referenced = false\nmd32750 = 1",
+    );
+    let (plant, path) = common::plant_and_file(dir.path(), &toml, "").await;
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    let nc = plant.nc["nc_x"].clone();
+    tokio::task::block_in_place(|| {
+        gw.wait_log(10.0, "MD32750 is 1 on the NC");
+        gw.wait_log(10.0, "axis X is not referenced");
+    });
+    // Several snapshots (one a second) and many updates later: no job, no more lines.
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    assert_eq!(nc.jobs_executed(), 0);
+    let line = once(&gw, "MD32750 is 1 on the NC");
+    assert!(line.contains("WARN"), "{line}");
+    assert!(line.contains("the axis holds"), "{line}");
+    assert!(once(&gw, "axis X is not referenced").contains("WARN"));
+
+    nc.with_state(|a| a.md32750 = 3);
+    tokio::task::block_in_place(|| {
+        gw.wait_log(10.0, "matches the config again");
+        gw.wait_log(10.0, "NC job done");
+    });
+    assert!(once(&gw, "matches the config again").contains("INFO"));
+    nc.with_state(|a| a.referenced = true);
+    let line = tokio::task::block_in_place(|| gw.wait_log(10.0, "axis X is referenced again"));
+    assert!(line.contains("INFO"), "{line}");
+    assert_eq!(count(&gw, "MD32750 is 1 on the NC"), 1);
+    assert_eq!(count(&gw, "axis X is not referenced"), 1);
     drop(gw);
     drop(plant);
 }

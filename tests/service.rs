@@ -1,5 +1,8 @@
 //! The shop-floor service: the systemd unit's hardening, sd_notify readiness, watchdog
-//! and status from the real binary, and SIGHUP reload.
+//! and status from the real binary, stopping and SIGHUP reload.
+
+// Test helpers: a panic with the message is the wanted failure.
+#![allow(clippy::unwrap_used)]
 
 mod common;
 
@@ -332,6 +335,274 @@ async fn reload_keeps_the_state_of_unchanged_channels_and_devices() {
         .await
         .unwrap()
         .unwrap();
+}
+
+/// A TCP peer that accepts connections and never answers, as a hung NC or a half-open
+/// link does; counts the connections it accepted.
+struct SilentPeer {
+    addr: String,
+    accepted: std::sync::Arc<std::sync::atomic::AtomicUsize>,
+    stop: CancellationToken,
+}
+
+impl SilentPeer {
+    async fn start() -> Self {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap().to_string();
+        let accepted = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let stop = CancellationToken::new();
+        let (n, s) = (accepted.clone(), stop.clone());
+        tokio::spawn(async move {
+            let mut held = Vec::new();
+            loop {
+                tokio::select! {
+                    () = s.cancelled() => break,
+                    a = listener.accept() => {
+                        if let Ok((stream, _)) = a {
+                            held.push(stream);
+                            n.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                        }
+                    }
+                }
+            }
+        });
+        SilentPeer {
+            addr,
+            accepted,
+            stop,
+        }
+    }
+
+    /// Waits until the gateway has connected (its snapshot read is then outstanding).
+    async fn wait_connected(&self) {
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+        while self.accepted.load(std::sync::atomic::Ordering::SeqCst) == 0 {
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "the gateway never connected to the NC"
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+}
+
+impl Drop for SilentPeer {
+    fn drop(&mut self) {
+        self.stop.cancel();
+    }
+}
+
+/// [`common::config`] with the NC's request and job timeouts at `timeout_s`.
+fn config_with_nc_timeouts(timeout_s: f64) -> String {
+    let toml = common::config("hold", "", "").replace(
+        "timeout_s = 0.5\njob_timeout_s = 0.5",
+        &format!("timeout_s = {timeout_s:?}\njob_timeout_s = {timeout_s:?}"),
+    );
+    assert!(toml.contains(&format!("job_timeout_s = {timeout_s:?}")));
+    toml
+}
+
+/// A plant for `toml` and a config file naming its addresses, the NC at `nc_address`.
+async fn plant_with_nc_at(
+    dir: &std::path::Path,
+    toml: &str,
+    nc_address: &str,
+) -> (Plant, std::path::PathBuf) {
+    let plant = Plant::start(&config::load_str(toml, "t.toml").unwrap(), Bind::Ephemeral)
+        .await
+        .unwrap();
+    let mut cfg = plant.config.clone();
+    cfg.nc_modules.get_mut("nc_x").unwrap().address = nc_address.to_string();
+    let path = dir.join("compgate.toml");
+    std::fs::write(&path, toml::to_string(&cfg).unwrap()).unwrap();
+    (plant, path)
+}
+
+/// Waits up to 10 s for the gateway process to exit; whether it exited successfully.
+fn wait_exit(gw: &mut Gateway) -> bool {
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    while std::time::Instant::now() < deadline {
+        if let Some(st) = gw.child.try_wait().unwrap() {
+            return st.success();
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    panic!(
+        "the gateway did not exit within 10 s:\n{}",
+        gw.stderr_text()
+    );
+}
+
+// An NC that accepts the connection and never answers, with a 60 s request timeout:
+// SIGTERM stops the gateway at once, abandoning the outstanding read. It used to wait
+// out the timeout (up to an hour), and systemd would have killed it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_stops_at_once_with_an_nc_read_outstanding() {
+    let dir = tempfile::tempdir().unwrap();
+    let nc = SilentPeer::start().await;
+    let (plant, path) =
+        plant_with_nc_at(dir.path(), &config_with_nc_timeouts(60.0), &nc.addr).await;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+    nc.wait_connected().await;
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
+
+/// Starts the gateway against an NC whose jobs never finish (job timeout 60 s) and
+/// waits until a job is in flight.
+async fn gateway_with_a_job_in_flight(dir: &std::path::Path) -> (Plant, Gateway) {
+    let toml = config_with_nc_timeouts(60.0);
+    let (plant, path) = common::plant_and_file(dir, &toml, "").await;
+    let nc = plant.nc["nc_x"].clone();
+    nc.set_job_fault(compgate_plc::nc::JobFault::NeverFinish);
+    let gw = Gateway::start(dir, &path, &[]);
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    while nc.job_state() != compgate_ncproto::JobState::Busy {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "no job in flight:\n{}",
+            gw.stderr_text()
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    (plant, gw)
+}
+
+// A job in flight on SIGTERM gets a short grace, not its whole job timeout; then it is
+// abandoned and the log says its outcome is unknown.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_abandons_a_job_in_flight_after_a_short_grace() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, mut gw) = gateway_with_a_job_in_flight(dir.path()).await;
+    gw.signal("TERM");
+    assert!(tokio::task::block_in_place(|| wait_exit(&mut gw)));
+    let line = gw.wait_log(1.0, "NC job abandoned at stop");
+    assert!(line.contains("WARN"), "{line}");
+    assert!(line.contains("whether it landed is unknown"), "{line}");
+    assert!(line.contains("axis=X"), "{line}");
+    drop(plant);
+}
+
+// A second stop signal does not wait for the job's grace: the gateway stops at once
+// (after the recorder's final commit). It used to be ignored.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_second_stop_signal_stops_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, mut gw) = gateway_with_a_job_in_flight(dir.path()).await;
+    gw.signal("TERM");
+    tokio::task::block_in_place(|| gw.wait_log(10.0, "SIGTERM: stopping"));
+    // The first signal's grace is 2 s: a machine stalled longer than that lets the
+    // gateway stop before the second signal, and there is nothing to check.
+    let running = gw.child.try_wait().unwrap().is_none();
+    gw.signal("INT");
+    assert!(tokio::task::block_in_place(|| wait_exit(&mut gw)));
+    if running {
+        let line = gw.wait_log(1.0, "Ctrl-C again: stopping now");
+        assert!(line.contains("WARN"), "{line}");
+    }
+    drop(plant);
+}
+
+/// Counts the reloads that took effect.
+struct Reloads(std::sync::Arc<std::sync::atomic::AtomicUsize>);
+
+impl runtime::Observer for Reloads {
+    fn on_reload(&mut self, result: &Result<(), runtime::GatewayError>) {
+        if result.is_ok() {
+            self.0.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        }
+    }
+}
+
+// A reload while an NC read is outstanding (the NC never answers, 60 s timeout) takes
+// effect between two polls, and the polls go on. It used to freeze polling, recording,
+// the status and the watchdog until the read timed out.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reload_does_not_wait_for_an_outstanding_nc_read() {
+    let nc = SilentPeer::start().await;
+    let toml = config_with_nc_timeouts(60.0);
+    let plant = Plant::start(&config::load_str(&toml, "t.toml").unwrap(), Bind::Ephemeral)
+        .await
+        .unwrap();
+    let mut cfg = plant.config.clone();
+    cfg.nc_modules.get_mut("nc_x").unwrap().address = nc.addr.clone();
+    let (tx, rx) = watch::channel(Status::default());
+    let (reload_tx, reload_rx) = mpsc::channel(1);
+    let reloads = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+    let shutdown = CancellationToken::new();
+    let (sd, run_cfg, counter) = (shutdown.clone(), cfg.clone(), reloads.clone());
+    let gw = tokio::spawn(async move {
+        let hooks = Hooks {
+            observer: Box::new(Reloads(counter)),
+            reload: Some(reload_rx),
+            ..Hooks::default()
+        };
+        runtime::run_with(&run_cfg, sd, tx, hooks).await.unwrap();
+    });
+    let mut rx2 = rx.clone();
+    let wait_samples = |at_least: u64| {
+        let mut rx = rx.clone();
+        async move {
+            tokio::time::timeout(
+                Duration::from_secs(10),
+                rx.wait_for(|s| s.samples >= at_least),
+            )
+            .await
+            .unwrap_or_else(|_| panic!("fewer than {at_least} samples after 10 s"))
+            .unwrap()
+            .samples
+        }
+    };
+    wait_samples(2).await;
+    nc.wait_connected().await;
+    reload_tx.send(cfg).await.unwrap();
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    while reloads.load(std::sync::atomic::Ordering::SeqCst) == 0 {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the reload did not take effect within 10 s"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let samples = rx2.borrow_and_update().samples;
+    wait_samples(samples + 10).await;
+    shutdown.cancel();
+    tokio::time::timeout(Duration::from_secs(10), gw)
+        .await
+        .expect("the gateway stops within 10 s")
+        .unwrap();
+}
+
+// A reload that changes [recorder] or [metrics] says they take effect at the next
+// restart, naming them; it used to keep the old ones in silence.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reload_names_the_sections_that_wait_for_a_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let extra = format!(
+        "\n[recorder]\npath = \"{}\"\n\n[metrics]\nbind = \"127.0.0.1:0\"\n",
+        dir.path().join("a.db").display()
+    );
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), &extra).await;
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+    std::fs::write(
+        &path,
+        text.replace("a.db", "b.db")
+            .replace("bind = \"127.0.0.1:0\"", "bind = \"127.0.0.1:1\""),
+    )
+    .unwrap();
+    gw.signal("HUP");
+    let line = tokio::task::block_in_place(|| gw.wait_log(10.0, "take effect at the next restart"));
+    assert!(line.contains("WARN"), "{line}");
+    assert!(line.contains("[recorder], [metrics]"), "{line}");
+    assert!(!line.contains("[mqtt]"), "{line}");
+    tokio::task::block_in_place(|| gw.wait_log(10.0, "configuration reloaded"));
+    assert!(!dir.path().join("b.db").exists());
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
 }
 
 /// GET /metrics; the body.

@@ -441,14 +441,18 @@ async fn shadow_mode_records_and_shows_what_it_would_write_and_leaves_the_nc_alo
 }
 
 // `[axes.X] shadow = true` alone, in the library: the status carries the would-be
-// values and the shadow jobs, the NC is never written.
+// values and the shadow jobs, the NC is never written. The would-be values step to the
+// model's 0.04 mm as a real run would (0.01 mm per update), and stay there: the NC,
+// still holding 0, is no reason to start again from 0 at each snapshot.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_axis_in_shadow_mode_shows_would_be_values_and_writes_nothing() {
-    let toml = common::config("hold", "", "").replace(
-        "[axes.X]\nnc_module = \"nc_x\"",
-        "[axes.X]\nshadow = true\nnc_module = \"nc_x\"",
-    );
-    assert!(toml.contains("shadow = true"));
+    let toml = common::config("hold", "", "")
+        .replace(
+            "[axes.X]\nnc_module = \"nc_x\"",
+            "[axes.X]\nshadow = true\nnc_module = \"nc_x\"",
+        )
+        .replace("max_step_k0_mm = 0.5", "max_step_k0_mm = 0.01");
+    assert!(toml.contains("shadow = true") && toml.contains("max_step_k0_mm = 0.01"));
     let mut rig = common::start(&toml).await;
     let before = rig.plant.nc["nc_x"].state();
     let s = rig
@@ -458,6 +462,22 @@ async fn an_axis_in_shadow_mode_shows_would_be_values_and_writes_nothing() {
                 .is_some_and(|p| (p.k0_mm - 0.04).abs() < 0.001)
         })
         .await;
+    // At least 2.5 s more (50 polls of 50 ms): two snapshots of the NC or more.
+    let samples = s.samples;
+    let s = rig
+        .wait_for(20.0, "50 more samples", |s| s.samples >= samples + 50)
+        .await;
+    let k0: Vec<f64> = s.jobs.iter().map(|j| j.params.k0_mm).collect();
+    assert!(
+        k0.windows(2).all(|w| (w[1] - w[0]).abs() <= 0.01 + 1e-9),
+        "a would-be step over 0.01 mm: {k0:?}"
+    );
+    let reached = k0.iter().position(|&k| k > 0.039).expect("0.04 mm reached");
+    assert!(reached >= 3, "not stepped up: {k0:?}");
+    assert!(
+        k0[reached..].iter().all(|&k| k > 0.039),
+        "would-be K0 started again from what the NC holds: {k0:?}"
+    );
     assert!(s.axes[0].shadow);
     assert_eq!(s.axes[0].jobs_ok + s.axes[0].jobs_failed, 0);
     assert!(s.jobs.iter().all(|j| j.shadow && j.axis == "X"));

@@ -104,12 +104,24 @@ pub fn init_tracing(filter: Option<&str>, default: &str) {
     }
 }
 
-/// Cancels the returned token on Ctrl-C or SIGTERM; sends the reloaded config on
+/// What Ctrl-C and SIGTERM ask for.
+struct StopRequests {
+    /// The first: stop (NC reads are abandoned, a job in flight gets its grace).
+    shutdown: CancellationToken,
+    /// The second: wait for nothing but the recorder's final commit. A third exits
+    /// at once.
+    force: CancellationToken,
+}
+
+/// Watches Ctrl-C and SIGTERM (see [`StopRequests`]); sends the reloaded config on
 /// SIGHUP. A config that does not load is logged and not sent: the old one stays.
-fn signals(path: PathBuf, reload: mpsc::Sender<Config>, opts: RunOptions) -> CancellationToken {
+fn signals(path: PathBuf, reload: mpsc::Sender<Config>, opts: RunOptions) -> StopRequests {
     use tokio::signal::unix::{signal, SignalKind};
-    let token = CancellationToken::new();
-    let t = token.clone();
+    let requests = StopRequests {
+        shutdown: CancellationToken::new(),
+        force: CancellationToken::new(),
+    };
+    let (shutdown, force) = (requests.shutdown.clone(), requests.force.clone());
     tokio::spawn(async move {
         let (mut term, mut hup) = match (
             signal(SignalKind::terminate()),
@@ -119,14 +131,15 @@ fn signals(path: PathBuf, reload: mpsc::Sender<Config>, opts: RunOptions) -> Can
             (Err(e), _) | (_, Err(e)) => {
                 tracing::error!(error = %e, "cannot watch SIGTERM/SIGHUP");
                 let _ = tokio::signal::ctrl_c().await;
-                t.cancel();
+                shutdown.cancel();
                 return;
             }
         };
+        let mut stops = 0;
         loop {
-            tokio::select! {
-                _ = tokio::signal::ctrl_c() => { tracing::info!("Ctrl-C: stopping"); break }
-                _ = term.recv() => { tracing::info!("SIGTERM: stopping"); break }
+            let why = tokio::select! {
+                _ = tokio::signal::ctrl_c() => "Ctrl-C",
+                _ = term.recv() => "SIGTERM",
                 _ = hup.recv() => {
                     tracing::info!(file = %path.display(), "SIGHUP: reloading the configuration");
                     match config::load(&path) {
@@ -136,12 +149,31 @@ fn signals(path: PathBuf, reload: mpsc::Sender<Config>, opts: RunOptions) -> Can
                         }
                         Err(e) => tracing::error!(error = %e, "reload refused: the running configuration stays"),
                     }
+                    continue;
+                }
+            };
+            stops += 1;
+            match stops {
+                1 => {
+                    tracing::info!("{why}: stopping");
+                    shutdown.cancel();
+                }
+                2 => {
+                    tracing::warn!("{why} again: stopping now; an NC job in flight is abandoned (whether it landed is unknown); the recorder commits what it holds, a third signal exits at once");
+                    force.cancel();
+                }
+                _ => {
+                    // Committed transactions are in the database file or its WAL:
+                    // SQLite keeps them across an exit at any moment.
+                    tracing::error!(
+                        "{why} a third time: exiting at once; what the recorder committed is kept"
+                    );
+                    std::process::exit(1);
                 }
             }
         }
-        t.cancel();
     });
-    token
+    requests
 }
 
 /// Starts the HTTP listener of `[metrics]`: `/metrics`, and the status page fed by
@@ -198,11 +230,12 @@ impl RunOptions {
 }
 
 /// `compgate run`: the gateway on `cfg` (loaded from `path`) as a service, until
-/// SIGTERM or Ctrl-C.
+/// SIGTERM or Ctrl-C (see [`StopRequests`] for a second one).
 pub async fn run(path: &Path, mut cfg: Config, opts: RunOptions) -> Result<(), ServiceError> {
     opts.apply(&mut cfg);
     let (reload_tx, reload_rx) = mpsc::channel(1);
-    let shutdown = signals(path.to_path_buf(), reload_tx, opts);
+    let stop = signals(path.to_path_buf(), reload_tx, opts);
+    let shutdown = stop.shutdown.clone();
     let recorder = match &cfg.recorder {
         Some(r) => Some(Recorder::start(r)?),
         None => None,
@@ -261,16 +294,26 @@ pub async fn run(path: &Path, mut cfg: Config, opts: RunOptions) -> Result<(), S
     let gateway_shutdown = shutdown.clone();
     // The configuration's parse is over: its peak goes back to the system.
     heap::release_free();
-    let result =
+    let mut gateway =
         tokio::spawn(
             async move { runtime::run_with(&gateway_cfg, gateway_shutdown, tx, hooks).await },
-        )
-        .await
-        .map_err(task_err);
+        );
+    let result = tokio::select! {
+        r = &mut gateway => r.map_err(task_err),
+        () = stop.force.cancelled() => {
+            // Its observers go with it: the recorder's writer commits what they queued.
+            gateway.abort();
+            let _ = gateway.await;
+            Ok(Ok(()))
+        }
+    };
     let _ = sd_notify::notify(&[sd_notify::NotifyState::Stopping]);
     shutdown.cancel();
-    if let Some(p) = publisher {
-        let _ = p.await;
+    if let Some(mut p) = publisher {
+        tokio::select! {
+            _ = &mut p => {}
+            () = stop.force.cancelled() => p.abort(),
+        }
     }
     if let Some(r) = recorder {
         // The observers are gone with the gateway: the writer commits what is queued.

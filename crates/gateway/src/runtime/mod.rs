@@ -1,11 +1,11 @@
 //! The running gateway: sources -> channels -> compensation -> NC writer.
 //!
 //! [`build`] turns a validated [`Config`] into runtime parts; [`run`] starts one task
-//! per device, one SYNC producer per CAN interface and one task per NC module around a
-//! core loop that owns every channel processor and axis compensator. Only the device
-//! and SYNC tasks watch the shutdown token: when the device tasks end, the core loop
-//! sees its input close, finishes, and drops the NC command channels, so an NC job in
-//! flight completes before the NC tasks stop.
+//! per device, one SYNC producer per CAN interface and one task per NC writer around a
+//! core loop that owns every channel processor and axis compensator. On shutdown the
+//! device tasks end at once and the NC tasks abandon an outstanding snapshot read; a
+//! job in flight gets [`NC_JOB_GRACE`] to finish. A reload stops the NC tasks the same
+//! way while the devices go on polling, then the devices between two polls.
 
 use std::fmt::Write as _;
 use std::sync::Arc;
@@ -44,10 +44,30 @@ pub enum GatewayError {
 
 /// Samples the device tasks may queue ahead of the core loop.
 pub const SAMPLE_QUEUE: usize = 64;
+
+/// The NC is read at most this often, whatever `gateway.status_interval_s`: a status
+/// interval of 1 ms read it once per millisecond and starved its jobs. Slower status
+/// intervals keep reading it once per status interval (what the status shows and the
+/// recorder records), so a snapshot is never older than the status showing it.
+pub const NC_SNAPSHOT_MIN: Duration = Duration::from_secs(1);
+
+/// How long a job in flight may still take when its NC task is stopped (shutdown,
+/// reload): a job usually ends within milliseconds, and a stuck one must not hold up
+/// the stop for its whole `job_timeout_s`. Past it the job is abandoned and its
+/// outcome is unknown: the NC is read again before the next write.
+pub const NC_JOB_GRACE: Duration = Duration::from_secs(2);
+
+/// The period of an NC writer's snapshot reads for `status_interval`.
+fn nc_snapshot_interval(status_interval: Duration) -> Duration {
+    status_interval.max(NC_SNAPSHOT_MIN)
+}
+
 /// What the core loop asks of an NC task.
 enum NcCommand {
     Write {
         axis: usize,
+        /// For the log: two axes on one target must be told apart.
+        axis_name: String,
         job: Job,
         params: CompParams,
     },
@@ -64,6 +84,9 @@ enum NcEvent {
         params: CompParams,
         result: Result<JobReport, NcError>,
     },
+    /// The task was stopped with this axis' job in flight and the job did not end
+    /// within [`NC_JOB_GRACE`]: whether it landed is unknown.
+    Abandoned { axis: usize },
 }
 
 /// What a task hands back when it ends, so a reload can keep its state.
@@ -110,33 +133,49 @@ async fn sync_task(params: SyncParams, stop: CancellationToken) -> Returned {
     Returned::Sync
 }
 
+/// Reads the NC every `snapshot_interval` and runs the jobs the core loop sends, a
+/// waiting job before the next read. On `stop` (shutdown or reload) it ends at once:
+/// no read starts after it, and an outstanding read is abandoned with the writer (its
+/// connection may still get the late reply; the next generation connects afresh). A
+/// job in flight gets [`NC_JOB_GRACE`].
 async fn nc_task(
     module: usize,
     mut nc: NcModuleRt,
     mut rx: mpsc::Receiver<NcCommand>,
     tx: mpsc::Sender<NcEvent>,
     snapshot_interval: Duration,
+    stop: CancellationToken,
 ) -> Returned {
     let mut tick = tokio::time::interval(snapshot_interval);
     tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
     loop {
         tokio::select! {
+            biased;
+            () = stop.cancelled() => break,
             cmd = rx.recv() => {
-                let Some(NcCommand::Write { axis, job, params }) = cmd else { break };
-                let result = nc.writer.write_job(&job).await;
+                let Some(NcCommand::Write { axis, axis_name, job, params }) = cmd else { break };
+                let Some(result) = write_or_abandon(&mut nc, &job, &stop).await else {
+                    tracing::warn!(axis = %axis_name, target_name = %nc.name, written = written(&job).as_str(), grace_s = NC_JOB_GRACE.as_secs_f64(), "NC job abandoned at stop: whether it landed is unknown; the NC is read again before the next write");
+                    let _ = tx.send(NcEvent::Abandoned { axis }).await;
+                    return Returned::Aborted;
+                };
                 match &result {
                     // The job's pairs, not the parameter set: `nc_write` may leave
                     // variables out, and those were not written.
-                    Ok(r) => tracing::info!(module = %nc.name, job_id = r.job_id, written = written(&job).as_str(), elapsed_ms = r.elapsed.as_secs_f64() * 1e3, "NC job done, read-back verified"),
+                    Ok(r) => tracing::info!(axis = %axis_name, target_name = %nc.name, job_id = r.job_id, written = written(&job).as_str(), elapsed_ms = r.elapsed.as_secs_f64() * 1e3, "NC job done, read-back verified"),
                     // The core loop logs the change from working to failing once.
-                    Err(e) => tracing::debug!(module = %nc.name, error = %e, "NC job failed"),
+                    Err(e) => tracing::debug!(axis = %axis_name, target_name = %nc.name, error = %e, "NC job failed"),
                 }
                 if tx.send(NcEvent::Written { axis, params, result }).await.is_err() {
                     break;
                 }
             }
             _ = tick.tick() => {
-                let result = nc.writer.read_snapshot().await;
+                let result = tokio::select! {
+                    biased;
+                    () = stop.cancelled() => return Returned::Aborted,
+                    r = nc.writer.read_snapshot() => r,
+                };
                 if tx.send(NcEvent::Snapshot { module, result }).await.is_err() {
                     break;
                 }
@@ -144,6 +183,22 @@ async fn nc_task(
         }
     }
     Returned::Nc(module, nc)
+}
+
+/// Runs `job`; once `stop` is cancelled it may take [`NC_JOB_GRACE`] more. `None`:
+/// abandoned.
+async fn write_or_abandon(
+    nc: &mut NcModuleRt,
+    job: &Job,
+    stop: &CancellationToken,
+) -> Option<Result<JobReport, NcError>> {
+    let write = nc.writer.write_job(job);
+    tokio::pin!(write);
+    tokio::select! {
+        r = &mut write => return Some(r),
+        () = stop.cancelled() => {}
+    }
+    tokio::time::timeout(NC_JOB_GRACE, write).await.ok()
 }
 
 /// The variables `job` writes with their values, e.g. `SD43900=0.04 mm, SD43920=100 mm`.
@@ -213,9 +268,9 @@ pub async fn run_built(
     run_built_with(built, cfg, shutdown, status_tx, Hooks::default()).await;
 }
 
-/// Runs `built` (made from `cfg`) through generations: a reload ends one generation
-/// between polls, after every NC job in flight has finished, and starts the next with
-/// the state of whatever did not change.
+/// Runs `built` (made from `cfg`) through generations: a reload stops the NC tasks
+/// (see [`nc_task`]) while the devices go on polling, then ends the generation between
+/// two polls and starts the next with the state of whatever did not change.
 async fn run_built_with(
     built: Built,
     mut cfg: Config,
@@ -228,6 +283,7 @@ async fn run_built_with(
         match generation(&mut state, &shutdown, &status_tx, &mut hooks).await {
             None => break,
             Some((new_cfg, new_built)) => {
+                reload::warn_restart_only(&cfg, &new_cfg);
                 state = reload::transplant(&cfg, &new_cfg, state, *new_built);
                 cfg = *new_cfg;
                 tracing::info!("configuration reloaded");
@@ -238,6 +294,34 @@ async fn run_built_with(
     state.status_now();
     status_tx.send_replace(state.status);
     tracing::info!("gateway stopped");
+}
+
+/// What an axis' NC says against its config (targets that report the axis state).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+struct NcFacts {
+    /// The NC's MD32750 when it is not the configured one: the axis holds.
+    md32750_wrong: Option<u16>,
+    /// The axis is not referenced: the NC applies no compensation (writes still go,
+    /// setting data are accepted, and apply once referenced).
+    unreferenced: bool,
+}
+
+impl NcFacts {
+    /// The status warning for these facts, naming every one of them.
+    fn warning(&self, md32750_config: u16) -> Option<String> {
+        let md = self.md32750_wrong.map(|v| {
+            format!(
+                "MD32750 is {v} on the NC, the config expects {md32750_config}: nothing is written"
+            )
+        });
+        let unref = self
+            .unreferenced
+            .then(|| "axis not referenced: the NC applies no temperature compensation".to_string());
+        match (md, unref) {
+            (Some(a), Some(b)) => Some(format!("{a}; {b}")),
+            (a, b) => a.or(b),
+        }
+    }
 }
 
 /// The state that lives across generations.
@@ -260,6 +344,9 @@ struct Running {
     nc_names: Vec<Arc<str>>,
     /// Per NC module: whether its last snapshot failed (logged once per change).
     nc_down: Vec<bool>,
+    /// Per axis: what its NC's last snapshot said against the config (MD32750,
+    /// referenced), as the journal was told: a wrong MD32750 holds the axis.
+    nc_facts: Vec<NcFacts>,
     /// Per channel: a byte-order hint was logged and the channel has not been good
     /// since (logged once, not once per poll).
     byte_order_hinted: Vec<bool>,
@@ -311,6 +398,7 @@ impl Running {
                 .map(|n| Arc::from(n.name.as_str()))
                 .collect(),
             nc_down: vec![false; nc_modules.len()],
+            nc_facts: vec![NcFacts::default(); pipeline.axes.len()],
             byte_order_hinted: vec![false; pipeline.channel_names.len()],
             channel_logs: vec![ChangeLog::new(true); pipeline.channel_names.len()],
             axis_logs: vec![ChangeLog::new(AxisCourse::Model); pipeline.axes.len()],
@@ -456,17 +544,26 @@ impl Running {
                 if let (Some(down), Some(name)) =
                     (self.nc_down.get_mut(module), self.nc_names.get(module))
                 {
+                    // Two axes on one target have a writer each: name the axes.
+                    let axes = self
+                        .pipeline
+                        .axes
+                        .iter()
+                        .filter(|a| a.nc_module == module)
+                        .map(|a| a.name.as_str())
+                        .collect::<Vec<_>>()
+                        .join(",");
                     match (&result, *down) {
                         (Err(e), false) if e.is_unreachable() => {
-                            tracing::warn!(target_name = %name, error = %e, "NC target unreachable: nothing is written to it");
+                            tracing::warn!(axis = %axes, target_name = %name, error = %e, "NC target unreachable: nothing is written to it");
                             *down = true;
                         }
                         (Err(e), false) => {
-                            tracing::warn!(target_name = %name, error = %e, "NC target answered the read with an error: nothing is written to it");
+                            tracing::warn!(axis = %axes, target_name = %name, error = %e, "NC target answered the read with an error: nothing is written to it");
                             *down = true;
                         }
                         (Ok(_), true) => {
-                            tracing::info!(module = %name, "NC module reachable again");
+                            tracing::info!(axis = %axes, target_name = %name, "NC target reachable again");
                             *down = false;
                         }
                         _ => {}
@@ -487,14 +584,21 @@ impl Running {
                             // holds what it confirmed: a baseline it does not hold
                             // would let a step be any size, and its deadband would
                             // leave the NC uncompensated. A job in flight may not have
-                            // landed yet, so only compare without one.
+                            // landed yet, so only compare without one. A shadow axis'
+                            // baseline is its would-be values, which the NC never holds.
                             let moved = self.baselined[i]
                                 && !in_flight[i]
+                                && !axis.shadow
                                 && axis
                                     .comp
                                     .baseline()
                                     .is_some_and(|b| !holds(&b, &held, &axis.nc_write));
-                            if !self.baselined[i] || moved {
+                            // A shadow axis goes on from its would-be values after an
+                            // outage, as a real run goes on from what it wrote.
+                            let keep_shadow = axis.shadow && axis.comp.baseline().is_some();
+                            if !self.baselined[i] && keep_shadow {
+                                self.baselined[i] = true;
+                            } else if !self.baselined[i] || moved {
                                 // Step limits and the deadband start from what the NC holds.
                                 axis.comp.set_baseline(held);
                                 self.baselined[i] = true;
@@ -508,32 +612,46 @@ impl Running {
                                 }
                                 st.written = Some(held);
                             }
-                            st.warning =
-                                (axis.axis_state && snap.md32750 != axis.md32750).then(|| {
-                                    format!(
-                                        "MD32750 is {} on the NC, the config expects {}",
-                                        snap.md32750, axis.md32750
-                                    )
-                                });
-                            if axis.axis_state && !snap.referenced {
-                                st.warning.get_or_insert_with(|| "axis not referenced: the NC applies no temperature compensation".into());
-                            }
+                            let facts = NcFacts {
+                                md32750_wrong: (axis.axis_state && snap.md32750 != axis.md32750)
+                                    .then_some(snap.md32750),
+                                unreferenced: axis.axis_state && !snap.referenced,
+                            };
+                            log_nc_facts(&axis.name, axis.md32750, self.nc_facts[i], facts);
+                            self.nc_facts[i] = facts;
+                            st.warning = facts.warning(axis.md32750);
                             st.nc = Some(*snap);
                         }
                         // The last snapshot is no longer what the NC holds: shown or
-                        // recorded, it would pass for a live position.
+                        // recorded, it would pass for a live position. Nothing is
+                        // decided until it is read again: the decision says why.
                         Err(e) if e.is_unreachable() => {
                             self.baselined[i] = false;
                             st.nc = None;
                             st.warning = Some(format!("NC unreachable: {e}"));
+                            st.decision = "hold: NC unreachable".into();
                         }
                         // It answered: say what, not "unreachable".
                         Err(e) => {
                             self.baselined[i] = false;
                             st.nc = None;
                             st.warning = Some(format!("NC answered with an error: {e}"));
+                            st.decision = "hold: NC answered the read with an error".into();
                         }
                     }
+                }
+            }
+            NcEvent::Abandoned { axis } => {
+                if let Some(f) = in_flight.get_mut(axis) {
+                    *f = false;
+                }
+                // Landed or not: the next write starts from what the NC holds.
+                if let Some(b) = self.baselined.get_mut(axis) {
+                    *b = false;
+                }
+                if let Some(st) = self.status.axes.get_mut(axis) {
+                    st.decision =
+                        "hold: a job was abandoned at a stop; the NC is read again".into();
                 }
             }
             NcEvent::Written {
@@ -616,6 +734,14 @@ fn decide_axis(
     if !state.baselined[i] || in_flight[i] {
         return;
     }
+    // The NC runs another compensation type than the model is for: a written value
+    // would compensate wrongly. A shadow axis holds too, as the real run would.
+    if let Some(nc) = state.nc_facts[i].md32750_wrong {
+        let expected = pipeline.axes[i].md32750;
+        state.status.axes[i].decision =
+            format!("hold: MD32750 is {nc} on the NC, the config expects {expected}");
+        return;
+    }
     let decision = pipeline.decide(i, at);
     let axis = &pipeline.axes[i];
     let (shadow, module) = (axis.shadow, axis.nc_module);
@@ -645,16 +771,41 @@ fn decide_axis(
         state.on_shadow(i, params, observer);
         return;
     }
-    let job = Job::thermal_allowed(&params, &state.pipeline.axes[i].nc_write);
+    let axis = &state.pipeline.axes[i];
+    let job = Job::thermal_allowed(&params, &axis.nc_write);
     if nc_tx[module]
         .try_send(NcCommand::Write {
             axis: i,
+            axis_name: axis.name.clone(),
             job,
             params,
         })
         .is_ok()
     {
         in_flight[i] = true;
+    }
+}
+
+/// An axis' NC facts going from `was` to `now`: a wrong MD32750 and an axis not
+/// referenced are each logged once per change (WARN), and their end (INFO).
+fn log_nc_facts(axis: &str, md32750_config: u16, was: NcFacts, now: NcFacts) {
+    match (was.md32750_wrong, now.md32750_wrong) {
+        (w, Some(nc)) if w != Some(nc) => {
+            tracing::warn!(%axis, md32750_nc = nc, md32750_config, "axis {axis}: MD32750 is {nc} on the NC, the config expects {md32750_config}: the axis holds, nothing is written to it")
+        }
+        (Some(_), None) => {
+            tracing::info!(%axis, md32750 = md32750_config, "axis {axis}: MD32750 on the NC matches the config again: writes resume")
+        }
+        _ => {}
+    }
+    match (was.unreferenced, now.unreferenced) {
+        (false, true) => {
+            tracing::warn!(%axis, "axis {axis} is not referenced on the NC: it applies no temperature compensation until referenced; setting data written meanwhile take effect then")
+        }
+        (true, false) => {
+            tracing::info!(%axis, "axis {axis} is referenced again: the NC applies the compensation")
+        }
+        _ => {}
     }
 }
 
@@ -708,7 +859,10 @@ async fn generation(
     hooks: &mut Hooks,
 ) -> Option<(Box<Config>, Box<Built>)> {
     status_tx.send_replace(state.status_now().clone());
+    // Devices and SYNC producers: between two polls, after the NC tasks.
     let stop = shutdown.child_token();
+    // NC tasks: at once (a job in flight gets its grace), on shutdown or a reload.
+    let nc_stop = shutdown.child_token();
     let (sample_tx, mut sample_rx) = mpsc::channel::<DeviceSample>(SAMPLE_QUEUE);
     let mut tasks = tokio::task::JoinSet::new();
     for (i, dev) in state.devices.iter_mut().enumerate() {
@@ -736,7 +890,14 @@ async fn generation(
         let (tx, rx) = mpsc::channel(4);
         nc_tx.push(tx);
         if let Some(nc) = nc.take() {
-            tasks.spawn(nc_task(i, nc, rx, event_tx.clone(), state.status_interval));
+            tasks.spawn(nc_task(
+                i,
+                nc,
+                rx,
+                event_tx.clone(),
+                nc_snapshot_interval(state.status_interval),
+                nc_stop.clone(),
+            ));
         }
     }
     drop(event_tx);
@@ -766,6 +927,12 @@ async fn generation(
     let observer = &mut *hooks.observer;
 
     loop {
+        // A reload waits for the NC tasks to end (at most a job's grace) with the
+        // devices still polling, the status and the watchdog going.
+        if reload_to.is_some() && !events_open {
+            break;
+        }
+        let deciding = reload_to.is_none();
         // An axis decides when a sample of its inputs arrives and its interval is up,
         // so a change reaches the NC one poll after it happens. The timer only stands
         // in when no input sample came for a while past the due time (an input device
@@ -798,7 +965,7 @@ async fn generation(
                 });
                 let at = Instant::now();
                 for &i in axes.iter() {
-                    if next_update[i] <= at {
+                    if deciding && next_update[i] <= at {
                         decide_axis(state, i, at, &mut next_update, &mut in_flight, &nc_tx, observer);
                     }
                 }
@@ -811,7 +978,7 @@ async fn generation(
                 };
                 state.on_event(event, &mut in_flight, observer);
             }
-            _ = tokio::time::sleep_until(fallback), if fallback < far => {
+            _ = tokio::time::sleep_until(fallback), if fallback < far && deciding => {
                 let at = Instant::now();
                 for i in 0..state.pipeline.axes.len() {
                     let a = &state.pipeline.axes[i];
@@ -835,7 +1002,7 @@ async fn generation(
                     Ok(built) => {
                         tracing::info!("reload: stopping the running generation between polls");
                         reload_to = Some((Box::new(new_cfg), Box::new(built)));
-                        stop.cancel();
+                        nc_stop.cancel();
                     }
                     Err(e) => {
                         tracing::error!(error = %e, "reload refused: the running configuration stays");
@@ -845,8 +1012,11 @@ async fn generation(
             }
         }
     }
+    stop.cancel();
+    // A device task ending its last poll must not wait on a full queue.
+    drop(sample_rx);
     drop(nc_tx);
-    // Let NC jobs in flight finish and take their results: a reload keeps them.
+    // On shutdown: take the results of jobs in flight (they end within their grace).
     while let Some(event) = event_rx.recv().await {
         state.on_event(event, &mut in_flight, observer);
     }

@@ -26,6 +26,7 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         nc_modules: mut old_nc,
         status: old_status,
         baselined: old_baselined,
+        nc_facts: old_nc_facts,
         ..
     } = old;
     // Carried processors keep their time base.
@@ -87,7 +88,8 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
     }
 
     // NC writers (one per axis): an unchanged axis on an unchanged target keeps its
-    // connection.
+    // connection, unless its task was stopped mid-request: the new writer connects
+    // afresh, and the axis is still the same.
     let old_axis_index: BTreeMap<&str, usize> = old_cfg
         .axes
         .keys()
@@ -101,8 +103,8 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         if let (true, Some(&i)) = (same, old_axis_index.get(name.as_str())) {
             if let Some(m) = old_nc.get_mut(i).and_then(Option::take) {
                 next.nc_modules[j] = Some(m);
-                same_nc.insert(name.clone(), ());
             }
+            same_nc.insert(name.clone(), ());
         }
     }
 
@@ -131,6 +133,8 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         if let Some((i, old_axis)) = old_axes.remove(&axis.name) {
             axis.comp = old_axis.comp;
             next.baselined[j] = old_baselined.get(i).copied().unwrap_or(false);
+            // A wrong MD32750 keeps the axis holding until a snapshot says otherwise.
+            next.nc_facts[j] = old_nc_facts.get(i).copied().unwrap_or_default();
             if let Some(s) = old_status.axes.get(i) {
                 next.status.axes[j] = s.clone();
             }
@@ -146,4 +150,22 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         "reload: unchanged channels and devices keep their state"
     );
     next
+}
+
+/// Logs a WARN naming the service sections that differ in `new_cfg`: they are set up
+/// once at start, and a reload that ignored them silently left the old database,
+/// port or broker in use with nothing saying so.
+pub(super) fn warn_restart_only(old_cfg: &Config, new_cfg: &Config) {
+    let changed: Vec<&str> = [
+        ("[recorder]", old_cfg.recorder != new_cfg.recorder),
+        ("[metrics]", old_cfg.metrics != new_cfg.metrics),
+        ("[mqtt]", old_cfg.mqtt != new_cfg.mqtt),
+    ]
+    .into_iter()
+    .filter_map(|(name, changed)| changed.then_some(name))
+    .collect();
+    if !changed.is_empty() {
+        let sections = changed.join(", ");
+        tracing::warn!(%sections, "reload: {sections} changed in the file and take effect at the next restart; the running ones stay");
+    }
 }
