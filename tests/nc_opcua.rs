@@ -105,6 +105,9 @@ async fn user_without_write_rights_gets_the_named_error_and_nothing_changes() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
+    // A writer's session asks first: what it may do must not carry over to the reader.
+    let mut writer = writer_of(&target(&peer, &dir, Some(("writer", "writer-pw"))), 1);
+    assert!(writer.may_write().await.unwrap(), "writer holds SeaWrite");
     // The reader's credentials come from the environment (names unique to this test).
     std::env::set_var("COMPGATE_TEST_OPCUA_READER_USER", "reader");
     std::env::set_var("COMPGATE_TEST_OPCUA_READER_PW", "reader-pw");
