@@ -777,7 +777,8 @@ impl OpcuaNcWriter {
                 Some(Variant::Byte(b)) => *b,
                 other => {
                     return Err(NcError::Protocol(format!(
-                        "UserAccessLevel of {node} is {other:?}, expected a Byte"
+                        "UserAccessLevel of {node} is {}, expected a Byte",
+                        shown(other)
                     )))
                 }
             };
@@ -902,8 +903,9 @@ impl OpcuaNcWriter {
                 match &dv.value {
                     Some(Variant::Double(v)) => Ok(*v),
                     other => Err(NcError::Protocol(format!(
-                        "{} holds {other:?}, expected a Double",
-                        nodes[i]
+                        "{} holds {}, expected a Double",
+                        nodes[i],
+                        shown(other)
                     ))),
                 }
             })
@@ -1093,6 +1095,17 @@ fn read_id(node_id: NodeId, attribute: AttributeId) -> ReadValueId {
         attribute_id: attribute as u32,
         index_range: NumericRange::None,
         data_encoding: QualifiedName::null(),
+    }
+}
+
+/// A value as the server sent it, with its type: `0.5 (Float)`, `no value`.
+fn shown(value: &Option<Variant>) -> String {
+    match value {
+        None => "no value".into(),
+        Some(v) => match v.scalar_type_id() {
+            Some(t) => format!("{v} ({t})"),
+            None => v.to_string(),
+        },
     }
 }
 
@@ -1296,6 +1309,12 @@ mod tests {
                 "{key}: {doc}"
             );
         }
+    }
+
+    #[test]
+    fn values_of_another_type_are_shown_without_rust_syntax() {
+        assert_eq!(shown(&Some(Variant::Float(0.5))), "0.5 (Float)");
+        assert_eq!(shown(&None), "no value");
     }
 
     #[test]
