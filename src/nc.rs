@@ -1,14 +1,16 @@
 //! `compgate nc read` and `compgate nc write`: the first look at a real control and the
 //! first dry-run write, through the same guarded writer the gateway uses.
 
-use std::io::BufRead;
+use std::io::{BufRead, IsTerminal};
 use std::path::{Path, PathBuf};
 
-use clap::{Args, Subcommand};
+use clap::{ArgGroup, Args, Subcommand};
 
 use crate::cli::{self, OutputError};
 use compgate_gateway::config::{self, Config};
-use compgate_gateway::nc::{var, Guarded, Job, NcSnapshot, NcWriter};
+use compgate_gateway::nc::{
+    number, thermal_limit, var, var_name, Guarded, Job, NcSnapshot, NcWriter,
+};
 
 /// `compgate nc`: read or write an axis's compensation values on its target.
 #[derive(Debug, Args)]
@@ -30,7 +32,9 @@ pub enum NcCommand {
         #[arg(long)]
         target: Option<String>,
     },
-    /// Show the change (old -> new) and write it once after confirmation.
+    /// Show the change (old -> new) and write it once after confirmation. At least one
+    /// of --k0-mm, --tan-beta, --p0-mm; the values not given stay as they are.
+    #[command(group(ArgGroup::new("values").required(true).multiple(true)))]
     Write {
         /// Configuration file (TOML).
         #[arg(long, short)]
@@ -38,16 +42,16 @@ pub enum NcCommand {
         /// The axis (a name in `[axes]`).
         #[arg(long)]
         axis: String,
-        /// New SD43900 (K0), mm.
-        #[arg(long, allow_negative_numbers = true)]
-        k0_mm: f64,
+        /// New SD43900 (K0), mm; unchanged when omitted.
+        #[arg(long, allow_negative_numbers = true, group = "values")]
+        k0_mm: Option<f64>,
         /// New SD43910 (tan(beta)), mm/mm; unchanged when omitted.
-        #[arg(long, allow_negative_numbers = true)]
+        #[arg(long, allow_negative_numbers = true, group = "values")]
         tan_beta: Option<f64>,
         /// New SD43920 (P0), mm; unchanged when omitted.
-        #[arg(long, allow_negative_numbers = true)]
+        #[arg(long, allow_negative_numbers = true, group = "values")]
         p0_mm: Option<f64>,
-        /// Write without asking.
+        /// Write without asking (required when standard input is not a terminal).
         #[arg(long)]
         yes: bool,
     },
@@ -84,7 +88,7 @@ pub async fn run(args: &NcArgs) -> Result<(), NcError> {
         } => {
             let cfg = load(config)?;
             let change = [
-                (var::SD43900, Some(*k0_mm)),
+                (var::SD43900, *k0_mm),
                 (var::SD43910, *tan_beta),
                 (var::SD43920, *p0_mm),
             ];
@@ -133,7 +137,9 @@ fn writer(cfg: &Config, axis: &str) -> Result<(Guarded, String), String> {
 fn values(s: &NcSnapshot) -> String {
     format!(
         "SD43900 = {} mm, SD43910 = {}, SD43920 = {} mm",
-        s.sd43900_mm, s.sd43910, s.sd43920_mm
+        number(s.sd43900_mm),
+        number(s.sd43910),
+        number(s.sd43920_mm)
     )
 }
 
@@ -157,7 +163,9 @@ async fn read(cfg: &Config, target: Option<&str>) -> Result<(), NcError> {
                 if w.has_axis_state() {
                     cli::print(format_args!(
                         "  MD32750 = {}, referenced = {}, applied compensation = {} mm\n",
-                        s.md32750, s.referenced, s.applied_comp_mm
+                        s.md32750,
+                        s.referenced,
+                        number(s.applied_comp_mm)
                     ))?;
                 }
                 match w.may_write().await {
@@ -190,48 +198,92 @@ async fn write(
 ) -> Result<(), NcError> {
     let (mut w, label) = writer(cfg, axis)?;
     let ax = &cfg.axes[axis];
-    // The axis's own limits hold for a value typed by hand too.
+    let mut job = Job { pairs: Vec::new() };
+    // The axis's own limits hold for a value typed by hand too; P0 has the range of
+    // axes.NAME.p0_mm, which is the NC's own limit of SD43920.
     for &(v, value) in change {
         let Some(x) = value else { continue };
-        let limit = match v {
-            var::SD43900 => Some(("--k0-mm", ax.max_abs_k0_mm)),
-            var::SD43910 => Some(("--tan-beta", ax.max_abs_tan_beta)),
-            _ => None,
+        let (flag, max, unit, whose) = match v {
+            var::SD43900 => (
+                "--k0-mm",
+                ax.max_abs_k0_mm,
+                " mm",
+                format!("axes.{axis}.max_abs_k0_mm"),
+            ),
+            var::SD43910 => (
+                "--tan-beta",
+                ax.max_abs_tan_beta,
+                "",
+                format!("axes.{axis}.max_abs_tan_beta"),
+            ),
+            _ => (
+                "--p0-mm",
+                thermal_limit(var::SD43920).unwrap_or(0.0),
+                " mm",
+                format!("the range of axes.{axis}.p0_mm and the NC's limit of SD43920"),
+            ),
         };
         if !x.is_finite() {
-            return Err(format!("{x} is not a finite number; nothing was written").into());
+            return Err(format!("{flag} {x}: not a finite number; nothing was written").into());
         }
-        if let Some((flag, max)) = limit {
-            if x.abs() > max {
-                return Err(format!(
-                    "{flag} {x}: beyond the axis's limit of {max} (axes.{axis}); nothing was written"
-                )
-                .into());
-            }
+        if x.abs() > max {
+            return Err(format!(
+                "{flag} {}: beyond the limit of {}{unit} ({whose}); nothing was written",
+                number(x),
+                number(max)
+            )
+            .into());
         }
+        job.pairs.push((v, x));
     }
+    // The allow-list too, before anything is read or shown as a planned change.
+    w.check(&job)
+        .map_err(|e| format!("{label}: {e} (axes.{axis}.nc_write)"))?;
     let old = w
         .read_snapshot()
         .await
         .map_err(|e| format!("{label}: {e}"))?;
+    if w.has_axis_state() {
+        if old.md32750 != ax.md32750 {
+            return Err(format!(
+                "{label}: MD32750 is {} on the NC, axes.{axis}.md32750 expects {}: the NC \
+                 would apply another part of the model than the config computes (bit 0: K0, \
+                 bit 1: slope); correct MD32750 on the control or axes.{axis}.md32750; nothing \
+                 was written",
+                old.md32750, ax.md32750
+            )
+            .into());
+        }
+        if !old.referenced {
+            cli::eprintln(format_args!(
+                "warning: {label}: the axis is not referenced: the NC applies no temperature \
+                 compensation until it is; a value written now takes effect then"
+            ))?;
+        }
+    }
     let held = |v: u16| match v {
         var::SD43900 => old.sd43900_mm,
         var::SD43910 => old.sd43910,
         _ => old.sd43920_mm,
     };
     cli::print(format_args!("{label}:\n"))?;
-    let mut job = Job { pairs: Vec::new() };
-    for &(v, value) in change {
-        let Some(x) = value else { continue };
+    for &(v, x) in &job.pairs {
         cli::print(format_args!(
-            "  {}: {} -> {x}\n",
-            compgate_gateway::nc::var_name(v),
-            held(v)
+            "  {}: {} -> {}\n",
+            var_name(v),
+            number(held(v)),
+            number(x)
         ))?;
-        job.pairs.push((v, x));
     }
-    w.check(&job).map_err(|e| e.to_string())?;
     if !yes {
+        // A script that forgot --yes must not read a "no" into the prompt and succeed.
+        if !std::io::stdin().is_terminal() {
+            return Err(String::from(
+                "standard input is not a terminal, so nobody can answer the question: \
+                 pass --yes to write without asking; nothing was written",
+            )
+            .into());
+        }
         cli::print("write? [y/N] ")?;
         let mut answer = String::new();
         std::io::stdin()
@@ -243,7 +295,10 @@ async fn write(
             return Ok(());
         }
     }
-    let report = w.write_job(&job).await.map_err(|e| e.to_string())?;
+    let report = w
+        .write_job(&job)
+        .await
+        .map_err(|e| format!("{label}: {e}"))?;
     cli::print(format_args!(
         "written and read back in {:.1} ms\n",
         report.elapsed.as_secs_f64() * 1e3

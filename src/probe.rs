@@ -73,6 +73,15 @@ pub async fn probe(
             names(&mut cfg.channels.keys())
         ));
     }
+    if let (Some(d), Some(c)) = (device, channel) {
+        let on = &cfg.channels[c].device;
+        if on != d {
+            return Err(format!(
+                "--channel {c} is on device `{on}`, not on --device {d}: nothing to probe; \
+                 drop --device, or give --device {on}"
+            ));
+        }
+    }
     let mut report = ProbeReport {
         text: String::new(),
         bad: Vec::new(),

@@ -9,20 +9,27 @@ use std::path::Path;
 use std::process::{Command, Output, Stdio};
 
 use common::opcua_peer::OpcuaPeer;
+use common::s7_peer::{self, S7Peer};
 use common::{config, plant_and_file, with_target};
 
 const BIN: &str = env!("CARGO_BIN_EXE_compgate");
 
-/// Runs `compgate nc ARGS --config FILE` with `stdin` fed, off the runtime's threads.
-async fn nc(file: &Path, args: &[&str], stdin: &str) -> Output {
+fn nc_command(file: &Path, args: &[&str]) -> Command {
     let mut cmd = Command::new(BIN);
     cmd.arg("nc")
         .args(args)
         .arg("--config")
         .arg(file)
-        .stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped());
+    cmd
+}
+
+/// Runs `compgate nc ARGS --config FILE` with `stdin` fed through a pipe, off the
+/// runtime's threads.
+async fn nc(file: &Path, args: &[&str], stdin: &str) -> Output {
+    let mut cmd = nc_command(file, args);
+    cmd.stdin(Stdio::piped());
     let stdin = stdin.to_string();
     tokio::task::spawn_blocking(move || {
         let mut child = cmd.spawn().unwrap();
@@ -36,6 +43,19 @@ async fn nc(file: &Path, args: &[&str], stdin: &str) -> Output {
     })
     .await
     .unwrap()
+}
+
+/// Runs `compgate nc ARGS --config FILE` with a terminal (a pty) as standard input,
+/// on which `answer` has been typed.
+async fn nc_at_terminal(file: &Path, args: &[&str], answer: &str) -> Output {
+    // Kept open until the command ends: the terminal lives while one side is open.
+    let (mut master, _slave, path) = compgate_plc::field::pty_pair().unwrap();
+    Write::write_all(&mut master, answer.as_bytes()).unwrap();
+    let mut cmd = nc_command(file, args);
+    cmd.stdin(Stdio::from(std::fs::File::open(&path).unwrap()));
+    tokio::task::spawn_blocking(move || cmd.output().unwrap())
+        .await
+        .unwrap()
 }
 
 fn text_of(o: &Output) -> String {
@@ -96,7 +116,7 @@ async fn nc_write_shows_the_change_and_writes_once_after_yes() {
         "-0.0001",
     ];
 
-    let out = nc(&file, &args, "n\n").await;
+    let out = nc_at_terminal(&file, &args, "n\n").await;
     let t = text_of(&out);
     assert!(out.status.success(), "{t}");
     assert!(t.contains("SD43900: 0 -> 0.02"), "{t}");
@@ -105,7 +125,18 @@ async fn nc_write_shows_the_change_and_writes_once_after_yes() {
     assert_eq!(module.state().sd43900_mm, 0.0);
     assert_eq!(module.jobs_executed(), 0);
 
-    let out = nc(&file, &args, "y\n").await;
+    // No terminal to answer on and no --yes (a script): refused, nothing written, even
+    // with a "y" in the pipe.
+    for piped in ["", "y\n"] {
+        let out = nc(&file, &args, piped).await;
+        let t = text_of(&out);
+        assert_eq!(out.status.code(), Some(1), "{t}");
+        assert!(t.contains("not a terminal") && t.contains("--yes"), "{t}");
+        assert!(!t.contains("write? [y/N]"), "{t}");
+    }
+    assert_eq!(module.jobs_executed(), 0);
+
+    let out = nc_at_terminal(&file, &args, "y\n").await;
     let t = text_of(&out);
     assert!(out.status.success(), "{t}");
     assert!(t.contains("written and read back"), "{t}");
@@ -123,7 +154,7 @@ async fn nc_write_shows_the_change_and_writes_once_after_yes() {
     .await;
     assert_eq!(out.status.code(), Some(1));
     assert!(
-        text_of(&out).contains("beyond the axis's limit"),
+        text_of(&out).contains("--k0-mm 5: beyond the limit of 0.5 mm (axes.X.max_abs_k0_mm)"),
         "{}",
         text_of(&out)
     );
@@ -135,7 +166,7 @@ async fn nc_write_shows_the_change_and_writes_once_after_yes() {
     .await;
     assert_eq!(out.status.code(), Some(1));
     assert!(
-        text_of(&out).contains("not a finite number"),
+        text_of(&out).contains("--k0-mm NaN: not a finite number"),
         "{}",
         text_of(&out)
     );
@@ -171,5 +202,170 @@ async fn nc_read_on_opcua_says_whether_the_session_may_write() {
             "{t}"
         );
         assert!(t.contains(may), "{user}: {t}");
+        // Security None: no certificate, by design, and no ERROR lines about it.
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!stderr.contains("ERROR"), "{user}: {stderr}");
+        assert!(!stderr.contains("certificate"), "{user}: {stderr}");
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nc_write_keeps_p0_in_its_range_and_shows_values_readably() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, file) = plant_and_file(dir.path(), &config("hold", "", ""), "").await;
+    let module = plant.nc["nc_x"].clone();
+    module.with_state(|a| {
+        a.sd43910 = 1e-30;
+        a.sd43920_mm = 1e300;
+    });
+    // No value is printed with hundreds of digits.
+    let out = nc(&file, &["read"], "").await;
+    let t = text_of(&out);
+    assert!(t.contains("SD43910 = 1e-30, SD43920 = 1e300 mm"), "{t}");
+
+    for p0 in ["1e300", "100000.5", "-1e9"] {
+        let out = nc(&file, &["write", "--axis", "X", "--p0-mm", p0, "--yes"], "").await;
+        let t = text_of(&out);
+        assert_eq!(out.status.code(), Some(1), "{t}");
+        assert!(t.contains("--p0-mm ") && t.contains("axes.X.p0_mm"), "{t}");
+        assert!(t.contains("beyond the limit of 100000 mm"), "{t}");
+    }
+    assert_eq!(module.jobs_executed(), 0);
+    // The limit itself is allowed, and only the value given is written.
+    let out = nc(
+        &file,
+        &["write", "--axis", "X", "--p0-mm", "-100000", "--yes"],
+        "",
+    )
+    .await;
+    let t = text_of(&out);
+    assert!(out.status.success(), "{t}");
+    assert!(t.contains("SD43920: 1e300 -> -100000"), "{t}");
+    assert_eq!(module.state().sd43920_mm, -100_000.0);
+    assert_eq!(module.state().sd43910, 1e-30);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nc_write_refuses_a_wrong_md32750_and_warns_of_an_unreferenced_axis() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, file) = plant_and_file(dir.path(), &config("hold", "", ""), "").await;
+    let module = plant.nc["nc_x"].clone();
+    let args = ["write", "--axis", "X", "--k0-mm", "0.04", "--yes"];
+    module.with_state(|a| a.md32750 = 1);
+    let out = nc(&file, &args, "").await;
+    let t = text_of(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains(
+            "axis X (target nc_x, kind = modbus): MD32750 is 1 on the NC, axes.X.md32750 expects 3"
+        ),
+        "{t}"
+    );
+    assert!(t.contains("nothing was written"), "{t}");
+    assert_eq!(module.jobs_executed(), 0);
+
+    // Not referenced: written, after a warning that says what it means.
+    module.with_state(|a| {
+        a.md32750 = 3;
+        a.referenced = false;
+    });
+    let out = nc(&file, &args, "").await;
+    let t = text_of(&out);
+    assert!(out.status.success(), "{t}");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("warning: axis X (target nc_x, kind = modbus): the axis is not referenced: the NC applies no temperature compensation until it is"),
+        "{stderr}"
+    );
+    assert_eq!(module.jobs_executed(), 1);
+    assert_eq!(module.state().sd43900_mm, 0.04);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nc_write_takes_any_of_the_three_values_and_checks_the_allow_list_first() {
+    let dir = tempfile::tempdir().unwrap();
+    // A slope-only axis: SD43900 is not to be written.
+    let text = config("hold", "", "").replace(
+        "k0 = { offset_mm = 0.0, terms = [{ channel = \"T_bed\", ref_degc = 20.0, coeff_mm_per_degc = 0.004 }] }\n",
+        "nc_write = [\"sd43910\", \"sd43920\"]\n",
+    );
+    assert!(text.contains("nc_write"), "{text}");
+    let (plant, file) = plant_and_file(dir.path(), &text, "").await;
+    let module = plant.nc["nc_x"].clone();
+    let out = nc(
+        &file,
+        &["write", "--axis", "X", "--tan-beta", "0.00001", "--yes"],
+        "",
+    )
+    .await;
+    let t = text_of(&out);
+    assert!(out.status.success(), "{t}");
+    assert!(
+        t.contains("SD43910: 0 -> 0.00001") && !t.contains("SD43900:"),
+        "{t}"
+    );
+    assert_eq!(module.state().sd43910, 0.00001);
+
+    // SD43900 is refused before any old -> new line is shown.
+    let out = nc(
+        &file,
+        &[
+            "write",
+            "--axis",
+            "X",
+            "--k0-mm",
+            "0",
+            "--tan-beta",
+            "0.00002",
+            "--yes",
+        ],
+        "",
+    )
+    .await;
+    let t = text_of(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("SD43900 is not in the allow-list") && t.contains("axes.X.nc_write"),
+        "{t}"
+    );
+    assert!(!t.contains("->"), "{t}");
+    assert_eq!(module.jobs_executed(), 1);
+
+    // None of the three: a usage error.
+    let out = nc(&file, &["write", "--axis", "X", "--yes"], "").await;
+    let t = text_of(&out);
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    assert!(t.contains("--k0-mm") && t.contains("--tan-beta"), "{t}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nc_write_errors_name_the_axis_and_say_a_late_job_may_have_landed() {
+    if !s7_peer::available() {
+        return;
+    }
+    // The PLC program does not run: REQ is set and never answered.
+    let peer = S7Peer::start(&["--mode", "silent"]);
+    let dir = tempfile::tempdir().unwrap();
+    let target = format!(
+        "[targets.nc_x]\nkind = \"s7\"\naddress = \"{}\"\ndb_number = 100\njob_timeout_s = 0.3\n",
+        peer.address()
+    );
+    let file = dir.path().join("s7.toml");
+    std::fs::write(&file, with_target(&target, 1)).unwrap();
+    let out = nc(
+        &file,
+        &["write", "--axis", "X", "--k0-mm", "0.01", "--yes"],
+        "",
+    )
+    .await;
+    let t = text_of(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains(
+            "error: axis X (axis 1 on target nc_x, kind = s7): job 1 did not finish within \
+             300ms (STATE stayed idle): the values may have landed; check with `compgate nc read`"
+        ),
+        "{t}"
+    );
+    assert!(!t.contains("Some("), "{t}");
 }

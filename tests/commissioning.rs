@@ -315,6 +315,37 @@ fn probe(args: &[&str], config: &std::path::Path) -> std::process::Output {
     })
 }
 
+// `--device D --channel C` with C on another device would probe nothing: refused,
+// naming where C is, before anything is polled.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn probe_refuses_a_channel_that_is_not_on_the_device_given() {
+    let dir = tempfile::tempdir().unwrap();
+    let spare = r#"
+[devices.spare]
+transport = "tcp"
+address = "127.0.0.1:0"
+unit_id = 2
+
+[channels.T_spare]
+device = "spare"
+register = "input"
+address = 0
+data_type = "u16"
+scaling = { kind = "direct" }
+"#;
+    let path = dir.path().join("probe.toml");
+    std::fs::write(&path, monitoring_config("", "") + spare).unwrap();
+    let out = probe(&["--device", "spare", "--channel", "T_bed"], &path);
+    let text = String::from_utf8_lossy(&out.stdout);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{text}{err}");
+    assert!(
+        err.contains("--channel T_bed is on device `ain1`, not on --device spare"),
+        "{err}"
+    );
+    assert!(!text.contains("device "), "{text}");
+}
+
 // `compgate probe` against the plant with the CDAB float misconfigured as ABCD: it
 // shows the registers, names CDAB as the plausible order, and exits non-zero because
 // the channel is bad; the counts channel shows its mA and degC.

@@ -129,7 +129,7 @@ async fn step_limits_start_from_what_the_control_holds() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_slow_control_hits_the_job_timeout() {
     // Every answer takes 0.15 s: a job (write + three reads) needs 0.6 s of a 0.4 s
-    // job timeout.
+    // job timeout. The write is answered in time; its read-back is not.
     let Some(peer) = ads_peer("lreal", 0.0, &["--delay-s", "0.15"]) else {
         return;
     };
@@ -137,14 +137,139 @@ async fn a_slow_control_hits_the_job_timeout() {
     let mut rig = start(&cfg).await;
     let s = rig
         .wait_for(15.0, "a job timeout", |s| {
-            s.axes[0]
-                .last_job_error
-                .as_deref()
-                .is_some_and(|e| e.contains("did not finish within 400ms"))
+            s.axes[0].last_job_error.as_deref().is_some_and(|e| {
+                e.ends_with(
+                    "written; read-back not finished within 400ms: check with `compgate nc read`",
+                )
+            })
         })
         .await;
     assert_eq!(s.axes[0].jobs_ok, 0);
     rig.stop().await;
+    // It was written indeed.
+    assert_ne!(held(&peer, 0, false), 0.0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_wrong_value_type_is_named_and_nothing_is_written() {
+    // LREAL variables read as REAL: the low half of 0.02 reads 89128.96, no value an
+    // NC holds as SD43900. (Not every value shows it: the low half of 0.0 or 100.0 is
+    // 0, and that of 0.3 reads 4.2e-8.)
+    let Some(peer) = ads_peer("lreal", 0.02, &[]) else {
+        return;
+    };
+    let cfg = ads_config(&peer.address(), "value_type = \"real\"\n");
+    let mut rig = start(&cfg).await;
+    let s = rig
+        .wait_for(10.0, "the snapshot refused", |s| {
+            s.axes[0].warning.as_deref().is_some_and(|w| {
+                w.contains("SD43900 (ADS 0x5001:0x0) reads")
+                    && w.contains("the likely cause is value_type = \"real\"")
+            })
+        })
+        .await;
+    assert!(
+        !s.axes[0]
+            .warning
+            .as_deref()
+            .unwrap_or_default()
+            .contains("unreachable"),
+        "{:?}",
+        s.axes[0].warning
+    );
+    // Several updates went by: none wrote.
+    rig.wait_for(10.0, "more samples", |t| t.samples >= s.samples + 20)
+        .await;
+    assert_eq!(held(&peer, 0, false), 0.02);
+    rig.stop().await;
+
+    // REAL variables read as LREAL: the control answers 4 bytes; named, and an answer,
+    // not an unreachable target.
+    let Some(peer) = ads_peer("real", 0.25, &[]) else {
+        return;
+    };
+    let target: compgate_gateway::config::Config = compgate_gateway::config::load_str(
+        &ads_config(&peer.address(), "value_type = \"lreal\"\n"),
+        "ads.toml",
+    )
+    .unwrap();
+    let mut w = target.target("nc_x").unwrap().build("X", 1).unwrap();
+    let e = compgate_gateway::nc::NcWriter::read_snapshot(&mut w)
+        .await
+        .unwrap_err();
+    assert!(!e.is_unreachable(), "{e:?}");
+    assert_eq!(
+        e.to_string(),
+        "read of SD43900 (ADS 0x5001:0x0): the control answered 4 bytes where value_type = \
+         \"lreal\" reads 8: check value_type (REAL is 4 bytes, LREAL 8)"
+    );
+}
+
+#[test]
+fn validation_refuses_two_axes_on_one_variable_and_an_index_that_overflows() {
+    let problems = |text: &str| match compgate_gateway::config::load_str(text, "ads.toml") {
+        Ok(_) => String::new(),
+        Err(e) => e.to_string(),
+    };
+    // Offsets without a per-axis step: axis 2 would write axis 1's variables.
+    let fixed = |o: u32| format!("{{ index_group = 0x4020, index_offset = {o} }}");
+    let target = format!(
+        "[targets.nc_x]\nkind = \"ads\"\naddress = \"127.0.0.1:48898\"\nams_net_id = \
+         \"127.0.0.1.1.1\"\nsd43900 = {}\nsd43910 = {}\nsd43920 = {}\n",
+        fixed(0),
+        fixed(8),
+        fixed(16)
+    );
+    let second_axis = "\n[axes.Y]\nnc_module = \"nc_x\"\naxis_number = 2\nmd32750 = 3\n";
+    let p = problems(&(with_target(&target, 1) + second_axis));
+    for var in ["sd43900", "sd43910", "sd43920"] {
+        let name = var.to_uppercase();
+        assert!(
+            p.contains(&format!(
+                "ads.toml: targets.nc_x.{var}: {name} (ADS 0x4020:0x{:x}) of axis Y overlaps \
+                 {name} (ADS 0x4020:0x{:x}) of axis X",
+                (var.as_bytes()[5] - b'0') * 8,
+                (var.as_bytes()[5] - b'0') * 8
+            )),
+            "{var}: {p}"
+        );
+    }
+    // A per-axis step apart from each other: fine.
+    let stepped = target
+        .replace(
+            "index_offset = 0 }",
+            "index_offset = 0, offset_per_axis = 24 }",
+        )
+        .replace(
+            "index_offset = 8 }",
+            "index_offset = 8, offset_per_axis = 24 }",
+        )
+        .replace(
+            "index_offset = 16 }",
+            "index_offset = 16, offset_per_axis = 24 }",
+        );
+    assert_eq!(problems(&(with_target(&stepped, 1) + second_axis)), "");
+    // An LREAL at offset 4 shares bytes with SD43900's at 0.
+    let p = problems(&with_target(
+        &target.replace("index_offset = 8", "index_offset = 4"),
+        1,
+    ));
+    assert!(
+        p.contains("targets.nc_x.sd43910: SD43910 (ADS 0x4020:0x4) of axis X overlaps SD43900"),
+        "{p}"
+    );
+    // An index group past 32 bits at this axis number: the axis' key, not "invalid job".
+    let p = problems(&with_target(
+        &target.replace(
+            "index_group = 0x4020, index_offset = 0 }",
+            "index_group = 0xFFFFFFFF, index_offset = 0, group_per_axis = 1 }",
+        ),
+        1,
+    ));
+    assert!(
+        p.contains("ads.toml: axes.X.axis_number: the index group or offset of SD43900 overflows"),
+        "{p}"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

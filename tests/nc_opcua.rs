@@ -105,6 +105,9 @@ async fn user_without_write_rights_gets_the_named_error_and_nothing_changes() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
+    // A writer's session asks first: what it may do must not carry over to the reader.
+    let mut writer = writer_of(&target(&peer, &dir, Some(("writer", "writer-pw"))), 1);
+    assert!(writer.may_write().await.unwrap(), "writer holds SeaWrite");
     // The reader's credentials come from the environment (names unique to this test).
     std::env::set_var("COMPGATE_TEST_OPCUA_READER_USER", "reader");
     std::env::set_var("COMPGATE_TEST_OPCUA_READER_PW", "reader-pw");
@@ -467,4 +470,42 @@ async fn a_connect_outlasting_the_callers_timeout_is_kept_not_restarted() {
     );
     assert_eq!(w.connects(), 1, "one session, not one per cut-off call");
     assert_eq!(held(&mut peer, 1), bits(&p));
+}
+
+#[test]
+fn validation_refuses_two_axes_on_one_node() {
+    let problems = |text: &str| match compgate_gateway::config::load_str(text, "opcua.toml") {
+        Ok(_) => String::new(),
+        Err(e) => e.to_string(),
+    };
+    let target = |extra: &str| {
+        format!(
+            "[targets.nc_x]\nkind = \"opcua\"\nendpoint_url = \"opc.tcp://127.0.0.1:4840\"\n\
+             security_policy = \"None\"\nsecurity_mode = \"None\"\n{extra}"
+        )
+    };
+    let second_axis = "\n[axes.Y]\nnc_module = \"nc_x\"\naxis_number = 2\nmd32750 = 3\n";
+    // The default templates carry {axis_number}: two axes, six nodes.
+    assert_eq!(
+        problems(&(common::with_target(&target(""), 1) + second_axis)),
+        ""
+    );
+    // A template without the axis: both axes would write one node.
+    let fixed = format!("sd43900_node = \"ns={{ns}};s=/NC/_N_AX_SEA_ACX/{ABS}[u1]\"\n");
+    let p = problems(&(common::with_target(&target(&fixed), 1) + second_axis));
+    assert!(
+        p.contains(&format!(
+            "opcua.toml: targets.nc_x.sd43900_node: axes X and Y both resolve sd43900_node to \
+             `ns={{ns}};s=/NC/_N_AX_SEA_ACX/{ABS}[u1]`"
+        )),
+        "{p}"
+    );
+    // Two setting data on one node of one axis.
+    let same =
+        format!("sd43910_node = \"ns={{ns}};s=/NC/_N_AX_SEA_ACX/{ABS}[u{{axis_number}}]\"\n");
+    let p = problems(&common::with_target(&target(&same), 1));
+    assert!(
+        p.contains("targets.nc_x.sd43910_node: axis X: sd43910_node and sd43900_node both resolve"),
+        "{p}"
+    );
 }

@@ -107,12 +107,18 @@ async fn a_refused_job_is_reported_by_name_and_not_taken_as_written() {
             NcError::Refused {
                 job_id: 1,
                 status: JobStatus::AccessDenied,
-                index: 2
+                index: 2,
+                var: Some(var::SD43910),
             }
         ),
         "{e:?}"
     );
-    assert!(e.to_string().contains("access denied"), "{e}");
+    // The pair at fault by its name, not its index.
+    assert!(
+        e.to_string()
+            .ends_with("refused: error 3 (access denied) for SD43910"),
+        "{e}"
+    );
     assert_eq!(
         w.read_snapshot().await.unwrap().thermal(),
         CompParams::default()
@@ -139,10 +145,15 @@ async fn the_plc_programs_own_checks_refuse_out_of_range_and_unknown_variables()
             NcError::Refused {
                 status: JobStatus::ValueOutOfRange,
                 index: 2,
+                var: Some(var::SD43900),
                 ..
             }
         ),
         "{e:?}"
+    );
+    assert!(
+        e.to_string().contains("(value out of range) for SD43900"),
+        "{e}"
     );
     // All or none: the valid first pair was not applied either.
     assert_eq!(w.read_snapshot().await.unwrap().sd43910, 0.0);
@@ -173,6 +184,12 @@ async fn a_plc_that_never_answers_hits_the_job_timeout() {
             }
         ),
         "{e:?}"
+    );
+    // REQ was set: the PLC program may still take the job.
+    assert_eq!(
+        e.to_string(),
+        "job 1 did not finish within 300ms (STATE stayed idle): the values may have landed; \
+         check with `compgate nc read`"
     );
     // Bounded by the job timeout plus one request, not by the link's patience.
     assert!(
@@ -334,4 +351,65 @@ async fn a_job_left_unacknowledged_is_waited_for_and_cleared_first() {
     };
     w.write_job(&Job::thermal(&q)).await.unwrap();
     assert_eq!(w.read_snapshot().await.unwrap().thermal(), q);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_block_of_the_other_value_type_is_named_and_never_gets_a_job() {
+    if !s7_peer::available() {
+        return;
+    }
+    // (the PLC's block, the config's value_type, what the check trips on)
+    for (plc, configured, trips_on) in [
+        // MD32750 = 3 and REFERENCED = 1 of the LREAL block read as REAL values.
+        ("lreal", "real", "a subnormal number"),
+        // MD32000 = 10000.0 of the REAL block read as STATE.
+        ("real", "lreal", "STATE = 17948, not a job state 0..=3"),
+    ] {
+        let peer = S7Peer::start(&["--value-type", plc, "--axes", "2", "--mode", "done"]);
+        let mut wrong = writer(&peer, &format!("value_type = \"{configured}\""), 1);
+        let e = wrong.read_snapshot().await.unwrap_err();
+        let text = e.to_string();
+        assert!(matches!(e, NcError::Implausible(_)), "{e:?}");
+        for needle in [
+            "DB100 byte ",
+            trips_on,
+            &format!("value_type = \"{configured}\""),
+            "the likely cause is value_type",
+        ] {
+            assert!(
+                text.contains(needle),
+                "{plc} as {configured}: `{needle}` missing: {text}"
+            );
+        }
+        let e = wrong
+            .write_job(&Job::thermal(&awkward()))
+            .await
+            .unwrap_err();
+        assert!(matches!(e, NcError::Implausible(_)), "{e:?}");
+        // The PLC never saw REQ: with the right layout the block still holds nothing.
+        let mut right = writer(&peer, &format!("value_type = \"{plc}\""), 1);
+        assert_eq!(
+            right.read_snapshot().await.unwrap().thermal(),
+            CompParams::default(),
+            "{plc} as {configured}"
+        );
+    }
+}
+
+#[test]
+fn validation_names_the_axis_whose_block_passes_byte_65535() {
+    let target = "[targets.nc_x]\nkind = \"s7\"\naddress = \"127.0.0.1:102\"\n\
+                  db_number = 120\nblock_stride_bytes = 400\n";
+    let text = common::with_target(target, 200);
+    let e = compgate_gateway::config::load_str(&text, "s7.toml").unwrap_err();
+    let text = e.to_string();
+    assert!(
+        text.contains("s7.toml: axes.X.axis_number: no room for NC axis 200's block in DB120"),
+        "{text}"
+    );
+    assert!(text.contains("block_stride_bytes 400"), "{text}");
+    assert!(!text.contains("invalid job"), "{text}");
+    // Axis 164 still fits: 163 * 400 + 108 <= 65535.
+    let ok = common::with_target(target, 164);
+    compgate_gateway::config::load_str(&ok, "s7.toml").unwrap();
 }

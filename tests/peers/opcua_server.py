@@ -165,13 +165,16 @@ async def main() -> None:
 
     def user_access_level(event, _dispatcher):
         # The control answers UserAccessLevel per user; asyncua stores one per node.
+        # The results are the stored DataValues themselves: each is replaced in the
+        # answer, never changed, or a writer's read would let readers write.
         may_write = event.user is not None and event.user.role == UserRole.Admin
-        for rv, dv in zip(event.request_params.NodesToRead, event.response_params):
+        results = event.response_params
+        for i, rv in enumerate(event.request_params.NodesToRead):
             if rv.AttributeId == ua.AttributeIds.UserAccessLevel and rv.NodeId in nodes:
                 level = ua.AccessLevel.CurrentRead.mask
                 if may_write:
                     level |= ua.AccessLevel.CurrentWrite.mask
-                dv.Value = ua.Variant(level, ua.VariantType.Byte)
+                results[i] = ua.DataValue(ua.Variant(level, ua.VariantType.Byte))
 
     server.subscribe_server_callback(CallbackType.PreWrite, before_write)
     server.subscribe_server_callback(CallbackType.PostRead, user_access_level)

@@ -316,6 +316,16 @@ impl JobState {
             _ => None,
         }
     }
+
+    /// Name, for messages: `idle`, `busy`, `done`, `error`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Idle => "idle",
+            Self::Busy => "busy",
+            Self::Done => "done",
+            Self::Error => "error",
+        }
+    }
 }
 
 /// Values of `STATUS`: the FB3 error codes, plus one compgate extension.
@@ -387,6 +397,17 @@ pub const SD43910_LIMIT: f64 = 0.1;
 pub const SD43920_LIMIT_MM: f64 = 100_000.0;
 /// Upper limit of MD32450 (backlash), mm; the lower limit is 0.
 pub const MD32450_LIMIT_MM: f64 = 1.0;
+
+/// The NC's own limit on |value| of thermal setting datum `var_id` (SD43900, SD43910,
+/// SD43920); `None` for any other variable.
+pub fn thermal_limit(var_id: u16) -> Option<f64> {
+    match var_id {
+        var::SD43900 => Some(SD43900_LIMIT_MM),
+        var::SD43910 => Some(SD43910_LIMIT),
+        var::SD43920 => Some(SD43920_LIMIT_MM),
+        _ => None,
+    }
+}
 
 /// Move programmes and servo traces of the servo block (`MV_*`, `TR_*`), as the
 /// backlash test writes them and the simulated axis runs them.

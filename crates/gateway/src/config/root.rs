@@ -370,6 +370,9 @@ pub(crate) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
         axis.validate(&entry("axes", name), &channels, &mut out);
         nc_write_covers_model(name, axis, &mut out);
     }
+    for (name, t) in &cfg.targets {
+        t.validate_axes(name, &cfg.axes, &mut out);
+    }
 
     if let Some(sim) = &cfg.sim {
         for (name, sc) in &sim.channels {

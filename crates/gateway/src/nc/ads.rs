@@ -18,7 +18,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use tokio::time::Instant;
 
-use super::{var_name, Job, JobReport, NcError, NcSnapshot, NcWriter, Precision};
+use super::{number, var_name, Job, JobReport, NcError, NcSnapshot, NcWriter, Precision};
 use crate::config::keys::secs;
 use crate::config::problem::Problems;
 use crate::source::modbus::Backoff;
@@ -161,10 +161,85 @@ impl AdsTargetConfig {
         out.positive(&k("job_timeout_s"), self.job_timeout_s, "seconds");
     }
 
+    /// Where each value of axis `axis_number` lives; `Err` names the variable whose
+    /// index group or offset overflows 32 bits.
+    fn resolve(&self, axis_number: u16) -> Result<Vec<AdsValue>, String> {
+        let mut values = Vec::new();
+        for (var_id, a) in self.values() {
+            let Some(a) = a else { continue };
+            let (g, o) = a.at(axis_number).ok_or_else(|| {
+                format!(
+                    "the index group or offset of {} overflows 32 bits at axis number \
+                     {axis_number} ({:#x} + {axis_number} * {}, {:#x} + {axis_number} * {})",
+                    var_name(var_id),
+                    a.index_group,
+                    a.group_per_axis,
+                    a.index_offset,
+                    a.offset_per_axis
+                )
+            })?;
+            values.push(AdsValue {
+                var: var_id,
+                index_group: g,
+                index_offset: o,
+            });
+        }
+        Ok(values)
+    }
+
+    /// Every axis' values resolve, as [`Self::build`] places them, and no two of
+    /// them (of one axis or of two) share a byte; `axes` are the (name, axis number)
+    /// of the axes on this target, `key` the target's path.
+    pub fn validate_axes(&self, key: &str, axes: &[(&str, u16)], out: &mut Problems<'_>) {
+        let size = match self.value_type {
+            AdsValueType::Lreal => 8,
+            AdsValueType::Real => 4,
+        };
+        let mut placed: Vec<(&str, AdsValue)> = Vec::new();
+        for &(axis, number) in axes {
+            let values = match self.resolve(number) {
+                Ok(v) => v,
+                Err(why) => {
+                    out.push(
+                        crate::config::keys::field("axes", axis, "axis_number"),
+                        format!("{why}: lower the axis number or the per-axis steps of {key}"),
+                    );
+                    continue;
+                }
+            };
+            for v in values {
+                let overlaps = |(_, p): &&(&str, AdsValue)| {
+                    p.index_group == v.index_group
+                        && u64::from(p.index_offset).abs_diff(u64::from(v.index_offset)) < size
+                };
+                if let Some((other, p)) = placed.iter().find(overlaps) {
+                    let consequence = if *other == axis {
+                        "one variable would take two setting data".to_string()
+                    } else {
+                        "each axis would overwrite the other's value; set group_per_axis or \
+                         offset_per_axis so that each axis number has its own variables"
+                            .to_string()
+                    };
+                    out.push(
+                        format!("{key}.{}", var_name(v.var).to_lowercase()),
+                        format!(
+                            "{} of axis {axis} overlaps {} of axis {other} (a value is {size} \
+                             bytes): {consequence}",
+                            v.describe(),
+                            p.describe()
+                        ),
+                    );
+                } else {
+                    placed.push((axis, v));
+                }
+            }
+        }
+    }
+
     /// The writer for axis `axis_number` (not connected yet; connects on first use and
     /// reconnects with a backoff of 0.5 s doubling to 10 s).
     pub fn build(&self, axis_name: &str, axis_number: u16) -> Result<AdsNcWriter, NcError> {
-        let bad = |what: String| NcError::InvalidJob(format!("axis {axis_name}: {what}"));
+        let bad = |what: String| NcError::Config(format!("axis {axis_name}: {what}"));
         let target_id: AmsNetId = self
             .ams_net_id
             .parse()
@@ -176,22 +251,7 @@ impl AdsTargetConfig {
                 58913,
             )),
         };
-        let mut values = Vec::new();
-        for (var_id, a) in self.values() {
-            if let Some(a) = a {
-                let (g, o) = a.at(axis_number).ok_or_else(|| {
-                    bad(format!(
-                        "index of {} overflows at axis number {axis_number}",
-                        var_name(var_id)
-                    ))
-                })?;
-                values.push(AdsValue {
-                    var: var_id,
-                    index_group: g,
-                    index_offset: o,
-                });
-            }
-        }
+        let values = self.resolve(axis_number).map_err(bad)?;
         Ok(AdsNcWriter {
             plan: Arc::new(Plan {
                 address: self.address.clone(),
@@ -254,22 +314,56 @@ impl Plan {
         }
     }
 
+    fn precision(&self) -> Precision {
+        match self.value_type {
+            AdsValueType::Lreal => Precision::F64,
+            AdsValueType::Real => Precision::F32,
+        }
+    }
+
+    /// The `value_type` value and the size it reads.
+    fn type_name(&self) -> (&'static str, usize) {
+        match self.value_type {
+            AdsValueType::Lreal => ("lreal", 8),
+            AdsValueType::Real => ("real", 4),
+        }
+    }
+
+    /// Reads one value and refuses one the NC cannot hold: the size of an ADS variable
+    /// is not told by the read (TwinCAT answers 4 bytes of an LREAL), so a wrong
+    /// `value_type` shows as a subnormal, huge or non-finite value.
     fn read(&self, dev: &Device<'_>, v: &AdsValue) -> Result<f64, NcError> {
         let what = || format!("read of {}", v.describe());
-        Ok(match self.value_type {
-            AdsValueType::Lreal => {
-                let mut b = [0; 8];
-                dev.read_exact(v.index_group, v.index_offset, &mut b)
-                    .map_err(|e| ads_error(what(), e))?;
-                f64::from_le_bytes(b)
-            }
-            AdsValueType::Real => {
-                let mut b = [0; 4];
-                dev.read_exact(v.index_group, v.index_offset, &mut b)
-                    .map_err(|e| ads_error(what(), e))?;
-                f64::from(f32::from_le_bytes(b))
-            }
-        })
+        let (type_name, size) = self.type_name();
+        let mut b = [0; 8];
+        dev.read_exact(v.index_group, v.index_offset, &mut b[..size])
+            .map_err(|e| match e {
+                // A whole answer, shorter than asked: the variable is smaller.
+                ads::Error::Reply(_, "got less data than expected", got) => NcError::Answered {
+                    what: what(),
+                    answer: format!(
+                        "the control answered {got} bytes where value_type = \"{type_name}\" \
+                         reads {size}: check value_type (REAL is 4 bytes, LREAL 8)"
+                    ),
+                },
+                e => ads_error(what(), e),
+            })?;
+        let x = if size == 8 {
+            f64::from_le_bytes(b)
+        } else {
+            f64::from(f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        };
+        match self.precision().implausible(v.var, x) {
+            None => Ok(x),
+            Some(why) => Err(NcError::Implausible(format!(
+                "{} reads {}, {why}: not a value the NC holds; the likely cause is value_type \
+                 = \"{type_name}\" while the control's variable is {} (REAL is 4 bytes, LREAL \
+                 8); nothing is written while it reads so",
+                v.describe(),
+                number(x),
+                if size == 8 { "a REAL" } else { "an LREAL" }
+            ))),
+        }
     }
 }
 
@@ -401,10 +495,7 @@ impl NcWriter for AdsNcWriter {
     }
 
     fn precision(&self) -> Precision {
-        match self.plan.value_type {
-            AdsValueType::Lreal => Precision::F64,
-            AdsValueType::Real => Precision::F32,
-        }
+        self.plan.precision()
     }
 }
 

@@ -3,6 +3,7 @@
 //! the structural check). `[nc_modules.NAME]` is the older spelling of a
 //! `kind = "modbus"` target and stays accepted.
 
+use std::collections::BTreeMap;
 use std::time::Duration;
 
 use schemars::JsonSchema;
@@ -13,6 +14,7 @@ pub use super::modbus::ModbusTargetConfig;
 use super::opcua::OpcuaTargetConfig;
 use super::s7::S7TargetConfig;
 use super::{AnyNcWriter, NcError};
+use crate::axis::AxisConfig;
 use crate::config::problem::Problems;
 
 /// The older name of [`ModbusTargetConfig`]: `[nc_modules.NAME]`.
@@ -118,6 +120,34 @@ impl TargetConfig {
             Self::Opcua(c) => c.validate(key, out),
             Self::S7(c) => c.validate(key, out),
             Self::Ads(c) => c.validate(key, out),
+        }
+    }
+
+    /// Checks the addresses of the axes on target `name` (of all `axes`) as
+    /// [`Self::build`] resolves them: each fits (S7 block, ADS index), and no two
+    /// setting data share one (ADS variable, OPC UA node). An axis whose number
+    /// another axis on the target already has is left out: that is reported apart.
+    pub fn validate_axes(
+        &self,
+        name: &str,
+        axes: &BTreeMap<String, AxisConfig>,
+        out: &mut Problems<'_>,
+    ) {
+        let key = crate::config::keys::entry("targets", name);
+        let mut on: Vec<(&str, u16)> = Vec::new();
+        for (axis, a) in axes {
+            if a.nc_module != name {
+                continue;
+            }
+            if let Some(n) = a.axis_number.filter(|n| on.iter().all(|(_, m)| m != n)) {
+                on.push((axis.as_str(), n));
+            }
+        }
+        match self {
+            Self::Modbus(_) => {}
+            Self::Opcua(c) => c.validate_axes(&key, &on, out),
+            Self::S7(c) => c.validate_axes(&on, out),
+            Self::Ads(c) => c.validate_axes(&key, &on, out),
         }
     }
 

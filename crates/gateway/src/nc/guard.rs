@@ -130,9 +130,8 @@ impl<W: NcWriter> Guarded<W> {
         Ok(())
     }
 
-    async fn write_and_verify(&mut self, job: &Job) -> Result<(), NcError> {
-        self.writer.write_job(job).await?;
-        let snap = self.writer.read_snapshot().await?;
+    /// Checks the read-back `snap` against what `job` wrote.
+    fn verify(&self, job: &Job, snap: &NcSnapshot) -> Result<(), NcError> {
         self.writer
             .precision()
             .check_read_back(job.pairs.iter().filter_map(|&(var_id, written)| {
@@ -153,18 +152,30 @@ impl<W: NcWriter> NcWriter for Guarded<W> {
         self.check(job)?;
         let job_id = self.job_ids.issue();
         let started = Instant::now();
-        match tokio::time::timeout(self.job_timeout, self.write_and_verify(job)).await {
-            Ok(Ok(())) => Ok(JobReport {
-                job_id,
-                elapsed: started.elapsed(),
-            }),
-            Ok(Err(e)) => Err(e),
-            Err(_) => Err(NcError::JobTimeout {
-                job_id,
-                timeout: self.job_timeout,
-                state: None,
-            }),
-        }
+        // One deadline, two phases: a write the target acknowledged and whose
+        // read-back ran late is told apart from a write that never finished.
+        let deadline = started + self.job_timeout;
+        let timeout = self.job_timeout;
+        match tokio::time::timeout_at(deadline, self.writer.write_job(job)).await {
+            Ok(result) => result?,
+            Err(_) => {
+                return Err(NcError::JobTimeout {
+                    job_id,
+                    timeout,
+                    state: None,
+                    sent: true,
+                })
+            }
+        };
+        let snap = match tokio::time::timeout_at(deadline, self.writer.read_snapshot()).await {
+            Ok(result) => result?,
+            Err(_) => return Err(NcError::ReadBackTimeout { job_id, timeout }),
+        };
+        self.verify(job, &snap)?;
+        Ok(JobReport {
+            job_id,
+            elapsed: started.elapsed(),
+        })
     }
 
     async fn read_snapshot(&mut self) -> Result<NcSnapshot, NcError> {
@@ -196,6 +207,8 @@ mod tests {
         /// Added to what it holds after a write (a target that rounds or corrupts).
         skew: f64,
         slow: Option<Duration>,
+        /// How long a read takes.
+        slow_read: Option<Duration>,
         precision: Precision,
     }
 
@@ -223,6 +236,9 @@ mod tests {
             })
         }
         async fn read_snapshot(&mut self) -> Result<NcSnapshot, NcError> {
+            if let Some(d) = self.slow_read {
+                tokio::time::sleep(d).await;
+            }
             Ok(self.holds)
         }
         fn precision(&self) -> Precision {
@@ -314,8 +330,39 @@ mod tests {
         };
         let mut g = Guarded::new(slow, THERMAL_VARS.to_vec(), Duration::from_millis(200));
         let e = g.write_job(&thermal(0.01)).await.expect_err("timeout");
-        assert!(matches!(e, NcError::JobTimeout { .. }), "{e}");
+        assert!(matches!(e, NcError::JobTimeout { sent: true, .. }), "{e}");
         assert!(e.is_unreachable());
+        let text = e.to_string();
+        assert!(text.contains("may have landed"), "{text}");
+        assert!(!text.contains("None"), "{text}");
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_write_taken_whose_read_back_runs_late_says_it_was_written() {
+        // The write answers in 0.6 s, the read-back would end at 1.8 s: past the 1 s
+        // job timeout.
+        let slow = Fake {
+            slow: Some(Duration::from_millis(600)),
+            slow_read: Some(Duration::from_millis(1200)),
+            ..Fake::default()
+        };
+        let mut g = Guarded::new(slow, THERMAL_VARS.to_vec(), Duration::from_secs(1));
+        let e = g
+            .write_job(&thermal(0.01))
+            .await
+            .expect_err("read-back late");
+        assert_eq!(
+            e,
+            NcError::ReadBackTimeout {
+                job_id: 1,
+                timeout: Duration::from_secs(1)
+            }
+        );
+        assert_eq!(
+            e.to_string(),
+            "job 1 written; read-back not finished within 1s: check with `compgate nc read`"
+        );
+        assert_eq!(g.inner().written.len(), 1);
     }
 
     #[test]

@@ -24,7 +24,7 @@ use compgate_ncproto::{JobState, JobStatus, MAX_PAIRS};
 use crate::source::SourceError;
 use compgate_core::comp::CompParams;
 
-pub use compgate_ncproto::var;
+pub use compgate_ncproto::{thermal_limit, var};
 pub use guard::{AnyNcWriter, Guarded};
 pub use modbus::ModbusNcWriter;
 
@@ -35,7 +35,15 @@ pub enum NcError {
     #[error("NC link: {0}")]
     Link(#[from] SourceError),
     /// The job did not finish within the job timeout.
-    #[error("job {job_id} did not finish within {timeout:?} (STATE stayed {state:?})")]
+    #[error(
+        "job {job_id} did not finish within {timeout:?}{}{}",
+        state.map(|s| format!(" (STATE stayed {})", s.name())).unwrap_or_default(),
+        if *sent {
+            ": the values may have landed; check with `compgate nc read`"
+        } else {
+            ": the target was still busy with an earlier job; nothing was sent"
+        }
+    )]
     JobTimeout {
         /// Job id.
         job_id: u16,
@@ -43,9 +51,32 @@ pub enum NcError {
         timeout: Duration,
         /// Last state seen.
         state: Option<JobState>,
+        /// Whether the job had been handed over (or may have been) when time ran out.
+        sent: bool,
+    },
+    /// The target took the job, and reading the values back did not end within the job
+    /// timeout.
+    #[error(
+        "job {job_id} written; read-back not finished within {timeout:?}: check with \
+         `compgate nc read`"
+    )]
+    ReadBackTimeout {
+        /// Job id.
+        job_id: u16,
+        /// The job timeout.
+        timeout: Duration,
     },
     /// The NC refused the job.
-    #[error("job {job_id} refused: error {} ({}) at pair {index}", *status as u16, status.name())]
+    #[error(
+        "job {job_id} refused: error {} ({}){}",
+        *status as u16,
+        status.name(),
+        match var {
+            Some(v) => format!(" for {}", var_name(*v)),
+            None if *index > 0 => format!(" at pair {index}"),
+            None => String::new(),
+        }
+    )]
     Refused {
         /// Job id.
         job_id: u16,
@@ -53,9 +84,16 @@ pub enum NcError {
         status: JobStatus,
         /// 1-based pair index at fault, 0 when none.
         index: u16,
+        /// The variable of that pair, when the index names one of the job.
+        var: Option<u16>,
     },
     /// The value read back differs from the value written.
-    #[error("read-back of variable {var}: wrote {written}, NC holds {read}")]
+    #[error(
+        "read-back of {}: wrote {}, NC holds {}",
+        var_name(*var),
+        number(*written),
+        number(*read)
+    )]
     ReadBack {
         /// Variable id.
         var: u16,
@@ -64,6 +102,15 @@ pub enum NcError {
         /// Value read back.
         read: f64,
     },
+    /// What the target holds cannot be what the NC has (a value that is not finite,
+    /// subnormal or beyond the NC's own limit; an S7 block word out of its range):
+    /// most likely the layout or value type in the config is not the control's.
+    #[error("{0}")]
+    Implausible(String),
+    /// The target's config cannot address this axis (validation names the key; this
+    /// is what a writer built without it reports).
+    #[error("config: {0}")]
+    Config(String),
     /// The NC's answer makes no sense (unknown STATE or STATUS value, wrong job id).
     #[error("protocol: {0}")]
     Protocol(String),
@@ -117,6 +164,18 @@ pub enum NcError {
     OpcuaSetup(String),
 }
 
+/// A value as an operator reads it: `0.0219`, `-0.000025`, `100000`, `1e300`,
+/// `1.4616e-30` (shortest round-trip digits, an exponent for tiny or huge values,
+/// never hundreds of digits).
+pub fn number(x: f64) -> String {
+    let a = x.abs();
+    if a != 0.0 && a.is_finite() && !(1e-6..1e15).contains(&a) {
+        format!("{x:e}")
+    } else {
+        format!("{x}")
+    }
+}
+
 /// `SD43900` for a known variable id, the number otherwise.
 pub fn var_name(var_id: u16) -> String {
     match var_id {
@@ -132,7 +191,10 @@ impl NcError {
     pub fn is_unreachable(&self) -> bool {
         match self {
             Self::Link(SourceError::Exception(_)) => false,
-            Self::Link(_) | Self::Unreachable(_) | Self::JobTimeout { .. } => true,
+            Self::Link(_)
+            | Self::Unreachable(_)
+            | Self::JobTimeout { .. }
+            | Self::ReadBackTimeout { .. } => true,
             _ => false,
         }
     }
@@ -151,6 +213,26 @@ pub enum Precision {
 }
 
 impl Precision {
+    /// Why `x`, read from a store of this precision as variable `var_id` (0: no
+    /// setting datum), cannot be a value the NC holds: not finite, subnormal (a
+    /// REAL's bytes read as an LREAL or the other way round give these), or beyond
+    /// the NC's own limit of a thermal setting datum. `None` when it can.
+    pub fn implausible(self, var_id: u16, x: f64) -> Option<String> {
+        let smallest = match self {
+            Self::F64 => f64::MIN_POSITIVE,
+            Self::F32 => f64::from(f32::MIN_POSITIVE),
+        };
+        if !x.is_finite() {
+            Some("not a finite number".into())
+        } else if x != 0.0 && x.abs() < smallest {
+            Some("a subnormal number".into())
+        } else {
+            compgate_ncproto::thermal_limit(var_id)
+                .filter(|limit| x.abs() > *limit)
+                .map(|limit| format!("beyond the NC's own limit of {}", number(limit)))
+        }
+    }
+
     /// Whether `read` is what a target of this precision holds after `written`.
     pub fn holds(self, written: f64, read: f64) -> bool {
         match self {
@@ -214,6 +296,12 @@ impl Job {
             )));
         }
         Ok(())
+    }
+
+    /// The variable of 1-based pair `index`, as an NC names the pair at fault.
+    pub fn var_at(&self, index: u16) -> Option<u16> {
+        let i = usize::from(index.checked_sub(1)?);
+        self.pairs.get(i).map(|&(v, _)| v)
     }
 
     /// [`Job::thermal`] with only the variables in `allowed`.
@@ -327,6 +415,42 @@ mod tests {
         let got: Vec<u16> = (0..3).map(|_| ids.issue()).collect();
         assert_eq!(got, [u16::MAX - 1, u16::MAX, 1]);
         assert_eq!(JobIds::default().issue(), 1);
+    }
+
+    #[test]
+    fn numbers_read_as_an_operator_writes_them() {
+        for (x, shown) in [
+            (0.0, "0"),
+            (0.0219, "0.0219"),
+            (-0.000025, "-0.000025"),
+            (100_000.0, "100000"),
+            (1e300, "1e300"),
+            (1.4616014943717506e-30, "1.4616014943717506e-30"),
+            (f64::NAN, "NaN"),
+        ] {
+            assert_eq!(number(x), shown);
+        }
+    }
+
+    #[test]
+    fn implausible_values_are_the_ones_no_nc_holds() {
+        let f32_tiny = f64::from(f32::from_bits(0x0001_0000));
+        assert_eq!(
+            Precision::F32.implausible(0, f32_tiny).as_deref(),
+            Some("a subnormal number")
+        );
+        // A REAL store's smallest normal value is fine; an LREAL's subnormal is not.
+        assert!(Precision::F32
+            .implausible(0, f64::from(f32::MIN_POSITIVE))
+            .is_none());
+        assert!(Precision::F64.implausible(0, 5e-324).is_some());
+        assert!(Precision::F64.implausible(0, f64::INFINITY).is_some());
+        let beyond = Precision::F32.implausible(var::SD43900, 89128.96);
+        assert_eq!(beyond.as_deref(), Some("beyond the NC's own limit of 10"));
+        assert!(Precision::F64
+            .implausible(var::SD43920, -100_000.0)
+            .is_none());
+        assert!(Precision::F64.implausible(var::SD43910, 0.0).is_none());
     }
 
     #[test]

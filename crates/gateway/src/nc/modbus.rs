@@ -64,10 +64,12 @@ impl ModbusNcWriter {
 
     /// Waits until `done(state)` or the deadline; the module is polled briefly
     /// because a job takes one or two IPO cycles. Returns the last handshake read.
+    /// `sent`: whether the job has been handed over (for the timeout's message).
     async fn wait_state(
         &mut self,
         deadline: Instant,
         job_id: u16,
+        sent: bool,
         done: impl Fn(JobState) -> bool,
     ) -> Result<Vec<u16>, NcError> {
         loop {
@@ -80,6 +82,7 @@ impl ModbusNcWriter {
                     job_id,
                     timeout: self.job_timeout,
                     state: Some(s),
+                    sent,
                 });
             }
             tokio::time::sleep(Duration::from_millis(2)).await;
@@ -91,7 +94,7 @@ impl ModbusNcWriter {
         // first; a busy module is waited for, never interrupted.
         if self.handshake().await?.0 != JobState::Idle {
             self.link.write(self.unit_id, ncmap::REQ, &[0]).await?;
-            self.wait_state(deadline, job_id, |s| s == JobState::Idle)
+            self.wait_state(deadline, job_id, false, |s| s == JobState::Idle)
                 .await?;
         }
         let mut block = vec![job_id, job.pairs.len() as u16];
@@ -102,7 +105,7 @@ impl ModbusNcWriter {
         self.link.write(self.unit_id, ncmap::JOB_ID, &block).await?;
         self.link.write(self.unit_id, ncmap::REQ, &[1]).await?;
         let r = self
-            .wait_state(deadline, job_id, |s| {
+            .wait_state(deadline, job_id, true, |s| {
                 matches!(s, JobState::Done | JobState::Error)
             })
             .await?;
@@ -118,10 +121,12 @@ impl ModbusNcWriter {
         let status = JobStatus::from_u16(reg(ncmap::STATUS))
             .ok_or_else(|| NcError::Protocol(format!("STATUS = {}", reg(ncmap::STATUS))))?;
         if reg(ncmap::ERROR) != 0 || status != JobStatus::Ok {
+            let index = reg(ncmap::ERROR_INDEX);
             return Err(NcError::Refused {
                 job_id,
                 status,
-                index: reg(ncmap::ERROR_INDEX),
+                index,
+                var: job.var_at(index),
             });
         }
         Ok(())
@@ -151,6 +156,7 @@ impl NcWriter for ModbusNcWriter {
                     job_id,
                     timeout: self.job_timeout,
                     state: None,
+                    sent: true,
                 })
             }
         }

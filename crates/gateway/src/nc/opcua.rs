@@ -32,6 +32,7 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
+use tracing::instrument::WithSubscriber;
 
 use super::{Job, JobIds, JobReport, NcError, NcSnapshot, NcWriter};
 use crate::config::keys::secs;
@@ -327,18 +328,62 @@ impl OpcuaTargetConfig {
         }
     }
 
+    /// The node ids of SD43900, SD43910, SD43920 for one axis, `{ns}` left for connect.
+    fn axis_nodes(&self, axis_name: &str, axis_number: u16) -> [String; 3] {
+        self.templates().map(|(_, template)| {
+            template
+                .replace("{axis_number}", &axis_number.to_string())
+                .replace("{axis_name}", axis_name)
+        })
+    }
+
+    /// No two setting data, of one axis or of two, resolve to the same node, as
+    /// [`Self::build`] fills the templates; `axes` are the (name, axis number) of the
+    /// axes on this target, `key` the target's path.
+    pub fn validate_axes(&self, key: &str, axes: &[(&str, u16)], out: &mut Problems<'_>) {
+        // node id -> (axis, template key) that resolved to it first.
+        let mut seen: std::collections::BTreeMap<String, (&str, &str)> = Default::default();
+        for &(axis, number) in axes {
+            let nodes = self.axis_nodes(axis, number);
+            for ((template, _), node) in self.templates().into_iter().zip(nodes) {
+                match seen.get(&node) {
+                    Some(&(other, other_template)) => out.push(
+                        format!("{key}.{template}"),
+                        if other == axis {
+                            format!(
+                                "axis {axis}: {template} and {other_template} both resolve to \
+                                 `{node}`: one node would take two setting data"
+                            )
+                        } else {
+                            format!(
+                                "axes {other} and {axis} both resolve {} to `{node}`: each \
+                                 would overwrite the other's value; put {{axis_number}} or \
+                                 {{axis_name}} into the template",
+                                if template == other_template {
+                                    template.to_string()
+                                } else {
+                                    format!("{other_template} and {template}")
+                                }
+                            )
+                        },
+                    ),
+                    None => {
+                        seen.insert(node, (axis, template));
+                    }
+                }
+            }
+        }
+    }
+
     /// The writer of axis `axis_name`, number `axis_number` on the control (not
     /// connected yet). Reads the credentials now, so a missing file or variable is
     /// reported at start.
     pub fn build(&self, axis_name: &str, axis_number: u16) -> Result<OpcuaNcWriter, NcError> {
-        let mut templates: [String; 3] = Default::default();
-        for (slot, (name, template)) in templates.iter_mut().zip(self.templates()) {
+        for (name, template) in self.templates() {
             check_template(template)
                 .map_err(|why| NcError::OpcuaSetup(format!("{name}: {why}")))?;
-            *slot = template
-                .replace("{axis_number}", &axis_number.to_string())
-                .replace("{axis_name}", axis_name);
         }
+        let templates = self.axis_nodes(axis_name, axis_number);
         let credentials = self.credentials()?;
         Ok(OpcuaNcWriter {
             spec: Arc::new(Spec {
@@ -732,7 +777,8 @@ impl OpcuaNcWriter {
                 Some(Variant::Byte(b)) => *b,
                 other => {
                     return Err(NcError::Protocol(format!(
-                        "UserAccessLevel of {node} is {other:?}, expected a Byte"
+                        "UserAccessLevel of {node} is {}, expected a Byte",
+                        shown(other)
                     )))
                 }
             };
@@ -857,8 +903,9 @@ impl OpcuaNcWriter {
                 match &dv.value {
                     Some(Variant::Double(v)) => Ok(*v),
                     other => Err(NcError::Protocol(format!(
-                        "{} holds {other:?}, expected a Double",
-                        nodes[i]
+                        "{} holds {}, expected a Double",
+                        nodes[i],
+                        shown(other)
                     ))),
                 }
             })
@@ -907,18 +954,18 @@ impl NcWriter for OpcuaNcWriter {
     async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
         let mut pairs = Vec::with_capacity(job.pairs.len());
         for &(var_id, value) in &job.pairs {
+            let name = super::var_name(var_id);
             let Some(i) = VARS.iter().position(|v| *v == var_id) else {
                 return Err(NcError::InvalidJob(format!(
-                    "variable {var_id} has no node on an OPC UA target (SD43900, SD43910, \
-                     SD43920 only)"
+                    "{name} has no node on an OPC UA target (SD43900, SD43910, SD43920 only)"
                 )));
             };
             if pairs.iter().any(|&(j, _)| j == i) {
-                return Err(NcError::InvalidJob(format!("variable {var_id} twice")));
+                return Err(NcError::InvalidJob(format!("{name} twice")));
             }
             if !value.is_finite() {
                 return Err(NcError::InvalidJob(format!(
-                    "variable {var_id} = {value}: not a finite number"
+                    "{name} = {value}: not a finite number"
                 )));
             }
             pairs.push((i, value));
@@ -936,6 +983,14 @@ impl NcWriter for OpcuaNcWriter {
                 job_id,
                 elapsed: started.elapsed(),
             }),
+            // The write request went out and its answer did not come: the server may
+            // still apply it.
+            Ok(Err(NcError::Link(SourceError::Timeout(timeout)))) => Err(NcError::JobTimeout {
+                job_id,
+                timeout,
+                state: None,
+                sent: true,
+            }),
             Ok(Err(e)) => Err(e),
             Err(_) => {
                 // The server may still answer (or apply) the cut-off request: a new
@@ -945,6 +1000,7 @@ impl NcWriter for OpcuaNcWriter {
                     job_id,
                     timeout: self.job_timeout,
                     state: None,
+                    sent: true,
                 })
             }
         }
@@ -977,23 +1033,37 @@ async fn open(spec: Arc<Spec>) -> Result<Connection, NcError> {
         None => IdentityToken::Anonymous,
     };
     let user = spec.user_label();
+    // With policy None compgate has no certificate, by design; the OPC UA crates log
+    // that as ERROR at the client and at every secure channel they set up. Their logs
+    // are muted while the client is made and the endpoint connected (whatever fails
+    // there is returned, and reported by compgate); the session's own events are not.
+    let quiet = spec.policy == SecurityPolicy::None;
     // Reads the pki folder, maybe makes a key pair: off the runtime's threads.
     let mut client = {
         let spec = spec.clone();
-        tokio::task::spawn_blocking(move || spec.client())
-            .await
-            .map_err(|e| NcError::OpcuaSetup(format!("OPC UA client: {e}")))??
-    };
-    let (session, event_loop) = client
-        .connect_to_matching_endpoint(endpoint, identity)
+        tokio::task::spawn_blocking(move || {
+            if quiet {
+                tracing::dispatcher::with_default(&tracing::Dispatch::none(), || spec.client())
+            } else {
+                spec.client()
+            }
+        })
         .await
-        .map_err(|e| {
-            // The error's text repeats its status first.
-            let text = e.to_string();
-            let prefix = format!("{}: ", e.status());
-            let detail = text.strip_prefix(&prefix).unwrap_or(&text);
-            connect_error(url, &user, e.status(), detail)
-        })?;
+        .map_err(|e| NcError::OpcuaSetup(format!("OPC UA client: {e}")))??
+    };
+    let connect = client.connect_to_matching_endpoint(endpoint, identity);
+    let connected = if quiet {
+        connect.with_subscriber(tracing::Dispatch::none()).await
+    } else {
+        connect.await
+    };
+    let (session, event_loop) = connected.map_err(|e| {
+        // The error's text repeats its status first.
+        let text = e.to_string();
+        let prefix = format!("{}: ", e.status());
+        let detail = text.strip_prefix(&prefix).unwrap_or(&text);
+        connect_error(url, &user, e.status(), detail)
+    })?;
     let lost = Arc::new(AtomicBool::new(false));
     let (tx, rx) = oneshot::channel();
     let task = tokio::spawn(drive(event_loop, tx, lost.clone(), url.to_string()));
@@ -1025,6 +1095,17 @@ fn read_id(node_id: NodeId, attribute: AttributeId) -> ReadValueId {
         attribute_id: attribute as u32,
         index_range: NumericRange::None,
         data_encoding: QualifiedName::null(),
+    }
+}
+
+/// A value as the server sent it, with its type: `0.5 (Float)`, `no value`.
+fn shown(value: &Option<Variant>) -> String {
+    match value {
+        None => "no value".into(),
+        Some(v) => match v.scalar_type_id() {
+            Some(t) => format!("{v} ({t})"),
+            None => v.to_string(),
+        },
     }
 }
 
@@ -1228,6 +1309,12 @@ mod tests {
                 "{key}: {doc}"
             );
         }
+    }
+
+    #[test]
+    fn values_of_another_type_are_shown_without_rust_syntax() {
+        assert_eq!(shown(&Some(Variant::Float(0.5))), "0.5 (Float)");
+        assert_eq!(shown(&None), "no value");
     }
 
     #[test]

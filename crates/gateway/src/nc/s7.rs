@@ -71,6 +71,14 @@ impl S7ValueType {
         }
     }
 
+    /// The `value_type` key's value: `real` or `lreal`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Real => "real",
+            Self::Lreal => "lreal",
+        }
+    }
+
     /// Bytes of one value.
     pub fn size(self) -> u16 {
         match self {
@@ -285,7 +293,7 @@ impl S7TargetConfig {
                 k("block_stride_bytes"),
                 format!(
                     "must be at least the block length, {len} bytes for value_type = \"{}\", got {}; consecutive axes' blocks would overlap",
-                    self.value_type_name(),
+                    self.value_type.name(),
                     self.block_stride_bytes()
                 ),
             );
@@ -304,10 +312,34 @@ impl S7TargetConfig {
         out.positive(&k("job_timeout_s"), self.job_timeout_s, "seconds");
     }
 
-    fn value_type_name(&self) -> &'static str {
-        match self.value_type {
-            S7ValueType::Real => "real",
-            S7ValueType::Lreal => "lreal",
+    /// Why axis `axis_number`'s block does not fit in the data block.
+    fn no_room(&self, axis_number: u16) -> String {
+        format!(
+            "no room for NC axis {axis_number}'s block in DB{}: axis numbers start at 1, and \
+             the block (start_byte {} + (axis_number - 1) * block_stride_bytes {} + {} bytes) \
+             must end by byte {MAX_BYTE}, the last an S7 request can address",
+            self.db_number,
+            self.start_byte,
+            self.block_stride_bytes(),
+            self.layout().block_len()
+        )
+    }
+
+    /// Every axis' block fits in the data block, as [`Self::build`] places it; `axes`
+    /// are the (name, axis number) of the axes on this target. Distinct axis numbers
+    /// and a stride of at least the block length (checked elsewhere) keep the blocks
+    /// apart.
+    pub fn validate_axes(&self, axes: &[(&str, u16)], out: &mut Problems<'_>) {
+        for &(name, number) in axes {
+            if self.block_start(number).is_none() {
+                out.push(
+                    crate::config::keys::field("axes", name, "axis_number"),
+                    format!(
+                        "{}; lower the axis number, or block_stride_bytes / start_byte of its target",
+                        self.no_room(number)
+                    ),
+                );
+            }
         }
     }
 
@@ -316,13 +348,7 @@ impl S7TargetConfig {
     /// reconnects with a backoff of 0.5 s doubling to 10 s.
     pub fn build(&self, axis_name: &str, axis_number: u16) -> Result<S7NcWriter, NcError> {
         let block = self.block_start(axis_number).ok_or_else(|| {
-            NcError::InvalidJob(format!(
-                "axis {axis_name} (NC axis {axis_number}): no room for its S7 block in DB{}: axis numbers start at 1 and the block (start_byte {} + (axis - 1) * block_stride_bytes {} + {} bytes) must end by byte {MAX_BYTE}",
-                self.db_number,
-                self.start_byte,
-                self.block_stride_bytes(),
-                self.layout().block_len()
-            ))
+            NcError::Config(format!("axis {axis_name}: {}", self.no_room(axis_number)))
         })?;
         let (host, port) = self
             .address
@@ -330,7 +356,7 @@ impl S7TargetConfig {
             .and_then(|(h, p)| Some((h.to_string(), p.parse::<u16>().ok()?)))
             .filter(|(_, p)| *p != 0)
             .ok_or_else(|| {
-                NcError::InvalidJob(format!(
+                NcError::Config(format!(
                     "address `{}` is not host:port with a port 1..=65535",
                     self.address
                 ))
@@ -580,6 +606,9 @@ fn write(spec: &Spec, c: &mut S7Client, offset: u16, bytes: &[u8]) -> Result<(),
 /// What the PLC shows: `STATE` .. the end of the read-back.
 struct PlcArea {
     layout: S7Layout,
+    db: u16,
+    /// Byte offset of the axis' block in the DB.
+    block: u16,
     base: u16,
     bytes: Vec<u8>,
 }
@@ -593,6 +622,8 @@ impl PlcArea {
             .map_err(|e| s7_error(spec, start, bytes.len(), e))?;
         Ok(Self {
             layout: spec.layout,
+            db: spec.db,
+            block: spec.block,
             base,
             bytes,
         })
@@ -615,9 +646,64 @@ impl PlcArea {
         }
     }
 
+    /// The block at `offset` (from the axis' block start) does not hold what the
+    /// configured layout puts there.
+    fn implausible(&self, offset: u16, what: &str) -> NcError {
+        let vt = self.layout.value_type;
+        NcError::Implausible(format!(
+            "DB{} byte {} ({what}): the block does not look like the layout of value_type = \"{}\" \
+             (a {}-byte block per axis, STATE at byte {} of it); the likely cause is value_type \
+             (REAL or LREAL in the PLC's block), else start_byte or block_stride_bytes; \
+             nothing was written",
+            self.db,
+            self.block + offset,
+            vt.name(),
+            self.layout.block_len(),
+            self.layout.state()
+        ))
+    }
+
     fn state(&self) -> Result<JobState, NcError> {
-        let v = self.word(self.layout.state());
-        JobState::from_u16(v).ok_or_else(|| NcError::Protocol(format!("STATE = {v}")))
+        let at = self.layout.state();
+        let v = self.word(at);
+        JobState::from_u16(v)
+            .ok_or_else(|| self.implausible(at, &format!("STATE = {v}, not a job state 0..=3")))
+    }
+
+    /// Whether the PLC's part of the block looks like the configured layout: STATE a
+    /// job state, MD32750 a bit field 0..=7, REFERENCED 0 or 1, every read-back value
+    /// finite and not subnormal, the setting data within the NC's limits. A REAL block
+    /// read as LREAL (or the other way round) fails this in most states.
+    fn check(&self) -> Result<(), NcError> {
+        self.state()?;
+        let l = self.layout;
+        let md32750 = self.word(l.md32750());
+        if md32750 > 7 {
+            return Err(self.implausible(
+                l.md32750(),
+                &format!("MD32750 = {md32750}, not a bit field 0..=7"),
+            ));
+        }
+        let referenced = self.word(l.referenced());
+        if referenced > 1 {
+            return Err(self.implausible(
+                l.referenced(),
+                &format!("REFERENCED = {referenced}, not 0 or 1"),
+            ));
+        }
+        let ids = [var::SD43900, var::SD43910, var::SD43920];
+        for (k, name) in S7Layout::READBACK_VARS.iter().enumerate() {
+            let k = k as u16;
+            let var_id = ids.get(usize::from(k)).copied().unwrap_or(0);
+            let x = self.value(k);
+            if let Some(why) = l.value_type.precision().implausible(var_id, x) {
+                return Err(self.implausible(
+                    l.readback(k),
+                    &format!("{name} = {}, {why}", super::number(x)),
+                ));
+            }
+        }
+        Ok(())
     }
 
     fn snapshot(&self) -> NcSnapshot {
@@ -669,7 +755,9 @@ fn job_bytes(spec: &Spec, job: &Job, job_id: u16) -> Result<Vec<u8>, NcError> {
         put(&mut b, S7Layout::VAR_IDS + 2 * i, &var_id.to_be_bytes());
         let enc = encode(layout.value_type, *value).ok_or_else(|| {
             NcError::InvalidJob(format!(
-                "value {value} of variable {var_id} does not fit a REAL"
+                "{} = {} does not fit a REAL",
+                super::var_name(*var_id),
+                super::number(*value)
             ))
         })?;
         put(&mut b, S7Layout::VALUES + size * i, &enc);
@@ -678,13 +766,13 @@ fn job_bytes(spec: &Spec, job: &Job, job_id: u16) -> Result<Vec<u8>, NcError> {
 }
 
 /// Polls the block until `done(state)` or the deadline; the PLC program answers
-/// within a few PLC cycles.
+/// within a few PLC cycles. `sent`: whether REQ was set (for the timeout's message).
 fn wait_state(
     spec: &Spec,
     c: &mut S7Client,
     deadline: std::time::Instant,
     timeout: Duration,
-    job_id: u16,
+    (job_id, sent): (u16, bool),
     done: impl Fn(JobState) -> bool,
 ) -> Result<PlcArea, NcError> {
     loop {
@@ -698,6 +786,7 @@ fn wait_state(
                 job_id,
                 timeout,
                 state: Some(s),
+                sent,
             });
         }
         std::thread::sleep(Duration::from_millis(1));
@@ -713,15 +802,21 @@ fn run_job(
     timeout: Duration,
 ) -> Result<(), NcError> {
     let payload = job_bytes(spec, job, job_id)?;
+    // Nothing goes into a block that does not look like the configured layout: with
+    // the wrong value_type the PLC would read the job at other offsets.
+    let area = PlcArea::read(spec, c)?;
+    area.check()?;
     // A job left unacknowledged by an earlier run (crash, timeout) is cleared first;
     // a busy PLC program is waited for, never interrupted.
-    if PlcArea::read(spec, c)?.state()? != JobState::Idle {
+    if area.state()? != JobState::Idle {
         write(spec, c, S7Layout::REQ, &0u16.to_be_bytes())?;
-        wait_state(spec, c, deadline, timeout, job_id, |s| s == JobState::Idle)?;
+        wait_state(spec, c, deadline, timeout, (job_id, false), |s| {
+            s == JobState::Idle
+        })?;
     }
     write(spec, c, S7Layout::JOB_ID, &payload)?;
     write(spec, c, S7Layout::REQ, &1u16.to_be_bytes())?;
-    let area = wait_state(spec, c, deadline, timeout, job_id, |s| {
+    let area = wait_state(spec, c, deadline, timeout, (job_id, true), |s| {
         matches!(s, JobState::Done | JobState::Error)
     })?;
     // Acknowledge before judging, so the PLC program is idle whatever happens next.
@@ -751,6 +846,7 @@ fn run_job(
                 job_id,
                 status,
                 index,
+                var: job.var_at(index),
             })
         }
     }
@@ -783,6 +879,7 @@ impl NcWriter for S7NcWriter {
                 job_id,
                 timeout,
                 state: None,
+                sent: true,
             }),
         }
     }
@@ -793,7 +890,9 @@ impl NcWriter for S7NcWriter {
         let deadline = Instant::now() + self.spec.connect_timeout + 3 * self.spec.timeout;
         let r = self
             .blocking(deadline, |spec, c| {
-                PlcArea::read(spec, c).map(|a| a.snapshot())
+                let area = PlcArea::read(spec, c)?;
+                area.check()?;
+                Ok(area.snapshot())
             })
             .await;
         r.unwrap_or(Err(NcError::Link(SourceError::Timeout(self.spec.timeout))))
