@@ -30,6 +30,7 @@
 use serde_json::Value as Json;
 
 use super::keys::Seg;
+use crate::nc::number;
 
 /// What kind of structural problem a [`Finding`] is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -624,16 +625,5 @@ fn range_text(v: &View<'_>) -> String {
         (Some(lo), None, None) => format!(" >= {}", number(lo)),
         (None, None, Some(hi)) => format!(" <= {}", number(hi)),
         (None, None, None) => String::new(),
-    }
-}
-
-/// A number as an operator writes it: `0.001`, `3600`, `1e308`, `1e-320` (never
-/// hundreds of digits).
-fn number(x: f64) -> String {
-    let a = x.abs();
-    if a != 0.0 && a.is_finite() && !(1e-6..1e15).contains(&a) {
-        format!("{x:e}")
-    } else {
-        format!("{x}")
     }
 }
