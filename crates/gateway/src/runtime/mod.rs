@@ -621,6 +621,7 @@ impl Running {
                             self.nc_facts[i] = facts;
                             st.warning = facts.warning(axis.md32750);
                             st.nc = Some(*snap);
+                            st.nc_reads += 1;
                         }
                         // The last snapshot is no longer what the NC holds: shown or
                         // recorded, it would pass for a live position. Nothing is

@@ -56,6 +56,9 @@ pub struct AxisStatus {
     pub last_job_error: Option<String>,
     /// The NC's last snapshot.
     pub nc: Option<NcSnapshot>,
+    /// Reads of the NC that answered: a new count is a new snapshot (the status is
+    /// published more often than the NC is read).
+    pub nc_reads: u64,
     /// A warning a commissioning engineer must see (MD32750 mismatch, NC unreachable).
     pub warning: Option<String>,
     /// Shadow mode: the axis computes and records what it would write, and never

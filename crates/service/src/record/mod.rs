@@ -406,6 +406,7 @@ impl Recorder {
             clock: None,
             interval: Duration::ZERO,
             next_due: Vec::new(),
+            nc_reads: Vec::new(),
         }
     }
 
@@ -417,6 +418,7 @@ impl Recorder {
             clock: Some(clock),
             interval: Duration::ZERO,
             next_due: Vec::new(),
+            nc_reads: Vec::new(),
         }
     }
 
@@ -456,6 +458,8 @@ pub struct RecordObserver {
     interval: Duration,
     /// Per device index: when its next cycle is due to be recorded.
     next_due: Vec<Option<Instant>>,
+    /// Per axis: the count of NC reads last recorded.
+    nc_reads: Vec<u64>,
 }
 
 impl std::fmt::Debug for RecordObserver {
@@ -562,7 +566,13 @@ impl Observer for RecordObserver {
 
     fn on_status(&mut self, status: &Status) {
         let t_unix_ms = self.now_unix_ms();
-        for a in &status.axes {
+        // One row per read of the NC, not per status update.
+        self.nc_reads.resize(status.axes.len(), 0);
+        for (a, recorded) in status.axes.iter().zip(&mut self.nc_reads) {
+            if a.nc_reads == *recorded {
+                continue;
+            }
+            *recorded = a.nc_reads;
             if let Some(nc) = &a.nc {
                 self.tx.send(Record::Nc {
                     t_unix_ms,
