@@ -302,8 +302,15 @@ impl Plant {
 
         for (name, m) in &cfg.modbus_targets() {
             let s = sim.nc_module(name);
+            // Unless told otherwise the simulated NC is set up as the axis on it expects.
+            let md32750 = s.md32750.unwrap_or_else(|| {
+                cfg.axes
+                    .values()
+                    .find(|a| a.nc_module == *name)
+                    .map_or(3, |a| a.md32750)
+            });
             let axis = NcAxis {
-                md32750: s.md32750,
+                md32750,
                 referenced: s.referenced,
                 position_mm: s.motion_min_mm,
                 motion: if s.motion_speed_mm_per_s > 0.0 && s.motion_max_mm > s.motion_min_mm {

@@ -153,3 +153,25 @@ fn unreadable_file_is_a_read_error() {
         config::load_with_env(&dir.path().join("absent.toml"), no_env()).expect_err("no such file");
     assert!(matches!(err, ConfigError::Read { .. }), "{err}");
 }
+
+/// `compgate sim` on a shipped config sets its simulated NC up as the axis expects
+/// (minimal.toml's axis has MD32750 = 2): a dry-run must not hold on an MD32750 the
+/// simulator made up. An explicit `[sim.nc_modules]` value still wins.
+#[tokio::test]
+async fn the_simulated_nc_takes_the_axis_md32750_unless_told_otherwise() {
+    use compgate::plant::{Bind, Plant};
+    let cfg = config::load_with_env(&config_dir().join("minimal.toml"), no_env())
+        .expect("minimal.toml loads");
+    let plant = Plant::start(&cfg, Bind::Ephemeral).await.expect("plant");
+    assert_eq!(plant.nc["nc_x"].state().md32750, 2);
+    plant.stop();
+
+    let text = std::fs::read_to_string(config_dir().join("minimal.toml")).expect("read")
+        + "\n[sim.nc_modules.nc_x]\nmd32750 = 1\n";
+    let (_, cfg, _dir) = load_text("m.toml", &text);
+    let plant = Plant::start(&cfg.expect("loads"), Bind::Ephemeral)
+        .await
+        .expect("plant");
+    assert_eq!(plant.nc["nc_x"].state().md32750, 1);
+    plant.stop();
+}

@@ -39,7 +39,8 @@ pub struct AxisConfig {
     #[serde(default = "default_nc_write")]
     pub nc_write: Vec<NcVar>,
     /// MD32750 `$MA_TEMP_COMP_TYPE` the NC must have (bit 0: K0, bit 1: slope).
-    /// Checked against the NC at start. Required; 0..=7. A K0 model needs bit 0 and a
+    /// Checked at every read of the NC: while it differs the axis holds (no job is
+    /// sent) and a warning is logged once. Required; 0..=7. A K0 model needs bit 0 and a
     /// tan(beta) model needs bit 1, otherwise the NC would ignore the value written.
     #[schemars(range(max = 7))]
     pub md32750: u16,
@@ -115,7 +116,7 @@ pub struct AxisConfig {
 }
 
 /// `[axes.NAME.motion_heat]`: travel from the NC's actual position (read every
-/// `gateway.status_interval_s`) heats a store no sensor sees,
+/// `gateway.status_interval_s`, at most once a second) heats a store no sensor sees,
 /// `h <- h exp(-dt/tau_s) + |dpos| / tau_s` (h: travel rate through the lag, mm/s);
 /// `K0 += k0_mm_per_mm_per_s (h - ref_mm_per_s)` and `tan(beta) +=
 /// tan_beta_per_mm_per_s (h - ref_mm_per_s)`.

@@ -73,8 +73,8 @@ pub struct Config {
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct GatewayConfig {
-    /// Seconds between status updates (status line, logs). Default 1.0;
-    /// 0.001..=3600.
+    /// Seconds between status updates (status line, logs); the NC is read at the
+    /// same interval, at most once a second. Default 1.0; 0.001..=3600.
     #[serde(default = "default_status_interval_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub status_interval_s: f64,

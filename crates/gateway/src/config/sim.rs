@@ -113,18 +113,19 @@ pub enum SimProfile {
 }
 
 /// `[sim.nc_modules.NAME]`: state of a simulated NC axis module. MD32750 may differ
-/// from the axis' `md32750` on purpose (fault injection: the gateway must refuse).
+/// from the axis' `md32750` on purpose (fault injection: the axis then holds).
 #[derive(Deserialize, Serialize, JsonSchema, Debug, Clone, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct SimNcModuleConfig {
-    /// Whether the axis is referenced (homed); an unreferenced axis refuses
-    /// compensation writes. Default true.
+    /// Whether the axis is referenced (homed); an unreferenced axis takes the setting
+    /// data but applies no compensation until it is referenced. Default true.
     #[serde(default = "yes")]
     pub referenced: bool,
-    /// MD32750 `$MA_TEMP_COMP_TYPE` of the simulated NC. Default 3; 0..=7.
-    #[serde(default = "default_sim_md32750")]
+    /// MD32750 `$MA_TEMP_COMP_TYPE` of the simulated NC. Default: the `md32750` of
+    /// the axis on this module (3 if none); 0..=7.
+    #[serde(default)]
     #[schemars(range(max = 7))]
-    pub md32750: u16,
+    pub md32750: Option<u16>,
     /// Lower end of the simulated back-and-forth motion in mm. Default 0.0;
     /// -100000..=100000.
     #[serde(default)]
@@ -146,7 +147,7 @@ impl Default for SimNcModuleConfig {
     fn default() -> Self {
         SimNcModuleConfig {
             referenced: true,
-            md32750: default_sim_md32750(),
+            md32750: None,
             motion_min_mm: 0.0,
             motion_max_mm: 0.0,
             motion_speed_mm_per_s: 0.0,
@@ -171,8 +172,8 @@ impl SimNcModuleConfig {
     /// entry's path.
     pub fn validate(&self, key: &str, out: &mut Problems<'_>) {
         let k = |f: &str| format!("{key}.{f}");
-        if self.md32750 > 7 {
-            out.push(k("md32750"), format!("must be 0..=7, got {}", self.md32750));
+        if let Some(md) = self.md32750.filter(|md| *md > 7) {
+            out.push(k("md32750"), format!("must be 0..=7, got {md}"));
         }
         let lo = out.finite(&k("motion_min_mm"), self.motion_min_mm);
         let hi = out.finite(&k("motion_max_mm"), self.motion_max_mm);
@@ -204,7 +205,4 @@ fn default_seed() -> u64 {
 }
 fn default_sim_period_s() -> f64 {
     600.0
-}
-fn default_sim_md32750() -> u16 {
-    3
 }

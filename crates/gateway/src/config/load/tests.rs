@@ -84,7 +84,7 @@ fn demo_loads_and_simulates_every_axis_input() {
     let sim = cfg.sim.as_ref().expect("demo has [sim]");
     let x = &cfg.axes["X"];
     assert_eq!(x.md32750, 3);
-    assert_eq!(sim.nc_module(&x.nc_module).md32750, 3);
+    assert_eq!(sim.nc_module(&x.nc_module).md32750, Some(3));
     for t in &x.k0.terms {
         assert!(sim.channels.contains_key(&t.channel), "{}", t.channel);
     }

@@ -340,7 +340,7 @@ fn sim_section() {
             sim.nc_modules.insert(
                 "nc_x".into(),
                 SimNcModuleConfig {
-                    md32750: 9,
+                    md32750: Some(9),
                     motion_min_mm: 10.0,
                     motion_max_mm: 0.0,
                     motion_speed_mm_per_s: -1.0,
