@@ -45,6 +45,8 @@ use compgate_core::measure::Measurements;
 pub enum DiagnoseError {
     #[error("--sensors: no temperature column `T_{sensor}` in the data (columns: {available})")]
     UnknownSensor { sensor: String, available: String },
+    #[error("{0}")]
+    Arg(#[from] crate::args::ArgError),
     #[error("{rows} data rows are too few for this baseline (at least {min_rows})")]
     TooFewRows { rows: usize, min_rows: usize },
     #[error("--model: channel `{channel}` of {key} is neither a `T_` column of the data nor a lagged channel of the model file")]
