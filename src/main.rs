@@ -210,7 +210,14 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
         }
         Command::Backlash(args) => Ok(cli::print(run_backlash(&args).await.map_err(failed)?)?),
         Command::Volumetric(args) => Ok(cli::print(volumetric::run(&args).map_err(failed)?)?),
-        Command::Calibrate(args) => Ok(cli::print(calibrate::run(&args).map_err(failed)?)?),
+        Command::Calibrate(args) => {
+            let calibrated = calibrate::run(&args).map_err(failed)?;
+            cli::print(calibrated.report())?;
+            for w in calibrated.warnings() {
+                cli::eprintln(format_args!("warning: {w}"))?;
+            }
+            Ok(cli::print(calibrated.write().map_err(failed)?)?)
+        }
         #[cfg(feature = "sim")]
         Command::Scenario(args) => {
             let report = scenario::run(&args).await.map_err(failed)?;
