@@ -209,7 +209,11 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
             Ok(cli::print(format_args!("{text}\n"))?)
         }
         Command::Backlash(args) => Ok(cli::print(run_backlash(&args).await.map_err(failed)?)?),
-        Command::Volumetric(args) => Ok(cli::print(volumetric::run(&args).map_err(failed)?)?),
+        Command::Volumetric(args) => {
+            let evaluated = volumetric::run(&args).map_err(failed)?;
+            cli::print(&evaluated.report)?;
+            evaluated.accepted().map_err(failed)
+        }
         Command::Calibrate(args) => {
             let calibrated = calibrate::run(&args).map_err(failed)?;
             cli::print(calibrated.report())?;
