@@ -162,6 +162,11 @@ fn bad_input_is_named() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("T_spindle") && e.contains("T_screw"), "{e}");
+    // A sensor named twice was "linearly dependent ... moves with the position".
+    for twice in [&["column", "column"][..], &["column", "T_column"]] {
+        let e = calibrate(&m, &names(twice), None).unwrap_err().to_string();
+        assert_eq!(e, "--sensors: T_column named twice");
+    }
 }
 
 fn args_for(dir: &std::path::Path, csv: std::path::PathBuf) -> CalibrateArgs {
