@@ -90,7 +90,7 @@ pub enum MeasureError {
 /// (also a backlash servo trace): cells trimmed, every row as long as the header,
 /// each row with its file line. The csv crate's positions point before the blank
 /// lines that precede a row (and count a CRLF file's lines oddly), so the lines come
-/// from [`LineIndex`] instead.
+/// from the bytes read instead.
 pub struct CsvInput<R> {
     rdr: csv::Reader<LineIndex<R>>,
     lines: std::rc::Rc<std::cell::RefCell<std::collections::VecDeque<(u64, u64)>>>,
