@@ -214,8 +214,19 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
             Ok(cli::print(format_args!("{text}\n"))?)
         }
         Command::Backlash(args) => Ok(cli::print(run_backlash(&args).await.map_err(failed)?)?),
-        Command::Volumetric(args) => Ok(cli::print(volumetric::run(&args).map_err(failed)?)?),
-        Command::Calibrate(args) => Ok(cli::print(calibrate::run(&args).map_err(failed)?)?),
+        Command::Volumetric(args) => {
+            let evaluated = volumetric::run(&args).map_err(failed)?;
+            cli::print(&evaluated.report)?;
+            evaluated.accepted().map_err(failed)
+        }
+        Command::Calibrate(args) => {
+            let calibrated = calibrate::run(&args).map_err(failed)?;
+            cli::print(calibrated.report())?;
+            for w in calibrated.warnings() {
+                cli::eprintln(format_args!("warning: {w}"))?;
+            }
+            Ok(cli::print(calibrated.write().map_err(failed)?)?)
+        }
         #[cfg(feature = "sim")]
         Command::Scenario(args) => {
             let report = scenario::run(&args).await.map_err(failed)?;

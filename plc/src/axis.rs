@@ -421,6 +421,9 @@ impl ServoSim {
                 });
                 self.program_state = ProgramState::Running;
                 self.program_status = 0;
+                // The noise from here on depends on the seed alone, not on how many
+                // cycles the axis stood before (wall-clock time in the NC module).
+                self.rng = SmallRng::seed_from_u64(self.params.seed);
                 self.program_start_s = self.time_s;
                 self.program_end_s = f64::NAN;
                 Ok(())

@@ -40,9 +40,11 @@ use tokio_util::sync::CancellationToken;
 
 use compgate_commission::calibrate::{self, AxisModel};
 use compgate_commission::diagnose::{self, ModelFile};
+use compgate_commission::plot::{DrawError, PlotError};
 use compgate_commission::table::Markdown;
 use compgate_core::comp::Decision;
 use compgate_core::measure::{MeasureError, Measurements, TempColumn};
+use compgate_core::outputs::Staged;
 use compgate_gateway::config;
 use compgate_gateway::nc::{Job, NcWriter};
 use compgate_gateway::runtime::{self, AxisStatus, Observer, SampleReadings, Status};
@@ -54,12 +56,21 @@ pub enum ScenarioError {
     Effects(String),
     #[error("--plant: unknown plant `{0}`; known: ideal, shop")]
     Plant(String),
-    #[error("--record-hours must be > 0 (got {0})")]
-    RecordHours(f64),
+    #[error("{0}")]
+    Arg(#[from] compgate_commission::args::ArgError),
+    #[error(
+        "{flag} {got_h}: {:.0} s simulated is shorter than the start-up ({STARTUP_S} s) plus \
+         one interferometer sweep ({sweep_s} s): give at least {min_h} h",
+        got_h * 3600.0
+    )]
+    TooShort {
+        flag: &'static str,
+        got_h: f64,
+        sweep_s: f64,
+        min_h: f64,
+    },
     #[error("loop: {0}")]
     Loop(String),
-    #[error("--hours must be > 0 (got {0})")]
-    Hours(f64),
     #[error("--sample-every-s must be at least {min_s} s, the length of one sweep (got {got_s})")]
     SampleEvery { got_s: f64, min_s: f64 },
     #[error("model: the model reads channel `{channel}`; the machine's sensors are {sensors}")]
@@ -72,6 +83,8 @@ pub enum ScenarioError {
     Plot(#[from] compgate_commission::plot::PlotError),
     #[error("setup: {0}")]
     Setup(String),
+    #[error("{0}")]
+    Output(#[from] compgate_core::outputs::OutputError),
     #[error("{path}: {source}")]
     Io {
         path: String,
@@ -89,7 +102,8 @@ pub enum ScenarioError {
 /// `compgate scenario` arguments.
 #[derive(Debug, Clone, clap::Args)]
 pub struct ScenarioArgs {
-    /// Simulated hours.
+    /// Simulated hours: at least the start-up and one interferometer sweep (96 s),
+    /// at most a week.
     #[arg(long, default_value_t = 8.0)]
     pub hours: f64,
     /// Seed of the machine (noise, ambient wander).
@@ -110,7 +124,8 @@ pub struct ScenarioArgs {
     /// diagnosed model. Ignores --model.
     #[arg(long = "loop")]
     pub closed_loop: bool,
-    /// Simulated hours of the recorded commissioning run (--loop).
+    /// Simulated hours of the recorded commissioning run (--loop); the same range as
+    /// --hours.
     #[arg(long, default_value_t = 24.0)]
     pub record_hours: f64,
     /// Model file (calibrate's or diagnose's output); default: the model calibrate
@@ -123,7 +138,8 @@ pub struct ScenarioArgs {
     /// Output directory: report, CSVs, plots, model.
     #[arg(long)]
     pub out: PathBuf,
-    /// Interferometer sweep every this many simulated seconds.
+    /// Interferometer sweep every this many simulated seconds: at least one sweep's
+    /// length (36 s), at most a day.
     #[arg(long, default_value_t = 600.0)]
     pub sample_every_s: f64,
 }
@@ -136,6 +152,12 @@ const TARGETS: usize = 9;
 /// its first writes land (in both runs alike), as on a machine switched on before
 /// the test starts.
 const STARTUP_S: f64 = 60.0;
+/// Longest run `--hours` and `--record-hours` accept: a week of simulated time
+/// (about a minute of wall time per run in a release build); beyond it a typo
+/// runs for hours.
+const MAX_HOURS: f64 = 168.0;
+/// Longest `--sample-every-s`: a day.
+const MAX_SAMPLE_EVERY_S: f64 = 86_400.0;
 /// Bidirectional runs of the closing ISO 230-2 test (the standard's 5).
 pub const ISO_RUNS: usize = 5;
 /// Temperature range of the simulated PT100 transmitters, degC.
@@ -201,6 +223,9 @@ pub struct ScenarioReport {
     pub model_source: String,
     /// The model the gateway ran.
     pub model: AxisModel,
+    /// What the commissioning fit warns about ([`calibrate::Fit::warnings`]): the
+    /// model was applied all the same, to show what it does.
+    pub fit_warnings: Vec<String>,
     /// Ambient max - min over the run, K.
     pub ambient_swing_degc: f64,
     /// Compensation off.
@@ -279,6 +304,9 @@ impl ScenarioReport {
             self.hours, self.plant, self.ambient_swing_degc
         );
         let _ = writeln!(s, "model: {}", self.model_source);
+        for w in &self.fit_warnings {
+            let _ = writeln!(s, "warning: commissioning fit: {w}");
+        }
         let um = |v: f64| format!("{v:.2}");
         let mut error = Markdown::new([
             "thermal positioning error",
@@ -790,13 +818,25 @@ fn io_err(path: &Path, source: std::io::Error) -> ScenarioError {
     }
 }
 
-fn write_csv(path: &Path, m: &Measurements) -> Result<(), ScenarioError> {
-    let f = std::fs::File::create(path).map_err(|e| io_err(path, e))?;
-    m.write(std::io::BufWriter::new(f))
-        .map_err(|source| ScenarioError::Csv {
-            path: path.display().to_string(),
-            source,
-        })
+fn stage_csv(staged: &mut Staged, path: &Path, m: &Measurements) -> Result<(), ScenarioError> {
+    let mut text = Vec::new();
+    m.write(&mut text).map_err(|source| ScenarioError::Csv {
+        path: path.display().to_string(),
+        source,
+    })?;
+    staged.write(path, text).map_err(|e| io_err(path, e))
+}
+
+fn stage_svg(
+    staged: &mut Staged,
+    path: &Path,
+    svg: Result<String, DrawError>,
+) -> Result<(), ScenarioError> {
+    let svg = svg.map_err(|e| PlotError {
+        path: path.display().to_string(),
+        message: e.0,
+    })?;
+    staged.write(path, svg).map_err(|e| io_err(path, e))
 }
 
 /// Runs the scenario on the machine `args.plant` names and writes everything into
@@ -836,33 +876,55 @@ fn progress_bar(len_s: f64) -> indicatif::ProgressBar {
     }
 }
 
-fn write_model(path: &Path, model: &AxisModel, header: &str) -> Result<(), ScenarioError> {
+fn stage_model(
+    staged: &mut Staged,
+    path: &Path,
+    model: &AxisModel,
+    header: &str,
+) -> Result<(), ScenarioError> {
     let text = calibrate::model_toml("X", "nc_x", model, header).map_err(|source| {
         ScenarioError::ModelFile(calibrate::CalibrateError::Model {
             path: path.display().to_string(),
             source: Box::new(source),
         })
     })?;
-    std::fs::write(path, text).map_err(|e| io_err(path, e))
+    staged.write(path, text).map_err(|e| io_err(path, e))
+}
+
+/// Removes what SQLite may leave beside a database: at the start a stale WAL would
+/// be replayed into a new database of that name.
+fn remove_sqlite_sidecars(db: &Path) {
+    for ext in ["-wal", "-shm"] {
+        let _ = std::fs::remove_file(format!("{}{ext}", db.display()));
+    }
 }
 
 /// The closed loop up to the diagnosed model: a recorded commissioning run of the
 /// same machine on another day (compensation off), `export`, `calibrate`, `diagnose`.
-/// Writes record.sqlite, recorded.csv, model.toml (baseline) and
+/// Stages record.sqlite, recorded.csv, model.toml (baseline) and
 /// model_diagnosed.toml.
 async fn commission_from_records(
     args: &ScenarioArgs,
     params: &ThermalParams,
     effects: Effects,
     progress: &indicatif::ProgressBar,
+    staged: &mut Staged,
 ) -> Result<(AxisModel, calibrate::Fit, diagnose::Diagnosis, LoopReport), ScenarioError> {
     use compgate_service::record::{self, export, Recorder};
     let wall = Instant::now();
     let lerr = |e: &dyn std::fmt::Display| ScenarioError::Loop(e.to_string());
-    let db = args.out.join("record.sqlite");
-    for ext in ["", "-wal", "-shm"] {
-        let _ = std::fs::remove_file(format!("{}{ext}", db.display()));
+    // Recorded and exported under the staged names, so that a failed loop leaves
+    // the last good run's files; whatever SQLite leaves beside them goes too.
+    let db = staged.path_for(&args.out.join("record.sqlite"));
+    let csv = staged.path_for(&args.out.join("recorded.csv"));
+    remove_sqlite_sidecars(&db);
+    struct Sidecars<'a>(&'a Path);
+    impl Drop for Sidecars<'_> {
+        fn drop(&mut self) {
+            remove_sqlite_sidecars(self.0);
+        }
     }
+    let _sidecars = Sidecars(&db);
     let rec = Recorder::start(&compgate_gateway::config::RecorderConfig {
         path: db.display().to_string(),
         // The simulation outruns real time: the queue holds the whole run.
@@ -899,7 +961,6 @@ async fn commission_from_records(
     }
     let records = record::counts(&record::export::open_read_only(&db).map_err(|e| lerr(&e))?)
         .map_err(|e| lerr(&e))?;
-    let csv = args.out.join("recorded.csv");
     let ex = export::ExportArgs {
         db: db.clone(),
         since: (epoch_ms / 1000).to_string(),
@@ -919,7 +980,8 @@ async fn commission_from_records(
     })?;
     let fit = calibrate::calibrate(&m, &args.sensors, None).map_err(ScenarioError::Fit)?;
     let baseline = AxisModel::from_fit(&fit);
-    write_model(
+    stage_model(
+        staged,
         &args.out.join("model.toml"),
         &baseline,
         &format!(
@@ -940,7 +1002,7 @@ async fn commission_from_records(
     let text = model
         .to_toml(&path.display().to_string())
         .map_err(|e| lerr(&e))?;
-    std::fs::write(&path, text).map_err(|e| io_err(&path, e))?;
+    staged.write(&path, text).map_err(|e| io_err(&path, e))?;
     let report = LoopReport {
         record_hours: args.record_hours,
         records,
@@ -956,30 +1018,93 @@ async fn commission_from_records(
     Ok((baseline, fit, d, report))
 }
 
+/// The files a run writes into `--out`, for the check before it starts.
+fn output_names(args: &ScenarioArgs) -> Vec<&'static str> {
+    let mut names = vec![
+        "off.csv",
+        "on.csv",
+        "iso230_off.csv",
+        "iso230_on.csv",
+        "error_vs_time.svg",
+        "error_vs_position.svg",
+        "report.md",
+    ];
+    if args.closed_loop {
+        names.extend([
+            "record.sqlite",
+            "recorded.csv",
+            "model.toml",
+            "model_diagnosed.toml",
+            "on_diagnosed.csv",
+            "loop_vs_time.svg",
+            "loop_vs_position.svg",
+        ]);
+    } else if args.model.is_none() {
+        names.extend(["model.toml", "commissioning.csv"]);
+    }
+    names
+}
+
+/// Refuses flags that cannot make a run (before anything runs), naming the flag.
+fn check_args(args: &ScenarioArgs) -> Result<(), ScenarioError> {
+    use compgate_commission::args::{check_f64, sensor_names};
+    let sweep_s = TICK_S * (2 * TARGETS) as f64;
+    // Whole ten-thousandths of an hour, rounded up: the minimum as printed runs.
+    let min_h = ((STARTUP_S + sweep_s) / 3600.0 * 1e4).ceil() / 1e4;
+    for (flag, got_h) in [
+        ("--hours", args.hours),
+        ("--record-hours", args.record_hours),
+    ] {
+        check_f64(flag, got_h, 0.0, MAX_HOURS, "h")?;
+        if got_h < min_h {
+            return Err(ScenarioError::TooShort {
+                flag,
+                got_h,
+                sweep_s,
+                min_h,
+            });
+        }
+    }
+    check_f64(
+        "--sample-every-s",
+        args.sample_every_s,
+        0.0,
+        MAX_SAMPLE_EVERY_S,
+        "s",
+    )?;
+    if args.sample_every_s < sweep_s {
+        return Err(ScenarioError::SampleEvery {
+            got_s: args.sample_every_s,
+            min_s: sweep_s,
+        });
+    }
+    sensor_names(&args.sensors)?;
+    Ok(())
+}
+
 /// Runs the scenario on a machine with `params` and `effects` (plus `args.effects`).
+/// Every file is staged and renamed into `--out` at the end: a run that fails
+/// leaves the last good run's files as they were.
 pub async fn run_with(
     args: &ScenarioArgs,
     params: &ThermalParams,
     effects: Effects,
     plant: &'static str,
 ) -> Result<ScenarioReport, ScenarioError> {
-    if !(args.hours.is_finite() && args.hours > 0.0) {
-        return Err(ScenarioError::Hours(args.hours));
-    }
-    if !(args.record_hours.is_finite() && args.record_hours > 0.0) {
-        return Err(ScenarioError::RecordHours(args.record_hours));
-    }
-    let sweep_s = TICK_S * (2 * TARGETS) as f64;
-    if args.sample_every_s.is_nan() || args.sample_every_s < sweep_s {
-        return Err(ScenarioError::SampleEvery {
-            got_s: args.sample_every_s,
-            min_s: sweep_s,
-        });
-    }
+    check_args(args)?;
     let extra =
         Effects::from_names(&args.effects).map_err(|e| ScenarioError::Effects(e.to_string()))?;
     let effects = merge(effects, extra);
     std::fs::create_dir_all(&args.out).map_err(|e| io_err(&args.out, e))?;
+    let outputs: Vec<PathBuf> = output_names(args)
+        .into_iter()
+        .map(|f| args.out.join(f))
+        .collect();
+    compgate_core::outputs::check(
+        &args.model.iter().map(PathBuf::as_path).collect::<Vec<_>>(),
+        &outputs.iter().map(PathBuf::as_path).collect::<Vec<_>>(),
+    )?;
+    let mut staged = Staged::new();
     let record_s = if args.closed_loop {
         args.record_hours * 3600.0
     } else {
@@ -987,11 +1112,13 @@ pub async fn run_with(
     };
     let progress = progress_bar(record_s + 3.0 * args.hours * 3600.0);
     let mut closed_loop = None;
+    let mut fit_warnings = Vec::new();
     let (model, model_source) = match &args.model {
         _ if args.closed_loop => {
             let (baseline, fit, _, l) =
-                commission_from_records(args, params, effects, &progress).await?;
+                commission_from_records(args, params, effects, &progress, &mut staged).await?;
             closed_loop = Some(l);
+            fit_warnings = fit.warnings();
             (
                 baseline,
                 format!(
@@ -1008,7 +1135,8 @@ pub async fn run_with(
         }
         None => {
             let (model, fit, m) = commissioning_model(params, &effects, args.seed, &args.sensors)?;
-            write_model(
+            stage_model(
+                &mut staged,
                 &args.out.join("model.toml"),
                 &model,
                 &format!(
@@ -1016,7 +1144,8 @@ pub async fn run_with(
                     fit.rms_um, fit.r2
                 ),
             )?;
-            write_csv(&args.out.join("commissioning.csv"), &m)?;
+            stage_csv(&mut staged, &args.out.join("commissioning.csv"), &m)?;
+            fit_warnings = fit.warnings();
             (
                 model,
                 format!(
@@ -1062,31 +1191,56 @@ pub async fn run_with(
         effects: effects.names(),
         model_source,
         model,
+        fit_warnings,
         ambient_swing_degc: swing,
         off,
         on,
         plant,
         closed_loop,
     };
-    write_csv(&args.out.join("off.csv"), &report.off.series)?;
-    write_csv(&args.out.join("on.csv"), &report.on.series)?;
-    write_csv(&args.out.join("iso230_off.csv"), &report.off.iso230)?;
-    write_csv(&args.out.join("iso230_on.csv"), &report.on.iso230)?;
-    plot::error_vs_time(&args.out.join("error_vs_time.svg"), &report)?;
-    plot::error_vs_position(&args.out.join("error_vs_position.svg"), &report)?;
+    let out = |f: &str| args.out.join(f);
+    stage_csv(&mut staged, &out("off.csv"), &report.off.series)?;
+    stage_csv(&mut staged, &out("on.csv"), &report.on.series)?;
+    stage_csv(&mut staged, &out("iso230_off.csv"), &report.off.iso230)?;
+    stage_csv(&mut staged, &out("iso230_on.csv"), &report.on.iso230)?;
+    stage_svg(
+        &mut staged,
+        &out("error_vs_time.svg"),
+        plot::error_vs_time(&report),
+    )?;
+    stage_svg(
+        &mut staged,
+        &out("error_vs_position.svg"),
+        plot::error_vs_position(&report),
+    )?;
     let mut text = report.text();
     if let Some(l) = &report.closed_loop {
-        write_csv(&args.out.join("on_diagnosed.csv"), &l.updated.series)?;
-        plot::loop_vs_time(&args.out.join("loop_vs_time.svg"), &report, l)?;
-        plot::loop_vs_position(&args.out.join("loop_vs_position.svg"), &report, l)?;
+        stage_csv(&mut staged, &out("on_diagnosed.csv"), &l.updated.series)?;
+        stage_svg(
+            &mut staged,
+            &out("loop_vs_time.svg"),
+            plot::loop_vs_time(&report, l),
+        )?;
+        stage_svg(
+            &mut staged,
+            &out("loop_vs_position.svg"),
+            plot::loop_vs_position(&report, l),
+        )?;
         text.push_str(
             "\n![error against time](error_vs_time.svg)\n\n\
              ![before and after the loop, against time](loop_vs_time.svg)\n\n\
              ![before and after the loop, along the axis](loop_vs_position.svg)\n",
         );
     }
-    let path = args.out.join("report.md");
-    std::fs::write(&path, &text).map_err(|e| io_err(&path, e))?;
+    let path = out("report.md");
+    staged.write(&path, &text).map_err(|e| io_err(&path, e))?;
+    if args.closed_loop {
+        // The new database must not meet the old one's WAL.
+        remove_sqlite_sidecars(&out("record.sqlite"));
+    }
+    staged
+        .commit()
+        .map_err(|(path, source)| io_err(&path, source))?;
     Ok(report)
 }
 

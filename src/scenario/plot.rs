@@ -1,10 +1,8 @@
 //! SVG plots of a scenario: error against time and against position, off and on.
 
-use std::path::Path;
-
 use std::ops::Range;
 
-use compgate_commission::plot::{self, Area, Chart, Color as _, DrawError, PlotError, RGBColor};
+use compgate_commission::plot::{self, Area, Chart, Color as _, DrawError, RGBColor};
 
 use super::{LoopReport, RunData, ScenarioReport};
 
@@ -69,8 +67,8 @@ fn time_panel(
 
 /// Error at both ends of the axis against time; upper panel off and on, lower panel
 /// on alone at its own scale.
-pub fn error_vs_time(path: &Path, r: &ScenarioReport) -> Result<(), PlotError> {
-    plot::svg(path, (1000, 760), |root| {
+pub fn error_vs_time(r: &ScenarioReport) -> Result<String, DrawError> {
+    plot::render((1000, 760), |root| {
         let (upper, lower) = root.split_vertically(400);
         time_panel(
             &upper,
@@ -129,8 +127,8 @@ fn position_panel(
 }
 
 /// Error curves along the axis (thick: approached +, thin: approached -), off and on.
-pub fn error_vs_position(path: &Path, r: &ScenarioReport) -> Result<(), PlotError> {
-    plot::svg(path, (1200, 560), |root| {
+pub fn error_vs_position(r: &ScenarioReport) -> Result<String, DrawError> {
+    plot::render((1200, 560), |root| {
         let (left, right) = root.split_horizontally(600);
         position_panel(
             &left,
@@ -152,9 +150,9 @@ pub fn error_vs_position(path: &Path, r: &ScenarioReport) -> Result<(), PlotErro
 
 /// The loop's before and after against time: baseline model (calibrate on the
 /// records) and diagnosed model, at both ends of the axis.
-pub fn loop_vs_time(path: &Path, r: &ScenarioReport, l: &LoopReport) -> Result<(), PlotError> {
+pub fn loop_vs_time(r: &ScenarioReport, l: &LoopReport) -> Result<String, DrawError> {
     let green = RGBColor(0, 140, 60);
-    plot::svg(path, (1000, 420), |root| {
+    plot::render((1000, 420), |root| {
         time_panel(
             root,
             &format!(
@@ -175,8 +173,8 @@ pub fn loop_vs_time(path: &Path, r: &ScenarioReport, l: &LoopReport) -> Result<(
 }
 
 /// The loop's before and after along the axis: baseline and diagnosed model.
-pub fn loop_vs_position(path: &Path, r: &ScenarioReport, l: &LoopReport) -> Result<(), PlotError> {
-    plot::svg(path, (1200, 560), |root| {
+pub fn loop_vs_position(r: &ScenarioReport, l: &LoopReport) -> Result<String, DrawError> {
+    plot::render((1200, 560), |root| {
         let (left, right) = root.split_horizontally(600);
         position_panel(
             &left,

@@ -87,7 +87,106 @@ async fn a_model_reading_an_unknown_channel_is_refused() {
     a.closed_loop = true;
     a.record_hours = 0.0;
     let e = run(&a).await.unwrap_err().to_string();
-    assert!(e.contains("--record-hours must be > 0"), "{e}");
+    assert!(
+        e.starts_with("--record-hours 0: 0 s simulated is shorter"),
+        "{e}"
+    );
+}
+
+/// `--hours 0.01` (36 s, before the first sweep at 60 s) hung for ever in the plot of
+/// an empty series; `--hours 1e9` ran for ever; `--hours inf` was "must be > 0".
+/// Each is refused naming the flag, before anything is written.
+#[tokio::test]
+async fn runs_too_short_or_too_long_are_refused_naming_the_flag_and_the_range() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let mut a = args(&out, 0.01);
+    let e = run(&a).await.unwrap_err().to_string();
+    assert_eq!(
+        e,
+        "--hours 0.01: 36 s simulated is shorter than the start-up (60 s) plus one \
+         interferometer sweep (36 s): give at least 0.0267 h"
+    );
+    for (hours, want) in [
+        (
+            1e9,
+            "--hours 1000000000.0: outside the plausible range 0..=168 h",
+        ),
+        (f64::INFINITY, "--hours inf: not a finite number"),
+        (f64::NAN, "--hours NaN: not a finite number"),
+    ] {
+        a.hours = hours;
+        assert_eq!(run(&a).await.unwrap_err().to_string(), want);
+    }
+    a.hours = 1.0;
+    a.record_hours = f64::INFINITY;
+    let e = run(&a).await.unwrap_err().to_string();
+    assert_eq!(e, "--record-hours inf: not a finite number");
+    a.record_hours = 24.0;
+    a.sample_every_s = 1e9;
+    let e = run(&a).await.unwrap_err().to_string();
+    assert_eq!(
+        e,
+        "--sample-every-s 1000000000.0: outside the plausible range 0..=86400 s"
+    );
+    a.sample_every_s = 600.0;
+    a.sensors = vec!["column".into(), "T_column".into()];
+    let e = run(&a).await.unwrap_err().to_string();
+    assert_eq!(e, "--sensors: T_column named twice");
+    assert!(!out.exists(), "refused before anything is written");
+}
+
+/// The shortest run --hours accepts has its one sweep, and its plots are drawn.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_shortest_run_has_one_sweep_and_its_plots() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = run(&args(dir.path(), 0.0267)).await.unwrap();
+    assert_eq!(r.off.series.len(), 2 * TARGETS, "{}", r.text());
+    for f in ["error_vs_time.svg", "error_vs_position.svg"] {
+        let svg = std::fs::read_to_string(dir.path().join(f)).unwrap();
+        assert!(svg.trim_end().ends_with("</svg>"), "{f}");
+    }
+}
+
+fn files(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut v: Vec<_> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| {
+            let e = e.unwrap();
+            let name = e.file_name().to_string_lossy().into_owned();
+            (name, std::fs::read(e.path()).unwrap())
+        })
+        .collect();
+    v.sort();
+    v
+}
+
+/// A run into a directory of good results replaced them one by one, so a run that
+/// failed left files of two runs side by side. A run that fails (here the loop's
+/// calibrate, after the recording) now leaves every file as it was, and no
+/// temporary file; an output that is a directory is refused before anything runs.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_failed_run_leaves_the_last_good_files_as_they_were() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut a = args(dir.path(), 0.03);
+    run(&a).await.unwrap();
+    let before = files(dir.path());
+    assert!(before.iter().any(|(n, _)| n == "report.md"), "{before:?}");
+    a.closed_loop = true;
+    a.record_hours = 0.03;
+    a.sensors = vec!["column".into(), "bogus".into()];
+    let e = run(&a).await.unwrap_err().to_string();
+    assert!(e.contains("no column T_bogus"), "{e}");
+    assert_eq!(files(dir.path()), before);
+    a.closed_loop = false;
+    a.sensors = vec!["column".into(), "screw".into()];
+    std::fs::remove_file(dir.path().join("on.csv")).unwrap();
+    std::fs::create_dir(dir.path().join("on.csv")).unwrap();
+    let e = run(&a).await.unwrap_err().to_string();
+    assert!(
+        e.ends_with("on.csv: is a directory; give a file name"),
+        "{e}"
+    );
 }
 
 /// The closed loop on the shop plant, through the gateway's recorder, export,

@@ -2,6 +2,7 @@
 //! and `inf` as valid `f64`, and a non-finite or absurd value reaching a fit or a
 //! simulation makes it hang or produce garbage, so every numeric flag is checked
 //! against a plausible range before any work, and the message names the flag.
+//! `--sensors`, which calibrate, diagnose and scenario share, is read here too.
 
 use thiserror::Error;
 
@@ -30,6 +31,14 @@ pub enum ArgError {
         /// Unit of the range, for the message.
         unit: &'static str,
     },
+    /// A list names one item twice (`--sensors column,T_column`).
+    #[error("{flag}: {item} named twice")]
+    Twice {
+        /// The flag, e.g. `--sensors`.
+        flag: &'static str,
+        /// The item as the tools name it, e.g. `T_column`.
+        item: String,
+    },
 }
 
 /// `value` if it is finite and within `min..=max`, else the error naming `flag`.
@@ -55,6 +64,25 @@ pub fn check_f64(
     Ok(value)
 }
 
+/// The sensors `--sensors` names, without `T_` (either spelling names the column
+/// `T_<name>`); a sensor named twice is refused: it would make the fit's columns
+/// linearly dependent, which the fit can only word as a property of the data.
+pub fn sensor_names(wanted: &[String]) -> Result<Vec<&str>, ArgError> {
+    let mut names: Vec<&str> = Vec::with_capacity(wanted.len());
+    for w in wanted {
+        let name = w.trim();
+        let name = name.strip_prefix("T_").unwrap_or(name);
+        if names.contains(&name) {
+            return Err(ArgError::Twice {
+                flag: "--sensors",
+                item: format!("T_{name}"),
+            });
+        }
+        names.push(name);
+    }
+    Ok(names)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -69,5 +97,18 @@ mod tests {
             "--p0-mm 2.0: outside the plausible range -1..=1 mm"
         );
         assert_eq!(check_f64("--p0-mm", 1.0, -1.0, 1.0, "mm"), Ok(1.0));
+    }
+
+    #[test]
+    fn a_sensor_named_twice_is_refused_in_either_spelling() {
+        let list = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        assert_eq!(
+            sensor_names(&list(&["column", " T_screw"])),
+            Ok(vec!["column", "screw"])
+        );
+        for twice in [&["column", "column"][..], &["column", "T_column"]] {
+            let e = sensor_names(&list(twice)).unwrap_err();
+            assert_eq!(e.to_string(), "--sensors: T_column named twice");
+        }
     }
 }

@@ -51,20 +51,29 @@ pub fn svg(
     size_px: (u32, u32),
     draw: impl FnOnce(&Area<'_>) -> Result<(), DrawError>,
 ) -> Result<(), PlotError> {
-    let mut text = String::new();
-    let drawn = {
-        let root = SVGBackend::with_string(&mut text, size_px).into_drawing_area();
-        root.fill(&WHITE)
-            .map_err(fail)
-            .and_then(|()| draw(&root))
-            .and_then(|()| root.present().map_err(fail))
-    };
-    drawn
-        .and_then(|()| compgate_core::outputs::write(path, &text).map_err(fail))
+    render(size_px, draw)
+        .and_then(|text| compgate_core::outputs::write(path, &text).map_err(fail))
         .map_err(|DrawError(message)| PlotError {
             path: path.display().to_string(),
             message,
         })
+}
+
+/// The SVG text [`svg`] would write, for a command that stages its files and writes
+/// them together.
+pub fn render(
+    size_px: (u32, u32),
+    draw: impl FnOnce(&Area<'_>) -> Result<(), DrawError>,
+) -> Result<String, DrawError> {
+    let mut text = String::new();
+    {
+        let root = SVGBackend::with_string(&mut text, size_px).into_drawing_area();
+        root.fill(&WHITE)
+            .map_err(fail)
+            .and_then(|()| draw(&root))
+            .and_then(|()| root.present().map_err(fail))?;
+    }
+    Ok(text)
 }
 
 /// How a panel is framed: caption, axis descriptions, margins. The defaults are
@@ -119,6 +128,7 @@ impl Frame {
         x: Range<f64>,
         y: Range<f64>,
     ) -> Result<Chart<'a, 'p>, DrawError> {
+        let (x, y) = (usable(x), usable(y));
         let mut builder = ChartBuilder::on(area);
         if let Some((text, font_px)) = &self.caption {
             builder.caption(text, ("sans-serif", *font_px));
@@ -136,6 +146,18 @@ impl Frame {
             .draw()
             .map_err(fail)?;
         Ok(chart)
+    }
+}
+
+/// `r` if it is finite and not empty, else a unit range around what is finite of it:
+/// the plotting library's tick search never ends on an infinite range (an empty
+/// series' extent) and divides by zero on an empty one.
+fn usable(r: Range<f64>) -> Range<f64> {
+    match (r.start.is_finite(), r.end.is_finite()) {
+        (true, true) if r.start < r.end => r,
+        (true, _) => r.start..r.start + 1.0,
+        (false, true) => r.end - 1.0..r.end,
+        (false, false) => 0.0..1.0,
     }
 }
 
@@ -311,6 +333,26 @@ mod tests {
         ] {
             assert!(svg.contains(text), "{text} missing");
         }
+    }
+
+    /// An empty series' extent (inf..inf) made the mesh's tick search loop for ever.
+    #[test]
+    fn a_panel_over_an_infinite_or_empty_range_is_drawn() {
+        for (x, y) in [
+            (f64::INFINITY..f64::INFINITY, 0.0..1.0),
+            (f64::INFINITY..f64::NEG_INFINITY, f64::NAN..f64::NAN),
+            (5.0..5.0, -1.0..f64::INFINITY),
+        ] {
+            let text = render((300, 200), |root| {
+                let mut chart = Frame::new("x", "y").draw(root, x.clone(), y.clone())?;
+                line(&mut chart, Vec::new(), RED, Some("none".into()))?;
+                legend(&mut chart, SeriesLabelPosition::UpperLeft)
+            })
+            .expect("drawn");
+            assert!(text.trim_end().ends_with("</svg>"), "{x:?} {y:?}");
+        }
+        assert_eq!(usable(f64::INFINITY..f64::INFINITY), 0.0..1.0);
+        assert_eq!(usable(2.0..1.0), 2.0..3.0);
     }
 
     #[test]

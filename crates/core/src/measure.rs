@@ -64,8 +64,11 @@ pub enum MeasureError {
         /// `';'` or `tabs`.
         delimiter: &'static str,
     },
-    #[error("the file is empty: expected a header line t_s,pos_mm,err_um,T_<name>")]
-    EmptyFile,
+    #[error("the file is empty: expected a header line {expected}")]
+    EmptyFile {
+        /// The header the format starts with.
+        expected: &'static str,
+    },
     #[error("line 1: no temperature column (a column named T_<name>)")]
     NoTemperature,
     #[error("line 1: column `{0}` appears twice")]
@@ -81,6 +84,155 @@ pub enum MeasureError {
     TimeBackwards { line: u64, t_s: f64, prev_s: f64 },
     #[error("no data rows")]
     Empty,
+}
+
+/// Comma-separated text with a header row, read the way the measurement files are
+/// (also a backlash servo trace): cells trimmed, every row as long as the header,
+/// each row with its file line. The csv crate's positions point before the blank
+/// lines that precede a row (and count a CRLF file's lines oddly), so the lines come
+/// from the bytes read instead.
+pub struct CsvInput<R> {
+    rdr: csv::Reader<LineIndex<R>>,
+    lines: std::rc::Rc<std::cell::RefCell<std::collections::VecDeque<(u64, u64)>>>,
+    /// The header row.
+    pub header: csv::StringRecord,
+    /// The header's file line (blank lines may come first).
+    pub header_line: u64,
+}
+
+impl<R: Read> CsvInput<R> {
+    /// Opens `reader` and reads its header. Refuses an empty file, naming the header
+    /// the format starts with (`expected`), and a header split on ';' or tabs (a
+    /// spreadsheet's decimal-comma export) that has no column `key`, which "`key` is
+    /// missing" would not explain.
+    pub fn open(reader: R, key: &str, expected: &'static str) -> Result<Self, MeasureError> {
+        let index = LineIndex::new(reader);
+        let lines = index.lines.clone();
+        let rdr = csv::ReaderBuilder::new()
+            .trim(csv::Trim::All)
+            .flexible(false)
+            .from_reader(index);
+        let mut input = CsvInput {
+            rdr,
+            lines,
+            header: csv::StringRecord::new(),
+            header_line: 1,
+        };
+        let header = match input.rdr.headers() {
+            Ok(h) => h.clone(),
+            Err(e) => return Err(input.error(e)),
+        };
+        if header.is_empty() {
+            return Err(MeasureError::EmptyFile { expected });
+        }
+        input.header_line = input.line_at(header.position());
+        if !header.iter().any(|h| h == key) {
+            for (sep, delimiter) in [(';', "';'"), ('\t', "tabs")] {
+                if header.iter().any(|h| h.contains(sep)) {
+                    return Err(MeasureError::Delimiter {
+                        line: input.header_line,
+                        delimiter,
+                    });
+                }
+            }
+        }
+        input.header = header;
+        Ok(input)
+    }
+
+    /// Reads the next row into `record`; its file line, or `None` at the end.
+    pub fn next(&mut self, record: &mut csv::StringRecord) -> Result<Option<u64>, MeasureError> {
+        match self.rdr.read_record(record) {
+            Ok(true) => Ok(Some(self.line_at(record.position()))),
+            Ok(false) => Ok(None),
+            Err(e) => Err(self.error(e)),
+        }
+    }
+
+    /// The line of the first non-blank line at or after the csv crate's `position`.
+    fn line_at(&self, position: Option<&csv::Position>) -> u64 {
+        let Some(p) = position else { return 0 };
+        let mut lines = self.lines.borrow_mut();
+        // Rows come in file order: what lies before this one is never asked again.
+        while lines.front().is_some_and(|&(start, _)| start < p.byte()) {
+            lines.pop_front();
+        }
+        lines.front().map_or(p.line(), |&(_, line)| line)
+    }
+
+    /// A CSV error with its line; more cells than the header names get the hint
+    /// that decimal commas split every number in two.
+    fn error(&self, e: csv::Error) -> MeasureError {
+        let hint = match e.kind() {
+            csv::ErrorKind::UnequalLengths {
+                expected_len, len, ..
+            } if len > expected_len => {
+                " (decimal commas? compgate reads numbers with a decimal point)"
+            }
+            _ => "",
+        };
+        MeasureError::Csv {
+            line: self.line_at(e.position()).max(1),
+            message: format!("{e}{hint}"),
+        }
+    }
+}
+
+/// A reader that notes where every non-blank line starts, (byte offset, line), as
+/// the bytes pass to the CSV parser; [`CsvInput`] drops what it has passed.
+struct LineIndex<R> {
+    inner: R,
+    lines: std::rc::Rc<std::cell::RefCell<std::collections::VecDeque<(u64, u64)>>>,
+    offset: u64,
+    line: u64,
+    line_start: u64,
+    /// Nothing but `\r` on the line so far.
+    blank: bool,
+}
+
+impl<R> LineIndex<R> {
+    fn new(inner: R) -> Self {
+        LineIndex {
+            inner,
+            lines: Default::default(),
+            offset: 0,
+            line: 1,
+            line_start: 0,
+            blank: true,
+        }
+    }
+
+    fn end_line(&mut self) {
+        if !self.blank {
+            self.lines
+                .borrow_mut()
+                .push_back((self.line_start, self.line));
+        }
+    }
+}
+
+impl<R: Read> Read for LineIndex<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let n = self.inner.read(buf)?;
+        if n == 0 {
+            self.end_line();
+            self.blank = true;
+        }
+        for &b in &buf[..n] {
+            match b {
+                b'\n' => {
+                    self.end_line();
+                    self.line += 1;
+                    self.line_start = self.offset + 1;
+                    self.blank = true;
+                }
+                b'\r' => {}
+                _ => self.blank = false,
+            }
+            self.offset += 1;
+        }
+        Ok(n)
+    }
 }
 
 /// One temperature column.
@@ -127,51 +279,29 @@ impl Measurements {
 
     /// Reads a file; errors name the file.
     pub fn read_path(path: &Path) -> Result<Self, MeasureError> {
+        Self::read_path_with_lines(path).map(|(m, _)| m)
+    }
+
+    /// [`Measurements::read_path`], with the 1-based file line of every row (blank
+    /// lines are skipped, so a row's index does not give its line).
+    pub fn read_path_with_lines(path: &Path) -> Result<(Self, Vec<u64>), MeasureError> {
         let file = std::fs::File::open(path).map_err(|source| MeasureError::Io {
             path: path.display().to_string(),
             source,
         })?;
-        Self::read(std::io::BufReader::new(file))
+        Self::read_with_lines(std::io::BufReader::new(file))
     }
 
     /// Reads CSV from any reader.
     pub fn read<R: Read>(reader: R) -> Result<Self, MeasureError> {
-        let mut rdr = csv::ReaderBuilder::new()
-            .trim(csv::Trim::All)
-            .flexible(false)
-            .from_reader(reader);
-        let csv_err = |e: csv::Error| {
-            // More cells than the header names: most often decimal commas ("1,5"),
-            // which split every number in two.
-            let hint = match e.kind() {
-                csv::ErrorKind::UnequalLengths {
-                    expected_len, len, ..
-                } if len > expected_len => {
-                    " (decimal commas? compgate reads numbers with a decimal point)"
-                }
-                _ => "",
-            };
-            MeasureError::Csv {
-                line: e.position().map_or(1, |p| p.line()),
-                message: format!("{e}{hint}"),
-            }
-        };
-        let header = rdr.headers().map_err(csv_err)?.clone();
-        if header.is_empty() {
-            return Err(MeasureError::EmptyFile);
-        }
-        // Checked before the columns: a file split on ';' or tabs has one column whose
-        // name holds the delimiter, and "t_s is missing" would not say why.
-        if !header.iter().any(|h| h == "t_s") {
-            for (sep, delimiter) in [(';', "';'"), ('\t', "tabs")] {
-                if header.iter().any(|h| h.contains(sep)) {
-                    return Err(MeasureError::Delimiter {
-                        line: header.position().map_or(1, |p| p.line()),
-                        delimiter,
-                    });
-                }
-            }
-        }
+        Self::read_with_lines(reader).map(|(m, _)| m)
+    }
+
+    /// [`Measurements::read`], with the file line of every row.
+    pub fn read_with_lines<R: Read>(reader: R) -> Result<(Self, Vec<u64>), MeasureError> {
+        let mut input = CsvInput::open(reader, "t_s", "t_s,pos_mm,err_um,T_<name>")?;
+        let header = input.header.clone();
+        let mut lines = Vec::new();
 
         let mut seen = std::collections::HashSet::new();
         let (mut i_t, mut i_pos, mut i_err, mut i_dir, mut i_travel) =
@@ -209,8 +339,7 @@ impl Measurements {
 
         let mut record = csv::StringRecord::new();
         let mut last_dir: i8 = 0;
-        while rdr.read_record(&mut record).map_err(csv_err)? {
-            let line = record.position().map_or(0, |p| p.line());
+        while let Some(line) = input.next(&mut record)? {
             let bad = |i: usize, reason| MeasureError::Field {
                 line,
                 column: header[i].to_string(),
@@ -307,11 +436,12 @@ impl Measurements {
             out.pos_mm.push(pos_mm);
             out.dir.push(dir);
             out.travel_mm.push(travel_mm);
+            lines.push(line);
         }
         if out.is_empty() {
             return Err(MeasureError::Empty);
         }
-        Ok(out)
+        Ok((out, lines))
     }
 
     /// Writes the series in the same format (with `dir` and `travel_mm`), so that
@@ -375,6 +505,25 @@ mod tests {
         assert_eq!(m.ignored_columns, vec!["note".to_string()]);
         assert_eq!(m.temp("screw").unwrap(), &[21.0, 22.0, 22.5, 23.0]);
         assert_eq!(m.temps[0].name, "bed");
+    }
+
+    /// iso230 named line 19 for a value on line 21 of a file with two blank lines:
+    /// it counted rows from the header. The reader gives every row's line.
+    #[test]
+    fn rows_keep_their_file_lines_across_blank_lines() {
+        for text in [
+            "t_s,pos_mm,err_um,T_a\n0,0,1,20\n\n\n1,10,2,21\n2,20,3,22",
+            "\u{feff}t_s,pos_mm,err_um,T_a\r\n0,0,1,20\r\n\r\n\r\n1,10,2,21\r\n2,20,3,22\r\n",
+        ] {
+            let (m, lines) = Measurements::read_with_lines(text.as_bytes()).unwrap();
+            assert_eq!(m.len(), 3);
+            assert_eq!(lines, vec![2, 5, 6], "{text:?}");
+        }
+        // And the errors: a field, and a row of another length, after blank lines.
+        let e = read("t_s,pos_mm,err_um,T_a\r\n0,0,1,20\r\n\r\n\r\n1,x,2,21\r\n").unwrap_err();
+        assert!(e.to_string().starts_with("line 5, column `pos_mm`"), "{e}");
+        let e = read("t_s,pos_mm,err_um,T_a\n0,0,1,20\n\n\n1,1,2,5,21\n").unwrap_err();
+        assert!(e.to_string().starts_with("line 5: "), "{e}");
     }
 
     #[test]
@@ -443,7 +592,7 @@ mod tests {
         );
         for text in ["", "\n", "\r\n\n"] {
             let e = read(text).unwrap_err();
-            assert!(matches!(e, MeasureError::EmptyFile), "{text:?}: {e}");
+            assert!(matches!(e, MeasureError::EmptyFile { .. }), "{text:?}: {e}");
             assert!(e.to_string().starts_with("the file is empty"), "{e}");
         }
         // A comma header whose other names hold a ';' is not misread as one.
@@ -456,6 +605,9 @@ mod tests {
         // Fewer cells is no decimal comma.
         let e = read("t_s,pos_mm,err_um,T_a\n0,0,1\n").unwrap_err();
         assert!(!e.to_string().contains("decimal commas?"), "{e}");
+        // Blank lines first: the header's own line.
+        let e = read("\n\r\nt_s;pos_mm;err_um;T_a\n").unwrap_err();
+        assert!(e.to_string().starts_with("line 3: "), "{e}");
     }
 
     /// The error of a file whose third line has `row` (header and a good line

@@ -3,8 +3,12 @@
 //! mistyped path (`--out m.csv` for `--data m.csv`) would otherwise replace a
 //! measurement or a recording with the report about it, and a bad path met halfway
 //! would leave a failed run's first outputs written over the last good ones.
+//!
+//! A command that writes several files stages them ([`Staged`]): each is written
+//! whole to a temporary file beside it, and only when every one is written are they
+//! renamed into place, so a failed run leaves the last good set as it was.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// Why an output path was refused.
 #[derive(Debug, Clone, thiserror::Error, PartialEq, Eq)]
@@ -31,6 +35,12 @@ pub enum OutputError {
         /// Its directory.
         dir: String,
     },
+    /// The output names an existing directory.
+    #[error("{output}: is a directory; give a file name")]
+    IsDirectory {
+        /// The output, as given.
+        output: String,
+    },
 }
 
 /// Same file: same device and inode, so links and `./` spellings are caught. A path
@@ -50,6 +60,11 @@ pub fn check(inputs: &[&Path], outputs: &[&Path]) -> Result<(), OutputError> {
             return Err(OutputError::IsInput {
                 output: out.display().to_string(),
                 input: input.display().to_string(),
+            });
+        }
+        if out.is_dir() {
+            return Err(OutputError::IsDirectory {
+                output: out.display().to_string(),
             });
         }
         if outputs[..k].iter().any(|o| same_file(out, o)) {
@@ -75,14 +90,68 @@ pub fn check(inputs: &[&Path], outputs: &[&Path]) -> Result<(), OutputError> {
 /// `path` once complete: a full disk or a kill leaves the old file, never half a new
 /// one.
 pub fn write(path: &Path, contents: impl AsRef<[u8]>) -> std::io::Result<()> {
-    let mut tmp = path.as_os_str().to_owned();
-    tmp.push(format!(".tmp{}", std::process::id()));
-    let tmp = std::path::PathBuf::from(tmp);
-    let result = std::fs::write(&tmp, contents).and_then(|()| std::fs::rename(&tmp, path));
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
+    let mut staged = Staged::new();
+    staged.write(path, contents)?;
+    staged.commit().map_err(|(_, e)| e)
+}
+
+/// Files written together or not at all: each goes to a temporary file beside it
+/// (so the rename stays on one file system), and [`Staged::commit`] renames them all
+/// into place once every one is complete. Dropped without a commit (an error on the
+/// way), it removes its temporary files and leaves the outputs as they were.
+#[derive(Debug, Default)]
+pub struct Staged {
+    /// (temporary, final) path of every staged file.
+    files: Vec<(PathBuf, PathBuf)>,
+}
+
+impl Staged {
+    /// Nothing staged yet.
+    pub fn new() -> Self {
+        Self::default()
     }
-    result
+
+    /// The temporary path that stands in for `path` until the commit, for a file
+    /// that something else writes (a database, an export); staging `path` again
+    /// gives the same temporary.
+    pub fn path_for(&mut self, path: &Path) -> PathBuf {
+        if let Some((tmp, _)) = self.files.iter().find(|(_, p)| p == path) {
+            return tmp.clone();
+        }
+        let mut tmp = path.as_os_str().to_owned();
+        tmp.push(format!(".tmp{}", std::process::id()));
+        let tmp = PathBuf::from(tmp);
+        self.files.push((tmp.clone(), path.to_path_buf()));
+        tmp
+    }
+
+    /// Writes `contents` whole to `path`'s temporary file.
+    pub fn write(&mut self, path: &Path, contents: impl AsRef<[u8]>) -> std::io::Result<()> {
+        let tmp = self.path_for(path);
+        std::fs::write(tmp, contents)
+    }
+
+    /// Renames every staged file into place, in the order staged; on an error, the
+    /// file it names (the final path) and the error.
+    pub fn commit(mut self) -> Result<(), (PathBuf, std::io::Error)> {
+        let files = std::mem::take(&mut self.files);
+        for (k, (tmp, path)) in files.iter().enumerate() {
+            if let Err(e) = std::fs::rename(tmp, path) {
+                // The rest stay staged, so that drop removes them.
+                self.files = files[k..].to_vec();
+                return Err((path.clone(), e));
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Drop for Staged {
+    fn drop(&mut self) {
+        for (tmp, _) in &self.files {
+            let _ = std::fs::remove_file(tmp);
+        }
+    }
 }
 
 #[cfg(test)]
@@ -137,5 +206,44 @@ mod tests {
         assert!(write(&lost, "x").is_err());
         let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
         assert_eq!(left.len(), 1, "{left:?}");
+    }
+
+    /// calibrate replaced its model, then failed on a plot path that was a directory.
+    #[test]
+    fn an_output_that_is_a_directory_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let e = check(&[], &[dir.path()]).unwrap_err();
+        assert!(matches!(e, OutputError::IsDirectory { .. }), "{e}");
+        assert!(
+            e.to_string().ends_with("is a directory; give a file name"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn staged_files_replace_the_old_ones_together_or_not_at_all() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a.csv"), dir.path().join("b.md"));
+        std::fs::write(&a, "old a").unwrap();
+        std::fs::write(&b, "old b").unwrap();
+        // The second write fails (its directory is gone): nothing is replaced, and
+        // no temporary file is left.
+        let mut s = Staged::new();
+        s.write(&a, "new a").unwrap();
+        assert!(s.write(&dir.path().join("gone").join("c"), "x").is_err());
+        drop(s);
+        assert_eq!(std::fs::read_to_string(&a).unwrap(), "old a");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
+        // Written by someone else through its temporary path, then committed.
+        let mut s = Staged::new();
+        s.write(&a, "new a").unwrap();
+        let tmp = s.path_for(&b);
+        assert_eq!(s.path_for(&b), tmp);
+        std::fs::write(&tmp, "new b").unwrap();
+        assert_eq!(std::fs::read_to_string(&b).unwrap(), "old b");
+        s.commit().unwrap();
+        assert_eq!(std::fs::read_to_string(&a).unwrap(), "new a");
+        assert_eq!(std::fs::read_to_string(&b).unwrap(), "new b");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
     }
 }

@@ -13,9 +13,13 @@
 //! The trace CSV that `--out` writes has this form. Other columns are ignored. Every
 //! value must be a finite number (positions within +-100 m); the sample period must
 //! not change by more than [`PERIOD_TOLERANCE`] from the first step; no column may
-//! appear twice. Each refusal names the file, the line and the column.
+//! appear twice. Each refusal names the file, the line and the column. The file is
+//! read as the measurement files are ([`compgate_core::measure::CsvInput`]): an
+//! empty file, a header split on ';' or tabs and decimal commas are named as such.
 
 use std::path::Path;
+
+use compgate_core::measure::{CsvInput, MeasureError};
 
 use super::math::Trace;
 use super::BacklashError;
@@ -35,21 +39,26 @@ pub fn read_trace(path: &Path) -> Result<Trace, BacklashError> {
     };
     let file = std::fs::File::open(path)
         .map_err(|e| BacklashError::Io(format!("{}: {e}", path.display())))?;
-    let mut rdr = csv::ReaderBuilder::new()
-        .trim(csv::Trim::All)
-        .flexible(false)
-        .from_reader(std::io::BufReader::new(file));
-    let csv_err = |e: csv::Error| {
-        let line = e.position().map_or(1, |p| p.line());
-        file_err(line, "-", e.to_string())
+    // The measurement files' reader: the same words for an empty file, a header
+    // split on ';' or tabs, and decimal commas.
+    let format_err = |e: MeasureError| BacklashError::TraceFormat {
+        path: path.display().to_string(),
+        message: e.to_string(),
     };
-    let header = rdr.headers().map_err(csv_err)?.clone();
+    let mut input = CsvInput::open(
+        std::io::BufReader::new(file),
+        "t_s",
+        "t_s,encoder_mm,scale_mm[,command_mm]",
+    )
+    .map_err(format_err)?;
+    let header = input.header.clone();
+    let header_line = input.header_line;
     // A duplicated column was read from its first copy only: which of two
     // `encoder_mm` columns is the encoder is not ours to guess.
     for (i, name) in header.iter().enumerate() {
         if let Some(first) = header.iter().take(i).position(|h| h == name) {
             return Err(file_err(
-                1,
+                header_line,
                 name,
                 format!("column appears twice (columns {} and {})", first + 1, i + 1),
             ));
@@ -59,14 +68,13 @@ pub fn read_trace(path: &Path) -> Result<Trace, BacklashError> {
     let mut columns = [0usize; 3];
     for (slot, name) in columns.iter_mut().zip(["t_s", "encoder_mm", "scale_mm"]) {
         *slot = find(name)
-            .ok_or_else(|| file_err(1, name, "required column is missing".to_string()))?;
+            .ok_or_else(|| file_err(header_line, name, "required column is missing".to_string()))?;
     }
     let command = find("command_mm");
     let mut trace = Trace::default();
     let mut times: Vec<f64> = Vec::new();
     let mut record = csv::StringRecord::new();
-    while rdr.read_record(&mut record).map_err(csv_err)? {
-        let line = record.position().map_or(0, |p| p.line());
+    while let Some(line) = input.next(&mut record).map_err(format_err)? {
         let num = |i: usize, max: f64| -> Result<f64, BacklashError> {
             let cell = &record[i];
             let v: f64 = cell
@@ -144,5 +152,45 @@ mod tests {
         // The same rows with distinct names are read.
         std::fs::write(&path, format!("t_s,encoder_mm,scale_mm,other\n{rows}")).unwrap();
         assert_eq!(read_trace(&path).unwrap().encoder_mm, vec![10.0; 3]);
+    }
+
+    /// A spreadsheet's export said "column `-`: found record with 6 fields" (decimal
+    /// commas) and "`t_s` is missing" (';' separated, or an empty file), as the
+    /// measurement reader no longer does.
+    #[test]
+    fn spreadsheet_exports_and_an_empty_file_are_named_as_such() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.csv");
+        for (text, want) in [
+            (
+                "t_s,encoder_mm,scale_mm\n0,10,10\n0,002,10,10\n",
+                "line 3: CSV error: ",
+            ),
+            (
+                "t_s;encoder_mm;scale_mm\n0;10;10\n",
+                "line 1: the header is separated by ';': compgate reads \
+                 comma-separated files with a decimal point",
+            ),
+            (
+                "",
+                "the file is empty: expected a header line \
+                 t_s,encoder_mm,scale_mm[,command_mm]",
+            ),
+        ] {
+            std::fs::write(&path, text).unwrap();
+            let e = read_trace(&path).unwrap_err().to_string();
+            let want = format!("{}: {want}", path.display());
+            assert!(e.starts_with(&want), "{text:?}: {e}");
+        }
+        std::fs::write(&path, "t_s,encoder_mm,scale_mm\n0,10,10\n0,002,10,10\n").unwrap();
+        let e = read_trace(&path).unwrap_err().to_string();
+        assert!(e.ends_with("(decimal commas? compgate reads numbers with a decimal point)"));
+        // Blank lines do not shift the line named.
+        std::fs::write(&path, "t_s,encoder_mm,scale_mm\n0,1,1\n\n0.002,1,x\n").unwrap();
+        let e = read_trace(&path).unwrap_err().to_string();
+        assert!(
+            e.ends_with("line 4, column `scale_mm`: \"x\" is not a number"),
+            "{e}"
+        );
     }
 }

@@ -471,6 +471,20 @@ impl Backlash {
         (d > self.tolerance_mm()).then_some(d)
     }
 
+    /// The moves in which the scale (the table) went further than the encoder (the
+    /// motor) by more than [`Self::tolerance_mm`]: lost motion only ever makes the
+    /// table go less far, so this is a trace whose `encoder_mm` and `scale_mm` are
+    /// swapped (F = |h - H| hides the sign). Per move B->C, C->D: H - h, mm.
+    pub fn table_ahead_mm(&self) -> Vec<(&'static str, f64)> {
+        [
+            ("B->C", self.scale_h1_mm - self.encoder_h1_mm),
+            ("C->D", self.scale_h2_mm - self.encoder_h2_mm),
+        ]
+        .into_iter()
+        .filter(|&(_, d)| d > self.tolerance_mm())
+        .collect()
+    }
+
     /// The value for MD32450 (one value per axis): mean of F1 and F2, mm.
     pub fn md32450_mm(&self) -> f64 {
         0.5 * (self.f1_mm + self.f2_mm)

@@ -133,6 +133,15 @@ pub enum BacklashError {
         /// What is wrong.
         message: String,
     },
+    /// A trace file (`--trace`) is no CSV of the expected form (empty, another
+    /// delimiter, rows of another length); the message names the line.
+    #[error("{path}: {message}")]
+    TraceFormat {
+        /// The file.
+        path: String,
+        /// The reader's message.
+        message: String,
+    },
     /// F1 and F2 disagree; MD32450 was not written.
     #[error("F1 {f1_um:.3} um and F2 {f2_um:.3} um differ by more than the tolerance {tol_um:.3} um: MD32450 not written (see the report's warning)")]
     Disagree {

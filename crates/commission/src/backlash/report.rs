@@ -93,6 +93,13 @@ pub fn report(axis: &str, o: &Outcome, sim_note: Option<&str>) -> String {
             b.tolerance_mm() * 1000.0
         );
     }
+    for (mv, d) in b.table_ahead_mm() {
+        let _ = writeln!(
+            s,
+            "WARNING: in {mv} the scale moved {:.3} um further than the encoder: the table cannot move further than the motor through lost motion. Are the encoder and the scale swapped (the trace's encoder_mm and scale_mm columns, or the NC's channels)? F is then not this axis's backlash.",
+            d * 1000.0
+        );
+    }
     let _ = writeln!(s);
     match o.md32450_written_mm {
         Some(v) => {

@@ -69,6 +69,27 @@ fn seed_formulas_on_hand_made_values() {
     // No lost motion: encoder and scale move alike.
     let r = Backlash::from_values(l, l);
     assert_eq!((r.f1_mm, r.f2_mm), (0.0, 0.0));
+    assert!(r.table_ahead_mm().is_empty());
+}
+
+/// A trace with `encoder_mm` and `scale_mm` swapped gave the same F1 and F2 without
+/// a word, although the table moved further than the motor, which lost motion
+/// cannot do.
+#[test]
+fn swapped_encoder_and_scale_are_flagged() {
+    let l = [60.0001, 30.0002, 59.9998];
+    let m = [60.0121, 29.9902, 60.0053];
+    assert!(Backlash::from_values(l, m).table_ahead_mm().is_empty());
+    let swapped = Backlash::from_values(m, l);
+    let ahead = swapped.table_ahead_mm();
+    assert_eq!(
+        ahead.iter().map(|a| a.0).collect::<Vec<_>>(),
+        ["B->C", "C->D"]
+    );
+    assert!((ahead[0].1 - 0.0220).abs() < 1e-9, "{ahead:?}");
+    // Noise within the tolerance is no swap.
+    let noisy = Backlash::from_values(l, [60.0001, 30.0004, 59.9998]);
+    assert!(noisy.table_ahead_mm().is_empty());
 }
 
 #[test]

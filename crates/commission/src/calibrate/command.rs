@@ -5,10 +5,12 @@ use std::fmt::Write as _;
 use std::path::PathBuf;
 
 use compgate_core::measure::Measurements;
+use compgate_core::outputs::Staged;
 
 use super::model::{model_toml, AxisModel};
-use super::report::{plot_curves, report};
-use super::{calibrate, CalibrateError};
+use super::report::{render_curves, report};
+use super::{calibrate, CalibrateError, Fit};
+use crate::plot::PlotError;
 
 /// `compgate calibrate` arguments.
 #[derive(Debug, Clone, clap::Args)]
@@ -35,10 +37,29 @@ pub struct CalibrateArgs {
     /// SVG plot of the measured error curves with the fitted lines.
     #[arg(long)]
     pub plot: Option<PathBuf>,
+    /// Write the model even when the temperatures do not explain the error (R^2
+    /// below 0.5 and every temperature coefficient within 2 standard errors of 0),
+    /// which is refused otherwise.
+    #[arg(long)]
+    pub accept_weak_fit: bool,
 }
 
-/// Runs the command: read, fit, write the model (and plot); returns the report.
-pub fn run(args: &CalibrateArgs) -> Result<String, CalibrateError> {
+/// A fit whose report is still to be shown and whose files are still to be written:
+/// the report comes first, so that an output that cannot be written is told after
+/// the figures it would have held.
+#[derive(Debug)]
+pub struct Calibrated<'a> {
+    args: &'a CalibrateArgs,
+    fit: Fit,
+    /// The model file's text.
+    model: String,
+    /// The plot's SVG text, with `--plot`.
+    plot: Option<String>,
+}
+
+/// Runs the command up to its outputs: checks them (before the data is read), reads,
+/// fits, and renders the model file and the plot; writes nothing.
+pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
     let mut outputs = vec![args.out.as_path()];
     outputs.extend(args.plot.as_deref());
     compgate_core::outputs::check(&[&args.data], &outputs)?;
@@ -56,21 +77,66 @@ pub fn run(args: &CalibrateArgs) -> Result<String, CalibrateError> {
     );
     // Refused before anything is written: a model the gateway would load must
     // never hold a NaN or an absurd coefficient.
-    let text = model_toml(&args.axis, &args.nc_module, &model, &header).map_err(|source| {
+    let model = model_toml(&args.axis, &args.nc_module, &model, &header).map_err(|source| {
         CalibrateError::Model {
             path: args.out.display().to_string(),
             source: Box::new(source),
         }
     })?;
-    compgate_core::outputs::write(&args.out, text).map_err(|source| CalibrateError::Io {
-        path: args.out.display().to_string(),
-        source,
-    })?;
-    let mut out = report(&f);
-    let _ = writeln!(out, "model written to {}", args.out.display());
-    if let Some(plot) = &args.plot {
-        plot_curves(plot, &m, &f)?;
-        let _ = writeln!(out, "plot written to {}", plot.display());
+    let plot = match &args.plot {
+        Some(path) => Some(render_curves(&m, &f).map_err(|e| PlotError {
+            path: path.display().to_string(),
+            message: e.0,
+        })?),
+        None => None,
+    };
+    Ok(Calibrated {
+        args,
+        fit: f,
+        model,
+        plot,
+    })
+}
+
+impl Calibrated<'_> {
+    /// The fit report (with its warnings), for stdout.
+    pub fn report(&self) -> String {
+        report(&self.fit)
     }
-    Ok(out)
+
+    /// The fit's warnings ([`Fit::warnings`]), for stderr.
+    pub fn warnings(&self) -> Vec<String> {
+        self.fit.warnings()
+    }
+
+    /// Writes the model and the plot, both or neither (an existing model stays as it
+    /// was when the plot cannot be written); returns the lines saying so. An
+    /// undetermined fit ([`Fit::undetermined`]) is not written without
+    /// `--accept-weak-fit`.
+    pub fn write(&self) -> Result<String, CalibrateError> {
+        if self.fit.undetermined() && !self.args.accept_weak_fit {
+            return Err(CalibrateError::Undetermined {
+                path: self.args.out.display().to_string(),
+                r2: self.fit.r2,
+            });
+        }
+        let io = |(path, source): (PathBuf, std::io::Error)| CalibrateError::Io {
+            path: path.display().to_string(),
+            source,
+        };
+        let mut staged = Staged::new();
+        let mut files = vec![(&self.args.out, self.model.as_str(), "model")];
+        if let (Some(path), Some(svg)) = (&self.args.plot, &self.plot) {
+            files.push((path, svg.as_str(), "plot"));
+        }
+        let mut out = String::new();
+        for (path, text, what) in files {
+            staged
+                .write(path, text)
+                .map_err(|e| io((path.clone(), e)))?;
+            let _ = writeln!(out, "{what} written to {}", path.display());
+        }
+        staged.commit().map_err(io)?;
+        Ok(out)
+    }
 }

@@ -26,6 +26,19 @@ pub const MAX_CONDITION: f64 = 1e10;
 /// far below any instrument's resolution.
 const CONSTANT_SPAN: f64 = 1e-9;
 
+/// A sensor whose temperatures span less than this over the data, K, is warned
+/// about: its coefficients rest on changes of the order of the sensor's noise, and
+/// the model extrapolates them to every temperature the machine later reaches.
+pub const MIN_SENSOR_SPAN_K: f64 = 0.5;
+
+/// A fit explains the data poorly below this R^2; with every temperature
+/// coefficient within [`SIGNIFICANT_SE`] standard errors of 0 as well, the
+/// temperatures do not explain the error at all ([`Fit::undetermined`]).
+pub const WEAK_R2: f64 = 0.5;
+
+/// A coefficient within this many standard errors of 0 is not told apart from 0.
+pub const SIGNIFICANT_SE: f64 = 2.0;
+
 /// Why a fit is impossible.
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum FitError {
@@ -83,6 +96,8 @@ pub struct SensorTerm {
     pub name: String,
     /// Temperature at which the term is zero (the data's mean, to 0.01 K), degC.
     pub ref_degc: f64,
+    /// Largest minus smallest temperature of the sensor in the data, K.
+    pub span_degc: f64,
     /// K0 coefficient, um/K, and its standard error.
     pub k0_um_per_degc: f64,
     /// Standard error of `k0_um_per_degc`.
@@ -143,6 +158,48 @@ impl Fit {
                 .zip(temps_degc)
                 .map(|(t, v)| t.tan_beta_per_degc * (v - t.ref_degc))
                 .sum::<f64>()
+    }
+
+    /// True when the temperatures do not explain the error: R^2 below [`WEAK_R2`] and
+    /// every temperature coefficient within [`SIGNIFICANT_SE`] standard errors of 0.
+    /// Such a model compensates noise, and its large, undetermined coefficients add
+    /// errors as soon as the temperatures move.
+    pub fn undetermined(&self) -> bool {
+        self.r2 < WEAK_R2
+            && self.terms.iter().all(|t| {
+                t.k0_um_per_degc.abs() <= SIGNIFICANT_SE * t.k0_se_um_per_degc
+                    && t.tan_beta_per_degc.abs() <= SIGNIFICANT_SE * t.tan_beta_se_per_degc
+            })
+    }
+
+    /// What the engineer must know before applying the model: sensors that barely
+    /// moved ([`MIN_SENSOR_SPAN_K`]) and an undetermined fit ([`Fit::undetermined`]).
+    pub fn warnings(&self) -> Vec<String> {
+        let mut w: Vec<String> = self
+            .terms
+            .iter()
+            .filter(|t| t.span_degc < MIN_SENSOR_SPAN_K)
+            .map(|t| {
+                format!(
+                    "T_{} spans only {:.2} K in the data (less than {MIN_SENSOR_SPAN_K} K): its \
+                     coefficients rest on changes near the sensor's noise, and the model \
+                     extrapolates them to every temperature the machine reaches; measure over \
+                     a run that heats and cools the machine",
+                    t.name, t.span_degc
+                )
+            })
+            .collect();
+        if self.undetermined() {
+            w.push(format!(
+                "the temperatures do not explain the error: R^2 {:.3} (below {WEAK_R2}) and \
+                 every temperature coefficient is within {SIGNIFICANT_SE} standard errors of \
+                 0; the model would compensate noise and add error as the temperatures move \
+                 (a sensor in the wrong place, or one that drives the error is missing: see \
+                 compgate diagnose)",
+                self.r2
+            ));
+        }
+        w
     }
 
     /// Predicted error at `pos_mm` and `temps_degc`, um.
@@ -330,9 +387,10 @@ pub fn fit(
     let terms = sensors
         .iter()
         .enumerate()
-        .map(|(j, (name, _))| SensorTerm {
+        .map(|(j, (name, col))| SensorTerm {
             name: (*name).to_string(),
             ref_degc: refs[j],
+            span_degc: span(col),
             k0_um_per_degc: beta[1 + j],
             k0_se_um_per_degc: se(1 + j),
             tan_beta_per_degc: beta[2 + m + j] / 1000.0,

@@ -14,10 +14,10 @@ use compgate_core::measure::{MeasureError, Measurements};
 use thiserror::Error;
 
 use crate::plot::PlotError;
-pub use command::{run, CalibrateArgs};
+pub use command::{run, CalibrateArgs, Calibrated};
 pub use fit::{Fit, FitError};
 pub use model::{bounds, first_axis_model, load_model, model_toml, AxisModel, ModelError};
-pub use report::{plot_curves, report};
+pub use report::{plot_curves, render_curves, report};
 
 /// Errors of `calibrate` and of reading a model file.
 #[derive(Debug, Error)]
@@ -40,6 +40,13 @@ pub enum CalibrateError {
     Plot(#[from] PlotError),
     #[error("{0}")]
     Output(#[from] compgate_core::outputs::OutputError),
+    /// The fit does not explain the error ([`Fit::undetermined`]); nothing written.
+    #[error(
+        "{path}: not written: the temperatures do not explain the error (R^2 {r2:.3}, every \
+         temperature coefficient within 2 standard errors of 0; see the warning above); \
+         --accept-weak-fit writes it anyway"
+    )]
+    Undetermined { path: String, r2: f64 },
     #[error("{path}: {source}")]
     Model {
         path: String,
@@ -61,10 +68,9 @@ pub fn select_sensors<'a>(
             .map(|c| (c.name.as_str(), c.degc.as_slice()))
             .collect());
     }
-    wanted
-        .iter()
-        .map(|w| {
-            let name = w.trim().strip_prefix("T_").unwrap_or(w.trim());
+    crate::args::sensor_names(wanted)?
+        .into_iter()
+        .map(|name| {
             m.temps
                 .iter()
                 .find(|c| c.name == name)

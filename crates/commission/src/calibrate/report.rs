@@ -52,18 +52,33 @@ pub fn report(f: &Fit) -> String {
     s.push_str(
         "(+/- : standard errors assuming independent residuals; a lower bound on thermal data)\n",
     );
+    for w in f.warnings() {
+        let _ = writeln!(s, "warning: {w}");
+    }
     s
 }
 
 /// SVG: measured error against position, one curve per sweep (at most 12, evenly
 /// chosen), each with the fitted line at that sweep's mean temperatures.
 pub fn plot_curves(path: &Path, m: &Measurements, f: &Fit) -> Result<(), PlotError> {
+    let text = render_curves(m, f).map_err(|plot::DrawError(message)| PlotError {
+        path: path.display().to_string(),
+        message,
+    })?;
+    compgate_core::outputs::write(path, text).map_err(|e| PlotError {
+        path: path.display().to_string(),
+        message: e.to_string(),
+    })
+}
+
+/// The SVG text of [`plot_curves`].
+pub fn render_curves(m: &Measurements, f: &Fit) -> Result<String, plot::DrawError> {
     let all = sweeps(&m.t_s);
     let step = all.len().div_ceil(12).max(1);
     let chosen: Vec<_> = all.into_iter().step_by(step).collect();
     let cols: Vec<&[f64]> = f.terms.iter().filter_map(|t| m.temp(&t.name)).collect();
     let (pmin, pmax) = plot::extent(m.pos_mm.iter().copied()).unwrap_or((0.0, 1.0));
-    plot::svg(path, (1000, 650), |root| {
+    plot::render((1000, 650), |root| {
         let first = f.terms.first().map_or("", |t| t.name.as_str());
         let mut chart = plot::Frame::new("position (mm)", "error, actual - commanded (um)")
             .caption(

@@ -105,9 +105,13 @@ fn written_model_loads_into_a_gateway_config() {
         axis: "X".into(),
         nc_module: "nc_x".into(),
         plot: Some(dir.path().join("fit.svg")),
+        accept_weak_fit: false,
     };
-    let report = run(&args).unwrap();
+    let calibrated = run(&args).unwrap();
+    let report = calibrated.report();
     assert!(report.contains("RMS residual"), "{report}");
+    assert!(calibrated.warnings().is_empty(), "{report}");
+    calibrated.write().unwrap();
     let fragment = std::fs::read_to_string(&args.out).unwrap();
     let mut cfg = String::from(
         "[devices.ain]\ntransport = \"tcp\"\naddress = \"127.0.0.1:1\"\nunit_id = 1\ntimeout_s = 1.0\npoll_interval_s = 1.0\n\n\
@@ -149,6 +153,7 @@ fn bad_input_is_named() {
         axis: "X".into(),
         nc_module: "nc_x".into(),
         plot: None,
+        accept_weak_fit: false,
     };
     let e = run(&args).unwrap_err().to_string();
     assert!(e.contains("bad.csv: line 3, column `err_um`"), "{e}");
@@ -157,6 +162,11 @@ fn bad_input_is_named() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("T_spindle") && e.contains("T_screw"), "{e}");
+    // A sensor named twice was "linearly dependent ... moves with the position".
+    for twice in [&["column", "column"][..], &["column", "T_column"]] {
+        let e = calibrate(&m, &names(twice), None).unwrap_err().to_string();
+        assert_eq!(e, "--sensors: T_column named twice");
+    }
 }
 
 fn args_for(dir: &std::path::Path, csv: std::path::PathBuf) -> CalibrateArgs {
@@ -168,6 +178,7 @@ fn args_for(dir: &std::path::Path, csv: std::path::PathBuf) -> CalibrateArgs {
         axis: "X".into(),
         nc_module: "nc_x".into(),
         plot: None,
+        accept_weak_fit: false,
     }
 }
 
@@ -298,4 +309,75 @@ fn an_export_without_the_error_channel_is_refused_and_no_model_written() {
         "{e}"
     );
     assert!(!args.out.exists());
+}
+
+/// The model was replaced, then the plot failed (a directory, or a directory that
+/// cannot be written): the command said "error" with a new model in place, and no
+/// report. Now a plot path that is a directory is refused before the data is read,
+/// and one that cannot be written leaves the model as it was.
+#[test]
+fn a_plot_that_cannot_be_written_leaves_the_model_as_it_was() {
+    let (m, _) = commissioning(noiseless(), 1);
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("m.csv");
+    m.write(std::fs::File::create(&csv).unwrap()).unwrap();
+    let mut args = args_for(dir.path(), csv);
+    args.sensors = names(&["column", "screw"]);
+    std::fs::write(&args.out, "# previous good model\n").unwrap();
+    args.plot = Some(dir.path().to_path_buf());
+    let e = run(&args).unwrap_err().to_string();
+    assert!(e.ends_with("is a directory; give a file name"), "{e}");
+    // A directory no one may create files in (even root): /proc/self.
+    args.plot = Some("/proc/self/calib.svg".into());
+    let calibrated = run(&args).unwrap();
+    assert!(calibrated.report().contains("RMS residual"));
+    let e = calibrated.write().unwrap_err().to_string();
+    assert!(e.starts_with("/proc/self/calib.svg: "), "{e}");
+    let model = std::fs::read_to_string(&args.out).unwrap();
+    assert_eq!(model, "# previous good model\n");
+    let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+    assert_eq!(left.len(), 2, "a temporary file is left: {left:?}");
+}
+
+/// Temperatures that hold one level (noise of 0.01 K: no sensor sees the drift)
+/// were fitted with R^2 0.10 and coefficients ten times smaller than their standard
+/// errors, and the model written without a word. Now the report and the warnings
+/// say so, and the model is written only with --accept-weak-fit.
+#[test]
+fn a_fit_the_temperatures_do_not_explain_is_warned_about_and_not_written() {
+    use rand::{Rng, SeedableRng};
+    let (mut m, _) = commissioning(ThermalParams::default(), 1);
+    let mut rng = rand::rngs::SmallRng::seed_from_u64(1);
+    for c in &mut m.temps {
+        for v in &mut c.degc {
+            *v = 20.0 + 0.01 * (rng.random::<f64>() - 0.5) * 3.46;
+        }
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("onelevel.csv");
+    m.write(std::fs::File::create(&csv).unwrap()).unwrap();
+    let mut args = args_for(dir.path(), csv);
+    args.sensors = names(&["column", "screw"]);
+    let calibrated = run(&args).unwrap();
+    let warnings = calibrated.warnings();
+    assert_eq!(warnings.len(), 3, "{warnings:?}");
+    assert!(
+        warnings[0].starts_with("T_column spans only 0.0"),
+        "{warnings:?}"
+    );
+    assert!(warnings[2].starts_with("the temperatures do not explain the error: R^2 0."));
+    let report = calibrated.report();
+    assert!(
+        report.contains("\nwarning: the temperatures do not explain"),
+        "{report}"
+    );
+    let e = calibrated.write().unwrap_err().to_string();
+    assert!(
+        e.contains("not written") && e.contains("--accept-weak-fit"),
+        "{e}"
+    );
+    assert!(!args.out.exists());
+    args.accept_weak_fit = true;
+    run(&args).unwrap().write().unwrap();
+    assert!(args.out.exists());
 }

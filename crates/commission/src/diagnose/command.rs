@@ -35,9 +35,20 @@ pub struct Diagnosed<'a> {
     diagnosis: Diagnosis,
 }
 
-/// Runs the command up to its outputs: checks them (before any input is read),
-/// reads the data and the model, diagnoses.
+/// Runs the command up to its outputs: reads the data and the model, then creates
+/// `--out` and checks every output (none may be an input, a directory or named
+/// twice) before diagnosing; writes nothing. A missing or bad input leaves no new
+/// directory behind.
 pub fn run(args: &DiagnoseArgs) -> Result<Diagnosed<'_>, DiagnoseError> {
+    let m = Measurements::read_path(&args.data).map_err(|source| DiagnoseError::Data {
+        path: args.data.display().to_string(),
+        source,
+    })?;
+    let model = args
+        .model
+        .as_deref()
+        .map(ModelFile::read_path)
+        .transpose()?;
     let mut outputs: Vec<PathBuf> = args.json.iter().cloned().collect();
     if let Some(dir) = &args.out {
         std::fs::create_dir_all(dir).map_err(|source| DiagnoseError::Io {
@@ -52,15 +63,6 @@ pub fn run(args: &DiagnoseArgs) -> Result<Diagnosed<'_>, DiagnoseError> {
         &inputs,
         &outputs.iter().map(PathBuf::as_path).collect::<Vec<_>>(),
     )?;
-    let m = Measurements::read_path(&args.data).map_err(|source| DiagnoseError::Data {
-        path: args.data.display().to_string(),
-        source,
-    })?;
-    let model = args
-        .model
-        .as_deref()
-        .map(ModelFile::read_path)
-        .transpose()?;
     let opts = Options {
         sensors: args.sensors.clone(),
         model,

@@ -50,11 +50,9 @@ impl Data {
             None => (0..names.len()).collect(),
             Some(list) => {
                 let mut idx = Vec::new();
-                for s in list {
-                    let s = s.strip_prefix("T_").unwrap_or(s);
+                for s in crate::args::sensor_names(list)? {
                     match names.iter().position(|n| n == s) {
-                        Some(i) if !idx.contains(&i) => idx.push(i),
-                        Some(_) => {}
+                        Some(i) => idx.push(i),
                         None => {
                             return Err(DiagnoseError::UnknownSensor {
                                 sensor: s.to_string(),

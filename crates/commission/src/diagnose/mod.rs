@@ -45,6 +45,8 @@ use compgate_core::measure::Measurements;
 pub enum DiagnoseError {
     #[error("--sensors: no temperature column `T_{sensor}` in the data (columns: {available})")]
     UnknownSensor { sensor: String, available: String },
+    #[error("{0}")]
+    Arg(#[from] crate::args::ArgError),
     #[error("{rows} data rows are too few for this baseline (at least {min_rows})")]
     TooFewRows { rows: usize, min_rows: usize },
     #[error("--model: channel `{channel}` of {key} is neither a `T_` column of the data nor a lagged channel of the model file")]
@@ -105,6 +107,21 @@ impl Default for Thresholds {
             max_effects: 4,
         }
     }
+}
+
+/// A residual whose lag-1 autocorrelation in time is at least this is systematic,
+/// not noise: its RMS is then at least sqrt(5) = 2.2 times the noise level
+/// ([`noise_level_um`]). Above what correlated noise (an interferometer in moving
+/// air, AR(1) 0.5 in the tests) reaches, and far above what white noise reaches by
+/// chance on the rows diagnose needs (standard error about 1/sqrt(n), 0.12 at the
+/// fewest rows).
+pub const SYSTEMATIC_RHO: f64 = 0.8;
+
+/// The noise level of a residual of RMS `rms_um` and lag-1 autocorrelation `rho`:
+/// the RMS of its successive differences over sqrt(2), which is what white noise
+/// alone gives, while a slow systematic part cancels in the differences.
+pub fn noise_level_um(rms_um: f64, rho: f64) -> f64 {
+    rms_um * (1.0 - rho).max(0.0).sqrt()
 }
 
 /// What the user asked for.
@@ -494,14 +511,15 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
             }
         }
         let start = cur.cols.len();
-        let rms_before = (cur.rss / d.n as f64).sqrt();
+        let rms_before = Gap::of(&r_cur).rms_um;
         cur.push(&d, cols);
         used.push((ev.kind, ev.sensor));
         effects.push(EffectReport {
             name: ev.kind.name(),
             params: BTreeMap::new(),
             rms_before_um: rms_before,
-            rms_after_um: (cur.rss / d.n as f64).sqrt(),
+            // Set after the refinement below.
+            rms_after_um: f64::NAN,
             delta_ic: ev.delta_ic,
             ambiguous_with,
             kind: ev.kind,
@@ -512,6 +530,11 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
         });
         cur = refine(&d, cur, &mut effects);
         r_cur = cur.residuals(&d)?;
+        // After the refinement, which re-tunes every effect so far: the next step
+        // starts where this one ends, and the last one ends at the final gap.
+        if let Some(e) = effects.last_mut() {
+            e.rms_after_um = Gap::of(&r_cur).rms_um;
+        }
     }
 
     let beta: Vec<f64> = cur.gram.try_solve()?.beta.iter().copied().collect();
@@ -604,6 +627,16 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
             c.rms_after_um,
             c.param_name.unwrap_or("parameter"),
             c.param.unwrap_or(f64::NAN),
+        )
+    } else if effects.is_empty() && where_baseline.rho >= SYSTEMATIC_RHO {
+        format!(
+            "no candidate explains the residual, but it is systematic, not noise: RMS {:.3} um, \
+             lag-1 autocorrelation {:.3} in time (noise level about {:.3} um from successive \
+             rows); a sensor that drives the error is missing or misplaced, or the error has a \
+             form none of the candidates has",
+            baseline.rms_um,
+            where_baseline.rho,
+            noise_level_um(baseline.rms_um, where_baseline.rho)
         )
     } else if effects.is_empty() {
         format!(

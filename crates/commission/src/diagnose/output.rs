@@ -148,7 +148,10 @@ pub fn text_report(d: &Diagnosis) -> String {
             let _ = writeln!(out, "{}", plain_line(&columns, cells));
         }
     }
-    let _ = writeln!(out, "\neffects added:");
+    let _ = writeln!(
+        out,
+        "\neffects added (each RMS after re-tuning every effect so far):"
+    );
     if d.effects.is_empty() {
         let _ = writeln!(out, "  none");
     }

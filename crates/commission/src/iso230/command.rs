@@ -6,7 +6,7 @@ use compgate_core::measure::Measurements;
 
 use crate::args::check_f64;
 
-use super::{evaluate_grouped, report, Grouping, Iso230Error};
+use super::{evaluate_lines, report, Grouping, Iso230Error};
 
 /// `compgate iso230` arguments.
 #[derive(Debug, Clone, clap::Args)]
@@ -42,9 +42,9 @@ pub fn run(args: &Iso230Args) -> Result<String, Iso230Error> {
             "mm",
         )?,
     };
-    let m = Measurements::read_path(&args.data)
+    let (m, lines) = Measurements::read_path_with_lines(&args.data)
         .map_err(|e| Iso230Error::Data(args.data.display().to_string(), e))?;
-    Ok(report(&evaluate_grouped(
-        &m.pos_mm, &m.dir, &m.err_um, &grouping,
+    Ok(report(&evaluate_lines(
+        &m.pos_mm, &m.dir, &m.err_um, &grouping, &lines,
     )?))
 }

@@ -179,9 +179,11 @@ pub struct Iso230 {
     pub m_um: f64,
 }
 
-/// The CSV line of the 0-based data row `row`: the header is line 1.
-fn csv_line(row: usize) -> usize {
-    row + 2
+/// The CSV line of the 0-based data row `row`: its line in `lines` (from the
+/// reader, which skips blank lines), else as if rows followed the header line by
+/// line.
+fn csv_line(lines: &[u64], row: usize) -> usize {
+    lines.get(row).map_or(row + 2, |&l| l as usize)
 }
 
 /// Runs the command; an error of the evaluation names the file evaluated.
@@ -210,7 +212,11 @@ fn min(it: impl Iterator<Item = f64>) -> f64 {
 }
 
 /// The target index of every row, and the targets' nominal positions (ascending).
-fn assign_targets(pos_mm: &[f64], g: &Grouping) -> Result<(Vec<usize>, Vec<f64>), Iso230Error> {
+fn assign_targets(
+    pos_mm: &[f64],
+    g: &Grouping,
+    lines: &[u64],
+) -> Result<(Vec<usize>, Vec<f64>), Iso230Error> {
     let tol = g.tolerance_mm;
     if !(tol.is_finite() && tol > 0.0) {
         return Err(Iso230Error::BadTolerance(tol));
@@ -233,7 +239,7 @@ fn assign_targets(pos_mm: &[f64], g: &Grouping) -> Result<(Vec<usize>, Vec<f64>)
                     Ok(i)
                 } else {
                     Err(Iso230Error::OffTarget {
-                        line: csv_line(row),
+                        line: csv_line(lines, row),
                         pos_mm: p,
                         target_mm: targets.get(i).copied().unwrap_or(f64::NAN),
                         off_mm: off,
@@ -295,13 +301,26 @@ pub fn evaluate_grouped(
     err_um: &[f64],
     grouping: &Grouping,
 ) -> Result<Iso230, Iso230Error> {
+    evaluate_lines(pos_mm, dir, err_um, grouping, &[])
+}
+
+/// [`evaluate_grouped`] on rows read from a file, `lines` their file lines
+/// ([`compgate_core::measure::Measurements::read_path_with_lines`]): an error names
+/// the row's own line.
+pub fn evaluate_lines(
+    pos_mm: &[f64],
+    dir: &[i8],
+    err_um: &[f64],
+    grouping: &Grouping,
+    lines: &[u64],
+) -> Result<Iso230, Iso230Error> {
     // First: a file without `dir` fails on its first row whatever its positions.
     if let Some(row) = dir.iter().position(|d| !matches!(d, 1 | -1)) {
         return Err(Iso230Error::NoDirection {
-            line: csv_line(row),
+            line: csv_line(lines, row),
         });
     }
-    let (index, nominal) = assign_targets(pos_mm, grouping)?;
+    let (index, nominal) = assign_targets(pos_mm, grouping, lines)?;
     // Per target and direction, in file order = run order.
     let mut groups: Vec<(f64, Vec<f64>, Vec<f64>)> = nominal
         .iter()
@@ -692,5 +711,23 @@ mod tests {
         // Errors that are not about one row name the file too.
         let e = run_file(&path, vec![]).unwrap_err().to_string();
         assert!(e.contains("off.csv: target 0 mm has 1 run(s)"), "{e}");
+    }
+
+    /// With blank lines in the file, the line was counted from the header row by
+    /// row: line 19 for a value on line 21.
+    #[test]
+    fn evaluation_errors_name_the_line_across_blank_lines() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("blank.csv");
+        std::fs::write(
+            &path,
+            "t_s,pos_mm,dir,err_um,T_a\n0,0,1,1,20\n\n\n1,100,1,1,20\n\n2,100.5,-1,1,20\n",
+        )
+        .unwrap();
+        let e = run_file(&path, vec![0.0, 100.0]).unwrap_err().to_string();
+        assert!(e.contains("blank.csv: line 7, column `pos_mm`"), "{e}");
+        std::fs::write(&path, "t_s,pos_mm,err_um,T_a\n\n\n0,0,1,20\n1,100,1,20\n").unwrap();
+        let e = run_file(&path, vec![]).unwrap_err().to_string();
+        assert!(e.contains("blank.csv: line 4, column `dir`"), "{e}");
     }
 }

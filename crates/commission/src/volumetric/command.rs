@@ -133,7 +133,12 @@ fn parse_grid_axes(spec: &str, travel: &[(f64, f64); 5]) -> Result<[Vec<f64>; 5]
         }
         let (lo, hi, n) = (num(f[0])?, num(f[1])?, count(f[2])?);
         let (tlo, thi) = travel[i];
-        if lo < tlo || hi > thi || lo > hi {
+        if lo > hi {
+            return Err(VolumetricError::Grid(format!(
+                "{name}: {lo}..{hi} is reversed: give start <= end"
+            )));
+        }
+        if lo < tlo || hi > thi {
             return Err(VolumetricError::Grid(format!(
                 "{name}: {lo}..{hi} outside the travel {tlo}..{thi}"
             )));
@@ -147,9 +152,31 @@ fn parse_grid_axes(spec: &str, travel: &[(f64, f64); 5]) -> Result<[Vec<f64>; 5]
     }))
 }
 
+/// What `compgate volumetric` evaluated: the report, and whether every pose met the
+/// acceptance.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Evaluated {
+    /// The report, with the files written.
+    pub report: String,
+    /// Poses outside the acceptance, and every pose.
+    pub failed: (usize, usize),
+}
+
+impl Evaluated {
+    /// An error when a pose failed the acceptance (the report names them): the
+    /// command exits 1 after printing the report.
+    pub fn accepted(&self) -> Result<(), VolumetricError> {
+        match self.failed {
+            (0, _) => Ok(()),
+            (failed, total) => Err(VolumetricError::Acceptance { failed, total }),
+        }
+    }
+}
+
 /// `compgate volumetric`: reads the error file, evaluates the grid uncompensated and
-/// compensated, writes the SVG maps with `--out`, and returns the report.
-pub fn run(args: &VolumetricArgs) -> Result<String, VolumetricError> {
+/// compensated, writes the SVG maps with `--out` and the CSV with `--csv`, and
+/// returns the report.
+pub fn run(args: &VolumetricArgs) -> Result<Evaluated, VolumetricError> {
     let mut outputs: Vec<PathBuf> = args.csv.iter().cloned().collect();
     if let Some(dir) = &args.out {
         std::fs::create_dir_all(dir)
@@ -193,6 +220,7 @@ pub fn run(args: &VolumetricArgs) -> Result<String, VolumetricError> {
     crate::args::check_f64("--max-c-swing", pole.max_c_swing_deg, 0.0, 720.0, "deg")
         .map_err(|e| VolumetricError::Grid(e.to_string()))?;
     let ev = evaluate_pole(&comp, &grid, &pole);
+    let acc = ev.acceptance();
     let mut s = report(&ev);
     if let Some(path) = &args.csv {
         write_poses_csv(path, &ev)?;
@@ -203,5 +231,8 @@ pub fn run(args: &VolumetricArgs) -> Result<String, VolumetricError> {
             let _ = writeln!(s, "wrote {}", p.display());
         }
     }
-    Ok(s)
+    Ok(Evaluated {
+        report: s,
+        failed: (acc.failed.len(), acc.total),
+    })
 }

@@ -224,18 +224,27 @@ impl Evaluation {
         self.floor.get(i).copied().unwrap_or(0.0)
     }
 
-    /// The acceptance, pose by pose: the compensated tip error at most
+    /// The acceptance's limits at pose `i`: the compensated tip error at most
     /// [`ACCEPT_FRACTION`] of the uncompensated one (or [`super::TOL_UM`]), and the
     /// orientation error at most that fraction or the floor plus
-    /// [`ACCEPT_FLOOR_ARCSEC`], the larger.
+    /// [`ACCEPT_FLOOR_ARCSEC`], the larger. (tip um, orientation arc-seconds).
+    pub fn acceptance_limits(&self, i: usize) -> (f64, f64) {
+        let unc = self.uncompensated[i];
+        (
+            (ACCEPT_FRACTION * unc.0).max(super::TOL_UM),
+            (ACCEPT_FRACTION * unc.1).max(self.floor_arcsec(i) + ACCEPT_FLOOR_ARCSEC),
+        )
+    }
+
+    /// The acceptance, pose by pose ([`Evaluation::acceptance_limits`]).
     pub fn acceptance(&self) -> Acceptance {
         let mut a = Acceptance {
             worst_orient_margin_arcsec: f64::NEG_INFINITY,
             ..Acceptance::default()
         };
-        for (i, (unc, comp)) in self.uncompensated.iter().zip(&self.compensated).enumerate() {
-            let tip_ok = comp.0 <= (ACCEPT_FRACTION * unc.0).max(super::TOL_UM);
-            let limit = (ACCEPT_FRACTION * unc.1).max(self.floor_arcsec(i) + ACCEPT_FLOOR_ARCSEC);
+        for (i, comp) in self.compensated.iter().enumerate() {
+            let (tip_limit, limit) = self.acceptance_limits(i);
+            let tip_ok = comp.0 <= tip_limit;
             let orient_ok = comp.1 <= limit;
             a.total += 1;
             if tip_ok && orient_ok {

@@ -141,7 +141,7 @@ use std::f64::consts::PI;
 
 use crate::plot::PlotError;
 
-pub use command::{parse_grid, run, VolumetricArgs};
+pub use command::{parse_grid, run, Evaluated, VolumetricArgs};
 pub use evaluation::{
     evaluate, evaluate_pole, pole_floor_brute_force, Acceptance, Evaluation, PoleClasses, Stats,
     ACCEPT_FLOOR_ARCSEC, ACCEPT_FRACTION, POLE_TOL_ARCSEC, POLE_TOL_FRACTION,
@@ -173,7 +173,8 @@ pub const RAD_PER_ARCSEC: f64 = PI / (180.0 * 3600.0);
 pub const MAX_ONLINE_C_CORRECTION_DEG: f64 = 10.0;
 /// Convergence tolerance of the linear residual, um.
 pub const TOL_UM: f64 = 0.01;
-/// Convergence tolerance of the rotary residual, arc-seconds.
+/// Convergence tolerance of the rotary residual, arc-seconds: the hypot of the A
+/// and C residuals, which bounds the angle they turn the tool axis by.
 pub const TOL_ARCSEC: f64 = 0.001;
 /// Most iterations of [`VolumetricCompensator::drive_positions`].
 pub const MAX_ITERATIONS: usize = 20;
@@ -200,6 +201,17 @@ pub enum VolumetricError {
     /// Drawing an error map failed.
     #[error("{0}")]
     Plot(#[from] PlotError),
+    /// Poses failed the acceptance ([`Evaluation::acceptance`]); the report names
+    /// them.
+    #[error(
+        "acceptance failed: {failed} of {total} poses outside the limits (named in the report)"
+    )]
+    Acceptance {
+        /// Poses outside.
+        failed: usize,
+        /// Every pose.
+        total: usize,
+    },
     /// An output path names an input or another output, or a missing directory.
     #[error("{0}")]
     Output(#[from] compgate_core::outputs::OutputError),

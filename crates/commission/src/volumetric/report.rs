@@ -11,6 +11,9 @@ use super::{VolumetricError, MAX_ONLINE_C_CORRECTION_DEG, TOL_ARCSEC, TOL_UM};
 use crate::plot;
 use crate::table::{plain_line, Column};
 
+/// Failing poses the report names one by one.
+const SHOWN_FAILURES: usize = 5;
+
 /// The report of an evaluation.
 pub fn report(ev: &Evaluation) -> String {
     let (u, c) = ev.all_stats();
@@ -61,17 +64,41 @@ pub fn report(ev: &Evaluation) -> String {
         let _ = writeln!(s, "{}", plain_line(&COLUMNS, cells));
     }
     let acc = ev.acceptance();
+    // In full: a failure by 4e-5" printed as "+0.0000" with four decimals.
     let _ = writeln!(
         s,
         "acceptance: {} of {} poses within {} % of their uncompensated error, or the \
          achievable minimum + {ACCEPT_FLOOR_ARCSEC}\" where the pole limits it (worst \
-         margin {:+.4}\"; minimum from the parameters, by brute force for {} poses)",
+         orientation margin {:+.2e}\"; minimum from the parameters, by brute force for {} poses)",
         acc.passed,
         acc.total,
         100.0 * ACCEPT_FRACTION,
         acc.worst_orient_margin_arcsec,
         ev.floor_brute_force
     );
+    if !acc.failed.is_empty() {
+        let _ = writeln!(
+            s,
+            "ACCEPTANCE FAILED for {} poses{}:",
+            acc.failed.len(),
+            if acc.failed.len() > SHOWN_FAILURES {
+                format!(" (the first {SHOWN_FAILURES})")
+            } else {
+                String::new()
+            }
+        );
+        for &i in acc.failed.iter().take(SHOWN_FAILURES) {
+            let [x, y, z, a, c] = ev.poses[i];
+            let (tip, orient) = ev.compensated[i];
+            let (tip_limit, orient_limit) = ev.acceptance_limits(i);
+            let _ = writeln!(
+                s,
+                "  X {x} Y {y} Z {z} A {a} C {c}: tip {tip:.6} um (limit {tip_limit:.6}), \
+                 orientation {orient:.7}\" (limit {orient_limit:.7}), {} iterations",
+                ev.iterations[i]
+            );
+        }
+    }
     if n_sing > 0 {
         let (uo, co) = (ev.uncompensated_stats(), ev.compensated_stats());
         let _ = writeln!(

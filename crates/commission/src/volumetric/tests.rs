@@ -205,6 +205,9 @@ fn grid_spec() {
     assert!(parse_grid("Q=0:1:2", &t).is_err());
     assert!(parse_grid("0", &t).is_err());
     assert_eq!(parse_grid("2", &t).expect("n")[4], vec![-200.0, 200.0]);
+    // A reversed range said "outside the travel".
+    let e = parse_grid("X=1000:0:5", &t).unwrap_err().to_string();
+    assert_eq!(e, "grid: X: 1000..0 is reversed: give start <= end");
 }
 
 #[test]
@@ -221,7 +224,8 @@ fn run_writes_report_and_svgs() {
         max_c_swing_deg: 180.0,
         csv: None,
     })
-    .expect("run");
+    .expect("run")
+    .report;
     assert!(report.contains("tip max"), "{report}");
     for f in ["tip-error.svg", "orientation-error.svg", "tip-error-xy.svg"] {
         let s = std::fs::read_to_string(out.join(f)).expect(f);
@@ -916,4 +920,75 @@ fn near_the_pole_the_online_path_reaches_the_floor() {
         }
     }
     println!("online drive loop at 0.1 <= |A| <= 0.5 deg: worst {online_worst:.6}\"; worst margin to the target {worst_excess:+.5}\"");
+}
+
+/// On grid 17 one pose (A 62.5 deg) stopped after one step with the A and C
+/// residuals each below 0.001" and the tool axis 0.00104" off: the stop test took
+/// the larger of the two, not the angle they make together. It failed the
+/// acceptance, which the report hid as "worst margin +0.0000"".
+#[test]
+fn the_drive_loop_stops_only_with_the_tool_axis_within_the_tolerance() {
+    let comp = VolumetricCompensator::new(parse(EXAMPLE).expect("example"));
+    let model = comp.model();
+    let u = [62.5, 100.0, 187.5, 62.5, -150.0];
+    let s = comp.drive_positions(&u);
+    let (_, v) = model.actual_pose(&s.drive);
+    let (_, vn) = nominal_pose(&model.geometry, &u);
+    let orient_arcsec = angle_rad(&v, &vn) / RAD_PER_ARCSEC;
+    assert!(orient_arcsec <= TOL_ARCSEC, "{orient_arcsec} after {s:?}");
+    assert!(s.residual_arcsec <= TOL_ARCSEC, "{s:?}");
+    let grid = [
+        vec![62.5],
+        vec![100.0],
+        vec![187.5],
+        vec![62.5],
+        vec![-150.0],
+    ];
+    let acc = evaluate(&comp, &grid).acceptance();
+    assert!(acc.failed.is_empty(), "{acc:?}");
+}
+
+/// A pose 4e-5" over its limit was reported as "worst margin +0.0000"", unnamed,
+/// and the command exited 0.
+#[test]
+fn a_failed_acceptance_is_shown_named_and_an_error() {
+    let comp = VolumetricCompensator::new(parse(EXAMPLE).expect("example"));
+    let grid = [
+        vec![62.5],
+        vec![100.0],
+        vec![187.5],
+        vec![62.5, 30.0],
+        vec![-150.0],
+    ];
+    let mut ev = evaluate(&comp, &grid);
+    let limit = ev.acceptance_limits(0).1;
+    ev.compensated[0].1 = limit + 3.8e-5;
+    let acc = ev.acceptance();
+    assert_eq!((acc.failed.clone(), acc.passed), (vec![0], 1));
+    let text = report(&ev);
+    assert!(
+        text.contains("worst orientation margin +3.80e-5\""),
+        "{text}"
+    );
+    assert!(
+        text.contains("ACCEPTANCE FAILED for 1 poses:\n  X 62.5 Y 100 Z 187.5 A 62.5 C -150: tip "),
+        "{text}"
+    );
+    let evaluated = Evaluated {
+        report: text,
+        failed: (acc.failed.len(), acc.total),
+    };
+    let e = evaluated.accepted().unwrap_err().to_string();
+    assert_eq!(
+        e,
+        "acceptance failed: 1 of 2 poses outside the limits (named in the report)"
+    );
+    assert_eq!(
+        Evaluated {
+            report: String::new(),
+            failed: (0, 2)
+        }
+        .accepted(),
+        Ok(())
+    );
 }
