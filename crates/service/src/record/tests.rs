@@ -668,3 +668,36 @@ fn an_output_on_the_databases_companion_files_is_refused() {
     export::run(&args).unwrap();
     drop(live);
 }
+
+// The status is published more often than the NC is read: one `nc` row per read.
+#[test]
+fn one_nc_row_per_read_of_the_nc_not_per_status() {
+    use compgate_gateway::nc::NcSnapshot;
+    use compgate_gateway::runtime::AxisStatus;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cfg = RecorderConfig {
+        path: dir.path().join("r.db").display().to_string(),
+        ..RecorderConfig::default()
+    };
+    let rec = Recorder::start(&cfg).expect("starts");
+    let mut obs = rec.observer();
+    let mut status = Status {
+        axes: vec![AxisStatus {
+            name: "X".into(),
+            nc: Some(NcSnapshot::default()),
+            ..AxisStatus::default()
+        }],
+        ..Status::default()
+    };
+    for reads in [1, 1, 1, 2, 2, 3] {
+        status.axes[0].nc_reads = reads;
+        obs.on_status(&status);
+    }
+    drop(obs);
+    rec.finish();
+    let conn = Connection::open(dir.path().join("r.db")).expect("open");
+    let rows: i64 = conn
+        .query_row("SELECT count(*) FROM nc", [], |r| r.get(0))
+        .expect("nc rows");
+    assert_eq!(rows, 3);
+}
