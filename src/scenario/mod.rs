@@ -750,6 +750,7 @@ async fn run_once(
         pipeline.axes[0].comp.on_position(now_s, snap.position_mm);
         if let Some(o) = observer.as_mut() {
             status.axes[0].nc = Some(snap);
+            status.axes[0].nc_reads += 1;
             o.on_status(&status);
         }
 

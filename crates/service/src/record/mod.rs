@@ -17,6 +17,7 @@
 pub mod export;
 mod schema;
 
+use std::os::unix::fs::MetadataExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::{self, SyncSender, TryRecvError, TrySendError};
@@ -252,9 +253,9 @@ pub struct Recorder {
     thread: Option<std::thread::JoinHandle<()>>,
     path: PathBuf,
     outbox: Arc<tokio::sync::Notify>,
-    /// The database's lock, held while the recorder lives: dropped after
-    /// `Drop::drop` joined the writer, so after its last commit.
-    _lock: std::fs::File,
+    /// The database's lock, held while the recorder lives: its file is removed and
+    /// the lock dropped after `Drop::drop` joined the writer, so after its last commit.
+    lock: Option<(std::fs::File, PathBuf)>,
 }
 
 /// Checks, creating nothing, that the recorder can create or write its database at
@@ -309,27 +310,35 @@ fn writable(path: &Path) -> std::io::Result<()> {
 /// advisory lock on `<db>.lock`, which the kernel releases when the process ends,
 /// however it ends. Two gateways recording into one database would mix their rows
 /// with nothing to tell them apart. Readers (`export`) do not take it.
-fn lock(path: &Path) -> Result<std::fs::File, RecordError> {
+fn lock(path: &Path) -> Result<(std::fs::File, PathBuf), RecordError> {
     let lock_path = with_suffix(path, ".lock");
-    let err = |message: String| RecordError::Open {
+    let err = |e: std::io::Error| RecordError::Open {
         path: path.display().to_string(),
-        message,
+        message: format!("lock file {}: {e}", lock_path.display()),
     };
-    let file = std::fs::OpenOptions::new()
-        .read(true)
-        .write(true)
-        .create(true)
-        .truncate(false)
-        .open(&lock_path)
-        .map_err(|e| err(format!("lock file {}: {e}", lock_path.display())))?;
-    match file.try_lock() {
-        Ok(()) => Ok(file),
-        Err(std::fs::TryLockError::WouldBlock) => Err(RecordError::InUse {
-            path: path.display().to_string(),
-            lock: lock_path.display().to_string(),
-        }),
-        Err(std::fs::TryLockError::Error(e)) => {
-            Err(err(format!("lock file {}: {e}", lock_path.display())))
+    loop {
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&lock_path)
+            .map_err(err)?;
+        match file.try_lock() {
+            Ok(()) => {}
+            Err(std::fs::TryLockError::WouldBlock) => {
+                return Err(RecordError::InUse {
+                    path: path.display().to_string(),
+                    lock: lock_path.display().to_string(),
+                })
+            }
+            Err(std::fs::TryLockError::Error(e)) => return Err(err(e)),
+        }
+        // A recorder that finished removes its lock file: if it did so between our
+        // open and our lock, we hold a file nobody else finds. Lock the one there now.
+        let held = file.metadata().map_err(err)?;
+        if file_id(&lock_path) == Some((held.dev(), held.ino())) {
+            return Ok((file, lock_path));
         }
     }
 }
@@ -379,7 +388,7 @@ impl Recorder {
             thread: Some(thread),
             path,
             outbox,
-            _lock: lock,
+            lock: Some(lock),
         })
     }
 
@@ -443,6 +452,10 @@ impl Recorder {
 impl Drop for Recorder {
     fn drop(&mut self) {
         self.join();
+        // Still locked while removed, so no other recorder can take the file in between.
+        if let Some((_file, path)) = self.lock.take() {
+            let _ = std::fs::remove_file(path);
+        }
     }
 }
 
@@ -588,7 +601,6 @@ impl Observer for RecordObserver {
 
 /// (device, inode) of the file at `path`; `None` when there is none.
 fn file_id(path: &Path) -> Option<(u64, u64)> {
-    use std::os::unix::fs::MetadataExt;
     std::fs::metadata(path).ok().map(|m| (m.dev(), m.ino()))
 }
 

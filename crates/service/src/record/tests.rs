@@ -444,9 +444,14 @@ fn a_second_recorder_on_one_database_is_refused_while_the_first_runs() {
     // Readers are not locked out.
     assert!(export::open_read_only(first.path()).is_ok());
     first.finish();
-    Recorder::start(&cfg)
-        .expect("starts after the first stopped")
-        .finish();
+    // A recorder that finished leaves no lock file behind (an output directory
+    // holds what was recorded, nothing else).
+    let lock_file = dir.path().join("r.db.lock");
+    assert!(!lock_file.exists());
+    let second = Recorder::start(&cfg).expect("starts after the first stopped");
+    assert!(lock_file.exists());
+    second.finish();
+    assert!(!lock_file.exists());
 }
 
 // A reading whose channel the database already holds at the same millisecond (the
