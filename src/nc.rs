@@ -180,6 +180,7 @@ async fn read(cfg: &Config, target: Option<&str>) -> Result<(), NcError> {
                 cli::print(format_args!("{label}: {e}\n"))?;
             }
         }
+        w.close().await;
     }
     if shown == 0 {
         return Err(String::from("no axis to read").into());
@@ -197,6 +198,19 @@ async fn write(
     yes: bool,
 ) -> Result<(), NcError> {
     let (mut w, label) = writer(cfg, axis)?;
+    let result = write_with(&mut w, &label, cfg, axis, change, yes).await;
+    w.close().await;
+    result
+}
+
+async fn write_with(
+    w: &mut Guarded,
+    label: &str,
+    cfg: &Config,
+    axis: &str,
+    change: &[(u16, Option<f64>)],
+    yes: bool,
+) -> Result<(), NcError> {
     let ax = &cfg.axes[axis];
     let mut job = Job { pairs: Vec::new() };
     // The axis's own limits hold for a value typed by hand too; P0 has the range of

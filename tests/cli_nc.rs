@@ -360,11 +360,16 @@ async fn nc_write_errors_name_the_axis_and_say_a_late_job_may_have_landed() {
     .await;
     let t = text_of(&out);
     assert_eq!(out.status.code(), Some(1), "{t}");
+    // Whether the PLC's STATE was read before the deadline depends on the machine's
+    // load; the message names it when it was.
     assert!(
         t.contains(
-            "error: axis X (axis 1 on target nc_x, kind = s7): job 1 did not finish within \
-             300ms (STATE stayed idle): the values may have landed; check with `compgate nc read`"
+            "error: axis X (axis 1 on target nc_x, kind = s7): job 1 did not finish within 300ms"
         ),
+        "{t}"
+    );
+    assert!(
+        t.contains("the values may have landed; check with `compgate nc read`"),
         "{t}"
     );
     assert!(!t.contains("Some("), "{t}");

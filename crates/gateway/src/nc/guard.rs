@@ -80,6 +80,12 @@ impl NcWriter for AnyNcWriter {
             Self::Ads(w) => w.has_axis_state(),
         }
     }
+
+    async fn close(&mut self) {
+        if let Self::Opcua(w) = self {
+            w.close().await;
+        }
+    }
 }
 
 /// A writer behind the guarantees every target shares (see the module docs).
@@ -192,6 +198,10 @@ impl<W: NcWriter> NcWriter for Guarded<W> {
 
     fn has_axis_state(&self) -> bool {
         self.writer.has_axis_state()
+    }
+
+    async fn close(&mut self) {
+        self.writer.close().await;
     }
 }
 

@@ -403,6 +403,12 @@ pub trait NcWriter: Send {
     fn has_axis_state(&self) -> bool {
         false
     }
+    /// Ends the connection politely, so the target frees its session now and not
+    /// after its own timeout (a control admits only a few sessions). Default: nothing
+    /// to end; dropping the writer closes its socket.
+    fn close(&mut self) -> impl Future<Output = ()> + Send {
+        std::future::ready(())
+    }
 }
 
 #[cfg(test)]

@@ -569,6 +569,18 @@ struct Connection {
     nodes: [NodeId; 3],
 }
 
+impl Connection {
+    /// Closes the session and waits for it (dropping only starts a close that a
+    /// process about to exit cuts short, and the OPC UA crates then log errors).
+    async fn close(self) {
+        if !self.lost.load(Ordering::Relaxed) {
+            let _ = tokio::time::timeout(CLOSE_TIMEOUT, self.session.disconnect()).await;
+            // Closed: `drop` only stops the event loop.
+            self.lost.store(true, Ordering::Relaxed);
+        }
+    }
+}
+
 impl Drop for Connection {
     fn drop(&mut self) {
         let event_loop = self.event_loop.abort_handle();
@@ -1015,6 +1027,15 @@ impl NcWriter for OpcuaNcWriter {
             sd43920_mm: v[2],
             ..NcSnapshot::default()
         })
+    }
+
+    async fn close(&mut self) {
+        if let Some(task) = self.connecting.take() {
+            task.abort();
+        }
+        if let Some(conn) = self.conn.take() {
+            conn.close().await;
+        }
     }
 }
 
