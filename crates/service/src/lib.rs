@@ -230,7 +230,7 @@ impl RunOptions {
 }
 
 /// `compgate run`: the gateway on `cfg` (loaded from `path`) as a service, until
-/// SIGTERM or Ctrl-C (see [`StopRequests`] for a second one).
+/// SIGTERM or Ctrl-C; a second one stops at once, after the recorder's last commit.
 pub async fn run(path: &Path, mut cfg: Config, opts: RunOptions) -> Result<(), ServiceError> {
     opts.apply(&mut cfg);
     let (reload_tx, reload_rx) = mpsc::channel(1);

@@ -11,7 +11,7 @@ use std::time::Duration;
 const MAX_SHOWN_KEY_CHARS: usize = 64;
 
 /// A key as written in a dotted path: bare when TOML allows it, else quoted; one
-/// longer than [`MAX_SHOWN_KEY_CHARS`] as `<first 16 characters…, N characters>`.
+/// longer than 64 characters as `<first 16 characters…, N characters>`.
 pub fn key_segment(k: &str) -> Cow<'_, str> {
     let n = k.chars().count();
     if n > MAX_SHOWN_KEY_CHARS {
