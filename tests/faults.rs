@@ -297,6 +297,52 @@ async fn an_nc_that_lost_its_values_is_ramped_again_from_what_it_holds() {
     h.await.unwrap();
 }
 
+// The NC's values change (here: cleared at the HMI) between two reads of the NC while
+// the gateway ramps: the next job was limited from what the NC held before, and would
+// have jumped from 0 to the ramp's next value in one step. Each job now goes out only
+// while the NC holds what its step was limited from; here the NC is read once a minute
+// (status interval 60 s), so only that check can see the change.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_value_changed_between_reads_of_the_nc_is_never_stepped_over() {
+    let toml = config("hold", "", "")
+        .replace("max_step_k0_mm = 0.5", "max_step_k0_mm = 0.005")
+        .replace("status_interval_s = 0.05", "status_interval_s = 60.0");
+    let plant = Plant::start(&cfgmod::load_str(&toml, "t.toml").unwrap(), Bind::Ephemeral)
+        .await
+        .unwrap();
+    plant.field["ain1"]
+        .set_temperature_override(plant.transmitter["T_bed"], Some(60.0))
+        .unwrap();
+    let nc = plant.nc["nc_x"].clone();
+    let (rx, shutdown, h) = run_gateway(plant.config.clone());
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    while nc.state().sd43900_mm < 0.02 {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "no ramp: {:?}",
+            nc.state()
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    nc.with_state(|a| a.sd43900_mm = 0.0);
+    let stop_watch = CancellationToken::new();
+    let seen = watch_nc(nc.clone(), stop_watch.clone());
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    while nc.state().sd43900_mm < 0.02 {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "no ramp again: {:?}",
+            nc.state()
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    let seen = stepped(&seen, &stop_watch, 0.005);
+    assert!(seen.len() >= 4, "ramped again from 0 in steps: {seen:?}");
+    drop(rx);
+    shutdown.cancel();
+    h.await.unwrap();
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn gateway_sigkill_and_restart_reads_the_nc_first_and_never_jumps() {
     let dir = tempfile::tempdir().unwrap();

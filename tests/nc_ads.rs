@@ -128,18 +128,19 @@ async fn step_limits_start_from_what_the_control_holds() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_slow_control_hits_the_job_timeout() {
-    // Every answer takes 0.15 s: a job (write + three reads) needs 0.6 s of a 0.4 s
-    // job timeout. The write is answered in time; its read-back is not.
+    // Every answer takes 0.15 s: a job (three reads to check what the NC holds, the
+    // write, three reads back) needs 1.05 s of a 0.8 s job timeout. The check and the
+    // write are answered in time; the read-back is not.
     let Some(peer) = ads_peer("lreal", 0.0, &["--delay-s", "0.15"]) else {
         return;
     };
-    let cfg = ads_config(&peer.address(), "").replace("job_timeout_s = 1.0", "job_timeout_s = 0.4");
+    let cfg = ads_config(&peer.address(), "").replace("job_timeout_s = 1.0", "job_timeout_s = 0.8");
     let mut rig = start(&cfg).await;
     let s = rig
         .wait_for(15.0, "a job timeout", |s| {
             s.axes[0].last_job_error.as_deref().is_some_and(|e| {
                 e.ends_with(
-                    "written; read-back not finished within 400ms: check with `compgate nc read`",
+                    "written; read-back not finished within 800ms: check with `compgate nc read`",
                 )
             })
         })

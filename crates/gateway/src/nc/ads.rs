@@ -63,7 +63,8 @@ pub struct AdsTargetConfig {
     #[serde(default = "default_timeout_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub timeout_s: f64,
-    /// Seconds a whole job (write and read-back) may take. Default 2.0; 0.001..=3600.
+    /// Seconds a whole job (the running gateway's check of what the NC holds, the
+    /// write and its read-back) may take. Default 2.0; 0.001..=3600.
     #[serde(default = "default_job_timeout_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub job_timeout_s: f64,

@@ -2,6 +2,8 @@
 //! a job goes out only with 1..=8 finite values of allowed variables, finishes within
 //! the job timeout, and counts as written only when the target's read-back holds the
 //! values (bit for bit for f64, for REAL within one float32 step of the REAL sent).
+//! A job of the running gateway goes out only while the NC still holds the values its
+//! step was limited from ([`Guarded::write_job_from`]).
 //!
 //! The rest is the runtime's: step limits and the deadband start from what the target
 //! holds (its first snapshot), a refused or failed job is reported and not confirmed
@@ -10,6 +12,7 @@
 
 use std::time::Duration;
 
+use compgate_core::comp::CompParams;
 use compgate_ncproto::var;
 use tokio::time::Instant;
 
@@ -153,15 +156,57 @@ impl<W: NcWriter> Guarded<W> {
     }
 }
 
-impl<W: NcWriter> NcWriter for Guarded<W> {
-    async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
+impl<W: NcWriter> Guarded<W> {
+    /// Runs `job` as [`NcWriter::write_job`] does, after checking that the NC still
+    /// holds `from` (the values the job's step was limited from) in every variable of
+    /// the job: [`NcError::NotHeld`], and nothing written, when it does not. The
+    /// gateway's last read of the NC may be a second old, and a value changed since
+    /// would let this job make a step of any size.
+    pub async fn write_job_from(
+        &mut self,
+        job: &Job,
+        from: Option<&CompParams>,
+    ) -> Result<JobReport, NcError> {
         self.check(job)?;
         let job_id = self.job_ids.issue();
         let started = Instant::now();
-        // One deadline, two phases: a write the target acknowledged and whose
-        // read-back ran late is told apart from a write that never finished.
         let deadline = started + self.job_timeout;
         let timeout = self.job_timeout;
+        if let Some(from) = from {
+            let before = match tokio::time::timeout_at(deadline, self.writer.read_snapshot()).await
+            {
+                Ok(result) => result?,
+                Err(_) => return Err(NcError::CheckTimeout { job_id, timeout }),
+            };
+            let held = before.thermal();
+            let want = Job::thermal(from);
+            let now = Job::thermal(&held);
+            for (&(var, value), &(_, held_value)) in want.pairs.iter().zip(&now.pairs) {
+                let in_job = job.pairs.iter().any(|&(v, _)| v == var);
+                if in_job && !Precision::F32.holds(value, held_value) {
+                    return Err(NcError::NotHeld {
+                        var,
+                        from: value,
+                        held: held_value,
+                        snapshot: held,
+                    });
+                }
+            }
+        }
+        self.write_checked(job, job_id, started, deadline).await
+    }
+
+    /// The write and its read-back within `deadline`.
+    async fn write_checked(
+        &mut self,
+        job: &Job,
+        job_id: u16,
+        started: Instant,
+        deadline: Instant,
+    ) -> Result<JobReport, NcError> {
+        let timeout = self.job_timeout;
+        // One deadline, two phases: a write the target acknowledged and whose
+        // read-back ran late is told apart from a write that never finished.
         match tokio::time::timeout_at(deadline, self.writer.write_job(job)).await {
             Ok(result) => result?,
             Err(_) => {
@@ -182,6 +227,12 @@ impl<W: NcWriter> NcWriter for Guarded<W> {
             job_id,
             elapsed: started.elapsed(),
         })
+    }
+}
+
+impl<W: NcWriter> NcWriter for Guarded<W> {
+    async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
+        self.write_job_from(job, None).await
     }
 
     async fn read_snapshot(&mut self) -> Result<NcSnapshot, NcError> {

@@ -54,6 +54,15 @@ pub enum NcError {
         /// Whether the job had been handed over (or may have been) when time ran out.
         sent: bool,
     },
+    /// The read of the NC before a job (does it hold what the step was limited from?)
+    /// did not end within the job timeout; nothing was sent.
+    #[error("the read before job {job_id} did not end within {timeout:?}; nothing was sent")]
+    CheckTimeout {
+        /// Job id.
+        job_id: u16,
+        /// The job timeout.
+        timeout: Duration,
+    },
     /// The target took the job, and reading the values back did not end within the job
     /// timeout.
     #[error(
@@ -101,6 +110,25 @@ pub enum NcError {
         written: f64,
         /// Value read back.
         read: f64,
+    },
+    /// Before the job the NC held another value than the one its step was limited
+    /// from (changed at the HMI, by a part program, or restarted): a write would make
+    /// a step of any size, so nothing was written.
+    #[error(
+        "not written: the NC holds {} = {}, the step was limited from {}",
+        var_name(*var),
+        number(*held),
+        number(*from)
+    )]
+    NotHeld {
+        /// The first variable that differs.
+        var: u16,
+        /// What the step was limited from.
+        from: f64,
+        /// What the NC holds.
+        held: f64,
+        /// Everything the NC holds of the three, to start the next step from.
+        snapshot: CompParams,
     },
     /// What the target holds cannot be what the NC has (a value that is not finite,
     /// subnormal or beyond the NC's own limit; an S7 block word out of its range):
@@ -194,6 +222,7 @@ impl NcError {
             Self::Link(_)
             | Self::Unreachable(_)
             | Self::JobTimeout { .. }
+            | Self::CheckTimeout { .. }
             | Self::ReadBackTimeout { .. } => true,
             _ => false,
         }

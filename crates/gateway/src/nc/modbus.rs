@@ -214,8 +214,8 @@ pub struct ModbusTargetConfig {
     #[serde(default = "default_connect_timeout_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub connect_timeout_s: f64,
-    /// Seconds the whole FB3 job (REQ .. DONE/ERROR) may take. Default 2.0;
-    /// 0.001..=3600.
+    /// Seconds the whole job (the running gateway's check of what the NC holds, REQ
+    /// .. DONE/ERROR and the read-back) may take. Default 2.0; 0.001..=3600.
     #[serde(default = "default_job_timeout_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub job_timeout_s: f64,

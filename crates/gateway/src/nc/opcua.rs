@@ -196,8 +196,9 @@ pub struct OpcuaTargetConfig {
     #[serde(default = "default_connect_timeout_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub connect_timeout_s: f64,
-    /// Seconds a job (write and read-back; a connect has `connect_timeout_s`) may take.
-    /// Default 2.0; 0.001..=3600.
+    /// Seconds a job (the running gateway's check of what the NC holds, the write and
+    /// its read-back; a connect has `connect_timeout_s`) may take. Default 2.0;
+    /// 0.001..=3600.
     #[serde(default = "default_job_timeout_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub job_timeout_s: f64,

@@ -70,6 +70,8 @@ enum NcCommand {
         axis_name: String,
         job: Job,
         params: CompParams,
+        /// What the step was limited from: the job goes out only while the NC holds it.
+        from: Option<CompParams>,
     },
 }
 
@@ -153,8 +155,8 @@ async fn nc_task(
             biased;
             () = stop.cancelled() => break,
             cmd = rx.recv() => {
-                let Some(NcCommand::Write { axis, axis_name, job, params }) = cmd else { break };
-                let Some(result) = write_or_abandon(&mut nc, &job, &stop).await else {
+                let Some(NcCommand::Write { axis, axis_name, job, params, from }) = cmd else { break };
+                let Some(result) = write_or_abandon(&mut nc, &job, from.as_ref(), &stop).await else {
                     tracing::warn!(axis = %axis_name, target_name = %nc.name, written = written(&job).as_str(), grace_s = NC_JOB_GRACE.as_secs_f64(), "NC job abandoned at stop: whether it landed is unknown; the NC is read again before the next write");
                     let _ = tx.send(NcEvent::Abandoned { axis }).await;
                     return Returned::Aborted;
@@ -190,9 +192,10 @@ async fn nc_task(
 async fn write_or_abandon(
     nc: &mut NcModuleRt,
     job: &Job,
+    from: Option<&CompParams>,
     stop: &CancellationToken,
 ) -> Option<Result<JobReport, NcError>> {
-    let write = nc.writer.write_job(job);
+    let write = nc.writer.write_job_from(job, from);
     tokio::pin!(write);
     tokio::select! {
         r = &mut write => return Some(r),
@@ -666,6 +669,27 @@ impl Running {
                 observer.on_job(&self.pipeline.axes[axis].name, &params, &result);
                 let st = &mut self.status.axes[axis];
                 let name = &self.pipeline.axes[axis].name;
+                // Nothing was written: the NC no longer held what the step was limited
+                // from. Not a failing NC: steps start again from what it holds.
+                if let Err(e @ NcError::NotHeld { snapshot, .. }) = &result {
+                    let was = st.written.unwrap_or_default();
+                    tracing::warn!(axis = %name, sd43900_mm = snapshot.k0_mm, sd43910 = snapshot.tan_beta, sd43920_mm = snapshot.p0_mm, confirmed_sd43900_mm = was.k0_mm, confirmed_sd43910 = was.tan_beta, confirmed_sd43920_mm = was.p0_mm, "the NC holds other values than it confirmed (restarted, changed by hand, or a job that failed took effect): steps start again from what it holds");
+                    st.written = Some(*snapshot);
+                    st.decision =
+                        "hold: the NC held other values; steps start again from them".into();
+                    let name = name.clone();
+                    self.pipeline.axes[axis].comp.set_baseline(*snapshot);
+                    self.status.push_job(JobStatus {
+                        axis: name,
+                        at: std::time::SystemTime::now(),
+                        params,
+                        shadow: false,
+                        job_id: None,
+                        elapsed: None,
+                        error: Some(e.to_string()),
+                    });
+                    return;
+                }
                 // Logged once per change from working to failing and back.
                 match (&result, st.last_job_error.is_some()) {
                     (Err(e @ NcError::Refused { .. }), false) => {
@@ -780,6 +804,7 @@ fn decide_axis(
             axis_name: axis.name.clone(),
             job,
             params,
+            from: axis.comp.baseline(),
         })
         .is_ok()
     {
