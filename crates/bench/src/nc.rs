@@ -17,6 +17,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
+use compgate_core::comp::CompParams;
 use compgate_gateway::config::TargetConfig;
 use compgate_gateway::nc::guard::THERMAL_VARS;
 use compgate_gateway::nc::{Guarded, Job, NcWriter};
@@ -122,24 +123,27 @@ fn percentile(v: &[f64], p: f64) -> f64 {
 async fn measure(kind: &str, target: &TargetConfig, jobs: usize) -> Result<KindLatency, String> {
     let writer = target.build("X", 1).map_err(|e| format!("{kind}: {e}"))?;
     let mut w = Guarded::new(writer, THERMAL_VARS.to_vec(), target.job_timeout());
-    w.read_snapshot()
+    let mut held = w
+        .read_snapshot()
         .await
-        .map_err(|e| format!("{kind}: first read: {e}"))?;
+        .map_err(|e| format!("{kind}: first read: {e}"))?
+        .thermal();
     let warmup = 20;
     let mut ms = Vec::with_capacity(jobs);
     for i in 0..warmup + jobs {
         let k0 = 0.001 * (i % 100) as f64;
-        let job = Job {
-            pairs: vec![
-                (THERMAL_VARS[0], k0),
-                (THERMAL_VARS[1], k0 * 1e-3),
-                (THERMAL_VARS[2], 100.0),
-            ],
+        let next = CompParams {
+            k0_mm: k0,
+            tan_beta: k0 * 1e-3,
+            p0_mm: 100.0,
         };
+        let job = Job::thermal(&next);
         let t = Instant::now();
-        w.write_job(&job)
+        // As the running gateway writes: checked first against what the NC holds.
+        w.write_job_from(&job, Some(&held))
             .await
             .map_err(|e| format!("{kind}: job {i}: {e}"))?;
+        held = next;
         if i >= warmup {
             ms.push(t.elapsed().as_secs_f64() * 1e3);
         }
@@ -361,7 +365,7 @@ pub async fn run(opts: &Options) -> Result<Vec<Outcome>, String> {
 /// The report table; `plc_cycle_ms` is the S7 peer's scan cycle.
 pub fn table(outcomes: &[Outcome], plc_cycle_ms: f64) -> String {
     let mut s = String::from(
-        "NC job latency per target kind, loopback (a job = the write and its verified read-back)\n\
+        "NC job latency per target kind, loopback (a job = the check of what the NC holds, the write and its verified read-back)\n\
          kind      jobs    p50 ms   p99 ms   max ms\n",
     );
     for o in outcomes {
