@@ -114,7 +114,8 @@ struct StopRequests {
 }
 
 /// Watches Ctrl-C and SIGTERM (see [`StopRequests`]); sends the reloaded config on
-/// SIGHUP. A config that does not load is logged and not sent: the old one stays.
+/// SIGHUP. A config that does not load is logged, told to systemd
+/// ([`notify::reload_refused`]) and not sent: the old one stays.
 fn signals(path: PathBuf, reload: mpsc::Sender<Config>, opts: RunOptions) -> StopRequests {
     use tokio::signal::unix::{signal, SignalKind};
     let requests = StopRequests {
@@ -147,7 +148,10 @@ fn signals(path: PathBuf, reload: mpsc::Sender<Config>, opts: RunOptions) -> Sto
                             opts.apply(&mut cfg);
                             let _ = reload.send(cfg).await;
                         }
-                        Err(e) => tracing::error!(error = %e, "reload refused: the running configuration stays"),
+                        Err(e) => {
+                            tracing::error!(error = %e, "reload refused: the running configuration stays");
+                            notify::reload_refused(&e);
+                        }
                     }
                     continue;
                 }
