@@ -79,17 +79,36 @@ fn task_err(e: tokio::task::JoinError) -> ServiceError {
     ServiceError::Task(e.to_string())
 }
 
-/// Logs to the journal when stderr is connected to it (`JOURNAL_STREAM`, set by
-/// systemd), otherwise, or when the journal cannot be opened, to stderr.
-pub fn init_tracing(filter: Option<&str>, default: &str) {
+/// Directives the default log filter adds to its level; `--log` and `RUST_LOG` are
+/// taken as given. tokio-modbus' RTU codec logs a multi-line WARN per bad frame that
+/// names no device (the gateway reports the fault itself, per device, once per
+/// change); the OPC UA client logs "Transport disconnected: Good" at WARN whenever a
+/// session closes cleanly (every `nc read` and `nc write`). Errors of both stay.
+const QUIET_LIBRARIES: &str = "tokio_modbus=error,opcua_client::session::event_loop=error";
+
+/// The log filter when neither `--log` nor `RUST_LOG` gives one: `level` (e.g.
+/// `info`), with tokio-modbus and the OPC UA client's session loop at `error` only.
+pub fn default_log_filter(level: &str) -> String {
+    format!("{level},{QUIET_LIBRARIES}")
+}
+
+/// Logs to the journal when stderr is the journal stream systemd connected
+/// (`JOURNAL_STREAM` names stderr's device and inode), otherwise, or when the journal
+/// cannot be opened, to stderr. `JOURNAL_STREAM` alone is not enough: a terminal of a
+/// systemd user session inherits it with stderr on the terminal. The filter is
+/// `filter` (`--log`), else `RUST_LOG`, else [`default_log_filter`] of
+/// `default_level`.
+pub fn init_tracing(filter: Option<&str>, default_level: &str) {
     use tracing_subscriber::layer::SubscriberExt;
     use tracing_subscriber::util::SubscriberInitExt;
     let filter = filter
         .map(str::to_string)
         .or_else(|| std::env::var("RUST_LOG").ok())
-        .unwrap_or_else(|| default.to_string());
+        .unwrap_or_else(|| default_log_filter(default_level));
     let env_filter = tracing_subscriber::EnvFilter::new(filter);
-    let journal = std::env::var_os("JOURNAL_STREAM").and_then(|_| tracing_journald::layer().ok());
+    let journal = crate::status::stderr_is_journal()
+        .then(|| tracing_journald::layer().ok())
+        .flatten();
     let registry = tracing_subscriber::registry().with(env_filter);
     match journal {
         Some(layer) => registry.with(layer).init(),
@@ -330,4 +349,61 @@ pub async fn run(path: &Path, mut cfg: Config, opts: RunOptions) -> Result<(), S
         let _ = tokio::task::spawn_blocking(move || p.join()).await;
     }
     Ok(result??)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::{Arc, Mutex};
+    use tracing_subscriber::layer::SubscriberExt;
+
+    /// The level and target of every event the filter before it let through.
+    #[derive(Clone, Default)]
+    struct Seen(Arc<Mutex<Vec<String>>>);
+
+    impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for Seen {
+        fn on_event(
+            &self,
+            event: &tracing::Event<'_>,
+            _: tracing_subscriber::layer::Context<'_, S>,
+        ) {
+            let m = event.metadata();
+            self.0
+                .lock()
+                .unwrap()
+                .push(format!("{} {}", m.level(), m.target()));
+        }
+    }
+
+    #[test]
+    fn the_default_filter_quiets_two_libraries_warnings_and_keeps_their_errors() {
+        let seen = Seen::default();
+        let subscriber = tracing_subscriber::registry()
+            .with(tracing_subscriber::EnvFilter::new(default_log_filter(
+                "info",
+            )))
+            .with(seen.clone());
+        tracing::subscriber::with_default(subscriber, || {
+            tracing::warn!(target: "tokio_modbus::codec::rtu", "Failed to decode response frame");
+            tracing::error!(target: "tokio_modbus::codec::rtu", "an error");
+            tracing::warn!(target: "opcua_client::session::event_loop", "Transport disconnected: Good");
+            tracing::error!(target: "opcua_client::session::event_loop", "Session activity loop ended unexpectedly");
+            tracing::warn!(target: "opcua_client::session::connect", "another OPC UA warning");
+            tracing::info!(target: "compgate_gateway::runtime", "device link up again");
+            tracing::debug!(target: "compgate_gateway::runtime", "a debug line");
+        });
+        assert_eq!(
+            *seen.0.lock().unwrap(),
+            [
+                "ERROR tokio_modbus::codec::rtu",
+                "ERROR opcua_client::session::event_loop",
+                "WARN opcua_client::session::connect",
+                "INFO compgate_gateway::runtime",
+            ]
+        );
+        assert_eq!(
+            default_log_filter("warn"),
+            "warn,tokio_modbus=error,opcua_client::session::event_loop=error"
+        );
+    }
 }

@@ -255,11 +255,21 @@ pub fn is_journal_stream(journal_stream: &str, dev: u64, ino: u64) -> bool {
 /// more status than events (1000 channels: 23 KB a second, 2 GB a day) and rotate
 /// the warnings out; `systemctl status`, the status page and `/metrics` show it.
 pub fn stdout_is_journal() -> bool {
+    fd_is_journal(1)
+}
+
+/// Whether stderr is the journal: then the log goes to journald with its fields.
+pub fn stderr_is_journal() -> bool {
+    fd_is_journal(2)
+}
+
+/// Whether this process' descriptor `fd` is the stream `JOURNAL_STREAM` names.
+fn fd_is_journal(fd: u8) -> bool {
     use std::os::unix::fs::MetadataExt;
     let Some(stream) = std::env::var_os("JOURNAL_STREAM") else {
         return false;
     };
-    std::fs::metadata("/proc/self/fd/1")
+    std::fs::metadata(format!("/proc/self/fd/{fd}"))
         .is_ok_and(|m| is_journal_stream(&stream.to_string_lossy(), m.dev(), m.ino()))
 }
 
