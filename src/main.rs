@@ -181,8 +181,15 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
             let cfg = config::load(&path).map_err(failed)?;
             // What `run` needs of the file system, so that ExecStartPre catches it.
             if let Some(r) = &cfg.recorder {
-                record::check_path(&record::resolve_path(&r.path))
+                let db = record::resolve_path(&r.path);
+                record::check_path(&db)
                     .map_err(|e| failed(format_args!("{}: {e}", path.display())))?;
+                if let Some(w) = record::outside_state_directory(&db) {
+                    cli::eprintln(format_args!(
+                        "warning: {}: recorder.path: {w}",
+                        path.display()
+                    ))?;
+                }
             }
             for w in config::warnings(&cfg, &path.display().to_string()) {
                 cli::eprintln(format_args!("warning: {w}"))?;

@@ -235,15 +235,37 @@ pub fn resolve_path(path: &str) -> PathBuf {
     if p.is_absolute() {
         return p.to_path_buf();
     }
-    match std::env::var_os("STATE_DIRECTORY") {
-        // systemd may pass several, separated by ':'; the first is ours.
-        Some(dirs) => {
-            let dirs = dirs.to_string_lossy().to_string();
-            let first = dirs.split(':').next().unwrap_or("");
-            Path::new(first).join(p)
-        }
+    match state_directory() {
+        Some(dir) => dir.join(p),
         None => p.to_path_buf(),
     }
+}
+
+/// `$STATE_DIRECTORY`: systemd may pass several, separated by ':'; the first is ours.
+fn state_directory() -> Option<PathBuf> {
+    let dirs = std::env::var_os("STATE_DIRECTORY")?;
+    let dirs = dirs.to_string_lossy();
+    Some(PathBuf::from(dirs.split(':').next().unwrap_or("")))
+}
+
+/// Why the database at `path` (as [`resolve_path`] gives it) will not work as meant
+/// under the unit: outside `$STATE_DIRECTORY` (when set), where `ProtectSystem=strict`,
+/// `ProtectHome=yes` and `PrivateTmp=yes` make every place read-only, hidden or
+/// private to the service (a database in /tmp would be lost at every stop). A
+/// warning, not an error: a drop-in may grant the place with `ReadWritePaths=`.
+pub fn outside_state_directory(path: &Path) -> Option<String> {
+    let state = state_directory()?;
+    let inside = path.starts_with(&state)
+        && !path
+            .components()
+            .any(|c| c == std::path::Component::ParentDir);
+    (!inside).then(|| {
+        format!(
+            "the database {} is outside the state directory {} ($STATE_DIRECTORY): under the unit (ProtectSystem=strict, ProtectHome=yes, PrivateTmp=yes) it is read-only, hidden or private to the service; give a path relative to the state directory, e.g. path = \"compgate.db\"",
+            path.display(),
+            state.display()
+        )
+    })
 }
 
 /// The running recorder: the writer thread and the queue's sending end.

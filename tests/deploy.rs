@@ -1,0 +1,288 @@
+//! deploy/: `install.sh` run for real in a scratch root (a private mount namespace with
+//! copies over /etc, /usr/local, /var/lib and /var/log, `cargo` and `systemctl`
+//! stubbed), and the unit's reload.
+
+// Test helpers: a panic with the message is the wanted failure.
+#![allow(clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+const REPO: &str = env!("CARGO_MANIFEST_DIR");
+const BIN: &str = env!("CARGO_BIN_EXE_compgate");
+
+/// A scratch root for `install.sh`: what it installs lands in `root`, what it asks
+/// systemctl is in `systemctl.log`.
+struct Scratch {
+    dir: tempfile::TempDir,
+}
+
+impl Scratch {
+    fn new() -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let sh = |script: &str| {
+            let st = Command::new("sh")
+                .args(["-c", script, "sh"])
+                .arg(d)
+                .arg(REPO)
+                .arg(BIN)
+                .status()
+                .unwrap();
+            assert!(st.success(), "{script}");
+        };
+        // The repository as install.sh needs it; /etc copied, so that useradd and
+        // install -g compgate work on the copy.
+        sh(r#"set -e; cd "$1"
+            mkdir -p repo/deploy repo/config usrlocal/bin usrlocal/share varlib varlog shims state
+            cp "$2/deploy/install.sh" "$2/deploy/compgate.service" repo/deploy/
+            cp "$2/config/example.toml" repo/config/
+            cp "$2/README.md" repo/
+            cp -r "$2/docs" repo/
+            cp -a /etc etc"#);
+        // cargo: the test's build stands in for the production one.
+        std::fs::write(
+            d.join("shims/cargo"),
+            format!(
+                "#!/bin/sh\nmkdir -p target/production/release && cp '{BIN}' target/production/release/compgate\n"
+            ),
+        )
+        .unwrap();
+        // systemctl: logs its arguments; the unit is active once (re)started.
+        std::fs::write(
+            d.join("shims/systemctl"),
+            format!(
+                "#!/bin/sh\necho \"$*\" >> '{log}'\ncase \"$1\" in\n  is-active) test -e '{active}' ;;\n  start|restart) touch '{active}' ;;\nesac\n",
+                log = d.join("systemctl.log").display(),
+                active = d.join("state/active").display()
+            ),
+        )
+        .unwrap();
+        sh(r#"chmod +x "$1/shims/cargo" "$1/shims/systemctl""#);
+        Scratch { dir }
+    }
+
+    fn path(&self, p: &str) -> PathBuf {
+        self.dir.path().join(p)
+    }
+
+    /// Runs `install.sh args` in the scratch root.
+    fn install(&self, args: &[&Path]) -> Output {
+        let d = self.dir.path();
+        let script = r#"d=$1; shift
+            mount --bind "$d/etc" /etc && mount --bind "$d/usrlocal" /usr/local \
+            && mount --bind "$d/varlib" /var/lib && mount --bind "$d/varlog" /var/log \
+            && exec bash "$d/repo/deploy/install.sh" "$@""#;
+        let path = format!(
+            "{}:{}",
+            d.join("shims").display(),
+            std::env::var("PATH").unwrap_or_default()
+        );
+        Command::new("unshare")
+            .args([
+                "--mount",
+                "--propagation",
+                "private",
+                "sh",
+                "-c",
+                script,
+                "sh",
+            ])
+            .arg(d)
+            .args(args)
+            .env("PATH", path)
+            .env_remove("SUDO_USER")
+            .output()
+            .expect("unshare runs (util-linux; a mount namespace needs root)")
+    }
+
+    /// What systemctl was asked since the last call.
+    fn systemctl(&self) -> Vec<String> {
+        let log = self.path("systemctl.log");
+        let text = std::fs::read_to_string(&log).unwrap_or_default();
+        let _ = std::fs::remove_file(&log);
+        text.lines().map(str::to_string).collect()
+    }
+
+    /// The installed config and the backups beside it.
+    fn configs(&self) -> (String, Vec<PathBuf>) {
+        let dir = self.path("etc/compgate");
+        let config = std::fs::read_to_string(dir.join("compgate.toml")).unwrap();
+        let mut backups: Vec<PathBuf> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.file_name().unwrap() != "compgate.toml")
+            .collect();
+        backups.sort();
+        (config, backups)
+    }
+}
+
+fn text(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr)
+}
+
+fn assert_ok(out: &Output) -> String {
+    let t = text(out);
+    assert!(out.status.success(), "{}\n{t}", out.status);
+    t
+}
+
+// Installing, then updating: a config given replaces the installed one (kept as a
+// dated backup), the config that will run is validated before anything is installed,
+// and a running service is restarted on the new binary; each step says what it did.
+#[test]
+fn install_sh_installs_updates_and_says_what_it_did() {
+    let s = Scratch::new();
+    let example = std::fs::read_to_string(s.path("repo/config/example.toml")).unwrap();
+    let plant = s.path("plant.toml");
+    std::fs::write(
+        &plant,
+        example.replace("status_interval_s = 1.0", "status_interval_s = 2.0"),
+    )
+    .unwrap();
+
+    // First install: the example config, the service started.
+    let out = assert_ok(&s.install(&[]));
+    assert!(
+        out.contains("installed config/example.toml as /etc/compgate/compgate.toml"),
+        "{out}"
+    );
+    assert!(out.contains("starting compgate"), "{out}");
+    assert_eq!(
+        s.systemctl()[..4],
+        [
+            "daemon-reload",
+            "enable compgate.service",
+            "is-active --quiet compgate.service",
+            "restart compgate.service"
+        ]
+    );
+    assert_eq!(s.configs(), (example.clone(), vec![]));
+    assert!(s.path("usrlocal/bin/compgate").exists());
+
+    // Update with the plant's config: the old one is kept, the new one runs.
+    let out = assert_ok(&s.install(&[&plant]));
+    assert!(
+        out.contains(&format!(
+            "replaced /etc/compgate/compgate.toml with {}; the previous one is /etc/compgate/compgate.toml.",
+            plant.display()
+        )),
+        "{out}"
+    );
+    assert!(
+        out.contains("compgate was running: restarting it on the new binary and config"),
+        "{out}"
+    );
+    assert!(s
+        .systemctl()
+        .contains(&"restart compgate.service".to_string()));
+    let (config, backups) = s.configs();
+    assert_eq!(config, std::fs::read_to_string(&plant).unwrap());
+    assert_eq!(backups.len(), 1, "{backups:?}");
+    assert_eq!(std::fs::read_to_string(&backups[0]).unwrap(), example);
+
+    // The same config again, and none: nothing replaced, still validated, restarted.
+    let out = assert_ok(&s.install(&[&plant]));
+    assert!(
+        out.contains(&format!(
+            "/etc/compgate/compgate.toml is already {}: unchanged",
+            plant.display()
+        )),
+        "{out}"
+    );
+    let out = assert_ok(&s.install(&[]));
+    assert!(
+        out.contains("kept the installed /etc/compgate/compgate.toml"),
+        "{out}"
+    );
+    assert!(out.contains("/etc/compgate/compgate.toml: OK"), "{out}");
+    assert_eq!(s.configs().1.len(), 1);
+    s.systemctl();
+
+    // A config that does not validate: nothing installed, nothing restarted.
+    let bad = s.path("bad.toml");
+    std::fs::write(
+        &bad,
+        example.replace("status_interval_s = 1.0", "status_intervall_s = 1.0"),
+    )
+    .unwrap();
+    let out = s.install(&[&bad]);
+    let t = text(&out);
+    assert!(!out.status.success(), "{t}");
+    assert!(t.contains("gateway.status_intervall_s: unknown key"), "{t}");
+    assert!(
+        t.contains("does not validate: nothing installed, the service is as it was"),
+        "{t}"
+    );
+    assert_eq!(s.configs().0, std::fs::read_to_string(&plant).unwrap());
+    assert_eq!(s.systemctl(), Vec::<String>::new());
+}
+
+// validate runs as root outside the unit's sandbox, so a database outside the state
+// directory passes it; under ProtectSystem=strict, ProtectHome and PrivateTmp it would
+// not be written (or be lost at each stop). install.sh (through validate) warns.
+#[test]
+fn install_sh_warns_of_a_database_outside_the_state_directory() {
+    let s = Scratch::new();
+    let example = std::fs::read_to_string(s.path("repo/config/example.toml")).unwrap();
+    let outside = s.path("outside");
+    std::fs::create_dir(&outside).unwrap();
+    let plant = s.path("plant.toml");
+    let db = outside.join("compgate.db");
+    std::fs::write(
+        &plant,
+        format!(
+            "{example}\n[recorder]\npath = {:?}\n",
+            db.display().to_string()
+        ),
+    )
+    .unwrap();
+    let out = assert_ok(&s.install(&[&plant]));
+    assert!(
+        out.contains(&format!(
+            "warning: {}: recorder.path: the database {} is outside the state directory /var/lib/compgate",
+            plant.display(),
+            db.display()
+        )),
+        "{out}"
+    );
+    // A relative path is in the state directory: no warning.
+    std::fs::write(
+        &plant,
+        format!("{example}\n[recorder]\npath = \"compgate.db\"\n"),
+    )
+    .unwrap();
+    let out = assert_ok(&s.install(&[&plant]));
+    assert!(!out.contains("outside the state directory"), "{out}");
+}
+
+// `systemctl reload` validates before it signals: a config that does not validate
+// fails the reload with its problems, and the service is never sent SIGHUP.
+#[test]
+fn the_unit_validates_before_it_signals_a_reload() {
+    let unit = std::fs::read_to_string(format!("{REPO}/deploy/compgate.service")).unwrap();
+    let reload: Vec<&str> = unit
+        .lines()
+        .filter(|l| l.starts_with("ExecReload="))
+        .collect();
+    assert_eq!(
+        reload,
+        [
+            "ExecReload=/usr/local/bin/compgate validate --config /etc/compgate/compgate.toml",
+            "ExecReload=/bin/kill -HUP $MAINPID"
+        ]
+    );
+    // systemd finds nothing wrong with the unit but the binary not installed here.
+    let out = Command::new("systemd-analyze")
+        .args(["verify", &format!("{REPO}/deploy/compgate.service")])
+        .output()
+        .expect("systemd-analyze runs (./test.sh installs the systemd package)");
+    let t = text(&out);
+    for line in t.lines() {
+        assert!(
+            line.contains("/usr/local/bin/compgate is not executable"),
+            "systemd-analyze verify: {line}\n{t}"
+        );
+    }
+}
