@@ -1,6 +1,6 @@
 //! deploy/: `install.sh` run for real in a scratch root (a private mount namespace with
 //! copies over /etc, /usr/local, /var/lib and /var/log, `cargo` and `systemctl`
-//! stubbed), and the unit's reload.
+//! stubbed), the unit's reload, and the docs that must agree with the status page.
 
 // Test helpers: a panic with the message is the wanted failure.
 #![allow(clippy::unwrap_used)]
@@ -285,4 +285,23 @@ fn the_unit_validates_before_it_signals_a_reload() {
             "systemd-analyze verify: {line}\n{t}"
         );
     }
+}
+
+// The guide says how many NC jobs the status page lists: as many as page.js shows.
+#[test]
+fn the_guide_names_as_many_nc_jobs_as_the_status_page_shows() {
+    let js = std::fs::read_to_string(format!("{REPO}/crates/service/src/page/page.js")).unwrap();
+    let jobs = &js[js.find("function jobs(").unwrap()..];
+    let n: usize = jobs[jobs.find("list.slice(0, ").unwrap() + 14..]
+        .split(')')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    let guide = std::fs::read_to_string(format!("{REPO}/docs/guide/commissioning.md")).unwrap();
+    let guide = guide.split_whitespace().collect::<Vec<_>>().join(" ");
+    assert!(
+        guide.contains(&format!("the last {n} NC jobs with their errors")),
+        "the page shows {n} jobs; the guide says otherwise"
+    );
 }
