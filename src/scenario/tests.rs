@@ -344,3 +344,31 @@ async fn outputs_of_another_mode_in_out_are_refused_not_left_beside_the_report()
     let e = run(&a).await.unwrap_err().to_string();
     assert!(e.contains("holds loop_vs_time.svg from another"), "{e}");
 }
+
+/// The closed loop's export step in the guide, `compgate export --axis X
+/// --err-channel laser_um --step-s 10`, exited 2: --db, --since, --until and --csv
+/// are required. The command as the guide prints it parses.
+#[test]
+fn the_guides_export_step_is_a_whole_command() {
+    use clap::Parser;
+    let guide = include_str!("../../docs/guide/commissioning.md");
+    let step = &guide[guide.find("2. **Export.**").expect("the export step")..];
+    let command = &step[step.find("compgate export").expect("the command")..];
+    let command = command
+        .split('`')
+        .next()
+        .and_then(|c| c.split("\n\n").next())
+        .unwrap_or_default()
+        .replace("\\\n", " ");
+    let args: Vec<&str> = command
+        .split_whitespace()
+        .map(|a| match a {
+            "START" => "1764000000",
+            "END" => "1764086401",
+            a => a,
+        })
+        .collect();
+    if let Err(e) = crate::cli::Cli::try_parse_from(&args) {
+        panic!("{command}: {e}");
+    }
+}
