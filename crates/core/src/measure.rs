@@ -81,7 +81,8 @@ pub enum MeasureError {
     /// channel): units in the header, `T_column [degC]`, are the usual cause.
     #[error(
         "line {line}, column {column} `{header}`: {reason} (the name after `T_` becomes the \
-         model's channel name; temperatures are degC): rename the header{hint}"
+         model's channel name; temperatures are degC): rename the header{hint} or delete \
+         the column"
     )]
     SensorName {
         line: u64,
@@ -89,7 +90,7 @@ pub enum MeasureError {
         column: usize,
         header: String,
         reason: &'static str,
-        /// `, e.g. `T_column`` when a usable name starts the header.
+        /// `, e.g. `T_column`,` when a usable name starts the header.
         hint: String,
     },
     /// A cell under a header without a name: the column's name is missing.
@@ -484,7 +485,7 @@ impl Measurements {
                                 hint: if usable.is_empty() || usable == sensor {
                                     String::new()
                                 } else {
-                                    format!(", e.g. `T_{usable}`")
+                                    format!(", e.g. `T_{usable}`,")
                                 },
                             });
                         }
@@ -787,7 +788,8 @@ mod tests {
             e.to_string(),
             "line 1, column 5 `T_column [degC]`: a sensor name may contain only A-Z, a-z, \
              0-9, `_` and `-` (the name after `T_` becomes the model's channel name; \
-             temperatures are degC): rename the header, e.g. `T_column`"
+             temperatures are degC): rename the header, e.g. `T_column`, or delete the \
+             column"
         );
         // Blank lines first, and an unnamed column before it: the file's own line and column.
         let e = read("\nt_s,,pos_mm,err_um,T_a°C\n0,,0,1,20\n").unwrap_err();
