@@ -97,6 +97,13 @@ pub enum ScenarioError {
         #[source]
         source: MeasureError,
     },
+    /// `--out` holds outputs of a scenario run of another mode that this run would
+    /// leave beside its own (a `model.toml` its report does not name).
+    #[error(
+        "--out {dir}: holds {files} from another scenario run, which this run does not \
+         write and would leave beside its report; use an empty directory or remove them"
+    )]
+    StaleOutputs { dir: String, files: String },
 }
 
 /// `compgate scenario` arguments.
@@ -1019,29 +1026,66 @@ async fn commission_from_records(
     Ok((baseline, fit, d, report))
 }
 
+/// The files every run writes into `--out`.
+const COMMON_OUTPUTS: [&str; 7] = [
+    "off.csv",
+    "on.csv",
+    "iso230_off.csv",
+    "iso230_on.csv",
+    "error_vs_time.svg",
+    "error_vs_position.svg",
+    "report.md",
+];
+/// ... and a `--loop` run.
+const LOOP_OUTPUTS: [&str; 7] = [
+    "record.sqlite",
+    "recorded.csv",
+    "model.toml",
+    "model_diagnosed.toml",
+    "on_diagnosed.csv",
+    "loop_vs_time.svg",
+    "loop_vs_position.svg",
+];
+/// ... and a run without `--model` (the commissioning fit).
+const COMMISSIONING_OUTPUTS: [&str; 2] = ["model.toml", "commissioning.csv"];
+
+/// Refuses an `--out` that holds outputs of another mode this run would not
+/// replace: a stale `model.toml` beside a `--model` run's report reads as its
+/// model. Nothing is deleted (they may be the user's); the `--model` file itself
+/// is an input, not a stale output.
+fn check_stale_outputs(args: &ScenarioArgs) -> Result<(), ScenarioError> {
+    let ours = output_names(args);
+    let input = args
+        .model
+        .as_deref()
+        .and_then(|m| std::fs::canonicalize(m).ok());
+    let mut stale: Vec<&str> = LOOP_OUTPUTS
+        .into_iter()
+        .chain(COMMISSIONING_OUTPUTS)
+        .filter(|f| !ours.contains(f))
+        .filter(|f| {
+            let path = args.out.join(f);
+            path.exists() && std::fs::canonicalize(&path).ok() != input
+        })
+        .collect();
+    stale.sort_unstable();
+    stale.dedup();
+    if stale.is_empty() {
+        return Ok(());
+    }
+    Err(ScenarioError::StaleOutputs {
+        dir: args.out.display().to_string(),
+        files: stale.join(", "),
+    })
+}
+
 /// The files a run writes into `--out`, for the check before it starts.
 fn output_names(args: &ScenarioArgs) -> Vec<&'static str> {
-    let mut names = vec![
-        "off.csv",
-        "on.csv",
-        "iso230_off.csv",
-        "iso230_on.csv",
-        "error_vs_time.svg",
-        "error_vs_position.svg",
-        "report.md",
-    ];
+    let mut names = COMMON_OUTPUTS.to_vec();
     if args.closed_loop {
-        names.extend([
-            "record.sqlite",
-            "recorded.csv",
-            "model.toml",
-            "model_diagnosed.toml",
-            "on_diagnosed.csv",
-            "loop_vs_time.svg",
-            "loop_vs_position.svg",
-        ]);
+        names.extend(LOOP_OUTPUTS);
     } else if args.model.is_none() {
-        names.extend(["model.toml", "commissioning.csv"]);
+        names.extend(COMMISSIONING_OUTPUTS);
     }
     names
 }
@@ -1105,6 +1149,7 @@ pub async fn run_with(
         &args.model.iter().map(PathBuf::as_path).collect::<Vec<_>>(),
         &outputs.iter().map(PathBuf::as_path).collect::<Vec<_>>(),
     )?;
+    check_stale_outputs(args)?;
     let mut staged = Staged::new();
     let record_s = if args.closed_loop {
         args.record_hours * 3600.0

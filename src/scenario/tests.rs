@@ -169,10 +169,12 @@ fn files(dir: &Path) -> Vec<(String, Vec<u8>)> {
 async fn a_failed_run_leaves_the_last_good_files_as_they_were() {
     let dir = tempfile::tempdir().unwrap();
     let mut a = args(dir.path(), 0.03);
+    // A loop run first: a run of another mode would find its files in the way.
+    a.closed_loop = true;
+    a.record_hours = 0.5;
     run(&a).await.unwrap();
     let before = files(dir.path());
     assert!(before.iter().any(|(n, _)| n == "report.md"), "{before:?}");
-    a.closed_loop = true;
     a.record_hours = 0.03;
     a.sensors = vec!["column".into(), "bogus".into()];
     let e = run(&a).await.unwrap_err().to_string();
@@ -289,5 +291,84 @@ async fn two_sampling_rates_see_the_same_machine() {
         }
         assert!((s.err_um[i] - d.err_um[j]).abs() < 3.0);
         assert!((sparse.on.series.err_um[i] - dense.on.series.err_um[j]).abs() < 3.0);
+    }
+}
+
+/// A `--model` run into the directory of an earlier default run left that run's
+/// model.toml and commissioning.csv beside its report, which seemed to name them.
+/// Such a directory is refused, naming the files, before anything runs; nothing is
+/// deleted, and the `--model` file itself may live there.
+#[tokio::test]
+async fn outputs_of_another_mode_in_out_are_refused_not_left_beside_the_report() {
+    let dir = tempfile::tempdir().unwrap();
+    for f in ["model.toml", "commissioning.csv", "report.md"] {
+        std::fs::write(dir.path().join(f), "earlier run\n").unwrap();
+    }
+    let mut a = args(dir.path(), 1.0);
+    a.model = Some(dir.path().join("other.toml"));
+    let e = run(&a).await.unwrap_err().to_string();
+    assert_eq!(
+        e,
+        format!(
+            "--out {}: holds commissioning.csv, model.toml from another scenario run, which \
+             this run does not write and would leave beside its report; use an empty \
+             directory or remove them",
+            dir.path().display()
+        )
+    );
+    // The model given is an input, not a stale output; the loop's files are stale.
+    a.model = Some(dir.path().join("model.toml"));
+    std::fs::write(dir.path().join("loop_vs_time.svg"), "<svg/>").unwrap();
+    let e = run(&a).await.unwrap_err().to_string();
+    assert!(
+        e.contains("holds commissioning.csv, loop_vs_time.svg from another"),
+        "{e}"
+    );
+    let mut left: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|f| f.unwrap().file_name().into_string().unwrap())
+        .collect();
+    left.sort();
+    assert_eq!(
+        left,
+        [
+            "commissioning.csv",
+            "loop_vs_time.svg",
+            "model.toml",
+            "report.md"
+        ]
+    );
+    // A default run writes model.toml and commissioning.csv itself: only the loop's
+    // file is in its way.
+    a.model = None;
+    let e = run(&a).await.unwrap_err().to_string();
+    assert!(e.contains("holds loop_vs_time.svg from another"), "{e}");
+}
+
+/// The closed loop's export step in the guide, `compgate export --axis X
+/// --err-channel laser_um --step-s 10`, exited 2: --db, --since, --until and --csv
+/// are required. The command as the guide prints it parses.
+#[test]
+fn the_guides_export_step_is_a_whole_command() {
+    use clap::Parser;
+    let guide = include_str!("../../docs/guide/commissioning.md");
+    let step = &guide[guide.find("2. **Export.**").expect("the export step")..];
+    let command = &step[step.find("compgate export").expect("the command")..];
+    let command = command
+        .split('`')
+        .next()
+        .and_then(|c| c.split("\n\n").next())
+        .unwrap_or_default()
+        .replace("\\\n", " ");
+    let args: Vec<&str> = command
+        .split_whitespace()
+        .map(|a| match a {
+            "START" => "1764000000",
+            "END" => "1764086401",
+            a => a,
+        })
+        .collect();
+    if let Err(e) = crate::cli::Cli::try_parse_from(&args) {
+        panic!("{command}: {e}");
     }
 }

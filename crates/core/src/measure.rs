@@ -10,7 +10,7 @@
 //! | `t_s`       | s    | yes      | 0..=315576000 (10 a) | time since the start, non-decreasing             |
 //! | `pos_mm`    | mm   | yes      | -100000..=100000     | axis position of the measurement                 |
 //! | `err_um`    | um   | yes      | -100000..=100000     | positioning error, actual minus commanded        |
-//! | `T_<name>`  | degC | >= 1     | -100..=500           | a temperature sensor                             |
+//! | `T_<name>`  | degC | >= 1     | -100..=500           | a temperature sensor; `<name>` is its channel: 1..=64 of `A-Z a-z 0-9 _ -`, no `__` |
 //! | `dir`       | -    | no       | +1 or -1             | direction of the last move; else the sign of the last non-zero position change |
 //! | `travel_mm` | mm   | no       | 0..=1e9 (1000 km)    | distance travelled since the previous row; else abs(delta pos_mm) |
 //!
@@ -19,6 +19,10 @@
 //! its line and column, never fed to a fit.
 //!
 //! Any other column is reported in [`Measurements::ignored_columns`] and skipped.
+//! A column without a name must be empty in every row (a spreadsheet's trailing
+//! `,,`) and is left out; a row of empty cells is a blank line. The text must be
+//! UTF-8: a byte that is not, or a UTF-16 file, is refused with the hint to save
+//! the file as CSV UTF-8.
 
 use std::io::{Read, Write};
 use std::path::Path;
@@ -73,6 +77,51 @@ pub enum MeasureError {
     NoTemperature,
     #[error("line 1: column `{0}` appears twice")]
     DuplicateColumn(String),
+    /// A sensor name the gateway refuses as a channel name (it becomes the model's
+    /// channel): units in the header, `T_column [degC]`, are the usual cause.
+    #[error(
+        "line {line}, column {column} `{header}`: {reason} (the name after `T_` becomes the \
+         model's channel name; temperatures are degC): rename the header{hint} or delete \
+         the column"
+    )]
+    SensorName {
+        line: u64,
+        /// 1-based.
+        column: usize,
+        header: String,
+        reason: &'static str,
+        /// `, e.g. `T_column`,` when a usable name starts the header.
+        hint: String,
+    },
+    /// A cell under a header without a name: the column's name is missing.
+    #[error(
+        "line {line}, column {column}: {value:?} under a header with no name: name the column \
+         in the header or delete it"
+    )]
+    UnnamedValue {
+        line: u64,
+        /// 1-based.
+        column: usize,
+        value: String,
+    },
+    /// Bytes that are not UTF-8: a file saved in a legacy code page (Latin-1 `°`).
+    #[error(
+        "line {line}, column {column}{name}: not UTF-8 text: save the file as CSV in UTF-8 (a \
+         spreadsheet's \"CSV UTF-8 (comma delimited)\")"
+    )]
+    Encoding {
+        line: u64,
+        /// 1-based.
+        column: usize,
+        /// ` (`name`)`, the column's header name (as far as it reads), or empty.
+        name: String,
+    },
+    /// A UTF-16 byte order mark: a spreadsheet's "Unicode text" export.
+    #[error(
+        "the file is UTF-16 text (a spreadsheet's \"Unicode text\" export): save it as CSV in \
+         UTF-8 (\"CSV UTF-8 (comma delimited)\")"
+    )]
+    Utf16,
     #[error("line {line}, column `{column}`: {reason} (value {value:?})")]
     Field {
         line: u64,
@@ -91,13 +140,24 @@ pub enum MeasureError {
 /// each row with its file line. The csv crate's positions point before the blank
 /// lines that precede a row (and count a CRLF file's lines oddly), so the lines come
 /// from the bytes read instead.
+///
+/// What a spreadsheet adds is taken as it means: columns without a name that are
+/// empty in every row (trailing `,,`) are left out of the header and the rows, and
+/// rows whose cells are all empty are blank lines.
 pub struct CsvInput<R> {
-    rdr: csv::Reader<LineIndex<R>>,
+    rdr: csv::Reader<LineIndex<std::io::BufReader<R>>>,
     lines: std::rc::Rc<std::cell::RefCell<std::collections::VecDeque<(u64, u64)>>>,
-    /// The header row.
+    /// The header row, named columns only.
     pub header: csv::StringRecord,
     /// The header's file line (blank lines may come first).
     pub header_line: u64,
+    /// The file column (0-based) of every entry of `header`.
+    columns: Vec<usize>,
+    /// File columns (0-based) without a name; every cell of theirs must be empty.
+    unnamed: Vec<usize>,
+    /// The header's cells as far as they read (lossy UTF-8), by file column.
+    raw_names: Vec<String>,
+    raw: csv::StringRecord,
 }
 
 impl<R: Read> CsvInput<R> {
@@ -106,6 +166,15 @@ impl<R: Read> CsvInput<R> {
     /// spreadsheet's decimal-comma export) that has no column `key`, which "`key` is
     /// missing" would not explain.
     pub fn open(reader: R, key: &str, expected: &'static str) -> Result<Self, MeasureError> {
+        let mut reader = std::io::BufReader::new(reader);
+        // UTF-16 would read as one column of odd names, or as bytes that are not UTF-8.
+        let start = std::io::BufRead::fill_buf(&mut reader).map_err(|e| MeasureError::Csv {
+            line: 1,
+            message: e.to_string(),
+        })?;
+        if start.starts_with(&[0xff, 0xfe]) || start.starts_with(&[0xfe, 0xff]) {
+            return Err(MeasureError::Utf16);
+        }
         let index = LineIndex::new(reader);
         let lines = index.lines.clone();
         let rdr = csv::ReaderBuilder::new()
@@ -117,15 +186,37 @@ impl<R: Read> CsvInput<R> {
             lines,
             header: csv::StringRecord::new(),
             header_line: 1,
+            columns: Vec::new(),
+            unnamed: Vec::new(),
+            raw_names: Vec::new(),
+            raw: csv::StringRecord::new(),
         };
-        let header = match input.rdr.headers() {
+        match input.rdr.byte_headers() {
+            Ok(h) => {
+                input.raw_names = h
+                    .iter()
+                    .map(|c| String::from_utf8_lossy(c).into_owned())
+                    .collect()
+            }
+            Err(e) => return Err(input.error(e)),
+        }
+        let raw_header = match input.rdr.headers() {
             Ok(h) => h.clone(),
             Err(e) => return Err(input.error(e)),
         };
-        if header.is_empty() {
+        if raw_header.is_empty() {
             return Err(MeasureError::EmptyFile { expected });
         }
-        input.header_line = input.line_at(header.position());
+        input.header_line = input.line_at(raw_header.position());
+        let mut header = csv::StringRecord::new();
+        for (i, name) in raw_header.iter().enumerate() {
+            if name.is_empty() {
+                input.unnamed.push(i);
+            } else {
+                input.columns.push(i);
+                header.push_field(name);
+            }
+        }
         if !header.iter().any(|h| h == key) {
             for (sep, delimiter) in [(';', "';'"), ('\t', "tabs")] {
                 if header.iter().any(|h| h.contains(sep)) {
@@ -140,12 +231,35 @@ impl<R: Read> CsvInput<R> {
         Ok(input)
     }
 
-    /// Reads the next row into `record`; its file line, or `None` at the end.
+    /// Reads the next row into `record` (the named columns, as `header`); its file
+    /// line, or `None` at the end. A row of empty cells is skipped as a blank line.
     pub fn next(&mut self, record: &mut csv::StringRecord) -> Result<Option<u64>, MeasureError> {
-        match self.rdr.read_record(record) {
-            Ok(true) => Ok(Some(self.line_at(record.position()))),
-            Ok(false) => Ok(None),
-            Err(e) => Err(self.error(e)),
+        loop {
+            match self.rdr.read_record(&mut self.raw) {
+                Ok(true) => {}
+                Ok(false) => return Ok(None),
+                Err(e) => return Err(self.error(e)),
+            }
+            let line = self.line_at(self.raw.position());
+            if self.raw.iter().all(str::is_empty) {
+                continue;
+            }
+            if let Some(&i) = self.unnamed.iter().find(|&&i| !self.raw[i].is_empty()) {
+                return Err(MeasureError::UnnamedValue {
+                    line,
+                    column: i + 1,
+                    value: self.raw[i].to_string(),
+                });
+            }
+            if self.unnamed.is_empty() {
+                std::mem::swap(record, &mut self.raw);
+            } else {
+                record.clear();
+                for &i in &self.columns {
+                    record.push_field(&self.raw[i]);
+                }
+            }
+            return Ok(Some(line));
         }
     }
 
@@ -163,6 +277,20 @@ impl<R: Read> CsvInput<R> {
     /// A CSV error with its line; more cells than the header names get the hint
     /// that decimal commas split every number in two.
     fn error(&self, e: csv::Error) -> MeasureError {
+        let line = self.line_at(e.position()).max(1);
+        if let csv::ErrorKind::Utf8 { err, .. } = e.kind() {
+            let field = err.field();
+            let name = self
+                .raw_names
+                .get(field)
+                .filter(|n| !n.is_empty())
+                .map_or_else(String::new, |n| format!(" (`{n}`)"));
+            return MeasureError::Encoding {
+                line,
+                column: field + 1,
+                name,
+            };
+        }
         let hint = match e.kind() {
             csv::ErrorKind::UnequalLengths {
                 expected_len, len, ..
@@ -172,7 +300,7 @@ impl<R: Read> CsvInput<R> {
             _ => "",
         };
         MeasureError::Csv {
-            line: self.line_at(e.position()).max(1),
+            line,
             message: format!("{e}{hint}"),
         }
     }
@@ -232,6 +360,29 @@ impl<R: Read> Read for LineIndex<R> {
             self.offset += 1;
         }
         Ok(n)
+    }
+}
+
+/// Longest channel name the gateway takes, characters.
+pub const MAX_CHANNEL_NAME_LEN: usize = 64;
+
+/// Why `name` cannot be a channel name of the gateway, or `None`: 1..=64 characters
+/// of `A-Z a-z 0-9 _ -`, without `__` (the level separator of environment overrides).
+/// A sensor column `T_<name>` names a channel of the model.
+pub fn channel_name_problem(name: &str) -> Option<&'static str> {
+    if name.is_empty() {
+        Some("the name is empty")
+    } else if name.chars().count() > MAX_CHANNEL_NAME_LEN {
+        Some("the name is longer than 64 characters")
+    } else if !name
+        .chars()
+        .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+    {
+        Some("a sensor name may contain only A-Z, a-z, 0-9, `_` and `-`")
+    } else if name.contains("__") {
+        Some("a sensor name must not contain `__`")
+    } else {
+        None
     }
 }
 
@@ -320,6 +471,24 @@ impl Measurements {
                 "travel_mm" => i_travel = Some(i),
                 _ => match name.strip_prefix("T_") {
                     Some(sensor) if !sensor.is_empty() => {
+                        if let Some(reason) = channel_name_problem(sensor) {
+                            let usable: String = sensor
+                                .chars()
+                                .take_while(|c| c.is_ascii_alphanumeric() || *c == '_' || *c == '-')
+                                .collect();
+                            let usable = usable.trim_end_matches(['_', '-']);
+                            return Err(MeasureError::SensorName {
+                                line: input.header_line,
+                                column: input.columns[i] + 1,
+                                header: name.to_string(),
+                                reason,
+                                hint: if usable.is_empty() || usable == sensor {
+                                    String::new()
+                                } else {
+                                    format!(", e.g. `T_{usable}`,")
+                                },
+                            });
+                        }
                         temp_idx.push(i);
                         out.temps.push(TempColumn {
                             name: sensor.to_string(),
@@ -608,6 +777,91 @@ mod tests {
         // Blank lines first: the header's own line.
         let e = read("\n\r\nt_s;pos_mm;err_um;T_a\n").unwrap_err();
         assert!(e.to_string().starts_with("line 3: "), "{e}");
+    }
+
+    /// `T_column [degC]` gave a model with channel `column [degC]`, which validate
+    /// refuses: the header is refused here, naming its line and column.
+    #[test]
+    fn sensor_names_the_gateway_refuses_are_refused_with_their_column() {
+        let e = read("t_s,pos_mm,err_um,T_bed,T_column [degC]\n0,0,1,20,21\n").unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "line 1, column 5 `T_column [degC]`: a sensor name may contain only A-Z, a-z, \
+             0-9, `_` and `-` (the name after `T_` becomes the model's channel name; \
+             temperatures are degC): rename the header, e.g. `T_column`, or delete the \
+             column"
+        );
+        // Blank lines first, and an unnamed column before it: the file's own line and column.
+        let e = read("\nt_s,,pos_mm,err_um,T_a°C\n0,,0,1,20\n").unwrap_err();
+        assert!(
+            e.to_string().starts_with("line 2, column 5 `T_a°C`: "),
+            "{e}"
+        );
+        for bad in ["T_a__b", &format!("T_{}", "a".repeat(65))] {
+            let e = read(&format!("t_s,pos_mm,err_um,{bad}\n0,0,1,20\n")).unwrap_err();
+            assert!(matches!(e, MeasureError::SensorName { .. }), "{bad}: {e}");
+        }
+        assert!(read("t_s,pos_mm,err_um,T_bed-top_2\n0,0,1,20\n").is_ok());
+    }
+
+    /// A spreadsheet's artefacts: trailing empty columns (`,,`) were refused as
+    /// "column `` appears twice", one trailing comma made an ignored column with no
+    /// name, and rows of commas below the data were "not a number".
+    #[test]
+    fn empty_unnamed_columns_and_rows_of_empty_cells_are_ignored() {
+        let plain = read("t_s,pos_mm,err_um,T_a\n0,0,1,20\n1,10,2,21\n").unwrap();
+        for text in [
+            "t_s,pos_mm,err_um,T_a,\n0,0,1,20,\n1,10,2,21,\n",
+            "t_s,pos_mm,err_um,T_a,,\n0,0,1,20,,\n1,10,2,21,,\n,,,,,\n,,,,,\n",
+            "t_s,,pos_mm,err_um,T_a\n0,,0,1,20\n,,,,\n1,,10,2,21\n",
+        ] {
+            let (m, lines) = Measurements::read_with_lines(text.as_bytes()).unwrap();
+            assert_eq!(m, plain, "{text:?}");
+            assert!(m.ignored_columns.is_empty(), "{text:?}");
+            assert_eq!(lines.len(), 2);
+        }
+        // The line numbers stay the file's.
+        let e = read("t_s,pos_mm,err_um,T_a,\n0,0,1,20,\n,,,,\n1,x,2,21,\n").unwrap_err();
+        assert!(e.to_string().starts_with("line 4, column `pos_mm`"), "{e}");
+        // A value under no name is a column whose name is missing.
+        let e = read("t_s,pos_mm,err_um,T_a,\n0,0,1,20,\n1,10,2,21,7\n").unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "line 3, column 5: \"7\" under a header with no name: name the column in the \
+             header or delete it"
+        );
+    }
+
+    /// A Latin-1 `°` and a UTF-16 "Unicode text" export gave the csv crate's message
+    /// with a 0-based field and no column name.
+    #[test]
+    fn text_that_is_not_utf8_is_named_with_its_line_and_column() {
+        let read_bytes = |b: &[u8]| Measurements::read(b).unwrap_err().to_string();
+        let e = read_bytes(b"t_s,pos_mm,err_um,T_Motor\xb0C\n0,0,1,20\n");
+        assert_eq!(
+            e,
+            "line 1, column 4 (`T_Motor\u{fffd}C`): not UTF-8 text: save the file as CSV in \
+             UTF-8 (a spreadsheet's \"CSV UTF-8 (comma delimited)\")"
+        );
+        let e = read_bytes(b"t_s,pos_mm,err_um,T_a\n0,0,1,20\n1,0,1,2\xb00\n");
+        assert!(
+            e.starts_with("line 3, column 4 (`T_a`): not UTF-8 text: save the file"),
+            "{e}"
+        );
+        let utf16: Vec<u8> = "\u{feff}t_s\tpos_mm\terr_um\tT_a\r\n0\t0\t1\t20\r\n"
+            .encode_utf16()
+            .flat_map(u16::to_le_bytes)
+            .collect();
+        let e = read_bytes(&utf16);
+        assert!(e.starts_with("the file is UTF-16 text"), "{e}");
+        let be: Vec<u8> = "\u{feff}t_s"
+            .encode_utf16()
+            .flat_map(u16::to_be_bytes)
+            .collect();
+        assert!(matches!(
+            Measurements::read(&be[..]),
+            Err(MeasureError::Utf16)
+        ));
     }
 
     /// The error of a file whose third line has `row` (header and a good line

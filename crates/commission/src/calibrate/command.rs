@@ -37,8 +37,9 @@ pub struct CalibrateArgs {
     /// SVG plot of the measured error curves with the fitted lines.
     #[arg(long)]
     pub plot: Option<PathBuf>,
-    /// Write the model even when the temperatures do not explain the error (R^2
-    /// below 0.5 and every temperature coefficient within 2 standard errors of 0),
+    /// Write the model even when the temperatures do not explain the error (the
+    /// temperature terms remove less than half of what constant K0 and tan(beta)
+    /// leave, and every temperature coefficient is within 2 standard errors of 0),
     /// which is refused otherwise.
     #[arg(long)]
     pub accept_weak_fit: bool,
@@ -117,7 +118,7 @@ impl Calibrated<'_> {
         if self.fit.undetermined() && !self.args.accept_weak_fit {
             return Err(CalibrateError::Undetermined {
                 path: self.args.out.display().to_string(),
-                r2: self.fit.r2,
+                temp_r2: self.fit.temp_r2,
             });
         }
         let io = |(path, source): (PathBuf, std::io::Error)| CalibrateError::Io {

@@ -31,7 +31,8 @@ const CONSTANT_SPAN: f64 = 1e-9;
 /// the model extrapolates them to every temperature the machine later reaches.
 pub const MIN_SENSOR_SPAN_K: f64 = 0.5;
 
-/// A fit explains the data poorly below this R^2; with every temperature
+/// The temperature terms explain the data poorly when they remove less than this
+/// share of what the offsets alone leave ([`Fit::temp_r2`]); with every temperature
 /// coefficient within [`SIGNIFICANT_SE`] standard errors of 0 as well, the
 /// temperatures do not explain the error at all ([`Fit::undetermined`]).
 pub const WEAK_R2: f64 = 0.5;
@@ -131,6 +132,11 @@ pub struct Fit {
     pub max_abs_um: f64,
     /// Coefficient of determination.
     pub r2: f64,
+    /// What the temperature terms add: the share of the residual sum of squares of
+    /// the offsets alone (K0 and tan(beta) constant) that they remove (partial R^2).
+    /// The total R^2 counts the geometric slope, which the offsets fit without any
+    /// temperature.
+    pub temp_r2: f64,
     /// Condition number of the scaled design.
     pub condition: f64,
     /// Measured minus fitted, um, per row.
@@ -160,12 +166,13 @@ impl Fit {
                 .sum::<f64>()
     }
 
-    /// True when the temperatures do not explain the error: R^2 below [`WEAK_R2`] and
-    /// every temperature coefficient within [`SIGNIFICANT_SE`] standard errors of 0.
-    /// Such a model compensates noise, and its large, undetermined coefficients add
-    /// errors as soon as the temperatures move.
+    /// True when the temperatures do not explain the error: the temperature terms'
+    /// partial R^2 ([`Fit::temp_r2`]) below [`WEAK_R2`] and every temperature
+    /// coefficient within [`SIGNIFICANT_SE`] standard errors of 0. Such a model
+    /// compensates noise, and its large, undetermined coefficients add errors as soon
+    /// as the temperatures move.
     pub fn undetermined(&self) -> bool {
-        self.r2 < WEAK_R2
+        self.temp_r2 < WEAK_R2
             && self.terms.iter().all(|t| {
                 t.k0_um_per_degc.abs() <= SIGNIFICANT_SE * t.k0_se_um_per_degc
                     && t.tan_beta_per_degc.abs() <= SIGNIFICANT_SE * t.tan_beta_se_per_degc
@@ -191,12 +198,14 @@ impl Fit {
             .collect();
         if self.undetermined() {
             w.push(format!(
-                "the temperatures do not explain the error: R^2 {:.3} (below {WEAK_R2}) and \
-                 every temperature coefficient is within {SIGNIFICANT_SE} standard errors of \
-                 0; the model would compensate noise and add error as the temperatures move \
-                 (a sensor in the wrong place, or one that drives the error is missing: see \
-                 compgate diagnose)",
-                self.r2
+                "the temperatures do not explain the error: beyond constant K0 and tan(beta) \
+                 the temperature terms remove only {:.3} of the residual (partial R^2, below \
+                 {WEAK_R2}; the total R^2 {:.3} counts the geometric slope, which needs no \
+                 temperature) and every temperature coefficient is within {SIGNIFICANT_SE} \
+                 standard errors of 0; the model would compensate noise and add error as the \
+                 temperatures move (a sensor in the wrong place, or one that drives the error \
+                 is missing: see compgate diagnose)",
+                self.temp_r2, self.r2
             ));
         }
         w
@@ -272,6 +281,23 @@ fn check_degenerate(
         }
     }
     Ok(())
+}
+
+/// Residual sum of squares of the offsets alone, `err = a + b dx` (a straight line
+/// in the position; `dx` spans more than a point, see [`check_degenerate`]).
+fn offsets_rss(dx: &[f64], err_um: &[f64]) -> f64 {
+    let (mx, my) = (mean(dx), mean(err_um));
+    let sxx: f64 = dx.iter().map(|x| (x - mx).powi(2)).sum();
+    let sxy: f64 = dx
+        .iter()
+        .zip(err_um)
+        .map(|(x, y)| (x - mx) * (y - my))
+        .sum();
+    let b = sxy / sxx;
+    dx.iter()
+        .zip(err_um)
+        .map(|(x, y)| (y - my - b * (x - mx)).powi(2))
+        .sum()
 }
 
 /// Reference temperature of every sensor: its mean, to 0.01 K.
@@ -371,9 +397,11 @@ pub fn fit(
     let se = |c: usize| (sigma2 * design.inv_gram_diag[c]).sqrt();
     // Large-but-finite data can still overflow a sum of squares; a non-finite figure
     // must fail the fit here rather than reach the report or the model file.
+    let ss_offsets = offsets_rss(&dx, err_um);
     let figures = [
         ("residual sum of squares", ss_res),
         ("total sum of squares", ss_tot),
+        ("residual sum of squares of the offsets", ss_offsets),
     ];
     for (what, v) in figures {
         if !v.is_finite() {
@@ -409,6 +437,12 @@ pub fn fit(
         max_abs_um: residuals_um.iter().map(|r| r.abs()).fold(0.0, f64::max),
         // ss_tot > 0: a constant err_um is refused above.
         r2: 1.0 - ss_res / ss_tot,
+        // Offsets that fit to rounding leave the temperatures nothing to explain.
+        temp_r2: if ss_offsets > 1e-12 * ss_tot {
+            (1.0 - ss_res / ss_offsets).max(0.0)
+        } else {
+            0.0
+        },
         condition,
         residuals_um,
     })
@@ -506,6 +540,64 @@ mod tests {
             e.to_string().starts_with("column `T_bed` is constant"),
             "{e}"
         );
+    }
+
+    /// 48 bidirectional sweeps over 9 targets; temperatures that move 1.2 K and an
+    /// error swing of 70 um that has nothing to do with them, plus a geometric slope
+    /// of `slope_um_per_m` and noise. Returns (pos, err, column, screw).
+    fn unrelated_swing(slope_um_per_m: f64) -> [Vec<f64>; 4] {
+        let mut out: [Vec<f64>; 4] = Default::default();
+        let mut seed: u64 = 7;
+        let mut noise = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        };
+        for sweep in 0..48 {
+            let s = sweep as f64;
+            let targets = (0..9).chain((0..9).rev());
+            for (k, i) in targets.enumerate() {
+                let pos = 250.0 * i as f64;
+                let t = s * 18.0 + k as f64;
+                out[0].push(pos);
+                out[1].push(
+                    slope_um_per_m * pos / 1000.0 + 35.0 * (t * 0.0131).sin() + 2.0 * noise(),
+                );
+                out[2].push(20.0 + 0.6 * (s * 0.9).sin() + 0.02 * noise());
+                out[3].push(22.0 + 0.6 * (s * 2.3 + 1.0).cos() + 0.02 * noise());
+            }
+        }
+        out
+    }
+
+    /// A geometric slope of 100 um/m made the total R^2 0.63 while the temperature
+    /// coefficients fitted noise (within 0.25 standard errors of 0), and the model
+    /// was written; without the slope it was refused. The temperature terms are
+    /// judged by what they add over constant K0 and tan(beta), slope or none.
+    #[test]
+    fn a_geometric_slope_does_not_make_the_temperatures_explain_the_error() {
+        for slope in [0.0, 100.0] {
+            let [pos, err, col, screw] = unrelated_swing(slope);
+            let f = fit(&pos, &err, &[("column", &col), ("screw", &screw)], 0.0).unwrap();
+            assert!(f.temp_r2 < 0.1, "slope {slope}: {}", f.temp_r2);
+            assert!(f.undetermined(), "slope {slope}: R^2 {}", f.r2);
+            let w = f.warnings().join("\n");
+            assert!(w.contains("partial R^2"), "{w}");
+            if slope > 0.0 {
+                // What the old rule looked at.
+                assert!(f.r2 > WEAK_R2, "{}", f.r2);
+            }
+        }
+        // The same data with a real column term is determined, slope or none.
+        for slope in [0.0, 100.0] {
+            let [pos, mut err, col, screw] = unrelated_swing(slope);
+            for (e, c) in err.iter_mut().zip(&col) {
+                *e += 60.0 * (c - 20.0);
+            }
+            let f = fit(&pos, &err, &[("column", &col), ("screw", &screw)], 0.0).unwrap();
+            assert!(!f.undetermined() && f.temp_r2 > 0.5, "{}", f.temp_r2);
+        }
     }
 
     /// `check_fittable` refuses exactly what `fit` refuses for the data, and passes

@@ -42,11 +42,11 @@ pub enum CalibrateError {
     Output(#[from] compgate_core::outputs::OutputError),
     /// The fit does not explain the error ([`Fit::undetermined`]); nothing written.
     #[error(
-        "{path}: not written: the temperatures do not explain the error (R^2 {r2:.3}, every \
-         temperature coefficient within 2 standard errors of 0; see the warning above); \
-         --accept-weak-fit writes it anyway"
+        "{path}: not written: the temperatures do not explain the error (partial R^2 \
+         {temp_r2:.3} over constant K0 and tan(beta), every temperature coefficient within 2 \
+         standard errors of 0; see the warning above); --accept-weak-fit writes it anyway"
     )]
-    Undetermined { path: String, r2: f64 },
+    Undetermined { path: String, temp_r2: f64 },
     #[error("{path}: {source}")]
     Model {
         path: String,

@@ -365,7 +365,7 @@ fn a_fit_the_temperatures_do_not_explain_is_warned_about_and_not_written() {
         warnings[0].starts_with("T_column spans only 0.0"),
         "{warnings:?}"
     );
-    assert!(warnings[2].starts_with("the temperatures do not explain the error: R^2 0."));
+    assert!(warnings[2].starts_with("the temperatures do not explain the error: beyond"));
     let report = calibrated.report();
     assert!(
         report.contains("\nwarning: the temperatures do not explain"),
@@ -380,4 +380,37 @@ fn a_fit_the_temperatures_do_not_explain_is_warned_about_and_not_written() {
     args.accept_weak_fit = true;
     run(&args).unwrap().write().unwrap();
     assert!(args.out.exists());
+}
+
+/// A geometric slope (100 um/m) under the same temperatures that hold one level:
+/// the slope raised R^2 above 0.5 and the model of noise was written. What the
+/// temperature terms add over constant K0 and tan(beta) decides, so it is refused.
+#[test]
+fn a_geometric_slope_does_not_get_a_model_of_noise_written() {
+    use rand::{Rng, SeedableRng};
+    let (mut m, _) = commissioning(ThermalParams::default(), 1);
+    let mut rng = rand::rngs::SmallRng::seed_from_u64(1);
+    for c in &mut m.temps {
+        for v in &mut c.degc {
+            *v = 20.0 + 0.6 * (rng.random::<f64>() - 0.5) * 3.46;
+        }
+    }
+    for (e, p) in m.err_um.iter_mut().zip(&m.pos_mm) {
+        *e += 0.1 * p;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("slope.csv");
+    m.write(std::fs::File::create(&csv).unwrap()).unwrap();
+    let mut args = args_for(dir.path(), csv);
+    args.sensors = names(&["column", "screw"]);
+    let calibrated = run(&args).unwrap();
+    let report = calibrated.report();
+    let r2: f64 = report.split("R^2 ").nth(1).unwrap()[..8].parse().unwrap();
+    assert!(r2 > 0.5, "{report}");
+    let e = calibrated.write().unwrap_err().to_string();
+    assert!(
+        e.contains("not written") && e.contains("partial R^2"),
+        "{e}"
+    );
+    assert!(!args.out.exists());
 }

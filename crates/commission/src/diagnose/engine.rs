@@ -138,6 +138,15 @@ impl Data {
         (duration, median)
     }
 
+    /// The time constants the record resolves, s: from max(2 sample intervals,
+    /// duration / 2000) up to the duration; `None` when that is no range (a factor of
+    /// 4 at least), as when time does not advance.
+    pub fn tau_range(&self) -> Option<(f64, f64)> {
+        let (duration, dt) = self.time_scales();
+        let lo = (2.0 * dt).max(duration / 2000.0);
+        (lo > 0.0 && duration > 4.0 * lo).then_some((lo, duration))
+    }
+
     /// The columns an effect adds, and for each lagged signal its mean (the reference
     /// the model file records). `param` is tau_s or period_mm. A thermal lag without a
     /// sensor lags every baseline sensor with one time constant (the whole structure
@@ -417,14 +426,10 @@ pub fn evaluate(
     th: &Thresholds,
     r_cur: &[f64],
 ) -> Option<(Evidence, Vec<Vec<f64>>)> {
-    let (duration, dt) = d.time_scales();
     let (param, range, at_edge) = match kind {
         EffectKind::ThermalLag | EffectKind::MotionHeating => {
-            let lo = (2.0 * dt).max(duration / 2000.0);
-            let hi = duration;
-            if !(lo > 0.0 && hi > 4.0 * lo) {
-                return None;
-            }
+            // Without a range the candidate is not tested: [`super::untested`] says so.
+            let (lo, hi) = d.tau_range()?;
             let mut f = |tau: f64| cur.rss_with(d, &d.effect_columns(kind, sensor, tau).0);
             let (tau, _, edge) = search_log(lo, hi, 20, &mut f);
             (Some(tau), Some((lo, hi)), edge)
@@ -576,6 +581,40 @@ mod tests {
             ],
             ignored_columns: vec![],
         }
+    }
+
+    /// Every t_s 0: the lag and motion-heat candidates were left out without a word,
+    /// the report showed one time window "0 .. 0 s" and the verdict said "no missing
+    /// effect". They are named as not tested, and the verdict says so.
+    #[test]
+    fn candidates_time_cannot_test_are_named_as_not_tested() {
+        let mut m = two_sensor_rows(200);
+        let time = "thermal_lag, motion_heating (time does not advance: t_s is 0 s on every row)";
+        // Five positions: a period is not tested either way.
+        let pitch = "pitch_periodic (positions too sparse to resolve a period)";
+        let d = super::super::diagnose(&m, &Default::default()).unwrap();
+        assert_eq!(d.untested, [pitch]);
+        m.t_s = vec![0.0; m.len()];
+        let d = super::super::diagnose(&m, &Default::default()).unwrap();
+        assert_eq!(d.untested, [time, pitch]);
+        assert!(d.rounds[0]
+            .candidates
+            .iter()
+            .all(|c| !matches!(c.name, "thermal_lag" | "motion_heating")));
+        assert!(d.where_baseline.time_windows.is_empty());
+        assert!(
+            !d.verdict.starts_with("no missing effect")
+                && d.verdict
+                    .ends_with(&format!("; not tested: {time}; {pitch}")),
+            "{}",
+            d.verdict
+        );
+        let report = super::super::output::text_report(&d);
+        assert!(
+            report.contains("candidates not tested:\n  thermal_lag, motion_heating")
+                && report.contains("time windows: none (time does not advance)"),
+            "{report}"
+        );
     }
 
     /// diagnose wrote a model with exit 0 for data calibrate refuses: all rows alike,

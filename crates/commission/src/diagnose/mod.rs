@@ -241,6 +241,10 @@ pub struct Diagnosis {
     pub where_baseline: Where,
     pub where_final: Where,
     pub rounds: Vec<Round>,
+    /// Candidates the data cannot test, each with the reason (time that does not
+    /// advance, positions too sparse for a period).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub untested: Vec<String>,
     /// One-line verdict.
     pub verdict: String,
     #[serde(skip)]
@@ -306,10 +310,33 @@ fn candidate_report(d: &Data, e: &Evidence, accepted: bool) -> CandidateReport {
     }
 }
 
+/// The candidates the data cannot test, with the reason: they are left out of the
+/// rounds, and a verdict that names nothing must not read as if they were tested.
+fn untested(d: &Data) -> Vec<String> {
+    let mut out = Vec::new();
+    if d.tau_range().is_none() {
+        let (duration, dt) = d.time_scales();
+        let why = if duration <= 0.0 {
+            format!("time does not advance: t_s is {} s on every row", d.t_s[0])
+        } else {
+            format!(
+                "the record spans {duration} s, too short to resolve a time constant: it needs \
+                 more than 8 sample intervals of {dt} s"
+            )
+        };
+        out.push(format!("thermal_lag, motion_heating ({why})"));
+    }
+    if engine::period_range(d).is_none() {
+        out.push("pitch_periodic (positions too sparse to resolve a period)".into());
+    }
+    out
+}
+
 fn describe(d: &Data, r: &[f64]) -> Where {
     let n = d.n;
-    let nw = 10.min(n);
     let (t0, t1) = (d.t_s[0], d.t_s[n - 1]);
+    // No windows when time does not advance: one "0 .. 0 s" window told nothing.
+    let nw = if t1 > t0 { 10.min(n) } else { 0 };
     let mut time_windows = Vec::new();
     for w in 0..nw {
         let a = t0 + (t1 - t0) * w as f64 / nw as f64;
@@ -618,10 +645,16 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
                 .collect()
         })
         .unwrap_or_default();
+    let untested = untested(&d);
+    let not_tested = if untested.is_empty() {
+        String::new()
+    } else {
+        format!("; not tested: {}", untested.join("; "))
+    };
     let verdict = if let (true, Some(c)) = (effects.is_empty(), edge_rivals.first()) {
         format!(
             "no effect named, but {} fits better (residual RMS {:.3} -> {:.3} um) with its {} \
-             at the edge of the range the data resolves ({:.4}); measure with finer steps to tell",
+             at the edge of the range the data resolves ({:.4}); measure with finer steps to tell{not_tested}",
             c.name,
             c.rms_before_um,
             c.rms_after_um,
@@ -633,14 +666,20 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
             "no candidate explains the residual, but it is systematic, not noise: RMS {:.3} um, \
              lag-1 autocorrelation {:.3} in time (noise level about {:.3} um from successive \
              rows); a sensor that drives the error is missing or misplaced, or the error has a \
-             form none of the candidates has",
+             form none of the candidates has{not_tested}",
             baseline.rms_um,
             where_baseline.rho,
             noise_level_um(baseline.rms_um, where_baseline.rho)
         )
-    } else if effects.is_empty() {
+    } else if effects.is_empty() && untested.is_empty() {
         format!(
             "no missing effect: the baseline explains the data to within its noise (residual RMS {:.3} um)",
+            baseline.rms_um
+        )
+    } else if effects.is_empty() {
+        format!(
+            "none of the candidates tested is missing: the baseline explains the data to \
+             within its noise (residual RMS {:.3} um){not_tested}",
             baseline.rms_um
         )
     } else {
@@ -677,6 +716,7 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
         where_baseline,
         where_final,
         rounds,
+        untested,
         verdict,
         p0_mm: d.p0_mm,
         beta,

@@ -2,14 +2,16 @@
 //!
 //! The axis part is an `[axes.X]` table in the form `calibrate` writes and
 //! `scenario --model` and the gateway config read (`p0_mm`, `[axes.X.k0]`,
-//! `[axes.X.tan_beta]`, same structs), with channels named after the data's sensors
-//! (`T_<name>` column -> channel `<name>`). A thermal lag the gateway
-//! carries itself: `[[lagged_channels]]` names a channel on the same transmitter with
-//! `filter.lowpass_tau_s = tau_s`, and the k0/tan_beta terms reference it. Effects the
-//! gateway's K0/tan(beta) form cannot carry are listed in `[[effects]]` with the NC
-//! function that carries them (reversal: backlash MD32450; pitch and nonlinear
-//! position: the leadscrew error compensation table; motion heating: no sensor, so no
-//! NC function without an extra model).
+//! `[axes.X.tan_beta]`, `[axes.X.motion_heat]`, same structs), with channels named
+//! after the data's sensors (`T_<name>` column -> channel `<name>`). A thermal lag
+//! is a term with `lag_tau_s`; motion heat is `[axes.X.motion_heat]`. Everything
+//! else is written as comments, so that the whole file can be pasted into a gateway
+//! config: the lines that start with `#=` hold TOML for `diagnose --model` alone,
+//! `applied` (the effects the gateway applies online, one line each) and
+//! `[[effects]]` (effects the gateway's K0/tan(beta) form cannot carry, with the NC
+//! function that carries them: reversal: backlash MD32450; pitch and nonlinear
+//! position: the leadscrew error compensation table). Older files held these as
+//! plain top-level keys, and `[[lagged_channels]]` for a lag; both are still read.
 
 use std::collections::BTreeMap;
 
@@ -63,6 +65,30 @@ pub struct EffectTerm {
     pub params: BTreeMap<String, f64>,
 }
 
+/// The prefix of the comment lines that hold TOML for `diagnose --model` alone.
+const NOTE: &str = "#=";
+
+/// `toml` as `#=` comment lines.
+fn as_notes(toml: &str) -> String {
+    toml.lines()
+        .map(|l| {
+            if l.is_empty() {
+                format!("{NOTE}\n")
+            } else {
+                format!("{NOTE} {l}\n")
+            }
+        })
+        .collect()
+}
+
+/// The TOML of the `#=` lines of `text`.
+fn diagnose_lines(text: &str) -> String {
+    text.lines()
+        .filter_map(|l| l.trim_start().strip_prefix(NOTE))
+        .map(|l| format!("{}\n", l.strip_prefix(' ').unwrap_or(l)))
+        .collect()
+}
+
 fn get(params: &BTreeMap<String, f64>, key: &str) -> f64 {
     params.get(key).copied().unwrap_or(0.0)
 }
@@ -78,43 +104,46 @@ impl ModelFile {
     }
 
     /// Parses the text of a model file: the first `[axes.NAME]` (keys other than
-    /// `p0_mm`, `k0` and `tan_beta` are ignored, so a whole gateway config or a
-    /// calibrate model will do) plus the optional top-level `lagged_channels` and
-    /// `effects`. `origin` names the file in errors.
+    /// `p0_mm`, `k0`, `tan_beta` and `motion_heat` are ignored, so a whole gateway
+    /// config or a calibrate model will do) plus the optional `applied`, `effects`
+    /// and `lagged_channels`, from the `#=` lines or (older files) the top level.
+    /// `origin` names the file in errors.
     pub fn from_toml(text: &str, origin: &str) -> Result<Self, DiagnoseError> {
         let err = |message: String| DiagnoseError::ModelFile {
             path: origin.to_string(),
             message,
         };
         let root: toml::Table = toml::from_str(text).map_err(|e| err(e.to_string()))?;
+        let notes: toml::Table = toml::from_str(&diagnose_lines(text))
+            .map_err(|e| err(format!("the `{NOTE}` lines: {e}")))?;
         let (_, axis) =
             crate::calibrate::first_axis_model(&root).map_err(|e| err(e.to_string()))?;
-        let lagged_channels: Vec<LaggedChannel> = match root.get("lagged_channels") {
-            Some(v) => v
-                .clone()
-                .try_into()
-                .map_err(|e: toml::de::Error| err(format!("lagged_channels: {}", e.message())))?,
-            None => Vec::new(),
-        };
-        let effects: Vec<EffectTerm> = match root.get("effects") {
-            Some(v) => v
-                .clone()
-                .try_into()
-                .map_err(|e: toml::de::Error| err(format!("effects: {}", e.message())))?,
-            None => Vec::new(),
-        };
+        // The same key from both places: the top level (older files) first.
+        fn list<T: serde::de::DeserializeOwned>(
+            tables: [&toml::Table; 2],
+            key: &str,
+        ) -> Result<Vec<T>, String> {
+            let mut out = Vec::new();
+            for t in tables {
+                if let Some(v) = t.get(key) {
+                    let part: Vec<T> = v
+                        .clone()
+                        .try_into()
+                        .map_err(|e: toml::de::Error| format!("{key}: {}", e.message()))?;
+                    out.extend(part);
+                }
+            }
+            Ok(out)
+        }
+        let tables = [&root, &notes];
+        let lagged_channels: Vec<LaggedChannel> = list(tables, "lagged_channels").map_err(err)?;
+        let effects: Vec<EffectTerm> = list(tables, "effects").map_err(err)?;
         for e in &effects {
             if EffectKind::from_name(&e.name).is_none() {
                 return Err(err(format!("effects: unknown effect name `{}`", e.name)));
             }
         }
-        let applied: Vec<String> = match root.get("applied") {
-            Some(v) => v
-                .clone()
-                .try_into()
-                .map_err(|e: toml::de::Error| err(format!("applied: {}", e.message())))?,
-            None => Vec::new(),
-        };
+        let applied: Vec<String> = list(tables, "applied").map_err(err)?;
         let mf = ModelFile {
             axis,
             lagged_channels,
@@ -148,9 +177,10 @@ impl ModelFile {
         Ok(())
     }
 
-    /// The TOML text: `[axes.X]` as calibrate writes it, then the lagged channels and
-    /// effects, with a header comment. Refuses a model holding a NaN or a value
-    /// outside the gateway's ranges; `origin` names the file in the error.
+    /// The TOML text: `[axes.X]` as calibrate writes it, with a header comment, the
+    /// `applied` list before it and the effects after it on `#=` lines, so that the
+    /// whole file pastes into a gateway config. Refuses a model holding a NaN or a
+    /// value outside the gateway's ranges; `origin` names the file in the error.
     pub fn to_toml(&self, origin: &str) -> Result<String, DiagnoseError> {
         let err = |message: String| DiagnoseError::ModelFile {
             path: origin.to_string(),
@@ -158,12 +188,15 @@ impl ModelFile {
         };
         self.check_extras().map_err(err)?;
         let header = "Thermal model written by `compgate diagnose`.\n\
-             [axes.X] is the gateway's axis form (as calibrate writes it; scenario --model\n\
-             reads it); channels are the data's sensors (column T_<name> -> channel <name>).\n\
-             lag_tau_s on a term: the gateway reads that channel through a first-order lag;\n\
-             [axes.X.motion_heat]: heat of axis motion from the NC's actual position.\n\
-             applied: the effects the gateway applies online. [[effects]]: terms outside\n\
-             what the gateway applies, with the NC function that carries them.\n";
+             The [axes.X] tables are the gateway's axis form (as calibrate writes it;\n\
+             scenario --model reads it): paste the whole file into the gateway config,\n\
+             every other line is a comment. Channels are the data's sensors (column\n\
+             T_<name> -> channel <name>). lag_tau_s on a term: the gateway reads that\n\
+             channel through a first-order lag; [axes.X.motion_heat]: heat of axis motion\n\
+             from the NC's actual position.\n\
+             The lines that start with `#=` are for `compgate diagnose --model`, not the\n\
+             gateway: `applied` names the effects the gateway applies online, [[effects]]\n\
+             the others, with the NC function that carries them.\n";
         let mut s = crate::calibrate::model_toml("X", "nc_x", &self.axis, header)
             .map_err(|e| err(e.to_string()))?;
         #[derive(Serialize)]
@@ -173,7 +206,6 @@ impl ModelFile {
             #[serde(skip_serializing_if = "<[_]>::is_empty")]
             effects: &'a [EffectTerm],
         }
-        // A plain key must stand before the first table.
         if !self.applied.is_empty() {
             #[derive(Serialize)]
             struct Applied<'a> {
@@ -184,7 +216,7 @@ impl ModelFile {
             })
             .unwrap_or_default();
             let at = s.find("\n[axes").map_or(0, |i| i + 1);
-            s.insert_str(at, &format!("{applied}\n"));
+            s.insert_str(at, &format!("{}\n", as_notes(&applied)));
         }
         let extra = toml::to_string(&Extra {
             lagged_channels: &self.lagged_channels,
@@ -193,7 +225,7 @@ impl ModelFile {
         .unwrap_or_default();
         if !extra.is_empty() {
             s.push('\n');
-            s.push_str(&extra);
+            s.push_str(&as_notes(&extra));
         }
         Ok(s)
     }
@@ -516,6 +548,43 @@ mod tests {
         assert_eq!(axis.k0, m.axis.k0);
         assert_eq!(axis.tan_beta, m.axis.tan_beta);
         assert_eq!(axis.p0_mm, 100.0);
+    }
+
+    /// The file appended to a gateway config: its top-level `applied = [...]`, after
+    /// the tables, attached to the config's last table, and `[[effects]]` was an
+    /// unknown key. The whole file now pastes, and `--model` still reads all of it.
+    #[test]
+    fn the_written_model_pastes_into_a_gateway_config() {
+        let config = "[devices.ain1]\ntransport = \"tcp\"\naddress = \"192.168.0.10:502\"\n\
+                      unit_id = 1\n\n[channels.a]\ndevice = \"ain1\"\nregister = \"input\"\n\
+                      address = 0\ndata_type = \"u16\"\nscaling = { kind = \"transmitter\", \
+                      adc_full_scale_counts = 4095, adc_full_scale_ma = 24.0, \
+                      range_min_degc = -50.0, range_max_degc = 150.0 }\n\n\
+                      [nc_modules.nc_x]\naddress = \"192.168.0.20:502\"\nunit_id = 1\n";
+        compgate_gateway::config::load_str(config, "cfg.toml").expect("the config alone");
+        let m = model();
+        assert!(!m.applied.is_empty() && !m.effects.is_empty());
+        let text = m.to_toml("m.toml").expect("a valid model");
+        let pasted = format!("{config}\n{text}");
+        let cfg = compgate_gateway::config::load_str(&pasted, "cfg.toml")
+            .unwrap_or_else(|e| panic!("{e}\n{pasted}"));
+        let axis = &cfg.axes["X"];
+        assert_eq!(
+            (&axis.k0, &axis.tan_beta, axis.p0_mm),
+            (&m.axis.k0, &m.axis.tan_beta, m.axis.p0_mm)
+        );
+        // As --model, the pasted config is the same model, effects and all.
+        assert_eq!(ModelFile::from_toml(&pasted, "cfg.toml").expect("parse"), m);
+        // Older files: the same keys at the top level are still read.
+        let older = "applied = [\"thermal_lag: a\"]\n\
+                     [axes.X]\nnc_module = \"nc_x\"\n\
+                     [[effects]]\nname = \"reversal\"\ncarried_by = \"MD32450\"\n\
+                     params = { b_um = 4.0 }\n";
+        let back = ModelFile::from_toml(older, "old.toml").expect("older file");
+        assert_eq!((back.applied.len(), back.effects.len()), (1, 1));
+        // A broken `#=` line is named as such.
+        let e = ModelFile::from_toml(&format!("{text}#= effects = [\n"), "m.toml").unwrap_err();
+        assert!(e.to_string().starts_with("m.toml: the `#=` lines: "), "{e}");
     }
 
     #[test]

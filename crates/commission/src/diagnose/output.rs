@@ -17,7 +17,11 @@ fn where_text(out: &mut String, w: &Where) {
             Some(m) if m.2 >= x.2 => Some(m),
             _ => Some(x),
         });
-    let _ = writeln!(out, "  time windows (RMS um):");
+    if w.time_windows.is_empty() {
+        let _ = writeln!(out, "  time windows: none (time does not advance)");
+    } else {
+        let _ = writeln!(out, "  time windows (RMS um):");
+    }
     for (a, b, r) in &w.time_windows {
         let mark = if worst_t.is_some_and(|m| m.0 == *a) {
             "  <- largest"
@@ -93,6 +97,12 @@ pub fn text_report(d: &Diagnosis) -> String {
     );
     let _ = writeln!(out, "\nwhere the baseline disagrees:");
     where_text(&mut out, &d.where_baseline);
+    if !d.untested.is_empty() {
+        let _ = writeln!(out, "\ncandidates not tested:");
+        for u in &d.untested {
+            let _ = writeln!(out, "  {u}");
+        }
+    }
     let columns = candidate_columns();
     for (i, round) in d.rounds.iter().enumerate() {
         let _ = writeln!(
