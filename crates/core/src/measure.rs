@@ -89,7 +89,7 @@ pub enum MeasureError {
         /// 1-based.
         column: usize,
         header: String,
-        reason: &'static str,
+        reason: String,
         /// `, e.g. `T_column`,` when a usable name starts the header.
         hint: String,
     },
@@ -366,21 +366,25 @@ impl<R: Read> Read for LineIndex<R> {
 /// Longest channel name the gateway takes, characters.
 pub const MAX_CHANNEL_NAME_LEN: usize = 64;
 
-/// Why `name` cannot be a channel name of the gateway, or `None`: 1..=64 characters
-/// of `A-Z a-z 0-9 _ -`, without `__` (the level separator of environment overrides).
-/// A sensor column `T_<name>` names a channel of the model.
-pub fn channel_name_problem(name: &str) -> Option<&'static str> {
+/// Why `name` cannot name a channel, device or axis of the gateway, or `None`:
+/// 1..=64 characters of `A-Z a-z 0-9 _ -`, without `__` (the level separator of
+/// environment overrides). The gateway's config and the sensor columns `T_<name>` of a
+/// measurement CSV (they name a model's channels) share it.
+pub fn channel_name_problem(name: &str) -> Option<String> {
+    let len = name.chars().count();
     if name.is_empty() {
-        Some("the name is empty")
-    } else if name.chars().count() > MAX_CHANNEL_NAME_LEN {
-        Some("the name is longer than 64 characters")
+        Some("name must not be empty".into())
+    } else if len > MAX_CHANNEL_NAME_LEN {
+        Some(format!(
+            "name of {len} characters, longer than {MAX_CHANNEL_NAME_LEN}"
+        ))
     } else if !name
         .chars()
         .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
     {
-        Some("a sensor name may contain only A-Z, a-z, 0-9, `_` and `-`")
+        Some("name may contain only A-Z, a-z, 0-9, `_` and `-`".into())
     } else if name.contains("__") {
-        Some("a sensor name must not contain `__`")
+        Some("name must not contain `__`, the level separator of environment overrides".into())
     } else {
         None
     }
@@ -786,7 +790,7 @@ mod tests {
         let e = read("t_s,pos_mm,err_um,T_bed,T_column [degC]\n0,0,1,20,21\n").unwrap_err();
         assert_eq!(
             e.to_string(),
-            "line 1, column 5 `T_column [degC]`: a sensor name may contain only A-Z, a-z, \
+            "line 1, column 5 `T_column [degC]`: name may contain only A-Z, a-z, \
              0-9, `_` and `-` (the name after `T_` becomes the model's channel name; \
              temperatures are degC): rename the header, e.g. `T_column`, or delete the \
              column"

@@ -19,9 +19,6 @@ use crate::nc::config::{NcModuleConfig, TargetConfig};
 use crate::nc::var_name;
 use crate::source::config::{validate_devices, DeviceConfig};
 
-/// Longest name accepted.
-const MAX_NAME_LEN: usize = 64;
-
 /// A whole configuration file: `[gateway]`, `[devices.NAME]`, `[channels.NAME]`,
 /// `[targets.NAME]` (or the older `[nc_modules.NAME]`), `[axes.NAME]` and the optional
 /// `[sim]`.
@@ -502,30 +499,8 @@ fn names<'n>(out: &mut Problems<'_>, section: &str, names: impl Iterator<Item = 
     let mut folded: BTreeMap<String, &str> = BTreeMap::new();
     for name in names {
         let key = entry(section, name);
-        if name.is_empty() {
-            out.push(key, "name must not be empty");
-            continue;
-        }
-        let len = name.chars().count();
-        if len > MAX_NAME_LEN {
-            out.push(
-                key.clone(),
-                format!("name of {len} characters, longer than {MAX_NAME_LEN}"),
-            );
-        }
-        if !name
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
-        {
-            out.push(
-                key.clone(),
-                "name may contain only A-Z, a-z, 0-9, `_` and `-`",
-            );
-        } else if name.contains("__") {
-            out.push(
-                key.clone(),
-                "name must not contain `__`, the level separator of environment overrides",
-            );
+        if let Some(problem) = compgate_core::measure::channel_name_problem(name) {
+            out.push(key.clone(), problem);
         }
         if let Some(other) = folded.insert(name.to_lowercase(), name) {
             out.push(
