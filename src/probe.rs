@@ -7,13 +7,13 @@
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use compgate_core::channel::{Quality, Reason};
 use compgate_gateway::channel::ChannelConfig;
 use compgate_gateway::config::{self, Config, DeviceConfig};
 use compgate_gateway::source::modbus::{Backoff, ModbusLink};
-use compgate_gateway::source::plan::{self, ByteOrder, DataType};
+use compgate_gateway::source::plan::{self, ByteOrder, DataType, Slot};
 use compgate_gateway::source::SourceError;
 
 /// `compgate probe` arguments.
@@ -99,9 +99,9 @@ pub async fn probe(
         if selected.is_empty() {
             continue;
         }
-        let (spec, unit) = match dev {
-            DeviceConfig::Tcp(t) => (t.link_spec(), t.unit_id),
-            DeviceConfig::Rtu(r) => (r.link_spec(), r.unit_id),
+        let (spec, params) = match dev {
+            DeviceConfig::Tcp(t) => (t.link_spec(), t.poll_params()),
+            DeviceConfig::Rtu(r) => (r.link_spec(), r.poll_params()),
             DeviceConfig::Can(c) => {
                 let _ = writeln!(
                     report.text,
@@ -112,6 +112,7 @@ pub async fn probe(
                 continue;
             }
         };
+        let unit = params.unit_id;
         let common = dev.common();
         let _ = writeln!(report.text, "device {dev_name}: {spec}, unit {unit}");
         // No reconnect wait: one attempt per channel.
@@ -120,32 +121,99 @@ pub async fn probe(
             common.timeout(),
             Backoff::new(Duration::ZERO, Duration::ZERO),
         );
-        // After a device did not answer, its other channels are not tried: each would
-        // wait for the same timeout.
-        let mut silent: Option<SourceError> = None;
+        // After a device did not answer (or its link did not open), its other channels
+        // are not tried: each would wait for the same timeout. Connected first, so
+        // that the reads' round trips are the device's alone.
+        let mut silent: Option<SourceError> = link.open().await.err();
+        // Each channel's slot and how long its read took (not counting a connect).
+        let mut round_trips: Vec<(Slot, Duration)> = Vec::new();
         for (name, ch) in selected {
             if let Some(e) = &silent {
-                let _ = writeln!(
-                    report.text,
-                    "  {name}: not read, the device did not answer ({e})"
-                );
+                let _ = writeln!(report.text, "  {name}: not read, {} ({e})", not_read(e));
                 report.bad.push(name.clone());
                 continue;
             }
-            match probe_channel(&mut link, unit, name, ch, &mut report.text).await {
+            let (connects, started) = (link.connects(), Instant::now());
+            let read = probe_channel(&mut link, unit, name, ch, &mut report.text).await;
+            if let (Some(slot), true) = (slot(ch), link.connects() == connects) {
+                if read.is_ok() {
+                    round_trips.push((slot, started.elapsed()));
+                }
+            }
+            match read {
                 Ok(true) => {}
                 Ok(false) => report.bad.push(name.clone()),
                 Err(e) => {
                     report.bad.push(name.clone());
-                    if !matches!(e, SourceError::Exception(_)) {
+                    if matches!(e.kind(), "timeout" | "deadline" | "connect" | "backoff") {
                         silent = Some(e);
                     }
                 }
             }
         }
+        if let Some(line) = slow_cycle(dev_name, &round_trips, common.poll_interval(), &params) {
+            let _ = writeln!(report.text, "  {line}");
+        }
         report.text.push('\n');
     }
     Ok(report)
+}
+
+/// Why a channel of a device was not read after `e`, in words.
+fn not_read(e: &SourceError) -> &'static str {
+    match e.kind() {
+        "timeout" | "deadline" => "the device did not answer",
+        _ => "the link to the device could not be opened",
+    }
+}
+
+/// The registers channel `ch` reads, as the run's read plan takes them.
+fn slot(ch: &ChannelConfig) -> Option<Slot> {
+    Some(Slot {
+        channel: 0,
+        kind: ch.register?,
+        address: ch.address?,
+        len: ch.data_type.registers(),
+    })
+}
+
+/// A warning when the reads `run` makes of a device in one poll cycle (as it merges
+/// them, `params`) take longer together than `poll_interval`, going by the round trips
+/// the probe saw: `run` would poll it less often than configured, and fail the reads
+/// that do not fit in the cycle's deadline every cycle.
+fn slow_cycle(
+    device: &str,
+    round_trips: &[(Slot, Duration)],
+    poll_interval: Duration,
+    params: &compgate_gateway::source::PollParams,
+) -> Option<String> {
+    let slots: Vec<Slot> = round_trips
+        .iter()
+        .enumerate()
+        .map(|(i, (s, _))| Slot { channel: i, ..*s })
+        .collect();
+    let blocks = plan::plan(&slots, params.max_gap_registers);
+    let cycle: Duration = blocks
+        .iter()
+        .filter_map(|b| {
+            b.members
+                .iter()
+                .map(|(s, _)| round_trips[s.channel].1)
+                .max()
+        })
+        .sum();
+    (cycle > poll_interval).then(|| {
+        format!(
+            "warning: device {device}: its {} read(s) of a poll cycle took {:.3} s together, \
+             longer than poll_interval_s = {} s; `run` fails the reads that do not fit in \
+             {} s (the larger of poll_interval_s and timeout_s) every cycle: raise \
+             poll_interval_s",
+            blocks.len(),
+            cycle.as_secs_f64(),
+            poll_interval.as_secs_f64(),
+            params.cycle_deadline.as_secs_f64()
+        )
+    })
 }
 
 /// Reads and shows one channel: whether its quality is usable, or the read's error.
@@ -193,7 +261,13 @@ async fn probe_channel(
         ty.name(),
         order.name()
     );
-    if ty.registers() == 2 {
+    // NaN and infinity are the fault values of float transmitters, not a byte order.
+    if ty.registers() == 2 && !raw.is_finite() {
+        let _ = writeln!(
+            out,
+            "    note       not finite: the transmitter reports a fault (no byte order hint)"
+        );
+    } else if ty.registers() == 2 {
         let f = processor.filter_params();
         let middle_degc = (f.valid_min_degc + f.valid_max_degc) / 2.0;
         let likely = plan::likely_order(

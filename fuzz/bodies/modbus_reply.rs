@@ -98,6 +98,7 @@ pub fn run(data: &[u8]) {
         let data_type = DataType::ALL[usize::from(d % 5)];
         specs.push(ChannelSpec {
             channel: i,
+            name: format!("c{i}").into(),
             kind,
             address,
             data_type,

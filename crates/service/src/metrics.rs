@@ -4,9 +4,9 @@
 //!
 //! | metric | type | labels | meaning |
 //! |---|---|---|---|
-//! | `compgate_device_link_up` | gauge | device | 1 when the last poll cycle read everything |
+//! | `compgate_device_link_up` | gauge | device | 1 when the device answered in its last poll cycle (one of its reads may still have failed) |
 //! | `compgate_device_poll_seconds` | histogram | device | duration of a poll cycle: the request round trips |
-//! | `compgate_device_errors_total` | counter | device, kind | failed cycles by kind: timeout, transport, connect, exception, backoff |
+//! | `compgate_device_errors_total` | counter | device, kind | failed requests by kind, retries included: timeout, deadline, frame, transport, connect, exception; `backoff`: a cycle the reconnect backoff refused |
 //! | `compgate_channel_value_degc` | gauge | channel | filtered temperature (NaN without a value), every `gateway.status_interval_s` |
 //! | `compgate_channel_quality` | gauge | channel | 0 good, 1 uncertain, 2 bad, every `gateway.status_interval_s` |
 //! | `compgate_axis_sd43900_mm`, `compgate_axis_sd43910`, `compgate_axis_sd43920_mm` | gauge | axis | parameters last written and verified |
@@ -113,7 +113,7 @@ pub fn describe() {
     describe_gauge!(
         "compgate_device_link_up",
         Unit::Count,
-        "1 when the device's last poll cycle read everything, else 0"
+        "1 when the device answered in its last poll cycle (a read of it may still have failed), else 0"
     );
     describe_histogram!(
         "compgate_device_poll_seconds",
@@ -123,7 +123,7 @@ pub fn describe() {
     describe_counter!(
         "compgate_device_errors_total",
         Unit::Count,
-        "Failed device poll cycles by kind: timeout, transport, connect, exception, backoff"
+        "Failed device requests by kind, retries included: timeout, deadline, frame, transport, connect, exception; backoff: a poll cycle the reconnect backoff refused"
     );
     describe_gauge!(
         "compgate_channel_value_degc",
@@ -251,10 +251,10 @@ impl Observer for MetricsObserver {
     fn on_sample(&mut self, readings: &SampleReadings) {
         let started = Instant::now();
         if let Some(d) = self.devices.get(readings.device) {
-            d.up.set(if readings.error.is_none() { 1.0 } else { 0.0 });
+            d.up.set(if readings.link_up { 1.0 } else { 0.0 });
             d.poll.record(readings.poll_elapsed.as_secs_f64());
-            if let Some(e) = &readings.error {
-                counter!("compgate_device_errors_total", "device" => d.name.clone(), "kind" => e.kind())
+            for kind in &readings.faults {
+                counter!("compgate_device_errors_total", "device" => d.name.clone(), "kind" => *kind)
                     .increment(1);
             }
         }

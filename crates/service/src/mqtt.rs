@@ -187,7 +187,7 @@ impl Observer for MqttObserver {
             "quality": if healthy { "good" } else { "uncertain" },
             "devices": status.devices.iter().map(|d| json!({
                 "name": d.name,
-                "link": if d.cycles > 0 && d.last_error.is_none() { "up" } else { "down" },
+                "link": if d.cycles > 0 && d.link_up { "up" } else { "down" },
                 "failed_cycles": d.failed_cycles,
                 "last_error": d.last_error,
             })).collect::<Vec<_>>(),

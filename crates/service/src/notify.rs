@@ -44,7 +44,7 @@ pub fn status_line(s: &Status) -> String {
         let state = match (&d.last_error, d.cycles) {
             (_, 0) => "connecting".to_string(),
             (None, _) => "up".to_string(),
-            (Some(_), _) if d.failed_cycles >= 1 => format!("down ({} failed)", d.failed_cycles),
+            (Some(_), _) if !d.link_up => format!("down ({} failed)", d.failed_cycles),
             (Some(_), _) => "errors".to_string(),
         };
         let _ = write!(out, "{} {}; ", d.name, state);

@@ -147,6 +147,7 @@ pub fn render_table(s: &Status) -> Vec<String> {
         let state = match &d.last_error {
             None if d.cycles == 0 => "connecting".to_string(),
             None => "up".to_string(),
+            Some(e) if d.link_up => format!("up, a read fails: {e}"),
             Some(e) => format!("DOWN: {e}"),
         };
         lines.push(format!("device {:<9} {state}", fit(&d.name, 9)));

@@ -127,6 +127,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             }
             (None, Some(kind), Some(address)) => specs[dev].push(ChannelSpec {
                 channel: i,
+                name: name.as_str().into(),
                 kind,
                 address,
                 data_type: ch.data_type,

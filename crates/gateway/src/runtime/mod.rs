@@ -358,6 +358,8 @@ struct Running {
     channel_logs: Vec<ChangeLog<bool>>,
     /// Per axis: whether it follows its model, as the journal was told.
     axis_logs: Vec<ChangeLog<AxisCourse>>,
+    /// Per device: its link's state, as the journal was told.
+    device_logs: Vec<ChangeLog<DeviceCourse>>,
 }
 
 impl Running {
@@ -405,6 +407,7 @@ impl Running {
             byte_order_hinted: vec![false; pipeline.channel_names.len()],
             channel_logs: vec![ChangeLog::new(true); pipeline.channel_names.len()],
             axis_logs: vec![ChangeLog::new(AxisCourse::Model); pipeline.axes.len()],
+            device_logs: vec![ChangeLog::new(DeviceCourse::Up); devices.len()],
             pipeline,
             devices: devices.into_iter().map(Some).collect(),
             sync_producers,
@@ -427,32 +430,37 @@ impl Running {
         r.poll_elapsed = sample.elapsed;
         r.connects = sample.connects;
         r.error.clone_from(&sample.error);
+        r.link_up = sample.answered();
+        r.faults.clone_from(&sample.faults);
         r.channel_names = self.pipeline.channel_names.clone();
         self.pipeline.ingest(sample, &mut r.channels);
 
         let status = &mut self.status;
         status.samples += 1;
-        if let Some(d) = status.devices.get_mut(r.device) {
-            // Logged once per change of the link, never once per poll.
-            let first = d.cycles == 0;
-            let was_down = !first && d.last_error.is_some();
-            match (&r.error, was_down) {
-                (Some(e), false) => {
-                    tracing::warn!(device = %d.name, kind = e.kind(), error = %e, "device link down: its channels hold their last values, then go bad")
-                }
-                (None, true) => {
-                    tracing::info!(device = %d.name, failed_cycles = d.failed_cycles, "device link up again")
-                }
-                (None, false) if first => tracing::info!(device = %d.name, "device link up"),
-                _ => {}
+        if let (Some(d), Some(log)) = (
+            status.devices.get_mut(r.device),
+            self.device_logs.get_mut(r.device),
+        ) {
+            // Logged once per change of the link, never once per poll, and rate
+            // limited like channels and axes: a flapping device must not flood.
+            let course = DeviceCourse::of(r.error.is_some(), r.link_up);
+            let t_s = self.pipeline.now_s(sample.started);
+            if let Some(more) = log.note(course, t_s) {
+                let error = r.error.as_ref().map(|e| (e.kind(), e.to_string()));
+                log_device(&d.name, course, error, d.failed_cycles, more);
+            } else if d.cycles == 0 && course == DeviceCourse::Up {
+                tracing::info!(device = %d.name, "device link up");
             }
             d.cycles += 1;
             d.last_cycle = r.poll_elapsed;
             d.connects = r.connects;
+            d.link_up = r.link_up;
+            for kind in &r.faults {
+                *d.errors.entry(kind).or_default() += 1;
+            }
             match &r.error {
                 Some(e) => {
                     d.failed_cycles += 1;
-                    *d.errors.entry(e.kind()).or_default() += 1;
                     d.last_error = Some(e.to_string());
                 }
                 None => {
@@ -504,6 +512,12 @@ impl Running {
             if let (Some((course, more)), Some(st)) = (log.take_unlogged(), self.status.axes.get(i))
             {
                 log_axis(&st.name, course, &st.decision, false, more);
+            }
+        }
+        for (log, d) in self.device_logs.iter_mut().zip(&self.status.devices) {
+            if let Some((course, more)) = log.take_unlogged() {
+                let error = d.last_error.clone().map(|e| ("", e));
+                log_device(&d.name, course, error, d.failed_cycles, more);
             }
         }
     }
@@ -848,6 +862,51 @@ fn log_channel(channel: &str, device: Option<&str>, quality: &Quality, more: u32
     }
 }
 
+/// What the journal says of a device's link.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum DeviceCourse {
+    /// Every read answered.
+    Up,
+    /// The device answers, but a read failed: only its channels go bad.
+    ReadFailed,
+    /// The device did not answer at all.
+    Down,
+}
+
+impl DeviceCourse {
+    fn of(failed: bool, answered: bool) -> Self {
+        match (failed, answered) {
+            (false, _) => Self::Up,
+            (true, true) => Self::ReadFailed,
+            (true, false) => Self::Down,
+        }
+    }
+}
+
+/// A device's change of [`DeviceCourse`]: `error` is the cycle's first, with its kind
+/// ("" when not known), and `failed_cycles` the failed cycles before an `Up`.
+fn log_device(
+    device: &str,
+    course: DeviceCourse,
+    error: Option<(&str, String)>,
+    failed_cycles: u32,
+    more: u32,
+) {
+    let more = unlogged_suffix(more);
+    let (kind, error) = error.unwrap_or_default();
+    match course {
+        DeviceCourse::Down => {
+            tracing::warn!(%device, kind, %error, "device link down: its channels hold their last values, then go bad{more}")
+        }
+        DeviceCourse::ReadFailed => {
+            tracing::warn!(%device, kind, %error, "device {device} answers, but a read failed: its channels hold their last values, then go bad{more}")
+        }
+        DeviceCourse::Up => {
+            tracing::info!(%device, failed_cycles, "device link up again: every read answered{more}")
+        }
+    }
+}
+
 /// An axis' change from following its model to hold or ramp to zero (WARN; INFO when
 /// `link_only`: its inputs are bad only because their device's link is down) or back
 /// (INFO); `decision` is its [`describe`] text, naming the bad inputs.
@@ -1106,6 +1165,7 @@ mod tests {
             elapsed: Duration::ZERO,
             values,
             error: None,
+            faults: Vec::new(),
             connects: 1,
         }
     }
@@ -1284,6 +1344,155 @@ mod tests {
             // One ADC count is about 0.06 degC on this range.
             assert!((got - degc(address)).abs() < 0.1, "{name}: {got} degC");
         }
+    }
+
+    /// The messages of the events logged while `f` runs (this thread only).
+    fn logged(f: impl FnOnce()) -> Vec<String> {
+        use std::sync::Mutex;
+        use tracing::field::{Field, Visit};
+        #[derive(Default)]
+        struct Lines(Mutex<Vec<String>>);
+        struct Message(String);
+        impl Visit for Message {
+            fn record_debug(&mut self, field: &Field, value: &dyn std::fmt::Debug) {
+                if field.name() == "message" {
+                    self.0 = format!("{value:?}");
+                }
+            }
+        }
+        impl tracing::Subscriber for Lines {
+            fn enabled(&self, _: &tracing::Metadata<'_>) -> bool {
+                true
+            }
+            fn new_span(&self, _: &tracing::span::Attributes<'_>) -> tracing::span::Id {
+                tracing::span::Id::from_u64(1)
+            }
+            fn record(&self, _: &tracing::span::Id, _: &tracing::span::Record<'_>) {}
+            fn record_follows_from(&self, _: &tracing::span::Id, _: &tracing::span::Id) {}
+            fn event(&self, event: &tracing::Event<'_>) {
+                let mut m = Message(String::new());
+                event.record(&mut m);
+                self.0.lock().unwrap().push(m.0);
+            }
+            fn enter(&self, _: &tracing::span::Id) {}
+            fn exit(&self, _: &tracing::span::Id) {}
+        }
+        let lines = Arc::new(Lines::default());
+        tracing::subscriber::with_default(lines.clone(), f);
+        let out = lines.0.lock().unwrap().clone();
+        out
+    }
+
+    /// A sample of `channels` at `t_s` in which channel `failed` (if any) failed with
+    /// `reason`, its read's error `error`.
+    fn failed_sample(
+        p: &Pipeline,
+        channels: &[usize],
+        t_s: f64,
+        failed: Option<(usize, Reason)>,
+    ) -> DeviceSample {
+        let mut s = sample(p, channels, 0, None);
+        s.started = p.epoch + Duration::from_secs_f64(t_s);
+        if let Some((ch, reason)) = failed {
+            for (c, v) in &mut s.values {
+                if *c == ch || reason == Reason::Comm {
+                    *v = Err(Fault {
+                        reason,
+                        degraded: false,
+                    });
+                }
+            }
+            s.error = Some(crate::source::SourceError::Read {
+                read: "function 0x04 (input registers), address 5, count 1 (T)".into(),
+                source: Box::new(if reason == Reason::Comm {
+                    crate::source::SourceError::Timeout(Duration::from_millis(300))
+                } else {
+                    crate::source::SourceError::Exception(
+                        tokio_modbus::ExceptionCode::IllegalDataAddress,
+                    )
+                }),
+            });
+            s.faults = vec![s.error.as_ref().expect("error").kind()];
+        }
+        s
+    }
+
+    // One register answering exception 0x02 took the whole device "link down"
+    // (`compgate_device_link_up 0`) though its other channels read good: the device
+    // is up, the log names the read, and only that read's channel goes bad.
+    #[test]
+    fn a_failed_read_of_a_device_that_answers_is_no_link_down() {
+        let cfg = demo();
+        let channels = first_device_channels(&cfg);
+        let mut state = Running::new(build(&cfg).expect("build"));
+        let bad = channels[1];
+        let lines = logged(|| {
+            let s = failed_sample(
+                &state.pipeline,
+                &channels,
+                0.1,
+                Some((bad, Reason::DeviceException)),
+            );
+            state.on_sample(&s);
+        });
+        assert!(state.readings.link_up);
+        let d = &state.status.devices[0];
+        assert!(d.link_up);
+        assert_eq!(d.errors.get("exception"), Some(&1));
+        let line = lines
+            .iter()
+            .find(|l| l.contains("read failed"))
+            .expect("a line");
+        assert!(!lines.iter().any(|l| l.contains("link down")), "{lines:?}");
+        assert!(line.contains("answers, but a read failed"), "{line}");
+        let error = d.last_error.as_deref().expect("an error");
+        assert!(
+            error.contains("address 5, count 1 (T): device exception 0x02"),
+            "{error}"
+        );
+        let quality = |ch: usize| state.pipeline.quality(ch).expect("quality");
+        assert_eq!(quality(bad), Quality::Bad(Reason::NoData));
+        assert_eq!(quality(channels[0]), Quality::Good);
+
+        // A device that answers nothing is down.
+        let s = failed_sample(&state.pipeline, &channels, 0.2, Some((bad, Reason::Comm)));
+        let lines = logged(|| state.on_sample(&s));
+        assert!(!state.status.devices[0].link_up);
+        assert!(
+            lines.iter().any(|l| l.contains("device link down")),
+            "{lines:?}"
+        );
+    }
+
+    // A device failing every other poll for 20 s logged 40 lines of down and up: now
+    // at most two lines per 10 s window, and the last word is the state as it is.
+    #[test]
+    fn a_flapping_device_link_is_logged_at_most_twice_per_window() {
+        let cfg = demo();
+        let channels = first_device_channels(&cfg);
+        let mut state = Running::new(build(&cfg).expect("build"));
+        let lines = logged(|| {
+            for k in 0..40 {
+                let fault = (k % 2 == 1).then_some((channels[0], Reason::Comm));
+                let s = failed_sample(&state.pipeline, &channels, 0.5 * f64::from(k), fault);
+                state.on_sample(&s);
+            }
+            state.flush_change_logs();
+        });
+        let device: Vec<&String> = lines.iter().filter(|l| l.contains("device")).collect();
+        // The first "link up", two per window in 20 s, the flushed last state.
+        assert!(device.len() <= 1 + 2 * 2 + 1, "{device:#?}");
+        assert!(
+            device
+                .iter()
+                .any(|l| l.contains("more changes since the last line")),
+            "{device:#?}"
+        );
+        let last = device.last().expect("a line");
+        assert!(
+            last.contains("device link down"),
+            "the last sample failed: {last}"
+        );
     }
 
     // Each NC snapshot's actual position feeds the axis' motion heat term.

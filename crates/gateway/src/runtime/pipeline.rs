@@ -77,23 +77,21 @@ impl Pipeline {
     }
 
     /// When channel `ch`'s `reading` is bad in a way a wrong byte order produces (an
-    /// implausible raw value, out of range, NE43, not finite) and another order of its
-    /// registers gives a plausible temperature: a sentence naming that order, e.g.
-    /// "reads raw -1.595e-23 as ABCD; as CDAB it would read 23.45 degC: check
-    /// `byte_order`".
+    /// implausible raw value, out of range, NE43) and another order of its registers
+    /// gives a plausible temperature: a sentence naming that order, e.g. "reads raw
+    /// -1.595e-23 as ABCD; as CDAB it would read 23.45 degC: check `byte_order`".
+    /// Never for a NaN or infinity in the configured order: that is the fault value of
+    /// float transmitters, and the NaN's bytes reordered read as a plausible -3.98.
+    /// The registers are rebuilt from the finite raw value, which is exact.
     pub fn byte_order_hint(&self, ch: usize, reading: &Reading) -> Option<String> {
         let Quality::Bad(
-            Reason::Implausible
-            | Reason::OutOfRange
-            | Reason::Ne43Low
-            | Reason::Ne43High
-            | Reason::NotFinite,
+            Reason::Implausible | Reason::OutOfRange | Reason::Ne43Low | Reason::Ne43High,
         ) = reading.quality
         else {
             return None;
         };
         let (ty, configured) = (*self.encodings.get(ch)?)?;
-        let raw = reading.raw?;
+        let raw = reading.raw.filter(|r| r.is_finite())?;
         let p = self.processors.get(ch)?;
         let regs = plan::encode(raw, ty, configured)?;
         let f = p.filter_params();
@@ -191,5 +189,54 @@ impl Pipeline {
         let decision = self.axes[axis].comp.decide(now_s, &temps_degc);
         self.temps_degc = temps_degc;
         decision
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::source::{DeviceSample, Fault};
+
+    /// A pipeline of one `f32` channel (holding registers, ABCD, read as degC).
+    fn float_channel() -> Pipeline {
+        let text = "[devices.d]\ntransport = \"tcp\"\naddress = \"127.0.0.1:502\"\nunit_id = 1\n\n\
+                    [channels.t]\ndevice = \"d\"\nregister = \"holding\"\naddress = 0\n\
+                    data_type = \"f32\"\nscaling = { kind = \"direct\", gain = 1.0, offset_degc = 0.0 }\n";
+        let cfg = crate::config::load_str(text, "f.toml").expect("config");
+        super::super::build(&cfg).expect("build").pipeline
+    }
+
+    fn hint_for(raw_bits: u32) -> Option<String> {
+        let mut p = float_channel();
+        let sample = DeviceSample {
+            device: 0,
+            started: p.epoch,
+            elapsed: Duration::ZERO,
+            values: vec![(0, Ok::<f64, Fault>(f64::from(f32::from_bits(raw_bits))))],
+            error: None,
+            faults: Vec::new(),
+            connects: 1,
+        };
+        let mut out = Vec::new();
+        p.ingest(&sample, &mut out);
+        p.byte_order_hint(0, &out[0].reading)
+    }
+
+    // A float transmitter's NaN (0x7FC00000) read BADC is -3.98: it was hinted as a
+    // wrong byte order. 23.45 stored CDAB still gets its hint.
+    #[test]
+    fn nan_and_infinity_get_no_byte_order_hint() {
+        for bits in [
+            0x7FC0_0000,
+            0xFFC0_0000,
+            0x7F80_0000,
+            0xFF80_0000,
+            0xFFFF_FFFF,
+        ] {
+            assert_eq!(hint_for(bits), None, "{bits:#010X}");
+        }
+        let cdab = 23.45f32.to_bits().rotate_left(16);
+        let hint = hint_for(cdab).expect("a hint");
+        assert!(hint.contains("as CDAB it would read 23.45 degC"), "{hint}");
     }
 }

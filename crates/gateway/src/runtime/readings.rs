@@ -31,6 +31,12 @@ pub struct SampleReadings {
     pub connects: u64,
     /// The cycle's first error; `None` when everything was read.
     pub error: Option<SourceError>,
+    /// The device answered this cycle (a value or an exception): its link is up, even
+    /// when one of its reads failed ([`DeviceSample::answered`](crate::source::DeviceSample::answered)).
+    pub link_up: bool,
+    /// The kind of every request of the cycle that failed, retried ones included
+    /// ([`DeviceSample::faults`](crate::source::DeviceSample::faults)).
+    pub faults: Vec<&'static str>,
     /// Every channel name of the configuration, by index: one shared table per
     /// configuration, so handing it on costs a reference count.
     pub channel_names: Arc<[String]>,

@@ -27,6 +27,7 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         status: old_status,
         baselined: old_baselined,
         nc_facts: old_nc_facts,
+        device_logs: old_device_logs,
         ..
     } = old;
     // Carried processors keep their time base.
@@ -75,6 +76,11 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         }
         if let Some(s) = old_status.devices.get(*i) {
             next.status.devices[j] = s.clone();
+        }
+        // The journal was told its link's state: not again after the reload.
+        if let (Some(log), Some(&old_log)) = (next.device_logs.get_mut(j), old_device_logs.get(*i))
+        {
+            *log = old_log;
         }
         kept_devices += 1;
     }

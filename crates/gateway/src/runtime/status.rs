@@ -31,7 +31,11 @@ pub struct DeviceStatus {
     pub failed_cycles: u32,
     /// Last error, if the last cycle had one.
     pub last_error: Option<String>,
-    /// Errors counted by kind (timeout, transport, exception, ...).
+    /// The device answered in its last cycle (a value or an exception): a failed read
+    /// of one block leaves it up, only that read's channels go bad.
+    pub link_up: bool,
+    /// Failed requests counted by kind (timeout, frame, transport, exception, ...),
+    /// retries included; a cycle the reconnect backoff refused counts one `backoff`.
     pub errors: BTreeMap<&'static str, u64>,
     /// Duration of the last poll cycle.
     pub last_cycle: Duration,

@@ -132,7 +132,9 @@ impl DeviceConfig {
 pub struct DeviceCommon {
     /// Seconds one request may take before it counts as failed. Default 1.0;
     /// 0.001..=3600. On Modbus devices a whole poll cycle (every read, retry and
-    /// reconnect) ends after the larger of `poll_interval_s` and `timeout_s`.
+    /// reconnect) ends after the larger of `poll_interval_s` and `timeout_s`. On RTU
+    /// the line must also be quiet this long (at most 1 s) after the serial port is
+    /// opened, before the first request: a late reply must not answer the next one.
     #[serde(default = "default_device_timeout_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub timeout_s: f64,
@@ -191,8 +193,8 @@ impl DeviceCommon {
 
     /// The deadline of one Modbus poll cycle: the larger of `poll_interval_s` and
     /// `timeout_s`. Every read, retry and reconnect of the cycle shares it, so a silent
-    /// device is noticed after one deadline however many reads a cycle makes; a single
-    /// request still gets its whole timeout.
+    /// device is noticed after one deadline however many reads a cycle makes; the
+    /// cycle's first request still gets its whole timeout, later ones what is left.
     pub fn cycle_deadline(&self) -> Duration {
         secs(self.poll_interval_s.max(self.timeout_s))
     }

@@ -36,13 +36,35 @@ pub enum SourceError {
     /// No reply within the request timeout.
     #[error("no reply within {0:?}")]
     Timeout(Duration),
-    /// The poll cycle's deadline passed before every read was answered; the reads
-    /// left were given up for this cycle.
-    #[error("poll cycle deadline of {0:?} passed before every read was answered")]
+    /// The poll cycle's deadline passed before this read was answered; the reads left
+    /// were given up for this cycle.
+    #[error(
+        "not answered within the poll cycle's deadline of {} s (the larger of \
+         poll_interval_s and timeout_s): the device's reads take longer together; raise \
+         poll_interval_s or lower timeout_s",
+        .0.as_secs_f64()
+    )]
     Deadline(Duration),
     /// The transport failed (reset, EOF, garbled frame).
     #[error("transport fault: {0}")]
     Transport(String),
+    /// A reply arrived that is no valid answer to the request: a bad CRC, noise, an
+    /// adapter's echo, another unit or function, a wrong register count.
+    #[error("bad reply on {link}: {detail}")]
+    Frame {
+        /// The serial path or "host:port".
+        link: String,
+        /// What was wrong with it.
+        detail: String,
+    },
+    /// One read of a poll cycle failed with `source`.
+    #[error("{read}: {source}")]
+    Read {
+        /// The read: function, first register, count and the channels in it.
+        read: Arc<str>,
+        /// Why it failed.
+        source: Box<SourceError>,
+    },
     /// The TCP peer at this address closed the connection with a request unanswered.
     #[error("connection closed by the peer at {0}")]
     PeerClosed(String),
@@ -79,6 +101,7 @@ impl SourceError {
     pub fn reason(&self) -> Reason {
         match self {
             Self::Exception(_) => Reason::DeviceException,
+            Self::Read { source, .. } => source.reason(),
             _ => Reason::Comm,
         }
     }
@@ -87,14 +110,22 @@ impl SourceError {
     pub fn kind(&self) -> &'static str {
         match self {
             Self::ConnectTimeout | Self::Connect(_) => "connect",
-            Self::Timeout(_) | Self::Deadline(_) => "timeout",
+            Self::Timeout(_) => "timeout",
+            Self::Deadline(_) => "deadline",
+            Self::Frame { .. } => "frame",
             Self::Transport(_) | Self::PeerClosed(_) | Self::NotModbus { .. } => "transport",
             Self::Exception(_) => "exception",
             // Counted as the cycles the backoff failed (`compgate_device_errors_total`),
             // not as connect attempts.
             Self::BackingOff(_) | Self::BackingOffAfter { .. } => "backoff",
             Self::Can(e) => e.kind(),
+            Self::Read { source, .. } => source.kind(),
         }
+    }
+
+    /// The refusal of a link still backing off: no request went out.
+    fn is_backoff(&self) -> bool {
+        matches!(self, Self::BackingOff(_) | Self::BackingOffAfter { .. })
     }
 }
 
@@ -107,10 +138,12 @@ fn tenth_s_up(d: Duration) -> f64 {
 pub type SharedLink = Arc<Mutex<ModbusLink>>;
 
 /// Where one channel sits on its device and how it is encoded.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct ChannelSpec {
     /// Index of the channel in the gateway.
     pub channel: usize,
+    /// Channel name, for the errors of the read that holds it.
+    pub name: Arc<str>,
     /// Register table.
     pub kind: RegisterKind,
     /// 0-based address.
@@ -143,8 +176,24 @@ pub struct DeviceSample {
     pub values: Vec<(usize, Result<f64, Fault>)>,
     /// The first error of the cycle, if any.
     pub error: Option<SourceError>,
+    /// The kind ([`SourceError::kind`]) of every request of the cycle that failed,
+    /// retried ones included; a cycle the reconnect backoff refused is one `backoff`.
+    pub faults: Vec<&'static str>,
     /// Connections the link has made so far (a rise means it reconnected).
     pub connects: u64,
+}
+
+impl DeviceSample {
+    /// Whether the device answered at all this cycle: a channel got a value or an
+    /// exception. A device one of whose reads fails while the others answer is up;
+    /// only its channels in that read go bad.
+    pub fn answered(&self) -> bool {
+        self.error.is_none()
+            || self.values.iter().any(|(_, v)| match v {
+                Ok(_) => true,
+                Err(f) => f.reason == Reason::DeviceException,
+            })
+    }
 }
 
 /// Polling parameters of one device.
@@ -184,6 +233,8 @@ pub struct DevicePoller {
     params: PollParams,
     link: SharedLink,
     blocks: Vec<ReadBlock>,
+    /// Per block, what its errors call it: function, first register, count, channels.
+    labels: Vec<Arc<str>>,
     /// Where each channel's value is and how it is encoded, in channel order: see
     /// [`Self::poll`].
     decode: Vec<Decode>,
@@ -210,6 +261,7 @@ impl DevicePoller {
             })
             .collect();
         let blocks = plan::plan(&slots, params.max_gap_registers);
+        let labels = blocks.iter().map(|b| read_label(b, &specs)).collect();
         let specs = &specs;
         let mut decode: Vec<Decode> = blocks
             .iter()
@@ -234,6 +286,7 @@ impl DevicePoller {
             params,
             link,
             blocks,
+            labels,
             decode,
             failed_cycles: 0,
         }
@@ -271,31 +324,49 @@ impl DevicePoller {
         self.failed_cycles
     }
 
-    /// Reads one block, retrying transport faults up to `retries` times.
+    /// Reads one block, retrying transport faults up to `retries` times while the
+    /// cycle lasts; `faults` gets the kind of every request that failed. The error is
+    /// the first attempt's: a retry refused by the backoff a failed connect started
+    /// must not hide the connect's error.
     async fn read_block(
         &self,
         link: &mut ModbusLink,
         block: &ReadBlock,
+        faults: &mut Vec<&'static str>,
     ) -> Result<Vec<u16>, SourceError> {
+        let mut first: Option<SourceError> = None;
         let mut attempt = 0;
         loop {
-            let result = link
+            if let Some(length) = link.cycle_over() {
+                return Err(first.unwrap_or(SourceError::Deadline(length)));
+            }
+            let e = match link
                 .read(self.params.unit_id, block.kind, block.start, block.count)
-                .await;
-            match result {
-                Err(
-                    e @ (SourceError::Timeout(_)
+                .await
+            {
+                Ok(regs) => return Ok(regs),
+                Err(e) => e,
+            };
+            if e.is_backoff() {
+                return Err(first.unwrap_or(e));
+            }
+            faults.push(e.kind());
+            let transient = matches!(
+                e,
+                SourceError::Timeout(_)
                     | SourceError::Transport(_)
+                    | SourceError::Frame { .. }
                     | SourceError::PeerClosed(_)
                     | SourceError::NotModbus { .. }
                     | SourceError::Connect(_)
-                    | SourceError::ConnectTimeout),
-                ) if attempt < self.params.retries => {
-                    attempt += 1;
-                    tracing::debug!(device = %self.name, attempt, error = %e, "retrying read");
-                }
-                other => return other,
+                    | SourceError::ConnectTimeout
+            );
+            if !transient || attempt >= self.params.retries {
+                return Err(first.unwrap_or(e));
             }
+            attempt += 1;
+            tracing::debug!(device = %self.name, attempt, error = %e, "retrying read");
+            first.get_or_insert(e);
         }
     }
 
@@ -303,6 +374,7 @@ impl DevicePoller {
     pub async fn poll(&mut self) -> DeviceSample {
         let started = Instant::now();
         let mut first_error = None;
+        let mut faults = Vec::new();
         // One lock for the whole cycle: on a shared RTU line the device's reads go
         // out back to back.
         let link = self.link.clone();
@@ -312,15 +384,22 @@ impl DevicePoller {
         let length = self.params.cycle_deadline;
         link.set_cycle_deadline(Some((Instant::now() + length, length)));
         let mut reads = Vec::with_capacity(self.blocks.len());
-        for block in &self.blocks {
-            match self.read_block(&mut link, block).await {
+        for (block, label) in self.blocks.iter().zip(&self.labels) {
+            match self.read_block(&mut link, block, &mut faults).await {
                 Ok(regs) => reads.push(Ok(regs)),
                 Err(e) => {
-                    tracing::debug!(device = %self.name, start = block.start, count = block.count, error = %e, "read failed");
+                    tracing::debug!(device = %self.name, read = %label, error = %e, "read failed");
                     reads.push(Err(e.reason()));
-                    first_error.get_or_insert(e);
+                    first_error.get_or_insert_with(|| SourceError::Read {
+                        read: label.clone(),
+                        source: Box::new(e),
+                    });
                 }
             }
+        }
+        // No request failed, yet the cycle did: the backoff refused it.
+        if let (Some(e), true) = (&first_error, faults.is_empty()) {
+            faults.push(e.kind());
         }
         link.set_cycle_deadline(None);
         let connects = link.connects();
@@ -367,8 +446,36 @@ impl DevicePoller {
             elapsed: started.elapsed(),
             values,
             error: first_error,
+            faults,
         }
     }
+}
+
+/// What the errors of `block` call it, e.g. "function 0x04 (input registers), address
+/// 5, count 2 (T_a, T_b)": a few of its channels (`specs` by slot), then how many more.
+fn read_label(block: &ReadBlock, specs: &[ChannelSpec]) -> Arc<str> {
+    const NAMED: usize = 3;
+    let (function, table) = match block.kind {
+        RegisterKind::Input => (0x04, "input"),
+        RegisterKind::Holding => (0x03, "holding"),
+    };
+    let mut channels: Vec<&str> = block
+        .members
+        .iter()
+        .filter_map(|(slot, _)| specs.get(slot.channel).map(|s| &*s.name))
+        .collect();
+    channels.dedup();
+    let more = channels.len().saturating_sub(NAMED);
+    channels.truncate(NAMED);
+    let mut named = channels.join(", ");
+    if more > 0 {
+        named.push_str(&format!(" and {more} more"));
+    }
+    format!(
+        "function 0x{function:02X} ({table} registers), address {}, count {} ({named})",
+        block.start, block.count
+    )
+    .into()
 }
 
 #[cfg(test)]
@@ -382,13 +489,19 @@ mod tests {
 
     /// A poller of two reads (channels 100 registers apart) over `spec`, retrying once.
     fn poller(spec: LinkSpec) -> DevicePoller {
+        poller_with(spec, Duration::from_secs(1), Duration::from_secs(2))
+    }
+
+    /// [`poller`] with a request timeout and a cycle deadline.
+    fn poller_with(spec: LinkSpec, timeout: Duration, cycle_deadline: Duration) -> DevicePoller {
         let link = ModbusLink::new(
             spec,
-            Duration::from_secs(1),
+            timeout,
             Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
         );
         let spec = |channel, address| ChannelSpec {
             channel,
+            name: format!("c{address}").into(),
             kind: RegisterKind::Input,
             address,
             data_type: DataType::U16,
@@ -402,11 +515,114 @@ mod tests {
                 retries: 1,
                 degrade_after_cycles: 3,
                 max_gap_registers: 0,
-                cycle_deadline: Duration::from_secs(2),
+                cycle_deadline,
             },
             Arc::new(Mutex::new(link)),
             vec![spec(0, 0), spec(1, 100)],
         )
+    }
+
+    /// A Modbus TCP device answering each read-input-registers request by what
+    /// `answer` says of its first register and the request's number (from 0): after a
+    /// delay, the register value or an exception code.
+    async fn device(
+        answer: impl Fn(u16, usize) -> (Duration, Result<u16, u8>) + Send + Sync + 'static,
+    ) -> (String, tokio::task::JoinHandle<()>) {
+        let answer = Arc::new(answer);
+        let requests = Arc::new(AtomicUsize::new(0));
+        let (address, _, task) = listener(move |mut stream| {
+            let (answer, requests) = (answer.clone(), requests.clone());
+            async move {
+                // MBAP header (7 bytes) + function, address, count.
+                let mut req = [0u8; 12];
+                while stream.read_exact(&mut req).await.is_ok() {
+                    let start = u16::from_be_bytes([req[8], req[9]]);
+                    let n = requests.fetch_add(1, Ordering::SeqCst);
+                    let (delay, value) = answer(start, n);
+                    tokio::time::sleep(delay).await;
+                    let pdu = match value {
+                        Ok(v) => vec![req[7], 2, (v >> 8) as u8, v as u8],
+                        Err(code) => vec![req[7] | 0x80, code],
+                    };
+                    let mut reply = req[..7].to_vec();
+                    reply[4..6].copy_from_slice(&(pdu.len() as u16 + 1).to_be_bytes());
+                    reply.extend(pdu);
+                    if stream.write_all(&reply).await.is_err() {
+                        break;
+                    }
+                }
+            }
+        })
+        .await;
+        (address, task)
+    }
+
+    // An exception on one read failed the whole device ("link down") and named no
+    // register or channel: the error names the read, the other channel reads good.
+    #[tokio::test]
+    async fn a_failed_read_is_named_and_the_device_still_answers() {
+        let (address, peer) = device(|start, _| match start {
+            100 => (Duration::ZERO, Err(0x02)),
+            _ => (Duration::ZERO, Ok(1775)),
+        })
+        .await;
+        let mut poller = poller(tcp(&address));
+        let sample = poller.poll().await;
+        let error = sample.error.clone().expect("a read failed");
+        assert_eq!(
+            error.to_string(),
+            "function 0x04 (input registers), address 100, count 1 (c100): device exception \
+             0x02 illegal data address"
+        );
+        assert!(sample.answered());
+        assert_eq!(sample.faults, ["exception"]);
+        assert_eq!(sample.values[0].1, Ok(1775.0));
+        assert!(sample.values[1].1.is_err());
+        peer.abort();
+    }
+
+    // A device answering each read within its timeout, but both reads not within the
+    // poll interval: the second read was cut every cycle, and the log said only "poll
+    // cycle deadline of 500ms passed before every read was answered".
+    #[tokio::test]
+    async fn a_read_the_cycle_deadline_cuts_is_named_with_what_to_change() {
+        let (address, peer) = device(|_, _| (Duration::from_millis(600), Ok(1775))).await;
+        let mut poller = poller_with(
+            tcp(&address),
+            Duration::from_secs(1),
+            Duration::from_secs(1),
+        );
+        let sample = poller.poll().await;
+        let error = sample.error.clone().expect("the second read was cut");
+        let text = error.to_string();
+        assert!(
+            text.starts_with("function 0x04 (input registers), address 100, count 1 (c100): ")
+                && text.contains("raise poll_interval_s"),
+            "{text}"
+        );
+        assert_eq!(error.kind(), "deadline");
+        assert_eq!(sample.values[0].1, Ok(1775.0));
+        assert!(sample.answered());
+        peer.abort();
+    }
+
+    // A timeout the retry made good was counted nowhere.
+    #[tokio::test]
+    async fn a_fault_the_retry_makes_good_is_still_counted() {
+        let (address, peer) = device(|_, n| match n {
+            0 => (Duration::from_secs(5), Ok(0)),
+            _ => (Duration::ZERO, Ok(1775)),
+        })
+        .await;
+        let mut poller = poller_with(
+            tcp(&address),
+            Duration::from_millis(200),
+            Duration::from_secs(2),
+        );
+        let sample = poller.poll().await;
+        assert_eq!(sample.error, None);
+        assert_eq!(sample.faults, ["timeout"]);
+        peer.abort();
     }
 
     /// A TCP listener on loopback that runs `serve` on every connection it accepts;
@@ -449,7 +665,7 @@ mod tests {
         while Instant::now() < end {
             let sample = poller.poll().await;
             let error = sample.error.expect("the cycle failed");
-            assert!(error.to_string().starts_with(&closed), "{error}");
+            assert!(error.to_string().contains(&closed), "{error}");
             cycles += 1;
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
@@ -477,7 +693,7 @@ mod tests {
         for cycle in 0..3 {
             let error = poller.poll().await.error.expect("the cycle failed");
             assert!(
-                error.to_string().starts_with(&expected),
+                error.to_string().contains(&expected),
                 "cycle {cycle}: {error}"
             );
         }
@@ -486,9 +702,11 @@ mod tests {
     }
 
     // The retry of a failed connect, and every cycle after it, meet the backoff: they
-    // must still say why the link is down, not only when it tries again.
+    // must still say why the link is down. The cycle that tried to connect is counted
+    // and reported as a failed connect: with `retries = 1` the retry met the backoff,
+    // and the first line said "backoff" for a refused connection.
     #[tokio::test]
-    async fn a_failed_connect_stays_the_reported_error_while_backing_off() {
+    async fn a_failed_connect_is_reported_as_such_and_stays_the_cause_while_backing_off() {
         let closed = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
         let address = closed.local_addr().unwrap().to_string();
         drop(closed);
@@ -513,19 +731,23 @@ mod tests {
         for (spec, cause) in cases {
             let mut poller = poller(spec);
             // The first cycle connects and fails; the second falls in the backoff.
-            for cycle in 0..2 {
+            for (cycle, kind) in [(0, "connect"), (1, "backoff")] {
                 let sample = poller.poll().await;
-                let error = sample.error.expect("the cycle failed");
+                let error = sample.error.clone().expect("the cycle failed");
                 let text = error.to_string();
+                let read = "function 0x04 (input registers), address 0, count 1 (c0): ";
                 assert!(
-                    text.starts_with(&cause) && text.ends_with(" s)"),
+                    text.starts_with(&format!("{read}{cause}")),
                     "cycle {cycle}: {text}"
                 );
-                assert!(
+                assert_eq!(
                     text.contains("(next attempt in 0."),
+                    cycle == 1,
                     "cycle {cycle}: {text}"
                 );
-                assert_eq!(error.kind(), "backoff");
+                assert_eq!(error.kind(), kind);
+                assert_eq!(sample.faults, [kind], "cycle {cycle}");
+                assert!(!sample.answered());
                 assert!(sample.values.iter().all(|(_, v)| v.is_err()));
             }
         }

@@ -13,6 +13,12 @@
 //! answers something other than Modbus, is retried as slowly as one that refuses. Such
 //! faults are named with the peer's address (tokio-modbus reports a closed peer with a
 //! stale errno and a peer answering HTTP with "bytes remaining on stream").
+//!
+//! RTU frames carry no transaction id: a reply that comes after its request's timeout
+//! would be taken as the answer to the next request for as many registers. So after
+//! the serial port is opened (at start and after every failed exchange) no request
+//! goes out before the line has been quiet for [`rtu_guard`]; what arrives until then
+//! is dropped. A link whose exchanges succeed keeps its port and never waits.
 
 pub mod config;
 
@@ -126,6 +132,8 @@ pub struct ModbusLink {
     /// The end of the poll cycle under way and its length: no request or connect
     /// outlasts it (see [`Self::set_cycle_deadline`]).
     cycle: Option<(Instant, Duration)>,
+    /// No request of the cycle under way has gone out yet.
+    cycle_fresh: bool,
     backoff: Backoff,
     /// Why the last connect (or connection before its first good reply) failed: what
     /// a request refused by the backoff reports. Boxed: the link sits in every NC
@@ -158,6 +166,7 @@ impl ModbusLink {
             ctx: None,
             deadline: None,
             cycle: None,
+            cycle_fresh: false,
             backoff,
             connect_error: None,
             answered: false,
@@ -192,16 +201,17 @@ impl ModbusLink {
     }
 
     async fn connect(&mut self) -> Result<(Context, Option<Arc<Mutex<PeerSeen>>>), SourceError> {
-        match &self.spec {
+        let seen = Arc::new(Mutex::new(PeerSeen::default()));
+        match self.spec.clone() {
             LinkSpec::Tcp {
                 address,
                 connect_timeout,
             } => {
-                let at = Instant::now() + *connect_timeout;
+                let at = Instant::now() + connect_timeout;
                 let cut = self.cycle_cut(at);
                 let stream = tokio::time::timeout_at(
                     cut.map_or(at, |(end, _)| end),
-                    TcpStream::connect(address),
+                    TcpStream::connect(&address),
                 )
                 .await
                 .map_err(|_| match cut {
@@ -213,7 +223,6 @@ impl ModbusLink {
                 stream
                     .set_nodelay(true)
                     .map_err(|e| SourceError::Connect(format!("{address}: {e}")))?;
-                let seen = Arc::new(Mutex::new(PeerSeen::default()));
                 let stream = WatchedStream {
                     inner: stream,
                     seen: seen.clone(),
@@ -226,26 +235,56 @@ impl ModbusLink {
                 parity,
                 stop_bits,
             } => {
-                let builder = tokio_serial::new(path, *baud)
-                    .parity(*parity)
-                    .stop_bits(*stop_bits)
+                let failed =
+                    |e: &dyn std::fmt::Display| SourceError::Connect(format!("{path}: {e}"));
+                let builder = tokio_serial::new(&path, baud)
+                    .parity(parity)
+                    .stop_bits(stop_bits)
                     .data_bits(tokio_serial::DataBits::Eight);
-                let port = tokio_serial::SerialStream::open(&builder)
-                    .map_err(|e| SourceError::Connect(format!("{path}: {e}")))?;
-                // A late reply may still sit in the tty buffer: drop it with the old context.
+                let mut port =
+                    tokio_serial::SerialStream::open(&builder).map_err(|e| failed(&e))?;
+                // A late reply to a request given up before (by this link or another
+                // process) may still be on its way: let it pass, then start empty.
+                let started = Instant::now();
+                let dropped = drain_until_quiet(&mut port, rtu_guard(self.timeout, baud))
+                    .await
+                    .map_err(|e| failed(&e))?;
                 port.clear(tokio_serial::ClearBuffer::All)
-                    .map_err(|e| SourceError::Connect(format!("{path}: {e}")))?;
-                Ok((rtu::attach(port), None))
+                    .map_err(|e| failed(&e))?;
+                if dropped > 0 {
+                    tracing::debug!(link = %self.spec, bytes = dropped, "dropped what the line brought before the first request");
+                }
+                // The wait is the line's, not the device's: the cycle's reads keep
+                // their whole deadline.
+                if let Some((end, _)) = &mut self.cycle {
+                    *end += started.elapsed();
+                }
+                let port = WatchedStream {
+                    inner: port,
+                    seen: seen.clone(),
+                };
+                Ok((rtu::attach(port), Some(seen)))
             }
         }
     }
 
     /// Bounds every request and connect until `None` by `at`, the end of a poll cycle
     /// of length `length`: one deadline for all reads of a cycle, their retries and
-    /// reconnects. A request cut by it fails with [`SourceError::Deadline`] and drops
-    /// the connection like a timeout.
+    /// reconnects. The cycle's first request still gets its whole timeout when the
+    /// cycle is no shorter (the end moves out by the time it took to get the line and
+    /// connect), so a silent device reports its own timeout; a later
+    /// request cut by the deadline fails with [`SourceError::Deadline`] and drops the
+    /// connection like a timeout.
     pub fn set_cycle_deadline(&mut self, cycle: Option<(Instant, Duration)>) {
         self.cycle = cycle;
+        self.cycle_fresh = cycle.is_some();
+    }
+
+    /// The cycle deadline's length, once it has passed: no request goes out any more.
+    pub fn cycle_over(&self) -> Option<Duration> {
+        self.cycle
+            .filter(|(end, _)| Instant::now() >= *end)
+            .map(|(_, length)| length)
     }
 
     /// The cycle deadline if it comes before `at`.
@@ -286,16 +325,26 @@ impl ModbusLink {
         error
     }
 
-    /// What the TCP peer's bytes and EOF say about a request that failed with `io`
-    /// (`None`: timed out), where tokio-modbus's error does not: it reports a peer that
-    /// closed with a stale `errno` ("Operation now in progress") and one that answered
-    /// a few bytes of something else and closed with "bytes remaining on stream".
+    /// What the peer's bytes and EOF say about a request that failed with `io`
+    /// (`None`: timed out), where tokio-modbus's error does not: on TCP it reports a
+    /// peer that closed with a stale `errno` ("Operation now in progress") and one that
+    /// answered a few bytes of something else and closed with "bytes remaining on
+    /// stream"; on RTU a reply with a bad CRC, noise or an adapter's echo of the request
+    /// are dropped by its decoder and end in a timeout.
     fn peer_fault(&self, io: Option<&std::io::Error>) -> Option<SourceError> {
         use std::io::ErrorKind;
-        let (LinkSpec::Tcp { address, .. }, Some(seen)) = (&self.spec, &self.peer) else {
-            return None;
-        };
+        let seen = self.peer.as_ref()?;
         let seen = seen.lock().unwrap_or_else(PoisonError::into_inner);
+        let address = match &self.spec {
+            LinkSpec::Tcp { address, .. } => address,
+            LinkSpec::Rtu { path, .. } => {
+                let garbled = io.is_none_or(|e| e.kind() == ErrorKind::InvalidData);
+                return (garbled && !seen.reply.is_empty()).then(|| SourceError::Frame {
+                    link: path.clone(),
+                    detail: describe_garbled(&seen),
+                });
+            }
+        };
         if !seen.reply.is_empty() && !mbap_plausible(&seen.reply) {
             Some(SourceError::NotModbus {
                 address: address.clone(),
@@ -316,6 +365,50 @@ impl ModbusLink {
         } else {
             None
         }
+    }
+
+    /// The serial path or "host:port" the link goes to, for error messages.
+    fn place(&self) -> &str {
+        match &self.spec {
+            LinkSpec::Tcp { address, .. } => address,
+            LinkSpec::Rtu { path, .. } => path,
+        }
+    }
+
+    /// What about a reply tokio-modbus found out of step with the request to `unit`,
+    /// in words (its own message is the headers' debug output).
+    fn mismatch(&self, unit: u8, error: &tokio_modbus::ProtocolError) -> SourceError {
+        use tokio_modbus::ProtocolError as P;
+        let function = |r: &Result<Response, tokio_modbus::ExceptionResponse>| match r {
+            Ok(r) => r.function_code().value(),
+            Err(e) => e.function.value(),
+        };
+        let detail = match error {
+            P::FunctionCodeMismatch { request, result } => format!(
+                "the reply is for function 0x{:02X}, the request was function 0x{:02X}",
+                function(result),
+                request.value()
+            ),
+            P::HeaderMismatch { .. } => {
+                let seen = self
+                    .peer
+                    .as_ref()
+                    .map(|s| s.lock().unwrap_or_else(PoisonError::into_inner));
+                let (sent, reply) = seen
+                    .as_ref()
+                    .map_or((&[][..], &[][..]), |s| (&s.sent[..], &s.reply[..]));
+                header_mismatch(&self.spec, unit, sent, reply)
+            }
+        };
+        SourceError::Frame {
+            link: self.place().to_string(),
+            detail,
+        }
+    }
+
+    /// Connects now, if not connected (a connect the backoff allows).
+    pub async fn open(&mut self) -> Result<(), SourceError> {
+        self.ensure_connected().await
     }
 
     /// Connects if needed and the backoff allows.
@@ -358,13 +451,21 @@ impl ModbusLink {
     /// malformed reply (a wrong byte count on RTU) breaks with a panic. The callers
     /// check the shape and treat a mismatch as a transport fault.
     async fn call(&mut self, unit: u8, request: Request<'_>) -> Result<Response, SourceError> {
-        if let Some((_, length)) = self.cycle.filter(|(end, _)| Instant::now() >= *end) {
+        if let Some(length) = self.cycle_over() {
             return Err(SourceError::Deadline(length));
         }
         self.ensure_connected().await?;
         let timeout = self.timeout;
-        let cut = self.cycle_cut(Instant::now() + timeout);
-        let at = cut.map_or(Instant::now() + timeout, |(end, _)| end);
+        let own = Instant::now() + timeout;
+        if std::mem::take(&mut self.cycle_fresh) {
+            if let Some((end, length)) = &mut self.cycle {
+                if *length >= timeout {
+                    *end = (*end).max(own);
+                }
+            }
+        }
+        let cut = self.cycle_cut(own);
+        let at = cut.map_or(own, |(end, _)| end);
         let deadline = self
             .deadline
             .get_or_insert_with(|| Box::pin(tokio::time::sleep_until(at)));
@@ -388,19 +489,20 @@ impl ModbusLink {
                 Err(SourceError::Exception(code))
             }
             Some(Err(e)) => {
-                // Protocol errors (a reply out of step) come from a Modbus peer and
-                // say it well.
-                let known = match &e {
-                    tokio_modbus::Error::Transport(io) => self.peer_fault(Some(io)),
-                    tokio_modbus::Error::Protocol(_) => None,
+                let error = match &e {
+                    tokio_modbus::Error::Transport(io) => {
+                        self.peer_fault(Some(io)).unwrap_or_else(|| {
+                            SourceError::Transport(format!("{}: {io}", self.place()))
+                        })
+                    }
+                    tokio_modbus::Error::Protocol(p) => self.mismatch(unit, p),
                 };
-                let error = known.unwrap_or_else(|| SourceError::Transport(e.to_string()));
                 Err(self.fault(error))
             }
             None => {
                 // Bytes that are no Modbus frame leave the client waiting for more.
                 let error = match (self.peer_fault(None), cut) {
-                    (Some(e @ SourceError::NotModbus { .. }), _) => e,
+                    (Some(e @ (SourceError::NotModbus { .. } | SourceError::Frame { .. })), _) => e,
                     (_, Some((_, length))) => SourceError::Deadline(length),
                     (_, None) => SourceError::Timeout(timeout),
                 };
@@ -412,6 +514,13 @@ impl ModbusLink {
     /// A reply out of step with its request: the stream cannot be trusted, start over.
     fn out_of_step(&mut self, what: String) -> SourceError {
         self.fault(SourceError::Transport(what))
+    }
+
+    /// A reply whose shape does not fit the request (a wrong register count): the
+    /// stream cannot be trusted, start over.
+    fn misshapen(&mut self, detail: String) -> SourceError {
+        let link = self.place().to_string();
+        self.fault(SourceError::Frame { link, detail })
     }
 
     /// Reads `count` registers at `start` from unit `unit`.
@@ -433,8 +542,8 @@ impl ModbusLink {
                 self.answered();
                 Ok(regs)
             }
-            other => Err(self.out_of_step(format!(
-                "asked for {count} registers at {start}, got {}",
+            other => Err(self.misshapen(format!(
+                "the reply holds {}, the request asked for {count} at {start}",
                 describe_response(&other)
             ))),
         }
@@ -470,29 +579,41 @@ impl ModbusLink {
 /// Bytes of a reply kept for an error message: enough to recognise a protocol.
 const REPLY_KEPT_BYTES: usize = 32;
 
-/// What a TCP peer sent since the last request went out, and whether it closed.
+/// What the peer sent since the last request went out, and whether it closed.
 #[derive(Debug, Default)]
 struct PeerSeen {
+    /// The first [`REPLY_KEPT_BYTES`] bytes of the last request.
+    sent: Vec<u8>,
     /// The first [`REPLY_KEPT_BYTES`] bytes received since the last write.
     reply: Vec<u8>,
     /// The peer closed its side (a read returned end of stream).
     closed: bool,
 }
 
-/// A TCP stream that notes in [`PeerSeen`] what the peer does, for the error messages.
+/// A TCP stream or serial port that notes in [`PeerSeen`] what the peer does, for the
+/// error messages.
 #[derive(Debug)]
-struct WatchedStream {
-    inner: TcpStream,
+struct WatchedStream<S> {
+    inner: S,
     seen: Arc<Mutex<PeerSeen>>,
 }
 
-impl WatchedStream {
+impl<S> WatchedStream<S> {
     fn seen(&self) -> std::sync::MutexGuard<'_, PeerSeen> {
         self.seen.lock().unwrap_or_else(PoisonError::into_inner)
     }
+
+    /// A new request (`buf`) went out: what came before it is not its reply.
+    fn sent(&self, buf: &[u8]) {
+        let mut seen = self.seen();
+        seen.reply.clear();
+        seen.sent.clear();
+        seen.sent
+            .extend_from_slice(&buf[..buf.len().min(REPLY_KEPT_BYTES)]);
+    }
 }
 
-impl AsyncRead for WatchedStream {
+impl<S: AsyncRead + Unpin> AsyncRead for WatchedStream<S> {
     fn poll_read(
         mut self: Pin<&mut Self>,
         cx: &mut TaskContext<'_>,
@@ -517,14 +638,13 @@ impl AsyncRead for WatchedStream {
     }
 }
 
-impl AsyncWrite for WatchedStream {
+impl<S: AsyncWrite + Unpin> AsyncWrite for WatchedStream<S> {
     fn poll_write(
         mut self: Pin<&mut Self>,
         cx: &mut TaskContext<'_>,
         buf: &[u8],
     ) -> Poll<std::io::Result<usize>> {
-        // A new request: what came before it is not its reply.
-        self.seen().reply.clear();
+        self.sent(buf);
         Pin::new(&mut self.inner).poll_write(cx, buf)
     }
 
@@ -533,7 +653,7 @@ impl AsyncWrite for WatchedStream {
         cx: &mut TaskContext<'_>,
         bufs: &[std::io::IoSlice<'_>],
     ) -> Poll<std::io::Result<usize>> {
-        self.seen().reply.clear();
+        self.sent(bufs.first().map_or(&[][..], |b| &b[..]));
         Pin::new(&mut self.inner).poll_write_vectored(cx, bufs)
     }
 
@@ -550,6 +670,75 @@ impl AsyncWrite for WatchedStream {
         cx: &mut TaskContext<'_>,
     ) -> Poll<std::io::Result<()>> {
         Pin::new(&mut self.inner).poll_shutdown(cx)
+    }
+}
+
+/// The longest [`rtu_guard`].
+pub const RTU_GUARD_MAX: Duration = Duration::from_secs(1);
+
+/// How long an RTU line must have been quiet after its port was opened before the
+/// first request goes out: `timeout` (a reply that late after its request's timeout
+/// still passes), at most [`RTU_GUARD_MAX`], at least the 3.5 characters of 11 bits
+/// that end an RTU frame at `baud`.
+pub fn rtu_guard(timeout: Duration, baud: u32) -> Duration {
+    let frame_gap = Duration::from_secs_f64(3.5 * 11.0 / f64::from(baud.max(1)));
+    timeout.min(RTU_GUARD_MAX).max(frame_gap)
+}
+
+/// Reads and drops what `port` brings until nothing came for `quiet`; returns the
+/// bytes dropped. A line that never falls quiet (a device streaming, another master)
+/// is given up on after four times `quiet`: the caller clears the buffer and goes on.
+async fn drain_until_quiet<S: AsyncRead + Unpin>(
+    port: &mut S,
+    quiet: Duration,
+) -> std::io::Result<usize> {
+    use tokio::io::AsyncReadExt;
+    let give_up = Instant::now() + quiet * 4;
+    let mut buf = [0u8; 256];
+    let mut dropped = 0;
+    loop {
+        let until = (Instant::now() + quiet).min(give_up);
+        match tokio::time::timeout_at(until, port.read(&mut buf)).await {
+            Ok(Ok(n)) if n > 0 => dropped += n,
+            Ok(Err(e)) => return Err(e),
+            Ok(Ok(_)) | Err(_) => return Ok(dropped),
+        }
+    }
+}
+
+/// What an RTU device sent that tokio-modbus's decoder could not take as a reply.
+fn describe_garbled(seen: &PeerSeen) -> String {
+    if !seen.sent.is_empty() && seen.reply.starts_with(&seen.sent) {
+        format!(
+            "the request came back as it was sent ({}): the RS-485 adapter echoes what it \
+             sends; turn its echo off",
+            describe_bytes(&seen.sent)
+        )
+    } else {
+        format!(
+            "bytes arrived, but no complete reply with a valid CRC (noise, a wrong baud \
+             rate or parity, or two devices answering): {}",
+            describe_bytes(&seen.reply)
+        )
+    }
+}
+
+/// Which header field of `reply` differs from that of the request `sent` to `unit`.
+fn header_mismatch(spec: &LinkSpec, unit: u8, sent: &[u8], reply: &[u8]) -> String {
+    let word = |b: &[u8], at: usize| b.get(at..at + 2).map(|w| u16::from_be_bytes([w[0], w[1]]));
+    let (reply_unit, tid) = match spec {
+        LinkSpec::Rtu { .. } => (reply.first(), None),
+        LinkSpec::Tcp { .. } => (reply.get(6), word(reply, 0).zip(word(sent, 0))),
+    };
+    match (reply_unit, tid) {
+        (_, Some((got, asked))) if got != asked => format!(
+            "the reply is to transaction {got}, the request was transaction {asked} (a late \
+             or repeated reply)"
+        ),
+        (Some(&got), _) if got != unit => {
+            format!("the reply came from unit {got}, the request went to unit {unit}")
+        }
+        _ => "the reply's header does not match the request's".into(),
     }
 }
 
@@ -584,12 +773,16 @@ fn describe_bytes(bytes: &[u8]) -> String {
 /// A reply, short enough for an error message.
 fn describe_response(r: &Response) -> String {
     match r {
-        Response::ReadInputRegisters(w) | Response::ReadHoldingRegisters(w) => {
-            format!("{} registers", w.len())
-        }
+        Response::ReadInputRegisters(w) | Response::ReadHoldingRegisters(w) => match w.len() {
+            1 => "1 register".into(),
+            n => format!("{n} registers"),
+        },
         Response::WriteSingleRegister(a, v) => format!("write of {v} at {a}"),
         Response::WriteMultipleRegisters(a, n) => format!("write of {n} registers at {a}"),
-        other => format!("{other:?}"),
+        other => format!(
+            "a reply of function 0x{:02X}",
+            other.function_code().value()
+        ),
     }
 }
 
@@ -712,6 +905,31 @@ mod tests {
         peer.abort();
     }
 
+    // The cycle's first request gets its whole timeout even when the line took a
+    // while to get (D = max(poll_interval_s, timeout_s) = timeout_s here): a silent
+    // device reported "poll cycle deadline ... passed", not its timeout.
+    #[tokio::test]
+    async fn the_first_request_of_a_cycle_gets_its_whole_timeout() {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap().to_string();
+        let peer = tokio::spawn(async move {
+            let mut held = Vec::new();
+            while let Ok((s, _)) = listener.accept().await {
+                held.push(s);
+            }
+        });
+        let timeout = Duration::from_millis(100);
+        let mut link = tcp_link(address, timeout, Duration::from_millis(10));
+        link.set_cycle_deadline(Some((Instant::now() + timeout, timeout)));
+        tokio::time::sleep(Duration::from_millis(30)).await;
+        let err = link.read(1, RegisterKind::Input, 0, 1).await.unwrap_err();
+        assert_eq!(err, SourceError::Timeout(timeout));
+        // The next request of the cycle gets only what is left: nothing.
+        let err = link.read(1, RegisterKind::Input, 0, 1).await.unwrap_err();
+        assert_eq!(err, SourceError::Deadline(timeout));
+        peer.abort();
+    }
+
     /// A Modbus TCP peer answering read-input-registers requests with zeros, except
     /// that on its first connection it leaves request `skip` (0-based) unanswered.
     async fn modbus_peer(skip: usize) -> (String, tokio::task::JoinHandle<()>) {
@@ -823,6 +1041,152 @@ mod tests {
             other => panic!("expected the backoff, got {other:?}"),
         }
         peer.abort();
+    }
+
+    /// CRC-16/MODBUS, low byte first as it goes on the wire.
+    fn crc16(bytes: &[u8]) -> [u8; 2] {
+        let mut crc = 0xFFFFu16;
+        for &b in bytes {
+            crc ^= u16::from(b);
+            for _ in 0..8 {
+                crc = if crc & 1 == 1 {
+                    (crc >> 1) ^ 0xA001
+                } else {
+                    crc >> 1
+                };
+            }
+        }
+        crc.to_le_bytes()
+    }
+
+    /// An RTU read reply of `unit` holding `regs`, with its CRC.
+    fn rtu_reply(unit: u8, function: u8, regs: &[u16]) -> Vec<u8> {
+        let mut f = vec![unit, function, (regs.len() * 2) as u8];
+        for r in regs {
+            f.extend_from_slice(&r.to_be_bytes());
+        }
+        let crc = crc16(&f);
+        f.extend_from_slice(&crc);
+        f
+    }
+
+    /// An RTU slave on the far end of a pty pair, one request at a time like a real
+    /// one: `answer` gives each (8-byte) request's delay and reply. Returns the path
+    /// the link opens and the near end, which must stay open while it is used.
+    fn rtu_device(
+        answer: impl Fn(&[u8; 8]) -> (Duration, Vec<u8>) + Send + 'static,
+    ) -> (
+        String,
+        tokio_serial::SerialStream,
+        tokio::task::JoinHandle<()>,
+    ) {
+        let (mut far, near) = tokio_serial::SerialStream::pair().expect("pty pair");
+        let path = near.name().expect("pty name");
+        let task = tokio::spawn(async move {
+            let mut req = [0u8; 8];
+            while far.read_exact(&mut req).await.is_ok() {
+                let (delay, reply) = answer(&req);
+                tokio::time::sleep(delay).await;
+                if far.write_all(&reply).await.is_err() {
+                    break;
+                }
+            }
+        });
+        (path, near, task)
+    }
+
+    fn rtu_link(path: &str, timeout: Duration) -> ModbusLink {
+        ModbusLink::new(
+            LinkSpec::Rtu {
+                path: path.into(),
+                baud: 19200,
+                parity: tokio_serial::Parity::None,
+                stop_bits: tokio_serial::StopBits::One,
+            },
+            timeout,
+            Backoff::new(Duration::from_millis(10), Duration::from_millis(10)),
+        )
+    }
+
+    // RTU replies carry no transaction id: register 0's reply, 100 ms after its
+    // request timed out, was read as the answer to the next request (register 5, the
+    // same count) and its value taken as good; register 5's own reply then answered
+    // the next request for register 0, and so on.
+    #[tokio::test]
+    async fn a_late_rtu_reply_never_answers_the_next_request() {
+        let timeout = Duration::from_millis(400);
+        let (path, _near, device) = rtu_device(move |req| {
+            let start = u16::from_be_bytes([req[2], req[3]]);
+            let (delay, value) = if start == 0 {
+                (timeout + Duration::from_millis(100), 1000)
+            } else {
+                (Duration::ZERO, 2000)
+            };
+            (delay, rtu_reply(req[0], req[1], &[value]))
+        });
+        let mut link = rtu_link(&path, timeout);
+        for round in 0..2 {
+            let late = link.read(1, RegisterKind::Input, 0, 1).await;
+            assert_eq!(late, Err(SourceError::Timeout(timeout)), "round {round}");
+            let next = link.read(1, RegisterKind::Input, 5, 1).await;
+            assert_eq!(next, Ok(vec![2000]), "round {round}");
+        }
+        device.abort();
+    }
+
+    // A reply with a bad CRC, an adapter echoing the request, another unit answering:
+    // tokio-modbus drops the first two and waits (reported as "no reply within"), and
+    // said the third in debug output. Each is a bad frame naming the serial path.
+    #[tokio::test]
+    async fn garbled_rtu_replies_are_bad_frames_naming_the_line() {
+        let timeout = Duration::from_millis(200);
+        type Reply = fn(&[u8; 8]) -> Vec<u8>;
+        let cases: [(Reply, &str); 3] = [
+            (
+                |req| {
+                    let mut f = rtu_reply(req[0], req[1], &[1775]);
+                    let last = f.len() - 1;
+                    f[last] ^= 0xFF;
+                    f
+                },
+                "no complete reply with a valid CRC",
+            ),
+            (
+                |req| [&req[..], &rtu_reply(req[0], req[1], &[1775])].concat(),
+                "the request came back as it was sent (the bytes 01 04 00 00 00 01",
+            ),
+            (
+                |req| rtu_reply(req[0] + 1, req[1], &[1775]),
+                "the reply came from unit 2, the request went to unit 1",
+            ),
+        ];
+        for (reply, says) in cases {
+            let (path, _near, device) = rtu_device(move |req| (Duration::ZERO, reply(req)));
+            let mut link = rtu_link(&path, timeout);
+            let err = link.read(1, RegisterKind::Input, 0, 1).await.unwrap_err();
+            assert_eq!(err.kind(), "frame", "{err}");
+            let text = err.to_string();
+            assert!(
+                text.starts_with(&format!("bad reply on {path}: ")) && text.contains(says),
+                "{text}"
+            );
+            device.abort();
+        }
+    }
+
+    // An RTU adapter unplugged mid-use said "Input/output error (os error 5)", not
+    // which line.
+    #[tokio::test]
+    async fn a_failing_serial_line_is_named() {
+        let (path, near, device) =
+            rtu_device(|req| (Duration::ZERO, rtu_reply(req[0], req[1], &[7])));
+        let mut link = rtu_link(&path, Duration::from_millis(500));
+        assert_eq!(link.read(1, RegisterKind::Input, 0, 1).await, Ok(vec![7]));
+        device.abort();
+        let _ = device.await;
+        drop(near);
+        let err = link.read(1, RegisterKind::Input, 0, 1).await.unwrap_err();
+        assert!(err.to_string().contains(&path), "{err}");
     }
 
     #[test]

@@ -153,6 +153,8 @@ pub fn to_json(s: &Status, history: &History, interval_s: f64, t_unix_ms: i64) -
         .iter()
         .map(|d| {
             let state = match (&d.last_error, d.cycles) {
+                // It answers, but a read of it fails: its channels say which.
+                (Some(_), _) if d.link_up => "errors",
                 (Some(_), _) => "down",
                 (None, 0) => "connecting",
                 (None, _) => "up",

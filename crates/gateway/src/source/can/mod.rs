@@ -655,12 +655,14 @@ impl CanPoller {
         if let Some(e) = &error {
             tracing::debug!(device = %self.name, error = %e, "CAN poll cycle failed");
         }
+        let error = error.map(SourceError::Can);
         DeviceSample {
             device: self.index,
             started,
             elapsed: started.elapsed(),
             values,
-            error: error.map(SourceError::Can),
+            faults: error.iter().map(SourceError::kind).collect(),
+            error,
             connects: self.opens,
         }
     }
