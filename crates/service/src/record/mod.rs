@@ -262,11 +262,12 @@ pub struct Recorder {
 /// `path` (as [`resolve_path`] gives it): its directory exists and is writable
 /// (SQLite creates the `-wal` and `-shm` files there, the recorder its lock file),
 /// and the database, if it exists, is a writable file. `validate` runs it, so a
-/// config that `run` would refuse does not pass.
+/// config that `run` would refuse does not pass. A problem names the environment
+/// variable that set `recorder.path`, if one did.
 pub fn check_path(path: &Path) -> Result<(), RecordError> {
     let problem = |message: String| RecordError::Path {
         path: path.display().to_string(),
-        message,
+        message: message + &compgate_gateway::config::env_note("recorder.path"),
     };
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
