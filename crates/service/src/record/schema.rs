@@ -31,7 +31,7 @@ CREATE TABLE IF NOT EXISTS jobs (
     sd43910    REAL NOT NULL,
     sd43920_mm REAL NOT NULL,
     ok         INTEGER NOT NULL,
-    job_id     INTEGER,
+    job_id     INTEGER, -- the NC handshake's 16-bit id: from 1 at each start, no key
     elapsed_ms REAL,
     error      TEXT,
     shadow     INTEGER NOT NULL DEFAULT 0 -- 1: shadow mode, computed and not sent (ok 0)
