@@ -34,7 +34,7 @@ use serde_json::json;
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 
-use crate::record::{now_unix_ms, quality_code, Record, RecordSender};
+use crate::record::{now_unix_ms, quality_code, Grid, Record, RecordSender};
 use crate::ServiceError;
 use compgate_core::comp::CompParams;
 use compgate_gateway::config::{secs, MqttConfig};
@@ -76,42 +76,8 @@ pub struct MqttObserver {
     interval: Duration,
     tx: RecordSender,
     /// Per device index: when its next readings message is due.
-    readings_due: HashMap<usize, Schedule>,
-    health_due: Schedule,
-}
-
-/// When a periodic message is due: on a grid of the publish interval from the first
-/// one. The ticks that offer it (polls, status ticks) jitter by microseconds; measured
-/// from the last message, a tick a little early waited a whole further tick (1 s, 2 s,
-/// 1 s, ... at a 1 s interval), and a grid takes a tick up to a tenth of the interval
-/// early without letting the mean rate drift.
-#[derive(Debug, Clone, Copy, Default)]
-struct Schedule {
-    next: Option<Instant>,
-}
-
-impl Schedule {
-    /// Whether a message offered at `now` is due; if so, schedules the next one.
-    fn due(&mut self, interval: Duration, now: Instant) -> bool {
-        match self.next {
-            Some(next) if now + interval / 10 < next => false,
-            Some(next) => {
-                // After a gap of a whole interval (a stalled device), a new grid from
-                // now rather than a burst to catch up.
-                let following = next + interval;
-                self.next = Some(if following <= now {
-                    now + interval
-                } else {
-                    following
-                });
-                true
-            }
-            None => {
-                self.next = Some(now + interval);
-                true
-            }
-        }
-    }
+    readings_due: HashMap<usize, Grid>,
+    health_due: Grid,
 }
 
 impl MqttObserver {
@@ -122,7 +88,7 @@ impl MqttObserver {
             interval: secs(cfg.publish_interval_s),
             tx,
             readings_due: HashMap::new(),
-            health_due: Schedule::default(),
+            health_due: Grid::default(),
         }
     }
 
@@ -492,7 +458,7 @@ mod tests {
     /// How many of `ticks` (seconds after a start) a schedule of `interval_s` takes.
     fn taken(interval_s: f64, ticks: impl IntoIterator<Item = f64>) -> usize {
         let start = Instant::now();
-        let mut s = Schedule::default();
+        let mut s = Grid::default();
         let interval = Duration::from_secs_f64(interval_s);
         ticks
             .into_iter()

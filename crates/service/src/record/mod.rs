@@ -460,6 +460,40 @@ impl Drop for Recorder {
     }
 }
 
+/// When a periodic record or message is due: on a grid of the interval from the
+/// first one, so the mean rate is the interval's. The ticks that offer it (polls,
+/// status ticks) jitter by microseconds; measured from the last one taken, a tick a
+/// little early waited a whole further tick (1 s, 2 s, 1 s, ... with ticks at the
+/// interval), so a tick up to a tenth of the interval early counts. After a gap of a
+/// whole interval (a device away) the next tick starts a new grid, with no burst to
+/// catch up.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Grid {
+    next: Option<Instant>,
+}
+
+impl Grid {
+    /// Whether the tick at `now` is due; if so, schedules the next one.
+    pub fn due(&mut self, interval: Duration, now: Instant) -> bool {
+        match self.next {
+            Some(next) if now + interval / 10 < next => false,
+            Some(next) => {
+                let following = next + interval;
+                self.next = Some(if following <= now {
+                    now + interval
+                } else {
+                    following
+                });
+                true
+            }
+            None => {
+                self.next = Some(now + interval);
+                true
+            }
+        }
+    }
+}
+
 /// A clock of the recorder: ms since the Unix epoch.
 pub type Clock = Arc<dyn Fn() -> i64 + Send + Sync>;
 
@@ -471,7 +505,7 @@ pub struct RecordObserver {
     /// Least time between two recorded cycles of a device.
     interval: Duration,
     /// Per device index: when its next cycle is due to be recorded.
-    next_due: Vec<Option<Instant>>,
+    next_due: Vec<Grid>,
     /// Per axis: the count of NC reads last recorded.
     nc_reads: Vec<u64>,
 }
@@ -504,23 +538,9 @@ impl RecordObserver {
             return true;
         }
         if self.next_due.len() <= device {
-            self.next_due.resize(device + 1, None);
+            self.next_due.resize(device + 1, Grid::default());
         }
-        let slot = &mut self.next_due[device];
-        match *slot {
-            Some(due) if now < due => false,
-            _ => {
-                // On the grid of the first recorded cycle, so poll jitter does not
-                // stretch the spacing; a device that was away starts a new grid.
-                let next = slot.unwrap_or(now) + self.interval;
-                *slot = Some(if next <= now {
-                    now + self.interval
-                } else {
-                    next
-                });
-                true
-            }
-        }
+        self.next_due[device].due(self.interval, now)
     }
 }
 
