@@ -87,7 +87,8 @@ pub fn quality_code(q: &Quality) -> (u8, Option<&'static str>) {
 pub struct Row {
     /// Channel: index into the cycle's `names`.
     pub channel: u32,
-    /// Raw register value.
+    /// Raw register value. SQLite stores a NaN as NULL, like `None`: the reason
+    /// (`not finite` against `comm` and the like) tells them apart.
     pub raw: Option<f64>,
     /// Temperature before filtering, degC.
     pub unfiltered_degc: Option<f64>,

@@ -17,7 +17,7 @@ CREATE TABLE IF NOT EXISTS channels (
 CREATE TABLE IF NOT EXISTS readings (
     t_unix_ms       INTEGER NOT NULL,
     channel         INTEGER NOT NULL REFERENCES channels(id),
-    raw             REAL,
+    raw             REAL,     -- NULL: no value (reason comm, ...) or NaN (reason 'not finite')
     unfiltered_degc REAL,
     value_degc      REAL,
     quality         INTEGER NOT NULL, -- 0 good, 1 uncertain, 2 bad

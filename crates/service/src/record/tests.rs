@@ -712,3 +712,44 @@ fn one_nc_row_per_read_of_the_nc_not_per_status() {
         .expect("nc rows");
     assert_eq!(rows, 3);
 }
+
+// SQLite stores a NaN as NULL: a NaN raw value is told apart from a device that gave
+// none by its reason, `not finite` (quality bad), not by `raw`; an infinite one is
+// stored as it came.
+#[test]
+fn a_nan_raw_value_is_null_with_reason_not_finite_and_a_comm_failure_is_not() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut conn = open(&dir.path().join("n.db")).expect("opens");
+    let names: Arc<[String]> = vec!["T_nan".into(), "T_inf".into(), "T_comm".into()].into();
+    let bad = |channel, raw, reason| Row {
+        channel,
+        raw,
+        unfiltered_degc: raw,
+        value_degc: Some(20.0),
+        quality: 2,
+        reason: Some(reason),
+    };
+    let not_finite = compgate_core::channel::Reason::NotFinite.as_str();
+    let comm = compgate_core::channel::Reason::Comm.as_str();
+    let cycle = Record::Cycle {
+        t_unix_ms: 1_000,
+        names,
+        rows: vec![
+            bad(0, Some(f64::NAN), not_finite),
+            bad(1, Some(f64::INFINITY), not_finite),
+            bad(2, None, comm),
+        ],
+    };
+    schema::insert(&mut conn, &mut schema::Statements::default(), &[cycle]).expect("inserted");
+    let row = |name: &str| -> (Option<f64>, u8, String) {
+        conn.query_row(
+            "SELECT raw, quality, reason FROM readings r JOIN channels c ON c.id = r.channel WHERE c.name = ?1",
+            [name],
+            |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+        )
+        .expect("reading")
+    };
+    assert_eq!(row("T_nan"), (None, 2, "not finite".into()));
+    assert_eq!(row("T_inf"), (Some(f64::INFINITY), 2, "not finite".into()));
+    assert_eq!(row("T_comm"), (None, 2, "comm".into()));
+}
