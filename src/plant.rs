@@ -8,11 +8,12 @@
 //! fresh pseudo-terminal, and the returned config names the addresses really used, so
 //! any number of plants can run side by side. With [`Bind::AsConfigured`] the servers
 //! bind the configured addresses and each RTU line's configured path becomes a symlink
-//! to its pseudo-terminal.
+//! to its pseudo-terminal; a path that exists and is not such a link is refused.
 
 use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
 
-use compgate_plc::canopen::{CanopenNode, MAX_PDO_TRANSMITTERS};
+use compgate_plc::canopen::{CanopenError, CanopenNode, MAX_PDO_TRANSMITTERS};
 use compgate_plc::field::{
     self, FieldModule, FieldModuleSpec, Profile, TransmitterSpec, COUNTS_BASE,
 };
@@ -71,7 +72,8 @@ pub struct Plant {
     shutdown: CancellationToken,
     // Slave ends of the ptys: the line dies when the last one closes.
     _ptys: Vec<tokio_serial::SerialStream>,
-    symlinks: Vec<std::path::PathBuf>,
+    /// The links made for RTU lines and the ptys they point at.
+    symlinks: Vec<(PathBuf, PathBuf)>,
 }
 
 impl Drop for Plant {
@@ -80,10 +82,68 @@ impl Drop for Plant {
         for node in self.can.values() {
             node.stop();
         }
-        for l in &self.symlinks {
-            let _ = std::fs::remove_file(l);
+        // Only a link that still points at this plant's pty: one replaced meanwhile
+        // (udev, another plant) is not this plant's to remove.
+        for (link, pty) in &self.symlinks {
+            if std::fs::read_link(link).is_ok_and(|t| t == *pty) {
+                let _ = std::fs::remove_file(link);
+            }
         }
     }
+}
+
+/// Where pseudo-terminals live: a link into it is one an earlier `sim` made.
+const PTY_DIR: &str = "/dev/pts";
+
+/// Makes room for an RTU line's link at `link`: nothing there, or a link into
+/// [`PTY_DIR`] that an earlier `sim` left (it is removed). Anything else, say a udev
+/// link `/dev/serial/by-id/...` to a real adapter, is refused with the reason: replacing
+/// it, and removing it at exit, would take the adapter from the gateway until replug.
+fn clear_own_link(link: &Path) -> Result<(), String> {
+    let meta = match link.symlink_metadata() {
+        Ok(m) => m,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(e.to_string()),
+    };
+    let refuse = |what: String| {
+        Err(format!(
+            "{what} `compgate sim` made (those point into {PTY_DIR}); sim replaces only \
+             its own links, never a real adapter's: give the simulated line a free path \
+             as serial_path"
+        ))
+    };
+    if !meta.file_type().is_symlink() {
+        return refuse("exists and is not a link".into());
+    }
+    match std::fs::read_link(link) {
+        Ok(target) if target.starts_with(PTY_DIR) => {
+            std::fs::remove_file(link).map_err(|e| format!("cannot remove the stale link: {e}"))
+        }
+        Ok(target) => refuse(format!("is a link to {}, not one", target.display())),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
+/// How to bring up `interface` with the script the project ships (its usage:
+/// `can-up.sh IFACE [BITRATE]`, a vcan needing no bitrate).
+fn can_up_hint(interface: &str) -> String {
+    let bitrate = if interface.starts_with("vcan") {
+        ""
+    } else {
+        " BITRATE"
+    };
+    format!("bring it up first: sudo deploy/can/can-up.sh {interface}{bitrate}")
+}
+
+/// The config key of the serial line at `path`: the first RTU device on it.
+fn rtu_key(cfg: &Config, path: &str) -> String {
+    cfg.devices
+        .iter()
+        .find(|(_, d)| matches!(d, DeviceConfig::Rtu(r) if r.serial_path == path))
+        .map_or_else(
+            || format!("serial line {path}"),
+            |(name, _)| format!("devices.{name}.serial_path"),
+        )
 }
 
 /// The transmitter index a channel reads, from the field module's register layout.
@@ -259,7 +319,12 @@ impl Plant {
                     let node = CanopenNode::spawn(&interface, can.node_id, heartbeat_ms, module)
                         .map_err(|e| PlantError::Io {
                             what: format!("devices.{dev_name}"),
-                            message: e.to_string(),
+                            message: match e {
+                                CanopenError::Socket { .. } => {
+                                    format!("{e}; {}", can_up_hint(&interface))
+                                }
+                                e => e.to_string(),
+                            },
                         })?;
                     plant.can.insert(dev_name.clone(), node);
                 }
@@ -275,17 +340,15 @@ impl Plant {
                 Bind::Ephemeral => pty_path,
                 Bind::AsConfigured => {
                     let link = std::path::PathBuf::from(&path);
-                    if link
-                        .symlink_metadata()
-                        .is_ok_and(|m| m.file_type().is_symlink())
-                    {
-                        let _ = std::fs::remove_file(&link);
-                    }
+                    clear_own_link(&link).map_err(|why| PlantError::Io {
+                        what: rtu_key(cfg, &path),
+                        message: format!("{path}: {why}"),
+                    })?;
                     std::os::unix::fs::symlink(&pty_path, &link).map_err(|e| PlantError::Io {
                         what: what.clone(),
                         message: format!("cannot link {path} to {pty_path}: {e}"),
                     })?;
-                    plant.symlinks.push(link);
+                    plant.symlinks.push((link, pty_path.into()));
                     path.clone()
                 }
             };

@@ -9,7 +9,7 @@
 //! | `compgate_device_errors_total` | counter | device, kind | failed requests by kind, retries included: timeout, deadline, frame, transport, connect, exception; `backoff`: a cycle the reconnect backoff refused |
 //! | `compgate_channel_value_degc` | gauge | channel | filtered temperature (NaN without a value), every `gateway.status_interval_s` |
 //! | `compgate_channel_quality` | gauge | channel | 0 good, 1 uncertain, 2 bad, every `gateway.status_interval_s` |
-//! | `compgate_axis_sd43900_mm`, `compgate_axis_sd43910`, `compgate_axis_sd43920_mm` | gauge | axis | parameters last written and verified |
+//! | `compgate_axis_sd43900_mm`, `compgate_axis_sd43910`, `compgate_axis_sd43920_mm` | gauge | axis | parameters last written and verified (what the NC held at start before the first job) |
 //! | `compgate_axis_shadow` | gauge | axis | 1 when the axis runs in shadow mode (computes, never writes the NC) |
 //! | `compgate_axis_shadow_sd43900_mm`, `compgate_axis_shadow_sd43910`, `compgate_axis_shadow_sd43920_mm` | gauge | axis | shadow mode: the parameters the axis would have written last |
 //! | `compgate_nc_jobs_total` | counter | axis, result (`ok`/`failed`/`shadow`) | NC job outcomes; `shadow`: computed, not sent |
@@ -229,6 +229,9 @@ pub struct MetricsObserver {
     cycle: Option<Histogram>,
     recorder: Option<Arc<RecorderStats>>,
     recorder_counters: Option<[Counter; 4]>,
+    /// Per axis, the parameters the status carried when the gauges were last set from
+    /// it: what the NC held at start counts as written until the first job.
+    axis_written: Vec<Option<CompParams>>,
 }
 
 impl MetricsObserver {
@@ -320,16 +323,21 @@ impl Observer for MetricsObserver {
                     poll: histogram!("compgate_device_poll_seconds", "device" => d.name.clone()),
                 })
                 .collect();
-            // What the NC held at start counts as written until the first job.
             for a in &status.axes {
-                if let Some(p) = &a.written {
-                    set_params(&a.name, p);
-                }
                 gauge!("compgate_axis_shadow", "axis" => a.name.clone()).set(if a.shadow {
                     1.0
                 } else {
                     0.0
                 });
+            }
+        }
+        // Whenever the status carries new values, not only when the handles are made:
+        // the first status comes before the NC's start read.
+        self.axis_written.resize(status.axes.len(), None);
+        for (last, a) in self.axis_written.iter_mut().zip(&status.axes) {
+            if let Some(p) = a.written.filter(|p| *last != Some(*p)) {
+                set_params(&a.name, &p);
+                *last = Some(p);
             }
         }
         if let Some(stats) = &self.recorder {
@@ -352,6 +360,7 @@ impl Observer for MetricsObserver {
     fn on_reload(&mut self, _result: &Result<(), GatewayError>) {
         self.channels.clear();
         self.devices.clear();
+        self.axis_written.clear();
     }
 }
 

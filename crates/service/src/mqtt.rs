@@ -34,7 +34,7 @@ use serde_json::json;
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 
-use crate::record::{now_unix_ms, quality_code, Record, RecordSender};
+use crate::record::{now_unix_ms, quality_code, Grid, Record, RecordSender};
 use crate::ServiceError;
 use compgate_core::comp::CompParams;
 use compgate_gateway::config::{secs, MqttConfig};
@@ -75,9 +75,9 @@ pub struct MqttObserver {
     base: String,
     interval: Duration,
     tx: RecordSender,
-    /// Per device index: last readings message.
-    last_reading: HashMap<usize, Instant>,
-    last_health: Option<Instant>,
+    /// Per device index: when its next readings message is due.
+    readings_due: HashMap<usize, Grid>,
+    health_due: Grid,
 }
 
 impl MqttObserver {
@@ -87,8 +87,8 @@ impl MqttObserver {
             base: format!("{}/{}", cfg.topic_prefix, cfg.machine),
             interval: secs(cfg.publish_interval_s),
             tx,
-            last_reading: HashMap::new(),
-            last_health: None,
+            readings_due: HashMap::new(),
+            health_due: Grid::default(),
         }
     }
 
@@ -120,19 +120,14 @@ impl MqttObserver {
             payload: payload.to_string(),
         });
     }
-
-    fn due(last: Option<&Instant>, interval: Duration, now: Instant) -> bool {
-        last.is_none_or(|t| now.saturating_duration_since(*t) >= interval)
-    }
 }
 
 impl Observer for MqttObserver {
     fn on_sample(&mut self, readings: &SampleReadings) {
-        let now = Instant::now();
-        if !Self::due(self.last_reading.get(&readings.device), self.interval, now) {
+        let due = self.readings_due.entry(readings.device).or_default();
+        if !due.due(self.interval, Instant::now()) {
             return;
         }
-        self.last_reading.insert(readings.device, now);
         let device = &*readings.device_name;
         let channels: Vec<ChannelMsg<'_>> = readings
             .named()
@@ -172,11 +167,9 @@ impl Observer for MqttObserver {
     }
 
     fn on_status(&mut self, status: &Status) {
-        let now = Instant::now();
-        if !Self::due(self.last_health.as_ref(), self.interval, now) {
+        if !self.health_due.due(self.interval, Instant::now()) {
             return;
         }
-        self.last_health = Some(now);
         let healthy = status
             .devices
             .iter()
@@ -209,7 +202,7 @@ impl Observer for MqttObserver {
 
     fn on_reload(&mut self, _result: &Result<(), GatewayError>) {
         // Device indices may have moved.
-        self.last_reading.clear();
+        self.readings_due.clear();
     }
 }
 
@@ -461,6 +454,36 @@ async fn session(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// How many of `ticks` (seconds after a start) a schedule of `interval_s` takes.
+    fn taken(interval_s: f64, ticks: impl IntoIterator<Item = f64>) -> usize {
+        let start = Instant::now();
+        let mut s = Grid::default();
+        let interval = Duration::from_secs_f64(interval_s);
+        ticks
+            .into_iter()
+            .filter(|&t| s.due(interval, start + Duration::from_secs_f64(t)))
+            .count()
+    }
+
+    #[test]
+    fn a_tick_a_little_early_is_not_skipped() {
+        // Ticks every second, alternately 30 us early and late: every one is due
+        // (measured from the last message every other one was skipped).
+        let jitter = |i: u32| if i.is_multiple_of(2) { 30e-6 } else { -30e-6 };
+        assert_eq!(taken(1.0, (0..100).map(|i| f64::from(i) + jitter(i))), 100);
+    }
+
+    #[test]
+    fn the_mean_rate_is_the_interval_whatever_the_tick() {
+        // 0.3 s polls for 60 s: one message a second.
+        let n = taken(1.0, (0..200).map(|i| f64::from(i) * 0.3));
+        assert!((60..=61).contains(&n), "{n}");
+        // Ticks slower than the interval: each one.
+        assert_eq!(taken(1.0, (0..10).map(|i| f64::from(i) * 2.0)), 10);
+        // After a gap, one message and a new grid, no burst to catch up.
+        assert_eq!(taken(1.0, [0.0, 1.0, 10.0, 10.1, 10.5, 11.0]), 4);
+    }
 
     #[test]
     fn readings_payload_is_the_documented_json() {

@@ -543,6 +543,43 @@ impl Source for CaseRestoredEnv {
     }
 }
 
+/// ` (environment: VAR)` when a `COMPGATE__...` variable of the process environment
+/// set `key` (as problems name it, e.g. `recorder.path`; no array element), else `""`:
+/// a check made after loading (the recorder's path on the file system) says where the
+/// value came from, as the problems of loading do.
+pub fn env_note(key: &str) -> String {
+    let env = std::env::vars_os()
+        .filter_map(|(k, v)| Some((k.into_string().ok()?, v.into_string().ok()?)));
+    env_suffix(&env_vars_setting(env, key))
+}
+
+/// The variables of `env` that set `key`, sorted. An empty one sets nothing.
+fn env_vars_setting(env: impl IntoIterator<Item = (String, String)>, key: &str) -> Vec<String> {
+    let pattern = format!("{ENV_PREFIX}{ENV_SEPARATOR}").to_lowercase();
+    let key = key.to_lowercase();
+    let mut vars: Vec<String> = env
+        .into_iter()
+        .filter(|(name, value)| {
+            !value.is_empty()
+                && name
+                    .to_lowercase()
+                    .strip_prefix(&pattern)
+                    .is_some_and(|rest| rest.replace(ENV_SEPARATOR, ".") == key)
+        })
+        .map(|(name, _)| name)
+        .collect();
+    vars.sort();
+    vars
+}
+
+fn env_suffix(vars: &[String]) -> String {
+    if vars.is_empty() {
+        String::new()
+    } else {
+        format!(" (environment: {})", vars.join(", "))
+    }
+}
+
 /// Says which environment variables touched the key of a problem, and which created
 /// the entry it lies in: a key missing from an entry the file does not have is not the
 /// file's fault.
@@ -559,10 +596,7 @@ fn annotate_env(p: &mut ConfigProblem, overrides: &[EnvOverride]) {
             (is_under(&p.key, &k) || is_under(&k, &p.key)).then(|| o.var.clone())
         })
         .collect();
-    if !vars.is_empty() {
-        p.message
-            .push_str(&format!(" (environment: {})", vars.join(", ")));
-    }
+    p.message.push_str(&env_suffix(&vars));
 }
 
 /// Why an environment variable's name does not fit the file.

@@ -75,7 +75,7 @@ mod sim;
 mod structure;
 mod warnings;
 
-pub use load::{load, load_str, load_str_with_env, load_with_env};
+pub use load::{env_note, load, load_str, load_str_with_env, load_with_env};
 pub use problem::{ConfigError, ConfigProblem};
 pub use root::validate;
 pub use schema::*;

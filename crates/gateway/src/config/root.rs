@@ -314,8 +314,8 @@ pub(crate) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
         known: &known,
         list: &channel_list,
     };
-    // (target, axis number) -> axis already on it.
-    let mut carried: BTreeMap<(&str, Option<u16>), &str> = BTreeMap::new();
+    // (target, axis number) -> the axes already on it.
+    let mut carried: BTreeMap<(&str, Option<u16>), Vec<&String>> = BTreeMap::new();
     for (name, axis) in &cfg.axes {
         let module = axis.nc_module.as_str();
         let target = cfg.target(module);
@@ -339,16 +339,25 @@ pub(crate) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> 
                             t.kind().name()
                         ),
                     );
-                } else if let Some(other) = carried.insert((module, number), name) {
-                    let message = if t.one_axis() {
-                        format!("NC module `{module}` already carries axis `{other}`; one axis per module")
-                    } else {
-                        format!(
-                            "axis `{other}` already has axis_number {} on target `{module}`",
-                            number.unwrap_or_default()
-                        )
-                    };
-                    out.push(field("axes", name, "nc_module"), message);
+                } else {
+                    let before = carried.entry((module, number)).or_default();
+                    if !before.is_empty() {
+                        // Every axis before this one: with three on one module, the
+                        // third's message names both others.
+                        let others = list(before.iter().copied());
+                        let axes = if before.len() == 1 { "axis" } else { "axes" };
+                        let message = if t.one_axis() {
+                            format!("NC module `{module}` already carries {axes} {others}; one axis per module")
+                        } else {
+                            format!(
+                                "{axes} {others} already {} axis_number {} on target `{module}`",
+                                if before.len() == 1 { "has" } else { "have" },
+                                number.unwrap_or_default()
+                            )
+                        };
+                        out.push(field("axes", name, "nc_module"), message);
+                    }
+                    before.push(name);
                 }
                 for &v in &axis.nc_write_ids() {
                     if !t.has(v) {

@@ -25,10 +25,10 @@ pub struct RecorderConfig {
     #[serde(default = "default_commit_interval_s")]
     #[schemars(range(min = 0.001, max = 1.0))]
     pub commit_interval_s: f64,
-    /// Seconds between the recorded poll cycles of one device: a cycle is recorded
-    /// when this long has passed since the device's last recorded one, so a device
-    /// polled every 10 ms can be kept once a second (0 = every cycle). Jobs and NC
-    /// positions are always recorded. Default 0; 0..=3600.
+    /// Seconds between the recorded poll cycles of one device: cycles are recorded on
+    /// a grid of this period (one up to a tenth of it early counts, so polls at this
+    /// period are all kept), so a device polled every 10 ms can be kept once a second
+    /// (0 = every cycle). Jobs and NC positions are always recorded. Default 0; 0..=3600.
     #[serde(default)]
     #[schemars(range(min = 0.0, max = 3600.0))]
     pub interval_s: f64,

@@ -168,7 +168,6 @@ impl<W: NcWriter> Guarded<W> {
         from: Option<&CompParams>,
     ) -> Result<JobReport, NcError> {
         self.check(job)?;
-        let job_id = self.job_ids.issue();
         let started = Instant::now();
         let deadline = started + self.job_timeout;
         let timeout = self.job_timeout;
@@ -176,7 +175,13 @@ impl<W: NcWriter> Guarded<W> {
             let before = match tokio::time::timeout_at(deadline, self.writer.read_snapshot()).await
             {
                 Ok(result) => result?,
-                Err(_) => return Err(NcError::CheckTimeout { job_id, timeout }),
+                // Nothing sent: the id stays the next job's.
+                Err(_) => {
+                    return Err(NcError::CheckTimeout {
+                        job_id: self.job_ids.peek(),
+                        timeout,
+                    })
+                }
             };
             let held = before.thermal();
             let want = Job::thermal(from);
@@ -193,17 +198,21 @@ impl<W: NcWriter> Guarded<W> {
                 }
             }
         }
-        self.write_checked(job, job_id, started, deadline).await
+        self.write_checked(job, started, deadline).await
     }
 
     /// The write and its read-back within `deadline`.
     async fn write_checked(
         &mut self,
         job: &Job,
-        job_id: u16,
         started: Instant,
         deadline: Instant,
     ) -> Result<JobReport, NcError> {
+        // Issued only for a job handed to the writer: a writer with a handshake id
+        // (Modbus, S7) issues one per job handed to it, so the two stay equal and the
+        // id recorded is the one the NC saw (one issued for a job refused before it
+        // went out put every later id one ahead of the NC's JOB_ID_DONE).
+        let job_id = self.job_ids.issue();
         let timeout = self.job_timeout;
         // One deadline, two phases: a write the target acknowledged and whose
         // read-back ran late is told apart from a write that never finished.

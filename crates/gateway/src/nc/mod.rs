@@ -359,6 +359,11 @@ impl JobIds {
         self.0 = self.0.checked_add(1).unwrap_or(1);
         id
     }
+
+    /// The id the next job will get, not issued.
+    pub fn peek(&self) -> u16 {
+        self.0
+    }
 }
 
 /// What a finished job reports.

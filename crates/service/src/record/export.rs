@@ -6,7 +6,9 @@
 //! before that time with a usable quality (good or uncertain), so a bad reading
 //! never reaches a model fit. A reading without a raw value (the device did not
 //! answer: the gateway held the value, quality `comm` and the like) is no
-//! measurement: it does not refresh the value's age. Rows where a channel has had no
+//! measurement: it does not refresh the value's age. A NaN raw value is NULL in the
+//! database too (SQLite has no NaN), but its reading is bad (`not finite`): it is left
+//! out as bad, which is the same outcome. Rows where a channel has had no
 //! usable value yet, or none for `--max-hold-s`, are left out: a value held across a
 //! gap in the record (the gateway stopped, a device away, a sensor bad for an hour)
 //! would be a measurement nobody made. An export without a row is an error, and so is

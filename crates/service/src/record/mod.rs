@@ -87,7 +87,8 @@ pub fn quality_code(q: &Quality) -> (u8, Option<&'static str>) {
 pub struct Row {
     /// Channel: index into the cycle's `names`.
     pub channel: u32,
-    /// Raw register value.
+    /// Raw register value. SQLite stores a NaN as NULL, like `None`: the reason
+    /// (`not finite` against `comm` and the like) tells them apart.
     pub raw: Option<f64>,
     /// Temperature before filtering, degC.
     pub unfiltered_degc: Option<f64>,
@@ -284,11 +285,12 @@ pub struct Recorder {
 /// `path` (as [`resolve_path`] gives it): its directory exists and is writable
 /// (SQLite creates the `-wal` and `-shm` files there, the recorder its lock file),
 /// and the database, if it exists, is a writable file. `validate` runs it, so a
-/// config that `run` would refuse does not pass.
+/// config that `run` would refuse does not pass. A problem names the environment
+/// variable that set `recorder.path`, if one did.
 pub fn check_path(path: &Path) -> Result<(), RecordError> {
     let problem = |message: String| RecordError::Path {
         path: path.display().to_string(),
-        message,
+        message: message + &compgate_gateway::config::env_note("recorder.path"),
     };
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
@@ -481,6 +483,40 @@ impl Drop for Recorder {
     }
 }
 
+/// When a periodic record or message is due: on a grid of the interval from the
+/// first one, so the mean rate is the interval's. The ticks that offer it (polls,
+/// status ticks) jitter by microseconds; measured from the last one taken, a tick a
+/// little early waited a whole further tick (1 s, 2 s, 1 s, ... with ticks at the
+/// interval), so a tick up to a tenth of the interval early counts. After a gap of a
+/// whole interval (a device away) the next tick starts a new grid, with no burst to
+/// catch up.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Grid {
+    next: Option<Instant>,
+}
+
+impl Grid {
+    /// Whether the tick at `now` is due; if so, schedules the next one.
+    pub fn due(&mut self, interval: Duration, now: Instant) -> bool {
+        match self.next {
+            Some(next) if now + interval / 10 < next => false,
+            Some(next) => {
+                let following = next + interval;
+                self.next = Some(if following <= now {
+                    now + interval
+                } else {
+                    following
+                });
+                true
+            }
+            None => {
+                self.next = Some(now + interval);
+                true
+            }
+        }
+    }
+}
+
 /// A clock of the recorder: ms since the Unix epoch.
 pub type Clock = Arc<dyn Fn() -> i64 + Send + Sync>;
 
@@ -492,7 +528,7 @@ pub struct RecordObserver {
     /// Least time between two recorded cycles of a device.
     interval: Duration,
     /// Per device index: when its next cycle is due to be recorded.
-    next_due: Vec<Option<Instant>>,
+    next_due: Vec<Grid>,
     /// Per axis: the count of NC reads last recorded.
     nc_reads: Vec<u64>,
 }
@@ -525,23 +561,9 @@ impl RecordObserver {
             return true;
         }
         if self.next_due.len() <= device {
-            self.next_due.resize(device + 1, None);
+            self.next_due.resize(device + 1, Grid::default());
         }
-        let slot = &mut self.next_due[device];
-        match *slot {
-            Some(due) if now < due => false,
-            _ => {
-                // On the grid of the first recorded cycle, so poll jitter does not
-                // stretch the spacing; a device that was away starts a new grid.
-                let next = slot.unwrap_or(now) + self.interval;
-                *slot = Some(if next <= now {
-                    now + self.interval
-                } else {
-                    next
-                });
-                true
-            }
-        }
+        self.next_due[device].due(self.interval, now)
     }
 }
 

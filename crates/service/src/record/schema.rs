@@ -17,7 +17,7 @@ CREATE TABLE IF NOT EXISTS channels (
 CREATE TABLE IF NOT EXISTS readings (
     t_unix_ms       INTEGER NOT NULL,
     channel         INTEGER NOT NULL REFERENCES channels(id),
-    raw             REAL,
+    raw             REAL,     -- NULL: no value (reason comm, ...) or NaN (reason 'not finite')
     unfiltered_degc REAL,
     value_degc      REAL,
     quality         INTEGER NOT NULL, -- 0 good, 1 uncertain, 2 bad
@@ -31,7 +31,7 @@ CREATE TABLE IF NOT EXISTS jobs (
     sd43910    REAL NOT NULL,
     sd43920_mm REAL NOT NULL,
     ok         INTEGER NOT NULL,
-    job_id     INTEGER,
+    job_id     INTEGER, -- the NC handshake's 16-bit id: from 1 at each start, no key
     elapsed_ms REAL,
     error      TEXT,
     shadow     INTEGER NOT NULL DEFAULT 0 -- 1: shadow mode, computed and not sent (ok 0)

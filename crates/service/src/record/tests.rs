@@ -103,9 +103,10 @@ fn multi_row_inserts_keep_every_reading_under_its_channel_name() {
 }
 
 // A device polled every 10 ms, recorded once a second: on a grid, so poll jitter does
-// not stretch the spacing; each device on its own grid; zero records every cycle.
+// not stretch the spacing; each device on its own grid; zero records every cycle. One
+// polled once a second is recorded every second, not every other one.
 #[test]
-fn the_observer_records_a_device_at_most_every_interval() {
+fn the_observer_records_a_device_once_per_interval_on_a_grid() {
     let dir = tempfile::tempdir().expect("tempdir");
     let cfg = RecorderConfig {
         path: dir.path().join("r.db").display().to_string(),
@@ -116,17 +117,22 @@ fn the_observer_records_a_device_at_most_every_interval() {
     let t0 = Instant::now();
     let ms = |m: u64| t0 + Duration::from_millis(m);
     let recorded: Vec<u64> = (0..300u64)
-        // Every other poll 1 ms early: 999 ms is not yet due, 1010 is.
+        // Every other poll 1 ms early: a poll up to a tenth of the interval before
+        // its due time is taken (899 ms is too early, 910 is not), the grid stays.
         .map(|k| k * 10 - u64::from(k % 2 == 0 && k > 0))
         .filter(|&m| obs.due(0, ms(m)))
         .collect();
-    assert_eq!(recorded, [0, 1010, 2010]);
+    assert_eq!(recorded, [0, 910, 1910, 2910]);
     assert!(obs.due(3, ms(5)), "another device has its own grid");
     assert!(!obs.due(3, ms(900)));
     // Back after an outage: a new grid from its first cycle.
     assert!(obs.due(0, ms(7777)));
-    assert!(!obs.due(0, ms(8700)));
-    assert!(obs.due(0, ms(8777)));
+    assert!(!obs.due(0, ms(8600)));
+    assert!(obs.due(0, ms(8680)));
+    // Polled at the interval, a poll a little early is not skipped.
+    let mut at_interval = rec.observer().with_interval(Duration::from_secs(1));
+    let jitter = |k: u64| if k.is_multiple_of(2) { 0 } else { 2 };
+    assert!((0..10u64).all(|k| at_interval.due(0, ms(k * 1000 + 2 - jitter(k)))));
     let mut every = rec.observer();
     assert!((0..5).all(|k| every.due(0, ms(k))));
 }
@@ -705,4 +711,45 @@ fn one_nc_row_per_read_of_the_nc_not_per_status() {
         .query_row("SELECT count(*) FROM nc", [], |r| r.get(0))
         .expect("nc rows");
     assert_eq!(rows, 3);
+}
+
+// SQLite stores a NaN as NULL: a NaN raw value is told apart from a device that gave
+// none by its reason, `not finite` (quality bad), not by `raw`; an infinite one is
+// stored as it came.
+#[test]
+fn a_nan_raw_value_is_null_with_reason_not_finite_and_a_comm_failure_is_not() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut conn = open(&dir.path().join("n.db")).expect("opens");
+    let names: Arc<[String]> = vec!["T_nan".into(), "T_inf".into(), "T_comm".into()].into();
+    let bad = |channel, raw, reason| Row {
+        channel,
+        raw,
+        unfiltered_degc: raw,
+        value_degc: Some(20.0),
+        quality: 2,
+        reason: Some(reason),
+    };
+    let not_finite = compgate_core::channel::Reason::NotFinite.as_str();
+    let comm = compgate_core::channel::Reason::Comm.as_str();
+    let cycle = Record::Cycle {
+        t_unix_ms: 1_000,
+        names,
+        rows: vec![
+            bad(0, Some(f64::NAN), not_finite),
+            bad(1, Some(f64::INFINITY), not_finite),
+            bad(2, None, comm),
+        ],
+    };
+    schema::insert(&mut conn, &mut schema::Statements::default(), &[cycle]).expect("inserted");
+    let row = |name: &str| -> (Option<f64>, u8, String) {
+        conn.query_row(
+            "SELECT raw, quality, reason FROM readings r JOIN channels c ON c.id = r.channel WHERE c.name = ?1",
+            [name],
+            |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+        )
+        .expect("reading")
+    };
+    assert_eq!(row("T_nan"), (None, 2, "not finite".into()));
+    assert_eq!(row("T_inf"), (Some(f64::INFINITY), 2, "not finite".into()));
+    assert_eq!(row("T_comm"), (None, 2, "comm".into()));
 }

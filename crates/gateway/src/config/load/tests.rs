@@ -912,3 +912,52 @@ fn a_can_node_without_channels_may_stand_alone() {
     );
     load_str(&text, "can.toml").expect("a lone CAN node loads");
 }
+
+// A check after loading (the recorder's path) names the variable that set its key,
+// matched ignoring case as overrides are; an empty one sets nothing.
+#[test]
+fn the_variable_that_set_a_key_is_found_again() {
+    let vars = |pairs: &[(&str, &str)]| env_vars_setting(env(pairs), "recorder.path");
+    assert_eq!(
+        vars(&[
+            ("COMPGATE__RECORDER__PATH", "/x.db"),
+            ("COMPGATE__RECORDER__COMMIT_INTERVAL_S", "1"),
+            ("OTHER__RECORDER__PATH", "/y.db"),
+        ]),
+        ["COMPGATE__RECORDER__PATH"]
+    );
+    assert_eq!(
+        vars(&[("compgate__Recorder__path", "/x.db")]),
+        ["compgate__Recorder__path"]
+    );
+    assert!(vars(&[("COMPGATE__RECORDER__PATH", "")]).is_empty());
+    assert_eq!(
+        env_suffix(&["COMPGATE__RECORDER__PATH".into()]),
+        " (environment: COMPGATE__RECORDER__PATH)"
+    );
+    assert_eq!(env_suffix(&[]), "");
+}
+
+// Three axes with one axis_number on a several-axis target: the third names both.
+#[test]
+fn an_axis_number_taken_twice_names_every_axis_that_has_it() {
+    let axis = |name: &str| {
+        format!("\n[axes.{name}]\nnc_module = \"nc_x\"\naxis_number = 1\nmd32750 = 3\n")
+    };
+    let text = with_target(ADS, "axis_number = 1\n") + &axis("Y") + &axis("Z");
+    let p = problems(&text);
+    let at = |key: &str| {
+        p.iter()
+            .find(|p| p.key == key)
+            .map(|p| p.message.as_str())
+            .unwrap_or_else(|| panic!("no problem at {key}: {p:#?}"))
+    };
+    assert_eq!(
+        at("axes.Y.nc_module"),
+        "axis `X` already has axis_number 1 on target `nc_x`"
+    );
+    assert_eq!(
+        at("axes.Z.nc_module"),
+        "axes `X`, `Y` already have axis_number 1 on target `nc_x`"
+    );
+}

@@ -523,3 +523,29 @@ fn port_0_is_left_to_the_simulated_plant() {
         ["devices.ain1.address"]
     );
 }
+
+// With three axes on one NC module the third one's message names both others, not
+// only the one before it.
+#[test]
+fn an_axis_on_a_taken_module_names_every_axis_already_on_it() {
+    let m = messages_after(|c| {
+        let x = c.axes["X"].clone();
+        c.axes.insert("Y".into(), x.clone());
+        c.axes.insert("Z".into(), x);
+    });
+    let on = |key: &str| {
+        m.iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, msg)| msg.as_str())
+            .unwrap_or_else(|| panic!("no problem at {key}: {m:#?}"))
+    };
+    assert_eq!(
+        on("axes.Y.nc_module"),
+        "NC module `nc_x` already carries axis `X`; one axis per module"
+    );
+    assert_eq!(
+        on("axes.Z.nc_module"),
+        "NC module `nc_x` already carries axes `X`, `Y`; one axis per module"
+    );
+    assert!(!m.iter().any(|(k, _)| k == "axes.X.nc_module"), "{m:#?}");
+}

@@ -104,6 +104,45 @@ fn open(interface: &str) -> std::io::Result<CanSocket> {
     Ok(socket)
 }
 
+/// What the journal says of a producer's faults: a line per change (the first fault,
+/// a different one, the recovery), never one per retry, as for a device's link; a
+/// missing interface would otherwise log at every backoff step for ever.
+#[derive(Debug, Default)]
+struct FaultLog {
+    /// The fault last logged; `None` while sending.
+    last: Option<String>,
+}
+
+impl FaultLog {
+    /// A failure described by `fault`: whether it is news (to log at WARN).
+    fn failed(&mut self, fault: String) -> bool {
+        let news = self.last.as_deref() != Some(fault.as_str());
+        self.last = Some(fault);
+        news
+    }
+
+    /// Logs `fault`: at WARN when it is news, at DEBUG on every further retry.
+    fn log(&mut self, interface: &str, fault: String, backoff: &Backoff, stats: &SyncStats) {
+        let retry_in_s = retry_in_s(backoff);
+        let failures = stats.open_errors + stats.send_errors;
+        if self.failed(fault.clone()) {
+            tracing::warn!(interface, retry_in_s, "SYNC producer: {fault}");
+        } else {
+            tracing::debug!(
+                interface,
+                retry_in_s,
+                failures,
+                "SYNC producer still failing: {fault}"
+            );
+        }
+    }
+
+    /// A SYNC sent: whether it ends a fault (to log at INFO).
+    fn sent(&mut self) -> bool {
+        self.last.take().is_some()
+    }
+}
+
 fn retry_in_s(backoff: &Backoff) -> f64 {
     backoff
         .remaining(Instant::now())
@@ -113,10 +152,10 @@ fn retry_in_s(backoff: &Backoff) -> f64 {
 
 /// Sends SYNC on `params.interface` every `params.period` until `stop` is cancelled.
 ///
-/// An open or send error is logged and closes the socket; the next attempt waits for
-/// the capped backoff (the ticks in between send nothing), so an interface that is
-/// down or gone costs one log line per backoff step, and SYNC resumes on the fixed
-/// grid once it is back.
+/// An open or send error closes the socket; the next attempt waits for the capped
+/// backoff (the ticks in between send nothing), and SYNC resumes on the fixed grid
+/// once the interface is back. A fault is logged at WARN once per change and its end
+/// at INFO; each further retry only at DEBUG.
 pub async fn run(params: SyncParams, stop: CancellationToken) -> SyncStats {
     let mut stats = SyncStats::default();
     let mut tick = tokio::time::interval(params.period);
@@ -127,8 +166,9 @@ pub async fn run(params: SyncParams, stop: CancellationToken) -> SyncStats {
     tick.set_missed_tick_behavior(MissedTickBehavior::Skip);
     let mut backoff = Backoff::new(params.backoff_initial, params.backoff_max);
     let mut socket: Option<CanSocket> = None;
-    let mut failing = false;
+    let mut faults = FaultLog::default();
     let iface = params.interface.as_str();
+
     loop {
         tokio::select! {
             biased;
@@ -147,9 +187,9 @@ pub async fn run(params: SyncParams, stop: CancellationToken) -> SyncStats {
                 }
                 Err(e) => {
                     stats.open_errors += 1;
-                    failing = true;
                     backoff.failed(now);
-                    tracing::warn!(interface = iface, error = %e, retry_in_s = retry_in_s(&backoff), "SYNC producer: cannot open the interface");
+                    let fault = format!("cannot open the interface: {e}");
+                    faults.log(iface, fault, &backoff, &stats);
                     continue;
                 }
             }
@@ -170,28 +210,26 @@ pub async fn run(params: SyncParams, stop: CancellationToken) -> SyncStats {
             Ok(Ok(())) => {
                 stats.sent += 1;
                 backoff.reset();
-                if failing {
-                    failing = false;
+                if faults.sent() {
                     tracing::info!(interface = iface, "SYNC producer: sending again");
                 }
             }
             Ok(Err(e)) => {
                 stats.send_errors += 1;
-                failing = true;
                 socket = None;
                 backoff.failed(Instant::now());
-                tracing::warn!(interface = iface, error = %e, retry_in_s = retry_in_s(&backoff), "SYNC producer: send failed, reopening");
+                let fault = format!("send failed, reopening: {e}");
+                faults.log(iface, fault, &backoff, &stats);
             }
             Err(_) => {
                 stats.send_errors += 1;
-                failing = true;
                 socket = None;
                 backoff.failed(Instant::now());
-                tracing::warn!(
-                    interface = iface,
-                    period_s = params.period.as_secs_f64(),
-                    "SYNC producer: send not done within a period, reopening"
+                let fault = format!(
+                    "send not done within a period ({} s), reopening",
+                    params.period.as_secs_f64()
                 );
+                faults.log(iface, fault, &backoff, &stats);
             }
         }
     }
@@ -245,6 +283,24 @@ mod tests {
             ]
         );
         assert!(plan(Vec::new()).is_empty());
+    }
+
+    #[test]
+    fn a_fault_is_logged_once_per_change_not_per_retry() {
+        let mut log = FaultLog::default();
+        assert!(!log.sent(), "no fault yet: nothing to recover from");
+        let gone = || "cannot open the interface: No such device (os error 19)".to_string();
+        assert!(log.failed(gone()));
+        // Every backoff step of the same fault: no further line.
+        for _ in 0..10 {
+            assert!(!log.failed(gone()));
+        }
+        // Another fault is news, and so is the recovery, once.
+        assert!(log.failed("send failed, reopening: Network is down (os error 100)".into()));
+        assert!(log.sent());
+        assert!(!log.sent());
+        // The same fault again after a recovery is a change again.
+        assert!(log.failed(gone()));
     }
 
     #[test]
