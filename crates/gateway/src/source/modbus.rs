@@ -871,14 +871,7 @@ mod tests {
     // the connection, and a later request of the same cycle fails at once.
     #[tokio::test]
     async fn the_cycle_deadline_cuts_a_request_and_the_rest_of_the_cycle() {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let address = listener.local_addr().unwrap().to_string();
-        let peer = tokio::spawn(async move {
-            let mut held = Vec::new();
-            while let Ok((s, _)) = listener.accept().await {
-                held.push(s);
-            }
-        });
+        let (address, peer) = silent_peer().await;
         let mut link = ModbusLink::new(
             LinkSpec::Tcp {
                 address,
@@ -910,14 +903,7 @@ mod tests {
     // device reported "poll cycle deadline ... passed", not its timeout.
     #[tokio::test]
     async fn the_first_request_of_a_cycle_gets_its_whole_timeout() {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let address = listener.local_addr().unwrap().to_string();
-        let peer = tokio::spawn(async move {
-            let mut held = Vec::new();
-            while let Ok((s, _)) = listener.accept().await {
-                held.push(s);
-            }
-        });
+        let (address, peer) = silent_peer().await;
         let timeout = Duration::from_millis(100);
         let mut link = tcp_link(address, timeout, Duration::from_millis(10));
         link.set_cycle_deadline(Some((Instant::now() + timeout, timeout)));
@@ -966,6 +952,19 @@ mod tests {
             }
         });
         (addr, task)
+    }
+
+    /// A peer that accepts connections, holds them and never answers: its address.
+    async fn silent_peer() -> (String, tokio::task::JoinHandle<()>) {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap().to_string();
+        let peer = tokio::spawn(async move {
+            let mut held = Vec::new();
+            while let Ok((s, _)) = listener.accept().await {
+                held.push(s);
+            }
+        });
+        (address, peer)
     }
 
     fn tcp_link(address: String, timeout: Duration, backoff: Duration) -> ModbusLink {
