@@ -14,7 +14,9 @@ use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 #[command(version, about, long_about = None)]
 pub struct Cli {
     /// Log filter (tracing EnvFilter syntax), e.g. "info" or "compgate=debug".
-    /// Defaults to RUST_LOG, else "info" ("warn" for the demo, to keep the status line clean).
+    /// Defaults to RUST_LOG, else "info" ("warn" for the demo, to keep the status line clean)
+    /// with tokio-modbus' and the OPC UA client's session warnings off (the gateway reports
+    /// those faults itself).
     #[arg(long, global = true)]
     pub log: Option<String>,
     /// What to do; the demo when omitted.
