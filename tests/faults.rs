@@ -99,6 +99,20 @@ fn max_jump(values: &[f64]) -> f64 {
         .fold(0.0, f64::max)
 }
 
+/// Waits (10 s at most) until the NC holds an SD43900 of at least `mm`; panics with
+/// `what` and the NC's state if it does not.
+async fn ramped_to(nc: &NcAxisModule, mm: f64, what: &str) {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    while nc.state().sd43900_mm < mm {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{what}: {:?}",
+            nc.state()
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+}
+
 /// Stops [`watch_nc`]'s watch and returns what the NC held, checked to have moved by at
 /// most `max_step_mm` at a time.
 fn stepped(seen: &Mutex<Vec<f64>>, stop: &CancellationToken, max_step_mm: f64) -> Vec<f64> {
@@ -315,27 +329,11 @@ async fn a_value_changed_between_reads_of_the_nc_is_never_stepped_over() {
         .unwrap();
     let nc = plant.nc["nc_x"].clone();
     let (rx, shutdown, h) = run_gateway(plant.config.clone());
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
-    while nc.state().sd43900_mm < 0.02 {
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "no ramp: {:?}",
-            nc.state()
-        );
-        tokio::time::sleep(Duration::from_millis(5)).await;
-    }
+    ramped_to(&nc, 0.02, "no ramp").await;
     nc.with_state(|a| a.sd43900_mm = 0.0);
     let stop_watch = CancellationToken::new();
     let seen = watch_nc(nc.clone(), stop_watch.clone());
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
-    while nc.state().sd43900_mm < 0.02 {
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "no ramp again: {:?}",
-            nc.state()
-        );
-        tokio::time::sleep(Duration::from_millis(5)).await;
-    }
+    ramped_to(&nc, 0.02, "no ramp again").await;
     let seen = stepped(&seen, &stop_watch, 0.005);
     assert!(seen.len() >= 4, "ramped again from 0 in steps: {seen:?}");
     drop(rx);
