@@ -284,9 +284,12 @@ pub struct Recorder {
 /// Checks, creating nothing, that the recorder can create or write its database at
 /// `path` (as [`resolve_path`] gives it): its directory exists and is writable
 /// (SQLite creates the `-wal` and `-shm` files there, the recorder its lock file),
-/// and the database, if it exists, is a writable file. `validate` runs it, so a
-/// config that `run` would refuse does not pass. A problem names the environment
-/// variable that set `recorder.path`, if one did.
+/// and the database, if it exists, is a writable regular file holding an SQLite
+/// database of the recorder's layout ([`schema::check`]: not a device such as
+/// `/dev/null`, not the config file, not an older layout). `validate` runs it, and
+/// `run` before it creates anything, so a config that `run` would refuse does not
+/// pass. A problem names the environment variable that set `recorder.path`, if one
+/// did.
 pub fn check_path(path: &Path) -> Result<(), RecordError> {
     let problem = |message: String| RecordError::Path {
         path: path.display().to_string(),
@@ -309,9 +312,15 @@ pub fn check_path(path: &Path) -> Result<(), RecordError> {
         }
         Ok(_) => {}
     }
-    if let Ok(m) = std::fs::metadata(path) {
+    let existing = std::fs::metadata(path).ok();
+    if let Some(m) = &existing {
         if m.is_dir() {
             return Err(problem("is a directory, not a database file".into()));
+        }
+        if !m.is_file() {
+            return Err(problem(
+                "is not a regular file (a device, a fifo or a socket): the recorder needs a database file of its own".into(),
+            ));
         }
         writable(path).map_err(|e| problem(format!("the database is not writable: {e}")))?;
     }
@@ -320,7 +329,20 @@ pub fn check_path(path: &Path) -> Result<(), RecordError> {
             "the directory {} is not writable (the database, its -wal and -shm files are created there): {e}",
             dir.display()
         ))
-    })
+    })?;
+    // An empty file is a new database to SQLite.
+    if existing.is_some_and(|m| m.len() > 0) {
+        // Read-write, not read-only: a read-only connection to a WAL database leaves
+        // its -wal and -shm files behind, the last read-write one removes them.
+        let flags =
+            rusqlite::OpenFlags::SQLITE_OPEN_READ_WRITE | rusqlite::OpenFlags::SQLITE_OPEN_NO_MUTEX;
+        let conn = Connection::open_with_flags(path, flags)
+            .map_err(|e| problem(format!("the database cannot be opened: {e}")))?;
+        conn.busy_timeout(schema::BUSY_TIMEOUT)
+            .map_err(|e| problem(e.to_string()))?;
+        schema::check(&conn).map_err(problem)?;
+    }
+    Ok(())
 }
 
 /// Whether this process may write `path` (permissions, ACLs, a read-only mount),

@@ -2,6 +2,7 @@
 
 use std::path::Path;
 use std::sync::Arc;
+use std::time::Duration;
 
 use rusqlite::{params, Connection, OptionalExtension, TransactionBehavior};
 
@@ -59,15 +60,23 @@ pub const PAGE_CACHE_KB: u32 = 1024;
 /// Prepared statements kept per connection.
 const STATEMENT_CACHE: usize = 32;
 
-/// Opens the database at `path` (creating it and its tables), in WAL mode.
+/// How long a statement waits for another connection's lock before it fails.
+pub const BUSY_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// Opens the database at `path` (creating it and its tables), in WAL mode. A file
+/// that is not a database of the recorder's layout ([`check`]) is refused before
+/// anything is written to it.
 pub fn open(path: &Path) -> Result<Connection, RecordError> {
     let err = |e: rusqlite::Error| RecordError::Open {
         path: path.display().to_string(),
         message: e.to_string(),
     };
     let conn = Connection::open(path).map_err(err)?;
-    conn.busy_timeout(std::time::Duration::from_secs(5))
-        .map_err(err)?;
+    conn.busy_timeout(BUSY_TIMEOUT).map_err(err)?;
+    check(&conn).map_err(|message| RecordError::Open {
+        path: path.display().to_string(),
+        message,
+    })?;
     // auto_vacuum only takes effect before the first table exists.
     conn.execute_batch("PRAGMA auto_vacuum = INCREMENTAL;")
         .map_err(err)?;
@@ -106,6 +115,72 @@ pub fn open(path: &Path) -> Result<Connection, RecordError> {
             .map_err(err)?;
     }
     Ok(conn)
+}
+
+/// Each table (but SQLite's own) with its columns, in order.
+fn tables(conn: &Connection) -> rusqlite::Result<Vec<(String, Vec<String>)>> {
+    let mut stmt = conn.prepare(
+        "SELECT m.name, p.name FROM sqlite_schema m, pragma_table_info(m.name) p
+         WHERE m.type = 'table' AND m.name NOT LIKE 'sqlite^_%' ESCAPE '^'
+         ORDER BY m.name, p.cid",
+    )?;
+    let mut tables: Vec<(String, Vec<String>)> = Vec::new();
+    let rows = stmt.query_map([], |r| Ok((r.get::<_, String>(0)?, r.get(1)?)))?;
+    for row in rows {
+        let (table, column) = row?;
+        match tables.last_mut() {
+            Some((t, columns)) if *t == table => columns.push(column),
+            _ => tables.push((table, vec![column])),
+        }
+    }
+    Ok(tables)
+}
+
+/// Why the database `conn` has open is not one the recorder can write into: not an
+/// SQLite database (or its schema unreadable), another program's tables, or a table of
+/// the recorder's without one of its columns (a layout older than this recorder, whose
+/// every commit would fail). A new, empty database passes; so does a recording that
+/// lacks a whole table or `jobs.shadow` (added since: [`open`] adds them). Reads only
+/// the schema, not every page: `PRAGMA quick_check` reads the whole file (about 3 s
+/// per GB from the page cache, 20 s per GB from the disk of the test machine), too
+/// long for each start and each reload's `validate`.
+pub fn check(conn: &Connection) -> Result<(), String> {
+    let found = tables(conn).map_err(|e| match e.sqlite_error_code() {
+        Some(rusqlite::ErrorCode::NotADatabase) => format!("is not an SQLite database ({e})"),
+        _ => format!("its tables cannot be read ({e}): the file is damaged"),
+    })?;
+    if found.is_empty() {
+        return Ok(());
+    }
+    let reference = Connection::open_in_memory()
+        .and_then(|mem| mem.execute_batch(SCHEMA).and_then(|()| tables(&mem)))
+        .map_err(|e| format!("the recorder's layout: {e}"))?;
+    let ours = |t: &str| reference.iter().any(|(r, _)| r == t);
+    if !found.iter().any(|(t, _)| ours(t)) {
+        let names: Vec<&str> = found.iter().map(|(t, _)| t.as_str()).collect();
+        return Err(format!(
+            "is an SQLite database without any of the recorder's tables (it holds {}): another program's file",
+            names.join(", ")
+        ));
+    }
+    for (table, columns) in &reference {
+        let Some((_, have)) = found.iter().find(|(t, _)| t == table) else {
+            continue;
+        };
+        let missing: Vec<&str> = columns
+            .iter()
+            // `jobs.shadow` came later: `open` adds it.
+            .filter(|c| !(have.contains(c) || (table == "jobs" && *c == "shadow")))
+            .map(String::as_str)
+            .collect();
+        if !missing.is_empty() {
+            return Err(format!(
+                "table {table} has no column {}: another program's or an older layout, which the recorder cannot write into; move the file away (the recorder starts a new one at its path)",
+                missing.join(", ")
+            ));
+        }
+    }
+    Ok(())
 }
 
 fn channel_id(conn: &Connection, name: &str) -> rusqlite::Result<i64> {

@@ -753,3 +753,116 @@ fn a_nan_raw_value_is_null_with_reason_not_finite_and_a_comm_failure_is_not() {
     assert_eq!(row("T_inf"), (Some(f64::INFINITY), 2, "not finite".into()));
     assert_eq!(row("T_comm"), (None, 2, "comm".into()));
 }
+
+// A database of another layout (the readings of an older recorder, without the
+// unfiltered temperature) is refused by `validate`'s check and by `run`, naming the
+// file, the table and the column, before anything is written to it or beside it;
+// before, it was accepted and every commit of the run failed.
+#[test]
+fn a_database_of_an_older_layout_is_refused_naming_table_and_column() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("old.db");
+    rusqlite::Connection::open(&path)
+        .expect("created")
+        .execute_batch(
+            "CREATE TABLE channels(id INTEGER PRIMARY KEY, name TEXT NOT NULL UNIQUE);
+             CREATE TABLE readings(t_unix_ms INTEGER NOT NULL, channel INTEGER NOT NULL,
+                raw REAL, value_degc REAL, quality INTEGER NOT NULL,
+                PRIMARY KEY (t_unix_ms, channel)) WITHOUT ROWID;",
+        )
+        .expect("old layout");
+    let before = std::fs::read(&path).expect("read");
+    let e = check_path(&path).expect_err("refused");
+    let text = e.to_string();
+    assert!(
+        text.contains(&path.display().to_string())
+            && text.contains("table readings has no column unfiltered_degc, reason"),
+        "{text}"
+    );
+    let cfg = RecorderConfig {
+        path: path.display().to_string(),
+        ..RecorderConfig::default()
+    };
+    let e = Recorder::start(&cfg).expect_err("refused");
+    assert!(e.to_string().contains("no column unfiltered_degc"), "{e}");
+    let e = open(&path).expect_err("refused");
+    assert!(e.to_string().contains("no column unfiltered_degc"), "{e}");
+    assert_eq!(std::fs::read(&path).expect("read"), before, "untouched");
+    let files: Vec<_> = std::fs::read_dir(dir.path())
+        .expect("dir")
+        .map(|e| e.expect("entry").file_name())
+        .collect();
+    assert_eq!(files, ["old.db"], "nothing created beside it");
+}
+
+// `validate` (check_path) passed what `run` refuses or must not touch: random bytes,
+// the config file, a device. Each is refused naming the path, and `run` refuses them
+// before it creates its lock file; a recording of the current layout and an empty
+// file pass.
+#[test]
+fn check_path_refuses_what_is_no_recorder_database() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let garbage = dir.path().join("garbage.db");
+    let mut bytes = vec![0u8; 100_000];
+    let mut x = 0x9e37_79b9_7f4a_7c15u64;
+    for b in &mut bytes {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        *b = x as u8;
+    }
+    std::fs::write(&garbage, &bytes).expect("written");
+    let config = dir.path().join("g.toml");
+    std::fs::write(&config, "[recorder]\npath = \"g.toml\"\n").expect("written");
+    let foreign = dir.path().join("foreign.db");
+    rusqlite::Connection::open(&foreign)
+        .expect("created")
+        .execute_batch("CREATE TABLE users(name TEXT);")
+        .expect("table");
+    for (path, why) in [
+        (garbage.as_path(), "is not an SQLite database"),
+        (config.as_path(), "is not an SQLite database"),
+        (
+            foreign.as_path(),
+            "without any of the recorder's tables (it holds users)",
+        ),
+        (Path::new("/dev/null"), "is not a regular file"),
+    ] {
+        let e = check_path(path).expect_err("refused");
+        let text = e.to_string();
+        assert!(
+            text.contains(&path.display().to_string()) && text.contains(why),
+            "{text}"
+        );
+    }
+    let listing = || {
+        let mut files: Vec<_> = std::fs::read_dir(dir.path())
+            .expect("dir")
+            .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+            .collect();
+        files.sort();
+        files
+    };
+    let before = listing();
+    let cfg = RecorderConfig {
+        path: garbage.display().to_string(),
+        ..RecorderConfig::default()
+    };
+    let e = Recorder::start(&cfg).expect_err("refused");
+    assert!(e.to_string().contains("is not an SQLite database"), "{e}");
+    assert_eq!(listing(), before, "no lock file, no -wal");
+    // What passes: a recording (closed, and while open), an empty file.
+    let good = dir.path().join("good.db");
+    let conn = open(&good).expect("created");
+    check_path(&good).expect("a recording in use");
+    drop(conn);
+    check_path(&good).expect("a recording");
+    let empty = dir.path().join("empty.db");
+    std::fs::write(&empty, "").expect("written");
+    check_path(&empty).expect("an empty file");
+    assert_eq!(
+        listing(),
+        ["empty.db", "foreign.db", "g.toml", "garbage.db", "good.db"],
+        "the checks leave nothing behind"
+    );
+}
