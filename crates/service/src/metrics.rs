@@ -16,6 +16,7 @@
 //! | `compgate_cycle_seconds` | histogram | | control loop: time to process one device sample |
 //! | `compgate_recorder_records_total` | counter | outcome (`written`, `dropped_queue`, `dropped_write`) | recorder |
 //! | `compgate_recorder_duplicate_readings_total` | counter | | readings not stored: the database held their channel at the same millisecond (the wall clock set back) |
+//! | `compgate_recorder_up` | gauge | | 1 while the recorder's commits succeed, 0 while they fail (database locked by another process, disk full, ...) |
 //! | `compgate_process_heap_bytes` | gauge | state (`in_use`, `free`) | glibc malloc: bytes allocated (the live heap) and bytes it holds free; RSS growing with `in_use` flat is the allocator, not a leak (glibc only) |
 //! | `compgate_http_connections_total` | counter | outcome (`accepted`, `evicted`, `refused`) | connections to this endpoint |
 //! | `compgate_http_accept_errors_total` | counter | | failed accepts (e.g. out of descriptors) |
@@ -184,6 +185,11 @@ pub fn describe() {
         "Readings the recorder did not store: the database already held their channel at the same millisecond (the wall clock set back); the first one is kept"
     );
     describe_gauge!(
+        "compgate_recorder_up",
+        Unit::Count,
+        "1 while the recorder's commits succeed, 0 while they fail (the database locked by another process, the disk full, ...)"
+    );
+    describe_gauge!(
         "compgate_process_heap_bytes",
         Unit::Bytes,
         "glibc malloc heap: bytes in use (the live heap) and bytes held free"
@@ -228,7 +234,7 @@ pub struct MetricsObserver {
     devices: Vec<DeviceHandles>,
     cycle: Option<Histogram>,
     recorder: Option<Arc<RecorderStats>>,
-    recorder_counters: Option<[Counter; 4]>,
+    recorder_handles: Option<([Counter; 4], Gauge)>,
     /// Per axis, the parameters the status carried when the gauges were last set from
     /// it: what the NC held at start counts as written until the first job.
     axis_written: Vec<Option<CompParams>>,
@@ -341,19 +347,27 @@ impl Observer for MetricsObserver {
             }
         }
         if let Some(stats) = &self.recorder {
-            let c = self.recorder_counters.get_or_insert_with(|| {
-                [
-                    counter!("compgate_recorder_records_total", "outcome" => "written"),
-                    counter!("compgate_recorder_records_total", "outcome" => "dropped_queue"),
-                    counter!("compgate_recorder_records_total", "outcome" => "dropped_write"),
-                    counter!("compgate_recorder_duplicate_readings_total"),
-                ]
+            let (c, up) = self.recorder_handles.get_or_insert_with(|| {
+                (
+                    [
+                        counter!("compgate_recorder_records_total", "outcome" => "written"),
+                        counter!("compgate_recorder_records_total", "outcome" => "dropped_queue"),
+                        counter!("compgate_recorder_records_total", "outcome" => "dropped_write"),
+                        counter!("compgate_recorder_duplicate_readings_total"),
+                    ],
+                    gauge!("compgate_recorder_up"),
+                )
             });
             use std::sync::atomic::Ordering::Relaxed;
             c[0].absolute(stats.written.load(Relaxed));
             c[1].absolute(stats.dropped_queue.load(Relaxed));
             c[2].absolute(stats.dropped_write.load(Relaxed));
             c[3].absolute(stats.duplicate_readings.load(Relaxed));
+            up.set(if stats.failing.load(Relaxed) {
+                0.0
+            } else {
+                1.0
+            });
         }
     }
 

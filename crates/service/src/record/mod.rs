@@ -5,11 +5,14 @@
 //! waits: when the queue is full the record is dropped and counted. A writer thread
 //! commits the queue in one transaction every `commit_interval_s` (a crash loses at
 //! most that much; `synchronous = NORMAL` in WAL mode survives a killed process) and
-//! applies retention by age and by size. A failed commit (disk full) drops its batch,
-//! is counted and logged, and the writer carries on. A database file deleted or
-//! replaced while open (its path no longer names the file the writer has open) is
-//! logged and created again at its path at the next commit; what was committed to
-//! the deleted file is gone, what comes after is not.
+//! applies retention by age and by size. A commit that fails because the database
+//! is locked by another process or the disk is full keeps its records for the next
+//! commit (at most `queue_cycles` of them; beyond it the oldest are dropped, NC jobs
+//! last); one that fails otherwise drops its batch. Failures are counted and logged
+//! once when they start and once when commits succeed again; the writer carries on.
+//! A database file moved, deleted or replaced while open (its path no longer names
+//! the file the writer has open) is checkpointed through the open connection, so a
+//! moved file keeps every committed record, and created again at its path.
 //!
 //! The same database holds the MQTT outbox, written in the same transaction as the
 //! readings, so what was recorded is also what will be published.
@@ -19,7 +22,7 @@ mod schema;
 
 use std::os::unix::fs::MetadataExt;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::{self, SyncSender, TryRecvError, TrySendError};
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -158,7 +161,8 @@ pub enum Record {
 pub struct RecorderStats {
     /// Records dropped because the queue was full.
     pub dropped_queue: AtomicU64,
-    /// Records lost because a commit failed (disk full, I/O error).
+    /// Records lost because a commit failed: a batch dropped on an error other than a
+    /// lock or a full disk, or records beyond `queue_cycles` waiting for a commit.
     pub dropped_write: AtomicU64,
     /// Records committed.
     pub written: AtomicU64,
@@ -171,6 +175,9 @@ pub struct RecorderStats {
     /// channel at the same millisecond (the wall clock set back); the one recorded
     /// first is kept.
     pub duplicate_readings: AtomicU64,
+    /// Whether commits fail now (the database locked by another process, the disk
+    /// full, ...).
+    pub failing: AtomicBool,
 }
 
 /// What the queue's ends share besides the queue: how full it is and who to wake.
@@ -210,11 +217,9 @@ impl RecordSender {
             }
             Err(TrySendError::Full(_)) => {
                 self.shared.pending.fetch_sub(1, Ordering::Relaxed);
-                let n = self.stats.dropped_queue.fetch_add(1, Ordering::Relaxed) + 1;
-                // Log the first drop and then every 1000th, not every one.
-                if n == 1 || n.is_multiple_of(1000) {
-                    tracing::warn!(dropped = n, "recorder queue full: records dropped");
-                }
+                // The writer logs when drops start and when they stop: the control
+                // loop does not log.
+                self.stats.dropped_queue.fetch_add(1, Ordering::Relaxed);
             }
             Err(TrySendError::Disconnected(_)) => {
                 self.shared.pending.fetch_sub(1, Ordering::Relaxed);
@@ -407,19 +412,14 @@ impl Recorder {
             writer: OnceLock::new(),
         });
         let outbox = Arc::new(tokio::sync::Notify::new());
-        let writer = Writer {
-            files: DbFiles::at(&path),
-            conn: Some(conn),
-            path: path.clone(),
-            commit_interval: compgate_gateway::config::secs(cfg.commit_interval_s),
-            retention_interval: compgate_gateway::config::secs(cfg.retention_interval_s),
-            retention_ms: (cfg.retention_days * 86_400_000.0) as i64,
-            max_bytes: (cfg.max_size_mb * 1024.0 * 1024.0) as i64,
-            stats: stats.clone(),
-            shared: shared.clone(),
-            outbox: outbox.clone(),
-            statements: schema::Statements::default(),
-        };
+        let writer = Writer::new(
+            cfg,
+            &path,
+            conn,
+            stats.clone(),
+            shared.clone(),
+            outbox.clone(),
+        );
         let thread = std::thread::Builder::new()
             .name("recorder".into())
             .spawn(move || writer.run(rx))
@@ -709,13 +709,127 @@ struct Writer {
     retention_interval: Duration,
     retention_ms: i64,
     max_bytes: i64,
+    /// Records waiting for a commit at most (the queue's size).
+    max_held: usize,
     stats: Arc<RecorderStats>,
     shared: Arc<QueueShared>,
     outbox: Arc<tokio::sync::Notify>,
     statements: schema::Statements,
+    /// The commits failing now, if they do.
+    outage: Option<Outage>,
+    /// `dropped_queue` when last looked at, and when the queue's overflow began.
+    queue_seen: u64,
+    queue_full_from: Option<u64>,
+}
+
+/// Commits failing since `since`: logged when it begins and when commits succeed again.
+#[derive(Debug)]
+struct Outage {
+    since: Instant,
+    failed_commits: u64,
+    dropped_records: u64,
+    dropped_readings: u64,
+    /// Whether the records beyond `queue_cycles` were told of.
+    shed_told: bool,
+    /// The file is damaged: commits that touch the damaged pages fail, the others
+    /// succeed, and neither ends the outage (nothing heals the file).
+    damaged: bool,
+}
+
+/// Readings in `r`.
+fn readings_in(r: &Record) -> u64 {
+    match r {
+        Record::Cycle { rows, .. } => rows.len() as u64,
+        _ => 0,
+    }
+}
+
+/// Whether `e` says the database file is damaged.
+fn damaged(e: &RecordError) -> bool {
+    use rusqlite::ErrorCode::{DatabaseCorrupt, NotADatabase};
+    matches!(e, RecordError::Sqlite(e) if matches!(e.sqlite_error_code(), Some(DatabaseCorrupt | NotADatabase)))
+}
+
+/// Whether a commit that failed with `e` may succeed later with the same records:
+/// another process holds the database's lock longer than the busy timeout, or the
+/// disk is full. Any other error (a damaged file, a record it cannot take) would
+/// fail them again.
+fn transient(e: &RecordError) -> bool {
+    use rusqlite::ErrorCode::{DatabaseBusy, DatabaseLocked, DiskFull};
+    matches!(e, RecordError::Sqlite(e) if matches!(e.sqlite_error_code(), Some(DatabaseBusy | DatabaseLocked | DiskFull)))
+}
+
+/// Drops the oldest records of `batch` beyond `max`, NC jobs last: they are what the
+/// NC was sent. Returns the records and readings dropped.
+fn shed(batch: &mut Vec<Record>, max: usize) -> (u64, u64) {
+    let mut excess = batch.len().saturating_sub(max);
+    let (mut records, mut readings) = (0, 0);
+    let mut count = |r: &Record| {
+        records += 1;
+        readings += readings_in(r);
+    };
+    batch.retain(|r| {
+        if excess == 0 || matches!(r, Record::Job { .. }) {
+            return true;
+        }
+        excess -= 1;
+        count(r);
+        false
+    });
+    batch.drain(..excess).for_each(|r| count(&r));
+    (records, readings)
+}
+
+/// Checkpoints the WAL into the database file `conn` has open and empties it;
+/// whether that was done (another connection reading the WAL prevents it).
+fn checkpoint(conn: &Connection) -> bool {
+    conn.query_row("PRAGMA wal_checkpoint(TRUNCATE)", [], |r| {
+        r.get::<_, i64>(0)
+    })
+    .is_ok_and(|busy| busy == 0)
+}
+
+/// Where this process has the file `id` open now, by name (Linux: `/proc/self/fd`):
+/// where a database moved while open went.
+fn open_path_of(id: (u64, u64)) -> Option<PathBuf> {
+    std::fs::read_dir("/proc/self/fd")
+        .ok()?
+        .flatten()
+        .map(|fd| fd.path())
+        .find(|fd| file_id(fd) == Some(id))
+        .and_then(|fd| std::fs::read_link(fd).ok())
+        // A deleted file's link reads "<path> (deleted)": only a file still there counts.
+        .filter(|p| file_id(p) == Some(id))
 }
 
 impl Writer {
+    fn new(
+        cfg: &RecorderConfig,
+        path: &Path,
+        conn: Connection,
+        stats: Arc<RecorderStats>,
+        shared: Arc<QueueShared>,
+        outbox: Arc<tokio::sync::Notify>,
+    ) -> Self {
+        Writer {
+            files: DbFiles::at(path),
+            conn: Some(conn),
+            path: path.to_path_buf(),
+            commit_interval: compgate_gateway::config::secs(cfg.commit_interval_s),
+            retention_interval: compgate_gateway::config::secs(cfg.retention_interval_s),
+            retention_ms: (cfg.retention_days * 86_400_000.0) as i64,
+            max_bytes: (cfg.max_size_mb * 1024.0 * 1024.0) as i64,
+            max_held: usize::try_from(cfg.queue_cycles).unwrap_or(usize::MAX),
+            stats,
+            shared,
+            outbox,
+            statements: schema::Statements::default(),
+            outage: None,
+            queue_seen: 0,
+            queue_full_from: None,
+        }
+    }
+
     fn run(mut self, rx: mpsc::Receiver<Record>) {
         let mut batch: Vec<Record> = Vec::new();
         let mut next_commit = Instant::now() + self.commit_interval;
@@ -747,42 +861,74 @@ impl Writer {
             let now = Instant::now();
             // After taking the batch: a record sent after the file was deleted is
             // never committed to the deleted file.
-            self.reopen_if_gone();
-            self.commit(&mut batch);
-            next_commit = now + self.commit_interval;
-            if now >= next_retention || closed {
-                if let Err(e) = self.retention() {
-                    tracing::warn!(error = %e, "recorder retention pass failed");
+            if self.reopen_if_gone() {
+                self.commit(&mut batch);
+                if now >= next_retention || closed {
+                    if let Err(e) = self.retention() {
+                        tracing::warn!(error = %e, "recorder retention pass failed");
+                    }
+                    next_retention = now + self.retention_interval;
                 }
-                next_retention = now + self.retention_interval;
             }
+            self.hold(&mut batch);
+            self.report_queue();
+            next_commit = now + self.commit_interval;
             if closed {
                 break;
             }
         }
+        if !batch.is_empty() {
+            let n = batch.len() as u64;
+            self.stats.dropped_write.fetch_add(n, Ordering::Relaxed);
+            tracing::error!(
+                records = n,
+                "recorder stopped with records it could not commit: they are lost"
+            );
+        }
         // A clean stop leaves no WAL behind.
         if let Some(conn) = &self.conn {
-            let _ = conn.query_row("PRAGMA wal_checkpoint(TRUNCATE)", [], |_| Ok(()));
+            checkpoint(conn);
         }
         tracing::info!("recorder stopped");
     }
 
-    /// Opens the database again when its file was deleted or replaced (one `stat` a
-    /// commit), or when opening it again failed before.
-    fn reopen_if_gone(&mut self) {
+    /// Opens the database again when its file was moved, deleted or replaced (one
+    /// `stat` a commit), or when opening it again failed before. False while the
+    /// old file's WAL cannot be emptied into it: the records wait for the next commit.
+    fn reopen_if_gone(&mut self) -> bool {
         if self.conn.is_some() && file_id(&self.path) == self.files.db {
-            return;
+            return true;
         }
         let first = self.conn.is_some();
-        if let Some(conn) = self.conn.take() {
+        if let Some(conn) = &self.conn {
+            // Its committed transactions may be in the WAL alone, which SQLite names
+            // by the path: checkpointed into the file the connection has open,
+            // wherever that is now (SQLite skips this at close when the file moved).
+            // A WAL still holding anything is never removed nor paired with the new
+            // file.
+            let wal = with_suffix(&self.path, "-wal");
+            let ours = self.files.wal.is_some() && file_id(&wal) == self.files.wal;
+            let emptied =
+                checkpoint(conn) && (!ours || std::fs::metadata(&wal).is_ok_and(|m| m.len() == 0));
+            if !emptied {
+                tracing::debug!(path = %self.path.display(), "recorder database gone: its WAL is not checkpointed yet, tried again at the next commit");
+                return false;
+            }
             let n = self.stats.reopened.fetch_add(1, Ordering::Relaxed) + 1;
-            tracing::error!(path = %self.path.display(), reopened = n, "recorder database deleted or replaced while the gateway runs: what was committed to it is lost; creating it again at its path");
+            match self.files.db.and_then(open_path_of) {
+                Some(to) => {
+                    tracing::warn!(path = %self.path.display(), moved_to = %to.display(), reopened = n, "recorder database moved while the gateway runs: every record committed to it is in {}; recording into a new database at its path", to.display())
+                }
+                None => {
+                    tracing::error!(path = %self.path.display(), reopened = n, "recorder database deleted or replaced while the gateway runs: what was committed to it went with it; recording into a new database at its path")
+                }
+            }
             // Closed before the new one opens: SQLite's last connection to a database
             // removes its -wal and -shm files by name, which would be the new ones.
-            drop(conn);
+            self.conn = None;
             // Another connection (the MQTT outbox) may still hold the old database,
             // and then its -wal and -shm stay at the path: opened with the new file,
-            // SQLite would replay the old WAL into it.
+            // SQLite would take them for its own.
             for (suffix, id) in [("-wal", self.files.wal), ("-shm", self.files.shm)] {
                 let stale = with_suffix(&self.path, suffix);
                 if id.is_some() && file_id(&stale) == id {
@@ -791,6 +937,10 @@ impl Writer {
             }
             // Channel ids of the old database.
             self.statements.forget_channels();
+            // Whatever was damaged stays with the old file.
+            if let Some(o) = &mut self.outage {
+                o.damaged = false;
+            }
         }
         match open(&self.path) {
             Ok(conn) => {
@@ -804,6 +954,7 @@ impl Writer {
             }
             Err(_) => {}
         }
+        true
     }
 
     fn commit(&mut self, batch: &mut Vec<Record>) {
@@ -823,6 +974,7 @@ impl Writer {
         };
         match result {
             Ok(ignored) => {
+                batch.clear();
                 self.stats.written.fetch_add(n, Ordering::Relaxed);
                 if ignored > 0 {
                     let before = self
@@ -837,18 +989,101 @@ impl Writer {
                 if outbox {
                     self.outbox.notify_one();
                 }
+                if let Some(o) = self.outage.take_if(|o| !o.damaged) {
+                    self.stats.failing.store(false, Ordering::Relaxed);
+                    tracing::info!(
+                        failed_commits = o.failed_commits,
+                        dropped_records = o.dropped_records,
+                        dropped_readings = o.dropped_readings,
+                        failing_s = o.since.elapsed().as_secs_f64(),
+                        "recorder commits succeed again"
+                    );
+                }
             }
             Err(e) => {
                 // Channel ids looked up in the rolled-back transaction are gone.
                 self.statements.forget_channels();
-                self.stats.dropped_write.fetch_add(n, Ordering::Relaxed);
-                let failed = self.stats.failed_commits.fetch_add(1, Ordering::Relaxed) + 1;
-                if failed == 1 || failed.is_multiple_of(100) {
-                    tracing::error!(error = %e, records = n, failed_commits = failed, "recorder commit failed: batch dropped, the gateway carries on");
+                self.stats.failed_commits.fetch_add(1, Ordering::Relaxed);
+                let kept = transient(&e);
+                let begins = self.outage.is_none();
+                let outage = self.outage.get_or_insert_with(|| Outage {
+                    since: Instant::now(),
+                    failed_commits: 0,
+                    dropped_records: 0,
+                    dropped_readings: 0,
+                    shed_told: false,
+                    damaged: false,
+                });
+                outage.failed_commits += 1;
+                self.stats.failing.store(true, Ordering::Relaxed);
+                if damaged(&e) && !outage.damaged {
+                    outage.damaged = true;
+                    tracing::error!(error = %e, path = %self.path.display(), records = n, "recorder commit failed: the database is damaged; commits that touch its damaged pages fail and their records are dropped until the gateway records into another file: stop it and move the file away (the recorder starts a new one at its path; `sqlite3 FILE .recover` reads what is left of it)");
+                } else if begins {
+                    let what = if kept {
+                        "the records wait for the next commit (at most recorder.queue_cycles of them)"
+                    } else {
+                        "batch dropped"
+                    };
+                    tracing::error!(error = %e, path = %self.path.display(), records = n, "recorder commit failed: {what}; the gateway carries on (logged again when commits succeed)");
+                }
+                if !kept {
+                    let readings: u64 = batch.iter().map(readings_in).sum();
+                    outage.dropped_records += n;
+                    outage.dropped_readings += readings;
+                    self.stats.dropped_write.fetch_add(n, Ordering::Relaxed);
+                    batch.clear();
                 }
             }
         }
-        batch.clear();
+    }
+
+    /// Keeps what a failed commit left at most `queue_cycles` records long; the
+    /// oldest beyond are dropped, counted and logged (once per outage).
+    fn hold(&mut self, batch: &mut Vec<Record>) {
+        let (records, readings) = shed(batch, self.max_held);
+        if records == 0 {
+            return;
+        }
+        self.stats
+            .dropped_write
+            .fetch_add(records, Ordering::Relaxed);
+        let told = match &mut self.outage {
+            Some(o) => {
+                o.dropped_records += records;
+                o.dropped_readings += readings;
+                std::mem::replace(&mut o.shed_told, true)
+            }
+            None => false,
+        };
+        if !told {
+            tracing::warn!(
+                records,
+                readings,
+                queue_cycles = self.max_held,
+                "recorder: more records wait for a commit than recorder.queue_cycles: the oldest are dropped, NC jobs last"
+            );
+        }
+    }
+
+    /// Logs when the queue begins to drop records and when it stops.
+    fn report_queue(&mut self) {
+        let dropped = self.stats.dropped_queue.load(Ordering::Relaxed);
+        match self.queue_full_from {
+            None if dropped > self.queue_seen => {
+                tracing::warn!(
+                    queue_cycles = self.max_held,
+                    "recorder queue full: records dropped (the writer is behind or waits for the database)"
+                );
+                self.queue_full_from = Some(self.queue_seen);
+            }
+            Some(from) if dropped == self.queue_seen => {
+                tracing::info!(dropped = dropped - from, "recorder queue no longer full");
+                self.queue_full_from = None;
+            }
+            _ => {}
+        }
+        self.queue_seen = dropped;
     }
 
     fn retention(&mut self) -> Result<(), RecordError> {
@@ -880,7 +1115,7 @@ impl Writer {
             schema::delete_before(conn, cut)?;
         }
         conn.execute_batch("PRAGMA incremental_vacuum;")?;
-        let _ = conn.query_row("PRAGMA wal_checkpoint(TRUNCATE)", [], |_| Ok(()));
+        checkpoint(conn);
         Ok(())
     }
 }

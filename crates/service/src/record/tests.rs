@@ -754,6 +754,63 @@ fn a_nan_raw_value_is_null_with_reason_not_finite_and_a_comm_failure_is_not() {
     assert_eq!(row("T_comm"), (None, 2, "comm".into()));
 }
 
+/// Sends one reading of `T_a` (on the channel table `names`, index 1) valued `v`.
+fn send_t_a(tx: &RecordSender, names: &Arc<[String]>, v: f64) {
+    let mut c = cycle(names, v);
+    if let Record::Cycle { rows, .. } = &mut c {
+        rows[0].channel = 1;
+    }
+    tx.send(c);
+    // Distinct milliseconds: the time and channel are the readings' key.
+    std::thread::sleep(Duration::from_millis(2));
+}
+
+// `mv r.db archived.db` while recording: the moved file keeps every record committed
+// to it, those still in the WAL too (SQLite does not checkpoint at close a file that
+// moved, and the WAL at the old path was removed with them in it); the recorder goes
+// on in a new database at its path.
+#[test]
+fn a_database_moved_while_recording_keeps_every_committed_record() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cfg = RecorderConfig {
+        path: dir.path().join("r.db").display().to_string(),
+        commit_interval_s: 0.05,
+        // The only checkpoint by retention is the first pass's.
+        retention_interval_s: 3600.0,
+        ..RecorderConfig::default()
+    };
+    let rec = Recorder::start(&cfg).expect("starts");
+    let tx = rec.sender();
+    let stats = tx.stats().clone();
+    let names: Arc<[String]> = Arc::from(vec!["T_other".to_string(), "T_a".to_string()]);
+    send_t_a(&tx, &names, 0.0);
+    wait_written(&stats, 1);
+    // Committed into the WAL only.
+    (1..6).for_each(|i| send_t_a(&tx, &names, f64::from(i)));
+    wait_written(&stats, 6);
+    let archived = dir.path().join("archived.db");
+    std::fs::rename(rec.path(), &archived).expect("moved");
+    (10..15).for_each(|i| send_t_a(&tx, &names, f64::from(i)));
+    wait_written(&stats, 11);
+    drop(tx);
+    let path = rec.path().to_path_buf();
+    rec.finish();
+    assert_eq!(values_of_t_a(&archived), [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]);
+    assert_eq!(values_of_t_a(&path), [10.0, 11.0, 12.0, 13.0, 14.0]);
+    assert_eq!(stats.reopened.load(Ordering::Relaxed), 1);
+    assert_eq!(stats.dropped_write.load(Ordering::Relaxed), 0);
+
+    // Where a moved file went is found by the file the process has open; a deleted
+    // one is nowhere.
+    let f = std::fs::File::create(dir.path().join("a")).expect("created");
+    let id = file_id(&dir.path().join("a")).expect("there");
+    std::fs::rename(dir.path().join("a"), dir.path().join("b")).expect("moved");
+    assert_eq!(open_path_of(id), Some(dir.path().join("b")));
+    std::fs::remove_file(dir.path().join("b")).expect("deleted");
+    assert_eq!(open_path_of(id), None);
+    drop(f);
+}
+
 // A database of another layout (the readings of an older recorder, without the
 // unfiltered temperature) is refused by `validate`'s check and by `run`, naming the
 // file, the table and the column, before anything is written to it or beside it;
@@ -865,4 +922,291 @@ fn check_path_refuses_what_is_no_recorder_database() {
         ["empty.db", "foreign.db", "g.toml", "garbage.db", "good.db"],
         "the checks leave nothing behind"
     );
+}
+
+// The oldest records beyond the limit go first, NC jobs last.
+#[test]
+fn records_beyond_the_limit_are_shed_oldest_first_jobs_last() {
+    let names: Arc<[String]> = Arc::from(vec!["T_a".to_string()]);
+    let job = |t_unix_ms| Record::Job {
+        t_unix_ms,
+        axis: "X".into(),
+        params: CompParams::default(),
+        job_id: None,
+        elapsed_ms: None,
+        error: None,
+        shadow: false,
+    };
+    let kind = |b: &[Record]| -> Vec<String> {
+        b.iter()
+            .map(|r| match r {
+                Record::Job { t_unix_ms, .. } => format!("job{t_unix_ms}"),
+                Record::Cycle { rows, .. } => format!("cycle{}", rows[0].raw.unwrap_or(0.0)),
+                Record::Nc { .. } => "nc".into(),
+                Record::Outbox { .. } => "outbox".into(),
+            })
+            .collect()
+    };
+    let mut batch = vec![
+        cycle(&names, 1.0),
+        job(1),
+        cycle(&names, 2.0),
+        job(2),
+        cycle(&names, 3.0),
+    ];
+    assert_eq!(shed(&mut batch, 5), (0, 0));
+    assert_eq!(shed(&mut batch, 4), (1, 1));
+    assert_eq!(kind(&batch), ["job1", "cycle2", "job2", "cycle3"]);
+    assert_eq!(shed(&mut batch, 1), (3, 2));
+    assert_eq!(kind(&batch), ["job2"]);
+}
+
+/// The message of every event, with its level.
+#[derive(Clone, Default)]
+struct Logged(Arc<std::sync::Mutex<Vec<String>>>);
+
+impl Logged {
+    fn lines(&self, needle: &str) -> Vec<String> {
+        let lines = self.0.lock().expect("log");
+        lines
+            .iter()
+            .filter(|l| l.contains(needle))
+            .cloned()
+            .collect()
+    }
+
+    fn subscriber(&self) -> impl tracing::Subscriber + Send + Sync {
+        use tracing_subscriber::layer::SubscriberExt;
+        tracing_subscriber::registry().with(self.clone())
+    }
+}
+
+impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for Logged {
+    fn on_event(&self, event: &tracing::Event<'_>, _: tracing_subscriber::layer::Context<'_, S>) {
+        struct Message(String);
+        impl tracing::field::Visit for Message {
+            fn record_debug(&mut self, f: &tracing::field::Field, v: &dyn std::fmt::Debug) {
+                if f.name() == "message" {
+                    self.0 = format!("{v:?}");
+                }
+            }
+        }
+        let mut m = Message(String::new());
+        event.record(&mut m);
+        let line = format!("{} {}", event.metadata().level(), m.0);
+        self.0.lock().expect("log").push(line);
+    }
+}
+
+/// Waits up to 10 s for `done`.
+fn wait_until(what: &str, done: impl Fn() -> bool) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !done() {
+        assert!(Instant::now() < deadline, "{what}");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+// Another process holds the database's write lock longer than the busy timeout (here
+// 20 ms, the connection's own setting), twice: the records of the failed commits wait
+// and are all committed once the lock is free, NC jobs included; each lock is logged
+// once when commits start failing and once when they succeed again. Before, each
+// failed commit dropped its batch, and only the first failure of the process was
+// logged.
+#[test]
+fn a_locked_database_keeps_the_records_and_each_outage_is_logged_once() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("r.db");
+    let conn = open(&path).expect("opens");
+    conn.busy_timeout(Duration::from_millis(20))
+        .expect("timeout");
+    let cfg = RecorderConfig {
+        path: path.display().to_string(),
+        commit_interval_s: 0.01,
+        ..RecorderConfig::default()
+    };
+    let (tx, rx) = mpsc::sync_channel(1000);
+    let stats = Arc::new(RecorderStats::default());
+    let shared = Arc::new(QueueShared {
+        pending: AtomicUsize::new(0),
+        wake_at: 500,
+        writer: OnceLock::new(),
+    });
+    let writer = Writer::new(
+        &cfg,
+        &path,
+        conn,
+        stats.clone(),
+        shared.clone(),
+        Arc::default(),
+    );
+    let logged = Logged::default();
+    let subscriber = logged.subscriber();
+    let thread = std::thread::spawn(move || {
+        tracing::subscriber::with_default(subscriber, || writer.run(rx));
+    });
+    let tx = RecordSender {
+        tx,
+        stats: stats.clone(),
+        shared,
+    };
+    let names: Arc<[String]> = Arc::from(vec!["T_other".to_string(), "T_a".to_string()]);
+    let job = |id: u16| Record::Job {
+        t_unix_ms: now_unix_ms(),
+        axis: "X".into(),
+        params: CompParams::default(),
+        job_id: Some(id),
+        elapsed_ms: Some(1.0),
+        error: None,
+        shadow: false,
+    };
+    let other = open(&path).expect("opens");
+    let mut sent = 0;
+    let mut job_id = 0;
+    for outage in 1..=2u64 {
+        other
+            .execute_batch("BEGIN IMMEDIATE;")
+            .expect("holds the write lock");
+        for v in 0..3 {
+            send_t_a(&tx, &names, f64::from(v));
+            job_id += 1;
+            tx.send(job(job_id));
+            sent += 2;
+        }
+        let failed = |n| stats.failed_commits.load(Ordering::Relaxed) >= n;
+        wait_until("commits fail", || failed(3 * outage));
+        assert!(stats.failing.load(Ordering::Relaxed));
+        other.execute_batch("COMMIT;").expect("lock released");
+        wait_until("the waiting records committed", || {
+            stats.written.load(Ordering::Relaxed) == sent
+        });
+        assert!(!stats.failing.load(Ordering::Relaxed));
+    }
+    drop(tx);
+    thread.join().expect("writer");
+    assert_eq!(stats.dropped_write.load(Ordering::Relaxed), 0);
+    let ids: Vec<u16> = other
+        .prepare("SELECT job_id FROM jobs ORDER BY job_id")
+        .expect("query")
+        .query_map([], |r| r.get(0))
+        .expect("rows")
+        .collect::<Result<_, _>>()
+        .expect("rows");
+    assert_eq!(ids, (1..=6).collect::<Vec<u16>>(), "every NC job recorded");
+    assert_eq!(values_of_t_a(&path).len(), 6);
+    let failed = logged.lines("recorder commit failed");
+    assert_eq!(failed.len(), 2, "{failed:?}");
+    assert!(
+        failed
+            .iter()
+            .all(|l| l.starts_with("ERROR") && l.contains("the records wait for the next commit")),
+        "{failed:?}"
+    );
+    assert_eq!(logged.lines("recorder commits succeed again").len(), 2);
+}
+
+// The queue's overflow is logged when it begins and when it ends, once each.
+#[test]
+fn a_full_queue_is_logged_when_it_begins_and_when_it_ends() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("r.db");
+    let stats = Arc::new(RecorderStats::default());
+    let shared = Arc::new(QueueShared {
+        pending: AtomicUsize::new(0),
+        wake_at: 1,
+        writer: OnceLock::new(),
+    });
+    let mut writer = Writer::new(
+        &RecorderConfig::default(),
+        &path,
+        open(&path).expect("opens"),
+        stats.clone(),
+        shared,
+        Arc::default(),
+    );
+    let logged = Logged::default();
+    tracing::subscriber::with_default(logged.subscriber(), || {
+        for dropped in [0, 5, 9, 9, 9, 12, 12] {
+            stats.dropped_queue.store(dropped, Ordering::Relaxed);
+            writer.report_queue();
+        }
+    });
+    assert_eq!(
+        logged.lines("recorder queue").len(),
+        4,
+        "{:?}",
+        logged.lines("")
+    );
+    assert_eq!(logged.lines("recorder queue full").len(), 2);
+    assert_eq!(logged.lines("recorder queue no longer full").len(), 2);
+}
+
+// A damaged page in the file (here the `nc` table's root): the commits that touch it
+// fail, the others succeed. That is one outage, logged once, not one line per commit
+// as failure and success alternate; it ends when the file is replaced.
+#[test]
+fn a_damaged_database_is_logged_once_and_never_taken_for_recovered() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("r.db");
+    let nc = |t_unix_ms| Record::Nc {
+        t_unix_ms,
+        axis: "X".into(),
+        position_mm: 1.0,
+        applied_comp_mm: 0.0,
+        params: CompParams::default(),
+    };
+    let root: i64 = {
+        let mut conn = open(&path).expect("opens");
+        let batch: Vec<Record> = (0..500).map(nc).collect();
+        schema::insert(&mut conn, &mut schema::Statements::default(), &batch).expect("rows");
+        assert!(checkpoint(&conn));
+        conn.query_row(
+            "SELECT rootpage FROM sqlite_schema WHERE name = 'nc'",
+            [],
+            |r| r.get(0),
+        )
+        .expect("root page")
+    };
+    {
+        use std::io::{Seek, Write};
+        let mut f = std::fs::OpenOptions::new()
+            .write(true)
+            .open(&path)
+            .expect("opens");
+        f.seek(std::io::SeekFrom::Start((root as u64 - 1) * 4096))
+            .expect("seek");
+        f.write_all(&[0xff; 2000]).expect("damaged");
+    }
+    let stats = Arc::new(RecorderStats::default());
+    let shared = Arc::new(QueueShared {
+        pending: AtomicUsize::new(0),
+        wake_at: 1,
+        writer: OnceLock::new(),
+    });
+    let mut writer = Writer::new(
+        &RecorderConfig::default(),
+        &path,
+        open(&path).expect("the schema is intact"),
+        stats.clone(),
+        shared,
+        Arc::default(),
+    );
+    let names: Arc<[String]> = Arc::from(vec!["T_a".to_string()]);
+    let logged = Logged::default();
+    tracing::subscriber::with_default(logged.subscriber(), || {
+        for k in 0..3 {
+            writer.commit(&mut vec![nc(10_000 + k)]);
+            writer.commit(&mut vec![Record::Cycle {
+                t_unix_ms: 20_000 + k,
+                names: names.clone(),
+                rows: vec![reading(0, 1.0, 0)],
+            }]);
+        }
+    });
+    assert_eq!(stats.failed_commits.load(Ordering::Relaxed), 3);
+    assert_eq!(stats.written.load(Ordering::Relaxed), 3);
+    assert!(stats.failing.load(Ordering::Relaxed));
+    let lines = logged.lines("recorder");
+    assert_eq!(lines.len(), 1, "{lines:?}");
+    assert!(lines[0].contains("the database is damaged"), "{lines:?}");
 }
