@@ -17,6 +17,7 @@
 //! | `compgate_recorder_records_total` | counter | outcome (`written`, `dropped_queue`, `dropped_write`) | recorder |
 //! | `compgate_recorder_duplicate_readings_total` | counter | | readings not stored: the database held their channel at the same millisecond (the wall clock set back) |
 //! | `compgate_recorder_up` | gauge | | 1 while the recorder's commits succeed, 0 while they fail (database locked by another process, disk full, ...) |
+//! | `compgate_recorder_outbox_deleted_total` | counter | | MQTT messages the recorder's size limit deleted before they were sent |
 //! | `compgate_process_heap_bytes` | gauge | state (`in_use`, `free`) | glibc malloc: bytes allocated (the live heap) and bytes it holds free; RSS growing with `in_use` flat is the allocator, not a leak (glibc only) |
 //! | `compgate_http_connections_total` | counter | outcome (`accepted`, `evicted`, `refused`) | connections to this endpoint |
 //! | `compgate_http_accept_errors_total` | counter | | failed accepts (e.g. out of descriptors) |
@@ -189,6 +190,11 @@ pub fn describe() {
         Unit::Count,
         "1 while the recorder's commits succeed, 0 while they fail (the database locked by another process, the disk full, ...)"
     );
+    describe_counter!(
+        "compgate_recorder_outbox_deleted_total",
+        Unit::Count,
+        "MQTT messages the recorder's size limit (recorder.max_size_mb) deleted before they were sent: they go before the recorded history"
+    );
     describe_gauge!(
         "compgate_process_heap_bytes",
         Unit::Bytes,
@@ -234,7 +240,7 @@ pub struct MetricsObserver {
     devices: Vec<DeviceHandles>,
     cycle: Option<Histogram>,
     recorder: Option<Arc<RecorderStats>>,
-    recorder_handles: Option<([Counter; 4], Gauge)>,
+    recorder_handles: Option<([Counter; 5], Gauge)>,
     /// Per axis, the parameters the status carried when the gauges were last set from
     /// it: what the NC held at start counts as written until the first job.
     axis_written: Vec<Option<CompParams>>,
@@ -354,6 +360,7 @@ impl Observer for MetricsObserver {
                         counter!("compgate_recorder_records_total", "outcome" => "dropped_queue"),
                         counter!("compgate_recorder_records_total", "outcome" => "dropped_write"),
                         counter!("compgate_recorder_duplicate_readings_total"),
+                        counter!("compgate_recorder_outbox_deleted_total"),
                     ],
                     gauge!("compgate_recorder_up"),
                 )
@@ -363,6 +370,7 @@ impl Observer for MetricsObserver {
             c[1].absolute(stats.dropped_queue.load(Relaxed));
             c[2].absolute(stats.dropped_write.load(Relaxed));
             c[3].absolute(stats.duplicate_readings.load(Relaxed));
+            c[4].absolute(stats.outbox_deleted.load(Relaxed));
             up.set(if stats.failing.load(Relaxed) {
                 0.0
             } else {

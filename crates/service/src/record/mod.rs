@@ -15,7 +15,8 @@
 //! moved file keeps every committed record, and created again at its path.
 //!
 //! The same database holds the MQTT outbox, written in the same transaction as the
-//! readings, so what was recorded is also what will be published.
+//! readings, so what was recorded is also what will be published. Over the size
+//! limit, unsent messages go before the recorded history.
 
 pub mod export;
 mod schema;
@@ -175,6 +176,9 @@ pub struct RecorderStats {
     /// channel at the same millisecond (the wall clock set back); the one recorded
     /// first is kept.
     pub duplicate_readings: AtomicU64,
+    /// MQTT messages the size limit deleted before they were sent: the outbox goes
+    /// before the recorded history.
+    pub outbox_deleted: AtomicU64,
     /// Whether commits fail now (the database locked by another process, the disk
     /// full, ...).
     pub failing: AtomicBool,
@@ -720,6 +724,8 @@ struct Writer {
     /// `dropped_queue` when last looked at, and when the queue's overflow began.
     queue_seen: u64,
     queue_full_from: Option<u64>,
+    /// Whether the last retention pass deleted unsent MQTT messages.
+    deleting_outbox: bool,
 }
 
 /// Commits failing since `since`: logged when it begins and when commits succeed again.
@@ -827,6 +833,7 @@ impl Writer {
             outage: None,
             queue_seen: 0,
             queue_full_from: None,
+            deleting_outbox: false,
         }
     }
 
@@ -862,13 +869,15 @@ impl Writer {
             // After taking the batch: a record sent after the file was deleted is
             // never committed to the deleted file.
             if self.reopen_if_gone() {
-                self.commit(&mut batch);
+                // Before the commit: a message it adds to the outbox gets a commit
+                // interval to reach the broker before retention may delete it.
                 if now >= next_retention || closed {
                     if let Err(e) = self.retention() {
                         tracing::warn!(error = %e, "recorder retention pass failed");
                     }
                     next_retention = now + self.retention_interval;
                 }
+                self.commit(&mut batch);
             }
             self.hold(&mut batch);
             self.report_queue();
@@ -1091,31 +1100,72 @@ impl Writer {
             return Ok(());
         };
         let cutoff = now_unix_ms() - self.retention_ms;
-        schema::delete_before(conn, cutoff)?;
-        // Oldest tenth of the time range at a time until the data fits.
-        for _ in 0..10 {
-            let used = schema::data_bytes(conn)?;
-            if used <= self.max_bytes {
-                break;
+        let aged = schema::delete_before(conn, cutoff)?;
+        let mut cut = schema::Deleted::default();
+        let used = schema::data_bytes(conn)?;
+        if used > self.max_bytes {
+            // Unsent MQTT messages go before the recorded history, or an outbox
+            // grown during a broker outage would push the records out: a tenth of
+            // it at a time, at most all of it in one pass.
+            let step = schema::outbox_len(conn)?.div_ceil(10);
+            for _ in 0..10 {
+                if step == 0 || schema::data_bytes(conn)? <= self.max_bytes {
+                    break;
+                }
+                let n = schema::delete_oldest_outbox(conn, step)?;
+                if n == 0 {
+                    break;
+                }
+                cut.outbox += n;
             }
-            let Some((first, last)) = schema::time_range(conn)? else {
-                break;
-            };
-            // Never the newest records: a limit below the schema's own pages would
-            // otherwise empty the database pass after pass.
-            if last <= first {
-                break;
+            // Then the oldest tenth of the records' time range at a time.
+            for _ in 0..10 {
+                if schema::data_bytes(conn)? <= self.max_bytes {
+                    break;
+                }
+                let Some((first, last)) = schema::time_range(conn)? else {
+                    break;
+                };
+                // Never the newest records: a limit below the schema's own pages would
+                // otherwise empty the database pass after pass.
+                if last <= first {
+                    break;
+                }
+                cut += schema::delete_before(conn, first + ((last - first) / 10).max(1))?;
             }
-            let cut = first + ((last - first) / 10).max(1);
-            tracing::info!(
-                used_bytes = used,
-                max_bytes = self.max_bytes,
-                "recorder over its size: deleting the oldest records"
-            );
-            schema::delete_before(conn, cut)?;
         }
         conn.execute_batch("PRAGMA incremental_vacuum;")?;
+        let now_used = schema::data_bytes(conn)?;
         checkpoint(conn);
+        self.stats
+            .outbox_deleted
+            .fetch_add(cut.outbox, Ordering::Relaxed);
+        let mut total = aged;
+        total += cut;
+        let starts_deleting_outbox = cut.outbox > 0 && !self.deleting_outbox;
+        self.deleting_outbox = cut.outbox > 0;
+        // One line a pass at most; WARN when unsent messages begin to go.
+        macro_rules! pass {
+            ($level:ident, $msg:expr) => {
+                tracing::$level!(
+                    readings = total.readings,
+                    jobs = total.jobs,
+                    nc = total.nc,
+                    outbox = total.outbox,
+                    outbox_deleted_total = self.stats.outbox_deleted.load(Ordering::Relaxed),
+                    used_bytes = now_used,
+                    max_bytes = self.max_bytes,
+                    $msg
+                )
+            };
+        }
+        if starts_deleting_outbox {
+            pass!(warn, "recorder over max_size_mb with MQTT messages unsent (the broker away?): the oldest messages are deleted first and never published, then the oldest records if need be; each further pass logs what it deleted");
+        } else if !cut.is_empty() {
+            pass!(info, "recorder over max_size_mb: the oldest deleted");
+        } else if !total.is_empty() {
+            pass!(debug, "recorder: records older than retention_days deleted");
+        }
         Ok(())
     }
 }

@@ -345,15 +345,65 @@ pub fn insert(
     Ok(ignored)
 }
 
+/// Rows deleted by retention.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct Deleted {
+    /// Readings.
+    pub readings: u64,
+    /// NC jobs.
+    pub jobs: u64,
+    /// NC positions.
+    pub nc: u64,
+    /// MQTT messages never sent.
+    pub outbox: u64,
+}
+
+impl Deleted {
+    /// Whether nothing was deleted.
+    pub fn is_empty(&self) -> bool {
+        *self == Deleted::default()
+    }
+}
+
+impl std::ops::AddAssign for Deleted {
+    fn add_assign(&mut self, o: Deleted) {
+        self.readings += o.readings;
+        self.jobs += o.jobs;
+        self.nc += o.nc;
+        self.outbox += o.outbox;
+    }
+}
+
 /// Deletes readings, jobs and NC rows older than `cutoff_unix_ms`.
-pub fn delete_before(conn: &Connection, cutoff_unix_ms: i64) -> rusqlite::Result<()> {
-    for t in ["readings", "jobs", "nc"] {
-        conn.execute(
+pub fn delete_before(conn: &Connection, cutoff_unix_ms: i64) -> rusqlite::Result<Deleted> {
+    let delete = |t: &str| -> rusqlite::Result<u64> {
+        let n = conn.execute(
             &format!("DELETE FROM {t} WHERE t_unix_ms < ?1"),
             [cutoff_unix_ms],
         )?;
-    }
-    Ok(())
+        Ok(n as u64)
+    };
+    Ok(Deleted {
+        readings: delete("readings")?,
+        jobs: delete("jobs")?,
+        nc: delete("nc")?,
+        outbox: 0,
+    })
+}
+
+/// MQTT messages waiting in the outbox.
+pub fn outbox_len(conn: &Connection) -> rusqlite::Result<u64> {
+    let n: i64 = conn.query_row("SELECT count(*) FROM mqtt_outbox", [], |r| r.get(0))?;
+    Ok(n.unsigned_abs())
+}
+
+/// Deletes the `n` oldest MQTT messages of the outbox; returns how many went.
+pub fn delete_oldest_outbox(conn: &Connection, n: u64) -> rusqlite::Result<u64> {
+    let n = conn.execute(
+        "DELETE FROM mqtt_outbox WHERE id IN (SELECT id FROM mqtt_outbox ORDER BY id LIMIT ?1)",
+        [i64::try_from(n).unwrap_or(i64::MAX)],
+    )?;
+    Ok(n as u64)
 }
 
 /// Bytes of pages in use (the file less its free pages).

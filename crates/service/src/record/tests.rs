@@ -811,6 +811,71 @@ fn a_database_moved_while_recording_keeps_every_committed_record() {
     drop(f);
 }
 
+// The size limit with the MQTT outbox grown (the broker away): the unsent messages go
+// first, oldest first, and the recorded history stays. Before, retention cut the
+// readings' time range only, and the outbox pushed the records out.
+#[test]
+fn over_its_size_the_recorder_deletes_unsent_messages_before_records() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("r.db");
+    let conn = open(&path).expect("opens");
+    conn.execute("INSERT INTO channels(id, name) VALUES (1, 'T_a')", [])
+        .expect("channel");
+    let now = now_unix_ms();
+    // The last minute, every 20 ms; then 3000 messages of 200 bytes.
+    for k in 0..3000i64 {
+        conn.execute(
+            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 1, 12000.0, 20.0, 0)",
+            [now - 60_000 + k * 20],
+        )
+        .expect("reading");
+    }
+    let records_bytes = schema::data_bytes(&conn).expect("size");
+    for k in 0..3000 {
+        conn.execute(
+            "INSERT INTO mqtt_outbox(topic, payload) VALUES ('compgate/readings', ?1)",
+            [format!("{k:0200}")],
+        )
+        .expect("message");
+    }
+    let all_bytes = schema::data_bytes(&conn).expect("size");
+    let (first_id, last_id): (i64, i64) = conn
+        .query_row("SELECT min(id), max(id) FROM mqtt_outbox", [], |r| {
+            Ok((r.get(0)?, r.get(1)?))
+        })
+        .expect("ids");
+    drop(conn);
+    // Room for the records and half the messages.
+    let max_bytes = records_bytes + (all_bytes - records_bytes) / 2;
+    let cfg = RecorderConfig {
+        path: path.display().to_string(),
+        max_size_mb: max_bytes as f64 / 1024.0 / 1024.0,
+        ..RecorderConfig::default()
+    };
+    let rec = Recorder::start(&cfg).expect("starts");
+    let stats = rec.sender().stats().clone();
+    // Its one retention pass runs before the last commit.
+    rec.finish();
+    let conn = open(&path).expect("opens");
+    assert!(schema::data_bytes(&conn).expect("size") <= max_bytes);
+    assert_eq!(counts(&conn).expect("counts").0, 3000, "every reading kept");
+    let (left, oldest, newest): (i64, i64, i64) = conn
+        .query_row(
+            "SELECT count(*), min(id), max(id) FROM mqtt_outbox",
+            [],
+            |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+        )
+        .expect("outbox");
+    assert!(
+        left > 0 && oldest > first_id && newest == last_id,
+        "{left} messages left, ids {oldest}..={newest}"
+    );
+    assert_eq!(
+        stats.outbox_deleted.load(Ordering::Relaxed),
+        3000 - left as u64
+    );
+}
+
 // A database of another layout (the readings of an older recorder, without the
 // unfiltered temperature) is refused by `validate`'s check and by `run`, naming the
 // file, the table and the column, before anything is written to it or beside it;
@@ -1209,4 +1274,56 @@ fn a_damaged_database_is_logged_once_and_never_taken_for_recovered() {
     let lines = logged.lines("recorder");
     assert_eq!(lines.len(), 1, "{lines:?}");
     assert!(lines[0].contains("the database is damaged"), "{lines:?}");
+}
+
+// Unsent messages deleted pass after pass are one episode: WARN when it begins, then
+// one INFO line a pass with what went; a pass that deleted none ends it. Before, each
+// pass logged up to ten lines.
+#[test]
+fn deleting_unsent_messages_is_warned_once_per_episode_and_each_pass_is_one_line() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("r.db");
+    let messages = |conn: &Connection, n: usize| {
+        for k in 0..n {
+            conn.execute(
+                "INSERT INTO mqtt_outbox(topic, payload) VALUES ('t', ?1)",
+                [format!("{k:0400}")],
+            )
+            .expect("message");
+        }
+    };
+    let conn = open(&path).expect("opens");
+    let empty_bytes = schema::data_bytes(&conn).expect("size");
+    let cfg = RecorderConfig {
+        // Room for about 50 messages.
+        max_size_mb: (empty_bytes + 20 * 1024) as f64 / 1024.0 / 1024.0,
+        ..RecorderConfig::default()
+    };
+    let stats = Arc::new(RecorderStats::default());
+    let shared = Arc::new(QueueShared {
+        pending: AtomicUsize::new(0),
+        wake_at: 1,
+        writer: OnceLock::new(),
+    });
+    let mut writer = Writer::new(
+        &cfg,
+        &path,
+        open(&path).expect("opens"),
+        stats.clone(),
+        shared,
+        Arc::default(),
+    );
+    let logged = Logged::default();
+    tracing::subscriber::with_default(logged.subscriber(), || {
+        for more in [300, 300, 0, 300] {
+            messages(&conn, more);
+            writer.retention().expect("pass");
+        }
+    });
+    let lines = logged.lines("recorder");
+    assert_eq!(lines.len(), 3, "{lines:?}");
+    assert!(lines[0].starts_with("WARN") && lines[0].contains("MQTT messages unsent"));
+    assert!(lines[1].starts_with("INFO"), "{lines:?}");
+    assert!(lines[2].starts_with("WARN"), "a new episode: {lines:?}");
+    assert!(stats.outbox_deleted.load(Ordering::Relaxed) > 600);
 }
