@@ -165,3 +165,61 @@ async fn readings_writes_and_health_survive_a_broker_outage() {
     sub.abort();
     drop(plant);
 }
+
+/// `[recorder]` and `[mqtt]` for a broker on `port`, recording into `db`, with
+/// `mqtt_extra` appended to `[mqtt]`.
+fn service_sections(db: &std::path::Path, port: u16, mqtt_extra: &str) -> String {
+    format!(
+        "\n[recorder]\npath = {:?}\ncommit_interval_s = 0.2\n\n[mqtt]\nbroker = \"127.0.0.1:{port}\"\nmachine = \"mill-7\"\npublish_interval_s = 0.05\nretry_s = 0.2\n{mqtt_extra}\n",
+        db.display().to_string(),
+    )
+}
+
+// The first health message said "down" for a device the gateway was still connecting
+// to, where the status API said "connecting".
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_says_connecting_as_the_status_api_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let broker = tokio::task::block_in_place(|| Broker::start(dir.path()));
+    let (got, sub) = subscribe(broker.port, "compgate/#");
+    // A device that accepts the connection and never answers: its first poll cycle
+    // lasts its 60 s timeout, and until then it is connecting.
+    let silent = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let config = common::config("hold", "", "")
+        .replacen(
+            "address = \"127.0.0.1:0\"",
+            &format!("address = \"{}\"", silent.local_addr().unwrap()),
+            1,
+        )
+        .replacen(
+            "address = \"127.0.0.1:0\"",
+            &format!("address = \"127.0.0.1:{}\"", common::free_port()),
+            1,
+        )
+        .replacen("\ntimeout_s = 0.2\n", "\ntimeout_s = 60\n", 1);
+    let path = dir.path().join("compgate.toml");
+    std::fs::write(
+        &path,
+        config + &service_sections(&dir.path().join("rec.db"), broker.port, ""),
+    )
+    .unwrap();
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    let health = "compgate/mill-7/health";
+    wait_until(20.0, "a health message", || {
+        got.lock().unwrap().iter().any(|(t, _)| t == health)
+    })
+    .await;
+    let first = got
+        .lock()
+        .unwrap()
+        .iter()
+        .find(|(t, _)| t == health)
+        .unwrap()
+        .1
+        .clone();
+    assert_eq!(first["devices"][0]["link"], "connecting", "{first}");
+    assert_eq!(first["quality"], "uncertain", "{first}");
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    sub.abort();
+    drop((broker, silent));
+}

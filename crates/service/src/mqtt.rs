@@ -19,7 +19,8 @@
 //! One readings message carries a whole poll cycle of a device (64 channels are one
 //! message, not 64). `quality` is `good`, `uncertain` or `bad`: a reading's own quality; `good`/`bad` for
 //! a job's result; for health `good` when every link is up and no axis has a warning,
-//! else `uncertain`.
+//! else `uncertain`. A device's `link` is its state as `/api/status` says it
+//! (`connecting`, `up`, `errors`, `down`).
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::path::PathBuf;
@@ -34,6 +35,7 @@ use serde_json::json;
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 
+use crate::page::device_state;
 use crate::record::{now_unix_ms, quality_code, Grid, Record, RecordSender};
 use crate::ServiceError;
 use compgate_core::comp::CompParams;
@@ -170,17 +172,14 @@ impl Observer for MqttObserver {
         if !self.health_due.due(self.interval, Instant::now()) {
             return;
         }
-        let healthy = status
-            .devices
-            .iter()
-            .all(|d| d.cycles > 0 && d.last_error.is_none())
+        let healthy = status.devices.iter().all(|d| device_state(d) == "up")
             && status.axes.iter().all(|a| a.warning.is_none());
         let payload = json!({
             "t_unix_ms": now_unix_ms(),
             "quality": if healthy { "good" } else { "uncertain" },
             "devices": status.devices.iter().map(|d| json!({
                 "name": d.name,
-                "link": if d.cycles > 0 && d.link_up { "up" } else { "down" },
+                "link": device_state(d),
                 "failed_cycles": d.failed_cycles,
                 "last_error": d.last_error,
             })).collect::<Vec<_>>(),
