@@ -165,3 +165,242 @@ async fn readings_writes_and_health_survive_a_broker_outage() {
     sub.abort();
     drop(plant);
 }
+
+/// `(rows, highest id)` of the outbox in the database at `db`; `None` before the
+/// recorder created it.
+fn outbox_rows(db: &std::path::Path) -> Option<(i64, i64)> {
+    let conn =
+        rusqlite::Connection::open_with_flags(db, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY)
+            .ok()?;
+    conn.busy_timeout(Duration::from_secs(5)).ok()?;
+    conn.query_row(
+        "SELECT count(*), coalesce(max(id), 0) FROM mqtt_outbox",
+        [],
+        |r| Ok((r.get(0)?, r.get(1)?)),
+    )
+    .ok()
+}
+
+/// `[recorder]` and `[mqtt]` for a broker on `port`, recording into `db`, with
+/// `mqtt_extra` appended to `[mqtt]`.
+fn service_sections(db: &std::path::Path, port: u16, mqtt_extra: &str) -> String {
+    format!(
+        "\n[recorder]\npath = {:?}\ncommit_interval_s = 0.2\n\n[mqtt]\nbroker = \"127.0.0.1:{port}\"\nmachine = \"mill-7\"\npublish_interval_s = 0.05\nretry_s = 0.2\n{mqtt_extra}\n",
+        db.display().to_string(),
+    )
+}
+
+// While no broker listened, the cap was only enforced inside a session, which a
+// refused connect never reached: the outbox grew without bound and filled the
+// recorder's database, and the drops were counted only once a broker was back.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_outbox_cap_holds_while_no_broker_listens() {
+    let dir = tempfile::tempdir().unwrap();
+    // A port for the broker, which starts later.
+    let mut broker = tokio::task::block_in_place(|| Broker::start(dir.path()));
+    tokio::task::block_in_place(|| broker.stop());
+    let db = dir.path().join("rec.db");
+    let extra = service_sections(&db, broker.port, "outbox_max_messages = 20");
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), &extra).await;
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_log(20.0, "MQTT: broker unreachable"));
+
+    // Many times the cap recorded, at most the cap kept: trimmed during the outage.
+    let mut last = (0, 0);
+    wait_until(
+        30.0,
+        "the outbox trimmed to the cap during the outage",
+        || {
+            last = outbox_rows(&db).unwrap_or_default();
+            last.1 >= 200 && last.0 <= 20
+        },
+    )
+    .await;
+    let log = gw.stderr_text();
+    assert_eq!(
+        log.matches("over outbox_max_messages").count(),
+        1,
+        "the drops are logged once per outage: {log}"
+    );
+
+    // The broker comes: the line saying so counts the outage's drops.
+    tokio::task::block_in_place(|| broker.restart());
+    let back = tokio::task::block_in_place(|| gw.wait_log(20.0, "MQTT: broker reachable again"));
+    let dropped: u64 = back
+        .split("dropped=")
+        .nth(1)
+        .and_then(|s| s.split_whitespace().next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no dropped= in {back}"));
+    assert!(dropped >= 100, "{back}");
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
+
+// The publisher kept its connection to the database it opened first: after the file
+// was renamed the recorder wrote a new one at the path, whose outbox nobody read, and
+// publishing stopped without a word.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn publishing_goes_on_after_the_database_is_renamed() {
+    let dir = tempfile::tempdir().unwrap();
+    let broker = tokio::task::block_in_place(|| Broker::start(dir.path()));
+    let (got, sub) = subscribe(broker.port, "compgate/#");
+    let db = dir.path().join("rec.db");
+    let extra = service_sections(&db, broker.port, "");
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), &extra).await;
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    let topic = "compgate/mill-7/readings/ain1";
+    wait_until(20.0, "a reading", || !times(&got, topic).is_empty()).await;
+
+    std::fs::rename(&db, dir.path().join("renamed.db")).unwrap();
+    let renamed_ms = now_ms();
+    // A second after the rename every reading goes into the new file.
+    wait_until(20.0, "a reading recorded into the new database", || {
+        times(&got, topic)
+            .last()
+            .is_some_and(|t| *t > renamed_ms + 1000)
+    })
+    .await;
+    tokio::task::block_in_place(|| {
+        gw.wait_log(10.0, "MQTT: the recorder database was created again")
+    });
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    sub.abort();
+    drop((plant, broker));
+}
+
+// A broker refusing the client (not authorized) was logged as "broker unreachable",
+// as if it did not answer.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_broker_refusing_the_client_is_named_as_refusing_it_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut broker = tokio::task::block_in_place(|| Broker::start(dir.path()));
+    // The same broker, with anonymous clients refused.
+    tokio::task::block_in_place(|| broker.stop());
+    let conf = dir.path().join("mosquitto.conf");
+    let text = std::fs::read_to_string(&conf).unwrap();
+    assert!(text.contains("allow_anonymous true"), "{text}");
+    std::fs::write(
+        &conf,
+        text.replace("allow_anonymous true", "allow_anonymous false"),
+    )
+    .unwrap();
+    tokio::task::block_in_place(|| broker.restart());
+
+    let extra = service_sections(&dir.path().join("rec.db"), broker.port, "");
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), &extra).await;
+    let gw = Gateway::start_with_args(
+        dir.path(),
+        &path,
+        &["--log", "info,compgate_service::mqtt=debug"],
+    );
+    let line = tokio::task::block_in_place(|| {
+        gw.wait_log(20.0, "MQTT: broker refused the connection: not authorized")
+    });
+    assert!(line.contains("WARN"), "{line}");
+    // Tried again, logged once.
+    wait_until(20.0, "three more refused attempts", || {
+        gw.stderr_text()
+            .matches("MQTT: broker still not connected")
+            .count()
+            >= 3
+    })
+    .await;
+    let log = gw.stderr_text();
+    assert_eq!(
+        log.matches("MQTT: broker refused the connection").count(),
+        1,
+        "{log}"
+    );
+    assert!(!log.contains("broker unreachable"), "{log}");
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop((plant, broker));
+}
+
+// A database error of the outbox (here a lock held past the busy timeout) was logged
+// as "broker unreachable", and then "broker reachable again".
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_outbox_database_error_is_named_as_the_database_s() {
+    let dir = tempfile::tempdir().unwrap();
+    let broker = tokio::task::block_in_place(|| Broker::start(dir.path()));
+    let (got, sub) = subscribe(broker.port, "compgate/#");
+    let db = dir.path().join("rec.db");
+    let extra = service_sections(&db, broker.port, "");
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), &extra).await;
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    let topic = "compgate/mill-7/readings/ain1";
+    wait_until(20.0, "a reading", || !times(&got, topic).is_empty()).await;
+
+    // Held until the publisher gave up on it.
+    let lock = rusqlite::Connection::open(&db).unwrap();
+    lock.busy_timeout(Duration::from_secs(10)).unwrap();
+    lock.execute_batch("BEGIN EXCLUSIVE").unwrap();
+    let line =
+        tokio::task::block_in_place(|| gw.wait_log(30.0, "MQTT: the outbox database failed"));
+    assert!(
+        line.contains(&db.display().to_string()) && line.contains("locked"),
+        "{line}"
+    );
+    lock.execute_batch("COMMIT").unwrap();
+    drop(lock);
+    tokio::task::block_in_place(|| gw.wait_log(30.0, "MQTT: the outbox database works again"));
+    let log = gw.stderr_text();
+    assert!(!log.contains("broker unreachable"), "{log}");
+    assert!(!log.contains("reachable again"), "{log}");
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    sub.abort();
+    drop((plant, broker));
+}
+
+// The first health message said "down" for a device the gateway was still connecting
+// to, where the status API said "connecting".
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_says_connecting_as_the_status_api_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let broker = tokio::task::block_in_place(|| Broker::start(dir.path()));
+    let (got, sub) = subscribe(broker.port, "compgate/#");
+    // A device that accepts the connection and never answers: its first poll cycle
+    // lasts its 60 s timeout, and until then it is connecting.
+    let silent = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let config = common::config("hold", "", "")
+        .replacen(
+            "address = \"127.0.0.1:0\"",
+            &format!("address = \"{}\"", silent.local_addr().unwrap()),
+            1,
+        )
+        .replacen(
+            "address = \"127.0.0.1:0\"",
+            &format!("address = \"127.0.0.1:{}\"", common::free_port()),
+            1,
+        )
+        .replacen("\ntimeout_s = 0.2\n", "\ntimeout_s = 60\n", 1);
+    let path = dir.path().join("compgate.toml");
+    std::fs::write(
+        &path,
+        config + &service_sections(&dir.path().join("rec.db"), broker.port, ""),
+    )
+    .unwrap();
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    let health = "compgate/mill-7/health";
+    wait_until(20.0, "a health message", || {
+        got.lock().unwrap().iter().any(|(t, _)| t == health)
+    })
+    .await;
+    let first = got
+        .lock()
+        .unwrap()
+        .iter()
+        .find(|(t, _)| t == health)
+        .unwrap()
+        .1
+        .clone();
+    assert_eq!(first["devices"][0]["link"], "connecting", "{first}");
+    assert_eq!(first["quality"], "uncertain", "{first}");
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    sub.abort();
+    drop((broker, silent));
+}

@@ -58,6 +58,9 @@ pub enum ServiceError {
     /// The MQTT client or its connection to the broker failed.
     #[error("{0}")]
     Mqtt(String),
+    /// The broker refused the connection: its CONNACK's return code, in words.
+    #[error("broker refused the connection: {0}")]
+    MqttRefused(&'static str),
     /// The MQTT outbox in the recorder's database failed.
     #[error("{0}")]
     MqttOutbox(String),

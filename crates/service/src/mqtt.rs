@@ -4,9 +4,11 @@
 //! messages and queues them with the recorder, which commits them into the
 //! `mqtt_outbox` table in the same transaction as the readings. The [`publisher`]
 //! task sends the outbox in id order and deletes a message only when the broker has
-//! acknowledged it (PUBACK). While the broker is down the outbox grows; after it is
-//! back the backlog goes out first, oldest first. Delivery is at least once: after a
-//! broken connection unacknowledged messages are sent again.
+//! acknowledged it (PUBACK). While the broker is down the outbox grows, up to
+//! `outbox_max_messages`; after it is back the backlog goes out first, oldest first.
+//! Delivery is at least once: after a broken connection unacknowledged messages are
+//! sent again. When the recorder creates its database again (deleted or replaced
+//! while running), the publisher follows it to the new file.
 //!
 //! Topics (`P` = `topic_prefix`, `M` = `machine`):
 //!
@@ -19,7 +21,8 @@
 //! One readings message carries a whole poll cycle of a device (64 channels are one
 //! message, not 64). `quality` is `good`, `uncertain` or `bad`: a reading's own quality; `good`/`bad` for
 //! a job's result; for health `good` when every link is up and no axis has a warning,
-//! else `uncertain`.
+//! else `uncertain`. A device's `link` is its state as `/api/status` says it
+//! (`connecting`, `up`, `errors`, `down`).
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::path::PathBuf;
@@ -28,13 +31,16 @@ use std::time::{Duration, Instant};
 
 use rusqlite::Connection;
 
-use rumqttc::{AsyncClient, Event, MqttOptions, Outgoing, Packet, QoS};
+use rumqttc::{
+    AsyncClient, ConnectReturnCode, ConnectionError, Event, MqttOptions, Outgoing, Packet, QoS,
+};
 use serde::Serialize;
 use serde_json::json;
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 
-use crate::record::{now_unix_ms, quality_code, Grid, Record, RecordSender};
+use crate::page::device_state;
+use crate::record::{file_id, now_unix_ms, quality_code, DbFiles, Grid, Record, RecordSender};
 use crate::ServiceError;
 use compgate_core::comp::CompParams;
 use compgate_gateway::config::{secs, MqttConfig};
@@ -170,17 +176,14 @@ impl Observer for MqttObserver {
         if !self.health_due.due(self.interval, Instant::now()) {
             return;
         }
-        let healthy = status
-            .devices
-            .iter()
-            .all(|d| d.cycles > 0 && d.last_error.is_none())
+        let healthy = status.devices.iter().all(|d| device_state(d) == "up")
             && status.axes.iter().all(|a| a.warning.is_none());
         let payload = json!({
             "t_unix_ms": now_unix_ms(),
             "quality": if healthy { "good" } else { "uncertain" },
             "devices": status.devices.iter().map(|d| json!({
                 "name": d.name,
-                "link": if d.cycles > 0 && d.link_up { "up" } else { "down" },
+                "link": device_state(d),
                 "failed_cycles": d.failed_cycles,
                 "last_error": d.last_error,
             })).collect::<Vec<_>>(),
@@ -212,75 +215,275 @@ const WINDOW: usize = 64;
 /// after the first reason for it, so that one database round trip takes what came
 /// together.
 const BATCH: Duration = Duration::from_millis(100);
-/// How often `outbox_max_messages` is enforced.
+/// How often `outbox_max_messages` is enforced in a session (while no session runs,
+/// after every commit of the recorder: the outbox only grows then).
 const CAP_INTERVAL: Duration = Duration::from_secs(5);
 
-/// Sends the outbox of the database at `db` to the broker until `shutdown`.
-/// `outbox` is notified when the recorder committed new messages.
+/// Sends the outbox of the database at `db_path` to the broker until `shutdown`.
+/// `grown` is notified when the recorder committed new messages.
 pub async fn publisher(
     cfg: MqttConfig,
     db_path: PathBuf,
-    outbox: Arc<Notify>,
+    grown: Arc<Notify>,
     shutdown: CancellationToken,
 ) {
     let retry = secs(cfg.retry_s);
-    let mut dropped_total: u64 = 0;
-    let db = match crate::record::open(&db_path) {
-        Ok(c) => Arc::new(Mutex::new(c)),
+    let mut outbox = match crate::record::open(&db_path) {
+        Ok(conn) => Outbox::new(db_path, conn),
         Err(e) => {
             tracing::error!(error = %e, "MQTT: cannot open the outbox; nothing is published");
             return;
         }
     };
     let mut link = BrokerLink::default();
+    // The outbox may be over the cap from the last run.
+    let mut cap_due = true;
     while !shutdown.is_cancelled() {
-        match session(&cfg, &db, &outbox, &shutdown, &mut dropped_total, &mut link).await {
-            Ok(()) => break,
+        let ended = match outbox.reopen_if_replaced() {
+            Ok(()) => session(&cfg, &mut outbox, &grown, &shutdown, &mut link).await,
+            Err(e) => Err(e),
+        };
+        match ended {
+            // Stopped, or the database was replaced: the next session reads the new one.
+            Ok(()) => continue,
+            // Logged by the outbox, as its database's error.
+            Err(ServiceError::MqttOutbox(_) | ServiceError::Task(_)) => {}
             Err(e) => link.failed(&cfg, &e),
         }
-        tokio::select! {
-            _ = shutdown.cancelled() => break,
-            _ = tokio::time::sleep(retry) => {}
+        // No session: the outbox only grows, and the cap holds it after each commit,
+        // so that a long outage cannot fill the recorder's database.
+        let retry_at = tokio::time::Instant::now() + retry;
+        loop {
+            if std::mem::take(&mut cap_due) && outbox.reopen_if_replaced().is_ok() {
+                let ex = Exchange {
+                    acked: Vec::new(),
+                    cap: Some(cfg.outbox_max_messages),
+                    fetch: None,
+                };
+                if let Ok((dropped, _)) = outbox.exchange(ex).await {
+                    link.dropped(&cfg, dropped);
+                }
+            }
+            tokio::select! {
+                _ = shutdown.cancelled() => return,
+                () = tokio::time::sleep_until(retry_at) => break,
+                () = grown.notified() => cap_due = true,
+            }
         }
     }
 }
 
-/// The broker link's state, so that it is logged once per change (down, up again),
-/// never once per retry.
+/// What the log says of the broker link and of the cap, so that it is logged once
+/// per change (unreachable, refused, reachable again) and once per outage, never
+/// once per retry.
 #[derive(Debug, Default)]
 struct BrokerLink {
-    /// Since when the broker is unreachable, and the connection attempts failed since.
-    down: Option<(Instant, u64)>,
+    /// Connected, and no connection attempt failed since.
+    up: bool,
+    down: Option<Outage>,
+    /// Messages the cap dropped since the start.
+    dropped_total: u64,
+}
+
+#[derive(Debug)]
+struct Outage {
+    since: Instant,
+    /// Connection attempts failed.
+    attempts: u64,
+    /// Why the last attempt failed: the broker's refusal, `None` when it was not
+    /// reached.
+    refused: Option<&'static str>,
+    /// Messages the cap dropped during the outage.
+    dropped: u64,
 }
 
 impl BrokerLink {
     fn failed(&mut self, cfg: &MqttConfig, e: &ServiceError) {
-        match &mut self.down {
+        let refused = match e {
+            ServiceError::MqttRefused(reason) => Some(*reason),
+            _ => None,
+        };
+        self.up = false;
+        let changed = match &mut self.down {
+            Some(o) => {
+                o.attempts += 1;
+                std::mem::replace(&mut o.refused, refused) != refused
+            }
+            None => {
+                self.down = Some(Outage {
+                    since: Instant::now(),
+                    attempts: 1,
+                    refused,
+                    dropped: 0,
+                });
+                true
+            }
+        };
+        let attempts = self.down.as_ref().map_or(0, |o| o.attempts);
+        match refused {
+            _ if !changed => {
+                tracing::debug!(broker = %cfg.broker, error = %e, attempts, "MQTT: broker still not connected");
+            }
+            Some(reason) => {
+                tracing::warn!(broker = %cfg.broker, client_id = %client_id(cfg), retry_s = cfg.retry_s, "MQTT: broker refused the connection: {reason}; messages wait in the outbox");
+            }
             None => {
                 tracing::warn!(broker = %cfg.broker, error = %e, retry_s = cfg.retry_s, "MQTT: broker unreachable; messages wait in the outbox");
-                self.down = Some((Instant::now(), 1));
-            }
-            Some((_, attempts)) => {
-                *attempts += 1;
-                tracing::debug!(broker = %cfg.broker, error = %e, attempts = *attempts, "MQTT: broker still unreachable");
             }
         }
     }
 
     fn connected(&mut self, cfg: &MqttConfig) {
         match self.down.take() {
-            Some((since, attempts)) => tracing::info!(
+            Some(o) => tracing::info!(
                 broker = %cfg.broker,
-                down_s = (since.elapsed().as_secs_f64() * 10.0).round() / 10.0,
-                failed_attempts = attempts,
+                down_s = (o.since.elapsed().as_secs_f64() * 10.0).round() / 10.0,
+                failed_attempts = o.attempts,
+                dropped = o.dropped,
                 "MQTT: broker reachable again; the outbox backlog goes out"
             ),
-            None => tracing::info!(broker = %cfg.broker, "MQTT connected"),
+            None if !self.up => tracing::info!(broker = %cfg.broker, "MQTT connected"),
+            None => {}
+        }
+        self.up = true;
+    }
+
+    /// `n` messages dropped by the cap: while the broker is not connected logged at
+    /// the first drop, and counted when it is back; else each time (at most every
+    /// [`CAP_INTERVAL`]).
+    fn dropped(&mut self, cfg: &MqttConfig, n: u64) {
+        if n == 0 {
+            return;
+        }
+        self.dropped_total += n;
+        let max = cfg.outbox_max_messages;
+        match &mut self.down {
+            Some(o) => {
+                o.dropped += n;
+                if o.dropped == n {
+                    tracing::warn!(outbox_max_messages = max, dropped = n, dropped_total = self.dropped_total, "MQTT outbox over outbox_max_messages while the broker is not connected: the oldest messages are dropped (counted when it is back)");
+                }
+            }
+            None => {
+                tracing::warn!(
+                    outbox_max_messages = max,
+                    dropped = n,
+                    dropped_total = self.dropped_total,
+                    "MQTT outbox over outbox_max_messages: oldest messages dropped"
+                );
+            }
         }
     }
 }
 
+/// The CONNACK's refusal in words (MQTT 3.1.1, 3.2.2.3).
+fn refusal(code: ConnectReturnCode) -> &'static str {
+    match code {
+        ConnectReturnCode::Success => "accepted",
+        ConnectReturnCode::RefusedProtocolVersion => "unacceptable protocol version",
+        ConnectReturnCode::BadClientId => "client identifier rejected",
+        ConnectReturnCode::ServiceUnavailable => "server unavailable",
+        ConnectReturnCode::BadUserNamePassword => "bad user name or password",
+        ConnectReturnCode::NotAuthorized => {
+            "not authorized (the gateway connects without user name and password)"
+        }
+    }
+}
+
+fn client_id(cfg: &MqttConfig) -> String {
+    cfg.client_id
+        .clone()
+        .unwrap_or_else(|| format!("compgate-{}", cfg.machine))
+}
+
 type Db = Arc<Mutex<Connection>>;
+
+/// One outbox row: id, topic, payload.
+type Row = (i64, String, String);
+
+/// The outbox in the recorder's database at `path`. It is opened again when the
+/// recorder's writer created the database anew (deleted or replaced while the
+/// gateway runs): the old file no longer gets a message. Its errors are logged as
+/// the database's, once per change.
+struct Outbox {
+    path: PathBuf,
+    db: Db,
+    /// What `db` has open.
+    files: DbFiles,
+    /// The last round trip (or opening it again) failed.
+    failing: bool,
+}
+
+impl Outbox {
+    fn new(path: PathBuf, conn: Connection) -> Self {
+        Outbox {
+            files: DbFiles::at(&path),
+            db: Arc::new(Mutex::new(conn)),
+            path,
+            failing: false,
+        }
+    }
+
+    /// The path names another database than the one open (the writer's check).
+    /// Not while the old -wal or -shm are still at the path: opened with them,
+    /// SQLite would replay the old WAL into the new file (the writer removes them
+    /// before it creates the new one).
+    fn replaced(&self) -> bool {
+        let db = file_id(&self.path);
+        if db.is_none() || db == self.files.db {
+            return false;
+        }
+        let now = DbFiles::at(&self.path);
+        let stale = |old: Option<(u64, u64)>, at_path| old.is_some() && old == at_path;
+        !stale(self.files.wal, now.wal) && !stale(self.files.shm, now.shm)
+    }
+
+    fn reopen_if_replaced(&mut self) -> Result<(), ServiceError> {
+        if !self.replaced() {
+            return Ok(());
+        }
+        match crate::record::open(&self.path) {
+            Ok(conn) => {
+                // The old connection closes here: SQLite sees its file moved and
+                // leaves the new -wal and -shm alone.
+                *self = Outbox {
+                    failing: self.failing,
+                    ..Outbox::new(self.path.clone(), conn)
+                };
+                tracing::info!(path = %self.path.display(), "MQTT: the recorder database was created again: publishing goes on from its outbox");
+                Ok(())
+            }
+            Err(e) => {
+                let e = outbox_err(e);
+                self.note(Some(&e));
+                Err(e)
+            }
+        }
+    }
+
+    /// Runs `ex` on the database; see [`exchange`].
+    async fn exchange(&mut self, ex: Exchange) -> Result<(u64, Vec<Row>), ServiceError> {
+        let result = exchange(&self.db, ex).await;
+        self.note(result.as_ref().err());
+        result
+    }
+
+    /// Logs the database failing and working again, once per change.
+    fn note(&mut self, error: Option<&ServiceError>) {
+        let path = self.path.display();
+        match (error, self.failing) {
+            (Some(e), false) => {
+                tracing::warn!(path = %path, error = %e, "MQTT: the outbox database failed; messages wait in it, publishing is tried again every retry_s");
+            }
+            (Some(e), true) => {
+                tracing::debug!(path = %path, error = %e, "MQTT: the outbox database still fails");
+            }
+            (None, true) => tracing::info!(path = %path, "MQTT: the outbox database works again"),
+            (None, false) => {}
+        }
+        self.failing = error.is_some();
+    }
+}
 
 /// One round trip to the outbox.
 struct Exchange {
@@ -292,17 +495,14 @@ struct Exchange {
     fetch: Option<(i64, usize)>,
 }
 
-/// Runs `ex` in one blocking call: deletes first, then reads. Returns the rows
-/// dropped by the cap and the rows read.
 /// An outbox error: the database or its lock.
 fn outbox_err(e: impl std::fmt::Display) -> ServiceError {
     ServiceError::MqttOutbox(e.to_string())
 }
 
-async fn exchange(
-    db: &Db,
-    ex: Exchange,
-) -> Result<(u64, Vec<(i64, String, String)>), ServiceError> {
+/// Runs `ex` in one blocking call: deletes first, then reads. Returns the rows
+/// dropped by the cap and the rows read.
+async fn exchange(db: &Db, ex: Exchange) -> Result<(u64, Vec<Row>), ServiceError> {
     let db = db.clone();
     tokio::task::spawn_blocking(move || {
         let mut conn = db.lock().map_err(outbox_err)?;
@@ -350,18 +550,18 @@ async fn exchange(
     .map_err(|e| ServiceError::Task(e.to_string()))?
 }
 
-/// One connection to the broker: sends the outbox until `shutdown` (Ok) or a
-/// connection error (Err). A new session starts from the oldest unacknowledged row.
+/// One connection to the broker: sends the outbox until `shutdown` or the database
+/// replaced (Ok), or an error of the connection or the outbox (Err). A new session
+/// starts from the oldest unacknowledged row.
 ///
-/// The outbox is read when the recorder has committed new messages (`outbox`), at
+/// The outbox is read when the recorder has committed new messages (`grown`), at
 /// the start of a connection, and while a backlog is left; acknowledged rows are
 /// deleted in batches. An idle session does not wake up at all but for the cap.
 async fn session(
     cfg: &MqttConfig,
-    db: &Db,
-    outbox: &Notify,
+    outbox: &mut Outbox,
+    grown: &Notify,
     shutdown: &CancellationToken,
-    dropped_total: &mut u64,
     link: &mut BrokerLink,
 ) -> Result<(), ServiceError> {
     let (host, port) = cfg
@@ -369,11 +569,7 @@ async fn session(
         .rsplit_once(':')
         .and_then(|(h, p)| Some((h.to_string(), p.parse::<u16>().ok()?)))
         .ok_or_else(|| ServiceError::MqttBroker(cfg.broker.clone()))?;
-    let id = cfg
-        .client_id
-        .clone()
-        .unwrap_or_else(|| format!("compgate-{}", cfg.machine));
-    let mut opts = MqttOptions::new(id, host, port);
+    let mut opts = MqttOptions::new(client_id(cfg), host, port);
     opts.set_keep_alive(secs(cfg.keep_alive_s));
     opts.set_clean_session(true);
     opts.set_inflight(WINDOW as u16);
@@ -396,12 +592,17 @@ async fn session(
         let far = tokio::time::Instant::now() + Duration::from_secs(3600);
         tokio::select! {
             _ = shutdown.cancelled() => {
-                let _ = exchange(db, Exchange { acked: std::mem::take(&mut acked), cap: Some(cfg.outbox_max_messages), fetch: None }).await;
+                let _ = outbox.exchange(Exchange { acked: std::mem::take(&mut acked), cap: Some(cfg.outbox_max_messages), fetch: None }).await;
                 let _ = client.try_disconnect();
                 return Ok(());
             }
             ev = events.poll() => {
-                match ev.map_err(|e| ServiceError::Mqtt(e.to_string()))? {
+                let ev = match ev {
+                    Ok(ev) => ev,
+                    Err(ConnectionError::ConnectionRefused(code)) => return Err(ServiceError::MqttRefused(refusal(code))),
+                    Err(e) => return Err(ServiceError::Mqtt(e.to_string())),
+                };
+                match ev {
                     Event::Incoming(Packet::ConnAck(_)) => {
                         connected = true;
                         link.connected(cfg);
@@ -419,18 +620,19 @@ async fn session(
                     _ => {}
                 }
             }
-            () = outbox.notified() => unread = true,
+            () = grown.notified() => unread = true,
             _ = cap_tick.tick() => cap_due = true,
             () = tokio::time::sleep_until(work_at.unwrap_or(far)), if work_at.is_some() => {
                 work_at = None;
+                if outbox.replaced() {
+                    let _ = client.try_disconnect();
+                    return Ok(());
+                }
                 let room = WINDOW.saturating_sub(sent.len() + inflight.len());
                 let fetch = (connected && unread && room > 0).then_some((queued_upto, room));
                 let cap = std::mem::take(&mut cap_due).then_some(cfg.outbox_max_messages);
-                let (dropped, rows) = exchange(db, Exchange { acked: std::mem::take(&mut acked), cap, fetch }).await?;
-                if dropped > 0 {
-                    *dropped_total += dropped;
-                    tracing::warn!(dropped, dropped_total = *dropped_total, "MQTT outbox over outbox_max_messages: oldest messages dropped");
-                }
+                let (dropped, rows) = outbox.exchange(Exchange { acked: std::mem::take(&mut acked), cap, fetch }).await?;
+                link.dropped(cfg, dropped);
                 if fetch.is_some() {
                     // A full window may have left more behind.
                     unread = rows.len() == room;

@@ -24,7 +24,7 @@ use tokio::sync::watch;
 use crate::http::Router;
 use crate::record::quality_code;
 use compgate_core::comp::CompParams;
-use compgate_gateway::runtime::Status;
+use compgate_gateway::runtime::{DeviceStatus, Status};
 
 const INDEX_HTML: &str = include_str!("index.html");
 const PAGE_CSS: &str = include_str!("page.css");
@@ -145,6 +145,18 @@ fn num(v: f64) -> Value {
     }
 }
 
+/// A device's state in one word, as `/api/status` and the MQTT health message say it:
+/// `connecting`, `up`, `errors` or `down`.
+pub(crate) fn device_state(d: &DeviceStatus) -> &'static str {
+    match (&d.last_error, d.cycles) {
+        // It answers, but a read of it fails: its channels say which.
+        (Some(_), _) if d.link_up => "errors",
+        (Some(_), _) => "down",
+        (None, 0) => "connecting",
+        (None, _) => "up",
+    }
+}
+
 /// `/api/status`: the status with the trends, at `t_unix_ms`.
 pub fn to_json(s: &Status, history: &History, interval_s: f64, t_unix_ms: i64) -> Value {
     let trend_s = history.window.as_secs_f64();
@@ -152,17 +164,10 @@ pub fn to_json(s: &Status, history: &History, interval_s: f64, t_unix_ms: i64) -
         .devices
         .iter()
         .map(|d| {
-            let state = match (&d.last_error, d.cycles) {
-                // It answers, but a read of it fails: its channels say which.
-                (Some(_), _) if d.link_up => "errors",
-                (Some(_), _) => "down",
-                (None, 0) => "connecting",
-                (None, _) => "up",
-            };
             json!({
                 "name": d.name,
                 "link": d.link,
-                "state": state,
+                "state": device_state(d),
                 "cycles": d.cycles,
                 "failed_cycles": d.failed_cycles,
                 "connects": d.connects,

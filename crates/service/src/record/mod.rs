@@ -670,7 +670,7 @@ impl Observer for RecordObserver {
 }
 
 /// (device, inode) of the file at `path`; `None` when there is none.
-fn file_id(path: &Path) -> Option<(u64, u64)> {
+pub(crate) fn file_id(path: &Path) -> Option<(u64, u64)> {
     std::fs::metadata(path).ok().map(|m| (m.dev(), m.ino()))
 }
 
@@ -686,14 +686,14 @@ fn with_suffix(path: &Path, suffix: &str) -> PathBuf {
 /// path naming another file (or none) means the database was deleted or replaced
 /// under it, and every later commit would go to a file nobody can open again.
 #[derive(Debug, Clone, Copy)]
-struct DbFiles {
-    db: Option<(u64, u64)>,
-    wal: Option<(u64, u64)>,
-    shm: Option<(u64, u64)>,
+pub(crate) struct DbFiles {
+    pub(crate) db: Option<(u64, u64)>,
+    pub(crate) wal: Option<(u64, u64)>,
+    pub(crate) shm: Option<(u64, u64)>,
 }
 
 impl DbFiles {
-    fn at(path: &Path) -> Self {
+    pub(crate) fn at(path: &Path) -> Self {
         DbFiles {
             db: file_id(path),
             wal: file_id(&with_suffix(path, "-wal")),
