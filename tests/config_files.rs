@@ -72,6 +72,61 @@ fn every_shipped_config_loads_and_validates_cleanly() {
     }
 }
 
+/// A deadband no change can pass held the axis silently: refused, naming the limit.
+#[test]
+fn a_deadband_no_change_can_pass_is_refused() {
+    let text = example_text()
+        .replace("deadband_k0_mm = 0.001", "deadband_k0_mm = 5")
+        .replace("deadband_tan_beta = 0.000001", "deadband_tan_beta = 0.05");
+    let (_path, result, _dir) = load_text("deadband.toml", &text);
+    let p = problems(result);
+    let lines: Vec<String> = p
+        .iter()
+        .map(|p| format!("{}: {}", p.key, p.message))
+        .collect();
+    assert_eq!(lines.len(), 2, "{lines:#?}");
+    assert!(
+        lines[0].starts_with("axes.X.deadband_k0_mm: 5 is above max_step_k0_mm = 0.02"),
+        "{lines:#?}"
+    );
+    assert!(
+        lines[1].starts_with("axes.X.deadband_tan_beta: 0.05 is above max_step_tan_beta"),
+        "{lines:#?}"
+    );
+    // Below the step limit but not below the whole span of the limit.
+    let text = example_text()
+        .replace("deadband_k0_mm = 0.001", "deadband_k0_mm = 0.01")
+        .replace("max_abs_k0_mm = 0.5", "max_abs_k0_mm = 0.005");
+    let (_path, result, _dir) = load_text("deadband.toml", &text);
+    let p = problems(result);
+    assert_eq!(p.len(), 1, "{p:#?}");
+    assert_eq!(p[0].key, "axes.X.deadband_k0_mm");
+    assert!(
+        p[0].message
+            .starts_with("0.01 is not below 2 x max_abs_k0_mm = 0.01"),
+        "{}",
+        p[0]
+    );
+}
+
+#[test]
+fn a_value_listed_twice_in_nc_write_is_refused() {
+    let text = example_text().replace(
+        "nc_module = \"nc_x\"\n",
+        "nc_module = \"nc_x\"\nnc_write = [\"sd43900\", \"sd43910\", \"sd43900\", \"sd43920\"]\n",
+    );
+    let (_path, result, _dir) = load_text("dup.toml", &text);
+    let p = problems(result);
+    assert_eq!(p.len(), 1, "{p:#?}");
+    assert_eq!(p[0].key, "axes.X.nc_write");
+    assert!(
+        p[0].message
+            .starts_with("\"sd43900\" is listed more than once"),
+        "{}",
+        p[0]
+    );
+}
+
 #[test]
 fn two_typos_are_both_reported_with_path_and_file() {
     let text = example_text()
