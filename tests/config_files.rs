@@ -127,6 +127,68 @@ fn a_value_listed_twice_in_nc_write_is_refused() {
     );
 }
 
+/// A URL's scheme and an IPv6 zone by name got "write an IPv6 address in brackets".
+#[test]
+fn a_scheme_and_a_zone_name_in_an_address_get_their_own_reason() {
+    let text = example_text()
+        .replace("127.0.0.1:5020", "tcp://127.0.0.1:502")
+        .replace("127.0.0.1:5021", "[fe80::1%eth0]:502");
+    let (_path, result, _dir) = load_text("scheme.toml", &text);
+    let lines: Vec<String> = problems(result)
+        .iter()
+        .map(|p| format!("{}: {}", p.key, p.message))
+        .collect();
+    assert_eq!(
+        lines,
+        [
+            "devices.ain1.address: `tcp://127.0.0.1:502`: no scheme: write host:port, e.g. \
+             \"192.168.0.10:502\"",
+            "nc_modules.nc_x.address: `[fe80::1%eth0]:502`: give the zone of the IPv6 address \
+             as the interface's index, e.g. \"[fe80::1%2]:502\" (`ip link` lists it), not its name",
+        ]
+    );
+    // The zone by index is what the socket code takes.
+    let text = example_text().replace("127.0.0.1:5021", "[fe80::1%2]:502");
+    let (_path, result, _dir) = load_text("zone.toml", &text);
+    result.expect("a zone index is accepted");
+}
+
+/// The broker got only a `rsplit_once(':')`: run then retried "failed to lookup address"
+/// for ever. It gets the check of every other address now.
+#[test]
+fn the_mqtt_broker_is_checked_as_every_address() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let with = |broker: &str| {
+        format!(
+            "{}\n[recorder]\npath = {:?}\n\n[mqtt]\nbroker = {broker:?}\nmachine = \"m1\"\n",
+            example_text(),
+            dir.path().join("r.db").display().to_string()
+        )
+    };
+    for (broker, why) in [
+        ("mqtt://127.0.0.1:43883", "no scheme"),
+        ("192.168.0.300:1883", "is not an IPv4 address"),
+        (" broker:1883", "is not a valid host name"),
+        ("a b:1883", "is not a valid host name"),
+        ("[::1:1883", "is not an IPv6 address in brackets"),
+        ("broker:0", "port 0 cannot be connected to"),
+    ] {
+        let (_path, result, _dir) = load_text("mqtt.toml", &with(broker));
+        let p = problems(result);
+        assert_eq!(p.len(), 1, "{broker}: {p:#?}");
+        assert_eq!(p[0].key, "mqtt.broker", "{broker}");
+        assert!(
+            p[0].message.contains(why) && p[0].message.contains("broker.plant.local:1883"),
+            "{broker}: {}",
+            p[0]
+        );
+    }
+    for ok in ["broker.plant.local:1883", "127.0.0.1:1883", "[::1]:1883"] {
+        let (_path, result, _dir) = load_text("mqtt.toml", &with(ok));
+        result.unwrap_or_else(|e| panic!("{ok}: {e}"));
+    }
+}
+
 #[test]
 fn two_typos_are_both_reported_with_path_and_file() {
     let text = example_text()

@@ -189,6 +189,19 @@ pub enum HostPortError {
     /// An IPv6 address without brackets.
     #[error("`{0}`: write an IPv6 address in brackets, e.g. \"[::1]:502\"")]
     Ipv6(String),
+    /// A URL's scheme before the address.
+    #[error("`{0}`: no scheme: write host:port, e.g. \"192.168.0.10:502\"")]
+    Scheme(String),
+    /// Brackets that do not hold an IPv6 address.
+    #[error("`{0}` is not an IPv6 address in brackets; expected e.g. \"[fe80::1]:502\"")]
+    NotIpv6(String),
+    /// A link-local address's zone given as an interface name, which the socket
+    /// address parser does not take (nor does the resolver, in brackets).
+    #[error(
+        "`{0}`: give the zone of the IPv6 address as the interface's index, e.g. \
+         \"[fe80::1%2]:502\" (`ip link` lists it), not its name"
+    )]
+    ZoneName(String),
     /// Not a host name.
     #[error(
         "`{0}` is not a valid host name or IP address; expected host:port, e.g. \"192.168.0.10:502\""
@@ -224,6 +237,25 @@ pub fn check_host_port(addr: &str) -> Result<(), HostPortError> {
 
 /// The port of `host:port` whose host is not an IP address literal.
 fn host_name_port(addr: &str) -> Result<u16, HostPortError> {
+    if addr.contains("://") {
+        return Err(HostPortError::Scheme(addr.into()));
+    }
+    if let Some(rest) = addr.strip_prefix('[') {
+        // Would have parsed as a SocketAddr if the brackets held an IPv6 address.
+        let (ip, port) = rest.split_once(']').unwrap_or((rest, ""));
+        let Some(port) = port.strip_prefix(':') else {
+            return Err(HostPortError::NotIpv6(addr.into()));
+        };
+        if port.parse::<u16>().is_err() {
+            return Err(HostPortError::BadPort(port.into()));
+        }
+        return match ip.split_once('%') {
+            Some((ip, _)) if ip.parse::<std::net::Ipv6Addr>().is_ok() => {
+                Err(HostPortError::ZoneName(addr.into()))
+            }
+            _ => Err(HostPortError::NotIpv6(addr.into())),
+        };
+    }
     let Some((host, port)) = addr.rsplit_once(':') else {
         return Err(HostPortError::NoPort(addr.into()));
     };
@@ -283,6 +315,35 @@ mod tests {
         ] {
             assert!(check_host_port(bad).is_err(), "{bad}");
         }
+    }
+
+    #[test]
+    fn a_scheme_or_bad_brackets_get_their_own_reason() {
+        for (bad, want) in [
+            (
+                "tcp://127.0.0.1:502",
+                HostPortError::Scheme("tcp://127.0.0.1:502".into()),
+            ),
+            (
+                "mqtt://broker:1883",
+                HostPortError::Scheme("mqtt://broker:1883".into()),
+            ),
+            (
+                "[fe80::1%eth0]:502",
+                HostPortError::ZoneName("[fe80::1%eth0]:502".into()),
+            ),
+            ("[::1:1883", HostPortError::NotIpv6("[::1:1883".into())),
+            ("[plc]:502", HostPortError::NotIpv6("[plc]:502".into())),
+            ("[::1]:x", HostPortError::BadPort("x".into())),
+        ] {
+            assert_eq!(check_host_port(bad), Err(want), "{bad}");
+        }
+        // A zone by index is what the socket address parser takes.
+        assert_eq!(check_host_port("[fe80::1%2]:502"), Ok(()));
+        let why = check_host_port("tcp://127.0.0.1:502")
+            .unwrap_err()
+            .to_string();
+        assert!(why.contains("no scheme: write host:port"), "{why}");
     }
 
     #[test]
