@@ -63,13 +63,50 @@ fn every_shipped_config_loads_and_validates_cleanly() {
         );
     }
     for file in &files {
-        let cfg = match config::load_with_env(file, no_env()) {
+        // demo.toml's port 0 is for the simulated plant only (`compgate demo`, `sim`).
+        let demo = file.ends_with("demo.toml");
+        let loaded = if demo {
+            config::load_for_sim(file)
+        } else {
+            config::load_with_env(file, no_env())
+        };
+        let cfg = match loaded {
             Ok(cfg) => cfg,
             Err(e) => panic!("{}: {e}", file.display()),
         };
-        let again = config::validate(&cfg, &file.display().to_string());
-        assert!(again.is_empty(), "{again:#?}");
+        if !demo {
+            let again = config::validate(&cfg, &file.display().to_string());
+            assert!(again.is_empty(), "{again:#?}");
+        }
     }
+}
+
+/// `compgate run --config config/demo.toml` connected to port 0 for ever: the file
+/// loads for `run` no more, naming each address and where port 0 belongs.
+#[test]
+fn port_0_is_refused_for_run_and_left_to_the_simulated_plant() {
+    let file = config_dir().join("demo.toml");
+    let p = problems(config::load_with_env(&file, no_env()));
+    let keys: Vec<&str> = p.iter().map(|p| p.key.as_str()).collect();
+    assert_eq!(keys, ["devices.ain1.address", "nc_modules.nc_x.address"]);
+    for p in &p {
+        assert_eq!(p.file, file.display().to_string());
+        assert!(
+            p.message.contains("port 0 cannot be connected to")
+                && p.message.contains("`compgate demo` and `compgate sim`"),
+            "{p}"
+        );
+    }
+    // Without [sim] no hint about the simulator.
+    let text = example_text().replace("127.0.0.1:5020", "127.0.0.1:0");
+    let (_path, result, _dir) = load_text("zero.toml", &text);
+    let p = problems(result);
+    assert_eq!(p.len(), 1, "{p:#?}");
+    assert_eq!(p[0].key, "devices.ain1.address");
+    assert!(!p[0].message.contains("compgate sim"), "{}", p[0]);
+    // The demo's path: the text loads and the plant picks the ports.
+    let text = std::fs::read_to_string(&file).expect("demo.toml");
+    config::load_str(&text, "demo.toml").expect("the demo's embedded config loads");
 }
 
 /// A deadband no change can pass held the axis silently: refused, naming the limit.
@@ -186,6 +223,50 @@ fn the_mqtt_broker_is_checked_as_every_address() {
     for ok in ["broker.plant.local:1883", "127.0.0.1:1883", "[::1]:1883"] {
         let (_path, result, _dir) = load_text("mqtt.toml", &with(ok));
         result.unwrap_or_else(|e| panic!("{ok}: {e}"));
+    }
+}
+
+/// A UTF-16 file (Notepad's "Unicode") said only "stream did not contain valid UTF-8";
+/// `--config /dev/zero` read until memory ran out.
+#[test]
+fn a_utf16_or_endless_file_gets_a_read_error_that_says_why() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let read_error = |path: &Path| match config::load_with_env(path, no_env()) {
+        Err(ConfigError::Read { file, message }) => {
+            assert_eq!(file, path.display().to_string());
+            message
+        }
+        other => panic!("expected a read error, got {other:?}"),
+    };
+    let utf16 = dir.path().join("utf16.toml");
+    let mut bytes = vec![0xff, 0xfe];
+    bytes.extend(example_text().encode_utf16().flat_map(u16::to_le_bytes));
+    std::fs::write(&utf16, bytes).expect("write");
+    let m = read_error(&utf16);
+    assert!(
+        m.contains("UTF-16") && m.contains("save it as UTF-8"),
+        "{m}"
+    );
+
+    let latin1 = dir.path().join("latin1.toml");
+    let mut bytes = b"[gateway]\n# 20 \xb0C\n".to_vec();
+    bytes.extend(example_text().bytes());
+    std::fs::write(&latin1, bytes).expect("write");
+    let m = read_error(&latin1);
+    assert!(
+        m.starts_with("line 2 is not UTF-8") && m.contains("save the file as UTF-8"),
+        "{m}"
+    );
+
+    let big = dir.path().join("big.toml");
+    let padding = "#".repeat(config::MAX_FILE_BYTES as usize);
+    std::fs::write(&big, example_text() + &padding).expect("write");
+    let m = read_error(&big);
+    assert!(m.contains("larger than 4 MB"), "{m}");
+    #[cfg(unix)]
+    {
+        let m = read_error(Path::new("/dev/zero"));
+        assert!(m.contains("larger than 4 MB"), "{m}");
     }
 }
 

@@ -172,7 +172,7 @@ impl<R: Read> CsvInput<R> {
             line: 1,
             message: e.to_string(),
         })?;
-        if start.starts_with(&[0xff, 0xfe]) || start.starts_with(&[0xfe, 0xff]) {
+        if is_utf16(start) {
             return Err(MeasureError::Utf16);
         }
         let index = LineIndex::new(reader);
@@ -365,6 +365,13 @@ impl<R: Read> Read for LineIndex<R> {
 
 /// Longest channel name the gateway takes, characters.
 pub const MAX_CHANNEL_NAME_LEN: usize = 64;
+
+/// Whether text starts with a UTF-16 byte order mark (a spreadsheet's "Unicode text"
+/// export, Windows Notepad's "Unicode"), which would otherwise read as bytes that are
+/// not UTF-8. The CSV reader and the configuration loader share it.
+pub fn is_utf16(start: &[u8]) -> bool {
+    start.starts_with(&[0xff, 0xfe]) || start.starts_with(&[0xfe, 0xff])
+}
 
 /// Why `name` cannot name a channel, device or axis of the gateway, or `None`:
 /// 1..=64 characters of `A-Z a-z 0-9 _ -`, without `__` (the level separator of

@@ -75,7 +75,9 @@ mod sim;
 mod structure;
 mod warnings;
 
-pub use load::{env_note, load, load_str, load_str_with_env, load_with_env};
+pub use load::{
+    env_note, load, load_for_sim, load_str, load_str_with_env, load_with_env, MAX_FILE_BYTES,
+};
 pub use problem::{ConfigError, ConfigProblem};
 pub use root::validate;
 pub use schema::*;

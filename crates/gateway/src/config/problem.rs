@@ -87,13 +87,27 @@ impl fmt::Display for ProblemList<'_> {
     }
 }
 
+/// How [`Problems::host_port`] takes port 0.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum PortZero {
+    /// Refused: nothing listens there.
+    #[default]
+    Refused,
+    /// Refused in a file with `[sim]` loaded for `run`, with the hint that port 0 is
+    /// for the simulated plant (`config/demo.toml`).
+    RefusedInSimFile,
+    /// Passes: the simulated plant binds a free port for it and writes the port it
+    /// got into the address before the gateway connects (`compgate demo`, `compgate
+    /// sim`).
+    ForSim,
+}
+
 /// Collects the problems of one file; the checks every stage uses.
 #[derive(Debug)]
 pub struct Problems<'a> {
     file: &'a str,
     out: Vec<ConfigProblem>,
-    /// [`Problems::host_port`] lets port 0 pass (see [`Problems::port_zero_for_sim`]).
-    port_zero_for_sim: bool,
+    port_zero: PortZero,
 }
 
 impl<'a> Problems<'a> {
@@ -102,15 +116,13 @@ impl<'a> Problems<'a> {
         Problems {
             file,
             out: Vec::new(),
-            port_zero_for_sim: false,
+            port_zero: PortZero::Refused,
         }
     }
 
-    /// With `sim` (the file has `[sim]`), [`Problems::host_port`] lets port 0 pass:
-    /// the simulated plant binds any free port for it and writes the port it got into
-    /// the address before the gateway connects (`config/demo.toml`).
-    pub fn port_zero_for_sim(mut self, sim: bool) -> Self {
-        self.port_zero_for_sim = sim;
+    /// How [`Problems::host_port`] takes port 0 (default: refused).
+    pub fn port_zero(mut self, port_zero: PortZero) -> Self {
+        self.port_zero = port_zero;
         self
     }
 
@@ -156,10 +168,16 @@ impl<'a> Problems<'a> {
 
     /// `addr` is `host:port` the gateway connects to (see [`check_host_port`]).
     pub fn host_port(&mut self, key: &str, addr: &str) {
-        match check_host_port(addr) {
-            Ok(()) => {}
-            Err(HostPortError::PortZero(_)) if self.port_zero_for_sim => {}
-            Err(why) => self.push(key, why.to_string()),
+        match (check_host_port(addr), self.port_zero) {
+            (Ok(()), _) | (Err(HostPortError::PortZero(_)), PortZero::ForSim) => {}
+            (Err(why @ HostPortError::PortZero(_)), PortZero::RefusedInSimFile) => self.push(
+                key,
+                format!(
+                    "{why}; port 0 is for `compgate demo` and `compgate sim`, whose \
+                     simulated plant picks a free port"
+                ),
+            ),
+            (Err(why), _) => self.push(key, why.to_string()),
         }
     }
 
@@ -386,7 +404,7 @@ mod tests {
         let p = out.into_vec();
         assert_eq!(p.len(), 1, "{p:?}");
         assert!(p[0].message.contains("port 0"), "{}", p[0]);
-        let mut out = Problems::new("t.toml").port_zero_for_sim(true);
+        let mut out = Problems::new("t.toml").port_zero(PortZero::ForSim);
         out.host_port("devices.ain1.address", "127.0.0.1:0");
         out.host_port("devices.ain2.address", "999.1.1.1:0");
         assert_eq!(
