@@ -226,6 +226,38 @@ fn the_mqtt_broker_is_checked_as_every_address() {
     }
 }
 
+/// `T_` could not be reached by an override: `COMPGATE__CHANNELS__T___ADDRESS` split as
+/// `T` and `_ADDRESS`. A name starting with `_` is still fine: the split reads from the
+/// left.
+#[test]
+fn a_name_ending_in_an_underscore_is_refused() {
+    let text = example_text()
+        .replace("[channels.T_screw]", "[channels.T_screw_]")
+        .replace("channel = \"T_screw\"", "channel = \"T_screw_\"");
+    let (_path, result, _dir) = load_text("names.toml", &text);
+    let p = problems(result);
+    assert_eq!(p.len(), 1, "{p:#?}");
+    assert_eq!(p[0].key, "channels.T_screw_");
+    assert!(
+        p[0].message.starts_with("name must not end in `_`"),
+        "{}",
+        p[0]
+    );
+
+    let text = example_text()
+        .replace("[channels.T_screw]", "[channels._T_screw]")
+        .replace("channel = \"T_screw\"", "channel = \"_T_screw\"");
+    let dir = tempfile::tempdir().expect("temp dir");
+    let path = dir.path().join("lead.toml");
+    std::fs::write(&path, text).expect("write");
+    let env = [(
+        "COMPGATE__CHANNELS___T_SCREW__ADDRESS".to_string(),
+        "5".to_string(),
+    )];
+    let cfg = config::load_with_env(&path, env).expect("a leading `_` is reachable");
+    assert_eq!(cfg.channels["_T_screw"].address, Some(5));
+}
+
 /// A UTF-16 file (Notepad's "Unicode") said only "stream did not contain valid UTF-8";
 /// `--config /dev/zero` read until memory ran out.
 #[test]

@@ -10,7 +10,7 @@
 //! | `t_s`       | s    | yes      | 0..=315576000 (10 a) | time since the start, non-decreasing             |
 //! | `pos_mm`    | mm   | yes      | -100000..=100000     | axis position of the measurement                 |
 //! | `err_um`    | um   | yes      | -100000..=100000     | positioning error, actual minus commanded        |
-//! | `T_<name>`  | degC | >= 1     | -100..=500           | a temperature sensor; `<name>` is its channel: 1..=64 of `A-Z a-z 0-9 _ -`, no `__` |
+//! | `T_<name>`  | degC | >= 1     | -100..=500           | a temperature sensor; `<name>` is its channel: 1..=64 of `A-Z a-z 0-9 _ -`, no `__`, not ending in `_` |
 //! | `dir`       | -    | no       | +1 or -1             | direction of the last move; else the sign of the last non-zero position change |
 //! | `travel_mm` | mm   | no       | 0..=1e9 (1000 km)    | distance travelled since the previous row; else abs(delta pos_mm) |
 //!
@@ -375,8 +375,9 @@ pub fn is_utf16(start: &[u8]) -> bool {
 
 /// Why `name` cannot name a channel, device or axis of the gateway, or `None`:
 /// 1..=64 characters of `A-Z a-z 0-9 _ -`, without `__` (the level separator of
-/// environment overrides). The gateway's config and the sensor columns `T_<name>` of a
-/// measurement CSV (they name a model's channels) share it.
+/// environment overrides) and not ending in `_` (`COMPGATE__CHANNELS__T___ADDRESS`
+/// would split as `T` and `_ADDRESS`). The gateway's config and the sensor columns
+/// `T_<name>` of a measurement CSV (they name a model's channels) share it.
 pub fn channel_name_problem(name: &str) -> Option<String> {
     let len = name.chars().count();
     if name.is_empty() {
@@ -392,6 +393,12 @@ pub fn channel_name_problem(name: &str) -> Option<String> {
         Some("name may contain only A-Z, a-z, 0-9, `_` and `-`".into())
     } else if name.contains("__") {
         Some("name must not contain `__`, the level separator of environment overrides".into())
+    } else if name.ends_with('_') {
+        Some(
+            "name must not end in `_`: in an environment override it would run into the \
+             `__` after it (`T_` + `__ADDRESS` reads as `T` and `_ADDRESS`)"
+                .into(),
+        )
     } else {
         None
     }

@@ -161,15 +161,16 @@ impl Config {
 /// What is checked:
 ///
 /// - **Names** of devices, channels, NC modules and axes: 1..=64 characters of
-///   `A-Z a-z 0-9 _ -`, no `__` (the environment separator), unique ignoring case
-///   (environment overrides match names ignoring case).
+///   `A-Z a-z 0-9 _ -`, no `__` (the environment separator) and no `_` at the end,
+///   unique ignoring case (environment overrides match names ignoring case).
 /// - **Something to do**: at least one device and one channel (without, `run` would
 ///   start and stop at once), and every Modbus device read by a channel (its poller
 ///   would read nothing and never connect; a CAN node alone still gets its NMT start
 ///   and heartbeat watch).
 /// - **References**: `channels.*.device`, `axes.*.nc_module`, every channel of a
 ///   `k0`/`tan_beta` term, and the names under `[sim.channels]`/`[sim.nc_modules]`
-///   must exist. One axis per NC module; a channel at most once per model.
+///   must exist. One axis per NC module; a channel at most once per model and
+///   `lag_tau_s`.
 /// - **Devices** (`source`): `address` is `host:port`; baud 1200..=115200, stop bits
 ///   1 or 2. Devices sharing a `serial_path` must agree on baud, parity and stop bits
 ///   (defaults applied) and have distinct unit ids. Which keys a transport takes is
