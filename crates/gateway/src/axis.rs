@@ -161,7 +161,8 @@ pub struct K0Model {
     #[serde(default)]
     #[schemars(range(min = -10.0, max = 10.0))]
     pub offset_mm: f64,
-    /// Linear temperature terms; each channel at most once. Default none.
+    /// Linear temperature terms; each channel at most once per `lag_tau_s`. Default
+    /// none.
     #[serde(default)]
     pub terms: Vec<K0Term>,
 }
@@ -198,7 +199,8 @@ pub struct TanBetaModel {
     #[serde(default)]
     #[schemars(range(min = -0.1, max = 0.1))]
     pub offset: f64,
-    /// Linear temperature terms; each channel at most once. Default none.
+    /// Linear temperature terms; each channel at most once per `lag_tau_s`. Default
+    /// none.
     #[serde(default)]
     pub terms: Vec<TanBetaTerm>,
 }

@@ -29,8 +29,9 @@ pub struct Config {
     #[serde(default)]
     pub gateway: GatewayConfig,
     /// Field devices (Modbus TCP servers, Modbus RTU slaves, CANopen nodes), by name. Required
-    /// table; a name is 1..=64 characters of `A-Z a-z 0-9 _ -` without `__`, unique
-    /// ignoring case (environment overrides address it case-insensitively).
+    /// table; a name is 1..=64 characters of `A-Z a-z 0-9 _ -` without `__` and not
+    /// ending in `_`, unique ignoring case (environment overrides address it
+    /// case-insensitively, with `__` between levels).
     pub devices: BTreeMap<String, DeviceConfig>,
     /// Measured values, by name (the name axes refer to). Required table; names as
     /// for devices.
