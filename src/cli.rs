@@ -80,8 +80,8 @@ pub enum Command {
 /// `compgate config ...`.
 #[derive(Debug, Subcommand)]
 pub enum ConfigCommand {
-    /// Print an example configuration with every key, annotated with its documentation
-    /// (the doc comments of the config structs): `config/annotated.toml`.
+    /// Print the example configuration with every key of its sections, annotated with
+    /// its documentation (the doc comments of the config structs): `config/annotated.toml`.
     Example,
     /// Print the JSON Schema (draft 2020-12) of the configuration, for TOML editors'
     /// completion and checking.

@@ -87,7 +87,7 @@ pub async fn demo(args: &cli::DemoArgs) -> Result<(), CommandError> {
 }
 
 pub async fn sim(path: &std::path::Path) -> Result<(), CommandError> {
-    let cfg = config::load(path).map_err(failed)?;
+    let cfg = config::load_for_sim(path).map_err(failed)?;
     let plant = Plant::start(&cfg, Bind::AsConfigured)
         .await
         .map_err(failed)?;

@@ -191,7 +191,9 @@ async fn nc_read_on_opcua_says_whether_the_session_may_write() {
         ("writer", "this session may write them"),
         ("reader", "may NOT write"),
     ] {
-        let text = with_target(&peer.target_table(dir.path(), user), 1);
+        // The device's port 0 is for the simulated plant only; `nc` polls no device.
+        let text = with_target(&peer.target_table(dir.path(), user), 1)
+            .replace("127.0.0.1:0", &format!("127.0.0.1:{}", common::free_port()));
         let file = dir.path().join(format!("{user}.toml"));
         std::fs::write(&file, text).unwrap();
         let out = nc(&file, &["read"], "").await;
@@ -351,7 +353,10 @@ async fn nc_write_errors_name_the_axis_and_say_a_late_job_may_have_landed() {
         peer.address()
     );
     let file = dir.path().join("s7.toml");
-    std::fs::write(&file, with_target(&target, 1)).unwrap();
+    // The device's port 0 is for the simulated plant only; `nc` polls no device.
+    let text = with_target(&target, 1)
+        .replace("127.0.0.1:0", &format!("127.0.0.1:{}", common::free_port()));
+    std::fs::write(&file, text).unwrap();
     let out = nc(
         &file,
         &["write", "--axis", "X", "--k0-mm", "0.01", "--yes"],

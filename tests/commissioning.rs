@@ -197,7 +197,10 @@ async fn a_float_in_the_wrong_word_order_is_bad_and_the_log_names_the_order() {
 fn validate_warns_about_a_1_based_address_and_names_the_0_based_one() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("plant.toml");
-    let text = monitoring_config("", "").replacen("address = 1\n", "address = 30013\n", 1);
+    // Port 0 is for the simulated plant only: `validate` checks for `run`.
+    let text = monitoring_config("", "")
+        .replacen("address = 1\n", "address = 30013\n", 1)
+        .replace("127.0.0.1:0", "127.0.0.1:1");
     assert!(text.contains("address = 30013"));
     std::fs::write(&path, text).unwrap();
     let out = std::process::Command::new(common::process::BIN)
@@ -334,7 +337,9 @@ data_type = "u16"
 scaling = { kind = "direct" }
 "#;
     let path = dir.path().join("probe.toml");
-    std::fs::write(&path, monitoring_config("", "") + spare).unwrap();
+    // Port 0 is refused outside the simulated plant; nothing is polled here.
+    let text = (monitoring_config("", "") + spare).replace("127.0.0.1:0", "127.0.0.1:1");
+    std::fs::write(&path, text).unwrap();
     let out = probe(&["--device", "spare", "--channel", "T_bed"], &path);
     let text = String::from_utf8_lossy(&out.stdout);
     let err = String::from_utf8_lossy(&out.stderr);

@@ -63,12 +63,242 @@ fn every_shipped_config_loads_and_validates_cleanly() {
         );
     }
     for file in &files {
-        let cfg = match config::load_with_env(file, no_env()) {
+        // demo.toml's port 0 is for the simulated plant only (`compgate demo`, `sim`).
+        let demo = file.ends_with("demo.toml");
+        let loaded = if demo {
+            config::load_for_sim(file)
+        } else {
+            config::load_with_env(file, no_env())
+        };
+        let cfg = match loaded {
             Ok(cfg) => cfg,
             Err(e) => panic!("{}: {e}", file.display()),
         };
-        let again = config::validate(&cfg, &file.display().to_string());
-        assert!(again.is_empty(), "{again:#?}");
+        if !demo {
+            let again = config::validate(&cfg, &file.display().to_string());
+            assert!(again.is_empty(), "{again:#?}");
+        }
+    }
+}
+
+/// `compgate run --config config/demo.toml` connected to port 0 for ever: the file
+/// loads for `run` no more, naming each address and where port 0 belongs.
+#[test]
+fn port_0_is_refused_for_run_and_left_to_the_simulated_plant() {
+    let file = config_dir().join("demo.toml");
+    let p = problems(config::load_with_env(&file, no_env()));
+    let keys: Vec<&str> = p.iter().map(|p| p.key.as_str()).collect();
+    assert_eq!(keys, ["devices.ain1.address", "nc_modules.nc_x.address"]);
+    for p in &p {
+        assert_eq!(p.file, file.display().to_string());
+        assert!(
+            p.message.contains("port 0 cannot be connected to")
+                && p.message.contains("`compgate demo` and `compgate sim`"),
+            "{p}"
+        );
+    }
+    // Without [sim] no hint about the simulator.
+    let text = example_text().replace("127.0.0.1:5020", "127.0.0.1:0");
+    let (_path, result, _dir) = load_text("zero.toml", &text);
+    let p = problems(result);
+    assert_eq!(p.len(), 1, "{p:#?}");
+    assert_eq!(p[0].key, "devices.ain1.address");
+    assert!(!p[0].message.contains("compgate sim"), "{}", p[0]);
+    // The demo's path: the text loads and the plant picks the ports.
+    let text = std::fs::read_to_string(&file).expect("demo.toml");
+    config::load_str(&text, "demo.toml").expect("the demo's embedded config loads");
+}
+
+/// A deadband no change can pass held the axis silently: refused, naming the limit.
+#[test]
+fn a_deadband_no_change_can_pass_is_refused() {
+    let text = example_text()
+        .replace("deadband_k0_mm = 0.001", "deadband_k0_mm = 5")
+        .replace("deadband_tan_beta = 0.000001", "deadband_tan_beta = 0.05");
+    let (_path, result, _dir) = load_text("deadband.toml", &text);
+    let p = problems(result);
+    let lines: Vec<String> = p
+        .iter()
+        .map(|p| format!("{}: {}", p.key, p.message))
+        .collect();
+    assert_eq!(lines.len(), 2, "{lines:#?}");
+    assert!(
+        lines[0].starts_with("axes.X.deadband_k0_mm: 5 is above max_step_k0_mm = 0.02"),
+        "{lines:#?}"
+    );
+    assert!(
+        lines[1].starts_with("axes.X.deadband_tan_beta: 0.05 is above max_step_tan_beta"),
+        "{lines:#?}"
+    );
+    // Below the step limit but not below the whole span of the limit.
+    let text = example_text()
+        .replace("deadband_k0_mm = 0.001", "deadband_k0_mm = 0.01")
+        .replace("max_abs_k0_mm = 0.5", "max_abs_k0_mm = 0.005");
+    let (_path, result, _dir) = load_text("deadband.toml", &text);
+    let p = problems(result);
+    assert_eq!(p.len(), 1, "{p:#?}");
+    assert_eq!(p[0].key, "axes.X.deadband_k0_mm");
+    assert!(
+        p[0].message
+            .starts_with("0.01 is not below 2 x max_abs_k0_mm = 0.01"),
+        "{}",
+        p[0]
+    );
+}
+
+#[test]
+fn a_value_listed_twice_in_nc_write_is_refused() {
+    let text = example_text().replace(
+        "nc_module = \"nc_x\"\n",
+        "nc_module = \"nc_x\"\nnc_write = [\"sd43900\", \"sd43910\", \"sd43900\", \"sd43920\"]\n",
+    );
+    let (_path, result, _dir) = load_text("dup.toml", &text);
+    let p = problems(result);
+    assert_eq!(p.len(), 1, "{p:#?}");
+    assert_eq!(p[0].key, "axes.X.nc_write");
+    assert!(
+        p[0].message
+            .starts_with("\"sd43900\" is listed more than once"),
+        "{}",
+        p[0]
+    );
+}
+
+/// A URL's scheme and an IPv6 zone by name got "write an IPv6 address in brackets".
+#[test]
+fn a_scheme_and_a_zone_name_in_an_address_get_their_own_reason() {
+    let text = example_text()
+        .replace("127.0.0.1:5020", "tcp://127.0.0.1:502")
+        .replace("127.0.0.1:5021", "[fe80::1%eth0]:502");
+    let (_path, result, _dir) = load_text("scheme.toml", &text);
+    let lines: Vec<String> = problems(result)
+        .iter()
+        .map(|p| format!("{}: {}", p.key, p.message))
+        .collect();
+    assert_eq!(
+        lines,
+        [
+            "devices.ain1.address: `tcp://127.0.0.1:502`: no scheme: write host:port, e.g. \
+             \"192.168.0.10:502\"",
+            "nc_modules.nc_x.address: `[fe80::1%eth0]:502`: give the zone of the IPv6 address \
+             as the interface's index, e.g. \"[fe80::1%2]:502\" (`ip link` lists it), not its name",
+        ]
+    );
+    // The zone by index is what the socket code takes.
+    let text = example_text().replace("127.0.0.1:5021", "[fe80::1%2]:502");
+    let (_path, result, _dir) = load_text("zone.toml", &text);
+    result.expect("a zone index is accepted");
+}
+
+/// The broker got only a `rsplit_once(':')`: run then retried "failed to lookup address"
+/// for ever. It gets the check of every other address now.
+#[test]
+fn the_mqtt_broker_is_checked_as_every_address() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let with = |broker: &str| {
+        format!(
+            "{}\n[recorder]\npath = {:?}\n\n[mqtt]\nbroker = {broker:?}\nmachine = \"m1\"\n",
+            example_text(),
+            dir.path().join("r.db").display().to_string()
+        )
+    };
+    for (broker, why) in [
+        ("mqtt://127.0.0.1:43883", "no scheme"),
+        ("192.168.0.300:1883", "is not an IPv4 address"),
+        (" broker:1883", "is not a valid host name"),
+        ("a b:1883", "is not a valid host name"),
+        ("[::1:1883", "is not an IPv6 address in brackets"),
+        ("broker:0", "port 0 cannot be connected to"),
+    ] {
+        let (_path, result, _dir) = load_text("mqtt.toml", &with(broker));
+        let p = problems(result);
+        assert_eq!(p.len(), 1, "{broker}: {p:#?}");
+        assert_eq!(p[0].key, "mqtt.broker", "{broker}");
+        assert!(
+            p[0].message.contains(why) && p[0].message.contains("broker.plant.local:1883"),
+            "{broker}: {}",
+            p[0]
+        );
+    }
+    for ok in ["broker.plant.local:1883", "127.0.0.1:1883", "[::1]:1883"] {
+        let (_path, result, _dir) = load_text("mqtt.toml", &with(ok));
+        result.unwrap_or_else(|e| panic!("{ok}: {e}"));
+    }
+}
+
+/// `T_` could not be reached by an override: `COMPGATE__CHANNELS__T___ADDRESS` split as
+/// `T` and `_ADDRESS`. A name starting with `_` is still fine: the split reads from the
+/// left.
+#[test]
+fn a_name_ending_in_an_underscore_is_refused() {
+    let text = example_text()
+        .replace("[channels.T_screw]", "[channels.T_screw_]")
+        .replace("channel = \"T_screw\"", "channel = \"T_screw_\"");
+    let (_path, result, _dir) = load_text("names.toml", &text);
+    let p = problems(result);
+    assert_eq!(p.len(), 1, "{p:#?}");
+    assert_eq!(p[0].key, "channels.T_screw_");
+    assert!(
+        p[0].message.starts_with("name must not end in `_`"),
+        "{}",
+        p[0]
+    );
+
+    let text = example_text()
+        .replace("[channels.T_screw]", "[channels._T_screw]")
+        .replace("channel = \"T_screw\"", "channel = \"_T_screw\"");
+    let dir = tempfile::tempdir().expect("temp dir");
+    let path = dir.path().join("lead.toml");
+    std::fs::write(&path, text).expect("write");
+    let env = [(
+        "COMPGATE__CHANNELS___T_SCREW__ADDRESS".to_string(),
+        "5".to_string(),
+    )];
+    let cfg = config::load_with_env(&path, env).expect("a leading `_` is reachable");
+    assert_eq!(cfg.channels["_T_screw"].address, Some(5));
+}
+
+/// A UTF-16 file (Notepad's "Unicode") said only "stream did not contain valid UTF-8";
+/// `--config /dev/zero` read until memory ran out.
+#[test]
+fn a_utf16_or_endless_file_gets_a_read_error_that_says_why() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let read_error = |path: &Path| match config::load_with_env(path, no_env()) {
+        Err(ConfigError::Read { file, message }) => {
+            assert_eq!(file, path.display().to_string());
+            message
+        }
+        other => panic!("expected a read error, got {other:?}"),
+    };
+    let utf16 = dir.path().join("utf16.toml");
+    let mut bytes = vec![0xff, 0xfe];
+    bytes.extend(example_text().encode_utf16().flat_map(u16::to_le_bytes));
+    std::fs::write(&utf16, bytes).expect("write");
+    let m = read_error(&utf16);
+    assert!(
+        m.contains("UTF-16") && m.contains("save it as UTF-8"),
+        "{m}"
+    );
+
+    let latin1 = dir.path().join("latin1.toml");
+    let mut bytes = b"[gateway]\n# 20 \xb0C\n".to_vec();
+    bytes.extend(example_text().bytes());
+    std::fs::write(&latin1, bytes).expect("write");
+    let m = read_error(&latin1);
+    assert!(
+        m.starts_with("line 2 is not UTF-8") && m.contains("save the file as UTF-8"),
+        "{m}"
+    );
+
+    let big = dir.path().join("big.toml");
+    let padding = "#".repeat(config::MAX_FILE_BYTES as usize);
+    std::fs::write(&big, example_text() + &padding).expect("write");
+    let m = read_error(&big);
+    assert!(m.contains("larger than 4 MB"), "{m}");
+    #[cfg(unix)]
+    {
+        let m = read_error(Path::new("/dev/zero"));
+        assert!(m.contains("larger than 4 MB"), "{m}");
     }
 }
 

@@ -34,3 +34,103 @@ fn a_recorder_path_from_the_environment_is_named_with_its_variable() {
         "{err}"
     );
 }
+
+/// example.toml with its NC module replaced by an OPC UA target whose credentials are
+/// given by `credentials` (`credentials_file = ...` or `user_env`/`password_env`).
+fn opcua_config(dir: &std::path::Path, credentials: &str) -> std::path::PathBuf {
+    let text = std::fs::read_to_string("config/example.toml").expect("example.toml");
+    let start = text.find("[nc_modules.nc_x]").expect("its NC module");
+    let end = text.find("[axes.X]").expect("its axis");
+    let target = format!(
+        "[targets.nc_x]\nkind = \"opcua\"\nendpoint_url = \"opc.tcp://127.0.0.1:4840\"\n\
+         {credentials}\n\n"
+    );
+    let text = format!("{}{target}{}", &text[..start], &text[end..]).replace(
+        "nc_module = \"nc_x\"\n",
+        "nc_module = \"nc_x\"\naxis_number = 1\n",
+    );
+    let path = dir.join("opcua.toml");
+    std::fs::write(&path, text).expect("config written");
+    path
+}
+
+/// `compgate <command> --config path` with the credentials variables unset.
+fn compgate(command: &str, path: &std::path::Path) -> (Option<i32>, String) {
+    let out = Command::new(BIN)
+        .args([command, "--config"])
+        .arg(path)
+        .env_remove("CG_TEST_OPCUA_USER")
+        .env_remove("CG_TEST_OPCUA_PW")
+        .output()
+        .expect("compgate runs");
+    let text =
+        String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr);
+    (out.status.code(), text)
+}
+
+// validate passed an OPC UA target whose credentials could not be read while run
+// refused to start: under the unit ExecStartPre= passed and the service restart-looped.
+#[test]
+fn validate_reads_the_opcua_credentials_as_run_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("absent-creds");
+    let path = opcua_config(
+        dir.path(),
+        &format!("credentials_file = {:?}", missing.display().to_string()),
+    );
+    let want = format!(
+        "{}: targets.nc_x.credentials_file: {}: No such file",
+        path.display(),
+        missing.display()
+    );
+    for command in ["validate", "run"] {
+        let (code, text) = compgate(command, &path);
+        assert_eq!(code, Some(1), "{command}: {text}");
+        assert!(text.contains(&want), "{command}: {text}");
+    }
+
+    // A file without a user name on its first line: refused, the password not shown.
+    let creds = dir.path().join("creds");
+    std::fs::write(&creds, "\nsecret-pw-4711\n").unwrap();
+    let path = opcua_config(
+        dir.path(),
+        &format!("credentials_file = {:?}", creds.display().to_string()),
+    );
+    let (code, text) = compgate("validate", &path);
+    assert_eq!(code, Some(1), "{text}");
+    assert!(
+        text.contains("targets.nc_x.credentials_file:")
+            && text.contains("first line (user name) is empty"),
+        "{text}"
+    );
+    assert!(!text.contains("secret-pw-4711"), "{text}");
+    std::fs::write(&creds, "operator\nsecret-pw-4711\n").unwrap();
+    let (code, text) = compgate("validate", &path);
+    assert_eq!(code, Some(0), "{text}");
+
+    let path = opcua_config(
+        dir.path(),
+        "user_env = \"CG_TEST_OPCUA_USER\"\npassword_env = \"CG_TEST_OPCUA_PW\"",
+    );
+    let (code, text) = compgate("validate", &path);
+    assert_eq!(code, Some(1), "{text}");
+    assert!(
+        text.contains(&format!(
+            "{}: targets.nc_x.user_env: environment variable CG_TEST_OPCUA_USER is not set",
+            path.display()
+        )),
+        "{text}"
+    );
+    let out = Command::new(BIN)
+        .args(["validate", "--config"])
+        .arg(&path)
+        .env("CG_TEST_OPCUA_USER", "operator")
+        .env("CG_TEST_OPCUA_PW", "secret-pw-4711")
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}

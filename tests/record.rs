@@ -401,7 +401,10 @@ fn validate_refuses_a_recorder_path_that_run_cannot_write() {
     let dir = tempfile::tempdir().unwrap();
     let write_config = |db: &Path| {
         let path = dir.path().join("plant.toml");
-        let text = common::config("hold", "", "") + &recorder_section(db, "");
+        // Port 0 is for the simulated plant only: `validate` checks for `run`.
+        let port = format!("127.0.0.1:{}", common::free_port());
+        let text = common::config("hold", "", "").replace("127.0.0.1:0", &port)
+            + &recorder_section(db, "");
         std::fs::write(&path, text).unwrap();
         path
     };

@@ -10,7 +10,7 @@
 //! | `t_s`       | s    | yes      | 0..=315576000 (10 a) | time since the start, non-decreasing             |
 //! | `pos_mm`    | mm   | yes      | -100000..=100000     | axis position of the measurement                 |
 //! | `err_um`    | um   | yes      | -100000..=100000     | positioning error, actual minus commanded        |
-//! | `T_<name>`  | degC | >= 1     | -100..=500           | a temperature sensor; `<name>` is its channel: 1..=64 of `A-Z a-z 0-9 _ -`, no `__` |
+//! | `T_<name>`  | degC | >= 1     | -100..=500           | a temperature sensor; `<name>` is its channel: 1..=64 of `A-Z a-z 0-9 _ -`, no `__`, not ending in `_` |
 //! | `dir`       | -    | no       | +1 or -1             | direction of the last move; else the sign of the last non-zero position change |
 //! | `travel_mm` | mm   | no       | 0..=1e9 (1000 km)    | distance travelled since the previous row; else abs(delta pos_mm) |
 //!
@@ -172,7 +172,7 @@ impl<R: Read> CsvInput<R> {
             line: 1,
             message: e.to_string(),
         })?;
-        if start.starts_with(&[0xff, 0xfe]) || start.starts_with(&[0xfe, 0xff]) {
+        if is_utf16(start) {
             return Err(MeasureError::Utf16);
         }
         let index = LineIndex::new(reader);
@@ -366,10 +366,18 @@ impl<R: Read> Read for LineIndex<R> {
 /// Longest channel name the gateway takes, characters.
 pub const MAX_CHANNEL_NAME_LEN: usize = 64;
 
+/// Whether text starts with a UTF-16 byte order mark (a spreadsheet's "Unicode text"
+/// export, Windows Notepad's "Unicode"), which would otherwise read as bytes that are
+/// not UTF-8. The CSV reader and the configuration loader share it.
+pub fn is_utf16(start: &[u8]) -> bool {
+    start.starts_with(&[0xff, 0xfe]) || start.starts_with(&[0xfe, 0xff])
+}
+
 /// Why `name` cannot name a channel, device or axis of the gateway, or `None`:
 /// 1..=64 characters of `A-Z a-z 0-9 _ -`, without `__` (the level separator of
-/// environment overrides). The gateway's config and the sensor columns `T_<name>` of a
-/// measurement CSV (they name a model's channels) share it.
+/// environment overrides) and not ending in `_` (`COMPGATE__CHANNELS__T___ADDRESS`
+/// would split as `T` and `_ADDRESS`). The gateway's config and the sensor columns
+/// `T_<name>` of a measurement CSV (they name a model's channels) share it.
 pub fn channel_name_problem(name: &str) -> Option<String> {
     let len = name.chars().count();
     if name.is_empty() {
@@ -385,6 +393,12 @@ pub fn channel_name_problem(name: &str) -> Option<String> {
         Some("name may contain only A-Z, a-z, 0-9, `_` and `-`".into())
     } else if name.contains("__") {
         Some("name must not contain `__`, the level separator of environment overrides".into())
+    } else if name.ends_with('_') {
+        Some(
+            "name must not end in `_`: in an environment override it would run into the \
+             `__` after it (`T_` + `__ADDRESS` reads as `T` and `_ADDRESS`)"
+                .into(),
+        )
     } else {
         None
     }

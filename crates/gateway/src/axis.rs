@@ -161,7 +161,8 @@ pub struct K0Model {
     #[serde(default)]
     #[schemars(range(min = -10.0, max = 10.0))]
     pub offset_mm: f64,
-    /// Linear temperature terms; each channel at most once. Default none.
+    /// Linear temperature terms; each channel at most once per `lag_tau_s`. Default
+    /// none.
     #[serde(default)]
     pub terms: Vec<K0Term>,
 }
@@ -198,7 +199,8 @@ pub struct TanBetaModel {
     #[serde(default)]
     #[schemars(range(min = -0.1, max = 0.1))]
     pub offset: f64,
-    /// Linear temperature terms; each channel at most once. Default none.
+    /// Linear temperature terms; each channel at most once per `lag_tau_s`. Default
+    /// none.
     #[serde(default)]
     pub terms: Vec<TanBetaTerm>,
 }
@@ -336,6 +338,32 @@ impl AxisConfig {
             self.max_step_tan_beta,
             "per update",
         );
+        deadband_reachable(
+            out,
+            key,
+            ("deadband_k0_mm", self.deadband_k0_mm),
+            ("max_step_k0_mm", self.max_step_k0_mm),
+            ("max_abs_k0_mm", self.max_abs_k0_mm),
+        );
+        deadband_reachable(
+            out,
+            key,
+            ("deadband_tan_beta", self.deadband_tan_beta),
+            ("max_step_tan_beta", self.max_step_tan_beta),
+            ("max_abs_tan_beta", self.max_abs_tan_beta),
+        );
+        let mut listed: Vec<NcVar> = Vec::new();
+        for v in &self.nc_write {
+            if listed.contains(v) {
+                let name = crate::nc::var_name(v.id()).to_lowercase();
+                out.push(
+                    k("nc_write"),
+                    format!("\"{name}\" is listed more than once; list each setting datum once"),
+                );
+            } else {
+                listed.push(*v);
+            }
+        }
         match self.on_bad_input {
             OnBadInput::RampToZero => {
                 out.positive(
@@ -501,6 +529,42 @@ impl AxisConfig {
             },
         }
     }
+}
+
+/// A change can pass the deadband: after the first write the change of one update is
+/// at most the step limit, and between two values within the limit at most twice it.
+/// A deadband beyond either holds the value for ever, each update "within the
+/// deadband".
+fn deadband_reachable(
+    out: &mut Problems<'_>,
+    key: &str,
+    (deadband_key, deadband): (&str, f64),
+    (step_key, step): (&str, f64),
+    (abs_key, abs): (&str, f64),
+) {
+    if ![deadband, step, abs]
+        .iter()
+        .all(|v| v.is_finite() && *v > 0.0)
+    {
+        return;
+    }
+    let bound = if deadband > step {
+        format!("above {step_key} = {step}, the largest change of one update")
+    } else if deadband >= 2.0 * abs {
+        format!(
+            "not below 2 x {abs_key} = {}, the largest change within the limit",
+            2.0 * abs
+        )
+    } else {
+        return;
+    };
+    out.push(
+        format!("{key}.{deadband_key}"),
+        format!(
+            "{deadband} is {bound}: no change of this value could pass the deadband, so \
+             it would never be written on its own; make {deadband_key} smaller"
+        ),
+    );
 }
 
 /// Every term's channel exists and appears once per lag; numbers finite.

@@ -36,16 +36,11 @@ use super::{ENV_PREFIX, ENV_SEPARATOR};
 use super::structure::edit_distance;
 
 /// Loads `path` with overrides from the process environment (`COMPGATE__...`) and
-/// validates it. Returns the configuration only when nothing is wrong; otherwise every
-/// problem at once.
+/// validates it for `run`: what the gateway connects to must be reachable (no port
+/// 0). Returns the configuration only when nothing is wrong; otherwise every problem
+/// at once.
 pub fn load(path: &Path) -> Result<Config, ConfigError> {
-    let env = std::env::vars_os().map(|(k, v)| {
-        (
-            k.to_string_lossy().into_owned(),
-            v.to_string_lossy().into_owned(),
-        )
-    });
-    load_with_env(path, env)
+    load_with_env(path, process_env())
 }
 
 /// As [`load`], with the environment given explicitly (tests, or a caller that has
@@ -55,16 +50,22 @@ pub fn load_with_env(
     env: impl IntoIterator<Item = (String, String)>,
 ) -> Result<Config, ConfigError> {
     let file = path.display().to_string();
-    let text = std::fs::read_to_string(path).map_err(|e| ConfigError::Read {
-        file: file.clone(),
-        message: e.to_string(),
-    })?;
-    load_str_with_env(&text, &file, env)
+    load_text(&read(path)?, &file, env, false)
 }
 
-/// Loads and validates configuration text, e.g. an embedded file. `origin` names it
-/// in problems. The process environment is **not** consulted (so tests are not at the
-/// mercy of the environment they run in); use [`load_str_with_env`] for that.
+/// As [`load`] for the simulated plant (`compgate sim`): in a file with `[sim]`, port
+/// 0 in an address passes, as the plant binds a free port for it.
+pub fn load_for_sim(path: &Path) -> Result<Config, ConfigError> {
+    let file = path.display().to_string();
+    load_text(&read(path)?, &file, process_env(), true)
+}
+
+/// Loads and validates configuration text, e.g. the demo's embedded file or a test's.
+/// `origin` names it in problems. In a text with `[sim]` port 0 passes, as for
+/// [`load_for_sim`]: the simulated plant binds a free port for it and writes the port
+/// into the address before the gateway connects. The process environment is **not**
+/// consulted (so tests are not at the mercy of the environment they run in); use
+/// [`load_str_with_env`] for that.
 pub fn load_str(text: &str, origin: &str) -> Result<Config, ConfigError> {
     load_str_with_env(text, origin, std::iter::empty())
 }
@@ -75,6 +76,62 @@ pub fn load_str_with_env(
     text: &str,
     origin: &str,
     env: impl IntoIterator<Item = (String, String)>,
+) -> Result<Config, ConfigError> {
+    load_text(text, origin, env, true)
+}
+
+/// The largest configuration file read, bytes: a real one is a few kB; anything far
+/// larger is not a configuration (`--config /dev/zero` would read until memory ran
+/// out).
+pub const MAX_FILE_BYTES: u64 = 4 << 20;
+
+/// The text of the file at `path`, refused beyond [`MAX_FILE_BYTES`] and with a
+/// hint when it is not UTF-8.
+fn read(path: &Path) -> Result<String, ConfigError> {
+    use std::io::Read;
+    let failed = |message: String| ConfigError::Read {
+        file: path.display().to_string(),
+        message,
+    };
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(MAX_FILE_BYTES + 1).read_to_end(&mut bytes))
+        .map_err(|e| failed(e.to_string()))?;
+    if bytes.len() as u64 > MAX_FILE_BYTES {
+        return Err(failed(format!(
+            "larger than {} MB; a configuration is a few kB",
+            MAX_FILE_BYTES >> 20
+        )));
+    }
+    if compgate_core::measure::is_utf16(&bytes) {
+        return Err(failed(
+            "the file is UTF-16 text (Windows Notepad's \"Unicode\"); save it as UTF-8".into(),
+        ));
+    }
+    String::from_utf8(bytes).map_err(|e| {
+        let at = &e.as_bytes()[..e.utf8_error().valid_up_to()];
+        let line = at.iter().filter(|b| **b == b'\n').count() + 1;
+        failed(format!(
+            "line {line} is not UTF-8 text (a legacy code page?); save the file as UTF-8"
+        ))
+    })
+}
+
+fn process_env() -> impl Iterator<Item = (String, String)> {
+    std::env::vars_os().map(|(k, v)| {
+        (
+            k.to_string_lossy().into_owned(),
+            v.to_string_lossy().into_owned(),
+        )
+    })
+}
+
+/// Loads and validates `text`; `for_sim` as [`validate_assuming`].
+fn load_text(
+    text: &str,
+    origin: &str,
+    env: impl IntoIterator<Item = (String, String)>,
+    for_sim: bool,
 ) -> Result<Config, ConfigError> {
     let invalid = |p: ConfigProblem| ConfigError::Invalid(vec![p]);
     let file_tree: toml::Table = text
@@ -128,7 +185,7 @@ pub fn load_str_with_env(
             let tainted: Vec<String> = broken.iter().map(|b| render(b)).collect();
             let recorder_broken = tainted.iter().any(|t| t == "recorder");
             problems.extend(
-                validate_assuming(&cfg, origin, &assumed)
+                validate_assuming(&cfg, origin, &assumed, for_sim)
                     .into_iter()
                     .filter(|p| !tainted.iter().any(|t| is_under(&p.key, t)))
                     .filter(|p| !(recorder_broken && p.key == "mqtt")),

@@ -40,10 +40,13 @@
 //!
 //! # Environment overrides
 //!
-//! Any key can be set from the environment as `COMPGATE__<SECTION>__<KEY>...`, with a
-//! double underscore between levels, e.g. `COMPGATE__DEVICES__AIN1__TIMEOUT_S=0.5` or
-//! `COMPGATE__CHANNELS__T_BED__FILTER__LOWPASS_TAU_S=20`. Array elements take their
-//! 0-based index as a level: `COMPGATE__AXES__X__K0__TERMS__0__COEFF_MM_PER_DEGC=0.005`.
+//! Any key holding one value can be set from the environment as
+//! `COMPGATE__<SECTION>__<NAME>__<KEY>...`, with a double underscore between levels,
+//! e.g. `COMPGATE__DEVICES__AIN1__TIMEOUT_S=0.5` or
+//! `COMPGATE__CHANNELS__T_BED__FILTER__LOWPASS_TAU_S=20`. An array is not one value:
+//! its elements take their 0-based index as a level, and only where the file has the
+//! array: `COMPGATE__AXES__X__K0__TERMS__0__COEFF_MM_PER_DEGC=0.005`,
+//! `COMPGATE__AXES__X__NC_WRITE__0=sd43900`.
 //! Values are parsed as bool, integer or float where they look like one, otherwise
 //! they are strings (a number given for a string key, e.g. a serial path `1`, is turned
 //! back into the text that was set). An empty variable counts as unset.
@@ -75,7 +78,9 @@ mod sim;
 mod structure;
 mod warnings;
 
-pub use load::{env_note, load, load_str, load_str_with_env, load_with_env};
+pub use load::{
+    env_note, load, load_for_sim, load_str, load_str_with_env, load_with_env, MAX_FILE_BYTES,
+};
 pub use problem::{ConfigError, ConfigProblem};
 pub use root::validate;
 pub use schema::*;

@@ -87,13 +87,27 @@ impl fmt::Display for ProblemList<'_> {
     }
 }
 
+/// How [`Problems::host_port`] takes port 0.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum PortZero {
+    /// Refused: nothing listens there.
+    #[default]
+    Refused,
+    /// Refused in a file with `[sim]` loaded for `run`, with the hint that port 0 is
+    /// for the simulated plant (`config/demo.toml`).
+    RefusedInSimFile,
+    /// Passes: the simulated plant binds a free port for it and writes the port it
+    /// got into the address before the gateway connects (`compgate demo`, `compgate
+    /// sim`).
+    ForSim,
+}
+
 /// Collects the problems of one file; the checks every stage uses.
 #[derive(Debug)]
 pub struct Problems<'a> {
     file: &'a str,
     out: Vec<ConfigProblem>,
-    /// [`Problems::host_port`] lets port 0 pass (see [`Problems::port_zero_for_sim`]).
-    port_zero_for_sim: bool,
+    port_zero: PortZero,
 }
 
 impl<'a> Problems<'a> {
@@ -102,15 +116,13 @@ impl<'a> Problems<'a> {
         Problems {
             file,
             out: Vec::new(),
-            port_zero_for_sim: false,
+            port_zero: PortZero::Refused,
         }
     }
 
-    /// With `sim` (the file has `[sim]`), [`Problems::host_port`] lets port 0 pass:
-    /// the simulated plant binds any free port for it and writes the port it got into
-    /// the address before the gateway connects (`config/demo.toml`).
-    pub fn port_zero_for_sim(mut self, sim: bool) -> Self {
-        self.port_zero_for_sim = sim;
+    /// How [`Problems::host_port`] takes port 0 (default: refused).
+    pub fn port_zero(mut self, port_zero: PortZero) -> Self {
+        self.port_zero = port_zero;
         self
     }
 
@@ -156,10 +168,16 @@ impl<'a> Problems<'a> {
 
     /// `addr` is `host:port` the gateway connects to (see [`check_host_port`]).
     pub fn host_port(&mut self, key: &str, addr: &str) {
-        match check_host_port(addr) {
-            Ok(()) => {}
-            Err(HostPortError::PortZero(_)) if self.port_zero_for_sim => {}
-            Err(why) => self.push(key, why.to_string()),
+        match (check_host_port(addr), self.port_zero) {
+            (Ok(()), _) | (Err(HostPortError::PortZero(_)), PortZero::ForSim) => {}
+            (Err(why @ HostPortError::PortZero(_)), PortZero::RefusedInSimFile) => self.push(
+                key,
+                format!(
+                    "{why}; port 0 is for `compgate demo` and `compgate sim`, whose \
+                     simulated plant picks a free port"
+                ),
+            ),
+            (Err(why), _) => self.push(key, why.to_string()),
         }
     }
 
@@ -189,6 +207,19 @@ pub enum HostPortError {
     /// An IPv6 address without brackets.
     #[error("`{0}`: write an IPv6 address in brackets, e.g. \"[::1]:502\"")]
     Ipv6(String),
+    /// A URL's scheme before the address.
+    #[error("`{0}`: no scheme: write host:port, e.g. \"192.168.0.10:502\"")]
+    Scheme(String),
+    /// Brackets that do not hold an IPv6 address.
+    #[error("`{0}` is not an IPv6 address in brackets; expected e.g. \"[fe80::1]:502\"")]
+    NotIpv6(String),
+    /// A link-local address's zone given as an interface name, which the socket
+    /// address parser does not take (nor does the resolver, in brackets).
+    #[error(
+        "`{0}`: give the zone of the IPv6 address as the interface's index, e.g. \
+         \"[fe80::1%2]:502\" (`ip link` lists it), not its name"
+    )]
+    ZoneName(String),
     /// Not a host name.
     #[error(
         "`{0}` is not a valid host name or IP address; expected host:port, e.g. \"192.168.0.10:502\""
@@ -224,6 +255,25 @@ pub fn check_host_port(addr: &str) -> Result<(), HostPortError> {
 
 /// The port of `host:port` whose host is not an IP address literal.
 fn host_name_port(addr: &str) -> Result<u16, HostPortError> {
+    if addr.contains("://") {
+        return Err(HostPortError::Scheme(addr.into()));
+    }
+    if let Some(rest) = addr.strip_prefix('[') {
+        // Would have parsed as a SocketAddr if the brackets held an IPv6 address.
+        let (ip, port) = rest.split_once(']').unwrap_or((rest, ""));
+        let Some(port) = port.strip_prefix(':') else {
+            return Err(HostPortError::NotIpv6(addr.into()));
+        };
+        if port.parse::<u16>().is_err() {
+            return Err(HostPortError::BadPort(port.into()));
+        }
+        return match ip.split_once('%') {
+            Some((ip, _)) if ip.parse::<std::net::Ipv6Addr>().is_ok() => {
+                Err(HostPortError::ZoneName(addr.into()))
+            }
+            _ => Err(HostPortError::NotIpv6(addr.into())),
+        };
+    }
     let Some((host, port)) = addr.rsplit_once(':') else {
         return Err(HostPortError::NoPort(addr.into()));
     };
@@ -286,6 +336,35 @@ mod tests {
     }
 
     #[test]
+    fn a_scheme_or_bad_brackets_get_their_own_reason() {
+        for (bad, want) in [
+            (
+                "tcp://127.0.0.1:502",
+                HostPortError::Scheme("tcp://127.0.0.1:502".into()),
+            ),
+            (
+                "mqtt://broker:1883",
+                HostPortError::Scheme("mqtt://broker:1883".into()),
+            ),
+            (
+                "[fe80::1%eth0]:502",
+                HostPortError::ZoneName("[fe80::1%eth0]:502".into()),
+            ),
+            ("[::1:1883", HostPortError::NotIpv6("[::1:1883".into())),
+            ("[plc]:502", HostPortError::NotIpv6("[plc]:502".into())),
+            ("[::1]:x", HostPortError::BadPort("x".into())),
+        ] {
+            assert_eq!(check_host_port(bad), Err(want), "{bad}");
+        }
+        // A zone by index is what the socket address parser takes.
+        assert_eq!(check_host_port("[fe80::1%2]:502"), Ok(()));
+        let why = check_host_port("tcp://127.0.0.1:502")
+            .unwrap_err()
+            .to_string();
+        assert!(why.contains("no scheme: write host:port"), "{why}");
+    }
+
+    #[test]
     fn a_numeric_host_must_be_an_ipv4_address() {
         for bad in [
             "192.168.0.300:502",
@@ -325,7 +404,7 @@ mod tests {
         let p = out.into_vec();
         assert_eq!(p.len(), 1, "{p:?}");
         assert!(p[0].message.contains("port 0"), "{}", p[0]);
-        let mut out = Problems::new("t.toml").port_zero_for_sim(true);
+        let mut out = Problems::new("t.toml").port_zero(PortZero::ForSim);
         out.host_port("devices.ain1.address", "127.0.0.1:0");
         out.host_port("devices.ain2.address", "999.1.1.1:0");
         assert_eq!(

@@ -10,7 +10,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 use super::keys::{entry, field, secs};
-use super::problem::{ConfigProblem, Problems};
+use super::problem::{ConfigProblem, PortZero, Problems};
 use super::service::{validate_service, MetricsConfig, MqttConfig, RecorderConfig};
 use super::sim::SimConfig;
 use crate::axis::{AxisConfig, ChannelNames, NcVar};
@@ -29,8 +29,9 @@ pub struct Config {
     #[serde(default)]
     pub gateway: GatewayConfig,
     /// Field devices (Modbus TCP servers, Modbus RTU slaves, CANopen nodes), by name. Required
-    /// table; a name is 1..=64 characters of `A-Z a-z 0-9 _ -` without `__`, unique
-    /// ignoring case (environment overrides address it case-insensitively).
+    /// table; a name is 1..=64 characters of `A-Z a-z 0-9 _ -` without `__` and not
+    /// ending in `_`, unique ignoring case (environment overrides address it
+    /// case-insensitively, with `__` between levels).
     pub devices: BTreeMap<String, DeviceConfig>,
     /// Measured values, by name (the name axes refer to). Required table; names as
     /// for devices.
@@ -161,15 +162,16 @@ impl Config {
 /// What is checked:
 ///
 /// - **Names** of devices, channels, NC modules and axes: 1..=64 characters of
-///   `A-Z a-z 0-9 _ -`, no `__` (the environment separator), unique ignoring case
-///   (environment overrides match names ignoring case).
+///   `A-Z a-z 0-9 _ -`, no `__` (the environment separator) and no `_` at the end,
+///   unique ignoring case (environment overrides match names ignoring case).
 /// - **Something to do**: at least one device and one channel (without, `run` would
 ///   start and stop at once), and every Modbus device read by a channel (its poller
 ///   would read nothing and never connect; a CAN node alone still gets its NMT start
 ///   and heartbeat watch).
 /// - **References**: `channels.*.device`, `axes.*.nc_module`, every channel of a
 ///   `k0`/`tan_beta` term, and the names under `[sim.channels]`/`[sim.nc_modules]`
-///   must exist. One axis per NC module; a channel at most once per model.
+///   must exist. One axis per NC module; a channel at most once per model and
+///   `lag_tau_s`.
 /// - **Devices** (`source`): `address` is `host:port`; baud 1200..=115200, stop bits
 ///   1 or 2. Devices sharing a `serial_path` must agree on baud, parity and stop bits
 ///   (defaults applied) and have distinct unit ids. Which keys a transport takes is
@@ -188,19 +190,24 @@ impl Config {
 ///   finite and not 0; `median_samples` odd 1..=99, `max_rejected_samples >= 1`,
 ///   `valid_min_degc < valid_max_degc`.
 /// - **Axes** (`axis`): `md32750` 0..=7 and its bits enabling every model in use,
-///   limits and steps > 0, deadbands >= 0, `max_abs_tan_beta <= 0.1` (MD32760 is 0.01
+///   limits and steps > 0, deadbands >= 0 and reachable (not above the step limit,
+///   below twice the limit), `max_abs_tan_beta <= 0.1` (MD32760 is 0.01
 ///   by default; above 0.1 is not a thermal slope), ramp rates > 0 with
 ///   `ramp_to_zero`. `nc_write` holds every value the model sets: SD43900 with a K0
 ///   model, SD43910 and SD43920 with a tan(beta) model, SD43920 with `p0_mm` != 0
-///   (motion heat counts towards the model it adds to); its target has a place for
-///   each value in `nc_write`.
-/// - **Addresses** the gateway connects to: port 0 only in a file with `[sim]`, whose
-///   simulated plant binds a free port for it.
+///   (motion heat counts towards the model it adds to), each once; its target has a
+///   place for each value in `nc_write`.
+/// - **OPC UA credentials**: `credentials_file` readable with a user name on its
+///   first line, or the variables `user_env` and `password_env` set, read as `run`
+///   reads them at start.
+/// - **Addresses** the gateway connects to: `host:port` (no scheme), port 1..=65535.
+///   Port 0 only where the simulated plant binds a free port for it (a file with
+///   `[sim]` loaded for `compgate demo` or `compgate sim`), never for `run`.
 /// - **Sim**: `period_s > 0`, amplitude and noise >= 0, `md32750` 0..=7,
 ///   `motion_min_mm <= motion_max_mm`, speed >= 0.
 /// - Every number finite (TOML allows `nan` and `inf`).
 pub fn validate(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
-    validate_assuming(cfg, file, &Assumed::default())
+    validate_assuming(cfg, file, &Assumed::default(), false)
 }
 
 /// Names that count as defined although the parsed configuration lacks them: entries
@@ -247,8 +254,20 @@ pub(crate) fn list<'a>(names: impl Iterator<Item = &'a String>) -> String {
     }
 }
 
-pub(crate) fn validate_assuming(cfg: &Config, file: &str, assumed: &Assumed) -> Vec<ConfigProblem> {
-    let mut out = Problems::new(file).port_zero_for_sim(cfg.sim.is_some());
+/// As [`validate`]; `for_sim`: the simulated plant is to bind the addresses with port
+/// 0 of a file with `[sim]` (`compgate demo`, `compgate sim`).
+pub(crate) fn validate_assuming(
+    cfg: &Config,
+    file: &str,
+    assumed: &Assumed,
+    for_sim: bool,
+) -> Vec<ConfigProblem> {
+    let port_zero = match (cfg.sim.is_some(), for_sim) {
+        (false, _) => PortZero::Refused,
+        (true, false) => PortZero::RefusedInSimFile,
+        (true, true) => PortZero::ForSim,
+    };
+    let mut out = Problems::new(file).port_zero(port_zero);
     names(&mut out, "devices", cfg.devices.keys());
     names(&mut out, "channels", cfg.channels.keys());
     names(&mut out, "targets", cfg.targets.keys());

@@ -4,7 +4,7 @@
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
-use super::problem::ConfigProblem;
+use super::problem::{check_host_port, ConfigProblem};
 
 /// `[recorder]`: every poll cycle's raw and filtered readings with their quality, every
 /// NC job with its result, and the NC's position, into an SQLite database (WAL mode).
@@ -171,8 +171,9 @@ pub struct MqttConfig {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(length(max = 128))]
     pub client_id: Option<String>,
-    /// Seconds between readings messages per channel (the latest reading is sent).
-    /// Default 1.0; 0.001..=3600.
+    /// Seconds between the readings messages of one device (each carries the latest
+    /// reading of every channel of the device) and between health messages. Default
+    /// 1.0; 0.001..=3600.
     #[serde(default = "default_publish_interval_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub publish_interval_s: f64,
@@ -280,15 +281,13 @@ pub(super) fn validate_service(
                 "needs a [recorder] section: messages wait in its database until the broker has them".into(),
             );
         }
-        match m.broker.rsplit_once(':') {
-            Some((host, port)) if !host.is_empty() && port.parse::<u16>().is_ok_and(|p| p > 0) => {}
-            _ => problem(
+        // The check of every address the gateway connects to; the client resolves the
+        // broker the same way (bracketed IPv6 included).
+        if let Err(why) = check_host_port(&m.broker) {
+            problem(
                 "mqtt.broker",
-                format!(
-                    "`{}` is not `host:port`, e.g. `broker.plant.local:1883`",
-                    m.broker
-                ),
-            ),
+                format!("{why}; for a broker e.g. \"broker.plant.local:1883\""),
+            );
         }
         let name_ok = |n: &str| {
             !n.is_empty()

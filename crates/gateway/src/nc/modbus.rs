@@ -199,8 +199,8 @@ impl NcWriter for ModbusNcWriter {
 #[serde(deny_unknown_fields)]
 pub struct ModbusTargetConfig {
     /// `host:port` of the module's Modbus TCP interface. Required; at most
-    /// 300 characters. Port 0 is accepted
-    /// only because the embedded demo replaces it with the port its simulator bound.
+    /// 300 characters. Port 0 only for `compgate demo` and `compgate sim` in a file
+    /// with `[sim]`: the simulated plant binds a free port and writes it in.
     #[schemars(length(max = 300))]
     pub address: String,
     /// Modbus unit id, 0..=247. Required.

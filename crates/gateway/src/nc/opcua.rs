@@ -259,8 +259,9 @@ impl OpcuaTargetConfig {
     }
 
     /// The URL is `opc.tcp://host:port[/path]`, every template holds `{ns}` and parses
-    /// as a node id, policy and mode agree, the credentials come from one place, every
-    /// time > 0.
+    /// as a node id, policy and mode agree, the credentials come from one place and can
+    /// be read now (as `run` reads them at start, so `validate` as `ExecStartPre=`
+    /// catches a missing file or variable), every time > 0.
     pub fn validate(&self, key: &str, out: &mut Problems<'_>) {
         let k = |f: &str| format!("{key}.{f}");
         if let Err(why) = check_endpoint_url(&self.endpoint_url) {
@@ -296,23 +297,32 @@ impl OpcuaTargetConfig {
             ),
             (None, Some(_), None) => out.push(k("password_env"), "required with user_env"),
             (None, None, Some(_)) => out.push(k("user_env"), "required with password_env"),
-            _ => {}
-        }
-        if let Some(f) = &self.credentials_file {
-            if f.trim().is_empty() {
-                out.push(k("credentials_file"), "must not be empty");
-            }
-        }
-        for (name, v) in [
-            ("user_env", &self.user_env),
-            ("password_env", &self.password_env),
-        ] {
-            if let Some(v) = v {
-                if v.is_empty() || v.contains(['=', '\0']) {
-                    out.push(
-                        k(name),
-                        format!("`{v}` is not an environment variable name"),
-                    );
+            _ => {
+                let mut named = true;
+                if let Some(f) = &self.credentials_file {
+                    if f.trim().is_empty() {
+                        out.push(k("credentials_file"), "must not be empty");
+                        named = false;
+                    }
+                }
+                for (name, v) in [
+                    ("user_env", &self.user_env),
+                    ("password_env", &self.password_env),
+                ] {
+                    if let Some(v) = v {
+                        if v.is_empty() || v.contains(['=', '\0']) {
+                            out.push(
+                                k(name),
+                                format!("`{v}` is not an environment variable name"),
+                            );
+                            named = false;
+                        }
+                    }
+                }
+                if named {
+                    if let Err((name, why)) = self.credentials() {
+                        out.push(k(name), why);
+                    }
                 }
             }
         }
@@ -385,7 +395,12 @@ impl OpcuaTargetConfig {
                 .map_err(|why| NcError::OpcuaSetup(format!("{name}: {why}")))?;
         }
         let templates = self.axis_nodes(axis_name, axis_number);
-        let credentials = self.credentials()?;
+        let credentials = self
+            .credentials()
+            .map_err(|(name, why)| NcError::OpcuaSetup(format!("{name}: {why}")))?;
+        if let Some(file) = &self.credentials_file {
+            warn_if_readable_by_others(&state_path(file));
+        }
         Ok(OpcuaNcWriter {
             spec: Arc::new(Spec {
                 endpoint_url: self.endpoint_url.clone(),
@@ -410,38 +425,55 @@ impl OpcuaTargetConfig {
         })
     }
 
-    fn credentials(&self) -> Result<Option<Credentials>, NcError> {
+    /// The user and password from `credentials_file` or the variables `user_env` and
+    /// `password_env`; `None`: anonymous. An error names the key at fault and why,
+    /// never what the file or a variable holds.
+    fn credentials(&self) -> Result<Option<Credentials>, (&'static str, String)> {
         if let Some(file) = &self.credentials_file {
             let path = state_path(file);
-            let text = std::fs::read_to_string(&path).map_err(|e| {
-                NcError::OpcuaSetup(format!("credentials_file {}: {e}", path.display()))
-            })?;
-            warn_if_readable_by_others(&path);
+            let fail = |why: String| ("credentials_file", format!("{}: {why}", path.display()));
+            let text = std::fs::read_to_string(&path).map_err(|e| fail(e.to_string()))?;
             let mut lines = text.lines();
             let user = lines.next().unwrap_or_default().to_string();
             let password = lines.next().unwrap_or_default().to_string();
             if user.is_empty() {
-                return Err(NcError::OpcuaSetup(format!(
-                    "credentials_file {}: the first line (user name) is empty",
-                    path.display()
-                )));
+                return Err(fail(
+                    "the first line (user name) is empty; expected the user name on the \
+                     first line and the password on the second"
+                        .into(),
+                ));
             }
             return Ok(Some(Credentials { user, password }));
         }
-        match (&self.user_env, &self.password_env) {
-            (Some(u), Some(p)) => {
-                let get = |name: &str| {
-                    std::env::var(name).map_err(|e| {
-                        NcError::OpcuaSetup(format!("environment variable {name}: {e}"))
-                    })
-                };
-                Ok(Some(Credentials {
-                    user: get(u)?,
-                    password: get(p)?,
-                }))
-            }
-            _ => Ok(None),
+        let (Some(u), Some(p)) = (&self.user_env, &self.password_env) else {
+            return Ok(None);
+        };
+        // VarError's own text would show a value that is not Unicode: the secret.
+        let get = |key: &'static str, name: &str| match std::env::var(name) {
+            Ok(v) => Ok(v),
+            Err(std::env::VarError::NotPresent) => Err((
+                key,
+                format!(
+                    "environment variable {name} is not set (give it to the service, e.g. \
+                     with the unit's Environment= or EnvironmentFile=)"
+                ),
+            )),
+            Err(std::env::VarError::NotUnicode(_)) => Err((
+                key,
+                format!("environment variable {name} is not valid Unicode"),
+            )),
+        };
+        let user = get("user_env", u)?;
+        if user.is_empty() {
+            return Err((
+                "user_env",
+                format!("environment variable {u} is empty; expected the user name"),
+            ));
         }
+        Ok(Some(Credentials {
+            user,
+            password: get("password_env", p)?,
+        }))
     }
 }
 

@@ -502,21 +502,29 @@ fn nc_write_may_leave_out_what_the_model_does_not_set() {
 
 #[test]
 fn port_0_is_left_to_the_simulated_plant() {
+    let zero = |c: &mut Config| {
+        tcp(c, "ain1").address = "127.0.0.1:0".into();
+        c.nc_modules.get_mut("nc_x").expect("nc").address = "127.0.0.1:0".into();
+    };
+    assert_eq!(
+        problems_after(zero),
+        ["devices.ain1.address", "nc_modules.nc_x.address"]
+    );
+    // `run` connects to what the file names, [sim] or not.
     assert_eq!(
         problems_after(|c| {
-            tcp(c, "ain1").address = "127.0.0.1:0".into();
-            c.nc_modules.get_mut("nc_x").expect("nc").address = "127.0.0.1:0".into();
+            zero(c);
+            c.sim = Some(SimConfig::default());
         }),
         ["devices.ain1.address", "nc_modules.nc_x.address"]
     );
+    let mut cfg = example();
+    zero(&mut cfg);
+    cfg.sim = Some(SimConfig::default());
     assert_eq!(
-        problems_after(|c| {
-            tcp(c, "ain1").address = "127.0.0.1:0".into();
-            c.nc_modules.get_mut("nc_x").expect("nc").address = "127.0.0.1:0".into();
-            c.sim = Some(SimConfig::default());
-        }),
-        Vec::<String>::new(),
-        "with [sim] the plant binds a free port and writes it in"
+        validate_assuming(&cfg, "v.toml", &Assumed::default(), true),
+        Vec::<ConfigProblem>::new(),
+        "for the simulated plant, which binds a free port and writes it in"
     );
     assert_eq!(
         problems_after(|c| tcp(c, "ain1").address = "192.168.0.300:502".into()),

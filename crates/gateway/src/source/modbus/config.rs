@@ -17,9 +17,8 @@ use crate::source::PollParams;
 #[schemars(deny_unknown_fields)]
 pub struct TcpDeviceConfig {
     /// `host:port` of the Modbus TCP server, e.g. `"192.168.0.10:502"`. Required; at most
-    /// 300 characters.
-    /// Port 0 is accepted only because the embedded demo replaces it with the port its
-    /// simulator bound.
+    /// 300 characters. Port 0 only for `compgate demo` and `compgate sim` in a file
+    /// with `[sim]`: the simulated plant binds a free port and writes it in.
     #[schemars(length(max = 300))]
     pub address: String,
     /// Modbus unit id, 0..=247 (many TCP modules ignore it). Required.
