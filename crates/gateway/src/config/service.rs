@@ -43,8 +43,8 @@ pub struct RecorderConfig {
     #[serde(default = "default_retention_days")]
     #[schemars(range(min = 0.001, max = 36_500.0))]
     pub retention_days: f64,
-    /// Largest size of the data in the database, MB; beyond it the oldest records go
-    /// first. Default 2048; 0.001..=1000000.
+    /// Largest size of the data in the database, MB; beyond it the oldest unsent MQTT
+    /// messages go first, then the oldest records. Default 2048; 0.001..=1000000.
     #[serde(default = "default_max_size_mb")]
     #[schemars(range(min = 0.001, max = 1_000_000.0))]
     pub max_size_mb: f64,
