@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 use compgate_plc::canopen::{CanopenError, CanopenNode, MAX_PDO_TRANSMITTERS};
 use compgate_plc::field::{
-    self, FieldModule, FieldModuleSpec, Profile, TransmitterSpec, COUNTS_BASE,
+    self, AdcFullScale, FieldModule, FieldModuleSpec, Profile, TransmitterSpec, COUNTS_BASE,
 };
 use compgate_plc::nc::{Motion, NcAxis, NcAxisModule};
 use tokio::net::TcpListener;
@@ -233,10 +233,6 @@ impl Plant {
             let mut transmitters: Vec<Option<TransmitterSpec>> = Vec::new();
             for (ch_name, ch) in cfg.channels.iter().filter(|(_, c)| &c.device == dev_name) {
                 let idx = channel_transmitter(ch_name, ch)?;
-                let (lo, hi) = match &ch.scaling {
-                    Scaling::Transmitter(t) => (t.range_min_degc, t.range_max_degc),
-                    Scaling::Direct(_) => (-50.0, 150.0),
-                };
                 let s = sim.channel(ch_name);
                 let profile = match s.profile {
                     SimProfile::Constant => Profile::Constant { degc: s.mean_degc },
@@ -258,7 +254,18 @@ impl Plant {
                 } else if transmitters[idx].is_some() && !sim.channels.contains_key(ch_name) {
                     continue;
                 }
-                let mut t = TransmitterSpec::new(profile, lo, hi);
+                // The channel's own scaling encodes it: what the gateway decodes with.
+                let mut t = match &ch.scaling {
+                    Scaling::Transmitter(sc) => TransmitterSpec {
+                        range_low_ma: sc.current_range.min_ma(),
+                        adc_full_scale: Some(AdcFullScale {
+                            counts: u16::try_from(sc.adc_full_scale_counts).unwrap_or(u16::MAX),
+                            ma: sc.adc_full_scale_ma,
+                        }),
+                        ..TransmitterSpec::new(profile, sc.range_min_degc, sc.range_max_degc)
+                    },
+                    Scaling::Direct(_) => TransmitterSpec::new(profile, -50.0, 150.0),
+                };
                 t.noise_degc = s.noise_degc;
                 transmitters[idx] = Some(t);
             }
@@ -270,17 +277,7 @@ impl Plant {
             if transmitters.is_empty() {
                 transmitters.push(idle());
             }
-            let mut spec = FieldModuleSpec::new(transmitters, sim.seed ^ plant.field.len() as u64);
-            if let Some(Scaling::Transmitter(t)) = cfg
-                .channels
-                .values()
-                .find(|c| &c.device == dev_name)
-                .map(|c| &c.scaling)
-            {
-                spec.adc_full_scale_counts =
-                    u16::try_from(t.adc_full_scale_counts).unwrap_or(u16::MAX);
-                spec.adc_full_scale_ma = t.adc_full_scale_ma;
-            }
+            let spec = FieldModuleSpec::new(transmitters, sim.seed ^ plant.field.len() as u64);
             let module = FieldModule::new(spec).map_err(|e| PlantError::Io {
                 what: format!("devices.{dev_name}"),
                 message: e.to_string(),
@@ -490,4 +487,51 @@ pub async fn backlash_axis(
         compgate_commission::backlash::BacklashError::Io(format!("bind loopback: {e}"))
     })?;
     Ok((address, module, shutdown))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every simulated channel reads back the configured temperature through its own
+    /// scaling: 0-20 mA was encoded as 4-20 (25 degC read as 40), and a channel took
+    /// the ADC full scale of the device's first channel (a 24 mA channel after a
+    /// 20 mA one read 50.04 degC).
+    #[tokio::test]
+    async fn each_channel_is_simulated_with_its_own_scaling() {
+        let scaling = |range: &str, ma: f64| {
+            format!(
+                "scaling = {{ kind = \"transmitter\", adc_full_scale_counts = 4095, \
+                 adc_full_scale_ma = {ma:.1}, current_range = \"{range}\", \
+                 range_min_degc = 0.0, range_max_degc = 100.0 }}"
+            )
+        };
+        let mut text = "[devices.f]\ntransport = \"tcp\"\naddress = \"127.0.0.1:1\"\nunit_id = 1\n"
+            .to_string();
+        for (i, (name, range, ma)) in [("T1", "0-20", 20.0), ("T2", "4-20", 24.0)]
+            .into_iter()
+            .enumerate()
+        {
+            text += &format!(
+                "[channels.{name}]\ndevice = \"f\"\nregister = \"input\"\naddress = {i}\n\
+                 data_type = \"u16\"\n{}\n[sim.channels.{name}]\nprofile = \"constant\"\n\
+                 mean_degc = 25.0\nnoise_degc = 0.0\n",
+                scaling(range, ma)
+            );
+        }
+        let cfg = compgate_gateway::config::load_str(&text, "f.toml").expect("config");
+        let plant = Plant::start(&cfg, Bind::Ephemeral).await.expect("plant");
+        let report = crate::probe::probe(&plant.config, None, None)
+            .await
+            .expect("probe");
+        plant.stop();
+        let temps: Vec<&str> = report
+            .text
+            .lines()
+            .filter_map(|l| l.trim().strip_prefix("temp"))
+            .map(str::trim)
+            .collect();
+        // 1024 counts of 4095 at 20 mA: 5.001 mA, 25.01 degC; 1365 at 24 mA: 8 mA.
+        assert_eq!(temps, ["25.01 degC", "25.00 degC"], "{}", report.text);
+    }
 }

@@ -1,11 +1,13 @@
-//! Simulated field I/O module: N PT100 transmitters (4-20 mA) on a 12-bit ADC,
-//! served over Modbus TCP or RTU.
+//! Simulated field I/O module: N PT100 transmitters (4-20 or 0-20 mA) on a 12-bit
+//! ADC, served over Modbus TCP or RTU.
 //!
 //! Each transmitter follows a temperature [`Profile`] plus Gaussian noise, maps it to a
-//! loop current (4 mA at `range_min_degc`, 20 mA at `range_max_degc`, saturating at
-//! 3.8 / 20.5 mA like a NAMUR NE43 transmitter) and the ADC converts the current to
-//! counts. Sensor faults ([`SensorFault`]) and communication faults ([`CommFault`]) can
-//! be injected at run time through the cloneable [`FieldModule`] handle.
+//! loop current (4 mA, or 0 mA for 0-20, at `range_min_degc`, 20 mA at
+//! `range_max_degc`, saturating 0.2 mA below its range (3.8 mA like a NAMUR NE43
+//! transmitter; 0 mA for 0-20) and at 20.5 mA) and the ADC converts the current to
+//! counts, at the module's full scale or the transmitter's own. Sensor faults
+//! ([`SensorFault`]) and communication faults ([`CommFault`]) can be injected at run
+//! time through the cloneable [`FieldModule`] handle.
 //!
 //! # Register layout
 //!
@@ -91,8 +93,10 @@ pub const DEFAULT_ADC_FULL_SCALE_MA: f64 = 24.0;
 pub const RANGE_LOW_MA: f64 = 4.0;
 /// Loop current span of the measuring range (4..20 mA).
 pub const RANGE_SPAN_MA: f64 = 16.0;
-/// Lowest current of a healthy transmitter below its range (NE43 saturation).
+/// Lowest current of a healthy 4-20 mA transmitter below its range (NE43 saturation).
 pub const SATURATION_LOW_MA: f64 = 3.8;
+/// Top of every current range, mA.
+pub const RANGE_HIGH_MA: f64 = 20.0;
 /// Highest current of a healthy transmitter above its range (NE43 saturation).
 pub const SATURATION_HIGH_MA: f64 = 20.5;
 /// Failure current of an open sensor (NE43 downscale).
@@ -242,41 +246,86 @@ impl Profile {
     }
 }
 
-/// One PT100 transmitter: profile, noise and its 4-20 mA range.
+/// One PT100 transmitter: profile, noise, its current range and, when it differs from
+/// the module's, the ADC full scale it is read with.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TransmitterSpec {
     /// True temperature over time.
     pub profile: Profile,
     /// Standard deviation of the measurement noise, degC (0 = none).
     pub noise_degc: f64,
-    /// Temperature at 4 mA, degC.
+    /// Temperature at the bottom of the current range, degC.
     pub range_min_degc: f64,
     /// Temperature at 20 mA, degC.
     pub range_max_degc: f64,
+    /// Current at `range_min_degc`, mA: 4 (4-20 mA, live zero) or 0 (0-20 mA).
+    pub range_low_ma: f64,
+    /// The ADC full scale of this channel; `None`: the module's.
+    pub adc_full_scale: Option<AdcFullScale>,
+}
+
+/// An ADC's full scale: `counts` at `ma`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AdcFullScale {
+    /// Counts at full scale.
+    pub counts: u16,
+    /// Current at full scale, mA.
+    pub ma: f64,
+}
+
+impl AdcFullScale {
+    /// ADC counts for a loop current: rounded and clipped to the ADC's range.
+    pub fn ma_to_counts(&self, ma: f64) -> u16 {
+        let full_scale = f64::from(self.counts);
+        // In 0..=u16::MAX after the clamp, so the cast is exact.
+        (ma / self.ma * full_scale).clamp(0.0, full_scale).round() as u16
+    }
+
+    /// Loop current for ADC counts.
+    pub fn counts_to_ma(&self, counts: u16) -> f64 {
+        f64::from(counts) * self.ma / f64::from(self.counts)
+    }
+
+    fn validate(&self) -> Result<(), String> {
+        if self.counts == 0 {
+            return Err("adc_full_scale_counts must be > 0".into());
+        }
+        if !(self.ma.is_finite() && self.ma > 0.0) {
+            return Err(format!("adc_full_scale_ma = {} must be > 0", self.ma));
+        }
+        Ok(())
+    }
 }
 
 impl TransmitterSpec {
-    /// A noiseless transmitter over `range_min_degc..range_max_degc`.
+    /// A noiseless 4-20 mA transmitter over `range_min_degc..range_max_degc`, read at
+    /// the module's ADC full scale.
     pub fn new(profile: Profile, range_min_degc: f64, range_max_degc: f64) -> Self {
         Self {
             profile,
             noise_degc: 0.0,
             range_min_degc,
             range_max_degc,
+            range_low_ma: RANGE_LOW_MA,
+            adc_full_scale: None,
         }
     }
 
-    /// Loop current of a healthy transmitter at `degc`, saturated to 3.8..20.5 mA.
+    /// Loop current of a healthy transmitter at `degc`, saturated 0.2 mA below its
+    /// range (3.8 mA for 4-20, never below 0) and at 20.5 mA.
     pub fn degc_to_ma(&self, degc: f64) -> f64 {
         let span_degc = self.range_max_degc - self.range_min_degc;
-        let ma = RANGE_LOW_MA + RANGE_SPAN_MA * (degc - self.range_min_degc) / span_degc;
-        ma.clamp(SATURATION_LOW_MA, SATURATION_HIGH_MA)
+        let span_ma = RANGE_HIGH_MA - self.range_low_ma;
+        let ma = self.range_low_ma + span_ma * (degc - self.range_min_degc) / span_degc;
+        let low_ma = (self.range_low_ma - (RANGE_LOW_MA - SATURATION_LOW_MA)).max(0.0);
+        ma.clamp(low_ma, SATURATION_HIGH_MA)
     }
 
     /// Temperature for a loop current, linear over the range and not clamped.
     pub fn ma_to_degc(&self, ma: f64) -> f64 {
         let span_degc = self.range_max_degc - self.range_min_degc;
-        self.range_min_degc + (ma - RANGE_LOW_MA) / RANGE_SPAN_MA * span_degc
+        let span_ma = RANGE_HIGH_MA - self.range_low_ma;
+        self.range_min_degc + (ma - self.range_low_ma) / span_ma * span_degc
     }
 }
 
@@ -304,19 +353,30 @@ impl FieldModuleSpec {
         }
     }
 
-    /// ADC counts for a loop current: rounded and clipped to the ADC's range.
-    pub fn ma_to_counts(&self, ma: f64) -> u16 {
-        let full_scale = f64::from(self.adc_full_scale_counts);
-        let counts = (ma / self.adc_full_scale_ma * full_scale)
-            .clamp(0.0, full_scale)
-            .round();
-        // In 0..=u16::MAX after the clamp, so the cast is exact.
-        counts as u16
+    /// The module's ADC full scale.
+    pub fn adc(&self) -> AdcFullScale {
+        AdcFullScale {
+            counts: self.adc_full_scale_counts,
+            ma: self.adc_full_scale_ma,
+        }
     }
 
-    /// Loop current for ADC counts.
+    /// The ADC full scale transmitter `i` is read with: its own, else the module's.
+    pub fn adc_of(&self, i: usize) -> AdcFullScale {
+        self.transmitters
+            .get(i)
+            .and_then(|t| t.adc_full_scale)
+            .unwrap_or_else(|| self.adc())
+    }
+
+    /// ADC counts for a loop current at the module's full scale.
+    pub fn ma_to_counts(&self, ma: f64) -> u16 {
+        self.adc().ma_to_counts(ma)
+    }
+
+    /// Loop current for ADC counts at the module's full scale.
     pub fn counts_to_ma(&self, counts: u16) -> f64 {
-        f64::from(counts) * self.adc_full_scale_ma / f64::from(self.adc_full_scale_counts)
+        self.adc().counts_to_ma(counts)
     }
 
     /// Checks everything [`FieldModule::new`] relies on.
@@ -328,16 +388,19 @@ impl FieldModuleSpec {
                 self.transmitters.len()
             ));
         }
-        if self.adc_full_scale_counts == 0 {
-            return bad("adc_full_scale_counts must be > 0".into());
-        }
-        if !(self.adc_full_scale_ma.is_finite() && self.adc_full_scale_ma > 0.0) {
-            return bad(format!(
-                "adc_full_scale_ma = {} must be > 0",
-                self.adc_full_scale_ma
-            ));
+        if let Err(msg) = self.adc().validate() {
+            return bad(msg);
         }
         for (i, t) in self.transmitters.iter().enumerate() {
+            if let Some(Err(msg)) = t.adc_full_scale.map(|a| a.validate()) {
+                return bad(format!("transmitter {i}: {msg}"));
+            }
+            if !(t.range_low_ma.is_finite() && (0.0..RANGE_HIGH_MA).contains(&t.range_low_ma)) {
+                return bad(format!(
+                    "transmitter {i}: range_low_ma = {} must be in 0..20 mA",
+                    t.range_low_ma
+                ));
+            }
             if !(t.range_min_degc.is_finite()
                 && t.range_max_degc.is_finite()
                 && t.range_min_degc < t.range_max_degc)
@@ -697,14 +760,15 @@ impl Inner {
                     None => spec.degc_to_ma(true_degc + noise_degc),
                 },
             };
-            self.channels[i].last_counts = Some(self.spec.ma_to_counts(ma));
+            self.channels[i].last_counts = Some(self.spec.adc_of(i).ma_to_counts(ma));
         }
     }
 
     /// Counts and measured temperature of transmitter `i` from the last scan.
     fn measured(&self, i: usize) -> (u16, f32) {
         let counts = self.channels[i].last_counts.unwrap_or(0);
-        let degc = self.spec.transmitters[i].ma_to_degc(self.spec.counts_to_ma(counts));
+        let ma = self.spec.adc_of(i).counts_to_ma(counts);
+        let degc = self.spec.transmitters[i].ma_to_degc(ma);
         // The module publishes single precision, as such modules do.
         (counts, degc as f32)
     }
@@ -960,10 +1024,8 @@ mod tests {
     fn spec_one(profile: Profile, noise_degc: f64) -> FieldModuleSpec {
         FieldModuleSpec::new(
             vec![TransmitterSpec {
-                profile,
                 noise_degc,
-                range_min_degc: 0.0,
-                range_max_degc: 100.0,
+                ..TransmitterSpec::new(profile, 0.0, 100.0)
             }],
             7,
         )
@@ -1005,6 +1067,47 @@ mod tests {
         assert_eq!(spec.ma_to_counts(21.5), 3668); // 3668.4375
         assert_eq!(spec.ma_to_counts(30.0), 4095);
         assert_eq!(spec.ma_to_counts(-1.0), 0);
+        // 0-20 mA: 0 mA at the bottom, 5 mA at a quarter, never below 0 mA.
+        let t = TransmitterSpec {
+            range_low_ma: 0.0,
+            ..t.clone()
+        };
+        assert_eq!(t.degc_to_ma(0.0), 0.0);
+        assert_eq!(t.degc_to_ma(25.0), 5.0);
+        assert_eq!(t.degc_to_ma(-30.0), 0.0);
+        assert_eq!(t.ma_to_degc(5.0), 25.0);
+    }
+
+    /// Each transmitter is read at its own full scale when it has one; both register
+    /// views decode it back to the temperature.
+    #[test]
+    fn a_transmitter_with_its_own_full_scale_and_range_reads_back() {
+        let own = TransmitterSpec {
+            range_low_ma: 0.0,
+            adc_full_scale: Some(AdcFullScale {
+                counts: 4095,
+                ma: 20.0,
+            }),
+            ..TransmitterSpec::new(Profile::Constant { degc: 25.0 }, 0.0, 100.0)
+        };
+        let spec = FieldModuleSpec::new(
+            vec![
+                own,
+                TransmitterSpec::new(Profile::Constant { degc: 25.0 }, 0.0, 100.0),
+            ],
+            1,
+        );
+        let module = FieldModule::new(spec).expect("module");
+        let mut inner = module.lock();
+        inner.convert(0.0);
+        // 5 mA of 20 mA on 4095 counts; 8 mA of the module's 24 mA.
+        for (i, counts) in [(0, 1024), (1, 1365)] {
+            let (got, degc) = inner.measured(i);
+            assert!(
+                got == counts && (degc - 25.0).abs() < 0.01,
+                "{i}: {got} {degc}"
+            );
+        }
     }
 
     #[test]

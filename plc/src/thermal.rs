@@ -154,11 +154,13 @@ pub struct NonlinearPositionParams {
     pub um_per_degc: f64,
 }
 
-/// `reversal`: backlash; approaching in the positive direction the table lags by
-/// `b_um / 2`, in the negative direction it leads by `b_um / 2`.
+/// `reversal`: the error approaching in the positive direction minus the error
+/// approaching in the negative direction is `b_um`, half of it on each side; a
+/// backlash, the table lagging behind on both sides, makes it negative.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ReversalParams {
-    /// Reversal value, um (ISO 230-2 B = -b_um).
+    /// Reversal value, um: err(+) - err(-), the sign of ISO 230-2's B_i and of
+    /// diagnose's `b_um`.
     pub b_um: f64,
 }
 
@@ -250,7 +252,7 @@ impl Effects {
     ];
 
     /// Switches on the named effects with their default parameters:
-    /// `thermal_lag` tau 1800 s; `nonlinear_position` 2 um/K; `reversal` b 4 um;
+    /// `thermal_lag` tau 1800 s; `nonlinear_position` 2 um/K; `reversal` b -4 um (a 4 um backlash);
     /// `pitch_periodic` 10 mm, 1.5 um; `motion_heating` tau 2400 s, 4 K at load 1,
     /// 3 um/K; `extra_sensor` tau 900 s, 8 K on half of a 2 h cycle, 2 um/K.
     pub fn from_names<S: AsRef<str>>(names: &[S]) -> Result<Self, UnknownEffect> {
@@ -261,7 +263,7 @@ impl Effects {
                 "nonlinear_position" => {
                     e.nonlinear_position = Some(NonlinearPositionParams { um_per_degc: 2.0 })
                 }
-                "reversal" => e.reversal = Some(ReversalParams { b_um: 4.0 }),
+                "reversal" => e.reversal = Some(ReversalParams { b_um: -4.0 }),
                 "pitch_periodic" => {
                     e.pitch_periodic = Some(PitchPeriodicParams {
                         period_mm: 10.0,
@@ -697,7 +699,7 @@ impl ThermalMachine {
             err_um += nl.um_per_degc * rise * 4.0 * x * (1.0 - x);
         }
         if let Some(r) = e.reversal {
-            err_um -= f64::from(dir.signum()) * r.b_um / 2.0;
+            err_um += f64::from(dir.signum()) * r.b_um / 2.0;
         }
         if let Some(pp) = e.pitch_periodic {
             if pp.period_mm > 0.0 {
@@ -1061,6 +1063,16 @@ mod tests {
     }
 
     const FULL: Motion = Motion::axis(200.0, 1.0);
+
+    /// The default reversal is a 4 um backlash: err(+) - err(-) = b_um = -4 um, the
+    /// sign diagnose reports (the simulator said b 4 um where diagnose found -3.97).
+    #[test]
+    fn reversal_b_is_the_error_in_plus_minus_the_error_in_minus() {
+        let m = ThermalMachine::new(quiet(), Effects::from_names(&["reversal"]).unwrap(), 1);
+        let b_um = m.true_error_um(500.0, 1) - m.true_error_um(500.0, -1);
+        assert!((b_um - -4.0).abs() < 1e-12, "{b_um}");
+        assert_eq!(m.effects.reversal.map(|r| r.b_um), Some(b_um));
+    }
 
     #[test]
     fn steady_state_rises_and_time_constant() {

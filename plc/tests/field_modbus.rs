@@ -22,20 +22,20 @@ fn two_channel_spec() -> FieldModuleSpec {
     FieldModuleSpec::new(
         vec![
             TransmitterSpec {
-                profile: Profile::Constant { degc: 25.0 },
                 noise_degc: 0.05,
-                range_min_degc: 0.0,
-                range_max_degc: 100.0,
+                ..TransmitterSpec::new(Profile::Constant { degc: 25.0 }, 0.0, 100.0)
             },
             TransmitterSpec {
-                profile: Profile::Sine {
-                    mean_degc: 80.0,
-                    amplitude_degc: 1.0,
-                    period_s: 3600.0,
-                },
                 noise_degc: 0.02,
-                range_min_degc: -50.0,
-                range_max_degc: 150.0,
+                ..TransmitterSpec::new(
+                    Profile::Sine {
+                        mean_degc: 80.0,
+                        amplitude_degc: 1.0,
+                        period_s: 3600.0,
+                    },
+                    -50.0,
+                    150.0,
+                )
             },
         ],
         42,

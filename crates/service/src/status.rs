@@ -15,7 +15,7 @@ use std::io::Write;
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 
-use compgate_core::channel::Quality;
+use compgate_core::channel::{Quality, Reading};
 use compgate_gateway::runtime::{AxisStatus, Status};
 
 /// Characters of the widest line of the terminal table: fits an 80-column terminal.
@@ -29,14 +29,20 @@ fn quality_word(q: &Quality) -> String {
     }
 }
 
+/// The temperature shown for a reading: none for a bad one, whose value is only the
+/// last good one held (as `compgate probe` shows it).
+fn shown_degc(r: &Reading) -> String {
+    match (&r.quality, r.value_degc) {
+        (Quality::Bad(_), _) | (_, None) => "-".into(),
+        (_, Some(v)) => format!("{v:.2}"),
+    }
+}
+
 /// One line describing the gateway's state (the journal's form).
 pub fn render(s: &Status) -> String {
     let mut out = String::new();
     for c in &s.channels {
-        let v = c
-            .reading
-            .value_degc
-            .map_or_else(|| "-".to_string(), |v| format!("{v:.2}"));
+        let v = shown_degc(&c.reading);
         let _ = write!(
             out,
             "{}={}degC[{}] ",
@@ -131,10 +137,7 @@ pub fn render_table(s: &Status) -> Vec<String> {
     ));
     lines.push(rule.clone());
     for c in &s.channels {
-        let v = c
-            .reading
-            .value_degc
-            .map_or_else(|| "-".to_string(), |v| format!("{v:.2}"));
+        let v = shown_degc(&c.reading);
         lines.push(format!(
             "{:<16} {:>10}  {}",
             fit(&c.name, 16),
@@ -320,7 +323,7 @@ pub async fn print_to<W: Write>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use compgate_core::channel::{Reading, Reason};
+    use compgate_core::channel::Reason;
     use compgate_core::comp::CompParams;
     use compgate_gateway::nc::NcSnapshot;
     use compgate_gateway::runtime::{ChannelStatus, DeviceStatus};
@@ -407,6 +410,24 @@ mod tests {
         ] {
             assert!(text.contains(want), "{want:?} missing from\n{text}");
         }
+    }
+
+    /// A bad channel shows no temperature, in the line and in the table: it showed
+    /// the value held from before it went bad (`T_bed=25.00degC[bad(Ne43Low)]`).
+    #[test]
+    fn a_bad_channel_shows_no_temperature() {
+        let s = status(24.31, None);
+        let line = render(&s);
+        assert!(
+            line.contains("T_a_channel_with_a_very_long_name_indeed=-degC[bad(Ne43Low)]")
+                && !line.contains("21.50"),
+            "{line}"
+        );
+        let table = render_table(&s).join("\n");
+        assert!(
+            table.contains("24.31") && !table.contains("21.50"),
+            "{table}"
+        );
     }
 
     /// The `n` of every cursor-up sequence `ESC [ n A`, in order.

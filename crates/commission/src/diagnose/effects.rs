@@ -4,6 +4,8 @@
 
 use std::fmt;
 
+use compgate_core::comp::heat_store_step;
+
 /// A physical effect the baseline `K0(T) + tan(beta)(T) * (pos - P0)` lacks.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum EffectKind {
@@ -71,17 +73,19 @@ pub fn lag(t_s: &[f64], x: &[f64], tau_s: f64) -> Vec<f64> {
     out
 }
 
-/// Hidden heat of axis motion: every row's travel is an impulse into a first-order
-/// store with time constant `tau_s`, so the state is the travel rate (mm/s) seen through
-/// the lag; it starts cold (zero).
+/// Hidden heat of axis motion: the gateway's store (`heat_store_step`), each row's
+/// travel spread evenly over the interval since the row before, so the state is the
+/// travel rate (mm/s) seen through the lag however far apart the rows are. It starts
+/// cold at the first row, whose travel came over an interval the data does not show
+/// (as the gateway's store starts at its first position).
 pub fn motion_heat(t_s: &[f64], travel_mm: &[f64], tau_s: f64) -> Vec<f64> {
     let mut out = Vec::with_capacity(t_s.len());
     let mut h = 0.0;
-    let mut prev_t = t_s.first().copied().unwrap_or(0.0);
-    for (&t, &d) in t_s.iter().zip(travel_mm) {
-        h = h * (-(t - prev_t).max(0.0) / tau_s).exp() + d / tau_s;
+    for (i, (&t, &d)) in t_s.iter().zip(travel_mm).enumerate() {
+        if i > 0 {
+            h = heat_store_step(h, t - t_s[i - 1], d, tau_s);
+        }
         out.push(h);
-        prev_t = t;
     }
     out
 }
@@ -127,6 +131,27 @@ mod tests {
         let d = vec![2.0; 5000];
         let h = motion_heat(&t, &d, 100.0);
         assert!((h[4999] - 2.0).abs() < 0.02, "{}", h[4999]);
+    }
+
+    /// Rows half an hour apart see the store that rows every 4 s see at the same
+    /// times, when the rate between them is steady: an impulse per row gave 1.4
+    /// times as much.
+    #[test]
+    fn motion_heat_of_sparse_rows_is_that_of_dense_rows() {
+        let dense_t: Vec<f64> = (0..=900).map(|i| 4.0 * i as f64).collect();
+        let dense = motion_heat(&dense_t, &vec![4.0 * 150.0; dense_t.len()], 2400.0);
+        let sparse = motion_heat(
+            &[0.0, 1800.0, 3600.0],
+            &[0.0, 1800.0 * 150.0, 1800.0 * 150.0],
+            2400.0,
+        );
+        for (k, i) in [(1, 450), (2, 900)] {
+            assert!(
+                (sparse[k] - dense[i]).abs() < 1e-9,
+                "{sparse:?} {}",
+                dense[i]
+            );
+        }
     }
 
     #[test]

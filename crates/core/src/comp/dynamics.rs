@@ -18,10 +18,10 @@ pub struct InputLag {
 }
 
 /// Heat of axis motion: travel (from successive actual positions) feeds a first-order
-/// store, `h <- h exp(-dt/tau) + |dpos| / tau`, so `h` is the travel rate (mm/s) seen
-/// through the lag; `K0 += k0_mm_per_mm_per_s (h - ref)`, `tan(beta) +=
-/// tan_beta_per_mm_per_s (h - ref)`. The same recursion as diagnose's
-/// `motion_heating` signal, so its fitted coefficients apply unchanged.
+/// store ([`heat_store_step`]), so `h` is the travel rate (mm/s) seen through the lag;
+/// `K0 += k0_mm_per_mm_per_s (h - ref)`, `tan(beta) += tan_beta_per_mm_per_s (h - ref)`.
+/// diagnose's `motion_heating` signal is the same store, so its fitted coefficients
+/// apply unchanged.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MotionHeat {
     /// Time constant of the hidden store, s (> 0).
@@ -32,6 +32,19 @@ pub struct MotionHeat {
     pub k0_mm_per_mm_per_s: f64,
     /// tan(beta) per mm/s of travel rate, 1/(mm/s).
     pub tan_beta_per_mm_per_s: f64,
+}
+
+/// The motion heat store `heat_mm_per_s` after `dt_s` in which the axis travelled
+/// `travel_mm`, that travel taken at a constant rate over the interval:
+/// `h e^(-dt/tau) + (travel / dt) (1 - e^(-dt/tau))`. Exact for a constant rate however
+/// long the interval, so the gateway polling every second and diagnose reading rows
+/// half an hour apart compute the same store; with no interval the travel is an
+/// impulse `travel / tau`.
+pub fn heat_store_step(heat_mm_per_s: f64, dt_s: f64, travel_mm: f64, tau_s: f64) -> f64 {
+    let x = dt_s.max(0.0) / tau_s;
+    // (1 - e^-x) / x, which tends to 1 as x -> 0.
+    let spread = if x > 1e-9 { -(-x).exp_m1() / x } else { 1.0 };
+    heat_mm_per_s * (-x).exp() + travel_mm / tau_s * spread
 }
 
 /// The state of an axis' lags and motion heat.
@@ -112,9 +125,8 @@ impl Dynamics {
             return;
         }
         if let Some((t0, p0)) = self.last_pos {
-            let dt = (now_s - t0).max(0.0);
             self.heat_mm_per_s =
-                self.heat_mm_per_s * (-dt / m.tau_s).exp() + (pos_mm - p0).abs() / m.tau_s;
+                heat_store_step(self.heat_mm_per_s, now_s - t0, (pos_mm - p0).abs(), m.tau_s);
         }
         self.last_pos = Some((now_s, pos_mm));
     }
@@ -165,6 +177,19 @@ mod tests {
         let mut t = vec![None];
         d.apply_lags(2000.0, &mut t);
         assert_eq!(t, vec![None, None]);
+    }
+
+    /// A steady rate gives the same store over one long step as over many short
+    /// ones; with no interval the travel is an impulse.
+    #[test]
+    fn the_heat_store_does_not_depend_on_the_step() {
+        let mut h = 0.0;
+        for _ in 0..1000 {
+            h = heat_store_step(h, 1.8, 1.8 * 50.0, 600.0);
+        }
+        let once = heat_store_step(0.0, 1800.0, 1800.0 * 50.0, 600.0);
+        assert!((h - once).abs() < 1e-9 && (once - 50.0 * (1.0 - (-3.0f64).exp())).abs() < 1e-9);
+        assert_eq!(heat_store_step(1.0, 0.0, 600.0, 600.0), 2.0);
     }
 
     #[test]

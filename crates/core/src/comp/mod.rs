@@ -13,7 +13,7 @@ mod dynamics;
 mod model;
 
 pub use compensator::{AxisCompensator, BadInputPolicy, Decision, Limits};
-pub use dynamics::{Dynamics, InputLag, MotionHeat};
+pub use dynamics::{heat_store_step, Dynamics, InputLag, MotionHeat};
 pub use model::{Affine, CompParams, Term, ThermalModel};
 
 /// Errors of the compensation layer: settings that cannot work.
