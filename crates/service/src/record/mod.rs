@@ -294,7 +294,7 @@ pub struct Recorder {
 /// `path` (as [`resolve_path`] gives it): its directory exists and is writable
 /// (SQLite creates the `-wal` and `-shm` files there, the recorder its lock file),
 /// and the database, if it exists, is a writable regular file holding an SQLite
-/// database of the recorder's layout ([`schema::check`]: not a device such as
+/// database of the recorder's layout (`schema::check`: not a device such as
 /// `/dev/null`, not the config file, not an older layout). `validate` runs it, and
 /// `run` before it creates anything, so a config that `run` would refuse does not
 /// pass. A problem names the environment variable that set `recorder.path`, if one

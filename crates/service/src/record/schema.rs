@@ -64,7 +64,7 @@ const STATEMENT_CACHE: usize = 32;
 pub const BUSY_TIMEOUT: Duration = Duration::from_secs(5);
 
 /// Opens the database at `path` (creating it and its tables), in WAL mode. A file
-/// that is not a database of the recorder's layout ([`check`]) is refused before
+/// that is not a database of the recorder's layout (`check`) is refused before
 /// anything is written to it.
 pub fn open(path: &Path) -> Result<Connection, RecordError> {
     let err = |e: rusqlite::Error| RecordError::Open {
