@@ -91,13 +91,26 @@ pub enum ConfigCommand {
 /// `compgate demo`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct DemoArgs {
-    /// Where the live status page (and `/metrics`) listens; port 0 takes a free port,
-    /// `off` serves none. A busy port is reported and the demo runs without the page.
-    #[arg(long, default_value = "127.0.0.1:9464")]
+    /// Where the live status page (and `/metrics`) listens, IP:PORT; port 0 takes a
+    /// free port, `off` serves none. A busy port is reported and the demo runs without
+    /// the page.
+    #[arg(long, default_value = "127.0.0.1:9464", value_parser = http_bind)]
     pub http: String,
     /// Shadow mode: compute and show what would be written, never write the NC.
     #[arg(long)]
     pub shadow: bool,
+}
+
+/// `--http`: `off` or a socket address, as `metrics.bind` takes it. A typo is the
+/// command line's error (exit 2, naming the flag), not a page that quietly is not
+/// served; a busy port is found only when binding, and the demo runs on without it.
+fn http_bind(text: &str) -> Result<String, String> {
+    if text == "off" {
+        return Ok(text.to_string());
+    }
+    text.parse::<std::net::SocketAddr>()
+        .map(|_| text.to_string())
+        .map_err(|e| format!("{e}: give IP:PORT (e.g. 127.0.0.1:9464) or `off`"))
 }
 
 impl Default for DemoArgs {
@@ -205,4 +218,42 @@ pub fn eprintln(text: impl Display) -> Result<(), OutputError> {
         stream: "error",
         source,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use std::any::TypeId;
+
+    /// Every flag that takes a number takes a negative one (`--p0-mm -100`): without
+    /// `allow_negative_numbers`, clap reads `-100` as an unknown flag and says
+    /// "unexpected argument '-1' found", which names neither the flag nor the value.
+    #[test]
+    fn every_numeric_flag_takes_a_negative_number() {
+        let numeric = [
+            TypeId::of::<f64>(),
+            TypeId::of::<u8>(),
+            TypeId::of::<u16>(),
+            TypeId::of::<u32>(),
+            TypeId::of::<u64>(),
+            TypeId::of::<i64>(),
+            TypeId::of::<usize>(),
+        ];
+        fn walk(cmd: &clap::Command, path: &str, numeric: &[TypeId], bad: &mut Vec<String>) {
+            for a in cmd.get_arguments() {
+                let ty = a.get_value_parser().type_id();
+                if numeric.iter().any(|t| ty == *t)
+                    && !a.is_allow_negative_numbers_set()
+                    && !a.is_allow_hyphen_values_set()
+                {
+                    bad.push(format!("{path} --{}", a.get_id()));
+                }
+            }
+            for s in cmd.get_subcommands() {
+                walk(s, &format!("{path} {}", s.get_name()), numeric, bad);
+            }
+        }
+        let mut bad = Vec::new();
+        walk(&super::command(), "compgate", &numeric, &mut bad);
+        assert!(bad.is_empty(), "no allow_negative_numbers: {bad:?}");
+    }
 }

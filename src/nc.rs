@@ -9,7 +9,7 @@ use clap::{ArgGroup, Args, Subcommand};
 use crate::cli::{self, OutputError};
 use compgate_gateway::config::{self, Config};
 use compgate_gateway::nc::{
-    number, thermal_limit, var, var_name, Guarded, Job, NcSnapshot, NcWriter,
+    number, shown, shown_mm, thermal_limit, var, var_name, Guarded, Job, NcSnapshot, NcWriter,
 };
 
 /// `compgate nc`: read or write an axis's compensation values on its target.
@@ -137,9 +137,9 @@ fn writer(cfg: &Config, axis: &str) -> Result<(Guarded, String), String> {
 fn values(s: &NcSnapshot) -> String {
     format!(
         "SD43900 = {} mm, SD43910 = {}, SD43920 = {} mm",
-        number(s.sd43900_mm),
-        number(s.sd43910),
-        number(s.sd43920_mm)
+        shown_mm(s.sd43900_mm),
+        shown(var::SD43910, s.sd43910),
+        shown_mm(s.sd43920_mm)
     )
 }
 
@@ -165,7 +165,7 @@ async fn read(cfg: &Config, target: Option<&str>) -> Result<(), NcError> {
                         "  MD32750 = {}, referenced = {}, applied compensation = {} mm\n",
                         s.md32750,
                         s.referenced,
-                        number(s.applied_comp_mm)
+                        shown_mm(s.applied_comp_mm)
                     ))?;
                 }
                 match w.may_write().await {
@@ -285,7 +285,8 @@ async fn write_with(
         cli::print(format_args!(
             "  {}: {} -> {}\n",
             var_name(v),
-            number(held(v)),
+            shown(v, held(v)),
+            // As typed: a value finer than what `shown` keeps is not shown as another.
             number(x)
         ))?;
     }

@@ -445,3 +445,288 @@ fn a_closed_or_full_stdout_ends_quietly_or_with_one_error_never_a_panic() {
         .unwrap();
     assert_eq!(status.code(), Some(141));
 }
+
+/// Runs the binary with `args`; its exit status and standard error. A run still going
+/// after a minute is killed (status `None`): a command that should have refused its
+/// arguments, such as the demo, would otherwise run for ever.
+fn run(args: &[&str]) -> (Option<i32>, String) {
+    let mut child = Command::new(BIN)
+        .args(args)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("the binary runs");
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    while child.try_wait().expect("wait").is_none() && std::time::Instant::now() < deadline {
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let _ = child.kill();
+    let out = child.wait_with_output().expect("the binary's output");
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+// A negative number is the value of a numeric flag, not an unknown flag: before,
+// `--p0-mm -100`, `--targets -500,0,500` and `--a -10` ended with exit 2 and
+// "unexpected argument '-1' found", naming neither the flag nor the value.
+#[test]
+fn numeric_flags_take_negative_values() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = measurement_csv(dir.path());
+    let data = data.to_str().unwrap();
+    let model = dir.path().join("m.toml");
+    let out = Command::new(BIN)
+        .args(["calibrate", "--data", data, "--p0-mm", "-1000", "--out"])
+        .arg(&model)
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let toml = std::fs::read_to_string(&model).unwrap();
+    assert!(toml.contains("p0_mm = -1000"), "{toml}");
+    let targets = "-1000,-750,-500,-250,0,250,500,750,1000";
+    let out = Command::new(BIN)
+        .args(["iso230", "--data", data, "--targets", targets])
+        .output()
+        .unwrap();
+    assert!(assert_success(&out).contains("-1000"));
+    let out = Command::new(BIN)
+        .args(["backlash", "--sim", "--a", "-5", "--c", "-2"])
+        .output()
+        .unwrap();
+    assert!(assert_success(&out).contains("F2"));
+    // Out of range: refused by the flag's own check, which names it (exit 1).
+    for (args, message) in [
+        (
+            &["backlash", "--sim", "--feed", "-1"][..],
+            "--feed -1.0: outside the plausible range",
+        ),
+        (
+            &["volumetric", "--errors", "none.txt", "--max-c-swing", "-5"],
+            "--max-c-swing -5.0: outside the plausible range",
+        ),
+        (
+            &["scenario", "--out", "none", "--hours", "-1"],
+            "--hours -1.0: outside the plausible range",
+        ),
+    ] {
+        let (code, err) = run(args);
+        assert_eq!(code, Some(1), "{args:?}: {err}");
+        assert!(err.contains(message), "{args:?}: {err}");
+    }
+    // An integer flag names itself too.
+    let (code, err) = run(&["backlash", "--sim", "--unit", "-1"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("invalid value '-1' for '--unit"), "{err}");
+    assert!(!dir.path().join("none").exists() && !std::path::Path::new("none").exists());
+}
+
+// A database export cannot read is reported as the database's fault, naming --db and
+// the path. Before, the first query (parsing --since) failed on it:
+// "error: --since: file is not a database", "error: --until: unable to open database
+// file", and a directory gave "disk I/O error".
+#[test]
+fn export_names_the_database_it_cannot_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let export = |db: &std::path::Path| {
+        run(&[
+            "export",
+            "--csv",
+            "--since",
+            "2026-11-26T17:13:00Z",
+            "--until",
+            "2030-01-01T00:00:00Z",
+            "--db",
+            db.to_str().unwrap(),
+        ])
+    };
+    let garbage = dir.path().join("garbage.db");
+    std::fs::write(&garbage, [0x5a_u8; 5000]).unwrap();
+    let (code, err) = export(&garbage);
+    assert_eq!(code, Some(1), "{err}");
+    assert_eq!(
+        err,
+        format!(
+            "error: --db {}: file is not a database\n",
+            garbage.display()
+        )
+    );
+    let (code, err) = export(dir.path());
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.starts_with(&format!(
+            "error: --db {}: is a directory",
+            dir.path().display()
+        )),
+        "{err}"
+    );
+    // A WAL database SQLite cannot open its -shm file for (as in a read-only
+    // directory, which root does not see as one): the message says why.
+    let wal = dir.path().join("copy");
+    std::fs::create_dir(&wal).unwrap();
+    let db = recording(&wal, 10);
+    assert!(
+        !wal.join("rec.db-shm").exists(),
+        "the recorder closed cleanly"
+    );
+    std::os::unix::fs::symlink(dir.path().join("gone/rec.db-shm"), wal.join("rec.db-shm")).unwrap();
+    let (code, err) = export(&db);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.starts_with(&format!(
+            "error: --db {}: cannot be opened read-only here: it is in WAL mode",
+            db.display()
+        )),
+        "{err}"
+    );
+    assert!(err.contains(&format!("in {}", wal.display())), "{err}");
+    // A bad time is still the flag's.
+    let (code, err) = run(&[
+        "export",
+        "--csv",
+        "--since",
+        "yesterday",
+        "--until",
+        "1",
+        "--db",
+        db.to_str().unwrap(),
+    ]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.starts_with("error: --since: `yesterday` is not a time"),
+        "{err}"
+    );
+}
+
+// The grid is in whole milliseconds: a step below 1 ms or between two is refused,
+// naming the flag. Before, `--step-s 1e-9` and `0.0004` were silently 1 ms.
+#[test]
+fn export_refuses_a_step_that_is_no_whole_millisecond() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = recording(dir.path(), 10);
+    let export = |step: &str| {
+        let out = Command::new(BIN)
+            .args([
+                "export",
+                "--csv",
+                "--since",
+                "1000000000",
+                "--until",
+                "1000000010",
+            ])
+            .args(["--db", db.to_str().unwrap(), "--step-s", step])
+            .output()
+            .unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    for step in ["1e-9", "0.0004", "0.0015"] {
+        let (code, err) = export(step);
+        assert_eq!(code, Some(1), "{step}: {err}");
+        assert!(
+            err.starts_with("error: --step-s: ")
+                && err.contains("not a whole number of milliseconds"),
+            "{step}: {err}"
+        );
+    }
+    for step in ["0.001", "0.007", "2.5"] {
+        let (code, err) = export(step);
+        assert_eq!(code, Some(0), "{step}: {err}");
+    }
+}
+
+// Messages that name what is at fault: an empty --sensors list, a missing data file
+// (once: it was "x.csv: x.csv: No such file"), --max-c-swing (it was under "grid:"),
+// an effect named twice (it was accepted).
+#[test]
+fn argument_errors_name_the_flag_or_file_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = measurement_csv(dir.path());
+    let data = data.to_str().unwrap();
+    let (code, err) = run(&[
+        "calibrate",
+        "--data",
+        data,
+        "--out",
+        "m.toml",
+        "--sensors",
+        "",
+    ]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.starts_with("error: --sensors: the list is empty"),
+        "{err}"
+    );
+    let (code, err) = run(&["diagnose", "--data", data, "--sensors", "a,,b"]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.starts_with("error: --sensors: an empty name"), "{err}");
+
+    let missing = dir.path().join("x.csv");
+    let missing = missing.to_str().unwrap();
+    for args in [
+        &["calibrate", "--data", missing, "--out", "m.toml"][..],
+        &["iso230", "--data", missing],
+        &["diagnose", "--data", missing],
+    ] {
+        let (code, err) = run(args);
+        assert_eq!(code, Some(1), "{err}");
+        assert_eq!(
+            err,
+            format!("error: {missing}: No such file or directory (os error 2)\n"),
+            "{args:?}"
+        );
+    }
+
+    // The flag before the file: the errors file does not exist.
+    let (code, err) = run(&["volumetric", "--errors", missing, "--max-c-swing", "nan"]);
+    assert_eq!(code, Some(1), "{err}");
+    assert_eq!(err, "error: --max-c-swing NaN: not a finite number\n");
+
+    let out = dir.path().join("scenario");
+    let (code, err) = run(&[
+        "scenario",
+        "--effects",
+        "reversal,thermal_lag,reversal",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, Some(1), "{err}");
+    assert_eq!(err, "error: --effects: reversal named twice\n");
+    assert!(!out.exists(), "refused before anything is made");
+}
+
+// `--http` takes IP:PORT or `off`: anything else is the command line's error (exit 2,
+// naming the flag); before, the demo said "no status page (invalid socket address
+// syntax)" and ran on. (A busy port is still reported and the demo runs on.)
+#[test]
+fn demo_refuses_an_http_address_that_is_no_address() {
+    for http in ["nonsense", "127.0.0.1:99999", "localhost:9464"] {
+        let (code, err) = run(&["demo", "--http", http]);
+        assert_eq!(code, Some(2), "{http}: {err}");
+        assert!(
+            err.contains(&format!("invalid value '{http}' for '--http")),
+            "{http}: {err}"
+        );
+    }
+}
+
+// `volumetric --help` states the pole band from the constants the kinematics use
+// (it said 30 deg where the code blends from 5 deg and holds C beyond 10).
+#[test]
+fn volumetric_help_states_the_pole_band_the_code_uses() {
+    use compgate_commission::volumetric::MAX_ONLINE_C_CORRECTION_DEG;
+    let out = Command::new(BIN)
+        .args(["volumetric", "--help"])
+        .output()
+        .unwrap();
+    let help = assert_success(&out);
+    let band = format!(
+        "more than {} deg; the per-cycle feedback blends towards holding C there and \
+         holds it beyond {MAX_ONLINE_C_CORRECTION_DEG} deg",
+        MAX_ONLINE_C_CORRECTION_DEG / 2.0
+    );
+    assert!(help.contains(&band), "{help}");
+}

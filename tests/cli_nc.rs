@@ -379,3 +379,74 @@ async fn nc_write_errors_name_the_axis_and_say_a_late_job_may_have_landed() {
     );
     assert!(!t.contains("Some("), "{t}");
 }
+
+// A value the NC holds is shown to a fixed resolution: lengths to 1 nm, SD43910 to 6
+// significant digits. Before, a computed value showed its float noise
+// (`SD43900 = 0.027999999999999997 mm`, `applied compensation = 0.10400000000000001 mm`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nc_read_shows_values_without_float_noise() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, file) = plant_and_file(dir.path(), &config("hold", "", ""), "").await;
+    let (k0, tan_beta, applied) = (0.1 * 0.28, -0.1 * 0.0006, 0.1 + 0.004);
+    for noisy in [k0, tan_beta, applied] {
+        assert!(noisy.to_string().len() > 18, "{noisy} shows no float noise");
+    }
+    plant.nc["nc_x"].with_state(|a| {
+        a.sd43900_mm = k0;
+        a.sd43910 = tan_beta;
+        a.applied_comp_mm = applied;
+    });
+    let out = nc(&file, &["read"], "").await;
+    let t = text_of(&out);
+    assert!(out.status.success(), "{t}");
+    assert!(
+        t.contains("SD43900 = 0.028 mm, SD43910 = -0.00006, SD43920 = 0 mm"),
+        "{t}"
+    );
+    // The module moves its applied compensation on its own: at most 6 decimals.
+    let applied = t
+        .split("applied compensation = ")
+        .nth(1)
+        .and_then(|r| r.split(" mm").next())
+        .unwrap_or_else(|| panic!("no applied compensation in {t}"));
+    let decimals = applied.split('.').nth(1).map_or(0, str::len);
+    assert!(decimals <= 6, "applied compensation = {applied} mm");
+}
+
+/// Significant digits of a number as printed (`-0.0000245679`, `2.5e-7`: 6 and 2).
+fn significant_digits(text: &str) -> usize {
+    let mantissa = text.split('e').next().unwrap_or(text);
+    mantissa
+        .chars()
+        .filter(char::is_ascii_digit)
+        .skip_while(|c| *c == '0')
+        .count()
+}
+
+// The gateway's job log line shows what it wrote as `nc read` shows it (the recorder
+// keeps the exact values). Before, a computed value came with its float noise:
+// `written="SD43900=0.027999999999999997 mm, SD43910=-0.00006000000000000001, ..."`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_job_log_shows_written_values_without_float_noise() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, path) = plant_and_file(dir.path(), &config("hold", "", ""), "").await;
+    let gw = common::process::Gateway::start(dir.path(), &path, &[]);
+    let line = tokio::task::block_in_place(|| gw.wait_log(10.0, "NC job done"));
+    let written = line
+        .split("written=\"")
+        .nth(1)
+        .and_then(|r| r.split('"').next())
+        .unwrap_or_else(|| panic!("no written=\"...\" in {line}"));
+    for pair in written.split(", ") {
+        let (name, value) = pair.split_once('=').unwrap();
+        match value.strip_suffix(" mm") {
+            Some(mm) => {
+                let decimals = mm.split('.').nth(1).map_or(0, str::len);
+                assert!(decimals <= 6, "{name} = {mm} mm in {line}");
+            }
+            None => assert!(significant_digits(value) <= 6, "{name} = {value} in {line}"),
+        }
+    }
+    drop(gw);
+    drop(plant);
+}

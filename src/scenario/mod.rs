@@ -111,10 +111,10 @@ pub enum ScenarioError {
 pub struct ScenarioArgs {
     /// Simulated hours: at least the start-up and one interferometer sweep (96 s),
     /// at most a week.
-    #[arg(long, default_value_t = 8.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 8.0)]
     pub hours: f64,
     /// Seed of the machine (noise, ambient wander).
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1)]
     pub seed: u64,
     /// The simulated machine: `shop` (several thermal lumps, motion and spindle
     /// heat, a bowed screw: what the patent model cannot express exactly) or `ideal`
@@ -133,7 +133,7 @@ pub struct ScenarioArgs {
     pub closed_loop: bool,
     /// Simulated hours of the recorded commissioning run (--loop); the same range as
     /// --hours.
-    #[arg(long, default_value_t = 24.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 24.0)]
     pub record_hours: f64,
     /// Model file (calibrate's or diagnose's output); default: the model calibrate
     /// fits from a 24-hour commissioning run of the same machine.
@@ -147,7 +147,7 @@ pub struct ScenarioArgs {
     pub out: PathBuf,
     /// Interferometer sweep every this many simulated seconds: at least one sweep's
     /// length (36 s), at most a day.
-    #[arg(long, default_value_t = 600.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 600.0)]
     pub sample_every_s: f64,
 }
 
@@ -1092,7 +1092,7 @@ fn output_names(args: &ScenarioArgs) -> Vec<&'static str> {
 
 /// Refuses flags that cannot make a run (before anything runs), naming the flag.
 fn check_args(args: &ScenarioArgs) -> Result<(), ScenarioError> {
-    use compgate_commission::args::{check_f64, sensor_names};
+    use compgate_commission::args::{check_f64, once, sensor_names};
     let sweep_s = TICK_S * (2 * TARGETS) as f64;
     // Whole ten-thousandths of an hour, rounded up: the minimum as printed runs.
     let min_h = ((STARTUP_S + sweep_s) / 3600.0 * 1e4).ceil() / 1e4;
@@ -1124,6 +1124,14 @@ fn check_args(args: &ScenarioArgs) -> Result<(), ScenarioError> {
         });
     }
     sensor_names(&args.sensors)?;
+    // Empty items name no effect (`--effects ""` is none), as `Effects::from_names` reads them.
+    once(
+        "--effects",
+        args.effects
+            .iter()
+            .map(|e| e.trim())
+            .filter(|e| !e.is_empty()),
+    )?;
     Ok(())
 }
 

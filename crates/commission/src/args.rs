@@ -2,7 +2,8 @@
 //! and `inf` as valid `f64`, and a non-finite or absurd value reaching a fit or a
 //! simulation makes it hang or produce garbage, so every numeric flag is checked
 //! against a plausible range before any work, and the message names the flag.
-//! `--sensors`, which calibrate, diagnose and scenario share, is read here too.
+//! `--sensors`, which calibrate, diagnose and scenario share, is read here too, and
+//! so is a list's repeated item.
 
 use thiserror::Error;
 
@@ -39,6 +40,18 @@ pub enum ArgError {
         /// The item as the tools name it, e.g. `T_column`.
         item: String,
     },
+    /// A list that must name something is empty (`--sensors ""`).
+    #[error("{flag}: the list is empty: name at least one, or leave {flag} out")]
+    Empty {
+        /// The flag, e.g. `--sensors`.
+        flag: &'static str,
+    },
+    /// A list has an empty item (`--sensors a,,b`, `--sensors a,`).
+    #[error("{flag}: an empty name in the list (a comma too many?)")]
+    EmptyItem {
+        /// The flag, e.g. `--sensors`.
+        flag: &'static str,
+    },
 }
 
 /// `value` if it is finite and within `min..=max`, else the error naming `flag`.
@@ -66,21 +79,45 @@ pub fn check_f64(
 
 /// The sensors `--sensors` names, without `T_` (either spelling names the column
 /// `T_<name>`); a sensor named twice is refused: it would make the fit's columns
-/// linearly dependent, which the fit can only word as a property of the data.
+/// linearly dependent, which the fit can only word as a property of the data. An
+/// empty list or name is refused too: it would be reported as a missing column `T_`.
 pub fn sensor_names(wanted: &[String]) -> Result<Vec<&str>, ArgError> {
-    let mut names: Vec<&str> = Vec::with_capacity(wanted.len());
-    for w in wanted {
-        let name = w.trim();
-        let name = name.strip_prefix("T_").unwrap_or(name);
-        if names.contains(&name) {
+    const FLAG: &str = "--sensors";
+    if wanted.iter().all(|w| w.trim().is_empty()) {
+        return Err(ArgError::Empty { flag: FLAG });
+    }
+    let names: Vec<&str> = wanted
+        .iter()
+        .map(|w| {
+            let name = w.trim();
+            name.strip_prefix("T_").unwrap_or(name)
+        })
+        .collect();
+    if names.contains(&"") {
+        return Err(ArgError::EmptyItem { flag: FLAG });
+    }
+    once(FLAG, names.iter().map(|n| format!("T_{n}")))?;
+    Ok(names)
+}
+
+/// Refuses an item that `flag`'s list names twice (`--effects reversal,reversal`),
+/// naming it: a repeat is more likely a typo for another item than a request.
+pub fn once<S: AsRef<str>>(
+    flag: &'static str,
+    items: impl IntoIterator<Item = S>,
+) -> Result<(), ArgError> {
+    let mut seen: Vec<String> = Vec::new();
+    for item in items {
+        let item = item.as_ref().trim();
+        if seen.iter().any(|s| s == item) {
             return Err(ArgError::Twice {
-                flag: "--sensors",
-                item: format!("T_{name}"),
+                flag,
+                item: item.to_string(),
             });
         }
-        names.push(name);
+        seen.push(item.to_string());
     }
-    Ok(names)
+    Ok(())
 }
 
 #[cfg(test)]
@@ -110,5 +147,26 @@ mod tests {
             let e = sensor_names(&list(twice)).unwrap_err();
             assert_eq!(e.to_string(), "--sensors: T_column named twice");
         }
+    }
+
+    #[test]
+    fn an_empty_sensor_list_or_name_is_refused_as_such() {
+        let list = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        for empty in [&[""][..], &[" "], &["", ""]] {
+            let e = sensor_names(&list(empty)).unwrap_err();
+            assert_eq!(e, ArgError::Empty { flag: "--sensors" });
+            assert!(e.to_string().contains("the list is empty"), "{e}");
+        }
+        for gap in [&["a", ""][..], &["a", "", "b"], &["T_"]] {
+            let e = sensor_names(&list(gap)).unwrap_err();
+            assert_eq!(e, ArgError::EmptyItem { flag: "--sensors" }, "{gap:?}");
+        }
+    }
+
+    #[test]
+    fn an_item_named_twice_is_named() {
+        assert_eq!(once("--effects", ["reversal", "thermal_lag"]), Ok(()));
+        let e = once("--effects", ["reversal", " reversal"]).unwrap_err();
+        assert_eq!(e.to_string(), "--effects: reversal named twice");
     }
 }

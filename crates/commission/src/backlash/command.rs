@@ -29,25 +29,25 @@ pub struct BacklashArgs {
     #[arg(long, default_value = "X1")]
     pub axis: String,
     /// Point A, mm: approached positively; the trace starts here.
-    #[arg(long, default_value_t = 10.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 10.0)]
     pub a: f64,
     /// Point B, mm: above A.
-    #[arg(long, default_value_t = 60.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 60.0)]
     pub b: f64,
     /// Point C, mm: below B (negative move).
-    #[arg(long, default_value_t = 30.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 30.0)]
     pub c: f64,
     /// Point D, mm: above C (positive move).
-    #[arg(long, default_value_t = 60.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 60.0)]
     pub d: f64,
     /// Feed v of every move, mm/min.
-    #[arg(long, default_value_t = 1000.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1000.0)]
     pub feed: f64,
     /// Dwell S at every point, s.
-    #[arg(long, default_value_t = 2.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 2.0)]
     pub dwell: f64,
     /// Servo trace sample period, ms.
-    #[arg(long, default_value_t = 2.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 2.0)]
     pub period_ms: f64,
     /// Write the result (mean of F1 and F2) to MD32450 through the FB3 job and verify
     /// the read-back.
@@ -57,7 +57,7 @@ pub struct BacklashArgs {
     #[arg(long, value_name = "ADDRESS")]
     pub nc: Option<String>,
     /// Modbus unit id of the NC axis module.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1)]
     pub unit: u8,
     /// Directory for the position-time SVG and the trace CSV.
     #[arg(long, value_name = "DIR")]
@@ -71,20 +71,20 @@ pub struct BacklashArgs {
     #[arg(long, value_name = "FILE.csv")]
     pub trace: Option<PathBuf>,
     /// Simulated axis: backlash, um.
-    #[arg(long, default_value_t = 20.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 20.0)]
     pub sim_backlash_um: f64,
     /// Simulated axis: measurement noise (standard deviation) of encoder and scale, um.
-    #[arg(long, default_value_t = 0.3)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.3)]
     pub sim_noise_um: f64,
     /// Simulated axis: drive-train elasticity time constant, ms (table lag = v * tau);
     /// 0..=25 at the simulated Kv of 20 1/s, beyond 12.5 the loop overshoots.
-    #[arg(long, default_value_t = 8.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 8.0)]
     pub sim_elastic_ms: f64,
     /// Simulated axis: noise seed.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1)]
     pub sim_seed: u64,
     /// Simulated axis: machine seconds per wall-clock second.
-    #[arg(long, default_value_t = 1000.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1000.0)]
     pub sim_speed: f64,
 }
 

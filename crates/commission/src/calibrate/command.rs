@@ -4,7 +4,7 @@
 use std::fmt::Write as _;
 use std::path::PathBuf;
 
-use compgate_core::measure::Measurements;
+use compgate_core::measure::{MeasureError, Measurements};
 use compgate_core::outputs::Staged;
 
 use super::model::{model_toml, AxisModel};
@@ -26,7 +26,7 @@ pub struct CalibrateArgs {
     #[arg(long, value_delimiter = ',')]
     pub sensors: Vec<String>,
     /// Reference position P0, mm; default the measured position nearest 0.
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub p0_mm: Option<f64>,
     /// Axis name in the written model.
     #[arg(long, default_value = "X")]
@@ -64,8 +64,11 @@ pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
     let mut outputs = vec![args.out.as_path()];
     outputs.extend(args.plot.as_deref());
     compgate_core::outputs::check(&[&args.data], &outputs)?;
-    let m = Measurements::read_path(&args.data)
-        .map_err(|e| CalibrateError::Data(args.data.display().to_string(), e))?;
+    let m = Measurements::read_path(&args.data).map_err(|e| match e {
+        // The reader's own error names the file already.
+        MeasureError::Io { path, source } => CalibrateError::Io { path, source },
+        e => CalibrateError::Data(args.data.display().to_string(), e),
+    })?;
     let f = calibrate(&m, &args.sensors, args.p0_mm)?;
     let model = AxisModel::from_fit(&f);
     let header = format!(

@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use super::{diagnose, output, DiagnoseError, Diagnosis, ModelFile, Options};
-use compgate_core::measure::Measurements;
+use compgate_core::measure::{MeasureError, Measurements};
 
 /// Arguments of `compgate diagnose`.
 #[derive(Debug, Clone, clap::Args)]
@@ -40,9 +40,13 @@ pub struct Diagnosed<'a> {
 /// twice) before diagnosing; writes nothing. A missing or bad input leaves no new
 /// directory behind.
 pub fn run(args: &DiagnoseArgs) -> Result<Diagnosed<'_>, DiagnoseError> {
-    let m = Measurements::read_path(&args.data).map_err(|source| DiagnoseError::Data {
-        path: args.data.display().to_string(),
-        source,
+    let m = Measurements::read_path(&args.data).map_err(|e| match e {
+        // The reader's own error names the file already.
+        MeasureError::Io { path, source } => DiagnoseError::Io { path, source },
+        source => DiagnoseError::Data {
+            path: args.data.display().to_string(),
+            source,
+        },
     })?;
     let model = args
         .model

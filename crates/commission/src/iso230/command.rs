@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use compgate_core::measure::Measurements;
+use compgate_core::measure::{MeasureError, Measurements};
 
 use crate::args::check_f64;
 
@@ -17,11 +17,12 @@ pub struct Iso230Args {
     pub data: PathBuf,
     /// The nominal target positions, mm, comma-separated; each row is taken by the
     /// nearest within the tolerance. Default: targets found by clustering.
-    #[arg(long, value_delimiter = ',')]
+    // Hyphen values, not only negative numbers: `-500,0,500` is no number to clap.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub targets: Vec<f64>,
     /// How far a recorded position may lie from its target (with --targets) or from
     /// its neighbour in the same cluster (without), mm.
-    #[arg(long, default_value_t = super::DEFAULT_TOLERANCE_MM)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = super::DEFAULT_TOLERANCE_MM)]
     pub target_tolerance_mm: f64,
 }
 
@@ -42,8 +43,11 @@ pub fn run(args: &Iso230Args) -> Result<String, Iso230Error> {
             "mm",
         )?,
     };
-    let (m, lines) = Measurements::read_path_with_lines(&args.data)
-        .map_err(|e| Iso230Error::Data(args.data.display().to_string(), e))?;
+    let (m, lines) = Measurements::read_path_with_lines(&args.data).map_err(|e| match e {
+        // The reader's own error names the file already.
+        MeasureError::Io { path, source } => Iso230Error::Io { path, source },
+        e => Iso230Error::Data(args.data.display().to_string(), e),
+    })?;
     Ok(report(&evaluate_lines(
         &m.pos_mm, &m.dir, &m.err_um, &grouping, &lines,
     )?))

@@ -80,6 +80,13 @@ impl Default for Grouping {
 pub enum Iso230Error {
     #[error("{0}: {1}")]
     Data(String, MeasureError),
+    /// The measurement file cannot be opened.
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
     /// An error of the evaluation, with the file evaluated.
     #[error("{path}: {source}")]
     InFile {
@@ -195,7 +202,10 @@ pub fn run(args: &Iso230Args) -> Result<String, Iso230Error> {
 /// error is not about the file).
 fn in_file(e: Iso230Error, path: &Path) -> Iso230Error {
     match e {
-        Iso230Error::Data(..) | Iso230Error::Arg(_) | Iso230Error::InFile { .. } => e,
+        Iso230Error::Data(..)
+        | Iso230Error::Io { .. }
+        | Iso230Error::Arg(_)
+        | Iso230Error::InFile { .. } => e,
         other => Iso230Error::InFile {
             path: path.display().to_string(),
             source: Box::new(other),

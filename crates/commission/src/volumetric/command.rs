@@ -9,7 +9,7 @@ use clap::builder::PossibleValue;
 use super::evaluation::evaluate_pole;
 use super::kinematics::{Pole, PoleMode, VolumetricCompensator};
 use super::report::{report, write_poses_csv, write_svgs, SVG_FILES};
-use super::{parse, VolumetricError, AXES};
+use super::{parse, VolumetricError, AXES, MAX_ONLINE_C_CORRECTION_DEG};
 
 /// `--pole hold|swing`; implemented here so that the kinematics stay free of clap.
 impl clap::ValueEnum for PoleMode {
@@ -41,21 +41,38 @@ pub struct VolumetricArgs {
     /// Directory for the SVG error maps (created if missing).
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
-    /// In the pole band near A = 0 (where step 1 would move C by more than 30 deg):
-    /// `swing` (default) solves for the drive positions that reach the nominal tool
-    /// axis, or the least error the head allows, with C within its travel; `hold`
-    /// leaves C alone.
-    #[arg(long, value_enum, default_value_t = PoleMode::Swing)]
+    /// What to do in the pole band near A = 0; the help text is [`pole_help`], which
+    /// states the band from the constants the kinematics use.
+    #[arg(long, value_enum, default_value_t = PoleMode::Swing, help = pole_help())]
     pub pole: PoleMode,
     /// Largest C move a pole swing may make, deg (the C travel bounds it too; beyond
     /// it Hold is kept). Set it from C's speed and the time the path spends at the
     /// pole.
-    #[arg(long = "max-c-swing", value_name = "DEG", default_value_t = 720.0)]
+    #[arg(
+        long = "max-c-swing",
+        value_name = "DEG",
+        allow_negative_numbers = true,
+        default_value_t = 720.0
+    )]
     pub max_c_swing_deg: f64,
     /// Per-pose CSV: commanded X Y Z A C, the drive positions, iterations, residual
     /// and uncompensated tip and orientation errors, pole band and floor.
     #[arg(long, value_name = "FILE.csv")]
     pub csv: Option<PathBuf>,
+}
+
+/// `--pole`'s help: the band as [`VolumetricCompensator::feedback_at_pole`] draws it,
+/// from [`MAX_ONLINE_C_CORRECTION_DEG`].
+fn pole_help() -> String {
+    format!(
+        "In the pole band near A = 0 (where step 1 would move C by more than {} deg; the \
+         per-cycle feedback blends towards holding C there and holds it beyond {} deg): \
+         `swing` (default) solves for the drive positions that reach the nominal tool \
+         axis, or the least error the head allows, with C within its travel; `hold` \
+         leaves C alone",
+        MAX_ONLINE_C_CORRECTION_DEG / 2.0,
+        MAX_ONLINE_C_CORRECTION_DEG
+    )
 }
 
 /// Largest number of poses (the product of the five axes' point counts) a grid may
@@ -177,6 +194,9 @@ impl Evaluated {
 /// compensated, writes the SVG maps with `--out` and the CSV with `--csv`, and
 /// returns the report.
 pub fn run(args: &VolumetricArgs) -> Result<Evaluated, VolumetricError> {
+    // Checked before the file is read: a bad flag is the user's first fix. Beyond two
+    // turns (more than any C travel) the limit means nothing; a huge value is a typo.
+    crate::args::check_f64("--max-c-swing", args.max_c_swing_deg, 0.0, 720.0, "deg")?;
     let mut outputs: Vec<PathBuf> = args.csv.iter().cloned().collect();
     if let Some(dir) = &args.out {
         std::fs::create_dir_all(dir)
@@ -209,16 +229,6 @@ pub fn run(args: &VolumetricArgs) -> Result<Evaluated, VolumetricError> {
         mode: args.pole,
         max_c_swing_deg: args.max_c_swing_deg,
     };
-    if !(pole.max_c_swing_deg >= 0.0 && pole.max_c_swing_deg.is_finite()) {
-        return Err(VolumetricError::Grid(format!(
-            "--max-c-swing: {} deg is not a finite angle >= 0",
-            pole.max_c_swing_deg
-        )));
-    }
-    // Beyond two turns (more than any C travel) the limit means nothing; a huge value
-    // is a typo.
-    crate::args::check_f64("--max-c-swing", pole.max_c_swing_deg, 0.0, 720.0, "deg")
-        .map_err(|e| VolumetricError::Grid(e.to_string()))?;
     let ev = evaluate_pole(&comp, &grid, &pole);
     let acc = ev.acceptance();
     let mut s = report(&ev);

@@ -195,6 +195,9 @@ pub enum VolumetricError {
     /// The `--grid` specification is malformed or outside the travel.
     #[error("grid: {0}")]
     Grid(String),
+    /// A numeric flag is not usable (it names the flag).
+    #[error("{0}")]
+    Arg(#[from] crate::args::ArgError),
     /// Reading the file or writing the output failed.
     #[error("{0}")]
     Io(String),

@@ -204,6 +204,29 @@ pub fn number(x: f64) -> String {
     }
 }
 
+/// An NC variable's value as `nc read` and the job log show it: lengths
+/// ([`shown_mm`]) to 1 nm, other values (SD43910, a ratio) to 6 significant digits,
+/// so that a computed value reads as `0.028`, not `0.027999999999999997`. The
+/// recorder's `jobs` table keeps every written value exactly, and a read-back
+/// mismatch is told with all digits ([`number`]).
+pub fn shown(var_id: u16, x: f64) -> String {
+    match var_id {
+        var::SD43900 | var::SD43920 | var::MD32450 => shown_mm(x),
+        _ => number(format!("{x:.5e}").parse().unwrap_or(x)),
+    }
+}
+
+/// A length in mm to 1 nm (finer than any NC's input resolution), as [`number`]
+/// writes it; beyond 1e9 mm, where 1 nm is below an f64's resolution, unrounded.
+pub fn shown_mm(x: f64) -> String {
+    if x.abs() < 1e9 {
+        // + 0.0: a value rounded to -0 reads as 0.
+        number((x * 1e6).round() / 1e6 + 0.0)
+    } else {
+        number(x)
+    }
+}
+
 /// `SD43900` for a known variable id, the number otherwise.
 pub fn var_name(var_id: u16) -> String {
     match var_id {
@@ -470,6 +493,19 @@ mod tests {
         ] {
             assert_eq!(number(x), shown);
         }
+    }
+
+    #[test]
+    fn values_are_shown_without_float_noise() {
+        let noisy = 0.1 * 0.28;
+        assert_ne!(noisy, 0.028, "the test needs a value with float noise");
+        assert_eq!(shown(var::SD43900, noisy), "0.028");
+        assert_eq!(shown_mm(0.1 + 0.004), "0.104");
+        assert_eq!(shown_mm(-1e-7), "0");
+        assert_eq!(shown_mm(1e300), "1e300");
+        assert_eq!(shown(var::SD43910, -6e-5 * (1.0 + 1e-15)), "-0.00006");
+        assert_eq!(shown(var::SD43910, 1e-30), "1e-30");
+        assert_eq!(shown(var::SD43910, 2.4567891234e-5), "0.0000245679");
     }
 
     #[test]

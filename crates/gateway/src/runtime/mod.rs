@@ -213,7 +213,12 @@ fn written(job: &Job) -> String {
             _ => "",
         };
         let sep = if out.is_empty() { "" } else { ", " };
-        let _ = write!(out, "{sep}{}={value}{unit}", crate::nc::var_name(*var));
+        let _ = write!(
+            out,
+            "{sep}{}={}{unit}",
+            crate::nc::var_name(*var),
+            crate::nc::shown(*var, *value)
+        );
     }
     out
 }

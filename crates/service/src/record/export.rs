@@ -5,14 +5,15 @@
 //! window; each row holds, per channel, the last filtered value measured at or
 //! before that time with a usable quality (good or uncertain), so a bad reading
 //! never reaches a model fit. A reading without a raw value (the device did not
-//! answer: the gateway held the value, quality `comm` and the like) is no
-//! measurement: it does not refresh the value's age. A NaN raw value is NULL in the
-//! database too (SQLite has no NaN), but its reading is bad (`not finite`): it is left
-//! out as bad, which is the same outcome. Rows where a channel has had no
-//! usable value yet, or none for `--max-hold-s`, are left out: a value held across a
-//! gap in the record (the gateway stopped, a device away, a sensor bad for an hour)
-//! would be a measurement nobody made. An export without a row is an error, and so is
-//! one whose grid is too large to be a typo-free window.
+//! answer: the gateway held the value, reason `comm` and the like) is no
+//! measurement either. A NaN raw value is NULL in the database too (SQLite has no
+//! NaN), but its reading is bad (`not finite`), which is the same outcome. A value
+//! is held across a gap in the record (the recorder's interval, the gateway
+//! stopped) for at most `--max-hold-s`, never across a reading that was no
+//! measurement: there the record says nobody measured. Rows where a channel has had
+//! no usable value yet, whose latest reading was no measurement, or whose value is
+//! older than `--max-hold-s` are left out, and counted on stderr. An export without
+//! a row is an error, and so is one whose grid is too large to be a typo-free window.
 //!
 //! - `t_s`: seconds since the first exported row (so an early `--since` does not
 //!   push it past what `calibrate` takes).
@@ -27,6 +28,7 @@
 //!   on stderr): the gateway cannot know the error without a sensor for it.
 
 use std::collections::BTreeMap;
+use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use rusqlite::{params, Connection, OpenFlags};
@@ -40,10 +42,10 @@ pub struct ExportArgs {
     #[arg(long)]
     pub db: PathBuf,
     /// Start, UTC: `2026-11-22T08:00:00Z`, `2026-11-22 08:00:00` or Unix seconds.
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub since: String,
     /// End (exclusive), same forms as --since.
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub until: String,
     /// Write the measurement CSV (t_s,pos_mm,dir,travel_mm,err_um,T_*). The only format.
     #[arg(long, required = true)]
@@ -58,11 +60,11 @@ pub struct ExportArgs {
     #[arg(long)]
     pub err_channel: Option<String>,
     /// Seconds between rows.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1.0)]
     pub step_s: f64,
     /// Longest a recorded value (temperature, error, position) is held to fill the
     /// grid, s; raise it for a recorder that records less often (`recorder.interval_s`).
-    #[arg(long, default_value_t = 60.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 60.0)]
     pub max_hold_s: f64,
 }
 
@@ -81,8 +83,8 @@ pub enum ExportError {
         /// Why.
         message: String,
     },
-    /// The database failed.
-    #[error("{path}: {message}")]
+    /// The database cannot be read.
+    #[error("--db {path}: {message}")]
     Db {
         /// The database file.
         path: String,
@@ -108,14 +110,17 @@ pub struct ExportSummary {
     pub notes: Vec<String>,
 }
 
-fn parse_time(conn: &Connection, flag: &'static str, text: &str) -> Result<i64, ExportError> {
+/// `text` as Unix milliseconds. `clock` is a connection of its own (in memory), for
+/// SQLite's date parser: on the recorder's database, the first query would report
+/// a database it cannot read as this flag's fault.
+fn parse_time(clock: &Connection, flag: &'static str, text: &str) -> Result<i64, ExportError> {
     if let Ok(s) = text.trim().parse::<f64>() {
         if s.is_finite() {
             return Ok((s * 1000.0).round() as i64);
         }
     }
     // SQLite's date parser: ISO 8601 forms, UTC.
-    let ms: Option<f64> = conn
+    let ms: Option<f64> = clock
         .query_row(
             "SELECT unixepoch(?1, 'subsec') * 1000.0",
             [text.trim()],
@@ -157,17 +162,32 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             message: format!("{} must be > 0", args.max_hold_s),
         });
     }
-    let conn =
-        Connection::open_with_flags(&args.db, OpenFlags::SQLITE_OPEN_READ_ONLY).map_err(db)?;
-    let since = parse_time(&conn, "since", &args.since)?;
-    let until = parse_time(&conn, "until", &args.until)?;
+    // The grid is in whole milliseconds, the record's resolution: another step would
+    // be rounded to one the user did not ask for.
+    let step_ms = (args.step_s * 1000.0).round();
+    if step_ms < 1.0 || (args.step_s * 1000.0 - step_ms).abs() > 1e-6 {
+        return Err(ExportError::Arg {
+            flag: "step-s",
+            message: format!(
+                "{} s is not a whole number of milliseconds of at least 0.001 s (the record's resolution)",
+                args.step_s
+            ),
+        });
+    }
+    let step_ms = step_ms as i64;
+    let clock = Connection::open_in_memory().map_err(|e| ExportError::Arg {
+        flag: "since",
+        message: format!("SQLite's date parser: {e}"),
+    })?;
+    let since = parse_time(&clock, "since", &args.since)?;
+    let until = parse_time(&clock, "until", &args.until)?;
     if until <= since {
         return Err(ExportError::Arg {
             flag: "until",
             message: format!("`{}` is not after --since `{}`", args.until, args.since),
         });
     }
-    let step_ms = (args.step_s * 1000.0).round().max(1.0) as i64;
+    let conn = open_database(&args.db)?;
     let hold_ms = (args.max_hold_s * 1000.0).round() as i64;
     let names: BTreeMap<i64, String> = conn
         .prepare("SELECT id, name FROM channels")
@@ -289,7 +309,12 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
     let mut last: Vec<Option<(i64, f64)>> = vec![None; temp_ids.len()];
     let mut last_err: Option<(i64, f64)> = None;
     let mut last_pos: Option<(i64, f64)> = None;
+    // Whether the channel's latest reading was no measurement: its last value is not
+    // held across it (the outage is known, not a gap between recorded samples).
+    let mut cut = vec![false; temp_ids.len()];
+    let mut err_cut = false;
     let mut stale_rows = 0usize;
+    let mut unmeasured_rows = 0usize;
     let mut moved_mm = 0.0;
 
     let mut m = Measurements {
@@ -317,12 +342,12 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             if t > grid {
                 break;
             }
-            if let Some(v) = v {
-                if Some(ch) == err_id {
-                    last_err = Some((t, v));
-                } else if let Some(&c) = col.get(&ch) {
-                    last[c] = Some((t, v));
-                }
+            if Some(ch) == err_id {
+                last_err = v.map(|v| (t, v)).or(last_err);
+                err_cut = v.is_none();
+            } else if let Some(&c) = col.get(&ch) {
+                last[c] = v.map(|v| (t, v)).or(last[c]);
+                cut[c] = v.is_none();
             }
             ri += 1;
         }
@@ -346,12 +371,18 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             && last.iter().all(Option::is_some)
             && (err_id.is_none() || last_err.is_some())
             && (args.axis.is_none() || last_pos.is_some());
+        let unmeasured = cut.contains(&true) || err_cut;
         let ready = seen
+            && !unmeasured
             && last.iter().all(fresh)
             && (err_id.is_none() || fresh(&last_err))
             && (args.axis.is_none() || fresh(&last_pos));
         if seen && !ready {
-            stale_rows += 1;
+            if unmeasured {
+                unmeasured_rows += 1;
+            } else {
+                stale_rows += 1;
+            }
         }
         if ready {
             let pos = last_pos.map_or(0.0, |(_, p)| p);
@@ -377,6 +408,11 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             args.max_hold_s
         ));
     }
+    if unmeasured_rows > 0 {
+        notes.push(format!(
+            "{unmeasured_rows} rows left out: a channel's latest reading in them was no measurement (its device did not answer, or the value was bad), and no value is held across one"
+        ));
+    }
     if m.is_empty() {
         let never: Vec<String> = temp_ids
             .iter()
@@ -400,9 +436,9 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
                 "no measured value of usable quality (good or uncertain) of {} in the window",
                 never.join(", ")
             )
-        } else if stale_rows > 0 {
+        } else if stale_rows > 0 || unmeasured_rows > 0 {
             format!(
-                "every row had a value older than --max-hold-s {} s",
+                "in every row a value was older than --max-hold-s {} s or a channel's latest reading was no measurement",
                 args.max_hold_s
             )
         } else {
@@ -478,6 +514,56 @@ fn refuse_database_files(db: &Path, out: &Path) -> Result<(), ExportError> {
         }
     }
     Ok(())
+}
+
+/// Opens the recorder's database `path` read-only and reads its schema, so that a
+/// path that is no database, or a database SQLite cannot read here, is reported as
+/// such, naming `--db`.
+fn open_database(path: &Path) -> Result<Connection, ExportError> {
+    let err = |message: String| ExportError::Db {
+        path: path.display().to_string(),
+        message,
+    };
+    let meta = std::fs::metadata(path).map_err(|e| err(e.to_string()))?;
+    if meta.is_dir() {
+        return Err(err(
+            "is a directory; give the recorder's database file (recorder.path)".into(),
+        ));
+    }
+    // Bytes 18 and 19 of an SQLite header are 2 in WAL mode, the recorder's.
+    let mut header = Vec::with_capacity(20);
+    std::fs::File::open(path)
+        .and_then(|f| f.take(20).read_to_end(&mut header))
+        .map_err(|e| err(e.to_string()))?;
+    let wal = header.get(18..20).is_some_and(|v| v.contains(&2));
+    let conn = open_read_only(path).map_err(|e| err(e.to_string()))?;
+    let tables = conn.query_row(
+        "SELECT count(*) FROM sqlite_master WHERE type = 'table' AND name IN ('channels', 'readings')",
+        [],
+        |r| r.get::<_, i64>(0),
+    );
+    match tables {
+        Ok(2) => Ok(conn),
+        Ok(_) => Err(err(
+            "holds no recorded readings (no tables `channels` and `readings`): give the \
+             recorder's database file (recorder.path)"
+                .into(),
+        )),
+        Err(e) if wal && e.sqlite_error_code() == Some(rusqlite::ErrorCode::CannotOpen) => {
+            let dir = match path.parent() {
+                Some(d) if !d.as_os_str().is_empty() => d,
+                _ => Path::new("."),
+            };
+            Err(err(format!(
+                "cannot be opened read-only here: it is in WAL mode, and SQLite reads such a \
+                 database only with its -wal and -shm files beside it, which it could neither \
+                 open nor create in {} (a read-only directory?); copy the database with its \
+                 -wal file to a writable directory ({e})",
+                dir.display()
+            )))
+        }
+        Err(e) => Err(err(e.to_string())),
+    }
 }
 
 /// Opens `path` read-only, for tests and tools.

@@ -578,10 +578,10 @@ fn check_path_refuses_a_missing_directory_and_creates_nothing() {
 }
 
 // A device outage: the gateway records its channels' held values as uncertain (comm)
-// without a raw value. Those are no measurements: the rows of the outage are left out
-// once the last measured value is older than --max-hold-s, as for a gap in the
-// record. Before, each comm row counted as fresh and the outage was exported as a
-// constant temperature.
+// without a raw value. Those are no measurements, and the last measured value is not
+// held across them either, however short the outage: the record says nobody measured
+// then. Before, the rows of an outage shorter than --max-hold-s carried the frozen
+// last value, and the note counted only rows left out.
 #[test]
 fn held_values_of_a_device_outage_are_a_gap_not_measurements() {
     // Measured 0..10 s, then 20 s of comm rows holding 20.009, then measured again.
@@ -594,24 +594,32 @@ fn held_values_of_a_device_outage_are_a_gap_not_measurements() {
         )
         .unwrap();
     }
-    let mut args = export_args(&db, 0, 100);
-    args.max_hold_s = 2.0;
-    let (m, summary) = export::measurements(&args).unwrap();
+    // The default --max-hold-s of 60 s would cover the whole outage.
+    let (m, summary) = export::measurements(&export_args(&db, 0, 100)).unwrap();
     let t_s = &m.t_s;
-    // 0..=9 measured, 10 and 11 within the 2 s hold, then nothing until 30.
-    assert_eq!(m.len(), 12 + 10, "{t_s:?}");
+    assert_eq!(m.len(), 10 + 10, "{t_s:?}");
     assert!(
-        t_s.iter().all(|t| *t <= 11.0 || *t >= 30.0),
+        t_s.iter().all(|t| *t <= 9.0 || *t >= 30.0),
         "no row in the outage: {t_s:?}"
     );
     assert!(
         summary
             .notes
             .iter()
-            .any(|n| n.starts_with("18 rows left out")),
+            .any(|n| n.starts_with("20 rows left out: a channel's latest reading")),
         "{:?}",
         summary.notes
     );
+    // A bad reading is no measurement either: no value is held across it.
+    conn.execute(
+        "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality, reason) VALUES (40000, 1, 12000.0, 20.04, 2, 'NE43 low')",
+        [],
+    )
+    .unwrap();
+    let mut args = export_args(&db, 0, 100);
+    args.step_s = 0.5;
+    let (m, _) = export::measurements(&args).unwrap();
+    assert_eq!(m.t_s.last(), Some(&39.5), "{:?}", m.t_s);
 }
 
 // The rows end at the last reading, not --max-hold-s after it; t_s counts from the
