@@ -41,7 +41,7 @@ pub struct VolumetricArgs {
     /// Directory for the SVG error maps (created if missing).
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
-    /// What to do in the pole band near A = 0; the help text is [`pole_help`], which
+    /// What to do in the pole band near A = 0; the help text is `pole_help`, which
     /// states the band from the constants the kinematics use.
     #[arg(long, value_enum, default_value_t = PoleMode::Swing, help = pole_help())]
     pub pole: PoleMode,
