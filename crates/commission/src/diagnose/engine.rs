@@ -147,6 +147,47 @@ impl Data {
         (lo > 0.0 && duration > 4.0 * lo).then_some((lo, duration))
     }
 
+    /// The interval that half of the travel arrives in, or in a longer one, s: the
+    /// median of the intervals between rows, weighted by each row's travel. How the
+    /// travel was spread within an interval the data does not show, so a motion heat
+    /// store faster than this cannot be told from the data; 0 without travel.
+    pub fn travel_interval_s(&self) -> f64 {
+        let mut steps: Vec<(f64, f64)> = self
+            .t_s
+            .windows(2)
+            .zip(&self.travel_mm[1..])
+            .map(|(w, &d)| (w[1] - w[0], d))
+            .filter(|&(_, d)| d > 0.0)
+            .collect();
+        steps.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let total: f64 = steps.iter().map(|s| s.1).sum();
+        let mut below = 0.0;
+        for (dt, d) in steps {
+            below += d;
+            if below >= 0.5 * total {
+                return dt;
+            }
+        }
+        0.0
+    }
+
+    /// The time constants a motion heat store can take: [`Self::tau_range`], from at
+    /// least [`Self::travel_interval_s`] (a shorter store's value at a row depends on
+    /// when within the interval the axis moved); `None` when that leaves no range.
+    pub fn motion_tau_range(&self) -> Option<(f64, f64)> {
+        let (lo, hi) = self.tau_range()?;
+        let lo = lo.max(self.travel_interval_s());
+        (hi > 4.0 * lo).then_some((lo, hi))
+    }
+
+    /// The range of the searched time constant of `kind`.
+    pub fn tau_range_of(&self, kind: EffectKind) -> Option<(f64, f64)> {
+        match kind {
+            EffectKind::MotionHeating => self.motion_tau_range(),
+            _ => self.tau_range(),
+        }
+    }
+
     /// The columns an effect adds, and for each lagged signal its mean (the reference
     /// the model file records). `param` is tau_s or period_mm. A thermal lag without a
     /// sensor lags every baseline sensor with one time constant (the whole structure
@@ -429,7 +470,7 @@ pub fn evaluate(
     let (param, range, at_edge) = match kind {
         EffectKind::ThermalLag | EffectKind::MotionHeating => {
             // Without a range the candidate is not tested: [`super::untested`] says so.
-            let (lo, hi) = d.tau_range()?;
+            let (lo, hi) = d.tau_range_of(kind)?;
             let mut f = |tau: f64| cur.rss_with(d, &d.effect_columns(kind, sensor, tau).0);
             let (tau, _, edge) = search_log(lo, hi, 20, &mut f);
             (Some(tau), Some((lo, hi)), edge)
@@ -581,6 +622,50 @@ mod tests {
             ],
             ignored_columns: vec![],
         }
+    }
+
+    /// Sweeps of rows 4 s apart every 1800 s, the machining between them on the
+    /// sweep's first row: nearly all the travel arrives in 1732 s intervals, so no
+    /// motion heat store faster than that is tried (one was fitted to the load steps
+    /// and compensated far worse on the NC); rows every 10 s leave the range alone.
+    #[test]
+    fn a_motion_heat_store_is_not_faster_than_the_travel_is_known() {
+        let mut m = two_sensor_rows(360);
+        m.t_s = (0..360)
+            .map(|i| (i / 18) as f64 * 1800.0 + (i % 18) as f64 * 4.0)
+            .collect();
+        m.travel_mm = (0..360)
+            .map(|i| if i % 18 == 0 { 1732.0 * 100.0 } else { 400.0 })
+            .collect();
+        let d = Data::new(&m, None, None, 5).expect("data");
+        assert_eq!(d.travel_interval_s(), 1732.0);
+        let (lo, _) = d.motion_tau_range().expect("a range");
+        assert_eq!(lo, 1732.0);
+        // A sensor's lag is still searched from duration / 2000 on.
+        assert_eq!(d.tau_range().expect("a range").0, 34_268.0 / 2000.0);
+        m.t_s = (0..360).map(|i| 10.0 * i as f64).collect();
+        m.travel_mm = vec![1000.0; 360];
+        let d = Data::new(&m, None, None, 5).expect("data");
+        assert_eq!(d.motion_tau_range(), d.tau_range());
+        // Four sweeps: a store slower than the gaps does not fit in the record.
+        let mut m = two_sensor_rows(72);
+        m.t_s = (0..72)
+            .map(|i| (i / 18) as f64 * 1800.0 + (i % 18) as f64 * 4.0)
+            .collect();
+        m.travel_mm = (0..72)
+            .map(|i| if i % 18 == 0 { 1732.0 * 100.0 } else { 400.0 })
+            .collect();
+        let d = super::super::diagnose(&m, &Default::default()).unwrap();
+        assert!(
+            d.untested[0]
+                .starts_with("motion_heating (half of the travel comes in intervals of 1732 s"),
+            "{:?}",
+            d.untested
+        );
+        assert!(d.rounds[0]
+            .candidates
+            .iter()
+            .all(|c| c.name != "motion_heating"));
     }
 
     /// Every t_s 0: the lag and motion-heat candidates were left out without a word,

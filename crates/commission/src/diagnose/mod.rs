@@ -325,6 +325,15 @@ fn untested(d: &Data) -> Vec<String> {
             )
         };
         out.push(format!("thermal_lag, motion_heating ({why})"));
+    } else if d.motion_tau_range().is_none() {
+        out.push(format!(
+            "motion_heating (half of the travel comes in intervals of {} s or longer between \
+             rows, and the record spans {} s: how the travel was spread within an interval \
+             is not in the data, so a store needs a time constant above the interval and the \
+             record 4 times that)",
+            d.travel_interval_s(),
+            d.time_scales().0
+        ));
     }
     if engine::period_range(d).is_none() {
         out.push("pitch_periodic (positions too sparse to resolve a period)".into());
@@ -406,7 +415,14 @@ fn refine(d: &Data, cur: Current, effects: &mut [EffectReport]) -> Current {
         } else {
             2.0
         };
-        let (lp, rss) = crate::stats::golden((p / factor).ln(), (p * factor).ln(), 16, &mut f);
+        // A time constant stays within the range the data resolves.
+        let (lo, hi) = match kind {
+            EffectKind::PitchPeriodic => (p / factor, p * factor),
+            _ => d.tau_range_of(kind).map_or((p, p), |(lo, hi)| {
+                ((p / factor).max(lo), (p * factor).min(hi))
+            }),
+        };
+        let (lp, rss) = crate::stats::golden(lo.ln(), hi.ln(), 16, &mut f);
         if rss < f(p.ln()) {
             let (new_cols, mean) = d.effect_columns(kind, sensor, lp.exp());
             for (k, c) in new_cols.into_iter().enumerate() {

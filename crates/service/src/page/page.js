@@ -51,11 +51,13 @@ function sparkline(trend) {
     `<text x="${w - right + 3}" y="${h - 2}">${lo.toFixed(1)}</text></svg>`;
 }
 
+// A bad channel's value is only the last good one held: shown as none, as the status
+// line and `compgate probe` show it (the trend keeps it, shaded bad).
 function channels(list) {
   $("channels").tBodies[0].innerHTML = list.map((c) => `
     <tr class="${esc(c.quality)}" data-channel="${esc(c.name)}" data-quality="${esc(c.quality)}">
       <td>${esc(c.name)}</td>
-      <td class="num value">${fmt(c.value_degc, 2, "°C")}</td>
+      <td class="num value">${c.quality === "bad" ? "-" : fmt(c.value_degc, 2, "°C")}</td>
       <td>${badge(c.quality, c.quality_text)}</td>
       <td class="num">${fmt(c.current_ma, 2)}</td>
       <td>${sparkline(c.trend)}</td>
