@@ -1099,20 +1099,7 @@ fn a_locked_database_keeps_the_records_and_each_outage_is_logged_once() {
         ..RecorderConfig::default()
     };
     let (tx, rx) = mpsc::sync_channel(1000);
-    let stats = Arc::new(RecorderStats::default());
-    let shared = Arc::new(QueueShared {
-        pending: AtomicUsize::new(0),
-        wake_at: 500,
-        writer: OnceLock::new(),
-    });
-    let writer = Writer::new(
-        &cfg,
-        &path,
-        conn,
-        stats.clone(),
-        shared.clone(),
-        Arc::default(),
-    );
+    let (writer, stats, shared) = test_writer(&cfg, &path, conn, 500);
     let logged = Logged::default();
     let subscriber = logged.subscriber();
     let thread = std::thread::spawn(move || {
@@ -1182,19 +1169,11 @@ fn a_locked_database_keeps_the_records_and_each_outage_is_logged_once() {
 fn a_full_queue_is_logged_when_it_begins_and_when_it_ends() {
     let dir = tempfile::tempdir().expect("tempdir");
     let path = dir.path().join("r.db");
-    let stats = Arc::new(RecorderStats::default());
-    let shared = Arc::new(QueueShared {
-        pending: AtomicUsize::new(0),
-        wake_at: 1,
-        writer: OnceLock::new(),
-    });
-    let mut writer = Writer::new(
+    let (mut writer, stats, _) = test_writer(
         &RecorderConfig::default(),
         &path,
         open(&path).expect("opens"),
-        stats.clone(),
-        shared,
-        Arc::default(),
+        1,
     );
     let logged = Logged::default();
     tracing::subscriber::with_default(logged.subscriber(), || {
@@ -1249,19 +1228,11 @@ fn a_damaged_database_is_logged_once_and_never_taken_for_recovered() {
             .expect("seek");
         f.write_all(&[0xff; 2000]).expect("damaged");
     }
-    let stats = Arc::new(RecorderStats::default());
-    let shared = Arc::new(QueueShared {
-        pending: AtomicUsize::new(0),
-        wake_at: 1,
-        writer: OnceLock::new(),
-    });
-    let mut writer = Writer::new(
+    let (mut writer, stats, _) = test_writer(
         &RecorderConfig::default(),
         &path,
         open(&path).expect("the schema is intact"),
-        stats.clone(),
-        shared,
-        Arc::default(),
+        1,
     );
     let names: Arc<[String]> = Arc::from(vec!["T_a".to_string()]);
     let logged = Logged::default();
@@ -1306,20 +1277,7 @@ fn deleting_unsent_messages_is_warned_once_per_episode_and_each_pass_is_one_line
         max_size_mb: (empty_bytes + 20 * 1024) as f64 / 1024.0 / 1024.0,
         ..RecorderConfig::default()
     };
-    let stats = Arc::new(RecorderStats::default());
-    let shared = Arc::new(QueueShared {
-        pending: AtomicUsize::new(0),
-        wake_at: 1,
-        writer: OnceLock::new(),
-    });
-    let mut writer = Writer::new(
-        &cfg,
-        &path,
-        open(&path).expect("opens"),
-        stats.clone(),
-        shared,
-        Arc::default(),
-    );
+    let (mut writer, stats, _) = test_writer(&cfg, &path, open(&path).expect("opens"), 1);
     let logged = Logged::default();
     tracing::subscriber::with_default(logged.subscriber(), || {
         for more in [300, 300, 0, 300] {
@@ -1333,4 +1291,29 @@ fn deleting_unsent_messages_is_warned_once_per_episode_and_each_pass_is_one_line
     assert!(lines[1].starts_with("INFO"), "{lines:?}");
     assert!(lines[2].starts_with("WARN"), "a new episode: {lines:?}");
     assert!(stats.outbox_deleted.load(Ordering::Relaxed) > 600);
+}
+
+/// A writer on `conn` with fresh statistics, queue state waking it at `wake_at`
+/// pending records, and an outbox notification nobody waits on.
+fn test_writer(
+    cfg: &RecorderConfig,
+    path: &Path,
+    conn: Connection,
+    wake_at: usize,
+) -> (Writer, Arc<RecorderStats>, Arc<QueueShared>) {
+    let stats = Arc::new(RecorderStats::default());
+    let shared = Arc::new(QueueShared {
+        pending: AtomicUsize::new(0),
+        wake_at,
+        writer: OnceLock::new(),
+    });
+    let writer = Writer::new(
+        cfg,
+        path,
+        conn,
+        stats.clone(),
+        shared.clone(),
+        Arc::default(),
+    );
+    (writer, stats, shared)
 }
