@@ -294,11 +294,11 @@ fn a_utf16_or_endless_file_gets_a_read_error_that_says_why() {
     let padding = "#".repeat(config::MAX_FILE_BYTES as usize);
     std::fs::write(&big, example_text() + &padding).expect("write");
     let m = read_error(&big);
-    assert!(m.contains("larger than 4 MB"), "{m}");
+    assert!(m.contains("larger than 64 MB"), "{m}");
     #[cfg(unix)]
     {
         let m = read_error(Path::new("/dev/zero"));
-        assert!(m.contains("larger than 4 MB"), "{m}");
+        assert!(m.contains("larger than 64 MB"), "{m}");
     }
 }
 

@@ -515,7 +515,8 @@ const STEP_TOLERANCE_MM: f64 = 0.004;
 /// scaled and filtered as in service; axis X compensated from `T_0_0`.
 fn gateway_config(
     load: &Load,
-    plant: &Plant,
+    ports: &[u16],
+    nc_port: u16,
     dir: &Path,
     metrics_port: u16,
     record_interval_s: f64,
@@ -526,7 +527,7 @@ fn gateway_config(
     // The stepped channel passes a step at once: the latency is the chain's, not a
     // filter's time constant.
     let step_filter = r#"{ median_samples = 1, lowpass_tau_s = 0.0, max_rate_degc_per_s = 0.0, max_rejected_samples = 5, stale_after_s = 0.0, valid_min_degc = -20.0, valid_max_degc = 100.0 }"#;
-    for (d, port) in plant.ports.iter().enumerate() {
+    for (d, port) in ports.iter().enumerate() {
         let _ = write!(
             t,
             "[devices.d{d}]\ntransport = \"tcp\"\naddress = \"127.0.0.1:{port}\"\nunit_id = 1\ntimeout_s = 0.5\npoll_interval_s = {}\n\n",
@@ -546,11 +547,10 @@ fn gateway_config(
     }
     let _ = write!(
         t,
-        "[nc_modules.nc_x]\naddress = \"127.0.0.1:{}\"\nunit_id = 1\n\n\
+        "[nc_modules.nc_x]\naddress = \"127.0.0.1:{nc_port}\"\nunit_id = 1\n\n\
          [axes.X]\nnc_module = \"nc_x\"\nmd32750 = 3\np0_mm = 0.0\nupdate_interval_s = 0.001\nmax_step_k0_mm = 0.1\n\
          k0 = {{ offset_mm = 0.0, terms = [{{ channel = \"T_0_0\", ref_degc = {STEP_REF_DEGC:.1}, coeff_mm_per_degc = {STEP_COEFF_MM_PER_DEGC} }}] }}\n\
-         tan_beta = {{ offset = 0.0, terms = [{{ channel = \"T_0_1\", ref_degc = 20.0, coeff_per_degc = 0.0000115 }}] }}\n\n",
-        plant.nc_port
+         tan_beta = {{ offset = 0.0, terms = [{{ channel = \"T_0_1\", ref_degc = 20.0, coeff_per_degc = 0.0000115 }}] }}\n\n"
     );
     let _ = write!(
         t,
@@ -754,7 +754,8 @@ async fn run_gateway(
         &cfg_path,
         gateway_config(
             load,
-            plant,
+            &plant.ports,
+            plant.nc_port,
             dir.path(),
             metrics_port,
             opts.record_interval_s,
@@ -1097,6 +1098,22 @@ mod tests {
         assert_eq!(p.cpu_ratio(), 2.0);
         assert_eq!(p.gateway_cpu_range(), (0.02, 0.045));
         assert_eq!(median(Vec::new()), 0.0);
+    }
+
+    /// The 1M point's 10000 channels once exceeded the configuration's size limit,
+    /// and the gateway refused to start.
+    #[test]
+    fn every_load_points_configuration_loads() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        for load in LOADS {
+            let ports: Vec<u16> = (0..load.devices).map(|d| 1502 + d as u16).collect();
+            let path = dir.path().join(format!("{}.toml", load.name));
+            let text = gateway_config(&load, &ports, 1501, dir.path(), 9100, 1.0);
+            std::fs::write(&path, text).expect("write");
+            let cfg = compgate_gateway::config::load(&path)
+                .unwrap_or_else(|e| panic!("{}: {e}", load.name));
+            assert_eq!(cfg.channels.len(), load.devices * load.points);
+        }
     }
 
     #[test]

@@ -80,10 +80,10 @@ pub fn load_str_with_env(
     load_text(text, origin, env, true)
 }
 
-/// The largest configuration file read, bytes: a real one is a few kB; anything far
-/// larger is not a configuration (`--config /dev/zero` would read until memory ran
-/// out).
-pub const MAX_FILE_BYTES: u64 = 4 << 20;
+/// The largest configuration file read, bytes. A cell's is a few kB and a line's with
+/// 10000 channels about 5 MB; anything far larger is not a configuration
+/// (`--config /dev/zero` would read until memory ran out).
+pub const MAX_FILE_BYTES: u64 = 64 << 20;
 
 /// The text of the file at `path`, refused beyond [`MAX_FILE_BYTES`] and with a
 /// hint when it is not UTF-8.
@@ -99,7 +99,7 @@ fn read(path: &Path) -> Result<String, ConfigError> {
         .map_err(|e| failed(e.to_string()))?;
     if bytes.len() as u64 > MAX_FILE_BYTES {
         return Err(failed(format!(
-            "larger than {} MB; a configuration is a few kB",
+            "larger than {} MB; not a configuration (10000 channels take about 5 MB)",
             MAX_FILE_BYTES >> 20
         )));
     }
