@@ -276,6 +276,15 @@ async fn the_page_in_chromium_loads_clean_updates_and_shows_a_ne43_fault_as_bad(
         faulted.dom
     );
     assert!(faulted.dom.contains("bad (NE43 low)"), "{}", faulted.dom);
+    // Its value cell shows no temperature, though the API still holds the last good one.
+    let held = api_status(port).expect("status");
+    assert!(channel(&held, "T_bed")["value_degc"].is_f64(), "{held}");
+    assert_eq!(
+        shown_value(&faulted.dom, "T_bed"),
+        Some("-"),
+        "{}",
+        faulted.dom
+    );
     assert_eq!(
         row_attr(&faulted.dom, "data-channel", "T_column", "data-quality"),
         Some("good")
