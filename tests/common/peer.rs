@@ -34,17 +34,33 @@ impl Peer {
     /// Starts `script` as [`Peer::spawn`] does and reads the `PORT <n>` line it prints
     /// once it listens.
     pub fn start_with(python: &Path, script: &str, args: &[String]) -> Self {
+        let (mut peer, port) = Self::start_reading(python, script, args, "PORT");
+        peer.port = port
+            .parse()
+            .unwrap_or_else(|_| panic!("{script}: expected `PORT <n>`, got {port:?}"));
+        peer
+    }
+
+    /// Starts `script` as [`Peer::spawn`] does and reads the `<key> <value>` line it
+    /// prints once it serves (e.g. `PATH /dev/pts/3`); returns the value.
+    pub fn start_reading(
+        python: &Path,
+        script: &str,
+        args: &[String],
+        key: &str,
+    ) -> (Self, String) {
         let mut peer = Self::spawn(python, script, args);
         let mut line = String::new();
         BufReader::new(peer.child.stdout.take().unwrap())
             .read_line(&mut line)
-            .unwrap_or_else(|e| panic!("{script}: reading its PORT line: {e}"));
-        peer.port = line
+            .unwrap_or_else(|e| panic!("{script}: reading its {key} line: {e}"));
+        let value = line
             .trim()
-            .strip_prefix("PORT ")
-            .and_then(|p| p.parse().ok())
-            .unwrap_or_else(|| panic!("{script}: expected `PORT <n>`, got {line:?}"));
-        peer
+            .strip_prefix(key)
+            .and_then(|v| v.strip_prefix(' '))
+            .unwrap_or_else(|| panic!("{script}: expected `{key} <value>`, got {line:?}"))
+            .to_string();
+        (peer, value)
     }
 
     /// Its standard input and output, for peers that take commands.
