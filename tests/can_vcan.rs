@@ -337,6 +337,62 @@ async fn missing_interface_is_a_named_socket_error() {
     assert!(matches!(s.values[..], [(0, Err(_))]));
 }
 
+/// A channel on an object longer than 4 bytes (the device name, which the node sends
+/// in segments) fails by name, and the gateway aborts that upload: left open, the
+/// node would answer the next upload, of another channel's object, with an abort of
+/// the open one (as common CANopen stacks do), and that channel would fail too.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs vcan0; tests/vcan/run.sh runs it"]
+async fn a_segmented_object_fails_alone() {
+    use compgate_plc::field::{FieldModule, FieldModuleSpec, Profile, TransmitterSpec};
+    let module = FieldModule::new(FieldModuleSpec::new(
+        vec![TransmitterSpec::new(
+            Profile::Constant { degc: 20.0 },
+            0.0,
+            100.0,
+        )],
+        1,
+    ))
+    .expect("module");
+    let node = compgate_plc::canopen::CanopenNode::spawn(&interface(), 11, 0, module)
+        .expect("simulated node");
+    let params = CanParams {
+        interface: interface(),
+        node_id: 11,
+        timeout: Duration::from_millis(500),
+        heartbeat_timeout: Duration::ZERO,
+        sync_period: Duration::from_millis(100),
+        degrade_after_cycles: 3,
+    };
+    let sdo = |channel, index, data_type| CanChannelSpec {
+        channel,
+        object: CanObject::Sdo { index, sub: 0 },
+        data_type,
+    };
+    let specs = vec![sdo(0, 0x1008, DataType::U32), sdo(1, 0x1000, DataType::U32)];
+    let mut poller = CanPoller::new(0, "n11".into(), params, specs);
+    for cycle in 0..3 {
+        let s = poller.poll().await;
+        let e = s
+            .error
+            .as_ref()
+            .map(ToString::to_string)
+            .unwrap_or_default();
+        assert!(
+            e.contains("node 11: SDO upload 1008h sub 0: the object is longer than 4 bytes"),
+            "cycle {cycle}: {e}"
+        );
+        assert!(matches!(s.values[0], (0, Err(_))), "cycle {cycle}: {s:?}");
+        assert!(
+            matches!(s.values[1], (1, Ok(v)) if v == f64::from(0x0002_0194u32)),
+            "cycle {cycle}: the device type after the segmented object: {:?} ({e})",
+            s.values[1]
+        );
+    }
+    assert_eq!(node.counters().sdo_aborts_received, 3);
+    node.stop();
+}
+
 /// Runs everywhere: a SYNC producer whose interface cannot be opened logs, retries
 /// with backoff instead of ending, and stops when told.
 #[tokio::test]

@@ -1,5 +1,5 @@
 //! CANopen (CiA 301) frame encoding and decoding, the subset the gateway uses: NMT,
-//! SYNC, EMCY, TPDO1..4, expedited SDO upload, heartbeat. Pure: no sockets, no tokio.
+//! SYNC, EMCY, TPDO1..4, expedited SDO upload and abort, heartbeat. Pure: no sockets, no tokio.
 //!
 //! Every decoder takes any frame (any COB-ID, any length 0..=8) and returns a value or
 //! an error naming what is wrong; none panics.
@@ -326,6 +326,22 @@ pub fn sdo_upload_request(node: u8, index: u16, sub: u8) -> RawFrame {
     frame(
         SDO_RX_BASE + u16::from(node & 0x7F),
         &[0x40, lo, hi, sub, 0, 0, 0, 0],
+    )
+}
+
+/// Abort code the client sends when an upload's answer does not come in time.
+pub const ABORT_TIMED_OUT: u32 = 0x0504_0000;
+/// Abort code the client sends when the server starts a segmented upload: the object
+/// is longer than the 4 bytes the gateway reads.
+pub const ABORT_TOO_LONG: u32 = 0x0607_0012;
+
+/// SDO abort transfer (cs = 4) of `index`/`sub` from the client to server `node`.
+pub fn sdo_abort(node: u8, index: u16, sub: u8, code: u32) -> RawFrame {
+    let [lo, hi] = index.to_le_bytes();
+    let [c0, c1, c2, c3] = code.to_le_bytes();
+    frame(
+        SDO_RX_BASE + u16::from(node & 0x7F),
+        &[0x80, lo, hi, sub, c0, c1, c2, c3],
     )
 }
 

@@ -16,7 +16,8 @@
 //!    there yet (the SYNC has just gone out) are waited for up to the timeout, as is
 //!    a SYNC when none has come for two periods (then the PDO channels fail with
 //!    [`CanError::NoSync`]);
-//! 4. uploads every SDO channel's object (expedited, one at a time);
+//! 4. uploads every SDO channel's object (expedited, one at a time; a timed-out or
+//!    segmented upload is aborted, so the server is free for the next one);
 //! 5. checks the heartbeat consumer and the EMCY state: a silent node or an
 //!    unreset emergency makes every channel of the node bad.
 //!
@@ -500,6 +501,9 @@ impl CanPoller {
         loop {
             let Some((at, raw)) = self.next_frame(deadline).await else {
                 self.sdo.on_timeout();
+                // CiA 301: the client aborts a transfer it gives up, so a server
+                // still busy with it is idle for the next request.
+                self.abort_upload(index, sub, codec::ABORT_TIMED_OUT).await;
                 return Err(failed(
                     format!("no answer within {:?}", self.params.timeout),
                     None,
@@ -521,7 +525,17 @@ impl CanPoller {
                     ))
                 }
                 Some(Err(SdoFailure::Segmented)) => {
-                    return Err(failed("segmented transfer not supported".into(), None))
+                    // Left open, the server would wait for segment requests and
+                    // answer the next upload (of any object) with an abort of this one.
+                    self.abort_upload(index, sub, codec::ABORT_TOO_LONG).await;
+                    return Err(failed(
+                        format!(
+                            "the object is longer than 4 bytes (segmented transfer, not \
+                             supported; aborted with {:08X}h)",
+                            codec::ABORT_TOO_LONG
+                        ),
+                        None,
+                    ));
                 }
                 Some(Err(SdoFailure::Unexpected(c))) => {
                     return Err(failed(format!("unexpected server command {c:#04x}"), None))
@@ -530,6 +544,15 @@ impl CanPoller {
                     return Err(failed("timeout".into(), None));
                 }
             }
+        }
+    }
+
+    /// Sends the SDO abort of `index`/`sub`; a failed send has already closed the
+    /// link, which the next cycle reopens.
+    async fn abort_upload(&mut self, index: u16, sub: u8, code: u32) {
+        let frame = codec::sdo_abort(self.params.node_id, index, sub, code);
+        if let Err(e) = self.send(frame).await {
+            tracing::debug!(device = %self.name, error = %e, "SDO abort not sent");
         }
     }
 

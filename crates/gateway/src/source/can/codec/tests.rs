@@ -22,6 +22,11 @@ fn encodes_master_frames() {
         sdo_upload_request(0x10, 0x6401, 2).to_string(),
         "610#4001640200000000"
     );
+    assert_eq!(
+        sdo_abort(5, 0x1008, 0, ABORT_TOO_LONG).to_string(),
+        "605#8008100012000706"
+    );
+    assert_eq!(abort_name(ABORT_TIMED_OUT), "SDO protocol timed out");
     assert_eq!(tpdo_cob_id(1, 5), 0x185);
     assert_eq!(tpdo_cob_id(4, 0x7F), 0x4FF);
 }
