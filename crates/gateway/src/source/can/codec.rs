@@ -95,6 +95,21 @@ pub enum CodecError {
         /// Bytes carried.
         got: usize,
     },
+    /// An expedited SDO answer carries a wider value than the type holds: the object
+    /// is of another type than `data_type` says.
+    #[error(
+        "SDO answer has {got} data bytes ({bytes}), a value wider than data_type = \"{}\": \
+         set data_type to the object's type",
+        ty.name()
+    )]
+    SdoTooLong {
+        /// Value type.
+        ty: DataType,
+        /// Bytes carried.
+        got: usize,
+        /// The bytes, hex, in bus order.
+        bytes: String,
+    },
 }
 
 /// NMT command specifiers (CiA 301 7.2.8.3.1).
@@ -511,12 +526,23 @@ pub fn decode_value(data: &[u8], offset: usize, ty: DataType) -> Result<f64, Cod
 
 /// Decodes the value of an expedited SDO upload answer as `ty`. A server that
 /// indicates fewer bytes than the type needs is an error; more bytes (a wider
-/// object) are cut to the type's size.
+/// object, or a server that does not indicate the size) are cut to the type's size
+/// only when that keeps the value (the extra bytes extend it with zeros, or with its
+/// sign for a signed type), else an error: cutting would read another number.
 pub fn decode_sdo_value(data: &[u8; 4], len: u8, ty: DataType) -> Result<f64, CodecError> {
     let need = value_size(ty);
     let got = usize::from(len.min(4));
     if got < need {
         return Err(CodecError::SdoTooShort { ty, need, got });
+    }
+    let negative = matches!(ty, DataType::I16 | DataType::I32) && data[need - 1] & 0x80 != 0;
+    let extension = if negative { 0xFF } else { 0x00 };
+    if data[need..got].iter().any(|&b| b != extension) {
+        return Err(CodecError::SdoTooLong {
+            ty,
+            got,
+            bytes: data[..got].iter().map(|b| format!("{b:02X}")).collect(),
+        });
     }
     decode_value(&data[..got], 0, ty)
 }
