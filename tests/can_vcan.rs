@@ -393,6 +393,98 @@ async fn a_segmented_object_fails_alone() {
     node.stop();
 }
 
+/// Polls until channel 0 of `poller` is good, within `wait`; the last sample.
+async fn poll_until_good(poller: &mut CanPoller, wait: Duration, what: &str) {
+    let deadline = Instant::now() + wait;
+    loop {
+        let s = poller.poll().await;
+        if matches!(s.values[..], [(0, Ok(_))]) {
+            return;
+        }
+        assert!(Instant::now() < deadline, "{what}: still {s:?}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// A node reset by a third party (NMT reset node) boots pre-operational: its boot-up
+/// makes the poller send NMT start again and the TPDO channel comes back. The
+/// interface going down and up under the poller: a named error, then the same
+/// poller reads again, without a restart.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs vcan0, can-utils and root (ip link set down); tests/vcan/run.sh runs it"]
+async fn a_rebooted_node_and_a_link_down_up_recover_without_restart() {
+    use compgate_plc::canopen::{CanopenNode, NmtState};
+    use compgate_plc::field::{FieldModule, FieldModuleSpec, Profile, TransmitterSpec};
+    let module = FieldModule::new(FieldModuleSpec::new(
+        vec![TransmitterSpec::new(
+            Profile::Constant { degc: 20.0 },
+            0.0,
+            100.0,
+        )],
+        1,
+    ))
+    .expect("module");
+    let node = CanopenNode::spawn(&interface(), 12, 50, module).expect("simulated node");
+    let period = Duration::from_millis(100);
+    let stop = tokio_util::sync::CancellationToken::new();
+    let producer = tokio::spawn(sync::run(
+        SyncParams {
+            interface: interface(),
+            period,
+            backoff_initial: period,
+            backoff_max: period,
+        },
+        stop.clone(),
+    ));
+    let params = CanParams {
+        interface: interface(),
+        node_id: 12,
+        timeout: Duration::from_millis(200),
+        heartbeat_timeout: Duration::from_millis(500),
+        sync_period: period,
+        degrade_after_cycles: 3,
+    };
+    let spec = CanChannelSpec {
+        channel: 0,
+        object: CanObject::Pdo {
+            pdo: 1,
+            offset_bytes: 0,
+        },
+        data_type: DataType::U16,
+    };
+    let mut poller = CanPoller::new(0, "n12".into(), params, vec![spec]);
+    let wait = Duration::from_secs(15);
+    poll_until_good(&mut poller, wait, "first TPDO").await;
+
+    cansend("000#810C");
+    let deadline = Instant::now() + wait;
+    while node.nmt_state() == NmtState::Operational {
+        assert!(Instant::now() < deadline, "the node ignored the reset");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    // Only the poller's NMT start can make it operational again.
+    poll_until_good(&mut poller, wait, "TPDO after the node's reboot").await;
+    assert_eq!(node.nmt_state(), NmtState::Operational);
+
+    let _up = LinkUp;
+    ip_link("down");
+    let deadline = Instant::now() + wait;
+    let e = loop {
+        let s = poller.poll().await;
+        if let Some(e) = s.error {
+            break e.to_string();
+        }
+        assert!(Instant::now() < deadline, "no error with the link down");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert!(e.contains(&format!("CAN interface {}", interface())), "{e}");
+    ip_link("up");
+    poll_until_good(&mut poller, wait, "TPDO after the link came back").await;
+    stop.cancel();
+    producer.await.expect("SYNC producer");
+    node.stop();
+}
+
 /// Runs everywhere: a SYNC producer whose interface cannot be opened logs, retries
 /// with backoff instead of ending, and stops when told.
 #[tokio::test]

@@ -234,8 +234,14 @@ impl CanopenNode {
                 frame = socket.read_frame() => match frame {
                     Ok(frame) => self.on_frame(&frame, &module),
                     Err(e) => {
-                        tracing::warn!(node = self.node_id, error = %e, "CANopen node: receive failed, stopping");
-                        break;
+                        // As a real node, it outlives a bus outage (ENETDOWN while the
+                        // interface is down) in the state it had.
+                        tracing::debug!(node = self.node_id, error = %e, "CANopen node: receive failed");
+                        tokio::select! {
+                            _ = self.stop.cancelled() => break,
+                            _ = tokio::time::sleep(Duration::from_millis(100)) => {}
+                        }
+                        continue;
                     }
                 },
             };
