@@ -393,6 +393,54 @@ async fn a_segmented_object_fails_alone() {
     node.stop();
 }
 
+/// A node whose SDO answers are malformed (4 data bytes; CiA 301 asks for 8) is named
+/// so, not reported as a node that does not answer. A raw socket plays the node.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs vcan0; tests/vcan/run.sh runs it"]
+async fn a_malformed_sdo_answer_is_named() {
+    use socketcan::{EmbeddedFrame, Id, StandardId};
+    let fake = socketcan::tokio::CanSocket::open(&interface()).expect("open vcan");
+    let node = tokio::spawn(async move {
+        while let Ok(frame) = fake.read_frame().await {
+            if frame.id() == Id::Standard(StandardId::new(0x60D).expect("id")) {
+                let d = frame.data();
+                let answer = socketcan::CanFrame::new(
+                    StandardId::new(0x58D).expect("id"),
+                    &[0x4B, d[1], d[2], d[3]],
+                )
+                .expect("frame");
+                fake.write_frame(answer).await.expect("send");
+            }
+        }
+    });
+    let params = CanParams {
+        interface: interface(),
+        node_id: 13,
+        timeout: Duration::from_millis(300),
+        heartbeat_timeout: Duration::ZERO,
+        sync_period: Duration::from_millis(100),
+        degrade_after_cycles: 3,
+    };
+    let spec = CanChannelSpec {
+        channel: 0,
+        object: CanObject::Sdo {
+            index: 0x6401,
+            sub: 1,
+        },
+        data_type: DataType::U16,
+    };
+    let mut poller = CanPoller::new(0, "n13".into(), params, vec![spec]);
+    let e = poller.poll().await.error.expect("an error").to_string();
+    assert!(
+        e.contains(
+            "node 13: SDO upload 6401h sub 1: no valid answer within 300ms, ignored \
+             58D#4B016401: SDO answer frame 58Dh has 4 data bytes, expected 8"
+        ),
+        "{e}"
+    );
+    node.abort();
+}
+
 /// Polls until channel 0 of `poller` is good, within `wait`; the last sample.
 async fn poll_until_good(poller: &mut CanPoller, wait: Duration, what: &str) {
     let deadline = Instant::now() + wait;

@@ -238,6 +238,9 @@ pub struct CanPoller {
     sdo: SdoClient,
     pdos: PdoStore,
     needs_start: bool,
+    /// A malformed frame on the node's SDO answer COB-ID during the current upload,
+    /// with what is wrong: a node answering so must not read as one not answering.
+    malformed_sdo: Option<String>,
     failed_cycles: u32,
     opens: u64,
     frames: u64,
@@ -258,6 +261,7 @@ impl CanPoller {
             link: None,
             epoch,
             needs_start: true,
+            malformed_sdo: None,
             failed_cycles: 0,
             opens: 0,
             frames: 0,
@@ -364,6 +368,9 @@ impl CanPoller {
             Ok(m) => m,
             Err(e) => {
                 tracing::debug!(device = %self.name, frame = %raw, error = %e, "malformed CAN frame ignored");
+                if raw.cob_id == codec::SDO_TX_BASE + u16::from(self.params.node_id) {
+                    self.malformed_sdo = Some(format!("{raw}: {e}"));
+                }
                 return None;
             }
         };
@@ -496,6 +503,7 @@ impl CanPoller {
             abort_code,
         };
         let request = self.sdo.request(index, sub);
+        self.malformed_sdo = None;
         self.send(request).await?;
         let deadline = Instant::now() + self.params.timeout;
         loop {
@@ -504,10 +512,14 @@ impl CanPoller {
                 // CiA 301: the client aborts a transfer it gives up, so a server
                 // still busy with it is idle for the next request.
                 self.abort_upload(index, sub, codec::ABORT_TIMED_OUT).await;
-                return Err(failed(
-                    format!("no answer within {:?}", self.params.timeout),
-                    None,
-                ));
+                let what = match self.malformed_sdo.take() {
+                    Some(m) => format!(
+                        "no valid answer within {:?}, ignored {m}",
+                        self.params.timeout
+                    ),
+                    None => format!("no answer within {:?}", self.params.timeout),
+                };
+                return Err(failed(what, None));
             };
             let Some(answer) = self.handle(at, &raw) else {
                 continue;
