@@ -68,6 +68,16 @@ fn node_id_interface_and_modbus_keys() {
         has(&p, "devices.can_ain.interface", "not a network interface"),
         "{p:#?}"
     );
+    // Linux refuses these names: validate must too, not `run` with "No such device".
+    for bad in ["can 0", "can0:1", " can0", "."] {
+        let p = problems(
+            &example().replace("interface = \"vcan0\"", &format!("interface = \"{bad}\"")),
+        );
+        assert!(
+            has(&p, "devices.can_ain.interface", "not a network interface"),
+            "{bad:?}: {p:#?}"
+        );
+    }
     let p = problems(&example().replace("node_id = 5", "node_id = 5\nunit_id = 1\nbaud = 9600"));
     assert!(
         has(

@@ -337,6 +337,202 @@ async fn missing_interface_is_a_named_socket_error() {
     assert!(matches!(s.values[..], [(0, Err(_))]));
 }
 
+/// A channel on an object longer than 4 bytes (the device name, which the node sends
+/// in segments) fails by name, and the gateway aborts that upload: left open, the
+/// node would answer the next upload, of another channel's object, with an abort of
+/// the open one (as common CANopen stacks do), and that channel would fail too.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs vcan0; tests/vcan/run.sh runs it"]
+async fn a_segmented_object_fails_alone() {
+    use compgate_plc::field::{FieldModule, FieldModuleSpec, Profile, TransmitterSpec};
+    let module = FieldModule::new(FieldModuleSpec::new(
+        vec![TransmitterSpec::new(
+            Profile::Constant { degc: 20.0 },
+            0.0,
+            100.0,
+        )],
+        1,
+    ))
+    .expect("module");
+    let node = compgate_plc::canopen::CanopenNode::spawn(&interface(), 11, 0, module)
+        .expect("simulated node");
+    let params = CanParams {
+        interface: interface(),
+        node_id: 11,
+        timeout: Duration::from_millis(500),
+        heartbeat_timeout: Duration::ZERO,
+        sync_period: Duration::from_millis(100),
+        degrade_after_cycles: 3,
+    };
+    let sdo = |channel, index, data_type| CanChannelSpec {
+        channel,
+        object: CanObject::Sdo { index, sub: 0 },
+        data_type,
+    };
+    let specs = vec![sdo(0, 0x1008, DataType::U32), sdo(1, 0x1000, DataType::U32)];
+    let mut poller = CanPoller::new(0, "n11".into(), params, specs);
+    for cycle in 0..3 {
+        let s = poller.poll().await;
+        let e = s
+            .error
+            .as_ref()
+            .map(ToString::to_string)
+            .unwrap_or_default();
+        assert!(
+            e.contains("node 11: SDO upload 1008h sub 0: the object is longer than 4 bytes"),
+            "cycle {cycle}: {e}"
+        );
+        assert!(matches!(s.values[0], (0, Err(_))), "cycle {cycle}: {s:?}");
+        assert!(
+            matches!(s.values[1], (1, Ok(v)) if v == f64::from(0x0002_0194u32)),
+            "cycle {cycle}: the device type after the segmented object: {:?} ({e})",
+            s.values[1]
+        );
+    }
+    assert_eq!(node.counters().sdo_aborts_received, 3);
+    node.stop();
+}
+
+/// A node whose SDO answers are malformed (4 data bytes; CiA 301 asks for 8) is named
+/// so, not reported as a node that does not answer. A raw socket plays the node.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs vcan0; tests/vcan/run.sh runs it"]
+async fn a_malformed_sdo_answer_is_named() {
+    use socketcan::{EmbeddedFrame, Id, StandardId};
+    let fake = socketcan::tokio::CanSocket::open(&interface()).expect("open vcan");
+    let node = tokio::spawn(async move {
+        while let Ok(frame) = fake.read_frame().await {
+            if frame.id() == Id::Standard(StandardId::new(0x60D).expect("id")) {
+                let d = frame.data();
+                let answer = socketcan::CanFrame::new(
+                    StandardId::new(0x58D).expect("id"),
+                    &[0x4B, d[1], d[2], d[3]],
+                )
+                .expect("frame");
+                fake.write_frame(answer).await.expect("send");
+            }
+        }
+    });
+    let params = CanParams {
+        interface: interface(),
+        node_id: 13,
+        timeout: Duration::from_millis(300),
+        heartbeat_timeout: Duration::ZERO,
+        sync_period: Duration::from_millis(100),
+        degrade_after_cycles: 3,
+    };
+    let spec = CanChannelSpec {
+        channel: 0,
+        object: CanObject::Sdo {
+            index: 0x6401,
+            sub: 1,
+        },
+        data_type: DataType::U16,
+    };
+    let mut poller = CanPoller::new(0, "n13".into(), params, vec![spec]);
+    let e = poller.poll().await.error.expect("an error").to_string();
+    assert!(
+        e.contains(
+            "node 13: SDO upload 6401h sub 1: no valid answer within 300ms, ignored \
+             58D#4B016401: SDO answer frame 58Dh has 4 data bytes, expected 8"
+        ),
+        "{e}"
+    );
+    node.abort();
+}
+
+/// Polls until channel 0 of `poller` is good, within `wait`; the last sample.
+async fn poll_until_good(poller: &mut CanPoller, wait: Duration, what: &str) {
+    let deadline = Instant::now() + wait;
+    loop {
+        let s = poller.poll().await;
+        if matches!(s.values[..], [(0, Ok(_))]) {
+            return;
+        }
+        assert!(Instant::now() < deadline, "{what}: still {s:?}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// A node reset by a third party (NMT reset node) boots pre-operational: its boot-up
+/// makes the poller send NMT start again and the TPDO channel comes back. The
+/// interface going down and up under the poller: a named error, then the same
+/// poller reads again, without a restart.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs vcan0, can-utils and root (ip link set down); tests/vcan/run.sh runs it"]
+async fn a_rebooted_node_and_a_link_down_up_recover_without_restart() {
+    use compgate_plc::canopen::{CanopenNode, NmtState};
+    use compgate_plc::field::{FieldModule, FieldModuleSpec, Profile, TransmitterSpec};
+    let module = FieldModule::new(FieldModuleSpec::new(
+        vec![TransmitterSpec::new(
+            Profile::Constant { degc: 20.0 },
+            0.0,
+            100.0,
+        )],
+        1,
+    ))
+    .expect("module");
+    let node = CanopenNode::spawn(&interface(), 12, 50, module).expect("simulated node");
+    let period = Duration::from_millis(100);
+    let stop = tokio_util::sync::CancellationToken::new();
+    let producer = tokio::spawn(sync::run(
+        SyncParams {
+            interface: interface(),
+            period,
+            backoff_initial: period,
+            backoff_max: period,
+        },
+        stop.clone(),
+    ));
+    let params = CanParams {
+        interface: interface(),
+        node_id: 12,
+        timeout: Duration::from_millis(200),
+        heartbeat_timeout: Duration::from_millis(500),
+        sync_period: period,
+        degrade_after_cycles: 3,
+    };
+    let spec = CanChannelSpec {
+        channel: 0,
+        object: CanObject::Pdo {
+            pdo: 1,
+            offset_bytes: 0,
+        },
+        data_type: DataType::U16,
+    };
+    let mut poller = CanPoller::new(0, "n12".into(), params, vec![spec]);
+    let wait = Duration::from_secs(15);
+    poll_until_good(&mut poller, wait, "first TPDO").await;
+
+    cansend("000#810C");
+    let deadline = Instant::now() + wait;
+    while node.nmt_state() == NmtState::Operational {
+        assert!(Instant::now() < deadline, "the node ignored the reset");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    // Only the poller's NMT start can make it operational again.
+    poll_until_good(&mut poller, wait, "TPDO after the node's reboot").await;
+    assert_eq!(node.nmt_state(), NmtState::Operational);
+
+    let _up = LinkUp;
+    ip_link("down");
+    let deadline = Instant::now() + wait;
+    let e = loop {
+        let s = poller.poll().await;
+        if let Some(e) = s.error {
+            break e.to_string();
+        }
+        assert!(Instant::now() < deadline, "no error with the link down");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert!(e.contains(&format!("CAN interface {}", interface())), "{e}");
+    ip_link("up");
+    poll_until_good(&mut poller, wait, "TPDO after the link came back").await;
+    stop.cancel();
+    producer.await.expect("SYNC producer");
+    node.stop();
+}
+
 /// Runs everywhere: a SYNC producer whose interface cannot be opened logs, retries
 /// with backoff instead of ending, and stops when told.
 #[tokio::test]

@@ -11,12 +11,14 @@
 //! - Synchronous TPDOs while operational: on each SYNC (`0x080`) TPDO `p` (1..=4,
 //!   COB-ID `0x080 + 0x100 * p + id`) carries the ADC counts of transmitters
 //!   `4(p-1) .. 4p-1`, u16 little-endian each, as many PDOs as transmitters need.
-//! - SDO server, expedited upload only (`0x600 + id` -> `0x580 + id`):
+//! - SDO server, upload only (`0x600 + id` -> `0x580 + id`), expedited except for
+//!   the device name:
 //!
 //! | index | sub | type | content |
 //! |---|---|---|---|
 //! | 0x1000 | 0 | u32 | device type 0x00020194 (CiA 404) |
 //! | 0x1001 | 0 | u8 | error register |
+//! | 0x1008 | 0 | string | device name [`DEVICE_NAME`], segmented upload |
 //! | 0x1017 | 0 | u16 | producer heartbeat time, ms |
 //! | 0x1018 | 0 / 1 | u8 / u32 | identity: 1 entry / vendor id |
 //! | 0x6401 | 0 | u8 | number of analogue inputs |
@@ -24,7 +26,10 @@
 //! | 0x9130 | i (1..=N) | f32 | measured temperature of transmitter i-1, degC |
 //!
 //!   An unknown object aborts with 0x06020000, an unknown sub-index with 0x06090011,
-//!   any other command with 0x05040001.
+//!   any other command with 0x05040001. A client's abort is not answered. While a
+//!   segmented upload is open, any request but the next segment's aborts it with
+//!   0x05040001 (a wrong toggle bit with 0x05030000) under the open object's index,
+//!   as common CANopen stacks do.
 //! - Fault injection through the cloneable handle: go silent (sends and answers
 //!   nothing), send an EMCY (and its error reset), abort the upload of a given object
 //!   with a given code.
@@ -41,6 +46,10 @@ use crate::field::FieldModule;
 
 /// Most transmitters the TPDOs carry (4 PDOs of 4 u16 values).
 pub const MAX_PDO_TRANSMITTERS: usize = 16;
+
+/// Object 0x1008 (manufacturer device name): longer than 4 bytes, so uploaded in
+/// segments.
+pub const DEVICE_NAME: &str = "compgate simulated CANopen node";
 
 /// Errors of the simulated CANopen node.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -90,6 +99,8 @@ pub struct NodeCounters {
     pub pdos_sent: u64,
     /// SDO requests answered (with data or an abort).
     pub sdo_answers: u64,
+    /// SDO aborts received from the client.
+    pub sdo_aborts_received: u64,
     /// Heartbeats sent.
     pub heartbeats: u64,
 }
@@ -100,6 +111,8 @@ struct State {
     silent: bool,
     error_register: u8,
     abort: Option<(u16, u8, u32)>,
+    /// The open segmented upload: index, sub-index, bytes not yet sent, next toggle.
+    segmented: Option<(u16, u8, Vec<u8>, u8)>,
     counters: NodeCounters,
     /// Frames to send from the node's task (EMCY, boot-up after reset).
     outbox: Vec<(u16, Vec<u8>)>,
@@ -140,6 +153,7 @@ impl CanopenNode {
                 silent: false,
                 error_register: 0,
                 abort: None,
+                segmented: None,
                 counters: NodeCounters::default(),
                 outbox: vec![(0x700 + u16::from(node_id), vec![0x00])],
             })),
@@ -220,8 +234,14 @@ impl CanopenNode {
                 frame = socket.read_frame() => match frame {
                     Ok(frame) => self.on_frame(&frame, &module),
                     Err(e) => {
-                        tracing::warn!(node = self.node_id, error = %e, "CANopen node: receive failed, stopping");
-                        break;
+                        // As a real node, it outlives a bus outage (ENETDOWN while the
+                        // interface is down) in the state it had.
+                        tracing::debug!(node = self.node_id, error = %e, "CANopen node: receive failed");
+                        tokio::select! {
+                            _ = self.stop.cancelled() => break,
+                            _ = tokio::time::sleep(Duration::from_millis(100)) => {}
+                        }
+                        continue;
                     }
                 },
             };
@@ -265,6 +285,7 @@ impl CanopenNode {
                     0x81 | 0x82 => {
                         s.nmt = NmtState::PreOperational;
                         s.error_register = 0;
+                        s.segmented = None;
                         return vec![(0x700 + me, vec![0x00])];
                     }
                     _ => {}
@@ -294,14 +315,39 @@ impl CanopenNode {
                 pdos
             }
             _ if id == 0x600 + me && d.len() == 8 && s.nmt != NmtState::Stopped => {
-                s.counters.sdo_answers += 1;
                 let index = u16::from_le_bytes([d[1], d[2]]);
                 let sub = d[3];
-                let abort = |code: u32| {
-                    let mut a = vec![0x80, d[1], d[2], sub];
+                let abort_of = |index: u16, sub: u8, code: u32| {
+                    let [lo, hi] = index.to_le_bytes();
+                    let mut a = vec![0x80, lo, hi, sub];
                     a.extend_from_slice(&code.to_le_bytes());
                     vec![(0x580 + me, a)]
                 };
+                let abort = |code: u32| abort_of(index, sub, code);
+                if d[0] == 0x80 {
+                    s.counters.sdo_aborts_received += 1;
+                    s.segmented = None;
+                    return Vec::new();
+                }
+                s.counters.sdo_answers += 1;
+                if let Some((i, su, rest, toggle)) = s.segmented.take() {
+                    if d[0] & 0xEF != 0x60 {
+                        return abort_of(i, su, 0x0504_0001);
+                    }
+                    if d[0] & 0x10 != toggle {
+                        return abort_of(i, su, 0x0503_0000);
+                    }
+                    // Upload segment response: toggle, unused bytes, last segment.
+                    let n = rest.len().min(7);
+                    let last = n == rest.len();
+                    let mut a = vec![toggle | (((7 - n) as u8) << 1) | u8::from(last)];
+                    a.extend_from_slice(&rest[..n]);
+                    a.resize(8, 0);
+                    if !last {
+                        s.segmented = Some((i, su, rest[n..].to_vec(), toggle ^ 0x10));
+                    }
+                    return vec![(0x580 + me, a)];
+                }
                 if d[0] != 0x40 {
                     return abort(0x0504_0001);
                 }
@@ -309,6 +355,14 @@ impl CanopenNode {
                     if (i, su) == (index, sub) {
                         return abort(code);
                     }
+                }
+                if (index, sub) == (0x1008, 0) {
+                    // Initiate upload response, segmented, size indicated.
+                    let name = DEVICE_NAME.as_bytes();
+                    s.segmented = Some((index, sub, name.to_vec(), 0));
+                    let mut a = vec![0x41, d[1], d[2], sub];
+                    a.extend_from_slice(&(name.len() as u32).to_le_bytes());
+                    return vec![(0x580 + me, a)];
                 }
                 let error_register = s.error_register;
                 drop(s);
@@ -329,7 +383,7 @@ impl CanopenNode {
                             None => Err(0x0609_0011),
                         }
                     }
-                    (0x1000 | 0x1001 | 0x1017 | 0x1018 | 0x9130, _) => Err(0x0609_0011),
+                    (0x1000 | 0x1001 | 0x1008 | 0x1017 | 0x1018 | 0x9130, _) => Err(0x0609_0011),
                     _ => Err(0x0602_0000),
                 };
                 match value {

@@ -180,3 +180,55 @@ async fn silence_emcy_and_reset() {
     assert!(CanopenNode::spawn("nosuchcan9", 1, 50, module(&[20.0])).is_err());
     node.stop();
 }
+
+#[tokio::test]
+#[ignore = "needs vcan0; tests/vcan/run.sh runs it"]
+async fn segmented_upload_and_the_client_abort() {
+    let bus = CanSocket::open(&interface()).expect("open vcan");
+    let node = CanopenNode::spawn(&interface(), 7, 0, module(&[20.0])).expect("node");
+    let name = compgate_plc::canopen::DEVICE_NAME.as_bytes();
+    // Initiate: segmented, size indicated, then segments with alternating toggle.
+    let a = upload(&bus, 7, 0x1008, 0).await;
+    assert_eq!(a[..4], [0x41, 0x08, 0x10, 0x00]);
+    assert_eq!(
+        u32::from_le_bytes([a[4], a[5], a[6], a[7]]) as usize,
+        name.len()
+    );
+    let mut got = Vec::new();
+    let mut toggle = 0u8;
+    loop {
+        send(&bus, 0x607, &[0x60 | toggle, 0, 0, 0, 0, 0, 0, 0]).await;
+        let seg = expect(&bus, 0x587, Duration::from_secs(2))
+            .await
+            .expect("segment");
+        assert_eq!(seg[0] & 0xE0, 0x00, "upload segment response {seg:02X?}");
+        assert_eq!(seg[0] & 0x10, toggle);
+        let unused = usize::from((seg[0] >> 1) & 0x07);
+        got.extend_from_slice(&seg[1..8 - unused]);
+        toggle ^= 0x10;
+        if seg[0] & 0x01 != 0 {
+            break;
+        }
+    }
+    assert_eq!(got, name);
+    // An open segmented upload: another request aborts it, under its own index.
+    let _ = upload(&bus, 7, 0x1008, 0).await;
+    let a = upload(&bus, 7, 0x1017, 0).await;
+    assert_eq!(a[..4], [0x80, 0x08, 0x10, 0x00]);
+    assert_eq!(u32::from_le_bytes([a[4], a[5], a[6], a[7]]), 0x0504_0001);
+    let a = upload(&bus, 7, 0x1017, 0).await;
+    assert_eq!(a[0], 0x4B, "idle again: {a:02X?}");
+    // The client's abort closes it and is not answered.
+    let _ = upload(&bus, 7, 0x1008, 0).await;
+    send(
+        &bus,
+        0x607,
+        &[0x80, 0x08, 0x10, 0x00, 0x12, 0x00, 0x07, 0x06],
+    )
+    .await;
+    assert_eq!(expect(&bus, 0x587, Duration::from_millis(300)).await, None);
+    let a = upload(&bus, 7, 0x1017, 0).await;
+    assert_eq!(a[0], 0x4B, "idle after the abort: {a:02X?}");
+    assert_eq!(node.counters().sdo_aborts_received, 1);
+    node.stop();
+}

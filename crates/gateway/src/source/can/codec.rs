@@ -1,5 +1,5 @@
 //! CANopen (CiA 301) frame encoding and decoding, the subset the gateway uses: NMT,
-//! SYNC, EMCY, TPDO1..4, expedited SDO upload, heartbeat. Pure: no sockets, no tokio.
+//! SYNC, EMCY, TPDO1..4, expedited SDO upload and abort, heartbeat. Pure: no sockets, no tokio.
 //!
 //! Every decoder takes any frame (any COB-ID, any length 0..=8) and returns a value or
 //! an error naming what is wrong; none panics.
@@ -94,6 +94,21 @@ pub enum CodecError {
         need: usize,
         /// Bytes carried.
         got: usize,
+    },
+    /// An expedited SDO answer carries a wider value than the type holds: the object
+    /// is of another type than `data_type` says.
+    #[error(
+        "SDO answer has {got} data bytes ({bytes}), a value wider than data_type = \"{}\": \
+         set data_type to the object's type",
+        ty.name()
+    )]
+    SdoTooLong {
+        /// Value type.
+        ty: DataType,
+        /// Bytes carried.
+        got: usize,
+        /// The bytes, hex, in bus order.
+        bytes: String,
     },
 }
 
@@ -329,6 +344,22 @@ pub fn sdo_upload_request(node: u8, index: u16, sub: u8) -> RawFrame {
     )
 }
 
+/// Abort code the client sends when an upload's answer does not come in time.
+pub const ABORT_TIMED_OUT: u32 = 0x0504_0000;
+/// Abort code the client sends when the server starts a segmented upload: the object
+/// is longer than the 4 bytes the gateway reads.
+pub const ABORT_TOO_LONG: u32 = 0x0607_0012;
+
+/// SDO abort transfer (cs = 4) of `index`/`sub` from the client to server `node`.
+pub fn sdo_abort(node: u8, index: u16, sub: u8, code: u32) -> RawFrame {
+    let [lo, hi] = index.to_le_bytes();
+    let [c0, c1, c2, c3] = code.to_le_bytes();
+    frame(
+        SDO_RX_BASE + u16::from(node & 0x7F),
+        &[0x80, lo, hi, sub, c0, c1, c2, c3],
+    )
+}
+
 fn frame(cob_id: u16, data: &[u8]) -> RawFrame {
     // Every caller passes an 11-bit COB-ID and at most 8 bytes.
     RawFrame::new(cob_id & 0x7FF, data).unwrap_or(RawFrame {
@@ -495,12 +526,23 @@ pub fn decode_value(data: &[u8], offset: usize, ty: DataType) -> Result<f64, Cod
 
 /// Decodes the value of an expedited SDO upload answer as `ty`. A server that
 /// indicates fewer bytes than the type needs is an error; more bytes (a wider
-/// object) are cut to the type's size.
+/// object, or a server that does not indicate the size) are cut to the type's size
+/// only when that keeps the value (the extra bytes extend it with zeros, or with its
+/// sign for a signed type), else an error: cutting would read another number.
 pub fn decode_sdo_value(data: &[u8; 4], len: u8, ty: DataType) -> Result<f64, CodecError> {
     let need = value_size(ty);
     let got = usize::from(len.min(4));
     if got < need {
         return Err(CodecError::SdoTooShort { ty, need, got });
+    }
+    let negative = matches!(ty, DataType::I16 | DataType::I32) && data[need - 1] & 0x80 != 0;
+    let extension = if negative { 0xFF } else { 0x00 };
+    if data[need..got].iter().any(|&b| b != extension) {
+        return Err(CodecError::SdoTooLong {
+            ty,
+            got,
+            bytes: data[..got].iter().map(|b| format!("{b:02X}")).collect(),
+        });
     }
     decode_value(&data[..got], 0, ty)
 }

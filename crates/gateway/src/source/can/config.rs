@@ -17,7 +17,7 @@ use crate::source::plan::DataType;
 #[schemars(deny_unknown_fields)]
 pub struct CanDeviceConfig {
     /// SocketCAN interface of the CAN bus, e.g. `"can0"` or `"vcan0"`. Required; 1..=15
-    /// characters, no `/`. The
+    /// characters, no `/`, `:` or whitespace (as Linux names interfaces). The
     /// interface must be up with its bitrate set (see `deploy/`).
     #[schemars(length(max = 15))]
     pub interface: String,
@@ -58,10 +58,13 @@ impl CanDeviceConfig {
     pub fn validate(&self, key: &str, out: &mut Problems<'_>) {
         let k = |f: &str| format!("{key}.{f}");
         let i = &self.interface;
-        if i.trim().is_empty() || i.len() >= 16 || i.contains('/') {
+        // The kernel's rule for interface names (dev_valid_name): such a name would
+        // pass here and only fail at run with "No such device".
+        let invalid = |c: char| c == '/' || c == ':' || c.is_whitespace();
+        if i.is_empty() || i.len() >= 16 || i.chars().any(invalid) || i == "." || i == ".." {
             out.push(
                 k("interface"),
-                format!("`{i}` is not a network interface name (1..=15 characters, no `/`), e.g. \"can0\""),
+                format!("`{i}` is not a network interface name (1..=15 characters, no `/`, `:` or whitespace), e.g. \"can0\""),
             );
         }
         if !(1..=127).contains(&self.node_id) {

@@ -16,7 +16,8 @@
 //!    there yet (the SYNC has just gone out) are waited for up to the timeout, as is
 //!    a SYNC when none has come for two periods (then the PDO channels fail with
 //!    [`CanError::NoSync`]);
-//! 4. uploads every SDO channel's object (expedited, one at a time);
+//! 4. uploads every SDO channel's object (expedited, one at a time; a timed-out or
+//!    segmented upload is aborted, so the server is free for the next one);
 //! 5. checks the heartbeat consumer and the EMCY state: a silent node or an
 //!    unreset emergency makes every channel of the node bad.
 //!
@@ -237,6 +238,9 @@ pub struct CanPoller {
     sdo: SdoClient,
     pdos: PdoStore,
     needs_start: bool,
+    /// A malformed frame on the node's SDO answer COB-ID during the current upload,
+    /// with what is wrong: a node answering so must not read as one not answering.
+    malformed_sdo: Option<String>,
     failed_cycles: u32,
     opens: u64,
     frames: u64,
@@ -257,6 +261,7 @@ impl CanPoller {
             link: None,
             epoch,
             needs_start: true,
+            malformed_sdo: None,
             failed_cycles: 0,
             opens: 0,
             frames: 0,
@@ -363,6 +368,9 @@ impl CanPoller {
             Ok(m) => m,
             Err(e) => {
                 tracing::debug!(device = %self.name, frame = %raw, error = %e, "malformed CAN frame ignored");
+                if raw.cob_id == codec::SDO_TX_BASE + u16::from(self.params.node_id) {
+                    self.malformed_sdo = Some(format!("{raw}: {e}"));
+                }
                 return None;
             }
         };
@@ -495,15 +503,23 @@ impl CanPoller {
             abort_code,
         };
         let request = self.sdo.request(index, sub);
+        self.malformed_sdo = None;
         self.send(request).await?;
         let deadline = Instant::now() + self.params.timeout;
         loop {
             let Some((at, raw)) = self.next_frame(deadline).await else {
                 self.sdo.on_timeout();
-                return Err(failed(
-                    format!("no answer within {:?}", self.params.timeout),
-                    None,
-                ));
+                // CiA 301: the client aborts a transfer it gives up, so a server
+                // still busy with it is idle for the next request.
+                self.abort_upload(index, sub, codec::ABORT_TIMED_OUT).await;
+                let what = match self.malformed_sdo.take() {
+                    Some(m) => format!(
+                        "no valid answer within {:?}, ignored {m}",
+                        self.params.timeout
+                    ),
+                    None => format!("no answer within {:?}", self.params.timeout),
+                };
+                return Err(failed(what, None));
             };
             let Some(answer) = self.handle(at, &raw) else {
                 continue;
@@ -521,7 +537,17 @@ impl CanPoller {
                     ))
                 }
                 Some(Err(SdoFailure::Segmented)) => {
-                    return Err(failed("segmented transfer not supported".into(), None))
+                    // Left open, the server would wait for segment requests and
+                    // answer the next upload (of any object) with an abort of this one.
+                    self.abort_upload(index, sub, codec::ABORT_TOO_LONG).await;
+                    return Err(failed(
+                        format!(
+                            "the object is longer than 4 bytes (segmented transfer, not \
+                             supported; aborted with {:08X}h)",
+                            codec::ABORT_TOO_LONG
+                        ),
+                        None,
+                    ));
                 }
                 Some(Err(SdoFailure::Unexpected(c))) => {
                     return Err(failed(format!("unexpected server command {c:#04x}"), None))
@@ -530,6 +556,15 @@ impl CanPoller {
                     return Err(failed("timeout".into(), None));
                 }
             }
+        }
+    }
+
+    /// Sends the SDO abort of `index`/`sub`; a failed send has already closed the
+    /// link, which the next cycle reopens.
+    async fn abort_upload(&mut self, index: u16, sub: u8, code: u32) {
+        let frame = codec::sdo_abort(self.params.node_id, index, sub, code);
+        if let Err(e) = self.send(frame).await {
+            tracing::debug!(device = %self.name, error = %e, "SDO abort not sent");
         }
     }
 

@@ -22,6 +22,11 @@ fn encodes_master_frames() {
         sdo_upload_request(0x10, 0x6401, 2).to_string(),
         "610#4001640200000000"
     );
+    assert_eq!(
+        sdo_abort(5, 0x1008, 0, ABORT_TOO_LONG).to_string(),
+        "605#8008100012000706"
+    );
+    assert_eq!(abort_name(ABORT_TIMED_OUT), "SDO protocol timed out");
     assert_eq!(tpdo_cob_id(1, 5), 0x185);
     assert_eq!(tpdo_cob_id(4, 0x7F), 0x4FF);
 }
@@ -230,6 +235,40 @@ fn decodes_values() {
             need: 2,
             got: 1
         })
+    );
+    // A wider object is cut only when that keeps its value.
+    assert_eq!(
+        decode_sdo_value(&[0xFF, 0xFF, 0xFF, 0xFF], 4, DataType::I16),
+        Ok(-1.0)
+    );
+    assert_eq!(
+        decode_sdo_value(&[0xFF, 0xFF, 0, 0], 4, DataType::U16),
+        Ok(65535.0)
+    );
+    assert_eq!(
+        decode_sdo_value(&[0xFF, 0xFF, 0, 0], 4, DataType::I16),
+        Err(CodecError::SdoTooLong {
+            ty: DataType::I16,
+            got: 4,
+            bytes: "FFFF0000".into()
+        })
+    );
+    // 25.0 degC as f32 (a CiA 404 REAL32 object) read as i16 would give 0.
+    let e = decode_sdo_value(&25.0f32.to_le_bytes(), 4, DataType::I16).expect_err("f32 as i16");
+    assert!(
+        e.to_string()
+            .contains("4 data bytes (0000C841), a value wider than data_type = \"i16\""),
+        "{e}"
+    );
+    assert!(decode_sdo_value(&[0xD0, 0x07, 0x01, 0], 3, DataType::U16).is_err());
+    assert_eq!(
+        decode_sdo_value(&[0xD0, 0x07, 0x01, 0x99], 3, DataType::U16),
+        Err(CodecError::SdoTooLong {
+            ty: DataType::U16,
+            got: 3,
+            bytes: "D00701".into()
+        }),
+        "bytes past the indicated size do not count"
     );
     assert_eq!(emcy_class(0x4210), "temperature");
     assert_eq!(emcy_class(0x0000), "error reset or no error");
