@@ -56,7 +56,7 @@ pub enum CanError {
         message: String,
     },
     /// A mapped TPDO did not arrive after the newest SYNC.
-    #[error("node {node}: TPDO{pdo} not received within {timeout:?} of the SYNC")]
+    #[error("node {node}: TPDO{pdo} not received within {timeout:?} of the SYNC{}", not_operational(*state))]
     PdoTimeout {
         /// Node id.
         node: u8,
@@ -64,6 +64,9 @@ pub enum CanError {
         pdo: u8,
         /// Wait.
         timeout: Duration,
+        /// The NMT state of the node's last heartbeat: a node not operational sends
+        /// no PDO, which the message must say.
+        state: Option<NmtState>,
     },
     /// No SYNC on the interface for longer than two SYNC periods: the producer
     /// cannot send (interface down, transmit queue full) or has stopped.
@@ -120,6 +123,21 @@ pub enum CanError {
         /// Error register.
         register: u8,
     },
+}
+
+/// Why a node sends no PDO, from its last heartbeat's state; empty when it is
+/// operational or unknown.
+fn not_operational(state: Option<NmtState>) -> &'static str {
+    match state {
+        Some(NmtState::Stopped) => {
+            "; its heartbeat says stopped (an NMT stop from another master?): \
+             it sends PDOs again after an NMT start"
+        }
+        Some(NmtState::PreOperational | NmtState::BootUp) => {
+            "; its heartbeat says pre-operational: the gateway has sent it an NMT start"
+        }
+        Some(NmtState::Operational) | None => "",
+    }
 }
 
 impl CanError {
@@ -474,6 +492,7 @@ impl CanPoller {
                         node,
                         pdo,
                         timeout: self.params.timeout,
+                        state: self.monitor.state(),
                     }),
                     Some(data) => {
                         codec::decode_value(data, usize::from(offset_bytes), spec.data_type)
@@ -705,5 +724,34 @@ impl CanPoller {
     /// The NMT state of the node's last heartbeat.
     pub fn nmt_state(&self) -> Option<NmtState> {
         self.monitor.state()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A stopped node sends no PDO: "not received" alone sent people looking at the
+    /// wiring.
+    #[test]
+    fn a_pdo_timeout_names_a_node_that_is_not_operational() {
+        let timeout = |state| {
+            CanError::PdoTimeout {
+                node: 5,
+                pdo: 1,
+                timeout: Duration::from_millis(50),
+                state,
+            }
+            .to_string()
+        };
+        let plain = "node 5: TPDO1 not received within 50ms of the SYNC";
+        assert_eq!(timeout(None), plain);
+        assert_eq!(timeout(Some(NmtState::Operational)), plain);
+        let stopped = timeout(Some(NmtState::Stopped));
+        assert!(
+            stopped.starts_with(plain) && stopped.contains("its heartbeat says stopped"),
+            "{stopped}"
+        );
+        assert!(timeout(Some(NmtState::PreOperational)).contains("pre-operational"));
     }
 }
