@@ -510,9 +510,17 @@ async fn a_rebooted_node_and_a_link_down_up_recover_without_restart() {
         assert!(Instant::now() < deadline, "the node ignored the reset");
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
-    // Only the poller's NMT start can make it operational again.
+    // Only the poller's NMT start can make it operational again. A poll right after
+    // the reset may still read good: the TPDOs of the SYNC before it.
+    let deadline = Instant::now() + wait;
+    while node.nmt_state() != NmtState::Operational {
+        assert!(
+            Instant::now() < deadline,
+            "the poller did not start the rebooted node"
+        );
+        poller.poll().await;
+    }
     poll_until_good(&mut poller, wait, "TPDO after the node's reboot").await;
-    assert_eq!(node.nmt_state(), NmtState::Operational);
 
     let _up = LinkUp;
     ip_link("down");
@@ -526,6 +534,16 @@ async fn a_rebooted_node_and_a_link_down_up_recover_without_restart() {
         tokio::time::sleep(Duration::from_millis(50)).await;
     };
     assert!(e.contains(&format!("CAN interface {}", interface())), "{e}");
+    // Every cycle names the interface as down, not the node as silent (a heartbeat
+    // timeout sent people to the node's wiring).
+    let down = format!(
+        "CAN interface {0}: the interface is down (ip link set {0} up)",
+        interface()
+    );
+    for _ in 0..5 {
+        let e = poller.poll().await.error.map(|e| e.to_string());
+        assert_eq!(e.as_deref(), Some(down.as_str()));
+    }
     ip_link("up");
     poll_until_good(&mut poller, wait, "TPDO after the link came back").await;
     stop.cancel();

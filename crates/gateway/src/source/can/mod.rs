@@ -125,6 +125,16 @@ pub enum CanError {
     },
 }
 
+/// Whether `interface` is administratively up (IFF_UP in its sysfs flags); `true`
+/// where that cannot be read, so an unusual system is not locked out.
+fn interface_up(interface: &str) -> bool {
+    const IFF_UP: u32 = 0x1;
+    std::fs::read_to_string(format!("/sys/class/net/{interface}/flags"))
+        .ok()
+        .and_then(|f| u32::from_str_radix(f.trim().trim_start_matches("0x"), 16).ok())
+        .is_none_or(|flags| flags & IFF_UP != 0)
+}
+
 /// Why a node sends no PDO, from its last heartbeat's state; empty when it is
 /// operational or unknown.
 fn not_operational(state: Option<NmtState>) -> &'static str {
@@ -211,7 +221,8 @@ type Received = (Instant, RawFrame);
 
 struct Link {
     socket: Arc<CanSocket>,
-    rx: mpsc::UnboundedReceiver<Received>,
+    /// Frames, then the receive error that ended the reader, if one did.
+    rx: mpsc::UnboundedReceiver<Result<Received, std::io::Error>>,
     reader: tokio::task::JoinHandle<()>,
 }
 
@@ -346,12 +357,20 @@ impl CanPoller {
         let (tx, rx) = mpsc::unbounded_channel();
         let reader_socket = socket.clone();
         let reader = tokio::spawn(async move {
-            while let Ok(frame) = reader_socket.read_frame().await {
-                let at = Instant::now();
-                if let Some(raw) = from_socketcan(&frame) {
-                    if tx.send((at, raw)).is_err() {
+            loop {
+                let sent = match reader_socket.read_frame().await {
+                    Ok(frame) => match from_socketcan(&frame) {
+                        Some(raw) => tx.send(Ok((Instant::now(), raw))),
+                        None => Ok(()),
+                    },
+                    // The OS error (e.g. "Network is down") is what the engineer needs.
+                    Err(e) => {
+                        let _ = tx.send(Err(e));
                         break;
                     }
+                };
+                if sent.is_err() {
+                    break;
                 }
             }
         });
@@ -405,20 +424,24 @@ impl CanPoller {
         }
     }
 
-    /// Takes every frame already received; `false` when the reader has ended.
-    fn drain(&mut self) -> bool {
+    /// Takes every frame already received; the error when the reader has ended.
+    fn drain(&mut self) -> Result<(), String> {
         loop {
             let Some(link) = self.link.as_mut() else {
-                return false;
+                return Err("receive failed".into());
             };
             match link.rx.try_recv() {
-                Ok((at, raw)) => {
+                Ok(Ok((at, raw))) => {
                     self.handle(at, &raw);
                 }
-                Err(mpsc::error::TryRecvError::Empty) => return true,
+                Err(mpsc::error::TryRecvError::Empty) => return Ok(()),
+                Ok(Err(e)) => {
+                    self.link = None;
+                    return Err(format!("receive failed: {e}"));
+                }
                 Err(mpsc::error::TryRecvError::Disconnected) => {
                     self.link = None;
-                    return false;
+                    return Err("receive failed".into());
                 }
             }
         }
@@ -428,8 +451,9 @@ impl CanPoller {
     async fn next_frame(&mut self, deadline: Instant) -> Option<Received> {
         let link = self.link.as_mut()?;
         match tokio::time::timeout_at(deadline, link.rx.recv()).await {
-            Ok(Some(r)) => Some(r),
-            Ok(None) => {
+            Ok(Some(Ok(r))) => Some(r),
+            // The next cycle reopens, and its drain names the error if it persists.
+            Ok(Some(Err(_)) | None) => {
                 self.link = None;
                 None
             }
@@ -600,13 +624,23 @@ impl CanPoller {
         let mut values: Vec<(usize, Result<f64, Fault>)> = Vec::with_capacity(self.specs.len());
         let mut errors: Vec<CanError> = Vec::new();
         let mut link_error = None;
-        if self.link.is_none() {
+        // A socket binds to a down interface and then just hears nothing: without
+        // this the node would read as silent (heartbeat timeout), not the link.
+        if !interface_up(&self.params.interface) {
+            self.link = None;
+            link_error = Some(self.socket_error(format!(
+                "the interface is down (ip link set {} up)",
+                self.params.interface
+            )));
+        } else if self.link.is_none() {
             if let Err(e) = self.open() {
                 link_error = Some(e);
             }
         }
-        if link_error.is_none() && !self.drain() {
-            link_error = Some(self.socket_error("receive failed"));
+        if link_error.is_none() {
+            if let Err(e) = self.drain() {
+                link_error = Some(self.socket_error(e));
+            }
         }
         if link_error.is_none() && self.needs_start {
             match self
