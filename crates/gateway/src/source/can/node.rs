@@ -30,6 +30,11 @@ pub enum NodeEvent {
     NeedsStart,
 }
 
+/// How long a node may stay pre-operational after a start was asked for before it is
+/// asked again, s: the start may have reached a node still booting, and a master that
+/// never repeats it leaves the node without PDOs for good.
+pub const START_RETRY_S: f64 = 2.0;
+
 /// Heartbeat consumer and EMCY state of one node.
 #[derive(Debug, Clone)]
 pub struct NodeMonitor {
@@ -38,6 +43,8 @@ pub struct NodeMonitor {
     since_s: f64,
     last_heartbeat_s: Option<f64>,
     state: Option<NmtState>,
+    /// When a start was last asked for.
+    start_asked_s: Option<f64>,
     emergency: Option<(u16, u8)>,
     emergencies: u64,
 }
@@ -51,6 +58,7 @@ impl NodeMonitor {
             since_s: now_s,
             last_heartbeat_s: None,
             state: None,
+            start_asked_s: None,
             emergency: None,
             emergencies: 0,
         }
@@ -72,17 +80,24 @@ impl NodeMonitor {
             Message::Heartbeat { node, state } if node == self.node => {
                 self.last_heartbeat_s = Some(t_s);
                 let previous = self.state.replace(state);
-                match state {
+                let ask = match state {
                     NmtState::BootUp => {
                         // A restarted node has forgotten its emergency.
                         self.emergency = None;
-                        Some(NodeEvent::NeedsStart)
+                        true
                     }
-                    NmtState::PreOperational if previous != Some(NmtState::PreOperational) => {
-                        Some(NodeEvent::NeedsStart)
+                    NmtState::PreOperational => {
+                        previous != Some(NmtState::PreOperational)
+                            || self
+                                .start_asked_s
+                                .is_none_or(|asked_s| t_s - asked_s >= START_RETRY_S)
                     }
-                    _ => None,
-                }
+                    _ => false,
+                };
+                ask.then(|| {
+                    self.start_asked_s = Some(t_s);
+                    NodeEvent::NeedsStart
+                })
             }
             Message::Emcy {
                 node,
@@ -327,6 +342,18 @@ mod tests {
         assert_eq!(m.on_message(0.4, &msg(0x705, &[0x05])), None);
         assert_eq!(
             m.on_message(0.5, &msg(0x705, &[0x7F])),
+            Some(NodeEvent::NeedsStart)
+        );
+        // A node that stays pre-operational (the start reached it while booting) is
+        // asked again every START_RETRY_S, not on every heartbeat.
+        assert_eq!(m.on_message(2.4, &msg(0x705, &[0x7F])), None);
+        assert_eq!(
+            m.on_message(2.5, &msg(0x705, &[0x7F])),
+            Some(NodeEvent::NeedsStart)
+        );
+        assert_eq!(m.on_message(2.6, &msg(0x705, &[0x7F])), None);
+        assert_eq!(
+            m.on_message(4.5, &msg(0x705, &[0x7F])),
             Some(NodeEvent::NeedsStart)
         );
     }
