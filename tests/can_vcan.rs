@@ -441,6 +441,57 @@ async fn a_malformed_sdo_answer_is_named() {
     node.abort();
 }
 
+/// A node whose heartbeats are malformed (two bytes) is not silent: the heartbeat
+/// timeout names the frame it ignored, so the engineer looks at the node's settings,
+/// not its wiring.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs vcan0; tests/vcan/run.sh runs it"]
+async fn a_malformed_heartbeat_is_named_in_the_timeout() {
+    use socketcan::{EmbeddedFrame, StandardId};
+    let fake = socketcan::tokio::CanSocket::open(&interface()).expect("open vcan");
+    let node = tokio::spawn(async move {
+        let beat = socketcan::CanFrame::new(StandardId::new(0x70E).expect("id"), &[0x05, 0x00])
+            .expect("frame");
+        loop {
+            fake.write_frame(beat).await.expect("send");
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    });
+    let params = CanParams {
+        interface: interface(),
+        node_id: 14,
+        timeout: Duration::from_millis(100),
+        heartbeat_timeout: Duration::from_millis(300),
+        sync_period: Duration::from_millis(100),
+        degrade_after_cycles: 3,
+    };
+    let spec = CanChannelSpec {
+        channel: 0,
+        object: CanObject::Sdo {
+            index: 0x6401,
+            sub: 1,
+        },
+        data_type: DataType::U16,
+    };
+    let mut poller = CanPoller::new(0, "n14".into(), params, vec![spec]);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let e = loop {
+        if let Some(e) = poller.poll().await.error {
+            let e = e.to_string();
+            if e.contains("heartbeat timeout") {
+                break e;
+            }
+        }
+        assert!(Instant::now() < deadline, "no heartbeat timeout");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert!(
+        e.ends_with("; ignored 70E#0500: heartbeat frame 70Eh has 2 data bytes, expected 1"),
+        "{e}"
+    );
+    node.abort();
+}
+
 /// Polls until channel 0 of `poller` is good, within `wait`; the last sample.
 async fn poll_until_good(poller: &mut CanPoller, wait: Duration, what: &str) {
     let deadline = Instant::now() + wait;

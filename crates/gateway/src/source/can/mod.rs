@@ -102,7 +102,8 @@ pub enum CanError {
         abort_code: Option<u32>,
     },
     /// No heartbeat for longer than the consumer timeout.
-    #[error("node {node}: heartbeat timeout, silent for {silent_s:.2} s (timeout {timeout_s} s)")]
+    #[error("node {node}: heartbeat timeout, silent for {silent_s:.2} s (timeout {timeout_s} s){}",
+        ignored.as_ref().map(|m| format!("; ignored {m}")).unwrap_or_default())]
     HeartbeatTimeout {
         /// Node id.
         node: u8,
@@ -110,6 +111,9 @@ pub enum CanError {
         silent_s: f64,
         /// Configured timeout.
         timeout_s: f64,
+        /// A malformed frame on the node's heartbeat COB-ID, with what is wrong: a
+        /// node sending those is not silent.
+        ignored: Option<String>,
     },
     /// The node sent an EMCY that no error reset has cleared.
     #[error("node {node}: EMCY {code:04X}h ({class}), error register {register:02X}h")]
@@ -270,6 +274,9 @@ pub struct CanPoller {
     /// A malformed frame on the node's SDO answer COB-ID during the current upload,
     /// with what is wrong: a node answering so must not read as one not answering.
     malformed_sdo: Option<String>,
+    /// The last malformed frame on the node's heartbeat COB-ID since its last valid
+    /// heartbeat.
+    malformed_heartbeat: Option<String>,
     failed_cycles: u32,
     opens: u64,
     frames: u64,
@@ -291,6 +298,7 @@ impl CanPoller {
             epoch,
             needs_start: true,
             malformed_sdo: None,
+            malformed_heartbeat: None,
             failed_cycles: 0,
             opens: 0,
             frames: 0,
@@ -405,12 +413,18 @@ impl CanPoller {
             Ok(m) => m,
             Err(e) => {
                 tracing::debug!(device = %self.name, frame = %raw, error = %e, "malformed CAN frame ignored");
-                if raw.cob_id == codec::SDO_TX_BASE + u16::from(self.params.node_id) {
+                let node = u16::from(self.params.node_id);
+                if raw.cob_id == codec::SDO_TX_BASE + node {
                     self.malformed_sdo = Some(format!("{raw}: {e}"));
+                } else if raw.cob_id == codec::HEARTBEAT_BASE + node {
+                    self.malformed_heartbeat = Some(format!("{raw}: {e}"));
                 }
                 return None;
             }
         };
+        if matches!(msg, Message::Heartbeat { node, .. } if node == self.params.node_id) {
+            self.malformed_heartbeat = None;
+        }
         if self.monitor.on_message(t_s, &msg) == Some(NodeEvent::NeedsStart) {
             self.needs_start = true;
         }
@@ -697,6 +711,7 @@ impl CanPoller {
                     node,
                     silent_s,
                     timeout_s,
+                    ignored: self.malformed_heartbeat.clone(),
                 },
                 Reason::Comm,
             )),
