@@ -344,16 +344,7 @@ async fn missing_interface_is_a_named_socket_error() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "needs vcan0; tests/vcan/run.sh runs it"]
 async fn a_segmented_object_fails_alone() {
-    use compgate_plc::field::{FieldModule, FieldModuleSpec, Profile, TransmitterSpec};
-    let module = FieldModule::new(FieldModuleSpec::new(
-        vec![TransmitterSpec::new(
-            Profile::Constant { degc: 20.0 },
-            0.0,
-            100.0,
-        )],
-        1,
-    ))
-    .expect("module");
+    let module = one_transmitter_at_20_degc();
     let node = compgate_plc::canopen::CanopenNode::spawn(&interface(), 11, 0, module)
         .expect("simulated node");
     let params = CanParams {
@@ -492,6 +483,13 @@ async fn a_malformed_heartbeat_is_named_in_the_timeout() {
     node.abort();
 }
 
+/// A field module of one transmitter holding 20 degC, for a simulated node.
+fn one_transmitter_at_20_degc() -> compgate_plc::field::FieldModule {
+    use compgate_plc::field::{FieldModule, FieldModuleSpec, Profile, TransmitterSpec};
+    let spec = TransmitterSpec::new(Profile::Constant { degc: 20.0 }, 0.0, 100.0);
+    FieldModule::new(FieldModuleSpec::new(vec![spec], 1)).expect("module")
+}
+
 /// Polls until channel 0 of `poller` is good, within `wait`; the last sample.
 async fn poll_until_good(poller: &mut CanPoller, wait: Duration, what: &str) {
     let deadline = Instant::now() + wait;
@@ -513,16 +511,7 @@ async fn poll_until_good(poller: &mut CanPoller, wait: Duration, what: &str) {
 #[ignore = "needs vcan0, can-utils and root (ip link set down); tests/vcan/run.sh runs it"]
 async fn a_rebooted_node_and_a_link_down_up_recover_without_restart() {
     use compgate_plc::canopen::{CanopenNode, NmtState};
-    use compgate_plc::field::{FieldModule, FieldModuleSpec, Profile, TransmitterSpec};
-    let module = FieldModule::new(FieldModuleSpec::new(
-        vec![TransmitterSpec::new(
-            Profile::Constant { degc: 20.0 },
-            0.0,
-            100.0,
-        )],
-        1,
-    ))
-    .expect("module");
+    let module = one_transmitter_at_20_degc();
     let node = CanopenNode::spawn(&interface(), 12, 50, module).expect("simulated node");
     let period = Duration::from_millis(100);
     let stop = tokio_util::sync::CancellationToken::new();

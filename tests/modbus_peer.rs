@@ -198,24 +198,7 @@ impl Gateway {
 
     /// Waits until `pred` holds; panics with the last status after `secs`.
     async fn wait_for(&mut self, secs: f64, what: &str, pred: impl Fn(&Status) -> bool) -> Status {
-        let deadline = tokio::time::Instant::now() + Duration::from_secs_f64(secs);
-        loop {
-            {
-                let s = self.status.borrow_and_update();
-                if !s.channels.is_empty() && pred(&s) {
-                    return s.clone();
-                }
-            }
-            if tokio::time::timeout_at(deadline, self.status.changed())
-                .await
-                .is_err()
-            {
-                panic!(
-                    "timed out after {secs} s waiting for: {what}\nlast status: {}",
-                    compgate_service::status::render(&self.status.borrow())
-                );
-            }
-        }
+        common::wait_status(&mut self.status, secs, what, pred).await
     }
 
     async fn stop(self) {

@@ -19,6 +19,35 @@ use tokio::sync::watch;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
+/// Waits until `pred` holds for the status published on `status`; panics with the
+/// last status and `what` after `secs`.
+pub async fn wait_status(
+    status: &mut watch::Receiver<Status>,
+    secs: f64,
+    what: &str,
+    pred: impl Fn(&Status) -> bool,
+) -> Status {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs_f64(secs);
+    loop {
+        {
+            let s = status.borrow_and_update();
+            // Status::default() until the gateway publishes its first status.
+            if !s.channels.is_empty() && pred(&s) {
+                return s.clone();
+            }
+        }
+        if tokio::time::timeout_at(deadline, status.changed())
+            .await
+            .is_err()
+        {
+            panic!(
+                "timed out after {secs} s waiting for: {what}\nlast status: {}",
+                compgate_service::status::render(&status.borrow())
+            );
+        }
+    }
+}
+
 /// A running plant and gateway; dropping it stops both.
 pub struct Rig {
     pub plant: Plant,
@@ -59,25 +88,7 @@ impl Rig {
         what: &str,
         pred: impl Fn(&Status) -> bool,
     ) -> Status {
-        let deadline = tokio::time::Instant::now() + Duration::from_secs_f64(secs);
-        loop {
-            {
-                let s = self.status.borrow_and_update();
-                // Status::default() until the gateway publishes its first status.
-                if !s.channels.is_empty() && pred(&s) {
-                    return s.clone();
-                }
-            }
-            if tokio::time::timeout_at(deadline, self.status.changed())
-                .await
-                .is_err()
-            {
-                panic!(
-                    "timed out after {secs} s waiting for: {what}\nlast status: {}",
-                    compgate_service::status::render(&self.status.borrow())
-                );
-            }
-        }
+        wait_status(&mut self.status, secs, what, pred).await
     }
 
     pub fn channel<'a>(s: &'a Status, name: &str) -> &'a runtime::ChannelStatus {
