@@ -630,13 +630,18 @@ mod tests {
     /// and compensated far worse on the NC); rows every 10 s leave the range alone.
     #[test]
     fn a_motion_heat_store_is_not_faster_than_the_travel_is_known() {
-        let mut m = two_sensor_rows(360);
-        m.t_s = (0..360)
-            .map(|i| (i / 18) as f64 * 1800.0 + (i % 18) as f64 * 4.0)
-            .collect();
-        m.travel_mm = (0..360)
-            .map(|i| if i % 18 == 0 { 1732.0 * 100.0 } else { 400.0 })
-            .collect();
+        // `n` rows in sweeps of 18, 4 s apart, every 1800 s.
+        let sweeps = |n: usize| {
+            let mut m = two_sensor_rows(n);
+            m.t_s = (0..n)
+                .map(|i| (i / 18) as f64 * 1800.0 + (i % 18) as f64 * 4.0)
+                .collect();
+            m.travel_mm = (0..n)
+                .map(|i| if i % 18 == 0 { 1732.0 * 100.0 } else { 400.0 })
+                .collect();
+            m
+        };
+        let mut m = sweeps(360);
         let d = Data::new(&m, None, None, 5).expect("data");
         assert_eq!(d.travel_interval_s(), 1732.0);
         let (lo, _) = d.motion_tau_range().expect("a range");
@@ -648,13 +653,7 @@ mod tests {
         let d = Data::new(&m, None, None, 5).expect("data");
         assert_eq!(d.motion_tau_range(), d.tau_range());
         // Four sweeps: a store slower than the gaps does not fit in the record.
-        let mut m = two_sensor_rows(72);
-        m.t_s = (0..72)
-            .map(|i| (i / 18) as f64 * 1800.0 + (i % 18) as f64 * 4.0)
-            .collect();
-        m.travel_mm = (0..72)
-            .map(|i| if i % 18 == 0 { 1732.0 * 100.0 } else { 400.0 })
-            .collect();
+        let m = sweeps(72);
         let d = super::super::diagnose(&m, &Default::default()).unwrap();
         assert!(
             d.untested[0]
