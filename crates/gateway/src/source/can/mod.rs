@@ -638,15 +638,7 @@ impl CanPoller {
         let mut values: Vec<(usize, Result<f64, Fault>)> = Vec::with_capacity(self.specs.len());
         let mut errors: Vec<CanError> = Vec::new();
         let mut link_error = None;
-        // A socket binds to a down interface and then just hears nothing: without
-        // this the node would read as silent (heartbeat timeout), not the link.
-        if !interface_up(&self.params.interface) {
-            self.link = None;
-            link_error = Some(self.socket_error(format!(
-                "the interface is down (ip link set {} up)",
-                self.params.interface
-            )));
-        } else if self.link.is_none() {
+        if self.link.is_none() {
             if let Err(e) = self.open() {
                 link_error = Some(e);
             }
@@ -698,6 +690,16 @@ impl CanPoller {
         }
         let node = self.params.node_id;
         let health = self.monitor.health(self.t_s(Instant::now()));
+        // A socket binds to a down interface and then just hears nothing, which would
+        // read as a silent node or missing PDOs. Looked up for a failed cycle only.
+        if (link_error.is_some() || health.is_err() || !errors.is_empty())
+            && !interface_up(&self.params.interface)
+        {
+            link_error = Some(self.socket_error(format!(
+                "the interface is down (ip link set {} up)",
+                self.params.interface
+            )));
+        }
         let node_error = match (link_error, health) {
             (Some(e), _) => Some((e, Reason::Comm)),
             (
