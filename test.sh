@@ -17,6 +17,9 @@ command -v systemd-analyze >/dev/null 2>&1 || need+=(systemd)
 command -v mosquitto >/dev/null 2>&1 || [[ -x /usr/sbin/mosquitto ]] || need+=(mosquitto)
 command -v promtool >/dev/null 2>&1 || need+=(prometheus)
 command -v chromium >/dev/null 2>&1 || need+=(chromium)
+# LinuxCNC (uspace, runs without a realtime kernel): the real control at the end of the
+# chain in tests/nc_linuxcnc.rs.
+command -v linuxcnc >/dev/null 2>&1 || need+=(linuxcnc-uspace)
 if ((${#need[@]})); then
     echo "== installing ${need[*]}"
     if [[ $(id -u) -eq 0 ]]; then sudo=(); else sudo=(sudo); fi

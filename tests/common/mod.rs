@@ -145,13 +145,20 @@ pub async fn plant_and_file(
 
 /// Starts the simulated plant for `toml` and the gateway against it.
 pub async fn start(toml: &str) -> Rig {
+    start_edited(toml, |_| {}).await
+}
+
+/// [`start`], the gateway's config (the plant's addresses in) first passed to `edit`:
+/// e.g. to point a target at a server outside the plant.
+pub async fn start_edited(toml: &str, edit: impl FnOnce(&mut config::Config)) -> Rig {
     let cfg = config::load_str(toml, "test.toml").expect("test config is valid");
     let plant = Plant::start(&cfg, Bind::Ephemeral)
         .await
         .expect("plant starts");
     let (tx, rx) = watch::channel(Status::default());
     let shutdown = CancellationToken::new();
-    let cfg = plant.config.clone();
+    let mut cfg = plant.config.clone();
+    edit(&mut cfg);
     let sd = shutdown.clone();
     let gateway = tokio::spawn(async move {
         runtime::run(&cfg, sd, tx).await.expect("gateway runs");

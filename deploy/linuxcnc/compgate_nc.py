@@ -1,0 +1,279 @@
+#!/usr/bin/python3
+"""compgate NC axis module for LinuxCNC: a userspace HAL component.
+
+compgate writes each compensated axis's SD43900 / SD43910 / SD43920 as a job into an
+NC axis module over Modbus TCP (the register map in docs/reference/registers.md). This
+component is that module for one LinuxCNC axis: it serves the job block and the
+read-back block, and puts the values on HAL pins. compgate_nc.hal turns them, in the
+servo thread, into the axis's external offset, as the 840D applies them:
+
+    offset = SD43900 + SD43910 * (position - SD43920)
+
+while the machine is on and the axis homed (MD32750 bit 0 the first term, bit 1 the
+second). LinuxCNC limits how fast the offset moves with [AXIS_L]OFFSET_AV_RATIO, as
+MD32760 does on the 840D.
+
+Run it from the HAL file (compgate_nc.hal):
+    loadusr -W /path/to/compgate_nc.py --axis x --joint 0 --port 5020
+
+Needs only Python 3 and LinuxCNC's own `hal` and `linuxcnc` modules. The machine's
+linear units must be mm.
+"""
+
+import argparse
+import os
+import signal
+import socket
+import socketserver
+import struct
+import sys
+import threading
+import time
+
+import hal
+import linuxcnc
+
+# The register map (crates/ncproto): holding registers, 0-based.
+REQ, STATE, DONE, ERROR, STATUS, ERROR_INDEX, JOB_ID, NUM_PAIRS, PAIRS = range(9)
+PAIR_REGS, MAX_PAIRS, JOB_ID_DONE, JOB_BLOCK_LEN = 5, 8, 48, 49
+READBACK, READBACK_LEN, GAP = 100, 42, range(136, 140)
+IDLE, BUSY, JOB_DONE, JOB_ERROR = 0, 1, 2, 3
+ACCESS_DENIED, INVALID_ADDRESS, NO_OBJECT, OUT_OF_RANGE = 3, 5, 10, 16
+SD43900, SD43910, SD43920 = 43900, 43910, 43920
+MACHINE_DATA = (32450, 32750, 32760, 32000)
+LIMITS = {SD43900: 10.0, SD43910: 0.1, SD43920: 100000.0}
+# Modbus exception codes.
+ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE = 1, 2, 3
+
+
+def f64_regs(value):
+    return list(struct.unpack(">4H", struct.pack(">d", value)))
+
+
+def regs_f64(regs):
+    return struct.unpack(">d", struct.pack(">4H", *regs))[0]
+
+
+class ModbusError(Exception):
+    def __init__(self, code):
+        super().__init__(code)
+        self.code = code
+
+
+class Module:
+    """The job block, the setting data and the read-back block of one axis."""
+
+    def __init__(self, comp, md32750, md32760, max_velo_mm_per_min, md32450_mm):
+        self.comp = comp
+        self.lock = threading.Lock()
+        self.job = [0] * JOB_BLOCK_LEN
+        self.sd = {SD43900: 0.0, SD43910: 0.0, SD43920: 0.0}
+        self.md32750 = md32750
+        self.md32760 = md32760
+        self.max_velo_mm_per_min = max_velo_mm_per_min
+        self.md32450_mm = md32450_mm
+
+    def check_pair(self, var_id, value):
+        if var_id in LIMITS:
+            # NaN fails the comparison, infinities the limit.
+            return 0 if abs(value) <= LIMITS[var_id] else OUT_OF_RANGE
+        return ACCESS_DENIED if var_id in MACHINE_DATA else NO_OBJECT
+
+    def execute(self):
+        """Runs the latched job: every pair checked, then all applied or none."""
+        n = self.job[NUM_PAIRS]
+        if not 1 <= n <= MAX_PAIRS:
+            return INVALID_ADDRESS, 0
+        pairs = []
+        for i in range(n):
+            at = PAIRS + PAIR_REGS * i
+            var_id, value = self.job[at], regs_f64(self.job[at + 1 : at + 5])
+            status = self.check_pair(var_id, value)
+            if status:
+                return status, i + 1
+            pairs.append((var_id, value))
+        self.sd.update(pairs)
+        return 0, 0
+
+    def write(self, address, words):
+        end = address + len(words)
+        only_req = address == REQ and len(words) == 1
+        if not (only_req or (address >= JOB_ID and end <= JOB_ID_DONE)):
+            raise ModbusError(ILLEGAL_ADDRESS)
+        if not only_req:
+            self.job[address:end] = words
+            return
+        old_req, self.job[REQ] = self.job[REQ], words[0]
+        state = self.job[STATE]
+        if state == IDLE and old_req == 0 and words[0] != 0:
+            status, index = self.execute()
+            self.job[STATE] = JOB_ERROR if status else JOB_DONE
+            self.job[DONE : ERROR_INDEX + 1] = [int(not status), int(bool(status)), status, index]
+            self.job[JOB_ID_DONE] = self.job[JOB_ID]
+        elif state in (JOB_DONE, JOB_ERROR) and words[0] == 0:
+            self.job[STATE] = IDLE
+            self.job[DONE : ERROR_INDEX + 1] = [0, 0, 0, 0]
+
+    def readback(self):
+        c = self.comp
+        regs = []
+        for value in (
+            self.sd[SD43900],
+            self.sd[SD43910],
+            self.sd[SD43920],
+            self.md32760,
+            self.max_velo_mm_per_min,
+            c["pos-mm"],
+            c["applied-mm"],
+            c["target-mm"],
+            self.md32450_mm,
+        ):
+            regs += f64_regs(value)
+        return regs + [0] * 4 + [self.md32750, int(c["homed"])]
+
+    def read(self, address, count):
+        end = address + count
+        if end <= JOB_BLOCK_LEN:
+            return self.job[address:end]
+        if address >= READBACK and end <= READBACK + READBACK_LEN and not (
+            address < GAP.stop and GAP.start < end
+        ):
+            return self.readback()[address - READBACK : end - READBACK]
+        raise ModbusError(ILLEGAL_ADDRESS)
+
+    def pdu(self, pdu):
+        """The reply PDU to a request PDU (function codes 3, 6 and 16)."""
+        fc = pdu[0]
+        try:
+            if fc == 3 and len(pdu) == 5:
+                address, count = struct.unpack(">HH", pdu[1:5])
+                if not 1 <= count <= 125:
+                    raise ModbusError(ILLEGAL_VALUE)
+                with self.lock:
+                    regs = self.read(address, count)
+                return struct.pack(">BB%dH" % count, 3, 2 * count, *regs)
+            if fc == 6 and len(pdu) == 5:
+                address, word = struct.unpack(">HH", pdu[1:5])
+                with self.lock:
+                    self.write(address, [word])
+                return pdu
+            if fc == 16 and len(pdu) >= 6:
+                address, count, nbytes = struct.unpack(">HHB", pdu[1:6])
+                if not 1 <= count <= 123 or nbytes != 2 * count or len(pdu) != 6 + nbytes:
+                    raise ModbusError(ILLEGAL_VALUE)
+                with self.lock:
+                    self.write(address, list(struct.unpack(">%dH" % count, pdu[6:])))
+                return pdu[:5]
+            raise ModbusError(ILLEGAL_FUNCTION)
+        except ModbusError as e:
+            return bytes([fc | 0x80, e.code])
+
+    def update_pins(self):
+        """The values the servo thread applies: none until the machine is on and the
+        axis homed (the offset register restarts from zero at each machine start)."""
+        c = self.comp
+        with self.lock:
+            active = c["machine-on"] and c["homed"]
+            c["abs-mm"] = self.sd[SD43900] if active and self.md32750 & 1 else 0.0
+            c["slope"] = self.sd[SD43910] if active and self.md32750 & 2 else 0.0
+            c["ref-mm"] = self.sd[SD43920]
+
+
+def serve(module, bind, port):
+    class Handler(socketserver.BaseRequestHandler):
+        def handle(self):
+            sock = self.request
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            while True:
+                head = recv_exact(sock, 7)
+                if head is None:
+                    return
+                tid, proto, length, unit = struct.unpack(">HHHB", head)
+                body = recv_exact(sock, length - 1) if 2 <= length <= 254 else None
+                if proto != 0 or not body:
+                    return  # not Modbus TCP: drop the connection
+                reply = module.pdu(body)
+                sock.sendall(struct.pack(">HHHB", tid, 0, len(reply) + 1, unit) + reply)
+
+    socketserver.ThreadingTCPServer.allow_reuse_address = True
+    socketserver.ThreadingTCPServer.daemon_threads = True
+    server = socketserver.ThreadingTCPServer((bind, port), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    return server.server_address[1]
+
+
+def recv_exact(sock, n):
+    data = b""
+    while len(data) < n:
+        chunk = sock.recv(n - len(data))
+        if not chunk:
+            return None
+        data += chunk
+    return data
+
+
+def ini_float(ini, section, key, default=None):
+    text = ini.find(section, key)
+    if text is None:
+        if default is None:
+            sys.exit(f"compgate_nc: [{section}]{key} is missing from the INI file")
+        return default
+    try:
+        return float(text)
+    except ValueError:
+        sys.exit(f"compgate_nc: [{section}]{key} = {text!r} is not a number")
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--axis", required=True, help="axis letter: x, y, z, ...")
+    p.add_argument("--joint", type=int, required=True, help="joint number of the axis (backlash)")
+    p.add_argument("--port", type=int, default=5020, help="Modbus TCP port (0: any free one, see the port pin)")
+    p.add_argument("--bind", default="0.0.0.0", help="address to listen on (default: every interface)")
+    p.add_argument("--md32750", type=int, default=3, choices=range(4), help="bit 0 SD43900, bit 1 SD43910 applied")
+    p.add_argument("--name", help="HAL component name (default compgate-nc-AXIS)")
+    args = p.parse_args()
+    axis = args.axis.upper()
+
+    ini = linuxcnc.ini(os.environ["INI_FILE_NAME"])
+    units = (ini.find("TRAJ", "LINEAR_UNITS") or "").lower()
+    if units not in ("mm", "metric"):
+        sys.exit(f"compgate_nc: [TRAJ]LINEAR_UNITS = {units!r}; compgate writes mm, so the machine must be set up in mm")
+    ratio = ini_float(ini, f"AXIS_{axis}", "OFFSET_AV_RATIO")
+    if not 0 < ratio <= 0.9:
+        sys.exit(f"compgate_nc: [AXIS_{axis}]OFFSET_AV_RATIO = {ratio}: external offsets need 0 < ratio <= 0.9")
+
+    comp = hal.component(args.name or f"compgate-nc-{args.axis.lower()}")
+    for pin, kind, direction in [
+        ("pos-mm", hal.HAL_FLOAT, hal.HAL_IN),
+        ("applied-mm", hal.HAL_FLOAT, hal.HAL_IN),
+        ("target-mm", hal.HAL_FLOAT, hal.HAL_IN),
+        ("homed", hal.HAL_BIT, hal.HAL_IN),
+        ("machine-on", hal.HAL_BIT, hal.HAL_IN),
+        ("abs-mm", hal.HAL_FLOAT, hal.HAL_OUT),
+        ("slope", hal.HAL_FLOAT, hal.HAL_OUT),
+        ("ref-mm", hal.HAL_FLOAT, hal.HAL_OUT),
+        ("port", hal.HAL_S32, hal.HAL_OUT),
+    ]:
+        comp.newpin(pin, kind, direction)
+    module = Module(
+        comp,
+        md32750=args.md32750,
+        md32760=ratio,
+        max_velo_mm_per_min=ini_float(ini, f"AXIS_{axis}", "MAX_VELOCITY") * 60.0,
+        md32450_mm=ini_float(ini, f"JOINT_{args.joint}", "BACKLASH", 0.0),
+    )
+    comp["port"] = serve(module, args.bind, args.port)
+    comp.ready()
+    # halcmd unload (LinuxCNC's shutdown) ends the component with SIGTERM.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    try:
+        while True:
+            module.update_pins()
+            time.sleep(0.01)
+    except KeyboardInterrupt:
+        pass
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,323 @@
+//! The chain ending in a real control: LinuxCNC (uspace, no GUI) runs a simulated mill
+//! whose axis X carries the compgate NC axis module of `deploy/linuxcnc`. The gateway
+//! writes SD43900/43910/43920 into it over Modbus TCP, and LinuxCNC's own motion
+//! controller moves the axis by SD43900 + SD43910 * (X - SD43920). Without LinuxCNC the
+//! test skips (fails under `CI`). LinuxCNC runs once per machine (its HAL lives in
+//! fixed shared memory), so everything is one test.
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use std::io::Write;
+use std::path::Path;
+use std::process::{Child, ChildStdin, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::{start_edited, with_target, written_by_model};
+use compgate_gateway::nc::modbus::{ModbusNcWriter, ModbusTargetConfig};
+use compgate_gateway::nc::{Job, NcError, NcSnapshot, NcWriter};
+use compgate_ncproto::{var, JobStatus};
+
+/// One external-offset count of `compgate_nc.hal`, mm: conv_float_s32 truncates to it.
+const COUNT_MM: f64 = 1e-6;
+
+/// A running LinuxCNC; dropping it shuts it down.
+struct LinuxCnc {
+    child: Child,
+    ctl: Option<ChildStdin>,
+    dir: tempfile::TempDir,
+}
+
+impl LinuxCnc {
+    /// Starts `tests/linuxcnc/machine.ini` in a temporary directory and waits until
+    /// the machine is on, homed and the module serves; `None` (after saying why) when
+    /// LinuxCNC is not installed and `CI` is unset.
+    fn start() -> Option<Self> {
+        let installed = Command::new("sh")
+            .args(["-c", "command -v linuxcnc halcmd"])
+            .stdout(Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success());
+        if !installed {
+            let why = "LinuxCNC is missing (Debian package linuxcnc-uspace; test.sh installs it)";
+            assert!(std::env::var_os("CI").is_none(), "{why} (CI is set)");
+            eprintln!("skipped: {why}");
+            return None;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+        for (from, name) in [
+            ("tests/linuxcnc", "machine.ini"),
+            ("tests/linuxcnc", "machine.hal"),
+            ("tests/linuxcnc", "machine_ctl.py"),
+            ("deploy/linuxcnc", "compgate_nc.hal"),
+            ("deploy/linuxcnc", "compgate_nc.py"),
+        ] {
+            std::fs::copy(root.join(from).join(name), dir.path().join(name)).unwrap();
+        }
+        std::fs::write(dir.path().join("tool.tbl"), "").unwrap();
+        let mut cmd = Command::new("linuxcnc");
+        cmd.arg("machine.ini")
+            .current_dir(dir.path())
+            // Its logs (linuxcnc_print.txt, linuxcnc_debug.txt) land in the directory.
+            .env("HOME", dir.path())
+            .env_remove("DISPLAY")
+            .stdin(Stdio::piped())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null());
+        if running_as_root() {
+            // rtapi_app refuses root without a user to fall back to, who must be able
+            // to make its FIFO.
+            use std::os::unix::fs::PermissionsExt;
+            std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o777)).unwrap();
+            cmd.env("RTAPI_UID", "65534")
+                .env("RTAPI_FIFO_PATH", dir.path().join("rtapi_fifo"));
+        }
+        let mut child = cmd.spawn().unwrap();
+        let ctl = child.stdin.take();
+        let cnc = Self { child, ctl, dir };
+        cnc.wait(60.0, "LinuxCNC on, homed and the module serving", |c| {
+            c.pin("joint.0.homed") == "TRUE" && c.pin("compgate-nc-x.port") != "0"
+        });
+        Some(cnc)
+    }
+
+    /// A HAL pin's value as halcmd prints it; empty while it does not exist.
+    fn pin(&self, name: &str) -> String {
+        let out = Command::new("halcmd")
+            .args(["getp", name])
+            .output()
+            .unwrap();
+        String::from_utf8_lossy(&out.stdout).trim().to_string()
+    }
+
+    /// A float pin at full precision (halcmd prints 7 digits).
+    fn pin_f64(&self, name: &str) -> f64 {
+        let out = Command::new("/usr/bin/python3")
+            .args([
+                "-c",
+                "import hal, os, sys\n\
+                 c = hal.component(f'compgate-test-{os.getpid()}')\n\
+                 print(repr(hal.get_value(sys.argv[1])))\n\
+                 c.exit()",
+                name,
+            ])
+            .output()
+            .unwrap();
+        let v = String::from_utf8_lossy(&out.stdout).trim().to_string();
+        v.parse().unwrap_or_else(|_| {
+            panic!(
+                "pin {name}: {v:?} {}\n{}",
+                String::from_utf8_lossy(&out.stderr),
+                self.logs()
+            )
+        })
+    }
+
+    /// Waits up to `secs` for `pred`; panics naming `what`, with LinuxCNC's logs.
+    fn wait(&self, secs: f64, what: &str, pred: impl Fn(&Self) -> bool) {
+        let deadline = Instant::now() + Duration::from_secs_f64(secs);
+        while !pred(self) {
+            assert!(
+                Instant::now() < deadline,
+                "no {what} within {secs} s\n{}",
+                self.logs()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// A command of `machine_ctl.py`: `mdi G-CODE`, `off`, `on`.
+    fn command(&mut self, line: &str) {
+        writeln!(self.ctl.as_mut().unwrap(), "{line}").unwrap();
+    }
+
+    /// Where the module serves.
+    fn address(&self) -> String {
+        format!("127.0.0.1:{}", self.pin("compgate-nc-x.port"))
+    }
+
+    /// The module's keys as a `[targets.NAME] kind = "modbus"` table holds them.
+    fn target_keys(&self) -> String {
+        format!(
+            "address = \"{}\"\nunit_id = 1\ntimeout_s = 0.5\njob_timeout_s = 0.5\n",
+            self.address()
+        )
+    }
+
+    fn target(&self) -> String {
+        format!("[targets.nc_x]\nkind = \"modbus\"\n{}", self.target_keys())
+    }
+
+    fn writer(&self) -> ModbusNcWriter {
+        toml::from_str::<ModbusTargetConfig>(&self.target_keys())
+            .unwrap()
+            .writer()
+    }
+
+    /// What LinuxCNC's start script and its components logged so far.
+    fn logs(&self) -> String {
+        let mut text = String::new();
+        for entry in std::fs::read_dir("/tmp").into_iter().flatten().flatten() {
+            let name = entry.file_name().to_string_lossy().to_string();
+            if name.starts_with("linuxcnc.print.") || name.starts_with("linuxcnc.debug.") {
+                let log = std::fs::read_to_string(entry.path()).unwrap_or_default();
+                if log.contains(&self.dir.path().display().to_string()) {
+                    text += &format!("--- {name}\n{log}");
+                }
+            }
+        }
+        text
+    }
+}
+
+impl Drop for LinuxCnc {
+    fn drop(&mut self) {
+        // Its input closed, the display program ends and LinuxCNC shuts down.
+        drop(self.ctl.take());
+        let deadline = Instant::now() + Duration::from_secs(30);
+        while Instant::now() < deadline {
+            if self.child.try_wait().ok().flatten().is_some() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        let _ = self.child.kill();
+        let _ = Command::new("halrun").arg("-U").status();
+    }
+}
+
+fn running_as_root() -> bool {
+    std::fs::read_to_string("/proc/self/status")
+        .unwrap()
+        .lines()
+        .find_map(|l| l.strip_prefix("Uid:"))
+        .and_then(|ids| ids.split_whitespace().next())
+        == Some("0")
+}
+
+/// The offset the 840D formula gives at `x_mm` for what the module holds.
+fn offset_mm(held: &NcSnapshot, x_mm: f64) -> f64 {
+    held.sd43900_mm + held.sd43910 * (x_mm - held.sd43920_mm)
+}
+
+/// Waits until LinuxCNC applies the held values at its position X: the external
+/// offset within one count of the formula, and the joint commanded at X plus it.
+async fn wait_applied(cnc: &LinuxCnc, w: &mut ModbusNcWriter, x_mm: f64) -> (NcSnapshot, f64) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let held = w.read_snapshot().await.unwrap();
+        let x = cnc.pin_f64("axis.x.pos-cmd");
+        let eoffset = cnc.pin_f64("axis.x.eoffset");
+        let joint = cnc.pin_f64("joint.0.pos-cmd");
+        if x == x_mm
+            && (eoffset - offset_mm(&held, x)).abs() <= COUNT_MM
+            && (joint - (x + eoffset)).abs() < 1e-9
+        {
+            return (held, eoffset);
+        }
+        assert!(
+            Instant::now() < deadline,
+            "at X = {x} (waiting for {x_mm}) LinuxCNC applies {eoffset} mm (joint at {joint}); \
+             the formula gives {} for {held:?}",
+            offset_mm(&held, x)
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_chain_moves_a_linuxcnc_axis_by_the_840d_formula() {
+    let Some(mut cnc) = LinuxCnc::start() else {
+        return;
+    };
+    let mut w = cnc.writer();
+
+    // What the module reports from the INI file and HAL before any job.
+    let held = w.read_snapshot().await.unwrap();
+    assert_eq!((held.md32750, held.referenced), (3, true), "{held:?}");
+    assert_eq!(held.max_ax_velo_mm_per_min, 200.0 * 60.0);
+    assert_eq!(held.md32760, 0.2, "OFFSET_AV_RATIO");
+    assert_eq!(held.md32450_mm, 0.003, "[JOINT_0]BACKLASH");
+
+    // The module refuses what an 840D refuses, all or none.
+    let too_big = Job {
+        pairs: vec![(var::SD43910, 0.001), (var::SD43900, 25.0)],
+    };
+    let e = w.write_job(&too_big).await.unwrap_err();
+    assert!(
+        matches!(
+            e,
+            NcError::Refused {
+                status: JobStatus::ValueOutOfRange,
+                index: 2,
+                ..
+            }
+        ),
+        "{e:?}"
+    );
+    let machine_data = Job {
+        pairs: vec![(var::MD32750, 0.0)],
+    };
+    let e = w.write_job(&machine_data).await.unwrap_err();
+    assert!(
+        matches!(
+            e,
+            NcError::Refused {
+                status: JobStatus::AccessDenied,
+                ..
+            }
+        ),
+        "{e:?}"
+    );
+    assert_eq!(w.read_snapshot().await.unwrap().sd43910, 0.0);
+
+    // The gateway: transmitters -> filter -> model -> a verified job on LinuxCNC.
+    // The plant simulates every Modbus target: this one is pointed at LinuxCNC.
+    let address = cnc.address();
+    let mut rig = start_edited(&with_target(&cnc.target(), 1), |c| {
+        c.modbus_target_mut("nc_x").unwrap().address = address;
+    })
+    .await;
+    let s = rig
+        .wait_for(20.0, "a verified job on LinuxCNC", |s| {
+            s.axes[0].jobs_ok >= 1
+        })
+        .await;
+    let written = written_by_model(&s);
+    let held = w.read_snapshot().await.unwrap();
+    assert_eq!(held.sd43900_mm.to_bits(), written.k0_mm.to_bits());
+    assert_eq!(held.sd43910.to_bits(), written.tan_beta.to_bits());
+    assert_eq!(held.sd43920_mm, 100.0);
+
+    // At home (X = 0) and at X = 300 the axis moves by the formula at its position:
+    // the slope term is applied in the servo thread, not once per job.
+    let (_, at_home) = wait_applied(&cnc, &mut w, 0.0).await;
+    cnc.command("mdi G0 X300");
+    let (held, at_300) = wait_applied(&cnc, &mut w, 300.0).await;
+    assert!(
+        (at_300 - at_home - held.sd43910 * 300.0).abs() <= 2.0 * COUNT_MM,
+        "{at_home} at X 0, {at_300} at X 300, SD43910 {}",
+        held.sd43910
+    );
+    assert!(at_300 > 0.04, "{at_300}");
+    // The module reports LinuxCNC's position and offset back.
+    assert_eq!(held.position_mm, 300.0);
+    assert_eq!(held.applied_comp_mm.to_bits(), at_300.to_bits());
+
+    // Machine off: no offset is requested (LinuxCNC restarts its offset register from
+    // zero at the next machine on); on again, the offset is applied again.
+    cnc.command("off");
+    cnc.wait(10.0, "zero offset counts with the machine off", |c| {
+        c.pin("motion.motion-enabled") == "FALSE" && c.pin("axis.x.eoffset-counts") == "0"
+    });
+    cnc.command("on");
+    // Switched on, LinuxCNC takes the joint's position, offset included, as the new X.
+    cnc.wait(10.0, "the machine on again", |c| {
+        c.pin("motion.motion-enabled") == "TRUE"
+    });
+    let x = cnc.pin_f64("axis.x.pos-cmd");
+    wait_applied(&cnc, &mut w, x).await;
+
+    rig.stop_without_failed_jobs().await;
+}
