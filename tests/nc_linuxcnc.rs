@@ -2,8 +2,8 @@
 //! whose axis X carries the compgate NC axis module of `deploy/linuxcnc`. The gateway
 //! writes SD43900/43910/43920 into it over Modbus TCP, and LinuxCNC's own motion
 //! controller moves the axis by SD43900 + SD43910 * (X - SD43920). Without LinuxCNC the
-//! test skips (fails under `CI`). LinuxCNC runs once per machine (its HAL lives in
-//! fixed shared memory), so everything is one test.
+//! tests skip (fail under `CI`). LinuxCNC runs once per machine (its HAL lives in
+//! fixed shared memory): the tests take turns.
 #![allow(clippy::unwrap_used)]
 
 mod common;
@@ -11,28 +11,47 @@ mod common;
 use std::io::Write;
 use std::path::Path;
 use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use common::{start_edited, with_target, written_by_model};
+use compgate_core::comp::CompParams;
 use compgate_gateway::nc::modbus::{ModbusNcWriter, ModbusTargetConfig};
 use compgate_gateway::nc::{Job, NcError, NcSnapshot, NcWriter};
 use compgate_ncproto::{var, JobStatus};
 
-/// One external-offset count of `compgate_nc.hal`, mm: conv_float_s32 truncates to it.
+/// One external-offset count of `compgate_nc.tcl`, mm: conv_float_s32 truncates to it.
 const COUNT_MM: f64 = 1e-6;
+
+/// Held by the test whose LinuxCNC runs.
+static ONE_LINUXCNC: Mutex<()> = Mutex::new(());
 
 /// A running LinuxCNC; dropping it shuts it down.
 struct LinuxCnc {
     child: Child,
     ctl: Option<ChildStdin>,
     dir: tempfile::TempDir,
+    _turn: MutexGuard<'static, ()>,
 }
 
 impl LinuxCnc {
-    /// Starts `tests/linuxcnc/machine.ini` in a temporary directory and waits until
-    /// the machine is on, homed and the module serves; `None` (after saying why) when
-    /// LinuxCNC is not installed and `CI` is unset.
+    /// Starts `tests/linuxcnc/machine.ini` and waits until the machine is on, homed and
+    /// the modules serve; `None` when LinuxCNC is not installed (see [`Self::launch`]).
     fn start() -> Option<Self> {
+        let cnc = Self::launch(|ini| ini)?;
+        cnc.wait(60.0, "LinuxCNC on, homed and the modules serving", |c| {
+            c.pin("joint.2.homed") == "TRUE"
+                && ["x", "z"]
+                    .iter()
+                    .all(|a| !matches!(c.pin(&format!("compgate-nc-{a}.port")).as_str(), "" | "0"))
+        });
+        Some(cnc)
+    }
+
+    /// Starts `tests/linuxcnc/machine.ini`, passed through `edit`, in a temporary
+    /// directory; `None` (after saying why) when LinuxCNC is not installed and `CI` is
+    /// unset.
+    fn launch(edit: impl FnOnce(String) -> String) -> Option<Self> {
         let installed = Command::new("sh")
             .args(["-c", "command -v linuxcnc halcmd"])
             .stdout(Stdio::null())
@@ -50,12 +69,15 @@ impl LinuxCnc {
             ("tests/linuxcnc", "machine.ini"),
             ("tests/linuxcnc", "machine.hal"),
             ("tests/linuxcnc", "machine_ctl.py"),
-            ("deploy/linuxcnc", "compgate_nc.hal"),
+            ("deploy/linuxcnc", "compgate_nc.tcl"),
             ("deploy/linuxcnc", "compgate_nc.py"),
         ] {
             std::fs::copy(root.join(from).join(name), dir.path().join(name)).unwrap();
         }
         std::fs::write(dir.path().join("tool.tbl"), "").unwrap();
+        let ini = dir.path().join("machine.ini");
+        std::fs::write(&ini, edit(std::fs::read_to_string(&ini).unwrap())).unwrap();
+        let turn = ONE_LINUXCNC.lock().unwrap_or_else(|e| e.into_inner());
         let mut cmd = Command::new("linuxcnc");
         cmd.arg("machine.ini")
             .current_dir(dir.path())
@@ -75,11 +97,26 @@ impl LinuxCnc {
         }
         let mut child = cmd.spawn().unwrap();
         let ctl = child.stdin.take();
-        let cnc = Self { child, ctl, dir };
-        cnc.wait(60.0, "LinuxCNC on, homed and the module serving", |c| {
-            c.pin("joint.0.homed") == "TRUE" && c.pin("compgate-nc-x.port") != "0"
-        });
-        Some(cnc)
+        Some(Self {
+            child,
+            ctl,
+            dir,
+            _turn: turn,
+        })
+    }
+
+    /// Waits up to 60 s for LinuxCNC to end by itself (a start that fails) and returns
+    /// its logs.
+    fn exit_logs(mut self) -> String {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while self.child.try_wait().unwrap().is_none() {
+            assert!(Instant::now() < deadline, "LinuxCNC still runs after 60 s");
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        ["linuxcnc_print.txt", "linuxcnc_debug.txt"]
+            .iter()
+            .map(|f| std::fs::read_to_string(self.dir.path().join(f)).unwrap_or_default())
+            .collect()
     }
 
     /// A HAL pin's value as halcmd prints it; empty while it does not exist.
@@ -132,25 +169,24 @@ impl LinuxCnc {
         writeln!(self.ctl.as_mut().unwrap(), "{line}").unwrap();
     }
 
-    /// Where the module serves.
-    fn address(&self) -> String {
-        format!("127.0.0.1:{}", self.pin("compgate-nc-x.port"))
-    }
-
-    /// The module's keys as a `[targets.NAME] kind = "modbus"` table holds them.
-    fn target_keys(&self) -> String {
+    /// Where the module of `axis` (`x`, `z`) serves.
+    fn address(&self, axis: &str) -> String {
         format!(
-            "address = \"{}\"\nunit_id = 1\ntimeout_s = 0.5\njob_timeout_s = 0.5\n",
-            self.address()
+            "127.0.0.1:{}",
+            self.pin(&format!("compgate-nc-{axis}.port"))
         )
     }
 
-    fn target(&self) -> String {
-        format!("[targets.nc_x]\nkind = \"modbus\"\n{}", self.target_keys())
+    /// The keys of a `[targets.NAME] kind = "modbus"` table for the module of `axis`.
+    fn target_keys(&self, axis: &str) -> String {
+        format!(
+            "address = \"{}\"\nunit_id = 1\ntimeout_s = 0.5\njob_timeout_s = 0.5\n",
+            self.address(axis)
+        )
     }
 
-    fn writer(&self) -> ModbusNcWriter {
-        toml::from_str::<ModbusTargetConfig>(&self.target_keys())
+    fn writer(&self, axis: &str) -> ModbusNcWriter {
+        toml::from_str::<ModbusTargetConfig>(&self.target_keys(axis))
             .unwrap()
             .writer()
     }
@@ -196,31 +232,39 @@ fn running_as_root() -> bool {
         == Some("0")
 }
 
-/// The offset the 840D formula gives at `x_mm` for what the module holds.
-fn offset_mm(held: &NcSnapshot, x_mm: f64) -> f64 {
-    held.sd43900_mm + held.sd43910 * (x_mm - held.sd43920_mm)
+/// The offset the 840D formula gives at `at_mm` for what a module holds.
+fn offset_mm(held: &NcSnapshot, at_mm: f64) -> f64 {
+    held.sd43900_mm + held.sd43910 * (at_mm - held.sd43920_mm)
 }
 
-/// Waits until LinuxCNC applies the held values at its position X: the external
-/// offset within one count of the formula, and the joint commanded at X plus it.
-async fn wait_applied(cnc: &LinuxCnc, w: &mut ModbusNcWriter, x_mm: f64) -> (NcSnapshot, f64) {
+/// Waits until LinuxCNC's `axis` (joint `joint`) stands at `at_mm` and applies what its
+/// module holds (`w`'s snapshot, MD32750 bits applied by `formula`): the external
+/// offset within one count, and the joint commanded at the position plus it.
+async fn wait_applied(
+    cnc: &LinuxCnc,
+    w: &mut ModbusNcWriter,
+    (axis, joint): (&str, u8),
+    at_mm: f64,
+    formula: fn(&NcSnapshot, f64) -> f64,
+) -> (NcSnapshot, f64) {
     let deadline = Instant::now() + Duration::from_secs(10);
     loop {
+        let at = cnc.pin_f64(&format!("axis.{axis}.pos-cmd"));
+        let eoffset = cnc.pin_f64(&format!("axis.{axis}.eoffset"));
+        let joint_mm = cnc.pin_f64(&format!("joint.{joint}.pos-cmd"));
+        // After the pins: once the axis stands, the module's position is the pins'.
         let held = w.read_snapshot().await.unwrap();
-        let x = cnc.pin_f64("axis.x.pos-cmd");
-        let eoffset = cnc.pin_f64("axis.x.eoffset");
-        let joint = cnc.pin_f64("joint.0.pos-cmd");
-        if x == x_mm
-            && (eoffset - offset_mm(&held, x)).abs() <= COUNT_MM
-            && (joint - (x + eoffset)).abs() < 1e-9
+        if at == at_mm
+            && (eoffset - formula(&held, at)).abs() <= COUNT_MM
+            && (joint_mm - (at + eoffset)).abs() < 1e-9
         {
             return (held, eoffset);
         }
         assert!(
             Instant::now() < deadline,
-            "at X = {x} (waiting for {x_mm}) LinuxCNC applies {eoffset} mm (joint at {joint}); \
-             the formula gives {} for {held:?}",
-            offset_mm(&held, x)
+            "at {axis} = {at} (waiting for {at_mm}) LinuxCNC applies {eoffset} mm (joint at \
+             {joint_mm}); the formula gives {} for {held:?}",
+            formula(&held, at)
         );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
@@ -231,7 +275,8 @@ async fn the_chain_moves_a_linuxcnc_axis_by_the_840d_formula() {
     let Some(mut cnc) = LinuxCnc::start() else {
         return;
     };
-    let mut w = cnc.writer();
+    let mut w = cnc.writer("x");
+    let x = ("x", 0);
 
     // What the module reports from the INI file and HAL before any job.
     let held = w.read_snapshot().await.unwrap();
@@ -274,8 +319,12 @@ async fn the_chain_moves_a_linuxcnc_axis_by_the_840d_formula() {
 
     // The gateway: transmitters -> filter -> model -> a verified job on LinuxCNC.
     // The plant simulates every Modbus target: this one is pointed at LinuxCNC.
-    let address = cnc.address();
-    let mut rig = start_edited(&with_target(&cnc.target(), 1), |c| {
+    let target = format!(
+        "[targets.nc_x]\nkind = \"modbus\"\n{}",
+        cnc.target_keys("x")
+    );
+    let address = cnc.address("x");
+    let mut rig = start_edited(&with_target(&target, 1), |c| {
         c.modbus_target_mut("nc_x").unwrap().address = address;
     })
     .await;
@@ -292,9 +341,9 @@ async fn the_chain_moves_a_linuxcnc_axis_by_the_840d_formula() {
 
     // At home (X = 0) and at X = 300 the axis moves by the formula at its position:
     // the slope term is applied in the servo thread, not once per job.
-    let (_, at_home) = wait_applied(&cnc, &mut w, 0.0).await;
+    let (_, at_home) = wait_applied(&cnc, &mut w, x, 0.0, offset_mm).await;
     cnc.command("mdi G0 X300");
-    let (held, at_300) = wait_applied(&cnc, &mut w, 300.0).await;
+    let (held, at_300) = wait_applied(&cnc, &mut w, x, 300.0, offset_mm).await;
     assert!(
         (at_300 - at_home - held.sd43910 * 300.0).abs() <= 2.0 * COUNT_MM,
         "{at_home} at X 0, {at_300} at X 300, SD43910 {}",
@@ -304,6 +353,20 @@ async fn the_chain_moves_a_linuxcnc_axis_by_the_840d_formula() {
     // The module reports LinuxCNC's position and offset back.
     assert_eq!(held.position_mm, 300.0);
     assert_eq!(held.applied_comp_mm.to_bits(), at_300.to_bits());
+
+    // Z's module (MD32750 = 1) is its own: SD43900 alone moves Z, X keeps its offset.
+    let mut wz = cnc.writer("z");
+    assert_eq!(wz.read_snapshot().await.unwrap().md32750, 1);
+    let z_job = CompParams {
+        k0_mm: -0.0125,
+        tan_beta: 0.001,
+        p0_mm: 0.0,
+    };
+    wz.write_job(&Job::thermal(&z_job)).await.unwrap();
+    cnc.command("mdi G0 Z50");
+    let (_, z_offset) = wait_applied(&cnc, &mut wz, ("z", 2), 50.0, |h, _| h.sd43900_mm).await;
+    assert!((z_offset + 0.0125).abs() <= COUNT_MM, "{z_offset}");
+    wait_applied(&cnc, &mut w, x, 300.0, offset_mm).await;
 
     // Machine off: no offset is requested (LinuxCNC restarts its offset register from
     // zero at the next machine on); on again, the offset is applied again.
@@ -316,8 +379,38 @@ async fn the_chain_moves_a_linuxcnc_axis_by_the_840d_formula() {
     cnc.wait(10.0, "the machine on again", |c| {
         c.pin("motion.motion-enabled") == "TRUE"
     });
-    let x = cnc.pin_f64("axis.x.pos-cmd");
-    wait_applied(&cnc, &mut w, x).await;
+    let at = cnc.pin_f64("axis.x.pos-cmd");
+    wait_applied(&cnc, &mut w, x, at, offset_mm).await;
 
     rig.stop_without_failed_jobs().await;
+}
+
+#[test]
+fn a_setup_the_module_cannot_serve_stops_linuxcnc_naming_the_key() {
+    for (edit, expected) in [
+        (
+            (
+                "[COMPGATE_Z]\nJOINT = 2\nPORT = 0\n",
+                "[COMPGATE_Z]\nJOINT = 2\n",
+            ),
+            "[COMPGATE_Z]PORT is missing from the INI file",
+        ),
+        (
+            ("LINEAR_UNITS = mm", "LINEAR_UNITS = inch"),
+            "[TRAJ]LINEAR_UNITS = 'inch'; compgate writes mm",
+        ),
+        (
+            ("[AXIS_Z]\nOFFSET_AV_RATIO = 0.1\n", "[AXIS_Z]\n"),
+            "[AXIS_Z]OFFSET_AV_RATIO is missing from the INI file",
+        ),
+    ] {
+        let Some(cnc) = LinuxCnc::launch(|ini| {
+            assert!(ini.contains(edit.0), "{edit:?}");
+            ini.replace(edit.0, edit.1)
+        }) else {
+            return;
+        };
+        let logs = cnc.exit_logs();
+        assert!(logs.contains(expected), "{expected}\n{logs}");
+    }
 }
