@@ -19,6 +19,8 @@ use compgate_core::comp::CompParams;
 use compgate_gateway::nc::modbus::{ModbusNcWriter, ModbusTargetConfig};
 use compgate_gateway::nc::{Job, NcError, NcSnapshot, NcWriter};
 use compgate_ncproto::{var, JobStatus};
+use tokio_modbus::client::{Reader, Writer};
+use tokio_modbus::ExceptionCode;
 
 /// One external-offset count of `compgate_nc.tcl`, mm: conv_float_s32 truncates to it.
 const COUNT_MM: f64 = 1e-6;
@@ -284,6 +286,37 @@ async fn the_chain_moves_a_linuxcnc_axis_by_the_840d_formula() {
     assert_eq!(held.max_ax_velo_mm_per_min, 200.0 * 60.0);
     assert_eq!(held.md32760, 0.2, "OFFSET_AV_RATIO");
     assert_eq!(held.md32450_mm, 0.003, "[JOINT_0]BACKLASH");
+
+    // Outside the map the module answers with the exceptions the map documents.
+    let mut raw = tokio_modbus::client::tcp::connect(cnc.address("x").parse().unwrap())
+        .await
+        .unwrap();
+    for (request, expected) in [
+        // 136..139 are not in the map; the servo block is not served.
+        (
+            raw.read_holding_registers(100, 42).await,
+            ExceptionCode::IllegalDataAddress,
+        ),
+        (
+            raw.read_holding_registers(1100, 10).await,
+            ExceptionCode::IllegalDataAddress,
+        ),
+        (
+            raw.read_holding_registers(0, 126).await,
+            ExceptionCode::IllegalDataValue,
+        ),
+        (
+            raw.read_input_registers(0, 1).await,
+            ExceptionCode::IllegalFunction,
+        ),
+    ] {
+        assert_eq!(request.unwrap(), Err(expected));
+    }
+    // The read-back block is read-only.
+    assert_eq!(
+        raw.write_single_register(100, 1).await.unwrap(),
+        Err(ExceptionCode::IllegalDataAddress)
+    );
 
     // The module refuses what an 840D refuses, all or none.
     let too_big = Job {

@@ -164,7 +164,7 @@ class Module:
                 with self.lock:
                     self.write(address, list(struct.unpack(">%dH" % count, pdu[6:])))
                 return pdu[:5]
-            raise ModbusError(ILLEGAL_FUNCTION)
+            raise ModbusError(ILLEGAL_VALUE if fc in (3, 6, 16) else ILLEGAL_FUNCTION)
         except ModbusError as e:
             return bytes([fc | 0x80, e.code])
 
