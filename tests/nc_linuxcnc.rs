@@ -40,20 +40,33 @@ impl LinuxCnc {
     /// Starts `tests/linuxcnc/machine.ini` and waits until the machine is on, homed and
     /// the modules serve; `None` when LinuxCNC is not installed (see [`Self::launch`]).
     fn start() -> Option<Self> {
-        let cnc = Self::launch(|ini| ini)?;
-        cnc.wait(60.0, "LinuxCNC on, homed and the modules serving", |c| {
-            c.pin("joint.2.homed") == "TRUE"
-                && ["x", "z"]
-                    .iter()
-                    .all(|a| !matches!(c.pin(&format!("compgate-nc-{a}.port")).as_str(), "" | "0"))
-        });
+        let mut cnc = Self::launch(None)?;
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while !(cnc.pin("joint.2.homed") == "TRUE"
+            && ["x", "z"]
+                .iter()
+                .all(|a| !matches!(cnc.pin(&format!("compgate-nc-{a}.port")).as_str(), "" | "0")))
+        {
+            if let Some(status) = cnc.child.try_wait().unwrap() {
+                panic!(
+                    "LinuxCNC ended ({status}) before it was ready\n{}",
+                    cnc.logs()
+                );
+            }
+            assert!(
+                Instant::now() < deadline,
+                "LinuxCNC not on, homed and serving within 60 s\n{}",
+                cnc.logs()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
         Some(cnc)
     }
 
-    /// Starts `tests/linuxcnc/machine.ini`, passed through `edit`, in a temporary
-    /// directory; `None` (after saying why) when LinuxCNC is not installed and `CI` is
-    /// unset.
-    fn launch(edit: impl FnOnce(String) -> String) -> Option<Self> {
+    /// Starts `tests/linuxcnc/machine.ini` in a temporary directory, with `edit`
+    /// (file, text, replacement) made to its files; `None` (after saying why) when
+    /// LinuxCNC is not installed and `CI` is unset.
+    fn launch(edit: Option<(&str, &str, &str)>) -> Option<Self> {
         let installed = Command::new("sh")
             .args(["-c", "command -v linuxcnc halcmd"])
             .stdout(Stdio::null())
@@ -77,8 +90,12 @@ impl LinuxCnc {
             std::fs::copy(root.join(from).join(name), dir.path().join(name)).unwrap();
         }
         std::fs::write(dir.path().join("tool.tbl"), "").unwrap();
-        let ini = dir.path().join("machine.ini");
-        std::fs::write(&ini, edit(std::fs::read_to_string(&ini).unwrap())).unwrap();
+        if let Some((file, from, to)) = edit {
+            let path = dir.path().join(file);
+            let text = std::fs::read_to_string(&path).unwrap();
+            assert!(text.contains(from), "{file} has no {from:?}");
+            std::fs::write(&path, text.replace(from, to)).unwrap();
+        }
         let turn = ONE_LINUXCNC.lock().unwrap_or_else(|e| e.into_inner());
         let mut cmd = Command::new("linuxcnc");
         cmd.arg("machine.ini")
@@ -115,10 +132,7 @@ impl LinuxCnc {
             assert!(Instant::now() < deadline, "LinuxCNC still runs after 60 s");
             std::thread::sleep(Duration::from_millis(100));
         }
-        ["linuxcnc_print.txt", "linuxcnc_debug.txt"]
-            .iter()
-            .map(|f| std::fs::read_to_string(self.dir.path().join(f)).unwrap_or_default())
-            .collect()
+        self.logs()
     }
 
     /// A HAL pin's value as halcmd prints it; empty while it does not exist.
@@ -193,9 +207,13 @@ impl LinuxCnc {
             .writer()
     }
 
-    /// What LinuxCNC's start script and its components logged so far.
+    /// What LinuxCNC's start script and its components logged: in `/tmp` while it
+    /// runs, in its `HOME` once it ended.
     fn logs(&self) -> String {
-        let mut text = String::new();
+        let mut text: String = ["linuxcnc_print.txt", "linuxcnc_debug.txt"]
+            .iter()
+            .map(|f| std::fs::read_to_string(self.dir.path().join(f)).unwrap_or_default())
+            .collect();
         for entry in std::fs::read_dir("/tmp").into_iter().flatten().flatten() {
             let name = entry.file_name().to_string_lossy().to_string();
             if name.starts_with("linuxcnc.print.") || name.starts_with("linuxcnc.debug.") {
@@ -423,24 +441,34 @@ fn a_setup_the_module_cannot_serve_stops_linuxcnc_naming_the_key() {
     for (edit, expected) in [
         (
             (
+                "machine.ini",
                 "[COMPGATE_Z]\nJOINT = 2\nPORT = 0\n",
                 "[COMPGATE_Z]\nJOINT = 2\n",
             ),
             "[COMPGATE_Z]PORT is missing from the INI file",
         ),
         (
-            ("LINEAR_UNITS = mm", "LINEAR_UNITS = inch"),
+            ("machine.ini", "LINEAR_UNITS = mm", "LINEAR_UNITS = inch"),
             "[TRAJ]LINEAR_UNITS = 'inch'; compgate writes mm",
         ),
         (
-            ("[AXIS_Z]\nOFFSET_AV_RATIO = 0.1\n", "[AXIS_Z]\n"),
+            (
+                "machine.ini",
+                "[AXIS_Z]\nOFFSET_AV_RATIO = 0.1\n",
+                "[AXIS_Z]\n",
+            ),
             "[AXIS_Z]OFFSET_AV_RATIO is missing from the INI file",
         ),
+        (
+            (
+                "machine.hal",
+                "net j0-homed joint.0.homed\n",
+                "net j0-homed joint.0.homed\nnet z-offset axis.z.eoffset-counts\n",
+            ),
+            "axis.z.eoffset-counts is on signal z-offset already",
+        ),
     ] {
-        let Some(cnc) = LinuxCnc::launch(|ini| {
-            assert!(ini.contains(edit.0), "{edit:?}");
-            ini.replace(edit.0, edit.1)
-        }) else {
+        let Some(cnc) = LinuxCnc::launch(Some(edit)) else {
             return;
         };
         let logs = cnc.exit_logs();

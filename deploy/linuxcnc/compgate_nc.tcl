@@ -11,8 +11,8 @@
 #   PORT = 5020      (Modbus TCP; 0: any free one, shown on the pin compgate-nc-x.port)
 #   MD32750 = 3      (bit 0 applies SD43900, bit 1 SD43910)
 #   [AXIS_X]OFFSET_AV_RATIO = 0.1   (the share of velocity and acceleration the offset may take)
-# A pin netted here that the machine's HAL already nets (joint.N.homed,
-# motion.motion-enabled, axis.L.eoffset-*) must join that signal instead.
+# LinuxCNC's outputs read here (axis.L.pos-cmd, axis.L.eoffset, joint.N.homed,
+# motion.motion-enabled) join the signal the machine's HAL already put them on, if any.
 # More: docs/guide/real-nc-linuxcnc.md.
 
 proc compgate_ini {section key} {
@@ -24,6 +24,36 @@ proc compgate_ini {section key} {
 }
 
 set compgate_axes [string tolower [compgate_ini COMPGATE AXES]]
+
+# The signal `pin` is on, or "".
+proc compgate_signal {pin} {
+    set name [string map {. \\.} $pin]
+    if {[regexp -line "\\s$name\\s+(==>|<==|<=>) (\\S+)" [hal show pin $pin] -> _ sig]} {
+        return $sig
+    }
+    return ""
+}
+
+# Nets LinuxCNC's output `pin` to `readers`: on the signal it is on already (a pin is
+# on one signal at most), else on a new signal `name`.
+proc compgate_read {name pin args} {
+    set sig [compgate_signal $pin]
+    if {$sig eq ""} {
+        net $name $pin {*}$args
+    } else {
+        net $sig {*}$args
+    }
+}
+
+# An input of LinuxCNC's that the module drives: refused when the machine's HAL
+# drives it already.
+proc compgate_drive {pin} {
+    set sig [compgate_signal $pin]
+    if {$sig ne ""} {
+        error "compgate_nc.tcl: $pin is on signal $sig already; the compgate module drives it: take it off that signal"
+    }
+    return $pin
+}
 
 # The 840D's formula in the servo thread, after motion-controller: the offset follows
 # the axis's position within a servo period. One loadrt per kind for every axis.
@@ -47,7 +77,7 @@ foreach a $compgate_axes {
         --port [compgate_ini COMPGATE_$A PORT] --md32750 [compgate_ini COMPGATE_$A MD32750]
     foreach f {dx slope sum nm counts} { addf compgate-$a-$f servo-thread }
 
-    net compgate-$a-pos      axis.$a.pos-cmd          => compgate-$a-dx.in0 $m.pos-mm
+    compgate_read compgate-$a-pos axis.$a.pos-cmd compgate-$a-dx.in0 $m.pos-mm
     net compgate-$a-ref      $m.ref-mm                => compgate-$a-dx.in1
     setp compgate-$a-dx.gain1 -1
     net compgate-$a-dx       compgate-$a-dx.out       => compgate-$a-slope.in0
@@ -57,13 +87,15 @@ foreach a $compgate_axes {
     net compgate-$a-target   compgate-$a-sum.out      => compgate-$a-nm.in $m.target-mm
     setp compgate-$a-nm.gain 1000000
     net compgate-$a-nm       compgate-$a-nm.out       => compgate-$a-counts.in
-    net compgate-$a-counts   compgate-$a-counts.out   => axis.$a.eoffset-counts
-    setp axis.$a.eoffset-scale 0.000001
-    setp axis.$a.eoffset-enable 1
+    net compgate-$a-counts   compgate-$a-counts.out   => [compgate_drive axis.$a.eoffset-counts]
+    setp [compgate_drive axis.$a.eoffset-scale] 0.000001
+    # A machine whose HAL switches the offsets (a panel's button) keeps that switch.
+    if {[compgate_signal axis.$a.eoffset-enable] eq ""} {
+        setp axis.$a.eoffset-enable 1
+    }
 
     # What the module reports back to compgate.
-    net compgate-$a-applied  axis.$a.eoffset          => $m.applied-mm
-    net compgate-$a-homed    joint.$joint.homed       => $m.homed
+    compgate_read compgate-$a-applied axis.$a.eoffset $m.applied-mm
+    compgate_read compgate-$a-homed joint.$joint.homed $m.homed
+    compgate_read compgate-machine-on motion.motion-enabled $m.machine-on
 }
-# One signal serves every module.
-net compgate-machine-on motion.motion-enabled => {*}[lmap a $compgate_axes {string cat compgate-nc-$a.machine-on}]
