@@ -4,17 +4,17 @@
 compgate writes each compensated axis's SD43900 / SD43910 / SD43920 as a job into an
 NC axis module over Modbus TCP (the register map in docs/reference/registers.md). This
 component is that module for one LinuxCNC axis: it serves the job block and the
-read-back block, and puts the values on HAL pins. compgate_nc.hal turns them, in the
-servo thread, into the axis's external offset, as the 840D applies them:
+read-back block, and every 10 ms sets the axis's external offset (the pin `counts`,
+netted to axis.L.eoffset-counts in 1 nm counts) as the 840D applies the values:
 
-    offset = SD43900 + SD43910 * (position - SD43920)
+    offset = SD43900 + SD43910 * (axis.L.pos-cmd - SD43920)
 
 while the machine is on and the axis homed (MD32750 bit 0 the first term, bit 1 the
 second). LinuxCNC limits how fast the offset moves with [AXIS_L]OFFSET_AV_RATIO, as
 MD32760 does on the 840D.
 
-Run it from the HAL file (compgate_nc.hal):
-    loadusr -W /path/to/compgate_nc.py --axis x --joint 0 --port 5020
+Started by compgate_nc.tcl, one per axis:
+    loadusr -Wn compgate-nc-x ./compgate_nc.py --axis x --joint 0 --port 5020
 
 Needs only Python 3 and LinuxCNC's own `hal` and `linuxcnc` modules. The machine's
 linear units must be mm.
@@ -44,6 +44,12 @@ MACHINE_DATA = (32450, 32750, 32760, 32000)
 LIMITS = {SD43900: 10.0, SD43910: 0.1, SD43920: 100000.0}
 # Modbus exception codes.
 ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE = 1, 2, 3
+# mm per count of axis.L.eoffset-counts (compgate_nc.tcl sets eoffset-scale to it).
+COUNT_MM = 1e-6
+S32_MAX = 2**31 - 1
+# Seconds between two updates of the offset: the slope term lags the axis by this,
+# SD43910 x feed x 10 ms (0.08 um at 5e-5 and 10 m/min).
+PERIOD_S = 0.01
 
 
 def f64_regs(value):
@@ -63,8 +69,13 @@ class ModbusError(Exception):
 class Module:
     """The job block, the setting data and the read-back block of one axis."""
 
-    def __init__(self, comp, md32750, md32760, max_velo_mm_per_min, md32450_mm):
+    def __init__(self, comp, pins, md32750, md32760, max_velo_mm_per_min, md32450_mm):
         self.comp = comp
+        # LinuxCNC's pins, read by name (no signal of the machine's HAL is touched).
+        self.pins = pins
+        self.pos_mm = 0.0
+        self.homed = False
+        self.target_mm = 0.0
         self.lock = threading.Lock()
         self.job = [0] * JOB_BLOCK_LEN
         self.sd = {SD43900: 0.0, SD43910: 0.0, SD43920: 0.0}
@@ -115,7 +126,6 @@ class Module:
             self.job[DONE : ERROR_INDEX + 1] = [0, 0, 0, 0]
 
     def readback(self):
-        c = self.comp
         regs = []
         for value in (
             self.sd[SD43900],
@@ -123,13 +133,13 @@ class Module:
             self.sd[SD43920],
             self.md32760,
             self.max_velo_mm_per_min,
-            c["pos-mm"],
-            c["applied-mm"],
-            c["target-mm"],
+            self.pos_mm,
+            hal.get_value(self.pins["applied"]),
+            self.target_mm,
             self.md32450_mm,
         ):
             regs += f64_regs(value)
-        return regs + [0] * 4 + [self.md32750, int(c["homed"])]
+        return regs + [0] * 4 + [self.md32750, int(self.homed)]
 
     def read(self, address, count):
         end = address + count
@@ -168,15 +178,24 @@ class Module:
         except ModbusError as e:
             return bytes([fc | 0x80, e.code])
 
-    def update_pins(self):
-        """The values the servo thread applies: none until the machine is on and the
-        axis homed (the offset register restarts from zero at each machine start)."""
-        c = self.comp
+    def update(self):
+        """Sets the offset for the axis's position now: none until the machine is on
+        and the axis homed (LinuxCNC restarts its offset register from zero at each
+        machine on)."""
+        get = hal.get_value
+        pos_mm, homed, on = get(self.pins["pos"]), get(self.pins["homed"]), get(self.pins["on"])
         with self.lock:
-            active = c["machine-on"] and c["homed"]
-            c["abs-mm"] = self.sd[SD43900] if active and self.md32750 & 1 else 0.0
-            c["slope"] = self.sd[SD43910] if active and self.md32750 & 2 else 0.0
-            c["ref-mm"] = self.sd[SD43920]
+            self.pos_mm, self.homed = pos_mm, bool(homed)
+            target_mm = 0.0
+            if on and homed:
+                if self.md32750 & 1:
+                    target_mm += self.sd[SD43900]
+                if self.md32750 & 2:
+                    target_mm += self.sd[SD43910] * (pos_mm - self.sd[SD43920])
+            self.target_mm = target_mm
+        counts = round(target_mm / COUNT_MM)
+        self.comp["counts"] = max(-S32_MAX, min(S32_MAX, counts))
+        self.comp["target-mm"] = target_mm
 
 
 def serve(module, bind, port):
@@ -244,20 +263,24 @@ def main():
         sys.exit(f"compgate_nc: [AXIS_{axis}]OFFSET_AV_RATIO = {ratio}: external offsets need 0 < ratio <= 0.9")
 
     comp = hal.component(args.name or f"compgate-nc-{args.axis.lower()}")
-    for pin, kind, direction in [
-        ("pos-mm", hal.HAL_FLOAT, hal.HAL_IN),
-        ("applied-mm", hal.HAL_FLOAT, hal.HAL_IN),
-        ("target-mm", hal.HAL_FLOAT, hal.HAL_IN),
-        ("homed", hal.HAL_BIT, hal.HAL_IN),
-        ("machine-on", hal.HAL_BIT, hal.HAL_IN),
-        ("abs-mm", hal.HAL_FLOAT, hal.HAL_OUT),
-        ("slope", hal.HAL_FLOAT, hal.HAL_OUT),
-        ("ref-mm", hal.HAL_FLOAT, hal.HAL_OUT),
-        ("port", hal.HAL_S32, hal.HAL_OUT),
-    ]:
-        comp.newpin(pin, kind, direction)
+    a = args.axis.lower()
+    pins = {
+        "pos": f"axis.{a}.pos-cmd",
+        "applied": f"axis.{a}.eoffset",
+        "homed": f"joint.{args.joint}.homed",
+        "on": "motion.motion-enabled",
+    }
+    for pin in pins.values():
+        try:
+            hal.get_value(pin)
+        except RuntimeError:
+            sys.exit(f"compgate_nc: LinuxCNC has no pin {pin}: check --axis {a} and --joint {args.joint}")
+    comp.newpin("counts", hal.HAL_S32, hal.HAL_OUT)
+    comp.newpin("target-mm", hal.HAL_FLOAT, hal.HAL_OUT)
+    comp.newpin("port", hal.HAL_S32, hal.HAL_OUT)
     module = Module(
         comp,
+        pins,
         md32750=args.md32750,
         md32760=ratio,
         max_velo_mm_per_min=ini_float(ini, f"AXIS_{axis}", "MAX_VELOCITY") * 60.0,
@@ -269,8 +292,8 @@ def main():
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
     try:
         while True:
-            module.update_pins()
-            time.sleep(0.01)
+            module.update()
+            time.sleep(PERIOD_S)
     except KeyboardInterrupt:
         pass
 
