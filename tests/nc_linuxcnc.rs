@@ -97,6 +97,16 @@ impl LinuxCnc {
             std::fs::write(&path, text.replace(from, to)).unwrap();
         }
         let turn = ONE_LINUXCNC.lock().unwrap_or_else(|e| e.into_inner());
+        let comps = Command::new("halcmd")
+            .args(["list", "comp"])
+            .output()
+            .unwrap();
+        let comps = String::from_utf8_lossy(&comps.stdout).to_string();
+        assert!(
+            comps.split_whitespace().all(|c| c.starts_with("halcmd")),
+            "a LinuxCNC (or another HAL) runs on this machine already, with {comps}: \
+             the test needs LinuxCNC to itself"
+        );
         let mut cmd = Command::new("linuxcnc");
         cmd.arg("machine.ini")
             .current_dir(dir.path())
