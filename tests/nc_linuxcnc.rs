@@ -1,5 +1,5 @@
 //! The chain ending in a real control: LinuxCNC (uspace, no GUI) runs a simulated mill
-//! whose axis X carries the compgate NC axis module of `deploy/linuxcnc`. The gateway
+//! whose axes X and Z carry the compgate NC axis modules of `deploy/linuxcnc`. The gateway
 //! writes SD43900/43910/43920 into it over Modbus TCP, and LinuxCNC's own motion
 //! controller moves the axis by SD43900 + SD43910 * (X - SD43920). Without LinuxCNC the
 //! tests skip (fail under `CI`). LinuxCNC runs once per machine (its HAL lives in
@@ -22,7 +22,7 @@ use compgate_ncproto::{var, JobStatus};
 use tokio_modbus::client::{Reader, Writer};
 use tokio_modbus::ExceptionCode;
 
-/// One external-offset count of `compgate_nc.tcl`, mm: conv_float_s32 truncates to it.
+/// One count of the external offset (the eoffset-scale `compgate_nc.tcl` sets), mm.
 const COUNT_MM: f64 = 1e-6;
 
 /// Held by the test whose LinuxCNC runs.
