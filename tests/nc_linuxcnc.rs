@@ -41,26 +41,42 @@ impl LinuxCnc {
     /// the modules serve; `None` when LinuxCNC is not installed (see [`Self::launch`]).
     fn start() -> Option<Self> {
         let mut cnc = Self::launch(None)?;
+        cnc.wait_ready();
+        Some(cnc)
+    }
+
+    fn wait_ready(&mut self) {
         let deadline = Instant::now() + Duration::from_secs(60);
-        while !(cnc.pin("joint.2.homed") == "TRUE"
-            && ["x", "z"]
-                .iter()
-                .all(|a| !matches!(cnc.pin(&format!("compgate-nc-{a}.port")).as_str(), "" | "0")))
+        while !(self.pin("joint.2.homed") == "TRUE"
+            && ["x", "z"].iter().all(|a| {
+                !matches!(
+                    self.pin(&format!("compgate-nc-{a}.port")).as_str(),
+                    "" | "0"
+                )
+            }))
         {
-            if let Some(status) = cnc.child.try_wait().unwrap() {
+            if let Some(status) = self.child.try_wait().unwrap() {
                 panic!(
                     "LinuxCNC ended ({status}) before it was ready\n{}",
-                    cnc.logs()
+                    self.logs()
                 );
             }
             assert!(
                 Instant::now() < deadline,
                 "LinuxCNC not on, homed and serving within 60 s\n{}",
-                cnc.logs()
+                self.logs()
             );
             std::thread::sleep(Duration::from_millis(50));
         }
-        Some(cnc)
+    }
+
+    /// Shuts LinuxCNC down and starts it again in the same directory.
+    fn restart(mut self) -> Self {
+        self.stop();
+        self.child = Self::spawn(self.dir.path());
+        self.ctl = self.child.stdin.take();
+        self.wait_ready();
+        self
     }
 
     /// Starts `tests/linuxcnc/machine.ini` in a temporary directory, with `edit`
@@ -91,10 +107,16 @@ impl LinuxCnc {
         }
         std::fs::write(dir.path().join("tool.tbl"), "").unwrap();
         if let Some((file, from, to)) = edit {
+            // An empty `from` makes the file, with `to` in it.
             let path = dir.path().join(file);
-            let text = std::fs::read_to_string(&path).unwrap();
+            let text = std::fs::read_to_string(&path).unwrap_or_default();
             assert!(text.contains(from), "{file} has no {from:?}");
-            std::fs::write(&path, text.replace(from, to)).unwrap();
+            let text = if from.is_empty() {
+                to.to_string()
+            } else {
+                text.replace(from, to)
+            };
+            std::fs::write(&path, text).unwrap();
         }
         let turn = ONE_LINUXCNC.lock().unwrap_or_else(|e| e.into_inner());
         let comps = Command::new("halcmd")
@@ -107,24 +129,13 @@ impl LinuxCnc {
             "a LinuxCNC (or another HAL) runs on this machine already, with {comps}: \
              the test needs LinuxCNC to itself"
         );
-        let mut cmd = Command::new("linuxcnc");
-        cmd.arg("machine.ini")
-            .current_dir(dir.path())
-            // Its logs (linuxcnc_print.txt, linuxcnc_debug.txt) land in the directory.
-            .env("HOME", dir.path())
-            .env_remove("DISPLAY")
-            .stdin(Stdio::piped())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null());
         if running_as_root() {
             // rtapi_app refuses root without a user to fall back to, who must be able
-            // to make its FIFO.
+            // to make its FIFO (and the module its setting data file).
             use std::os::unix::fs::PermissionsExt;
             std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o777)).unwrap();
-            cmd.env("RTAPI_UID", "65534")
-                .env("RTAPI_FIFO_PATH", dir.path().join("rtapi_fifo"));
         }
-        let mut child = cmd.spawn().unwrap();
+        let mut child = Self::spawn(dir.path());
         let ctl = child.stdin.take();
         Some(Self {
             child,
@@ -132,6 +143,24 @@ impl LinuxCnc {
             dir,
             _turn: turn,
         })
+    }
+
+    /// `linuxcnc machine.ini` in `dir`.
+    fn spawn(dir: &Path) -> Child {
+        let mut cmd = Command::new("linuxcnc");
+        cmd.arg("machine.ini")
+            .current_dir(dir)
+            // Its logs (linuxcnc_print.txt, linuxcnc_debug.txt) land in the directory.
+            .env("HOME", dir)
+            .env_remove("DISPLAY")
+            .stdin(Stdio::piped())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null());
+        if running_as_root() {
+            cmd.env("RTAPI_UID", "65534")
+                .env("RTAPI_FIFO_PATH", dir.join("rtapi_fifo"));
+        }
+        cmd.spawn().unwrap()
     }
 
     /// Waits up to 60 s for LinuxCNC to end by itself (a start that fails) and returns
@@ -237,9 +266,10 @@ impl LinuxCnc {
     }
 }
 
-impl Drop for LinuxCnc {
-    fn drop(&mut self) {
-        // Its input closed, the display program ends and LinuxCNC shuts down.
+impl LinuxCnc {
+    /// Shuts LinuxCNC down: its input closed, the display program ends and LinuxCNC
+    /// stops; after 30 s it is killed.
+    fn stop(&mut self) {
         drop(self.ctl.take());
         let deadline = Instant::now() + Duration::from_secs(30);
         while Instant::now() < deadline {
@@ -250,6 +280,12 @@ impl Drop for LinuxCnc {
         }
         let _ = self.child.kill();
         let _ = Command::new("halrun").arg("-U").status();
+    }
+}
+
+impl Drop for LinuxCnc {
+    fn drop(&mut self) {
+        self.stop();
     }
 }
 
@@ -442,8 +478,18 @@ async fn the_chain_moves_a_linuxcnc_axis_by_the_840d_formula() {
     });
     let at = cnc.pin_f64("axis.x.pos-cmd");
     wait_applied(&cnc, &mut w, x, at, offset_mm).await;
+    let before = rig.stop_without_failed_jobs().await;
 
-    rig.stop_without_failed_jobs().await;
+    // The module retains the setting data, as the 840D does: after a restart of
+    // LinuxCNC it holds, bit for bit, what the gateway wrote last, and applies it.
+    let last = before.axes[0].written.unwrap();
+    let cnc = cnc.restart();
+    let mut w = cnc.writer("x");
+    let (held, _) = wait_applied(&cnc, &mut w, x, 0.0, offset_mm).await;
+    assert_eq!(held.thermal(), last);
+    assert_ne!(held.sd43900_mm, 0.0);
+    let held_z = cnc.writer("z").read_snapshot().await.unwrap();
+    assert_eq!(held_z.thermal(), z_job);
 }
 
 #[test]
@@ -476,6 +522,18 @@ fn a_setup_the_module_cannot_serve_stops_linuxcnc_naming_the_key() {
                 "net j0-homed joint.0.homed\nnet z-offset axis.z.eoffset-counts\n",
             ),
             "axis.z.eoffset-counts is on signal z-offset already",
+        ),
+        (
+            (
+                "compgate-nc-z.json",
+                "",
+                r#"{"SD43900": 20.0, "SD43910": 0.0, "SD43920": 0.0}"#,
+            ),
+            "setting data file compgate-nc-z.json: SD43900 = 20.0 is not a number within +-10.0",
+        ),
+        (
+            ("compgate-nc-x.json", "", "{\"SD43900\": 0.0"),
+            "setting data file compgate-nc-x.json: Expecting",
         ),
     ] {
         let Some(cnc) = LinuxCnc::launch(Some(edit)) else {

@@ -11,7 +11,8 @@ netted to axis.L.eoffset-counts in 1 nm counts) as the 840D applies the values:
 
 while the machine is on and the axis homed (MD32750 bit 0 the first term, bit 1 the
 second). LinuxCNC limits how fast the offset moves with [AXIS_L]OFFSET_AV_RATIO, as
-MD32760 does on the 840D.
+MD32760 does on the 840D. The setting data are retained across restarts in a JSON
+file (--state-file), as the 840D retains them.
 
 Started by compgate_nc.tcl, one per axis:
     loadusr -Wn compgate-nc-x ./compgate_nc.py --axis x --joint 0 --port 5020
@@ -21,6 +22,8 @@ linear units must be mm.
 """
 
 import argparse
+import json
+import math
 import os
 import signal
 import socket
@@ -69,8 +72,9 @@ class ModbusError(Exception):
 class Module:
     """The job block, the setting data and the read-back block of one axis."""
 
-    def __init__(self, comp, pins, md32750, md32760, max_velo_mm_per_min, md32450_mm):
+    def __init__(self, comp, pins, state_file, md32750, md32760, max_velo_mm_per_min, md32450_mm):
         self.comp = comp
+        self.state_file = state_file
         # LinuxCNC's pins, read by name (no signal of the machine's HAL is touched).
         self.pins = pins
         self.pos_mm = 0.0
@@ -78,7 +82,7 @@ class Module:
         self.target_mm = 0.0
         self.lock = threading.Lock()
         self.job = [0] * JOB_BLOCK_LEN
-        self.sd = {SD43900: 0.0, SD43910: 0.0, SD43920: 0.0}
+        self.sd = load_setting_data(state_file)
         self.md32750 = md32750
         self.md32760 = md32760
         self.max_velo_mm_per_min = max_velo_mm_per_min
@@ -104,6 +108,11 @@ class Module:
                 return status, i + 1
             pairs.append((var_id, value))
         self.sd.update(pairs)
+        # Retained as the 840D retains setting data: the job is done once it is stored.
+        try:
+            save_setting_data(self.state_file, self.sd)
+        except OSError as e:
+            print(f"compgate_nc: cannot store the setting data in {self.state_file}: {e}", file=sys.stderr)
         return 0, 0
 
     def write(self, address, words):
@@ -198,6 +207,35 @@ class Module:
         self.comp["target-mm"] = target_mm
 
 
+def load_setting_data(path):
+    """The setting data stored by the last job, zeros when none was stored yet; an
+    unreadable file or a value beyond the limits stops the module, naming the file."""
+    try:
+        with open(path) as f:
+            stored = json.load(f)
+    except FileNotFoundError:
+        return {SD43900: 0.0, SD43910: 0.0, SD43920: 0.0}
+    except (OSError, ValueError) as e:
+        sys.exit(f"compgate_nc: setting data file {path}: {e}; move it away to start from zero")
+    sd = {}
+    for var_id, limit in LIMITS.items():
+        value = stored.get(f"SD{var_id}") if isinstance(stored, dict) else None
+        if not isinstance(value, (int, float)) or not math.isfinite(value) or abs(value) > limit:
+            sys.exit(f"compgate_nc: setting data file {path}: SD{var_id} = {value!r} is not a number within +-{limit}; move the file away to start from zero")
+        sd[var_id] = float(value)
+    return sd
+
+
+def save_setting_data(path, sd):
+    """Writes the setting data atomically: a crash leaves the old file or the new."""
+    tmp = f"{path}.tmp"
+    with open(tmp, "w") as f:
+        json.dump({f"SD{var_id}": value for var_id, value in sd.items()}, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
 def serve(module, bind, port):
     class Handler(socketserver.BaseRequestHandler):
         def handle(self):
@@ -251,6 +289,7 @@ def main():
     p.add_argument("--bind", default="0.0.0.0", help="address to listen on (default: every interface)")
     p.add_argument("--md32750", type=int, default=3, choices=range(4), help="bit 0 SD43900, bit 1 SD43910 applied")
     p.add_argument("--name", help="HAL component name (default compgate-nc-AXIS)")
+    p.add_argument("--state-file", help="where the setting data are retained (default compgate-nc-AXIS.json in the working directory)")
     args = p.parse_args()
     axis = args.axis.upper()
 
@@ -281,6 +320,7 @@ def main():
     module = Module(
         comp,
         pins,
+        args.state_file or f"compgate-nc-{a}.json",
         md32750=args.md32750,
         md32760=ratio,
         max_velo_mm_per_min=ini_float(ini, f"AXIS_{axis}", "MAX_VELOCITY") * 60.0,
