@@ -494,6 +494,11 @@ async fn the_chain_moves_a_linuxcnc_axis_by_the_840d_formula() {
 
 #[test]
 fn a_setup_the_module_cannot_serve_stops_linuxcnc_naming_the_key() {
+    // A port another program listens on.
+    let taken = std::net::TcpListener::bind("0.0.0.0:0").unwrap();
+    let taken_port = taken.local_addr().unwrap().port();
+    let z_port = format!("[COMPGATE_Z]\nJOINT = 2\nPORT = {taken_port}\n");
+    let z_port_error = format!("cannot listen on 0.0.0.0:{taken_port}: Address already in use");
     for (edit, expected) in [
         (
             (
@@ -522,6 +527,18 @@ fn a_setup_the_module_cannot_serve_stops_linuxcnc_naming_the_key() {
                 "net j0-homed joint.0.homed\nnet z-offset axis.z.eoffset-counts\n",
             ),
             "axis.z.eoffset-counts is on signal z-offset already",
+        ),
+        (
+            ("machine.ini", "[COMPGATE_Z]\nJOINT = 2", "[COMPGATE_Z]\nJOINT = 7"),
+            "LinuxCNC has no pin joint.7.homed: check the axis Z in [COMPGATE]AXES and [COMPGATE_Z]JOINT = 7",
+        ),
+        (
+            (
+                "machine.ini",
+                "[COMPGATE_Z]\nJOINT = 2\nPORT = 0\n",
+                z_port.as_str(),
+            ),
+            z_port_error.as_str(),
         ),
         (
             (

@@ -254,7 +254,10 @@ def serve(module, bind, port):
 
     socketserver.ThreadingTCPServer.allow_reuse_address = True
     socketserver.ThreadingTCPServer.daemon_threads = True
-    server = socketserver.ThreadingTCPServer((bind, port), Handler)
+    try:
+        server = socketserver.ThreadingTCPServer((bind, port), Handler)
+    except OSError as e:
+        sys.exit(f"compgate_nc: cannot listen on {bind}:{port}: {e.strerror} (another module or program on that port?)")
     threading.Thread(target=server.serve_forever, daemon=True).start()
     return server.server_address[1]
 
@@ -313,7 +316,7 @@ def main():
         try:
             hal.get_value(pin)
         except RuntimeError:
-            sys.exit(f"compgate_nc: LinuxCNC has no pin {pin}: check --axis {a} and --joint {args.joint}")
+            sys.exit(f"compgate_nc: LinuxCNC has no pin {pin}: check the axis {axis} in [COMPGATE]AXES and [COMPGATE_{axis}]JOINT = {args.joint}")
     comp.newpin("counts", hal.HAL_S32, hal.HAL_OUT)
     comp.newpin("target-mm", hal.HAL_FLOAT, hal.HAL_OUT)
     comp.newpin("port", hal.HAL_S32, hal.HAL_OUT)
