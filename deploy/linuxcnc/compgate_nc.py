@@ -220,7 +220,8 @@ def load_setting_data(path):
     sd = {}
     for var_id, limit in LIMITS.items():
         value = stored.get(f"SD{var_id}") if isinstance(stored, dict) else None
-        if not isinstance(value, (int, float)) or not math.isfinite(value) or abs(value) > limit:
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if not number or not math.isfinite(value) or abs(value) > limit:
             sys.exit(f"compgate_nc: setting data file {path}: SD{var_id} = {value!r} is not a number within +-{limit}; move the file away to start from zero")
         sd[var_id] = float(value)
     return sd
@@ -287,7 +288,7 @@ def ini_float(ini, section, key, default=None):
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--axis", required=True, help="axis letter: x, y, z, ...")
-    p.add_argument("--joint", type=int, required=True, help="joint number of the axis (backlash)")
+    p.add_argument("--joint", type=int, required=True, help="joint of the axis: its homed flag and [JOINT_N]BACKLASH")
     p.add_argument("--port", type=int, default=5020, help="Modbus TCP port (0: any free one, see the port pin)")
     p.add_argument("--bind", default="0.0.0.0", help="address to listen on (default: every interface)")
     p.add_argument("--md32750", type=int, default=3, choices=range(4), help="bit 0 SD43900, bit 1 SD43910 applied")
