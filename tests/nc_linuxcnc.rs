@@ -47,7 +47,14 @@ impl LinuxCnc {
 
     fn wait_ready(&mut self) {
         let deadline = Instant::now() + Duration::from_secs(60);
-        while !(self.pin("joint.2.homed") == "TRUE"
+        // motion.is-all-homed reads TRUE for a moment at start, before any joint is.
+        while !([
+            "motion.motion-enabled",
+            "motion.is-all-homed",
+            "joint.0.homed",
+        ]
+        .iter()
+        .all(|p| self.pin(p) == "TRUE")
             && ["x", "z"].iter().all(|a| {
                 !matches!(
                     self.pin(&format!("compgate-nc-{a}.port")).as_str(),
@@ -181,6 +188,14 @@ impl LinuxCnc {
             .output()
             .unwrap();
         String::from_utf8_lossy(&out.stdout).trim().to_string()
+    }
+
+    fn set_pin(&self, name: &str, value: &str) {
+        let out = Command::new("halcmd")
+            .args(["setp", name, value])
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "setp {name} {value}: {out:?}");
     }
 
     /// A float pin at full precision (halcmd prints 7 digits).
@@ -463,6 +478,17 @@ async fn the_chain_moves_a_linuxcnc_axis_by_the_840d_formula() {
     cnc.command("mdi G0 Z50");
     let (_, z_offset) = wait_applied(&cnc, &mut wz, ("z", 2), 50.0, |h, _| h.sd43900_mm).await;
     assert!((z_offset + 0.0125).abs() <= COUNT_MM, "{z_offset}");
+    // LinuxCNC drops the offset changes it gets while the offset is switched off (as it
+    // does before every joint is homed): switched on again, Z still gets the new value.
+    cnc.set_pin("axis.z.eoffset-enable", "0");
+    let z_job = CompParams {
+        k0_mm: 0.02,
+        ..z_job
+    };
+    wz.write_job(&Job::thermal(&z_job)).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    cnc.set_pin("axis.z.eoffset-enable", "1");
+    wait_applied(&cnc, &mut wz, ("z", 2), 50.0, |h, _| h.sd43900_mm).await;
     wait_applied(&cnc, &mut w, x, 300.0, offset_mm).await;
 
     // Machine off: no offset is requested (LinuxCNC restarts its offset register from
@@ -488,7 +514,9 @@ async fn the_chain_moves_a_linuxcnc_axis_by_the_840d_formula() {
     let (held, _) = wait_applied(&cnc, &mut w, x, 0.0, offset_mm).await;
     assert_eq!(held.thermal(), last);
     assert_ne!(held.sd43900_mm, 0.0);
-    let held_z = cnc.writer("z").read_snapshot().await.unwrap();
+    // And Z's.
+    let mut wz = cnc.writer("z");
+    let (held_z, _) = wait_applied(&cnc, &mut wz, ("z", 2), 0.0, |h, _| h.sd43900_mm).await;
     assert_eq!(held_z.thermal(), z_job);
 }
 
@@ -529,8 +557,24 @@ fn a_setup_the_module_cannot_serve_stops_linuxcnc_naming_the_key() {
             "axis.z.eoffset-counts is on signal z-offset already",
         ),
         (
-            ("machine.ini", "[COMPGATE_Z]\nJOINT = 2", "[COMPGATE_Z]\nJOINT = 7"),
-            "LinuxCNC has no pin joint.7.homed: check the axis Z in [COMPGATE]AXES and [COMPGATE_Z]JOINT = 7",
+            (
+                "machine.ini",
+                "[COMPGATE_Z]\nJOINT = 2",
+                "[COMPGATE_Z]\nJOINT = 7",
+            ),
+            "LinuxCNC has no pin joint.7.homed: check [COMPGATE_Z]JOINT = 7",
+        ),
+        (
+            ("machine.ini", "AXES = X Z", "AXES = X, Z"),
+            "[COMPGATE]AXES = X, Z: expected axis letters separated by spaces",
+        ),
+        (
+            (
+                "machine.ini",
+                "AXES = X Z",
+                "AXES = X Z A\n\n[COMPGATE_A]\nJOINT = 0\nPORT = 0\nMD32750 = 3",
+            ),
+            "axis A in [COMPGATE]AXES is not in [TRAJ]COORDINATES = XYZ",
         ),
         (
             (

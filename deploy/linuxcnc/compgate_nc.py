@@ -77,9 +77,8 @@ class Module:
         self.state_file = state_file
         # LinuxCNC's pins, read by name (no signal of the machine's HAL is touched).
         self.pins = pins
-        self.pos_mm = 0.0
-        self.homed = False
         self.target_mm = 0.0
+        self.counts = 0
         self.lock = threading.Lock()
         self.job = [0] * JOB_BLOCK_LEN
         self.sd = load_setting_data(state_file)
@@ -142,13 +141,13 @@ class Module:
             self.sd[SD43920],
             self.md32760,
             self.max_velo_mm_per_min,
-            self.pos_mm,
+            hal.get_value(self.pins["pos"]),
             hal.get_value(self.pins["applied"]),
             self.target_mm,
             self.md32450_mm,
         ):
             regs += f64_regs(value)
-        return regs + [0] * 4 + [self.md32750, int(self.homed)]
+        return regs + [0] * 4 + [self.md32750, int(hal.get_value(self.pins["homed"]))]
 
     def read(self, address, count):
         end = address + count
@@ -188,13 +187,19 @@ class Module:
             return bytes([fc | 0x80, e.code])
 
     def update(self):
-        """Sets the offset for the axis's position now: none until the machine is on
-        and the axis homed (LinuxCNC restarts its offset register from zero at each
-        machine on)."""
+        """Moves the axis's requested offset to the formula at its position now.
+
+        LinuxCNC takes eoffset-counts as steps: it adds a change of the counts to the
+        requested offset, and drops the change while a joint is not homed or the offset
+        is switched off (eoffset-enable). So the counts follow the difference between
+        the formula and what LinuxCNC requests, not the formula itself, and only while
+        LinuxCNC takes them; a dropped change is made up at the next update. With the
+        machine off the counts go to zero: LinuxCNC restarts its offset from zero at
+        the next machine on."""
         get = hal.get_value
-        pos_mm, homed, on = get(self.pins["pos"]), get(self.pins["homed"]), get(self.pins["on"])
+        pos_mm = get(self.pins["pos"])
+        on, homed, enabled = get(self.pins["on"]), get(self.pins["all_homed"]), get(self.pins["enable"])
         with self.lock:
-            self.pos_mm, self.homed = pos_mm, bool(homed)
             target_mm = 0.0
             if on and homed:
                 if self.md32750 & 1:
@@ -202,8 +207,12 @@ class Module:
                 if self.md32750 & 2:
                     target_mm += self.sd[SD43910] * (pos_mm - self.sd[SD43920])
             self.target_mm = target_mm
-        counts = round(target_mm / COUNT_MM)
-        self.comp["counts"] = max(-S32_MAX, min(S32_MAX, counts))
+        if not on:
+            self.counts = 0
+        elif homed and enabled:
+            step = round((target_mm - get(self.pins["request"])) / COUNT_MM)
+            self.counts = max(-S32_MAX, min(S32_MAX, self.counts + step))
+        self.comp["counts"] = self.counts
         self.comp["target-mm"] = target_mm
 
 
@@ -301,6 +310,9 @@ def main():
     units = (ini.find("TRAJ", "LINEAR_UNITS") or "").lower()
     if units not in ("mm", "metric"):
         sys.exit(f"compgate_nc: [TRAJ]LINEAR_UNITS = {units!r}; compgate writes mm, so the machine must be set up in mm")
+    coordinates = (ini.find("TRAJ", "COORDINATES") or "").upper()
+    if axis not in coordinates:
+        sys.exit(f"compgate_nc: axis {axis} in [COMPGATE]AXES is not in [TRAJ]COORDINATES = {coordinates}")
     ratio = ini_float(ini, f"AXIS_{axis}", "OFFSET_AV_RATIO")
     if not 0 < ratio <= 0.9:
         sys.exit(f"compgate_nc: [AXIS_{axis}]OFFSET_AV_RATIO = {ratio}: external offsets need 0 < ratio <= 0.9")
@@ -310,14 +322,20 @@ def main():
     pins = {
         "pos": f"axis.{a}.pos-cmd",
         "applied": f"axis.{a}.eoffset",
+        "request": f"axis.{a}.eoffset-request",
+        "enable": f"axis.{a}.eoffset-enable",
         "homed": f"joint.{args.joint}.homed",
+        "all_homed": "motion.is-all-homed",
         "on": "motion.motion-enabled",
     }
     for pin in pins.values():
         try:
             hal.get_value(pin)
         except RuntimeError:
-            sys.exit(f"compgate_nc: LinuxCNC has no pin {pin}: check the axis {axis} in [COMPGATE]AXES and [COMPGATE_{axis}]JOINT = {args.joint}")
+            sys.exit(
+                f"compgate_nc: LinuxCNC has no pin {pin}: check [COMPGATE_{axis}]JOINT = {args.joint}, "
+                "and that compgate_nc.tcl comes after the HAL file that loads motmod"
+            )
     comp.newpin("counts", hal.HAL_S32, hal.HAL_OUT)
     comp.newpin("target-mm", hal.HAL_FLOAT, hal.HAL_OUT)
     comp.newpin("port", hal.HAL_S32, hal.HAL_OUT)

@@ -41,7 +41,13 @@ proc compgate_drive {pin} {
     return $pin
 }
 
-foreach a [string tolower [compgate_ini COMPGATE AXES]] {
+set compgate_axes [compgate_ini COMPGATE AXES]
+foreach a [string tolower $compgate_axes] {
+    if {![regexp {^[a-z]$} $a]} {
+        error "compgate_nc.tcl: \[COMPGATE\]AXES = $compgate_axes: expected axis letters separated by spaces, e.g. X Z"
+    }
+}
+foreach a [string tolower $compgate_axes] {
     set A [string toupper $a]
     loadusr -Wn compgate-nc-$a ./compgate_nc.py --axis $a \
         --joint [compgate_ini COMPGATE_$A JOINT] --port [compgate_ini COMPGATE_$A PORT] \
