@@ -290,3 +290,39 @@ pub fn written_by_model(s: &Status) -> compgate_core::comp::CompParams {
 
 /// One ADC count in degC for the test transmitters (24 mA / 4095 counts, 200 degC / 16 mA).
 pub const COUNT_DEGC: f64 = 24.0 / 4095.0 * 200.0 / 16.0;
+
+/// Writes a job whose second pair (SD43900 = 25 mm) lies beyond the NC's own limit and
+/// asserts that the target refuses it naming that pair, and applies neither pair (all
+/// or none). Returns the error for the caller's further checks.
+pub async fn refused_all_or_none(
+    w: &mut impl compgate_gateway::nc::NcWriter,
+) -> compgate_gateway::nc::NcError {
+    use compgate_gateway::nc::{Job, NcError};
+    use compgate_ncproto::{var, JobStatus};
+    let too_big = Job {
+        pairs: vec![(var::SD43910, 0.001), (var::SD43900, 25.0)],
+    };
+    let e = w
+        .write_job(&too_big)
+        .await
+        .expect_err("a job beyond the NC's limit is refused");
+    assert!(
+        matches!(
+            e,
+            NcError::Refused {
+                status: JobStatus::ValueOutOfRange,
+                index: 2,
+                var: Some(var::SD43900),
+                ..
+            }
+        ),
+        "{e:?}"
+    );
+    // The valid first pair was not applied either.
+    let held = w
+        .read_snapshot()
+        .await
+        .expect("a snapshot after the refusal");
+    assert_eq!(held.sd43910, 0.0);
+    e
+}
