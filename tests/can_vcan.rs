@@ -21,6 +21,43 @@ use compgate_gateway::source::can::{CanChannelSpec, CanObject, CanParams, CanPol
 use compgate_gateway::source::plan::DataType;
 use tokio::time::Instant;
 
+/// TPDO1 from its first byte.
+const TPDO1: CanObject = CanObject::Pdo {
+    pdo: 1,
+    offset_bytes: 0,
+};
+/// Object 6401h sub 1 (the first analogue input) by SDO upload.
+const SDO_6401_1: CanObject = CanObject::Sdo {
+    index: 0x6401,
+    sub: 1,
+};
+
+/// A poller (named `n<node_id>`) of node `node_id` on `interface` with one U16 channel
+/// at `object`, degraded after 3 bad cycles.
+fn one_channel_poller(
+    interface: String,
+    node_id: u8,
+    timeout: Duration,
+    heartbeat_timeout: Duration,
+    sync_period: Duration,
+    object: CanObject,
+) -> CanPoller {
+    let params = CanParams {
+        interface,
+        node_id,
+        timeout,
+        heartbeat_timeout,
+        sync_period,
+        degrade_after_cycles: 3,
+    };
+    let spec = CanChannelSpec {
+        channel: 0,
+        object,
+        data_type: DataType::U16,
+    };
+    CanPoller::new(0, format!("n{node_id}"), params, vec![spec])
+}
+
 fn interface() -> String {
     std::env::var("VCAN_IF").unwrap_or_else(|_| "vcan0".into())
 }
@@ -314,23 +351,14 @@ async fn node_to_nc_then_silence_recovery_emcy_and_sdo_abort() {
 /// reports a socket error naming the interface and every channel fails.
 #[tokio::test]
 async fn missing_interface_is_a_named_socket_error() {
-    let params = CanParams {
-        interface: "nosuchcan7".into(),
-        node_id: 3,
-        timeout: Duration::from_millis(50),
-        heartbeat_timeout: Duration::ZERO,
-        sync_period: Duration::from_millis(100),
-        degrade_after_cycles: 3,
-    };
-    let spec = CanChannelSpec {
-        channel: 0,
-        object: CanObject::Pdo {
-            pdo: 1,
-            offset_bytes: 0,
-        },
-        data_type: DataType::U16,
-    };
-    let mut poller = CanPoller::new(0, "n3".into(), params, vec![spec]);
+    let mut poller = one_channel_poller(
+        "nosuchcan7".into(),
+        3,
+        Duration::from_millis(50),
+        Duration::ZERO,
+        Duration::from_millis(100),
+        TPDO1,
+    );
     let s = poller.poll().await;
     let e = s.error.expect("error").to_string();
     assert!(e.contains("CAN interface nosuchcan7"), "{e}");
@@ -404,23 +432,14 @@ async fn a_malformed_sdo_answer_is_named() {
             }
         }
     });
-    let params = CanParams {
-        interface: interface(),
-        node_id: 13,
-        timeout: Duration::from_millis(300),
-        heartbeat_timeout: Duration::ZERO,
-        sync_period: Duration::from_millis(100),
-        degrade_after_cycles: 3,
-    };
-    let spec = CanChannelSpec {
-        channel: 0,
-        object: CanObject::Sdo {
-            index: 0x6401,
-            sub: 1,
-        },
-        data_type: DataType::U16,
-    };
-    let mut poller = CanPoller::new(0, "n13".into(), params, vec![spec]);
+    let mut poller = one_channel_poller(
+        interface(),
+        13,
+        Duration::from_millis(300),
+        Duration::ZERO,
+        Duration::from_millis(100),
+        SDO_6401_1,
+    );
     let e = poller.poll().await.error.expect("an error").to_string();
     assert!(
         e.contains(
@@ -448,23 +467,14 @@ async fn a_malformed_heartbeat_is_named_in_the_timeout() {
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
     });
-    let params = CanParams {
-        interface: interface(),
-        node_id: 14,
-        timeout: Duration::from_millis(100),
-        heartbeat_timeout: Duration::from_millis(300),
-        sync_period: Duration::from_millis(100),
-        degrade_after_cycles: 3,
-    };
-    let spec = CanChannelSpec {
-        channel: 0,
-        object: CanObject::Sdo {
-            index: 0x6401,
-            sub: 1,
-        },
-        data_type: DataType::U16,
-    };
-    let mut poller = CanPoller::new(0, "n14".into(), params, vec![spec]);
+    let mut poller = one_channel_poller(
+        interface(),
+        14,
+        Duration::from_millis(100),
+        Duration::from_millis(300),
+        Duration::from_millis(100),
+        SDO_6401_1,
+    );
     let deadline = Instant::now() + Duration::from_secs(10);
     let e = loop {
         if let Some(e) = poller.poll().await.error {
@@ -524,23 +534,14 @@ async fn a_rebooted_node_and_a_link_down_up_recover_without_restart() {
         },
         stop.clone(),
     ));
-    let params = CanParams {
-        interface: interface(),
-        node_id: 12,
-        timeout: Duration::from_millis(200),
-        heartbeat_timeout: Duration::from_millis(500),
-        sync_period: period,
-        degrade_after_cycles: 3,
-    };
-    let spec = CanChannelSpec {
-        channel: 0,
-        object: CanObject::Pdo {
-            pdo: 1,
-            offset_bytes: 0,
-        },
-        data_type: DataType::U16,
-    };
-    let mut poller = CanPoller::new(0, "n12".into(), params, vec![spec]);
+    let mut poller = one_channel_poller(
+        interface(),
+        12,
+        Duration::from_millis(200),
+        Duration::from_millis(500),
+        period,
+        TPDO1,
+    );
     let wait = Duration::from_secs(15);
     poll_until_good(&mut poller, wait, "first TPDO").await;
 
@@ -839,23 +840,14 @@ async fn bench_frames_per_second() {
         (32, 64_000),
         (0, 64_000),
     ] {
-        let params = CanParams {
-            interface: interface(),
-            node_id: 42,
-            timeout: Duration::from_millis(20),
-            heartbeat_timeout: Duration::ZERO,
-            sync_period: Duration::from_millis(100),
-            degrade_after_cycles: 3,
-        };
-        let spec = CanChannelSpec {
-            channel: 0,
-            object: CanObject::Pdo {
-                pdo: 1,
-                offset_bytes: 0,
-            },
-            data_type: DataType::U16,
-        };
-        let mut poller = CanPoller::new(0, "bench".into(), params, vec![spec]);
+        let mut poller = one_channel_poller(
+            interface(),
+            42,
+            Duration::from_millis(20),
+            Duration::ZERO,
+            Duration::from_millis(100),
+            TPDO1,
+        );
         poller.poll().await; // opens the socket
         let base = poller.pdos_received();
         let stop = tokio_util::sync::CancellationToken::new();
