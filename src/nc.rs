@@ -167,6 +167,21 @@ async fn read(cfg: &Config, target: Option<&str>) -> Result<(), NcError> {
                         s.referenced,
                         shown_mm(s.applied_comp_mm)
                     ))?;
+                    // The same facts that hold the gateway and refuse `nc write`.
+                    if s.md32750 != ax.md32750 {
+                        cli::print(format_args!(
+                            "  warning: axes.{name}.md32750 expects {}: the gateway holds this \
+                             axis and `nc write` refuses until MD32750 on the control or the \
+                             config is corrected (bit 0: K0, bit 1: slope)\n",
+                            ax.md32750
+                        ))?;
+                    }
+                    if !s.referenced {
+                        cli::print(
+                            "  warning: the axis is not referenced: the NC applies no \
+                             temperature compensation until it is\n",
+                        )?;
+                    }
                 }
                 match w.may_write().await {
                     Ok(Some(true)) => cli::print("  this session may write them\n")?,

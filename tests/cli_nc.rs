@@ -82,6 +82,7 @@ async fn nc_read_prints_what_the_nc_holds() {
         "{t}"
     );
     assert!(t.contains("MD32750 = 3, referenced = true"), "{t}");
+    assert!(!t.contains("warning"), "{t}");
 
     let out = nc(&file, &["read", "--target", "nope"], "").await;
     assert_eq!(out.status.code(), Some(1));
@@ -248,7 +249,7 @@ async fn nc_write_keeps_p0_in_its_range_and_shows_values_readably() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn nc_write_refuses_a_wrong_md32750_and_warns_of_an_unreferenced_axis() {
+async fn nc_write_refuses_a_wrong_md32750_and_nc_read_and_write_warn_of_an_unreferenced_axis() {
     let dir = tempfile::tempdir().unwrap();
     let (plant, file) = plant_and_file(dir.path(), &config("hold", "", ""), "").await;
     let module = plant.nc["nc_x"].clone();
@@ -265,6 +266,15 @@ async fn nc_write_refuses_a_wrong_md32750_and_warns_of_an_unreferenced_axis() {
     );
     assert!(t.contains("nothing was written"), "{t}");
     assert_eq!(module.jobs_executed(), 0);
+    // `nc read` reports it and names the key, but a read is not refused.
+    let out = nc(&file, &["read"], "").await;
+    let t = text_of(&out);
+    assert!(out.status.success(), "{t}");
+    assert!(
+        t.contains("MD32750 = 1, referenced = true")
+            && t.contains("warning: axes.X.md32750 expects 3: the gateway holds this axis"),
+        "{t}"
+    );
 
     // Not referenced: written, after a warning that says what it means.
     module.with_state(|a| {
@@ -281,6 +291,11 @@ async fn nc_write_refuses_a_wrong_md32750_and_warns_of_an_unreferenced_axis() {
     );
     assert_eq!(module.jobs_executed(), 1);
     assert_eq!(module.state().sd43900_mm, 0.04);
+    let t = text_of(&nc(&file, &["read"], "").await);
+    assert!(
+        t.contains("warning: the axis is not referenced") && !t.contains("md32750 expects"),
+        "{t}"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
