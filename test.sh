@@ -27,7 +27,8 @@ if ((${#need[@]})); then
     DEBIAN_FRONTEND=noninteractive "${sudo[@]}" apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
 fi
 
-# Independent protocol peers (OPC UA, S7, ADS servers, a Modbus device) in a venv under target/.
+# Independent protocol peers (OPC UA, S7, ADS servers, a Modbus device, a CANopen node) in a
+# venv under target/.
 tests/peers/install.sh
 
 echo "== cargo fmt --check"

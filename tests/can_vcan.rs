@@ -3,7 +3,7 @@
 //! loopback). Then node silence, recovery, an EMCY from can-utils' `cansend`, an SDO
 //! abort, and `candump` watching the gateway's SYNC and NMT frames and timing the
 //! SYNC period; the SYNC producer across the interface going down and up, a reload
-//! and shutdown.
+//! and shutdown; an independent CANopen node (python-canopen).
 //!
 //! Needs `vcan0` (or `VCAN_IF`) and can-utils: ignored in a plain `cargo test`;
 //! `tests/vcan/run.sh` runs them natively or inside a VM with vcan.
@@ -491,6 +491,148 @@ async fn a_malformed_heartbeat_is_named_in_the_timeout() {
         "{e}"
     );
     node.abort();
+}
+
+/// An independent CANopen node: python-canopen's LocalNode (`tests/peers/canopen_node.py`),
+/// a CiA 401 analogue input module of another CiA 301 implementation than the
+/// simulator's. It sends TPDO1 only once operational, so good TPDO values show that
+/// it took the poller's NMT start. Then its SDO answers (expedited, segmented, abort)
+/// and its heartbeat, as the simulator's tests check them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs vcan0 and the Python peers; tests/vcan/run.sh runs it"]
+async fn an_independent_canopen_node_python_canopen() {
+    use std::io::{BufRead, BufReader, Write};
+    let Some(py) = common::peer::python("canopen") else {
+        return;
+    };
+    let mut node = common::peer::Peer::spawn(&py, "canopen_node.py", &[interface(), "21".into()]);
+    let (mut commands, replies) = node.take_stdio();
+    let mut replies = BufReader::new(replies);
+    let mut line = String::new();
+    // Its first line comes once it is on the bus and has sent its boot-up.
+    replies.read_line(&mut line).expect("from the node");
+    assert_eq!(line.trim(), "READY 21", "canopen_node.py did not start");
+    let mut say = |command: &str| {
+        writeln!(commands, "{command}").expect("to the node");
+        let mut line = String::new();
+        replies.read_line(&mut line).expect("from the node");
+        assert_eq!(line.trim(), "OK", "canopen_node.py after {command:?}");
+    };
+    for command in ["set 1 1234", "set 2 -56", "set 5 3000"] {
+        say(command);
+    }
+
+    let period = Duration::from_millis(100);
+    let stop = tokio_util::sync::CancellationToken::new();
+    let producer = tokio::spawn(sync::run(
+        SyncParams {
+            interface: interface(),
+            period,
+            backoff_initial: period,
+            backoff_max: period,
+        },
+        stop.clone(),
+    ));
+    let params = CanParams {
+        interface: interface(),
+        node_id: 21,
+        // A Python node in an emulated VM answers in tens of milliseconds.
+        timeout: Duration::from_millis(500),
+        heartbeat_timeout: Duration::from_millis(600),
+        sync_period: period,
+        degrade_after_cycles: 3,
+    };
+    let spec = |channel, object, data_type| CanChannelSpec {
+        channel,
+        object,
+        data_type,
+    };
+    let sdo = |index, sub| CanObject::Sdo { index, sub };
+    let specs = vec![
+        spec(0, TPDO1, DataType::U16),
+        spec(
+            1,
+            CanObject::Pdo {
+                pdo: 1,
+                offset_bytes: 2,
+            },
+            DataType::I16,
+        ),
+        spec(2, sdo(0x6401, 5), DataType::U16),
+        // Longer than 4 bytes: python-canopen starts a segmented upload.
+        spec(3, sdo(0x1008, 0), DataType::U32),
+        spec(4, sdo(0x1000, 0), DataType::U32),
+    ];
+    let mut poller = CanPoller::new(0, "n21".into(), params, specs);
+    let value = |s: &compgate_gateway::source::DeviceSample, channel: usize| {
+        s.values
+            .iter()
+            .find(|(c, _)| *c == channel)
+            .and_then(|(_, v)| v.as_ref().ok().copied())
+    };
+    let error = |s: &compgate_gateway::source::DeviceSample| {
+        s.error
+            .as_ref()
+            .map(ToString::to_string)
+            .unwrap_or_default()
+    };
+    let wait = Duration::from_secs(20);
+    let deadline = Instant::now() + wait;
+    let s = loop {
+        let s = poller.poll().await;
+        if value(&s, 0).is_some() {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "no TPDO1 from the node: {s:?}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert_eq!(value(&s, 0), Some(1234.0), "{s:?}");
+    assert_eq!(value(&s, 1), Some(-56.0), "{s:?}");
+    assert_eq!(value(&s, 2), Some(3000.0), "{s:?}");
+    assert_eq!(value(&s, 3), None, "{s:?}");
+    // The object after the segmented one: python-canopen took the poller's abort.
+    assert_eq!(value(&s, 4), Some(f64::from(0x0004_0191u32)), "{s:?}");
+    assert!(
+        error(&s).contains("node 21: SDO upload 1008h sub 0: the object is longer than 4 bytes"),
+        "{}",
+        error(&s)
+    );
+
+    say("set 1 2000");
+    let deadline = Instant::now() + wait;
+    while value(&poller.poll().await, 0) != Some(2000.0) {
+        assert!(Instant::now() < deadline, "TPDO1 did not follow the node");
+    }
+
+    say("fail 5 06060000");
+    let s = poller.poll().await;
+    assert!(
+        error(&s).contains(
+            "node 21: SDO upload 6401h sub 5: abort 06060000h: access failed due to a hardware error"
+        ),
+        "{}",
+        error(&s)
+    );
+    assert_eq!(value(&s, 2), None, "{s:?}");
+    assert_eq!(value(&s, 4), Some(f64::from(0x0004_0191u32)), "{s:?}");
+    assert_eq!(value(&s, 0), Some(2000.0), "{s:?}");
+
+    say("silent");
+    let deadline = Instant::now() + wait;
+    let s = loop {
+        let s = poller.poll().await;
+        if error(&s).contains("heartbeat timeout") {
+            break s;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the silent node was not noticed: {s:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert!(s.values.iter().all(|(_, v)| v.is_err()), "{s:?}");
+    stop.cancel();
+    producer.await.expect("SYNC producer");
 }
 
 /// A field module of one transmitter holding 20 degC, for a simulated node.

@@ -98,7 +98,7 @@ mkdir -p "$WORK"
 
 # ---- kernel and CAN modules, cached under target/vcan/kernel
 KDIR=$WORK/kernel
-if [[ ! -f $KDIR/vmlinuz || ! -f $KDIR/mods/vcan.ko ]]; then
+if [[ ! -f $KDIR/vmlinuz || ! -f $KDIR/mods/vcan.ko || ! -f $KDIR/mods/can-bcm.ko ]]; then
     apt-get update -qq >/dev/null 2>&1 || true
     # The plain -amd64 flavour: -cloud-amd64 has no CAN modules.
     KPKG=$(apt-cache depends linux-image-amd64 2>/dev/null | grep -o 'linux-image-[0-9][^ ]*-amd64' | head -1)
@@ -107,8 +107,9 @@ if [[ ! -f $KDIR/vmlinuz || ! -f $KDIR/mods/vcan.ko ]]; then
     (cd "$KDIR" && apt-get download "$KPKG" >/dev/null 2>&1) || skip_or_fail "cannot download $KPKG"
     dpkg -x "$KDIR"/linux-image-*.deb "$KDIR/x"
     M=$(echo "$KDIR"/x/lib/modules/*/kernel)
-    cp "$M/net/can/can.ko" "$M/net/can/can-raw.ko" "$M/drivers/net/can/dev/can-dev.ko" \
-        "$M/drivers/net/can/vcan.ko" "$KDIR/mods/"
+    # can-bcm: python-can sends the Python node's heartbeat through the broadcast manager.
+    cp "$M/net/can/can.ko" "$M/net/can/can-raw.ko" "$M/net/can/can-bcm.ko" \
+        "$M/drivers/net/can/dev/can-dev.ko" "$M/drivers/net/can/vcan.ko" "$KDIR/mods/"
     cp "$KDIR"/x/boot/vmlinuz-* "$KDIR/vmlinuz"
     rm -rf "$KDIR/x" "$KDIR"/linux-image-*.deb
 fi
@@ -130,8 +131,60 @@ carry "$(command -v cansend)" /bin/cansend
 carry "$(command -v candump)" /bin/candump
 carry "$(command -v cangen)" /bin/cangen
 
+# The independent CANopen node (tests/peers/canopen_node.py): the peers' interpreter, its
+# standard library without what no peer imports (tests, Tk, IDLE, other packages), and
+# canopen with what it requires, each at the path it has here, so the test finds them
+# as it does outside the VM.
+carry_python() {
+    local py=$ROOT/target/peers-venv/bin/python p next
+    "$py" -c "import canopen" 2>/dev/null || return 0 # the test says what is missing
+    mkdir -p "$IR$ROOT/target/peers-venv"
+    cp "$ROOT/target/peers-venv/pyvenv.cfg" "$IR$ROOT/target/peers-venv/"
+    p=$py
+    while [[ -L $p ]]; do
+        mkdir -p "$IR$(dirname "$p")" && cp -a "$p" "$IR$p"
+        next=$(readlink "$p")
+        [[ $next == /* ]] || next=$(dirname "$p")/$next
+        p=$next
+    done
+    carry "$p" "$p"
+    local stdlib
+    stdlib=$("$py" -c 'import sysconfig; print(sysconfig.get_paths()["stdlib"])')
+    tar -C / -cf - --exclude=test --exclude=site-packages --exclude=dist-packages \
+        --exclude=idlelib --exclude=tkinter --exclude=turtledemo --exclude=ensurepip \
+        --exclude=lib2to3 --exclude='config-3*' --exclude=pydoc_data --exclude='_tkinter*' "${stdlib#/}" |
+        tar -C "$IR" -xf -
+    for so in "$stdlib"/lib-dynload/*.so; do
+        [[ $so == */_tkinter* ]] && continue
+        for l in $(ldd "$so" 2>/dev/null | grep -o '/[^ ]*'); do
+            [[ -e "$IR$l" ]] || { mkdir -p "$IR$(dirname "$l")" && cp -L "$l" "$IR$l"; }
+        done
+    done
+    "$py" - <<'PY' | while read -r f; do mkdir -p "$IR$(dirname "$f")" && cp -L "$f" "$IR$f"; done
+import importlib.metadata as md
+from packaging.requirements import Requirement
+todo, seen = ["canopen"], set()
+while todo:
+    dist = md.distribution(todo.pop())
+    name = dist.metadata["Name"].lower()
+    if name in seen:
+        continue
+    seen.add(name)
+    for f in dist.files or []:
+        path = dist.locate_file(f)
+        if path.is_file():
+            print(path.resolve())
+    for r in map(Requirement, dist.requires or []):
+        if r.marker is None or r.marker.evaluate({"extra": ""}):
+            todo.append(r.name)
+PY
+    mkdir -p "$IR$ROOT/tests/peers"
+    cp "$ROOT/tests/peers/canopen_node.py" "$IR$ROOT/tests/peers/"
+}
+
 RUN_TESTS=""
 if [[ $SMOKE -eq 0 ]]; then
+    carry_python
     echo "vcan: building the test binaries"
     i=0
     build_tests
@@ -151,7 +204,8 @@ export PATH=/bin:/sbin
 mount -t proc proc /proc; mount -t sysfs sys /sys; mount -t devtmpfs dev /dev
 mount -t tmpfs tmp /tmp
 export TMPDIR=/tmp
-for m in can can-raw can-dev vcan; do insmod /mods/\$m.ko || echo "VCAN-ERROR: insmod \$m"; done
+${CI:+export CI=1}
+for m in can can-raw can-bcm can-dev vcan; do insmod /mods/\$m.ko || echo "VCAN-ERROR: insmod \$m"; done
 ip link set up lo
 ip link add dev vcan0 type vcan && ip link set up vcan0
 echo "VCAN-BOOTED: \$(cut -d' ' -f1 /proc/uptime) s"
