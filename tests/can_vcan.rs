@@ -58,6 +58,27 @@ fn one_channel_poller(
     CanPoller::new(0, format!("n{node_id}"), params, vec![spec])
 }
 
+/// A SYNC producer on the test interface every `period` (retrying after one), and
+/// what stops it.
+fn sync_producer(
+    period: Duration,
+) -> (
+    tokio_util::sync::CancellationToken,
+    tokio::task::JoinHandle<sync::SyncStats>,
+) {
+    let stop = tokio_util::sync::CancellationToken::new();
+    let producer = tokio::spawn(sync::run(
+        SyncParams {
+            interface: interface(),
+            period,
+            backoff_initial: period,
+            backoff_max: period,
+        },
+        stop.clone(),
+    ));
+    (stop, producer)
+}
+
 fn interface() -> String {
     std::env::var("VCAN_IF").unwrap_or_else(|_| "vcan0".into())
 }
@@ -523,16 +544,7 @@ async fn an_independent_canopen_node_python_canopen() {
     }
 
     let period = Duration::from_millis(100);
-    let stop = tokio_util::sync::CancellationToken::new();
-    let producer = tokio::spawn(sync::run(
-        SyncParams {
-            interface: interface(),
-            period,
-            backoff_initial: period,
-            backoff_max: period,
-        },
-        stop.clone(),
-    ));
+    let (stop, producer) = sync_producer(period);
     let params = CanParams {
         interface: interface(),
         node_id: 21,
@@ -666,16 +678,7 @@ async fn a_rebooted_node_and_a_link_down_up_recover_without_restart() {
     let module = one_transmitter_at_20_degc();
     let node = CanopenNode::spawn(&interface(), 12, 50, module).expect("simulated node");
     let period = Duration::from_millis(100);
-    let stop = tokio_util::sync::CancellationToken::new();
-    let producer = tokio::spawn(sync::run(
-        SyncParams {
-            interface: interface(),
-            period,
-            backoff_initial: period,
-            backoff_max: period,
-        },
-        stop.clone(),
-    ));
+    let (stop, producer) = sync_producer(period);
     let mut poller = one_channel_poller(
         interface(),
         12,
