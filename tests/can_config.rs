@@ -38,6 +38,18 @@ fn the_can_example_loads() {
     assert_eq!(dev.transport(), Transport::Can);
     assert_eq!(dev.can().map(|c| c.node_id), Some(5));
     assert_eq!(dev.can().map(|c| c.interface.as_str()), Some("vcan0"));
+    let params = |c: &config::Config| {
+        let can = c.devices["can_ain"].can().expect("can").clone();
+        can.params(std::time::Duration::from_millis(500))
+    };
+    assert_eq!(params(&cfg).tpdo_max_age, None, "synchronous");
+    let event = example().replace("# tpdo_max_age_s = 0.3", "tpdo_max_age_s = 0.3");
+    let event = config::load_str(&event, "can.toml").expect("valid");
+    assert_eq!(
+        params(&event).tpdo_max_age,
+        Some(std::time::Duration::from_millis(300)),
+        "event-driven"
+    );
     let can = cfg.channels["T_screw"].can.expect("can table");
     assert_eq!((can.pdo, can.offset_bytes), (Some(1), Some(2)));
     let sdo = cfg.channels["T_col"].can.expect("can table");
@@ -94,6 +106,18 @@ fn node_id_interface_and_modbus_keys() {
             &p,
             "devices.can_ain.heartbeat_timeout_s",
             "`-1`, expected a number 0..=3600"
+        ),
+        "{p:#?}"
+    );
+    let p = problems(&example().replace(
+        "heartbeat_timeout_s = 1.5",
+        "heartbeat_timeout_s = 1.5\ntpdo_max_age_s = 0.0",
+    ));
+    assert!(
+        has(
+            &p,
+            "devices.can_ain.tpdo_max_age_s",
+            "`0`, expected a number 0.001..=3600"
         ),
         "{p:#?}"
     );

@@ -19,6 +19,7 @@ use compgate_gateway::runtime::Status;
 use compgate_gateway::source::can::sync::{self, SyncParams};
 use compgate_gateway::source::can::{CanChannelSpec, CanObject, CanParams, CanPoller};
 use compgate_gateway::source::plan::DataType;
+use compgate_gateway::source::DeviceSample;
 use tokio::time::Instant;
 
 /// TPDO1 from its first byte.
@@ -49,6 +50,7 @@ fn one_channel_poller(
         heartbeat_timeout,
         sync_period,
         degrade_after_cycles: 3,
+        tpdo_max_age: None,
     };
     let spec = CanChannelSpec {
         channel: 0,
@@ -403,6 +405,7 @@ async fn a_segmented_object_fails_alone() {
         heartbeat_timeout: Duration::ZERO,
         sync_period: Duration::from_millis(100),
         degrade_after_cycles: 3,
+        tpdo_max_age: None,
     };
     let sdo = |channel, index, data_type| CanChannelSpec {
         channel,
@@ -514,6 +517,66 @@ async fn a_malformed_heartbeat_is_named_in_the_timeout() {
     node.abort();
 }
 
+/// `tests/peers/canopen_node.py` on the test interface: python-canopen's LocalNode, a
+/// CANopen node of another implementation than the simulator's.
+struct PythonNode {
+    _peer: common::peer::Peer,
+    commands: std::process::ChildStdin,
+    replies: std::io::BufReader<std::process::ChildStdout>,
+}
+
+impl PythonNode {
+    /// Node `node_id` with the script's `args`, once it has booted; `None` (after
+    /// saying why) without the Python peers.
+    fn start(node_id: u8, args: &[&str]) -> Option<Self> {
+        use std::io::BufRead;
+        let py = common::peer::python("canopen")?;
+        let mut all = vec![interface(), node_id.to_string()];
+        all.extend(args.iter().map(ToString::to_string));
+        let mut peer = common::peer::Peer::spawn(&py, "canopen_node.py", &all);
+        let (commands, replies) = peer.take_stdio();
+        let mut replies = std::io::BufReader::new(replies);
+        let mut line = String::new();
+        // Its first line comes once it is on the bus and has sent its boot-up.
+        replies.read_line(&mut line).expect("from the node");
+        assert_eq!(
+            line.trim(),
+            format!("READY {node_id}"),
+            "canopen_node.py did not start"
+        );
+        Some(Self {
+            _peer: peer,
+            commands,
+            replies,
+        })
+    }
+
+    /// Sends one command (see the script) and waits for its `OK`.
+    fn say(&mut self, command: &str) {
+        use std::io::{BufRead, Write};
+        writeln!(self.commands, "{command}").expect("to the node");
+        let mut line = String::new();
+        self.replies.read_line(&mut line).expect("from the node");
+        assert_eq!(line.trim(), "OK", "canopen_node.py after {command:?}");
+    }
+}
+
+/// Channel `channel`'s value in `s`, if it has one.
+fn value(s: &DeviceSample, channel: usize) -> Option<f64> {
+    s.values
+        .iter()
+        .find(|(c, _)| *c == channel)
+        .and_then(|(_, v)| v.as_ref().ok().copied())
+}
+
+/// The first error of `s`, or "".
+fn error(s: &DeviceSample) -> String {
+    s.error
+        .as_ref()
+        .map(ToString::to_string)
+        .unwrap_or_default()
+}
+
 /// An independent CANopen node: python-canopen's LocalNode (`tests/peers/canopen_node.py`),
 /// a CiA 401 analogue input module of another CiA 301 implementation than the
 /// simulator's. It sends TPDO1 only once operational, so good TPDO values show that
@@ -522,25 +585,11 @@ async fn a_malformed_heartbeat_is_named_in_the_timeout() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "needs vcan0 and the Python peers; tests/vcan/run.sh runs it"]
 async fn an_independent_canopen_node_python_canopen() {
-    use std::io::{BufRead, BufReader, Write};
-    let Some(py) = common::peer::python("canopen") else {
+    let Some(mut node) = PythonNode::start(21, &[]) else {
         return;
     };
-    let mut node = common::peer::Peer::spawn(&py, "canopen_node.py", &[interface(), "21".into()]);
-    let (mut commands, replies) = node.take_stdio();
-    let mut replies = BufReader::new(replies);
-    let mut line = String::new();
-    // Its first line comes once it is on the bus and has sent its boot-up.
-    replies.read_line(&mut line).expect("from the node");
-    assert_eq!(line.trim(), "READY 21", "canopen_node.py did not start");
-    let mut say = |command: &str| {
-        writeln!(commands, "{command}").expect("to the node");
-        let mut line = String::new();
-        replies.read_line(&mut line).expect("from the node");
-        assert_eq!(line.trim(), "OK", "canopen_node.py after {command:?}");
-    };
     for command in ["set 1 1234", "set 2 -56", "set 5 3000"] {
-        say(command);
+        node.say(command);
     }
 
     let period = Duration::from_millis(100);
@@ -553,6 +602,7 @@ async fn an_independent_canopen_node_python_canopen() {
         heartbeat_timeout: Duration::from_millis(600),
         sync_period: period,
         degrade_after_cycles: 3,
+        tpdo_max_age: None,
     };
     let spec = |channel, object, data_type| CanChannelSpec {
         channel,
@@ -576,18 +626,6 @@ async fn an_independent_canopen_node_python_canopen() {
         spec(4, sdo(0x1000, 0), DataType::U32),
     ];
     let mut poller = CanPoller::new(0, "n21".into(), params, specs);
-    let value = |s: &compgate_gateway::source::DeviceSample, channel: usize| {
-        s.values
-            .iter()
-            .find(|(c, _)| *c == channel)
-            .and_then(|(_, v)| v.as_ref().ok().copied())
-    };
-    let error = |s: &compgate_gateway::source::DeviceSample| {
-        s.error
-            .as_ref()
-            .map(ToString::to_string)
-            .unwrap_or_default()
-    };
     let wait = Duration::from_secs(20);
     let deadline = Instant::now() + wait;
     let s = loop {
@@ -610,13 +648,13 @@ async fn an_independent_canopen_node_python_canopen() {
         error(&s)
     );
 
-    say("set 1 2000");
+    node.say("set 1 2000");
     let deadline = Instant::now() + wait;
     while value(&poller.poll().await, 0) != Some(2000.0) {
         assert!(Instant::now() < deadline, "TPDO1 did not follow the node");
     }
 
-    say("fail 5 06060000");
+    node.say("fail 5 06060000");
     let s = poller.poll().await;
     assert!(
         error(&s).contains(
@@ -629,7 +667,7 @@ async fn an_independent_canopen_node_python_canopen() {
     assert_eq!(value(&s, 4), Some(f64::from(0x0004_0191u32)), "{s:?}");
     assert_eq!(value(&s, 0), Some(2000.0), "{s:?}");
 
-    say("silent");
+    node.say("silent");
     let deadline = Instant::now() + wait;
     let s = loop {
         let s = poller.poll().await;
@@ -642,6 +680,101 @@ async fn an_independent_canopen_node_python_canopen() {
         );
         tokio::time::sleep(Duration::from_millis(50)).await;
     };
+    assert!(s.values.iter().all(|(_, v)| v.is_err()), "{s:?}");
+    stop.cancel();
+    producer.await.expect("SYNC producer");
+}
+
+/// A node whose TPDO1 is event-driven (python-canopen's own periodic sender, every
+/// 100 ms once operational, whatever the SYNC), as many CiA 401 modules ship:
+/// with `tpdo_max_age` the poller takes the newest frame and follows it; when the
+/// node goes quiet it names the TPDO's age. A poller that expects synchronous TPDOs
+/// names what it saw instead: when the last one came, and the key that reads it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs vcan0 and the Python peers; tests/vcan/run.sh runs it"]
+async fn an_event_driven_tpdo_is_read_by_its_age() {
+    let Some(mut node) = PythonNode::start(22, &["--event-ms", "100"]) else {
+        return;
+    };
+    node.say("set 1 1234");
+    node.say("set 2 -56");
+    let period = Duration::from_millis(100);
+    let params = |tpdo_max_age| CanParams {
+        interface: interface(),
+        node_id: 22,
+        timeout: Duration::from_millis(150),
+        heartbeat_timeout: Duration::ZERO,
+        sync_period: period,
+        degrade_after_cycles: 3,
+        tpdo_max_age,
+    };
+    let specs = || {
+        vec![
+            CanChannelSpec {
+                channel: 0,
+                object: TPDO1,
+                data_type: DataType::U16,
+            },
+            CanChannelSpec {
+                channel: 1,
+                object: CanObject::Pdo {
+                    pdo: 1,
+                    offset_bytes: 2,
+                },
+                data_type: DataType::I16,
+            },
+        ]
+    };
+    // No SYNC on the bus: the event-driven poller needs none.
+    let mut event = CanPoller::new(
+        0,
+        "n22".into(),
+        params(Some(Duration::from_millis(300))),
+        specs(),
+    );
+    let wait = Duration::from_secs(20);
+    let deadline = Instant::now() + wait;
+    let s = loop {
+        let s = event.poll().await;
+        if value(&s, 0).is_some() {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "no TPDO1 from the node: {s:?}");
+        tokio::time::sleep(period).await;
+    };
+    assert_eq!(
+        (value(&s, 0), value(&s, 1)),
+        (Some(1234.0), Some(-56.0)),
+        "{s:?}"
+    );
+    node.say("set 1 2000");
+    let deadline = Instant::now() + wait;
+    while value(&event.poll().await, 0) != Some(2000.0) {
+        assert!(Instant::now() < deadline, "TPDO1 did not follow the node");
+        tokio::time::sleep(period).await;
+    }
+
+    let (stop, producer) = sync_producer(period);
+    let mut synchronous = CanPoller::new(1, "n22 sync".into(), params(None), specs());
+    synchronous.poll().await;
+    node.say("silent");
+    tokio::time::sleep(Duration::from_millis(400)).await;
+    let e = error(&synchronous.poll().await);
+    assert!(
+        e.starts_with("node 22: TPDO1 not received within 150ms of the SYNC; the last one came ")
+            && e.ends_with(
+                "s before: if the node sends it on its event timer (transmission type 254 or \
+                 255 in 1800h sub 2), set tpdo_max_age_s"
+            ),
+        "{e}"
+    );
+    let s = event.poll().await;
+    assert!(
+        error(&s).starts_with("node 22: TPDO1 not received for ")
+            && error(&s).ends_with("s (tpdo_max_age_s = 0.3)"),
+        "{}",
+        error(&s)
+    );
     assert!(s.values.iter().all(|(_, v)| v.is_err()), "{s:?}");
     stop.cancel();
     producer.await.expect("SYNC producer");

@@ -2,13 +2,15 @@
 implementation of its own (SDO server, NMT slave, heartbeat producer, PDO encoding), as a
 CiA 401 analogue input module.
 
-Usage: canopen_node.py INTERFACE NODE_ID [--bustype socketcan]
+Usage: canopen_node.py INTERFACE NODE_ID [--event-ms N] [--bustype socketcan]
 
 Object dictionary: 1000h device type (CiA 401), 1001h error register, 1008h device name
 (longer than 4 bytes: a segmented upload), 1017h producer heartbeat time (100 ms),
-1800h/1A00h TPDO1 (COB-ID 180h + node id, synchronous, 6401h subs 1-4), 6401h the
+1800h/1A00h TPDO1 (COB-ID 180h + node id, synchronous, 6401h subs 1-4; inhibit time and event timer), 6401h the
 analogue inputs 1-8 (INTEGER16). LocalNode has no synchronous PDO service of its own,
-so TPDO1 is sent here on every SYNC while the node is operational.
+so TPDO1 is sent here on every SYNC while the node is operational. With --event-ms
+TPDO1 is event-driven instead (transmission type 255, event timer N ms): once the node
+is operational python-canopen sends it every N ms, whatever the SYNC.
 
 It boots (boot-up, then pre-operational with its heartbeat) and prints `READY <node id>`.
 Commands on standard input, one per line:
@@ -57,9 +59,11 @@ def dictionary(node_id):
         var(0x1017, 0, "Producer heartbeat time", UNSIGNED16, HEARTBEAT_MS, "rw")
     )
     com = ODRecord("TPDO1 communication parameter", 0x1800)
-    com.add_member(var(0x1800, 0, "Highest sub-index supported", UNSIGNED8, 2))
+    com.add_member(var(0x1800, 0, "Highest sub-index supported", UNSIGNED8, 5))
     com.add_member(var(0x1800, 1, "COB-ID", UNSIGNED32, 0x180 + node_id, "rw"))
     com.add_member(var(0x1800, 2, "Transmission type", UNSIGNED8, 1, "rw"))
+    com.add_member(var(0x1800, 3, "Inhibit time", UNSIGNED16, 0, "rw"))
+    com.add_member(var(0x1800, 5, "Event timer", UNSIGNED16, 0, "rw"))
     od.add_object(com)
     mapping = ODRecord("TPDO1 mapping parameter", 0x1A00)
     mapping.add_member(var(0x1A00, 0, "Number of mapped objects", UNSIGNED8, 0, "rw"))
@@ -81,6 +85,11 @@ def main():
         at = args.index("--bustype")
         bustype = args[at + 1]
         del args[at : at + 2]
+    event_ms = 0
+    if "--event-ms" in args:
+        at = args.index("--event-ms")
+        event_ms = int(args[at + 1])
+        del args[at : at + 2]
     interface, node_id = args[0], int(args[1])
 
     network = canopen.Network()
@@ -92,7 +101,9 @@ def main():
     tpdo.clear()
     slots = {sub: tpdo.add_variable(0x6401, sub) for sub in range(1, IN_TPDO1 + 1)}
     tpdo.cob_id = 0x180 + node_id
-    tpdo.trans_type = 1
+    tpdo.trans_type = 255 if event_ms else 1
+    if event_ms:
+        tpdo.event_timer = event_ms
     tpdo.enabled = True
     # Into the node's own 1800h/1A00h, so an SDO upload shows the mapping it sends.
     tpdo.save()
@@ -107,12 +118,21 @@ def main():
     node.add_read_callback(on_read)
 
     silent = False
+    sending = False
 
     def on_sync(can_id, data, timestamp):
-        if not silent and node.nmt.state == "OPERATIONAL":
+        if not event_ms and not silent and node.nmt.state == "OPERATIONAL":
             tpdo.transmit()
 
+    def on_nmt(can_id, data, timestamp):
+        # After the node's own NMT handler, which was subscribed first.
+        nonlocal sending
+        if event_ms and not silent and not sending and node.nmt.state == "OPERATIONAL":
+            tpdo.start(event_ms / 1000)
+            sending = True
+
     network.subscribe(0x80, on_sync)
+    network.subscribe(0, on_nmt)
 
     node.nmt.send_command(0x81)  # reset node: the boot-up message
     node.nmt.send_command(0x80)  # pre-operational: the heartbeat starts
@@ -127,17 +147,23 @@ def main():
             node.sdo[0x6401][sub].raw = value
             if sub in slots:
                 slots[sub].raw = value
+                if sending:
+                    tpdo.update()
         elif words[0] == "fail":
             failing[int(words[1])] = int(words[2], 16)
         elif words[0] == "silent":
             silent = True
             node.nmt.stop_heartbeat()
+            if sending:
+                tpdo.stop()
         else:
             print(f"unknown command {line.strip()!r}", file=sys.stderr, flush=True)
             sys.exit(2)
         print("OK", flush=True)
 
     node.nmt.stop_heartbeat()
+    if sending:
+        tpdo.stop()
     network.disconnect()
 
 

@@ -37,6 +37,15 @@ pub struct CanDeviceConfig {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(range(min = 0.0, max = 3600.0))]
     pub heartbeat_timeout_s: Option<f64>,
+    /// For a node that sends its TPDOs event-driven (transmission type 254 or 255 in
+    /// 1800h..1803h sub 2: on its event timer, sub 5, or on a change) instead of after
+    /// each SYNC: a poll takes each TPDO's newest frame if it came within this many
+    /// seconds, else its channels are bad ("not received for ..."). Set it above the
+    /// node's event timer, e.g. 3 times it. Unset (default): synchronous TPDOs, read
+    /// after the newest SYNC. 0.001..=3600.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(range(min = 0.001, max = 3600.0))]
+    pub tpdo_max_age_s: Option<f64>,
     /// Timeouts, poll interval (= SYNC period), backoff, degradation.
     #[serde(flatten)]
     pub common: DeviceCommon,
@@ -94,6 +103,7 @@ impl CanDeviceConfig {
             timeout: self.common.timeout(),
             heartbeat_timeout: self.heartbeat_timeout(),
             degrade_after_cycles: self.common.degrade_after_cycles,
+            tpdo_max_age: self.tpdo_max_age_s.map(secs),
         }
     }
 }

@@ -15,7 +15,8 @@
 //! 3. reads the mapped synchronous TPDOs that followed the newest SYNC; those not
 //!    there yet (the SYNC has just gone out) are waited for up to the timeout, as is
 //!    a SYNC when none has come for two periods (then the PDO channels fail with
-//!    [`CanError::NoSync`]);
+//!    [`CanError::NoSync`]); event-driven TPDOs (`tpdo_max_age`) are read as the
+//!    newest frame instead, without a wait, and fail when it is too old;
 //! 4. uploads every SDO channel's object (expedited, one at a time; a timed-out or
 //!    segmented upload is aborted, so the server is free for the next one);
 //! 5. checks the heartbeat consumer and the EMCY state: a silent node or an
@@ -56,7 +57,7 @@ pub enum CanError {
         message: String,
     },
     /// A mapped TPDO did not arrive after the newest SYNC.
-    #[error("node {node}: TPDO{pdo} not received within {timeout:?} of the SYNC{}", not_operational(*state))]
+    #[error("node {node}: TPDO{pdo} not received within {timeout:?} of the SYNC{}", pdo_hint(*state, *pdo, *last_s_ago))]
     PdoTimeout {
         /// Node id.
         node: u8,
@@ -66,6 +67,28 @@ pub enum CanError {
         timeout: Duration,
         /// The NMT state of the node's last heartbeat: a node not operational sends
         /// no PDO, which the message must say.
+        state: Option<NmtState>,
+        /// How long before the wait ended the node's last frame of this TPDO came, if
+        /// one came: a node that sends it event-driven shows up so.
+        last_s_ago: Option<f64>,
+    },
+    /// An event-driven TPDO (`tpdo_max_age_s`) is older than its allowed age.
+    #[error(
+        "node {node}: TPDO{pdo} {} (tpdo_max_age_s = {}){}",
+        match age_s { Some(a) => format!("not received for {a:.2}s"), None => "never received".into() },
+        max_age.as_secs_f64(),
+        not_operational(*state)
+    )]
+    PdoStale {
+        /// Node id.
+        node: u8,
+        /// PDO number.
+        pdo: u8,
+        /// Age of its newest frame, s; `None` if none came yet.
+        age_s: Option<f64>,
+        /// The allowed age.
+        max_age: Duration,
+        /// The NMT state of the node's last heartbeat.
         state: Option<NmtState>,
     },
     /// No SYNC on the interface for longer than two SYNC periods: the producer
@@ -154,12 +177,25 @@ fn not_operational(state: Option<NmtState>) -> &'static str {
     }
 }
 
+/// Why a synchronous TPDO may be missing: the node is not operational, or it sends
+/// that TPDO, only not after each SYNC.
+fn pdo_hint(state: Option<NmtState>, pdo: u8, last_s_ago: Option<f64>) -> String {
+    match (not_operational(state), last_s_ago) {
+        ("", Some(ago)) => format!(
+            "; the last one came {ago:.2}s before: if the node sends it on its event timer \
+             (transmission type 254 or 255 in {:04X}h sub 2), set tpdo_max_age_s",
+            0x1800 + u16::from(pdo) - 1
+        ),
+        (hint, _) => hint.to_string(),
+    }
+}
+
 impl CanError {
     /// Short kind name, for counters and status.
     pub fn kind(&self) -> &'static str {
         match self {
             Self::Socket { .. } => "can socket",
-            Self::PdoTimeout { .. } | Self::Pdo { .. } => "can pdo",
+            Self::PdoTimeout { .. } | Self::PdoStale { .. } | Self::Pdo { .. } => "can pdo",
             Self::NoSync { .. } => "can sync",
             Self::Sdo { .. } => "can sdo",
             Self::HeartbeatTimeout { .. } => "can heartbeat",
@@ -214,6 +250,10 @@ pub struct CanParams {
     pub sync_period: Duration,
     /// Failed cycles in a row after which the node counts as degraded.
     pub degrade_after_cycles: u32,
+    /// `None`: synchronous TPDOs, read after the newest SYNC. `Some(age)`:
+    /// event-driven TPDOs (the node's event timer or change of state), read as the
+    /// newest frame received within `age`.
+    pub tpdo_max_age: Option<Duration>,
 }
 
 /// Receive buffer asked for on each node's socket (the kernel doubles it for its
@@ -495,6 +535,31 @@ impl CanPoller {
         if wanted.is_empty() {
             return;
         }
+        let node = self.params.node_id;
+        if let Some(max_age) = self.params.tpdo_max_age {
+            // Event-driven: the frames queued so far were handled by the cycle's drain.
+            let now_s = self.t_s(Instant::now());
+            for spec in self.specs.clone() {
+                let CanObject::Pdo { pdo, offset_bytes } = spec.object else {
+                    continue;
+                };
+                let value = match self.pdos.latest(pdo) {
+                    Some((t_s, data)) if now_s - t_s <= max_age.as_secs_f64() => {
+                        codec::decode_value(data, usize::from(offset_bytes), spec.data_type)
+                            .map_err(|error| CanError::Pdo { node, pdo, error })
+                    }
+                    newest => Err(CanError::PdoStale {
+                        node,
+                        pdo,
+                        age_s: newest.map(|(t_s, _)| now_s - t_s),
+                        max_age,
+                        state: self.monitor.state(),
+                    }),
+                };
+                self.push_pdo_value(spec.channel, value, values, errors);
+            }
+            return;
+        }
         let max_age = sync::max_age(self.params.sync_period);
         let max_age_s = max_age.as_secs_f64();
         let deadline = Instant::now() + self.params.timeout;
@@ -515,7 +580,7 @@ impl CanPoller {
             };
             self.handle(at, &raw);
         };
-        let node = self.params.node_id;
+        let now_s = self.t_s(Instant::now());
         for spec in self.specs.clone() {
             let CanObject::Pdo { pdo, offset_bytes } = spec.object else {
                 continue;
@@ -531,6 +596,7 @@ impl CanPoller {
                         pdo,
                         timeout: self.params.timeout,
                         state: self.monitor.state(),
+                        last_s_ago: self.pdos.latest(pdo).map(|(t_s, _)| now_s - t_s),
                     }),
                     Some(data) => {
                         codec::decode_value(data, usize::from(offset_bytes), spec.data_type)
@@ -538,13 +604,24 @@ impl CanPoller {
                     }
                 },
             };
-            match value {
-                Ok(v) => values.push((spec.channel, Ok(v))),
-                Err(e) => {
-                    values.push((spec.channel, Err(self.fault(Reason::Comm))));
-                    if !errors.contains(&e) {
-                        errors.push(e);
-                    }
+            self.push_pdo_value(spec.channel, value, values, errors);
+        }
+    }
+
+    /// A TPDO channel's value, or its fault with the error named once per cycle.
+    fn push_pdo_value(
+        &self,
+        channel: usize,
+        value: Result<f64, CanError>,
+        values: &mut Vec<(usize, Result<f64, Fault>)>,
+        errors: &mut Vec<CanError>,
+    ) {
+        match value {
+            Ok(v) => values.push((channel, Ok(v))),
+            Err(e) => {
+                values.push((channel, Err(self.fault(Reason::Comm))));
+                if !errors.contains(&e) {
+                    errors.push(e);
                 }
             }
         }
@@ -792,6 +869,7 @@ mod tests {
                 pdo: 1,
                 timeout: Duration::from_millis(50),
                 state,
+                last_s_ago: None,
             }
             .to_string()
         };
@@ -804,5 +882,47 @@ mod tests {
             "{stopped}"
         );
         assert!(timeout(Some(NmtState::PreOperational)).contains("pre-operational"));
+    }
+
+    /// A node that sends the TPDO, only not after each SYNC: the message says when it
+    /// came and which key reads it (the state's hint wins: a stopped node sends none).
+    #[test]
+    fn a_pdo_timeout_points_an_event_driven_node_to_tpdo_max_age() {
+        let timeout = |state, pdo| {
+            CanError::PdoTimeout {
+                node: 5,
+                pdo,
+                timeout: Duration::from_millis(50),
+                state,
+                last_s_ago: Some(0.337),
+            }
+            .to_string()
+        };
+        assert_eq!(
+            timeout(None, 2),
+            "node 5: TPDO2 not received within 50ms of the SYNC; the last one came 0.34s \
+             before: if the node sends it on its event timer (transmission type 254 or 255 \
+             in 1801h sub 2), set tpdo_max_age_s"
+        );
+        assert!(timeout(Some(NmtState::Stopped), 1).contains("its heartbeat says stopped"));
+        let stale = |age_s| {
+            CanError::PdoStale {
+                node: 5,
+                pdo: 4,
+                age_s,
+                max_age: Duration::from_millis(300),
+                state: Some(NmtState::PreOperational),
+            }
+            .to_string()
+        };
+        assert!(
+            stale(Some(0.6181)).starts_with(
+                "node 5: TPDO4 not received for 0.62s (tpdo_max_age_s = 0.3); its heartbeat \
+                 says pre-operational"
+            ),
+            "{}",
+            stale(Some(0.6181))
+        );
+        assert!(stale(None).starts_with("node 5: TPDO4 never received (tpdo_max_age_s = 0.3)"));
     }
 }

@@ -223,6 +223,8 @@ pub struct SyncMark {
 #[derive(Debug, Clone, Copy)]
 struct StoredPdo {
     after_sync: u64,
+    /// When it was received, s.
+    t_s: f64,
     data: [u8; 8],
     len: u8,
 }
@@ -260,6 +262,7 @@ impl PdoStore {
                 if let Some(slot) = self.latest.get_mut(usize::from(pdo.wrapping_sub(1))) {
                     *slot = Some(StoredPdo {
                         after_sync: self.sync.map_or(0, |s| s.seq),
+                        t_s,
                         data,
                         len,
                     });
@@ -290,6 +293,16 @@ impl PdoStore {
             .get(usize::from(pdo.wrapping_sub(1)))?
             .as_ref()?;
         (p.after_sync == sync.seq).then(|| &p.data[..usize::from(p.len)])
+    }
+
+    /// The newest frame of TPDO `pdo`, whatever SYNC it followed: when it was
+    /// received (s) and its data bytes. How an event-driven TPDO is read.
+    pub fn latest(&self, pdo: u8) -> Option<(f64, &[u8])> {
+        let p = self
+            .latest
+            .get(usize::from(pdo.wrapping_sub(1)))?
+            .as_ref()?;
+        Some((p.t_s, &p.data[..usize::from(p.len)]))
     }
 
     /// TPDOs received so far.
@@ -458,6 +471,11 @@ mod tests {
         // A SYNC with a counter byte counts the same.
         s.on_message(5, 1.2, &msg(0x080, &[3]));
         assert_eq!(s.last_sync().map(|m| m.seq), Some(3));
+        // Read event-driven, the newest frame counts, SYNC or not, with its time.
+        assert_eq!(s.latest(1), Some((1.001, &[1u8, 2][..])));
+        assert_eq!(s.latest(2), Some((1.101, &[6u8][..])));
+        assert_eq!(s.latest(3), None);
+        assert_eq!(s.latest(0), None);
     }
 
     #[test]
