@@ -318,6 +318,49 @@ fn bad_input_names_the_thing_at_fault() {
     );
 }
 
+/// `--out` replaces diagnose's own model files of an earlier run, never a model
+/// someone else wrote there (a calibrate model of the same name).
+#[test]
+fn out_keeps_a_model_diagnose_did_not_write() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let csv = dir.path().join("d.csv");
+    let (m, _) = generate(&spec(1, vec![], 0.5, 0.0));
+    m.write(std::fs::File::create(&csv).expect("csv"))
+        .expect("write");
+    let out = dir.path().join("results");
+    let exe = env!("CARGO_BIN_EXE_compgate");
+    let diagnose_into_out = || {
+        Command::new(exe)
+            .args(["diagnose", "--data"])
+            .arg(&csv)
+            .args(["--sensors", "a,b", "--out"])
+            .arg(&out)
+            .output()
+            .expect("run")
+    };
+    assert_success(&diagnose_into_out());
+    // A re-run replaces its own files.
+    assert_success(&diagnose_into_out());
+
+    let theirs = "# compgate calibrate: axis X from 216 rows of base.csv\n[axes.X]\np0_mm = 0.0\n";
+    std::fs::write(out.join("model.toml"), theirs).expect("model");
+    let run = diagnose_into_out();
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success(), "{err}");
+    assert!(
+        err.contains(&format!(
+            "--out {}: holds model.toml, which `compgate diagnose` did not write (it starts \
+             \"# compgate calibrate: axis X from 216 rows of base.csv\")",
+            out.display()
+        )),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(out.join("model.toml")).expect("kept"),
+        theirs
+    );
+}
+
 /// The machine simulation's 24 h commissioning run (the data `compgate scenario`
 /// writes as commissioning.csv), each effect at the simulation's default parameters.
 /// `pitch_periodic` is left out: its 10 mm period is far below what 9 targets 250 mm

@@ -67,6 +67,9 @@ pub fn run(args: &DiagnoseArgs) -> Result<Diagnosed<'_>, DiagnoseError> {
         &inputs,
         &outputs.iter().map(PathBuf::as_path).collect::<Vec<_>>(),
     )?;
+    if let Some(dir) = &args.out {
+        output::check_models_are_ours(dir)?;
+    }
     let opts = Options {
         sensors: args.sensors.clone(),
         model,

@@ -69,6 +69,17 @@ pub enum DiagnoseError {
     Plot(#[from] crate::plot::PlotError),
     #[error("{0}")]
     Output(#[from] compgate_core::outputs::OutputError),
+    /// `--out` holds a model file another command (or a person) wrote: replacing it
+    /// would lose it, and a diagnose model in its place would read as that one.
+    #[error(
+        "--out {dir}: holds {file}, which `compgate diagnose` did not write (it starts \
+         {first_line:?}); it is not replaced: use another directory or move it"
+    )]
+    ForeignModel {
+        dir: String,
+        file: String,
+        first_line: String,
+    },
     #[error("fit: {0}")]
     Fit(#[from] crate::lsq::LsqError),
     /// The baseline cannot be fitted to the data (refused as `calibrate` refuses it).

@@ -25,6 +25,10 @@ use compgate_gateway::config::schema::{
     K0Model, K0Term, MotionHeatModel, TanBetaModel, TanBetaTerm,
 };
 
+/// The first line of every model file diagnose writes (after `# `): how `--out`
+/// tells its own files, which it replaces, from anyone else's, which it keeps.
+pub const WRITTEN_BY: &str = "Thermal model written by `compgate diagnose`.";
+
 /// A thermal model file: the axis model `calibrate` writes, plus what only diagnose
 /// adds (lagged channels, effects outside the K0/tan(beta) form).
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -187,7 +191,8 @@ impl ModelFile {
             message,
         };
         self.check_extras().map_err(err)?;
-        let header = "Thermal model written by `compgate diagnose`.\n\
+        let header = format!(
+            "{WRITTEN_BY}\n\
              The [axes.X] tables are the gateway's axis form (as calibrate writes it;\n\
              scenario --model reads it): paste the whole file into the gateway config,\n\
              every other line is a comment. Channels are the data's sensors (column\n\
@@ -196,8 +201,9 @@ impl ModelFile {
              from the NC's actual position.\n\
              The lines that start with `#=` are for `compgate diagnose --model`, not the\n\
              gateway: `applied` names the effects the gateway applies online, [[effects]]\n\
-             the others, with the NC function that carries them.\n";
-        let mut s = crate::calibrate::model_toml("X", "nc_x", &self.axis, header)
+             the others, with the NC function that carries them.\n"
+        );
+        let mut s = crate::calibrate::model_toml("X", "nc_x", &self.axis, &header)
             .map_err(|e| err(e.to_string()))?;
         #[derive(Serialize)]
         struct Extra<'a> {

@@ -261,6 +261,34 @@ pub const OUT_FILES: [&str; 6] = [
     "report.html",
 ];
 
+/// Refuses a `dir` whose `model.toml` or `baseline_model.toml` diagnose did not
+/// write (a `calibrate` model, say): replacing it would lose it. Its own files of an
+/// earlier run are replaced, as a re-run is expected to.
+pub fn check_models_are_ours(dir: &Path) -> Result<(), DiagnoseError> {
+    for file in &OUT_FILES[..2] {
+        let path = dir.join(file);
+        let text = match std::fs::read(&path) {
+            Ok(bytes) => String::from_utf8_lossy(&bytes).into_owned(),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+            Err(source) => {
+                return Err(DiagnoseError::Io {
+                    path: path.display().to_string(),
+                    source,
+                })
+            }
+        };
+        let first_line = text.lines().find(|l| !l.trim().is_empty()).unwrap_or("");
+        if first_line.trim_start_matches('#').trim() != super::model_file::WRITTEN_BY {
+            return Err(DiagnoseError::ForeignModel {
+                dir: dir.display().to_string(),
+                file: (*file).to_string(),
+                first_line: first_line.chars().take(80).collect(),
+            });
+        }
+    }
+    Ok(())
+}
+
 /// Writes [`OUT_FILES`] into `dir` (which must exist); returns the paths.
 pub fn write_out(dir: &Path, d: &Diagnosis) -> Result<Vec<PathBuf>, DiagnoseError> {
     let io = |path: &Path| {
