@@ -20,7 +20,8 @@
 //!
 //! Any other column is reported in [`Measurements::ignored_columns`] and skipped.
 //! A column without a name must be empty in every row (a spreadsheet's trailing
-//! `,,`) and is left out; a row of empty cells is a blank line. The text must be
+//! `,,`) and is left out; a row of empty cells is a blank line, a line starting with
+//! `#` a comment. Lines end in LF, CRLF or a lone CR. The text must be
 //! UTF-8: a byte that is not, or a UTF-16 file, is refused with the hint to save
 //! the file as CSV UTF-8.
 
@@ -180,6 +181,7 @@ impl<R: Read> CsvInput<R> {
         let rdr = csv::ReaderBuilder::new()
             .trim(csv::Trim::All)
             .flexible(false)
+            .comment(Some(b'#'))
             .from_reader(index);
         let mut input = CsvInput {
             rdr,
@@ -291,31 +293,43 @@ impl<R: Read> CsvInput<R> {
                 name,
             };
         }
-        let hint = match e.kind() {
+        // The crate's own text names a record number and another line; ours the line.
+        let message = match *e.kind() {
             csv::ErrorKind::UnequalLengths {
                 expected_len, len, ..
-            } if len > expected_len => {
-                " (decimal commas? compgate reads numbers with a decimal point)"
-            }
-            _ => "",
+            } if len > expected_len => format!(
+                "{len} cells where the header has {expected_len}: a decimal comma splits a \
+                 number in two (compgate reads numbers with a decimal point), or a column \
+                 has no name in the header"
+            ),
+            csv::ErrorKind::UnequalLengths {
+                expected_len, len, ..
+            } => format!(
+                "{len} cells where the header has {expected_len}: an empty cell still needs \
+                 its comma"
+            ),
+            _ => e.to_string(),
         };
-        MeasureError::Csv {
-            line,
-            message: format!("{e}{hint}"),
-        }
+        MeasureError::Csv { line, message }
     }
 }
 
-/// A reader that notes where every non-blank line starts, (byte offset, line), as
-/// the bytes pass to the CSV parser; [`CsvInput`] drops what it has passed.
+/// A reader that notes where every line with data starts, (byte offset, line), as
+/// the bytes pass to the CSV parser; [`CsvInput`] drops what it has passed. Lines end
+/// as the parser ends them: at `\n`, `\r\n` or a lone `\r` (an old Mac export);
+/// blank lines and comments (`#` first) hold no row.
 struct LineIndex<R> {
     inner: R,
     lines: std::rc::Rc<std::cell::RefCell<std::collections::VecDeque<(u64, u64)>>>,
     offset: u64,
     line: u64,
     line_start: u64,
-    /// Nothing but `\r` on the line so far.
+    /// Nothing on the line so far.
     blank: bool,
+    /// The line starts with `#`.
+    comment: bool,
+    /// The last byte was a `\r`, so a `\n` now ends no further line.
+    after_cr: bool,
 }
 
 impl<R> LineIndex<R> {
@@ -327,11 +341,13 @@ impl<R> LineIndex<R> {
             line: 1,
             line_start: 0,
             blank: true,
+            comment: false,
+            after_cr: false,
         }
     }
 
     fn end_line(&mut self) {
-        if !self.blank {
+        if !self.blank && !self.comment {
             self.lines
                 .borrow_mut()
                 .push_back((self.line_start, self.line));
@@ -348,15 +364,21 @@ impl<R: Read> Read for LineIndex<R> {
         }
         for &b in &buf[..n] {
             match b {
-                b'\n' => {
+                b'\n' if self.after_cr => self.line_start = self.offset + 1,
+                b'\n' | b'\r' => {
                     self.end_line();
                     self.line += 1;
                     self.line_start = self.offset + 1;
                     self.blank = true;
+                    self.comment = false;
                 }
-                b'\r' => {}
+                b'#' if self.blank => {
+                    self.comment = true;
+                    self.blank = false;
+                }
                 _ => self.blank = false,
             }
+            self.after_cr = b == b'\r';
             self.offset += 1;
         }
         Ok(n)
@@ -698,19 +720,37 @@ mod tests {
     /// it counted rows from the header. The reader gives every row's line.
     #[test]
     fn rows_keep_their_file_lines_across_blank_lines() {
-        for text in [
-            "t_s,pos_mm,err_um,T_a\n0,0,1,20\n\n\n1,10,2,21\n2,20,3,22",
-            "\u{feff}t_s,pos_mm,err_um,T_a\r\n0,0,1,20\r\n\r\n\r\n1,10,2,21\r\n2,20,3,22\r\n",
+        for (text, want) in [
+            (
+                "t_s,pos_mm,err_um,T_a\n0,0,1,20\n\n\n1,10,2,21\n2,20,3,22",
+                [2, 5, 6],
+            ),
+            (
+                "\u{feff}t_s,pos_mm,err_um,T_a\r\n0,0,1,20\r\n\r\n\r\n1,10,2,21\r\n2,20,3,22\r\n",
+                [2, 5, 6],
+            ),
+            // An old Mac export ends its lines with a lone CR.
+            (
+                "t_s,pos_mm,err_um,T_a\r0,0,1,20\r\r\r1,10,2,21\r2,20,3,22\r",
+                [2, 5, 6],
+            ),
+            // Comment lines (`#` first), before the header too, hold no row.
+            (
+                "# XL-80 run 3\nt_s,pos_mm,err_um,T_a\n0,0,1,20\n# paused\n\n1,10,2,21\n2,20,3,22\n",
+                [3, 6, 7],
+            ),
         ] {
             let (m, lines) = Measurements::read_with_lines(text.as_bytes()).unwrap();
             assert_eq!(m.len(), 3);
-            assert_eq!(lines, vec![2, 5, 6], "{text:?}");
+            assert_eq!(lines, want, "{text:?}");
         }
         // And the errors: a field, and a row of another length, after blank lines.
         let e = read("t_s,pos_mm,err_um,T_a\r\n0,0,1,20\r\n\r\n\r\n1,x,2,21\r\n").unwrap_err();
         assert!(e.to_string().starts_with("line 5, column `pos_mm`"), "{e}");
         let e = read("t_s,pos_mm,err_um,T_a\n0,0,1,20\n\n\n1,1,2,5,21\n").unwrap_err();
         assert!(e.to_string().starts_with("line 5: "), "{e}");
+        let e = read("t_s,pos_mm,err_um,T_a\r0,0,1,20\r4,100,1,NaN\r").unwrap_err();
+        assert!(e.to_string().starts_with("line 3, column `T_a`"), "{e}");
     }
 
     #[test]
@@ -787,11 +827,18 @@ mod tests {
         assert!(e.to_string().contains("`err_um` is missing"), "{e}");
         // Decimal commas under a comma header: more cells than names.
         let e = read("t_s,pos_mm,err_um,T_a\n0,0,1,5,20,25\n").unwrap_err();
-        assert!(e.to_string().starts_with("line 2: "), "{e}");
-        assert!(e.to_string().contains("decimal commas?"), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "line 2: 6 cells where the header has 4: a decimal comma splits a number in two \
+             (compgate reads numbers with a decimal point), or a column has no name in the \
+             header"
+        );
         // Fewer cells is no decimal comma.
         let e = read("t_s,pos_mm,err_um,T_a\n0,0,1\n").unwrap_err();
-        assert!(!e.to_string().contains("decimal commas?"), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "line 2: 3 cells where the header has 4: an empty cell still needs its comma"
+        );
         // Blank lines first: the header's own line.
         let e = read("\n\r\nt_s;pos_mm;err_um;T_a\n").unwrap_err();
         assert!(e.to_string().starts_with("line 3: "), "{e}");

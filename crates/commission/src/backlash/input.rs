@@ -164,7 +164,9 @@ mod tests {
         for (text, want) in [
             (
                 "t_s,encoder_mm,scale_mm\n0,10,10\n0,002,10,10\n",
-                "line 3: CSV error: ",
+                "line 3: 4 cells where the header has 3: a decimal comma splits a number in \
+                 two (compgate reads numbers with a decimal point), or a column has no name in \
+                 the header",
             ),
             (
                 "t_s;encoder_mm;scale_mm\n0;10;10\n",
@@ -182,15 +184,19 @@ mod tests {
             let want = format!("{}: {want}", path.display());
             assert!(e.starts_with(&want), "{text:?}: {e}");
         }
-        std::fs::write(&path, "t_s,encoder_mm,scale_mm\n0,10,10\n0,002,10,10\n").unwrap();
-        let e = read_trace(&path).unwrap_err().to_string();
-        assert!(e.ends_with("(decimal commas? compgate reads numbers with a decimal point)"));
-        // Blank lines do not shift the line named.
-        std::fs::write(&path, "t_s,encoder_mm,scale_mm\n0,1,1\n\n0.002,1,x\n").unwrap();
-        let e = read_trace(&path).unwrap_err().to_string();
-        assert!(
-            e.ends_with("line 4, column `scale_mm`: \"x\" is not a number"),
-            "{e}"
-        );
+        // Blank lines, comments and any line end do not shift the line named.
+        for text in [
+            "t_s,encoder_mm,scale_mm\n0,1,1\n\n0.002,1,x\n",
+            "# XL-80\nt_s,encoder_mm,scale_mm\n0,1,1\n0.002,1,x\n",
+            "t_s,encoder_mm,scale_mm\r0,1,1\r\r0.002,1,x\r",
+            "t_s,encoder_mm,scale_mm\r\n0,1,1\r\n# moved\r\n0.002,1,x\r\n",
+        ] {
+            std::fs::write(&path, text).unwrap();
+            let e = read_trace(&path).unwrap_err().to_string();
+            assert!(
+                e.ends_with("line 4, column `scale_mm`: \"x\" is not a number"),
+                "{text:?}: {e}"
+            );
+        }
     }
 }
