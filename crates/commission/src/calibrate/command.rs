@@ -56,6 +56,9 @@ pub struct Calibrated<'a> {
     model: String,
     /// The plot's SVG text, with `--plot`.
     plot: Option<String>,
+    /// Columns of the data the fit did not read: not of the format, and `T_`
+    /// columns `--sensors` left out.
+    ignored_columns: Vec<String>,
 }
 
 /// Runs the command up to its outputs: checks them (before the data is read), reads,
@@ -94,18 +97,35 @@ pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
         })?),
         None => None,
     };
+    let ignored_columns = m
+        .ignored_columns
+        .iter()
+        .cloned()
+        .chain(
+            m.temps
+                .iter()
+                .filter(|c| !f.terms.iter().any(|t| t.name == c.name))
+                .map(|c| format!("T_{}", c.name)),
+        )
+        .collect();
     Ok(Calibrated {
         args,
         fit: f,
         model,
         plot,
+        ignored_columns,
     })
 }
 
 impl Calibrated<'_> {
-    /// The fit report (with its warnings), for stdout.
+    /// The fit report (with its warnings), for stdout; it names the columns the fit
+    /// did not read, as diagnose does.
     pub fn report(&self) -> String {
-        report(&self.fit)
+        let mut s = report(&self.fit);
+        if !self.ignored_columns.is_empty() {
+            s = format!("ignored columns: {}\n{s}", self.ignored_columns.join(", "));
+        }
+        s
     }
 
     /// The fit's warnings ([`Fit::warnings`]), for stderr.

@@ -414,3 +414,37 @@ fn a_geometric_slope_does_not_get_a_model_of_noise_written() {
     );
     assert!(!args.out.exists());
 }
+
+/// A header `t_screw` (lower case) was fitted without, and nothing said so: the report
+/// names every column the fit did not read, as diagnose does.
+#[test]
+fn the_report_names_the_columns_the_fit_did_not_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("d.csv");
+    let (m, _) = commissioning(noiseless(), 1);
+    let mut buf = Vec::new();
+    m.write(&mut buf).unwrap();
+    let text: String = String::from_utf8(buf)
+        .unwrap()
+        .lines()
+        .enumerate()
+        .map(|(i, l)| format!("{l},{}\n", if i == 0 { "t_spare" } else { "1" }))
+        .collect();
+    std::fs::write(&csv, text).unwrap();
+    let sensors: Vec<String> = m.temps.iter().map(|c| c.name.clone()).collect();
+    assert!(sensors.len() >= 2, "{sensors:?}");
+    let mut args = args_for(dir.path(), csv);
+    args.sensors = sensors[..1].to_vec();
+    let report = run(&args).unwrap().report();
+    let left_out: Vec<String> = sensors[1..].iter().map(|s| format!("T_{s}")).collect();
+    assert!(
+        report.starts_with(&format!(
+            "ignored columns: t_spare, {}\n",
+            left_out.join(", ")
+        )),
+        "{report}"
+    );
+    args.sensors = sensors.clone();
+    let report = run(&args).unwrap().report();
+    assert!(report.starts_with("ignored columns: t_spare\n"), "{report}");
+}
