@@ -468,6 +468,57 @@ fn run(args: &[&str]) -> (Option<i32>, String) {
     )
 }
 
+/// ISO 230-2 needs position, direction and error only: a laser's file without time or
+/// temperatures (it was refused for want of `t_s` and a `T_` column) gives the same
+/// figures, and a bad cell of a sensor it does not read does not stop it.
+#[test]
+fn iso230_reads_a_file_of_positions_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let full = measurement_csv(dir.path());
+    let text = std::fs::read_to_string(&full).unwrap();
+    let keep = |line: &str, with_nan: bool| {
+        let c: Vec<&str> = line.split(',').collect();
+        match with_nan {
+            false => format!("{},{},{}\n", c[1], c[2], c[3]),
+            true => format!("{},NaN\n", line.rsplit_once(',').unwrap().0),
+        }
+    };
+    let mut lines = text.lines();
+    let header = lines.next().unwrap();
+    let laser: String = std::iter::once("pos_mm,dir,err_um\n".to_string())
+        .chain(lines.clone().map(|l| keep(l, false)))
+        .collect();
+    let nan: String = std::iter::once(format!("{header}\n"))
+        .chain(lines.map(|l| keep(l, true)))
+        .collect();
+    let iso230 = |name: &str, text: &str| {
+        let path = dir.path().join(name);
+        std::fs::write(&path, text).unwrap();
+        let out = Command::new(BIN)
+            .args(["iso230", "--data"])
+            .arg(&path)
+            .output()
+            .unwrap();
+        assert_success(&out)
+    };
+    let want = iso230("full.csv", &text);
+    assert!(want.contains("A "), "{want}");
+    assert_eq!(iso230("laser.csv", &laser), want);
+    assert_eq!(iso230("nan.csv", &nan), want);
+    // calibrate still needs them, and says so.
+    let path = dir.path().join("laser.csv");
+    let out = Command::new(BIN)
+        .args(["calibrate", "--out", "m.toml", "--data"])
+        .arg(&path)
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("required column `t_s` is missing"),
+        "{out:?}"
+    );
+}
+
 // A negative number is the value of a numeric flag, not an unknown flag: before,
 // `--p0-mm -100`, `--targets -500,0,500` and `--a -10` ended with exit 2 and
 // "unexpected argument '-1' found", naming neither the flag nor the value.

@@ -490,7 +490,29 @@ impl Measurements {
 
     /// [`Measurements::read`], with the file line of every row.
     pub fn read_with_lines<R: Read>(reader: R) -> Result<(Self, Vec<u64>), MeasureError> {
-        let mut input = CsvInput::open(reader, "t_s", "t_s,pos_mm,err_um,T_<name>")?;
+        Self::read_rows(reader, true)
+    }
+
+    /// The positions alone, for an evaluation that needs no time or temperature (ISO
+    /// 230-2 from a laser's file): `t_s` and `T_<name>` may be missing, and `T_`
+    /// cells are not read (a sensor's bad cell does not stop it); a row without
+    /// `t_s` has time 0. With the file line of every row; errors name the file.
+    pub fn read_positions_path(path: &Path) -> Result<(Self, Vec<u64>), MeasureError> {
+        let file = std::fs::File::open(path).map_err(|source| MeasureError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Self::read_rows(std::io::BufReader::new(file), false)
+    }
+
+    /// The reader; `thermal`: `t_s` and a `T_` column are required and read.
+    fn read_rows<R: Read>(reader: R, thermal: bool) -> Result<(Self, Vec<u64>), MeasureError> {
+        let (key, expected) = if thermal {
+            ("t_s", "t_s,pos_mm,err_um,T_<name>")
+        } else {
+            ("pos_mm", "pos_mm,dir,err_um")
+        };
+        let mut input = CsvInput::open(reader, key, expected)?;
         let header = input.header.clone();
         let mut lines = Vec::new();
 
@@ -510,7 +532,7 @@ impl Measurements {
                 "dir" => i_dir = Some(i),
                 "travel_mm" => i_travel = Some(i),
                 _ => match name.strip_prefix("T_") {
-                    Some(sensor) if !sensor.is_empty() => {
+                    Some(sensor) if !sensor.is_empty() && thermal => {
                         if let Some(reason) = channel_name_problem(sensor) {
                             let usable: String = sensor
                                 .chars()
@@ -539,10 +561,13 @@ impl Measurements {
                 },
             }
         }
-        let i_t = i_t.ok_or(MeasureError::MissingColumn("t_s"))?;
+        let i_t = match i_t {
+            None if thermal => return Err(MeasureError::MissingColumn("t_s")),
+            i_t => i_t,
+        };
         let i_pos = i_pos.ok_or(MeasureError::MissingColumn("pos_mm"))?;
         let i_err = i_err.ok_or(MeasureError::MissingColumn("err_um"))?;
-        if temp_idx.is_empty() {
+        if thermal && temp_idx.is_empty() {
             return Err(MeasureError::NoTemperature);
         }
 
@@ -572,12 +597,15 @@ impl Measurements {
                     Err(bad(i, reason))
                 }
             };
-            let t_s = within(
-                i_t,
-                0.0,
-                T_S_MAX,
-                "outside the plausible range 0..=315576000 s (10 years)",
-            )?;
+            let t_s = match i_t {
+                Some(i) => within(
+                    i,
+                    0.0,
+                    T_S_MAX,
+                    "outside the plausible range 0..=315576000 s (10 years)",
+                )?,
+                None => 0.0,
+            };
             if let Some(&prev_s) = out.t_s.last() {
                 if t_s < prev_s {
                     return Err(MeasureError::TimeBackwards { line, t_s, prev_s });

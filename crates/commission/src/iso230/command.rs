@@ -43,7 +43,7 @@ pub fn run(args: &Iso230Args) -> Result<String, Iso230Error> {
             "mm",
         )?,
     };
-    let (m, lines) = Measurements::read_path_with_lines(&args.data).map_err(|e| match e {
+    let (m, lines) = Measurements::read_positions_path(&args.data).map_err(|e| match e {
         // The reader's own error names the file already.
         MeasureError::Io { path, source } => Iso230Error::Io { path, source },
         e => Iso230Error::Data(args.data.display().to_string(), e),

@@ -315,7 +315,7 @@ pub fn evaluate_grouped(
 }
 
 /// [`evaluate_grouped`] on rows read from a file, `lines` their file lines
-/// ([`compgate_core::measure::Measurements::read_path_with_lines`]): an error names
+/// ([`compgate_core::measure::Measurements::read_positions_path`]): an error names
 /// the row's own line.
 pub fn evaluate_lines(
     pos_mm: &[f64],
