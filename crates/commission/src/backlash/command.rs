@@ -421,7 +421,24 @@ pub fn run_file(args: &BacklashArgs) -> Result<Outcome, BacklashError> {
         period_s: trace.period_s,
         ..Procedure::from_args(args)
     };
-    procedure.validate(None)?;
+    // The period comes from the file: a problem with it is the file's, so say where.
+    procedure.validate(None).map_err(|e| match e {
+        BacklashError::Invalid(problems) => {
+            let ms = if trace.period_s >= 0.5 {
+                "; `t_s` is in seconds, and a servo trace is sampled every few ms: were \
+                 milliseconds written?"
+            } else {
+                ""
+            };
+            BacklashError::Invalid(vec![format!(
+                "{}: with the sample period of its column `t_s`, {} s: {}{ms}",
+                path.display(),
+                trace.period_s,
+                problems.join("; ")
+            )])
+        }
+        e => e,
+    })?;
     let points = extract(&trace, &procedure, Extraction::Plateau)?;
     let backlash = Backlash::from_points(&points);
     let files = write_files(args, &trace, &points)?;

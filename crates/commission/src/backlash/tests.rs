@@ -590,6 +590,23 @@ fn bad_trace_files_are_refused_naming_line_and_column() {
         assert!(e.contains(&format!("bad{i}.csv")), "{e}");
         assert!(e.contains(want), "case {i}: {e}");
     }
+    // A trace written in milliseconds reads well and fails the procedure's checks:
+    // the error names the file, the column and the likely slip.
+    let path = dir.path().join("ms.csv");
+    let rows: String = (0..400).map(|i| format!("{},1,1\n", 2 * i)).collect();
+    std::fs::write(&path, format!("t_s,encoder_mm,scale_mm\n{rows}")).unwrap();
+    let args = BacklashArgs {
+        trace: Some(path.clone()),
+        ..BacklashArgs::default()
+    };
+    let e = run_file(&args).unwrap_err().to_string();
+    assert!(
+        e.contains(&format!(
+            "{}: with the sample period of its column `t_s`, 2 s: dwell",
+            path.display()
+        )) && e.ends_with("were milliseconds written?"),
+        "{e}"
+    );
 }
 
 #[tokio::test]
