@@ -426,6 +426,37 @@ pub fn channel_name_problem(name: &str) -> Option<String> {
     }
 }
 
+/// A measurement file, buffered; an error names it.
+fn open(path: &Path) -> Result<std::io::BufReader<std::fs::File>, MeasureError> {
+    std::fs::File::open(path)
+        .map(std::io::BufReader::new)
+        .map_err(|source| MeasureError::Io {
+            path: path.display().to_string(),
+            source,
+        })
+}
+
+/// The columns a reader reads beside `pos_mm`, `err_um` and the optional ones.
+#[derive(Debug, Clone, Copy)]
+enum Wanted<'a> {
+    /// `t_s` and the `T_` columns: every one (`None`, at least one required) or these
+    /// sensors' (names without `T_`).
+    Thermal(Option<&'a [&'a str]>),
+    /// Neither: `t_s` is read if there, `T_` columns are not.
+    Positions,
+}
+
+impl Wanted<'_> {
+    /// Whether the `T_<sensor>` column is read.
+    fn reads(&self, sensor: &str) -> bool {
+        match self {
+            Wanted::Thermal(None) => true,
+            Wanted::Thermal(Some(names)) => names.contains(&sensor),
+            Wanted::Positions => false,
+        }
+    }
+}
+
 /// One temperature column.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TempColumn {
@@ -476,11 +507,7 @@ impl Measurements {
     /// [`Measurements::read_path`], with the 1-based file line of every row (blank
     /// lines are skipped, so a row's index does not give its line).
     pub fn read_path_with_lines(path: &Path) -> Result<(Self, Vec<u64>), MeasureError> {
-        let file = std::fs::File::open(path).map_err(|source| MeasureError::Io {
-            path: path.display().to_string(),
-            source,
-        })?;
-        Self::read_with_lines(std::io::BufReader::new(file))
+        Self::read_with_lines(open(path)?)
     }
 
     /// Reads CSV from any reader.
@@ -490,7 +517,14 @@ impl Measurements {
 
     /// [`Measurements::read`], with the file line of every row.
     pub fn read_with_lines<R: Read>(reader: R) -> Result<(Self, Vec<u64>), MeasureError> {
-        Self::read_rows(reader, true)
+        Self::read_rows(reader, Wanted::Thermal(None))
+    }
+
+    /// [`Measurements::read_path`] for a fit of some sensors only: the `T_` columns of
+    /// the others (names without `T_`) are listed in `ignored_columns` unread, so a bad
+    /// cell of a sensor the fit leaves out does not stop it.
+    pub fn read_path_sensors(path: &Path, sensors: &[&str]) -> Result<Self, MeasureError> {
+        Self::read_rows(open(path)?, Wanted::Thermal(Some(sensors))).map(|(m, _)| m)
     }
 
     /// The positions alone, for an evaluation that needs no time or temperature (ISO
@@ -498,15 +532,12 @@ impl Measurements {
     /// cells are not read (a sensor's bad cell does not stop it); a row without
     /// `t_s` has time 0. With the file line of every row; errors name the file.
     pub fn read_positions_path(path: &Path) -> Result<(Self, Vec<u64>), MeasureError> {
-        let file = std::fs::File::open(path).map_err(|source| MeasureError::Io {
-            path: path.display().to_string(),
-            source,
-        })?;
-        Self::read_rows(std::io::BufReader::new(file), false)
+        Self::read_rows(open(path)?, Wanted::Positions)
     }
 
-    /// The reader; `thermal`: `t_s` and a `T_` column are required and read.
-    fn read_rows<R: Read>(reader: R, thermal: bool) -> Result<(Self, Vec<u64>), MeasureError> {
+    /// The reader, of the columns `wanted`.
+    fn read_rows<R: Read>(reader: R, wanted: Wanted<'_>) -> Result<(Self, Vec<u64>), MeasureError> {
+        let thermal = matches!(wanted, Wanted::Thermal(_));
         let (key, expected) = if thermal {
             ("t_s", "t_s,pos_mm,err_um,T_<name>")
         } else {
@@ -532,7 +563,7 @@ impl Measurements {
                 "dir" => i_dir = Some(i),
                 "travel_mm" => i_travel = Some(i),
                 _ => match name.strip_prefix("T_") {
-                    Some(sensor) if !sensor.is_empty() && thermal => {
+                    Some(sensor) if !sensor.is_empty() && wanted.reads(sensor) => {
                         if let Some(reason) = channel_name_problem(sensor) {
                             let usable: String = sensor
                                 .chars()
@@ -567,7 +598,8 @@ impl Measurements {
         };
         let i_pos = i_pos.ok_or(MeasureError::MissingColumn("pos_mm"))?;
         let i_err = i_err.ok_or(MeasureError::MissingColumn("err_um"))?;
-        if thermal && temp_idx.is_empty() {
+        // Sensors left out (`Wanted::Thermal(Some)`) count: the fit names a missing one.
+        if thermal && !header.iter().any(|h| h.len() > 2 && h.starts_with("T_")) {
             return Err(MeasureError::NoTemperature);
         }
 

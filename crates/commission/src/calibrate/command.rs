@@ -67,7 +67,13 @@ pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
     let mut outputs = vec![args.out.as_path()];
     outputs.extend(args.plot.as_deref());
     compgate_core::outputs::check(&[&args.data], &outputs)?;
-    let m = Measurements::read_path(&args.data).map_err(|e| match e {
+    // A sensor --sensors leaves out is not read: its bad cell cannot stop the fit.
+    let read = if args.sensors.is_empty() {
+        Measurements::read_path(&args.data)
+    } else {
+        Measurements::read_path_sensors(&args.data, &crate::args::sensor_names(&args.sensors)?)
+    };
+    let m = read.map_err(|e| match e {
         // The reader's own error names the file already.
         MeasureError::Io { path, source } => CalibrateError::Io { path, source },
         e => CalibrateError::Data(args.data.display().to_string(), e),
@@ -97,23 +103,13 @@ pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
         })?),
         None => None,
     };
-    let ignored_columns = m
-        .ignored_columns
-        .iter()
-        .cloned()
-        .chain(
-            m.temps
-                .iter()
-                .filter(|c| !f.terms.iter().any(|t| t.name == c.name))
-                .map(|c| format!("T_{}", c.name)),
-        )
-        .collect();
     Ok(Calibrated {
         args,
         fit: f,
         model,
         plot,
-        ignored_columns,
+        // The sensors --sensors left out are among them: they were not read.
+        ignored_columns: m.ignored_columns,
     })
 }
 

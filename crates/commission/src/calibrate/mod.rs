@@ -76,8 +76,18 @@ pub fn select_sensors<'a>(
                 .find(|c| c.name == name)
                 .map(|c| (c.name.as_str(), c.degc.as_slice()))
                 .ok_or_else(|| {
-                    let have: Vec<String> =
-                        m.temps.iter().map(|c| format!("T_{}", c.name)).collect();
+                    // With the columns a selective read left out.
+                    let have: Vec<String> = m
+                        .temps
+                        .iter()
+                        .map(|c| format!("T_{}", c.name))
+                        .chain(
+                            m.ignored_columns
+                                .iter()
+                                .filter(|c| c.starts_with("T_"))
+                                .cloned(),
+                        )
+                        .collect();
                     CalibrateError::NoSensor(name.to_string(), have.join(", "))
                 })
         })

@@ -433,18 +433,47 @@ fn the_report_names_the_columns_the_fit_did_not_read() {
     std::fs::write(&csv, text).unwrap();
     let sensors: Vec<String> = m.temps.iter().map(|c| c.name.clone()).collect();
     assert!(sensors.len() >= 2, "{sensors:?}");
-    let mut args = args_for(dir.path(), csv);
-    args.sensors = sensors[..1].to_vec();
-    let report = run(&args).unwrap().report();
-    let left_out: Vec<String> = sensors[1..].iter().map(|s| format!("T_{s}")).collect();
-    assert!(
-        report.starts_with(&format!(
-            "ignored columns: t_spare, {}\n",
-            left_out.join(", ")
-        )),
-        "{report}"
-    );
+    let mut args = args_for(dir.path(), csv.clone());
     args.sensors = sensors.clone();
     let report = run(&args).unwrap().report();
     assert!(report.starts_with("ignored columns: t_spare\n"), "{report}");
+    let all = report;
+
+    // The last sensor left out, with a NaN in its third row.
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let last = format!("T_{}", sensors[sensors.len() - 1]);
+    let at = text
+        .lines()
+        .next()
+        .unwrap()
+        .split(',')
+        .position(|h| h == last)
+        .unwrap();
+    let text: String = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| {
+            let mut c: Vec<&str> = l.split(',').collect();
+            if i == 2 {
+                c[at] = "NaN";
+            }
+            c.join(",") + "\n"
+        })
+        .collect();
+    std::fs::write(&csv, text).unwrap();
+    args.sensors = sensors[..sensors.len() - 1].to_vec();
+    let report = run(&args).unwrap().report();
+    assert!(
+        report.starts_with(&format!("ignored columns: {last}, t_spare\n")),
+        "{report}"
+    );
+    assert_ne!(report, all, "fitted without {last}");
+    // Read, it is refused with its line.
+    args.sensors = sensors.clone();
+    let e = run(&args).unwrap_err().to_string();
+    assert!(e.contains(&format!("line 3, column `{last}`")), "{e}");
+    // A sensor the file lacks is named with every T_ column there is.
+    args.sensors = vec!["nope".into()];
+    let e = run(&args).unwrap_err().to_string();
+    assert!(e.contains("nope") && e.contains(&last), "{e}");
 }
