@@ -428,12 +428,25 @@ pub fn channel_name_problem(name: &str) -> Option<String> {
 
 /// A measurement file, buffered; an error names it.
 fn open(path: &Path) -> Result<std::io::BufReader<std::fs::File>, MeasureError> {
-    std::fs::File::open(path)
+    open_file(path)
         .map(std::io::BufReader::new)
         .map_err(|source| MeasureError::Io {
             path: path.display().to_string(),
             source,
         })
+}
+
+/// Opens a file to read, refusing a directory at once: opening one succeeds, and the
+/// first read failed as "line 1: Is a directory".
+pub fn open_file(path: &Path) -> std::io::Result<std::fs::File> {
+    let file = std::fs::File::open(path)?;
+    if file.metadata()?.is_dir() {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::IsADirectory,
+            "a directory, not a file",
+        ));
+    }
+    Ok(file)
 }
 
 /// The columns a reader reads beside `pos_mm`, `err_um` and the optional ones.
@@ -828,6 +841,13 @@ mod tests {
 
     #[test]
     fn errors_name_line_and_column() {
+        // A directory read as a file failed as "line 1: Is a directory".
+        let dir = std::env::temp_dir();
+        let e = Measurements::read_path(&dir).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            format!("{}: a directory, not a file", dir.display())
+        );
         let e = read("t_s,pos_mm,err_um,T_a\n0,0,1,20\n1,x,1,20\n").unwrap_err();
         assert_eq!(
             e.to_string(),

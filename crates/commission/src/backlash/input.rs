@@ -37,7 +37,7 @@ pub fn read_trace(path: &Path) -> Result<Trace, BacklashError> {
         column: column.to_string(),
         message,
     };
-    let file = std::fs::File::open(path)
+    let file = compgate_core::measure::open_file(path)
         .map_err(|e| BacklashError::Io(format!("{}: {e}", path.display())))?;
     // The measurement files' reader: the same words for an empty file, a header
     // split on ';' or tabs, and decimal commas.

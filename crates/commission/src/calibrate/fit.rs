@@ -51,8 +51,9 @@ pub enum FitError {
     Length(String),
     /// The error never changes: nothing to fit, and R^2 (1 - RSS/0) is undefined.
     #[error(
-        "column `err_um` is constant ({value_um} um on every row): there is no error to fit and R^2 \
-         is undefined; was the file exported without --err-channel (err_um is then 0 throughout)?"
+        "column `err_um` is constant ({} um on every row): there is no error to fit and R^2 \
+         is undefined; was the file exported without --err-channel (err_um is then 0 throughout)?",
+        compgate_gateway::nc::number(*value_um)
     )]
     ConstantErr { value_um: f64 },
     /// A sensor's temperature never changes, so its coefficient is undetermined.
@@ -516,12 +517,14 @@ mod tests {
     fn constant_err_is_refused() {
         let pos = [0.0, 1.0, 2.0, 0.0, 1.0, 2.0, 0.0, 1.0];
         let t = [20.0, 21.0, 22.0, 23.0, 24.0, 25.0, 26.0, 27.0];
-        for v in [0.0, 3.5] {
+        for (v, shown) in [(0.0, "0"), (3.5, "3.5"), (1e-300, "1e-300")] {
             let e = fit(&pos, &[v; 8], &[("a", &t)], 0.0).unwrap_err();
             assert_eq!(e, FitError::ConstantErr { value_um: v });
             let text = e.to_string();
             assert!(
-                text.contains("column `err_um` is constant") && text.contains("--err-channel"),
+                text.contains(&format!(
+                    "column `err_um` is constant ({shown} um on every row)"
+                )) && text.contains("--err-channel"),
                 "{text}"
             );
         }
