@@ -627,15 +627,10 @@ async fn an_independent_canopen_node_python_canopen() {
     ];
     let mut poller = CanPoller::new(0, "n21".into(), params, specs);
     let wait = Duration::from_secs(20);
-    let deadline = Instant::now() + wait;
-    let s = loop {
-        let s = poller.poll().await;
-        if value(&s, 0).is_some() {
-            break s;
-        }
-        assert!(Instant::now() < deadline, "no TPDO1 from the node: {s:?}");
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    };
+    let s = poll_until(&mut poller, wait, "no TPDO1 from the node", |s| {
+        value(s, 0).is_some()
+    })
+    .await;
     assert_eq!(value(&s, 0), Some(1234.0), "{s:?}");
     assert_eq!(value(&s, 1), Some(-56.0), "{s:?}");
     assert_eq!(value(&s, 2), Some(3000.0), "{s:?}");
@@ -649,10 +644,10 @@ async fn an_independent_canopen_node_python_canopen() {
     );
 
     node.say("set 1 2000");
-    let deadline = Instant::now() + wait;
-    while value(&poller.poll().await, 0) != Some(2000.0) {
-        assert!(Instant::now() < deadline, "TPDO1 did not follow the node");
-    }
+    poll_until(&mut poller, wait, "TPDO1 did not follow the node", |s| {
+        value(s, 0) == Some(2000.0)
+    })
+    .await;
 
     node.say("fail 5 06060000");
     let s = poller.poll().await;
@@ -668,18 +663,10 @@ async fn an_independent_canopen_node_python_canopen() {
     assert_eq!(value(&s, 0), Some(2000.0), "{s:?}");
 
     node.say("silent");
-    let deadline = Instant::now() + wait;
-    let s = loop {
-        let s = poller.poll().await;
-        if error(&s).contains("heartbeat timeout") {
-            break s;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "the silent node was not noticed: {s:?}"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    };
+    let s = poll_until(&mut poller, wait, "the silent node was not noticed", |s| {
+        error(s).contains("heartbeat timeout")
+    })
+    .await;
     assert!(s.values.iter().all(|(_, v)| v.is_err()), "{s:?}");
     stop.cancel();
     producer.await.expect("SYNC producer");
@@ -733,26 +720,20 @@ async fn an_event_driven_tpdo_is_read_by_its_age() {
         specs(),
     );
     let wait = Duration::from_secs(20);
-    let deadline = Instant::now() + wait;
-    let s = loop {
-        let s = event.poll().await;
-        if value(&s, 0).is_some() {
-            break s;
-        }
-        assert!(Instant::now() < deadline, "no TPDO1 from the node: {s:?}");
-        tokio::time::sleep(period).await;
-    };
+    let s = poll_until(&mut event, wait, "no TPDO1 from the node", |s| {
+        value(s, 0).is_some()
+    })
+    .await;
     assert_eq!(
         (value(&s, 0), value(&s, 1)),
         (Some(1234.0), Some(-56.0)),
         "{s:?}"
     );
     node.say("set 1 2000");
-    let deadline = Instant::now() + wait;
-    while value(&event.poll().await, 0) != Some(2000.0) {
-        assert!(Instant::now() < deadline, "TPDO1 did not follow the node");
-        tokio::time::sleep(period).await;
-    }
+    poll_until(&mut event, wait, "TPDO1 did not follow the node", |s| {
+        value(s, 0) == Some(2000.0)
+    })
+    .await;
 
     let (stop, producer) = sync_producer(period);
     let mut synchronous = CanPoller::new(1, "n22 sync".into(), params(None), specs());
@@ -787,17 +768,28 @@ fn one_transmitter_at_20_degc() -> compgate_plc::field::FieldModule {
     FieldModule::new(FieldModuleSpec::new(vec![spec], 1)).expect("module")
 }
 
-/// Polls until channel 0 of `poller` is good, within `wait`; the last sample.
-async fn poll_until_good(poller: &mut CanPoller, wait: Duration, what: &str) {
+/// Polls `poller` until a sample is `done`, within `wait` (failing as `what`
+/// otherwise); that sample.
+async fn poll_until(
+    poller: &mut CanPoller,
+    wait: Duration,
+    what: &str,
+    done: impl Fn(&DeviceSample) -> bool,
+) -> DeviceSample {
     let deadline = Instant::now() + wait;
     loop {
         let s = poller.poll().await;
-        if matches!(s.values[..], [(0, Ok(_))]) {
-            return;
+        if done(&s) {
+            return s;
         }
         assert!(Instant::now() < deadline, "{what}: still {s:?}");
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
+}
+
+/// Polls until channel 0 of `poller`, its only one, is good, within `wait`.
+async fn poll_until_good(poller: &mut CanPoller, wait: Duration, what: &str) {
+    poll_until(poller, wait, what, |s| matches!(s.values[..], [(0, Ok(_))])).await;
 }
 
 /// A node reset by a third party (NMT reset node) boots pre-operational: its boot-up
