@@ -202,7 +202,8 @@ cat >"$IR/init" <<EOF
 /bin/busybox --install -s /bin
 export PATH=/bin:/sbin
 mount -t proc proc /proc; mount -t sysfs sys /sys; mount -t devtmpfs dev /dev
-mount -t tmpfs tmp /tmp
+# No tmpfs over /tmp: the initramfs (itself writable) may carry the Python peers
+# there, at the path of a checkout under /tmp.
 export TMPDIR=/tmp
 ${CI:+export CI=1}
 for m in can can-raw can-bcm can-dev vcan; do insmod /mods/\$m.ko || echo "VCAN-ERROR: insmod \$m"; done
