@@ -121,8 +121,37 @@ fn cli_rejects_a_table_short_of_the_travel_naming_file_and_line() {
         .unwrap();
     assert_eq!(out.status.code(), Some(1));
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains(&path.display().to_string()), "{err}");
-    assert!(err.contains("line "), "{err}");
+    assert!(
+        err.starts_with(&format!("error: {}: line ", path.display())),
+        "the file first, as the CSV readers name it: {err}"
+    );
+
+    // A decimal comma is named as such.
+    let line = EXAMPLE
+        .lines()
+        .position(|l| l.starts_with("squareness EC0Y"))
+        .unwrap()
+        + 1;
+    let text: String = EXAMPLE
+        .lines()
+        .enumerate()
+        .map(|(i, l)| match i + 1 == line {
+            true => l.replacen('.', ",", 1) + "\n",
+            false => format!("{l}\n"),
+        })
+        .collect();
+    std::fs::write(&path, text).unwrap();
+    let out = std::process::Command::new(BIN)
+        .args(["volumetric", "--errors"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains(&format!(": line {line}, EC0Y: not a number: "))
+            && err.contains("(a decimal comma? compgate reads numbers with a decimal point)"),
+        "{err}"
+    );
 }
 
 /// An independent model of the documented kinematics (module doc of

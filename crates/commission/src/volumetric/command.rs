@@ -212,14 +212,9 @@ pub fn run(args: &VolumetricArgs) -> Result<Evaluated, VolumetricError> {
     let model = super::format::decode(&bytes)
         .and_then(parse)
         .map_err(|e| match e {
-            VolumetricError::Parse {
-                line,
-                field,
-                message,
-            } => VolumetricError::Parse {
-                line,
-                field: format!("{}: {field}", args.errors.display()),
-                message,
+            e @ VolumetricError::Parse { .. } => VolumetricError::InFile {
+                path: args.errors.display().to_string(),
+                source: Box::new(e),
             },
             other => other,
         })?;

@@ -29,9 +29,14 @@ fn err(line: usize, field: &str, message: impl Into<String>) -> VolumetricError 
 
 fn number(line: usize, field: &str, token: Option<&str>) -> Result<f64, VolumetricError> {
     let t = token.ok_or_else(|| err(line, field, "missing value"))?;
-    let v: f64 = t
-        .parse()
-        .map_err(|_| err(line, field, format!("not a number: {t:?}")))?;
+    let v: f64 = t.parse().map_err(|_| {
+        let hint = if t.replacen(',', ".", 1).parse::<f64>().is_ok() {
+            " (a decimal comma? compgate reads numbers with a decimal point)"
+        } else {
+            ""
+        };
+        err(line, field, format!("not a number: {t:?}{hint}"))
+    })?;
     if !v.is_finite() {
         return Err(err(line, field, format!("not finite: {t:?}")));
     }

@@ -182,6 +182,14 @@ pub const MAX_ITERATIONS: usize = 20;
 /// Errors of the volumetric module.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum VolumetricError {
+    /// A problem of the error parameter file `path` (a [`Self::Parse`]).
+    #[error("{path}: {source}")]
+    InFile {
+        /// The file as given.
+        path: String,
+        /// What is wrong in it.
+        source: Box<VolumetricError>,
+    },
     /// The error parameter file is malformed.
     #[error("line {line}, {field}: {message}")]
     Parse {
