@@ -282,6 +282,13 @@ pub fn blue_to_red(f: f64, green: u8) -> RGBColor {
     RGBColor((255.0 * f) as u8, green, (255.0 * (1.0 - f)) as u8)
 }
 
+/// At most `max` evenly spread indices of `0..n`: a plot of 100k rows stays a file a
+/// browser opens.
+pub fn thin(n: usize, max: usize) -> Vec<usize> {
+    let step = n.div_ceil(max).max(1);
+    (0..n).step_by(step).collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

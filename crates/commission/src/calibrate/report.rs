@@ -97,7 +97,11 @@ pub fn render_curves(m: &Measurements, f: &Fit) -> Result<String, plot::DrawErro
         for (k, r) in chosen.iter().enumerate() {
             let color = plot::Palette99::pick(k).to_rgba();
             let temps: Vec<f64> = cols.iter().map(|c| stats::mean(&c[r.clone()])).collect();
-            let mut pts: Vec<(f64, f64)> = r.clone().map(|i| (m.pos_mm[i], m.err_um[i])).collect();
+            // A sweep of a continuous capture can hold all the rows.
+            let mut pts: Vec<(f64, f64)> = plot::thin(r.len(), 1000)
+                .into_iter()
+                .map(|k| (m.pos_mm[r.start + k], m.err_um[r.start + k]))
+                .collect();
             pts.sort_by(|a, b| a.0.total_cmp(&b.0));
             let label = format!(
                 "t = {:.1} h, T_{first} = {:.2} degC",

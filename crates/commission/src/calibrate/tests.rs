@@ -477,3 +477,26 @@ fn the_report_names_the_columns_the_fit_did_not_read() {
     let e = run(&args).unwrap_err().to_string();
     assert!(e.contains("nope") && e.contains(&last), "{e}");
 }
+
+/// A continuous capture of 100k rows gave a 10 MB plot of 100k dots: a sweep's dots
+/// are thinned to at most 1000.
+#[test]
+fn the_plot_of_a_long_capture_stays_small() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("long.csv");
+    let mut text = String::from("t_s,pos_mm,err_um,T_a,T_b\n");
+    for i in 0..20_000 {
+        let t_s = f64::from(i);
+        let pos_mm = (t_s * 0.37).sin() * 500.0;
+        let (ta, tb) = (20.0 + t_s / 4000.0, 22.0 + (t_s / 900.0).sin());
+        let err_um = 5.0 * (ta - 20.0) + 0.01 * pos_mm + 0.002 * pos_mm * (tb - 22.0);
+        text.push_str(&format!("{t_s},{pos_mm},{err_um},{ta},{tb}\n"));
+    }
+    std::fs::write(&csv, text).unwrap();
+    let mut args = args_for(dir.path(), csv);
+    args.plot = Some(dir.path().join("p.svg"));
+    run(&args).unwrap().write().unwrap();
+    let svg = std::fs::read_to_string(dir.path().join("p.svg")).unwrap();
+    let dots = svg.matches("<circle").count();
+    assert!((500..=1100).contains(&dots), "{dots} dots");
+}

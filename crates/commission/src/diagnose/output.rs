@@ -201,12 +201,6 @@ pub fn text_report(d: &Diagnosis) -> String {
     out
 }
 
-/// At most `max` evenly spread row indices.
-fn thin(n: usize, max: usize) -> Vec<usize> {
-    let step = n.div_ceil(max).max(1);
-    (0..n).step_by(step).collect()
-}
-
 type Xy = Vec<(f64, f64)>;
 
 /// File, title, x label, x of a row, x range.
@@ -310,7 +304,7 @@ pub fn write_out(dir: &Path, d: &Diagnosis) -> Result<Vec<PathBuf>, DiagnoseErro
     written.push(base_path);
 
     let s = &d.series;
-    let idx = thin(s.t_s.len(), 2000);
+    let idx = plot::thin(s.t_s.len(), 2000);
     let pick =
         |x: &dyn Fn(usize) -> f64, r: &[f64]| -> Xy { idx.iter().map(|&i| (x(i), r[i])).collect() };
     let t_end = s.t_s.last().copied().unwrap_or(1.0).max(s.t_s[0] + 1e-9);
