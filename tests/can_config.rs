@@ -179,6 +179,19 @@ fn one_poll_interval_and_one_sync_producer_per_interface() {
         producers,
         vec![("vcan0".to_string(), 0.5), ("vcan1".to_string(), 0.25)]
     );
+    // vcan1's node sends its TPDOs event-driven: no SYNC there.
+    let text = text.replace(
+        "poll_interval_s = 0.25\n",
+        "poll_interval_s = 0.25\ntpdo_max_age_s = 0.75\n",
+    );
+    let cfg = config::load_str(&text, "can.toml").expect("valid");
+    let built = compgate_gateway::runtime::build(&cfg).expect("builds");
+    let interfaces: Vec<&str> = built
+        .sync_producers
+        .iter()
+        .map(|p| p.interface.as_str())
+        .collect();
+    assert_eq!(interfaces, ["vcan0"]);
 }
 
 #[test]

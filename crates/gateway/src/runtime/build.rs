@@ -144,15 +144,21 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
     }
 
     // One SYNC per interface at its devices' poll interval (validation makes it one
-    // value per interface).
-    let sync_producers = sync::plan(cfg.devices.values().filter_map(DeviceConfig::can).map(
-        |dev| SyncDevice {
-            interface: dev.interface.clone(),
-            poll_interval: dev.common.poll_interval(),
-            backoff_initial: dev.common.backoff_initial(),
-            backoff_max: dev.common.backoff_max(),
-        },
-    ));
+    // value per interface). Nodes with event-driven TPDOs need none: an interface of
+    // only such nodes gets no producer, so the gateway sends no SYNC on a bus whose
+    // SYNC another master may own.
+    let sync_producers = sync::plan(
+        cfg.devices
+            .values()
+            .filter_map(DeviceConfig::can)
+            .filter(|dev| dev.tpdo_max_age_s.is_none())
+            .map(|dev| SyncDevice {
+                interface: dev.interface.clone(),
+                poll_interval: dev.common.poll_interval(),
+                backoff_initial: dev.common.backoff_initial(),
+                backoff_max: dev.common.backoff_max(),
+            }),
+    );
     let mut serial_links: BTreeMap<String, SharedLink> = BTreeMap::new();
     let mut devices = Vec::with_capacity(cfg.devices.len());
     for (((name, dev), specs), can_specs) in cfg.devices.iter().zip(specs).zip(can_specs) {

@@ -42,7 +42,8 @@ pub struct CanDeviceConfig {
     /// each SYNC: a poll takes each TPDO's newest frame if it came within this many
     /// seconds, else its channels are bad ("not received for ..."). Set it above the
     /// node's event timer, e.g. 3 times it. Unset (default): synchronous TPDOs, read
-    /// after the newest SYNC. 0.001..=3600.
+    /// after the newest SYNC. An interface whose devices all have it gets no SYNC
+    /// from the gateway. 0.001..=3600.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub tpdo_max_age_s: Option<f64>,
