@@ -3,7 +3,9 @@
 //! for 32-bit types, in every byte order with the plausible one marked, the loop
 //! current, the temperature and the quality. The first thing to run against a new
 //! device: a wrong `byte_order`, a 1-based `address` or a wrong scaling shows here,
-//! before any NC is written.
+//! before any NC is written. A CANopen node is asked for its TPDO settings instead
+//! (transmission type, event timer, mapping), which are checked against each
+//! channel's `pdo`, `offset_bytes` and `data_type`, and its SDO channels are read.
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -103,12 +105,7 @@ pub async fn probe(
             DeviceConfig::Tcp(t) => (t.link_spec(), t.poll_params()),
             DeviceConfig::Rtu(r) => (r.link_spec(), r.poll_params()),
             DeviceConfig::Can(c) => {
-                let _ = writeln!(
-                    report.text,
-                    "device {dev_name}: CANopen node {} on {}: not probed (probe reads Modbus \
-                     registers); `compgate run` shows its channels\n",
-                    c.node_id, c.interface
-                );
+                probe_can(&mut report, dev_name, c, &selected).await;
                 continue;
             }
         };
@@ -347,4 +344,212 @@ fn describe(q: &Quality) -> String {
         }
         Quality::Bad(r) => format!("bad ({r})"),
     }
+}
+
+/// One TPDO's settings as the node reports them.
+struct TpdoSettings {
+    /// COB-ID (1800h+n-1 sub 1); bit 31 set: the TPDO is off.
+    cob_id: u32,
+    /// Transmission type (sub 2): 1..=240 after every n-th SYNC, 254/255 event-driven.
+    transmission: u32,
+    /// Event timer, ms (sub 5), when the node has one.
+    event_timer_ms: Option<u32>,
+    /// Mapped objects (1A00h+n-1 subs 1..): (index, sub, bits), in byte order.
+    mapped: Vec<(u16, u8, u32)>,
+}
+
+impl TpdoSettings {
+    /// How the node sends it, in words.
+    fn sending(&self) -> String {
+        match self.transmission {
+            _ if self.cob_id & 0x8000_0000 != 0 => "off (COB-ID bit 31 set)".into(),
+            0 => "synchronous, acyclic (type 0: after a SYNC when changed)".into(),
+            n @ 1..=240 => format!(
+                "synchronous (type {n}: after every SYNC{})",
+                match n {
+                    1 => String::new(),
+                    n => format!(" {n}"),
+                }
+            ),
+            n @ (254 | 255) => match self.event_timer_ms {
+                Some(ms) if ms > 0 => format!("event-driven (type {n}, event timer {ms} ms)"),
+                _ => format!("event-driven (type {n}, no event timer: on change only)"),
+            },
+            n => format!("transmission type {n}"),
+        }
+    }
+
+    fn event_driven(&self) -> bool {
+        matches!(self.transmission, 254 | 255)
+    }
+
+    /// The mapped object that starts at byte `offset`: (index, sub, bits).
+    fn at(&self, offset: u8) -> Option<(u16, u8, u32)> {
+        let mut bit = 0;
+        for &(index, sub, bits) in &self.mapped {
+            if bit == u32::from(offset) * 8 {
+                return Some((index, sub, bits));
+            }
+            bit += bits;
+        }
+        None
+    }
+}
+
+/// Reads TPDO `pdo`'s settings by SDO.
+async fn read_tpdo(
+    poller: &mut compgate_gateway::source::can::CanPoller,
+    pdo: u8,
+) -> Result<TpdoSettings, compgate_gateway::source::can::CanError> {
+    let (com, map) = (0x1800 + u16::from(pdo) - 1, 0x1A00 + u16::from(pdo) - 1);
+    let cob_id = poller.read_object(com, 1).await?;
+    let transmission = poller.read_object(com, 2).await?;
+    let event_timer_ms = poller.read_object(com, 5).await.ok();
+    let count = poller.read_object(map, 0).await?;
+    let mut mapped = Vec::new();
+    for sub in 1..=count.min(64) as u8 {
+        let entry = poller.read_object(map, sub).await?;
+        mapped.push(((entry >> 16) as u16, (entry >> 8) as u8, entry & 0xFF));
+    }
+    Ok(TpdoSettings {
+        cob_id,
+        transmission,
+        event_timer_ms,
+        mapped,
+    })
+}
+
+/// `compgate probe` of a CANopen node: the settings of the TPDOs its channels use,
+/// checked against them, and its SDO channels read once.
+async fn probe_can(
+    report: &mut ProbeReport,
+    dev_name: &str,
+    c: &compgate_gateway::source::can::config::CanDeviceConfig,
+    selected: &[(&String, &ChannelConfig)],
+) {
+    use compgate_gateway::source::can::{CanChannelSpec, CanObject, CanPoller};
+    let _ = writeln!(
+        report.text,
+        "device {dev_name}: CANopen node {} on {}",
+        c.node_id, c.interface
+    );
+    let mut poller = CanPoller::new(
+        0,
+        dev_name.to_string(),
+        c.params(c.common.poll_interval()),
+        Vec::<CanChannelSpec>::new(),
+    );
+    let mut tpdos: Vec<u8> = selected
+        .iter()
+        .filter_map(|(_, ch)| ch.can.and_then(|m| m.pdo))
+        .collect();
+    tpdos.sort_unstable();
+    tpdos.dedup();
+    let mut settings = std::collections::BTreeMap::new();
+    for pdo in tpdos {
+        match read_tpdo(&mut poller, pdo).await {
+            Ok(t) => {
+                let _ = writeln!(
+                    report.text,
+                    "  TPDO{pdo}: COB-ID {:X}h, {}",
+                    t.cob_id & 0x7FF,
+                    t.sending()
+                );
+                let mut byte = 0;
+                for &(index, sub, bits) in &t.mapped {
+                    let _ = writeln!(
+                        report.text,
+                        "    bytes {byte}..{}: {index:04X}h sub {sub} ({bits} bit)",
+                        byte + bits / 8
+                    );
+                    byte += bits / 8;
+                }
+                settings.insert(pdo, t);
+            }
+            Err(e) => {
+                let _ = writeln!(report.text, "  TPDO{pdo}: settings not read: {e}");
+            }
+        }
+    }
+    let key = format!("devices.{dev_name}.tpdo_max_age_s");
+    for (name, ch) in selected {
+        let Some(object) = ch.can.and_then(|m| m.object()) else {
+            continue;
+        };
+        let ok = match object {
+            CanObject::Pdo { pdo, offset_bytes } => match settings.get(&pdo) {
+                None => {
+                    let _ = writeln!(report.text, "  {name}: TPDO{pdo} unknown, not checked");
+                    false
+                }
+                Some(t) => {
+                    let bits = u32::from(ch.data_type.registers()) * 16;
+                    let (line, fits) = match t.at(offset_bytes) {
+                        Some((index, sub, b)) if b == bits => (
+                            format!(
+                                "TPDO{pdo} byte {offset_bytes}: {index:04X}h sub {sub}, {b} bit, \
+                                 as data_type = \"{}\"",
+                                ch.data_type.name()
+                            ),
+                            true,
+                        ),
+                        Some((index, sub, b)) => (
+                            format!(
+                                "TPDO{pdo} byte {offset_bytes}: {index:04X}h sub {sub} is {b} bit, \
+                                 data_type = \"{}\" reads {bits}: check data_type",
+                                ch.data_type.name()
+                            ),
+                            false,
+                        ),
+                        None => (
+                            format!(
+                                "TPDO{pdo} maps no object starting at byte {offset_bytes}: check \
+                                 offset_bytes against the mapping above"
+                            ),
+                            false,
+                        ),
+                    };
+                    let timing = match (t.event_driven(), c.tpdo_max_age_s) {
+                        (true, None) => Some(format!(
+                            "the node sends TPDO{pdo} event-driven: set {key} (above its \
+                             event timer)"
+                        )),
+                        (false, Some(_)) => Some(format!(
+                            "the node sends TPDO{pdo} after the SYNC: remove {key}"
+                        )),
+                        _ => None,
+                    };
+                    let _ = writeln!(report.text, "  {name}: {line}");
+                    if let Some(t) = &timing {
+                        let _ = writeln!(report.text, "  {name}: {t}");
+                    }
+                    fits && timing.is_none()
+                }
+            },
+            CanObject::Sdo { index, sub } => match poller.read_object(index, sub).await {
+                Ok(raw) => {
+                    let value = compgate_gateway::source::can::codec::decode_value(
+                        &raw.to_le_bytes(),
+                        0,
+                        ch.data_type,
+                    )
+                    .unwrap_or(f64::NAN);
+                    let _ = writeln!(
+                        report.text,
+                        "  {name}: SDO {index:04X}h sub {sub} = {value} as data_type = \"{}\"",
+                        ch.data_type.name()
+                    );
+                    true
+                }
+                Err(e) => {
+                    let _ = writeln!(report.text, "  {name}: {e}");
+                    false
+                }
+            },
+        };
+        if !ok {
+            report.bad.push((*name).clone());
+        }
+    }
+    report.text.push('\n');
 }

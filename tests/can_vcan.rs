@@ -761,6 +761,92 @@ async fn an_event_driven_tpdo_is_read_by_its_age() {
     producer.await.expect("SYNC producer");
 }
 
+/// `compgate probe` asks a node for the settings of the TPDOs the channels use and
+/// checks each channel against them, as a commissioning engineer would with the
+/// node's EDS: python-canopen's node, synchronous and event-driven.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs vcan0 and the Python peers; tests/vcan/run.sh runs it"]
+async fn probe_checks_the_channels_against_the_nodes_tpdo_settings() {
+    let Some(mut sync_node) = PythonNode::start(24, &[]) else {
+        return;
+    };
+    let Some(_event_node) = PythonNode::start(25, &["--event-ms", "100"]) else {
+        return;
+    };
+    sync_node.say("set 5 -7");
+    let channel = |name: &str, device: &str, data_type: &str, can: &str| {
+        format!(
+            "[channels.{name}]\ndevice = \"{device}\"\ndata_type = \"{data_type}\"\n\
+             can = {{ {can} }}\nscaling = {}\nfilter = {}\n\n",
+            common::SCALING,
+            common::FILTER
+        )
+    };
+    let device = |name: &str, node: u8| {
+        format!(
+            "[devices.{name}]\ntransport = \"can\"\ninterface = \"{}\"\nnode_id = {node}\n\
+             poll_interval_s = 0.1\ntimeout_s = 0.5\n\n",
+            interface()
+        )
+    };
+    let text = [
+        device("n24", 24),
+        device("n25", 25),
+        channel("A_fits", "n24", "u16", "pdo = 1, offset_bytes = 0"),
+        channel("B_too_wide", "n24", "u32", "pdo = 1, offset_bytes = 2"),
+        channel("C_mid_object", "n24", "u16", "pdo = 1, offset_bytes = 1"),
+        channel(
+            "D_sdo",
+            "n24",
+            "i16",
+            "sdo_index = 0x6401, sdo_subindex = 5",
+        ),
+        channel("E_event", "n25", "u16", "pdo = 1, offset_bytes = 0"),
+    ]
+    .concat();
+    let cfg = compgate_gateway::config::load_str(&text, "probe.toml").expect("valid");
+    let report = compgate::probe::probe(&cfg, None, None)
+        .await
+        .expect("probe");
+    let t = &report.text;
+    for want in [
+        "device n24: CANopen node 24 on ",
+        "  TPDO1: COB-ID 198h, synchronous (type 1: after every SYNC)\n    bytes 0..2: 6401h sub 1 (16 bit)\n    bytes 2..4: 6401h sub 2 (16 bit)",
+        "  A_fits: TPDO1 byte 0: 6401h sub 1, 16 bit, as data_type = \"u16\"",
+        "  B_too_wide: TPDO1 byte 2: 6401h sub 2 is 16 bit, data_type = \"u32\" reads 32: check data_type",
+        "  C_mid_object: TPDO1 maps no object starting at byte 1",
+        "  D_sdo: SDO 6401h sub 5 = -7 as data_type = \"i16\"",
+        "  TPDO1: COB-ID 199h, event-driven (type 255, event timer 100 ms)",
+        "  E_event: the node sends TPDO1 event-driven: set devices.n25.tpdo_max_age_s",
+    ] {
+        assert!(t.contains(want), "{want:?} not in:\n{t}");
+    }
+    assert_eq!(report.bad, ["B_too_wide", "C_mid_object", "E_event"], "{t}");
+
+    // With the key set, the event-driven channel passes; the synchronous node's does
+    // not take it.
+    let text = text
+        .replace("node_id = 25\n", "node_id = 25\ntpdo_max_age_s = 0.3\n")
+        .replace("node_id = 24\n", "node_id = 24\ntpdo_max_age_s = 0.3\n");
+    let cfg = compgate_gateway::config::load_str(&text, "probe.toml").expect("valid");
+    let report = compgate::probe::probe(&cfg, None, None)
+        .await
+        .expect("probe");
+    assert!(
+        report.text.contains(
+            "  A_fits: the node sends TPDO1 after the SYNC: remove devices.n24.tpdo_max_age_s"
+        ),
+        "{}",
+        report.text
+    );
+    assert_eq!(
+        report.bad,
+        ["A_fits", "B_too_wide", "C_mid_object"],
+        "{}",
+        report.text
+    );
+}
+
 /// A field module of one transmitter holding 20 degC, for a simulated node.
 fn one_transmitter_at_20_degc() -> compgate_plc::field::FieldModule {
     use compgate_plc::field::{FieldModule, FieldModuleSpec, Profile, TransmitterSpec};

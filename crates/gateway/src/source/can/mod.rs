@@ -628,6 +628,32 @@ impl CanPoller {
     }
 
     async fn upload(&mut self, index: u16, sub: u8, ty: DataType) -> Result<f64, CanError> {
+        let (data, len) = self.upload_bytes(index, sub).await?;
+        codec::decode_sdo_value(&data, len, ty).map_err(|e| CanError::Sdo {
+            node: self.params.node_id,
+            index,
+            sub,
+            what: e.to_string(),
+            abort_code: None,
+        })
+    }
+
+    /// Uploads object `index`/`sub` once, at most 4 bytes, as an unsigned number (the
+    /// bytes it has, zero-extended): how `compgate probe` reads a node's PDO settings.
+    pub async fn read_object(&mut self, index: u16, sub: u8) -> Result<u32, CanError> {
+        if self.link.is_none() {
+            self.open()?;
+        }
+        self.drain().map_err(|e| self.socket_error(e))?;
+        let (data, len) = self.upload_bytes(index, sub).await?;
+        let mut b = [0u8; 4];
+        let n = usize::from(len.min(4));
+        b[..n].copy_from_slice(&data[..n]);
+        Ok(u32::from_le_bytes(b))
+    }
+
+    /// An expedited upload's data bytes and how many of them count.
+    async fn upload_bytes(&mut self, index: u16, sub: u8) -> Result<([u8; 4], u8), CanError> {
         let node = self.params.node_id;
         let failed = |what: String, abort_code| CanError::Sdo {
             node,
@@ -660,10 +686,7 @@ impl CanPoller {
             };
             match self.sdo.on_answer(&answer) {
                 None => continue,
-                Some(Ok((data, len))) => {
-                    return codec::decode_sdo_value(&data, len, ty)
-                        .map_err(|e| failed(e.to_string(), None))
-                }
+                Some(Ok(answer)) => return Ok(answer),
                 Some(Err(SdoFailure::Abort(code))) => {
                     return Err(failed(
                         format!("abort {code:08X}h: {}", codec::abort_name(code)),
