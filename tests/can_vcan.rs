@@ -774,6 +774,15 @@ async fn probe_checks_the_channels_against_the_nodes_tpdo_settings() {
         return;
     };
     sync_node.say("set 5 -7");
+    // And the simulator's node, as `compgate sim` runs it: six transmitters, TPDO2
+    // carries the last two.
+    let module = {
+        use compgate_plc::field::{FieldModule, FieldModuleSpec, Profile, TransmitterSpec};
+        let spec = TransmitterSpec::new(Profile::Constant { degc: 20.0 }, 0.0, 100.0);
+        FieldModule::new(FieldModuleSpec::new(vec![spec; 6], 1)).expect("module")
+    };
+    let sim = compgate_plc::canopen::CanopenNode::spawn(&interface(), 26, 100, module)
+        .expect("simulated node");
     let channel = |name: &str, device: &str, data_type: &str, can: &str| {
         format!(
             "[channels.{name}]\ndevice = \"{device}\"\ndata_type = \"{data_type}\"\n\
@@ -802,6 +811,8 @@ async fn probe_checks_the_channels_against_the_nodes_tpdo_settings() {
             "sdo_index = 0x6401, sdo_subindex = 5",
         ),
         channel("E_event", "n25", "u16", "pdo = 1, offset_bytes = 0"),
+        device("n26", 26),
+        channel("F_sim", "n26", "u16", "pdo = 2, offset_bytes = 2"),
     ]
     .concat();
     let cfg = compgate_gateway::config::load_str(&text, "probe.toml").expect("valid");
@@ -818,6 +829,8 @@ async fn probe_checks_the_channels_against_the_nodes_tpdo_settings() {
         "  D_sdo: SDO 6401h sub 5 = -7 as data_type = \"i16\"",
         "  TPDO1: COB-ID 199h, event-driven (type 255, event timer 100 ms)",
         "  E_event: the node sends TPDO1 event-driven: set devices.n25.tpdo_max_age_s",
+        "  TPDO2: COB-ID 29Ah, synchronous (type 1: after every SYNC)\n    bytes 0..2: 6401h sub 5 (16 bit)\n    bytes 2..4: 6401h sub 6 (16 bit)\n",
+        "  F_sim: TPDO2 byte 2: 6401h sub 6, 16 bit, as data_type = \"u16\"",
     ] {
         assert!(t.contains(want), "{want:?} not in:\n{t}");
     }
@@ -845,6 +858,7 @@ async fn probe_checks_the_channels_against_the_nodes_tpdo_settings() {
         "{}",
         report.text
     );
+    sim.stop();
 }
 
 /// A field module of one transmitter holding 20 degC, for a simulated node.

@@ -21,6 +21,8 @@
 //! | 0x1008 | 0 | string | device name [`DEVICE_NAME`], segmented upload |
 //! | 0x1017 | 0 | u16 | producer heartbeat time, ms |
 //! | 0x1018 | 0 / 1 | u8 / u32 | identity: 1 entry / vendor id |
+//! | 0x1800..0x1803 | 1 / 2 | u32 / u8 | TPDO 1-4: COB-ID (bit 31 set: no transmitter for it) / transmission type 1 |
+//! | 0x1A00..0x1A03 | 0 / k | u8 / u32 | TPDO 1-4 mapping: entries / 6401h sub of its k-th transmitter, 16 bit |
 //! | 0x6401 | 0 | u8 | number of analogue inputs |
 //! | 0x6401 | i (1..=N) | u16 | ADC counts of transmitter i-1 |
 //! | 0x9130 | i (1..=N) | f32 | measured temperature of transmitter i-1, degC |
@@ -46,6 +48,14 @@ use crate::field::FieldModule;
 
 /// Most transmitters the TPDOs carry (4 PDOs of 4 u16 values).
 pub const MAX_PDO_TRANSMITTERS: usize = 16;
+
+/// Transmitters TPDO `p + 1` carries (0..=4) of a module with `count` transmitters.
+fn pdo_transmitters(count: usize, p: u16) -> usize {
+    count
+        .min(MAX_PDO_TRANSMITTERS)
+        .saturating_sub(4 * usize::from(p))
+        .min(4)
+}
 
 /// Object 0x1008 (manufacturer device name): longer than 4 bytes, so uploaded in
 /// segments.
@@ -383,7 +393,35 @@ impl CanopenNode {
                             None => Err(0x0609_0011),
                         }
                     }
-                    (0x1000 | 0x1001 | 0x1008 | 0x1017 | 0x1018 | 0x9130, _) => Err(0x0609_0011),
+                    // TPDO p's parameters, as it sends it: synchronous, its transmitters'
+                    // counts in order; one with no transmitter is off (COB-ID bit 31).
+                    (0x1800..=0x1803, 1) => {
+                        let p = index - 0x1800;
+                        let off = if pdo_transmitters(module.transmitter_count(), p) == 0 {
+                            0x8000_0000
+                        } else {
+                            0
+                        };
+                        Ok((off | u32::from(0x180 + 0x100 * p + me))
+                            .to_le_bytes()
+                            .to_vec())
+                    }
+                    (0x1800..=0x1803, 2) => Ok(vec![1]),
+                    (0x1A00..=0x1A03, k) => {
+                        let p = index - 0x1A00;
+                        let n = pdo_transmitters(module.transmitter_count(), p);
+                        match k {
+                            0 => Ok(vec![n as u8]),
+                            k if usize::from(k) <= n => {
+                                let sub = u32::from(4 * p) + u32::from(k);
+                                Ok((0x6401_0010 | sub << 8).to_le_bytes().to_vec())
+                            }
+                            _ => Err(0x0609_0011),
+                        }
+                    }
+                    (0x1000 | 0x1001 | 0x1008 | 0x1017 | 0x1018 | 0x1800..=0x1803 | 0x9130, _) => {
+                        Err(0x0609_0011)
+                    }
                     _ => Err(0x0602_0000),
                 };
                 match value {
