@@ -536,18 +536,20 @@ impl CanPoller {
             return;
         }
         let node = self.params.node_id;
-        if let Some(max_age) = self.params.tpdo_max_age {
-            // Event-driven: the frames queued so far were handled by the cycle's drain.
-            let now_s = self.t_s(Instant::now());
-            for spec in self.specs.clone() {
-                let CanObject::Pdo { pdo, offset_bytes } = spec.object else {
-                    continue;
-                };
-                let value = match self.pdos.latest(pdo) {
-                    Some((t_s, data)) if now_s - t_s <= max_age.as_secs_f64() => {
-                        codec::decode_value(data, usize::from(offset_bytes), spec.data_type)
-                            .map_err(|error| CanError::Pdo { node, pdo, error })
-                    }
+        let sync_age = sync::max_age(self.params.sync_period);
+        // Event-driven TPDOs are read from what the cycle's drain took, without a wait.
+        let sync = match self.params.tpdo_max_age {
+            Some(_) => None,
+            None => self.await_sync_tpdos(&wanted, sync_age).await,
+        };
+        let now_s = self.t_s(Instant::now());
+        for spec in self.specs.clone() {
+            let CanObject::Pdo { pdo, offset_bytes } = spec.object else {
+                continue;
+            };
+            let frame = match (self.params.tpdo_max_age, sync) {
+                (Some(max_age), _) => match self.pdos.latest(pdo) {
+                    Some((t_s, data)) if now_s - t_s <= max_age.as_secs_f64() => Ok(data),
                     newest => Err(CanError::PdoStale {
                         node,
                         pdo,
@@ -555,75 +557,64 @@ impl CanPoller {
                         max_age,
                         state: self.monitor.state(),
                     }),
-                };
-                self.push_pdo_value(spec.channel, value, values, errors);
+                },
+                (None, None) => Err(CanError::NoSync {
+                    interface: self.params.interface.clone(),
+                    max_age: sync_age,
+                }),
+                (None, Some(sync)) => {
+                    self.pdos
+                        .after_sync(pdo, sync)
+                        .ok_or_else(|| CanError::PdoTimeout {
+                            node,
+                            pdo,
+                            timeout: self.params.timeout,
+                            state: self.monitor.state(),
+                            last_s_ago: self.pdos.latest(pdo).map(|(t_s, _)| now_s - t_s),
+                        })
+                }
+            };
+            let value = frame.and_then(|data| {
+                codec::decode_value(data, usize::from(offset_bytes), spec.data_type)
+                    .map_err(|error| CanError::Pdo { node, pdo, error })
+            });
+            match value {
+                Ok(v) => values.push((spec.channel, Ok(v))),
+                Err(e) => {
+                    values.push((spec.channel, Err(self.fault(Reason::Comm))));
+                    if !errors.contains(&e) {
+                        errors.push(e);
+                    }
+                }
             }
-            return;
         }
-        let max_age = sync::max_age(self.params.sync_period);
+    }
+
+    /// Waits until every TPDO of `wanted` followed the newest SYNC, or the timeout: that
+    /// SYNC, if one came within `max_age`. A SYNC arriving during the wait becomes the
+    /// one to read: its TPDOs are the freshest, and a silent node still runs into the
+    /// deadline.
+    async fn await_sync_tpdos(
+        &mut self,
+        wanted: &[u8],
+        max_age: Duration,
+    ) -> Option<node::SyncMark> {
         let max_age_s = max_age.as_secs_f64();
         let deadline = Instant::now() + self.params.timeout;
-        // A SYNC arriving during the wait becomes the one to read: its TPDOs are the
-        // freshest, and a silent node still runs into the deadline.
-        let sync = loop {
+        loop {
             let sync = self.pdos.current_sync(self.t_s(Instant::now()), max_age_s);
             if let Some(sync) = sync {
                 if wanted
                     .iter()
                     .all(|&p| self.pdos.after_sync(p, sync).is_some())
                 {
-                    break Some(sync);
+                    return Some(sync);
                 }
             }
             let Some((at, raw)) = self.next_frame(deadline).await else {
-                break self.pdos.current_sync(self.t_s(Instant::now()), max_age_s);
+                return self.pdos.current_sync(self.t_s(Instant::now()), max_age_s);
             };
             self.handle(at, &raw);
-        };
-        let now_s = self.t_s(Instant::now());
-        for spec in self.specs.clone() {
-            let CanObject::Pdo { pdo, offset_bytes } = spec.object else {
-                continue;
-            };
-            let value = match sync {
-                None => Err(CanError::NoSync {
-                    interface: self.params.interface.clone(),
-                    max_age,
-                }),
-                Some(sync) => match self.pdos.after_sync(pdo, sync) {
-                    None => Err(CanError::PdoTimeout {
-                        node,
-                        pdo,
-                        timeout: self.params.timeout,
-                        state: self.monitor.state(),
-                        last_s_ago: self.pdos.latest(pdo).map(|(t_s, _)| now_s - t_s),
-                    }),
-                    Some(data) => {
-                        codec::decode_value(data, usize::from(offset_bytes), spec.data_type)
-                            .map_err(|error| CanError::Pdo { node, pdo, error })
-                    }
-                },
-            };
-            self.push_pdo_value(spec.channel, value, values, errors);
-        }
-    }
-
-    /// A TPDO channel's value, or its fault with the error named once per cycle.
-    fn push_pdo_value(
-        &self,
-        channel: usize,
-        value: Result<f64, CanError>,
-        values: &mut Vec<(usize, Result<f64, Fault>)>,
-        errors: &mut Vec<CanError>,
-    ) {
-        match value {
-            Ok(v) => values.push((channel, Ok(v))),
-            Err(e) => {
-                values.push((channel, Err(self.fault(Reason::Comm))));
-                if !errors.contains(&e) {
-                    errors.push(e);
-                }
-            }
         }
     }
 
