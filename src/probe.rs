@@ -404,7 +404,11 @@ async fn read_tpdo(
     let (com, map) = (0x1800 + u16::from(pdo) - 1, 0x1A00 + u16::from(pdo) - 1);
     let cob_id = poller.read_object(com, 1).await?;
     let transmission = poller.read_object(com, 2).await?;
-    let event_timer_ms = poller.read_object(com, 5).await.ok();
+    // Only an event-driven TPDO's timer says anything; many nodes lack sub 5.
+    let event_timer_ms = match transmission {
+        254 | 255 => poller.read_object(com, 5).await.ok(),
+        _ => None,
+    };
     let count = poller.read_object(map, 0).await?;
     let mut mapped = Vec::new();
     for sub in 1..=count.min(64) as u8 {
