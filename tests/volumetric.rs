@@ -113,14 +113,18 @@ fn cli_rejects_a_table_short_of_the_travel_naming_file_and_line() {
     let path = dir.path().join("short.errors");
     // The X table ends at 900 mm, the travel at 1000 mm.
     let text = EXAMPLE.replacen("\n1000 9.0000", "\n#1000 9.0000", 1);
-    std::fs::write(&path, text).unwrap();
-    let out = std::process::Command::new(BIN)
-        .args(["volumetric", "--errors"])
-        .arg(&path)
-        .output()
-        .unwrap();
-    assert_eq!(out.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&out.stderr);
+    // Its standard error, for the error file `text`.
+    let refused = |text: &str| {
+        std::fs::write(&path, text).unwrap();
+        let out = std::process::Command::new(BIN)
+            .args(["volumetric", "--errors"])
+            .arg(&path)
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(1));
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let err = refused(&text);
     assert!(
         err.starts_with(&format!("error: {}: line ", path.display())),
         "the file first, as the CSV readers name it: {err}"
@@ -140,13 +144,7 @@ fn cli_rejects_a_table_short_of_the_travel_naming_file_and_line() {
             false => format!("{l}\n"),
         })
         .collect();
-    std::fs::write(&path, text).unwrap();
-    let out = std::process::Command::new(BIN)
-        .args(["volumetric", "--errors"])
-        .arg(&path)
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
+    let err = refused(&text);
     assert!(
         err.contains(&format!(": line {line}, EC0Y: not a number: "))
             && err.contains("(a decimal comma? compgate reads numbers with a decimal point)"),
