@@ -152,3 +152,50 @@ async fn a_wrong_md32750_and_an_unreferenced_axis_are_logged_once_per_change() {
     drop(gw);
     drop(plant);
 }
+
+// A model asking for more than `max_abs_k0_mm` gets the limit: the journal says so
+// once, with the model's value and the key, the metric is 1 while it lasts, and the
+// return within the limit is logged once too. It used to be silent: the status read
+// "write (limited)", as for a step limit, then "within deadband".
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_model_held_at_its_absolute_limit_is_logged_and_exported() {
+    let dir = tempfile::tempdir().unwrap();
+    // The model's K0: 0.004 mm/K x (30 - 20) K = 0.04 mm.
+    let toml =
+        common::config("hold", "", "").replace("max_abs_k0_mm = 0.5", "max_abs_k0_mm = 0.015");
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &toml, "\n[metrics]\nbind = \"127.0.0.1:0\"\n").await;
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    let port = tokio::task::block_in_place(|| gw.metrics_port(10.0));
+    let nc = plant.nc["nc_x"].clone();
+    tokio::task::block_in_place(|| gw.wait_log(10.0, "axis X is held at its limit"));
+    // Many updates (100 ms) later, within the deadband at the limit: no more lines.
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    assert_eq!(nc.state().sd43900_mm, 0.015);
+    let line = once(&gw, "axis X is held at its limit");
+    assert!(line.contains("WARN"), "{line}");
+    assert!(line.contains("at the limit (the model's K0 0.04"), "{line}");
+    assert!(
+        line.contains("mm is beyond max_abs_k0_mm = 0.015 mm)"),
+        "{line}"
+    );
+    let at_limit = || {
+        let (text, _) = common::metrics::scrape(port, Duration::from_secs(2)).unwrap();
+        common::metrics::value(&text, "compgate_axis_at_limit{axis=\"X\"}")
+    };
+    assert_eq!(tokio::task::block_in_place(at_limit), Some(1.0));
+
+    // T_bed at 22 degC: K0 0.008 mm, within the limit.
+    let t_bed = plant.transmitter["T_bed"];
+    plant.field["ain1"]
+        .set_temperature_override(t_bed, Some(22.0))
+        .unwrap();
+    tokio::task::block_in_place(|| gw.wait_log(10.0, "axis X follows its model again"));
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    assert!((nc.state().sd43900_mm - 0.008).abs() < 0.0005);
+    assert!(once(&gw, "axis X follows its model again").contains("INFO"));
+    assert_eq!(count(&gw, "axis X "), 2, "{}", gw.stderr_text());
+    assert_eq!(tokio::task::block_in_place(at_limit), Some(0.0));
+    drop(gw);
+    drop(plant);
+}

@@ -62,14 +62,14 @@ pub struct AxisConfig {
     #[serde(default = "default_deadband_tan_beta")]
     #[schemars(range(min = 0.0, max = 0.1))]
     pub deadband_tan_beta: f64,
-    /// Hard limit of |K0| in mm; a computed value beyond it is clamped and logged.
-    /// Default 0.5; > 0 and <= 10 (SD43900 is limited to
+    /// Hard limit of |K0| in mm; a computed value beyond it is clamped to it, logged
+    /// once and exported as `compgate_axis_at_limit`. Default 0.5; > 0 and <= 10 (SD43900 is limited to
     /// 10 mm by the NC).
     #[serde(default = "default_max_abs_k0_mm")]
     #[schemars(range(max = 10.0), extend("exclusiveMinimum" = 0.0))]
     pub max_abs_k0_mm: f64,
-    /// Hard limit of |tan(beta)|; must stay below the NC's MD32760
-    /// `$MA_COMP_ADD_VELO_FACTOR`. Default 0.01 (the MD32760 default); > 0 and
+    /// Hard limit of |tan(beta)|, kept like `max_abs_k0_mm`; must stay below the
+    /// NC's MD32760 `$MA_COMP_ADD_VELO_FACTOR`. Default 0.01 (the MD32760 default); > 0 and
     /// <= 0.1.
     #[serde(default = "default_max_abs_tan_beta")]
     #[schemars(range(max = 0.1), extend("exclusiveMinimum" = 0.0))]

@@ -10,6 +10,7 @@
 //! | `compgate_channel_value_degc` | gauge | channel | filtered temperature (NaN without a value), every `gateway.status_interval_s` |
 //! | `compgate_channel_quality` | gauge | channel | 0 good, 1 uncertain, 2 bad, every `gateway.status_interval_s` |
 //! | `compgate_axis_sd43900_mm`, `compgate_axis_sd43910`, `compgate_axis_sd43920_mm` | gauge | axis | parameters last written and verified (what the NC held at start before the first job) |
+//! | `compgate_axis_at_limit` | gauge | axis | 1 while the model's value is beyond `max_abs_k0_mm` or `max_abs_tan_beta` and the NC gets the limit instead |
 //! | `compgate_axis_shadow` | gauge | axis | 1 when the axis runs in shadow mode (computes, never writes the NC) |
 //! | `compgate_axis_shadow_sd43900_mm`, `compgate_axis_shadow_sd43910`, `compgate_axis_shadow_sd43920_mm` | gauge | axis | shadow mode: the parameters the axis would have written last |
 //! | `compgate_nc_jobs_total` | counter | axis, result (`ok`/`failed`/`shadow`) | NC job outcomes; `shadow`: computed, not sent |
@@ -152,6 +153,11 @@ pub fn describe() {
         "compgate_nc_jobs_total",
         Unit::Count,
         "NC jobs by axis and result (ok, failed, shadow: computed in shadow mode, not sent)"
+    );
+    describe_gauge!(
+        "compgate_axis_at_limit",
+        Unit::Count,
+        "1 while the model's value is beyond max_abs_k0_mm or max_abs_tan_beta: the NC gets the limit"
     );
     describe_gauge!(
         "compgate_axis_shadow",
@@ -351,6 +357,10 @@ impl Observer for MetricsObserver {
                 set_params(&a.name, &p);
                 *last = Some(p);
             }
+        }
+        for a in &status.axes {
+            gauge!("compgate_axis_at_limit", "axis" => a.name.clone())
+                .set(f64::from(u8::from(a.at_limit)));
         }
         if let Some(stats) = &self.recorder {
             let (c, up) = self.recorder_handles.get_or_insert_with(|| {

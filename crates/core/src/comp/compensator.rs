@@ -91,6 +91,25 @@ pub enum Decision {
     },
 }
 
+/// The model's last value where it is beyond an absolute limit: the axis gets the
+/// limit instead, and a commissioning engineer must hear of it (a wrong model, or a
+/// limit set too tight).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BeyondLimit {
+    /// The model's K0 in mm, when |K0| > `max_abs_k0_mm`.
+    pub k0_mm: Option<f64>,
+    /// The model's tan(beta), when |tan(beta)| > `max_abs_tan_beta`.
+    pub tan_beta: Option<f64>,
+}
+
+impl BeyondLimit {
+    fn of(target: &CompParams, l: &Limits) -> Option<Self> {
+        let k0_mm = (target.k0_mm.abs() > l.max_abs_k0_mm).then_some(target.k0_mm);
+        let tan_beta = (target.tan_beta.abs() > l.max_abs_tan_beta).then_some(target.tan_beta);
+        (k0_mm.is_some() || tan_beta.is_some()).then_some(Self { k0_mm, tan_beta })
+    }
+}
+
 /// Decides, update by update, what to write into one axis' SD43900/43910/43920.
 ///
 /// The baseline is what the NC holds: set at start-up ([`Self::set_baseline`]) and
@@ -112,6 +131,8 @@ pub struct AxisCompensator {
     last_decide_s: Option<f64>,
     /// Lagged inputs and motion heat (empty: the plain model).
     dynamics: Dynamics,
+    /// Where the last decision's model value was beyond an absolute limit.
+    beyond_limit: Option<BeyondLimit>,
 }
 
 impl AxisCompensator {
@@ -126,6 +147,7 @@ impl AxisCompensator {
             baseline: None,
             last_decide_s: None,
             dynamics: Dynamics::default(),
+            beyond_limit: None,
         }
     }
 
@@ -159,6 +181,7 @@ impl AxisCompensator {
             .last_decide_s
             .map_or(0.0, |t0_s| (now_s - t0_s).max(0.0));
         self.last_decide_s = Some(now_s);
+        self.beyond_limit = None;
         // Lagged inputs fill their slots after the real ones.
         let lagged;
         let temps_degc = if self.dynamics.lags().is_empty() {
@@ -203,7 +226,15 @@ impl AxisCompensator {
         if !target.is_finite() {
             return Decision::Hold { bad_inputs };
         }
+        self.beyond_limit = BeyondLimit::of(&target, &self.limits);
         self.limit(target)
+    }
+
+    /// Where the model's value at the last [`Self::decide`] was beyond an absolute
+    /// limit (whether that decision wrote or found the limit held already); `None`
+    /// when it was within them or the model was not evaluated (bad inputs).
+    pub fn beyond_limit(&self) -> Option<BeyondLimit> {
+        self.beyond_limit
     }
 
     /// The NC accepted `written`: it becomes the baseline.
@@ -438,6 +469,12 @@ mod tests {
                 clamped: true
             }
         );
+        let beyond = c.beyond_limit().expect("beyond both limits");
+        assert!(close(beyond.k0_mm.unwrap(), 0.8));
+        assert!(close(beyond.tan_beta.unwrap(), -0.011));
+        // Within the limits again: nothing beyond.
+        c.decide(1.0, &[Some(30.0), Some(20.0)]);
+        assert_eq!(c.beyond_limit(), None);
     }
 
     #[test]
@@ -520,6 +557,19 @@ mod tests {
             c.decide(0.0, &[Some(220.0), Some(20.0)]),
             Decision::WithinDeadband
         );
+        // Held at the limit, the model is still beyond it: the caller must know.
+        let beyond = c.beyond_limit().expect("beyond the K0 limit");
+        assert!(close(beyond.k0_mm.unwrap(), 0.8) && beyond.tan_beta.is_none());
+        // A step limit alone is not beyond a limit; bad inputs evaluate nothing.
+        c.set_baseline(params(0.1, 0.0));
+        assert!(matches!(
+            c.decide(1.0, &[Some(70.0), Some(20.0)]),
+            Decision::Write { clamped: true, .. }
+        ));
+        assert_eq!(c.beyond_limit(), None);
+        c.decide(2.0, &[Some(220.0), Some(20.0)]);
+        c.decide(3.0, &[None, Some(20.0)]);
+        assert_eq!(c.beyond_limit(), None);
     }
 
     #[test]

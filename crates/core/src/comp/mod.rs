@@ -12,7 +12,7 @@ mod compensator;
 mod dynamics;
 mod model;
 
-pub use compensator::{AxisCompensator, BadInputPolicy, Decision, Limits};
+pub use compensator::{AxisCompensator, BadInputPolicy, BeyondLimit, Decision, Limits};
 pub use dynamics::{heat_store_step, Dynamics, InputLag, MotionHeat};
 pub use model::{Affine, CompParams, Term, ThermalModel};
 

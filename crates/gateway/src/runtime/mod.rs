@@ -20,7 +20,7 @@ use crate::nc::{Job, JobReport, NcError, NcSnapshot, NcWriter};
 use crate::source::can::sync::{self, SyncParams};
 use crate::source::DeviceSample;
 use compgate_core::channel::Quality;
-use compgate_core::comp::{CompParams, Decision};
+use compgate_core::comp::{BeyondLimit, CompParams, Decision, Limits};
 
 mod build;
 mod hooks;
@@ -223,7 +223,13 @@ fn written(job: &Job) -> String {
     out
 }
 
-fn describe(d: &Decision, names: &[String], inputs: &[usize]) -> String {
+fn describe(
+    d: &Decision,
+    beyond: Option<&BeyondLimit>,
+    limits: &Limits,
+    names: &[String],
+    inputs: &[usize],
+) -> String {
     let bad = |idx: &[usize]| {
         idx.iter()
             .filter_map(|&i| inputs.get(i).and_then(|&c| names.get(c)))
@@ -231,7 +237,7 @@ fn describe(d: &Decision, names: &[String], inputs: &[usize]) -> String {
             .collect::<Vec<_>>()
             .join(",")
     };
-    match d {
+    let text: String = match d {
         Decision::Write { clamped: false, .. } => "write".into(),
         Decision::Write { clamped: true, .. } => "write (limited)".into(),
         Decision::WithinDeadband => "within deadband".into(),
@@ -240,7 +246,26 @@ fn describe(d: &Decision, names: &[String], inputs: &[usize]) -> String {
         }
         Decision::Hold { bad_inputs } => format!("hold: bad input {}", bad(bad_inputs)),
         Decision::Ramp { bad_inputs, .. } => format!("ramp to zero: bad input {}", bad(bad_inputs)),
+    };
+    let Some(b) = beyond else {
+        return text;
+    };
+    let mut at = Vec::new();
+    if let Some(k0_mm) = b.k0_mm {
+        at.push(format!(
+            "the model's K0 {} mm is beyond max_abs_k0_mm = {} mm",
+            crate::nc::shown_mm(k0_mm),
+            crate::nc::number(limits.max_abs_k0_mm)
+        ));
     }
+    if let Some(tan_beta) = b.tan_beta {
+        at.push(format!(
+            "the model's tan(beta) {} is beyond max_abs_tan_beta = {}",
+            crate::nc::shown(crate::nc::var::SD43910, tan_beta),
+            crate::nc::number(limits.max_abs_tan_beta)
+        ));
+    }
+    format!("at the limit ({}): {text}", at.join("; "))
 }
 
 /// Runs the gateway until `shutdown` is cancelled, publishing status on `status`.
@@ -653,6 +678,7 @@ impl Running {
                             st.nc = None;
                             st.warning = Some(format!("NC unreachable: {e}"));
                             st.decision = "hold: NC unreachable".into();
+                            st.at_limit = false;
                         }
                         // It answered: say what, not "unreachable".
                         Err(e) => {
@@ -660,6 +686,7 @@ impl Running {
                             st.nc = None;
                             st.warning = Some(format!("NC answered with an error: {e}"));
                             st.decision = "hold: NC answered the read with an error".into();
+                            st.at_limit = false;
                         }
                     }
                 }
@@ -784,13 +811,21 @@ fn decide_axis(
         let expected = pipeline.axes[i].md32750;
         state.status.axes[i].decision =
             format!("hold: MD32750 is {nc} on the NC, the config expects {expected}");
+        state.status.axes[i].at_limit = false;
         return;
     }
     let decision = pipeline.decide(i, at);
     let axis = &pipeline.axes[i];
     let (shadow, module) = (axis.shadow, axis.nc_module);
-    let text = describe(&decision, &pipeline.channel_names, &axis.inputs);
-    let course = AxisCourse::of(&decision);
+    let beyond = axis.comp.beyond_limit();
+    let text = describe(
+        &decision,
+        beyond.as_ref(),
+        axis.comp.limits(),
+        &pipeline.channel_names,
+        &axis.inputs,
+    );
+    let course = AxisCourse::of(&decision, beyond.is_some());
     if let Some(more) = state.axis_logs[i].note(course, pipeline.now_s(at)) {
         // Inputs bad only because their device's link is down: the device's line
         // warned already, this one says what the axis does about it.
@@ -807,6 +842,7 @@ fn decide_axis(
         log_axis(&axis.name, course, &text, link_only, more);
     }
     state.status.axes[i].decision = text;
+    state.status.axes[i].at_limit = course == AxisCourse::AtLimit;
     let params = match decision {
         Decision::Write { params, .. } | Decision::Ramp { params, .. } => params,
         Decision::WithinDeadband | Decision::Hold { .. } => return,
@@ -923,6 +959,9 @@ fn log_axis(axis: &str, course: AxisCourse, decision: &str, link_only: bool, mor
         }
         AxisCourse::Fallback => {
             tracing::warn!(%axis, decision, "axis {axis} no longer follows its model: {decision}{more}")
+        }
+        AxisCourse::AtLimit => {
+            tracing::warn!(%axis, decision, "axis {axis} is held at its limit: {decision}; check the model and the limit{more}")
         }
         AxisCourse::Model => {
             tracing::info!(%axis, decision, "axis {axis} follows its model again: {decision}{more}")

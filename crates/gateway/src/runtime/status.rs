@@ -52,6 +52,9 @@ pub struct AxisStatus {
     pub written: Option<CompParams>,
     /// The last decision, in words.
     pub decision: String,
+    /// The last decision found the model's value beyond `max_abs_k0_mm` or
+    /// `max_abs_tan_beta`: the NC gets the limit (the decision names the value).
+    pub at_limit: bool,
     /// Jobs that ended verified.
     pub jobs_ok: u64,
     /// Jobs that failed.
@@ -144,13 +147,17 @@ pub(super) fn journal_usable(q: &Quality) -> Option<bool> {
 pub(super) enum AxisCourse {
     /// Writing, or within the deadband: the axis follows its model.
     Model,
+    /// Writing or within the deadband, but the model's value is beyond an absolute
+    /// limit: the NC gets the limit, not the model.
+    AtLimit,
     /// Holding or ramping to zero: a bad input (or a model value not finite).
     Fallback,
 }
 
 impl AxisCourse {
-    pub(super) fn of(d: &Decision) -> Self {
+    pub(super) fn of(d: &Decision, beyond_limit: bool) -> Self {
         match d {
+            Decision::Write { .. } | Decision::WithinDeadband if beyond_limit => Self::AtLimit,
             Decision::Write { .. } | Decision::WithinDeadband => Self::Model,
             Decision::Hold { .. } | Decision::Ramp { .. } => Self::Fallback,
         }

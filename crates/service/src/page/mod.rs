@@ -208,6 +208,7 @@ pub fn to_json(s: &Status, history: &History, interval_s: f64, t_unix_ms: i64) -
                 "written": a.written.as_ref().map(params),
                 "would_write": a.would_write.as_ref().map(params),
                 "decision": a.decision,
+                "at_limit": a.at_limit,
                 "jobs_ok": a.jobs_ok,
                 "jobs_failed": a.jobs_failed,
                 "last_job_error": a.last_job_error,

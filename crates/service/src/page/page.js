@@ -103,7 +103,7 @@ function axes(list) {
         </tbody>
       </table>
       <p>${ncLine}</p>
-      <p class="muted">decision: ${esc(a.decision)}; jobs ${a.jobs_ok} ok, ${a.jobs_failed} failed</p>
+      <p class="${a.at_limit ? "warning" : "muted"}">decision: ${esc(a.decision)}; jobs ${a.jobs_ok} ok, ${a.jobs_failed} failed</p>
       ${a.warning ? `<p class="warning">${esc(a.warning)}</p>` : ""}
       ${a.last_job_error ? `<p class="warning">last job: ${esc(a.last_job_error)}</p>` : ""}
     </div>`;
