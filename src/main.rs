@@ -179,11 +179,13 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
         }),
         Command::Validate { config: path } => {
             let cfg = config::load(&path).map_err(failed)?;
-            // What `run` needs of the file system, so that ExecStartPre catches it.
+            // What `run` needs of the file system, so that ExecStartPre catches it;
+            // the warnings are printed whether it passes or not.
+            let mut path_checked = Ok(());
             if let Some(r) = &cfg.recorder {
                 let db = record::resolve_path(&r.path);
-                record::check_path(&db)
-                    .map_err(|e| failed(format_args!("{}: {e}", path.display())))?;
+                path_checked = record::check_path(&db)
+                    .map_err(|e| failed(format_args!("{}: {e}", path.display())));
                 if let Some(w) = record::outside_state_directory(&db) {
                     cli::eprintln(format_args!(
                         "warning: {}: recorder.path: {w}",
@@ -194,6 +196,7 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
             for w in config::warnings(&cfg, &path.display().to_string()) {
                 cli::eprintln(format_args!("warning: {w}"))?;
             }
+            path_checked?;
             Ok(cli::print(format_args!("{}: OK\n", path.display()))?)
         }
         #[cfg(feature = "sim")]

@@ -435,6 +435,19 @@ fn validate_refuses_a_recorder_path_that_run_cannot_write() {
     );
     validate_fails(&config, &missing, &why);
     assert!(!dir.path().join("nodir").exists(), "nothing created");
+    // The warnings are printed with the path's error, not only once it is fixed.
+    let text =
+        std::fs::read_to_string(&config)
+            .unwrap()
+            .replacen("address = 2\n", "address = 30003\n", 1);
+    std::fs::write(&config, text).unwrap();
+    validate_fails(&config, &missing, &why);
+    let out = run_to_end(&["validate", "--config", config.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("warning: ") && err.contains("channels.T_col.address: 30003 looks like"),
+        "{err}"
+    );
 
     // A read-only file system (root writes any file that its mode forbids).
     let fs = SmallFs::mount(&dir.path().join("ro"), "1m");
