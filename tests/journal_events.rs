@@ -199,3 +199,38 @@ async fn a_model_held_at_its_absolute_limit_is_logged_and_exported() {
     drop(gw);
     drop(plant);
 }
+
+// A reload keeps what the journal was told of each axis: the axis held while a reload
+// had pointed its device at a dead port, and the reload back says it follows its
+// model again. The journal's last word used to be the hold: the reload started the
+// axis' log afresh, as if it had always followed its model.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reload_that_ends_a_hold_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), "").await;
+    let good = std::fs::read_to_string(&path).unwrap();
+    let device = good.find("[devices.ain1]").unwrap();
+    let start = device + good[device..].find("address = \"").unwrap() + "address = \"".len();
+    let end = start + good[start..].find('"').unwrap();
+    let dead = format!("127.0.0.1:{}", common::free_port());
+    let bad = format!("{}{dead}{}", &good[..start], &good[end..]);
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| {
+        gw.wait_notify(10.0, "a verified write", |m| m.contains("jobs 1 ok"))
+    });
+
+    std::fs::write(&path, &bad).unwrap();
+    gw.signal("HUP");
+    tokio::task::block_in_place(|| {
+        gw.wait_log(10.0, "device link down");
+        gw.wait_log(10.0, "axis X no longer follows its model");
+    });
+    std::fs::write(&path, &good).unwrap();
+    gw.signal("HUP");
+    let line = tokio::task::block_in_place(|| gw.wait_log(10.0, "axis X follows its model again"));
+    assert!(line.contains("INFO"), "{line}");
+    assert_eq!(count(&gw, "axis X "), 2, "{}", gw.stderr_text());
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}

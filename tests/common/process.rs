@@ -216,6 +216,11 @@ impl Gateway {
 
     /// Waits until a stderr line contains `needle`; panics after `secs`.
     pub fn wait_log(&self, secs: f64, needle: &str) -> String {
+        self.wait_log_nth(secs, needle, 1)
+    }
+
+    /// Waits until `n` stderr lines contain `needle`; the `n`th. Panics after `secs`.
+    pub fn wait_log_nth(&self, secs: f64, needle: &str, n: usize) -> String {
         let deadline = Instant::now() + Duration::from_secs_f64(secs);
         while Instant::now() < deadline {
             if let Some(l) = self
@@ -223,14 +228,15 @@ impl Gateway {
                 .lock()
                 .unwrap()
                 .iter()
-                .find(|l| l.contains(needle))
+                .filter(|l| l.contains(needle))
+                .nth(n - 1)
             {
                 return l.clone();
             }
             std::thread::sleep(Duration::from_millis(20));
         }
         panic!(
-            "timed out after {secs} s waiting for log `{needle}`\nstderr:\n{}",
+            "timed out after {secs} s waiting for line {n} with `{needle}`\nstderr:\n{}",
             self.stderr_text()
         );
     }

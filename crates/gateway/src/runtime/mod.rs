@@ -312,11 +312,13 @@ async fn run_built_with(
     mut hooks: Hooks,
 ) {
     let mut state = Running::new(built);
+    // What the sections set up once at start run with, whatever was loaded since.
+    let started = reload::RestartOnly::of(&cfg);
     loop {
         match generation(&mut state, &shutdown, &status_tx, &mut hooks).await {
             None => break,
             Some((new_cfg, new_built)) => {
-                reload::warn_restart_only(&cfg, &new_cfg);
+                started.warn_changed(&new_cfg);
                 state = reload::transplant(&cfg, &new_cfg, state, *new_built);
                 cfg = *new_cfg;
                 tracing::info!("configuration reloaded");
@@ -383,10 +385,11 @@ struct Running {
     /// Per channel: a byte-order hint was logged and the channel has not been good
     /// since (logged once, not once per poll).
     byte_order_hinted: Vec<bool>,
-    /// Per channel: whether it is usable, as the journal was told. A reload starts
-    /// afresh (usable): a channel still bad is named again after it.
+    /// Per channel: whether it is usable, as the journal was told (carried over a
+    /// reload by name).
     channel_logs: Vec<ChangeLog<bool>>,
-    /// Per axis: whether it follows its model, as the journal was told.
+    /// Per axis: whether it follows its model, as the journal was told (carried over
+    /// a reload by name).
     axis_logs: Vec<ChangeLog<AxisCourse>>,
     /// Per device: its link's state, as the journal was told.
     device_logs: Vec<ChangeLog<DeviceCourse>>,
@@ -524,8 +527,8 @@ impl Running {
         }
     }
 
-    /// Logs what the change logs saw but did not log yet (rate limited): they are
-    /// dropped at a reload, and the journal's last word must be the state as it is.
+    /// Logs what the change logs saw but did not log yet (rate limited), at the end of
+    /// a generation: the journal's last word must be the state as it is.
     fn flush_change_logs(&mut self) {
         for (ch, log) in self.channel_logs.iter_mut().enumerate() {
             let (Some((_, more)), Some(reading)) = (log.take_unlogged(), self.pipeline.reading(ch))

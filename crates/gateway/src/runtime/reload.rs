@@ -28,6 +28,8 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         baselined: old_baselined,
         nc_facts: old_nc_facts,
         device_logs: old_device_logs,
+        channel_logs: old_channel_logs,
+        axis_logs: old_axis_logs,
         ..
     } = old;
     // Carried processors keep their time base.
@@ -49,6 +51,24 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         }
     }
     next.status.channels = next.pipeline.channel_statuses();
+    // The journal was told each channel's and axis' state, changed or not: what
+    // comes after the reload is logged against that (a channel bad before and good
+    // after is "usable again", one still bad is not named again).
+    for (j, name) in next.pipeline.channel_names.iter().enumerate() {
+        if let Some(old_log) = old_channel.get(name).and_then(|&i| old_channel_logs.get(i)) {
+            next.channel_logs[j] = *old_log;
+        }
+    }
+    for (j, axis) in next.pipeline.axes.iter().enumerate() {
+        let old_log = old_pipeline
+            .axes
+            .iter()
+            .position(|a| a.name == axis.name)
+            .and_then(|i| old_axis_logs.get(i));
+        if let Some(old_log) = old_log {
+            next.axis_logs[j] = *old_log;
+        }
+    }
 
     // Devices: an unchanged device keeps its link; devices sharing a new serial link
     // follow it onto the old one, so a line stays shared.
@@ -158,20 +178,39 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
     next
 }
 
-/// Logs a WARN naming the service sections that differ in `new_cfg`: they are set up
-/// once at start, and a reload that ignored them silently left the old database,
-/// port or broker in use with nothing saying so.
-pub(super) fn warn_restart_only(old_cfg: &Config, new_cfg: &Config) {
-    let changed: Vec<&str> = [
-        ("[recorder]", old_cfg.recorder != new_cfg.recorder),
-        ("[metrics]", old_cfg.metrics != new_cfg.metrics),
-        ("[mqtt]", old_cfg.mqtt != new_cfg.mqtt),
-    ]
-    .into_iter()
-    .filter_map(|(name, changed)| changed.then_some(name))
-    .collect();
-    if !changed.is_empty() {
-        let sections = changed.join(", ");
-        tracing::warn!(%sections, "reload: {sections} changed in the file and take effect at the next restart; the running ones stay");
+/// The service sections as the running service set them up at start: a reload
+/// leaves them as they are.
+pub(super) struct RestartOnly {
+    recorder: Option<crate::config::RecorderConfig>,
+    metrics: Option<crate::config::MetricsConfig>,
+    mqtt: Option<crate::config::MqttConfig>,
+}
+
+impl RestartOnly {
+    pub(super) fn of(cfg: &Config) -> Self {
+        Self {
+            recorder: cfg.recorder.clone(),
+            metrics: cfg.metrics.clone(),
+            mqtt: cfg.mqtt.clone(),
+        }
+    }
+
+    /// Logs a WARN naming the sections that differ in `new_cfg` from what runs: they
+    /// are set up once at start, and a reload that ignored them silently left the old
+    /// database, port or broker in use with nothing saying so. Compared with what
+    /// runs, not with the file loaded last: a file put back says nothing.
+    pub(super) fn warn_changed(&self, new_cfg: &Config) {
+        let changed: Vec<&str> = [
+            ("[recorder]", self.recorder != new_cfg.recorder),
+            ("[metrics]", self.metrics != new_cfg.metrics),
+            ("[mqtt]", self.mqtt != new_cfg.mqtt),
+        ]
+        .into_iter()
+        .filter_map(|(name, changed)| changed.then_some(name))
+        .collect();
+        if !changed.is_empty() {
+            let sections = changed.join(", ");
+            tracing::warn!(%sections, "reload: {sections} changed in the file and take effect at the next restart; the running ones stay");
+        }
     }
 }
