@@ -62,7 +62,8 @@ fn ready_at_start_with_every_device_dead_and_status_names_them() {
 }
 
 // A file that does not load on SIGHUP: the log and systemd's STATUS= both say the
-// reload was refused, naming the problem; the old configuration runs on.
+// reload was refused, naming the problem, and STATUS= keeps saying it until a reload
+// succeeds; the old configuration runs on.
 #[test]
 fn a_config_that_does_not_load_on_sighup_is_told_to_systemd() {
     let dir = tempfile::tempdir().unwrap();
@@ -83,9 +84,20 @@ fn a_config_that_does_not_load_on_sighup_is_told_to_systemd() {
     // One line: a newline would end the STATUS= assignment.
     assert_eq!(status.lines().count(), 1, "{status:?}");
     gw.wait_log(10.0, "reload refused");
-    // Still running on the old config: the status line comes back.
-    gw.wait_notify(10.0, "the status line again", |m| {
+    // Still running on the old config: the status line comes back, and keeps the
+    // refusal (it used to be gone a second later) until a reload succeeds.
+    let status = gw.wait_notify(10.0, "the status line again", |m| {
         m.contains("STATUS=ain1 ")
+    });
+    assert!(
+        status.contains("; reload refused, old configuration running: ")
+            && status.contains("timeot_s"),
+        "{status}"
+    );
+    std::fs::write(&path, &good).unwrap();
+    gw.signal("HUP");
+    gw.wait_notify(10.0, "the status line without the refusal", |m| {
+        m.contains("STATUS=ain1 ") && !m.contains("reload refused")
     });
     assert!(gw.stop());
 }
