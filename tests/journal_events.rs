@@ -9,6 +9,7 @@ mod common;
 use std::time::Duration;
 
 use common::process::Gateway;
+use common::proxy::Proxy;
 use compgate_plc::field::SensorFault;
 
 /// The log lines so far that contain `needle`.
@@ -222,15 +223,61 @@ async fn a_reload_that_ends_a_hold_says_so() {
 
     std::fs::write(&path, &bad).unwrap();
     gw.signal("HUP");
-    tokio::task::block_in_place(|| {
-        gw.wait_log(10.0, "device link down");
+    let line = tokio::task::block_in_place(|| {
         gw.wait_log(10.0, "axis X no longer follows its model");
+        gw.wait_log(10.0, "device link down")
     });
+    // Named with where it is: a timeout's error says no address.
+    assert!(line.contains(&format!("link=tcp://{dead}")), "{line}");
     std::fs::write(&path, &good).unwrap();
     gw.signal("HUP");
     let line = tokio::task::block_in_place(|| gw.wait_log(10.0, "axis X follows its model again"));
     assert!(line.contains("INFO"), "{line}");
     assert_eq!(count(&gw, "axis X "), 2, "{}", gw.stderr_text());
     assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
+
+// An NC back from an outage without the compensation it confirmed (it restarted) is
+// told at WARN with both values: it runs uncompensated until the steps catch up. It
+// was an INFO like any reconnect. One back with its values stays an INFO. The
+// unreachable line names the target's address (a timeout's error does not).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_nc_back_without_its_values_is_a_warning() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), "").await;
+    let nc_address = plant.config.nc_modules["nc_x"].address.clone();
+    let proxy = Proxy::start(nc_address.clone()).await;
+    let text = std::fs::read_to_string(&path).unwrap();
+    std::fs::write(&path, text.replace(&nc_address, &proxy.addr.to_string())).unwrap();
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| {
+        gw.wait_notify(10.0, "a verified write", |m| m.contains("jobs 1 ok"))
+    });
+    let nc = plant.nc["nc_x"].clone();
+
+    proxy.cut();
+    let line = tokio::task::block_in_place(|| gw.wait_log(10.0, "NC target unreachable"));
+    assert!(line.contains(&format!("address={}", proxy.addr)), "{line}");
+    proxy.restore();
+    let line = tokio::task::block_in_place(|| gw.wait_log(10.0, "read again after the outage"));
+    assert!(line.contains("INFO"), "{line}");
+
+    proxy.cut();
+    tokio::task::block_in_place(|| gw.wait_log_nth(10.0, "NC target unreachable", 2));
+    nc.with_state(|a| a.sd43900_mm = 0.0);
+    proxy.restore();
+    let line = tokio::task::block_in_place(|| {
+        gw.wait_log(10.0, "the NC holds other values after the outage")
+    });
+    assert!(line.contains("WARN"), "{line}");
+    assert!(
+        line.contains("sd43900_mm=0.0") && line.contains("confirmed_sd43900_mm=0.04"),
+        "{line}"
+    );
+    assert_eq!(count(&gw, "read again after the outage"), 1);
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(proxy);
     drop(plant);
 }

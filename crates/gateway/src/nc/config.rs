@@ -103,6 +103,16 @@ impl TargetConfig {
         }
     }
 
+    /// Where the target is: `host:port`, or the OPC UA endpoint URL.
+    pub fn address(&self) -> &str {
+        match self {
+            Self::Modbus(c) => &c.address,
+            Self::Opcua(c) => &c.endpoint_url,
+            Self::S7(c) => &c.address,
+            Self::Ads(c) => &c.address,
+        }
+    }
+
     /// Seconds a whole job (write and read-back) may take, as configured.
     pub fn job_timeout(&self) -> Duration {
         match self {

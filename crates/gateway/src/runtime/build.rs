@@ -69,6 +69,8 @@ pub struct DeviceRt {
 pub struct NcModuleRt {
     /// Target name (`[targets]` or `[nc_modules]`).
     pub name: String,
+    /// Where it is (`host:port`, an endpoint URL), for the log.
+    pub address: String,
     /// The writer, behind the guarantees every target shares.
     pub writer: Guarded,
 }
@@ -221,6 +223,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
         let nc_module = nc_modules.len();
         nc_modules.push(NcModuleRt {
             name: ax.nc_module.clone(),
+            address: target.address().to_string(),
             writer: Guarded::new(writer, ax.nc_write_ids(), target.job_timeout()),
         });
         let (model, input_names, dynamics) = ax.model_parts();

@@ -377,6 +377,8 @@ struct Running {
     readings: SampleReadings,
     /// NC module names by index, for the log.
     nc_names: Vec<Arc<str>>,
+    /// NC module addresses by index, for the log.
+    nc_addresses: Vec<String>,
     /// Per NC module: whether its last snapshot failed (logged once per change).
     nc_down: Vec<bool>,
     /// Per axis: what its NC's last snapshot said against the config (MD32750,
@@ -435,6 +437,7 @@ impl Running {
                 .iter()
                 .map(|n| Arc::from(n.name.as_str()))
                 .collect(),
+            nc_addresses: nc_modules.iter().map(|n| n.address.clone()).collect(),
             nc_down: vec![false; nc_modules.len()],
             nc_facts: vec![NcFacts::default(); pipeline.axes.len()],
             byte_order_hinted: vec![false; pipeline.channel_names.len()],
@@ -480,7 +483,7 @@ impl Running {
             let t_s = self.pipeline.now_s(sample.started);
             if let Some(more) = log.note(course, t_s) {
                 let error = r.error.as_ref().map(|e| (e.kind(), e.to_string()));
-                log_device(&d.name, course, error, d.failed_cycles, more);
+                log_device(&d.name, &d.link, course, error, d.failed_cycles, more);
             } else if d.cycles == 0 && course == DeviceCourse::Up {
                 tracing::info!(device = %d.name, "device link up");
             }
@@ -550,7 +553,7 @@ impl Running {
         for (log, d) in self.device_logs.iter_mut().zip(&self.status.devices) {
             if let Some((course, more)) = log.take_unlogged() {
                 let error = d.last_error.clone().map(|e| ("", e));
-                log_device(&d.name, course, error, d.failed_cycles, more);
+                log_device(&d.name, &d.link, course, error, d.failed_cycles, more);
             }
         }
     }
@@ -605,7 +608,8 @@ impl Running {
                         .join(",");
                     match (&result, *down) {
                         (Err(e), false) if e.is_unreachable() => {
-                            tracing::warn!(axis = %axes, target_name = %name, error = %e, "NC target unreachable: nothing is written to it");
+                            let address = self.nc_addresses.get(module).map_or("", |a| a);
+                            tracing::warn!(axis = %axes, target_name = %name, %address, error = %e, "NC target unreachable: nothing is written to it");
                             *down = true;
                         }
                         (Err(e), false) => {
@@ -655,6 +659,13 @@ impl Running {
                                 if moved {
                                     let was = st.written.unwrap_or_default();
                                     tracing::warn!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, confirmed_sd43900_mm = was.k0_mm, confirmed_sd43910 = was.tan_beta, confirmed_sd43920_mm = was.p0_mm, "the NC holds other values than it confirmed (restarted, changed by hand, or a job that failed took effect): steps start again from what it holds");
+                                } else if let Some(was) =
+                                    st.written.filter(|w| !holds(w, &held, &axis.nc_write))
+                                {
+                                    // An NC that comes back without the compensation
+                                    // it held (a restart) runs uncompensated until
+                                    // the steps catch up: not routine.
+                                    tracing::warn!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, confirmed_sd43900_mm = was.k0_mm, confirmed_sd43910 = was.tan_beta, confirmed_sd43920_mm = was.p0_mm, "the NC holds other values after the outage than it confirmed before (restarted, or changed by hand): steps start again from what it holds");
                                 } else if st.written.is_some() {
                                     tracing::info!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, "NC parameters read again after the outage");
                                 } else {
@@ -931,6 +942,7 @@ impl DeviceCourse {
 /// ("" when not known), and `failed_cycles` the failed cycles before an `Up`.
 fn log_device(
     device: &str,
+    link: &str,
     course: DeviceCourse,
     error: Option<(&str, String)>,
     failed_cycles: u32,
@@ -940,10 +952,10 @@ fn log_device(
     let (kind, error) = error.unwrap_or_default();
     match course {
         DeviceCourse::Down => {
-            tracing::warn!(%device, kind, %error, "device link down: its channels hold their last values, then go bad{more}")
+            tracing::warn!(%device, %link, kind, %error, "device link down: its channels hold their last values, then go bad{more}")
         }
         DeviceCourse::ReadFailed => {
-            tracing::warn!(%device, kind, %error, "device {device} answers, but a read failed: its channels hold their last values, then go bad{more}")
+            tracing::warn!(%device, %link, kind, %error, "device {device} answers, but a read failed: its channels hold their last values, then go bad{more}")
         }
         DeviceCourse::Up => {
             tracing::info!(%device, failed_cycles, "device link up again: every read answered{more}")

@@ -214,10 +214,9 @@ impl ModbusLink {
                     TcpStream::connect(&address),
                 )
                 .await
-                .map_err(|_| match cut {
-                    Some((_, length)) => SourceError::Deadline(length),
-                    None => SourceError::ConnectTimeout,
-                })?
+                // Cut by the cycle's deadline or not, the device did not take the
+                // connection: a connect timeout, not reads that take too long.
+                .map_err(|_| SourceError::ConnectTimeout)?
                 .map_err(|e| SourceError::Connect(format!("{address}: {e}")))?;
                 // Small request/response frames: Nagle would add up to 40 ms each.
                 stream
@@ -914,6 +913,30 @@ mod tests {
         let err = link.read(1, RegisterKind::Input, 0, 1).await.unwrap_err();
         assert_eq!(err, SourceError::Deadline(timeout));
         peer.abort();
+    }
+
+    // A device whose TCP stack takes no more connections (its accept queue full, as
+    // a stopped process' fills up): a connect cut by the cycle's deadline is a connect
+    // timeout. It was reported as reads that take too long together ("raise
+    // poll_interval_s or lower timeout_s"), and sent the operator tuning timeouts.
+    #[tokio::test]
+    async fn a_connect_cut_by_the_cycle_deadline_is_a_connect_timeout() {
+        let socket = tokio::net::TcpSocket::new_v4().unwrap();
+        socket.bind("127.0.0.1:0".parse().unwrap()).unwrap();
+        let listener = socket.listen(0).unwrap();
+        let address = listener.local_addr().unwrap();
+        let mut held = Vec::new();
+        while let Ok(Ok(s)) =
+            tokio::time::timeout(Duration::from_millis(200), TcpStream::connect(address)).await
+        {
+            held.push(s);
+            assert!(held.len() < 64, "the accept queue never filled");
+        }
+        let timeout = Duration::from_millis(100);
+        let mut link = tcp_link(address.to_string(), timeout, Duration::from_millis(10));
+        link.set_cycle_deadline(Some((Instant::now() + timeout, timeout)));
+        let err = link.read(1, RegisterKind::Input, 0, 1).await.unwrap_err();
+        assert_eq!(err, SourceError::ConnectTimeout);
     }
 
     /// A Modbus TCP peer answering read-input-registers requests with zeros, except
