@@ -5,7 +5,7 @@ mod common;
 
 use std::time::Duration;
 
-use common::broker::{subscribe, Broker, Received};
+use common::broker::{retained, subscribe, Broker, Received};
 use common::process::Gateway;
 
 /// Times of the readings messages on `topic` that carry channel `T_bed`.
@@ -403,4 +403,45 @@ async fn health_says_connecting_as_the_status_api_does() {
     assert!(tokio::task::block_in_place(|| gw.stop()));
     sub.abort();
     drop((broker, silent));
+}
+
+// The gateway's state, retained, as SCADA and MES clients expect of a field device:
+// online while connected, offline after a clean stop, lost (the broker's last will)
+// when the gateway died. Health only stopped coming, and a client could not tell a
+// dead gateway from a slow one.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_retained_state_says_online_offline_and_lost() {
+    let dir = tempfile::tempdir().unwrap();
+    let broker = tokio::task::block_in_place(|| Broker::start(dir.path()));
+    let db = dir.path().join("rec.db");
+    let extra = service_sections(&db, broker.port, "keep_alive_s = 1");
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), &extra).await;
+    let topic = "compgate/mill-7/state";
+    let state = |want: &'static str| async move {
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+        loop {
+            let got = retained(broker.port, topic).await;
+            if got.as_ref().and_then(|v| v["state"].as_str()) == Some(want) {
+                return;
+            }
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "retained state {want:?} never came; last {got:?}"
+            );
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    };
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    state("online").await;
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    state("offline").await;
+
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    state("online").await;
+    gw.signal("KILL");
+    // keep_alive_s = 1: the broker gives up after 1.5 s.
+    state("lost").await;
+    drop(gw);
+    drop(plant);
 }

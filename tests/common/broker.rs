@@ -117,3 +117,32 @@ pub fn subscribe(port: u16, filter: &str) -> (Received, tokio::task::JoinHandle<
     });
     (got, task)
 }
+
+/// The retained message on `topic` now, as a client subscribing afresh gets it
+/// (`None` when none comes within 2 s).
+pub async fn retained(port: u16, topic: &str) -> Option<serde_json::Value> {
+    static PROBES: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    let n = PROBES.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let mut opts = MqttOptions::new(format!("retained-probe-{n}"), "127.0.0.1", port);
+    opts.set_clean_session(true);
+    let (client, mut events) = AsyncClient::new(opts, 8);
+    let got = tokio::time::timeout(Duration::from_secs(2), async {
+        loop {
+            match events.poll().await {
+                Ok(Event::Incoming(Packet::ConnAck(_))) => {
+                    client.subscribe(topic, QoS::AtLeastOnce).await.unwrap();
+                }
+                Ok(Event::Incoming(Packet::Publish(p))) if p.retain => {
+                    return serde_json::from_slice(&p.payload).ok();
+                }
+                Ok(_) => {}
+                Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
+            }
+        }
+    })
+    .await
+    .ok()
+    .flatten();
+    let _ = client.try_disconnect();
+    got
+}

@@ -18,6 +18,11 @@
 //! | `P/M/writes/<axis>` | every NC job | `{"t_unix_ms", "axis", "sd43900_mm", "sd43910", "sd43920_mm", "ok", "job_id", "elapsed_ms", "error", "quality"}` |
 //! | `P/M/health` | every `publish_interval_s` | `{"t_unix_ms", "quality", "devices": [{"name", "link", "failed_cycles", "last_error"}], "axes": [{"name", "sd43900_mm", "sd43910", "sd43920_mm", "jobs_ok", "jobs_failed", "warning"}]}` |
 //!
+//! | `P/M/state` | retained: on each connect, at a clean stop, and by the broker (last will) when the connection is lost | `{"state": "online"}`, `{"state": "offline"}` (stopped), `{"state": "lost"}` (died or cut off, after 1.5 `keep_alive_s`) |
+//!
+//! `state` goes out directly, not through the outbox: it says what the gateway is now,
+//! and a stored one would be stale by the time it was sent.
+//!
 //! One readings message carries a whole poll cycle of a device (64 channels are one
 //! message, not 64). `quality` is `good`, `uncertain` or `bad`: a reading's own quality; `good`/`bad` for
 //! a job's result; for health `good` when every link is up and no axis has a warning,
@@ -32,7 +37,8 @@ use std::time::{Duration, Instant};
 use rusqlite::Connection;
 
 use rumqttc::{
-    AsyncClient, ConnectReturnCode, ConnectionError, Event, MqttOptions, Outgoing, Packet, QoS,
+    AsyncClient, ConnectReturnCode, ConnectionError, Event, LastWill, MqttOptions, Outgoing,
+    Packet, QoS,
 };
 use serde::Serialize;
 use serde_json::json;
@@ -573,6 +579,9 @@ async fn session(
     opts.set_keep_alive(secs(cfg.keep_alive_s));
     opts.set_clean_session(true);
     opts.set_inflight(WINDOW as u16);
+    let state = state_topic(cfg);
+    // The broker publishes it when the connection is lost without a clean stop.
+    opts.set_last_will(LastWill::new(&state, STATE_LOST, QoS::AtLeastOnce, true));
     let (client, mut events) = AsyncClient::new(opts, WINDOW * 2);
 
     let mut connected = false;
@@ -593,7 +602,9 @@ async fn session(
         tokio::select! {
             _ = shutdown.cancelled() => {
                 let _ = outbox.exchange(Exchange { acked: std::mem::take(&mut acked), cap: Some(cfg.outbox_max_messages), fetch: None }).await;
-                let _ = client.try_disconnect();
+                if connected {
+                    say_offline(&client, &mut events, &state, sent.len()).await;
+                }
                 return Ok(());
             }
             ev = events.poll() => {
@@ -606,6 +617,12 @@ async fn session(
                     Event::Incoming(Packet::ConnAck(_)) => {
                         connected = true;
                         link.connected(cfg);
+                        // Before any outbox row, so that its packet id is not taken
+                        // for a row's.
+                        client
+                            .try_publish(&state, QoS::AtLeastOnce, true, STATE_ONLINE)
+                            .map_err(|e| ServiceError::Mqtt(e.to_string()))?;
+                        sent.push_back(NOT_A_ROW);
                     }
                     Event::Outgoing(Outgoing::Publish(pkid)) => {
                         if let Some(row) = sent.pop_front() {
@@ -613,7 +630,7 @@ async fn session(
                         }
                     }
                     Event::Incoming(Packet::PubAck(ack)) => {
-                        if let Some(row) = inflight.remove(&ack.pkid) {
+                        if let Some(row) = inflight.remove(&ack.pkid).filter(|&r| r != NOT_A_ROW) {
                             acked.push(row);
                         }
                     }
@@ -651,6 +668,54 @@ async fn session(
             work_at = Some(tokio::time::Instant::now() + BATCH);
         }
     }
+}
+
+/// The retained `state` payloads.
+const STATE_ONLINE: &str = r#"{"state":"online"}"#;
+const STATE_OFFLINE: &str = r#"{"state":"offline"}"#;
+const STATE_LOST: &str = r#"{"state":"lost"}"#;
+/// The row id of a publish that is not from the outbox (the state).
+const NOT_A_ROW: i64 = -1;
+/// How long a stop waits for the broker to take the offline state.
+const OFFLINE_WAIT: Duration = Duration::from_secs(1);
+
+fn state_topic(cfg: &MqttConfig) -> String {
+    format!("{}/{}/state", cfg.topic_prefix, cfg.machine)
+}
+
+/// At a clean stop: the retained offline state, then a DISCONNECT (so the broker
+/// drops the last will), each driven out by polling the connection, for at most
+/// [`OFFLINE_WAIT`]: a stop does not wait on a slow broker. `queued` publishes were
+/// handed to the client before and have not gone out yet; the offline state goes
+/// after them, and the DISCONNECT after it (TCP keeps the order).
+async fn say_offline(
+    client: &AsyncClient,
+    events: &mut rumqttc::EventLoop,
+    state: &str,
+    queued: usize,
+) {
+    if client
+        .try_publish(state, QoS::AtLeastOnce, true, STATE_OFFLINE)
+        .is_err()
+    {
+        return;
+    }
+    let _ = tokio::time::timeout(OFFLINE_WAIT, async {
+        let mut to_go = queued + 1;
+        loop {
+            match events.poll().await {
+                Ok(Event::Outgoing(Outgoing::Publish(_))) => {
+                    to_go = to_go.saturating_sub(1);
+                    if to_go == 0 && client.try_disconnect().is_err() {
+                        return;
+                    }
+                }
+                Ok(Event::Outgoing(Outgoing::Disconnect)) | Err(_) => return,
+                Ok(_) => {}
+            }
+        }
+    })
+    .await;
 }
 
 #[cfg(test)]

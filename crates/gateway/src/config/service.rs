@@ -177,7 +177,9 @@ pub struct MqttConfig {
     #[serde(default = "default_publish_interval_s")]
     #[schemars(range(min = 0.001, max = 3600.0))]
     pub publish_interval_s: f64,
-    /// MQTT keep-alive, seconds. Default 10; 1..=65535.
+    /// MQTT keep-alive, seconds: the broker publishes the gateway's last will
+    /// (`state` lost) 1.5 times this after the connection went silent. Default 10;
+    /// 1..=65535.
     #[serde(default = "default_keep_alive_s")]
     #[schemars(range(min = 1.0, max = 65_535.0))]
     pub keep_alive_s: f64,
