@@ -680,6 +680,10 @@ async fn prometheus_endpoint_shows_links_channels_jobs_and_cycle_times() {
         value(&m, r#"compgate_channel_quality{channel="T_bed"}"#),
         Some(2.0)
     );
+    // A bad channel's held value is no measurement: a dashboard plotting the value
+    // alone drew a normal flat line through a wire break. NaN leaves a gap.
+    let bed = value(&m, r#"compgate_channel_value_degc{channel="T_bed"}"#).unwrap();
+    assert!(bed.is_nan(), "{bed}");
     assert!(tokio::task::block_in_place(|| gw.stop()));
     drop(plant);
 }

@@ -7,7 +7,7 @@
 //! | `compgate_device_link_up` | gauge | device | 1 when the device answered in its last poll cycle (one of its reads may still have failed) |
 //! | `compgate_device_poll_seconds` | histogram | device | duration of a poll cycle: the request round trips |
 //! | `compgate_device_errors_total` | counter | device, kind | failed requests by kind, retries included: timeout, deadline, frame, transport, connect, exception; `backoff`: a cycle the reconnect backoff refused |
-//! | `compgate_channel_value_degc` | gauge | channel | filtered temperature (NaN without a value), every `gateway.status_interval_s` |
+//! | `compgate_channel_value_degc` | gauge | channel | filtered temperature (NaN without a value, and while the channel is bad), every `gateway.status_interval_s` |
 //! | `compgate_channel_quality` | gauge | channel | 0 good, 1 uncertain, 2 bad, every `gateway.status_interval_s` |
 //! | `compgate_axis_sd43900_mm`, `compgate_axis_sd43910`, `compgate_axis_sd43920_mm` | gauge | axis | parameters last written and verified (what the NC held at start before the first job) |
 //! | `compgate_axis_at_limit` | gauge | axis | 1 while the model's value is beyond `max_abs_k0_mm` or `max_abs_tan_beta` and the NC gets the limit instead |
@@ -130,7 +130,7 @@ pub fn describe() {
     );
     describe_gauge!(
         "compgate_channel_value_degc",
-        "Filtered channel temperature in degrees Celsius (NaN without a value)"
+        "Filtered channel temperature in degrees Celsius (NaN without a value and while the channel is bad)"
     );
     describe_gauge!(
         "compgate_channel_quality",
@@ -318,7 +318,10 @@ impl Observer for MetricsObserver {
         }
         for (h, c) in self.channels.iter_mut().zip(&status.channels) {
             let r = &c.reading;
-            h.value.set(r.value_degc.unwrap_or(f64::NAN));
+            // A bad channel's held value is no measurement: NaN leaves a gap in a
+            // plot of the value alone, where the held value drew a normal line.
+            let value_degc = r.value_degc.filter(|_| r.quality.is_usable());
+            h.value.set(value_degc.unwrap_or(f64::NAN));
             let q = quality_code(&r.quality).0;
             if h.last_quality != Some(q) {
                 h.quality.set(f64::from(q));
