@@ -269,7 +269,7 @@ async fn an_nc_back_without_its_values_is_a_warning() {
     nc.with_state(|a| a.sd43900_mm = 0.0);
     proxy.restore();
     let line = tokio::task::block_in_place(|| {
-        gw.wait_log(10.0, "the NC holds other values after the outage")
+        gw.wait_log(10.0, "the NC holds other values than it confirmed")
     });
     assert!(line.contains("WARN"), "{line}");
     assert!(

@@ -656,16 +656,16 @@ impl Running {
                                 // Step limits and the deadband start from what the NC holds.
                                 axis.comp.set_baseline(held);
                                 self.baselined[i] = true;
-                                if moved {
-                                    let was = st.written.unwrap_or_default();
-                                    tracing::warn!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, confirmed_sd43900_mm = was.k0_mm, confirmed_sd43910 = was.tan_beta, confirmed_sd43920_mm = was.p0_mm, "the NC holds other values than it confirmed (restarted, changed by hand, or a job that failed took effect): steps start again from what it holds");
-                                } else if let Some(was) =
+                                // Moved under a running axis, or back from an outage
+                                // without what it held (a restart): it runs
+                                // uncompensated until the steps catch up.
+                                let lost = if moved {
+                                    Some(st.written.unwrap_or_default())
+                                } else {
                                     st.written.filter(|w| !holds(w, &held, &axis.nc_write))
-                                {
-                                    // An NC that comes back without the compensation
-                                    // it held (a restart) runs uncompensated until
-                                    // the steps catch up: not routine.
-                                    tracing::warn!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, confirmed_sd43900_mm = was.k0_mm, confirmed_sd43910 = was.tan_beta, confirmed_sd43920_mm = was.p0_mm, "the NC holds other values after the outage than it confirmed before (restarted, or changed by hand): steps start again from what it holds");
+                                };
+                                if let Some(was) = lost {
+                                    tracing::warn!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, confirmed_sd43900_mm = was.k0_mm, confirmed_sd43910 = was.tan_beta, confirmed_sd43920_mm = was.p0_mm, "the NC holds other values than it confirmed (restarted, changed by hand, or a job that failed took effect): steps start again from what it holds");
                                 } else if st.written.is_some() {
                                     tracing::info!(axis = %axis.name, sd43900_mm = snap.sd43900_mm, sd43910 = snap.sd43910, sd43920_mm = snap.sd43920_mm, "NC parameters read again after the outage");
                                 } else {
