@@ -85,6 +85,62 @@ async fn kill_9_loses_at_most_the_last_second_and_the_database_opens_cleanly() {
     drop(plant);
 }
 
+// `rm rec.db-wal` while the gateway records, then kill -9: SQLite would go on
+// appending to the unlinked WAL, and the kill would take every reading since the
+// deletion (and those only in the WAL before it). The recorder checkpoints the old WAL
+// into the database at its next commit and opens it again with a new -wal: the kill
+// loses at most the last second, and the readings before the deletion are kept.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_wal_deleted_while_recording_then_kill_9_loses_at_most_the_last_second() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("rec.db");
+    // No checkpoint by retention after the first pass: the readings stay in the WAL.
+    let (plant, path) = plant_recording(dir.path(), &db, "retention_interval_s = 3600.0").await;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let deleted_at = now_ms();
+    std::fs::remove_file(dir.path().join("rec.db-wal")).unwrap();
+    // A few commits (commit_interval_s = 0.5) after the deletion.
+    tokio::time::sleep(Duration::from_millis(2000)).await;
+    let killed_at = now_ms();
+    gw.signal("KILL");
+    let _ = gw.child.wait();
+
+    let conn = Connection::open(&db).unwrap();
+    let ok: String = conn
+        .query_row("PRAGMA integrity_check", [], |r| r.get(0))
+        .unwrap();
+    assert_eq!(ok, "ok");
+    let (before, first, last): (i64, Option<i64>, Option<i64>) = conn
+        .query_row(
+            "SELECT count(*) FILTER (WHERE t_unix_ms < ?1), min(t_unix_ms), max(t_unix_ms) FROM readings",
+            [deleted_at],
+            |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+        )
+        .unwrap();
+    let lost_ms = last.map(|t| killed_at - t);
+    assert!(
+        lost_ms.is_some_and(|ms| ms <= 1000),
+        "readings lost before the kill: {} (the -wal was deleted {} ms before it)",
+        lost_ms.map_or("every one".to_string(), |ms| format!("{ms} ms")),
+        killed_at - deleted_at
+    );
+    // Three channels every 0.05 s for over a second before the deletion.
+    assert!(
+        before >= 60 && first.is_some_and(|t| deleted_at - t >= 1000),
+        "{before} readings before the deletion, the first {:?} ms before it",
+        first.map(|t| deleted_at - t)
+    );
+    let line = gw.wait_log(1.0, "recorder WAL file deleted");
+    assert!(
+        line.contains("ERROR") && line.contains("rec.db-wal"),
+        "{line}"
+    );
+    drop(gw);
+    drop(plant);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn recorded_operation_exports_to_the_measurement_csv() {
     let dir = tempfile::tempdir().unwrap();

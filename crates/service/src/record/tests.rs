@@ -420,6 +420,51 @@ fn a_replaced_database_is_not_paired_with_the_old_wal() {
     drop(outbox);
 }
 
+// `rm r.db-wal` while recording: SQLite would go on appending to the unlinked WAL, so
+// a crash (what is left at the path, copied while the writer still runs) would lose
+// every record since. The writer notices at its next commit, checkpoints the old WAL
+// into the database and opens it again with a new -wal: the records before and after
+// the deletion are in the files at the path.
+#[test]
+fn a_wal_deleted_while_recording_keeps_every_record_through_a_crash() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cfg = RecorderConfig {
+        path: dir.path().join("r.db").display().to_string(),
+        commit_interval_s: 0.05,
+        // No checkpoint by retention after the first pass: the records stay in the WAL.
+        retention_interval_s: 3600.0,
+        ..RecorderConfig::default()
+    };
+    let rec = Recorder::start(&cfg).expect("starts");
+    let tx = rec.sender();
+    let stats = tx.stats().clone();
+    let names: Arc<[String]> = Arc::from(vec!["T_other".to_string(), "T_a".to_string()]);
+    send_t_a(&tx, &names, 0.0);
+    wait_written(&stats, 1);
+    (1..5).for_each(|i| send_t_a(&tx, &names, f64::from(i)));
+    wait_written(&stats, 5);
+    let wal = with_suffix(rec.path(), "-wal");
+    std::fs::remove_file(&wal).expect("deleted");
+    (10..15).for_each(|i| send_t_a(&tx, &names, f64::from(i)));
+    wait_written(&stats, 10);
+    // A crash now: what is left is the files at the path.
+    let crashed = dir.path().join("crashed.db");
+    std::fs::copy(rec.path(), &crashed).expect("copied");
+    if wal.exists() {
+        std::fs::copy(&wal, with_suffix(&crashed, "-wal")).expect("copied");
+    }
+    let all = [0.0, 1.0, 2.0, 3.0, 4.0, 10.0, 11.0, 12.0, 13.0, 14.0];
+    assert_eq!(values_of_t_a(&crashed), all);
+    assert!(wal.exists(), "a new -wal at the path");
+    assert_eq!(stats.reopened.load(Ordering::Relaxed), 1);
+    drop(tx);
+    let path = rec.path().to_path_buf();
+    rec.finish();
+    assert_eq!(values_of_t_a(&path), all);
+    assert_eq!(stats.dropped_write.load(Ordering::Relaxed), 0);
+    assert_eq!(stats.duplicate_readings.load(Ordering::Relaxed), 0);
+}
+
 // Nothing deleted: no reopening, however many commits and retention passes.
 #[test]
 fn a_database_left_alone_is_not_reopened() {
