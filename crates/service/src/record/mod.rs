@@ -468,6 +468,7 @@ impl Recorder {
             clock: None,
             interval: Duration::ZERO,
             next_due: Vec::new(),
+            last_cycle: Vec::new(),
             nc_reads: Vec::new(),
         }
     }
@@ -480,6 +481,7 @@ impl Recorder {
             clock: Some(clock),
             interval: Duration::ZERO,
             next_due: Vec::new(),
+            last_cycle: Vec::new(),
             nc_reads: Vec::new(),
         }
     }
@@ -558,6 +560,9 @@ pub struct RecordObserver {
     interval: Duration,
     /// Per device index: when its next cycle is due to be recorded.
     next_due: Vec<Grid>,
+    /// Per device index: the clock's reading (ms) at its last recorded cycle and the
+    /// time that cycle was recorded at; see [`Self::cycle_time_ms`].
+    last_cycle: Vec<Option<(i64, i64)>>,
     /// Per axis: the count of NC reads last recorded.
     nc_reads: Vec<u64>,
 }
@@ -584,6 +589,26 @@ impl RecordObserver {
         self
     }
 
+    /// The time a cycle of `device` is recorded at, the clock reading `now_ms`. Its
+    /// readings' key is their channel and millisecond, and two cycles of one device
+    /// can end in one millisecond: a cycle whose connect the cycle deadline cut ends
+    /// after the poll interval, so the next one starts at once, and the reconnect
+    /// backoff that failed connect started refuses it within microseconds. The later
+    /// cycle is recorded 1 ms after the earlier one then, as long as the clock has not
+    /// gone back since: a clock set back keeps its own time, and its readings that
+    /// meet recorded ones are counted as duplicates (`duplicate_readings`).
+    fn cycle_time_ms(&mut self, device: usize, now_ms: i64) -> i64 {
+        if self.last_cycle.len() <= device {
+            self.last_cycle.resize(device + 1, None);
+        }
+        let t = match self.last_cycle[device] {
+            Some((clock, recorded)) if clock <= now_ms && now_ms <= recorded => recorded + 1,
+            _ => now_ms,
+        };
+        self.last_cycle[device] = Some((now_ms, t));
+        t
+    }
+
     /// Whether the cycle of `device` at `now` is one to record.
     fn due(&mut self, device: usize, now: Instant) -> bool {
         if self.interval.is_zero() {
@@ -601,7 +626,7 @@ impl Observer for RecordObserver {
         if !self.due(readings.device, Instant::now()) {
             return;
         }
-        let t_unix_ms = self.now_unix_ms();
+        let t_unix_ms = self.cycle_time_ms(readings.device, self.now_unix_ms());
         let mut rows = Vec::with_capacity(readings.channels.len());
         rows.extend(readings.channels.iter().filter_map(|c| {
             let r = &c.reading;

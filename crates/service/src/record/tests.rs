@@ -137,6 +137,75 @@ fn the_observer_records_a_device_once_per_interval_on_a_grid() {
     assert!((0..5).all(|k| every.due(0, ms(k))));
 }
 
+// Two cycles of one device in one millisecond (a cycle the reconnect backoff refused
+// right after one the cycle deadline ended) are two cycles: the later is recorded 1 ms
+// after the earlier, and neither counts as a duplicate. A clock set back still does.
+#[test]
+fn two_cycles_of_a_device_in_one_millisecond_are_both_recorded_and_a_clock_set_back_is_not() {
+    use compgate_gateway::runtime::ChannelReading;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cfg = RecorderConfig {
+        path: dir.path().join("r.db").display().to_string(),
+        ..RecorderConfig::default()
+    };
+    let rec = Recorder::start(&cfg).expect("starts");
+    let stats = rec.sender().stats().clone();
+    let clock_ms = Arc::new(AtomicU64::new(10_000));
+    let clock = clock_ms.clone();
+    let mut obs = rec.observer_with_clock(Arc::new(move || clock.load(Ordering::Relaxed) as i64));
+    let names: Arc<[String]> = Arc::from(vec!["T_a".to_string(), "T_b".to_string()]);
+    let sample = |device: usize, v: f64| SampleReadings {
+        device,
+        channel_names: names.clone(),
+        channels: vec![ChannelReading {
+            channel: device,
+            reading: compgate_core::channel::Reading {
+                value_degc: Some(v),
+                ..compgate_core::channel::Reading::no_data()
+            },
+        }],
+        ..SampleReadings::default()
+    };
+    let at = |ms: u64| clock_ms.store(ms, Ordering::Relaxed);
+    obs.on_sample(&sample(0, 0.0));
+    obs.on_sample(&sample(0, 1.0));
+    // Another device in the same millisecond keeps it.
+    obs.on_sample(&sample(1, 2.0));
+    // Its first cycle the next millisecond goes after the one moved there.
+    at(10_001);
+    obs.on_sample(&sample(0, 3.0));
+    at(10_050);
+    obs.on_sample(&sample(0, 4.0));
+    // The clock set back onto recorded readings: their channel's duplicates.
+    at(10_001);
+    obs.on_sample(&sample(0, 5.0));
+    drop(obs);
+    rec.finish();
+    let conn = open(&dir.path().join("r.db")).expect("opens");
+    let rows: Vec<(String, i64, f64)> = conn
+        .prepare(
+            "SELECT c.name, t_unix_ms, value_degc FROM readings r JOIN channels c ON c.id = r.channel
+             ORDER BY c.name, t_unix_ms",
+        )
+        .expect("query")
+        .query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))
+        .expect("rows")
+        .collect::<Result<_, _>>()
+        .expect("rows");
+    let row = |name: &str, t: i64, v: f64| (name.to_string(), t, v);
+    assert_eq!(
+        rows,
+        [
+            row("T_a", 10_000, 0.0),
+            row("T_a", 10_001, 1.0),
+            row("T_a", 10_002, 3.0),
+            row("T_a", 10_050, 4.0),
+            row("T_b", 10_000, 2.0),
+        ]
+    );
+    assert_eq!(stats.duplicate_readings.load(Ordering::Relaxed), 1);
+}
+
 // A database recorded before shadow mode gets the `shadow` column on open, its old
 // jobs counted as sent; shadow jobs are recorded with shadow 1 and ok 0.
 #[test]
