@@ -704,7 +704,7 @@ pub(crate) fn file_id(path: &Path) -> Option<(u64, u64)> {
 
 /// `path` with `suffix` appended to its file name, as SQLite names its `-wal` and
 /// `-shm` files.
-fn with_suffix(path: &Path, suffix: &str) -> PathBuf {
+pub(crate) fn with_suffix(path: &Path, suffix: &str) -> PathBuf {
     let mut name = path.as_os_str().to_owned();
     name.push(suffix);
     PathBuf::from(name)
