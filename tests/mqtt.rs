@@ -271,6 +271,46 @@ async fn publishing_goes_on_after_the_database_is_renamed() {
     drop((plant, broker));
 }
 
+// The recorder's -wal deleted: the publisher's connection still had the deleted file
+// open, and once the recorder had checkpointed it and opened the database again with a
+// new -wal, every exchange through it failed with a disk I/O error: publishing stopped
+// until a restart.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn publishing_goes_on_after_the_wal_is_deleted() {
+    let dir = tempfile::tempdir().unwrap();
+    let broker = tokio::task::block_in_place(|| Broker::start(dir.path()));
+    let (got, sub) = subscribe(broker.port, "compgate/#");
+    let db = dir.path().join("rec.db");
+    let extra = service_sections(&db, broker.port, "");
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), &extra).await;
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    let topic = "compgate/mill-7/readings/ain1";
+    wait_until(20.0, "a reading", || !times(&got, topic).is_empty()).await;
+
+    std::fs::remove_file(dir.path().join("rec.db-wal")).unwrap();
+    let deleted_ms = now_ms();
+    wait_until(
+        20.0,
+        "a reading recorded after the -wal was deleted",
+        || {
+            times(&got, topic)
+                .last()
+                .is_some_and(|t| *t > deleted_ms + 1000)
+        },
+    )
+    .await;
+    tokio::task::block_in_place(|| {
+        gw.wait_log(
+            10.0,
+            "MQTT: the recorder database was opened again with a new -wal",
+        )
+    });
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    sub.abort();
+    drop((plant, broker));
+}
+
 // A broker refusing the client (not authorized) was logged as "broker unreachable",
 // as if it did not answer.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

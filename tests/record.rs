@@ -85,6 +85,171 @@ async fn kill_9_loses_at_most_the_last_second_and_the_database_opens_cleanly() {
     drop(plant);
 }
 
+// `rm rec.db-wal` while the gateway records, then kill -9: SQLite would go on
+// appending to the unlinked WAL, and the kill would take every reading since the
+// deletion (and those only in the WAL before it). The recorder checkpoints the old WAL
+// into the database at its next commit and opens it again with a new -wal: the kill
+// loses at most the last second, and the readings before the deletion are kept.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_wal_deleted_while_recording_then_kill_9_loses_at_most_the_last_second() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("rec.db");
+    // No checkpoint by retention after the first pass: the readings stay in the WAL.
+    let (plant, path) = plant_recording(dir.path(), &db, "retention_interval_s = 3600.0").await;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let deleted_at = now_ms();
+    std::fs::remove_file(dir.path().join("rec.db-wal")).unwrap();
+    // A few commits (commit_interval_s = 0.5) after the deletion.
+    tokio::time::sleep(Duration::from_millis(2000)).await;
+    let killed_at = now_ms();
+    gw.signal("KILL");
+    let _ = gw.child.wait();
+
+    let conn = Connection::open(&db).unwrap();
+    let ok: String = conn
+        .query_row("PRAGMA integrity_check", [], |r| r.get(0))
+        .unwrap();
+    assert_eq!(ok, "ok");
+    let (before, first, last): (i64, Option<i64>, Option<i64>) = conn
+        .query_row(
+            "SELECT count(*) FILTER (WHERE t_unix_ms < ?1), min(t_unix_ms), max(t_unix_ms) FROM readings",
+            [deleted_at],
+            |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+        )
+        .unwrap();
+    let lost_ms = last.map(|t| killed_at - t);
+    assert!(
+        lost_ms.is_some_and(|ms| ms <= 1000),
+        "readings lost before the kill: {} (the -wal was deleted {} ms before it)",
+        lost_ms.map_or("every one".to_string(), |ms| format!("{ms} ms")),
+        killed_at - deleted_at
+    );
+    // Three channels every 0.05 s for over a second before the deletion.
+    assert!(
+        before >= 60 && first.is_some_and(|t| deleted_at - t >= 1000),
+        "{before} readings before the deletion, the first {:?} ms before it",
+        first.map(|t| deleted_at - t)
+    );
+    let line = gw.wait_log(1.0, "recorder WAL file deleted");
+    assert!(
+        line.contains("ERROR") && line.contains("rec.db-wal"),
+        "{line}"
+    );
+    drop(gw);
+    drop(plant);
+}
+
+/// A device whose process is paused (SIGSTOP) with its accept queue full: a TCP
+/// listener nothing accepts from, with room for one connection. The first connect
+/// completes (the kernel answers for the process) and its request times out; every
+/// later one hangs, its SYNs dropped.
+#[allow(unsafe_code)]
+fn paused_device() -> std::net::TcpListener {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").expect("binds");
+    // listen() again sets the queue's length: 0 leaves room for one connection.
+    // SAFETY: a valid listening socket, borrowed for the call.
+    let rc = unsafe { libc::listen(std::os::fd::AsRawFd::as_raw_fd(&l), 0) };
+    assert_eq!(rc, 0, "listen");
+    l
+}
+
+// A device that stops answering with its connects hanging (a paused process): a cycle
+// whose connect the cycle deadline cut ends after the poll interval, so the next cycle
+// starts at once, and the reconnect backoff the failed connect started refuses it
+// within microseconds. Two cycles of the device in one millisecond: both are recorded,
+// each at its own millisecond; none is dropped as a duplicate with a "wall clock set
+// back?" warning.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_device_with_hanging_connects_loses_no_reading_as_a_duplicate() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("rec.db");
+    let paused = paused_device();
+    let extra = format!(
+        r#"
+[devices.ain2]
+transport = "tcp"
+address = "{address}"
+unit_id = 1
+timeout_s = 0.5
+poll_interval_s = 0.5
+backoff_initial_s = 0.2
+backoff_max_s = 0.4
+
+[channels.T_paused]
+device = "ain2"
+register = "input"
+address = 0
+data_type = "u16"
+scaling = {scaling}
+filter = {filter}
+
+[metrics]
+bind = "127.0.0.1:0"
+{recorder}"#,
+        address = paused.local_addr().unwrap(),
+        scaling = common::SCALING,
+        filter = common::FILTER,
+        recorder = recorder_section(&db, ""),
+    );
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), &extra).await;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "READY=1", |m| m.contains("READY=1")));
+    let port = tokio::task::block_in_place(|| gw.metrics_port(10.0));
+    // A failed connect and its refused successor about every second.
+    tokio::time::sleep(Duration::from_millis(4000)).await;
+    let (body, _) = tokio::task::block_in_place(|| {
+        common::metrics::scrape(port, Duration::from_secs(5)).expect("metrics")
+    });
+    let errors = |kind: &str| -> f64 {
+        let kind = format!("kind=\"{kind}\"");
+        body.lines()
+            .filter(|l| {
+                l.starts_with("compgate_device_errors_total{")
+                    && l.contains("device=\"ain2\"")
+                    && l.contains(&kind)
+            })
+            .filter_map(|l| l.rsplit_once(' ')?.1.parse::<f64>().ok())
+            .sum()
+    };
+    let refused = errors("backoff");
+    assert!(
+        refused >= 2.0 && errors("deadline") + errors("connect") >= 2.0,
+        "the device's connects hang and the backoff refuses the cycles after them:\n{body}"
+    );
+    let duplicates =
+        common::metrics::value(&body, "compgate_recorder_duplicate_readings_total").unwrap_or(0.0);
+    let stderr = gw.stderr.clone();
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    let log = stderr.lock().unwrap().join("\n");
+    assert!(
+        duplicates == 0.0 && !log.contains("wall clock set back"),
+        "{duplicates} readings dropped as duplicates:\n{log}"
+    );
+    // Every refused cycle is recorded just after the one before it (within a tenth of
+    // the poll interval: the control loop may be busy in between).
+    let conn = Connection::open(&db).unwrap();
+    let times: Vec<i64> = conn
+        .prepare(
+            "SELECT t_unix_ms FROM readings r JOIN channels c ON c.id = r.channel
+             WHERE c.name = 'T_paused' ORDER BY t_unix_ms",
+        )
+        .unwrap()
+        .query_map([], |r| r.get(0))
+        .unwrap()
+        .collect::<Result<_, _>>()
+        .unwrap();
+    let back_to_back = times.windows(2).filter(|w| w[1] - w[0] <= 50).count();
+    assert!(
+        back_to_back as f64 >= refused,
+        "{back_to_back} cycles of T_paused recorded within 50 ms of the one before, {refused} refused by the backoff: {times:?}"
+    );
+    drop(paused);
+    drop(plant);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn recorded_operation_exports_to_the_measurement_csv() {
     let dir = tempfile::tempdir().unwrap();

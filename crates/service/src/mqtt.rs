@@ -46,7 +46,9 @@ use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 
 use crate::page::device_state;
-use crate::record::{file_id, now_unix_ms, quality_code, DbFiles, Grid, Record, RecordSender};
+use crate::record::{
+    file_id, now_unix_ms, quality_code, with_suffix, DbFiles, Grid, Record, RecordSender,
+};
 use crate::ServiceError;
 use compgate_core::comp::CompParams;
 use compgate_gateway::config::{secs, MqttConfig};
@@ -434,10 +436,16 @@ impl Outbox {
     /// Not while the old -wal or -shm are still at the path: opened with them,
     /// SQLite would replay the old WAL into the new file (the writer removes them
     /// before it creates the new one).
+    /// Or the database is the same and its -wal at the path another file than the
+    /// one open: the writer found the -wal deleted, checkpointed it and opened the
+    /// database again with a new one ([`Self::wal_gone`]).
     fn replaced(&self) -> bool {
         let db = file_id(&self.path);
-        if db.is_none() || db == self.files.db {
+        if db.is_none() {
             return false;
+        }
+        if db == self.files.db {
+            return self.wal_gone() && file_id(&with_suffix(&self.path, "-wal")).is_some();
         }
         let now = DbFiles::at(&self.path);
         let stale = |old: Option<(u64, u64)>, at_path| old.is_some() && old == at_path;
@@ -448,15 +456,21 @@ impl Outbox {
         if !self.replaced() {
             return Ok(());
         }
+        let same_file = file_id(&self.path) == self.files.db;
         match crate::record::open(&self.path) {
             Ok(conn) => {
                 // The old connection closes here: SQLite sees its file moved and
-                // leaves the new -wal and -shm alone.
+                // leaves the new -wal and -shm alone (with only the -wal new, the
+                // writer's connection keeps them).
                 *self = Outbox {
                     failing: self.failing,
                     ..Outbox::new(self.path.clone(), conn)
                 };
-                tracing::info!(path = %self.path.display(), "MQTT: the recorder database was created again: publishing goes on from its outbox");
+                if same_file {
+                    tracing::info!(path = %self.path.display(), "MQTT: the recorder database was opened again with a new -wal: publishing goes on from its outbox");
+                } else {
+                    tracing::info!(path = %self.path.display(), "MQTT: the recorder database was created again: publishing goes on from its outbox");
+                }
                 Ok(())
             }
             Err(e) => {
@@ -467,9 +481,30 @@ impl Outbox {
         }
     }
 
-    /// Runs `ex` on the database; see [`exchange`].
+    /// The database file is the one open, its -wal at the path is not (deleted, or
+    /// replaced since). This connection still has the old -wal open: once the writer
+    /// has checkpointed it and started a new one, every exchange through it fails
+    /// with a disk I/O error (SQLite finds the WAL index pointing past the end of the
+    /// old file), and before, it writes to a file nobody else can open. Nothing goes
+    /// through it until it is opened again.
+    fn wal_gone(&self) -> bool {
+        self.files.wal.is_some()
+            && file_id(&self.path) == self.files.db
+            && file_id(&with_suffix(&self.path, "-wal")) != self.files.wal
+    }
+
+    /// Runs `ex` on the database; see [`exchange`]. Not while the -wal is gone
+    /// ([`Self::wal_gone`]): an error, logged as the database's, until the writer has
+    /// opened the database again and [`Self::reopen_if_replaced`] this one too.
     async fn exchange(&mut self, ex: Exchange) -> Result<(u64, Vec<Row>), ServiceError> {
-        let result = exchange(&self.db, ex).await;
+        let result = if self.wal_gone() {
+            Err(outbox_err(format!(
+                "{}-wal was deleted or replaced: waiting for the recorder to open the database again",
+                self.path.display()
+            )))
+        } else {
+            exchange(&self.db, ex).await
+        };
         self.note(result.as_ref().err());
         result
     }
@@ -789,5 +824,65 @@ mod tests {
             serde_json::to_string(&msg).expect("serialises"),
             expected.to_string()
         );
+    }
+
+    // The recorder's -wal deleted while the outbox has the database open: nothing goes
+    // through the outbox's connection, which still has the deleted -wal open (once the
+    // writer has checkpointed it and started a new one, every exchange through it
+    // failed with a disk I/O error, and publishing stopped for good); once the writer
+    // has opened the database again with a new -wal, the outbox opens it too, and
+    // every message is there.
+    #[tokio::test]
+    async fn the_outbox_waits_out_a_deleted_wal_and_goes_on_with_the_new_one() {
+        use crate::record::Recorder;
+        use compgate_gateway::config::RecorderConfig;
+        use std::sync::atomic::Ordering;
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("r.db");
+        let cfg = RecorderConfig {
+            path: path.display().to_string(),
+            commit_interval_s: 0.05,
+            ..RecorderConfig::default()
+        };
+        let rec = Recorder::start(&cfg).expect("starts");
+        let tx = rec.sender();
+        let stats = tx.stats().clone();
+        let wait = |what: &str, done: &dyn Fn() -> bool| {
+            let deadline = Instant::now() + Duration::from_secs(5);
+            while !done() {
+                assert!(Instant::now() < deadline, "{what}");
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        };
+        let message = |payload: &str| Record::Outbox {
+            topic: "t".into(),
+            payload: payload.into(),
+        };
+        tx.send(message("before"));
+        wait("committed", &|| stats.written.load(Ordering::Relaxed) == 1);
+        let mut outbox = Outbox::new(path.clone(), crate::record::open(&path).expect("opens"));
+        let fetch = || Exchange {
+            acked: Vec::new(),
+            cap: None,
+            fetch: Some((0, 10)),
+        };
+        std::fs::remove_file(with_suffix(&path, "-wal")).expect("deleted");
+        let e = outbox
+            .exchange(fetch())
+            .await
+            .expect_err("the -wal is gone");
+        assert!(e.to_string().contains("r.db-wal"), "{e}");
+        tx.send(message("after"));
+        wait("reopened", &|| stats.reopened.load(Ordering::Relaxed) == 1);
+        wait("committed", &|| stats.written.load(Ordering::Relaxed) == 2);
+        assert!(outbox.replaced(), "the writer's new -wal");
+        outbox.reopen_if_replaced().expect("opens again");
+        assert!(!outbox.replaced());
+        let (_, rows) = outbox.exchange(fetch()).await.expect("exchange");
+        let payloads: Vec<&str> = rows.iter().map(|(_, _, p)| p.as_str()).collect();
+        assert_eq!(payloads, ["before", "after"]);
+        drop(tx);
+        drop(outbox);
+        rec.finish();
     }
 }

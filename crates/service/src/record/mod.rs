@@ -12,7 +12,10 @@
 //! once when they start and once when commits succeed again; the writer carries on.
 //! A database file moved, deleted or replaced while open (its path no longer names
 //! the file the writer has open) is checkpointed through the open connection, so a
-//! moved file keeps every committed record, and created again at its path.
+//! moved file keeps every committed record, and created again at its path. A `-wal`
+//! deleted or replaced while open is checkpointed the same way into the database
+//! file, which keeps every committed record, and the database is opened again with
+//! a new `-wal`.
 //!
 //! The same database holds the MQTT outbox, written in the same transaction as the
 //! readings, so what was recorded is also what will be published. Over the size
@@ -169,8 +172,8 @@ pub struct RecorderStats {
     pub written: AtomicU64,
     /// Commits that failed.
     pub failed_commits: AtomicU64,
-    /// Times the database file was found deleted or replaced under the writer and
-    /// opened again at its path.
+    /// Times the database file, or its `-wal`, was found deleted or replaced under
+    /// the writer and the database opened again at its path.
     pub reopened: AtomicU64,
     /// Readings not stored because the database already held one of the same
     /// channel at the same millisecond (the wall clock set back); the one recorded
@@ -465,6 +468,7 @@ impl Recorder {
             clock: None,
             interval: Duration::ZERO,
             next_due: Vec::new(),
+            last_cycle: Vec::new(),
             nc_reads: Vec::new(),
         }
     }
@@ -477,6 +481,7 @@ impl Recorder {
             clock: Some(clock),
             interval: Duration::ZERO,
             next_due: Vec::new(),
+            last_cycle: Vec::new(),
             nc_reads: Vec::new(),
         }
     }
@@ -555,6 +560,9 @@ pub struct RecordObserver {
     interval: Duration,
     /// Per device index: when its next cycle is due to be recorded.
     next_due: Vec<Grid>,
+    /// Per device index: the clock's reading (ms) at its last recorded cycle and the
+    /// time that cycle was recorded at; see [`Self::cycle_time_ms`].
+    last_cycle: Vec<Option<(i64, i64)>>,
     /// Per axis: the count of NC reads last recorded.
     nc_reads: Vec<u64>,
 }
@@ -581,6 +589,26 @@ impl RecordObserver {
         self
     }
 
+    /// The time a cycle of `device` is recorded at, the clock reading `now_ms`. Its
+    /// readings' key is their channel and millisecond, and two cycles of one device
+    /// can end in one millisecond: a cycle whose connect the cycle deadline cut ends
+    /// after the poll interval, so the next one starts at once, and the reconnect
+    /// backoff that failed connect started refuses it within microseconds. The later
+    /// cycle is recorded 1 ms after the earlier one then, as long as the clock has not
+    /// gone back since: a clock set back keeps its own time, and its readings that
+    /// meet recorded ones are counted as duplicates (`duplicate_readings`).
+    fn cycle_time_ms(&mut self, device: usize, now_ms: i64) -> i64 {
+        if self.last_cycle.len() <= device {
+            self.last_cycle.resize(device + 1, None);
+        }
+        let t = match self.last_cycle[device] {
+            Some((clock, recorded)) if clock <= now_ms && now_ms <= recorded => recorded + 1,
+            _ => now_ms,
+        };
+        self.last_cycle[device] = Some((now_ms, t));
+        t
+    }
+
     /// Whether the cycle of `device` at `now` is one to record.
     fn due(&mut self, device: usize, now: Instant) -> bool {
         if self.interval.is_zero() {
@@ -598,7 +626,7 @@ impl Observer for RecordObserver {
         if !self.due(readings.device, Instant::now()) {
             return;
         }
-        let t_unix_ms = self.now_unix_ms();
+        let t_unix_ms = self.cycle_time_ms(readings.device, self.now_unix_ms());
         let mut rows = Vec::with_capacity(readings.channels.len());
         rows.extend(readings.channels.iter().filter_map(|c| {
             let r = &c.reading;
@@ -676,7 +704,7 @@ pub(crate) fn file_id(path: &Path) -> Option<(u64, u64)> {
 
 /// `path` with `suffix` appended to its file name, as SQLite names its `-wal` and
 /// `-shm` files.
-fn with_suffix(path: &Path, suffix: &str) -> PathBuf {
+pub(crate) fn with_suffix(path: &Path, suffix: &str) -> PathBuf {
     let mut name = path.as_os_str().to_owned();
     name.push(suffix);
     PathBuf::from(name)
@@ -906,7 +934,7 @@ impl Writer {
     /// old file's WAL cannot be emptied into it: the records wait for the next commit.
     fn reopen_if_gone(&mut self) -> bool {
         if self.conn.is_some() && file_id(&self.path) == self.files.db {
-            return true;
+            return self.reopen_if_wal_gone();
         }
         let first = self.conn.is_some();
         if let Some(conn) = &self.conn {
@@ -962,6 +990,59 @@ impl Writer {
                 tracing::error!(error = %e, "recorder database cannot be created again: records are dropped until it can")
             }
             Err(_) => {}
+        }
+        true
+    }
+
+    /// Opens the database again when its `-wal` file was deleted or replaced (one
+    /// `stat` a commit, with the database file's): SQLite goes on appending to the
+    /// unlinked WAL, which no other connection reads (`compgate export` fails with a
+    /// disk I/O error) and which a crash takes with every commit since. Its frames are
+    /// checkpointed through the connection into the database file first, so the
+    /// committed records are kept; the connection opened again creates a new `-wal`.
+    /// False while the checkpoint cannot complete (a reader of the WAL): the records
+    /// wait for the next commit, and are not committed to the unlinked WAL meanwhile.
+    fn reopen_if_wal_gone(&mut self) -> bool {
+        let wal = with_suffix(&self.path, "-wal");
+        let at_path = file_id(&wal);
+        // SQLite creates the -wal when the connection first reads, before the writer
+        // takes `files`; should it not have, the first one seen is the connection's.
+        if self.files.wal.is_none() {
+            self.files.wal = at_path;
+            return true;
+        }
+        if at_path == self.files.wal {
+            return true;
+        }
+        let Some(conn) = &self.conn else {
+            return true;
+        };
+        if !checkpoint(conn) {
+            tracing::debug!(path = %wal.display(), "recorder WAL gone: not checkpointed yet, tried again at the next commit");
+            return false;
+        }
+        let n = self.stats.reopened.fetch_add(1, Ordering::Relaxed) + 1;
+        let what = if at_path.is_some() {
+            "replaced"
+        } else {
+            "deleted"
+        };
+        tracing::error!(path = %wal.display(), reopened = n, "recorder WAL file {what} while the gateway runs: every record committed to it was checkpointed into the database and is kept; the database is opened again with a new WAL");
+        // The database file stays: its -shm stays too (another connection of this
+        // process, the MQTT outbox, shares it). A -wal left at the path is empty for
+        // SQLite: the checkpoint reset the WAL index.
+        self.conn = None;
+        self.statements.forget_channels();
+        match open(&self.path) {
+            Ok(conn) => {
+                self.files = DbFiles::at(&self.path);
+                self.conn = Some(conn);
+                tracing::info!(path = %self.path.display(), "recording into SQLite (WAL) again");
+            }
+            // Tried again every commit (the database's own check finds no connection).
+            Err(e) => {
+                tracing::error!(error = %e, "recorder database cannot be opened again: records are dropped until it can")
+            }
         }
         true
     }

@@ -137,6 +137,75 @@ fn the_observer_records_a_device_once_per_interval_on_a_grid() {
     assert!((0..5).all(|k| every.due(0, ms(k))));
 }
 
+// Two cycles of one device in one millisecond (a cycle the reconnect backoff refused
+// right after one the cycle deadline ended) are two cycles: the later is recorded 1 ms
+// after the earlier, and neither counts as a duplicate. A clock set back still does.
+#[test]
+fn two_cycles_of_a_device_in_one_millisecond_are_both_recorded_and_a_clock_set_back_is_not() {
+    use compgate_gateway::runtime::ChannelReading;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cfg = RecorderConfig {
+        path: dir.path().join("r.db").display().to_string(),
+        ..RecorderConfig::default()
+    };
+    let rec = Recorder::start(&cfg).expect("starts");
+    let stats = rec.sender().stats().clone();
+    let clock_ms = Arc::new(AtomicU64::new(10_000));
+    let clock = clock_ms.clone();
+    let mut obs = rec.observer_with_clock(Arc::new(move || clock.load(Ordering::Relaxed) as i64));
+    let names: Arc<[String]> = Arc::from(vec!["T_a".to_string(), "T_b".to_string()]);
+    let sample = |device: usize, v: f64| SampleReadings {
+        device,
+        channel_names: names.clone(),
+        channels: vec![ChannelReading {
+            channel: device,
+            reading: compgate_core::channel::Reading {
+                value_degc: Some(v),
+                ..compgate_core::channel::Reading::no_data()
+            },
+        }],
+        ..SampleReadings::default()
+    };
+    let at = |ms: u64| clock_ms.store(ms, Ordering::Relaxed);
+    obs.on_sample(&sample(0, 0.0));
+    obs.on_sample(&sample(0, 1.0));
+    // Another device in the same millisecond keeps it.
+    obs.on_sample(&sample(1, 2.0));
+    // Its first cycle the next millisecond goes after the one moved there.
+    at(10_001);
+    obs.on_sample(&sample(0, 3.0));
+    at(10_050);
+    obs.on_sample(&sample(0, 4.0));
+    // The clock set back onto recorded readings: their channel's duplicates.
+    at(10_001);
+    obs.on_sample(&sample(0, 5.0));
+    drop(obs);
+    rec.finish();
+    let conn = open(&dir.path().join("r.db")).expect("opens");
+    let rows: Vec<(String, i64, f64)> = conn
+        .prepare(
+            "SELECT c.name, t_unix_ms, value_degc FROM readings r JOIN channels c ON c.id = r.channel
+             ORDER BY c.name, t_unix_ms",
+        )
+        .expect("query")
+        .query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))
+        .expect("rows")
+        .collect::<Result<_, _>>()
+        .expect("rows");
+    let row = |name: &str, t: i64, v: f64| (name.to_string(), t, v);
+    assert_eq!(
+        rows,
+        [
+            row("T_a", 10_000, 0.0),
+            row("T_a", 10_001, 1.0),
+            row("T_a", 10_002, 3.0),
+            row("T_a", 10_050, 4.0),
+            row("T_b", 10_000, 2.0),
+        ]
+    );
+    assert_eq!(stats.duplicate_readings.load(Ordering::Relaxed), 1);
+}
+
 // A database recorded before shadow mode gets the `shadow` column on open, its old
 // jobs counted as sent; shadow jobs are recorded with shadow 1 and ok 0.
 #[test]
@@ -418,6 +487,51 @@ fn a_replaced_database_is_not_paired_with_the_old_wal() {
     );
     assert_eq!(stats.reopened.load(Ordering::Relaxed), 1);
     drop(outbox);
+}
+
+// `rm r.db-wal` while recording: SQLite would go on appending to the unlinked WAL, so
+// a crash (what is left at the path, copied while the writer still runs) would lose
+// every record since. The writer notices at its next commit, checkpoints the old WAL
+// into the database and opens it again with a new -wal: the records before and after
+// the deletion are in the files at the path.
+#[test]
+fn a_wal_deleted_while_recording_keeps_every_record_through_a_crash() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cfg = RecorderConfig {
+        path: dir.path().join("r.db").display().to_string(),
+        commit_interval_s: 0.05,
+        // No checkpoint by retention after the first pass: the records stay in the WAL.
+        retention_interval_s: 3600.0,
+        ..RecorderConfig::default()
+    };
+    let rec = Recorder::start(&cfg).expect("starts");
+    let tx = rec.sender();
+    let stats = tx.stats().clone();
+    let names: Arc<[String]> = Arc::from(vec!["T_other".to_string(), "T_a".to_string()]);
+    send_t_a(&tx, &names, 0.0);
+    wait_written(&stats, 1);
+    (1..5).for_each(|i| send_t_a(&tx, &names, f64::from(i)));
+    wait_written(&stats, 5);
+    let wal = with_suffix(rec.path(), "-wal");
+    std::fs::remove_file(&wal).expect("deleted");
+    (10..15).for_each(|i| send_t_a(&tx, &names, f64::from(i)));
+    wait_written(&stats, 10);
+    // A crash now: what is left is the files at the path.
+    let crashed = dir.path().join("crashed.db");
+    std::fs::copy(rec.path(), &crashed).expect("copied");
+    if wal.exists() {
+        std::fs::copy(&wal, with_suffix(&crashed, "-wal")).expect("copied");
+    }
+    let all = [0.0, 1.0, 2.0, 3.0, 4.0, 10.0, 11.0, 12.0, 13.0, 14.0];
+    assert_eq!(values_of_t_a(&crashed), all);
+    assert!(wal.exists(), "a new -wal at the path");
+    assert_eq!(stats.reopened.load(Ordering::Relaxed), 1);
+    drop(tx);
+    let path = rec.path().to_path_buf();
+    rec.finish();
+    assert_eq!(values_of_t_a(&path), all);
+    assert_eq!(stats.dropped_write.load(Ordering::Relaxed), 0);
+    assert_eq!(stats.duplicate_readings.load(Ordering::Relaxed), 0);
 }
 
 // Nothing deleted: no reopening, however many commits and retention passes.
