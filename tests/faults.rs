@@ -15,9 +15,10 @@ use common::process::Gateway;
 use common::proxy::Proxy;
 use common::{config, COUNT_DEGC};
 use compgate::plant::{Bind, Plant};
-use compgate_core::channel::{Quality, Reading};
+use compgate_core::channel::{Quality, Reading, Reason};
 use compgate_gateway::config as cfgmod;
 use compgate_gateway::runtime::{self, Status};
+use compgate_plc::field::CommFault;
 use compgate_plc::nc::NcAxisModule;
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
@@ -510,4 +511,89 @@ async fn garbage_and_malformed_rtu_frames_never_become_values() {
     shutdown.cancel();
     h.await.unwrap();
     server.abort();
+}
+
+// An RS-485 line shared by two modules, one of which stops answering: its timeouts
+// (each followed by the wait for a quiet line) held the healthy one's cycles up,
+// 0.05 s became more than 0.4 s. Once degraded the silent module is asked only when
+// its backoff allows, the healthy one keeps its interval, and the silent one is good
+// again soon after it answers.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_silent_module_on_a_shared_rtu_line_does_not_hold_up_the_others() {
+    let rtu = "transport = \"rtu\"\nserial_path = \"/dev/compgate-test-line\"\nbaud = 115200";
+    let toml = config("hold", "", "")
+        .replace("transport = \"tcp\"\naddress = \"127.0.0.1:0\"", rtu)
+        .replace("connect_timeout_s = 0.5\n", "")
+        .replace(
+            "[channels.T_col]\ndevice = \"ain1\"",
+            "[channels.T_col]\ndevice = \"ain2\"",
+        )
+        .replace(
+            "[nc_modules.nc_x]",
+            &format!(
+                "[devices.ain2]\n{rtu}\nunit_id = 2\ntimeout_s = 0.2\nretries = 0\n\
+                 poll_interval_s = 0.05\nbackoff_initial_s = 0.1\nbackoff_max_s = 0.8\n\
+                 degrade_after_cycles = 3\n\n[nc_modules.nc_x]"
+            ),
+        );
+    let plant = Plant::start(&cfgmod::load_str(&toml, "t.toml").unwrap(), Bind::Ephemeral)
+        .await
+        .unwrap();
+    let (healthy, silent) = (plant.field["ain1"].clone(), plant.field["ain2"].clone());
+    let (rx, shutdown, h) = run_gateway(plant.config.clone());
+    wait(&rx, 10.0, "both modules read", |s| {
+        q(s, "T_bed") == Quality::Good && q(s, "T_col") == Quality::Good
+    })
+    .await;
+
+    silent.set_comm_fault(CommFault::Silent);
+    wait(&rx, 10.0, "the silent module degraded", |s| {
+        q(s, "T_col") == Quality::Bad(Reason::DeviceDegraded)
+    })
+    .await;
+    // Its first waits are short: measure once they have doubled to the longest.
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    healthy.log_requests(true);
+    let asked_before = silent.requests_received();
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let arrivals = healthy.take_request_log();
+    let asked = silent.requests_received() - asked_before;
+    println!(
+        "in 2 s: the healthy module asked {} times, the silent one {asked}",
+        arrivals.len()
+    );
+    // 2 s at 0.05 s: 40 cycles, less the line time of the silent module's asks
+    // (every 0.8 s, each one timeout and one quiet wait: 0.4 s): about 25. Without the
+    // backoff, 5.
+    assert!(
+        arrivals.len() >= 15,
+        "the healthy module was asked {} times in 2 s",
+        arrivals.len()
+    );
+    assert!(
+        (1..=4).contains(&asked),
+        "the silent module was asked {asked} times in 2 s"
+    );
+    let s = rx.borrow().clone();
+    let ain2 = s.devices.iter().find(|d| d.name == "ain2").unwrap();
+    assert!(ain2.errors.contains_key("backoff"), "{:?}", ain2.errors);
+    assert!(
+        ain2.last_error
+            .as_deref()
+            .is_some_and(|e| e.contains("no reply within") && e.contains("next attempt in")),
+        "{:?}",
+        ain2.last_error
+    );
+    assert_eq!(q(&s, "T_bed"), Quality::Good);
+
+    silent.set_comm_fault(CommFault::None);
+    wait(
+        &rx,
+        5.0,
+        "the module good again within its longest wait",
+        |s| q(s, "T_col") == Quality::Good,
+    )
+    .await;
+    shutdown.cancel();
+    h.await.unwrap();
 }

@@ -162,6 +162,13 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             }),
     );
     let mut serial_links: BTreeMap<String, SharedLink> = BTreeMap::new();
+    let mut on_line: BTreeMap<&str, usize> = BTreeMap::new();
+    for rtu in cfg.devices.values().filter_map(|d| match d {
+        DeviceConfig::Rtu(rtu) => Some(rtu),
+        _ => None,
+    }) {
+        *on_line.entry(rtu.serial_path.as_str()).or_default() += 1;
+    }
     let mut devices = Vec::with_capacity(cfg.devices.len());
     for (((name, dev), specs), can_specs) in cfg.devices.iter().zip(specs).zip(can_specs) {
         let common = dev.common();
@@ -199,14 +206,13 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
                 .clone(),
             LinkSpec::Tcp { .. } => new_link(),
         };
+        let mut poller = DevicePoller::new(devices.len(), name.clone(), params, link, specs);
+        if matches!(&spec, LinkSpec::Rtu { path, .. } if on_line.get(path.as_str()) > Some(&1)) {
+            poller =
+                poller.on_shared_line(Backoff::new(common.backoff_initial(), common.backoff_max()));
+        }
         devices.push(DeviceRt {
-            poller: Poller::Modbus(DevicePoller::new(
-                devices.len(),
-                name.clone(),
-                params,
-                link,
-                specs,
-            )),
+            poller: Poller::Modbus(poller),
             poll_interval: common.poll_interval(),
         });
     }

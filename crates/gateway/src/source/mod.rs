@@ -21,7 +21,7 @@ use tokio::time::Instant;
 use tokio_modbus::ExceptionCode;
 
 use compgate_core::channel::Reason;
-use modbus::{exception_name, ModbusLink};
+use modbus::{exception_name, Backoff, ModbusLink};
 use plan::{ByteOrder, DataType, ReadBlock, RegisterKind, Slot};
 
 /// Errors of the source layer.
@@ -239,6 +239,19 @@ pub struct DevicePoller {
     /// [`Self::poll`].
     decode: Vec<Decode>,
     failed_cycles: u32,
+    /// On a line shared with other devices: how often it is asked while it is
+    /// silent (see [`Self::on_shared_line`]).
+    silent: Option<Box<Silent>>,
+}
+
+/// A device on a shared line that stopped answering: its timeouts would hold the
+/// line's other devices up every cycle, so once degraded it is asked only when this
+/// backoff allows (a device demoted, as gateways call it).
+#[derive(Debug, Clone)]
+struct Silent {
+    backoff: Backoff,
+    /// The last asked cycle's error while demoted: what each skipped cycle reports.
+    cause: Option<SourceError>,
 }
 
 impl DevicePoller {
@@ -289,7 +302,19 @@ impl DevicePoller {
             labels,
             decode,
             failed_cycles: 0,
+            silent: None,
         }
+    }
+
+    /// The device shares its line with others: once degraded and silent (every
+    /// read timed out), it is asked only when `backoff` allows, doubling from its
+    /// first wait to its longest, until it answers again.
+    pub fn on_shared_line(mut self, backoff: Backoff) -> Self {
+        self.silent = Some(Box::new(Silent {
+            backoff,
+            cause: None,
+        }));
+        self
     }
 
     /// Device name from the config.
@@ -312,6 +337,9 @@ impl DevicePoller {
     pub fn carry_over(&mut self, old: &DevicePoller) {
         self.link = old.link.clone();
         self.failed_cycles = old.failed_cycles;
+        if let (Some(new), Some(old)) = (&mut self.silent, &old.silent) {
+            *new = old.clone();
+        }
     }
 
     /// Replaces the link (a reload moving a shared serial line onto the old link).
@@ -373,6 +401,9 @@ impl DevicePoller {
     /// Runs one poll cycle.
     pub async fn poll(&mut self) -> DeviceSample {
         let started = Instant::now();
+        if let Some(sample) = self.skip_while_silent(started) {
+            return sample;
+        }
         let mut first_error = None;
         let mut faults = Vec::new();
         // One lock for the whole cycle: on a shared RTU line the device's reads go
@@ -439,6 +470,11 @@ impl DevicePoller {
                 }
             }
         }
+        let silent = reads.iter().all(Result::is_err)
+            && first_error
+                .as_ref()
+                .is_some_and(|e| matches!(e.kind(), "timeout" | "deadline"));
+        self.note_silence(silent, first_error.as_ref());
         DeviceSample {
             connects,
             device: self.index,
@@ -447,6 +483,66 @@ impl DevicePoller {
             values,
             error: first_error,
             faults,
+        }
+    }
+
+    /// A cycle that does not go on the line: the device is demoted and its backoff
+    /// has not run out. Its channels are bad as in a failed cycle, and the error says
+    /// why it was silent and when it is asked next.
+    fn skip_while_silent(&mut self, started: Instant) -> Option<DeviceSample> {
+        let silent = self.silent.as_ref()?;
+        let cause = silent.cause.clone()?;
+        let left = silent.backoff.remaining(started)?;
+        self.failed_cycles = self.failed_cycles.saturating_add(1);
+        let values = self
+            .decode
+            .iter()
+            .map(|d| {
+                let fault = Fault {
+                    reason: cause.reason(),
+                    degraded: true,
+                };
+                (d.channel, Err(fault))
+            })
+            .collect();
+        let connects = self.link.try_lock().map_or(0, |l| l.connects());
+        Some(DeviceSample {
+            connects,
+            device: self.index,
+            started,
+            elapsed: started.elapsed(),
+            values,
+            error: Some(SourceError::BackingOffAfter {
+                cause: Box::new(cause),
+                next_attempt_in: left,
+            }),
+            faults: vec!["backoff"],
+        })
+    }
+
+    /// After a cycle that went on the line: a degraded device that was `silent`
+    /// (every read timed out) is demoted, or stays so with a doubled wait; one that
+    /// answered anything is asked every cycle again.
+    fn note_silence(&mut self, silent: bool, error: Option<&SourceError>) {
+        let degraded = self.failed_cycles >= self.params.degrade_after_cycles;
+        let Some(s) = &mut self.silent else {
+            return;
+        };
+        match error.filter(|_| silent && degraded) {
+            Some(e) => {
+                if s.cause.is_none() {
+                    let first_s = s.backoff.current().as_secs_f64();
+                    tracing::warn!(device = %self.name, first_s, "device {} is silent on the line it shares: it is asked again after {first_s} s, the wait doubling up to its backoff_max_s, so that its timeouts do not hold up the line's other devices", self.name);
+                }
+                s.backoff.failed(Instant::now());
+                s.cause = Some(e.clone());
+            }
+            None => {
+                if s.cause.take().is_some() {
+                    tracing::info!(device = %self.name, "device {} answers again: asked every cycle", self.name);
+                }
+                s.backoff.reset();
+            }
         }
     }
 }
