@@ -418,3 +418,49 @@ async fn probe_names_the_word_order_of_a_misconfigured_float_and_exits_1() {
         "{text}"
     );
 }
+
+// Field review: an RTU port the gateway's user may not open said "Permission denied"
+// and not what to do. Root opens every file, so the probe runs as `nobody` here (and
+// is skipped when the test does not run as root, which cannot change its user).
+#[test]
+fn probe_of_a_serial_port_the_user_may_not_open_names_the_group_it_needs() {
+    use std::os::unix::fs::{MetadataExt, PermissionsExt};
+    use std::os::unix::process::CommandExt;
+    if std::fs::metadata("/proc/self").map(|m| m.uid()).ok() != Some(0) {
+        println!("skipped: only root can run the probe as another user");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o755)).unwrap();
+    // A "tty" only its owner may open: the open fails before any ioctl.
+    let tty = dir.path().join("ttyS9");
+    std::fs::write(&tty, b"").unwrap();
+    std::fs::set_permissions(&tty, std::fs::Permissions::from_mode(0o600)).unwrap();
+    let path = dir.path().join("rtu.toml");
+    let text = format!(
+        "[devices.ain]\ntransport = \"rtu\"\nserial_path = \"{}\"\nunit_id = 1\n\
+         timeout_s = 0.1\nretries = 0\n\
+         [channels.T]\ndevice = \"ain\"\nregister = \"input\"\naddress = 0\n\
+         data_type = \"u16\"\nscaling = {{ kind = \"direct\", gain = 0.1 }}\n",
+        tty.display()
+    );
+    std::fs::write(&path, text).unwrap();
+    std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o644)).unwrap();
+    let out = std::process::Command::new(common::process::BIN)
+        .args(["probe", "--config"])
+        .arg(&path)
+        .uid(65534)
+        .gid(65534)
+        .output()
+        .expect("compgate probe runs");
+    let text = String::from_utf8_lossy(&out.stdout);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{text}{err}");
+    assert!(
+        text.contains(&format!(
+            "{} permission denied: the gateway's user needs the tty's group (usually dialout)",
+            tty.display()
+        )),
+        "{text}{err}"
+    );
+}

@@ -240,8 +240,8 @@ impl ModbusLink {
                     .parity(parity)
                     .stop_bits(stop_bits)
                     .data_bits(tokio_serial::DataBits::Eight);
-                let mut port =
-                    tokio_serial::SerialStream::open(&builder).map_err(|e| failed(&e))?;
+                let mut port = tokio_serial::SerialStream::open(&builder)
+                    .map_err(|e| serial_open_failed(&path, &e))?;
                 // A late reply to a request given up before (by this link or another
                 // process) may still be on its way: let it pass, then start empty.
                 let started = Instant::now();
@@ -670,6 +670,30 @@ impl<S: AsyncWrite + Unpin> AsyncWrite for WatchedStream<S> {
     ) -> Poll<std::io::Result<()>> {
         Pin::new(&mut self.inner).poll_shutdown(cx)
     }
+}
+
+/// Why the serial port at `path` did not open, with what to do for the usual causes:
+/// a path that does not exist (an adapter unplugged, a typo, a renumbered ttyUSB), one
+/// that is no serial device, and a user without the tty's group.
+fn serial_open_failed(path: &str, e: &tokio_serial::Error) -> SourceError {
+    use std::io::ErrorKind;
+    use tokio_serial::ErrorKind as Serial;
+    // serialport reports ENOTTY (an ioctl of a regular file or /dev/null) only by its
+    // description, which is nix's ("Not a typewriter") or libc's.
+    let not_a_tty = matches!(e.kind, Serial::Unknown)
+        && (e.description == "Not a typewriter" || e.description.contains("Inappropriate ioctl"));
+    SourceError::Connect(match e.kind {
+        Serial::Io(ErrorKind::NotFound) => format!(
+            "{path} does not exist: check the adapter is plugged in and the path (ls \
+             /dev/serial/by-id gives stable names)"
+        ),
+        Serial::Io(ErrorKind::PermissionDenied) => format!(
+            "{path} permission denied: the gateway's user needs the tty's group (usually \
+             dialout)"
+        ),
+        _ if not_a_tty => format!("{path} is not a serial device"),
+        _ => format!("{path}: {e}"),
+    })
 }
 
 /// The longest [`rtu_guard`].
@@ -1209,6 +1233,72 @@ mod tests {
         drop(near);
         let err = link.read(1, RegisterKind::Input, 0, 1).await.unwrap_err();
         assert!(err.to_string().contains(&path), "{err}");
+    }
+
+    /// The error opening an RTU link at `path` reports.
+    async fn open_error(path: &str) -> String {
+        let mut link = rtu_link(path, Duration::from_millis(100));
+        let err = link.open().await.expect_err("no serial device");
+        assert_eq!(err.kind(), "connect", "{err}");
+        err.to_string()
+    }
+
+    // Field review: "connect failed: /dev/ttyUSB1: No such file or directory" and
+    // "Not a typewriter" said nothing of what to do.
+    #[tokio::test]
+    async fn a_serial_path_that_is_missing_or_no_tty_says_what_to_check() {
+        let dir = std::env::temp_dir().join(format!("compgate-serial-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let missing = dir.join("ttyUSB9").display().to_string();
+        assert_eq!(
+            open_error(&missing).await,
+            format!(
+                "connect failed: {missing} does not exist: check the adapter is plugged in \
+                 and the path (ls /dev/serial/by-id gives stable names)"
+            )
+        );
+        let file = dir.join("a-regular-file");
+        std::fs::write(&file, b"").unwrap();
+        let file = file.display().to_string();
+        for path in [file.as_str(), "/dev/null"] {
+            let text = open_error(path).await;
+            assert!(
+                text == format!("connect failed: {path} is not a serial device"),
+                "{text}"
+            );
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    // As root every path opens, so the kinds serialport gives are mapped here; the
+    // binary's test as another user (tests/cli.rs) opens a file it may not read.
+    #[test]
+    fn serial_open_errors_are_mapped_to_what_to_do() {
+        use tokio_serial::{Error, ErrorKind as K};
+        let mapped = |kind, description: &str| {
+            serial_open_failed("/dev/ttyX", &Error::new(kind, description)).to_string()
+        };
+        assert_eq!(
+            mapped(
+                K::Io(std::io::ErrorKind::PermissionDenied),
+                "Permission denied"
+            ),
+            "connect failed: /dev/ttyX permission denied: the gateway's user needs the \
+             tty's group (usually dialout)"
+        );
+        assert!(mapped(
+            K::Io(std::io::ErrorKind::NotFound),
+            "No such file or directory"
+        )
+        .starts_with("connect failed: /dev/ttyX does not exist: "));
+        assert_eq!(
+            mapped(K::Unknown, "Not a typewriter"),
+            "connect failed: /dev/ttyX is not a serial device"
+        );
+        assert_eq!(
+            mapped(K::NoDevice, "Device or resource busy"),
+            "connect failed: /dev/ttyX: Device or resource busy"
+        );
     }
 
     #[test]
