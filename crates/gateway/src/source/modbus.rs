@@ -748,6 +748,11 @@ fn serial_open_failed(path: &str, e: &tokio_serial::Error) -> SourceError {
              dialout)"
         ),
         _ if not_a_tty => format!("{path} is not a serial device"),
+        // EPERM, not EACCES: a device cgroup, e.g. the unit's DevicePolicy=closed.
+        _ if e.description == "Operation not permitted" => format!(
+            "{path}: operation not permitted: under systemd, the unit's DeviceAllow= may \
+             not list its driver (grep tty /proc/devices; docs/deployment.md)"
+        ),
         _ => format!("{path}: {e}"),
     })
 }
@@ -1442,6 +1447,8 @@ mod tests {
             mapped(K::Unknown, "Not a typewriter"),
             "connect failed: /dev/ttyX is not a serial device"
         );
+        assert!(mapped(K::Unknown, "Operation not permitted")
+            .contains("operation not permitted: under systemd, the unit's DeviceAllow="));
         assert_eq!(
             mapped(K::NoDevice, "Device or resource busy"),
             "connect failed: /dev/ttyX: Device or resource busy"
