@@ -458,7 +458,7 @@ fn probe_of_a_serial_port_the_user_may_not_open_names_the_group_it_needs() {
     assert_eq!(out.status.code(), Some(1), "{text}{err}");
     assert!(
         text.contains(&format!(
-            "{} permission denied: the gateway's user needs the tty's group (usually dialout)",
+            "{}: permission denied: the gateway's user needs the tty's group (usually dialout)",
             tty.display()
         )),
         "{text}{err}"

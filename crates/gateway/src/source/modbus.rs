@@ -728,7 +728,8 @@ impl<S: AsyncWrite + Unpin> AsyncWrite for WatchedStream<S> {
     }
 }
 
-/// Why the serial port at `path` did not open, with what to do for the usual causes:
+/// Why the serial port at `path` did not open (`path: ...`, as any other open error),
+/// with what to do for the usual causes:
 /// a path that does not exist (an adapter unplugged, a typo, a renumbered ttyUSB), one
 /// that is no serial device, and a user without the tty's group.
 fn serial_open_failed(path: &str, e: &tokio_serial::Error) -> SourceError {
@@ -740,14 +741,14 @@ fn serial_open_failed(path: &str, e: &tokio_serial::Error) -> SourceError {
         && (e.description == "Not a typewriter" || e.description.contains("Inappropriate ioctl"));
     SourceError::Connect(match e.kind {
         Serial::Io(ErrorKind::NotFound) => format!(
-            "{path} does not exist: check the adapter is plugged in and the path (ls \
+            "{path}: does not exist: check the adapter is plugged in and the path (ls \
              /dev/serial/by-id gives stable names)"
         ),
         Serial::Io(ErrorKind::PermissionDenied) => format!(
-            "{path} permission denied: the gateway's user needs the tty's group (usually \
+            "{path}: permission denied: the gateway's user needs the tty's group (usually \
              dialout)"
         ),
-        _ if not_a_tty => format!("{path} is not a serial device"),
+        _ if not_a_tty => format!("{path}: not a serial device"),
         // EPERM, not EACCES: a device cgroup, e.g. the unit's DevicePolicy=closed.
         _ if e.description == "Operation not permitted" => format!(
             "{path}: operation not permitted: under systemd, the unit's DeviceAllow= may \
@@ -1405,7 +1406,7 @@ mod tests {
         assert_eq!(
             open_error(&missing).await,
             format!(
-                "connect failed: {missing} does not exist: check the adapter is plugged in \
+                "connect failed: {missing}: does not exist: check the adapter is plugged in \
                  and the path (ls /dev/serial/by-id gives stable names)"
             )
         );
@@ -1415,7 +1416,7 @@ mod tests {
         for path in [file.as_str(), "/dev/null"] {
             let text = open_error(path).await;
             assert!(
-                text == format!("connect failed: {path} is not a serial device"),
+                text == format!("connect failed: {path}: not a serial device"),
                 "{text}"
             );
         }
@@ -1435,17 +1436,17 @@ mod tests {
                 K::Io(std::io::ErrorKind::PermissionDenied),
                 "Permission denied"
             ),
-            "connect failed: /dev/ttyX permission denied: the gateway's user needs the \
+            "connect failed: /dev/ttyX: permission denied: the gateway's user needs the \
              tty's group (usually dialout)"
         );
         assert!(mapped(
             K::Io(std::io::ErrorKind::NotFound),
             "No such file or directory"
         )
-        .starts_with("connect failed: /dev/ttyX does not exist: "));
+        .starts_with("connect failed: /dev/ttyX: does not exist: "));
         assert_eq!(
             mapped(K::Unknown, "Not a typewriter"),
-            "connect failed: /dev/ttyX is not a serial device"
+            "connect failed: /dev/ttyX: not a serial device"
         );
         assert!(mapped(K::Unknown, "Operation not permitted")
             .contains("operation not permitted: under systemd, the unit's DeviceAllow="));
