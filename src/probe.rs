@@ -12,9 +12,10 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use compgate_core::channel::{Quality, Reason};
-use compgate_gateway::channel::ChannelConfig;
+use compgate_gateway::channel::{ChannelConfig, Scaling};
 use compgate_gateway::config::{self, Config, DeviceConfig};
-use compgate_gateway::source::modbus::{Backoff, ModbusLink};
+use compgate_gateway::source::modbus::config::Parity;
+use compgate_gateway::source::modbus::{Backoff, LinkSpec, ModbusLink};
 use compgate_gateway::source::plan::{self, ByteOrder, DataType, Slot};
 use compgate_gateway::source::SourceError;
 
@@ -111,7 +112,12 @@ pub async fn probe(
         };
         let unit = params.unit_id;
         let common = dev.common();
-        let _ = writeln!(report.text, "device {dev_name}: {spec}, unit {unit}");
+        let framing = dev.rtu().map(|r| rtu_framing(r.parity(), r.stop_bits()));
+        let framing = framing.map_or_else(String::new, |f| format!(", {f}"));
+        let _ = writeln!(
+            report.text,
+            "device {dev_name}: {spec}{framing}, unit {unit}"
+        );
         // No reconnect wait: one attempt per channel.
         let mut link = ModbusLink::new(
             spec,
@@ -154,6 +160,78 @@ pub async fn probe(
         report.text.push('\n');
     }
     Ok(report)
+}
+
+/// An RTU line's character framing as modules print it (`8E1`: 8 data bits, even
+/// parity, 1 stop bit), with the config's words.
+fn rtu_framing(parity: Parity, stop_bits: u8) -> String {
+    let (letter, word) = match parity {
+        Parity::None => ('N', "none"),
+        Parity::Even => ('E', "even"),
+        Parity::Odd => ('O', "odd"),
+    };
+    let s = if stop_bits == 1 { "" } else { "s" };
+    format!("8{letter}{stop_bits} (parity {word}, {stop_bits} stop bit{s})")
+}
+
+/// What to check when an RTU device does not answer at all.
+const RTU_NO_REPLY: &str = "no reply: check unit_id, baud and parity against the module's \
+                            switches, the A/B wiring, termination and the module's power";
+
+/// Another reading of a bad channel's raw value `raw` (its registers as `ty`) that is
+/// plausible, as a hint: as the signed type of an unsigned one (a u16 that is an i16),
+/// or, with `direct` scaling, in tenths or hundredths of the configured gain (a module
+/// counting 0.1 degC), or both; the first of these that is plausible, simplest first.
+/// `plausible` is the channel's own check of a raw value, `valid` its valid range
+/// (degC).
+fn reading_hint(
+    ch: &ChannelConfig,
+    ty: DataType,
+    raw: f64,
+    plausible: impl Fn(f64) -> Option<f64>,
+    valid: (f64, f64),
+) -> Option<String> {
+    let signed = match ty {
+        DataType::U16 if raw >= 32_768.0 => Some((raw - 65_536.0, DataType::I16.name())),
+        DataType::U32 if raw >= 2_147_483_648.0 => {
+            Some((raw - 4_294_967_296.0, DataType::I32.name()))
+        }
+        _ => None,
+    };
+    if let Some((v, t)) = signed {
+        if let Some(degc) = plausible(v) {
+            return Some(format!(
+                "as {t} it reads {degc:.1} degC: set data_type = \"{t}\""
+            ));
+        }
+    }
+    // A float carries its own unit; only integer counts come in tenths.
+    let (Scaling::Direct(d), false) = (&ch.scaling, ty == DataType::F32) else {
+        return None;
+    };
+    let in_range = |degc: f64| (valid.0..=valid.1).contains(&degc);
+    for factor in [0.1, 0.01] {
+        // Rounded: 0.1 * 0.1 is "0.01", not "0.010000000000000002".
+        let gain = (d.gain * factor * 1e12).round() / 1e12;
+        let decimals = (-gain.abs().log10()).ceil().clamp(1.0, 4.0) as usize;
+        let degc = raw * gain + d.offset_degc;
+        if in_range(degc) {
+            return Some(format!(
+                "as {gain} degC counts it reads {degc:.decimals$} degC: set scaling gain = \
+                 {gain}"
+            ));
+        }
+        if let Some((v, t)) = signed {
+            let degc = v * gain + d.offset_degc;
+            if in_range(degc) {
+                return Some(format!(
+                    "as {t} in {gain} degC counts it reads {degc:.decimals$} degC: set \
+                     data_type = \"{t}\" and scaling gain = {gain}"
+                ));
+            }
+        }
+    }
+    None
 }
 
 /// Why a channel of a device was not read after `e`, in words.
@@ -241,6 +319,9 @@ async fn probe_channel(
         Err(e) => {
             let _ = writeln!(out, "    error      {e}");
             let _ = writeln!(out, "    quality    bad ({})", e.reason());
+            if e.kind() == "timeout" && matches!(link.spec(), LinkSpec::Rtu { .. }) {
+                let _ = writeln!(out, "    hint       {RTU_NO_REPLY}");
+            }
             return Err(e);
         }
     };
@@ -304,6 +385,9 @@ async fn probe_channel(
             );
         }
     }
+    let f = processor.filter_params();
+    let valid = (f.valid_min_degc, f.valid_max_degc);
+    let hint = reading_hint(ch, ty, raw, |v| processor.plausible_degc(v), valid);
     let r = processor.on_sample(0.0, raw);
     let ma = r
         .current_ma
@@ -314,8 +398,21 @@ async fn probe_channel(
     let _ = writeln!(out, "    current    {ma}");
     let _ = writeln!(out, "    temp       {degc}");
     let quality = describe(&r.quality);
-    let _ = writeln!(out, "    quality    {quality}");
-    Ok(r.quality.is_usable())
+    // NE43 low from a register of zeros: a broken loop, or no transmitter there at all.
+    let zeros = matches!(ch.scaling, Scaling::Transmitter(_))
+        && r.quality == Quality::Bad(Reason::Ne43Low)
+        && regs.iter().all(|&w| w == 0);
+    let zeros = if zeros {
+        " (a register that reads 0 may also be the wrong address or register table)"
+    } else {
+        ""
+    };
+    let _ = writeln!(out, "    quality    {quality}{zeros}");
+    let usable = r.quality.is_usable();
+    if let (false, Some(h)) = (usable, hint) {
+        let _ = writeln!(out, "    hint       {h}");
+    }
+    Ok(usable)
 }
 
 /// A raw value as its type shows it: integers whole, floats in single precision
@@ -556,4 +653,65 @@ async fn probe_can(
         }
     }
     report.text.push('\n');
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The hint for `raw` of a channel `data_type = ty` with `scaling`, in the default
+    /// valid range (-20..=80 degC).
+    fn hint(ty: &str, scaling: &str, raw: f64) -> Option<String> {
+        let text = format!(
+            "[devices.d]\ntransport = \"tcp\"\naddress = \"127.0.0.1:502\"\nunit_id = 1\n\
+             [channels.c]\ndevice = \"d\"\nregister = \"input\"\naddress = 0\n\
+             data_type = \"{ty}\"\nscaling = {scaling}\n"
+        );
+        let cfg = config::load_str(&text, "t.toml").expect("valid");
+        let ch = &cfg.channels["c"];
+        let p = ch.build();
+        let f = p.filter_params();
+        let ty = DataType::ALL
+            .into_iter()
+            .find(|t| t.name() == ch.data_type.name())
+            .expect("a type");
+        reading_hint(
+            ch,
+            ty,
+            raw,
+            |v| p.plausible_degc(v),
+            (f.valid_min_degc, f.valid_max_degc),
+        )
+    }
+
+    // Both wrong at once, hundredths of a configured tenth, and nothing plausible.
+    #[test]
+    fn a_reading_hint_names_the_first_plausible_type_and_gain() {
+        let direct = |gain: f64| format!("{{ kind = \"direct\", gain = {gain} }}");
+        assert_eq!(
+            hint("u16", &direct(1.0), 65_386.0).as_deref(),
+            Some("as i16 in 0.1 degC counts it reads -15.0 degC: set data_type = \"i16\" and scaling gain = 0.1")
+        );
+        assert_eq!(
+            hint("u16", &direct(0.1), 2345.0).as_deref(),
+            Some("as 0.01 degC counts it reads 23.45 degC: set scaling gain = 0.01")
+        );
+        assert_eq!(
+            hint("u32", &direct(1.0), 4_294_967_291.0).as_deref(),
+            Some("as i32 it reads -5.0 degC: set data_type = \"i32\"")
+        );
+        assert_eq!(hint("u16", &direct(1.0), 50_000.0), None);
+        // Transmitter counts have no gain to change.
+        let transmitter = r#"{ kind = "transmitter", adc_full_scale_counts = 4095, adc_full_scale_ma = 24.0, range_min_degc = -50.0, range_max_degc = 150.0 }"#;
+        assert_eq!(hint("u16", transmitter, 4000.0), None);
+    }
+
+    #[test]
+    fn the_rtu_framing_is_shown_as_modules_print_it() {
+        assert_eq!(
+            rtu_framing(Parity::None, 2),
+            "8N2 (parity none, 2 stop bits)"
+        );
+        assert_eq!(rtu_framing(Parity::Odd, 1), "8O1 (parity odd, 1 stop bit)");
+    }
 }

@@ -418,3 +418,159 @@ async fn probe_names_the_word_order_of_a_misconfigured_float_and_exits_1() {
         "{text}"
     );
 }
+
+// Field review: an RTU port the gateway's user may not open said "Permission denied"
+// and not what to do. Root opens every file, so the probe runs as `nobody` here (and
+// is skipped when the test does not run as root, which cannot change its user).
+#[test]
+fn probe_of_a_serial_port_the_user_may_not_open_names_the_group_it_needs() {
+    use std::os::unix::fs::{MetadataExt, PermissionsExt};
+    use std::os::unix::process::CommandExt;
+    if std::fs::metadata("/proc/self").map(|m| m.uid()).ok() != Some(0) {
+        println!("skipped: only root can run the probe as another user");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o755)).unwrap();
+    // A "tty" only its owner may open: the open fails before any ioctl.
+    let tty = dir.path().join("ttyS9");
+    std::fs::write(&tty, b"").unwrap();
+    std::fs::set_permissions(&tty, std::fs::Permissions::from_mode(0o600)).unwrap();
+    let path = dir.path().join("rtu.toml");
+    let text = format!(
+        "[devices.ain]\ntransport = \"rtu\"\nserial_path = \"{}\"\nunit_id = 1\n\
+         timeout_s = 0.1\nretries = 0\n\
+         [channels.T]\ndevice = \"ain\"\nregister = \"input\"\naddress = 0\n\
+         data_type = \"u16\"\nscaling = {{ kind = \"direct\", gain = 0.1 }}\n",
+        tty.display()
+    );
+    std::fs::write(&path, text).unwrap();
+    std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o644)).unwrap();
+    let out = std::process::Command::new(common::process::BIN)
+        .args(["probe", "--config"])
+        .arg(&path)
+        .uid(65534)
+        .gid(65534)
+        .output()
+        .expect("compgate probe runs");
+    let text = String::from_utf8_lossy(&out.stdout);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{text}{err}");
+    assert!(
+        text.contains(&format!(
+            "{}: permission denied: the gateway's user needs the tty's group (usually dialout)",
+            tty.display()
+        )),
+        "{text}{err}"
+    );
+}
+
+/// CRC-16/MODBUS, as it goes on the wire (low byte first).
+fn crc16(bytes: &[u8]) -> [u8; 2] {
+    crc::Crc::<u16>::new(&crc::CRC_16_MODBUS)
+        .checksum(bytes)
+        .to_le_bytes()
+}
+
+// Field review: `compgate probe` hinted only at a 32-bit word order. A module counting
+// 0.1 degC read with gain 1 (234 -> 234 degC), an i16 read as u16 (-5.0 degC as 65486
+// counts), a transmitter register of zeros (NE43 low, or no transmitter there) and a
+// silent RTU unit got no hint; the RTU header did not show parity and stop bits. An RTU
+// line on a pty, served by this test: unit 1 answers registers 0, 1, 2 with 234,
+// 0xFFCE, 0; unit 2 never answers.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn probe_hints_at_tenths_a_signed_type_zeros_and_a_silent_rtu_unit() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let (mut master, _slave, pty) = compgate_plc::field::pty_pair().unwrap();
+    let slave = tokio::spawn(async move {
+        let mut req = [0u8; 8];
+        while master.read_exact(&mut req).await.is_ok() {
+            if req[0] != 1 || crc16(&req[..6]) != [req[6], req[7]] {
+                continue;
+            }
+            let start = u16::from_be_bytes([req[2], req[3]]);
+            let value = [234u16, 0xFFCE, 0][usize::from(start.min(2))];
+            let mut reply = vec![1, req[1], 2];
+            reply.extend_from_slice(&value.to_be_bytes());
+            let crc = crc16(&reply);
+            reply.extend_from_slice(&crc);
+            if master.write_all(&reply).await.is_err() {
+                break;
+            }
+        }
+    });
+    let device = |name: &str, unit: u8| {
+        format!(
+            "[devices.{name}]\ntransport = \"rtu\"\nserial_path = \"{pty}\"\nbaud = 19200\n\
+             parity = \"even\"\nunit_id = {unit}\ntimeout_s = 0.2\n"
+        )
+    };
+    let channel = |name: &str, dev: &str, address: u16, scaling: &str| {
+        format!(
+            "[channels.{name}]\ndevice = \"{dev}\"\nregister = \"holding\"\n\
+             address = {address}\ndata_type = \"u16\"\nscaling = {scaling}\n"
+        )
+    };
+    let text = [
+        device("ain", 1),
+        device("off", 2),
+        channel("T_a_tenths", "ain", 0, "{ kind = \"direct\", gain = 1.0 }"),
+        channel("T_b_signed", "ain", 1, "{ kind = \"direct\", gain = 0.1 }"),
+        channel("T_c_zero", "ain", 2, common::SCALING),
+        channel("T_d_off", "off", 0, "{ kind = \"direct\", gain = 0.1 }"),
+    ]
+    .concat();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("rtu.toml");
+    std::fs::write(&path, text).unwrap();
+    let out = probe(&[], &path);
+    slave.abort();
+    let text = String::from_utf8_lossy(&out.stdout);
+    let err = String::from_utf8_lossy(&out.stderr);
+    println!("{text}{err}");
+    assert_eq!(out.status.code(), Some(1), "{text}{err}");
+    let section = |name: &str| {
+        let s = text
+            .split(&format!("  {name}:"))
+            .nth(1)
+            .unwrap_or_else(|| panic!("no {name} section:\n{text}"));
+        s.split("\n  T_").next().unwrap_or_default().to_string()
+    };
+    assert!(
+        text.contains(&format!(
+            "device ain: rtu://{pty}@19200, 8E1 (parity even, 1 stop bit), unit 1\n"
+        )),
+        "{text}"
+    );
+    let a = section("T_a_tenths");
+    assert!(a.contains("quality    bad (out of range)"), "{a}");
+    assert!(
+        a.lines()
+            .any(|l| l
+                == "    hint       as 0.1 degC counts it reads 23.4 degC: set scaling gain = 0.1"),
+        "{a}"
+    );
+    let b = section("T_b_signed");
+    assert!(
+        b.lines()
+            .any(|l| l == "    hint       as i16 it reads -5.0 degC: set data_type = \"i16\""),
+        "{b}"
+    );
+    let c = section("T_c_zero");
+    assert!(
+        c.lines().any(|l| l
+            == "    quality    bad (NE43 low) (a register that reads 0 may also be the wrong \
+                address or register table)"),
+        "{c}"
+    );
+    // Two channels and the silent unit; the zeros are told on the quality line.
+    assert_eq!(text.matches("    hint ").count(), 3, "{text}");
+    let d = section("T_d_off");
+    assert!(
+        d.contains("error      no reply within 200ms")
+            && d.lines().any(|l| l
+                == "    hint       no reply: check unit_id, baud and parity against the \
+                    module's switches, the A/B wiring, termination and the module's power"),
+        "{d}"
+    );
+}

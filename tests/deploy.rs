@@ -305,3 +305,30 @@ fn the_guide_names_as_many_nc_jobs_as_the_status_page_shows() {
         "the page shows {n} jobs; the guide says otherwise"
     );
 }
+
+// Field review: `DevicePolicy=closed` allowed only ttyUSB, ttyACM and ttyS, so the
+// on-board RS-485 port of a Raspberry Pi (ttyAMA), an i.MX board (ttymxc), an
+// SC16IS7xx HAT (ttySC) and the like could not be opened under the unit. Each group
+// is allowed read-write, and the guide names every one of them.
+#[test]
+fn the_unit_allows_the_common_embedded_serial_ports_and_the_guide_names_them() {
+    let unit = std::fs::read_to_string(format!("{REPO}/deploy/compgate.service")).unwrap();
+    let allowed: Vec<&str> = unit
+        .lines()
+        .filter_map(|l| l.strip_prefix("DeviceAllow="))
+        .collect();
+    let groups = [
+        "ttyUSB", "ttyACM", "ttyS", "ttyAMA", "ttymxc", "ttyLP", "ttyO", "ttySC", "ttyXR",
+    ];
+    let wanted: Vec<String> = groups.iter().map(|g| format!("char-{g} rw")).collect();
+    assert_eq!(allowed, wanted, "{unit}");
+    assert!(unit.contains("\nDevicePolicy=closed\n"), "{unit}");
+    let guide = std::fs::read_to_string(format!("{REPO}/docs/deployment.md")).unwrap();
+    for g in groups {
+        assert!(guide.contains(&format!("`{g}`")), "docs/deployment.md: {g}");
+    }
+    assert!(
+        guide.contains("`DeviceAllow=char-<group> rw`"),
+        "docs/deployment.md: the drop-in"
+    );
+}

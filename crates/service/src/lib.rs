@@ -84,13 +84,17 @@ fn task_err(e: tokio::task::JoinError) -> ServiceError {
 
 /// Directives the default log filter adds to its level; `--log` and `RUST_LOG` are
 /// taken as given. tokio-modbus' RTU codec logs a multi-line WARN per bad frame that
-/// names no device (the gateway reports the fault itself, per device, once per
-/// change); the OPC UA client logs "Transport disconnected: Good" at WARN whenever a
-/// session closes cleanly (every `nc read` and `nc write`). Errors of both stay.
-const QUIET_LIBRARIES: &str = "tokio_modbus=error,opcua_client::session::event_loop=error";
+/// names no device, and an ERROR ("Failed to decode response PDU", "Giving up to
+/// decode frame") for a garbled reply: the gateway reports the same fault itself, per
+/// device, as a `bad reply on <path>` WARN, so the codec logs nothing. The OPC UA client
+/// logs "Transport disconnected: Good" at WARN whenever a session closes cleanly
+/// (every `nc read` and `nc write`). Other errors of both libraries stay.
+const QUIET_LIBRARIES: &str =
+    "tokio_modbus=error,tokio_modbus::codec::rtu=off,opcua_client::session::event_loop=error";
 
 /// The log filter when neither `--log` nor `RUST_LOG` gives one: `level` (e.g.
-/// `info`), with tokio-modbus and the OPC UA client's session loop at `error` only.
+/// `info`), with tokio-modbus and the OPC UA client's session loop at `error` only and
+/// tokio-modbus' RTU codec off.
 pub fn default_log_filter(level: &str) -> String {
     format!("{level},{QUIET_LIBRARIES}")
 }
@@ -380,6 +384,9 @@ mod tests {
 
     #[test]
     fn the_default_filter_quiets_two_libraries_warnings_and_keeps_their_errors() {
+        // tokio-modbus' RTU codec logged "ERROR tokio_modbus::codec::rtu: Failed to
+        // decode response PDU" for a garbled reply, naming no device: off, the gateway
+        // WARNs "bad reply on <path>" itself. tokio-modbus' other errors stay.
         let seen = Seen::default();
         let subscriber = tracing_subscriber::registry()
             .with(tracing_subscriber::EnvFilter::new(default_log_filter(
@@ -388,7 +395,8 @@ mod tests {
             .with(seen.clone());
         tracing::subscriber::with_default(subscriber, || {
             tracing::warn!(target: "tokio_modbus::codec::rtu", "Failed to decode response frame");
-            tracing::error!(target: "tokio_modbus::codec::rtu", "an error");
+            tracing::error!(target: "tokio_modbus::codec::rtu", "Failed to decode response PDU: Invalid data");
+            tracing::error!(target: "tokio_modbus::service::rtu", "an error");
             tracing::warn!(target: "opcua_client::session::event_loop", "Transport disconnected: Good");
             tracing::error!(target: "opcua_client::session::event_loop", "Session activity loop ended unexpectedly");
             tracing::warn!(target: "opcua_client::session::connect", "another OPC UA warning");
@@ -398,7 +406,7 @@ mod tests {
         assert_eq!(
             *seen.0.lock().unwrap(),
             [
-                "ERROR tokio_modbus::codec::rtu",
+                "ERROR tokio_modbus::service::rtu",
                 "ERROR opcua_client::session::event_loop",
                 "WARN opcua_client::session::connect",
                 "INFO compgate_gateway::runtime",
@@ -406,7 +414,8 @@ mod tests {
         );
         assert_eq!(
             default_log_filter("warn"),
-            "warn,tokio_modbus=error,opcua_client::session::event_loop=error"
+            "warn,tokio_modbus=error,tokio_modbus::codec::rtu=off,\
+             opcua_client::session::event_loop=error"
         );
     }
 }

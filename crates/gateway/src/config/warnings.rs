@@ -2,11 +2,14 @@
 //! stop `validate` or the service; `validate` prints them and the service logs them.
 
 use std::collections::BTreeMap;
+use std::path::Path;
 
 use super::keys::field;
 use super::problem::{ConfigProblem, Problems};
 use super::{Config, DeviceConfig};
 use crate::channel::RegisterKind;
+use crate::source::config::DeviceCommon;
+use crate::source::modbus::config::{ModbusCommon, RtuDeviceConfig};
 
 /// Every warning of a valid configuration, with `file` as the origin.
 ///
@@ -36,6 +39,34 @@ pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
             );
         }
     }
+    for (name, dev) in &cfg.devices {
+        let (modbus, common) = match dev {
+            DeviceConfig::Tcp(d) => (&d.modbus, &d.common),
+            DeviceConfig::Rtu(d) => (&d.modbus, &d.common),
+            DeviceConfig::Can(_) => continue,
+        };
+        if let Some(message) = retries_that_cannot_run(modbus.retries, common) {
+            out.push(field("devices", name, "retries"), message);
+        }
+    }
+    let mut lines: BTreeMap<&str, Vec<(&String, &RtuDeviceConfig)>> = BTreeMap::new();
+    for (name, dev) in &cfg.devices {
+        if let DeviceConfig::Rtu(d) = dev {
+            lines.entry(&d.serial_path).or_default().push((name, d));
+        }
+    }
+    for (path, devs) in &lines {
+        let Some(&(first, _)) = devs.first() else {
+            continue;
+        };
+        let key = field("devices", first, "serial_path");
+        if let Some(message) = slow_line(path, devs) {
+            out.push(key.clone(), message);
+        }
+        if !path.trim().is_empty() && !Path::new(path).exists() {
+            out.push(key, missing_serial_path(path, devs));
+        }
+    }
     for (name, ch) in &cfg.channels {
         let (Some(kind), Some(address)) = (ch.register, ch.address) else {
             continue;
@@ -45,6 +76,102 @@ pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
         }
     }
     out.into_vec()
+}
+
+/// Seconds as written in a message: to the millisecond, without trailing zeros
+/// (`0.1 * 3` is "0.3", not "0.30000000000000004").
+fn s(v: f64) -> f64 {
+    (v * 1000.0).round() / 1000.0
+}
+
+/// Why not all of `retries` can run after timeouts in one poll cycle of `common`.
+fn retries_that_cannot_run(retries: u32, common: &DeviceCommon) -> Option<String> {
+    let (t, p) = (common.timeout_s, common.poll_interval_s);
+    let defaults = DeviceCommon::default();
+    let all_default = retries == ModbusCommon::DEFAULT_RETRIES
+        && t == defaults.timeout_s
+        && p == defaults.poll_interval_s;
+    if retries == 0 || all_default || !(t > 0.0 && p > 0.0) {
+        return None;
+    }
+    let deadline = p.max(t);
+    let attempts = f64::from(retries) + 1.0;
+    // A margin for rounding: 3 * 0.1 s fits a cycle of 0.3 s.
+    if attempts * t <= deadline * (1.0 + 1e-9) {
+        return None;
+    }
+    // Attempts that fit: at least the first, which always gets its whole timeout.
+    let fit = ((deadline / t) * (1.0 + 1e-9)).floor().max(1.0);
+    // `fit - 1` < `retries` here, so it fits a u32.
+    let runs = (fit - 1.0) as u32;
+    let head = if runs == 0 {
+        format!("retries = {retries} never runs after a timeout")
+    } else {
+        format!("only {runs} of retries = {retries} can run after timeouts")
+    };
+    Some(format!(
+        "{head} (a retry still follows a fast fault, such as a bad CRC): one poll cycle \
+         ends after max(poll_interval_s, timeout_s) = {} s (the cycle deadline), and an \
+         attempt that times out takes timeout_s = {} s of it, so (retries + 1) * \
+         timeout_s = {} s does not fit. Lower timeout_s to {} s, raise poll_interval_s to \
+         {} s, or set retries = {runs}",
+        s(deadline),
+        s(t),
+        s(attempts * t),
+        s(p / attempts),
+        s(attempts * t),
+    ))
+}
+
+/// `devs` are polled one at a time on the line at `path`: why a silent one holds up the
+/// others, when their timeouts add up to more than the smallest poll interval.
+fn slow_line(path: &str, devs: &[(&String, &RtuDeviceConfig)]) -> Option<String> {
+    if devs.len() < 2 {
+        return None;
+    }
+    let total: f64 = devs.iter().map(|(_, d)| d.common.timeout_s).sum();
+    let (fastest, poll) = devs
+        .iter()
+        .map(|(name, d)| (name, d.common.poll_interval_s))
+        .min_by(|a, b| a.1.total_cmp(&b.1))?;
+    if total <= poll * (1.0 + 1e-9) {
+        return None;
+    }
+    let timeouts: Vec<String> = devs
+        .iter()
+        .map(|(name, d)| format!("`{name}` {} s", s(d.common.timeout_s)))
+        .collect();
+    Some(format!(
+        "serial line {path}: a silent device on this line holds up the others: its \
+         devices are polled one at a time, and their timeout_s ({}) add up to {} s, more \
+         than the smallest poll_interval_s on the line ({} s, `{fastest}`), so while one \
+         does not answer the others are polled late. Lower timeout_s (a device answers \
+         within tens of milliseconds at 9600 baud and more), or raise poll_interval_s to \
+         {} s or more",
+        timeouts.join(", "),
+        s(total),
+        s(poll),
+        s(total),
+    ))
+}
+
+/// The serial device at `path`, shared by `devs`, does not exist.
+fn missing_serial_path(path: &str, devs: &[(&String, &RtuDeviceConfig)]) -> String {
+    let others: Vec<String> = devs
+        .iter()
+        .skip(1)
+        .map(|(name, _)| format!("`{name}`"))
+        .collect();
+    let also = if others.is_empty() {
+        String::new()
+    } else {
+        format!(" (also the line of {})", others.join(", "))
+    };
+    format!(
+        "serial device {path}{also} does not exist (yet): `run` keeps trying to open it; \
+         check the adapter is plugged in and the path (ls /dev/serial/by-id gives stable \
+         names)"
+    )
 }
 
 /// Why `address` looks like a 1-based register number, with the likely PDU address.
@@ -125,5 +252,143 @@ mod tests {
         assert_eq!(one_based(RegisterKind::Input, 30_000), None);
         assert_eq!(one_based(RegisterKind::Holding, 1_004), None);
         assert_eq!(one_based(RegisterKind::Holding, 50_000), None);
+    }
+
+    /// The warnings of `text`, as `validate` prints them (without "warning: ").
+    fn warned(text: &str) -> Vec<String> {
+        let cfg = crate::config::load_str(text, "rtu.toml").expect("valid");
+        warnings(&cfg, "rtu.toml")
+            .iter()
+            .map(ToString::to_string)
+            .collect()
+    }
+
+    /// A Modbus device `name` with one channel; `keys` go into its table.
+    fn modbus_device(name: &str, keys: &str) -> String {
+        format!(
+            "[devices.{name}]\n{keys}\n\
+             [channels.t_{name}]\ndevice = \"{name}\"\nregister = \"input\"\naddress = 0\n\
+             data_type = \"u16\"\nscaling = {{ kind = \"direct\", gain = 0.1, offset_degc = 0.0 }}\n"
+        )
+    }
+
+    // Field review: `timeout_s = 1.0`, `poll_interval_s = 0.5`, `retries = 1` on an RTU
+    // line passed silently, and the retry never ran: a first attempt that times out
+    // uses the whole cycle deadline max(0.5, 1.0) = 1 s.
+    #[test]
+    fn retries_that_cannot_run_after_a_timeout_get_a_warning_with_what_to_change() {
+        let rtu = |name: &str, unit: u8, t: f64, p: f64, r: u32| {
+            modbus_device(
+                name,
+                &format!(
+                    "transport = \"rtu\"\nserial_path = \"/dev/null\"\nunit_id = {unit}\n\
+                     timeout_s = {t}\npoll_interval_s = {p}\nretries = {r}"
+                ),
+            )
+        };
+        let tcp = |name: &str, t: f64, p: f64, r: u32| {
+            modbus_device(
+                name,
+                &format!(
+                    "transport = \"tcp\"\naddress = \"127.0.0.1:502\"\nunit_id = 1\n\
+                     timeout_s = {t}\npoll_interval_s = {p}\nretries = {r}"
+                ),
+            )
+        };
+        // Each RTU device on its own line: /dev/null is one path, so one line; the
+        // line's own warning is tested below, so it is left out here.
+        let w = warned(&rtu("field", 1, 1.0, 0.5, 1));
+        assert_eq!(
+            w,
+            ["rtu.toml: devices.field.retries: retries = 1 never runs after a timeout (a \
+              retry still follows a fast fault, such as a bad CRC): one poll cycle ends after max(poll_interval_s, timeout_s) = 1 s (the cycle \
+              deadline), and an attempt that times out takes timeout_s = 1 s of it, so \
+              (retries + 1) * timeout_s = 2 s does not fit. Lower timeout_s to 0.25 s, \
+              raise poll_interval_s to 2 s, or set retries = 0"]
+        );
+        let w = warned(&tcp("plc", 0.2, 0.5, 3));
+        assert_eq!(w.len(), 1, "{w:#?}");
+        assert!(
+            w[0].starts_with(
+                "rtu.toml: devices.plc.retries: only 1 of retries = 3 can run after timeouts (a "
+            ) && w[0].contains("(retries + 1) * timeout_s = 0.8 s does not fit")
+                && w[0].ends_with("Lower timeout_s to 0.125 s, raise poll_interval_s to 0.8 s, or set retries = 1"),
+            "{}",
+            w[0]
+        );
+        // Retries that fit, exactly or with rounding (3 * 0.1 s in 0.3 s), none, and
+        // the defaults (their retry is for fast faults).
+        for fits in [
+            tcp("defaults", 1.0, 1.0, 1),
+            tcp("a", 0.5, 1.0, 1),
+            tcp("b", 0.1, 0.3, 2),
+            tcp("c", 1.0, 0.5, 0),
+            rtu("d", 1, 0.3, 2.0, 1),
+        ] {
+            assert_eq!(warned(&fits), Vec::<String>::new(), "{fits}");
+        }
+    }
+
+    // Devices on one RTU line are polled one at a time: with timeouts adding up to
+    // more than the line's smallest poll interval, one silent device made the others
+    // late every cycle, silently.
+    #[test]
+    fn an_rtu_line_whose_timeouts_add_up_past_its_poll_interval_gets_a_warning() {
+        let rtu = |name: &str, unit: u8, t: f64, p: f64| {
+            modbus_device(
+                name,
+                &format!(
+                    "transport = \"rtu\"\nserial_path = \"/dev/null\"\nunit_id = {unit}\n\
+                     timeout_s = {t}\npoll_interval_s = {p}\nretries = 0"
+                ),
+            )
+        };
+        let text = [rtu("a", 1, 0.3, 1.0), rtu("b", 2, 0.4, 0.5)].concat();
+        assert_eq!(
+            warned(&text),
+            [
+                "rtu.toml: devices.a.serial_path: serial line /dev/null: a silent device on \
+              this line holds up the others: its devices are polled one at a time, and \
+              their timeout_s (`a` 0.3 s, `b` 0.4 s) add up to 0.7 s, more than the \
+              smallest poll_interval_s on the line (0.5 s, `b`), so while one does not \
+              answer the others are polled late. Lower timeout_s (a device answers within \
+              tens of milliseconds at 9600 baud and more), or raise poll_interval_s to \
+              0.7 s or more"
+            ]
+        );
+        // Within the interval; and one device alone has no others to hold up.
+        let text = [rtu("a", 1, 0.2, 1.0), rtu("b", 2, 0.3, 0.5)].concat();
+        assert_eq!(warned(&text), Vec::<String>::new());
+        assert_eq!(warned(&rtu("a", 1, 0.4, 0.5)), Vec::<String>::new());
+    }
+
+    // A serial path that does not exist failed only at `run`, as a connect error; a
+    // USB adapter may be plugged in later, so `validate` warns and does not refuse.
+    #[test]
+    fn a_serial_path_that_does_not_exist_gets_a_warning_naming_the_key() {
+        let rtu = |name: &str, unit: u8, path: &str| {
+            modbus_device(
+                name,
+                &format!(
+                    "transport = \"rtu\"\nserial_path = \"{path}\"\nunit_id = {unit}\n\
+                     timeout_s = 0.1\npoll_interval_s = 1.0"
+                ),
+            )
+        };
+        let missing = "/dev/compgate-test-no-such-tty";
+        let text = [
+            rtu("a", 1, missing),
+            rtu("b", 2, missing),
+            rtu("c", 3, "/dev/null"),
+        ]
+        .concat();
+        assert_eq!(
+            warned(&text),
+            [format!(
+                "rtu.toml: devices.a.serial_path: serial device {missing} (also the line of \
+                 `b`) does not exist (yet): `run` keeps trying to open it; check the adapter \
+                 is plugged in and the path (ls /dev/serial/by-id gives stable names)"
+            )]
+        );
     }
 }

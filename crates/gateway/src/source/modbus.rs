@@ -145,7 +145,18 @@ pub struct ModbusLink {
     peer: Option<Arc<Mutex<PeerSeen>>>,
     /// Connections made so far, for status and tests.
     connects: u64,
+    /// The unit whose request timed out last, until a good reply or the next open of
+    /// the serial port: a reply the drain after it finds is most likely its, late.
+    timed_out_unit: Option<u8>,
+    /// When the last late reply was logged at WARN, and how many were not logged
+    /// since (one WARN per [`LATE_REPLY_LOG_EVERY`]).
+    late_logged: Option<Instant>,
+    late_unlogged: u64,
 }
+
+/// At most one WARN per link this often for a late RTU reply: a device answering
+/// every request late must not flood the log.
+const LATE_REPLY_LOG_EVERY: Duration = Duration::from_secs(60);
 
 impl std::fmt::Debug for ModbusLink {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -172,6 +183,9 @@ impl ModbusLink {
             answered: false,
             peer: None,
             connects: 0,
+            timed_out_unit: None,
+            late_logged: None,
+            late_unlogged: 0,
         }
     }
 
@@ -240,8 +254,8 @@ impl ModbusLink {
                     .parity(parity)
                     .stop_bits(stop_bits)
                     .data_bits(tokio_serial::DataBits::Eight);
-                let mut port =
-                    tokio_serial::SerialStream::open(&builder).map_err(|e| failed(&e))?;
+                let mut port = tokio_serial::SerialStream::open(&builder)
+                    .map_err(|e| serial_open_failed(&path, &e))?;
                 // A late reply to a request given up before (by this link or another
                 // process) may still be on its way: let it pass, then start empty.
                 let started = Instant::now();
@@ -250,8 +264,14 @@ impl ModbusLink {
                     .map_err(|e| failed(&e))?;
                 port.clear(tokio_serial::ClearBuffer::All)
                     .map_err(|e| failed(&e))?;
+                let late_from = self.timed_out_unit.take();
                 if dropped > 0 {
-                    tracing::debug!(link = %self.spec, bytes = dropped, "dropped what the line brought before the first request");
+                    match late_from {
+                        Some(unit) => self.late_reply(unit, dropped),
+                        None => {
+                            tracing::debug!(link = %self.spec, bytes = dropped, "dropped what the line brought before the first request");
+                        }
+                    }
                 }
                 // The wait is the line's, not the device's: the cycle's reads keep
                 // their whole deadline.
@@ -301,7 +321,40 @@ impl ModbusLink {
     /// Records a good reply: the link works, the backoff starts over.
     fn answered(&mut self) {
         self.answered = true;
+        self.timed_out_unit = None;
         self.backoff.reset();
+    }
+
+    /// `bytes` came on the serial line after `unit`'s request timed out: a device
+    /// slower than `timeout_s`, whose replies are dropped. One WARN per
+    /// [`LATE_REPLY_LOG_EVERY`], with the count of the ones not logged; DEBUG else.
+    fn late_reply(&mut self, unit: u8, bytes: usize) {
+        let now = Instant::now();
+        if self
+            .late_logged
+            .is_some_and(|t| now.duration_since(t) < LATE_REPLY_LOG_EVERY)
+        {
+            self.late_unlogged += 1;
+            tracing::debug!(link = %self.spec, unit, bytes, "a late reply dropped");
+            return;
+        }
+        let unlogged = std::mem::take(&mut self.late_unlogged);
+        let more = if unlogged > 0 {
+            format!(
+                "; {unlogged} more late replies in the last {} s not logged",
+                LATE_REPLY_LOG_EVERY.as_secs()
+            )
+        } else {
+            String::new()
+        };
+        tracing::warn!(
+            link = %self.spec,
+            unit,
+            "unit {unit} answered after timeout_s = {} s ({bytes} bytes came after its \
+             request timed out): a slow device; raise timeout_s for it{more}",
+            self.timeout.as_secs_f64()
+        );
+        self.late_logged = Some(now);
     }
 
     /// Drops the connection after `error`, which it returns. A TCP connection that
@@ -503,7 +556,10 @@ impl ModbusLink {
                 let error = match (self.peer_fault(None), cut) {
                     (Some(e @ (SourceError::NotModbus { .. } | SourceError::Frame { .. })), _) => e,
                     (_, Some((_, length))) => SourceError::Deadline(length),
-                    (_, None) => SourceError::Timeout(timeout),
+                    (_, None) => {
+                        self.timed_out_unit = Some(unit);
+                        SourceError::Timeout(timeout)
+                    }
                 };
                 Err(self.fault(error))
             }
@@ -670,6 +726,36 @@ impl<S: AsyncWrite + Unpin> AsyncWrite for WatchedStream<S> {
     ) -> Poll<std::io::Result<()>> {
         Pin::new(&mut self.inner).poll_shutdown(cx)
     }
+}
+
+/// Why the serial port at `path` did not open (`path: ...`, as any other open error),
+/// with what to do for the usual causes:
+/// a path that does not exist (an adapter unplugged, a typo, a renumbered ttyUSB), one
+/// that is no serial device, and a user without the tty's group.
+fn serial_open_failed(path: &str, e: &tokio_serial::Error) -> SourceError {
+    use std::io::ErrorKind;
+    use tokio_serial::ErrorKind as Serial;
+    // serialport reports ENOTTY (an ioctl of a regular file or /dev/null) only by its
+    // description, which is nix's ("Not a typewriter") or libc's.
+    let not_a_tty = matches!(e.kind, Serial::Unknown)
+        && (e.description == "Not a typewriter" || e.description.contains("Inappropriate ioctl"));
+    SourceError::Connect(match e.kind {
+        Serial::Io(ErrorKind::NotFound) => format!(
+            "{path}: does not exist: check the adapter is plugged in and the path (ls \
+             /dev/serial/by-id gives stable names)"
+        ),
+        Serial::Io(ErrorKind::PermissionDenied) => format!(
+            "{path}: permission denied: the gateway's user needs the tty's group (usually \
+             dialout)"
+        ),
+        _ if not_a_tty => format!("{path}: not a serial device"),
+        // EPERM, not EACCES: a device cgroup, e.g. the unit's DevicePolicy=closed.
+        _ if e.description == "Operation not permitted" => format!(
+            "{path}: operation not permitted: under systemd, the unit's DeviceAllow= may \
+             not list its driver (grep tty /proc/devices; docs/deployment.md)"
+        ),
+        _ => format!("{path}: {e}"),
+    })
 }
 
 /// The longest [`rtu_guard`].
@@ -1156,6 +1242,97 @@ mod tests {
         device.abort();
     }
 
+    /// Every event at WARN or above logged while it is the default subscriber: its
+    /// message and fields.
+    #[derive(Clone, Default)]
+    struct Warnings(Arc<Mutex<Vec<String>>>);
+
+    impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for Warnings {
+        fn on_event(
+            &self,
+            event: &tracing::Event<'_>,
+            _: tracing_subscriber::layer::Context<'_, S>,
+        ) {
+            struct Text(String);
+            impl tracing::field::Visit for Text {
+                fn record_debug(&mut self, f: &tracing::field::Field, v: &dyn std::fmt::Debug) {
+                    use std::fmt::Write as _;
+                    let _ = write!(self.0, " {}={v:?}", f.name());
+                }
+            }
+            if *event.metadata().level() <= tracing::Level::WARN {
+                let mut text = Text(String::new());
+                event.record(&mut text);
+                self.0.lock().unwrap().push(text.0);
+            }
+        }
+    }
+
+    // Field review: a slow module's reply, after its request timed out, was dropped by
+    // the drain of the reopened port with a DEBUG line naming neither the device nor
+    // the fix. One WARN names the unit (and the link); the next ones within the minute
+    // are only counted.
+    #[tokio::test]
+    async fn a_late_rtu_reply_is_one_warn_naming_the_unit() {
+        use tracing_subscriber::layer::SubscriberExt;
+        let warnings = Warnings::default();
+        let _log =
+            tracing::subscriber::set_default(tracing_subscriber::registry().with(warnings.clone()));
+        let timeout = Duration::from_millis(200);
+        let (path, _near, device) = rtu_device(move |req| {
+            let start = u16::from_be_bytes([req[2], req[3]]);
+            let delay = if start == 0 {
+                timeout + Duration::from_millis(50)
+            } else {
+                Duration::ZERO
+            };
+            (delay, rtu_reply(req[0], req[1], &[7]))
+        });
+        let mut link = rtu_link(&path, timeout);
+        for round in 0..3 {
+            let late = link.read(3, RegisterKind::Input, 0, 1).await;
+            assert_eq!(late, Err(SourceError::Timeout(timeout)), "round {round}");
+            let next = link.read(3, RegisterKind::Input, 5, 1).await;
+            assert_eq!(next, Ok(vec![7]), "round {round}");
+        }
+        device.abort();
+        let seen = warnings.0.lock().unwrap().clone();
+        assert_eq!(
+            seen,
+            [format!(
+                " message=unit 3 answered after timeout_s = 0.2 s (7 bytes came after its \
+                 request timed out): a slow device; raise timeout_s for it \
+                 link=rtu://{path}@19200 unit=3"
+            )]
+        );
+    }
+
+    // A device answering every request late logs one WARN a minute, the next one
+    // with the count of those not logged.
+    #[tokio::test(start_paused = true)]
+    async fn late_rtu_replies_are_logged_once_a_minute_with_a_count() {
+        use tracing_subscriber::layer::SubscriberExt;
+        let warnings = Warnings::default();
+        let _log =
+            tracing::subscriber::set_default(tracing_subscriber::registry().with(warnings.clone()));
+        let mut link = rtu_link("/dev/ttyX", Duration::from_millis(200));
+        for _ in 0..3 {
+            link.late_reply(4, 7);
+            tokio::time::advance(Duration::from_secs(20)).await;
+        }
+        assert_eq!(warnings.0.lock().unwrap().len(), 1);
+        link.late_reply(4, 7);
+        let seen = warnings.0.lock().unwrap().clone();
+        assert_eq!(seen.len(), 2, "{seen:#?}");
+        assert!(
+            seen[1].contains(
+                "raise timeout_s for it; 2 more late replies in the last 60 s not logged"
+            ),
+            "{}",
+            seen[1]
+        );
+    }
+
     // A reply with a bad CRC, an adapter echoing the request, another unit answering:
     // tokio-modbus drops the first two and waits (reported as "no reply within"), and
     // said the third in debug output. Each is a bad frame naming the serial path.
@@ -1209,6 +1386,74 @@ mod tests {
         drop(near);
         let err = link.read(1, RegisterKind::Input, 0, 1).await.unwrap_err();
         assert!(err.to_string().contains(&path), "{err}");
+    }
+
+    /// The error opening an RTU link at `path` reports.
+    async fn open_error(path: &str) -> String {
+        let mut link = rtu_link(path, Duration::from_millis(100));
+        let err = link.open().await.expect_err("no serial device");
+        assert_eq!(err.kind(), "connect", "{err}");
+        err.to_string()
+    }
+
+    // Field review: "connect failed: /dev/ttyUSB1: No such file or directory" and
+    // "Not a typewriter" said nothing of what to do.
+    #[tokio::test]
+    async fn a_serial_path_that_is_missing_or_no_tty_says_what_to_check() {
+        let dir = std::env::temp_dir().join(format!("compgate-serial-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let missing = dir.join("ttyUSB9").display().to_string();
+        assert_eq!(
+            open_error(&missing).await,
+            format!(
+                "connect failed: {missing}: does not exist: check the adapter is plugged in \
+                 and the path (ls /dev/serial/by-id gives stable names)"
+            )
+        );
+        let file = dir.join("a-regular-file");
+        std::fs::write(&file, b"").unwrap();
+        let file = file.display().to_string();
+        for path in [file.as_str(), "/dev/null"] {
+            let text = open_error(path).await;
+            assert!(
+                text == format!("connect failed: {path}: not a serial device"),
+                "{text}"
+            );
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    // As root every path opens, so the kinds serialport gives are mapped here; the
+    // binary's test as another user (tests/cli.rs) opens a file it may not read.
+    #[test]
+    fn serial_open_errors_are_mapped_to_what_to_do() {
+        use tokio_serial::{Error, ErrorKind as K};
+        let mapped = |kind, description: &str| {
+            serial_open_failed("/dev/ttyX", &Error::new(kind, description)).to_string()
+        };
+        assert_eq!(
+            mapped(
+                K::Io(std::io::ErrorKind::PermissionDenied),
+                "Permission denied"
+            ),
+            "connect failed: /dev/ttyX: permission denied: the gateway's user needs the \
+             tty's group (usually dialout)"
+        );
+        assert!(mapped(
+            K::Io(std::io::ErrorKind::NotFound),
+            "No such file or directory"
+        )
+        .starts_with("connect failed: /dev/ttyX: does not exist: "));
+        assert_eq!(
+            mapped(K::Unknown, "Not a typewriter"),
+            "connect failed: /dev/ttyX: not a serial device"
+        );
+        assert!(mapped(K::Unknown, "Operation not permitted")
+            .contains("operation not permitted: under systemd, the unit's DeviceAllow="));
+        assert_eq!(
+            mapped(K::NoDevice, "Device or resource busy"),
+            "connect failed: /dev/ttyX: Device or resource busy"
+        );
     }
 
     #[test]

@@ -193,6 +193,9 @@ pub struct ModbusCommon {
 }
 
 impl ModbusCommon {
+    /// Default of `retries`.
+    pub const DEFAULT_RETRIES: u32 = 1;
+
     /// The poller's parameters for the device at `unit_id`.
     fn poll_params(&self, unit_id: u8, common: &DeviceCommon) -> PollParams {
         PollParams {
@@ -221,7 +224,7 @@ fn default_connect_timeout_s() -> f64 {
     TcpDeviceConfig::DEFAULT_CONNECT_TIMEOUT_S
 }
 fn default_retries() -> u32 {
-    1
+    ModbusCommon::DEFAULT_RETRIES
 }
 fn default_max_gap_registers() -> u16 {
     8
