@@ -530,7 +530,7 @@ fn gateway_config(
     for (d, port) in ports.iter().enumerate() {
         let _ = write!(
             t,
-            "[devices.d{d}]\ntransport = \"tcp\"\naddress = \"127.0.0.1:{port}\"\nunit_id = 1\ntimeout_s = 0.5\npoll_interval_s = {}\n\n",
+            "[devices.d{d}]\ntransport = \"tcp\"\naddress = \"127.0.0.1:{port}\"\nunit_id = 1\ntimeout_s = 0.5\nretries = 0\npoll_interval_s = {}\n\n",
             load.interval().as_secs_f64()
         );
         for c in 0..load.points {

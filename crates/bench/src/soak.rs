@@ -191,7 +191,7 @@ fn config_text(
     for (d, port) in ports.iter().enumerate() {
         let _ = write!(
             t,
-            "[devices.ain{}]\ntransport = \"tcp\"\naddress = \"127.0.0.1:{port}\"\nunit_id = 1\ntimeout_s = 0.5\npoll_interval_s = 0.1\n\n",
+            "[devices.ain{}]\ntransport = \"tcp\"\naddress = \"127.0.0.1:{port}\"\nunit_id = 1\ntimeout_s = 0.5\nretries = 0\npoll_interval_s = 0.1\n\n",
             d + 1
         );
         for c in 0..CHANNELS {

@@ -84,6 +84,9 @@ fn s(v: f64) -> f64 {
     (v * 1000.0).round() / 1000.0
 }
 
+/// The shortest `timeout_s` a warning advises: a reply at 9600 baud takes tens of ms.
+const MIN_ADVISED_TIMEOUT_S: f64 = 0.05;
+
 /// Why not all of `retries` can run after timeouts in one poll cycle of `common`.
 fn retries_that_cannot_run(retries: u32, common: &DeviceCommon) -> Option<String> {
     let (t, p) = (common.timeout_s, common.poll_interval_s);
@@ -109,16 +112,21 @@ fn retries_that_cannot_run(retries: u32, common: &DeviceCommon) -> Option<String
     } else {
         format!("only {runs} of retries = {retries} can run after timeouts")
     };
+    // A timeout_s a device cannot answer within is no advice.
+    let lower = if p / attempts >= MIN_ADVISED_TIMEOUT_S {
+        format!("Lower timeout_s to {} s, raise", s(p / attempts))
+    } else {
+        "Raise".to_string()
+    };
     Some(format!(
         "{head} (a retry still follows a fast fault, such as a bad CRC): one poll cycle \
          ends after max(poll_interval_s, timeout_s) = {} s (the cycle deadline), and an \
          attempt that times out takes timeout_s = {} s of it, so (retries + 1) * \
-         timeout_s = {} s does not fit. Lower timeout_s to {} s, raise poll_interval_s to \
-         {} s, or set retries = {runs}",
+         timeout_s = {} s does not fit. {lower} poll_interval_s to {} s, or set retries = \
+         {runs}",
         s(deadline),
         s(t),
         s(attempts * t),
-        s(p / attempts),
         s(attempts * t),
     ))
 }
@@ -313,6 +321,14 @@ mod tests {
                 "rtu.toml: devices.plc.retries: only 1 of retries = 3 can run after timeouts (a "
             ) && w[0].contains("(retries + 1) * timeout_s = 0.8 s does not fit")
                 && w[0].ends_with("Lower timeout_s to 0.125 s, raise poll_interval_s to 0.8 s, or set retries = 1"),
+            "{}",
+            w[0]
+        );
+        // A fast poll: no timeout_s a device answers within would fit, none is advised.
+        let w = warned(&tcp("fast", 0.5, 0.01, 1));
+        assert_eq!(w.len(), 1, "{w:#?}");
+        assert!(
+            w[0].ends_with("does not fit. Raise poll_interval_s to 1 s, or set retries = 0"),
             "{}",
             w[0]
         );
