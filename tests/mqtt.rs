@@ -1,6 +1,9 @@
 //! MQTT publishing against a real Mosquitto broker: topics, JSON payloads with time
 //! and quality, QoS 1, and a broker outage that loses nothing recorded.
 
+// Test helpers: a panic with the message is the wanted failure.
+#![allow(clippy::unwrap_used)]
+
 mod common;
 
 use std::time::Duration;
@@ -238,11 +241,10 @@ async fn the_outbox_cap_holds_while_no_broker_listens() {
     drop(plant);
 }
 
-// The publisher kept its connection to the database it opened first: after the file
-// was renamed the recorder wrote a new one at the path, whose outbox nobody read, and
-// publishing stopped without a word.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn publishing_goes_on_after_the_database_is_renamed() {
+/// Runs the gateway with a broker, does `change` to the recorder's files while it
+/// publishes, and waits for a reading recorded a second after it and the publisher's
+/// `line`.
+async fn publishing_goes_on_after(change: impl FnOnce(&std::path::Path), line: &str) {
     let dir = tempfile::tempdir().unwrap();
     let broker = tokio::task::block_in_place(|| Broker::start(dir.path()));
     let (got, sub) = subscribe(broker.port, "compgate/#");
@@ -254,21 +256,31 @@ async fn publishing_goes_on_after_the_database_is_renamed() {
     let topic = "compgate/mill-7/readings/ain1";
     wait_until(20.0, "a reading", || !times(&got, topic).is_empty()).await;
 
-    std::fs::rename(&db, dir.path().join("renamed.db")).unwrap();
-    let renamed_ms = now_ms();
-    // A second after the rename every reading goes into the new file.
-    wait_until(20.0, "a reading recorded into the new database", || {
+    change(&db);
+    let changed_ms = now_ms();
+    // A second after the change every reading goes into the database at the path.
+    wait_until(20.0, "a reading recorded after the change", || {
         times(&got, topic)
             .last()
-            .is_some_and(|t| *t > renamed_ms + 1000)
+            .is_some_and(|t| *t > changed_ms + 1000)
     })
     .await;
-    tokio::task::block_in_place(|| {
-        gw.wait_log(10.0, "MQTT: the recorder database was created again")
-    });
+    tokio::task::block_in_place(|| gw.wait_log(10.0, line));
     assert!(tokio::task::block_in_place(|| gw.stop()));
     sub.abort();
     drop((plant, broker));
+}
+
+// The publisher kept its connection to the database it opened first: after the file
+// was renamed the recorder wrote a new one at the path, whose outbox nobody read, and
+// publishing stopped without a word.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn publishing_goes_on_after_the_database_is_renamed() {
+    publishing_goes_on_after(
+        |db| std::fs::rename(db, db.with_file_name("renamed.db")).unwrap(),
+        "MQTT: the recorder database was created again",
+    )
+    .await;
 }
 
 // The recorder's -wal deleted: the publisher's connection still had the deleted file
@@ -277,38 +289,11 @@ async fn publishing_goes_on_after_the_database_is_renamed() {
 // until a restart.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn publishing_goes_on_after_the_wal_is_deleted() {
-    let dir = tempfile::tempdir().unwrap();
-    let broker = tokio::task::block_in_place(|| Broker::start(dir.path()));
-    let (got, sub) = subscribe(broker.port, "compgate/#");
-    let db = dir.path().join("rec.db");
-    let extra = service_sections(&db, broker.port, "");
-    let (plant, path) =
-        common::plant_and_file(dir.path(), &common::config("hold", "", ""), &extra).await;
-    let gw = Gateway::start(dir.path(), &path, &[]);
-    let topic = "compgate/mill-7/readings/ain1";
-    wait_until(20.0, "a reading", || !times(&got, topic).is_empty()).await;
-
-    std::fs::remove_file(dir.path().join("rec.db-wal")).unwrap();
-    let deleted_ms = now_ms();
-    wait_until(
-        20.0,
-        "a reading recorded after the -wal was deleted",
-        || {
-            times(&got, topic)
-                .last()
-                .is_some_and(|t| *t > deleted_ms + 1000)
-        },
+    publishing_goes_on_after(
+        |db| std::fs::remove_file(db.with_file_name("rec.db-wal")).unwrap(),
+        "MQTT: the recorder database was opened again with a new -wal",
     )
     .await;
-    tokio::task::block_in_place(|| {
-        gw.wait_log(
-            10.0,
-            "MQTT: the recorder database was opened again with a new -wal",
-        )
-    });
-    assert!(tokio::task::block_in_place(|| gw.stop()));
-    sub.abort();
-    drop((plant, broker));
 }
 
 // A broker refusing the client (not authorized) was logged as "broker unreachable",

@@ -497,19 +497,7 @@ fn a_replaced_database_is_not_paired_with_the_old_wal() {
 #[test]
 fn a_wal_deleted_while_recording_keeps_every_record_through_a_crash() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let cfg = RecorderConfig {
-        path: dir.path().join("r.db").display().to_string(),
-        commit_interval_s: 0.05,
-        // No checkpoint by retention after the first pass: the records stay in the WAL.
-        retention_interval_s: 3600.0,
-        ..RecorderConfig::default()
-    };
-    let rec = Recorder::start(&cfg).expect("starts");
-    let tx = rec.sender();
-    let stats = tx.stats().clone();
-    let names: Arc<[String]> = Arc::from(vec!["T_other".to_string(), "T_a".to_string()]);
-    send_t_a(&tx, &names, 0.0);
-    wait_written(&stats, 1);
+    let (rec, tx, stats, names) = recorder_keeping_the_wal(&dir);
     (1..5).for_each(|i| send_t_a(&tx, &names, f64::from(i)));
     wait_written(&stats, 5);
     let wal = with_suffix(rec.path(), "-wal");
@@ -887,17 +875,15 @@ fn send_t_a(tx: &RecordSender, names: &Arc<[String]>, v: f64) {
     std::thread::sleep(Duration::from_millis(2));
 }
 
-// `mv r.db archived.db` while recording: the moved file keeps every record committed
-// to it, those still in the WAL too (SQLite does not checkpoint at close a file that
-// moved, and the WAL at the old path was removed with them in it); the recorder goes
-// on in a new database at its path.
-#[test]
-fn a_database_moved_while_recording_keeps_every_committed_record() {
-    let dir = tempfile::tempdir().expect("tempdir");
+/// A recorder at `r.db` in `dir`, committing every 0.05 s, whose retention checkpoints
+/// only in its first pass (later records stay in the WAL), with the first record of
+/// [`send_t_a`] committed; its sender, stats and channel names.
+fn recorder_keeping_the_wal(
+    dir: &tempfile::TempDir,
+) -> (Recorder, RecordSender, Arc<RecorderStats>, Arc<[String]>) {
     let cfg = RecorderConfig {
         path: dir.path().join("r.db").display().to_string(),
         commit_interval_s: 0.05,
-        // The only checkpoint by retention is the first pass's.
         retention_interval_s: 3600.0,
         ..RecorderConfig::default()
     };
@@ -907,6 +893,17 @@ fn a_database_moved_while_recording_keeps_every_committed_record() {
     let names: Arc<[String]> = Arc::from(vec!["T_other".to_string(), "T_a".to_string()]);
     send_t_a(&tx, &names, 0.0);
     wait_written(&stats, 1);
+    (rec, tx, stats, names)
+}
+
+// `mv r.db archived.db` while recording: the moved file keeps every record committed
+// to it, those still in the WAL too (SQLite does not checkpoint at close a file that
+// moved, and the WAL at the old path was removed with them in it); the recorder goes
+// on in a new database at its path.
+#[test]
+fn a_database_moved_while_recording_keeps_every_committed_record() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (rec, tx, stats, names) = recorder_keeping_the_wal(&dir);
     // Committed into the WAL only.
     (1..6).for_each(|i| send_t_a(&tx, &names, f64::from(i)));
     wait_written(&stats, 6);
