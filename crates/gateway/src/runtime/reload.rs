@@ -51,22 +51,12 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         }
     }
     next.status.channels = next.pipeline.channel_statuses();
-    // The journal was told each channel's and axis' state, changed or not: what
-    // comes after the reload is logged against that (a channel bad before and good
-    // after is "usable again", one still bad is not named again).
+    // The journal was told each channel's (and below, each axis') state, changed or
+    // not: what comes after the reload is logged against that (a channel bad before
+    // and good after is "usable again", one still bad is not named again).
     for (j, name) in next.pipeline.channel_names.iter().enumerate() {
         if let Some(old_log) = old_channel.get(name).and_then(|&i| old_channel_logs.get(i)) {
             next.channel_logs[j] = *old_log;
-        }
-    }
-    for (j, axis) in next.pipeline.axes.iter().enumerate() {
-        let old_log = old_pipeline
-            .axes
-            .iter()
-            .position(|a| a.name == axis.name)
-            .and_then(|i| old_axis_logs.get(i));
-        if let Some(old_log) = old_log {
-            next.axis_logs[j] = *old_log;
         }
     }
 
@@ -124,6 +114,12 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         .collect();
     let mut same_nc = BTreeMap::new();
     for (j, (name, axis)) in new_cfg.axes.iter().enumerate() {
+        let old_log = old_axis_index
+            .get(name.as_str())
+            .and_then(|&i| old_axis_logs.get(i));
+        if let (Some(log), Some(old_log)) = (next.axis_logs.get_mut(j), old_log) {
+            *log = *old_log;
+        }
         let same = old_cfg.axes.get(name) == Some(axis)
             && old_cfg.target(&axis.nc_module) == new_cfg.target(&axis.nc_module);
         if let (true, Some(&i)) = (same, old_axis_index.get(name.as_str())) {
