@@ -99,10 +99,10 @@ pub fn default_log_filter(level: &str) -> String {
     format!("{level},{QUIET_LIBRARIES}")
 }
 
-/// Logs to the journal when stderr is the journal stream systemd connected
-/// (`JOURNAL_STREAM` names stderr's device and inode), otherwise, or when the journal
-/// cannot be opened, to stderr. `JOURNAL_STREAM` alone is not enough: a terminal of a
-/// systemd user session inherits it with stderr on the terminal. The filter is
+/// Logs to stderr, as lines the journal takes at their level when stderr is the
+/// journal stream systemd connected (`JOURNAL_STREAM` names stderr's device and
+/// inode): see [`JournalStream`]. `JOURNAL_STREAM` alone is not enough: a terminal of
+/// a systemd user session inherits it with stderr on the terminal. The filter is
 /// `filter` (`--log`), else `RUST_LOG`, else [`default_log_filter`] of
 /// `default_level`.
 pub fn init_tracing(filter: Option<&str>, default_level: &str) {
@@ -112,21 +112,70 @@ pub fn init_tracing(filter: Option<&str>, default_level: &str) {
         .map(str::to_string)
         .or_else(|| std::env::var("RUST_LOG").ok())
         .unwrap_or_else(|| default_log_filter(default_level));
-    let env_filter = tracing_subscriber::EnvFilter::new(filter);
-    let journal = crate::status::stderr_is_journal()
-        .then(|| tracing_journald::layer().ok())
-        .flatten();
-    let registry = tracing_subscriber::registry().with(env_filter);
-    match journal {
-        Some(layer) => registry.with(layer).init(),
-        None => registry
+    let registry = tracing_subscriber::registry().with(tracing_subscriber::EnvFilter::new(filter));
+    let fmt = tracing_subscriber::fmt::layer();
+    if crate::status::stderr_is_journal() {
+        // The journal stamps each line itself.
+        registry
             .with(
-                tracing_subscriber::fmt::layer()
-                    .with_writer(std::io::stderr)
+                fmt.without_time()
+                    .with_ansi(false)
+                    .with_writer(JournalStream),
+            )
+            .init();
+    } else {
+        registry
+            .with(
+                fmt.with_writer(std::io::stderr)
                     // Colour codes only for a person at a terminal.
                     .with_ansi(std::io::stderr().is_terminal()),
             )
-            .init(),
+            .init();
+    }
+}
+
+/// stderr as the journal's stream: every line of an event starts with its syslog
+/// priority (`<4>` for a WARN, sd-daemon(3)), which journald takes as the line's level,
+/// so `journalctl -p warning` and the colours work. An event stays one line with its
+/// fields (`device=ain1 error=...`): journald's native protocol would keep the fields
+/// apart from the message, where `journalctl -u compgate` does not show them.
+struct JournalStream;
+
+impl<'a> tracing_subscriber::fmt::MakeWriter<'a> for JournalStream {
+    type Writer = PrioritizedStderr;
+
+    fn make_writer(&'a self) -> Self::Writer {
+        PrioritizedStderr(b"<6>")
+    }
+
+    fn make_writer_for(&'a self, meta: &tracing::Metadata<'_>) -> Self::Writer {
+        PrioritizedStderr(match *meta.level() {
+            tracing::Level::ERROR => b"<3>",
+            tracing::Level::WARN => b"<4>",
+            tracing::Level::INFO => b"<6>",
+            _ => b"<7>",
+        })
+    }
+}
+
+/// stderr with each line prefixed by a syslog priority.
+struct PrioritizedStderr(&'static [u8; 3]);
+
+impl std::io::Write for PrioritizedStderr {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        // One write per event (the fmt layer hands over whole events), so the lines
+        // of two threads' events do not interleave.
+        let mut out = Vec::with_capacity(buf.len() + 8);
+        for line in buf.split_inclusive(|&b| b == b'\n') {
+            out.extend_from_slice(self.0);
+            out.extend_from_slice(line);
+        }
+        std::io::stderr().lock().write_all(&out)?;
+        Ok(buf.len())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        std::io::stderr().flush()
     }
 }
 

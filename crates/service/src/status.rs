@@ -262,7 +262,7 @@ pub fn stdout_is_journal() -> bool {
     fd_is_journal(1)
 }
 
-/// Whether stderr is the journal: then the log goes to journald with its fields.
+/// Whether stderr is the journal: then each log line carries its level for journald.
 pub fn stderr_is_journal() -> bool {
     fd_is_journal(2)
 }
