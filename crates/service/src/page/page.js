@@ -110,7 +110,7 @@ function devices(list) {
   $("devices").tBodies[0].innerHTML = list.map((d) => `
     <tr data-device="${esc(d.name)}" data-state="${esc(d.state)}">
       <td>${esc(d.name)}</td>
-      <td class="muted">${esc(d.link)}</td>
+      <td class="muted link" title="${esc(d.link)}">${esc(d.link)}</td>
       <td>${badge(d.state, d.state)}</td>
       <td class="num">${d.answered_ago_ms === null || d.answered_ago_ms === undefined ? "never" : ago(d.answered_ago_ms) + " ago"}</td>
       <td class="num">${d.cycles}</td>
