@@ -2,6 +2,9 @@
 //! config, looked at by a real headless Chromium: it loads with no console message,
 //! its values change between two looks, and a channel in NE43 fault shows as bad.
 //! Also `/api/status` and shadow mode as the page, the metrics and the record show it.
+//! A Chromium that keeps running ([`Browser`]) watches the page turn stale when the
+//! gateway hangs and live again when it goes on, the summary line, the bad channels
+//! first, the HOLD badge, a shadow banner naming its axes, and times with their zone.
 //!
 //! Chromium is Debian's `chromium` (test.sh installs it). Without it the browser test
 //! skips with a message, or fails when `CI` is set.
@@ -11,7 +14,7 @@ mod common;
 use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::{Child, ChildStdin, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use common::process::Gateway;
@@ -183,6 +186,203 @@ fn shown_value<'a>(dom: &'a str, name: &str) -> Option<&'a str> {
     let at = dom.find(&format!("data-channel=\"{name}\""))?;
     let cell = dom[at..].find("class=\"num value\">")? + at + "class=\"num value\">".len();
     Some(&dom[cell..cell + dom[cell..].find('<')?])
+}
+
+/// A headless Chromium that keeps running, driven over its DevTools pipe
+/// (`--remote-debugging-pipe`: JSON messages ended by NUL, read on its fd 3 and
+/// written on its fd 4; a shell maps them onto the child's stdin and stdout).
+struct Browser {
+    child: Child,
+    to: ChildStdin,
+    from: std::sync::mpsc::Receiver<Value>,
+    next_id: u64,
+    session: Option<String>,
+    _profile: tempfile::TempDir,
+}
+
+impl Browser {
+    fn start(chromium: &Path) -> Self {
+        let profile = tempfile::tempdir().expect("profile dir");
+        let mut child = Command::new("sh")
+            .args([
+                "-c",
+                "exec \"$0\" \"$@\" 3<&0 4>&1 </dev/null >/dev/null",
+                &chromium.display().to_string(),
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--disable-quic",
+                "--no-first-run",
+                "--disable-background-networking",
+                "--disable-background-timer-throttling",
+                "--disable-renderer-backgrounding",
+                "--disable-component-update",
+                "--disable-sync",
+                "--hide-scrollbars",
+                "--remote-debugging-pipe",
+            ])
+            .arg(format!("--user-data-dir={}", profile.path().display()))
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("chromium starts");
+        let to = child.stdin.take().expect("stdin");
+        let mut out = std::io::BufReader::new(child.stdout.take().expect("stdout"));
+        let (tx, from) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let mut msg = Vec::new();
+            while std::io::BufRead::read_until(&mut out, 0, &mut msg).is_ok_and(|n| n > 0) {
+                msg.pop_if(|b| *b == 0);
+                if let Ok(v) = serde_json::from_slice::<Value>(&msg) {
+                    if tx.send(v).is_err() {
+                        break;
+                    }
+                }
+                msg.clear();
+            }
+        });
+        Browser {
+            child,
+            to,
+            from,
+            next_id: 0,
+            session: None,
+            _profile: profile,
+        }
+    }
+
+    /// Calls `method` (on the page once [`open`](Self::open) attached to one) and
+    /// returns its result; events in between are dropped.
+    fn call(&mut self, method: &str, params: Value) -> Value {
+        self.next_id += 1;
+        let id = self.next_id;
+        let mut msg = serde_json::json!({ "id": id, "method": method, "params": params });
+        if let Some(s) = &self.session {
+            msg["sessionId"] = Value::from(s.as_str());
+        }
+        let mut bytes = msg.to_string().into_bytes();
+        bytes.push(0);
+        self.to.write_all(&bytes).expect("write to chromium");
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let v = self
+                .from
+                .recv_timeout(left)
+                .unwrap_or_else(|e| panic!("no answer from chromium to {method}: {e}"));
+            if v["id"] == id {
+                assert!(v["error"].is_null(), "{method}: {v}");
+                return v["result"].clone();
+            }
+        }
+    }
+
+    /// Opens `url` in a new page in time zone `zone`, `script` run first in it.
+    fn open(&mut self, url: &str, zone: &str, script: &str) {
+        let target = self.call(
+            "Target.createTarget",
+            serde_json::json!({ "url": "about:blank" }),
+        );
+        let attached = self.call(
+            "Target.attachToTarget",
+            serde_json::json!({ "targetId": target["targetId"], "flatten": true }),
+        );
+        self.session = attached["sessionId"].as_str().map(str::to_string);
+        self.call("Page.enable", serde_json::json!({}));
+        self.call(
+            "Emulation.setTimezoneOverride",
+            serde_json::json!({ "timezoneId": zone }),
+        );
+        if !script.is_empty() {
+            self.call(
+                "Page.addScriptToEvaluateOnNewDocument",
+                serde_json::json!({ "source": script }),
+            );
+        }
+        self.call("Page.navigate", serde_json::json!({ "url": url }));
+    }
+
+    /// The value of the JavaScript expression `expr` in the page.
+    fn eval(&mut self, expr: &str) -> Value {
+        let r = self.call(
+            "Runtime.evaluate",
+            serde_json::json!({ "expression": expr, "returnByValue": true }),
+        );
+        r["result"]["value"].clone()
+    }
+
+    /// Polls until `expr` is true in the page; panics after `secs` with [`STATE`].
+    fn wait(&mut self, secs: f64, what: &str, expr: &str) -> Value {
+        let deadline = Instant::now() + Duration::from_secs_f64(secs);
+        while Instant::now() < deadline {
+            if self.eval(expr) == Value::Bool(true) {
+                return self.eval(STATE);
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        panic!(
+            "timed out after {secs} s waiting for {what}; the page: {:#}",
+            self.eval(STATE)
+        );
+    }
+}
+
+impl Drop for Browser {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// What the tests read of the page: header, banners, summary, channel order, axes.
+const STATE: &str = r##"(() => {
+  const text = (id) => { const e = document.getElementById(id); return e && !e.hidden ? e.textContent.trim() : null; };
+  return {
+    live: document.getElementById("live").dataset.state,
+    live_text: text("live-text"),
+    body_stale: document.body.classList.contains("stale"),
+    main_opacity: Number(getComputedStyle(document.querySelector("main")).opacity),
+    stale_banner: text("stale-banner"),
+    shadow_banner: text("shadow-banner"),
+    summary: text("summary"),
+    channels: [...document.querySelectorAll("#channels tbody tr")].map((r) => r.dataset.channel),
+    axes: Object.fromEntries([...document.querySelectorAll(".axis")].map((a) =>
+      [a.dataset.axis, { heading: a.querySelector("h3").textContent.replace(/\s+/g, " ").trim(),
+                         held: a.dataset.held, text: a.textContent.replace(/\s+/g, " ") }])),
+    job_times: [...document.querySelectorAll("#jobs tbody tr td:first-child")].map((t) => t.textContent),
+  };
+})()"##;
+
+/// `YYYY-MM-DD` of the UTC day of `t` (days to civil date, H. Hinnant's algorithm).
+fn utc_date(t: std::time::SystemTime) -> String {
+    let secs = t
+        .duration_since(std::time::UNIX_EPOCH)
+        .expect("after 1970")
+        .as_secs();
+    let z = i64::try_from(secs / 86_400).expect("days") + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    format!("{year:04}-{month:02}-{day:02}")
+}
+
+/// Chromium, or `None` after saying why the test skips (fails under `CI`).
+fn chromium_or_skip() -> Option<PathBuf> {
+    let found = chromium();
+    if found.is_none() {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "chromium is missing (test.sh installs Debian's chromium)"
+        );
+        eprintln!("SKIPPED: chromium is not installed (test.sh installs it)");
+    }
+    found
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -499,4 +699,269 @@ async fn an_axis_in_shadow_mode_shows_would_be_values_and_writes_nothing() {
     let want = format!("SHADOW would_write SD43900={k0:.4}mm");
     assert!(text.contains(&want), "{text}");
     rig.stop().await;
+}
+
+// A hung gateway (SIGSTOP) answers nothing and closes nothing: the page, loaded in a
+// Chromium that keeps running, gives its fetch up, says since when nothing came and
+// greys the old data out within about 4 status intervals (1 s in the demo), and is
+// live again by itself when the gateway goes on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_hung_gateway_turns_the_page_stale_and_it_recovers_by_itself() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (_plant, path) = plant(dir.path(), DEMO, "").await;
+    let gateway = Gateway::start(dir.path(), &path, &[]);
+    let port = gateway.metrics_port(20.0);
+    wait_api(&gateway, port, 20.0, "a channel read", |s| {
+        s["samples"].as_u64().is_some_and(|n| n > 0)
+    });
+    let mut browser = Browser::start(&chromium);
+    browser.open(&format!("http://127.0.0.1:{port}/"), "UTC", "");
+    let live = browser.wait(
+        10.0,
+        "the page live",
+        r#"document.getElementById("live").dataset.state === "live""#,
+    );
+    assert!(!live["body_stale"].as_bool().unwrap_or(true), "{live:#}");
+    assert_eq!(live["main_opacity"], 1.0, "{live:#}");
+
+    gateway.signal("STOP");
+    let stopped = Instant::now();
+    let stale = browser.wait(
+        6.0,
+        "the page stale",
+        r#"document.getElementById("live").dataset.state === "stale""#,
+    );
+    let took = stopped.elapsed();
+    // Let it stay stopped about 4 status intervals in all; still stale then.
+    std::thread::sleep(Duration::from_secs(4).saturating_sub(took));
+    let stale_later = browser.eval(STATE);
+    gateway.signal("CONT");
+    assert!(
+        took >= Duration::from_secs(2),
+        "stale after {took:?}: {stale:#}"
+    );
+    let text = stale["live_text"].as_str().unwrap_or_default();
+    assert!(text.starts_with("no answer since "), "{stale:#}");
+    assert_eq!(stale["body_stale"], true, "{stale:#}");
+    assert!(
+        stale["main_opacity"].as_f64().is_some_and(|o| o < 0.6),
+        "{stale:#}"
+    );
+    assert!(
+        stale["stale_banner"]
+            .as_str()
+            .is_some_and(|b| b.starts_with("Data of ") && b.contains("not live")),
+        "{stale:#}"
+    );
+    assert_eq!(stale_later["body_stale"], true, "{stale_later:#}");
+
+    let back = browser.wait(
+        10.0,
+        "the page live again",
+        r#"document.getElementById("live").dataset.state === "live""#,
+    );
+    assert_eq!(back["body_stale"], false, "{back:#}");
+    assert_eq!(back["stale_banner"], Value::Null, "{back:#}");
+    drop(browser);
+    drop(gateway);
+}
+
+/// [`common::config`] (policy `hold`) with a second NC module and axis Z in shadow
+/// mode, its model on T_screw only.
+fn two_axes_z_shadow() -> String {
+    let toml = common::config("hold", "", "");
+    let z = r#"
+[nc_modules.nc_z]
+address = "127.0.0.1:0"
+unit_id = 1
+timeout_s = 0.5
+job_timeout_s = 0.5
+
+[axes.Z]
+shadow = true
+nc_module = "nc_z"
+md32750 = 3
+p0_mm = 0.0
+update_interval_s = 0.1
+deadband_k0_mm = 0.00001
+deadband_tan_beta = 0.0000000001
+max_abs_k0_mm = 0.5
+max_abs_tan_beta = 0.01
+max_step_k0_mm = 0.5
+max_step_tan_beta = 0.01
+on_bad_input = "hold"
+k0 = { offset_mm = 0.0, terms = [{ channel = "T_screw", ref_degc = 20.0, coeff_mm_per_degc = 0.002 }] }
+tan_beta = { offset = 0.0, terms = [] }
+
+[sim.nc_modules.nc_z]
+referenced = true
+md32750 = 3
+motion_min_mm = 0.0
+motion_max_mm = 0.0
+motion_speed_mm_per_s = 0.0
+"#;
+    // The axes before [sim]: a table appended after [sim.*] would land in it.
+    let at = toml.find("\n[sim]").expect("a [sim] table");
+    format!("{}{z}{}", &toml[..at], &toml[at..])
+}
+
+// One axis of two in shadow mode: the banner names it and does not say the NC is
+// not written. A summary line on top counts the bad channels, the devices up and says
+// each axis' state; bad channels are listed first; an axis that holds for a bad input
+// has a HOLD badge; the shadow axis counts its shadow jobs.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_summary_orders_channels_and_badges_say_hold_and_which_axis_is_shadow() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (plant, path) = plant(dir.path(), &two_axes_z_shadow(), "").await;
+    let gateway = Gateway::start(dir.path(), &path, &[]);
+    let port = gateway.metrics_port(20.0);
+    wait_api(&gateway, port, 20.0, "X written, Z shadow jobs", |s| {
+        s["axes"][0]["jobs_ok"].as_u64().is_some_and(|n| n > 0)
+            && s["axes"][1]["jobs_shadow"].as_u64().is_some_and(|n| n > 0)
+    });
+    // T_col (third, in no model) broken: listed first, and no axis holds for it.
+    let field = &plant.field["ain1"];
+    field
+        .set_sensor_fault(plant.transmitter["T_col"], SensorFault::Open)
+        .expect("fault set");
+    wait_api(&gateway, port, 10.0, "T_col bad", |s| {
+        channel(s, "T_col")["quality"] == "bad"
+    });
+    let mut browser = Browser::start(&chromium);
+    browser.open(&format!("http://127.0.0.1:{port}/"), "UTC", "");
+    let one_bad = browser.wait(
+        10.0,
+        "one bad channel in the summary",
+        r#"document.getElementById("summary").dataset.bad === "1""#,
+    );
+    assert_eq!(
+        one_bad["channels"],
+        serde_json::json!(["T_col", "T_bed", "T_screw"]),
+        "{one_bad:#}"
+    );
+    let summary = one_bad["summary"].as_str().unwrap_or_default();
+    for want in [
+        "3 channels: 1 bad",
+        "devices: 1 of 1 up",
+        "axis X ok, Z shadow",
+    ] {
+        assert!(summary.contains(want), "{want:?} in {one_bad:#}");
+    }
+    let banner = one_bad["shadow_banner"].as_str().unwrap_or_default();
+    assert!(banner.starts_with("SHADOW MODE on axis Z:"), "{one_bad:#}");
+    assert!(!banner.contains("the NC is not written"), "{one_bad:#}");
+    let z = &one_bad["axes"]["Z"];
+    assert!(
+        z["heading"].as_str().is_some_and(|h| h.contains("SHADOW")),
+        "{z:#}"
+    );
+    assert!(
+        z["text"]
+            .as_str()
+            .is_some_and(|t| t.contains(" shadow") && !t.contains("jobs 0 ok")),
+        "{z:#}"
+    );
+    assert_eq!(one_bad["axes"]["X"]["heading"], "Axis X", "{one_bad:#}");
+
+    // T_bed (in X's model) broken too: X holds, with a badge; both bad ones first,
+    // in config order.
+    field
+        .set_sensor_fault(plant.transmitter["T_bed"], SensorFault::Open)
+        .expect("fault set");
+    let held = browser.wait(
+        10.0,
+        "X held",
+        r#"document.querySelector('.axis[data-axis="X"]')?.dataset.held === "true""#,
+    );
+    assert_eq!(held["axes"]["X"]["heading"], "Axis X HOLD", "{held:#}");
+    assert_eq!(
+        held["channels"],
+        serde_json::json!(["T_bed", "T_col", "T_screw"]),
+        "{held:#}"
+    );
+    let summary = held["summary"].as_str().unwrap_or_default();
+    for want in ["3 channels: 2 bad", "axis X held, Z shadow"] {
+        assert!(summary.contains(want), "{want:?} in {held:#}");
+    }
+    drop(browser);
+    drop(gateway);
+}
+
+// Times name their zone, and carry a date when not of today: a browser whose clock
+// is a day ahead of the gateway's shows the gateway's data with its date, and is live
+// all the same (its staleness is measured on its own clock, never against the
+// gateway's). A browser on today shows the time and zone only.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn times_show_their_zone_and_a_date_when_not_today() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (_plant, path) = plant(dir.path(), &common::config("hold", "", ""), "").await;
+    let gateway = Gateway::start(dir.path(), &path, &[]);
+    let port = gateway.metrics_port(20.0);
+    wait_api(&gateway, port, 20.0, "a job done", |s| {
+        s["jobs"].as_array().is_some_and(|j| !j.is_empty())
+    });
+    let url = format!("http://127.0.0.1:{port}/");
+    let is_live = r#"document.getElementById("live").dataset.state === "live""#;
+    let mut today = Browser::start(&chromium);
+    today.open(&url, "UTC", "");
+    let now = today.wait(10.0, "the page live", is_live);
+    let time_utc = |s: &str| {
+        let b = s.as_bytes();
+        s.len() == 12
+            && s.ends_with(" UTC")
+            && [2, 5].iter().all(|&i| b[i] == b':')
+            && [0, 1, 3, 4, 6, 7].iter().all(|&i| b[i].is_ascii_digit())
+    };
+    let text = now["live_text"].as_str().unwrap_or_default();
+    assert!(
+        text.strip_prefix("live, data of ").is_some_and(time_utc),
+        "{now:#}"
+    );
+    assert!(
+        now["job_times"]
+            .as_array()
+            .is_some_and(|t| !t.is_empty() && t.iter().all(|t| t.as_str().is_some_and(time_utc))),
+        "{now:#}"
+    );
+    drop(today);
+
+    let day = utc_date(std::time::SystemTime::now());
+    // The page's clock a day ahead: every date it makes without a time given.
+    let ahead = "{ const D = Date; const DAY = 86400000; \
+        globalThis.Date = class extends D { \
+          constructor(...a) { if (a.length) { super(...a); } else { super(D.now() + DAY); } } \
+          static now() { return D.now() + DAY; } }; }";
+    let mut tomorrow = Browser::start(&chromium);
+    tomorrow.open(&url, "UTC", ahead);
+    let later = tomorrow.wait(10.0, "the page live", is_live);
+    let text = later["live_text"].as_str().unwrap_or_default();
+    assert!(
+        text.strip_prefix("live, data of ")
+            .and_then(|t| t.strip_prefix(&format!("{day} ")))
+            .is_some_and(time_utc),
+        "{day} in {later:#}"
+    );
+    assert!(
+        later["job_times"].as_array().is_some_and(|t| !t.is_empty()
+            && t.iter().all(|t| t
+                .as_str()
+                .and_then(|t| t.strip_prefix(&format!("{day} ")))
+                .is_some_and(time_utc))),
+        "{later:#}"
+    );
+    // Still live some status intervals on: no comparison with the gateway's clock.
+    std::thread::sleep(Duration::from_secs(4));
+    let still = tomorrow.eval(STATE);
+    assert_eq!(still["live"], "live", "{still:#}");
+    drop(tomorrow);
+    drop(gateway);
 }

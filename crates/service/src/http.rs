@@ -31,8 +31,8 @@ use tokio::net::TcpListener;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
-/// A route's answer to a GET.
-pub type Handler = Arc<dyn Fn() -> Response<Full<Bytes>> + Send + Sync>;
+/// A route's answer to a GET, given the request's query string if any.
+pub type Handler = Arc<dyn Fn(Option<&str>) -> Response<Full<Bytes>> + Send + Sync>;
 
 /// Paths and what answers them; every route answers GET and HEAD.
 #[derive(Clone, Default)]
@@ -46,23 +46,37 @@ impl Router {
         Self::default()
     }
 
-    /// Adds `path`, answered by `handler`.
+    /// Adds `path`, answered by `handler` whatever the query.
     pub fn get(
-        mut self,
+        self,
         path: &'static str,
         handler: impl Fn() -> Response<Full<Bytes>> + Send + Sync + 'static,
+    ) -> Self {
+        self.get_with_query(path, move |_| handler())
+    }
+
+    /// Adds `path`, answered by `handler` from the query string (`None` without one).
+    pub fn get_with_query(
+        mut self,
+        path: &'static str,
+        handler: impl Fn(Option<&str>) -> Response<Full<Bytes>> + Send + Sync + 'static,
     ) -> Self {
         self.routes.push((path, Arc::new(handler)));
         self
     }
 
-    /// The answer to `method` on `path`.
-    pub fn respond(&self, method: &Method, path: &str) -> Response<Full<Bytes>> {
+    /// The answer to `method` on `path` with `query`.
+    pub fn respond(
+        &self,
+        method: &Method,
+        path: &str,
+        query: Option<&str>,
+    ) -> Response<Full<Bytes>> {
         let Some((_, handler)) = self.routes.iter().find(|(p, _)| *p == path) else {
             return text(StatusCode::NOT_FOUND, "not found\n");
         };
         if method == Method::GET || method == Method::HEAD {
-            return handler();
+            return handler(query);
         }
         let mut r = text(StatusCode::METHOD_NOT_ALLOWED, "method not allowed\n");
         r.headers_mut()
@@ -313,7 +327,7 @@ async fn connection(
     let svc_slot = slot.clone();
     let svc = hyper::service::service_fn(move |req: Request<Incoming>| {
         let busy = Busy::new(svc_slot.clone());
-        let response = router.respond(req.method(), req.uri().path());
+        let response = router.respond(req.method(), req.uri().path(), req.uri().query());
         async move { Ok::<_, Infallible>(response.map(|inner| Guarded { inner, _busy: busy })) }
     });
     let conn = hyper::server::conn::http1::Builder::new()

@@ -4,13 +4,15 @@
 //!   internet and no build step needed) that polls `/api/status` once per status
 //!   interval and draws devices, channels with a trend, axes, the NC and the last NC
 //!   jobs.
-//! - `GET /api/status`: the same as JSON ([`to_json`]).
+//! - `GET /api/status`: the same as JSON ([`to_json`]); `GET /api/status?trend=0`
+//!   without the trends (at 384 channels 85 kB instead of 3.66 MB: the page asks for
+//!   the trends only every few seconds).
 //!
 //! Read-only: the router answers GET and HEAD only. The data is the status snapshot
 //! the control loop publishes at each status tick; the trend history is kept here, in
 //! a task of its own ([`track`]), not in the control loop.
 
-use std::collections::VecDeque;
+use std::collections::{HashMap, VecDeque};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
@@ -24,6 +26,7 @@ use tokio::sync::watch;
 use crate::http::Router;
 use crate::record::quality_code;
 use compgate_core::comp::CompParams;
+use compgate_gateway::nc::NcSnapshot;
 use compgate_gateway::runtime::{DeviceStatus, Status};
 
 const INDEX_HTML: &str = include_str!("index.html");
@@ -125,6 +128,49 @@ impl History {
     }
 }
 
+/// What one snapshot forgets and the page still shows: when each device last answered,
+/// the last NC values each axis read (an unreachable NC leaves the snapshot's empty)
+/// and the shadow jobs per axis (the snapshot counts only sent ones).
+#[derive(Debug, Clone, Default)]
+pub struct Seen {
+    /// By device: the cycle count last seen and when a cycle last had an answer.
+    devices: HashMap<String, (u64, Option<i64>)>,
+    /// By axis: the last NC snapshot and when it was seen.
+    nc: HashMap<String, (NcSnapshot, i64)>,
+    /// By axis: shadow jobs counted, and the time of the newest job counted.
+    shadow_jobs: HashMap<String, (u64, SystemTime)>,
+}
+
+impl Seen {
+    /// Notes `status`, published at `t_unix_ms`.
+    pub fn note(&mut self, status: &Status, t_unix_ms: i64) {
+        for d in &status.devices {
+            let e = self.devices.entry(d.name.clone()).or_insert((0, None));
+            // A new cycle that got an answer: a device that hangs in its timeouts
+            // keeps link_up from its last cycle but counts no new one.
+            if d.link_up && d.cycles != e.0 {
+                e.1 = Some(t_unix_ms);
+            }
+            e.0 = d.cycles;
+        }
+        for a in &status.axes {
+            if let Some(nc) = &a.nc {
+                self.nc.insert(a.name.clone(), (*nc, t_unix_ms));
+            }
+        }
+        // The snapshot keeps the last jobs only: count those newer than counted.
+        for j in status.jobs.iter().filter(|j| j.shadow) {
+            let e = self
+                .shadow_jobs
+                .entry(j.axis.clone())
+                .or_insert((0, UNIX_EPOCH));
+            if j.at > e.1 {
+                *e = (e.0 + 1, j.at);
+            }
+        }
+    }
+}
+
 fn unix_ms(t: SystemTime) -> i64 {
     t.duration_since(UNIX_EPOCH)
         .ok()
@@ -145,6 +191,19 @@ fn num(v: f64) -> Value {
     }
 }
 
+fn nc_json(nc: &NcSnapshot) -> Value {
+    json!({
+        "sd43900_mm": num(nc.sd43900_mm),
+        "sd43910": num(nc.sd43910),
+        "sd43920_mm": num(nc.sd43920_mm),
+        "md32750": nc.md32750,
+        "position_mm": num(nc.position_mm),
+        "applied_comp_mm": num(nc.applied_comp_mm),
+        "target_comp_mm": num(nc.target_comp_mm),
+        "referenced": nc.referenced,
+    })
+}
+
 /// A device's state in one word, as `/api/status` and the MQTT health message say it:
 /// `connecting`, `up`, `errors` or `down`.
 pub(crate) fn device_state(d: &DeviceStatus) -> &'static str {
@@ -157,8 +216,17 @@ pub(crate) fn device_state(d: &DeviceStatus) -> &'static str {
     }
 }
 
-/// `/api/status`: the status with the trends, at `t_unix_ms`.
-pub fn to_json(s: &Status, history: &History, interval_s: f64, t_unix_ms: i64) -> Value {
+/// `/api/status`: the status at `t_unix_ms`, with the trends if `trends`. Ages
+/// (`*_ago_ms`) are relative to `t_unix_ms`: a browser whose clock differs from the
+/// gateway's still reads them right.
+pub fn to_json(
+    s: &Status,
+    history: &History,
+    seen: &Seen,
+    interval_s: f64,
+    t_unix_ms: i64,
+    trends: bool,
+) -> Value {
     let trend_s = history.window.as_secs_f64();
     let devices: Vec<Value> = s
         .devices
@@ -172,6 +240,11 @@ pub fn to_json(s: &Status, history: &History, interval_s: f64, t_unix_ms: i64) -
                 "failed_cycles": d.failed_cycles,
                 "connects": d.connects,
                 "last_cycle_ms": d.last_cycle.as_secs_f64() * 1e3,
+                "answered_ago_ms": seen
+                    .devices
+                    .get(&d.name)
+                    .and_then(|e| e.1)
+                    .map(|t| t_unix_ms - t),
                 "last_error": d.last_error,
                 "errors": d.errors,
             })
@@ -185,7 +258,7 @@ pub fn to_json(s: &Status, history: &History, interval_s: f64, t_unix_ms: i64) -
             let r = &c.reading;
             let (code, reason) = quality_code(&r.quality);
             let quality = ["good", "uncertain", "bad"][usize::from(code.min(2))];
-            json!({
+            let mut v = json!({
                 "name": &*c.name,
                 "value_degc": r.value_degc.map(num),
                 "unfiltered_degc": r.unfiltered_degc.map(num),
@@ -194,8 +267,11 @@ pub fn to_json(s: &Status, history: &History, interval_s: f64, t_unix_ms: i64) -
                 "quality": quality,
                 "reason": reason,
                 "quality_text": r.quality.to_string(),
-                "trend": history.trend(i),
-            })
+            });
+            if trends {
+                v["trend"] = history.trend(i);
+            }
+            v
         })
         .collect();
     let axes: Vec<Value> = s
@@ -211,18 +287,16 @@ pub fn to_json(s: &Status, history: &History, interval_s: f64, t_unix_ms: i64) -
                 "at_limit": a.at_limit,
                 "jobs_ok": a.jobs_ok,
                 "jobs_failed": a.jobs_failed,
+                "jobs_shadow": seen.shadow_jobs.get(&a.name).map_or(0, |e| e.0),
                 "last_job_error": a.last_job_error,
                 "warning": a.warning,
-                "nc": a.nc.as_ref().map(|nc| json!({
-                    "sd43900_mm": num(nc.sd43900_mm),
-                    "sd43910": num(nc.sd43910),
-                    "sd43920_mm": num(nc.sd43920_mm),
-                    "md32750": nc.md32750,
-                    "position_mm": num(nc.position_mm),
-                    "applied_comp_mm": num(nc.applied_comp_mm),
-                    "target_comp_mm": num(nc.target_comp_mm),
-                    "referenced": nc.referenced,
-                })),
+                "nc": a.nc.as_ref().map(nc_json),
+                // The NC's values as last read, also while it does not answer.
+                "nc_last": seen.nc.get(&a.name).map(|(nc, t)| {
+                    let mut v = nc_json(nc);
+                    v["read_ago_ms"] = json!(t_unix_ms - t);
+                    v
+                }),
             })
         })
         .collect();
@@ -268,24 +342,40 @@ pub struct Page {
 struct Latest {
     status: Status,
     history: History,
+    seen: Seen,
     interval_s: f64,
     t_unix_ms: i64,
-    /// The body of this status, once built.
-    body: Option<Bytes>,
+    /// The bodies of this status (with the trends, without), once built.
+    body: [Option<Bytes>; 2],
 }
 
 impl Page {
-    /// The latest `/api/status` body.
-    pub fn json(&self) -> Bytes {
+    /// The latest `/api/status` body, with the trends if `trends`.
+    pub fn json(&self, trends: bool) -> Bytes {
         let mut l = self.inner.lock().unwrap_or_else(|p| p.into_inner());
-        if let Some(b) = &l.body {
+        let slot = usize::from(!trends);
+        if let Some(b) = &l.body[slot] {
             return b.clone();
         }
-        let body =
-            Bytes::from(to_json(&l.status, &l.history, l.interval_s, l.t_unix_ms).to_string());
-        l.body = Some(body.clone());
+        let body = Bytes::from(
+            to_json(
+                &l.status,
+                &l.history,
+                &l.seen,
+                l.interval_s,
+                l.t_unix_ms,
+                trends,
+            )
+            .to_string(),
+        );
+        l.body[slot] = Some(body.clone());
         body
     }
+}
+
+/// `trend=0` in a query string: the answer leaves the trends out.
+fn wants_trends(query: Option<&str>) -> bool {
+    !query.is_some_and(|q| q.split('&').any(|kv| kv == "trend=0"))
 }
 
 /// Keeps `page` up to date from `rx` until the gateway's status sender is gone:
@@ -313,9 +403,10 @@ pub async fn track(
             if s.samples > 0 {
                 l.history.push(&s, now);
             }
+            l.seen.note(&s, now);
             l.status.clone_from(&s);
             l.t_unix_ms = now;
-            l.body = None;
+            l.body = [None, None];
         }
         if rx.changed().await.is_err() {
             break;
@@ -332,7 +423,8 @@ fn with_type(body: impl Into<Bytes>, content_type: &'static str) -> Response<Ful
     r
 }
 
-/// `router` with the page's routes: `/`, `/page.css`, `/page.js`, `/api/status`.
+/// `router` with the page's routes: `/`, `/page.css`, `/page.js`, `/api/status`
+/// (`?trend=0`: without the trends).
 pub fn routes(router: Router, page: Page) -> Router {
     router
         .get("/", || with_type(INDEX_HTML, "text/html; charset=utf-8"))
@@ -342,8 +434,8 @@ pub fn routes(router: Router, page: Page) -> Router {
         .get("/page.js", || {
             with_type(PAGE_JS, "text/javascript; charset=utf-8")
         })
-        .get("/api/status", move || {
-            with_type(page.json(), "application/json")
+        .get_with_query("/api/status", move |query| {
+            with_type(page.json(wants_trends(query)), "application/json")
         })
 }
 
@@ -395,7 +487,9 @@ mod tests {
         }
         let s = status(25.0, Quality::Bad(Reason::Ne43Low));
         h.push(&s, 5_000);
-        let j = to_json(&s, &h, 1.0, 5_000);
+        let mut seen = Seen::default();
+        seen.note(&s, 5_000);
+        let j = to_json(&s, &h, &seen, 1.0, 5_000, true);
         let c = &j["channels"][0];
         assert_eq!(c["value_degc"], 25.0);
         assert_eq!(c["quality"], "bad");
@@ -433,10 +527,55 @@ mod tests {
         assert!(last.t_unix_ms - first.t_unix_ms >= 59_000);
     }
 
+    // An NC that stops answering leaves the snapshot without values: the JSON keeps
+    // the last ones read with their age; a device's last answer and the shadow jobs
+    // are counted across snapshots; `trend=0` leaves the trends out.
+    #[test]
+    fn the_last_nc_values_device_answers_and_shadow_jobs_outlive_a_snapshot() {
+        use compgate_gateway::runtime::DeviceStatus;
+        let mut s = status(21.0, Quality::Good);
+        s.axes[0].nc = Some(NcSnapshot {
+            sd43900_mm: 0.03,
+            ..NcSnapshot::default()
+        });
+        s.devices = vec![DeviceStatus {
+            name: "ain1".into(),
+            cycles: 5,
+            link_up: true,
+            ..DeviceStatus::default()
+        }];
+        let mut seen = Seen::default();
+        seen.note(&s, 1_000);
+        // The same shadow job again, one more, and the device dead since 1 s.
+        s.push_job(JobStatus {
+            axis: "X".into(),
+            at: UNIX_EPOCH + Duration::from_secs(11),
+            params: CompParams::default(),
+            shadow: true,
+            job_id: None,
+            elapsed: None,
+            error: None,
+        });
+        s.axes[0].nc = None;
+        s.devices[0].cycles = 9;
+        s.devices[0].link_up = false;
+        seen.note(&s, 4_000);
+        let j = to_json(&s, &History::default(), &seen, 1.0, 4_000, false);
+        let x = &j["axes"][0];
+        assert_eq!(x["nc"], Value::Null);
+        assert_eq!(x["nc_last"]["sd43900_mm"], 0.03);
+        assert_eq!(x["nc_last"]["read_ago_ms"], 3_000);
+        assert_eq!(x["jobs_shadow"], 2);
+        assert_eq!(j["devices"][0]["answered_ago_ms"], 3_000);
+        assert!(j["channels"][0].get("trend").is_none(), "{j}");
+        assert!(wants_trends(None) && wants_trends(Some("a=1")));
+        assert!(!wants_trends(Some("a=1&trend=0")));
+    }
+
     #[test]
     fn not_finite_values_are_json_null() {
         let s = status(f64::NAN, Quality::Bad(Reason::NotFinite));
-        let j = to_json(&s, &History::default(), 1.0, 0);
+        let j = to_json(&s, &History::default(), &Seen::default(), 1.0, 0, true);
         assert_eq!(j["channels"][0]["value_degc"], Value::Null);
         // serde_json writes NaN as null too; what matters is valid JSON text.
         assert!(serde_json::from_str::<Value>(&j.to_string()).is_ok());
