@@ -96,40 +96,20 @@ if [[ ${#need[@]} -gt 0 ]]; then
 fi
 mkdir -p "$WORK"
 
-# ---- kernel and CAN modules, cached under target/vcan/kernel
-KDIR=$WORK/kernel
-if [[ ! -f $KDIR/vmlinuz || ! -f $KDIR/mods/vcan.ko || ! -f $KDIR/mods/can-bcm.ko ]]; then
-    apt-get update -qq >/dev/null 2>&1 || true
-    # The plain -amd64 flavour: -cloud-amd64 has no CAN modules.
-    KPKG=$(apt-cache depends linux-image-amd64 2>/dev/null | grep -o 'linux-image-[0-9][^ ]*-amd64' | head -1)
-    [[ -n "$KPKG" ]] || skip_or_fail "no linux-image-*-amd64 package known to apt"
-    rm -rf "$KDIR" && mkdir -p "$KDIR/mods" "$KDIR/x"
-    (cd "$KDIR" && apt-get download "$KPKG" >/dev/null 2>&1) || skip_or_fail "cannot download $KPKG"
-    dpkg -x "$KDIR"/linux-image-*.deb "$KDIR/x"
-    M=$(echo "$KDIR"/x/lib/modules/*/kernel)
-    # can-bcm: python-can sends the Python node's heartbeat through the broadcast manager.
-    cp "$M/net/can/can.ko" "$M/net/can/can-raw.ko" "$M/net/can/can-bcm.ko" \
-        "$M/drivers/net/can/dev/can-dev.ko" "$M/drivers/net/can/vcan.ko" "$KDIR/mods/"
-    cp "$KDIR"/x/boot/vmlinuz-* "$KDIR/vmlinuz"
-    rm -rf "$KDIR/x" "$KDIR"/linux-image-*.deb
-fi
+# ---- kernel and CAN modules, cached under target/vm-kernel
+# shellcheck source=../vm/lib.sh
+source "$ROOT/tests/vm/lib.sh"
+vm_kernel
 
 # ---- initramfs
 IR=$WORK/ir
 rm -rf "$IR" && mkdir -p "$IR"/{bin,sbin,proc,sys,dev,mods,tmp,tests}
 cp /bin/busybox "$IR/bin/"
-cp "$KDIR"/mods/*.ko "$IR/mods/"
-carry() { # carry BINARY DEST: a program and its shared libraries
-    cp -L "$1" "$IR$2"
-    for l in $(ldd "$1" | grep -o '/[^ ]*'); do
-        mkdir -p "$IR$(dirname "$l")"
-        [[ -e "$IR$l" ]] || cp -L "$l" "$IR$l"
-    done
-}
-carry "$(command -v ip)" /sbin/ip
-carry "$(command -v cansend)" /bin/cansend
-carry "$(command -v candump)" /bin/candump
-carry "$(command -v cangen)" /bin/cangen
+for m in can can-raw can-bcm can-dev vcan; do cp "$KDIR/mods/$m.ko" "$IR/mods/"; done
+carry "$IR" "$(command -v ip)" /sbin/ip
+carry "$IR" "$(command -v cansend)" /bin/cansend
+carry "$IR" "$(command -v candump)" /bin/candump
+carry "$IR" "$(command -v cangen)" /bin/cangen
 
 # The independent CANopen node (tests/peers/canopen_node.py): the peers' interpreter, its
 # standard library without what no peer imports (tests, Tk, IDLE, other packages), and
@@ -147,7 +127,7 @@ carry_python() {
         [[ $next == /* ]] || next=$(dirname "$p")/$next
         p=$next
     done
-    carry "$p" "$p"
+    carry "$IR" "$p" "$p"
     local stdlib
     stdlib=$("$py" -c 'import sysconfig; print(sysconfig.get_paths()["stdlib"])')
     tar -C / -cf - --exclude=test --exclude=site-packages --exclude=dist-packages \
@@ -190,7 +170,7 @@ if [[ $SMOKE -eq 0 ]]; then
     build_tests
     for exe in $(cat "$WORK/tests.txt"); do
         i=$((i + 1))
-        carry "$exe" "/tests/t$i"
+        carry "$IR" "$exe" "/tests/t$i"
         # Debug info only makes the initramfs (held in guest RAM) bigger.
         strip --strip-debug "$IR/tests/t$i" 2>/dev/null || true
         RUN_TESTS+="run_test t$i $(basename "$exe")"$'\n'

@@ -1,0 +1,202 @@
+#!/usr/bin/env bash
+# Runs inside the VM that tests/systemd/run.sh boots, under a real systemd as PID 1:
+# installs compgate with deploy/install.sh and checks the unit in its sandbox, against
+# the simulated plant in a unit of its own. Prints one `SD-CHECK:` line per check and
+# an `SD-RESULT:` line; run.sh reads them off the serial console.
+set -uo pipefail
+cd "$(dirname "$0")/../.."
+work=/run/sd-check
+mkdir -p "$work"
+passed=0
+failed=0
+ok() {
+    echo "SD-CHECK: ok $1"
+    passed=$((passed + 1))
+}
+bad() {
+    echo "SD-CHECK: FAILED $1: $2"
+    failed=$((failed + 1))
+}
+# until SECONDS CMD...: true once CMD succeeds, polled every 0.5 s.
+until_s() {
+    local end=$((SECONDS + $1))
+    shift
+    while ! "$@" >/dev/null 2>&1; do
+        ((SECONDS < end)) || return 1
+        sleep 0.5
+    done
+}
+journal() { journalctl -u compgate -o cat --no-pager "$@"; }
+prop() { systemctl show -p "$1" --value compgate; }
+readings() { sqlite3 "file:/var/lib/compgate/compgate.db?mode=ro" "SELECT COUNT(*) FROM readings"; }
+metric() { curl -sf http://127.0.0.1:19464/metrics | grep "^$1" | awk '{s += $2} END {print s + 0}'; }
+
+# The demo's plant on fixed ports (the unit refuses port 0), recorded and served.
+sed -e 's/127.0.0.1:0"/127.0.0.1:15020"/' -e '/^\[nc_modules.nc_x\]/,/^\[/ s/15020/15021/' \
+    config/demo.toml >"$work/compgate.toml"
+cat >>"$work/compgate.toml" <<'EOF'
+
+[recorder]
+commit_interval_s = 0.2
+
+[metrics]
+bind = "127.0.0.1:19464"
+EOF
+systemd-run --quiet --unit=compgate-plant target/release/compgate sim --config "$work/compgate.toml"
+if until_s 60 bash -c 'ss -ltn | grep -q ":15021 "'; then ok "the simulated plant listens"; else bad "the simulated plant listens" "$(journalctl -u compgate-plant -o cat | tail -5)"; fi
+
+# ---- install: validate, user, config, unit, enable, start (Type=notify: READY=1)
+if deploy/install.sh "$work/compgate.toml" >"$work/install.log" 2>&1; then
+    ok "install.sh installs and starts the service"
+else
+    bad "install.sh installs and starts the service" "$(tail -20 "$work/install.log")"
+fi
+[[ $(systemctl is-active compgate) == active && $(systemctl is-enabled compgate) == enabled ]] &&
+    ok "active and enabled" || bad "active and enabled" "$(systemctl is-active compgate) $(systemctl is-enabled compgate)"
+id -nG compgate | grep -qw dialout && ok "user compgate in dialout" || bad "user compgate in dialout" "$(id compgate)"
+pid=$(prop MainPID)
+
+# ---- running in the sandbox: STATUS=, the recorder, the metrics, the NC
+if until_s 60 bash -c "systemctl show -p StatusText --value compgate | grep -q 'ain1 up'"; then
+    ok "STATUS= says the device is up: $(prop StatusText)"
+else
+    bad "STATUS= says the device is up" "$(prop StatusText)"
+fi
+if until_s 60 bash -c '(( $(sqlite3 "file:/var/lib/compgate/compgate.db?mode=ro" "SELECT COUNT(*) FROM readings") > 0 ))'; then
+    ok "readings recorded in the state directory ($(readings))"
+else
+    bad "readings recorded in the state directory" "$(ls -la /var/lib/compgate; journal | tail -5)"
+fi
+mode=$(stat -c '%U %a' /var/lib/compgate/compgate.db)
+[[ $mode == "compgate 600" ]] && ok "database owned by compgate, mode 600 (UMask)" || bad "database owned by compgate, mode 600" "$mode"
+if until_s 60 bash -c '(( $(curl -sf http://127.0.0.1:19464/metrics | grep "^compgate_nc_jobs_total.*result=\"ok\"" | wc -l) > 0 ))'; then
+    ok "an NC job landed (metrics: $(metric 'compgate_nc_jobs_total{.*result="ok"') ok)"
+else
+    bad "an NC job landed" "$(curl -s http://127.0.0.1:19464/metrics | grep nc_jobs; journal | tail -5)"
+fi
+journal | grep -qi "permission denied\|operation not permitted\|bad system call" &&
+    bad "no sandbox refusal in the journal" "$(journal | grep -i 'denied\|not permitted\|system call' | head -3)" ||
+    ok "no sandbox refusal in the journal"
+
+# ---- a device down and back: a WARN at journal priority 4, named in STATUS=
+systemctl stop compgate-plant
+# What `journalctl -u compgate` shows an operator: the line itself names the device.
+if until_s 30 bash -c "journalctl -u compgate -p warning -o cat | grep 'device link down' | grep -q ain1"; then
+    ok "device down is a journal warning naming the device"
+else
+    bad "device down is a journal warning naming the device" "$(journal -p warning | tail -3)"
+fi
+until_s 20 bash -c "systemctl show -p StatusText --value compgate | grep -q 'ain1 down'" &&
+    ok "STATUS= names the device down" || bad "STATUS= names the device down" "$(prop StatusText)"
+systemd-run --quiet --unit=compgate-plant target/release/compgate sim --config "$work/compgate.toml"
+until_s 60 bash -c "journalctl -u compgate -o cat | grep -q 'device link up again'" &&
+    ok "device back is logged" || bad "device back is logged" "$(journal | tail -3)"
+
+# ---- reload: a bad config fails `systemctl reload` (validated in the unit's
+# sandbox), the running gateway keeps its config; a good one is taken without a restart
+cp /etc/compgate/compgate.toml "$work/good.toml"
+sed -i 's/^poll_interval_s = 0.5/poll_interval_s = -1/' /etc/compgate/compgate.toml
+if systemctl reload compgate 2>/dev/null; then
+    bad "a bad config fails systemctl reload" "reload succeeded"
+else
+    ok "a bad config fails systemctl reload"
+fi
+journalctl -u compgate -o cat | grep -q "devices.ain1.poll_interval_s" &&
+    ok "the journal names the bad key" || bad "the journal names the bad key" "$(journal | tail -5)"
+[[ $(prop MainPID) == "$pid" && $(systemctl is-active compgate) == active ]] &&
+    ok "still running after the refused reload" || bad "still running after the refused reload" "pid $pid -> $(prop MainPID)"
+sed 's/^poll_interval_s = 0.5/poll_interval_s = 0.25/' "$work/good.toml" >/etc/compgate/compgate.toml
+if systemctl reload compgate && until_s 30 bash -c "journalctl -u compgate -o cat | grep -q 'configuration reloaded'"; then
+    ok "a good config is reloaded"
+else
+    bad "a good config is reloaded" "$(journal | tail -5)"
+fi
+[[ $(prop MainPID) == "$pid" ]] && ok "reloaded in the same process" || bad "reloaded in the same process" "pid $pid -> $(prop MainPID)"
+
+# ---- serial ports: a UART of an allowed driver group opens; a port of a group the
+# unit does not list (virtio's hvc console) is refused by the device policy, with the
+# hint, until a drop-in allows it, as docs/deployment.md says
+chmod 666 /dev/hvc0 # so the device policy, not the tty group, is what refuses it
+rtu_device() { # rtu_device NAME PATH
+    cat <<EOF
+
+[devices.$1]
+transport = "rtu"
+serial_path = "$2"
+unit_id = 1
+timeout_s = 0.2
+retries = 0
+poll_interval_s = 1.0
+
+[channels.T_$1]
+device = "$1"
+register = "input"
+address = 0
+data_type = "u16"
+scaling = { kind = "transmitter", adc_full_scale_counts = 4095, adc_full_scale_ma = 24.0, range_min_degc = -50.0, range_max_degc = 150.0 }
+EOF
+}
+{ rtu_device uart /dev/ttyS1; rtu_device hvc /dev/hvc0; } >>/etc/compgate/compgate.toml
+systemctl reload compgate || bad "serial devices reload" "$(journal | tail -5)"
+# serial_down NAME [journalctl args]: the journal's first "link down" line of device NAME
+serial_down() {
+    local name=$1
+    shift
+    journalctl -u compgate -o cat "$@" | grep "device link down" | grep "device=$name " | head -1
+}
+if until_s 30 bash -c "journalctl -u compgate -o cat | grep 'device link down' | grep -q 'device=uart '"; then
+    line=$(serial_down uart)
+    [[ $line == *'kind="timeout"'* ]] && ok "/dev/ttyS1 opens in the sandbox (no module on it: no reply)" ||
+        bad "/dev/ttyS1 opens in the sandbox" "$line"
+else
+    bad "/dev/ttyS1 opens in the sandbox" "$(journal | grep -i uart | tail -3)"
+fi
+if until_s 30 bash -c "journalctl -u compgate -o cat | grep 'device link down' | grep -q 'device=hvc '"; then
+    line=$(serial_down hvc)
+    [[ $line == *"operation not permitted"*DeviceAllow=* ]] &&
+        ok "a port of another driver group is refused, naming DeviceAllow=" ||
+        bad "a port of another driver group is refused, naming DeviceAllow=" "$line"
+else
+    bad "a port of another driver group is refused, naming DeviceAllow=" "$(journal | grep -i hvc | tail -3)"
+fi
+mkdir -p /etc/systemd/system/compgate.service.d
+printf '[Service]\nDeviceAllow=char-hvc rw\n' >/etc/systemd/system/compgate.service.d/hvc.conf
+systemctl daemon-reload
+since=$(date '+%Y-%m-%d %H:%M:%S')
+systemctl restart compgate
+if until_s 30 bash -c "journalctl -u compgate -o cat --since '$since' | grep 'device link down' | grep -q 'device=hvc '"; then
+    line=$(serial_down hvc --since "$since")
+    [[ $line == *'kind="timeout"'* ]] && ok "a drop-in with its DeviceAllow= opens it" ||
+        bad "a drop-in with its DeviceAllow= opens it" "$line"
+else
+    bad "a drop-in with its DeviceAllow= opens it" "$(journal | grep -i hvc | tail -3)"
+fi
+cp "$work/good.toml" /etc/compgate/compgate.toml
+systemctl restart compgate
+pid=$(prop MainPID)
+
+# ---- the watchdog: a gateway that stops answering is killed and restarted, and
+# keeps what it recorded
+before=$(readings)
+kill -STOP "$pid"
+if until_s 90 bash -c "[[ \$(systemctl show -p NRestarts --value compgate) -ge 1 && \$(systemctl is-active compgate) == active ]]"; then
+    ok "a hung gateway is restarted by the watchdog"
+else
+    bad "a hung gateway is restarted by the watchdog" "$(systemctl status --no-pager compgate | tail -5)"
+fi
+journalctl -u compgate -o cat | grep -qi "watchdog timeout" &&
+    ok "systemd names the watchdog" || bad "systemd names the watchdog" "$(journalctl -u compgate -o cat | tail -5)"
+after=$(readings)
+((after >= before)) && ok "nothing recorded is lost ($before readings before, $after after)" ||
+    bad "nothing recorded is lost" "$before readings before, $after after"
+
+# ---- a clean stop
+if systemctl stop compgate; then ok "systemctl stop"; else bad "systemctl stop" "$(journal | tail -5)"; fi
+[[ $(prop Result) == success && $(prop ExecMainStatus) == 0 ]] &&
+    ok "stopped cleanly (exit 0)" || bad "stopped cleanly" "Result=$(prop Result) status=$(prop ExecMainStatus)"
+journal | tail -20 | grep -q "gateway stopped" && ok "the journal says it stopped" || bad "the journal says it stopped" "$(journal | tail -3)"
+ic=$(sqlite3 /var/lib/compgate/compgate.db "PRAGMA integrity_check")
+[[ $ic == ok ]] && ok "database intact after the kill and the stop" || bad "database intact" "$ic"
+
+((failed == 0)) || journalctl -u compgate -u compgate-plant --no-pager | tail -80
+echo "SD-RESULT: $passed passed, $failed failed"

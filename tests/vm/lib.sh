@@ -1,0 +1,47 @@
+# Sourced by the scripts that boot a test VM (tests/vcan/run.sh, tests/systemd/run.sh):
+# a Debian kernel with the modules they load, and carrying a program into an initramfs.
+# The caller sets ROOT (the checkout) and defines skip_or_fail MESSAGE.
+
+# The modules either VM loads, as paths under the kernel package's lib/modules/*/kernel.
+VM_MODULES=(
+    # vcan: can-bcm because python-can sends the Python node's heartbeat through it.
+    net/can/can.ko net/can/can-raw.ko net/can/can-bcm.ko
+    drivers/net/can/dev/can-dev.ko drivers/net/can/vcan.ko
+    # systemd: the host's root over virtio 9p, under a tmpfs overlay.
+    drivers/virtio/virtio.ko drivers/virtio/virtio_ring.ko
+    drivers/virtio/virtio_pci_legacy_dev.ko drivers/virtio/virtio_pci_modern_dev.ko
+    drivers/virtio/virtio_pci.ko fs/netfs/netfs.ko fs/fscache/fscache.ko
+    drivers/char/virtio_console.ko
+    net/9p/9pnet.ko net/9p/9pnet_virtio.ko fs/9p/9p.ko fs/overlayfs/overlay.ko
+)
+
+# Sets KDIR to a directory with vmlinuz and mods/*.ko (every VM_MODULES entry), taken
+# from Debian's current kernel package and cached under target/vm-kernel.
+vm_kernel() {
+    KDIR=$ROOT/target/vm-kernel
+    local m have=1
+    [[ -f $KDIR/vmlinuz ]] || have=0
+    for m in "${VM_MODULES[@]}"; do [[ -f $KDIR/mods/$(basename "$m") ]] || have=0; done
+    ((have)) && return 0
+    apt-get update -qq >/dev/null 2>&1 || true
+    # The plain -amd64 flavour: -cloud-amd64 has no CAN modules.
+    local kpkg
+    kpkg=$(apt-cache depends linux-image-amd64 2>/dev/null | grep -o 'linux-image-[0-9][^ ]*-amd64' | head -1)
+    [[ -n "$kpkg" ]] || skip_or_fail "no linux-image-*-amd64 package known to apt"
+    rm -rf "$KDIR" && mkdir -p "$KDIR/mods" "$KDIR/x"
+    (cd "$KDIR" && apt-get download "$kpkg" >/dev/null 2>&1) || skip_or_fail "cannot download $kpkg"
+    dpkg -x "$KDIR"/linux-image-*.deb "$KDIR/x"
+    for m in "${VM_MODULES[@]}"; do cp "$KDIR"/x/lib/modules/*/kernel/"$m" "$KDIR/mods/"; done
+    cp "$KDIR"/x/boot/vmlinuz-* "$KDIR/vmlinuz"
+    rm -rf "$KDIR/x" "$KDIR"/linux-image-*.deb
+}
+
+# carry IR BINARY DEST: a program and its shared libraries into the initramfs tree IR.
+carry() {
+    local ir=$1 l
+    cp -L "$2" "$ir$3"
+    for l in $(ldd "$2" | grep -o '/[^ ]*'); do
+        mkdir -p "$ir$(dirname "$l")"
+        [[ -e "$ir$l" ]] || cp -L "$l" "$ir$l"
+    done
+}
