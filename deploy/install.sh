@@ -50,8 +50,12 @@ if command -v cargo >/dev/null 2>&1; then
 elif [[ -n ${SUDO_USER:-} ]]; then
     # rustup installs cargo per user: build as the user who called sudo.
     sudo -u "$SUDO_USER" bash -lc "cd '$PWD' && ${build[*]}"
+elif [[ -x $binary ]]; then
+    # A PC without Rust: the binary built on another machine and copied here.
+    echo "install.sh: cargo not found; installing $binary as built before ($(date -r "$binary" '+%Y-%m-%d %H:%M'))"
 else
-    echo "install.sh: cargo not found; run '${build[*]}' and then this script" >&2
+    echo "install.sh: cargo not found and no $binary: run '${build[*]}' (here or on a machine with Rust, then copy the binary there) and then this script" >&2
+    exit 1
 fi
 if [[ ! -x $binary ]]; then
     echo "install.sh: $binary missing" >&2

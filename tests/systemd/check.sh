@@ -46,10 +46,12 @@ systemd-run --quiet --unit=compgate-plant target/release/compgate sim --config "
 if until_s 60 bash -c 'ss -ltn | grep -q ":15021 "'; then ok "the simulated plant listens"; else bad "the simulated plant listens" "$(journalctl -u compgate-plant -o cat | tail -5)"; fi
 
 # ---- install: validate, user, config, unit, enable, start (Type=notify: READY=1)
-if deploy/install.sh "$work/compgate.toml" >"$work/install.log" 2>&1; then
-    ok "install.sh installs and starts the service"
+# No cargo on systemd's PATH: install.sh takes the binary built before, and says so.
+if deploy/install.sh "$work/compgate.toml" >"$work/install.log" 2>&1 &&
+    grep -q "cargo not found; installing target/production/release/compgate as built before" "$work/install.log"; then
+    ok "install.sh installs the binary built before and starts the service"
 else
-    bad "install.sh installs and starts the service" "$(tail -20 "$work/install.log")"
+    bad "install.sh installs the binary built before and starts the service" "$(tail -20 "$work/install.log")"
 fi
 [[ $(systemctl is-active compgate) == active && $(systemctl is-enabled compgate) == enabled ]] &&
     ok "active and enabled" || bad "active and enabled" "$(systemctl is-active compgate) $(systemctl is-enabled compgate)"
