@@ -114,27 +114,30 @@ struct Look {
     console: Vec<String>,
 }
 
+/// Headless Chromium as root on a machine without network: without the
+/// background-networking flags it keeps trying the hosts it phones.
+const HEADLESS: [&str; 9] = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--hide-scrollbars",
+];
+
 /// Loads `url` in a fresh headless Chromium, lets the page run for `budget_ms` of
 /// virtual time (the page's fetches complete first) and returns what it showed.
 fn look(chromium: &Path, url: &str, budget_ms: u32) -> Look {
     let profile = tempfile::tempdir().expect("profile dir");
     let mut cmd = Command::new(chromium);
-    cmd.args([
-        "--headless",
-        "--no-sandbox",
-        "--disable-gpu",
-        "--disable-quic",
-        "--no-first-run",
-        "--disable-background-networking",
-        "--disable-component-update",
-        "--disable-sync",
-        "--hide-scrollbars",
-        "--enable-logging=stderr",
-        "--v=0",
-    ])
-    .arg(format!("--user-data-dir={}", profile.path().display()))
-    .arg(format!("--virtual-time-budget={budget_ms}"))
-    .arg("--dump-dom");
+    cmd.args(HEADLESS)
+        .args(["--enable-logging=stderr", "--v=0"])
+        .arg(format!("--user-data-dir={}", profile.path().display()))
+        .arg(format!("--virtual-time-budget={budget_ms}"))
+        .arg("--dump-dom");
     let child = cmd
         .arg(url)
         .stdin(Stdio::null())
@@ -208,17 +211,11 @@ impl Browser {
                 "-c",
                 "exec \"$0\" \"$@\" 3<&0 4>&1 </dev/null >/dev/null",
                 &chromium.display().to_string(),
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--disable-quic",
-                "--no-first-run",
-                "--disable-background-networking",
+            ])
+            .args(HEADLESS)
+            .args([
                 "--disable-background-timer-throttling",
                 "--disable-renderer-backgrounding",
-                "--disable-component-update",
-                "--disable-sync",
-                "--hide-scrollbars",
                 "--remote-debugging-pipe",
             ])
             .arg(format!("--user-data-dir={}", profile.path().display()))

@@ -101,7 +101,7 @@ pub fn default_log_filter(level: &str) -> String {
 
 /// Logs to stderr, as lines the journal takes at their level when stderr is the
 /// journal stream systemd connected (`JOURNAL_STREAM` names stderr's device and
-/// inode): see [`JournalStream`]. `JOURNAL_STREAM` alone is not enough: a terminal of
+/// inode): see `JournalStream`. `JOURNAL_STREAM` alone is not enough: a terminal of
 /// a systemd user session inherits it with stderr on the terminal. The filter is
 /// `filter` (`--log`), else `RUST_LOG`, else [`default_log_filter`] of
 /// `default_level`.
