@@ -94,6 +94,7 @@ cat >"$IR/init" <<EOF
 /bin/busybox --install -s /bin
 mount -t proc proc /proc; mount -t sysfs sys /sys; mount -t devtmpfs dev /dev
 for m in $(echo $MODS); do insmod /mods/\$m.ko || echo "SD-ERROR: insmod \$m"; done
+checkout=$ROOT
 EOF
 cat >>"$IR/init" <<'EOF'
 mount -t 9p -o trans=virtio,version=9p2000.L,ro,msize=524288 hostroot /lower || echo "SD-ERROR: 9p"
@@ -108,6 +109,8 @@ cp /units/* /newroot/etc/systemd/system/
 rm -f /newroot/etc/machine-id /newroot/.dockerenv && : >/newroot/etc/machine-id
 for d in tmp var/tmp; do mount -t tmpfs -o mode=1777 tmpfs /newroot/$d; done
 mount -t tmpfs -o mode=0755 tmpfs /newroot/run
+# The checkout check.sh runs from may lie under one of those (a clone in /tmp).
+mkdir -p "/newroot$checkout" && mount --bind "/lower$checkout" "/newroot$checkout"
 echo "SD-BOOTED: $(cut -d' ' -f1 /proc/uptime) s"
 umount /proc /sys
 mount --move /dev /newroot/dev 2>/dev/null || umount /dev
