@@ -38,6 +38,7 @@ cat >>"$work/compgate.toml" <<'EOF'
 
 [recorder]
 commit_interval_s = 0.2
+retention_interval_s = 1
 
 [metrics]
 bind = "127.0.0.1:19464"
@@ -190,6 +191,27 @@ journalctl -u compgate -o cat | grep -qi "watchdog timeout" &&
 after=$(readings)
 ((after >= before)) && ok "nothing recorded is lost ($before readings before, $after after)" ||
     bad "nothing recorded is lost" "$before readings before, $after after"
+
+# ---- the wall clock set 400 days ahead by hand and back: age retention (90 days)
+# does not follow the step, so nothing recorded before it goes
+t_ms=$(($(date +%s%3N) - 1))
+before=$(sqlite3 "file:/var/lib/compgate/compgate.db?mode=ro" "SELECT COUNT(*) FROM readings WHERE t_unix_ms <= $t_ms")
+date -s "+400 days" >/dev/null
+if until_s 30 bash -c "journalctl -u compgate -p warning -o cat | grep -q 'wall clock stepped ahead'"; then
+    ok "a clock step ahead is a journal warning"
+else
+    bad "a clock step ahead is a journal warning" "$(journal | tail -5)"
+fi
+sleep 3 # three retention passes
+kept=$(sqlite3 "file:/var/lib/compgate/compgate.db?mode=ro" "SELECT COUNT(*) FROM readings WHERE t_unix_ms <= $t_ms")
+((before > 0 && kept == before)) && ok "a clock set 400 days ahead deletes nothing ($before readings before the step, $kept after)" ||
+    bad "a clock set 400 days ahead deletes nothing" "$before readings before the step, $kept after"
+date -s "-400 days" >/dev/null
+if until_s 30 bash -c "journalctl -u compgate -o cat | grep -q 'wall clock is back in line'"; then
+    ok "the clock set back is taken again"
+else
+    bad "the clock set back is taken again" "$(journal | tail -5)"
+fi
 
 # ---- a clean stop
 if systemctl stop compgate; then ok "systemctl stop"; else bad "systemctl stop" "$(journal | tail -5)"; fi

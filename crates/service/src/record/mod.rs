@@ -21,6 +21,7 @@
 //! readings, so what was recorded is also what will be published. Over the size
 //! limit, unsent messages go before the recorded history.
 
+mod clock;
 pub mod export;
 mod schema;
 
@@ -754,6 +755,8 @@ struct Writer {
     queue_full_from: Option<u64>,
     /// Whether the last retention pass deleted unsent MQTT messages.
     deleting_outbox: bool,
+    /// The time age retention counts from.
+    clock: clock::RetentionClock,
 }
 
 /// Commits failing since `since`: logged when it begins and when commits succeed again.
@@ -862,6 +865,7 @@ impl Writer {
             queue_seen: 0,
             queue_full_from: None,
             deleting_outbox: false,
+            clock: clock::RetentionClock::default(),
         }
     }
 
@@ -1180,7 +1184,22 @@ impl Writer {
         let Some(conn) = &self.conn else {
             return Ok(());
         };
-        let cutoff = now_unix_ms() - self.retention_ms;
+        let (now_ms, event) = self.clock.now_ms(Instant::now(), now_unix_ms());
+        match event {
+            Some(clock::ClockEvent::StepAhead(ms)) => tracing::warn!(
+                step_s = ms / 1000,
+                "the wall clock stepped ahead (set by hand, by a time server, or after a suspend): records are stamped with it, but age retention does not follow the step and counts on from the time before it, until the clock is set back or the gateway restarts; check the clock"
+            ),
+            Some(clock::ClockEvent::StepBack(ms)) => tracing::warn!(
+                step_s = ms / 1000,
+                "the wall clock stepped back: records from now on are stamped before some already recorded, and a reading that meets a recorded one at the same millisecond is counted as a duplicate; check the clock"
+            ),
+            Some(clock::ClockEvent::BackInLine) => {
+                tracing::info!("the wall clock is back in line: age retention follows it again")
+            }
+            None => {}
+        }
+        let cutoff = now_ms - self.retention_ms;
         let aged = schema::delete_before(conn, cutoff)?;
         let mut cut = schema::Deleted::default();
         let used = schema::data_bytes(conn)?;
