@@ -378,6 +378,9 @@ async fn rejected_nc_job_is_reported_retried_and_not_confirmed() {
         })
         .await;
     assert!((nc.state().sd43900_mm - s.axes[0].written.unwrap().k0_mm).abs() < 1e-15);
+    // The failure is kept beside the counters once jobs succeed again.
+    let (_, why) = s.axes[0].last_failure.clone().expect("last failure kept");
+    assert!(why.contains("did not finish"), "{why}");
     rig.stop().await;
 }
 

@@ -4,7 +4,8 @@
 //! Also `/api/status` and shadow mode as the page, the metrics and the record show it.
 //! A Chromium that keeps running ([`Browser`]) watches the page turn stale when the
 //! gateway hangs and live again when it goes on, the summary line, the bad channels
-//! first, the HOLD badge, a shadow banner naming its axes, and times with their zone.
+//! first, the HOLD badge, a shadow banner naming its axes, times with their zone, and
+//! the last failed job kept on its axis.
 //!
 //! Chromium is Debian's `chromium` (test.sh installs it). Without it the browser test
 //! skips with a message, or fails when `CI` is set.
@@ -19,7 +20,9 @@ use std::time::{Duration, Instant};
 
 use common::process::Gateway;
 use compgate::plant::Plant;
+use compgate_ncproto::JobStatus;
 use compgate_plc::field::SensorFault;
+use compgate_plc::nc::JobFault;
 use serde_json::Value;
 
 /// The demo's own configuration: sines of a few degC, one axis.
@@ -886,6 +889,48 @@ async fn the_summary_orders_channels_and_badges_say_hold_and_which_axis_is_shado
     for want in ["3 channels: 2 bad", "axis X held, Z shadow"] {
         assert!(summary.contains(want), "{want:?} in {held:#}");
     }
+    drop(browser);
+    drop(gateway);
+}
+
+// A failed job stays on its axis' card after jobs succeed again: with several axes
+// writing, it scrolls out of the job list within seconds.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_last_failed_job_stays_on_its_axis_after_jobs_succeed_again() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (plant, path) = plant(dir.path(), &common::config("hold", "", ""), "").await;
+    let nc = plant.nc["nc_x"].clone();
+    nc.set_job_fault(JobFault::Refuse(JobStatus::AccessDenied));
+    let gateway = Gateway::start(dir.path(), &path, &[]);
+    let port = gateway.metrics_port(20.0);
+    wait_api(&gateway, port, 20.0, "a refused job", |s| {
+        s["axes"][0]["jobs_failed"].as_u64().is_some_and(|n| n > 0)
+    });
+    nc.set_job_fault(JobFault::None);
+    // A new temperature calls for a new job.
+    plant.field["ain1"]
+        .set_temperature_override(0, Some(35.0))
+        .expect("override set");
+    wait_api(&gateway, port, 20.0, "a job that succeeds", |s| {
+        s["axes"][0]["jobs_ok"].as_u64().is_some_and(|n| n > 0)
+            && s["axes"][0]["last_job_error"].is_null()
+    });
+    let mut browser = Browser::start(&chromium);
+    browser.open(&format!("http://127.0.0.1:{port}/"), "UTC", "");
+    let shown = browser.wait(
+        10.0,
+        "the axis card drawn",
+        r#"!!document.querySelector('.axis[data-axis="X"]')"#,
+    );
+    let x = shown["axes"]["X"]["text"].as_str().unwrap_or_default();
+    assert!(
+        x.contains("last failed job") && x.contains("access denied"),
+        "{shown:#}"
+    );
+    assert!(!x.contains("last job:"), "{shown:#}");
     drop(browser);
     drop(gateway);
 }

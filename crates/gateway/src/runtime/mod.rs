@@ -780,6 +780,7 @@ impl Running {
                     Err(e) => {
                         st.jobs_failed += 1;
                         st.last_job_error = Some(e.to_string());
+                        st.last_failure = Some((job.at, e.to_string()));
                         job.error = st.last_job_error.clone();
                     }
                 }

@@ -59,8 +59,11 @@ pub struct AxisStatus {
     pub jobs_ok: u64,
     /// Jobs that failed.
     pub jobs_failed: u64,
-    /// The last job error.
+    /// The last job error, while jobs fail.
     pub last_job_error: Option<String>,
+    /// The last job that failed, when and why: kept after jobs succeed again, so a
+    /// failure between two looks at the status is still seen.
+    pub last_failure: Option<(std::time::SystemTime, String)>,
     /// The NC's last snapshot.
     pub nc: Option<NcSnapshot>,
     /// Reads of the NC that answered: a new count is a new snapshot (the status is

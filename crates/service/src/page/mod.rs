@@ -289,6 +289,9 @@ pub fn to_json(
                 "jobs_failed": a.jobs_failed,
                 "jobs_shadow": seen.shadow_jobs.get(&a.name).map_or(0, |e| e.0),
                 "last_job_error": a.last_job_error,
+                "last_failure": a.last_failure.as_ref().map(|(t, error)| {
+                    json!({ "t_unix_ms": unix_ms(*t), "error": error })
+                }),
                 "warning": a.warning,
                 "nc": a.nc.as_ref().map(nc_json),
                 // The NC's values as last read, also while it does not answer.

@@ -172,7 +172,8 @@ function axes(list, now_ms) {
       <p>${line}</p>
       <p class="${a.at_limit || held(a) ? "warning" : "muted"}">decision: ${esc(a.decision)}; ${jobsText}</p>
       ${a.warning ? `<p class="warning">${esc(a.warning)}</p>` : ""}
-      ${a.last_job_error ? `<p class="warning">last job: ${esc(a.last_job_error)}</p>` : ""}
+      ${a.last_job_error ? `<p class="warning">last job: ${esc(a.last_job_error)}</p>`
+        : a.last_failure ? `<p class="muted">last failed job ${clock(a.last_failure.t_unix_ms)}: ${esc(a.last_failure.error)}</p>` : ""}
     </div>`;
   }).join("") || `<p class="muted">No axis configured (monitoring only).</p>`;
 }
