@@ -16,8 +16,10 @@
 //! | `compgate_nc_jobs_total` | counter | axis, result (`ok`/`failed`/`shadow`) | NC job outcomes; `shadow`: computed, not sent |
 //! | `compgate_cycle_seconds` | histogram | | control loop: time to process one device sample |
 //! | `compgate_recorder_records_total` | counter | outcome (`written`, `dropped_queue`, `dropped_write`) | recorder |
-//! | `compgate_recorder_duplicate_readings_total` | counter | | readings not stored: the database held their channel at the same millisecond (the wall clock set back) |
+//! | `compgate_recorder_shifted_readings_total` | counter | | readings stored at the next free millisecond: the database held their channel at their time (the wall clock set back over recorded time) |
+//! | `compgate_recorder_duplicate_readings_total` | counter | | readings not stored: the database held their channel at every millisecond of a second from their time on |
 //! | `compgate_recorder_up` | gauge | | 1 while the recorder's commits succeed, 0 while they fail (database locked by another process, disk full, ...) |
+//! | `compgate_recorder_clock_ahead_seconds` | gauge | | how far the wall clock is ahead of the time age retention counts from: a step ahead it does not follow (0: in line) |
 //! | `compgate_recorder_outbox_deleted_total` | counter | | MQTT messages the recorder's size limit deleted before they were sent |
 //! | `compgate_process_heap_bytes` | gauge | state (`in_use`, `free`) | glibc malloc: bytes allocated (the live heap) and bytes it holds free; RSS growing with `in_use` flat is the allocator, not a leak (glibc only) |
 //! | `compgate_http_connections_total` | counter | outcome (`accepted`, `evicted`, `refused`) | connections to this endpoint |
@@ -189,12 +191,22 @@ pub fn describe() {
     describe_counter!(
         "compgate_recorder_duplicate_readings_total",
         Unit::Count,
-        "Readings the recorder did not store: the database already held their channel at the same millisecond (the wall clock set back); the first one is kept"
+        "Readings the recorder did not store: the database already held their channel at every millisecond of a second from their time on; the first one is kept"
+    );
+    describe_counter!(
+        "compgate_recorder_shifted_readings_total",
+        Unit::Count,
+        "Readings stored at the next free millisecond: the database held their channel at their time (the wall clock set back over recorded time)"
     );
     describe_gauge!(
         "compgate_recorder_up",
         Unit::Count,
         "1 while the recorder's commits succeed, 0 while they fail (the database locked by another process, the disk full, ...)"
+    );
+    describe_gauge!(
+        "compgate_recorder_clock_ahead_seconds",
+        Unit::Seconds,
+        "How far the wall clock is ahead of the time age retention counts from: a step ahead it does not follow (0: in line)"
     );
     describe_counter!(
         "compgate_recorder_outbox_deleted_total",
@@ -246,7 +258,7 @@ pub struct MetricsObserver {
     devices: Vec<DeviceHandles>,
     cycle: Option<Histogram>,
     recorder: Option<Arc<RecorderStats>>,
-    recorder_handles: Option<([Counter; 5], Gauge)>,
+    recorder_handles: Option<([Counter; 6], [Gauge; 2])>,
     /// Per axis, the parameters the status carried when the gauges were last set from
     /// it: what the NC held at start counts as written until the first job.
     axis_written: Vec<Option<CompParams>>,
@@ -366,7 +378,7 @@ impl Observer for MetricsObserver {
                 .set(f64::from(u8::from(a.at_limit)));
         }
         if let Some(stats) = &self.recorder {
-            let (c, up) = self.recorder_handles.get_or_insert_with(|| {
+            let (c, g) = self.recorder_handles.get_or_insert_with(|| {
                 (
                     [
                         counter!("compgate_recorder_records_total", "outcome" => "written"),
@@ -374,8 +386,12 @@ impl Observer for MetricsObserver {
                         counter!("compgate_recorder_records_total", "outcome" => "dropped_write"),
                         counter!("compgate_recorder_duplicate_readings_total"),
                         counter!("compgate_recorder_outbox_deleted_total"),
+                        counter!("compgate_recorder_shifted_readings_total"),
                     ],
-                    gauge!("compgate_recorder_up"),
+                    [
+                        gauge!("compgate_recorder_up"),
+                        gauge!("compgate_recorder_clock_ahead_seconds"),
+                    ],
                 )
             });
             use std::sync::atomic::Ordering::Relaxed;
@@ -384,11 +400,13 @@ impl Observer for MetricsObserver {
             c[2].absolute(stats.dropped_write.load(Relaxed));
             c[3].absolute(stats.duplicate_readings.load(Relaxed));
             c[4].absolute(stats.outbox_deleted.load(Relaxed));
-            up.set(if stats.failing.load(Relaxed) {
+            c[5].absolute(stats.shifted_readings.load(Relaxed));
+            g[0].set(if stats.failing.load(Relaxed) {
                 0.0
             } else {
                 1.0
             });
+            g[1].set(stats.clock_ahead_ms.load(Relaxed) as f64 / 1e3);
         }
     }
 

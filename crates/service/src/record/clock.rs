@@ -19,6 +19,11 @@ pub enum ClockEvent {
     StepBack(i64),
     /// The wall clock is in line with the monotonic clock again after a step ahead.
     BackInLine,
+    /// At start, the wall clock is this many ms past the newest record, more than
+    /// the retention: age retention would delete every record, so it waits.
+    StartAhead(i64),
+    /// At start, the wall clock is this many ms before the newest record.
+    StartBehind(i64),
 }
 
 /// The wall clock trusted for deleting: a step back is taken at once (it only
@@ -34,12 +39,47 @@ pub struct RetentionClock {
 }
 
 impl RetentionClock {
+    /// How far the wall clock is ahead of the time retention counts from (0: in line).
+    pub fn ahead_ms(&self) -> i64 {
+        self.ahead_ms
+    }
+
+    /// Whether [`Self::start`] was called.
+    pub fn started(&self) -> bool {
+        self.anchor.is_some()
+    }
+
+    /// Anchors the clock at start, given the newest record's time: a wall clock past
+    /// it by more than `retention_ms` (a clock set wrong while the gateway was
+    /// stopped, or a PC off that long) is not trusted, and retention counts from the
+    /// newest record until the next start. Nothing is lost by waiting if the PC was
+    /// off; the whole recording would be if the clock is wrong.
+    pub fn start(
+        &mut self,
+        mono: Instant,
+        wall_ms: i64,
+        newest_ms: Option<i64>,
+        retention_ms: i64,
+    ) -> Option<ClockEvent> {
+        let (trusted_ms, event) = match newest_ms {
+            Some(n) if wall_ms.saturating_sub(n) > retention_ms => {
+                (n, Some(ClockEvent::StartAhead(wall_ms - n)))
+            }
+            Some(n) if n.saturating_sub(wall_ms) > STEP_MS => {
+                (wall_ms, Some(ClockEvent::StartBehind(n - wall_ms)))
+            }
+            _ => (wall_ms, None),
+        };
+        self.anchor = Some((mono, trusted_ms));
+        self.ahead_ms = wall_ms - trusted_ms;
+        event
+    }
+
     /// The time (Unix ms) retention may count from, given the monotonic clock `mono`
     /// and the wall clock `wall_ms` read at the same instant, and what changed.
     pub fn now_ms(&mut self, mono: Instant, wall_ms: i64) -> (i64, Option<ClockEvent>) {
         let Some((mono0, trusted0_ms)) = self.anchor else {
-            self.anchor = Some((mono, wall_ms));
-            return (wall_ms, None);
+            return (wall_ms, self.start(mono, wall_ms, None, 0));
         };
         let elapsed_ms =
             i64::try_from(mono.saturating_duration_since(mono0).as_millis()).unwrap_or(i64::MAX);
@@ -121,6 +161,46 @@ mod tests {
             (T0_MS + 240_000, Some(ClockEvent::BackInLine))
         );
         assert_eq!(at(&mut c, s, 300, T0_MS + 300_000), (T0_MS + 300_000, None));
+    }
+
+    #[test]
+    fn a_start_far_past_the_newest_record_waits_and_one_before_it_is_told() {
+        let s = Instant::now();
+        let newest = Some(T0_MS);
+        // Started a year on: retention of 90 days would delete everything.
+        let mut c = RetentionClock::default();
+        let wall = T0_MS + 365 * DAY_MS;
+        assert_eq!(
+            c.start(s, wall, newest, 90 * DAY_MS),
+            Some(ClockEvent::StartAhead(365 * DAY_MS))
+        );
+        assert_eq!(
+            at(&mut c, s, 60, wall + 60_000),
+            (T0_MS + 60_000, None),
+            "counts on from the newest record"
+        );
+        // Set right while running: in line again.
+        assert_eq!(
+            at(&mut c, s, 120, T0_MS + 120_000),
+            (T0_MS + 120_000, Some(ClockEvent::BackInLine))
+        );
+        // Started a day on: followed.
+        let mut c = RetentionClock::default();
+        assert_eq!(c.start(s, T0_MS + DAY_MS, newest, 90 * DAY_MS), None);
+        assert_eq!(
+            at(&mut c, s, 60, T0_MS + DAY_MS + 60_000).0,
+            T0_MS + DAY_MS + 60_000
+        );
+        // Started before the newest record (a dead RTC): followed, and told.
+        let mut c = RetentionClock::default();
+        let y2000_ms = 946_684_800_000;
+        assert_eq!(
+            c.start(s, y2000_ms, newest, 90 * DAY_MS),
+            Some(ClockEvent::StartBehind(T0_MS - y2000_ms))
+        );
+        // An empty database: followed.
+        let mut c = RetentionClock::default();
+        assert_eq!(c.start(s, wall, None, 90 * DAY_MS), None);
     }
 
     #[test]

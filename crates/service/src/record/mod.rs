@@ -177,9 +177,14 @@ pub struct RecorderStats {
     /// the writer and the database opened again at its path.
     pub reopened: AtomicU64,
     /// Readings not stored because the database already held one of the same
-    /// channel at the same millisecond (the wall clock set back); the one recorded
-    /// first is kept.
+    /// channel at every millisecond of the second from their time on; the one
+    /// recorded first is kept.
     pub duplicate_readings: AtomicU64,
+    /// How far the wall clock is ahead of the time age retention counts from, ms.
+    pub clock_ahead_ms: AtomicU64,
+    /// Readings stored at the next millisecond free because the database held one of
+    /// the same channel at their time (the wall clock set back over recorded time).
+    pub shifted_readings: AtomicU64,
     /// MQTT messages the size limit deleted before they were sent: the outbox goes
     /// before the recorded history.
     pub outbox_deleted: AtomicU64,
@@ -596,8 +601,8 @@ impl RecordObserver {
     /// after the poll interval, so the next one starts at once, and the reconnect
     /// backoff that failed connect started refuses it within microseconds. The later
     /// cycle is recorded 1 ms after the earlier one then, as long as the clock has not
-    /// gone back since: a clock set back keeps its own time, and its readings that
-    /// meet recorded ones are counted as duplicates (`duplicate_readings`).
+    /// gone back since: a clock set back keeps its own time, and the writer stores
+    /// the readings that meet recorded ones at the next free millisecond.
     fn cycle_time_ms(&mut self, device: usize, now_ms: i64) -> i64 {
         if self.last_cycle.len() <= device {
             self.last_cycle.resize(device + 1, None);
@@ -757,6 +762,8 @@ struct Writer {
     deleting_outbox: bool,
     /// The time age retention counts from.
     clock: clock::RetentionClock,
+    /// Whether the last commit stored readings after their time.
+    shifting: bool,
 }
 
 /// Commits failing since `since`: logged when it begins and when commits succeed again.
@@ -866,6 +873,7 @@ impl Writer {
             queue_full_from: None,
             deleting_outbox: false,
             clock: clock::RetentionClock::default(),
+            shifting: false,
         }
     }
 
@@ -1067,9 +1075,17 @@ impl Writer {
             }),
         };
         match result {
-            Ok(ignored) => {
+            Ok(schema::Inserted { ignored, shifted }) => {
                 batch.clear();
                 self.stats.written.fetch_add(n, Ordering::Relaxed);
+                // Told when it begins: every cycle of the period the clock repeats.
+                if shifted > 0 && !self.shifting {
+                    tracing::warn!(shifted_total = self.stats.shifted_readings.load(Ordering::Relaxed) + shifted, "recorder: the wall clock set back over recorded time: readings are stored at the next free millisecond after the ones recorded there, which are kept; the two periods interleave in time");
+                }
+                self.shifting = shifted > 0;
+                self.stats
+                    .shifted_readings
+                    .fetch_add(shifted, Ordering::Relaxed);
                 if ignored > 0 {
                     let before = self
                         .stats
@@ -1077,7 +1093,7 @@ impl Writer {
                         .fetch_add(ignored, Ordering::Relaxed);
                     // The first and then one line per 1000 more, not one per commit.
                     if before == 0 || before / 1000 != (before + ignored) / 1000 {
-                        tracing::warn!(duplicates = before + ignored, "recorder: readings not stored, the database already holds their channel at the same millisecond (the wall clock set back?); the ones recorded first are kept");
+                        tracing::warn!(duplicates = before + ignored, "recorder: readings not stored, the database already holds their channel at every millisecond of a second from their time on; the ones recorded first are kept");
                     }
                 }
                 if outbox {
@@ -1184,7 +1200,16 @@ impl Writer {
         let Some(conn) = &self.conn else {
             return Ok(());
         };
-        let (now_ms, event) = self.clock.now_ms(Instant::now(), now_unix_ms());
+        let (now_ms, event) = if self.clock.started() {
+            self.clock.now_ms(Instant::now(), now_unix_ms())
+        } else {
+            let newest_ms = schema::time_range(conn)?.map(|(_, last)| last);
+            let wall_ms = now_unix_ms();
+            let event = self
+                .clock
+                .start(Instant::now(), wall_ms, newest_ms, self.retention_ms);
+            (self.clock.now_ms(Instant::now(), wall_ms).0, event)
+        };
         match event {
             Some(clock::ClockEvent::StepAhead(ms)) => tracing::warn!(
                 step_s = ms / 1000,
@@ -1192,13 +1217,25 @@ impl Writer {
             ),
             Some(clock::ClockEvent::StepBack(ms)) => tracing::warn!(
                 step_s = ms / 1000,
-                "the wall clock stepped back: records from now on are stamped before some already recorded, and a reading that meets a recorded one at the same millisecond is counted as a duplicate; check the clock"
+                "the wall clock stepped back: records from now on are stamped before some already recorded; check the clock"
             ),
             Some(clock::ClockEvent::BackInLine) => {
                 tracing::info!("the wall clock is back in line: age retention follows it again")
             }
+            Some(clock::ClockEvent::StartAhead(ms)) => tracing::warn!(
+                days = ms / 86_400_000,
+                "the wall clock is further past the newest record than retention_days: age retention would delete every record, so it counts on from the newest record until the gateway starts again; if the PC was off that long, nothing is lost by waiting; if the clock is wrong, set it before then"
+            ),
+            Some(clock::ClockEvent::StartBehind(ms)) => tracing::warn!(
+                step_s = ms / 1000,
+                "the wall clock is before the newest record (a dead RTC battery, or a clock set back while the gateway was stopped): records from now on are stamped before some already recorded; check the clock"
+            ),
             None => {}
         }
+        self.stats.clock_ahead_ms.store(
+            u64::try_from(self.clock.ahead_ms()).unwrap_or(0),
+            Ordering::Relaxed,
+        );
         let cutoff = now_ms - self.retention_ms;
         let aged = schema::delete_before(conn, cutoff)?;
         let mut cut = schema::Deleted::default();

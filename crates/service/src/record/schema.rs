@@ -213,7 +213,22 @@ pub struct Statements {
     ids: Vec<Option<i64>>,
     /// `INSERT` texts by row count - 1.
     inserts: Vec<String>,
+    /// The newest reading's time, once looked up: a cycle after it meets none.
+    newest_ms: Option<i64>,
 }
+
+/// What [`insert`] did with the readings it was given besides storing them.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct Inserted {
+    /// Readings not stored: their channel was held at every millisecond tried.
+    pub ignored: u64,
+    /// Readings stored some milliseconds after their time, which a reading of their
+    /// channel held already (the wall clock set back over recorded time).
+    pub shifted: u64,
+}
+
+/// How many milliseconds past its time a cycle is moved at most to find one free.
+const MAX_SHIFT_MS: i64 = 1000;
 
 impl Statements {
     /// Forgets the channel ids (after a rolled-back transaction that may have
@@ -247,6 +262,32 @@ impl Statements {
         Ok(id)
     }
 
+    /// The first millisecond from `t_ms` on at which the database holds no reading of
+    /// `channel`: a cycle is stored whole at one time.
+    fn free_ms(&mut self, tx: &Connection, t_ms: i64, channel: i64) -> rusqlite::Result<i64> {
+        let newest_ms = match self.newest_ms {
+            Some(n) => n,
+            None => tx
+                .query_row("SELECT max(t_unix_ms) FROM readings", [], |r| {
+                    r.get::<_, Option<i64>>(0)
+                })?
+                .unwrap_or(i64::MIN),
+        };
+        if t_ms <= newest_ms {
+            let mut held =
+                tx.prepare_cached("SELECT 1 FROM readings WHERE t_unix_ms = ?1 AND channel = ?2")?;
+            for t in t_ms..=t_ms.saturating_add(MAX_SHIFT_MS) {
+                if !held.exists(params![t, channel])? {
+                    self.newest_ms = Some(newest_ms.max(t));
+                    return Ok(t);
+                }
+            }
+            // None free: the insert at its own time stores nothing, and counts it.
+        }
+        self.newest_ms = Some(newest_ms.max(t_ms));
+        Ok(t_ms)
+    }
+
     fn insert_sql(&mut self, rows: usize) -> &str {
         while self.inserts.len() < rows {
             let n = self.inserts.len() + 1;
@@ -266,24 +307,24 @@ impl Statements {
     }
 }
 
-/// Inserts `batch` in one transaction. Returns the readings not stored because the
-/// database holds one of the same channel at the same millisecond.
+/// Inserts `batch` in one transaction.
 ///
-/// Such a duplicate is kept, never replaced: (time, channel) is the readings' key
-/// (one b-tree, no separate index), and a plain `INSERT` would fail the whole batch
-/// on it. It happens when the wall clock is set back over recorded time, or when a
-/// device polled every millisecond yields two cycles in one.
+/// (time, channel) is the readings' key (one b-tree, no separate index). A cycle
+/// whose channel the database holds at its millisecond already (the wall clock set
+/// back over recorded time) is stored at the next millisecond free: neither reading
+/// is lost, and the one recorded first is never replaced. One that finds none within
+/// a second is not stored, and counted.
 pub fn insert(
     conn: &mut Connection,
     statements: &mut Statements,
     batch: &[Record],
-) -> rusqlite::Result<u64> {
+) -> rusqlite::Result<Inserted> {
     // IMMEDIATE: the write lock is taken at BEGIN, where SQLite waits out the busy
     // timeout. A deferred transaction whose first statement reads (the channel id
     // lookup) gets SQLITE_BUSY at once when another connection (the MQTT outbox)
     // writes, without waiting.
     let tx = conn.transaction_with_behavior(TransactionBehavior::Immediate)?;
-    let mut ignored = 0u64;
+    let mut done = Inserted::default();
     let mut ids: Vec<i64> = Vec::with_capacity(ROWS_PER_INSERT);
     for rec in batch {
         match rec {
@@ -292,6 +333,15 @@ pub fn insert(
                 names,
                 rows,
             } => {
+                let Some(first) = rows.first() else {
+                    continue;
+                };
+                let probe = statements.channel(&tx, names, first.channel)?;
+                let given_ms = *t_unix_ms;
+                let t_unix_ms = statements.free_ms(&tx, given_ms, probe)?;
+                if t_unix_ms != given_ms {
+                    done.shifted += rows.len() as u64;
+                }
                 for chunk in rows.chunks(ROWS_PER_INSERT) {
                     ids.clear();
                     for row in chunk {
@@ -309,7 +359,7 @@ pub fn insert(
                         stmt.raw_bind_parameter(at + 7, row.reason)?;
                     }
                     let stored = stmt.raw_execute()?;
-                    ignored += chunk.len().saturating_sub(stored) as u64;
+                    done.ignored += chunk.len().saturating_sub(stored) as u64;
                 }
             }
             Record::Job {
@@ -342,7 +392,7 @@ pub fn insert(
         }
     }
     tx.commit()?;
-    Ok(ignored)
+    Ok(done)
 }
 
 /// Rows deleted by retention.

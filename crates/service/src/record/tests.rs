@@ -176,7 +176,7 @@ fn two_cycles_of_a_device_in_one_millisecond_are_both_recorded_and_a_clock_set_b
     obs.on_sample(&sample(0, 3.0));
     at(10_050);
     obs.on_sample(&sample(0, 4.0));
-    // The clock set back onto recorded readings: their channel's duplicates.
+    // The clock set back onto recorded readings: stored at the next free millisecond.
     at(10_001);
     obs.on_sample(&sample(0, 5.0));
     drop(obs);
@@ -199,11 +199,13 @@ fn two_cycles_of_a_device_in_one_millisecond_are_both_recorded_and_a_clock_set_b
             row("T_a", 10_000, 0.0),
             row("T_a", 10_001, 1.0),
             row("T_a", 10_002, 3.0),
+            row("T_a", 10_003, 5.0),
             row("T_a", 10_050, 4.0),
             row("T_b", 10_000, 2.0),
         ]
     );
-    assert_eq!(stats.duplicate_readings.load(Ordering::Relaxed), 1);
+    assert_eq!(stats.shifted_readings.load(Ordering::Relaxed), 1);
+    assert_eq!(stats.duplicate_readings.load(Ordering::Relaxed), 0);
 }
 
 // A database recorded before shadow mode gets the `shadow` column on open, its old
@@ -562,11 +564,14 @@ fn a_second_recorder_on_one_database_is_refused_while_the_first_runs() {
     assert!(!lock_file.exists());
 }
 
-// A reading whose channel the database already holds at the same millisecond (the
-// wall clock set back) is not stored and counted; the one recorded first stays.
-// Before, `INSERT OR REPLACE` overwrote the recorded row silently.
+// A cycle whose channel the database already holds at its millisecond (the wall clock
+// set back over recorded time) is stored at the next free millisecond and counted; the
+// one recorded first stays. `INSERT OR REPLACE` once overwrote the recorded row, then
+// `INSERT OR IGNORE` dropped the new one: a clock set back 30 s by hand dropped 204 of
+// 240 readings, the poll grid landing on the recorded milliseconds. Only a channel
+// held at every millisecond of a second is not stored.
 #[test]
-fn a_duplicate_reading_never_replaces_a_recorded_one_and_is_counted() {
+fn a_reading_that_meets_a_recorded_one_is_stored_after_it_and_never_replaces_it() {
     let dir = tempfile::tempdir().expect("tempdir");
     let mut conn = open(&dir.path().join("d.db")).expect("opens");
     let mut statements = schema::Statements::default();
@@ -576,23 +581,54 @@ fn a_duplicate_reading_never_replaces_a_recorded_one_and_is_counted() {
         names: names.clone(),
         rows: vec![reading(0, v, 0), reading(1, v, 0)],
     };
-    let ignored = schema::insert(&mut conn, &mut statements, &[at(1_000, 20.0)]).expect("insert");
-    assert_eq!(ignored, 0);
-    let ignored = schema::insert(
+    let done = schema::insert(&mut conn, &mut statements, &[at(1_000, 20.0)]).expect("insert");
+    assert_eq!(done, schema::Inserted::default());
+    // Set back onto 1000 twice in one batch, then on past it.
+    let done = schema::insert(
         &mut conn,
         &mut statements,
-        &[at(1_000, 99.0), at(2_000, 21.0)],
+        &[at(1_000, 99.0), at(1_000, 98.0), at(2_000, 21.0)],
     )
     .expect("insert");
-    assert_eq!(ignored, 2, "both channels of the repeated millisecond");
-    let values: Vec<f64> = conn
-        .prepare("SELECT value_degc FROM readings WHERE channel = (SELECT id FROM channels WHERE name = 'T_a') ORDER BY t_unix_ms")
-        .expect("query")
-        .query_map([], |r| r.get(0))
-        .expect("rows")
-        .collect::<Result<_, _>>()
-        .expect("rows");
-    assert_eq!(values, [20.0, 21.0], "the first recording kept");
+    assert_eq!(
+        done,
+        schema::Inserted {
+            ignored: 0,
+            shifted: 4
+        }
+    );
+    let t_a = |conn: &Connection| -> Vec<(i64, f64)> {
+        conn.prepare("SELECT t_unix_ms, value_degc FROM readings WHERE channel = (SELECT id FROM channels WHERE name = 'T_a') ORDER BY t_unix_ms")
+            .expect("query")
+            .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
+            .expect("rows")
+            .collect::<Result<_, _>>()
+            .expect("rows")
+    };
+    assert_eq!(
+        t_a(&conn),
+        [(1_000, 20.0), (1_001, 99.0), (1_002, 98.0), (2_000, 21.0)],
+        "the first recording kept, the later ones after it"
+    );
+    // A fresh statement cache looks the newest reading up and shifts the same way.
+    let done = schema::insert(
+        &mut conn,
+        &mut schema::Statements::default(),
+        &[at(2_000, 22.0)],
+    )
+    .expect("insert");
+    assert_eq!(done.shifted, 2);
+    // Every millisecond of a second held: not stored.
+    let full: Vec<Record> = (3_000..=4_000).map(|t| at(t, 1.0)).collect();
+    schema::insert(&mut conn, &mut statements, &full).expect("insert");
+    let done = schema::insert(&mut conn, &mut statements, &[at(3_000, 2.0)]).expect("insert");
+    assert_eq!(
+        done,
+        schema::Inserted {
+            ignored: 2,
+            shifted: 0
+        }
+    );
 
     // Through the writer: counted in the stats.
     let cfg = RecorderConfig {
@@ -607,7 +643,8 @@ fn a_duplicate_reading_never_replaces_a_recorded_one_and_is_counted() {
     tx.send(at(5_000, 30.0));
     drop(tx);
     rec.finish();
-    assert_eq!(stats.duplicate_readings.load(Ordering::Relaxed), 2);
+    assert_eq!(stats.shifted_readings.load(Ordering::Relaxed), 2);
+    assert_eq!(stats.duplicate_readings.load(Ordering::Relaxed), 0);
     assert_eq!(stats.dropped_write.load(Ordering::Relaxed), 0);
 }
 
@@ -643,7 +680,10 @@ fn a_commit_waits_for_another_writer_instead_of_failing() {
     std::thread::sleep(Duration::from_millis(200));
     other.execute_batch("COMMIT;").expect("commits");
     let result = writer.join().expect("writer thread");
-    assert_eq!(result.expect("the commit waited for the lock"), 0);
+    assert_eq!(
+        result.expect("the commit waited for the lock"),
+        schema::Inserted::default()
+    );
 }
 
 // `validate` runs this check: a database in a missing directory, or one this process
