@@ -691,6 +691,12 @@ async fn an_axis_in_shadow_mode_shows_would_be_values_and_writes_nothing() {
     assert_eq!(s.axes[0].jobs_ok + s.axes[0].jobs_failed, 0);
     assert!(s.jobs.iter().all(|j| j.shadow && j.axis == "X"));
     assert!(!s.jobs.is_empty());
+    // Counted by the gateway, all of them: the job list keeps the last ones only.
+    assert!(
+        s.axes[0].jobs_shadow as usize >= s.jobs.len(),
+        "{}",
+        s.axes[0].jobs_shadow
+    );
     assert_eq!(rig.plant.nc["nc_x"].jobs_executed(), 0);
     let nc = rig.plant.nc["nc_x"].state();
     assert_eq!(nc.sd43900_mm, before.sd43900_mm);

@@ -587,6 +587,7 @@ impl Running {
         };
         if let Some(st) = self.status.axes.get_mut(axis) {
             st.would_write = Some(params);
+            st.jobs_shadow += 1;
         }
         self.status.push_job(job);
     }

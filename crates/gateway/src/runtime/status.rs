@@ -59,6 +59,8 @@ pub struct AxisStatus {
     pub jobs_ok: u64,
     /// Jobs that failed.
     pub jobs_failed: u64,
+    /// Shadow mode: jobs computed and not sent.
+    pub jobs_shadow: u64,
     /// The last job error, while jobs fail.
     pub last_job_error: Option<String>,
     /// The last job that failed, when and why: kept after jobs succeed again, so a

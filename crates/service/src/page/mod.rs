@@ -96,6 +96,11 @@ impl History {
                 value_degc: c.reading.value_degc.filter(|v| v.is_finite()),
                 quality: quality_code(&c.reading.quality).0,
             };
+            // The wall clock set back: the points after this time are of another
+            // timeline, and the newest one would be replaced for the size of the step.
+            if points.back().is_some_and(|b| b.t_unix_ms > t_unix_ms) {
+                points.clear();
+            }
             // The newest point moves on until it is `spacing_ms` after the one
             // before it; then it stays and the next one starts.
             let n = points.len();
@@ -129,16 +134,14 @@ impl History {
 }
 
 /// What one snapshot forgets and the page still shows: when each device last answered,
-/// the last NC values each axis read (an unreachable NC leaves the snapshot's empty)
-/// and the shadow jobs per axis (the snapshot counts only sent ones).
+/// and the last NC values each axis read (an unreachable NC leaves the snapshot's
+/// empty).
 #[derive(Debug, Clone, Default)]
 pub struct Seen {
     /// By device: the cycle count last seen and when a cycle last had an answer.
     devices: HashMap<String, (u64, Option<i64>)>,
     /// By axis: the last NC snapshot and when it was seen.
     nc: HashMap<String, (NcSnapshot, i64)>,
-    /// By axis: shadow jobs counted, and the time of the newest job counted.
-    shadow_jobs: HashMap<String, (u64, SystemTime)>,
 }
 
 impl Seen {
@@ -156,16 +159,6 @@ impl Seen {
         for a in &status.axes {
             if let Some(nc) = &a.nc {
                 self.nc.insert(a.name.clone(), (*nc, t_unix_ms));
-            }
-        }
-        // The snapshot keeps the last jobs only: count those newer than counted.
-        for j in status.jobs.iter().filter(|j| j.shadow) {
-            let e = self
-                .shadow_jobs
-                .entry(j.axis.clone())
-                .or_insert((0, UNIX_EPOCH));
-            if j.at > e.1 {
-                *e = (e.0 + 1, j.at);
             }
         }
     }
@@ -287,7 +280,7 @@ pub fn to_json(
                 "at_limit": a.at_limit,
                 "jobs_ok": a.jobs_ok,
                 "jobs_failed": a.jobs_failed,
-                "jobs_shadow": seen.shadow_jobs.get(&a.name).map_or(0, |e| e.0),
+                "jobs_shadow": a.jobs_shadow,
                 "last_job_error": a.last_job_error,
                 "last_failure": a.last_failure.as_ref().map(|(t, error)| {
                     json!({ "t_unix_ms": unix_ms(*t), "error": error })
@@ -530,11 +523,35 @@ mod tests {
         assert!(last.t_unix_ms - first.t_unix_ms >= 59_000);
     }
 
-    // An NC that stops answering leaves the snapshot without values: the JSON keeps
-    // the last ones read with their age; a device's last answer and the shadow jobs
-    // are counted across snapshots; `trend=0` leaves the trends out.
+    // The wall clock set back an hour: the trend starts again at the new time instead
+    // of replacing its newest point for an hour.
     #[test]
-    fn the_last_nc_values_device_answers_and_shadow_jobs_outlive_a_snapshot() {
+    fn a_trend_starts_again_when_the_clock_is_set_back() {
+        let mut h = History::new(Duration::from_secs(60));
+        for k in 0..30u32 {
+            h.push(
+                &status(f64::from(k), Quality::Good),
+                1_000_000 + i64::from(k) * 1_000,
+            );
+        }
+        let back = 1_000_000 - 3_600_000;
+        for k in 0..10u32 {
+            h.push(
+                &status(f64::from(k), Quality::Good),
+                back + i64::from(k) * 1_000,
+            );
+        }
+        let p = &h.points[0];
+        assert_eq!(p.front().map(|p| p.t_unix_ms), Some(back), "{p:?}");
+        assert_eq!(p.back().map(|p| p.t_unix_ms), Some(back + 9_000), "{p:?}");
+        assert!(p.len() >= 5, "{p:?}");
+    }
+
+    // An NC that stops answering leaves the snapshot without values: the JSON keeps
+    // the last ones read with their age; a device's last answer is kept across
+    // snapshots; `trend=0` leaves the trends out.
+    #[test]
+    fn the_last_nc_values_and_device_answers_outlive_a_snapshot() {
         use compgate_gateway::runtime::DeviceStatus;
         let mut s = status(21.0, Quality::Good);
         s.axes[0].nc = Some(NcSnapshot {
@@ -549,16 +566,7 @@ mod tests {
         }];
         let mut seen = Seen::default();
         seen.note(&s, 1_000);
-        // The same shadow job again, one more, and the device dead since 1 s.
-        s.push_job(JobStatus {
-            axis: "X".into(),
-            at: UNIX_EPOCH + Duration::from_secs(11),
-            params: CompParams::default(),
-            shadow: true,
-            job_id: None,
-            elapsed: None,
-            error: None,
-        });
+        // The device dead since 1 s.
         s.axes[0].nc = None;
         s.devices[0].cycles = 9;
         s.devices[0].link_up = false;
@@ -568,7 +576,6 @@ mod tests {
         assert_eq!(x["nc"], Value::Null);
         assert_eq!(x["nc_last"]["sd43900_mm"], 0.03);
         assert_eq!(x["nc_last"]["read_ago_ms"], 3_000);
-        assert_eq!(x["jobs_shadow"], 2);
         assert_eq!(j["devices"][0]["answered_ago_ms"], 3_000);
         assert!(j["channels"][0].get("trend").is_none(), "{j}");
         assert!(wants_trends(None) && wants_trends(Some("a=1")));
