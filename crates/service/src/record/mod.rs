@@ -1263,6 +1263,14 @@ impl Writer {
                 let Some((first, last)) = schema::time_range(conn)? else {
                     break;
                 };
+                // Tenths of the time recorded up to now: readings stamped ahead of it
+                // (by a clock set wrong) would stretch the range, and its first tenth
+                // would take every reading before them.
+                let last = if first < now_ms {
+                    last.min(now_ms)
+                } else {
+                    last
+                };
                 // Never the newest records: a limit below the schema's own pages would
                 // otherwise empty the database pass after pass.
                 if last <= first {

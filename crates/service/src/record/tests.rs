@@ -1035,6 +1035,54 @@ fn over_its_size_the_recorder_deletes_unsent_messages_before_records() {
     );
 }
 
+// Readings stamped 400 days ahead (a clock set wrong, then right) do not stretch the
+// time range the size limit cuts tenths of: the first tenth took every reading of the
+// last minute in one step, and kept the ones of the wrong clock.
+#[test]
+fn over_its_size_readings_stamped_ahead_do_not_take_the_recorded_ones_at_once() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("r.db");
+    let conn = open(&path).expect("opens");
+    conn.execute("INSERT INTO channels(id, name) VALUES (1, 'T_a')", [])
+        .expect("channel");
+    let now = now_unix_ms();
+    let insert = |t: i64| {
+        conn.execute(
+            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 1, 12000.0, 20.0, 0)",
+            [t],
+        )
+        .expect("reading");
+    };
+    for k in 0..3000i64 {
+        insert(now - 60_000 + k * 20);
+    }
+    let records_bytes = schema::data_bytes(&conn).expect("size");
+    for k in 0..100i64 {
+        insert(now + 400 * 86_400_000 + k * 20);
+    }
+    drop(conn);
+    let max_bytes = records_bytes * 8 / 10;
+    let cfg = RecorderConfig {
+        path: path.display().to_string(),
+        max_size_mb: max_bytes as f64 / 1024.0 / 1024.0,
+        ..RecorderConfig::default()
+    };
+    Recorder::start(&cfg).expect("starts").finish();
+    let conn = open(&path).expect("opens");
+    assert!(schema::data_bytes(&conn).expect("size") <= max_bytes);
+    let kept: i64 = conn
+        .query_row(
+            "SELECT count(*) FROM readings WHERE t_unix_ms <= ?1",
+            [now],
+            |r| r.get(0),
+        )
+        .expect("count");
+    assert!(
+        kept >= 1500,
+        "{kept} of the last minute's 3000 readings kept"
+    );
+}
+
 // A database of another layout (the readings of an older recorder, without the
 // unfiltered temperature) is refused by `validate`'s check and by `run`, naming the
 // file, the table and the column, before anything is written to it or beside it;
