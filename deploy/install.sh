@@ -2,15 +2,19 @@
 # Builds the production binary and installs compgate as a systemd service on a
 # shop-floor PC, or updates an installed one. Run as root from the repository:
 #
-#   sudo deploy/install.sh [CONFIG.toml]
+#   sudo deploy/install.sh [--replace-config] [CONFIG.toml]
 #
+# To update, run it without CONFIG.toml: the installed config stays.
 # - binary       -> /usr/local/bin/compgate, built without the default `sim` feature:
 #                   no simulated plant (demo, sim, scenario, backlash --sim) in it
 # - manual       -> /usr/local/share/doc/compgate (README.md and docs/)
-# - config       -> /etc/compgate/compgate.toml: CONFIG.toml when given (an installed
-#                   config that differs is kept as compgate.toml.<date-time>); without
-#                   it the installed config stays, or config/example.toml on a first
-#                   install
+# - config       -> /etc/compgate/compgate.toml: CONFIG.toml when given (a relative
+#                   path is taken from where the script is run); without it the
+#                   installed config stays, or config/example.toml on a first install.
+#                   An installed config that differs from CONFIG.toml is replaced only
+#                   with --replace-config (and kept as compgate.toml.<date-time>);
+#                   without it the script shows the difference and stops before it
+#                   installs anything.
 # - unit         -> /etc/systemd/system/compgate.service
 # - system user  compgate (no login, no home), member of dialout for RS-485 adapters
 # - state        /var/lib/compgate (systemd's StateDirectory: the recorder's database)
@@ -18,27 +22,61 @@
 # installed; then the service is enabled and (re)started, so an update runs the new
 # binary and config at once.
 set -euo pipefail
-cd "$(dirname "$0")/.."
 
 if [[ $(id -u) -ne 0 ]]; then
     echo "install.sh: run as root" >&2
     exit 1
 fi
-if [[ $# -gt 1 || ${1:-} == -* ]]; then
-    echo "usage: install.sh [CONFIG.toml]" >&2
+usage="usage: install.sh [--replace-config] [CONFIG.toml]"
+replace_config=no
+given=()
+for arg in "$@"; do
+    if [[ $arg == --replace-config ]]; then
+        replace_config=yes
+    elif [[ $arg == -* || ${#given[@]} -gt 0 ]]; then
+        echo "$usage" >&2
+        exit 2
+    else
+        given=("$arg")
+    fi
+done
+if [[ $replace_config == yes && ${#given[@]} -eq 0 ]]; then
+    echo "install.sh: --replace-config needs the CONFIG.toml that replaces the installed one" >&2
+    echo "$usage" >&2
     exit 2
 fi
 config=/etc/compgate/compgate.toml
 state=/var/lib/compgate
-if [[ $# -eq 1 ]]; then
-    config_src=$1
-    if [[ ! -f $config_src ]]; then
-        echo "install.sh: $config_src: no such file" >&2
+stamp=$(date +%Y%m%d-%H%M%S)
+if [[ ${#given[@]} -eq 1 ]]; then
+    # From where the script was run: before the cd into the repository below.
+    if ! config_src=$(realpath -e -- "${given[0]}" 2>/dev/null) || [[ ! -f $config_src ]]; then
+        echo "install.sh: ${given[0]}: no such file (run in $PWD)" >&2
         exit 1
     fi
-elif [[ -e $config ]]; then
+    echo "install.sh: config $config_src"
+    # An installed config that differs may hold what was tuned on this machine since.
+    if [[ $replace_config == no && -e $config && $config_src != "$config" ]] &&
+        ! cmp -s "$config_src" "$config"; then
+        difference=$(diff -u "$config" "$config_src" || true)
+        lines=$(wc -l <<<"$difference")
+        {
+            echo "install.sh: the installed $config differs from $config_src:"
+            head -n 60 <<<"$difference"
+            ((lines <= 60)) || echo "... $((lines - 60)) more lines: diff -u $config $config_src"
+            echo "install.sh: nothing installed. Either update and keep the installed config:"
+            echo "    $0"
+            echo "or install $config_src in its place (the installed one kept as $config.<date-time>):"
+            echo "    $0 --replace-config $config_src"
+        } >&2
+        exit 1
+    fi
+fi
+cd "$(dirname "$0")/.."
+
+if [[ ${#given[@]} -eq 0 && -e $config ]]; then
     config_src=$config
-else
+elif [[ ${#given[@]} -eq 0 ]]; then
     config_src=config/example.toml
 fi
 # Its own target directory, so the demo build in target/release stays as it is.
@@ -88,7 +126,8 @@ elif [[ ! -e $config ]]; then
 elif cmp -s "$config_src" "$config"; then
     echo "$config is already $config_src: unchanged"
 else
-    backup=$config.$(date +%Y%m%d-%H%M%S)
+    # Only with --replace-config (checked above).
+    backup=$config.$stamp
     cp -p "$config" "$backup"
     install -m 0640 -o root -g compgate "$config_src" "$config"
     echo "replaced $config with $config_src; the previous one is $backup"
