@@ -6,7 +6,8 @@
 #
 # To update, run it without CONFIG.toml: the installed config stays.
 # - binary       -> /usr/local/bin/compgate, built without the default `sim` feature:
-#                   no simulated plant (demo, sim, scenario, backlash --sim) in it
+#                   no simulated plant (demo, sim, scenario, backlash --sim) in it; a
+#                   different one installed before is kept as compgate.prev
 # - manual       -> /usr/local/share/doc/compgate (README.md and docs/)
 # - config       -> /etc/compgate/compgate.toml: CONFIG.toml when given (a relative
 #                   path is taken from where the script is run); without it the
@@ -18,9 +19,10 @@
 # - unit         -> /etc/systemd/system/compgate.service
 # - system user  compgate (no login, no home), member of dialout for RS-485 adapters
 # - state        /var/lib/compgate (systemd's StateDirectory: the recorder's database)
-# The config that will run is validated by the new binary before anything is
-# installed; then the service is enabled and (re)started, so an update runs the new
-# binary and config at once.
+# The config that will run is validated by the new binary, as the user compgate and
+# with the unit's STATE_DIRECTORY, before anything is installed; then the service is
+# enabled and (re)started, so an update runs the new binary and config at once. If it
+# does not start, the script prints the commands that go back to what ran before.
 set -euo pipefail
 
 if [[ $(id -u) -ne 0 ]]; then
@@ -109,14 +111,34 @@ getent group dialout >/dev/null && usermod -a -G dialout compgate
 # validate checks that the recorder can write its database: the state directory as
 # the unit's StateDirectory= makes it, and a relative recorder.path taken from it. It
 # warns when the database is outside it: the unit's sandbox would not let it write
-# there (or, in /tmp, would keep it private and drop it at every stop).
+# there (or, in /tmp, would keep it private and drop it at every stop). It runs as the
+# service does, as the user compgate (a database root made by hand fails here, not at
+# the restart), on copies that user can read (the repository or CONFIG.toml may be in a
+# home directory closed to it); its messages name CONFIG.toml, not the copy.
 install -d -m 0750 -o compgate -g compgate "$state"
-if ! STATE_DIRECTORY=$state "$binary" validate --config "$config_src"; then
-    echo "install.sh: $config_src does not validate: nothing installed, the service is as it was" >&2
+stage=$(mktemp -d)
+trap 'rm -rf "$stage"' EXIT
+install -m 0755 "$binary" "$stage/compgate"
+install -m 0640 -g compgate "$config_src" "$stage/compgate.toml"
+chgrp compgate "$stage" && chmod 0750 "$stage"
+validated=yes
+report=$(setpriv --reuid=compgate --regid=compgate --init-groups \
+    env -C "$state" STATE_DIRECTORY="$state" \
+    "$stage/compgate" validate --config "$stage/compgate.toml" 2>&1) || validated=no
+echo "${report//"$stage/compgate.toml"/"$config_src"}"
+if [[ $validated == no ]]; then
+    echo "install.sh: as the user compgate, $config_src does not validate: nothing installed, the service is as it was" >&2
     exit 1
 fi
 
-install -m 0755 "$binary" /usr/local/bin/compgate
+bin=/usr/local/bin/compgate
+back=() # the commands that go back to what ran before, should the service not start
+if [[ -e $bin ]] && ! cmp -s "$stage/compgate" "$bin"; then
+    cp -p "$bin" "$bin.prev"
+    echo "kept the previous binary as $bin.prev"
+    back+=("cp -p $bin.prev $bin")
+fi
+install -m 0755 "$stage/compgate" "$bin"
 install -d -m 0750 -o root -g compgate /etc/compgate
 if [[ $config_src == "$config" ]]; then
     echo "kept the installed $config"
@@ -131,6 +153,7 @@ else
     cp -p "$config" "$backup"
     install -m 0640 -o root -g compgate "$config_src" "$config"
     echo "replaced $config with $config_src; the previous one is $backup"
+    back+=("cp -p $backup $config")
 fi
 install -d -m 0755 /usr/local/share/doc/compgate
 install -m 0644 README.md /usr/local/share/doc/compgate/README.md
@@ -148,6 +171,10 @@ fi
 if ! systemctl restart compgate.service; then
     systemctl --no-pager status compgate.service || true
     echo "install.sh: compgate did not start: journalctl -u compgate -e" >&2
+    if [[ ${#back[@]} -gt 0 ]]; then
+        echo "install.sh: to go back to what ran before:" >&2
+        printf '    %s\n' "${back[@]}" "systemctl restart compgate" >&2
+    fi
     exit 1
 fi
 systemctl --no-pager status compgate.service || true

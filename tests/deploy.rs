@@ -255,15 +255,21 @@ fn install_sh_installs_updates_and_says_what_it_did() {
     assert_eq!(s.systemctl(), Vec::<String>::new());
 }
 
-// validate runs as root outside the unit's sandbox, so a database outside the state
-// directory passes it; under ProtectSystem=strict, ProtectHome and PrivateTmp it would
-// not be written (or be lost at each stop). install.sh (through validate) warns.
+// validate runs outside the unit's sandbox, so a database outside the state directory
+// that the user compgate may write passes it; under ProtectSystem=strict, ProtectHome
+// and PrivateTmp it would not be written (or be lost at each stop). install.sh
+// (through validate) warns.
 #[test]
 fn install_sh_warns_of_a_database_outside_the_state_directory() {
+    use std::os::unix::fs::PermissionsExt;
     let s = Scratch::new();
     let example = std::fs::read_to_string(s.path("repo/config/example.toml")).unwrap();
     let outside = s.path("outside");
     std::fs::create_dir(&outside).unwrap();
+    // Writable for the user compgate, as which install.sh validates.
+    let mode = |p: &Path, m: u32| std::fs::set_permissions(p, std::fs::Permissions::from_mode(m));
+    mode(&s.path(""), 0o711).unwrap();
+    mode(&outside, 0o1777).unwrap();
     let plant = s.path("plant.toml");
     let db = outside.join("compgate.db");
     std::fs::write(
@@ -291,6 +297,38 @@ fn install_sh_warns_of_a_database_outside_the_state_directory() {
     .unwrap();
     let out = assert_ok(&s.install(&[Path::new("--replace-config"), &plant]));
     assert!(!out.contains("outside the state directory"), "{out}");
+}
+
+// install.sh validates as the user compgate, as the unit runs: a database that user
+// cannot write (root's, from a `compgate run` by hand) fails before anything is
+// installed, instead of at the restart after the old binary is gone.
+#[test]
+fn install_sh_refuses_a_database_the_service_user_cannot_write() {
+    let s = Scratch::new();
+    let example = std::fs::read_to_string(s.path("repo/config/example.toml")).unwrap();
+    assert_ok(&s.install(&[]));
+    s.systemctl();
+    let db = s.path("varlib/compgate/compgate.db");
+    std::fs::write(&db, "").unwrap(); // root's, 0644
+    let plant = s.path("plant.toml");
+    std::fs::write(
+        &plant,
+        format!("{example}\n[recorder]\npath = \"compgate.db\"\n"),
+    )
+    .unwrap();
+    let out = s.install(&[Path::new("--replace-config"), &plant]);
+    let t = text(&out);
+    assert!(!out.status.success(), "{t}");
+    assert!(
+        t.contains(&format!(
+            "{}: recorder.path: /var/lib/compgate/compgate.db: the database is not writable: Permission denied",
+            plant.display()
+        )),
+        "{t}"
+    );
+    assert!(t.contains("does not validate: nothing installed"), "{t}");
+    assert_eq!(s.configs(), (example, vec![]));
+    assert_eq!(s.systemctl(), Vec::<String>::new());
 }
 
 // `systemctl reload` validates before it signals: a config that does not validate
