@@ -16,7 +16,10 @@
 #                   with --replace-config (and kept as compgate.toml.<date-time>);
 #                   without it the script shows the difference and stops before it
 #                   installs anything.
-# - unit         -> /etc/systemd/system/compgate.service
+# - unit         -> /etc/systemd/system/compgate.service; an installed one that differs
+#                   (an earlier version's, or edited with `systemctl edit --full`) is
+#                   kept as /etc/compgate/compgate.service.<date-time>. Drop-ins
+#                   (`systemctl edit compgate`) are not touched.
 # - system user  compgate (no login, no home), member of dialout for RS-485 adapters
 # - state        /var/lib/compgate (systemd's StateDirectory: the recorder's database)
 # The config that will run is validated by the new binary, as the user compgate and
@@ -158,7 +161,15 @@ fi
 install -d -m 0755 /usr/local/share/doc/compgate
 install -m 0644 README.md /usr/local/share/doc/compgate/README.md
 cp -r docs /usr/local/share/doc/compgate/
-install -m 0644 deploy/compgate.service /etc/systemd/system/compgate.service
+unit=/etc/systemd/system/compgate.service
+if [[ -e $unit ]] && ! cmp -s deploy/compgate.service "$unit"; then
+    # Not beside it: /etc/systemd/system is systemd's to read.
+    unit_backup=/etc/compgate/compgate.service.$stamp
+    cp -p "$unit" "$unit_backup"
+    echo "the installed $unit differed from deploy/compgate.service (an earlier version's, or edited with systemctl edit --full): kept as $unit_backup; changes of this machine's own belong in a drop-in (systemctl edit compgate), which updates keep"
+    back+=("cp -p $unit_backup $unit && systemctl daemon-reload")
+fi
+install -m 0644 deploy/compgate.service "$unit"
 
 systemctl daemon-reload
 systemctl enable compgate.service
