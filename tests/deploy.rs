@@ -68,6 +68,11 @@ impl Scratch {
 
     /// Runs `install.sh args` in the scratch root.
     fn install(&self, args: &[&Path]) -> Output {
+        self.install_from(Path::new("/"), args)
+    }
+
+    /// As [`Self::install`], run from the directory `cwd`.
+    fn install_from(&self, cwd: &Path, args: &[&Path]) -> Output {
         let d = self.dir.path();
         let script = r#"d=$1; shift
             mount --bind "$d/etc" /etc && mount --bind "$d/usrlocal" /usr/local \
@@ -90,6 +95,7 @@ impl Scratch {
             ])
             .arg(d)
             .args(args)
+            .current_dir(cwd)
             .env("PATH", path)
             .env_remove("SUDO_USER")
             .output()
@@ -128,9 +134,11 @@ fn assert_ok(out: &Output) -> String {
     t
 }
 
-// Installing, then updating: a config given replaces the installed one (kept as a
-// dated backup), the config that will run is validated before anything is installed,
-// and a running service is restarted on the new binary; each step says what it did.
+// Installing, then updating: a config given that differs from the installed one is
+// refused with the difference unless --replace-config says to replace it (the old one
+// kept as a dated backup), the config that will run is validated before anything is
+// installed, and a running service is restarted on the new binary; each step says what
+// it did.
 #[test]
 fn install_sh_installs_updates_and_says_what_it_did() {
     let s = Scratch::new();
@@ -161,8 +169,35 @@ fn install_sh_installs_updates_and_says_what_it_did() {
     assert_eq!(s.configs(), (example.clone(), vec![]));
     assert!(s.path("usrlocal/bin/compgate").exists());
 
-    // Update with the plant's config: the old one is kept, the new one runs.
-    let out = assert_ok(&s.install(&[&plant]));
+    // Update with the plant's config: refused, with the difference and the ways on;
+    // nothing installed, nothing restarted.
+    let out = s.install(&[&plant]);
+    let t = text(&out);
+    assert!(!out.status.success(), "{t}");
+    assert!(
+        t.contains(&format!(
+            "the installed /etc/compgate/compgate.toml differs from {}:",
+            plant.display()
+        )),
+        "{t}"
+    );
+    assert!(
+        t.contains("\n-status_interval_s = 1.0\n+status_interval_s = 2.0\n"),
+        "{t}"
+    );
+    assert!(t.contains("update and keep the installed config:"), "{t}");
+    assert!(
+        t.contains(&format!(
+            "install.sh --replace-config {}\n",
+            plant.display()
+        )),
+        "{t}"
+    );
+    assert_eq!(s.configs(), (example.clone(), vec![]));
+    assert_eq!(s.systemctl(), Vec::<String>::new());
+
+    // With --replace-config: the old one is kept, the new one runs.
+    let out = assert_ok(&s.install(&[Path::new("--replace-config"), &plant]));
     assert!(
         out.contains(&format!(
             "replaced /etc/compgate/compgate.toml with {}; the previous one is /etc/compgate/compgate.toml.",
@@ -183,7 +218,8 @@ fn install_sh_installs_updates_and_says_what_it_did() {
     assert_eq!(std::fs::read_to_string(&backups[0]).unwrap(), example);
 
     // The same config again, and none: nothing replaced, still validated, restarted.
-    let out = assert_ok(&s.install(&[&plant]));
+    // A relative path is taken from where the script is run, not from the repository.
+    let out = assert_ok(&s.install_from(&s.path(""), &[Path::new("plant.toml")]));
     assert!(
         out.contains(&format!(
             "/etc/compgate/compgate.toml is already {}: unchanged",
@@ -207,7 +243,7 @@ fn install_sh_installs_updates_and_says_what_it_did() {
         example.replace("status_interval_s = 1.0", "status_intervall_s = 1.0"),
     )
     .unwrap();
-    let out = s.install(&[&bad]);
+    let out = s.install(&[Path::new("--replace-config"), &bad]);
     let t = text(&out);
     assert!(!out.status.success(), "{t}");
     assert!(t.contains("gateway.status_intervall_s: unknown key"), "{t}");
@@ -219,15 +255,21 @@ fn install_sh_installs_updates_and_says_what_it_did() {
     assert_eq!(s.systemctl(), Vec::<String>::new());
 }
 
-// validate runs as root outside the unit's sandbox, so a database outside the state
-// directory passes it; under ProtectSystem=strict, ProtectHome and PrivateTmp it would
-// not be written (or be lost at each stop). install.sh (through validate) warns.
+// validate runs outside the unit's sandbox, so a database outside the state directory
+// that the user compgate may write passes it; under ProtectSystem=strict, ProtectHome
+// and PrivateTmp it would not be written (or be lost at each stop). install.sh
+// (through validate) warns.
 #[test]
 fn install_sh_warns_of_a_database_outside_the_state_directory() {
+    use std::os::unix::fs::PermissionsExt;
     let s = Scratch::new();
     let example = std::fs::read_to_string(s.path("repo/config/example.toml")).unwrap();
     let outside = s.path("outside");
     std::fs::create_dir(&outside).unwrap();
+    // Writable for the user compgate, as which install.sh validates.
+    let mode = |p: &Path, m: u32| std::fs::set_permissions(p, std::fs::Permissions::from_mode(m));
+    mode(&s.path(""), 0o711).unwrap();
+    mode(&outside, 0o1777).unwrap();
     let plant = s.path("plant.toml");
     let db = outside.join("compgate.db");
     std::fs::write(
@@ -253,8 +295,40 @@ fn install_sh_warns_of_a_database_outside_the_state_directory() {
         format!("{example}\n[recorder]\npath = \"compgate.db\"\n"),
     )
     .unwrap();
-    let out = assert_ok(&s.install(&[&plant]));
+    let out = assert_ok(&s.install(&[Path::new("--replace-config"), &plant]));
     assert!(!out.contains("outside the state directory"), "{out}");
+}
+
+// install.sh validates as the user compgate, as the unit runs: a database that user
+// cannot write (root's, from a `compgate run` by hand) fails before anything is
+// installed, instead of at the restart after the old binary is gone.
+#[test]
+fn install_sh_refuses_a_database_the_service_user_cannot_write() {
+    let s = Scratch::new();
+    let example = std::fs::read_to_string(s.path("repo/config/example.toml")).unwrap();
+    assert_ok(&s.install(&[]));
+    s.systemctl();
+    let db = s.path("varlib/compgate/compgate.db");
+    std::fs::write(&db, "").unwrap(); // root's, 0644
+    let plant = s.path("plant.toml");
+    std::fs::write(
+        &plant,
+        format!("{example}\n[recorder]\npath = \"compgate.db\"\n"),
+    )
+    .unwrap();
+    let out = s.install(&[Path::new("--replace-config"), &plant]);
+    let t = text(&out);
+    assert!(!out.status.success(), "{t}");
+    assert!(
+        t.contains(&format!(
+            "{}: recorder.path: /var/lib/compgate/compgate.db: the database is not writable: Permission denied",
+            plant.display()
+        )),
+        "{t}"
+    );
+    assert!(t.contains("does not validate: nothing installed"), "{t}");
+    assert_eq!(s.configs(), (example, vec![]));
+    assert_eq!(s.systemctl(), Vec::<String>::new());
 }
 
 // `systemctl reload` validates before it signals: a config that does not validate

@@ -235,6 +235,72 @@ awk -v a="$ahead" 'BEGIN { exit !(a > 399 * 86400 && a < 401 * 86400) }' &&
     ok "the metrics say how far the clock is ahead ($ahead s)" || bad "the metrics say how far the clock is ahead" "$ahead s"
 date -s "-400 days" >/dev/null
 
+# ---- updating: install.sh run again. The engineer has tuned the installed config
+# (edit and reload); the plant's config of the first install, given again, is refused
+# with the difference, and nothing is installed or restarted.
+sed -i 's/^poll_interval_s = 0.5/poll_interval_s = 0.25/' /etc/compgate/compgate.toml
+systemctl reload compgate
+cp /etc/compgate/compgate.toml "$work/tuned.toml"
+pid=$(prop MainPID)
+bin=$(stat -c '%i %Z' /usr/local/bin/compgate)
+if ! deploy/install.sh "$work/compgate.toml" >"$work/update.log" 2>&1 &&
+    grep -qx -- '+poll_interval_s = 0.5' "$work/update.log" && grep -q -- --replace-config "$work/update.log"; then
+    ok "a config that differs from the installed one is refused, with the diff"
+else
+    bad "a config that differs from the installed one is refused, with the diff" "$(tail -5 "$work/update.log")"
+fi
+cmp -s "$work/tuned.toml" /etc/compgate/compgate.toml && [[ $(stat -c '%i %Z' /usr/local/bin/compgate) == "$bin" && $(prop MainPID) == "$pid" ]] &&
+    ok "installed config, binary and process stay as they were" ||
+    bad "installed config, binary and process stay as they were" "pid $pid -> $(prop MainPID); $(diff "$work/tuned.toml" /etc/compgate/compgate.toml | head -3)"
+# The update without CONFIG.toml, over an older binary (this one with a byte appended)
+# and a unit edited in full (as by systemctl edit --full).
+cp /usr/local/bin/compgate "$work/older" && echo >>"$work/older" && install -m 0755 "$work/older" /usr/local/bin/compgate
+sed 's/^RestartSec=2s/RestartSec=3s/' deploy/compgate.service >/etc/systemd/system/compgate.service && systemctl daemon-reload
+if deploy/install.sh >"$work/update.log" 2>&1 && cmp -s "$work/tuned.toml" /etc/compgate/compgate.toml &&
+    cmp -s "$work/older" /usr/local/bin/compgate.prev && [[ $(prop MainPID) != "$pid" ]]; then
+    ok "an update without CONFIG.toml runs on the installed config, the binary it replaced kept as compgate.prev"
+else
+    bad "an update without CONFIG.toml runs on the installed config, the binary it replaced kept as compgate.prev" "$(tail -5 "$work/update.log")"
+fi
+if grep -qx 'RestartSec=3s' /etc/compgate/compgate.service.* && cmp -s deploy/compgate.service /etc/systemd/system/compgate.service &&
+    [[ -e /etc/systemd/system/compgate.service.d/hvc.conf && -z $(find /etc/systemd/system -name 'compgate.service?*' ! -name compgate.service.d) ]]; then
+    ok "the edited unit is kept as /etc/compgate/compgate.service.<date-time>, the drop-in stays"
+else
+    bad "the edited unit is kept as /etc/compgate/compgate.service.<date-time>, the drop-in stays" "$(ls /etc/compgate /etc/systemd/system | tr '\n' ' ')"
+fi
+# A relative CONFIG.toml is taken from where install.sh is run.
+repo=$PWD
+if (cd "$work" && "$repo/deploy/install.sh" tuned.toml) >"$work/update.log" 2>&1 &&
+    grep -q "is already $work/tuned.toml: unchanged" "$work/update.log"; then
+    ok "a relative CONFIG.toml is found from where install.sh is run"
+else
+    bad "a relative CONFIG.toml is found from where install.sh is run" "$(tail -5 "$work/update.log")"
+fi
+if deploy/install.sh --replace-config "$work/compgate.toml" >"$work/update.log" 2>&1 &&
+    cmp -s "$work/compgate.toml" /etc/compgate/compgate.toml && cmp -s "$work/tuned.toml" /etc/compgate/compgate.toml.2* &&
+    [[ $(systemctl is-active compgate) == active ]]; then
+    ok "--replace-config replaces the installed config and keeps it as compgate.toml.<date-time>"
+else
+    bad "--replace-config replaces the installed config and keeps it as compgate.toml.<date-time>" "$(tail -5 "$work/update.log")"
+fi
+# A database root made (a `compgate run` by hand): validated as the user compgate, it
+# stops the update before anything is installed; the service runs on.
+db=/var/lib/compgate/compgate.db
+pid=$(prop MainPID)
+bin=$(stat -c '%i %Z' /usr/local/bin/compgate)
+chown root:root "$db" && chmod 0644 "$db"
+if ! deploy/install.sh >"$work/update.log" 2>&1 &&
+    grep -q "recorder.path: $db: the database is not writable: Permission denied" "$work/update.log" &&
+    grep -q "does not validate: nothing installed" "$work/update.log"; then
+    ok "a database the user compgate cannot write fails validation, naming it"
+else
+    bad "a database the user compgate cannot write fails validation, naming it" "$(tail -5 "$work/update.log")"
+fi
+[[ $(stat -c '%i %Z' /usr/local/bin/compgate) == "$bin" && $(prop MainPID) == "$pid" && $(systemctl is-active compgate) == active ]] &&
+    ok "nothing installed: the service runs on" || bad "nothing installed: the service runs on" "pid $pid -> $(prop MainPID) $(systemctl is-active compgate)"
+chown compgate:compgate "$db" && chmod 0600 "$db"
+systemctl is-active --quiet compgate || { systemctl reset-failed compgate; systemctl restart compgate; }
+
 # ---- a clean stop
 if systemctl stop compgate; then ok "systemctl stop"; else bad "systemctl stop" "$(journal | tail -5)"; fi
 [[ $(prop Result) == success && $(prop ExecMainStatus) == 0 ]] &&
