@@ -55,6 +55,12 @@ CREATE TABLE IF NOT EXISTS mqtt_outbox (
 );
 ";
 
+/// The layout's version, kept in the database (`PRAGMA user_version`; 0 in databases of
+/// the builds before it was set, whose layout is version 1 after `open`'s migrations).
+/// Raise it with a change a build of the version before could not write into; a build
+/// refuses a database of a later version than its own instead of failing every commit.
+pub const LAYOUT_VERSION: i64 = 1;
+
 /// Page cache of one connection, KiB.
 pub const PAGE_CACHE_KB: u32 = 1024;
 /// Prepared statements kept per connection.
@@ -114,6 +120,8 @@ pub fn open(path: &Path) -> Result<Connection, RecordError> {
         conn.execute_batch("ALTER TABLE jobs ADD COLUMN shadow INTEGER NOT NULL DEFAULT 0;")
             .map_err(err)?;
     }
+    conn.execute_batch(&format!("PRAGMA user_version = {LAYOUT_VERSION};"))
+        .map_err(err)?;
     Ok(conn)
 }
 
@@ -151,6 +159,14 @@ pub fn check(conn: &Connection) -> Result<(), String> {
     })?;
     if found.is_empty() {
         return Ok(());
+    }
+    let version: i64 = conn
+        .query_row("PRAGMA user_version", [], |r| r.get(0))
+        .map_err(|e| format!("its layout version cannot be read ({e})"))?;
+    if version > LAYOUT_VERSION {
+        return Err(format!(
+            "was written by a newer compgate (recorder layout {version}; this build knows up to {LAYOUT_VERSION}): run the newer build on it, or give this one another recorder.path"
+        ));
     }
     let reference = Connection::open_in_memory()
         .and_then(|mem| mem.execute_batch(SCHEMA).and_then(|()| tables(&mem)))

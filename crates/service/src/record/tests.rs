@@ -1035,6 +1035,45 @@ fn over_its_size_the_recorder_deletes_unsent_messages_before_records() {
     );
 }
 
+// A database gets the layout version on open; one of a later version (written by a
+// newer build) is refused by `validate`'s check and by `open`, naming both versions,
+// and left as it was: an older build would otherwise fail every commit into it.
+#[test]
+fn a_database_of_a_newer_layout_is_refused_and_ours_gets_its_version() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("v.db");
+    let version = |path: &Path| -> i64 {
+        export::open_read_only(path)
+            .expect("opens")
+            .query_row("PRAGMA user_version", [], |r| r.get(0))
+            .expect("version")
+    };
+    drop(open(&path).expect("opens"));
+    assert_eq!(version(&path), schema::LAYOUT_VERSION);
+    rusqlite::Connection::open(&path)
+        .expect("opens")
+        .execute_batch(&format!(
+            "PRAGMA user_version = {};",
+            schema::LAYOUT_VERSION + 1
+        ))
+        .expect("set");
+    for e in [
+        check_path(&path).expect_err("validate refuses").to_string(),
+        open(&path).expect_err("open refuses").to_string(),
+    ] {
+        assert!(
+            e.contains(&path.display().to_string())
+                && e.contains(&format!(
+                    "newer compgate (recorder layout {}; this build knows up to {})",
+                    schema::LAYOUT_VERSION + 1,
+                    schema::LAYOUT_VERSION
+                )),
+            "{e}"
+        );
+    }
+    assert_eq!(version(&path), schema::LAYOUT_VERSION + 1);
+}
+
 // Readings stamped 400 days ahead (a clock set wrong, then right) do not stretch the
 // time range the size limit cuts tenths of: the first tenth took every reading of the
 // last minute in one step, and kept the ones of the wrong clock.
