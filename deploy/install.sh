@@ -142,6 +142,7 @@ if [[ -e $bin ]] && ! cmp -s "$stage/compgate" "$bin"; then
     back+=("cp -p $bin.prev $bin")
 fi
 install -m 0755 "$stage/compgate" "$bin"
+echo "installed $("$bin" --version) as $bin"
 install -d -m 0750 -o root -g compgate /etc/compgate
 if [[ $config_src == "$config" ]]; then
     echo "kept the installed $config"

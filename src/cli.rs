@@ -11,7 +11,7 @@ use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 /// Without a command it runs the gateway against an embedded simulated plant (field
 /// I/O module and NC axis module on loopback), as a demonstration.
 #[derive(Debug, Parser)]
-#[command(version, about, long_about = None)]
+#[command(version = env!("COMPGATE_BUILD"), about, long_about = None)]
 pub struct Cli {
     /// Log filter (tracing EnvFilter syntax), e.g. "info" or "compgate=debug".
     /// Defaults to RUST_LOG, else "info" ("warn" for the demo, to keep the status line clean)

@@ -165,6 +165,11 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
             config: path,
             shadow,
         } => {
+            tracing::info!(
+                build = env!("COMPGATE_BUILD"),
+                config = %path.display(),
+                "compgate starting"
+            );
             let cfg = config::load(&path).map_err(failed)?;
             for w in config::warnings(&cfg, &path.display().to_string()) {
                 tracing::warn!(file = %w.file, key = %w.key, "{}", w.message);

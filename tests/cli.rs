@@ -89,6 +89,27 @@ fn backlash_with_sim_reports_the_table_and_without_a_target_exits_1() {
     );
 }
 
+// `--version` names the commit and its date besides the version number: after an
+// update, builds of one version number are told apart on the PC.
+#[test]
+fn version_names_the_commit_it_was_built_from() {
+    let out = Command::new(BIN).arg("--version").output().unwrap();
+    assert_success(&out);
+    let text = String::from_utf8_lossy(&out.stdout);
+    let head = Command::new("git")
+        .args(["log", "-1", "--format=%h %cs"])
+        .output()
+        .ok()
+        .filter(|o| o.status.success())
+        .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string());
+    let want = match head {
+        Some(commit) => format!("compgate {} ({commit})", env!("CARGO_PKG_VERSION")),
+        // Not a checkout: the version number alone.
+        None => format!("compgate {}", env!("CARGO_PKG_VERSION")),
+    };
+    assert_eq!(text.trim(), want);
+}
+
 #[test]
 fn help_groups_the_commands() {
     let out = Command::new(BIN).arg("--help").output().unwrap();
