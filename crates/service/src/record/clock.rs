@@ -53,14 +53,15 @@ impl RetentionClock {
     /// it by more than `retention_ms` (a clock set wrong while the gateway was
     /// stopped, or a PC off that long) is not trusted, and retention counts from the
     /// newest record until the next start. Nothing is lost by waiting if the PC was
-    /// off; the whole recording would be if the clock is wrong.
+    /// off; the whole recording would be if the clock is wrong. Returns what
+    /// [`Self::now_ms`] does.
     pub fn start(
         &mut self,
         mono: Instant,
         wall_ms: i64,
         newest_ms: Option<i64>,
         retention_ms: i64,
-    ) -> Option<ClockEvent> {
+    ) -> (i64, Option<ClockEvent>) {
         let (trusted_ms, event) = match newest_ms {
             Some(n) if wall_ms.saturating_sub(n) > retention_ms => {
                 (n, Some(ClockEvent::StartAhead(wall_ms - n)))
@@ -72,14 +73,14 @@ impl RetentionClock {
         };
         self.anchor = Some((mono, trusted_ms));
         self.ahead_ms = wall_ms - trusted_ms;
-        event
+        (trusted_ms, event)
     }
 
     /// The time (Unix ms) retention may count from, given the monotonic clock `mono`
     /// and the wall clock `wall_ms` read at the same instant, and what changed.
     pub fn now_ms(&mut self, mono: Instant, wall_ms: i64) -> (i64, Option<ClockEvent>) {
         let Some((mono0, trusted0_ms)) = self.anchor else {
-            return (wall_ms, self.start(mono, wall_ms, None, 0));
+            return self.start(mono, wall_ms, None, 0);
         };
         let elapsed_ms =
             i64::try_from(mono.saturating_duration_since(mono0).as_millis()).unwrap_or(i64::MAX);
@@ -171,7 +172,7 @@ mod tests {
         let mut c = RetentionClock::default();
         let wall = T0_MS + 365 * DAY_MS;
         assert_eq!(
-            c.start(s, wall, newest, 90 * DAY_MS),
+            c.start(s, wall, newest, 90 * DAY_MS).1,
             Some(ClockEvent::StartAhead(365 * DAY_MS))
         );
         assert_eq!(
@@ -186,7 +187,7 @@ mod tests {
         );
         // Started a day on: followed.
         let mut c = RetentionClock::default();
-        assert_eq!(c.start(s, T0_MS + DAY_MS, newest, 90 * DAY_MS), None);
+        assert_eq!(c.start(s, T0_MS + DAY_MS, newest, 90 * DAY_MS).1, None);
         assert_eq!(
             at(&mut c, s, 60, T0_MS + DAY_MS + 60_000).0,
             T0_MS + DAY_MS + 60_000
@@ -195,12 +196,12 @@ mod tests {
         let mut c = RetentionClock::default();
         let y2000_ms = 946_684_800_000;
         assert_eq!(
-            c.start(s, y2000_ms, newest, 90 * DAY_MS),
+            c.start(s, y2000_ms, newest, 90 * DAY_MS).1,
             Some(ClockEvent::StartBehind(T0_MS - y2000_ms))
         );
         // An empty database: followed.
         let mut c = RetentionClock::default();
-        assert_eq!(c.start(s, wall, None, 90 * DAY_MS), None);
+        assert_eq!(c.start(s, wall, None, 90 * DAY_MS).1, None);
     }
 
     #[test]

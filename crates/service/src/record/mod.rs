@@ -1204,11 +1204,8 @@ impl Writer {
             self.clock.now_ms(Instant::now(), now_unix_ms())
         } else {
             let newest_ms = schema::time_range(conn)?.map(|(_, last)| last);
-            let wall_ms = now_unix_ms();
-            let event = self
-                .clock
-                .start(Instant::now(), wall_ms, newest_ms, self.retention_ms);
-            (self.clock.now_ms(Instant::now(), wall_ms).0, event)
+            self.clock
+                .start(Instant::now(), now_unix_ms(), newest_ms, self.retention_ms)
         };
         match event {
             Some(clock::ClockEvent::StepAhead(ms)) => tracing::warn!(
