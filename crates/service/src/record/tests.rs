@@ -970,6 +970,15 @@ fn a_database_moved_while_recording_keeps_every_committed_record() {
     drop(f);
 }
 
+/// A good reading of channel 1 at `t_unix_ms`, written straight into the database.
+fn good_reading_at(conn: &Connection, t_unix_ms: i64) {
+    conn.execute(
+        "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 1, 12000.0, 20.0, 0)",
+        [t_unix_ms],
+    )
+    .expect("reading");
+}
+
 // The size limit with the MQTT outbox grown (the broker away): the unsent messages go
 // first, oldest first, and the recorded history stays. Before, retention cut the
 // readings' time range only, and the outbox pushed the records out.
@@ -983,11 +992,7 @@ fn over_its_size_the_recorder_deletes_unsent_messages_before_records() {
     let now = now_unix_ms();
     // The last minute, every 20 ms; then 3000 messages of 200 bytes.
     for k in 0..3000i64 {
-        conn.execute(
-            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 1, 12000.0, 20.0, 0)",
-            [now - 60_000 + k * 20],
-        )
-        .expect("reading");
+        good_reading_at(&conn, now - 60_000 + k * 20);
     }
     let records_bytes = schema::data_bytes(&conn).expect("size");
     for k in 0..3000 {
@@ -1085,19 +1090,12 @@ fn over_its_size_readings_stamped_ahead_do_not_take_the_recorded_ones_at_once() 
     conn.execute("INSERT INTO channels(id, name) VALUES (1, 'T_a')", [])
         .expect("channel");
     let now = now_unix_ms();
-    let insert = |t: i64| {
-        conn.execute(
-            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 1, 12000.0, 20.0, 0)",
-            [t],
-        )
-        .expect("reading");
-    };
     for k in 0..3000i64 {
-        insert(now - 60_000 + k * 20);
+        good_reading_at(&conn, now - 60_000 + k * 20);
     }
     let records_bytes = schema::data_bytes(&conn).expect("size");
     for k in 0..100i64 {
-        insert(now + 400 * 86_400_000 + k * 20);
+        good_reading_at(&conn, now + 400 * 86_400_000 + k * 20);
     }
     drop(conn);
     let max_bytes = records_bytes * 8 / 10;
