@@ -236,6 +236,28 @@ pub enum HostPortError {
     PortZero(String),
 }
 
+/// `host:port` reduced to the peer it names, to find one peer configured twice under
+/// two spellings: the host case-folded, `localhost` as `127.0.0.1`, an IP address and
+/// the port in their canonical forms (`[::1]:0502` as `[::1]:502`). Text that is not
+/// `host:port` is only case-folded.
+pub fn peer_identity(addr: &str) -> String {
+    let addr = addr.trim().to_ascii_lowercase();
+    let Some((host, port)) = addr.rsplit_once(':') else {
+        return addr;
+    };
+    let bare = host.trim_start_matches('[').trim_end_matches(']');
+    let host = match bare.parse::<std::net::IpAddr>() {
+        Ok(std::net::IpAddr::V6(ip)) => format!("[{ip}]"),
+        Ok(ip) => ip.to_string(),
+        Err(_) if bare == "localhost" => "127.0.0.1".to_string(),
+        Err(_) => host.to_string(),
+    };
+    let port = port
+        .parse::<u16>()
+        .map_or(port.to_string(), |p| p.to_string());
+    format!("{host}:{port}")
+}
+
 /// Accepts `host:port` the gateway connects to: a host name, an IPv4 address or a
 /// bracketed IPv6 address, and a port 1..=65535.
 ///
@@ -310,6 +332,27 @@ fn host_name_port(addr: &str) -> Result<u16, HostPortError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn one_peer_under_two_spellings_has_one_identity() {
+        let same = [
+            ("127.0.0.1:502", "localhost:502"),
+            ("127.0.0.1:502", " LocalHost:0502"),
+            ("[::1]:502", "[0:0:0:0:0:0:0:1]:502"),
+            ("plc-1.Hall2:102", "PLC-1.hall2:102"),
+        ];
+        for (a, b) in same {
+            assert_eq!(peer_identity(a), peer_identity(b), "{a} and {b}");
+        }
+        let other = [
+            ("127.0.0.1:502", "127.0.0.1:503"),
+            ("127.0.0.1:502", "127.0.0.2:502"),
+            ("127.0.0.1:502", "[::1]:502"),
+        ];
+        for (a, b) in other {
+            assert_ne!(peer_identity(a), peer_identity(b), "{a} and {b}");
+        }
+    }
 
     #[test]
     fn host_port_forms() {

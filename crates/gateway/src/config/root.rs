@@ -15,7 +15,7 @@ use super::service::{validate_service, MetricsConfig, MqttConfig, RecorderConfig
 use super::sim::SimConfig;
 use crate::axis::{AxisConfig, ChannelNames, NcVar};
 use crate::channel::ChannelConfig;
-use crate::nc::config::{NcModuleConfig, TargetConfig};
+use crate::nc::config::{NcModuleConfig, Place, TargetConfig};
 use crate::nc::var_name;
 use crate::source::config::{validate_devices, DeviceConfig};
 
@@ -398,6 +398,7 @@ pub(crate) fn validate_assuming(
     for (name, t) in &cfg.targets {
         t.validate_axes(name, &cfg.axes, &mut out);
     }
+    one_control_under_two_names(cfg, &mut out);
 
     if let Some(sim) = &cfg.sim {
         for (name, sc) in &sim.channels {
@@ -459,6 +460,48 @@ fn unread_devices(cfg: &Config, assumed: &Assumed, out: &mut Problems<'_>) {
                 ),
             );
         }
+    }
+}
+
+/// Two targets of different names that are one control (two entries for one NC
+/// module, its address spelled two ways, two S7 targets on one data block): the axes
+/// on them pass the per-target checks, and at run time each overwrites the other's
+/// values every job. Reported at the later axis, naming the place and the other axis.
+fn one_control_under_two_names(cfg: &Config, out: &mut Problems<'_>) {
+    let mut placed: Vec<(&String, String, Place)> = Vec::new();
+    for (name, axis) in &cfg.axes {
+        let module = axis.nc_module.as_str();
+        let Some(target) = cfg.target(module) else {
+            continue;
+        };
+        let number = if target.one_axis() {
+            Some(1)
+        } else {
+            axis.axis_number
+        };
+        let Some(number) = number else { continue };
+        let mine = target.places(name, number);
+        let clash = placed
+            .iter()
+            .filter(|(_, other_module, _)| other_module != module)
+            .find_map(|(other, other_module, p)| {
+                mine.iter()
+                    .find(|q| q.meets(p))
+                    .map(|q| (other, other_module, q))
+            });
+        if let Some((other, other_module, place)) = clash {
+            out.push(
+                field("axes", name, "nc_module"),
+                format!(
+                    "target `{module}` writes {} as target `{other_module}` does for axis \
+                     {other}: one control under two names, and each axis would overwrite \
+                     the other's values at every job; give each axis its own place on the \
+                     control",
+                    place.area
+                ),
+            );
+        }
+        placed.extend(mine.into_iter().map(|p| (name, module.to_string(), p)));
     }
 }
 

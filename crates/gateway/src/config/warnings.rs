@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use super::keys::field;
-use super::problem::{ConfigProblem, Problems};
+use super::problem::{peer_identity, ConfigProblem, Problems};
 use super::{Config, DeviceConfig};
 use crate::channel::RegisterKind;
 use crate::source::config::DeviceCommon;
@@ -26,7 +26,7 @@ pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
         let DeviceConfig::Tcp(d) = dev else {
             continue;
         };
-        let at = (d.address.trim().to_ascii_lowercase(), d.unit_id);
+        let at = (peer_identity(&d.address), d.unit_id);
         if let Some(other) = tcp.insert(at, name) {
             out.push(
                 field("devices", name, "unit_id"),

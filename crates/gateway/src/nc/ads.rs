@@ -18,6 +18,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use tokio::time::Instant;
 
+use super::config::Place;
 use super::{number, var_name, Job, JobReport, NcError, NcSnapshot, NcWriter, Precision};
 use crate::config::keys::secs;
 use crate::config::problem::Problems;
@@ -186,6 +187,25 @@ impl AdsTargetConfig {
             });
         }
         Ok(values)
+    }
+
+    /// Each value of axis `axis_number`, if they resolve (see [`TargetConfig::places`]).
+    pub fn places(&self, axis_number: u16) -> Vec<Place> {
+        let size = match self.value_type {
+            AdsValueType::Lreal => 8,
+            AdsValueType::Real => 4,
+        };
+        let values = self.resolve(axis_number).unwrap_or_default();
+        values
+            .into_iter()
+            .map(|v| Place {
+                area: format!(
+                    "index group {:#x} of ADS device {} port {}",
+                    v.index_group, self.ams_net_id, self.ams_port
+                ),
+                bytes: u64::from(v.index_offset)..u64::from(v.index_offset) + size,
+            })
+            .collect()
     }
 
     /// Every axis' values resolve, as [`Self::build`] places them, and no two of

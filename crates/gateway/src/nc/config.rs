@@ -15,7 +15,7 @@ use super::opcua::OpcuaTargetConfig;
 use super::s7::S7TargetConfig;
 use super::{AnyNcWriter, NcError};
 use crate::axis::AxisConfig;
-use crate::config::problem::Problems;
+use crate::config::problem::{peer_identity, Problems};
 
 /// The older name of [`ModbusTargetConfig`]: `[nc_modules.NAME]`.
 pub type NcModuleConfig = ModbusTargetConfig;
@@ -39,6 +39,27 @@ pub enum TargetConfig {
     /// `kind = "ads"`: a TwinCAT control over ADS (`address`, `ams_net_id`,
     /// `ams_port`, index group and offset per value).
     Ads(AdsTargetConfig),
+}
+
+/// A stretch of a control's memory that an axis' jobs write. Two axes on targets of
+/// different names whose places meet are one control configured twice: each would
+/// overwrite the other's values, and every job would find the NC changed behind it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Place {
+    /// The control and the area in it, as a user names them ("the Modbus NC module at
+    /// 127.0.0.1:502, unit 1"); the address in its [`peer_identity`] form.
+    pub area: String,
+    /// The bytes taken in the area; `0..1` where the area is one value or module.
+    pub bytes: std::ops::Range<u64>,
+}
+
+impl Place {
+    /// Whether the two share a byte.
+    pub fn meets(&self, other: &Place) -> bool {
+        self.area == other.area
+            && self.bytes.start < other.bytes.end
+            && other.bytes.start < self.bytes.end
+    }
 }
 
 /// The kind of a target: its `kind` key.
@@ -110,6 +131,24 @@ impl TargetConfig {
             Self::Opcua(c) => &c.endpoint_url,
             Self::S7(c) => &c.address,
             Self::Ads(c) => &c.address,
+        }
+    }
+
+    /// Where on the control the jobs of axis `axis_name`, number `axis_number`, write
+    /// (nothing for a number whose place does not resolve: reported apart).
+    pub fn places(&self, axis_name: &str, axis_number: u16) -> Vec<Place> {
+        match self {
+            Self::Modbus(c) => vec![Place {
+                area: format!(
+                    "the Modbus NC module at {}, unit {}",
+                    peer_identity(&c.address),
+                    c.unit_id
+                ),
+                bytes: 0..1,
+            }],
+            Self::Opcua(c) => c.places(axis_name, axis_number),
+            Self::S7(c) => c.places(axis_number).into_iter().collect(),
+            Self::Ads(c) => c.places(axis_number),
         }
     }
 

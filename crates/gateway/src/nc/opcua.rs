@@ -34,9 +34,10 @@ use tokio::task::JoinHandle;
 use tokio::time::Instant;
 use tracing::instrument::WithSubscriber;
 
+use super::config::Place;
 use super::{Job, JobIds, JobReport, NcError, NcSnapshot, NcWriter};
 use crate::config::keys::secs;
-use crate::config::problem::{check_host_port, Problems};
+use crate::config::problem::{check_host_port, peer_identity, Problems};
 use crate::source::modbus::Backoff;
 use crate::source::SourceError;
 
@@ -346,6 +347,29 @@ impl OpcuaTargetConfig {
                 .replace("{axis_number}", &axis_number.to_string())
                 .replace("{axis_name}", axis_name)
         })
+    }
+
+    /// The nodes of axis `axis_name`, number `axis_number` (see [`TargetConfig::places`]).
+    pub fn places(&self, axis_name: &str, axis_number: u16) -> Vec<Place> {
+        // The server as `opc.tcp://host:port`, so that two spellings of it meet.
+        let server = match self.endpoint_url.split_once("://") {
+            Some((scheme, rest)) => {
+                let authority = rest.split('/').next().unwrap_or(rest);
+                format!(
+                    "{}://{}",
+                    scheme.to_ascii_lowercase(),
+                    peer_identity(authority)
+                )
+            }
+            None => self.endpoint_url.to_ascii_lowercase(),
+        };
+        self.axis_nodes(axis_name, axis_number)
+            .into_iter()
+            .map(|node| Place {
+                area: format!("node `{node}` of the OPC UA server {server}"),
+                bytes: 0..1,
+            })
+            .collect()
     }
 
     /// No two setting data, of one axis or of two, resolve to the same node, as

@@ -45,9 +45,10 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use tokio::time::Instant;
 
+use super::config::Place;
 use super::{Job, JobIds, JobReport, NcError, NcSnapshot, NcWriter, Precision};
 use crate::config::keys::secs;
-use crate::config::problem::Problems;
+use crate::config::problem::{peer_identity, Problems};
 use crate::source::modbus::Backoff;
 use crate::source::SourceError;
 
@@ -245,6 +246,20 @@ impl S7TargetConfig {
         (start + u32::from(self.layout().block_len()) <= MAX_BYTE)
             .then_some(start)
             .and_then(|s| u16::try_from(s).ok())
+    }
+
+    /// The block of axis `axis_number`, if it fits (see [`TargetConfig::places`]).
+    pub fn places(&self, axis_number: u16) -> Option<Place> {
+        let start = u64::from(self.block_start(axis_number)?);
+        Some(Place {
+            area: format!(
+                "DB{} of the S7 PLC at {} (remote TSAP {:#06x})",
+                self.db_number,
+                peer_identity(&self.address),
+                self.remote_tsap()
+            ),
+            bytes: start..start + u64::from(self.layout().block_len()),
+        })
     }
 
     /// Whether the block has a place for variable `var_id`: the three thermal setting

@@ -557,3 +557,84 @@ fn an_axis_on_a_taken_module_names_every_axis_already_on_it() {
     );
     assert!(!m.iter().any(|(k, _)| k == "axes.X.nc_module"), "{m:#?}");
 }
+
+/// `change` applied to the example with axis X copied to a second axis `Y` on the
+/// target `y_target`, built from `target` (TOML); X keeps its NC module `nc_x`, unit 1.
+/// The problems at `axes.Y.nc_module`.
+fn second_target_problems(target: &str, change: impl FnOnce(&mut Config)) -> Vec<String> {
+    messages_after(|c| {
+        let t: TargetConfig = toml::from_str(target).expect("target");
+        c.targets.insert("y_target".into(), t);
+        let mut y = c.axes["X"].clone();
+        y.nc_module = "y_target".into();
+        y.axis_number = Some(1);
+        c.axes.insert("Y".into(), y);
+        change(c);
+    })
+    .into_iter()
+    .filter(|(k, _)| k == "axes.Y.nc_module")
+    .map(|(_, m)| m)
+    .collect()
+}
+
+// Two entries for one NC (a copied entry, an address spelled two ways) pass every
+// per-target check, and at run time their axes overwrite each other's values.
+#[test]
+fn one_control_under_two_target_names_is_refused() {
+    let x_at = example().nc_modules["nc_x"].address.clone();
+    let modbus =
+        |addr: &str, unit: u8| format!("kind = \"modbus\"\naddress = \"{addr}\"\nunit_id = {unit}");
+    let spelled = x_at.replace("127.0.0.1", "LocalHost");
+    assert_ne!(spelled, x_at, "the example's NC module is on 127.0.0.1");
+    let m = second_target_problems(&modbus(&spelled, 1), |_| {});
+    assert_eq!(m.len(), 1, "{m:#?}");
+    assert!(
+        m[0].contains(&format!("the Modbus NC module at {x_at}, unit 1"))
+            && m[0].contains("target `nc_x` does for axis X")
+            && m[0].contains("overwrite"),
+        "{}",
+        m[0]
+    );
+    // Another unit behind the same address is another module.
+    assert_eq!(
+        second_target_problems(&modbus(&x_at, 2), |_| {}),
+        Vec::<String>::new()
+    );
+
+    // Two S7 targets on one PLC's data block: blocks that overlap clash, blocks side
+    // by side (or another data block) do not.
+    let s7 = |addr: &str, db: u16, start: u16| {
+        format!("kind = \"s7\"\naddress = \"{addr}\"\ndb_number = {db}\nstart_byte = {start}")
+    };
+    let on_plc = |c: &mut Config| {
+        c.targets.insert(
+            "plc".into(),
+            toml::from_str(&s7("10.0.0.5:102", 100, 0)).expect("s7"),
+        );
+        let x = c.axes.get_mut("X").expect("X");
+        x.nc_module = "plc".into();
+        x.axis_number = Some(1);
+    };
+    let m = second_target_problems(&s7("10.0.0.5:102", 100, 8), on_plc);
+    assert_eq!(m.len(), 1, "{m:#?}");
+    assert!(
+        m[0].contains("DB100 of the S7 PLC at 10.0.0.5:102"),
+        "{}",
+        m[0]
+    );
+    let block = match toml::from_str(&s7("10.0.0.5:102", 100, 0)).expect("s7") {
+        TargetConfig::S7(t) => t.layout().block_len(),
+        other => panic!("{other:?}"),
+    };
+    for other in [
+        s7("10.0.0.5:102", 100, block),
+        s7("10.0.0.5:102", 101, 0),
+        s7("10.0.0.6:102", 100, 0),
+    ] {
+        assert_eq!(
+            second_target_problems(&other, on_plc),
+            Vec::<String>::new(),
+            "{other}"
+        );
+    }
+}
