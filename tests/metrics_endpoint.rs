@@ -168,6 +168,103 @@ async fn half_sent_requests_on_1100_connections_starve_nothing() {
     drop(plant);
 }
 
+/// Polls of device ain1 so far: the count of its poll-time histogram.
+fn polls(port: u16) -> f64 {
+    let (body, _) = scrape(port, Duration::from_secs(5)).expect("scrape");
+    value(
+        &body,
+        r#"compgate_device_poll_seconds_count{device="ain1"}"#,
+    )
+    .expect("poll count")
+}
+
+const FLOODERS: usize = 200;
+const PIPELINED: usize = 20;
+
+// Clients that ask for the status page's data many times over and never read the
+// answers (a scanner, a stuck dashboard): writing those answers took the runtime's one
+// worker, the one that polls and writes to the NC, for seconds at a time, and the
+// device missed a fifth of its polls. The listener now runs on a thread of its own.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clients_that_never_read_do_not_hold_up_the_polls() {
+    let nofile = raise_nofile();
+    if nofile < 1024 {
+        println!("SKIPPED: RLIMIT_NOFILE hard limit is {nofile}, the test needs 1024 descriptors");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    // A hundred channels more: the page's data is then about what a machine's is.
+    let mut toml = common::config("hold", "", "");
+    for address in 3..103 {
+        toml += &format!(
+            "\n[channels.T_{address}]\ndevice = \"ain1\"\nregister = \"input\"\naddress = {address}\n\
+             data_type = \"u16\"\nscaling = {}\nfilter = {}\n",
+            common::SCALING,
+            common::FILTER
+        );
+    }
+    let (plant, path) = common::plant_and_file(
+        dir.path(),
+        &toml,
+        "\n[metrics]\nbind = \"127.0.0.1:0\"\ntrend_s = 10\n",
+    )
+    .await;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    let port = tokio::task::block_in_place(|| gw.metrics_port(10.0));
+    tokio::task::block_in_place(|| gw.wait_notify(10.0, "first job", |m| m.contains("jobs 1 ok")));
+    // The trends full (10 s): the answer is then half a megabyte.
+    tokio::time::sleep(Duration::from_secs(10)).await;
+    let addr = std::net::SocketAddr::from(([127, 0, 0, 1], port));
+    let request = "GET /api/status HTTP/1.1\r\nHost: localhost\r\n\r\n".repeat(PIPELINED);
+
+    let size = tokio::task::block_in_place(|| {
+        let mut s = TcpStream::connect(addr).unwrap();
+        s.write_all(b"GET /api/status HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
+            .unwrap();
+        let mut v = Vec::new();
+        std::io::Read::read_to_end(&mut s, &mut v).unwrap();
+        v.len()
+    });
+    assert!(size > 300_000, "/api/status is {size} bytes");
+    let (before, started) = tokio::task::block_in_place(|| (polls(port), Instant::now()));
+    let mut flooders = Vec::with_capacity(FLOODERS);
+    // A stalled listener stops accepting too: connects left waiting count for nothing.
+    while flooders.len() < FLOODERS && started.elapsed() < Duration::from_secs(3) {
+        let Ok(socket) = tokio::net::TcpSocket::new_v4() else {
+            continue;
+        };
+        // A small window, as a slow or stuck reader offers.
+        socket.set_recv_buffer_size(4096).expect("SO_RCVBUF");
+        let connect = tokio::time::timeout(Duration::from_millis(200), socket.connect(addr));
+        if let Ok(Ok(mut s)) = connect.await {
+            if tokio::io::AsyncWriteExt::write_all(&mut s, request.as_bytes())
+                .await
+                .is_ok()
+            {
+                flooders.push(s);
+            }
+        }
+    }
+    let flooding = flooders.len();
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    drop(flooders);
+    let (after, window) = tokio::task::block_in_place(|| (polls(port), started.elapsed()));
+
+    // The device polls every 50 ms and skips a missed tick.
+    let due = window.as_secs_f64() / 0.05;
+    let polled = after - before;
+    println!(
+        "{polled} polls in {window:?} under {flooding} x {PIPELINED} unread answers of \
+         {size} bytes ({due:.0} due)"
+    );
+    assert!(
+        polled >= 0.9 * due,
+        "{polled} polls of {due:.0} due in {window:?}"
+    );
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
+
 // `promtool check metrics` accepts a real scrape: help text on every metric, valid
 // names. Without promtool the test is skipped, except under CI, where it must be there.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -263,7 +263,7 @@ pub async fn http_listener(
     status_interval: std::time::Duration,
 ) -> Result<std::net::SocketAddr, ServiceError> {
     let page = m.status_page.then(page::Page::default);
-    let addr = metrics::install(m, page.clone()).await?;
+    let addr = metrics::install(m, page.clone())?;
     if let Some(page) = page {
         // Detached: it ends when the gateway drops the status' sender.
         drop(status_reader(

@@ -44,9 +44,10 @@ use compgate_gateway::runtime::{GatewayError, Observer, SampleReadings, Status};
 const UPKEEP_S: u64 = 5;
 
 /// Installs the global recorder with help text for every metric, and serves
-/// `GET /metrics` on `cfg.bind` (inside the tokio runtime), with the status page's
-/// routes when `page` is given. Returns the address bound (port 0 takes a free one).
-pub async fn install(
+/// `GET /metrics` on `cfg.bind` (on a thread of its own; called inside the tokio
+/// runtime, which runs the exporter's upkeep), with the status page's routes when
+/// `page` is given. Returns the address bound (port 0 takes a free one).
+pub fn install(
     cfg: &MetricsConfig,
     page: Option<crate::page::Page>,
 ) -> Result<SocketAddr, ServiceError> {
@@ -60,8 +61,9 @@ pub async fn install(
         .map_err(|e| ServiceError::Metrics(e.to_string()))?
         .build_recorder();
     let handle = recorder.handle();
-    let listener = tokio::net::TcpListener::bind(addr)
-        .await
+    let listener = std::net::TcpListener::bind(addr).map_err(|e| bind_err(bind, e))?;
+    listener
+        .set_nonblocking(true)
         .map_err(|e| bind_err(bind, e))?;
     metrics::set_global_recorder(recorder).map_err(|e| ServiceError::Metrics(e.to_string()))?;
     describe();
@@ -91,13 +93,29 @@ pub async fn install(
         max_connections: cfg.max_connections as usize,
         ..crate::http::Limits::default()
     };
-    tokio::spawn(crate::http::serve(
-        listener,
-        router,
-        limits,
-        Arc::default(),
-        tokio_util::sync::CancellationToken::new(),
-    ));
+    // A runtime and thread of its own: clients that ask much and read slowly (a
+    // scanner, a stuck dashboard) kept the control loop's one worker busy writing
+    // answers into their sockets, and the devices missed polls by the second.
+    let http = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .map_err(|e| ServiceError::Task(format!("HTTP runtime: {e}")))?;
+    let listener = {
+        let _in = http.enter();
+        tokio::net::TcpListener::from_std(listener).map_err(|e| bind_err(bind, e))?
+    };
+    std::thread::Builder::new()
+        .name("http".into())
+        .spawn(move || {
+            http.block_on(crate::http::serve(
+                listener,
+                router,
+                limits,
+                Arc::default(),
+                tokio_util::sync::CancellationToken::new(),
+            ))
+        })
+        .map_err(|e| ServiceError::Task(format!("thread http: {e}")))?;
     tracing::info!(bind = %addr, max_connections = cfg.max_connections, "Prometheus metrics on http://{addr}/metrics");
     Ok(addr)
 }
@@ -428,7 +446,7 @@ mod tests {
             ..MetricsConfig::default()
         };
         assert_eq!(
-            install(&cfg, None).await,
+            install(&cfg, None),
             Err(ServiceError::MetricsBind {
                 bind: "localhost".into(),
                 message: "invalid socket address syntax".into(),
