@@ -75,7 +75,26 @@ pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
             out.push(field("channels", name, "address"), message);
         }
     }
+    if let Some(m) = &cfg.metrics {
+        if let Some(message) = exposed(&m.bind) {
+            out.push("metrics.bind", message);
+        }
+    }
     out.into_vec()
+}
+
+/// A listener beyond this PC (`0.0.0.0`, a LAN address): it has no authentication and
+/// no TLS, which a plant's IT asks about first.
+fn exposed(bind: &str) -> Option<String> {
+    let ip = bind.parse::<std::net::SocketAddr>().ok()?.ip();
+    (!ip.is_loopback()).then(|| {
+        format!(
+            "`{bind}` serves /metrics and the status page beyond this PC, to anyone who \
+             reaches the port, without authentication or TLS (read only: nothing there \
+             changes the gateway); keep the port behind the plant firewall, or bind \
+             127.0.0.1 and put a reverse proxy with authentication in front"
+        )
+    })
 }
 
 /// Seconds as written in a message: to the millisecond, without trailing zeros
@@ -228,6 +247,7 @@ mod tests {
             device("good", "127.0.0.1:502", 1),
             device("bad", "127.0.0.1:502", 1),
             device("other_unit", "127.0.0.1:502", 2),
+            device("spelled", "LocalHost:502", 2),
         ]
         .concat();
         let cfg = crate::config::load_str(&text, "dup.toml").expect("valid");
@@ -235,7 +255,13 @@ mod tests {
             .iter()
             .map(ToString::to_string)
             .collect();
-        assert_eq!(w.len(), 1, "{w:#?}");
+        assert_eq!(w.len(), 2, "{w:#?}");
+        // One address spelled two ways is one device.
+        assert!(
+            w[1].starts_with("dup.toml: devices.spelled.unit_id: unit id 2 at LocalHost:502 is also device `other_unit`"),
+            "{}",
+            w[1]
+        );
         // Devices are checked in name order: `good` comes after `bad`.
         assert!(
             w[0].starts_with(
@@ -244,6 +270,19 @@ mod tests {
             "{}",
             w[0]
         );
+    }
+
+    // `bind = "0.0.0.0:9464"` passed `validate` silently; nothing said the listener has
+    // no authentication.
+    #[test]
+    fn a_listener_beyond_this_pc_gets_a_warning() {
+        for bind in ["0.0.0.0:9464", "[::]:9464", "192.168.0.10:9464"] {
+            let m = exposed(bind).unwrap_or_else(|| panic!("{bind}: no warning"));
+            assert!(m.contains("without authentication or TLS"), "{m}");
+        }
+        for bind in ["127.0.0.1:9464", "[::1]:0"] {
+            assert_eq!(exposed(bind), None, "{bind}");
+        }
     }
 
     // Issue 23, trap 5: `address = 30013` passed `validate` and failed at run time with
