@@ -284,6 +284,7 @@ impl AdsTargetConfig {
             }),
             client: None,
             backoff: Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
+            link_error: None,
         })
     }
 }
@@ -405,6 +406,8 @@ pub struct AdsNcWriter {
     plan: Arc<Plan>,
     client: Option<Client>,
     backoff: Backoff,
+    /// Why the connection was lost or not made, named while the backoff waits.
+    link_error: Option<String>,
 }
 
 impl fmt::Debug for AdsNcWriter {
@@ -425,9 +428,13 @@ impl AdsNcWriter {
     ) -> Result<T, NcError> {
         if self.client.is_none() {
             if let Some(left) = self.backoff.remaining(Instant::now()) {
+                let why = self
+                    .link_error
+                    .as_deref()
+                    .unwrap_or("reconnect backing off");
                 return Err(NcError::Unreachable(format!(
-                    "ADS {}: reconnect backing off, next attempt in {left:?}",
-                    self.plan.address
+                    "{why} (next attempt in {:.1} s)",
+                    left.as_secs_f64()
                 )));
             }
         }
@@ -450,8 +457,17 @@ impl AdsNcWriter {
         .await
         .map_err(|e| NcError::Unreachable(format!("ADS exchange: {e}")))?;
         match (&client, &result) {
-            (Some(_), _) => self.backoff.reset(),
-            (None, Err(_)) => self.backoff.failed(Instant::now()),
+            (Some(_), _) => {
+                self.backoff.reset();
+                self.link_error = None;
+            }
+            (None, Err(e)) => {
+                self.backoff.failed(Instant::now());
+                self.link_error = Some(match e {
+                    NcError::Unreachable(why) => why.clone(),
+                    e => e.to_string(),
+                });
+            }
             (None, Ok(_)) => {}
         }
         self.client = client;
@@ -528,4 +544,39 @@ fn default_timeout_s() -> f64 {
 }
 fn default_job_timeout_s() -> f64 {
     2.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    // While the reconnect waited, the status said only "reconnect backing off": why
+    // the control was unreachable was gone.
+    #[tokio::test]
+    async fn the_wait_before_a_reconnect_names_why_the_last_connect_failed() {
+        let at = crate::nc::s7::tests::refused_address();
+        let cfg: AdsTargetConfig = toml::from_str(&format!(
+            "address = \"{at}\"\nams_net_id = \"10.1.2.3.1.1\"\n\
+             sd43900 = {{ index_group = 0x4020, index_offset = 0 }}"
+        ))
+        .expect("valid ADS target config");
+        let mut w = cfg.build("X", 1).expect("writer");
+        let first = w
+            .read_snapshot()
+            .await
+            .expect_err("nobody listens")
+            .to_string();
+        let waiting = w
+            .read_snapshot()
+            .await
+            .expect_err("backing off")
+            .to_string();
+        assert!(first.contains("refused"), "{first}");
+        assert!(
+            waiting.contains(&at)
+                && waiting.contains("refused")
+                && waiting.contains("(next attempt in"),
+            "{waiting}"
+        );
+    }
 }

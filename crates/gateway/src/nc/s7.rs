@@ -393,6 +393,7 @@ impl S7TargetConfig {
             job_timeout: self.job_timeout(),
             client: None,
             backoff: Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
+            connect_error: None,
             job_ids: JobIds::default(),
             connects: 0,
         })
@@ -451,6 +452,8 @@ pub struct S7NcWriter {
     /// None while disconnected, and while a blocking call holds it.
     client: Option<S7Client>,
     backoff: Backoff,
+    /// Why the last connect failed, named while the backoff waits.
+    connect_error: Option<SourceError>,
     job_ids: JobIds,
     connects: u64,
 }
@@ -504,7 +507,14 @@ impl S7NcWriter {
     ) -> Option<Result<T, NcError>> {
         if self.client.is_none() {
             if let Some(wait) = self.backoff.remaining(Instant::now()) {
-                return Some(Err(NcError::Link(SourceError::BackingOff(wait))));
+                let error = match &self.connect_error {
+                    Some(cause) => SourceError::BackingOffAfter {
+                        cause: Box::new(cause.clone()),
+                        next_attempt_in: wait,
+                    },
+                    None => SourceError::BackingOff(wait),
+                };
+                return Some(Err(NcError::Link(error)));
             }
         }
         let spec = self.spec.clone();
@@ -525,8 +535,14 @@ impl S7NcWriter {
             Some(true) => {
                 self.connects += 1;
                 self.backoff.reset();
+                self.connect_error = None;
             }
-            Some(false) => self.backoff.failed(Instant::now()),
+            Some(false) => {
+                self.backoff.failed(Instant::now());
+                if let Err(NcError::Link(e)) = &outcome.result {
+                    self.connect_error = Some(e.clone());
+                }
+            }
             None => {}
         }
         self.client = outcome.client;
@@ -925,7 +941,7 @@ impl NcWriter for S7NcWriter {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     fn cfg(toml_text: &str) -> S7TargetConfig {
@@ -936,6 +952,39 @@ mod tests {
         let mut p = Problems::new("t.toml");
         c.validate("targets.plc", &mut p);
         p.into_vec().iter().map(|p| p.to_string()).collect()
+    }
+
+    /// A loopback address nobody listens on.
+    pub(crate) fn refused_address() -> String {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+        l.local_addr().expect("address").to_string()
+    }
+
+    // While the reconnect waited, the status said only "reconnect backing off, next
+    // attempt in 7.995814167s": why the PLC was unreachable was gone.
+    #[tokio::test]
+    async fn the_wait_before_a_reconnect_names_why_the_last_connect_failed() {
+        let at = refused_address();
+        let mut w = cfg(&format!("address = \"{at}\"\ndb_number = 100"))
+            .build("Z1", 1)
+            .expect("writer");
+        let first = w
+            .read_snapshot()
+            .await
+            .expect_err("nobody listens")
+            .to_string();
+        let waiting = w
+            .read_snapshot()
+            .await
+            .expect_err("backing off")
+            .to_string();
+        assert!(first.contains("refused"), "{first}");
+        assert!(
+            waiting.contains(&at)
+                && waiting.contains("refused")
+                && waiting.contains("(next attempt in"),
+            "{waiting}"
+        );
     }
 
     #[test]
