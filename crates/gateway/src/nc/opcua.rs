@@ -444,6 +444,7 @@ impl OpcuaTargetConfig {
             conn: None,
             connecting: None,
             backoff: Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
+            connect_error: None,
             connects: 0,
             job_ids: JobIds::default(),
         })
@@ -778,6 +779,8 @@ pub struct OpcuaNcWriter {
     /// (a job timeout) does not throw it away: the next call takes it over.
     connecting: Option<JoinHandle<Result<Connection, NcError>>>,
     backoff: Backoff,
+    /// Why the last connect failed, named while the backoff waits.
+    connect_error: Option<SourceError>,
     connects: u64,
     job_ids: JobIds,
 }
@@ -883,7 +886,14 @@ impl OpcuaNcWriter {
             Some(task) => task,
             None => {
                 if let Some(wait) = self.backoff.remaining(Instant::now()) {
-                    return Err(SourceError::BackingOff(wait).into());
+                    return Err(match &self.connect_error {
+                        Some(cause) => SourceError::BackingOffAfter {
+                            cause: Box::new(cause.clone()),
+                            next_attempt_in: wait,
+                        },
+                        None => SourceError::BackingOff(wait),
+                    }
+                    .into());
                 }
                 let spec = self.spec.clone();
                 self.connecting.insert(tokio::spawn(async move {
@@ -899,6 +909,7 @@ impl OpcuaNcWriter {
         match result {
             Ok(Ok(conn)) => {
                 self.backoff.reset();
+                self.connect_error = None;
                 self.connects += 1;
                 tracing::info!(
                     endpoint = %self.spec.endpoint_url,
@@ -912,6 +923,10 @@ impl OpcuaNcWriter {
             }
             Ok(Err(e)) => {
                 self.backoff.failed(Instant::now());
+                self.connect_error = Some(match &e {
+                    NcError::Link(cause) => cause.clone(),
+                    other => SourceError::Connect(other.to_string()),
+                });
                 Err(e)
             }
             Err(join) => {
@@ -1325,6 +1340,34 @@ mod tests {
         }
         assert!(p.contains("{axis}"), "{p}");
         assert!(!p.contains("targets.nc.sd43900_node"), "{p}");
+    }
+
+    // While the reconnect waited, the status said only "reconnect backing off": why
+    // the server was unreachable was gone.
+    #[tokio::test]
+    async fn the_wait_before_a_reconnect_names_why_the_last_connect_failed() {
+        let at = crate::nc::s7::tests::refused_address();
+        let cfg: OpcuaTargetConfig = toml::from_str(&format!(
+            "endpoint_url = \"opc.tcp://{at}\"\nsecurity_policy = \"None\"\n\
+             security_mode = \"None\"\n"
+        ))
+        .expect("valid");
+        let mut w = cfg.build("X", 1).expect("writer");
+        let first = w
+            .read_snapshot()
+            .await
+            .expect_err("nobody listens")
+            .to_string();
+        let waiting = w
+            .read_snapshot()
+            .await
+            .expect_err("backing off")
+            .to_string();
+        assert!(
+            waiting.contains(first.trim_start_matches("NC link: "))
+                && waiting.contains("(next attempt in"),
+            "first: {first}\nwaiting: {waiting}"
+        );
     }
 
     #[test]
