@@ -85,6 +85,11 @@ pub fn status_line(s: &Status) -> String {
                     "{}: SD43900={:.4}mm SD43910={:.3e} SD43920={:.1}mm jobs {} ok {} failed",
                     a.name, p.k0_mm, p.tan_beta, p.p0_mm, a.jobs_ok, a.jobs_failed
                 );
+                // Jobs that fail now and then (an NC that answers slowly) leave no
+                // error in the status between two failures: the last one stays.
+                if let Some((_, why)) = &a.last_failure {
+                    let _ = write!(out, " (last: {why})");
+                }
             }
             None => {
                 let _ = write!(out, "{}: nothing written yet", a.name);
@@ -261,6 +266,21 @@ mod tests {
             s.axes[0].decision = usual.into();
             assert!(status_line(&s).ends_with("jobs 5 ok 0 failed"), "{usual}");
         }
+        // Jobs that failed once stay named after jobs succeed again.
+        s.axes[0].jobs_failed = 9;
+        s.axes[0].last_failure = Some((
+            std::time::SystemTime::UNIX_EPOCH,
+            "job 184 did not finish within 2s: the values may have landed".into(),
+        ));
+        assert!(
+            status_line(&s).ends_with(
+                "jobs 5 ok 9 failed (last: job 184 did not finish within 2s: the values may have landed)"
+            ),
+            "{}",
+            status_line(&s)
+        );
+        s.axes[0].jobs_failed = 0;
+        s.axes[0].last_failure = None;
         // Many bad channels: three named, the rest counted.
         s.channels = (0..5)
             .map(|i| channel(&format!("T_{i}"), Quality::Bad(Reason::DeviceDegraded)))
