@@ -1314,8 +1314,45 @@ mod tests {
         assert!(next.pipeline.axes[0].shadow);
         assert!(next.status.axes[0].shadow);
         assert!(!next.baselined[0], "carried a baseline into shadow mode");
-        assert_eq!(next.status.axes[0].jobs_ok, 0);
+        assert_eq!(next.status.axes[0].jobs_ok, 3, "job counts kept");
         assert_eq!(next.status.jobs.len(), 1, "job history kept");
+    }
+
+    // Every reload logged "NC target unreachable" again for a target still down, and
+    // an axis whose model changed showed its job counts from zero while
+    // `compgate_nc_jobs_total` went on.
+    #[test]
+    fn a_reload_keeps_what_the_journal_was_told_of_a_target_and_the_job_counts() {
+        let cfg = demo();
+        let running = |cfg: &Config| {
+            let mut r = Running::new(build(cfg).expect("build"));
+            r.nc_down[0] = true;
+            r.status.axes[0].jobs_ok = 7;
+            r.status.axes[0].jobs_failed = 2;
+            r
+        };
+        let mut model = cfg.clone();
+        let x = model.axes.values_mut().next().expect("an axis");
+        x.max_abs_k0_mm *= 0.5;
+        let next = reload::transplant(&cfg, &model, running(&cfg), build(&model).expect("build"));
+        assert!(
+            next.nc_down[0],
+            "the target is still down: nothing new to log"
+        );
+        assert_eq!(
+            (next.status.axes[0].jobs_ok, next.status.axes[0].jobs_failed),
+            (7, 2)
+        );
+
+        let mut moved = cfg.clone();
+        for m in moved.nc_modules.values_mut() {
+            m.unit_id += 1;
+        }
+        let next = reload::transplant(&cfg, &moved, running(&cfg), build(&moved).expect("build"));
+        assert!(
+            !next.nc_down[0],
+            "another target: its state is logged afresh"
+        );
     }
 
     // The core loop builds one value per sample: the link outcome and the new reading

@@ -27,6 +27,7 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         status: old_status,
         baselined: old_baselined,
         nc_facts: old_nc_facts,
+        nc_down: old_nc_down,
         device_logs: old_device_logs,
         channel_logs: old_channel_logs,
         axis_logs: old_axis_logs,
@@ -120,6 +121,13 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         if let (Some(log), Some(old_log)) = (next.axis_logs.get_mut(j), old_log) {
             *log = *old_log;
         }
+        // The journal was told whether the target is down: a reload is no news of it.
+        let old_target = old_cfg.axes.get(name).map(|a| old_cfg.target(&a.nc_module));
+        if let (Some(&i), Some(old_target)) = (old_axis_index.get(name.as_str()), old_target) {
+            if old_target == new_cfg.target(&axis.nc_module) {
+                next.nc_down[j] = old_nc_down.get(i).copied().unwrap_or(false);
+            }
+        }
         let same = old_cfg.axes.get(name) == Some(axis)
             && old_cfg.target(&axis.nc_module) == new_cfg.target(&axis.nc_module);
         if let (true, Some(&i)) = (same, old_axis_index.get(name.as_str())) {
@@ -139,6 +147,16 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         .map(|(i, a)| (a.name.clone(), (i, a)))
         .collect();
     for (j, axis) in next.pipeline.axes.iter_mut().enumerate() {
+        // The job counts go on, as `compgate_nc_jobs_total` does, whatever changed.
+        let old_st = old_axis_index
+            .get(axis.name.as_str())
+            .and_then(|&i| old_status.axes.get(i));
+        if let (Some(old_st), Some(st)) = (old_st, next.status.axes.get_mut(j)) {
+            st.jobs_ok = old_st.jobs_ok;
+            st.jobs_failed = old_st.jobs_failed;
+            st.jobs_shadow = old_st.jobs_shadow;
+            st.last_failure.clone_from(&old_st.last_failure);
+        }
         let cfg_same = old_cfg.axes.get(&axis.name) == new_cfg.axes.get(&axis.name);
         let nc_same = same_nc.contains_key(&axis.name);
         if !(cfg_same && nc_same) {
