@@ -265,7 +265,8 @@ async fn an_nc_back_without_its_values_is_a_warning() {
     assert!(line.contains("INFO"), "{line}");
 
     proxy.cut();
-    tokio::task::block_in_place(|| gw.wait_log_nth(10.0, "NC target unreachable", 2));
+    // Two lines per 10 s at most: the second outage may wait for the next window.
+    tokio::task::block_in_place(|| gw.wait_log_nth(20.0, "NC target unreachable", 2));
     nc.with_state(|a| a.sd43900_mm = 0.0);
     proxy.restore();
     let line = tokio::task::block_in_place(|| {

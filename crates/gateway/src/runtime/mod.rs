@@ -379,8 +379,11 @@ struct Running {
     nc_names: Vec<Arc<str>>,
     /// NC module addresses by index, for the log.
     nc_addresses: Vec<String>,
-    /// Per NC module: whether its last snapshot failed (logged once per change).
-    nc_down: Vec<bool>,
+    /// Per NC module: what the journal was told of it, rate limited like devices: a
+    /// target that flaps must not flood.
+    nc_logs: Vec<ChangeLog<NcCourse>>,
+    /// Per NC module: its last snapshot's error, for a line the rate limit deferred.
+    nc_errors: Vec<String>,
     /// Per axis: what its NC's last snapshot said against the config (MD32750,
     /// referenced), as the journal was told: a wrong MD32750 holds the axis.
     nc_facts: Vec<NcFacts>,
@@ -438,7 +441,8 @@ impl Running {
                 .map(|n| Arc::from(n.name.as_str()))
                 .collect(),
             nc_addresses: nc_modules.iter().map(|n| n.address.clone()).collect(),
-            nc_down: vec![false; nc_modules.len()],
+            nc_logs: vec![ChangeLog::new(NcCourse::Up); nc_modules.len()],
+            nc_errors: vec![String::new(); nc_modules.len()],
             nc_facts: vec![NcFacts::default(); pipeline.axes.len()],
             byte_order_hinted: vec![false; pipeline.channel_names.len()],
             channel_logs: vec![ChangeLog::new(true); pipeline.channel_names.len()],
@@ -530,6 +534,34 @@ impl Running {
         }
     }
 
+    /// NC module `module`'s change of [`NcCourse`], naming the axes on it (two axes on
+    /// one target have a writer each).
+    fn log_nc(&self, module: usize, course: NcCourse, more: u32) {
+        let name = self.nc_names.get(module).map_or("", |n| n);
+        let address = self.nc_addresses.get(module).map_or("", |a| a);
+        let error = self.nc_errors.get(module).map_or("", |e| e);
+        let axis = self
+            .pipeline
+            .axes
+            .iter()
+            .filter(|a| a.nc_module == module)
+            .map(|a| a.name.as_str())
+            .collect::<Vec<_>>()
+            .join(",");
+        let more = unlogged_suffix(more);
+        match course {
+            NcCourse::Unreachable => {
+                tracing::warn!(%axis, target_name = %name, %address, %error, "NC target unreachable: nothing is written to it{more}")
+            }
+            NcCourse::Refused => {
+                tracing::warn!(%axis, target_name = %name, %error, "NC target answered the read with an error: nothing is written to it{more}")
+            }
+            NcCourse::Up => {
+                tracing::info!(%axis, target_name = %name, "NC target reachable again{more}")
+            }
+        }
+    }
+
     /// Logs what the change logs saw but did not log yet (rate limited), at the end of
     /// a generation: the journal's last word must be the state as it is.
     fn flush_change_logs(&mut self) {
@@ -548,6 +580,11 @@ impl Running {
             if let (Some((course, more)), Some(st)) = (log.take_unlogged(), self.status.axes.get(i))
             {
                 log_axis(&st.name, course, &st.decision, false, more);
+            }
+        }
+        for module in 0..self.nc_logs.len() {
+            if let Some((course, more)) = self.nc_logs[module].take_unlogged() {
+                self.log_nc(module, course, more);
             }
         }
         for (log, d) in self.device_logs.iter_mut().zip(&self.status.devices) {
@@ -595,34 +632,21 @@ impl Running {
     fn on_event(&mut self, event: NcEvent, in_flight: &mut [bool], observer: &mut dyn Observer) {
         match event {
             NcEvent::Snapshot { module, result } => {
-                if let (Some(down), Some(name)) =
-                    (self.nc_down.get_mut(module), self.nc_names.get(module))
+                let course = match &result {
+                    Ok(_) => NcCourse::Up,
+                    Err(e) if e.is_unreachable() => NcCourse::Unreachable,
+                    Err(_) => NcCourse::Refused,
+                };
+                if let (Err(e), Some(slot)) = (&result, self.nc_errors.get_mut(module)) {
+                    *slot = e.to_string();
+                }
+                let t_s = self.pipeline.now_s(Instant::now());
+                if let Some(more) = self
+                    .nc_logs
+                    .get_mut(module)
+                    .and_then(|l| l.note(course, t_s))
                 {
-                    // Two axes on one target have a writer each: name the axes.
-                    let axes = self
-                        .pipeline
-                        .axes
-                        .iter()
-                        .filter(|a| a.nc_module == module)
-                        .map(|a| a.name.as_str())
-                        .collect::<Vec<_>>()
-                        .join(",");
-                    match (&result, *down) {
-                        (Err(e), false) if e.is_unreachable() => {
-                            let address = self.nc_addresses.get(module).map_or("", |a| a);
-                            tracing::warn!(axis = %axes, target_name = %name, %address, error = %e, "NC target unreachable: nothing is written to it");
-                            *down = true;
-                        }
-                        (Err(e), false) => {
-                            tracing::warn!(axis = %axes, target_name = %name, error = %e, "NC target answered the read with an error: nothing is written to it");
-                            *down = true;
-                        }
-                        (Ok(_), true) => {
-                            tracing::info!(axis = %axes, target_name = %name, "NC target reachable again");
-                            *down = false;
-                        }
-                        _ => {}
-                    }
+                    self.log_nc(module, course, more);
                 }
                 let now_s = self.pipeline.now_s(Instant::now());
                 for (i, axis) in self.pipeline.axes.iter_mut().enumerate() {
@@ -917,6 +941,17 @@ fn log_channel(channel: &str, device: Option<&str>, quality: &Quality, more: u32
             tracing::info!(%channel, device, quality = %q, "channel {channel} usable again ({q}){more}")
         }
     }
+}
+
+/// What the journal says of an NC target, from its snapshots.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum NcCourse {
+    /// Its last read answered.
+    Up,
+    /// Its last read did not reach it.
+    Unreachable,
+    /// It answered its last read with an error.
+    Refused,
 }
 
 /// What the journal says of a device's link.
@@ -1326,7 +1361,7 @@ mod tests {
         let cfg = demo();
         let running = |cfg: &Config| {
             let mut r = Running::new(build(cfg).expect("build"));
-            r.nc_down[0] = true;
+            r.nc_logs[0] = ChangeLog::new(NcCourse::Unreachable);
             r.status.axes[0].jobs_ok = 7;
             r.status.axes[0].jobs_failed = 2;
             r
@@ -1334,9 +1369,11 @@ mod tests {
         let mut model = cfg.clone();
         let x = model.axes.values_mut().next().expect("an axis");
         x.max_abs_k0_mm *= 0.5;
-        let next = reload::transplant(&cfg, &model, running(&cfg), build(&model).expect("build"));
+        let mut next =
+            reload::transplant(&cfg, &model, running(&cfg), build(&model).expect("build"));
         assert!(
-            next.nc_down[0],
+            next.nc_logs[0].take_unlogged().is_none()
+                && next.nc_logs[0].note(NcCourse::Unreachable, 0.0).is_none(),
             "the target is still down: nothing new to log"
         );
         assert_eq!(
@@ -1348,9 +1385,10 @@ mod tests {
         for m in moved.nc_modules.values_mut() {
             m.unit_id += 1;
         }
-        let next = reload::transplant(&cfg, &moved, running(&cfg), build(&moved).expect("build"));
+        let mut next =
+            reload::transplant(&cfg, &moved, running(&cfg), build(&moved).expect("build"));
         assert!(
-            !next.nc_down[0],
+            next.nc_logs[0].note(NcCourse::Unreachable, 0.0).is_some(),
             "another target: its state is logged afresh"
         );
     }
@@ -1624,5 +1662,42 @@ mod tests {
         // 800 mm of travel into a 100 s store, well within one time constant.
         let heat = state.pipeline.axes[0].comp.dynamics().heat_mm_per_s();
         assert!(heat > 7.0 && heat <= 8.0, "{heat}");
+    }
+
+    // An NC whose replies took as long as its timeout logged an "unreachable" and a
+    // "reachable again" every few seconds, 30 lines a minute; devices, channels and
+    // axes were rate limited already.
+    #[test]
+    fn a_flapping_nc_target_is_logged_at_most_twice_per_window() {
+        let cfg = demo();
+        let mut state = Running::new(build(&cfg).expect("build"));
+        let module = state.pipeline.axes[0].nc_module;
+        let mut in_flight = vec![false];
+        let lines = logged(|| {
+            for k in 0..10 {
+                let result = if k % 2 == 0 {
+                    Err(NcError::Unreachable("connect timed out".into()))
+                } else {
+                    Ok(NcSnapshot::default())
+                };
+                state.on_event(
+                    NcEvent::Snapshot { module, result },
+                    &mut in_flight,
+                    &mut (),
+                );
+            }
+            state.flush_change_logs();
+        });
+        let nc: Vec<&String> = lines.iter().filter(|l| l.contains("NC target")).collect();
+        assert_eq!(nc.len(), 3, "{nc:#?}");
+        assert!(
+            nc[0].contains("unreachable") && nc[1].contains("reachable again"),
+            "{nc:#?}"
+        );
+        // The last word is the state as it is, with what was not logged.
+        assert!(
+            nc[2].contains("reachable again") && nc[2].contains("7 more changes"),
+            "{nc:#?}"
+        );
     }
 }

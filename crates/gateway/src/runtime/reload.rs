@@ -27,7 +27,8 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         status: old_status,
         baselined: old_baselined,
         nc_facts: old_nc_facts,
-        nc_down: old_nc_down,
+        nc_logs: old_nc_logs,
+        nc_errors: old_nc_errors,
         device_logs: old_device_logs,
         channel_logs: old_channel_logs,
         axis_logs: old_axis_logs,
@@ -125,7 +126,10 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         let old_target = old_cfg.axes.get(name).map(|a| old_cfg.target(&a.nc_module));
         if let (Some(&i), Some(old_target)) = (old_axis_index.get(name.as_str()), old_target) {
             if old_target == new_cfg.target(&axis.nc_module) {
-                next.nc_down[j] = old_nc_down.get(i).copied().unwrap_or(false);
+                if let (Some(log), Some(error)) = (old_nc_logs.get(i), old_nc_errors.get(i)) {
+                    next.nc_logs[j] = *log;
+                    next.nc_errors[j].clone_from(error);
+                }
             }
         }
         let same = old_cfg.axes.get(name) == Some(axis)
