@@ -137,6 +137,11 @@ impl TargetConfig {
     /// Where on the control the jobs of axis `axis_name`, number `axis_number`, write
     /// (nothing for a number whose place does not resolve: reported apart).
     pub fn places(&self, axis_name: &str, axis_number: u16) -> Vec<Place> {
+        // Port 0: the simulated plant gives each its own port.
+        let port = self.address().rsplit(':').next().unwrap_or_default();
+        if port.split('/').next() == Some("0") {
+            return Vec::new();
+        }
         match self {
             Self::Modbus(c) => vec![Place {
                 area: format!(

@@ -595,11 +595,22 @@ fn one_control_under_two_target_names_is_refused() {
         "{}",
         m[0]
     );
-    // Another unit behind the same address is another module.
+    // Another unit behind the same address is another module; port 0 is the
+    // simulated plant's to give, a port to each.
     assert_eq!(
         second_target_problems(&modbus(&x_at, 2), |_| {}),
         Vec::<String>::new()
     );
+    let m = messages_after(|c| {
+        c.nc_modules.get_mut("nc_x").expect("nc_x").address = "127.0.0.1:0".into();
+        c.sim = Some(SimConfig::default());
+        let nc_y = c.nc_modules["nc_x"].clone();
+        c.nc_modules.insert("nc_y".into(), nc_y);
+        let mut y = c.axes["X"].clone();
+        y.nc_module = "nc_y".into();
+        c.axes.insert("Y".into(), y);
+    });
+    assert!(!m.iter().any(|(k, _)| k == "axes.Y.nc_module"), "{m:#?}");
 
     // Two S7 targets on one PLC's data block: blocks that overlap clash, blocks side
     // by side (or another data block) do not.
