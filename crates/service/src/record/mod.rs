@@ -3,8 +3,8 @@
 //!
 //! The control loop hands records to a bounded queue ([`RecordSender`]) and never
 //! waits: when the queue is full the record is dropped and counted. A writer thread
-//! commits the queue in one transaction every `commit_interval_s` (a crash loses at
-//! most that much; `synchronous = NORMAL` in WAL mode survives a killed process) and
+//! commits the queue in one transaction every `commit_interval_s` (a crash or a power
+//! loss loses at most that much: `synchronous = FULL` syncs every commit) and
 //! applies retention by age and by size. A commit that fails because the database
 //! is locked by another process or the disk is full keeps its records for the next
 //! commit (at most `queue_cycles` of them; beyond it the oldest are dropped, NC jobs

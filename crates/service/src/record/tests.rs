@@ -1233,6 +1233,21 @@ fn check_path_refuses_what_is_no_recorder_database() {
     );
 }
 
+// A power cut took the last 20 s of commits (`synchronous = NORMAL` syncs the WAL only
+// at checkpoints): every connection the recorder and the outbox open syncs each commit.
+#[test]
+fn every_connection_syncs_each_commit() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("r.db");
+    for _ in 0..2 {
+        let conn = open(&path).expect("opens");
+        let level: i64 = conn
+            .query_row("PRAGMA synchronous", [], |r| r.get(0))
+            .expect("synchronous");
+        assert_eq!(level, 2, "FULL");
+    }
+}
+
 // The oldest records beyond the limit go first, NC jobs last.
 #[test]
 fn records_beyond_the_limit_are_shed_oldest_first_jobs_last() {
