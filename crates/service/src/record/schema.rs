@@ -158,7 +158,7 @@ fn tables(conn: &Connection) -> rusqlite::Result<Vec<(String, Vec<String>)>> {
 pub fn check(conn: &Connection) -> Result<(), String> {
     let found = tables(conn).map_err(|e| match e.sqlite_error_code() {
         Some(rusqlite::ErrorCode::NotADatabase) => format!("is not an SQLite database ({e})"),
-        _ => format!("its tables cannot be read ({e}): the file is damaged"),
+        _ => format!("its tables cannot be read ({e}): the file is damaged; move it away (the recorder then starts a new one at its path; `sqlite3 FILE .recover` reads what is left of it)"),
     })?;
     if found.is_empty() {
         return Ok(());

@@ -1248,18 +1248,38 @@ fn every_connection_syncs_each_commit() {
     }
 }
 
-// A power cut took the last 20 s of commits (`synchronous = NORMAL` syncs the WAL only
-// at checkpoints): every connection the recorder and the outbox open syncs each commit.
+// A database cut short (a disk that lost its end): `validate` and `run` refuse it as
+// damaged, and say what to do about it.
 #[test]
-fn every_connection_syncs_each_commit() {
+fn a_truncated_database_is_refused_with_what_to_do() {
     let dir = tempfile::tempdir().expect("tempdir");
     let path = dir.path().join("r.db");
-    for _ in 0..2 {
-        let conn = open(&path).expect("opens");
-        let level: i64 = conn
-            .query_row("PRAGMA synchronous", [], |r| r.get(0))
-            .expect("synchronous");
-        assert_eq!(level, 2, "FULL");
+    {
+        let mut conn = open(&path).expect("opens");
+        let names: Arc<[String]> = Arc::from(vec!["T_a".to_string()]);
+        let batch: Vec<Record> = (0..2000)
+            .map(|k| Record::Cycle {
+                t_unix_ms: 1_000 + k,
+                names: names.clone(),
+                rows: vec![reading(0, 1.0, 0)],
+            })
+            .collect();
+        schema::insert(&mut conn, &mut schema::Statements::default(), &batch).expect("rows");
+        assert!(checkpoint(&conn));
+    }
+    let len = std::fs::metadata(&path).expect("file").len();
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&path)
+        .and_then(|f| f.set_len(4096))
+        .expect("truncated");
+    assert!(len > 4096 * 4, "{len}");
+    let e = check_path(&path).expect_err("refused").to_string();
+    for want in [
+        "the file is damaged",
+        "move it away (the recorder then starts a new one at its path",
+    ] {
+        assert!(e.contains(want), "{want}: {e}");
     }
 }
 
