@@ -44,5 +44,7 @@ cargo test --workspace --all-targets
 cargo test --workspace --doc
 echo "== vcan tests (CAN source and CANopen node; natively on vcan0, else in a VM)"
 tests/vcan/run.sh
+echo "== power-loss checks (a power cut while recording and after calibrate, in a VM)"
+tests/powerloss/run.sh
 echo "== systemd checks (deploy/install.sh and the unit under a real systemd, in a VM)"
 tests/systemd/run.sh

@@ -6,7 +6,10 @@
 //!
 //! A command that writes several files stages them ([`Staged`]): each is written
 //! whole to a temporary file beside it, and only when every one is written are they
-//! renamed into place, so a failed run leaves the last good set as it was.
+//! renamed into place, so a failed run leaves the last good set as it was. The commit
+//! syncs each file before its rename and each directory after, so what a command
+//! reported written is on the disk: a power cut a second later kept a new file absent
+//! or empty, and a replaced one old.
 
 use std::path::{Path, PathBuf};
 
@@ -131,15 +134,35 @@ impl Staged {
         std::fs::write(tmp, contents)
     }
 
-    /// Renames every staged file into place, in the order staged; on an error, the
-    /// file it names (the final path) and the error.
+    /// Syncs every staged file (those written through [`Staged::path_for`] too), then
+    /// renames them into place in the order staged and syncs their directories; on an
+    /// error, the file it names (the final path) and the error. Before the renames,
+    /// an error leaves every output as it was.
     pub fn commit(mut self) -> Result<(), (PathBuf, std::io::Error)> {
+        for (tmp, path) in &self.files {
+            std::fs::File::open(tmp)
+                .and_then(|f| f.sync_all())
+                .map_err(|e| (path.clone(), e))?;
+        }
         let files = std::mem::take(&mut self.files);
         for (k, (tmp, path)) in files.iter().enumerate() {
             if let Err(e) = std::fs::rename(tmp, path) {
                 // The rest stay staged, so that drop removes them.
                 self.files = files[k..].to_vec();
                 return Err((path.clone(), e));
+            }
+        }
+        let mut dirs: Vec<&Path> = Vec::new();
+        for (_, path) in &files {
+            let dir = match path.parent() {
+                Some(d) if !d.as_os_str().is_empty() => d,
+                _ => Path::new("."),
+            };
+            if !dirs.contains(&dir) {
+                dirs.push(dir);
+                std::fs::File::open(dir)
+                    .and_then(|d| d.sync_all())
+                    .map_err(|e| (path.clone(), e))?;
             }
         }
         Ok(())
@@ -245,5 +268,22 @@ mod tests {
         assert_eq!(std::fs::read_to_string(&a).unwrap(), "new a");
         assert_eq!(std::fs::read_to_string(&b).unwrap(), "new b");
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
+    }
+
+    /// Every staged file is synced before the first rename: one that was never
+    /// written (its writer failed silently) fails the commit with every output as it
+    /// was, not after the first ones were replaced.
+    #[test]
+    fn a_staged_file_never_written_fails_the_commit_before_any_rename() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a.csv"), dir.path().join("b.db"));
+        std::fs::write(&a, "old a").unwrap();
+        let mut s = Staged::new();
+        s.write(&a, "new a").unwrap();
+        let _ = s.path_for(&b);
+        let (path, e) = s.commit().unwrap_err();
+        assert_eq!((path, e.kind()), (b, std::io::ErrorKind::NotFound));
+        assert_eq!(std::fs::read_to_string(&a).unwrap(), "old a");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
     }
 }

@@ -20,7 +20,9 @@ pub struct RecorderConfig {
     #[serde(default = "default_recorder_path")]
     #[schemars(length(max = 4096))]
     pub path: String,
-    /// Seconds between commits of the batched writes: a crash loses at most this much.
+    /// Seconds between commits of the batched writes: a crash of the process or a power
+    /// loss loses at most this much (each commit is synced to the disk). Each commit is
+    /// one fsync: a shorter interval means more of them, and more wear on flash storage.
     /// Default 0.5; 0.001..=1.
     #[serde(default = "default_commit_interval_s")]
     #[schemars(range(min = 0.001, max = 1.0))]

@@ -3,8 +3,8 @@
 //!
 //! The control loop hands records to a bounded queue ([`RecordSender`]) and never
 //! waits: when the queue is full the record is dropped and counted. A writer thread
-//! commits the queue in one transaction every `commit_interval_s` (a crash loses at
-//! most that much; `synchronous = NORMAL` in WAL mode survives a killed process) and
+//! commits the queue in one transaction every `commit_interval_s` (a crash or a power
+//! loss loses at most that much: `synchronous = FULL` syncs every commit) and
 //! applies retention by age and by size. A commit that fails because the database
 //! is locked by another process or the disk is full keeps its records for the next
 //! commit (at most `queue_cycles` of them; beyond it the oldest are dropped, NC jobs
@@ -803,6 +803,39 @@ fn transient(e: &RecordError) -> bool {
     matches!(e, RecordError::Sqlite(e) if matches!(e.sqlite_error_code(), Some(DatabaseBusy | DatabaseLocked | DiskFull)))
 }
 
+/// Whether the file system holding the database at `path` refuses writes as read-only
+/// now. ext4 mounted `errors=remount-ro` turns read-only after a disk error, under the
+/// open database; SQLite reports the EROFS of its next write as a "disk I/O error".
+/// The mount's flags may still say `rw` (ext4 only aborts its journal), so this asks
+/// with a write: an empty file created beside the database and removed.
+fn read_only_fs(path: &Path) -> bool {
+    let erofs =
+        |e: std::io::Error| e.raw_os_error() == Some(rustix::io::Errno::ROFS.raw_os_error());
+    let probe = with_suffix(path, ".probe");
+    match std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&probe)
+    {
+        Ok(_) => std::fs::remove_file(&probe).is_err_and(erofs),
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+            std::fs::remove_file(&probe).is_err_and(erofs)
+        }
+        Err(e) => erofs(e),
+    }
+}
+
+/// A failed commit's error `e` as logged, with the cause SQLite's text hides: a write
+/// to a file system gone read-only (`read_only`, from [`read_only_fs`]) is only a
+/// "disk I/O error" to SQLite.
+fn commit_error(e: &RecordError, read_only: bool) -> String {
+    if read_only {
+        format!("{e}: the file system is read-only (EROFS, errno 30; ext4 turns read-only after a disk error): every commit fails until it is writable again; check the disk (dmesg), then reboot or remount it read-write")
+    } else {
+        e.to_string()
+    }
+}
+
 /// Drops the oldest records of `batch` beyond `max`, NC jobs last: they are what the
 /// NC was sent. Returns the records and readings dropped.
 fn shed(batch: &mut Vec<Record>, max: usize) -> (u64, u64) {
@@ -1135,6 +1168,7 @@ impl Writer {
                     } else {
                         "batch dropped"
                     };
+                    let e = commit_error(&e, read_only_fs(&self.path));
                     tracing::error!(error = %e, path = %self.path.display(), records = n, "recorder commit failed: {what}; the gateway carries on (logged again when commits succeed)");
                 }
                 if !kept {

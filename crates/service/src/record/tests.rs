@@ -1233,6 +1233,78 @@ fn check_path_refuses_what_is_no_recorder_database() {
     );
 }
 
+// A power cut took the last 20 s of commits (`synchronous = NORMAL` syncs the WAL only
+// at checkpoints): every connection the recorder and the outbox open syncs each commit.
+#[test]
+fn every_connection_syncs_each_commit() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("r.db");
+    for _ in 0..2 {
+        let conn = open(&path).expect("opens");
+        let level: i64 = conn
+            .query_row("PRAGMA synchronous", [], |r| r.get(0))
+            .expect("synchronous");
+        assert_eq!(level, 2, "FULL");
+    }
+}
+
+// A database cut short (a disk that lost its end): `validate` and `run` refuse it as
+// damaged, and say what to do about it.
+#[test]
+fn a_truncated_database_is_refused_with_what_to_do() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("r.db");
+    {
+        let mut conn = open(&path).expect("opens");
+        let names: Arc<[String]> = Arc::from(vec!["T_a".to_string()]);
+        let batch: Vec<Record> = (0..2000)
+            .map(|k| Record::Cycle {
+                t_unix_ms: 1_000 + k,
+                names: names.clone(),
+                rows: vec![reading(0, 1.0, 0)],
+            })
+            .collect();
+        schema::insert(&mut conn, &mut schema::Statements::default(), &batch).expect("rows");
+        assert!(checkpoint(&conn));
+    }
+    let len = std::fs::metadata(&path).expect("file").len();
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&path)
+        .and_then(|f| f.set_len(4096))
+        .expect("truncated");
+    assert!(len > 4096 * 4, "{len}");
+    let e = check_path(&path).expect_err("refused").to_string();
+    for want in [
+        "the file is damaged",
+        "move it away (the recorder then starts a new one at its path",
+    ] {
+        assert!(e.contains(want), "{want}: {e}");
+    }
+}
+
+// ext4 (`errors=remount-ro`) turns read-only under the open database after a disk
+// error; SQLite says only "disk I/O error". The ERROR names the read-only file system.
+#[test]
+fn a_read_only_file_system_is_named_in_the_commit_error() {
+    let io = RecordError::Sqlite(rusqlite::Error::SqliteFailure(
+        rusqlite::ffi::Error::new(rusqlite::ffi::SQLITE_IOERR_WRITE),
+        Some("disk I/O error".into()),
+    ));
+    let text = commit_error(&io, true);
+    assert!(
+        text.starts_with("recorder database: disk I/O error: the file system is read-only (EROFS"),
+        "{text}"
+    );
+    assert_eq!(commit_error(&io, false), io.to_string());
+    // A writable file system is not taken for read-only, and the probe leaves nothing.
+    let dir = tempfile::tempdir().expect("tempdir");
+    assert!(!read_only_fs(&dir.path().join("r.db")));
+    std::fs::write(dir.path().join("r.db.probe"), "").expect("left by a crash");
+    assert!(!read_only_fs(&dir.path().join("r.db")));
+    assert_eq!(std::fs::read_dir(dir.path()).expect("dir").count(), 0);
+}
+
 // The oldest records beyond the limit go first, NC jobs last.
 #[test]
 fn records_beyond_the_limit_are_shed_oldest_first_jobs_last() {
