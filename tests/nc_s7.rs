@@ -263,11 +263,14 @@ async fn nothing_listening_is_a_link_error() {
     let mut w = cfg.build("X1", 1).unwrap();
     let e = w.write_job(&Job::thermal(&awkward())).await.unwrap_err();
     assert!(matches!(e, NcError::Link(SourceError::Connect(_))), "{e:?}");
+    // While the reconnect waits, the error still says why the PLC is unreachable.
     let e = w.write_job(&Job::thermal(&awkward())).await.unwrap_err();
     assert!(
-        matches!(e, NcError::Link(SourceError::BackingOff(_))),
+        matches!(&e, NcError::Link(SourceError::BackingOffAfter { cause, .. })
+            if matches!(**cause, SourceError::Connect(_))),
         "{e:?}"
     );
+    assert!(e.to_string().contains(&addr.to_string()), "{e}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

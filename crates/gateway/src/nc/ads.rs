@@ -554,7 +554,7 @@ mod tests {
     // the control was unreachable was gone.
     #[tokio::test]
     async fn the_wait_before_a_reconnect_names_why_the_last_connect_failed() {
-        let at = crate::nc::s7::tests::refused_address();
+        let at = crate::nc::refused_address();
         let cfg: AdsTargetConfig = toml::from_str(&format!(
             "address = \"{at}\"\nams_net_id = \"10.1.2.3.1.1\"\n\
              sd43900 = {{ index_group = 0x4020, index_offset = 0 }}"

@@ -468,6 +468,13 @@ pub trait NcWriter: Send {
     }
 }
 
+/// A loopback address nobody listens on (a port just freed).
+#[cfg(test)]
+pub(crate) fn refused_address() -> String {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    l.local_addr().expect("address").to_string()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

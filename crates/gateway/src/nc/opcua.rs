@@ -1346,7 +1346,7 @@ mod tests {
     // the server was unreachable was gone.
     #[tokio::test]
     async fn the_wait_before_a_reconnect_names_why_the_last_connect_failed() {
-        let at = crate::nc::s7::tests::refused_address();
+        let at = crate::nc::refused_address();
         let cfg: OpcuaTargetConfig = toml::from_str(&format!(
             "endpoint_url = \"opc.tcp://{at}\"\nsecurity_policy = \"None\"\n\
              security_mode = \"None\"\n"

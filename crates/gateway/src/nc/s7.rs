@@ -941,7 +941,7 @@ impl NcWriter for S7NcWriter {
 }
 
 #[cfg(test)]
-pub(crate) mod tests {
+mod tests {
     use super::*;
 
     fn cfg(toml_text: &str) -> S7TargetConfig {
@@ -952,39 +952,6 @@ pub(crate) mod tests {
         let mut p = Problems::new("t.toml");
         c.validate("targets.plc", &mut p);
         p.into_vec().iter().map(|p| p.to_string()).collect()
-    }
-
-    /// A loopback address nobody listens on.
-    pub(crate) fn refused_address() -> String {
-        let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
-        l.local_addr().expect("address").to_string()
-    }
-
-    // While the reconnect waited, the status said only "reconnect backing off, next
-    // attempt in 7.995814167s": why the PLC was unreachable was gone.
-    #[tokio::test]
-    async fn the_wait_before_a_reconnect_names_why_the_last_connect_failed() {
-        let at = refused_address();
-        let mut w = cfg(&format!("address = \"{at}\"\ndb_number = 100"))
-            .build("Z1", 1)
-            .expect("writer");
-        let first = w
-            .read_snapshot()
-            .await
-            .expect_err("nobody listens")
-            .to_string();
-        let waiting = w
-            .read_snapshot()
-            .await
-            .expect_err("backing off")
-            .to_string();
-        assert!(first.contains("refused"), "{first}");
-        assert!(
-            waiting.contains(&at)
-                && waiting.contains("refused")
-                && waiting.contains("(next attempt in"),
-            "{waiting}"
-        );
     }
 
     #[test]
