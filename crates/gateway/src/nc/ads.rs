@@ -189,7 +189,7 @@ impl AdsTargetConfig {
         Ok(values)
     }
 
-    /// Each value of axis `axis_number`, if they resolve (see [`TargetConfig::places`]).
+    /// Each value of axis `axis_number`, if they resolve (see [`TargetConfig::places`](super::config::TargetConfig::places)).
     pub fn places(&self, axis_number: u16) -> Vec<Place> {
         let size = match self.value_type {
             AdsValueType::Lreal => 8,

@@ -349,7 +349,7 @@ impl OpcuaTargetConfig {
         })
     }
 
-    /// The nodes of axis `axis_name`, number `axis_number` (see [`TargetConfig::places`]).
+    /// The nodes of axis `axis_name`, number `axis_number` (see [`TargetConfig::places`](super::config::TargetConfig::places)).
     pub fn places(&self, axis_name: &str, axis_number: u16) -> Vec<Place> {
         // The server as `opc.tcp://host:port`, so that two spellings of it meet.
         let server = match self.endpoint_url.split_once("://") {

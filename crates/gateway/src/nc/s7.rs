@@ -248,7 +248,7 @@ impl S7TargetConfig {
             .and_then(|s| u16::try_from(s).ok())
     }
 
-    /// The block of axis `axis_number`, if it fits (see [`TargetConfig::places`]).
+    /// The block of axis `axis_number`, if it fits (see [`TargetConfig::places`](super::config::TargetConfig::places)).
     pub fn places(&self, axis_number: u16) -> Option<Place> {
         let start = u64::from(self.block_start(axis_number)?);
         Some(Place {
