@@ -27,14 +27,10 @@ WORK=$ROOT/target/powerloss
 mkdir -p "$WORK"
 t_start=$(date +%s)
 
-skip_or_fail() {
-    if [[ -n "${CI:-}" ]]; then
-        echo "powerloss: FAILED: $1 (CI is set: the power-loss checks must run)" >&2
-        exit 1
-    fi
-    echo "powerloss: SKIPPED: $1" >&2
-    exit 0
-}
+VM_STAGE=powerloss
+VM_STAGE_WHAT="the power-loss checks"
+# shellcheck source=../vm/lib.sh
+source "$ROOT/tests/vm/lib.sh"
 
 need=()
 command -v qemu-system-x86_64 >/dev/null || need+=(qemu-system-x86)
@@ -43,14 +39,7 @@ command -v cpio >/dev/null || need+=(cpio)
 command -v mkfs.ext4 >/dev/null || need+=(e2fsprogs)
 # What guest.sh uses, from this machine's root.
 command -v sqlite3 >/dev/null || need+=(sqlite3)
-if [[ ${#need[@]} -gt 0 ]]; then
-    echo "powerloss: installing ${need[*]}"
-    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}"; } \
-        >"$WORK/apt.log" 2>&1 || skip_or_fail "could not install ${need[*]} (see target/powerloss/apt.log)"
-fi
-
-# shellcheck source=../vm/lib.sh
-source "$ROOT/tests/vm/lib.sh"
+if [[ ${#need[@]} -gt 0 ]]; then vm_install "$WORK/apt.log" "${need[@]}"; fi
 # ext4 on a virtio disk, besides the 9p root and its overlay.
 VM_MODULES+=(lib/crc16.ko crypto/crc32c_generic.ko lib/libcrc32c.ko fs/mbcache.ko
     fs/jbd2/jbd2.ko fs/ext4/ext4.ko drivers/block/virtio_blk.ko)

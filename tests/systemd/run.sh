@@ -18,14 +18,10 @@ TIMEOUT_S=${SYSTEMD_VM_TIMEOUT_S:-900}
 WORK=$ROOT/target/systemd
 mkdir -p "$WORK"
 
-skip_or_fail() {
-    if [[ -n "${CI:-}" ]]; then
-        echo "systemd: FAILED: $1 (CI is set: the systemd checks must run)" >&2
-        exit 1
-    fi
-    echo "systemd: SKIPPED: $1" >&2
-    exit 0
-}
+VM_STAGE=systemd
+VM_STAGE_WHAT="the systemd checks"
+# shellcheck source=../vm/lib.sh
+source "$ROOT/tests/vm/lib.sh"
 
 need=()
 command -v qemu-system-x86_64 >/dev/null || need+=(qemu-system-x86)
@@ -37,14 +33,7 @@ command -v sqlite3 >/dev/null || need+=(sqlite3)
 command -v curl >/dev/null || need+=(curl)
 command -v socat >/dev/null || need+=(socat)
 command -v ss >/dev/null || need+=(iproute2)
-if [[ ${#need[@]} -gt 0 ]]; then
-    echo "systemd: installing ${need[*]}"
-    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}"; } \
-        >"$WORK/apt.log" 2>&1 || skip_or_fail "could not install ${need[*]} (see target/systemd/apt.log)"
-fi
-
-# shellcheck source=../vm/lib.sh
-source "$ROOT/tests/vm/lib.sh"
+if [[ ${#need[@]} -gt 0 ]]; then vm_install "$WORK/apt.log" "${need[@]}"; fi
 vm_kernel
 
 # The binary install.sh installs: it builds it itself where cargo is on the PATH, which

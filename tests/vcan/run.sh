@@ -20,15 +20,11 @@ SMOKE=0
 TIMEOUT_S=${VCAN_VM_TIMEOUT_S:-1500}
 WORK=$ROOT/target/vcan
 
-skip_or_fail() {
-    if [[ -n "${CI:-}" ]]; then
-        echo "vcan: FAILED: $1 (CI is set: the vcan tests must run)" >&2
-        exit 1
-    fi
-    echo "vcan: SKIPPED: $1" >&2
-    echo "vcan: the CAN tests did NOT run; set up vcan0 or the VM tooling" >&2
-    exit 0
-}
+VM_STAGE=vcan
+VM_STAGE_WHAT="the vcan tests"
+VM_SKIP_HINT="the CAN tests did NOT run; set up vcan0 or the VM tooling"
+# shellcheck source=../vm/lib.sh
+source "$ROOT/tests/vm/lib.sh"
 
 # The test binaries that need vcan0; their vcan tests are #[ignore]d in a plain
 # `cargo test` and run here with --ignored.
@@ -68,10 +64,7 @@ if [[ $SMOKE -eq 0 && -e /sys/class/net/vcan0 ]]; then
     echo "vcan: vcan0 exists, running natively"
     ip link set up vcan0 2>/dev/null || true
     # The e2e test drives can-utils (cansend, candump, cangen) as a third-party peer.
-    if ! command -v cansend >/dev/null; then
-        { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq can-utils; } \
-            >"$WORK.apt.log" 2>&1 || skip_or_fail "could not install can-utils (see target/vcan.apt.log)"
-    fi
+    command -v cansend >/dev/null || vm_install "$WORK.apt.log" can-utils
     rc=0
     build_tests
     for exe in $(cat "$WORK/tests.txt"); do
@@ -87,18 +80,10 @@ command -v qemu-system-x86_64 >/dev/null || need+=(qemu-system-x86)
 if [[ ! -x /bin/busybox ]] || ldd /bin/busybox >/dev/null 2>&1; then need+=(busybox-static); fi
 command -v cpio >/dev/null || need+=(cpio)
 command -v cansend >/dev/null || need+=(can-utils)
-if [[ ${#need[@]} -gt 0 ]]; then
-    echo "vcan: installing ${need[*]}"
-    if ! { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}"; } >"$WORK.apt.log" 2>&1; then
-        mkdir -p "$(dirname "$WORK")"
-        skip_or_fail "could not install ${need[*]} (see target/vcan.apt.log)"
-    fi
-fi
+if [[ ${#need[@]} -gt 0 ]]; then vm_install "$WORK.apt.log" "${need[@]}"; fi
 mkdir -p "$WORK"
 
 # ---- kernel and CAN modules, cached under target/vm-kernel
-# shellcheck source=../vm/lib.sh
-source "$ROOT/tests/vm/lib.sh"
 vm_kernel
 
 # ---- initramfs

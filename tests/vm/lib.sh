@@ -1,6 +1,32 @@
-# Sourced by the scripts that boot a test VM (tests/vcan/run.sh, tests/systemd/run.sh):
-# a Debian kernel with the modules they load, and carrying a program into an initramfs.
-# The caller sets ROOT (the checkout) and defines skip_or_fail MESSAGE.
+# Sourced by the scripts that boot a test VM (tests/vcan/run.sh, tests/systemd/run.sh,
+# tests/powerloss/run.sh): a stage that cannot run, installing what a stage needs, a
+# Debian kernel with the modules they load, and carrying a program into an initramfs.
+# The caller sets ROOT (the checkout), VM_STAGE (its name in messages) and
+# VM_STAGE_WHAT (what must run, e.g. "the vcan tests"); VM_SKIP_HINT, if set, is said
+# after a skip.
+
+# skip_or_fail MESSAGE: under CI a stage that cannot run fails; elsewhere it is skipped,
+# saying so.
+skip_or_fail() {
+    if [[ -n "${CI:-}" ]]; then
+        echo "$VM_STAGE: FAILED: $1 (CI is set: $VM_STAGE_WHAT must run)" >&2
+        exit 1
+    fi
+    echo "$VM_STAGE: SKIPPED: $1" >&2
+    [[ -z "${VM_SKIP_HINT:-}" ]] || echo "$VM_STAGE: $VM_SKIP_HINT" >&2
+    exit 0
+}
+
+# vm_install LOG PACKAGE...: installs the packages with apt-get, its output in LOG (a
+# path under the checkout); skip_or_fail when that fails.
+vm_install() {
+    local log=$1
+    shift
+    echo "$VM_STAGE: installing $*"
+    mkdir -p "$(dirname "$log")"
+    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@"; } \
+        >"$log" 2>&1 || skip_or_fail "could not install $* (see ${log#"$ROOT"/})"
+}
 
 # The modules either VM loads, as paths under the kernel package's lib/modules/*/kernel.
 VM_MODULES=(
