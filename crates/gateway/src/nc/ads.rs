@@ -189,12 +189,17 @@ impl AdsTargetConfig {
         Ok(values)
     }
 
-    /// Each value of axis `axis_number`, if they resolve (see [`TargetConfig::places`](super::config::TargetConfig::places)).
-    pub fn places(&self, axis_number: u16) -> Vec<Place> {
-        let size = match self.value_type {
+    /// Bytes one value takes in the control.
+    fn value_bytes(&self) -> u64 {
+        match self.value_type {
             AdsValueType::Lreal => 8,
             AdsValueType::Real => 4,
-        };
+        }
+    }
+
+    /// Each value of axis `axis_number`, if they resolve (see [`TargetConfig::places`](super::config::TargetConfig::places)).
+    pub fn places(&self, axis_number: u16) -> Vec<Place> {
+        let size = self.value_bytes();
         let values = self.resolve(axis_number).unwrap_or_default();
         values
             .into_iter()
@@ -212,10 +217,7 @@ impl AdsTargetConfig {
     /// them (of one axis or of two) share a byte; `axes` are the (name, axis number)
     /// of the axes on this target, `key` the target's path.
     pub fn validate_axes(&self, key: &str, axes: &[(&str, u16)], out: &mut Problems<'_>) {
-        let size = match self.value_type {
-            AdsValueType::Lreal => 8,
-            AdsValueType::Real => 4,
-        };
+        let size = self.value_bytes();
         let mut placed: Vec<(&str, AdsValue)> = Vec::new();
         for &(axis, number) in axes {
             let values = match self.resolve(number) {
@@ -561,16 +563,7 @@ mod tests {
         ))
         .expect("valid ADS target config");
         let mut w = cfg.build("X", 1).expect("writer");
-        let first = w
-            .read_snapshot()
-            .await
-            .expect_err("nobody listens")
-            .to_string();
-        let waiting = w
-            .read_snapshot()
-            .await
-            .expect_err("backing off")
-            .to_string();
+        let (first, waiting) = crate::nc::refused_then_waiting(&mut w).await;
         assert!(first.contains("refused"), "{first}");
         assert!(
             waiting.contains(&at)

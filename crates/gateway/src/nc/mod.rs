@@ -475,6 +475,15 @@ pub(crate) fn refused_address() -> String {
     l.local_addr().expect("address").to_string()
 }
 
+/// The errors of `w`'s first snapshot, against a [`refused_address`], and of the next
+/// one, made while the reconnect waits.
+#[cfg(test)]
+pub(crate) async fn refused_then_waiting(w: &mut impl NcWriter) -> (String, String) {
+    let first = w.read_snapshot().await.expect_err("nobody listens");
+    let waiting = w.read_snapshot().await.expect_err("backing off");
+    (first.to_string(), waiting.to_string())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1353,16 +1353,7 @@ mod tests {
         ))
         .expect("valid");
         let mut w = cfg.build("X", 1).expect("writer");
-        let first = w
-            .read_snapshot()
-            .await
-            .expect_err("nobody listens")
-            .to_string();
-        let waiting = w
-            .read_snapshot()
-            .await
-            .expect_err("backing off")
-            .to_string();
+        let (first, waiting) = crate::nc::refused_then_waiting(&mut w).await;
         assert!(
             waiting.contains(first.trim_start_matches("NC link: "))
                 && waiting.contains("(next attempt in"),
