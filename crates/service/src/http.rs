@@ -11,6 +11,8 @@
 //! - Accept errors (e.g. `EMFILE`) never make the loop spin: it backs off, and logs at
 //!   most one line per [`Limits::log_every`] with the count.
 //! - Other paths answer 404, other methods 405 with `Allow: GET, HEAD`.
+//! - A request for another server's URL (the absolute form a proxy gets) answers 421:
+//!   plant IT scanners (nmap's `http-open-proxy`) would otherwise report an open proxy.
 
 use std::collections::VecDeque;
 use std::convert::Infallible;
@@ -25,6 +27,7 @@ use http_body::{Body, Frame, SizeHint};
 use http_body_util::Full;
 use hyper::body::Incoming;
 use hyper::header::{HeaderValue, ALLOW, CONTENT_TYPE};
+use hyper::http::uri::Authority;
 use hyper::{Method, Request, Response, StatusCode};
 use hyper_util::rt::{TokioIo, TokioTimer};
 use tokio::net::TcpListener;
@@ -325,9 +328,17 @@ async fn connection(
     held: Arc<Mutex<VecDeque<Arc<Slot>>>>,
 ) {
     let svc_slot = slot.clone();
+    let local = stream.local_addr().ok();
     let svc = hyper::service::service_fn(move |req: Request<Incoming>| {
         let busy = Busy::new(svc_slot.clone());
-        let response = router.respond(req.method(), req.uri().path(), req.uri().query());
+        let uri = req.uri();
+        let response = match (uri.authority(), local) {
+            (Some(a), Some(local)) if !names_this_server(a, local) => text(
+                StatusCode::MISDIRECTED_REQUEST,
+                "misdirected request: this server answers for itself only, it is not a proxy\n",
+            ),
+            _ => router.respond(req.method(), uri.path(), uri.query()),
+        };
         async move { Ok::<_, Infallible>(response.map(|inner| Guarded { inner, _busy: busy })) }
     });
     let conn = hyper::server::conn::http1::Builder::new()
@@ -347,6 +358,27 @@ async fn connection(
     if let Some(i) = held.iter().position(|s| s.id == slot.id) {
         held.remove(i);
     }
+}
+
+/// Whether a request target's authority (`http://host:port/...`) names the listener
+/// the request came in on: its address, `localhost` on loopback, or this host's name.
+fn names_this_server(authority: &Authority, local: std::net::SocketAddr) -> bool {
+    if authority.port_u16().unwrap_or(80) != local.port() {
+        return false;
+    }
+    let host = authority
+        .host()
+        .trim_start_matches('[')
+        .trim_end_matches(']');
+    if let Ok(ip) = host.parse::<std::net::IpAddr>() {
+        return ip == local.ip();
+    }
+    let first_label = host.split('.').next().unwrap_or_default();
+    (host.eq_ignore_ascii_case("localhost") && local.ip().is_loopback())
+        || rustix::system::uname()
+            .nodename()
+            .to_str()
+            .is_ok_and(|name| !name.is_empty() && first_label.eq_ignore_ascii_case(name))
 }
 
 #[cfg(test)]
@@ -401,6 +433,46 @@ mod tests {
         .await;
         assert!(na.starts_with("HTTP/1.1 405"), "{na}");
         assert!(na.to_ascii_lowercase().contains("allow: get, head"), "{na}");
+        shutdown.cancel();
+    }
+
+    // A request for another server's URL (absolute form, as to a proxy) is refused,
+    // so scanners do not report an open proxy; one naming this server is answered.
+    #[tokio::test]
+    async fn absolute_urls_of_other_servers_are_misdirected() {
+        let (addr, _, shutdown) = start(Limits::default()).await;
+        for foreign in [
+            "http://www.google.com/metrics".to_string(),
+            "http://www.google.com".to_string(),
+            format!("http://127.0.0.2:{}/metrics", addr.port()),
+            "http://127.0.0.1/metrics".to_string(),
+        ] {
+            let r = ask(
+                addr,
+                &format!(
+                    "GET {foreign} HTTP/1.1\r\nHost: www.google.com\r\nConnection: close\r\n\r\n"
+                ),
+            )
+            .await;
+            assert!(r.starts_with("HTTP/1.1 421"), "{foreign}: {r}");
+            assert!(r.contains("not a proxy"), "{foreign}: {r}");
+        }
+        for own in [
+            format!("http://127.0.0.1:{}/metrics", addr.port()),
+            format!("http://LocalHost:{}/metrics", addr.port()),
+            format!(
+                "http://{}:{}/metrics",
+                rustix::system::uname().nodename().to_string_lossy(),
+                addr.port()
+            ),
+        ] {
+            let r = ask(
+                addr,
+                &format!("GET {own} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"),
+            )
+            .await;
+            assert!(r.starts_with("HTTP/1.1 200"), "{own}: {r}");
+        }
         shutdown.cancel();
     }
 
