@@ -1104,7 +1104,7 @@ impl Writer {
             }
             None => Err(RecordError::Open {
                 path: self.path.display().to_string(),
-                message: "deleted while open and not created again".into(),
+                message: "moved, deleted or replaced while open, and not opened again at its path (the error before says why)".into(),
             }),
         };
         match result {
