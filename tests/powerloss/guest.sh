@@ -25,12 +25,19 @@ wait_for() {
         sleep 0.2
     done
 }
-listening() { (exec 3<>/dev/tcp/127.0.0.1/15021) 2>/dev/null; }
-# start_gateway N: the simulated plant, then the gateway; its log prefixed GWN on
-# the console and kept in /run/gwN.log.
+listening() { (exec 3<>/dev/tcp/127.0.0.1/$1) 2>/dev/null; }
+# start_gateway N: a broker with a subscriber, the simulated plant, then the gateway;
+# its log prefixed GWN on the console and kept in /run/gwN.log. The subscriber prints
+# each message it gets as "PL-MSG: topic t_unix_ms" on the console, which the host
+# keeps across the cut (run.sh counts what boot 2 published again).
 start_gateway() {
+    /usr/sbin/mosquitto -p 18830 >"/run/mosquitto$1.log" 2>&1 &
+    wait_for 20 listening 18830 || echo "PL-NOTE: the broker does not listen"
+    mosquitto_sub -p 18830 -q 1 -v -t 'compgate/#' |
+        sed -un 's/^\([^ ]*\) .*"t_unix_ms":\([0-9]*\).*/PL-MSG: \1 \2/p' |
+        tee "/run/msgs$1.log" >/dev/console &
     "$CG" sim --config "$CFG" >"/run/sim$1.log" 2>&1 &
-    wait_for 20 listening || echo "PL-NOTE: the simulated plant does not listen"
+    wait_for 20 listening 15021 || echo "PL-NOTE: the simulated plant does not listen"
     "$CG" run --config "$CFG" > >(tee "/run/gw$1.log" | sed -u "s/^/GW$1: /" >/dev/console) 2>&1 &
     GW=$!
 }
@@ -107,6 +114,10 @@ case $P in
     wait_for 30 after
     check $? "the gateway starts again and records" \
         "$(sqlite3 -readonly "$DB" "SELECT count(*) FROM readings WHERE t_unix_ms > $t2") readings since its start"
+    # The outbox's backlog is out (run.sh compares it with boot 1's) once a message
+    # recorded after this start arrived.
+    published() { awk -v t="$t2" '$3 > t { f = 1 } END { exit !f }' /run/msgs2.log; }
+    wait_for 30 published || echo "PL-NOTE: no message recorded in boot 2 reached the subscriber"
 
     # A disk error: ext4 (errors=remount-ro) turns the file system read-only under the
     # running gateway. Its commit error names that, not only "disk I/O error".
