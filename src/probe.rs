@@ -267,7 +267,7 @@ fn slow_cycle(
         .enumerate()
         .map(|(i, (s, _))| Slot { channel: i, ..*s })
         .collect();
-    let blocks = plan::plan(&slots, params.max_gap_registers);
+    let blocks = plan::plan(&slots, params.max_gap_registers, params.max_read_registers);
     let cycle: Duration = blocks
         .iter()
         .filter_map(|b| {

@@ -1,6 +1,7 @@
-//! `compgate probe` against Modbus TCP devices that misbehave: slow, garbled, a float
-//! transmitter reporting its fault value. The devices are a few lines each, on
-//! loopback sockets.
+//! `compgate probe` (and `run`, where the fault is in how devices share a peer) against
+//! Modbus TCP devices that misbehave: slow, garbled, a float transmitter reporting its
+//! fault value, a unit missing behind a TCP-to-RTU gateway. The devices are a few
+//! lines each, on loopback sockets.
 
 #![allow(clippy::unwrap_used)]
 
@@ -9,6 +10,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+mod common;
 
 /// A read reply's PDU holding `regs`.
 fn registers(function: u8, regs: &[u16]) -> Vec<u8> {
@@ -163,4 +166,91 @@ async fn probe_gives_no_byte_order_hint_for_a_nan() {
     );
     assert_eq!(report.bad, ["t"]);
     dev.abort();
+}
+
+// Two units behind one TCP-to-RTU gateway, which serves one request at a time on its
+// serial line: unit 1 answers in 5 ms, unit 2 is absent and the gateway answers 0x0B
+// after 100 ms. Unit 2, asked every cycle, held the line so that unit 1's requests
+// (timeout_s 0.08) failed in about half its cycles, and it showed as link up (an
+// exception counted as an answer). Now 0x0A/0x0B mean the unit did not answer, and a
+// silent unit at an address other devices share is asked only when its backoff allows.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_absent_unit_behind_a_tcp_gateway_does_not_hold_up_the_present_one() {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let address = listener.local_addr().unwrap().to_string();
+    let line = Arc::new(tokio::sync::Mutex::new(()));
+    let peer = tokio::spawn(async move {
+        while let Ok((mut s, _)) = listener.accept().await {
+            let line = line.clone();
+            tokio::spawn(async move {
+                let mut req = [0u8; 12];
+                while s.read_exact(&mut req).await.is_ok() {
+                    let count = u16::from_be_bytes([req[10], req[11]]);
+                    let pdu = {
+                        let _on_the_line = line.lock().await;
+                        if req[6] == 1 {
+                            tokio::time::sleep(Duration::from_millis(5)).await;
+                            registers(req[7], &vec![1775; usize::from(count)])
+                        } else {
+                            tokio::time::sleep(Duration::from_millis(100)).await;
+                            vec![req[7] | 0x80, 0x0B]
+                        }
+                    };
+                    let mut reply = req[..7].to_vec();
+                    reply[4..6].copy_from_slice(&(pdu.len() as u16 + 1).to_be_bytes());
+                    reply.extend(pdu);
+                    if s.write_all(&reply).await.is_err() {
+                        break;
+                    }
+                }
+            });
+        }
+    });
+    let device = |name: &str, unit: u8, timeout_s: f64| {
+        format!(
+            "[devices.{name}]\ntransport = \"tcp\"\naddress = \"{address}\"\nunit_id = {unit}\n\
+             timeout_s = {timeout_s}\npoll_interval_s = 0.1\nretries = 0\ndegrade_after_cycles = 2\n\
+             backoff_initial_s = 1.0\nbackoff_max_s = 4.0\n\n[channels.T_{name}]\ndevice = \"{name}\"\n\
+             register = \"input\"\naddress = 0\ndata_type = \"u16\"\n\
+             scaling = {{ kind = \"direct\", gain = 0.01, offset_degc = 0.0 }}\n\n"
+        )
+    };
+    let text = format!(
+        "[gateway]\nstatus_interval_s = 0.05\n\n{}{}",
+        device("here", 1, 0.08),
+        device("gone", 2, 0.5)
+    );
+    let cfg = compgate_gateway::config::load_str(&text, "units.toml").expect("config");
+    let (tx, mut status) = tokio::sync::watch::channel(Default::default());
+    let shutdown = tokio_util::sync::CancellationToken::new();
+    let sd = shutdown.clone();
+    let gw = tokio::spawn(async move {
+        compgate_gateway::runtime::run(&cfg, sd, tx)
+            .await
+            .expect("runs");
+    });
+    let of = |s: &compgate_gateway::runtime::Status, name: &str| {
+        s.devices.iter().find(|d| d.name == name).cloned().unwrap()
+    };
+    let s = common::wait_status(&mut status, 20.0, "60 cycles of unit 1", |s| {
+        of(s, "here").cycles >= 60
+    })
+    .await;
+    shutdown.cancel();
+    gw.await.unwrap();
+    peer.abort();
+    let (here, gone) = (of(&s, "here"), of(&s, "gone"));
+    let failed: u64 = here.errors.values().sum();
+    assert!(
+        failed <= 8,
+        "unit 1 failed {failed} of {} requests: {:?}",
+        here.cycles,
+        here.errors
+    );
+    assert!(!gone.link_up, "{gone:?}");
+    let error = gone.last_error.unwrap_or_default();
+    assert!(
+        error.contains("0x0B gateway target device failed to respond"),
+        "{error}"
+    );
 }

@@ -162,6 +162,7 @@ pub fn run(data: &[u8]) {
             retries: 0,
             degrade_after_cycles: 1,
             max_gap_registers: 0,
+            max_read_registers: 125,
             cycle_deadline: timeout,
         };
         let mut poller = DevicePoller::new(

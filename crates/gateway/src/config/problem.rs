@@ -180,17 +180,10 @@ impl<'a> Problems<'a> {
             (Err(why), _) => self.push(key, why.to_string()),
         }
     }
-
-    /// A Modbus unit id addressing one device, 0..=247.
-    pub fn unit_id(&mut self, key: &str, id: u8) {
-        if id > MAX_UNIT_ID {
-            self.push(key, format!("must be 0..=247 (Modbus unit id), got {id}"));
-        }
-    }
 }
 
-/// Largest Modbus unit id that addresses one device.
-pub const MAX_UNIT_ID: u8 = 247;
+/// Largest unit id of a Modbus RTU device (248..=255 are reserved on a serial line).
+pub const MAX_RTU_UNIT_ID: u8 = 247;
 
 /// Why a `host:port` text is not one.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

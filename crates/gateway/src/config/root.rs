@@ -179,7 +179,7 @@ impl Config {
 /// - **CAN**: `interface` a network interface name, `node_id` 1..=127; node ids
 ///   distinct per interface, and one `poll_interval_s` per interface (its SYNC
 ///   period).
-/// - **Unit ids** 0..=247; on RTU 1..=247 (0 is broadcast).
+/// - **Unit ids** on RTU 1..=247 (0 is broadcast); on TCP any byte.
 /// - **Times**: every timeout and interval > 0, `backoff_initial_s <= backoff_max_s`;
 ///   filter times >= 0 (0 = off).
 /// - **Channels** (`channel`): registers on a Modbus device, `can` on a CAN device;

@@ -203,8 +203,7 @@ pub struct ModbusTargetConfig {
     /// with `[sim]`: the simulated plant binds a free port and writes it in.
     #[schemars(length(max = 300))]
     pub address: String,
-    /// Modbus unit id, 0..=247. Required.
-    #[schemars(range(max = 247))]
+    /// Modbus unit id, 0..=255 (Modbus TCP). Required.
     pub unit_id: u8,
     /// Seconds one Modbus request may take. Default 1.0; 0.001..=3600.
     #[serde(default = "default_nc_timeout_s")]
@@ -235,11 +234,10 @@ impl ModbusTargetConfig {
         secs(self.job_timeout_s)
     }
 
-    /// `address` is `host:port`, unit id 0..=247, every time > 0.
+    /// `address` is `host:port`, every time > 0.
     pub fn validate(&self, key: &str, out: &mut Problems<'_>) {
         let k = |f: &str| format!("{key}.{f}");
         out.host_port(&k("address"), &self.address);
-        out.unit_id(&k("unit_id"), self.unit_id);
         out.positive(&k("timeout_s"), self.timeout_s, "seconds");
         out.positive(&k("connect_timeout_s"), self.connect_timeout_s, "seconds");
         out.positive(&k("job_timeout_s"), self.job_timeout_s, "seconds");

@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use tokio::sync::Mutex;
 
+use crate::config::problem::peer_identity;
 use crate::config::{Config, DeviceConfig};
 use crate::nc::{Guarded, NcWriter};
 use crate::source::can::sync::{self, SyncDevice, SyncParams};
@@ -162,12 +163,16 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             }),
     );
     let mut serial_links: BTreeMap<String, SharedLink> = BTreeMap::new();
-    let mut on_line: BTreeMap<&str, usize> = BTreeMap::new();
-    for rtu in cfg.devices.values().filter_map(|d| match d {
-        DeviceConfig::Rtu(rtu) => Some(rtu),
-        _ => None,
-    }) {
-        *on_line.entry(rtu.serial_path.as_str()).or_default() += 1;
+    // Devices on one serial line, or at one TCP address (units behind a TCP-to-RTU
+    // gateway, which has one serial line too): a silent one is demoted.
+    let line_of = |d: &DeviceConfig| match d {
+        DeviceConfig::Rtu(rtu) => Some(rtu.serial_path.clone()),
+        DeviceConfig::Tcp(tcp) => Some(format!("tcp {}", peer_identity(&tcp.address))),
+        DeviceConfig::Can(_) => None,
+    };
+    let mut on_line: BTreeMap<String, usize> = BTreeMap::new();
+    for line in cfg.devices.values().filter_map(line_of) {
+        *on_line.entry(line).or_default() += 1;
     }
     let mut devices = Vec::with_capacity(cfg.devices.len());
     for (((name, dev), specs), can_specs) in cfg.devices.iter().zip(specs).zip(can_specs) {
@@ -207,7 +212,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             LinkSpec::Tcp { .. } => new_link(),
         };
         let mut poller = DevicePoller::new(devices.len(), name.clone(), params, link, specs);
-        if matches!(&spec, LinkSpec::Rtu { path, .. } if on_line.get(path.as_str()) > Some(&1)) {
+        if line_of(dev).is_some_and(|line| on_line.get(&line) > Some(&1)) {
             poller =
                 poller.on_shared_line(Backoff::new(common.backoff_initial(), common.backoff_max()));
         }

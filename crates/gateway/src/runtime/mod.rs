@@ -1540,6 +1540,7 @@ mod tests {
             }
             s.error = Some(crate::source::SourceError::Read {
                 read: "function 0x04 (input registers), address 5, count 1 (T)".into(),
+                hint: None,
                 source: Box::new(if reason == Reason::Comm {
                     crate::source::SourceError::Timeout(Duration::from_millis(300))
                 } else {

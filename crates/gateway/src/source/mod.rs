@@ -58,12 +58,15 @@ pub enum SourceError {
         detail: String,
     },
     /// One read of a poll cycle failed with `source`.
-    #[error("{read}: {source}")]
+    #[error("{read}: {source}{}", hint.as_deref().map(|h| format!(": {h}")).unwrap_or_default())]
     Read {
         /// The read: function, first register, count and the channels in it.
         read: Arc<str>,
         /// Why it failed.
         source: Box<SourceError>,
+        /// What to change, where the answer points at the read's shape (see
+        /// [`ReadHints`]).
+        hint: Option<Arc<str>>,
     },
     /// The TCP peer at this address closed the connection with a request unanswered.
     #[error("connection closed by the peer at {0}")]
@@ -100,6 +103,8 @@ impl SourceError {
     /// The channel-quality reason this fault maps to.
     pub fn reason(&self) -> Reason {
         match self {
+            // From a TCP-to-RTU gateway: the device behind it did not answer.
+            Self::Exception(c) if gateway_exception(*c) => Reason::Comm,
             Self::Exception(_) => Reason::DeviceException,
             Self::Read { source, .. } => source.reason(),
             _ => Reason::Comm,
@@ -185,7 +190,8 @@ pub struct DeviceSample {
 
 impl DeviceSample {
     /// Whether the device answered at all this cycle: a channel got a value or an
-    /// exception. A device one of whose reads fails while the others answer is up;
+    /// exception of the device's own (a TCP-to-RTU gateway's 0x0A/0x0B for it is no
+    /// answer from it). A device one of whose reads fails while the others answer is up;
     /// only its channels in that read go bad.
     pub fn answered(&self) -> bool {
         self.error.is_none()
@@ -207,6 +213,8 @@ pub struct PollParams {
     pub degrade_after_cycles: u32,
     /// Largest gap merged into one read.
     pub max_gap_registers: u16,
+    /// Most registers one read asks for.
+    pub max_read_registers: u16,
     /// Longest time one poll cycle may take, every read, retry and reconnect
     /// included; the reads not done by then fail for this cycle.
     pub cycle_deadline: Duration,
@@ -235,6 +243,8 @@ pub struct DevicePoller {
     blocks: Vec<ReadBlock>,
     /// Per block, what its errors call it: function, first register, count, channels.
     labels: Vec<Arc<str>>,
+    /// Per block, what to change when a module refuses its shape.
+    hints: Vec<ReadHints>,
     /// Where each channel's value is and how it is encoded, in channel order: see
     /// [`Self::poll`].
     decode: Vec<Decode>,
@@ -273,8 +283,9 @@ impl DevicePoller {
                 len: s.data_type.registers(),
             })
             .collect();
-        let blocks = plan::plan(&slots, params.max_gap_registers);
+        let blocks = plan::plan(&slots, params.max_gap_registers, params.max_read_registers);
         let labels = blocks.iter().map(|b| read_label(b, &specs)).collect();
+        let hints = blocks.iter().map(|b| ReadHints::new(b, &name)).collect();
         let specs = &specs;
         let mut decode: Vec<Decode> = blocks
             .iter()
@@ -300,6 +311,7 @@ impl DevicePoller {
             link,
             blocks,
             labels,
+            hints,
             decode,
             failed_cycles: 0,
             silent: None,
@@ -379,9 +391,11 @@ impl DevicePoller {
                 return Err(first.unwrap_or(e));
             }
             faults.push(e.kind());
+            // 0x06: the module is busy now, a later request may pass.
             let transient = matches!(
                 e,
-                SourceError::Timeout(_)
+                SourceError::Exception(ExceptionCode::ServerDeviceBusy)
+                    | SourceError::Timeout(_)
                     | SourceError::Transport(_)
                     | SourceError::Frame { .. }
                     | SourceError::PeerClosed(_)
@@ -415,7 +429,7 @@ impl DevicePoller {
         let length = self.params.cycle_deadline;
         link.set_cycle_deadline(Some((Instant::now() + length, length)));
         let mut reads = Vec::with_capacity(self.blocks.len());
-        for (block, label) in self.blocks.iter().zip(&self.labels) {
+        for ((block, label), hints) in self.blocks.iter().zip(&self.labels).zip(&self.hints) {
             match self.read_block(&mut link, block, &mut faults).await {
                 Ok(regs) => reads.push(Ok(regs)),
                 Err(e) => {
@@ -423,6 +437,7 @@ impl DevicePoller {
                     reads.push(Err(e.reason()));
                     first_error.get_or_insert_with(|| SourceError::Read {
                         read: label.clone(),
+                        hint: hints.for_error(&e),
                         source: Box::new(e),
                     });
                 }
@@ -471,9 +486,11 @@ impl DevicePoller {
             }
         }
         let silent = reads.iter().all(Result::is_err)
-            && first_error
-                .as_ref()
-                .is_some_and(|e| matches!(e.kind(), "timeout" | "deadline"));
+            && first_error.as_ref().is_some_and(|e| {
+                matches!(e.kind(), "timeout" | "deadline")
+                    || matches!(e, SourceError::Read { source, .. }
+                        if matches!(**source, SourceError::Exception(c) if gateway_exception(c)))
+            });
         self.note_silence(silent, first_error.as_ref());
         DeviceSample {
             connects,
@@ -532,7 +549,7 @@ impl DevicePoller {
             Some(e) => {
                 if s.cause.is_none() {
                     let first_s = s.backoff.current().as_secs_f64();
-                    tracing::warn!(device = %self.name, first_s, "device {} is silent on the line it shares: it is asked again after {first_s} s, the wait doubling up to its backoff_max_s, so that its timeouts do not hold up the line's other devices", self.name);
+                    tracing::warn!(device = %self.name, first_s, "device {} is silent on the line it shares (a serial line, or a TCP address other devices use: a TCP-to-RTU gateway): it is asked again after {first_s} s, the wait doubling up to its backoff_max_s, so that its timeouts do not hold up the line's other devices", self.name);
                 }
                 s.backoff.failed(Instant::now());
                 s.cause = Some(e.clone());
@@ -549,6 +566,75 @@ impl DevicePoller {
 
 /// What the errors of `block` call it, e.g. "function 0x04 (input registers), address
 /// 5, count 2 (T_a, T_b)": a few of its channels (`specs` by slot), then how many more.
+/// Exceptions a TCP-to-RTU gateway answers for the serial device behind it: 0x0A (no
+/// path to it), 0x0B (it did not answer). The device is silent, not refusing.
+fn gateway_exception(code: ExceptionCode) -> bool {
+    matches!(
+        code,
+        ExceptionCode::GatewayPathUnavailable | ExceptionCode::GatewayTargetDevice
+    )
+}
+
+/// What to change when a module refuses a merged read, which `probe` (one channel at
+/// a time) never shows: a read across registers no channel uses (exception 0x02 from
+/// a map with holes), or more registers than the module takes at a time (0x03).
+#[derive(Debug, Default)]
+struct ReadHints {
+    gap: Option<Arc<str>>,
+    size: Option<Arc<str>>,
+}
+
+impl ReadHints {
+    fn new(block: &ReadBlock, device: &str) -> Self {
+        let mut used = vec![false; usize::from(block.count)];
+        for (slot, offset) in &block.members {
+            let from = usize::from(*offset);
+            for u in used.iter_mut().skip(from).take(usize::from(slot.len)) {
+                *u = true;
+            }
+        }
+        let gap = used.iter().position(|u| !u).map(|first| {
+            let run = used[first..].iter().take_while(|u| !**u).count();
+            let more = if used[first + run..].contains(&false) {
+                " (and more)"
+            } else {
+                ""
+            };
+            let at = |i: usize| u32::from(block.start) + i as u32;
+            format!(
+                "the read merges channels across registers {}..={}{more}, which no channel \
+                 uses: a module without them refuses it; set \
+                 devices.{device}.max_gap_registers = 0",
+                at(first),
+                at(first + run - 1)
+            )
+            .into()
+        });
+        let longest = block.members.iter().map(|(s, _)| s.len).max().unwrap_or(0);
+        let size = (block.count > longest).then(|| {
+            format!(
+                "a module that reads fewer than {} registers at a time refuses it; set \
+                 devices.{device}.max_read_registers to what its manual gives (e.g. 16)",
+                block.count
+            )
+            .into()
+        });
+        Self { gap, size }
+    }
+
+    fn for_error(&self, e: &SourceError) -> Option<Arc<str>> {
+        match e {
+            SourceError::Exception(ExceptionCode::IllegalDataAddress) => {
+                self.gap.clone().or_else(|| self.size.clone())
+            }
+            SourceError::Exception(ExceptionCode::IllegalDataValue) => {
+                self.size.clone().or_else(|| self.gap.clone())
+            }
+            _ => None,
+        }
+    }
+}
+
 fn read_label(block: &ReadBlock, specs: &[ChannelSpec]) -> Arc<str> {
     const NAMED: usize = 3;
     let (function, table) = match block.kind {
@@ -611,6 +697,7 @@ mod tests {
                 retries: 1,
                 degrade_after_cycles: 3,
                 max_gap_registers: 0,
+                max_read_registers: plan::MAX_READ_REGISTERS,
                 cycle_deadline,
             },
             Arc::new(Mutex::new(link)),
@@ -675,6 +762,68 @@ mod tests {
         assert_eq!(sample.values[0].1, Ok(1775.0));
         assert!(sample.values[1].1.is_err());
         peer.abort();
+    }
+
+    // A module refusing a merged read (a map with holes: 0x02; more registers than it
+    // takes: 0x03) left every channel of the read bad with only the exception named,
+    // though `probe`, reading one channel at a time, showed them good: the error names
+    // the key to change.
+    #[tokio::test]
+    async fn a_refused_merged_read_names_the_key_to_change() {
+        let (address, peer) = device(|_, _| (Duration::ZERO, Err(0x02))).await;
+        let (address3, peer3) = device(|_, _| (Duration::ZERO, Err(0x03))).await;
+        let poller_of = |address: &str, registers: &[u16]| {
+            let link = ModbusLink::new(
+                tcp(address),
+                Duration::from_secs(1),
+                Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
+            );
+            let specs = registers
+                .iter()
+                .enumerate()
+                .map(|(channel, &address)| ChannelSpec {
+                    channel,
+                    name: format!("c{address}").into(),
+                    kind: RegisterKind::Input,
+                    address,
+                    data_type: DataType::U16,
+                    byte_order: ByteOrder::Abcd,
+                })
+                .collect();
+            let params = PollParams {
+                unit_id: 1,
+                retries: 0,
+                degrade_after_cycles: 3,
+                max_gap_registers: 8,
+                max_read_registers: plan::MAX_READ_REGISTERS,
+                cycle_deadline: Duration::from_secs(2),
+            };
+            DevicePoller::new(0, "ain1".into(), params, Arc::new(Mutex::new(link)), specs)
+        };
+        let holes = poller_of(&address, &[0, 1, 8]).poll().await;
+        assert_eq!(
+            holes.error.expect("refused").to_string(),
+            "function 0x04 (input registers), address 0, count 9 (c0, c1, c8): device \
+             exception 0x02 illegal data address: the read merges channels across registers \
+             2..=7, which no channel uses: a module without them refuses it; set \
+             devices.ain1.max_gap_registers = 0"
+        );
+        let many: Vec<u16> = (0..20).collect();
+        let large = poller_of(&address3, &many).poll().await;
+        let text = large.error.expect("refused").to_string();
+        assert!(
+            text.contains(
+                "0x03 illegal data value: a module that reads fewer than 20 \
+                 registers at a time refuses it; set devices.ain1.max_read_registers"
+            ),
+            "{text}"
+        );
+        // A one-channel read refused: nothing about the read's shape to change.
+        let one = poller_of(&address, &[40]).poll().await;
+        let text = one.error.expect("refused").to_string();
+        assert!(text.ends_with("0x02 illegal data address"), "{text}");
+        peer.abort();
+        peer3.abort();
     }
 
     // A device answering each read within its timeout, but both reads not within the

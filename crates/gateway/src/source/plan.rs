@@ -2,7 +2,8 @@
 //!
 //! Channels on the same device and register kind are merged into as few reads as
 //! possible. Two channels share a read when the gap between them is at most
-//! `max_gap_registers` and the read stays within the Modbus limit of 125 registers.
+//! `max_gap_registers` and the read stays within `max_read_registers` (at most the
+//! Modbus limit of 125).
 
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -213,8 +214,10 @@ pub struct ReadBlock {
 
 /// Merges slots into reads. Slots are sorted by (kind, address); a slot joins the
 /// current block when the gap is at most `max_gap` and the block stays within
-/// [`MAX_READ_REGISTERS`]. Overlapping slots (two channels on the same register) share.
-pub fn plan(slots: &[Slot], max_gap: u16) -> Vec<ReadBlock> {
+/// `max_read` registers (capped at [`MAX_READ_REGISTERS`]; a slot longer than that is
+/// read alone). Overlapping slots (two channels on the same register) share.
+pub fn plan(slots: &[Slot], max_gap: u16, max_read: u16) -> Vec<ReadBlock> {
+    let max_read = u32::from(max_read.min(MAX_READ_REGISTERS));
     let mut sorted = slots.to_vec();
     sorted.sort_by_key(|s| (s.kind, s.address, s.len));
     let mut blocks: Vec<ReadBlock> = Vec::new();
@@ -224,7 +227,7 @@ pub fn plan(slots: &[Slot], max_gap: u16) -> Vec<ReadBlock> {
             let b_end = u32::from(b.start) + u32::from(b.count);
             let gap_ok = u32::from(slot.address) <= b_end + u32::from(max_gap);
             let new_count = end.max(b_end) - u32::from(b.start);
-            if b.kind == slot.kind && gap_ok && new_count <= u32::from(MAX_READ_REGISTERS) {
+            if b.kind == slot.kind && gap_ok && new_count <= max_read {
                 b.count = new_count as u16;
                 b.members.push((slot, slot.address - b.start));
                 continue;
@@ -359,7 +362,7 @@ mod tests {
             slot(3, Input, 20, 1),  // gap 13: new block
             slot(4, Holding, 1, 1), // other kind: new block
         ];
-        let blocks = plan(&slots, 4);
+        let blocks = plan(&slots, 4, MAX_READ_REGISTERS);
         assert_eq!(blocks.len(), 3);
         assert_eq!((blocks[0].start, blocks[0].count), (0, 7));
         assert_eq!(
@@ -378,12 +381,27 @@ mod tests {
         let slots: Vec<Slot> = (0..300)
             .map(|i| slot(i, RegisterKind::Input, i as u16, 1))
             .collect();
-        let blocks = plan(&slots, 0);
+        let blocks = plan(&slots, 0, MAX_READ_REGISTERS);
         assert_eq!(
             blocks.iter().map(|b| b.count).collect::<Vec<_>>(),
             [125, 125, 50]
         );
         assert_eq!(blocks.iter().map(|b| b.members.len()).sum::<usize>(), 300);
+    }
+
+    // A module that takes at most 16 registers a read (`max_read_registers`).
+    #[test]
+    fn a_smaller_read_limit_splits_the_reads() {
+        let mut slots: Vec<Slot> = (0..20)
+            .map(|i| slot(i, RegisterKind::Input, i as u16, 1))
+            .collect();
+        let blocks = plan(&slots, 8, 16);
+        assert_eq!(blocks.iter().map(|b| b.count).collect::<Vec<_>>(), [16, 4]);
+        // A 32-bit value never splits, even with a limit below it.
+        slots.push(slot(20, RegisterKind::Holding, 0, 2));
+        let blocks = plan(&slots, 8, 1);
+        assert_eq!(blocks.len(), 21);
+        assert_eq!((blocks[20].start, blocks[20].count), (0, 2));
     }
 
     #[test]
@@ -393,7 +411,7 @@ mod tests {
             slot(1, RegisterKind::Input, 10, 1),
             slot(2, RegisterKind::Input, 3, 1),
         ];
-        let blocks = plan(&slots, 0);
+        let blocks = plan(&slots, 0, MAX_READ_REGISTERS);
         assert_eq!(blocks.len(), 2);
         assert_eq!((blocks[1].start, blocks[1].count), (10, 2));
     }

@@ -446,6 +446,20 @@ fn env_cannot_tell_names_apart_that_differ_in_case() {
     );
 }
 
+// Some TCP modules answer only unit 255, the Modbus TCP guide's id for a device
+// addressed by its IP; RTU keeps 1..=247.
+#[test]
+fn tcp_unit_id_255_is_valid_and_rtu_248_is_not() {
+    let text = edit(
+        "unit_id = 1\n# Per-request timeout.\ntimeout_s = 0.5\n# Connect",
+        "unit_id = 255\n# Per-request timeout.\ntimeout_s = 0.5\n# Connect",
+    );
+    let cfg = load_str(&text, "t.toml").expect("unit 255 on TCP is valid");
+    assert_eq!(cfg.devices["ain1"].tcp().map(|d| d.unit_id), Some(255));
+    let p = problems(&edit("unit_id = 7", "unit_id = 248"));
+    assert_eq!(keys(&p), ["devices.ain2.unit_id"], "{p:#?}");
+}
+
 #[test]
 fn error_display_lists_every_problem() {
     let err = load_str(&edit("unit_id = 7", "unit_id = 0"), "x.toml").expect_err("invalid");

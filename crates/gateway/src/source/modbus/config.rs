@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use super::LinkSpec;
 use crate::config::keys::secs;
-use crate::config::problem::Problems;
+use crate::config::problem::{Problems, MAX_RTU_UNIT_ID};
 use crate::source::config::DeviceCommon;
 use crate::source::PollParams;
 
@@ -21,8 +21,9 @@ pub struct TcpDeviceConfig {
     /// with `[sim]`: the simulated plant binds a free port and writes it in.
     #[schemars(length(max = 300))]
     pub address: String,
-    /// Modbus unit id, 0..=247 (many TCP modules ignore it). Required.
-    #[schemars(range(max = 247))]
+    /// Modbus unit id, 0..=255. Many TCP modules ignore it; some answer only 255 (the
+    /// Modbus TCP guide's id for a device addressed by its IP); behind a TCP-to-RTU
+    /// gateway it is the serial device's address, 1..=247. Required.
     pub unit_id: u8,
     /// Seconds a TCP connect may take. Default 2.0; 0.001..=3600.
     #[serde(default = "default_connect_timeout_s")]
@@ -45,11 +46,10 @@ impl TcpDeviceConfig {
         secs(self.connect_timeout_s)
     }
 
-    /// `address` is `host:port`, the unit id 0..=247, the connect timeout > 0.
+    /// `address` is `host:port`, the connect timeout > 0.
     pub fn validate(&self, key: &str, out: &mut Problems<'_>) {
         let k = |f: &str| format!("{key}.{f}");
         out.host_port(&k("address"), &self.address);
-        out.unit_id(&k("unit_id"), self.unit_id);
         out.positive(&k("connect_timeout_s"), self.connect_timeout_s, "seconds");
     }
 
@@ -148,8 +148,14 @@ impl RtuDeviceConfig {
                 k("unit_id"),
                 "must be 1..=247 on RTU: 0 is the broadcast address, which never answers",
             );
-        } else {
-            out.unit_id(&k("unit_id"), self.unit_id);
+        } else if self.unit_id > MAX_RTU_UNIT_ID {
+            out.push(
+                k("unit_id"),
+                format!(
+                    "must be 1..=247 on RTU (a serial device's address), got {}",
+                    self.unit_id
+                ),
+            );
         }
     }
 
@@ -190,6 +196,12 @@ pub struct ModbusCommon {
     #[serde(default = "default_max_gap_registers")]
     #[schemars(range(max = 125))]
     pub max_gap_registers: u16,
+    /// Registers one request may ask for at most. Default 125 (the Modbus limit);
+    /// 1..=125. Lower it for a module that answers larger reads with exception 0x03
+    /// (illegal data value), as some take only 16 or 32 at a time.
+    #[serde(default = "default_max_read_registers")]
+    #[schemars(range(min = 1, max = 125))]
+    pub max_read_registers: u16,
 }
 
 impl ModbusCommon {
@@ -203,6 +215,7 @@ impl ModbusCommon {
             retries: self.retries,
             degrade_after_cycles: common.degrade_after_cycles,
             max_gap_registers: self.max_gap_registers,
+            max_read_registers: self.max_read_registers,
             cycle_deadline: common.cycle_deadline(),
         }
     }
@@ -228,4 +241,7 @@ fn default_retries() -> u32 {
 }
 fn default_max_gap_registers() -> u16 {
     8
+}
+fn default_max_read_registers() -> u16 {
+    crate::source::plan::MAX_READ_REGISTERS
 }
