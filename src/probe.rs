@@ -128,8 +128,10 @@ pub async fn probe(
         // are not tried: each would wait for the same timeout. Connected first, so
         // that the reads' round trips are the device's alone.
         let mut silent: Option<SourceError> = link.open().await.err();
-        // Each channel's slot and how long its read took (not counting a connect).
+        // Each channel's slot and how long its read took (not counting a connect), and
+        // its name.
         let mut round_trips: Vec<(Slot, Duration)> = Vec::new();
+        let mut read_names: Vec<&String> = Vec::new();
         for (name, ch) in selected {
             if let Some(e) = &silent {
                 let _ = writeln!(report.text, "  {name}: not read, {} ({e})", not_read(e));
@@ -141,6 +143,7 @@ pub async fn probe(
             if let (Some(slot), true) = (slot(ch), link.connects() == connects) {
                 if read.is_ok() {
                     round_trips.push((slot, started.elapsed()));
+                    read_names.push(name);
                 }
             }
             match read {
@@ -156,6 +159,15 @@ pub async fn probe(
         }
         if let Some(line) = slow_cycle(dev_name, &round_trips, common.poll_interval(), &params) {
             let _ = writeln!(report.text, "  {line}");
+        }
+        if silent.is_none() {
+            let slots: Vec<Slot> = round_trips.iter().map(|(s, _)| *s).collect();
+            let refused =
+                refused_merged_reads(&mut link, dev_name, unit, &slots, &read_names, &params).await;
+            for (line, channels) in refused {
+                let _ = writeln!(report.text, "  {line}");
+                report.bad.extend(channels);
+            }
         }
         report.text.push('\n');
     }
@@ -289,6 +301,55 @@ fn slow_cycle(
             params.cycle_deadline.as_secs_f64()
         )
     })
+}
+
+/// The reads `run` merges from channels that each read well alone, made as `run`
+/// makes them: a module may refuse a read across a hole in its map (0x02) or longer
+/// than it takes (0x03), which one channel at a time never shows. Per refused read, a
+/// warning naming what to change, and its channels (`names` are the slots').
+async fn refused_merged_reads(
+    link: &mut ModbusLink,
+    device: &str,
+    unit: u8,
+    slots: &[Slot],
+    names: &[&String],
+    params: &compgate_gateway::source::PollParams,
+) -> Vec<(String, Vec<String>)> {
+    let slots: Vec<Slot> = slots
+        .iter()
+        .enumerate()
+        .map(|(i, s)| Slot { channel: i, ..*s })
+        .collect();
+    let mut refused = Vec::new();
+    for b in plan::plan(&slots, params.max_gap_registers, params.max_read_registers) {
+        if b.members.len() < 2 {
+            continue;
+        }
+        let Err(e) = link.read(unit, b.kind, b.start, b.count).await else {
+            continue;
+        };
+        if e.kind() != "exception" {
+            continue;
+        }
+        let hint = compgate_gateway::source::refused_read_hint(&b, device, &e)
+            .map_or_else(String::new, |h| format!(": {h}"));
+        let channels: Vec<String> = b
+            .members
+            .iter()
+            .map(|(s, _)| names[s.channel].clone())
+            .collect();
+        refused.push((
+            format!(
+                "warning: device {device}: `run` reads {} in one request ({} registers from \
+                 {}), and the module refused it: {e}{hint}",
+                channels.join(", "),
+                b.count,
+                b.start
+            ),
+            channels,
+        ));
+    }
+    refused
 }
 
 /// Reads and shows one channel: whether its quality is usable, or the read's error.

@@ -168,6 +168,48 @@ async fn probe_gives_no_byte_order_hint_for_a_nan() {
     dev.abort();
 }
 
+// A module whose map has holes answers each channel's own read, and refuses `run`'s
+// read across the hole with 0x02: `probe` showed every channel good, and `run` failed
+// them all every cycle. Now the probe makes `run`'s merged reads too and names the key.
+#[tokio::test]
+async fn probe_makes_the_merged_reads_of_run_and_names_a_refused_one() {
+    let (address, dev) = device(|f, _, count, _| {
+        let pdu = if count == 1 {
+            registers(f, &[25])
+        } else {
+            vec![f | 0x80, 0x02]
+        };
+        (Duration::ZERO, pdu)
+    })
+    .await;
+    let channels = [
+        ("a", "input", 0, "u16"),
+        ("b", "input", 1, "u16"),
+        ("c", "input", 8, "u16"),
+        ("far", "input", 100, "u16"),
+    ];
+    let report = probe(&config(&address, "", &channels)).await;
+    let text = &report.text;
+    assert!(
+        text.contains(
+            "warning: device d: `run` reads a, b, c in one request (9 registers from 0), \
+             and the module refused it: device exception 0x02 illegal data address: the \
+             read merges channels across registers 2..=7, which no channel uses"
+        ) && text.contains("set devices.d.max_gap_registers = 0"),
+        "{text}"
+    );
+    assert_eq!(report.bad, ["a", "b", "c"], "{text}");
+    // As configured to fit the module, nothing is refused.
+    let report = probe(&config(
+        &address,
+        "max_gap_registers = 0\nmax_read_registers = 1",
+        &channels,
+    ))
+    .await;
+    assert!(report.bad.is_empty(), "{}", report.text);
+    dev.abort();
+}
+
 // Two units behind one TCP-to-RTU gateway, which serves one request at a time on its
 // serial line: unit 1 answers in 5 ms, unit 2 is absent and the gateway answers 0x0B
 // after 100 ms. Unit 2, asked every cycle, held the line so that unit 1's requests

@@ -575,6 +575,12 @@ fn gateway_exception(code: ExceptionCode) -> bool {
     )
 }
 
+/// What to change when a module refuses `block` of `device` with `error`, where the
+/// read's shape (a merge across a gap, its size) is the likely cause.
+pub fn refused_read_hint(block: &ReadBlock, device: &str, error: &SourceError) -> Option<Arc<str>> {
+    ReadHints::new(block, device).for_error(error)
+}
+
 /// What to change when a module refuses a merged read, which `probe` (one channel at
 /// a time) never shows: a read across registers no channel uses (exception 0x02 from
 /// a map with holes), or more registers than the module takes at a time (0x03).
