@@ -368,6 +368,10 @@ impl DevicePoller {
     /// cycle lasts; `faults` gets the kind of every request that failed. The error is
     /// the first attempt's: a retry refused by the backoff a failed connect started
     /// must not hide the connect's error.
+    ///
+    /// A connection that had answered and is found closed by the device (modules close
+    /// idle connections, some after every reply) is no fault: the request goes out
+    /// once more on a new connection, as neither a retry nor an error.
     async fn read_block(
         &self,
         link: &mut ModbusLink,
@@ -376,10 +380,12 @@ impl DevicePoller {
     ) -> Result<Vec<u16>, SourceError> {
         let mut first: Option<SourceError> = None;
         let mut attempt = 0;
+        let mut resent = false;
         loop {
             if let Some(length) = link.cycle_over() {
                 return Err(first.unwrap_or(SourceError::Deadline(length)));
             }
+            let was_answering = link.has_answered();
             let e = match link
                 .read(self.params.unit_id, block.kind, block.start, block.count)
                 .await
@@ -389,6 +395,11 @@ impl DevicePoller {
             };
             if e.is_backoff() {
                 return Err(first.unwrap_or(e));
+            }
+            if was_answering && !resent && matches!(e, SourceError::PeerClosed(_)) {
+                resent = true;
+                tracing::debug!(device = %self.name, error = %e, "the device closed a connection that had answered: the request goes out again on a new one");
+                continue;
             }
             faults.push(e.kind());
             // 0x06: the module is busy now, a later request may pass.
@@ -770,6 +781,69 @@ mod tests {
         peer.abort();
     }
 
+    /// A poller without retries of u16 input channels at `registers` (merged across
+    /// gaps of up to 8) from the device at `address`.
+    fn poller_of(address: &str, registers: &[u16]) -> DevicePoller {
+        let link = ModbusLink::new(
+            tcp(address),
+            Duration::from_secs(1),
+            Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
+        );
+        let specs = registers
+            .iter()
+            .enumerate()
+            .map(|(channel, &address)| ChannelSpec {
+                channel,
+                name: format!("c{address}").into(),
+                kind: RegisterKind::Input,
+                address,
+                data_type: DataType::U16,
+                byte_order: ByteOrder::Abcd,
+            })
+            .collect();
+        let params = PollParams {
+            unit_id: 1,
+            retries: 0,
+            degrade_after_cycles: 3,
+            max_gap_registers: 8,
+            max_read_registers: plan::MAX_READ_REGISTERS,
+            cycle_deadline: Duration::from_secs(2),
+        };
+        DevicePoller::new(0, "ain1".into(), params, Arc::new(Mutex::new(link)), specs)
+    }
+
+    // A module that closes the connection after each reply (or an idle one) failed
+    // a read every cycle without retries, and cost a counted transport error with
+    // them: the request goes out again on a new connection, as no fault.
+    #[tokio::test]
+    async fn a_connection_the_device_closes_after_answering_is_no_fault() {
+        let (address, _, peer) = listener(|mut stream| async move {
+            let mut req = [0u8; 12];
+            if stream.read_exact(&mut req).await.is_ok() {
+                let mut reply = req[..7].to_vec();
+                reply[4..6].copy_from_slice(&5u16.to_be_bytes());
+                reply.extend([req[7], 2, 0x06, 0xEF]);
+                let _ = stream.write_all(&reply).await;
+            }
+        })
+        .await;
+        let mut poller = poller_of(&address, &[0, 100]);
+        for cycle in 0..4 {
+            let sample = poller.poll().await;
+            assert_eq!(sample.error, None, "cycle {cycle}");
+            assert!(
+                sample.faults.is_empty(),
+                "cycle {cycle}: {:?}",
+                sample.faults
+            );
+            assert!(
+                sample.values.iter().all(|(_, v)| *v == Ok(1775.0)),
+                "{sample:?}"
+            );
+        }
+        peer.abort();
+    }
+
     // A module refusing a merged read (a map with holes: 0x02; more registers than it
     // takes: 0x03) left every channel of the read bad with only the exception named,
     // though `probe`, reading one channel at a time, showed them good: the error names
@@ -778,34 +852,6 @@ mod tests {
     async fn a_refused_merged_read_names_the_key_to_change() {
         let (address, peer) = device(|_, _| (Duration::ZERO, Err(0x02))).await;
         let (address3, peer3) = device(|_, _| (Duration::ZERO, Err(0x03))).await;
-        let poller_of = |address: &str, registers: &[u16]| {
-            let link = ModbusLink::new(
-                tcp(address),
-                Duration::from_secs(1),
-                Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
-            );
-            let specs = registers
-                .iter()
-                .enumerate()
-                .map(|(channel, &address)| ChannelSpec {
-                    channel,
-                    name: format!("c{address}").into(),
-                    kind: RegisterKind::Input,
-                    address,
-                    data_type: DataType::U16,
-                    byte_order: ByteOrder::Abcd,
-                })
-                .collect();
-            let params = PollParams {
-                unit_id: 1,
-                retries: 0,
-                degrade_after_cycles: 3,
-                max_gap_registers: 8,
-                max_read_registers: plan::MAX_READ_REGISTERS,
-                cycle_deadline: Duration::from_secs(2),
-            };
-            DevicePoller::new(0, "ain1".into(), params, Arc::new(Mutex::new(link)), specs)
-        };
         let holes = poller_of(&address, &[0, 1, 8]).poll().await;
         assert_eq!(
             holes.error.expect("refused").to_string(),

@@ -318,6 +318,11 @@ impl ModbusLink {
         self.answered = false;
     }
 
+    /// The open connection has given a good reply (or an exception).
+    pub fn has_answered(&self) -> bool {
+        self.ctx.is_some() && self.answered
+    }
+
     /// Records a good reply: the link works, the backoff starts over.
     fn answered(&mut self) {
         self.answered = true;
