@@ -346,12 +346,19 @@ impl<'s> Walker<'s> {
                     || v.above.is_some_and(|m| x <= m)
                     || v.max.is_some_and(|m| x > m);
                 if out {
+                    let register = match (path.last(), inst) {
+                        (Some(Seg::Key(k)), toml::Value::Integer(i)) if k == "address" => {
+                            six_digit_register(*i)
+                        }
+                        _ => None,
+                    };
                     self.push(
                         path,
                         format!(
-                            "invalid value: {}, expected {}",
+                            "invalid value: {}, expected {}{}",
                             describe(inst),
-                            expected(&v)
+                            expected(&v),
+                            register.unwrap_or_default()
                         ),
                         Kind::Broken,
                     );
@@ -576,6 +583,23 @@ fn json_eq(x: &Json, inst: &toml::Value) -> bool {
         (Json::Number(a), toml::Value::Float(b)) => a.as_f64() == Some(*b),
         _ => false,
     }
+}
+
+/// A note for a register number from a manual's 6-digit numbering (`400002`: holding
+/// register 2), which no 16-bit address takes.
+fn six_digit_register(value: i64) -> Option<String> {
+    let (table, base) = match value {
+        300_001..=365_536 => ("input", 300_001),
+        400_001..=465_536 => ("holding", 400_001),
+        _ => return None,
+    };
+    Some(format!(
+        "; {value} looks like a 6-digit register number of a device manual ({table} \
+         register {}): addresses here are 0-based PDU addresses, so that register is \
+         address = {} with register = \"{table}\"",
+        value - base + 1,
+        value - base
+    ))
 }
 
 /// The value as serde would name it: `string "x"`, `integer `5``, ...

@@ -473,6 +473,22 @@ fn error_display_lists_every_problem() {
     assert!(matches!(missing, ConfigError::Read { .. }), "{missing}");
 }
 
+// `address = 400002` said only "expected an integer 0..=65535".
+#[test]
+fn a_six_digit_register_number_is_named_as_one() {
+    let p = problems(&edit("address = 1000\n", "address = 400002\n"));
+    assert_eq!(keys(&p), ["channels.T_ambient.address"], "{p:#?}");
+    assert!(
+        p[0].message.ends_with(
+            "expected an integer 0..=65535; 400002 looks like a 6-digit register number of \
+             a device manual (holding register 2): addresses here are 0-based PDU \
+             addresses, so that register is address = 1 with register = \"holding\""
+        ),
+        "{}",
+        p[0]
+    );
+}
+
 #[test]
 fn humanized_messages() {
     assert_eq!(
