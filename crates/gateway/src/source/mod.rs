@@ -68,9 +68,23 @@ pub enum SourceError {
         /// [`ReadHints`]).
         hint: Option<Arc<str>>,
     },
-    /// The TCP peer at this address closed the connection with a request unanswered.
-    #[error("connection closed by the peer at {0}")]
-    PeerClosed(String),
+    /// The TCP peer at `address` closed the connection with a request unanswered.
+    #[error(
+        "connection closed by the peer at {address}{}",
+        if *before_reply {
+            " before it answered: a module that takes one connection at a time closes \
+             the others; is another client connected to it (a second gateway, a SCADA, \
+             `compgate probe` while the service runs)?"
+        } else {
+            ""
+        }
+    )]
+    PeerClosed {
+        /// "host:port".
+        address: String,
+        /// No request on this connection had been answered.
+        before_reply: bool,
+    },
     /// The TCP peer at `address` answered bytes no Modbus TCP frame begins with.
     #[error("the peer at {address} does not speak Modbus TCP: {detail}")]
     NotModbus {
@@ -118,7 +132,7 @@ impl SourceError {
             Self::Timeout(_) => "timeout",
             Self::Deadline(_) => "deadline",
             Self::Frame { .. } => "frame",
-            Self::Transport(_) | Self::PeerClosed(_) | Self::NotModbus { .. } => "transport",
+            Self::Transport(_) | Self::PeerClosed { .. } | Self::NotModbus { .. } => "transport",
             Self::Exception(_) => "exception",
             // Counted as the cycles the backoff failed (`compgate_device_errors_total`),
             // not as connect attempts.
@@ -396,7 +410,7 @@ impl DevicePoller {
             if e.is_backoff() {
                 return Err(first.unwrap_or(e));
             }
-            if was_answering && !resent && matches!(e, SourceError::PeerClosed(_)) {
+            if was_answering && !resent && matches!(e, SourceError::PeerClosed { .. }) {
                 resent = true;
                 tracing::debug!(device = %self.name, error = %e, "the device closed a connection that had answered: the request goes out again on a new one");
                 continue;
@@ -409,7 +423,7 @@ impl DevicePoller {
                     | SourceError::Timeout(_)
                     | SourceError::Transport(_)
                     | SourceError::Frame { .. }
-                    | SourceError::PeerClosed(_)
+                    | SourceError::PeerClosed { .. }
                     | SourceError::NotModbus { .. }
                     | SourceError::Connect(_)
                     | SourceError::ConnectTimeout

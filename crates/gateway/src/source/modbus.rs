@@ -418,7 +418,10 @@ impl ModbusLink {
                 )
             })
         {
-            Some(SourceError::PeerClosed(address.clone()))
+            Some(SourceError::PeerClosed {
+                address: address.clone(),
+                before_reply: !self.answered,
+            })
         } else {
             None
         }
