@@ -90,7 +90,7 @@ build=(cargo build --release --locked --no-default-features --bin compgate
 binary=target/production/release/compgate
 if command -v cargo >/dev/null 2>&1; then
     "${build[@]}"
-elif [[ -n ${SUDO_USER:-} ]]; then
+elif [[ -n ${SUDO_USER:-} ]] && sudo -u "$SUDO_USER" bash -lc 'command -v cargo' >/dev/null 2>&1; then
     # rustup installs cargo per user: build as the user who called sudo.
     sudo -u "$SUDO_USER" bash -lc "cd '$PWD' && ${build[*]}"
 elif [[ -x $binary ]]; then
@@ -102,6 +102,18 @@ else
 fi
 if [[ ! -x $binary ]]; then
     echo "install.sh: $binary missing" >&2
+    exit 1
+fi
+# A binary copied from another machine may be built for another CPU (an aarch64 build
+# on a 32-bit ARM userland, an x86 one on an ARM box): the kernel would not run it,
+# and the validate below would blame the config.
+if ! "$binary" --version >/dev/null 2>&1; then
+    # The ELF header's e_machine (bytes 18-19, little endian), as `uname -m` names it.
+    case $(od -An -tx1 -j18 -N2 "$binary" 2>/dev/null | tr -d ' \n') in
+    3e00) built_for=x86_64 ;; b700) built_for=aarch64 ;; 2800) built_for="32-bit ARM" ;;
+    0300) built_for="32-bit x86" ;; *) built_for="an unknown machine" ;;
+    esac
+    echo "install.sh: $binary does not run on this machine ($(uname -m)); it is built for $built_for: build it here, or for $(uname -m) (docs/deployment.md, ARM boxes), nothing installed" >&2
     exit 1
 fi
 

@@ -73,33 +73,56 @@ impl Scratch {
 
     /// As [`Self::install`], run from the directory `cwd`.
     fn install_from(&self, cwd: &Path, args: &[&Path]) -> Output {
+        let path = std::env::var("PATH").unwrap_or_default();
+        self.run_install(cwd, args, &path, None)
+    }
+
+    /// As [`Self::install`] on a PC without Rust, through `sudo` by `sudo_user` (who
+    /// has no cargo either): the binary is what `repo/target/production/release`
+    /// holds, copied there from another machine.
+    fn install_without_cargo(&self, sudo_user: &str, args: &[&Path]) -> Output {
+        std::fs::remove_file(self.path("shims/cargo")).unwrap();
+        self.run_install(
+            Path::new("/"),
+            args,
+            "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin",
+            Some(sudo_user),
+        )
+    }
+
+    fn run_install(
+        &self,
+        cwd: &Path,
+        args: &[&Path],
+        path: &str,
+        sudo_user: Option<&str>,
+    ) -> Output {
         let d = self.dir.path();
         let script = r#"d=$1; shift
             mount --bind "$d/etc" /etc && mount --bind "$d/usrlocal" /usr/local \
             && mount --bind "$d/varlib" /var/lib && mount --bind "$d/varlog" /var/log \
             && exec bash "$d/repo/deploy/install.sh" "$@""#;
-        let path = format!(
-            "{}:{}",
-            d.join("shims").display(),
-            std::env::var("PATH").unwrap_or_default()
-        );
-        Command::new("unshare")
-            .args([
-                "--mount",
-                "--propagation",
-                "private",
-                "sh",
-                "-c",
-                script,
-                "sh",
-            ])
-            .arg(d)
-            .args(args)
-            .current_dir(cwd)
-            .env("PATH", path)
-            .env_remove("SUDO_USER")
-            .output()
-            .expect("unshare runs (util-linux; a mount namespace needs root)")
+        let path = format!("{}:{path}", d.join("shims").display());
+        let mut cmd = Command::new("unshare");
+        match sudo_user {
+            Some(user) => cmd.env("SUDO_USER", user),
+            None => cmd.env_remove("SUDO_USER"),
+        };
+        cmd.args([
+            "--mount",
+            "--propagation",
+            "private",
+            "sh",
+            "-c",
+            script,
+            "sh",
+        ])
+        .arg(d)
+        .args(args)
+        .current_dir(cwd)
+        .env("PATH", path)
+        .output()
+        .expect("unshare runs (util-linux; a mount namespace needs root)")
     }
 
     /// What systemctl was asked since the last call.
@@ -259,6 +282,59 @@ fn install_sh_installs_updates_and_says_what_it_did() {
 // that the user compgate may write passes it; under ProtectSystem=strict, ProtectHome
 // and PrivateTmp it would not be written (or be lost at each stop). install.sh
 // (through validate) warns.
+/// Places `bin` where a binary built on another machine is copied to.
+fn place_binary(s: &Scratch, bin: &[u8]) {
+    let dir = s.path("repo/target/production/release");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("compgate"), bin).unwrap();
+    Command::new("chmod")
+        .arg("+x")
+        .arg(dir.join("compgate"))
+        .status()
+        .unwrap();
+}
+
+// On a PC without Rust, `sudo deploy/install.sh` tried to build as the user who called
+// sudo, who had no cargo either, and stopped at "cargo: command not found" (exit 127)
+// instead of installing the binary copied there.
+#[test]
+fn install_sh_under_sudo_without_cargo_installs_the_copied_binary() {
+    let s = Scratch::new();
+    place_binary(&s, &std::fs::read(BIN).unwrap());
+    let t = assert_ok(&s.install_without_cargo("nobody", &[]));
+    assert!(
+        t.contains("install.sh: cargo not found; installing target/production/release/compgate as built before"),
+        "{t}"
+    );
+    assert!(s.path("usrlocal/bin/compgate").exists(), "{t}");
+}
+
+// A binary for another CPU (an x86 build on an ARM box, an aarch64 one on a 32-bit ARM
+// userland) was reported as a config that does not validate.
+#[test]
+fn install_sh_names_a_binary_built_for_another_machine() {
+    let s = Scratch::new();
+    let mut foreign = std::fs::read(BIN).unwrap();
+    // e_machine: aarch64 (0xB7) here on x86-64, x86-64 (0x3E) on an aarch64 host.
+    let other: (u8, &str) = if cfg!(target_arch = "aarch64") {
+        (0x3E, "x86_64")
+    } else {
+        (0xB7, "aarch64")
+    };
+    foreign[18..20].copy_from_slice(&[other.0, 0]);
+    place_binary(&s, &foreign);
+    let out = s.install_without_cargo("nobody", &[]);
+    let t = text(&out);
+    assert!(!out.status.success(), "{t}");
+    assert!(
+        t.contains("does not run on this machine")
+            && t.contains(&format!("it is built for {}", other.1)),
+        "{t}"
+    );
+    assert!(!t.contains("does not validate"), "{t}");
+    assert!(!s.path("usrlocal/bin/compgate").exists(), "{t}");
+}
+
 #[test]
 fn install_sh_warns_of_a_database_outside_the_state_directory() {
     use std::os::unix::fs::PermissionsExt;
