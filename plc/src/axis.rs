@@ -26,8 +26,8 @@
 //! Moves follow a trapezoidal velocity profile at the programmed feed and the axis
 //! acceleration; a dwell starts when the interpolator reaches the target.
 
+use crate::SimRng;
 use compgate_ncproto::servo::{MoveStep, TraceConfig, Trigger, MAX_STEPS};
-use rand::rngs::SmallRng;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 
@@ -215,7 +215,7 @@ pub fn move_time_s(dist_mm: f64, feed_mm_per_min: f64, accel_mm_per_s2: f64) -> 
 #[derive(Debug, Clone)]
 pub struct ServoSim {
     params: AxisParams,
-    rng: SmallRng,
+    rng: SimRng,
     noise_enc: Option<Normal<f64>>,
     noise_scale: Option<Normal<f64>>,
     /// Machine time, s.
@@ -252,7 +252,7 @@ impl ServoSim {
         let normal = |sd: f64| Normal::new(0.0, sd).ok().filter(|_| sd > 0.0);
         let start = params.start_mm;
         let mut sim = Self {
-            rng: SmallRng::seed_from_u64(params.seed),
+            rng: SimRng::seed_from_u64(params.seed),
             noise_enc: normal(params.encoder_noise_mm),
             noise_scale: normal(params.scale_noise_mm),
             params,
@@ -423,7 +423,7 @@ impl ServoSim {
                 self.program_status = 0;
                 // The noise from here on depends on the seed alone, not on how many
                 // cycles the axis stood before (wall-clock time in the NC module).
-                self.rng = SmallRng::seed_from_u64(self.params.seed);
+                self.rng = SimRng::seed_from_u64(self.params.seed);
                 self.program_start_s = self.time_s;
                 self.program_end_s = f64::NAN;
                 Ok(())

@@ -49,7 +49,7 @@
 //! # Sampling
 //!
 //! The ADC converts every transmitter once per valid read request, drawing one noise
-//! sample per transmitter in index order from a [`SmallRng`] seeded with
+//! sample per transmitter in index order from a [`SimRng`] seeded with
 //! [`FieldModuleSpec::seed`], so the same requests at the same (tokio) times give the
 //! same values. Profile time `t_s` counts from [`FieldModule::new`] in tokio time, so
 //! `tokio::time::pause()` controls it.
@@ -62,7 +62,7 @@ use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::task::{Context, Poll};
 use std::time::Duration;
 
-use rand::rngs::SmallRng;
+use crate::SimRng;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
@@ -468,7 +468,7 @@ struct ChannelState {
 struct Inner {
     spec: FieldModuleSpec,
     start: Instant,
-    rng: SmallRng,
+    rng: SimRng,
     noise: Vec<Normal<f64>>,
     channels: Vec<ChannelState>,
     comm_fault: CommFault,
@@ -510,7 +510,7 @@ impl FieldModule {
             })
             .collect::<Result<Vec<_>, _>>()?;
         let inner = Inner {
-            rng: SmallRng::seed_from_u64(spec.seed),
+            rng: SimRng::seed_from_u64(spec.seed),
             channels: vec![ChannelState::default(); spec.transmitters.len()],
             noise,
             spec,

@@ -39,8 +39,8 @@
 //! `P0 = P_ref` ([`ThermalMachine::true_model`]). The [`Effects`] add what this
 //! straight-line model cannot express.
 
+use crate::SimRng;
 use compgate_core::measure::{Measurements, TempColumn};
-use rand::rngs::SmallRng;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 
@@ -446,7 +446,7 @@ const SPINDLE: usize = 6;
 pub struct ThermalMachine {
     params: ThermalParams,
     effects: Effects,
-    rng: SmallRng,
+    rng: SimRng,
     t_s: f64,
     /// Ambient wander, K.
     wander_degc: f64,
@@ -454,7 +454,7 @@ pub struct ThermalMachine {
     /// effect).
     node_degc: [f64; 7],
     /// The interferometer's own noise source: measuring never changes the machine.
-    meas_rng: SmallRng,
+    meas_rng: SimRng,
     /// Distance the axis travelled since `t = 0`, mm (its position is a triangle
     /// wave of it over the travel).
     travel_total_mm: f64,
@@ -476,7 +476,7 @@ fn relax(value: f64, target: f64, dt_s: f64, tau_s: f64) -> f64 {
     target + (value - target) * (-dt_s / tau_s).exp()
 }
 
-fn normal(rng: &mut SmallRng, sd: f64) -> f64 {
+fn normal(rng: &mut SimRng, sd: f64) -> f64 {
     match Normal::new(0.0, sd) {
         Ok(n) if sd > 0.0 => n.sample(rng),
         _ => 0.0,
@@ -489,11 +489,11 @@ impl ThermalMachine {
         let mut m = Self {
             params,
             effects,
-            rng: SmallRng::seed_from_u64(seed),
+            rng: SimRng::seed_from_u64(seed),
             t_s: 0.0,
             wander_degc: 0.0,
             node_degc: [0.0; 7],
-            meas_rng: SmallRng::seed_from_u64(seed ^ 0x1A5E_5EED),
+            meas_rng: SimRng::seed_from_u64(seed ^ 0x1A5E_5EED),
             travel_total_mm: 0.0,
             struct_col_degc: 0.0,
             struct_screw_degc: 0.0,
