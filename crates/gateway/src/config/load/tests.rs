@@ -81,6 +81,9 @@ fn example_loads_with_the_documented_values() {
 #[test]
 fn demo_loads_and_simulates_every_axis_input() {
     let cfg = load_str(DEMO, "demo.toml").expect("demo is valid");
+    // The first thing a new user runs: no warning at its start.
+    let warnings = crate::config::warnings(&cfg, "demo.toml");
+    assert!(warnings.is_empty(), "{warnings:#?}");
     let sim = cfg.sim.as_ref().expect("demo has [sim]");
     let x = &cfg.axes["X"];
     assert_eq!(x.md32750, 3);
