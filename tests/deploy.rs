@@ -482,3 +482,75 @@ fn the_unit_allows_the_common_embedded_serial_ports_and_the_guide_names_them() {
         "docs/deployment.md: the drop-in"
     );
 }
+
+/// `(symbol, glibc version)` of the `GLIBC_x.y` symbols `objdump -T` lists for `path`:
+/// the ones it needs (`undefined`) or the ones it defines.
+fn glibc_symbols(path: &Path, undefined: bool) -> Vec<(String, (u32, u32))> {
+    let out = Command::new("objdump")
+        .arg("-T")
+        .arg(path)
+        .output()
+        .expect("objdump (binutils) runs");
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .filter(|l| l.contains("*UND*") == undefined)
+        .filter_map(|l| {
+            let (_, rest) = l.split_once("GLIBC_")?;
+            let (version, name) = rest.split_once(char::is_whitespace)?;
+            let mut v = version.trim_end_matches(')').split('.');
+            let major = v.next()?.parse().ok()?;
+            let minor = v.next()?.parse().ok()?;
+            Some((name.trim().to_string(), (major, minor)))
+        })
+        .collect()
+}
+
+// The binary linked `mallinfo2`, new in glibc 2.33: it could not be built or started
+// on glibc 2.31 (Debian 11, the base of several ARM gateway boxes' images). Every glibc
+// symbol it needs must exist in a version no newer than 2.31 in this machine's
+// libraries (a newer version of an old symbol is only what this machine links).
+#[test]
+fn the_binary_needs_nothing_glibc_2_31_lacks() {
+    let bin = Path::new(BIN);
+    let ldd = Command::new("ldd").arg(bin).output().expect("ldd runs");
+    // `libc.so.6 => /lib/.../libc.so.6 (0x...)`, and the loader: `/lib64/ld-... (0x...)`.
+    let libs: Vec<PathBuf> = String::from_utf8_lossy(&ldd.stdout)
+        .lines()
+        .filter_map(|l| {
+            let path = l.rsplit("=> ").next()?.split_whitespace().next()?;
+            path.starts_with('/').then(|| PathBuf::from(path))
+        })
+        .collect();
+    assert!(!libs.is_empty(), "ldd found no libraries");
+    let mut have: std::collections::HashMap<String, Vec<(u32, u32)>> = Default::default();
+    for lib in &libs {
+        for (name, v) in glibc_symbols(lib, false) {
+            have.entry(name).or_default().push(v);
+        }
+    }
+    let needed = glibc_symbols(bin, true);
+    assert!(!needed.is_empty(), "objdump listed no glibc symbol");
+    // Before 2.33 these came from libc_nonshared.a, linked into the binary by an older
+    // glibc's libc.so: no shared symbol needed there.
+    const LINKED_IN_BEFORE_2_33: [&str; 8] = [
+        "stat",
+        "fstat",
+        "lstat",
+        "fstatat",
+        "stat64",
+        "fstat64",
+        "lstat64",
+        "fstatat64",
+    ];
+    let newer: Vec<String> = needed
+        .iter()
+        .filter(|(name, _)| !LINKED_IN_BEFORE_2_33.contains(&name.as_str()))
+        .filter(|(name, _)| {
+            !have
+                .get(name)
+                .is_some_and(|vs| vs.iter().any(|v| *v <= (2, 31)))
+        })
+        .map(|(name, (a, b))| format!("{name}@GLIBC_{a}.{b}"))
+        .collect();
+    assert!(newer.is_empty(), "not in glibc 2.31: {newer:?}");
+}

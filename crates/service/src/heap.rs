@@ -5,8 +5,8 @@
 //! metrics export them. [`use_one_arena`] is what keeps the service's RSS flat. Off
 //! glibc (musl, other allocators) there are no figures and no setting.
 //!
-//! This is the one module with `unsafe`: two glibc calls (`mallinfo2`, `mallopt`)
-//! through `libc`.
+//! This is the one module with `unsafe`: glibc calls (`mallinfo2` found by `dlsym`,
+//! `mallinfo`, `mallopt`, `malloc_trim`) through `libc`.
 #![allow(unsafe_code)]
 
 /// The heap as glibc's malloc sees it, bytes.
@@ -20,15 +20,47 @@ pub struct HeapStats {
 }
 
 /// The heap now; `None` where the allocator is not glibc's.
+///
+/// `mallinfo2` (glibc 2.33) is looked up when the process runs, not linked: linked, it
+/// kept the gateway from building or starting on glibc 2.31 (Debian 11, the base of
+/// several ARM gateway boxes' images). There the older `mallinfo` serves, whose `int`
+/// fields, read unsigned, wrap past 4 GiB, far above this service's heap.
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 pub fn stats() -> Option<HeapStats> {
-    // SAFETY: mallinfo2 takes no arguments, returns a plain struct by value and only
-    // reads malloc's state under the arenas' own locks.
-    let mi = unsafe { libc::mallinfo2() };
-    Some(HeapStats {
-        in_use_bytes: (mi.uordblks + mi.hblkhd) as u64,
-        free_bytes: mi.fordblks as u64,
-    })
+    use std::sync::OnceLock;
+    type Mallinfo2 = unsafe extern "C" fn() -> libc::mallinfo2;
+    static MALLINFO2: OnceLock<Option<Mallinfo2>> = OnceLock::new();
+    let mallinfo2 = MALLINFO2.get_or_init(|| {
+        // SAFETY: dlsym with RTLD_DEFAULT and a NUL-terminated name only looks the
+        // symbol up; a non-null result is glibc's mallinfo2, whose signature
+        // `struct mallinfo2 mallinfo2(void)` is the type it is turned into.
+        unsafe {
+            let f = libc::dlsym(libc::RTLD_DEFAULT, c"mallinfo2".as_ptr());
+            (!f.is_null()).then(|| std::mem::transmute::<*mut libc::c_void, Mallinfo2>(f))
+        }
+    });
+    if let Some(mallinfo2) = mallinfo2 {
+        // SAFETY: mallinfo2 takes no arguments, returns a plain struct by value and
+        // only reads malloc's state under the arenas' own locks.
+        let mi = unsafe { mallinfo2() };
+        return Some(HeapStats {
+            in_use_bytes: (mi.uordblks + mi.hblkhd) as u64,
+            free_bytes: mi.fordblks as u64,
+        });
+    }
+    Some(stats_before_2_33())
+}
+
+/// [`stats`] from glibc's older `mallinfo`.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn stats_before_2_33() -> HeapStats {
+    // SAFETY: as mallinfo2, with `int` fields (read as unsigned: they wrap at 4 GiB).
+    #[allow(deprecated)]
+    let mi = unsafe { libc::mallinfo() };
+    HeapStats {
+        in_use_bytes: u64::from(mi.uordblks as u32) + u64::from(mi.hblkhd as u32),
+        free_bytes: u64::from(mi.fordblks as u32),
+    }
 }
 
 /// The heap now; `None` where the allocator is not glibc's.
@@ -83,22 +115,29 @@ pub fn release_free() -> bool {
 mod tests {
     use super::*;
 
+    // Both ways to the figures: mallinfo2 (glibc 2.33 on), mallinfo before.
     #[test]
     fn stats_see_a_live_allocation_come_and_go() {
-        let before = stats().expect("glibc");
-        // Zeroed, so calloc maps it without touching it; far larger than anything the
-        // other test threads allocate or free meanwhile.
-        let block = vec![0u8; 256 << 20];
-        let during = stats().expect("glibc");
-        assert!(
-            during.in_use_bytes >= before.in_use_bytes + (128 << 20),
-            "{before:?} -> {during:?}"
-        );
-        drop(std::hint::black_box(block));
-        let after = stats().expect("glibc");
-        assert!(
-            after.in_use_bytes + (128 << 20) <= during.in_use_bytes,
-            "{during:?} -> {after:?}"
-        );
+        let with_mallinfo = || stats_before_2_33();
+        for read in [
+            &(|| stats().expect("glibc")) as &dyn Fn() -> HeapStats,
+            &with_mallinfo,
+        ] {
+            let before = read();
+            // Zeroed, so calloc maps it without touching it; far larger than anything
+            // the other test threads allocate or free meanwhile.
+            let block = vec![0u8; 256 << 20];
+            let during = read();
+            assert!(
+                during.in_use_bytes >= before.in_use_bytes + (128 << 20),
+                "{before:?} -> {during:?}"
+            );
+            drop(std::hint::black_box(block));
+            let after = read();
+            assert!(
+                after.in_use_bytes + (128 << 20) <= during.in_use_bytes,
+                "{during:?} -> {after:?}"
+            );
+        }
     }
 }
