@@ -65,7 +65,7 @@ pub enum SourceError {
         /// Why it failed.
         source: Box<SourceError>,
         /// What to change, where the answer points at the read's shape (see
-        /// [`ReadHints`]).
+        /// [`refused_read_hint`]).
         hint: Option<Arc<str>>,
     },
     /// The TCP peer at `address` closed the connection with a request unanswered.
@@ -589,8 +589,6 @@ impl DevicePoller {
     }
 }
 
-/// What the errors of `block` call it, e.g. "function 0x04 (input registers), address
-/// 5, count 2 (T_a, T_b)": a few of its channels (`specs` by slot), then how many more.
 /// Exceptions a TCP-to-RTU gateway answers for the serial device behind it: 0x0A (no
 /// path to it), 0x0B (it did not answer). The device is silent, not refusing.
 fn gateway_exception(code: ExceptionCode) -> bool {
@@ -666,6 +664,8 @@ impl ReadHints {
     }
 }
 
+/// What the errors of `block` call it, e.g. "function 0x04 (input registers), address
+/// 5, count 2 (T_a, T_b)": a few of its channels (`specs` by slot), then how many more.
 fn read_label(block: &ReadBlock, specs: &[ChannelSpec]) -> Arc<str> {
     const NAMED: usize = 3;
     let (function, table) = match block.kind {
