@@ -370,11 +370,13 @@ fn names_this_server(authority: &Authority, local: std::net::SocketAddr) -> bool
         .host()
         .trim_start_matches('[')
         .trim_end_matches(']');
+    // A listener on `[::]` sees IPv4 clients at IPv4-mapped addresses.
+    let local_ip = local.ip().to_canonical();
     if let Ok(ip) = host.parse::<std::net::IpAddr>() {
-        return ip == local.ip();
+        return ip.to_canonical() == local_ip;
     }
     let first_label = host.split('.').next().unwrap_or_default();
-    (host.eq_ignore_ascii_case("localhost") && local.ip().is_loopback())
+    (host.eq_ignore_ascii_case("localhost") && local_ip.is_loopback())
         || rustix::system::uname()
             .nodename()
             .to_str()
@@ -509,6 +511,16 @@ mod tests {
                 .expect("closed by the server");
         }
         shutdown.cancel();
+    }
+
+    #[test]
+    fn an_ipv4_client_of_a_dual_stack_listener_names_it() {
+        let local: std::net::SocketAddr = "[::ffff:127.0.0.1]:9464".parse().expect("addr");
+        let named = |a: &str| names_this_server(&a.parse().expect("authority"), local);
+        assert!(named("127.0.0.1:9464"));
+        assert!(named("localhost:9464"));
+        assert!(!named("127.0.0.1:80"));
+        assert!(!named("www.google.com:9464"));
     }
 
     #[test]
