@@ -118,11 +118,8 @@ mod tests {
     // Both ways to the figures: mallinfo2 (glibc 2.33 on), mallinfo before.
     #[test]
     fn stats_see_a_live_allocation_come_and_go() {
-        let with_mallinfo = || stats_before_2_33();
-        for read in [
-            &(|| stats().expect("glibc")) as &dyn Fn() -> HeapStats,
-            &with_mallinfo,
-        ] {
+        let reads: [fn() -> HeapStats; 2] = [|| stats().expect("glibc"), stats_before_2_33];
+        for read in reads {
             let before = read();
             // Zeroed, so calloc maps it without touching it; far larger than anything
             // the other test threads allocate or free meanwhile.

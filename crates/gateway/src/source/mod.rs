@@ -511,10 +511,11 @@ impl DevicePoller {
             }
         }
         let silent = reads.iter().all(Result::is_err)
-            && first_error.as_ref().is_some_and(|e| {
-                matches!(e.kind(), "timeout" | "deadline")
-                    || matches!(e, SourceError::Read { source, .. }
-                        if matches!(**source, SourceError::Exception(c) if gateway_exception(c)))
+            && first_error.as_ref().is_some_and(|e| match e.kind() {
+                "timeout" | "deadline" => true,
+                // A TCP-to-RTU gateway's 0x0A/0x0B: the unit behind it is silent.
+                "exception" => e.reason() == Reason::Comm,
+                _ => false,
             });
         self.note_silence(silent, first_error.as_ref());
         DeviceSample {
@@ -707,33 +708,42 @@ mod tests {
 
     /// [`poller`] with a request timeout and a cycle deadline.
     fn poller_with(spec: LinkSpec, timeout: Duration, cycle_deadline: Duration) -> DevicePoller {
+        let params = PollParams {
+            unit_id: 1,
+            retries: 1,
+            degrade_after_cycles: 3,
+            max_gap_registers: 0,
+            max_read_registers: plan::MAX_READ_REGISTERS,
+            cycle_deadline,
+        };
+        u16_poller(spec, timeout, params, &[0, 100])
+    }
+
+    /// A poller of device `ain1` over `spec` reading u16 input channels at `registers`.
+    fn u16_poller(
+        spec: LinkSpec,
+        timeout: Duration,
+        params: PollParams,
+        registers: &[u16],
+    ) -> DevicePoller {
         let link = ModbusLink::new(
             spec,
             timeout,
             Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
         );
-        let spec = |channel, address| ChannelSpec {
-            channel,
-            name: format!("c{address}").into(),
-            kind: RegisterKind::Input,
-            address,
-            data_type: DataType::U16,
-            byte_order: ByteOrder::Abcd,
-        };
-        DevicePoller::new(
-            0,
-            "ain1".into(),
-            PollParams {
-                unit_id: 1,
-                retries: 1,
-                degrade_after_cycles: 3,
-                max_gap_registers: 0,
-                max_read_registers: plan::MAX_READ_REGISTERS,
-                cycle_deadline,
-            },
-            Arc::new(Mutex::new(link)),
-            vec![spec(0, 0), spec(1, 100)],
-        )
+        let specs = registers
+            .iter()
+            .enumerate()
+            .map(|(channel, &address)| ChannelSpec {
+                channel,
+                name: format!("c{address}").into(),
+                kind: RegisterKind::Input,
+                address,
+                data_type: DataType::U16,
+                byte_order: ByteOrder::Abcd,
+            })
+            .collect();
+        DevicePoller::new(0, "ain1".into(), params, Arc::new(Mutex::new(link)), specs)
     }
 
     /// A Modbus TCP device answering each read-input-registers request by what
@@ -798,23 +808,6 @@ mod tests {
     /// A poller without retries of u16 input channels at `registers` (merged across
     /// gaps of up to 8) from the device at `address`.
     fn poller_of(address: &str, registers: &[u16]) -> DevicePoller {
-        let link = ModbusLink::new(
-            tcp(address),
-            Duration::from_secs(1),
-            Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
-        );
-        let specs = registers
-            .iter()
-            .enumerate()
-            .map(|(channel, &address)| ChannelSpec {
-                channel,
-                name: format!("c{address}").into(),
-                kind: RegisterKind::Input,
-                address,
-                data_type: DataType::U16,
-                byte_order: ByteOrder::Abcd,
-            })
-            .collect();
         let params = PollParams {
             unit_id: 1,
             retries: 0,
@@ -823,7 +816,7 @@ mod tests {
             max_read_registers: plan::MAX_READ_REGISTERS,
             cycle_deadline: Duration::from_secs(2),
         };
-        DevicePoller::new(0, "ain1".into(), params, Arc::new(Mutex::new(link)), specs)
+        u16_poller(tcp(address), Duration::from_secs(1), params, registers)
     }
 
     // A module that closes the connection after each reply (or an idle one) failed
