@@ -470,3 +470,75 @@ async fn the_retained_state_says_online_offline_and_lost() {
     drop(gw);
     drop(plant);
 }
+
+/// Holds the write lock of the database at `db` for `hold` (as a backup tool or a
+/// slow card's commit would), from a thread; returns once the lock is held.
+fn hold_write_lock(db: &std::path::Path, hold: Duration) -> std::thread::JoinHandle<()> {
+    let conn = rusqlite::Connection::open(db).unwrap();
+    conn.busy_timeout(Duration::from_secs(10)).unwrap();
+    conn.execute_batch("BEGIN IMMEDIATE").unwrap();
+    std::thread::spawn(move || {
+        std::thread::sleep(hold);
+        conn.execute_batch("COMMIT").unwrap();
+    })
+}
+
+// The MQTT connection was polled inside the session's `select!`: a connect cut off
+// there (rumqttc's connect is not cancel safe) made the broker publish the last
+// will, "lost", at most starts; and while an outbox round trip waited on the
+// database's lock (up to the 5 s busy timeout) nothing kept the connection alive, so
+// the broker published "lost" for a gateway that was running, or stopping cleanly.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_held_database_does_not_stall_the_broker_connection() {
+    let dir = tempfile::tempdir().unwrap();
+    let broker = tokio::task::block_in_place(|| Broker::start(dir.path()));
+    let topic = "compgate/mill-7/state";
+    let (got, sub) = subscribe(broker.port, topic);
+    let db = dir.path().join("rec.db");
+    // keep_alive_s = 1: the broker gives up after 1.5 s without a packet.
+    let extra = service_sections(&db, broker.port, "keep_alive_s = 1");
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), &extra).await;
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    let states = || {
+        got.lock()
+            .unwrap()
+            .iter()
+            .filter_map(|(_, v)| v["state"].as_str().map(str::to_string))
+            .collect::<Vec<_>>()
+    };
+    wait_until(20.0, "the state online", || {
+        states().contains(&"online".into())
+    })
+    .await;
+    // Rows to acknowledge, so the outbox wants the write lock.
+    wait_until(10.0, "messages in the outbox", || {
+        outbox_rows(&db).is_some_and(|(_, id)| id > 20)
+    })
+    .await;
+
+    let held = hold_write_lock(&db, Duration::from_secs(4));
+    tokio::task::block_in_place(|| held.join().unwrap());
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert_eq!(
+        states(),
+        ["online"],
+        "while the database was held: {}",
+        gw.stderr_text()
+    );
+
+    let held = hold_write_lock(&db, Duration::from_secs(4));
+    let log = gw.stderr.clone();
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    tokio::task::block_in_place(|| held.join().unwrap());
+    wait_until(5.0, "the state offline", || states().len() > 1).await;
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    assert_eq!(
+        states(),
+        ["online", "offline"],
+        "a clean stop while the database was held: {}",
+        log.lock().unwrap().join("\n")
+    );
+    sub.abort();
+    drop((plant, broker));
+}

@@ -42,8 +42,9 @@ use rumqttc::{
 };
 use serde::Serialize;
 use serde_json::json;
-use tokio::sync::Notify;
+use tokio::sync::{mpsc, Notify};
 use tokio_util::sync::CancellationToken;
+use tokio_util::task::AbortOnDropHandle;
 
 use crate::page::device_state;
 use crate::record::{
@@ -617,14 +618,12 @@ async fn session(
     let state = state_topic(cfg);
     // The broker publishes it when the connection is lost without a clean stop.
     opts.set_last_will(LastWill::new(&state, STATE_LOST, QoS::AtLeastOnce, true));
-    let (client, mut events) = AsyncClient::new(opts, WINDOW * 2);
+    let (client, connection) = AsyncClient::new(opts, WINDOW * 2);
+    let mut events = Events::drive(connection);
 
     let mut connected = false;
     let mut queued_upto: i64 = 0;
-    // Row ids sent but not yet given a packet id, in send order.
-    let mut sent: VecDeque<i64> = VecDeque::new();
-    let mut inflight: BTreeMap<u16, i64> = BTreeMap::new();
-    let mut acked: Vec<i64> = Vec::new();
+    let mut window = Window::default();
     // Rows may be waiting that have not been read yet.
     let mut unread = true;
     // When the pending outbox work runs.
@@ -636,19 +635,14 @@ async fn session(
         let far = tokio::time::Instant::now() + Duration::from_secs(3600);
         tokio::select! {
             _ = shutdown.cancelled() => {
-                let _ = outbox.exchange(Exchange { acked: std::mem::take(&mut acked), cap: Some(cfg.outbox_max_messages), fetch: None }).await;
                 if connected {
-                    say_offline(&client, &mut events, &state, sent.len()).await;
+                    close(&client, &mut events, &mut window, Some(&state)).await;
                 }
+                let _ = outbox.exchange(Exchange { acked: std::mem::take(&mut window.acked), cap: Some(cfg.outbox_max_messages), fetch: None }).await;
                 return Ok(());
             }
-            ev = events.poll() => {
-                let ev = match ev {
-                    Ok(ev) => ev,
-                    Err(ConnectionError::ConnectionRefused(code)) => return Err(ServiceError::MqttRefused(refusal(code))),
-                    Err(e) => return Err(ServiceError::Mqtt(e.to_string())),
-                };
-                match ev {
+            ev = events.next() => {
+                match ev? {
                     Event::Incoming(Packet::ConnAck(_)) => {
                         connected = true;
                         link.connected(cfg);
@@ -657,19 +651,9 @@ async fn session(
                         client
                             .try_publish(&state, QoS::AtLeastOnce, true, STATE_ONLINE)
                             .map_err(|e| ServiceError::Mqtt(e.to_string()))?;
-                        sent.push_back(NOT_A_ROW);
+                        window.sent.push_back(NOT_A_ROW);
                     }
-                    Event::Outgoing(Outgoing::Publish(pkid)) => {
-                        if let Some(row) = sent.pop_front() {
-                            inflight.insert(pkid, row);
-                        }
-                    }
-                    Event::Incoming(Packet::PubAck(ack)) => {
-                        if let Some(row) = inflight.remove(&ack.pkid).filter(|&r| r != NOT_A_ROW) {
-                            acked.push(row);
-                        }
-                    }
-                    _ => {}
+                    ev => window.track(&ev),
                 }
             }
             () = grown.notified() => unread = true,
@@ -677,13 +661,16 @@ async fn session(
             () = tokio::time::sleep_until(work_at.unwrap_or(far)), if work_at.is_some() => {
                 work_at = None;
                 if outbox.replaced() {
-                    let _ = client.try_disconnect();
+                    if connected {
+                        // Without the offline state: the next session says online again.
+                        close(&client, &mut events, &mut window, None).await;
+                    }
                     return Ok(());
                 }
-                let room = WINDOW.saturating_sub(sent.len() + inflight.len());
+                let room = WINDOW.saturating_sub(window.len());
                 let fetch = (connected && unread && room > 0).then_some((queued_upto, room));
                 let cap = std::mem::take(&mut cap_due).then_some(cfg.outbox_max_messages);
-                let (dropped, rows) = outbox.exchange(Exchange { acked: std::mem::take(&mut acked), cap, fetch }).await?;
+                let (dropped, rows) = outbox.exchange(Exchange { acked: std::mem::take(&mut window.acked), cap, fetch }).await?;
                 link.dropped(cfg, dropped);
                 if fetch.is_some() {
                     // A full window may have left more behind.
@@ -693,14 +680,91 @@ async fn session(
                     client
                         .try_publish(topic, QoS::AtLeastOnce, false, payload)
                         .map_err(|e| ServiceError::Mqtt(e.to_string()))?;
-                    sent.push_back(row);
+                    window.sent.push_back(row);
                     queued_upto = row;
                 }
             }
         }
-        let room = WINDOW > sent.len() + inflight.len();
-        if work_at.is_none() && (!acked.is_empty() || cap_due || (connected && unread && room)) {
+        let room = WINDOW > window.len();
+        if work_at.is_none()
+            && (!window.acked.is_empty() || cap_due || (connected && unread && room))
+        {
             work_at = Some(tokio::time::Instant::now() + BATCH);
+        }
+    }
+}
+
+/// The broker connection, polled by a task of its own: its keep-alive and its
+/// acknowledgements go on while the session waits on the database (a commit on a
+/// slow card, a backup holding the lock), and a connect is never cut off halfway,
+/// as dropping rumqttc's `poll` in a `select!` does (the broker then published the
+/// last will, "lost", at most starts).
+struct Events {
+    events: mpsc::UnboundedReceiver<Result<Event, ConnectionError>>,
+    _task: AbortOnDropHandle<()>,
+}
+
+impl Events {
+    /// Ends at the first error (the session starts again), and with the session.
+    fn drive(mut connection: rumqttc::EventLoop) -> Self {
+        // Unbounded, yet short: the window bounds the publishes and acks in flight.
+        let (tx, events) = mpsc::unbounded_channel();
+        let task = tokio::spawn(async move {
+            loop {
+                let ev = connection.poll().await;
+                let failed = ev.is_err();
+                if tx.send(ev).is_err() || failed {
+                    return;
+                }
+            }
+        });
+        Events {
+            events,
+            _task: AbortOnDropHandle::new(task),
+        }
+    }
+
+    /// The next event, or the connection's error.
+    async fn next(&mut self) -> Result<Event, ServiceError> {
+        match self.events.recv().await {
+            Some(Ok(ev)) => Ok(ev),
+            Some(Err(ConnectionError::ConnectionRefused(code))) => {
+                Err(ServiceError::MqttRefused(refusal(code)))
+            }
+            Some(Err(e)) => Err(ServiceError::Mqtt(e.to_string())),
+            None => Err(ServiceError::Mqtt("the connection task ended".into())),
+        }
+    }
+}
+
+/// The outbox rows handed to the client and not yet acknowledged.
+#[derive(Default)]
+struct Window {
+    /// Row ids sent but not yet given a packet id, in send order.
+    sent: VecDeque<i64>,
+    inflight: BTreeMap<u16, i64>,
+    /// Acknowledged, to delete from the outbox.
+    acked: Vec<i64>,
+}
+
+impl Window {
+    fn len(&self) -> usize {
+        self.sent.len() + self.inflight.len()
+    }
+
+    fn track(&mut self, ev: &Event) {
+        match ev {
+            Event::Outgoing(Outgoing::Publish(pkid)) => {
+                if let Some(row) = self.sent.pop_front() {
+                    self.inflight.insert(*pkid, row);
+                }
+            }
+            Event::Incoming(Packet::PubAck(ack)) => {
+                if let Some(row) = self.inflight.remove(&ack.pkid).filter(|&r| r != NOT_A_ROW) {
+                    self.acked.push(row);
+                }
+            }
+            _ => {}
         }
     }
 }
@@ -712,41 +776,45 @@ const STATE_LOST: &str = r#"{"state":"lost"}"#;
 /// The row id of a publish that is not from the outbox (the state).
 const NOT_A_ROW: i64 = -1;
 /// How long a stop waits for the broker to take the offline state.
-const OFFLINE_WAIT: Duration = Duration::from_secs(1);
+const CLOSE_WAIT: Duration = Duration::from_secs(3);
 
 fn state_topic(cfg: &MqttConfig) -> String {
     format!("{}/{}/state", cfg.topic_prefix, cfg.machine)
 }
 
-/// At a clean stop: the retained offline state, then a DISCONNECT (so the broker
-/// drops the last will), each driven out by polling the connection, for at most
-/// [`OFFLINE_WAIT`]: a stop does not wait on a slow broker. `queued` publishes were
-/// handed to the client before and have not gone out yet; the offline state goes
-/// after them, and the DISCONNECT after it (TCP keeps the order).
-async fn say_offline(
+/// Ends the session cleanly: at a stop the retained offline state (to `state`)
+/// first, then a DISCONNECT, so that the broker drops the last will. For at most
+/// [`CLOSE_WAIT`]: a stop does not wait on a slow broker. The publishes handed to
+/// the client before go out first; the DISCONNECT follows the last of them (TCP
+/// keeps the order). Acknowledgements that come meanwhile are kept in `window`.
+async fn close(
     client: &AsyncClient,
-    events: &mut rumqttc::EventLoop,
-    state: &str,
-    queued: usize,
+    events: &mut Events,
+    window: &mut Window,
+    state: Option<&str>,
 ) {
-    if client
-        .try_publish(state, QoS::AtLeastOnce, true, STATE_OFFLINE)
-        .is_err()
-    {
-        return;
+    if let Some(state) = state {
+        if client
+            .try_publish(state, QoS::AtLeastOnce, true, STATE_OFFLINE)
+            .is_err()
+        {
+            return;
+        }
+        window.sent.push_back(NOT_A_ROW);
     }
-    let _ = tokio::time::timeout(OFFLINE_WAIT, async {
-        let mut to_go = queued + 1;
+    let _ = tokio::time::timeout(CLOSE_WAIT, async {
+        if window.sent.is_empty() && client.try_disconnect().is_err() {
+            return;
+        }
         loop {
-            match events.poll().await {
-                Ok(Event::Outgoing(Outgoing::Publish(_))) => {
-                    to_go = to_go.saturating_sub(1);
-                    if to_go == 0 && client.try_disconnect().is_err() {
-                        return;
-                    }
-                }
-                Ok(Event::Outgoing(Outgoing::Disconnect)) | Err(_) => return,
-                Ok(_) => {}
+            let Ok(ev) = events.next().await else { return };
+            let last =
+                matches!(ev, Event::Outgoing(Outgoing::Publish(_))) && window.sent.len() == 1;
+            window.track(&ev);
+            match ev {
+                _ if last && client.try_disconnect().is_err() => return,
+                Event::Outgoing(Outgoing::Disconnect) => return,
+                _ => {}
             }
         }
     })
