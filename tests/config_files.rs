@@ -226,6 +226,62 @@ fn the_mqtt_broker_is_checked_as_every_address() {
     }
 }
 
+/// The broker's login comes from a file or two variables, as the OPC UA target's: a
+/// problem names the `mqtt.` key and never what the file holds.
+#[test]
+fn the_mqtt_login_is_checked_at_load() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let with = |keys: &str| {
+        format!(
+            "{}\n[recorder]\npath = {:?}\n\n[mqtt]\nbroker = \"127.0.0.1:1883\"\nmachine = \"m1\"\n{keys}\n",
+            example_text(),
+            dir.path().join("r.db").display().to_string()
+        )
+    };
+    let file = dir.path().join("mqtt.login");
+    let missing = dir.path().join("nowhere.login");
+    std::fs::write(&file, "compgate\nsecret\n").expect("write");
+    for (keys, key, why) in [
+        (
+            format!(
+                "credentials_file = {:?}\nuser_env = \"U\"\npassword_env = \"P\"",
+                file.display().to_string()
+            ),
+            "mqtt.credentials_file",
+            "not both",
+        ),
+        (
+            "user_env = \"U\"".into(),
+            "mqtt.password_env",
+            "required with user_env",
+        ),
+        (
+            "user_env = \"COMPGATE_TEST_NO_SUCH_USER\"\npassword_env = \"P\"".into(),
+            "mqtt.user_env",
+            "COMPGATE_TEST_NO_SUCH_USER is not set",
+        ),
+        (
+            format!("credentials_file = {:?}", missing.display().to_string()),
+            "mqtt.credentials_file",
+            "nowhere.login: No such file",
+        ),
+    ] {
+        let (_path, result, _dir) = load_text("mqtt.toml", &with(&keys));
+        let p = problems(result);
+        assert_eq!(p.len(), 1, "{keys}: {p:#?}");
+        assert_eq!(p[0].key, key, "{keys}");
+        assert!(p[0].message.contains(why), "{keys}: {}", p[0]);
+    }
+    let (_path, result, _dir) = load_text(
+        "mqtt.toml",
+        &with(&format!(
+            "credentials_file = {:?}",
+            file.display().to_string()
+        )),
+    );
+    result.expect("a readable credentials file is accepted");
+}
+
 /// `T_` could not be reached by an override: `COMPGATE__CHANNELS__T___ADDRESS` split as
 /// `T` and `_ADDRESS`. A name starting with `_` is still fine: the split reads from the
 /// left.

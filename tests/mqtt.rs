@@ -296,23 +296,101 @@ async fn publishing_goes_on_after_the_wal_is_deleted() {
     .await;
 }
 
+/// A broker in `dir` with `settings` in place of `allow_anonymous true`.
+fn broker_with(dir: &std::path::Path, settings: &str) -> Broker {
+    tokio::task::block_in_place(|| {
+        let mut broker = Broker::start(dir);
+        broker.stop();
+        let conf = dir.join("mosquitto.conf");
+        let text = std::fs::read_to_string(&conf).unwrap();
+        assert!(text.contains("allow_anonymous true"), "{text}");
+        std::fs::write(&conf, text.replace("allow_anonymous true", settings)).unwrap();
+        broker.restart();
+        broker
+    })
+}
+
+// The gateway connected without user name and password only: a plant broker that
+// asks for them (as most do) could not be used.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_gateway_logs_in_to_a_broker_that_asks_for_a_password() {
+    let dir = tempfile::tempdir().unwrap();
+    let passwords = dir.path().join("passwords");
+    let ok = std::process::Command::new("mosquitto_passwd")
+        .args(["-c", "-b"])
+        .arg(&passwords)
+        .args(["compgate", "pa ss:w0rd"])
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "mosquitto_passwd");
+    // Anonymous clients (the test's subscriber) may read; only the user may publish:
+    // a message arrives only from a gateway that logged in.
+    let acl = dir.path().join("acl");
+    std::fs::write(
+        &acl,
+        "topic read #\n\nuser compgate\ntopic readwrite compgate/#\n",
+    )
+    .unwrap();
+    let broker = broker_with(
+        dir.path(),
+        &format!(
+            "allow_anonymous true\npassword_file {}\nacl_file {}",
+            passwords.display(),
+            acl.display()
+        ),
+    );
+    let (got, sub) = subscribe(broker.port, "compgate/#");
+    let login = dir.path().join("mqtt.login");
+    std::fs::write(&login, "compgate\npa ss:w0rd\n").unwrap();
+    std::fs::set_permissions(&login, std::os::unix::fs::PermissionsExt::from_mode(0o600)).unwrap();
+    let db = dir.path().join("rec.db");
+    let keys = format!("credentials_file = {:?}", login.display().to_string());
+    let extra = service_sections(&db, broker.port, &keys);
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), &extra).await;
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    wait_until(20.0, "a health message", || {
+        got.lock()
+            .unwrap()
+            .iter()
+            .any(|(t, _)| t == "compgate/mill-7/health")
+    })
+    .await;
+    assert!(
+        !gw.stderr_text().contains("readable by group"),
+        "{}",
+        gw.stderr_text()
+    );
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+
+    // A wrong password, from the environment: refused, and said so.
+    let text = std::fs::read_to_string(&path).unwrap();
+    let path = dir.path().join("env.toml");
+    let env_keys = "user_env = \"MQ_USER\"\npassword_env = \"MQ_PASS\"";
+    std::fs::write(&path, text.replace(&keys, env_keys)).unwrap();
+    let gw = Gateway::start(
+        dir.path(),
+        &path,
+        &[("MQ_USER", "compgate"), ("MQ_PASS", "wrong")],
+    );
+    tokio::task::block_in_place(|| {
+        gw.wait_log(
+            20.0,
+            "MQTT: broker refused the connection: not authorized (a wrong user name or password",
+        )
+    });
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    sub.abort();
+    drop((plant, broker));
+}
+
 // A broker refusing the client (not authorized) was logged as "broker unreachable",
 // as if it did not answer.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_broker_refusing_the_client_is_named_as_refusing_it_once() {
     let dir = tempfile::tempdir().unwrap();
-    let mut broker = tokio::task::block_in_place(|| Broker::start(dir.path()));
-    // The same broker, with anonymous clients refused.
-    tokio::task::block_in_place(|| broker.stop());
-    let conf = dir.path().join("mosquitto.conf");
-    let text = std::fs::read_to_string(&conf).unwrap();
-    assert!(text.contains("allow_anonymous true"), "{text}");
-    std::fs::write(
-        &conf,
-        text.replace("allow_anonymous true", "allow_anonymous false"),
-    )
-    .unwrap();
-    tokio::task::block_in_place(|| broker.restart());
+    let broker = broker_with(dir.path(), "allow_anonymous false");
 
     let extra = service_sections(&dir.path().join("rec.db"), broker.port, "");
     let (plant, path) =

@@ -52,6 +52,7 @@ use crate::record::{
 };
 use crate::ServiceError;
 use compgate_core::comp::CompParams;
+use compgate_gateway::config::login::Credentials;
 use compgate_gateway::config::{secs, MqttConfig};
 use compgate_gateway::nc::{JobReport, NcError};
 use compgate_gateway::runtime::{GatewayError, Observer, SampleReadings, Status};
@@ -244,12 +245,31 @@ pub async fn publisher(
             return;
         }
     };
+    // Read once: `validate` and the start have checked them.
+    let login = match cfg.login().load() {
+        Ok(login) => login,
+        Err((key, why)) => {
+            tracing::error!(key = %format!("mqtt.{key}"), "MQTT: {why}; nothing is published");
+            return;
+        }
+    };
+    cfg.login().warn_if_readable_by_others("MQTT");
     let mut link = BrokerLink::default();
     // The outbox may be over the cap from the last run.
     let mut cap_due = true;
     while !shutdown.is_cancelled() {
         let ended = match outbox.reopen_if_replaced() {
-            Ok(()) => session(&cfg, &mut outbox, &grown, &shutdown, &mut link).await,
+            Ok(()) => {
+                session(
+                    &cfg,
+                    login.as_ref(),
+                    &mut outbox,
+                    &grown,
+                    &shutdown,
+                    &mut link,
+                )
+                .await
+            }
             Err(e) => Err(e),
         };
         match ended {
@@ -385,16 +405,23 @@ impl BrokerLink {
     }
 }
 
-/// The CONNACK's refusal in words (MQTT 3.1.1, 3.2.2.3).
-fn refusal(code: ConnectReturnCode) -> &'static str {
+/// The CONNACK's refusal in words (MQTT 3.1.1, 3.2.2.3); `anonymous`: the gateway
+/// connected without a user name.
+fn refusal(code: ConnectReturnCode, anonymous: bool) -> &'static str {
     match code {
         ConnectReturnCode::Success => "accepted",
         ConnectReturnCode::RefusedProtocolVersion => "unacceptable protocol version",
         ConnectReturnCode::BadClientId => "client identifier rejected",
         ConnectReturnCode::ServiceUnavailable => "server unavailable",
+        ConnectReturnCode::BadUserNamePassword if anonymous => {
+            "bad user name or password (none was given: set mqtt.credentials_file, or mqtt.user_env and mqtt.password_env)"
+        }
         ConnectReturnCode::BadUserNamePassword => "bad user name or password",
+        ConnectReturnCode::NotAuthorized if anonymous => {
+            "not authorized (the gateway connected without user name and password: set mqtt.credentials_file, or mqtt.user_env and mqtt.password_env)"
+        }
         ConnectReturnCode::NotAuthorized => {
-            "not authorized (the gateway connects without user name and password)"
+            "not authorized (a wrong user name or password, or a user the broker does not let connect)"
         }
     }
 }
@@ -601,6 +628,7 @@ async fn exchange(db: &Db, ex: Exchange) -> Result<(u64, Vec<Row>), ServiceError
 /// deleted in batches. An idle session does not wake up at all but for the cap.
 async fn session(
     cfg: &MqttConfig,
+    login: Option<&Credentials>,
     outbox: &mut Outbox,
     grown: &Notify,
     shutdown: &CancellationToken,
@@ -615,11 +643,14 @@ async fn session(
     opts.set_keep_alive(secs(cfg.keep_alive_s));
     opts.set_clean_session(true);
     opts.set_inflight(WINDOW as u16);
+    if let Some(c) = login {
+        opts.set_credentials(&c.user, &c.password);
+    }
     let state = state_topic(cfg);
     // The broker publishes it when the connection is lost without a clean stop.
     opts.set_last_will(LastWill::new(&state, STATE_LOST, QoS::AtLeastOnce, true));
     let (client, connection) = AsyncClient::new(opts, WINDOW * 2);
-    let mut events = Events::drive(connection);
+    let mut events = Events::drive(connection, login.is_none());
 
     let mut connected = false;
     let mut queued_upto: i64 = 0;
@@ -701,12 +732,14 @@ async fn session(
 /// last will, "lost", at most starts).
 struct Events {
     events: mpsc::UnboundedReceiver<Result<Event, ConnectionError>>,
+    /// Connected without a user name: how a refusal is told.
+    anonymous: bool,
     _task: AbortOnDropHandle<()>,
 }
 
 impl Events {
     /// Ends at the first error (the session starts again), and with the session.
-    fn drive(mut connection: rumqttc::EventLoop) -> Self {
+    fn drive(mut connection: rumqttc::EventLoop, anonymous: bool) -> Self {
         // Unbounded, yet short: the window bounds the publishes and acks in flight.
         let (tx, events) = mpsc::unbounded_channel();
         let task = tokio::spawn(async move {
@@ -720,6 +753,7 @@ impl Events {
         });
         Events {
             events,
+            anonymous,
             _task: AbortOnDropHandle::new(task),
         }
     }
@@ -729,7 +763,7 @@ impl Events {
         match self.events.recv().await {
             Some(Ok(ev)) => Ok(ev),
             Some(Err(ConnectionError::ConnectionRefused(code))) => {
-                Err(ServiceError::MqttRefused(refusal(code)))
+                Err(ServiceError::MqttRefused(refusal(code, self.anonymous)))
             }
             Some(Err(e)) => Err(ServiceError::Mqtt(e.to_string())),
             None => Err(ServiceError::Mqtt("the connection task ended".into())),

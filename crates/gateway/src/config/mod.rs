@@ -70,6 +70,7 @@
 pub mod example;
 pub mod keys;
 mod load;
+pub mod login;
 pub mod problem;
 mod root;
 pub mod schema;

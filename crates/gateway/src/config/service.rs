@@ -4,6 +4,7 @@
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
+use super::login::LoginKeys;
 use super::problem::{check_host_port, ConfigProblem};
 
 /// `[recorder]`: every poll cycle's raw and filtered readings with their quality, every
@@ -195,6 +196,35 @@ pub struct MqttConfig {
     #[serde(default = "default_outbox_max_messages")]
     #[schemars(range(min = 1, max = 100_000_000))]
     pub outbox_max_messages: u64,
+    /// File holding the broker's user name on its first line and the password on its
+    /// second (keep it readable by compgate only); a relative path is under
+    /// `$STATE_DIRECTORY` when set. Read at start. Not with `user_env`/`password_env`.
+    /// Default none: anonymous unless the two variables are named; at most 4096
+    /// characters.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = 4096))]
+    pub credentials_file: Option<String>,
+    /// Name of the environment variable holding the broker's user name; requires
+    /// `password_env`. Default none; 1..=128 characters.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = 128))]
+    pub user_env: Option<String>,
+    /// Name of the environment variable holding the broker's password; requires
+    /// `user_env`. Default none; 1..=128 characters.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = 128))]
+    pub password_env: Option<String>,
+}
+
+impl MqttConfig {
+    /// Where the broker's user name and password come from.
+    pub fn login(&self) -> LoginKeys<'_> {
+        LoginKeys {
+            credentials_file: self.credentials_file.as_deref(),
+            user_env: self.user_env.as_deref(),
+            password_env: self.password_env.as_deref(),
+        }
+    }
 }
 
 fn default_topic_prefix() -> String {
@@ -331,6 +361,9 @@ pub(super) fn validate_service(
         }
         if m.outbox_max_messages == 0 {
             problem("mqtt.outbox_max_messages", "must be at least 1".into());
+        }
+        for (key, why) in m.login().problems() {
+            problem(&format!("mqtt.{key}"), why);
         }
     }
     out

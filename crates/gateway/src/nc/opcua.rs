@@ -9,7 +9,7 @@
 //! opened anew on the next call, after a capped backoff when connecting fails.
 
 use std::fmt;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::str::FromStr;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -37,6 +37,7 @@ use tracing::instrument::WithSubscriber;
 use super::config::Place;
 use super::{Job, JobIds, JobReport, NcError, NcSnapshot, NcWriter};
 use crate::config::keys::secs;
+use crate::config::login::{state_path, Credentials, LoginKeys};
 use crate::config::problem::{check_host_port, peer_identity, Problems};
 use crate::source::modbus::Backoff;
 use crate::source::SourceError;
@@ -291,41 +292,8 @@ impl OpcuaTargetConfig {
         if self.pki_dir.trim().is_empty() {
             out.push(k("pki_dir"), "must not be empty");
         }
-        match (&self.credentials_file, &self.user_env, &self.password_env) {
-            (Some(_), Some(_), _) | (Some(_), _, Some(_)) => out.push(
-                k("credentials_file"),
-                "give the credentials either in a file or in user_env/password_env, not both",
-            ),
-            (None, Some(_), None) => out.push(k("password_env"), "required with user_env"),
-            (None, None, Some(_)) => out.push(k("user_env"), "required with password_env"),
-            _ => {
-                let mut named = true;
-                if let Some(f) = &self.credentials_file {
-                    if f.trim().is_empty() {
-                        out.push(k("credentials_file"), "must not be empty");
-                        named = false;
-                    }
-                }
-                for (name, v) in [
-                    ("user_env", &self.user_env),
-                    ("password_env", &self.password_env),
-                ] {
-                    if let Some(v) = v {
-                        if v.is_empty() || v.contains(['=', '\0']) {
-                            out.push(
-                                k(name),
-                                format!("`{v}` is not an environment variable name"),
-                            );
-                            named = false;
-                        }
-                    }
-                }
-                if named {
-                    if let Err((name, why)) = self.credentials() {
-                        out.push(k(name), why);
-                    }
-                }
-            }
+        for (name, why) in self.login().problems() {
+            out.push(k(name), why);
         }
         out.positive(&k("request_timeout_s"), self.request_timeout_s, "seconds");
         out.positive(&k("connect_timeout_s"), self.connect_timeout_s, "seconds");
@@ -420,11 +388,10 @@ impl OpcuaTargetConfig {
         }
         let templates = self.axis_nodes(axis_name, axis_number);
         let credentials = self
-            .credentials()
+            .login()
+            .load()
             .map_err(|(name, why)| NcError::OpcuaSetup(format!("{name}: {why}")))?;
-        if let Some(file) = &self.credentials_file {
-            warn_if_readable_by_others(&state_path(file));
-        }
+        self.login().warn_if_readable_by_others("OPC UA");
         Ok(OpcuaNcWriter {
             spec: Arc::new(Spec {
                 endpoint_url: self.endpoint_url.clone(),
@@ -450,55 +417,12 @@ impl OpcuaTargetConfig {
         })
     }
 
-    /// The user and password from `credentials_file` or the variables `user_env` and
-    /// `password_env`; `None`: anonymous. An error names the key at fault and why,
-    /// never what the file or a variable holds.
-    fn credentials(&self) -> Result<Option<Credentials>, (&'static str, String)> {
-        if let Some(file) = &self.credentials_file {
-            let path = state_path(file);
-            let fail = |why: String| ("credentials_file", format!("{}: {why}", path.display()));
-            let text = std::fs::read_to_string(&path).map_err(|e| fail(e.to_string()))?;
-            let mut lines = text.lines();
-            let user = lines.next().unwrap_or_default().to_string();
-            let password = lines.next().unwrap_or_default().to_string();
-            if user.is_empty() {
-                return Err(fail(
-                    "the first line (user name) is empty; expected the user name on the \
-                     first line and the password on the second"
-                        .into(),
-                ));
-            }
-            return Ok(Some(Credentials { user, password }));
+    fn login(&self) -> LoginKeys<'_> {
+        LoginKeys {
+            credentials_file: self.credentials_file.as_deref(),
+            user_env: self.user_env.as_deref(),
+            password_env: self.password_env.as_deref(),
         }
-        let (Some(u), Some(p)) = (&self.user_env, &self.password_env) else {
-            return Ok(None);
-        };
-        // VarError's own text would show a value that is not Unicode: the secret.
-        let get = |key: &'static str, name: &str| match std::env::var(name) {
-            Ok(v) => Ok(v),
-            Err(std::env::VarError::NotPresent) => Err((
-                key,
-                format!(
-                    "environment variable {name} is not set (give it to the service, e.g. \
-                     with the unit's Environment= or EnvironmentFile=)"
-                ),
-            )),
-            Err(std::env::VarError::NotUnicode(_)) => Err((
-                key,
-                format!("environment variable {name} is not valid Unicode"),
-            )),
-        };
-        let user = get("user_env", u)?;
-        if user.is_empty() {
-            return Err((
-                "user_env",
-                format!("environment variable {u} is empty; expected the user name"),
-            ));
-        }
-        Ok(Some(Credentials {
-            user,
-            password: get("password_env", p)?,
-        }))
     }
 }
 
@@ -542,31 +466,6 @@ fn check_template(template: &str) -> Result<(), String> {
         .map_err(|_| format!("`{template}` does not give a node id such as `ns=2;s=/NC/...`"))
 }
 
-/// A relative path under `$STATE_DIRECTORY` when set (as the recorder's database).
-fn state_path(p: &str) -> PathBuf {
-    let path = Path::new(p);
-    match std::env::var_os("STATE_DIRECTORY") {
-        Some(dir) if path.is_relative() => Path::new(&dir).join(path),
-        _ => path.to_path_buf(),
-    }
-}
-
-#[cfg(unix)]
-fn warn_if_readable_by_others(path: &Path) {
-    use std::os::unix::fs::PermissionsExt;
-    if let Ok(meta) = std::fs::metadata(path) {
-        if meta.permissions().mode() & 0o077 != 0 {
-            tracing::warn!(
-                file = %path.display(),
-                "OPC UA credentials file is readable by group or others; chmod 600 it"
-            );
-        }
-    }
-}
-
-#[cfg(not(unix))]
-fn warn_if_readable_by_others(_path: &Path) {}
-
 fn default_namespace_uri() -> String {
     "SinumerikVarProvider".into()
 }
@@ -599,22 +498,6 @@ fn default_job_timeout_s() -> f64 {
 }
 fn default_session_timeout_s() -> f64 {
     60.0
-}
-
-/// User name and password; the password never appears in Debug output or logs.
-#[derive(Clone)]
-struct Credentials {
-    user: String,
-    password: String,
-}
-
-impl fmt::Debug for Credentials {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.debug_struct("Credentials")
-            .field("user", &self.user)
-            .field("password", &"***")
-            .finish()
-    }
 }
 
 /// One open session: its event loop runs on a task of its own until the connection
