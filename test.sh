@@ -17,6 +17,8 @@ command -v systemd-analyze >/dev/null 2>&1 || need+=(systemd)
 command -v mosquitto >/dev/null 2>&1 || [[ -x /usr/sbin/mosquitto ]] || need+=(mosquitto)
 command -v promtool >/dev/null 2>&1 || need+=(prometheus)
 command -v chromium >/dev/null 2>&1 || need+=(chromium)
+# openssl: the certificates of the TLS broker behind the shipped MQTT bridge.
+command -v openssl >/dev/null 2>&1 || need+=(openssl)
 # LinuxCNC (uspace, runs without a realtime kernel): the real control at the end of the
 # chain in tests/nc_linuxcnc.rs.
 command -v linuxcnc >/dev/null 2>&1 || need+=(linuxcnc-uspace)

@@ -385,6 +385,159 @@ async fn the_gateway_logs_in_to_a_broker_that_asks_for_a_password() {
     drop((plant, broker));
 }
 
+/// Runs `openssl` with `args` in `dir`.
+fn openssl(dir: &std::path::Path, args: &[&str]) {
+    let out = std::process::Command::new("openssl")
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "openssl {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+// compgate speaks plain MQTT; a plant broker that takes only TLS is reached through a
+// Mosquitto bridge on the gateway PC, as `deploy/mqtt/compgate-bridge.conf` ships it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_local_bridge_forwards_to_a_tls_broker() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plant_dir, bridge_dir) = (dir.path().join("plant"), dir.path().join("bridge"));
+    std::fs::create_dir_all(&plant_dir).unwrap();
+    std::fs::create_dir_all(&bridge_dir).unwrap();
+    // A CA, and the plant broker's certificate for 127.0.0.1 signed by it.
+    let d = plant_dir.as_path();
+    openssl(
+        d,
+        &[
+            "req",
+            "-x509",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-keyout",
+            "ca.key",
+            "-out",
+            "ca.crt",
+            "-days",
+            "2",
+            "-subj",
+            "/CN=plant test CA",
+        ],
+    );
+    openssl(
+        d,
+        &[
+            "req",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-keyout",
+            "server.key",
+            "-out",
+            "server.csr",
+            "-subj",
+            "/CN=127.0.0.1",
+        ],
+    );
+    std::fs::write(d.join("san.ext"), "subjectAltName=IP:127.0.0.1\n").unwrap();
+    openssl(
+        d,
+        &[
+            "x509",
+            "-req",
+            "-in",
+            "server.csr",
+            "-CA",
+            "ca.crt",
+            "-CAkey",
+            "ca.key",
+            "-CAcreateserial",
+            "-out",
+            "server.crt",
+            "-days",
+            "2",
+            "-extfile",
+            "san.ext",
+        ],
+    );
+    let ok = std::process::Command::new("mosquitto_passwd")
+        .args(["-c", "-b"])
+        .arg(d.join("passwords"))
+        .args(["compgate-mill-7", "br1dge pw"])
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "mosquitto_passwd");
+    // The plant broker: TLS for the bridge, where only the user may publish; a plain
+    // loopback listener for the test's subscriber.
+    std::fs::write(
+        d.join("acl"),
+        "topic read #\n\nuser compgate-mill-7\ntopic readwrite compgate/#\n",
+    )
+    .unwrap();
+    let tls_port = common::free_port();
+    let plant = Broker::start_with(
+        d,
+        &format!(
+            "password_file {0}/passwords\nacl_file {0}/acl\nlistener {tls_port} 127.0.0.1\ncafile {0}/ca.crt\ncertfile {0}/server.crt\nkeyfile {0}/server.key\n",
+            d.display()
+        ),
+    );
+    let (got, sub) = subscribe(plant.port, "compgate/#");
+
+    // The bridge as shipped, its EDIT lines set for this test.
+    let shipped = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/deploy/mqtt/compgate-bridge.conf"
+    ))
+    .unwrap();
+    let bridge_port = common::free_port();
+    let mut edits = 0;
+    let text: String = shipped
+        .lines()
+        .map(|line| {
+            let edited = match line.split_whitespace().next() {
+                Some("listener") => format!("listener {bridge_port} 127.0.0.1"),
+                Some("address") => format!("address 127.0.0.1:{tls_port}"),
+                Some("bridge_cafile") => format!("bridge_cafile {}/ca.crt", d.display()),
+                Some("remote_password") => "remote_password br1dge pw".into(),
+                _ => return line.to_string(),
+            };
+            edits += 1;
+            edited
+        })
+        .collect::<Vec<_>>()
+        .join("\n");
+    assert_eq!(edits, 4, "the shipped bridge changed: {shipped}");
+    let text = format!("{text}\nuser root\n");
+    let bridge =
+        tokio::task::block_in_place(|| Broker::start_conf(&bridge_dir, bridge_port, &text));
+
+    let db = dir.path().join("rec.db");
+    let extra = service_sections(&db, bridge.port, "");
+    let (field, path) =
+        common::plant_and_file(dir.path(), &common::config("hold", "", ""), &extra).await;
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    wait_until(
+        30.0,
+        "health and the online state at the plant broker",
+        || {
+            let got = got.lock().unwrap();
+            got.iter().any(|(t, _)| t == "compgate/mill-7/health")
+                && got
+                    .iter()
+                    .any(|(t, v)| t == "compgate/mill-7/state" && v["state"] == "online")
+        },
+    )
+    .await;
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    sub.abort();
+    drop((field, bridge, plant));
+}
+
 // A broker refusing the client (not authorized) was logged as "broker unreachable",
 // as if it did not answer.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

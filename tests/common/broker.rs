@@ -28,24 +28,28 @@ pub struct Broker {
 
 impl Broker {
     pub fn start(dir: &Path) -> Self {
-        let port = std::net::TcpListener::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port();
+        Self::start_with(dir, "")
+    }
+
+    /// [`start`](Self::start) with `extra` lines at the end of its configuration.
+    pub fn start_with(dir: &Path, extra: &str) -> Self {
+        let port = super::free_port();
+        // Persistence keeps the test subscriber's session (and the QoS 1 messages
+        // queued for it) across a stop/start, so it misses nothing published
+        // before it reconnects. `user root`: started as root, mosquitto would
+        // otherwise switch to its own user, which cannot write the test's directory.
+        let text = format!(
+            "listener {port} 127.0.0.1\nallow_anonymous true\npersistence true\npersistence_location {}/\nuser root\n{extra}\n",
+            dir.display()
+        );
+        Self::start_conf(dir, port, &text)
+    }
+
+    /// A broker on `port` (which `text` must name) run with the configuration `text`,
+    /// written into `dir`.
+    pub fn start_conf(dir: &Path, port: u16, text: &str) -> Self {
         let conf = dir.join("mosquitto.conf");
-        std::fs::write(
-            &conf,
-            // Persistence keeps the test subscriber's session (and the QoS 1 messages
-            // queued for it) across a stop/start, so it misses nothing published
-            // before it reconnects. `user root`: started as root, mosquitto would
-            // otherwise switch to its own user, which cannot write the test's directory.
-            format!(
-                "listener {port} 127.0.0.1\nallow_anonymous true\npersistence true\npersistence_location {}/\nuser root\n",
-                dir.display()
-            ),
-        )
-        .unwrap();
+        std::fs::write(&conf, text).unwrap();
         let mut b = Broker {
             port,
             conf,
@@ -68,12 +72,22 @@ impl Broker {
         super::process::wait_listening(child, self.port, 2.0, "mosquitto");
     }
 
-    /// SIGTERM: mosquitto saves its persistence file and exits.
+    /// SIGTERM: mosquitto saves its persistence file and exits. SIGKILL after 5 s:
+    /// a bridge that cannot connect can leave it spinning deaf to SIGTERM, and a
+    /// failed test would hang in this drop.
     pub fn stop(&mut self) {
         if let Some(mut c) = self.child.take() {
             let _ = Command::new("kill")
                 .args(["-TERM", &c.id().to_string()])
                 .status();
+            let deadline = std::time::Instant::now() + Duration::from_secs(5);
+            while c.try_wait().ok().flatten().is_none() {
+                if std::time::Instant::now() > deadline {
+                    let _ = c.kill();
+                    break;
+                }
+                std::thread::sleep(Duration::from_millis(20));
+            }
             let _ = c.wait();
         }
     }
