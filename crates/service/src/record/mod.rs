@@ -1310,7 +1310,7 @@ impl Writer {
                 cut += schema::delete_before(conn, first + ((last - first) / 10).max(1))?;
             }
         }
-        conn.execute_batch("PRAGMA incremental_vacuum;")?;
+        schema::release_free_pages(conn)?;
         let now_used = schema::data_bytes(conn)?;
         checkpoint(conn);
         self.stats

@@ -443,14 +443,45 @@ impl std::ops::AddAssign for Deleted {
     }
 }
 
-/// Deletes readings, jobs and NC rows older than `cutoff_unix_ms`.
+/// Rows one retention delete takes at most, and free pages one step of giving them
+/// back moves: each is its own transaction, with a checkpoint after it, so the WAL
+/// holds only a few MB however much a pass deletes. One delete of a month took a WAL
+/// as big as the month, and on a nearly full disk no pass could ever succeed.
+const DELETE_CHUNK_ROWS: i64 = 10_000;
+const VACUUM_CHUNK_PAGES: i64 = 256;
+
+/// Copies the WAL into the database without waiting for anyone, so that the next
+/// transaction writes the WAL from its start again instead of growing it.
+fn checkpoint_passive(conn: &Connection) -> rusqlite::Result<()> {
+    conn.query_row("PRAGMA wal_checkpoint(PASSIVE)", [], |_| Ok(()))
+}
+
+/// Deletes readings, jobs and NC rows older than `cutoff_unix_ms`, oldest first, in
+/// chunks of about [`DELETE_CHUNK_ROWS`].
 pub fn delete_before(conn: &Connection, cutoff_unix_ms: i64) -> rusqlite::Result<Deleted> {
     let delete = |t: &str| -> rusqlite::Result<u64> {
-        let n = conn.execute(
-            &format!("DELETE FROM {t} WHERE t_unix_ms < ?1"),
-            [cutoff_unix_ms],
-        )?;
-        Ok(n as u64)
+        let mut total = 0;
+        loop {
+            // The time of the chunk's last row; rows of one time go together, so a
+            // time with more rows than a chunk (every channel's) is taken whole.
+            let (first, nth): (Option<i64>, Option<i64>) = conn.query_row(
+                &format!(
+                    "SELECT (SELECT min(t_unix_ms) FROM {t}), \
+                     (SELECT t_unix_ms FROM {t} WHERE t_unix_ms < ?1 ORDER BY t_unix_ms LIMIT 1 OFFSET ?2)"
+                ),
+                [cutoff_unix_ms, DELETE_CHUNK_ROWS],
+                |r| Ok((r.get(0)?, r.get(1)?)),
+            )?;
+            let cut = match (first, nth) {
+                (Some(first), Some(nth)) => nth.max(first + 1),
+                _ => cutoff_unix_ms,
+            };
+            total += conn.execute(&format!("DELETE FROM {t} WHERE t_unix_ms < ?1"), [cut])? as u64;
+            if cut >= cutoff_unix_ms {
+                return Ok(total);
+            }
+            checkpoint_passive(conn)?;
+        }
     };
     Ok(Deleted {
         readings: delete("readings")?,
@@ -458,6 +489,28 @@ pub fn delete_before(conn: &Connection, cutoff_unix_ms: i64) -> rusqlite::Result
         nc: delete("nc")?,
         outbox: 0,
     })
+}
+
+/// Gives the database's free pages back to the file system, [`VACUUM_CHUNK_PAGES`]
+/// at a time. Each step of `PRAGMA incremental_vacuum` frees one page: run once (as
+/// `execute_batch` does), it gave back 4 KiB a pass.
+pub fn release_free_pages(conn: &Connection) -> rusqlite::Result<()> {
+    let free = || conn.query_row("PRAGMA freelist_count", [], |r| r.get::<_, i64>(0));
+    let mut left = free()?;
+    while left > 0 {
+        let mut stmt = conn.prepare(&format!("PRAGMA incremental_vacuum({VACUUM_CHUNK_PAGES})"))?;
+        let mut rows = stmt.query([])?;
+        while rows.next()?.is_some() {}
+        drop(rows);
+        drop(stmt);
+        checkpoint_passive(conn)?;
+        let now = free()?;
+        if now >= left {
+            break;
+        }
+        left = now;
+    }
+    Ok(())
 }
 
 /// MQTT messages waiting in the outbox.
