@@ -78,18 +78,19 @@ fn run_export(args: &export::ExportArgs) -> Result<(), CommandError> {
     let summary = if args.out.is_some() {
         export::run(args).map_err(failed)?
     } else {
-        let (m, summary) = export::measurements(args).map_err(failed)?;
         let mut out = KeepError {
             inner: io::stdout().lock(),
             error: None,
         };
-        if let Err(e) = m.write(&mut out) {
-            return Err(match out.error {
-                Some(io) => OutputError::stdout(io).into(),
-                None => failed(e),
-            });
+        match export::write_csv(args, &mut out) {
+            Ok(summary) => summary,
+            Err(e) => {
+                return Err(match out.error {
+                    Some(io) => OutputError::stdout(io).into(),
+                    None => failed(e),
+                })
+            }
         }
-        summary
     };
     for n in &summary.notes {
         cli::eprintln(format_args!("note: {n}"))?;

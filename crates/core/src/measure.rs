@@ -729,15 +729,67 @@ impl Measurements {
     /// Writes the series in the same format (with `dir` and `travel_mm`), so that
     /// `read(write(m)) == m` up to float formatting (Rust's shortest round-trip form).
     pub fn write<W: Write>(&self, writer: W) -> Result<(), MeasureError> {
-        let io = |source| MeasureError::Io {
-            path: "output".into(),
-            source,
-        };
+        let mut w = RowWriter::new(writer, self.temps.iter().map(|c| c.name.as_str()))?;
+        for i in 0..self.len() {
+            w.row(
+                Row {
+                    t_s: self.t_s[i],
+                    pos_mm: self.pos_mm[i],
+                    dir: self.dir[i],
+                    travel_mm: self.travel_mm[i],
+                    err_um: self.err_um[i],
+                },
+                self.temps.iter().map(|c| c.degc[i]),
+            )?;
+        }
+        w.finish()
+    }
+
+    /// Appends `row` and its temperatures, one per column of `temps`.
+    pub fn push(&mut self, row: Row, degc: impl IntoIterator<Item = f64>) {
+        self.t_s.push(row.t_s);
+        self.pos_mm.push(row.pos_mm);
+        self.dir.push(row.dir);
+        self.travel_mm.push(row.travel_mm);
+        self.err_um.push(row.err_um);
+        for (c, v) in self.temps.iter_mut().zip(degc) {
+            c.degc.push(v);
+        }
+    }
+}
+
+/// One measurement row but its temperatures.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Row {
+    pub t_s: f64,
+    pub pos_mm: f64,
+    /// +1/-1; 0 unknown (written as +1: the format has no "unknown").
+    pub dir: i8,
+    pub travel_mm: f64,
+    pub err_um: f64,
+}
+
+/// Writes the measurement CSV a row at a time, so that a long export never holds
+/// its rows in memory.
+pub struct RowWriter<W: Write> {
+    w: csv::Writer<W>,
+    row: Vec<String>,
+}
+
+fn csv_err(e: csv::Error) -> MeasureError {
+    MeasureError::Csv {
+        line: 0,
+        message: e.to_string(),
+    }
+}
+
+impl<W: Write> RowWriter<W> {
+    /// Writes the header, with a column `T_<name>` for each of `temps`.
+    pub fn new<'a>(
+        writer: W,
+        temps: impl IntoIterator<Item = &'a str>,
+    ) -> Result<Self, MeasureError> {
         let mut w = csv::Writer::from_writer(writer);
-        let csv_err = |e: csv::Error| MeasureError::Csv {
-            line: 0,
-            message: e.to_string(),
-        };
         let mut header = vec![
             "t_s".to_string(),
             "pos_mm".into(),
@@ -745,21 +797,32 @@ impl Measurements {
             "travel_mm".into(),
             "err_um".into(),
         ];
-        header.extend(self.temps.iter().map(|c| format!("T_{}", c.name)));
+        header.extend(temps.into_iter().map(|n| format!("T_{n}")));
         w.write_record(&header).map_err(csv_err)?;
-        let mut row: Vec<String> = Vec::with_capacity(header.len());
-        for i in 0..self.len() {
-            row.clear();
-            row.push(self.t_s[i].to_string());
-            row.push(self.pos_mm[i].to_string());
-            // Unknown direction is written as +1: the format has no "unknown".
-            row.push(if self.dir[i] < 0 { "-1" } else { "1" }.into());
-            row.push(self.travel_mm[i].to_string());
-            row.push(self.err_um[i].to_string());
-            row.extend(self.temps.iter().map(|c| c.degc[i].to_string()));
-            w.write_record(&row).map_err(csv_err)?;
-        }
-        w.flush().map_err(io)
+        Ok(RowWriter {
+            w,
+            row: Vec::with_capacity(header.len()),
+        })
+    }
+
+    /// Writes one row.
+    pub fn row(&mut self, r: Row, degc: impl IntoIterator<Item = f64>) -> Result<(), MeasureError> {
+        self.row.clear();
+        self.row.push(r.t_s.to_string());
+        self.row.push(r.pos_mm.to_string());
+        self.row.push(if r.dir < 0 { "-1" } else { "1" }.into());
+        self.row.push(r.travel_mm.to_string());
+        self.row.push(r.err_um.to_string());
+        self.row.extend(degc.into_iter().map(|v| v.to_string()));
+        self.w.write_record(&self.row).map_err(csv_err)
+    }
+
+    /// Flushes what is written.
+    pub fn finish(mut self) -> Result<(), MeasureError> {
+        self.w.flush().map_err(|source| MeasureError::Io {
+            path: "output".into(),
+            source,
+        })
     }
 }
 

@@ -33,7 +33,9 @@ use std::path::{Path, PathBuf};
 
 use rusqlite::{params, Connection, OpenFlags};
 
-use compgate_core::measure::{Measurements, TempColumn, TEMP_DEGC_MAX, TEMP_DEGC_MIN};
+use compgate_core::measure::{
+    Measurements, Row, RowWriter, TempColumn, TEMP_DEGC_MAX, TEMP_DEGC_MIN,
+};
 
 /// Arguments of `compgate export`.
 #[derive(Debug, Clone, clap::Args)]
@@ -145,6 +147,67 @@ fn measured(value_degc: Option<f64>, quality: u8, sampled: bool) -> Option<f64> 
 
 /// Reads the record between `since` and `until` into a measurement series.
 pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), ExportError> {
+    let mut m = Measurements::default();
+    let summary = export(args, |names, row, degc| {
+        if m.temps.is_empty() {
+            m.temps = names
+                .iter()
+                .map(|n| TempColumn {
+                    name: n.clone(),
+                    degc: Vec::new(),
+                })
+                .collect();
+        }
+        m.push(row, degc.iter().copied());
+        Ok(())
+    })?;
+    Ok((m, summary))
+}
+
+/// Writes the measurement CSV of the record between `since` and `until` to `out`, a
+/// row at a time; nothing at all when there is no row (an error).
+pub fn write_csv<W: std::io::Write>(
+    args: &ExportArgs,
+    out: W,
+) -> Result<ExportSummary, ExportError> {
+    let mut out = Some(out);
+    let mut w: Option<RowWriter<W>> = None;
+    let write_err = |e: compgate_core::measure::MeasureError| ExportError::Write(e.to_string());
+    let summary = export(args, |names, row, degc| {
+        let w = match &mut w {
+            Some(w) => w,
+            None => {
+                let writer = out
+                    .take()
+                    .ok_or_else(|| ExportError::Write("no output".into()))?;
+                w.insert(
+                    RowWriter::new(writer, names.iter().map(String::as_str)).map_err(write_err)?,
+                )
+            }
+        };
+        w.row(row, degc.iter().copied()).map_err(write_err)
+    })?;
+    if let Some(w) = w {
+        w.finish().map_err(write_err)?;
+    }
+    Ok(summary)
+}
+
+/// Per channel, what the record holds of it in the window.
+struct ChannelSpan {
+    first_ms: i64,
+    last_ms: i64,
+    /// The lowest and highest measured value (good or uncertain, with a raw value).
+    measured_degc: Option<(f64, f64)>,
+}
+
+/// The export, row by row: `emit` gets the temperature columns' names (without
+/// `T_`), a row and its temperatures, in time order. The readings are read as they
+/// are needed, never all at once: a month of 64 channels took 3 GB.
+pub fn export(
+    args: &ExportArgs,
+    mut emit: impl FnMut(&[String], Row, &[f64]) -> Result<(), ExportError>,
+) -> Result<ExportSummary, ExportError> {
     let path = args.db.display().to_string();
     let db = |e: rusqlite::Error| ExportError::Db {
         path: path.clone(),
@@ -196,6 +259,12 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
                 .collect::<Result<_, _>>()
         })
         .map_err(db)?;
+    let name_of = |id: &i64| {
+        names
+            .get(id)
+            .cloned()
+            .unwrap_or_else(|| format!("channel{id}"))
+    };
     let err_id = match &args.err_channel {
         Some(n) => Some(
             *names
@@ -217,48 +286,43 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
         notes.push("pos_mm is 0: no --axis given".to_string());
     }
 
-    // Readings in the window, in time order.
-    let mut stmt = conn
-        .prepare("SELECT t_unix_ms, channel, value_degc, quality, raw IS NOT NULL FROM readings WHERE t_unix_ms >= ?1 AND t_unix_ms < ?2 ORDER BY t_unix_ms")
-        .map_err(db)?;
-    // The value only when it was measured in that cycle with a usable quality.
-    let readings: Vec<(i64, i64, Option<f64>)> = stmt
-        .query_map(params![since, until], |r| {
-            let (v, q, sampled): (Option<f64>, u8, bool) = (r.get(2)?, r.get(3)?, r.get(4)?);
-            Ok((r.get(0)?, r.get(1)?, measured(v, q, sampled)))
+    // What each channel holds in the window, in one pass that keeps nothing per reading.
+    let spans: BTreeMap<i64, ChannelSpan> = conn
+        .prepare(
+            "SELECT channel, min(t_unix_ms), max(t_unix_ms), \
+             min(CASE WHEN quality < 2 AND raw IS NOT NULL AND value_degc BETWEEN -1e308 AND 1e308 THEN value_degc END), \
+             max(CASE WHEN quality < 2 AND raw IS NOT NULL AND value_degc BETWEEN -1e308 AND 1e308 THEN value_degc END) \
+             FROM readings WHERE t_unix_ms >= ?1 AND t_unix_ms < ?2 GROUP BY channel",
+        )
+        .and_then(|mut s| {
+            s.query_map(params![since, until], |r| {
+                let lo: Option<f64> = r.get(3)?;
+                let hi: Option<f64> = r.get(4)?;
+                Ok((
+                    r.get(0)?,
+                    ChannelSpan {
+                        first_ms: r.get(1)?,
+                        last_ms: r.get(2)?,
+                        measured_degc: lo.zip(hi),
+                    },
+                ))
+            })?
+            .collect::<Result<_, _>>()
         })
-        .and_then(|rows| rows.collect())
         .map_err(db)?;
-    let positions: Vec<(i64, f64)> = match &args.axis {
-        Some(axis) => {
-            let mut s = conn
-                .prepare("SELECT t_unix_ms, position_mm FROM nc WHERE axis = ?1 AND t_unix_ms < ?2 ORDER BY t_unix_ms")
-                .map_err(db)?;
-            let v: Vec<(i64, f64)> = s
-                .query_map(params![axis, until], |r| Ok((r.get(0)?, r.get(1)?)))
-                .and_then(|rows| rows.collect())
-                .map_err(db)?;
-            if v.is_empty() {
-                return Err(ExportError::Arg {
-                    flag: "axis",
-                    message: format!("no recorded NC position of axis `{axis}` before --until"),
-                });
-            }
-            v
-        }
-        None => Vec::new(),
-    };
-
-    // The grid spans the record within the window, not the window: one wider than the
-    // record (a mistyped year, or "everything") costs nothing beyond it.
-    let (Some(first), Some(last_t)) = (readings.first(), readings.last()) else {
+    let (Some(first_ms), Some(last_ms)) = (
+        spans.values().map(|c| c.first_ms).min(),
+        spans.values().map(|c| c.last_ms).max(),
+    ) else {
         return Err(ExportError::Empty(
             "the record holds no reading in the window".into(),
         ));
     };
-    let grid_start = since + (first.0 - since) / step_ms * step_ms;
+    // The grid spans the record within the window, not the window: one wider than the
+    // record (a mistyped year, or "everything") costs nothing beyond it.
+    let grid_start = since + (first_ms - since) / step_ms * step_ms;
     // No row after the last reading: past it the gateway recorded nothing.
-    let grid_end = until.min(last_t.0 + 1);
+    let grid_end = until.min(last_ms + 1);
     let grid_rows = (grid_end - grid_start) / step_ms;
     if grid_rows > MAX_GRID_ROWS {
         return Err(ExportError::Arg {
@@ -270,41 +334,126 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
         });
     }
 
-    // Temperature channels: every channel with a reading in the window, but the error channel.
-    let mut temp_ids: Vec<i64> = readings.iter().map(|r| r.1).collect();
-    temp_ids.sort_unstable();
-    temp_ids.dedup();
-    temp_ids.retain(|id| Some(*id) != err_id);
-    // A channel that reads no temperature (a laser or probe channel not given as
-    // --err-channel) would make calibrate refuse the whole file: it is left out, and
-    // said. Its most extreme usable value names it.
-    let mut not_degc: BTreeMap<i64, f64> = BTreeMap::new();
-    for &(_, ch, v) in &readings {
-        let Some(v) = v else {
+    // Temperature channels: every channel with a reading in the window, but the error
+    // channel. A channel that reads no temperature (a laser or probe channel not given
+    // as --err-channel) would make calibrate refuse the whole file: it is left out,
+    // and said. Its most extreme usable value names it.
+    let mut temp_ids: Vec<i64> = Vec::new();
+    for (id, span) in &spans {
+        if Some(*id) == err_id {
             continue;
-        };
-        if Some(ch) != err_id && !(TEMP_DEGC_MIN..=TEMP_DEGC_MAX).contains(&v) {
-            let worst = not_degc.entry(ch).or_insert(v);
-            if v.abs() > worst.abs() {
-                *worst = v;
-            }
+        }
+        let out_of_range = span.measured_degc.and_then(|(lo, hi)| {
+            let range = TEMP_DEGC_MIN..=TEMP_DEGC_MAX;
+            [lo, hi]
+                .into_iter()
+                .filter(|v| !range.contains(v))
+                .max_by(|a, b| a.abs().total_cmp(&b.abs()))
+        });
+        match out_of_range {
+            Some(v) => notes.push(format!(
+                "channel `{}` left out: it reads {v}, no temperature ({TEMP_DEGC_MIN}..={TEMP_DEGC_MAX} degC); give it as --err-channel if it measures the error",
+                name_of(id)
+            )),
+            None => temp_ids.push(*id),
         }
     }
-    temp_ids.retain(|id| !not_degc.contains_key(id));
-    for (id, v) in &not_degc {
-        let name = names
-            .get(id)
-            .cloned()
-            .unwrap_or_else(|| format!("channel{id}"));
-        notes.push(format!(
-            "channel `{name}` left out: it reads {v}, no temperature ({TEMP_DEGC_MIN}..={TEMP_DEGC_MAX} degC); give it as --err-channel if it measures the error"
-        ));
-    }
+    // A channel renamed, added or removed inside the window has no value on one side
+    // of the change: those rows cannot be exported, and the rest of the gap would be
+    // blamed on the record.
+    let partial: Vec<String> = temp_ids
+        .iter()
+        .chain(err_id.iter())
+        .filter_map(|id| {
+            let span = spans.get(id)?;
+            let starts = span.first_ms - first_ms > hold_ms;
+            let ends = last_ms - span.last_ms > hold_ms;
+            (starts || ends).then(|| {
+                format!(
+                    "`{}` ({})",
+                    name_of(id),
+                    match (starts, ends) {
+                        (true, true) => "starts and ends inside the window",
+                        (true, false) => "starts inside the window",
+                        _ => "ends inside the window",
+                    }
+                )
+            })
+        })
+        .collect();
     let col: BTreeMap<i64, usize> = temp_ids
         .iter()
         .enumerate()
         .map(|(i, id)| (*id, i))
         .collect();
+    let columns: Vec<String> = temp_ids
+        .iter()
+        .map(|id| {
+            let n = name_of(id);
+            n.strip_prefix("T_").map(str::to_string).unwrap_or(n)
+        })
+        .collect();
+
+    // The NC positions from the last one before the grid on, after the last change
+    // before that (which gives the direction): not the axis' whole history.
+    let positions: Vec<(i64, f64)> = match &args.axis {
+        Some(axis) => {
+            let query =
+                |sql: &str, p: &[&dyn rusqlite::ToSql]| -> Result<Vec<(i64, f64)>, ExportError> {
+                    conn.prepare(sql)
+                        .and_then(|mut s| {
+                            s.query_map(p, |r| Ok((r.get(0)?, r.get(1)?)))?
+                                .collect::<Result<_, _>>()
+                        })
+                        .map_err(db)
+                };
+            let before = query(
+                "SELECT t_unix_ms, position_mm FROM nc WHERE axis = ?1 AND t_unix_ms <= ?2 ORDER BY t_unix_ms DESC LIMIT 1",
+                &[axis, &grid_start],
+            )?;
+            let mut v = Vec::new();
+            let from = match before.first() {
+                Some(&(t0, p0)) => {
+                    v = query(
+                        "SELECT t_unix_ms, position_mm FROM nc WHERE axis = ?1 AND t_unix_ms < ?2 AND position_mm != ?3 ORDER BY t_unix_ms DESC LIMIT 1",
+                        &[axis, &t0, &p0],
+                    )?;
+                    t0
+                }
+                None => grid_start,
+            };
+            v.extend(query(
+                "SELECT t_unix_ms, position_mm FROM nc WHERE axis = ?1 AND t_unix_ms >= ?2 AND t_unix_ms < ?3 ORDER BY t_unix_ms",
+                &[axis, &from, &until],
+            )?);
+            if v.is_empty() {
+                return Err(ExportError::Arg {
+                    flag: "axis",
+                    message: format!("no recorded NC position of axis `{axis}` before --until"),
+                });
+            }
+            v
+        }
+        None => Vec::new(),
+    };
+
+    // Readings in the window, in time order, read as the grid reaches them. The value
+    // only when it was measured in that cycle with a usable quality.
+    let mut stmt = conn
+        .prepare("SELECT t_unix_ms, channel, value_degc, quality, raw IS NOT NULL FROM readings WHERE t_unix_ms >= ?1 AND t_unix_ms < ?2 ORDER BY t_unix_ms")
+        .map_err(db)?;
+    let mut readings = stmt
+        .query_map(params![since, until], |r| {
+            let (v, q, sampled): (Option<f64>, u8, bool) = (r.get(2)?, r.get(3)?, r.get(4)?);
+            Ok((
+                r.get::<_, i64>(0)?,
+                r.get::<_, i64>(1)?,
+                measured(v, q, sampled),
+            ))
+        })
+        .map_err(db)?
+        .peekable();
+
     // Each with the time it was recorded, to leave out rows it is too old for.
     let mut last: Vec<Option<(i64, f64)>> = vec![None; temp_ids.len()];
     let mut last_err: Option<(i64, f64)> = None;
@@ -315,33 +464,24 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
     let mut err_cut = false;
     let mut stale_rows = 0usize;
     let mut unmeasured_rows = 0usize;
+    let mut unseen_rows = 0usize;
     let mut moved_mm = 0.0;
+    let mut rows = 0usize;
+    let mut degc = vec![f64::NAN; temp_ids.len()];
 
-    let mut m = Measurements {
-        temps: temp_ids
-            .iter()
-            .map(|id| {
-                let n = names
-                    .get(id)
-                    .cloned()
-                    .unwrap_or_else(|| format!("channel{id}"));
-                TempColumn {
-                    name: n.strip_prefix("T_").map(str::to_string).unwrap_or(n),
-                    degc: Vec::new(),
-                }
-            })
-            .collect(),
-        ..Measurements::default()
-    };
-    let (mut ri, mut pi) = (0, 0);
+    let mut pi = 0;
     let mut grid = grid_start;
     let mut dir: i8 = 0;
     let mut first_row: Option<i64> = None;
     while grid < grid_end {
-        while let Some(&(t, ch, v)) = readings.get(ri) {
-            if t > grid {
-                break;
+        loop {
+            match readings.peek() {
+                Some(Ok((t, _, _))) if *t > grid => break,
+                None => break,
+                Some(_) => {}
             }
+            let Some(next) = readings.next() else { break };
+            let (t, ch, v) = next.map_err(db)?;
             if Some(ch) == err_id {
                 last_err = v.map(|v| (t, v)).or(last_err);
                 err_cut = v.is_none();
@@ -349,7 +489,6 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
                 last[c] = v.map(|v| (t, v)).or(last[c]);
                 cut[c] = v.is_none();
             }
-            ri += 1;
         }
         while let Some(&(t, p)) = positions.get(pi) {
             if t > grid {
@@ -383,26 +522,40 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             } else {
                 stale_rows += 1;
             }
+        } else if !seen && last.iter().any(Option::is_some) {
+            unseen_rows += 1;
         }
         if ready {
-            let pos = last_pos.map_or(0.0, |(_, p)| p);
             // The first row starts the count: what moved before it is no travel of
             // the exported window.
-            let travel = if m.is_empty() { 0.0 } else { moved_mm };
+            let travel = if rows == 0 { 0.0 } else { moved_mm };
             moved_mm = 0.0;
             let t0 = *first_row.get_or_insert(grid);
-            m.t_s.push((grid - t0) as f64 / 1000.0);
-            m.pos_mm.push(pos);
-            m.err_um.push(last_err.map_or(0.0, |(_, v)| v));
-            m.dir.push(dir);
-            m.travel_mm.push(travel);
-            for (c, v) in m.temps.iter_mut().zip(&last) {
-                c.degc.push(v.map_or(f64::NAN, |(_, v)| v));
+            for (d, v) in degc.iter_mut().zip(&last) {
+                *d = v.map_or(f64::NAN, |(_, v)| v);
             }
+            emit(
+                &columns,
+                Row {
+                    t_s: (grid - t0) as f64 / 1000.0,
+                    pos_mm: last_pos.map_or(0.0, |(_, p)| p),
+                    dir,
+                    travel_mm: travel,
+                    err_um: last_err.map_or(0.0, |(_, v)| v),
+                },
+                &degc,
+            )?;
+            rows += 1;
         }
         grid += step_ms;
     }
-    if stale_rows > 0 {
+    if !partial.is_empty() {
+        notes.push(format!(
+            "{} rows left out or cut short: channel {} (renamed, added or removed?); a row needs every channel, so export the spans before and after apart",
+            unseen_rows + stale_rows,
+            partial.join(", ")
+        ));
+    } else if stale_rows > 0 {
         notes.push(format!(
             "{stale_rows} rows left out: a value in them was older than --max-hold-s {} s (a gap in the record)",
             args.max_hold_s
@@ -413,17 +566,12 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
             "{unmeasured_rows} rows left out: a channel's latest reading in them was no measurement (its device did not answer, or the value was bad), and no value is held across one"
         ));
     }
-    if m.is_empty() {
+    if rows == 0 {
         let never: Vec<String> = temp_ids
             .iter()
             .zip(&last)
             .filter(|(_, v)| v.is_none())
-            .map(|(id, _)| {
-                names
-                    .get(id)
-                    .cloned()
-                    .unwrap_or_else(|| format!("channel{id}"))
-            })
+            .map(|(id, _)| name_of(id))
             .chain(
                 (err_id.is_some() && last_err.is_none())
                     .then(|| args.err_channel.clone().unwrap_or_default()),
@@ -446,15 +594,14 @@ pub fn measurements(args: &ExportArgs) -> Result<(Measurements, ExportSummary), 
         };
         return Err(ExportError::Empty(why));
     }
-    let summary = ExportSummary {
-        rows: m.len(),
+    Ok(ExportSummary {
+        rows,
         channels: temp_ids
             .iter()
             .filter_map(|id| names.get(id).cloned())
             .collect(),
         notes,
-    };
-    Ok((m, summary))
+    })
 }
 
 /// `compgate export --out FILE`: writes the CSV to `args.out`. Standard output is the
@@ -467,16 +614,19 @@ pub fn run(args: &ExportArgs) -> Result<ExportSummary, ExportError> {
         compgate_core::outputs::check(&[&args.db], &[out])
             .map_err(|e| ExportError::Write(e.to_string()))?;
     }
-    let (m, summary) = measurements(args)?;
-    let out = args.out.as_ref().ok_or_else(|| ExportError::Arg {
-        flag: "out",
-        message: "required: the CSV is written to a file".into(),
-    })?;
-    let mut csv = Vec::new();
-    m.write(&mut csv)
-        .map_err(|e| ExportError::Write(e.to_string()))?;
-    compgate_core::outputs::write(out, csv)
-        .map_err(|e| ExportError::Write(format!("{}: {e}", out.display())))?;
+    let Some(out) = &args.out else {
+        export(args, |_, _, _| Ok(()))?;
+        return Err(ExportError::Arg {
+            flag: "out",
+            message: "required: the CSV is written to a file".into(),
+        });
+    };
+    let io = |e: std::io::Error| ExportError::Write(format!("{}: {e}", out.display()));
+    // Written beside it and renamed over it when complete: an error leaves the old file.
+    let mut staged = compgate_core::outputs::Staged::new();
+    let file = std::fs::File::create(staged.path_for(out)).map_err(io)?;
+    let summary = write_csv(args, std::io::BufWriter::new(file))?;
+    staged.commit().map_err(|(_, e)| io(e))?;
     Ok(summary)
 }
 

@@ -311,6 +311,80 @@ fn export_holds_a_value_at_most_max_hold_s_across_a_gap() {
     assert_eq!(export::measurements(&args).unwrap().0.len(), 4010);
 }
 
+// A channel renamed inside the window (B until 100 s, C from then on): every row
+// needs every channel, so only the rows within --max-hold-s of the change could be
+// exported, the rows before it were left out without a word and the rest blamed on
+// "a gap in the record".
+#[test]
+fn a_channel_renamed_inside_the_window_is_named() {
+    let (_dir, db) = recorded(&[(0, 200)]);
+    let conn = schema::open(&db).unwrap();
+    conn.execute_batch("INSERT INTO channels(id, name) VALUES (2, 'T_b'), (3, 'T_c')")
+        .unwrap();
+    for t in 0..200i64 {
+        conn.execute(
+            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, ?2, 12000.0, 21.0, 0)",
+            rusqlite::params![t * 1000, if t < 100 { 2 } else { 3 }],
+        )
+        .unwrap();
+    }
+    let (m, summary) = export::measurements(&export_args(&db, 0, 200)).unwrap();
+    let note = summary
+        .notes
+        .iter()
+        .find(|n| n.contains("renamed, added or removed"))
+        .unwrap_or_else(|| panic!("{:?}", summary.notes));
+    assert!(
+        note.contains("`T_b` (ends inside the window)")
+            && note.contains("`T_c` (starts inside the window)"),
+        "{note}"
+    );
+    let counted: usize = note.split_whitespace().next().unwrap().parse().unwrap();
+    assert_eq!(m.len() + counted, 200, "{note}");
+    assert!(
+        !summary
+            .notes
+            .iter()
+            .any(|n| n.contains("a gap in the record")),
+        "{:?}",
+        summary.notes
+    );
+}
+
+// `--axis` read the axis' positions from the start of the record (3.1 M rows for a
+// 60 s export); now from the last one before the window, after the last move before
+// it, which still gives the direction of the first rows and their position.
+#[test]
+fn an_axis_export_starts_from_the_position_before_the_window() {
+    let (_dir, db) = recorded(&[(0, 100)]);
+    let conn = schema::open(&db).unwrap();
+    // Moved down from 10 to 5 mm at 1 s, idle since; up to 7 mm at 80 s.
+    for (t_s, p) in [
+        (0, 10.0),
+        (1, 5.0),
+        (2, 5.0),
+        (30, 5.0),
+        (80, 7.0),
+        (90, 7.0),
+    ] {
+        conn.execute(
+            "INSERT INTO nc(t_unix_ms, axis, position_mm, applied_comp_mm, sd43900_mm, sd43910, sd43920_mm) VALUES (?1, 'X', ?2, 0, 0, 0, 0)",
+            rusqlite::params![t_s * 1000, p],
+        )
+        .unwrap();
+    }
+    let mut args = export_args(&db, 50, 100);
+    args.axis = Some("X".into());
+    args.max_hold_s = 1000.0;
+    let (m, _) = export::measurements(&args).unwrap();
+    assert_eq!((m.pos_mm[0], m.dir[0], m.travel_mm[0]), (5.0, -1, 0.0));
+    let at_80 = m.t_s.iter().position(|t| *t == 30.0).unwrap();
+    assert_eq!(
+        (m.pos_mm[at_80], m.dir[at_80], m.travel_mm[at_80]),
+        (7.0, 1, 2.0)
+    );
+}
+
 #[test]
 fn a_channel_reading_no_temperature_is_left_out_and_named() {
     let (_dir, db) = recorded(&[(0, 10)]);
