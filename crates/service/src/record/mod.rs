@@ -202,6 +202,8 @@ struct QueueShared {
     wake_at: usize,
     /// The writer thread, set once it runs.
     writer: OnceLock<std::thread::Thread>,
+    /// The recorder is stopping: a retention pass ends after its current chunk.
+    stopping: AtomicBool,
 }
 
 /// The control loop's end of the queue. Cloneable; never blocks.
@@ -423,6 +425,7 @@ impl Recorder {
             // Half full: the other half takes what arrives while the writer wakes.
             wake_at: (queue / 2).max(1),
             writer: OnceLock::new(),
+            stopping: AtomicBool::new(false),
         });
         let outbox = Arc::new(tokio::sync::Notify::new());
         let writer = Writer::new(
@@ -502,6 +505,7 @@ impl Recorder {
         // sender (observers) is gone too.
         let (dead, _) = mpsc::sync_channel(0);
         self.sender.tx = dead;
+        self.sender.shared.stopping.store(true, Ordering::Relaxed);
         if let Some(t) = self.thread.take() {
             // It sleeps until its next commit: wake it to see the queue closed.
             t.thread().unpark();
@@ -1268,7 +1272,11 @@ impl Writer {
             Ordering::Relaxed,
         );
         let cutoff = now_ms - self.retention_ms;
-        let aged = schema::delete_before(conn, cutoff)?;
+        // A stop does not wait for a long pass (the first after a long downtime, or
+        // after the limits were lowered): it ends after the chunk it is in, and the
+        // next pass goes on from there.
+        let go_on = || !self.shared.stopping.load(Ordering::Relaxed);
+        let aged = schema::delete_before(conn, cutoff, &go_on)?;
         let mut cut = schema::Deleted::default();
         let used = schema::data_bytes(conn)?;
         if used > self.max_bytes {
@@ -1307,10 +1315,13 @@ impl Writer {
                 if last <= first {
                     break;
                 }
-                cut += schema::delete_before(conn, first + ((last - first) / 10).max(1))?;
+                cut += schema::delete_before(conn, first + ((last - first) / 10).max(1), &go_on)?;
             }
         }
-        schema::release_free_pages(conn)?;
+        schema::release_free_pages(conn, &go_on)?;
+        if !go_on() && schema::time_range(conn)?.is_some_and(|(first, _)| first < cutoff) {
+            tracing::info!("recorder stopping: the retention pass ended after its current chunk, with older records left; the next start goes on with them");
+        }
         let now_used = schema::data_bytes(conn)?;
         checkpoint(conn);
         self.stats

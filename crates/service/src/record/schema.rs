@@ -457,8 +457,12 @@ fn checkpoint_passive(conn: &Connection) -> rusqlite::Result<()> {
 }
 
 /// Deletes readings, jobs and NC rows older than `cutoff_unix_ms`, oldest first, in
-/// chunks of about [`DELETE_CHUNK_ROWS`].
-pub fn delete_before(conn: &Connection, cutoff_unix_ms: i64) -> rusqlite::Result<Deleted> {
+/// chunks of about [`DELETE_CHUNK_ROWS`]; after each, only while `go_on`.
+pub fn delete_before(
+    conn: &Connection,
+    cutoff_unix_ms: i64,
+    go_on: &dyn Fn() -> bool,
+) -> rusqlite::Result<Deleted> {
     let delete = |t: &str| -> rusqlite::Result<u64> {
         let mut total = 0;
         loop {
@@ -477,7 +481,7 @@ pub fn delete_before(conn: &Connection, cutoff_unix_ms: i64) -> rusqlite::Result
                 _ => cutoff_unix_ms,
             };
             total += conn.execute(&format!("DELETE FROM {t} WHERE t_unix_ms < ?1"), [cut])? as u64;
-            if cut >= cutoff_unix_ms {
+            if cut >= cutoff_unix_ms || !go_on() {
                 return Ok(total);
             }
             checkpoint_passive(conn)?;
@@ -492,9 +496,10 @@ pub fn delete_before(conn: &Connection, cutoff_unix_ms: i64) -> rusqlite::Result
 }
 
 /// Gives the database's free pages back to the file system, [`VACUUM_CHUNK_PAGES`]
-/// at a time. Each step of `PRAGMA incremental_vacuum` frees one page: run once (as
-/// `execute_batch` does), it gave back 4 KiB a pass.
-pub fn release_free_pages(conn: &Connection) -> rusqlite::Result<()> {
+/// at a time, after the first only while `go_on`. Each step of `PRAGMA
+/// incremental_vacuum` frees one page: run once (as `execute_batch` does), it gave
+/// back 4 KiB a pass.
+pub fn release_free_pages(conn: &Connection, go_on: &dyn Fn() -> bool) -> rusqlite::Result<()> {
     let free = || conn.query_row("PRAGMA freelist_count", [], |r| r.get::<_, i64>(0));
     let mut left = free()?;
     while left > 0 {
@@ -505,7 +510,7 @@ pub fn release_free_pages(conn: &Connection) -> rusqlite::Result<()> {
         drop(stmt);
         checkpoint_passive(conn)?;
         let now = free()?;
-        if now >= left {
+        if now >= left || !go_on() {
             break;
         }
         left = now;

@@ -1688,6 +1688,7 @@ fn test_writer(
         pending: AtomicUsize::new(0),
         wake_at,
         writer: OnceLock::new(),
+        stopping: AtomicBool::new(false),
     });
     let writer = Writer::new(
         cfg,
