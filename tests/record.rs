@@ -777,3 +777,32 @@ async fn a_stop_cuts_a_long_retention_pass_short() {
     assert!(old > 400_000, "{old} old readings left");
     drop(plant);
 }
+
+// The minute of records a pass deletes leaves its pages to the next commits: giving
+// them back would copy as many pages of the newest records into their place, once a
+// minute, to shrink a file that grows again at once.
+#[test]
+fn retention_leaves_a_small_share_of_free_pages_to_the_next_commits() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("rec.db");
+    // 100 000 readings, a second apart, up to now: the oldest 5 % are over a day old.
+    let before = aged_database(&db, 100_000, 0);
+    let cfg: compgate_gateway::config::RecorderConfig = toml::from_str(&format!(
+        "path = {:?}\nretention_days = {}\n",
+        db.display().to_string(),
+        95_000.0 / 86_400.0
+    ))
+    .unwrap();
+    let rec = compgate_service::record::Recorder::start(&cfg).unwrap();
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while file_and_free(&db).1 == 0 {
+        assert!(std::time::Instant::now() < deadline, "no pass in 60 s");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    rec.finish();
+    let (after, free) = file_and_free(&db);
+    assert!(
+        after == before && free > 0,
+        "{before} bytes before, {after} after with {free} free pages"
+    );
+}

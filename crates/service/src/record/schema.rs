@@ -495,13 +495,24 @@ pub fn delete_before(
     })
 }
 
+/// Free pages are given back to the file system once they are this share of the
+/// file or more. Below it they are left for the next commits to fill: giving them
+/// back moves as many pages of the newest records into their place, and a pass
+/// every minute would copy each minute's records once more on the disk (flash
+/// wear), to shrink a file that grows again at once.
+const RELEASE_FREE_SHARE: f64 = 0.1;
+
 /// Gives the database's free pages back to the file system, [`VACUUM_CHUNK_PAGES`]
-/// at a time, after the first only while `go_on`. Each step of `PRAGMA
-/// incremental_vacuum` frees one page: run once (as `execute_batch` does), it gave
-/// back 4 KiB a pass.
+/// at a time, after the first only while `go_on`, when they are at least
+/// [`RELEASE_FREE_SHARE`] of the file. Each step of `PRAGMA incremental_vacuum`
+/// frees one page: run once (as `execute_batch` does), it gave back 4 KiB a pass.
 pub fn release_free_pages(conn: &Connection, go_on: &dyn Fn() -> bool) -> rusqlite::Result<()> {
     let free = || conn.query_row("PRAGMA freelist_count", [], |r| r.get::<_, i64>(0));
+    let pages: i64 = conn.query_row("PRAGMA page_count", [], |r| r.get(0))?;
     let mut left = free()?;
+    if (left as f64) < RELEASE_FREE_SHARE * pages as f64 {
+        return Ok(());
+    }
     while left > 0 {
         let mut stmt = conn.prepare(&format!("PRAGMA incremental_vacuum({VACUUM_CHUNK_PAGES})"))?;
         let mut rows = stmt.query([])?;
