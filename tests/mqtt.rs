@@ -298,16 +298,9 @@ async fn publishing_goes_on_after_the_wal_is_deleted() {
 
 /// A broker in `dir` with `settings` in place of `allow_anonymous true`.
 fn broker_with(dir: &std::path::Path, settings: &str) -> Broker {
-    tokio::task::block_in_place(|| {
-        let mut broker = Broker::start(dir);
-        broker.stop();
-        let conf = dir.join("mosquitto.conf");
-        let text = std::fs::read_to_string(&conf).unwrap();
-        assert!(text.contains("allow_anonymous true"), "{text}");
-        std::fs::write(&conf, text.replace("allow_anonymous true", settings)).unwrap();
-        broker.restart();
-        broker
-    })
+    let port = common::free_port();
+    let text = Broker::conf_text(dir, port, "").replace("allow_anonymous true", settings);
+    tokio::task::block_in_place(|| Broker::start_conf(dir, port, &text))
 }
 
 // The gateway connected without user name and password only: a plant broker that

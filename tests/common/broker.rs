@@ -34,15 +34,19 @@ impl Broker {
     /// [`start`](Self::start) with `extra` lines at the end of its configuration.
     pub fn start_with(dir: &Path, extra: &str) -> Self {
         let port = super::free_port();
+        Self::start_conf(dir, port, &Self::conf_text(dir, port, extra))
+    }
+
+    /// The configuration [`start_with`](Self::start_with) writes.
+    pub fn conf_text(dir: &Path, port: u16, extra: &str) -> String {
         // Persistence keeps the test subscriber's session (and the QoS 1 messages
         // queued for it) across a stop/start, so it misses nothing published
         // before it reconnects. `user root`: started as root, mosquitto would
         // otherwise switch to its own user, which cannot write the test's directory.
-        let text = format!(
+        format!(
             "listener {port} 127.0.0.1\nallow_anonymous true\npersistence true\npersistence_location {}/\nuser root\n{extra}\n",
             dir.display()
-        );
-        Self::start_conf(dir, port, &text)
+        )
     }
 
     /// A broker on `port` (which `text` must name) run with the configuration `text`,
