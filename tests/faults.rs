@@ -597,3 +597,47 @@ async fn a_silent_module_on_a_shared_rtu_line_does_not_hold_up_the_others() {
     shutdown.cancel();
     h.await.unwrap();
 }
+
+// Two modules on one RS-485 line, the second one slow: its own `timeout_s` must hold
+// for its requests. The line's connection was built from the first device's settings
+// (by name), so the slow module timed out after the fast one's 0.05 s on every
+// request, whatever its own key said.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn each_module_on_a_shared_rtu_line_gets_its_own_timeout() {
+    let rtu = "transport = \"rtu\"\nserial_path = \"/dev/compgate-test-timeouts\"\nbaud = 115200";
+    let toml = config("hold", "", "")
+        .replace("transport = \"tcp\"\naddress = \"127.0.0.1:0\"", rtu)
+        .replace("connect_timeout_s = 0.5\n", "")
+        .replace("timeout_s = 0.2\n", "timeout_s = 0.05\n")
+        .replace(
+            "[channels.T_col]\ndevice = \"ain1\"",
+            "[channels.T_col]\ndevice = \"ain2\"",
+        )
+        .replace(
+            "[nc_modules.nc_x]",
+            &format!(
+                "[devices.ain2]\n{rtu}\nunit_id = 2\ntimeout_s = 0.5\nretries = 0\n\
+                 poll_interval_s = 0.2\n\n[nc_modules.nc_x]"
+            ),
+        );
+    let plant = Plant::start(&cfgmod::load_str(&toml, "t.toml").unwrap(), Bind::Ephemeral)
+        .await
+        .unwrap();
+    plant.field["ain2"].set_comm_fault(CommFault::Delay(Duration::from_millis(120)));
+    let (rx, shutdown, h) = run_gateway(plant.config.clone());
+    let s = wait(&rx, 10.0, "10 cycles of the slow module", |s| {
+        s.devices.iter().any(|d| d.name == "ain2" && d.cycles >= 10)
+    })
+    .await;
+    shutdown.cancel();
+    h.await.unwrap();
+    let slow = s.devices.iter().find(|d| d.name == "ain2").unwrap();
+    assert!(
+        slow.errors.is_empty(),
+        "the slow module's requests failed: {:?}, {:?}",
+        slow.errors,
+        slow.last_error
+    );
+    assert_eq!(q(&s, "T_col"), Quality::Good);
+    assert_eq!(q(&s, "T_bed"), Quality::Good);
+}

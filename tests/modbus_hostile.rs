@@ -299,3 +299,83 @@ async fn an_absent_unit_behind_a_tcp_gateway_does_not_hold_up_the_present_one() 
         "{error}"
     );
 }
+
+// Three units behind a TCP-to-RTU gateway that takes one connection at a time (a
+// second client is closed at once, as small gateways do). Each device opened its own
+// connection, so all but one were closed every cycle: two of three units never read.
+// Devices at one address now share one connection, as units on one serial line do.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn units_behind_a_gateway_that_takes_one_connection_share_it() {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let address = listener.local_addr().unwrap().to_string();
+    let accepted = Arc::new(AtomicUsize::new(0));
+    let count = accepted.clone();
+    let peer = tokio::spawn(async move {
+        let open = Arc::new(AtomicUsize::new(0));
+        while let Ok((mut s, _)) = listener.accept().await {
+            if open.load(Ordering::SeqCst) > 0 {
+                drop(s);
+                continue;
+            }
+            count.fetch_add(1, Ordering::SeqCst);
+            open.fetch_add(1, Ordering::SeqCst);
+            let open = open.clone();
+            tokio::spawn(async move {
+                let mut req = [0u8; 12];
+                while s.read_exact(&mut req).await.is_ok() {
+                    let n = u16::from_be_bytes([req[10], req[11]]);
+                    let pdu = registers(req[7], &vec![1000 + u16::from(req[6]); usize::from(n)]);
+                    let mut reply = req[..7].to_vec();
+                    reply[4..6].copy_from_slice(&(pdu.len() as u16 + 1).to_be_bytes());
+                    reply.extend(pdu);
+                    if s.write_all(&reply).await.is_err() {
+                        break;
+                    }
+                }
+                open.fetch_sub(1, Ordering::SeqCst);
+            });
+        }
+    });
+    let text: String = (1..=3)
+        .map(|unit| {
+            format!(
+                "[devices.u{unit}]\ntransport = \"tcp\"\naddress = \"{address}\"\nunit_id = {unit}\n\
+                 timeout_s = 1.0\npoll_interval_s = 0.05\n\n[channels.T_u{unit}]\ndevice = \"u{unit}\"\n\
+                 register = \"input\"\naddress = 0\ndata_type = \"u16\"\n\
+                 scaling = {{ kind = \"direct\", gain = 0.01, offset_degc = 0.0 }}\n\n"
+            )
+        })
+        .collect();
+    let text = format!("[gateway]\nstatus_interval_s = 0.05\n\n{text}");
+    let cfg = compgate_gateway::config::load_str(&text, "units.toml").expect("config");
+    let (tx, mut status) = tokio::sync::watch::channel(Default::default());
+    let shutdown = tokio_util::sync::CancellationToken::new();
+    let sd = shutdown.clone();
+    let gw = tokio::spawn(async move {
+        compgate_gateway::runtime::run(&cfg, sd, tx)
+            .await
+            .expect("runs");
+    });
+    let s = common::wait_status(&mut status, 20.0, "20 cycles of each unit", |s| {
+        s.devices.iter().all(|d| d.cycles >= 20)
+    })
+    .await;
+    shutdown.cancel();
+    gw.await.unwrap();
+    peer.abort();
+    for d in &s.devices {
+        assert!(
+            d.errors.is_empty() && d.link_up,
+            "{}: {:?}, {:?}",
+            d.name,
+            d.errors,
+            d.last_error
+        );
+    }
+    for (unit, c) in s.channels.iter().enumerate() {
+        let want = f64::from(1001 + unit as u16) * 0.01;
+        let got = c.reading.value_degc.unwrap_or(f64::NAN);
+        assert!((got - want).abs() < 1e-9, "{}: {:?}", c.name, c.reading);
+    }
+    assert_eq!(accepted.load(Ordering::SeqCst), 1, "connections accepted");
+}

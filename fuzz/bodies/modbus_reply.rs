@@ -159,6 +159,7 @@ pub fn run(data: &[u8]) {
         let link = ModbusLink::attached(spec, timeout, ctx);
         let params = PollParams {
             unit_id: *unit,
+            timeout,
             retries: 0,
             degrade_after_cycles: 1,
             max_gap_registers: 0,

@@ -17,8 +17,7 @@ use crate::source::modbus::config::{ModbusCommon, RtuDeviceConfig};
 ///   register number from a device manual ("30013" = input register 13 = PDU address
 ///   12): a device without that many registers answers exception 2 at run time.
 /// - Two TCP devices with the same `address` and `unit_id` are one device polled
-///   twice, each over its own connection: most likely a copied entry whose address or
-///   unit id was not changed. (On one RTU line the same unit id twice is an error.)
+///   twice: most likely a copied entry whose address or unit id was not changed. (On one RTU line the same unit id twice is an error.)
 pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
     let mut out = Problems::new(file);
     let mut tcp: BTreeMap<(String, u8), &String> = BTreeMap::new();
@@ -32,7 +31,7 @@ pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
                 field("devices", name, "unit_id"),
                 format!(
                     "unit id {} at {} is also device `{other}`: the same device polled \
-                     twice, over two connections; give one of them its own address or \
+                     twice; give one of them its own address or \
                      unit_id, or move its channels to `{other}`",
                     d.unit_id, d.address
                 ),
@@ -60,11 +59,30 @@ pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
             continue;
         };
         let key = field("devices", first, "serial_path");
-        if let Some(message) = slow_line(path, devs) {
+        let timed: Vec<_> = devs.iter().map(|(n, d)| (*n, &d.common)).collect();
+        if let Some(message) = slow_line(&format!("serial line {path}"), &timed) {
             out.push(key.clone(), message);
         }
         if !path.trim().is_empty() && !Path::new(path).exists() {
             out.push(key, missing_serial_path(path, devs));
+        }
+    }
+    // Devices at one TCP address share its connection (units behind a TCP-to-RTU
+    // gateway): polled one at a time, like a serial line.
+    let mut at: BTreeMap<String, Vec<(&String, &DeviceCommon)>> = BTreeMap::new();
+    for (name, dev) in &cfg.devices {
+        if let DeviceConfig::Tcp(d) = dev {
+            at.entry(peer_identity(&d.address))
+                .or_default()
+                .push((name, &d.common));
+        }
+    }
+    for (address, devs) in &at {
+        let Some(&(first, _)) = devs.first() else {
+            continue;
+        };
+        if let Some(message) = slow_line(&format!("address {address}"), devs) {
+            out.push(field("devices", first, "address"), message);
         }
     }
     for (name, ch) in &cfg.channels {
@@ -150,26 +168,27 @@ fn retries_that_cannot_run(retries: u32, common: &DeviceCommon) -> Option<String
     ))
 }
 
-/// `devs` are polled one at a time on the line at `path`: why a silent one holds up the
-/// others, when their timeouts add up to more than the smallest poll interval.
-fn slow_line(path: &str, devs: &[(&String, &RtuDeviceConfig)]) -> Option<String> {
+/// `devs` are polled one at a time on `line` (a serial line, or the one connection at
+/// a TCP address): why a silent one holds up the others, when their timeouts add up to
+/// more than the smallest poll interval.
+fn slow_line(line: &str, devs: &[(&String, &DeviceCommon)]) -> Option<String> {
     if devs.len() < 2 {
         return None;
     }
-    let total: f64 = devs.iter().map(|(_, d)| d.common.timeout_s).sum();
+    let total: f64 = devs.iter().map(|(_, d)| d.timeout_s).sum();
     let (fastest, poll) = devs
         .iter()
-        .map(|(name, d)| (name, d.common.poll_interval_s))
+        .map(|(name, d)| (name, d.poll_interval_s))
         .min_by(|a, b| a.1.total_cmp(&b.1))?;
     if total <= poll * (1.0 + 1e-9) {
         return None;
     }
     let timeouts: Vec<String> = devs
         .iter()
-        .map(|(name, d)| format!("`{name}` {} s", s(d.common.timeout_s)))
+        .map(|(name, d)| format!("`{name}` {} s", s(d.timeout_s)))
         .collect();
     Some(format!(
-        "serial line {path}: a silent device on this line holds up the others: its \
+        "{line}: a silent device on this line holds up the others: its \
          devices are polled one at a time, and their timeout_s ({}) add up to {} s, more \
          than the smallest poll_interval_s on the line ({} s, `{fastest}`), so while one \
          does not answer the others are polled late. Lower timeout_s (a device answers \
@@ -239,7 +258,7 @@ mod tests {
         let device = |name: &str, address: &str, unit: u8| {
             format!(
                 "[devices.{name}]\ntransport = \"tcp\"\naddress = \"{address}\"\nunit_id = {unit}\n\
-                 [channels.t_{name}]\ndevice = \"{name}\"\nregister = \"input\"\naddress = 0\n\
+                 timeout_s = 0.1\n[channels.t_{name}]\ndevice = \"{name}\"\nregister = \"input\"\naddress = 0\n\
                  data_type = \"u16\"\nscaling = {{ kind = \"direct\", gain = 0.1, offset_degc = 0.0 }}\n"
             )
         };
@@ -388,7 +407,7 @@ mod tests {
     // more than the line's smallest poll interval, one silent device made the others
     // late every cycle, silently.
     #[test]
-    fn an_rtu_line_whose_timeouts_add_up_past_its_poll_interval_gets_a_warning() {
+    fn a_shared_line_whose_timeouts_add_up_past_its_poll_interval_gets_a_warning() {
         let rtu = |name: &str, unit: u8, t: f64, p: f64| {
             modbus_device(
                 name,
@@ -415,6 +434,33 @@ mod tests {
         let text = [rtu("a", 1, 0.2, 1.0), rtu("b", 2, 0.3, 0.5)].concat();
         assert_eq!(warned(&text), Vec::<String>::new());
         assert_eq!(warned(&rtu("a", 1, 0.4, 0.5)), Vec::<String>::new());
+        // Units at one TCP address share its connection: the same, named by address.
+        let tcp = |name: &str, address: &str, unit: u8, t: f64| {
+            modbus_device(
+                name,
+                &format!(
+                    "transport = \"tcp\"\naddress = \"{address}\"\nunit_id = {unit}\n\
+                     timeout_s = {t}\npoll_interval_s = 0.5\nretries = 0"
+                ),
+            )
+        };
+        let text = [
+            tcp("a", "LocalHost:502", 1, 0.3),
+            tcp("b", "127.0.0.1:502", 2, 0.4),
+            tcp("c", "127.0.0.1:503", 2, 0.4),
+        ]
+        .concat();
+        let w = warned(&text);
+        assert_eq!(w.len(), 1, "{w:#?}");
+        assert!(
+            w[0].starts_with(
+                "rtu.toml: devices.a.address: address 127.0.0.1:502: a silent device on this \
+                 line holds up the others: its devices are polled one at a time, and their \
+                 timeout_s (`a` 0.3 s, `b` 0.4 s) add up to 0.7 s"
+            ),
+            "{}",
+            w[0]
+        );
     }
 
     // A serial path that does not exist failed only at `run`, as a connect error; a

@@ -91,8 +91,18 @@ pub struct Built {
     pub status_interval: Duration,
 }
 
-/// Turns a validated config into runtime parts. Devices on one serial path share a
-/// link; every TCP device gets its own connection.
+/// The devices on one serial line or at one TCP address, and the connection's settings.
+struct Line {
+    devices: usize,
+    /// TCP only: the shortest `connect_timeout_s` of the devices.
+    connect_timeout: Duration,
+    backoff_initial: Duration,
+    backoff_max: Duration,
+    link: Option<SharedLink>,
+}
+
+/// Turns a validated config into runtime parts. Devices on one serial path, or at one
+/// TCP address, share a link.
 pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
     let device_index: BTreeMap<&str, usize> = cfg
         .devices
@@ -162,17 +172,37 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
                 backoff_max: dev.common.backoff_max(),
             }),
     );
-    let mut serial_links: BTreeMap<String, SharedLink> = BTreeMap::new();
     // Devices on one serial line, or at one TCP address (units behind a TCP-to-RTU
-    // gateway, which has one serial line too): a silent one is demoted.
+    // gateway, which has one serial line too), share one connection: their requests
+    // go out one after the other, as the line takes them, and a module that takes few
+    // connections is not asked for one per unit. A silent one is demoted.
     let line_of = |d: &DeviceConfig| match d {
         DeviceConfig::Rtu(rtu) => Some(rtu.serial_path.clone()),
         DeviceConfig::Tcp(tcp) => Some(format!("tcp {}", peer_identity(&tcp.address))),
         DeviceConfig::Can(_) => None,
     };
-    let mut on_line: BTreeMap<String, usize> = BTreeMap::new();
-    for line in cfg.devices.values().filter_map(line_of) {
-        *on_line.entry(line).or_default() += 1;
+    // Per line: its devices, and the shortest connect timeout and backoff any of them
+    // asks for, which the connection uses (each request waits the device's own
+    // `timeout_s`).
+    let mut lines: BTreeMap<String, Line> = BTreeMap::new();
+    for dev in cfg.devices.values() {
+        let Some(key) = line_of(dev) else { continue };
+        let common = dev.common();
+        let connect_timeout = match dev {
+            DeviceConfig::Tcp(tcp) => tcp.connect_timeout(),
+            _ => Duration::MAX,
+        };
+        let line = lines.entry(key).or_insert(Line {
+            devices: 0,
+            connect_timeout,
+            backoff_initial: common.backoff_initial(),
+            backoff_max: common.backoff_max(),
+            link: None,
+        });
+        line.devices += 1;
+        line.connect_timeout = line.connect_timeout.min(connect_timeout);
+        line.backoff_initial = line.backoff_initial.min(common.backoff_initial());
+        line.backoff_max = line.backoff_max.min(common.backoff_max());
     }
     let mut devices = Vec::with_capacity(cfg.devices.len());
     for (((name, dev), specs), can_specs) in cfg.devices.iter().zip(specs).zip(can_specs) {
@@ -197,22 +227,28 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             DeviceConfig::Tcp(tcp) => (tcp.link_spec(), tcp.poll_params()),
             DeviceConfig::Rtu(rtu) => (rtu.link_spec(), rtu.poll_params()),
         };
-        let new_link = || {
-            Arc::new(Mutex::new(ModbusLink::new(
-                spec.clone(),
-                common.timeout(),
-                Backoff::new(common.backoff_initial(), common.backoff_max()),
-            )))
-        };
-        let link = match &spec {
-            LinkSpec::Rtu { path, .. } => serial_links
-                .entry(path.clone())
-                .or_insert_with(new_link)
-                .clone(),
-            LinkSpec::Tcp { .. } => new_link(),
-        };
+        let line = line_of(dev)
+            .and_then(|key| lines.get_mut(&key))
+            .ok_or_else(|| GatewayError::Config(format!("devices.{name}: no line")))?;
+        let link = line
+            .link
+            .get_or_insert_with(|| {
+                let spec = match spec {
+                    LinkSpec::Tcp { address, .. } => LinkSpec::Tcp {
+                        address,
+                        connect_timeout: line.connect_timeout,
+                    },
+                    rtu => rtu,
+                };
+                Arc::new(Mutex::new(ModbusLink::new(
+                    spec,
+                    common.timeout(),
+                    Backoff::new(line.backoff_initial, line.backoff_max),
+                )))
+            })
+            .clone();
         let mut poller = DevicePoller::new(devices.len(), name.clone(), params, link, specs);
-        if line_of(dev).is_some_and(|line| on_line.get(&line) > Some(&1)) {
+        if line.devices > 1 {
             poller =
                 poller.on_shared_line(Backoff::new(common.backoff_initial(), common.backoff_max()));
         }

@@ -221,6 +221,9 @@ impl DeviceSample {
 pub struct PollParams {
     /// Modbus unit id.
     pub unit_id: u8,
+    /// How long one request waits for its reply. The device's own, also on a line
+    /// or at an address it shares with others.
+    pub timeout: Duration,
     /// Extra attempts after a transport fault within one cycle.
     pub retries: u32,
     /// Failed cycles in a row after which the device counts as degraded.
@@ -449,6 +452,7 @@ impl DevicePoller {
         // out back to back.
         let link = self.link.clone();
         let mut link = link.lock().await;
+        link.set_timeout(self.params.timeout);
         // One deadline for all blocks, counted from when the line is ours: a silent
         // device costs one deadline per cycle, not a timeout (and a reconnect) per block.
         let length = self.params.cycle_deadline;
@@ -710,25 +714,21 @@ mod tests {
     fn poller_with(spec: LinkSpec, timeout: Duration, cycle_deadline: Duration) -> DevicePoller {
         let params = PollParams {
             unit_id: 1,
+            timeout,
             retries: 1,
             degrade_after_cycles: 3,
             max_gap_registers: 0,
             max_read_registers: plan::MAX_READ_REGISTERS,
             cycle_deadline,
         };
-        u16_poller(spec, timeout, params, &[0, 100])
+        u16_poller(spec, params, &[0, 100])
     }
 
     /// A poller of device `ain1` over `spec` reading u16 input channels at `registers`.
-    fn u16_poller(
-        spec: LinkSpec,
-        timeout: Duration,
-        params: PollParams,
-        registers: &[u16],
-    ) -> DevicePoller {
+    fn u16_poller(spec: LinkSpec, params: PollParams, registers: &[u16]) -> DevicePoller {
         let link = ModbusLink::new(
             spec,
-            timeout,
+            params.timeout,
             Backoff::new(Duration::from_millis(500), Duration::from_secs(10)),
         );
         let specs = registers
@@ -810,13 +810,14 @@ mod tests {
     fn poller_of(address: &str, registers: &[u16]) -> DevicePoller {
         let params = PollParams {
             unit_id: 1,
+            timeout: Duration::from_secs(1),
             retries: 0,
             degrade_after_cycles: 3,
             max_gap_registers: 8,
             max_read_registers: plan::MAX_READ_REGISTERS,
             cycle_deadline: Duration::from_secs(2),
         };
-        u16_poller(tcp(address), Duration::from_secs(1), params, registers)
+        u16_poller(tcp(address), params, registers)
     }
 
     // A module that closes the connection after each reply (or an idle one) failed

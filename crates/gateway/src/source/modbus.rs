@@ -287,6 +287,12 @@ impl ModbusLink {
         }
     }
 
+    /// The request timeout from now on: each device on a shared line sets its own
+    /// when its cycle gets the line.
+    pub fn set_timeout(&mut self, timeout: Duration) {
+        self.timeout = timeout;
+    }
+
     /// Bounds every request and connect until `None` by `at`, the end of a poll cycle
     /// of length `length`: one deadline for all reads of a cycle, their retries and
     /// reconnects. The cycle's first request still gets its whole timeout when the

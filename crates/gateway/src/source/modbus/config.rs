@@ -17,8 +17,10 @@ use crate::source::PollParams;
 #[schemars(deny_unknown_fields)]
 pub struct TcpDeviceConfig {
     /// `host:port` of the Modbus TCP server, e.g. `"192.168.0.10:502"`. Required; at most
-    /// 300 characters. Port 0 only for `compgate demo` and `compgate sim` in a file
-    /// with `[sim]`: the simulated plant binds a free port and writes it in.
+    /// 300 characters. Devices at one address (units behind a TCP-to-RTU gateway) share
+    /// one connection and take turns on it. Port 0 only for `compgate demo` and
+    /// `compgate sim` in a file with `[sim]`: the simulated plant binds a free port and
+    /// writes it in.
     #[schemars(length(max = 300))]
     pub address: String,
     /// Modbus unit id, 0..=255. Many TCP modules ignore it; some answer only 255 (the
@@ -212,6 +214,7 @@ impl ModbusCommon {
     fn poll_params(&self, unit_id: u8, common: &DeviceCommon) -> PollParams {
         PollParams {
             unit_id,
+            timeout: common.timeout(),
             retries: self.retries,
             degrade_after_cycles: common.degrade_after_cycles,
             max_gap_registers: self.max_gap_registers,
