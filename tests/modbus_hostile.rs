@@ -303,7 +303,8 @@ async fn an_absent_unit_behind_a_tcp_gateway_does_not_hold_up_the_present_one() 
 // Three units behind a TCP-to-RTU gateway that takes one connection at a time (a
 // second client is closed at once, as small gateways do). Each device opened its own
 // connection, so all but one were closed every cycle: two of three units never read.
-// Devices at one address now share one connection, as units on one serial line do.
+// Devices at one address now share one connection, as units on one serial line do,
+// and a reload that changes one unit and adds another keeps it.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn units_behind_a_gateway_that_takes_one_connection_share_it() {
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
@@ -336,28 +337,45 @@ async fn units_behind_a_gateway_that_takes_one_connection_share_it() {
             });
         }
     });
-    let text: String = (1..=3)
-        .map(|unit| {
-            format!(
-                "[devices.u{unit}]\ntransport = \"tcp\"\naddress = \"{address}\"\nunit_id = {unit}\n\
-                 timeout_s = 1.0\npoll_interval_s = 0.05\n\n[channels.T_u{unit}]\ndevice = \"u{unit}\"\n\
-                 register = \"input\"\naddress = 0\ndata_type = \"u16\"\n\
-                 scaling = {{ kind = \"direct\", gain = 0.01, offset_degc = 0.0 }}\n\n"
-            )
-        })
-        .collect();
-    let text = format!("[gateway]\nstatus_interval_s = 0.05\n\n{text}");
-    let cfg = compgate_gateway::config::load_str(&text, "units.toml").expect("config");
+    let units = |units: &[(u8, f64)]| {
+        let text: String = units
+            .iter()
+            .map(|(unit, poll_s)| {
+                format!(
+                    "[devices.u{unit}]\ntransport = \"tcp\"\naddress = \"{address}\"\nunit_id = {unit}\n\
+                     timeout_s = 1.0\npoll_interval_s = {poll_s}\n\n[channels.T_u{unit}]\ndevice = \"u{unit}\"\n\
+                     register = \"input\"\naddress = 0\ndata_type = \"u16\"\n\
+                     scaling = {{ kind = \"direct\", gain = 0.01, offset_degc = 0.0 }}\n\n"
+                )
+            })
+            .collect();
+        let text = format!("[gateway]\nstatus_interval_s = 0.05\n\n{text}");
+        compgate_gateway::config::load_str(&text, "units.toml").expect("config")
+    };
+    let cfg = units(&[(1, 0.05), (2, 0.05), (3, 0.05)]);
     let (tx, mut status) = tokio::sync::watch::channel(Default::default());
+    let (reload, reloads) = tokio::sync::mpsc::channel(1);
     let shutdown = tokio_util::sync::CancellationToken::new();
     let sd = shutdown.clone();
     let gw = tokio::spawn(async move {
-        compgate_gateway::runtime::run(&cfg, sd, tx)
+        let hooks = compgate_gateway::runtime::Hooks {
+            reload: Some(reloads),
+            ..Default::default()
+        };
+        compgate_gateway::runtime::run_with(&cfg, sd, tx, hooks)
             .await
             .expect("runs");
     });
-    let s = common::wait_status(&mut status, 20.0, "20 cycles of each unit", |s| {
+    common::wait_status(&mut status, 20.0, "20 cycles of each unit", |s| {
         s.devices.iter().all(|d| d.cycles >= 20)
+    })
+    .await;
+    reload
+        .send(units(&[(1, 0.05), (2, 0.1), (3, 0.05), (4, 0.05)]))
+        .await
+        .unwrap();
+    let s = common::wait_status(&mut status, 20.0, "20 cycles of the added unit", |s| {
+        s.devices.iter().any(|d| d.name == "u4" && d.cycles >= 20)
     })
     .await;
     shutdown.cancel();
@@ -374,6 +392,7 @@ async fn units_behind_a_gateway_that_takes_one_connection_share_it() {
     }
     for (unit, c) in s.channels.iter().enumerate() {
         let want = f64::from(1001 + unit as u16) * 0.01;
+        assert_eq!(&*c.name, format!("T_u{}", unit + 1));
         let got = c.reading.value_degc.unwrap_or(f64::NAN);
         assert!((got - want).abs() < 1e-9, "{}: {:?}", c.name, c.reading);
     }

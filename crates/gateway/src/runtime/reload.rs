@@ -62,8 +62,8 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         }
     }
 
-    // Devices: an unchanged device keeps its link; devices sharing a new serial link
-    // follow it onto the old one, so a line stays shared.
+    // Devices: an unchanged device keeps its link; devices sharing a new link (a serial
+    // line, a TCP address) follow it onto the old one, so a line stays shared.
     let old_devices: BTreeMap<String, (usize, super::DeviceRt)> = old_devices
         .into_iter()
         .enumerate()

@@ -371,7 +371,7 @@ impl DevicePoller {
         }
     }
 
-    /// Replaces the link (a reload moving a shared serial line onto the old link).
+    /// Replaces the link (a reload moving a shared line onto the old link).
     pub fn set_link(&mut self, link: SharedLink) {
         self.link = link;
     }
