@@ -513,16 +513,12 @@ async fn garbage_and_malformed_rtu_frames_never_become_values() {
     server.abort();
 }
 
-// An RS-485 line shared by two modules, one of which stops answering: its timeouts
-// (each followed by the wait for a quiet line) held the healthy one's cycles up,
-// 0.05 s became more than 0.4 s. Once degraded the silent module is asked only when
-// its backoff allows, the healthy one keeps its interval, and the silent one is good
-// again soon after it answers.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_silent_module_on_a_shared_rtu_line_does_not_hold_up_the_others() {
-    let rtu = "transport = \"rtu\"\nserial_path = \"/dev/compgate-test-line\"\nbaud = 115200";
-    let toml = config("hold", "", "")
-        .replace("transport = \"tcp\"\naddress = \"127.0.0.1:0\"", rtu)
+/// The test plant on two RTU modules sharing the line at `path`: `ain1` (T_bed,
+/// T_screw; `timeout_s = 0.2`, polled every 0.05 s) and `ain2` (T_col) with `ain2_keys`.
+fn two_modules_on_a_line(path: &str, ain2_keys: &str) -> String {
+    let rtu = format!("transport = \"rtu\"\nserial_path = \"{path}\"\nbaud = 115200");
+    config("hold", "", "")
+        .replace("transport = \"tcp\"\naddress = \"127.0.0.1:0\"", &rtu)
         .replace("connect_timeout_s = 0.5\n", "")
         .replace(
             "[channels.T_col]\ndevice = \"ain1\"",
@@ -530,12 +526,22 @@ async fn a_silent_module_on_a_shared_rtu_line_does_not_hold_up_the_others() {
         )
         .replace(
             "[nc_modules.nc_x]",
-            &format!(
-                "[devices.ain2]\n{rtu}\nunit_id = 2\ntimeout_s = 0.2\nretries = 0\n\
-                 poll_interval_s = 0.05\nbackoff_initial_s = 0.1\nbackoff_max_s = 0.8\n\
-                 degrade_after_cycles = 3\n\n[nc_modules.nc_x]"
-            ),
-        );
+            &format!("[devices.ain2]\n{rtu}\nunit_id = 2\n{ain2_keys}\n\n[nc_modules.nc_x]"),
+        )
+}
+
+// An RS-485 line shared by two modules, one of which stops answering: its timeouts
+// (each followed by the wait for a quiet line) held the healthy one's cycles up,
+// 0.05 s became more than 0.4 s. Once degraded the silent module is asked only when
+// its backoff allows, the healthy one keeps its interval, and the silent one is good
+// again soon after it answers.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_silent_module_on_a_shared_rtu_line_does_not_hold_up_the_others() {
+    let toml = two_modules_on_a_line(
+        "/dev/compgate-test-line",
+        "timeout_s = 0.2\nretries = 0\npoll_interval_s = 0.05\nbackoff_initial_s = 0.1\n\
+         backoff_max_s = 0.8\ndegrade_after_cycles = 3",
+    );
     let plant = Plant::start(&cfgmod::load_str(&toml, "t.toml").unwrap(), Bind::Ephemeral)
         .await
         .unwrap();
@@ -604,22 +610,11 @@ async fn a_silent_module_on_a_shared_rtu_line_does_not_hold_up_the_others() {
 // request, whatever its own key said.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn each_module_on_a_shared_rtu_line_gets_its_own_timeout() {
-    let rtu = "transport = \"rtu\"\nserial_path = \"/dev/compgate-test-timeouts\"\nbaud = 115200";
-    let toml = config("hold", "", "")
-        .replace("transport = \"tcp\"\naddress = \"127.0.0.1:0\"", rtu)
-        .replace("connect_timeout_s = 0.5\n", "")
-        .replace("timeout_s = 0.2\n", "timeout_s = 0.05\n")
-        .replace(
-            "[channels.T_col]\ndevice = \"ain1\"",
-            "[channels.T_col]\ndevice = \"ain2\"",
-        )
-        .replace(
-            "[nc_modules.nc_x]",
-            &format!(
-                "[devices.ain2]\n{rtu}\nunit_id = 2\ntimeout_s = 0.5\nretries = 0\n\
-                 poll_interval_s = 0.2\n\n[nc_modules.nc_x]"
-            ),
-        );
+    let toml = two_modules_on_a_line(
+        "/dev/compgate-test-timeouts",
+        "timeout_s = 0.5\nretries = 0\npoll_interval_s = 0.2",
+    )
+    .replace("timeout_s = 0.2\n", "timeout_s = 0.05\n");
     let plant = Plant::start(&cfgmod::load_str(&toml, "t.toml").unwrap(), Bind::Ephemeral)
         .await
         .unwrap();
