@@ -10,8 +10,9 @@ export CARGO_INCREMENTAL=${CARGO_INCREMENTAL:-0}
 rustup component add rustfmt clippy >/dev/null 2>&1 || true
 
 # System tools the service tests use: systemd-analyze (unit exposure, offline) and
-# mosquitto (a real MQTT broker on loopback), promtool (package prometheus: checks a real
-# scrape of the metrics endpoint), chromium (headless: loads the live status page).
+# mosquitto (a real MQTT broker on loopback), promtool and prometheus (package prometheus:
+# check a real scrape of the metrics endpoint, and the shipped alerting rules against
+# the gateway), chromium (headless: loads the live status page).
 need=()
 command -v systemd-analyze >/dev/null 2>&1 || need+=(systemd)
 command -v mosquitto >/dev/null 2>&1 || [[ -x /usr/sbin/mosquitto ]] || need+=(mosquitto)

@@ -175,6 +175,11 @@ pub fn describe() {
         "NC jobs by axis and result (ok, failed, shadow: computed in shadow mode, not sent)"
     );
     describe_gauge!(
+        "compgate_axis_nc_up",
+        Unit::Count,
+        "1 while the axis' NC answered its last read (read every status interval, at most once a second), 0 while it does not answer or answers with an error"
+    );
+    describe_gauge!(
         "compgate_axis_at_limit",
         Unit::Count,
         "1 while the model's value is beyond max_abs_k0_mm or max_abs_tan_beta: the NC gets the limit"
@@ -394,6 +399,8 @@ impl Observer for MetricsObserver {
         for a in &status.axes {
             gauge!("compgate_axis_at_limit", "axis" => a.name.clone())
                 .set(f64::from(u8::from(a.at_limit)));
+            gauge!("compgate_axis_nc_up", "axis" => a.name.clone())
+                .set(f64::from(u8::from(a.nc.is_some())));
         }
         if let Some(stats) = &self.recorder {
             let (c, g) = self.recorder_handles.get_or_insert_with(|| {
