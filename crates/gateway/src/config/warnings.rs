@@ -17,7 +17,10 @@ use crate::source::modbus::config::{ModbusCommon, RtuDeviceConfig};
 ///   register number from a device manual ("30013" = input register 13 = PDU address
 ///   12): a device without that many registers answers exception 2 at run time.
 /// - Two TCP devices with the same `address` and `unit_id` are one device polled
-///   twice: most likely a copied entry whose address or unit id was not changed. (On one RTU line the same unit id twice is an error.)
+///   twice: most likely a copied entry whose address or unit id was not changed. (On
+///   one RTU line the same unit id twice is an error.)
+/// - Devices sharing a serial line or a TCP address whose `timeout_s` add up to more
+///   than their smallest `poll_interval_s`: a silent one holds up the others.
 pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
     let mut out = Problems::new(file);
     let mut tcp: BTreeMap<(String, u8), &String> = BTreeMap::new();
@@ -31,8 +34,8 @@ pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
                 field("devices", name, "unit_id"),
                 format!(
                     "unit id {} at {} is also device `{other}`: the same device polled \
-                     twice; give one of them its own address or \
-                     unit_id, or move its channels to `{other}`",
+                     twice; give one of them its own address or unit_id, or move its \
+                     channels to `{other}`",
                     d.unit_id, d.address
                 ),
             );
