@@ -636,3 +636,38 @@ async fn each_module_on_a_shared_rtu_line_gets_its_own_timeout() {
     assert_eq!(q(&s, "T_col"), Quality::Good);
     assert_eq!(q(&s, "T_bed"), Quality::Good);
 }
+
+// The same line, the slow module's replies coming after its own timeout_s (0.2 s) but
+// within it plus the quiet wait: the wait before the next request must be the timed-out
+// request's, not that of the next device on the line (0.05 s), or the late reply
+// answers the fast module's request (a frame error naming the other unit).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_late_reply_on_a_shared_rtu_line_never_reaches_the_next_module() {
+    let toml = two_modules_on_a_line(
+        "/dev/compgate-test-late",
+        "timeout_s = 0.2\nretries = 0\npoll_interval_s = 0.2\nbackoff_initial_s = 0.1\n\
+         backoff_max_s = 0.2",
+    )
+    // ain1's (the first in the file).
+    .replacen("timeout_s = 0.2\n", "timeout_s = 0.05\n", 1);
+    let plant = Plant::start(&cfgmod::load_str(&toml, "t.toml").unwrap(), Bind::Ephemeral)
+        .await
+        .unwrap();
+    plant.field["ain2"].set_comm_fault(CommFault::Delay(Duration::from_millis(300)));
+    let (rx, shutdown, h) = run_gateway(plant.config.clone());
+    let s = wait(&rx, 20.0, "8 timeouts of the slow module", |s| {
+        s.devices
+            .iter()
+            .any(|d| d.name == "ain2" && d.errors.get("timeout").copied().unwrap_or(0) >= 8)
+    })
+    .await;
+    shutdown.cancel();
+    h.await.unwrap();
+    let fast = s.devices.iter().find(|d| d.name == "ain1").unwrap();
+    assert!(
+        fast.errors.is_empty(),
+        "the fast module's requests failed: {:?}, {:?}",
+        fast.errors,
+        fast.last_error
+    );
+}

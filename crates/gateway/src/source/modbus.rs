@@ -147,7 +147,9 @@ pub struct ModbusLink {
     connects: u64,
     /// The unit whose request timed out last, until a good reply or the next open of
     /// the serial port: a reply the drain after it finds is most likely its, late.
-    timed_out_unit: Option<u8>,
+    /// With the timeout its request waited (on a shared line another device's may be
+    /// shorter, and the wait for a quiet line must let this one's late reply pass).
+    timed_out: Option<(u8, Duration)>,
     /// When the last late reply was logged at WARN, and how many were not logged
     /// since (one WARN per [`LATE_REPLY_LOG_EVERY`]).
     late_logged: Option<Instant>,
@@ -183,7 +185,7 @@ impl ModbusLink {
             answered: false,
             peer: None,
             connects: 0,
-            timed_out_unit: None,
+            timed_out: None,
             late_logged: None,
             late_unlogged: 0,
         }
@@ -259,15 +261,16 @@ impl ModbusLink {
                 // A late reply to a request given up before (by this link or another
                 // process) may still be on its way: let it pass, then start empty.
                 let started = Instant::now();
-                let dropped = drain_until_quiet(&mut port, rtu_guard(self.timeout, baud))
+                let late_from = self.timed_out.take();
+                let waited = late_from.map_or(self.timeout, |(_, t)| t.max(self.timeout));
+                let dropped = drain_until_quiet(&mut port, rtu_guard(waited, baud))
                     .await
                     .map_err(|e| failed(&e))?;
                 port.clear(tokio_serial::ClearBuffer::All)
                     .map_err(|e| failed(&e))?;
-                let late_from = self.timed_out_unit.take();
                 if dropped > 0 {
                     match late_from {
-                        Some(unit) => self.late_reply(unit, dropped),
+                        Some((unit, timeout)) => self.late_reply(unit, timeout, dropped),
                         None => {
                             tracing::debug!(link = %self.spec, bytes = dropped, "dropped what the line brought before the first request");
                         }
@@ -332,14 +335,14 @@ impl ModbusLink {
     /// Records a good reply: the link works, the backoff starts over.
     fn answered(&mut self) {
         self.answered = true;
-        self.timed_out_unit = None;
+        self.timed_out = None;
         self.backoff.reset();
     }
 
-    /// `bytes` came on the serial line after `unit`'s request timed out: a device
-    /// slower than `timeout_s`, whose replies are dropped. One WARN per
+    /// `bytes` came on the serial line after `unit`'s request timed out after
+    /// `timeout`: a device slower than its `timeout_s`, whose replies are dropped. One WARN per
     /// [`LATE_REPLY_LOG_EVERY`], with the count of the ones not logged; DEBUG else.
-    fn late_reply(&mut self, unit: u8, bytes: usize) {
+    fn late_reply(&mut self, unit: u8, timeout: Duration, bytes: usize) {
         let now = Instant::now();
         if self
             .late_logged
@@ -363,7 +366,7 @@ impl ModbusLink {
             unit,
             "unit {unit} answered after timeout_s = {} s ({bytes} bytes came after its \
              request timed out): a slow device; raise timeout_s for it{more}",
-            self.timeout.as_secs_f64()
+            timeout.as_secs_f64()
         );
         self.late_logged = Some(now);
     }
@@ -571,7 +574,7 @@ impl ModbusLink {
                     (Some(e @ (SourceError::NotModbus { .. } | SourceError::Frame { .. })), _) => e,
                     (_, Some((_, length))) => SourceError::Deadline(length),
                     (_, None) => {
-                        self.timed_out_unit = Some(unit);
+                        self.timed_out = Some((unit, timeout));
                         SourceError::Timeout(timeout)
                     }
                 };
