@@ -1334,11 +1334,11 @@ mod tests {
             tracing::subscriber::set_default(tracing_subscriber::registry().with(warnings.clone()));
         let mut link = rtu_link("/dev/ttyX", Duration::from_millis(200));
         for _ in 0..3 {
-            link.late_reply(4, 7);
+            link.late_reply(4, Duration::from_millis(200), 7);
             tokio::time::advance(Duration::from_secs(20)).await;
         }
         assert_eq!(warnings.0.lock().unwrap().len(), 1);
-        link.late_reply(4, 7);
+        link.late_reply(4, Duration::from_millis(200), 7);
         let seen = warnings.0.lock().unwrap().clone();
         assert_eq!(seen.len(), 2, "{seen:#?}");
         assert!(
