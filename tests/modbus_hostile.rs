@@ -9,6 +9,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
+use compgate_core::channel::Quality;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 mod common;
@@ -300,13 +301,15 @@ async fn an_absent_unit_behind_a_tcp_gateway_does_not_hold_up_the_present_one() 
     );
 }
 
-// Three units behind a TCP-to-RTU gateway that takes one connection at a time (a
-// second client is closed at once, as small gateways do). Each device opened its own
-// connection, so all but one were closed every cycle: two of three units never read.
-// Devices at one address now share one connection, as units on one serial line do,
-// and a reload that changes one unit and adds another keeps it.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn units_behind_a_gateway_that_takes_one_connection_share_it() {
+/// A TCP-to-RTU gateway on loopback that takes one connection at a time (a second
+/// client is closed at once, as small gateways do) and serves its requests one after
+/// the other on its serial line: a unit answers its registers with 1000 + its unit id
+/// after 5 ms; for a unit in `absent` it answers 0x0B after `response_timeout`, its
+/// own timeout. Returns its address, the connections it accepted and its task.
+async fn one_connection_gateway(
+    absent: &'static [u8],
+    response_timeout: Duration,
+) -> (String, Arc<AtomicUsize>, tokio::task::JoinHandle<()>) {
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let address = listener.local_addr().unwrap().to_string();
     let accepted = Arc::new(AtomicUsize::new(0));
@@ -325,7 +328,13 @@ async fn units_behind_a_gateway_that_takes_one_connection_share_it() {
                 let mut req = [0u8; 12];
                 while s.read_exact(&mut req).await.is_ok() {
                     let n = u16::from_be_bytes([req[10], req[11]]);
-                    let pdu = registers(req[7], &vec![1000 + u16::from(req[6]); usize::from(n)]);
+                    let pdu = if absent.contains(&req[6]) {
+                        tokio::time::sleep(response_timeout).await;
+                        vec![req[7] | 0x80, 0x0B]
+                    } else {
+                        tokio::time::sleep(Duration::from_millis(5)).await;
+                        registers(req[7], &vec![1000 + u16::from(req[6]); usize::from(n)])
+                    };
                     let mut reply = req[..7].to_vec();
                     reply[4..6].copy_from_slice(&(pdu.len() as u16 + 1).to_be_bytes());
                     reply.extend(pdu);
@@ -337,6 +346,17 @@ async fn units_behind_a_gateway_that_takes_one_connection_share_it() {
             });
         }
     });
+    (address, accepted, peer)
+}
+
+// Three units behind a TCP-to-RTU gateway that takes one connection at a time (a
+// second client is closed at once, as small gateways do). Each device opened its own
+// connection, so all but one were closed every cycle: two of three units never read.
+// Devices at one address now share one connection, as units on one serial line do,
+// and a reload that changes one unit and adds another keeps it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn units_behind_a_gateway_that_takes_one_connection_share_it() {
+    let (address, accepted, peer) = one_connection_gateway(&[], Duration::ZERO).await;
     let units = |units: &[(u8, f64)]| {
         let text: String = units
             .iter()
@@ -396,5 +416,71 @@ async fn units_behind_a_gateway_that_takes_one_connection_share_it() {
         let got = c.reading.value_degc.unwrap_or(f64::NAN);
         assert!((got - want).abs() < 1e-9, "{}: {:?}", c.name, c.reading);
     }
+    assert_eq!(accepted.load(Ordering::SeqCst), 1, "connections accepted");
+}
+
+// Behind the same gateway a fourth unit is absent, and the gateway answers 0x0B only
+// after its own response timeout, 1 s, longer than the units' timeout_s (0.5 s). The
+// timeout dropped the shared connection; the gateway, still busy with the request,
+// closed the new one, and the reconnect backoff took the three present units down
+// with the absent one, every time it was asked. The connection now outlives the
+// timeout, and the late 0x0B is dropped by its transaction id.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_absent_unit_does_not_take_down_the_others_behind_a_one_connection_gateway() {
+    let (address, accepted, peer) = one_connection_gateway(&[4], Duration::from_secs(1)).await;
+    let text: String = (1..=4)
+        .map(|unit| {
+            format!(
+                "[devices.u{unit}]\ntransport = \"tcp\"\naddress = \"{address}\"\nunit_id = {unit}\n\
+                 timeout_s = 0.5\npoll_interval_s = 1.0\nbackoff_initial_s = 1.0\n\n\
+                 [channels.T_u{unit}]\ndevice = \"u{unit}\"\nregister = \"input\"\naddress = 0\n\
+                 data_type = \"u16\"\nscaling = {{ kind = \"direct\", gain = 0.01, offset_degc = 0.0 }}\n\n"
+            )
+        })
+        .collect();
+    let text = format!("[gateway]\nstatus_interval_s = 0.05\n\n{text}");
+    let cfg = compgate_gateway::config::load_str(&text, "units.toml").expect("config");
+    let (tx, mut status) = tokio::sync::watch::channel(Default::default());
+    let shutdown = tokio_util::sync::CancellationToken::new();
+    let sd = shutdown.clone();
+    let gw = tokio::spawn(async move {
+        compgate_gateway::runtime::run(&cfg, sd, tx)
+            .await
+            .expect("runs");
+    });
+    let present = |s: &compgate_gateway::runtime::Status| {
+        s.channels
+            .iter()
+            .filter(|c| &*c.name != "T_u4")
+            .map(|c| c.reading.quality)
+            .collect::<Vec<_>>()
+    };
+    common::wait_status(&mut status, 10.0, "the present units read", |s| {
+        s.channels.len() == 4 && present(s).iter().all(|q| *q == Quality::Good)
+    })
+    .await;
+    // 12 s: the absent unit is asked at least 4 times (its backoff from 1 s, doubling).
+    let end = tokio::time::Instant::now() + Duration::from_secs(12);
+    let mut not_good = Vec::new();
+    while tokio::time::Instant::now() < end {
+        let _ = tokio::time::timeout(Duration::from_millis(200), status.changed()).await;
+        let s = status.borrow_and_update().clone();
+        if present(&s).iter().any(|q| *q != Quality::Good) {
+            not_good.push(format!("{:?}", present(&s)));
+        }
+    }
+    let s = status.borrow().clone();
+    shutdown.cancel();
+    gw.await.unwrap();
+    peer.abort();
+    let absent = s.devices.iter().find(|d| d.name == "u4").unwrap();
+    assert!(absent.cycles >= 4 && !absent.link_up, "{absent:?}");
+    assert!(
+        not_good.is_empty(),
+        "the present units were not good in {} status updates, e.g. {}; devices: {:#?}",
+        not_good.len(),
+        not_good[0],
+        s.devices
+    );
     assert_eq!(accepted.load(Ordering::SeqCst), 1, "connections accepted");
 }

@@ -240,11 +240,17 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
                     },
                     rtu => rtu,
                 };
-                Arc::new(Mutex::new(ModbusLink::new(
+                let link = ModbusLink::new(
                     spec,
                     common.timeout(),
                     Backoff::new(line.backoff_initial, line.backoff_max),
-                )))
+                );
+                let link = if line.devices > 1 {
+                    link.shared_address()
+                } else {
+                    link
+                };
+                Arc::new(Mutex::new(link))
             })
             .clone();
         let mut poller = DevicePoller::new(devices.len(), name.clone(), params, link, specs);

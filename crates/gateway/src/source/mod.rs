@@ -431,7 +431,11 @@ impl DevicePoller {
                     | SourceError::Connect(_)
                     | SourceError::ConnectTimeout
             );
-            if !transient || attempt >= self.params.retries {
+            // Behind a TCP-to-RTU gateway a retry would queue behind the request that
+            // timed out, which the gateway still works on, and hold up the other units.
+            let queued = link.is_shared_address()
+                && matches!(e, SourceError::Timeout(_) | SourceError::Deadline(_));
+            if !transient || queued || attempt >= self.params.retries {
                 return Err(first.unwrap_or(e));
             }
             attempt += 1;

@@ -4,7 +4,9 @@
 //! timeout; connecting has its own timeout; TCP sockets get `TCP_NODELAY`; and after
 //! any transport error or timeout the context is dropped and rebuilt, because a late
 //! reply left in the old stream would otherwise be read as the answer to the next
-//! request (tokio-modbus issue 324). Reconnects back off exponentially up to a cap.
+//! request (tokio-modbus issue 324). The one exception: at a TCP address several units
+//! share (a TCP-to-RTU gateway), a timeout keeps the connection, and a late reply is
+//! dropped by its transaction id ([`ModbusLink::shared_address`]). Reconnects back off exponentially up to a cap.
 //! While a poll cycle runs, its deadline also bounds every request and connect, so a
 //! cycle of many reads to a silent device ends after one deadline.
 //!
@@ -154,7 +156,16 @@ pub struct ModbusLink {
     /// since (one WARN per [`LATE_REPLY_LOG_EVERY`]).
     late_logged: Option<Instant>,
     late_unlogged: u64,
+    /// Several units at this TCP address: see [`Self::shared_address`].
+    shared_address: bool,
+    /// A request timed out on this connection and may still be under way at the peer
+    /// for as long as it waited: the next request waits that much longer.
+    busy_after_timeout: Option<Duration>,
 }
+
+/// A connection at a shared TCP address with a frame from its peer this recently
+/// outlives a timeout (see [`ModbusLink::outlives_timeout`]).
+const LIFE_WINDOW: Duration = Duration::from_secs(5);
 
 /// At most one WARN per link this often for a late RTU reply: a device answering
 /// every request late must not flood the log.
@@ -188,7 +199,22 @@ impl ModbusLink {
             timed_out: None,
             late_logged: None,
             late_unlogged: 0,
+            shared_address: false,
+            busy_after_timeout: None,
         }
+    }
+
+    /// Several units are at this TCP address (behind a TCP-to-RTU gateway): a timed-out
+    /// request keeps the connection while the peer has sent a frame lately (see
+    /// [`Self::outlives_timeout`]), is not retried, and the next request waits as much
+    /// longer as it waited. The gateway goes on with a request the client gave up,
+    /// until its own response timeout, and queues the next one behind it: a new
+    /// connection meanwhile was refused by a gateway that takes one, which took every
+    /// unit behind it down with the one that timed out. The late reply is dropped by
+    /// its transaction id.
+    pub fn shared_address(mut self) -> Self {
+        self.shared_address = matches!(self.spec, LinkSpec::Tcp { .. });
+        self
     }
 
     /// A link over a context already attached to a transport (an in-memory stream in
@@ -238,9 +264,13 @@ impl ModbusLink {
                 stream
                     .set_nodelay(true)
                     .map_err(|e| SourceError::Connect(format!("{address}: {e}")))?;
+                seen.lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .last_frame = Some(Instant::now());
                 let stream = WatchedStream {
                     inner: stream,
                     seen: seen.clone(),
+                    frames: Some(Box::default()),
                 };
                 Ok((tcp::attach(stream), Some(seen)))
             }
@@ -284,6 +314,7 @@ impl ModbusLink {
                 let port = WatchedStream {
                     inner: port,
                     seen: seen.clone(),
+                    frames: None,
                 };
                 Ok((rtu::attach(port), Some(seen)))
             }
@@ -325,6 +356,31 @@ impl ModbusLink {
         self.ctx = None;
         self.peer = None;
         self.answered = false;
+        self.busy_after_timeout = None;
+    }
+
+    /// Several units are at this TCP address: see [`Self::shared_address`].
+    pub fn is_shared_address(&self) -> bool {
+        self.shared_address
+    }
+
+    /// Whether a request that timed out after `waited` leaves the connection open (see
+    /// [`Self::shared_address`]): one made, or with a frame from the peer, in the last
+    /// [`LIFE_WINDOW`] (or three timeouts, if longer). A connection silent for longer
+    /// is taken for dead and made anew.
+    fn outlives_timeout(&mut self, waited: Duration) -> bool {
+        if !self.shared_address {
+            return false;
+        }
+        let last = self
+            .peer
+            .as_ref()
+            .and_then(|p| p.lock().unwrap_or_else(PoisonError::into_inner).last_frame);
+        let alive = last.is_some_and(|t| t.elapsed() < LIFE_WINDOW.max(waited * 3));
+        if alive {
+            self.busy_after_timeout = Some(waited);
+        }
+        alive
     }
 
     /// The open connection has given a good reply (or an exception).
@@ -525,8 +581,9 @@ impl ModbusLink {
         }
         self.ensure_connected().await?;
         let timeout = self.timeout;
-        let own = Instant::now() + timeout;
-        if std::mem::take(&mut self.cycle_fresh) {
+        let busy = self.busy_after_timeout.take();
+        let own = Instant::now() + timeout + busy.unwrap_or_default();
+        if std::mem::take(&mut self.cycle_fresh) || busy.is_some() {
             if let Some((end, length)) = &mut self.cycle {
                 if *length >= timeout {
                     *end = (*end).max(own);
@@ -542,6 +599,7 @@ impl ModbusLink {
         let Some(ctx) = self.ctx.as_mut() else {
             return Err(SourceError::Connect("no context".into()));
         };
+        let started = Instant::now();
         ctx.set_slave(Slave(unit));
         let outcome = tokio::select! {
             // The reply wins a tie with the deadline.
@@ -578,6 +636,11 @@ impl ModbusLink {
                         SourceError::Timeout(timeout)
                     }
                 };
+                if matches!(error, SourceError::Timeout(_) | SourceError::Deadline(_))
+                    && self.outlives_timeout(at.duration_since(started))
+                {
+                    return Err(error);
+                }
                 Err(self.fault(error))
             }
         }
@@ -660,14 +723,58 @@ struct PeerSeen {
     reply: Vec<u8>,
     /// The peer closed its side (a read returned end of stream).
     closed: bool,
+    /// TCP: when the last whole frame came, a late one included, or else when the
+    /// connection was made: a sign of life after a timeout.
+    last_frame: Option<Instant>,
 }
 
 /// A TCP stream or serial port that notes in [`PeerSeen`] what the peer does, for the
-/// error messages.
+/// error messages. On TCP it also drops whole frames whose transaction id is not the
+/// last request's: a reply that comes after its request timed out (tokio-modbus would
+/// take it for the next request's and fail that one), so a connection can outlive a
+/// timeout.
 #[derive(Debug)]
 struct WatchedStream<S> {
     inner: S,
     seen: Arc<Mutex<PeerSeen>>,
+    /// TCP only.
+    frames: Option<Box<Frames>>,
+}
+
+/// Bytes read from a TCP peer on their way to tokio-modbus, split into frames.
+#[derive(Debug, Default)]
+struct Frames {
+    /// Read, not yet a whole frame.
+    partial: Vec<u8>,
+    /// Whole frames of the last request, or bytes that are no plausible frame (passed
+    /// on for tokio-modbus to refuse), not yet handed on.
+    ready: std::collections::VecDeque<u8>,
+}
+
+impl Frames {
+    /// Moves the whole frames in `partial` to `ready`, dropping those whose
+    /// transaction id is not `tid`; returns how many frames were whole.
+    fn split(&mut self, tid: Option<[u8; 2]>) -> u64 {
+        let mut whole = 0;
+        while self.partial.len() >= 6 {
+            let len = usize::from(u16::from_be_bytes([self.partial[4], self.partial[5]]));
+            if !mbap_plausible(&self.partial[..6]) {
+                self.ready.extend(self.partial.drain(..));
+                break;
+            }
+            if self.partial.len() < 6 + len {
+                break;
+            }
+            whole += 1;
+            let frame = self.partial.drain(..6 + len);
+            if tid.is_none_or(|t| frame.as_slice()[..2] == t) {
+                self.ready.extend(frame);
+            } else {
+                tracing::debug!("a reply to an earlier request dropped");
+            }
+        }
+        whole
+    }
 }
 
 impl<S> WatchedStream<S> {
@@ -685,12 +792,62 @@ impl<S> WatchedStream<S> {
     }
 }
 
+impl<S: AsyncRead + Unpin> WatchedStream<S> {
+    /// [`AsyncRead::poll_read`] through [`Frames`].
+    fn poll_read_frames(
+        &mut self,
+        cx: &mut TaskContext<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        let Some(frames) = self.frames.as_mut() else {
+            return Poll::Ready(Ok(()));
+        };
+        loop {
+            if !frames.ready.is_empty() {
+                let n = buf.remaining().min(frames.ready.len());
+                let (a, b) = frames.ready.as_slices();
+                let from_a = n.min(a.len());
+                buf.put_slice(&a[..from_a]);
+                buf.put_slice(&b[..n - from_a]);
+                frames.ready.drain(..n);
+                return Poll::Ready(Ok(()));
+            }
+            let mut chunk = [0u8; 512];
+            let mut got = ReadBuf::new(&mut chunk);
+            std::task::ready!(Pin::new(&mut self.inner).poll_read(cx, &mut got))?;
+            let got = got.filled();
+            let mut seen = self.seen.lock().unwrap_or_else(PoisonError::into_inner);
+            if got.is_empty() {
+                seen.closed = true;
+                if frames.partial.is_empty() {
+                    return Poll::Ready(Ok(()));
+                }
+                // A frame cut short by the close: tokio-modbus says so.
+                frames.ready.extend(frames.partial.drain(..));
+                continue;
+            }
+            let keep = REPLY_KEPT_BYTES
+                .saturating_sub(seen.reply.len())
+                .min(got.len());
+            seen.reply.extend_from_slice(&got[..keep]);
+            frames.partial.extend_from_slice(got);
+            let tid = seen.sent.get(..2).map(|t| [t[0], t[1]]);
+            if frames.split(tid) > 0 {
+                seen.last_frame = Some(Instant::now());
+            }
+        }
+    }
+}
+
 impl<S: AsyncRead + Unpin> AsyncRead for WatchedStream<S> {
     fn poll_read(
         mut self: Pin<&mut Self>,
         cx: &mut TaskContext<'_>,
         buf: &mut ReadBuf<'_>,
     ) -> Poll<std::io::Result<()>> {
+        if self.frames.is_some() {
+            return self.poll_read_frames(cx, buf);
+        }
         let before = buf.filled().len();
         let room = buf.remaining() > 0;
         let polled = Pin::new(&mut self.inner).poll_read(cx, buf);
@@ -1471,6 +1628,28 @@ mod tests {
             mapped(K::NoDevice, "Device or resource busy"),
             "connect failed: /dev/ttyX: Device or resource busy"
         );
+    }
+
+    // Frames reach tokio-modbus whole and only for the last request: a late reply
+    // (another transaction id) is dropped, a frame split across reads waits for its
+    // end, and bytes that are no MBAP frame are passed on for tokio-modbus to refuse.
+    #[test]
+    fn only_whole_frames_of_the_last_request_are_passed_on() {
+        let frame = |tid: u8, unit: u8| vec![0, tid, 0, 0, 0, 5, unit, 4, 2, 0, 7];
+        let mut frames = Frames::default();
+        frames.partial.extend(frame(1, 4));
+        frames.partial.extend(&frame(2, 1)[..8]);
+        assert_eq!(frames.split(Some([0, 2])), 1);
+        assert!(
+            frames.ready.is_empty(),
+            "the late reply of request 1 passed"
+        );
+        frames.partial.extend(&frame(2, 1)[8..]);
+        assert_eq!(frames.split(Some([0, 2])), 1);
+        assert_eq!(frames.ready.drain(..).collect::<Vec<_>>(), frame(2, 1));
+        frames.partial.extend(b"HTTP/1.1 400 Bad Request");
+        assert_eq!(frames.split(Some([0, 3])), 0);
+        assert_eq!(frames.ready.len(), 24);
     }
 
     #[test]
