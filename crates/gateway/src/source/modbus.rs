@@ -205,8 +205,8 @@ impl ModbusLink {
     }
 
     /// Several units are at this TCP address (behind a TCP-to-RTU gateway): a timed-out
-    /// request keeps the connection while the peer has sent a frame lately (see
-    /// [`Self::outlives_timeout`]), is not retried, and the next request waits as much
+    /// request keeps the connection while it was made or the peer sent a frame in the
+    /// last 5 s (or three timeouts), is not retried, and the next request waits as much
     /// longer as it waited. The gateway goes on with a request the client gave up,
     /// until its own response timeout, and queues the next one behind it: a new
     /// connection meanwhile was refused by a gateway that takes one, which took every
