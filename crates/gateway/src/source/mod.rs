@@ -189,7 +189,8 @@ pub struct DeviceSample {
     pub device: usize,
     /// When the cycle started.
     pub started: Instant,
-    /// Time the cycle took.
+    /// Time the cycle took on its line: its requests' round trips, not the wait for
+    /// other devices on a shared line.
     pub elapsed: Duration,
     /// Raw value or fault for every channel of the device.
     pub values: Vec<(usize, Result<f64, Fault>)>,
@@ -456,6 +457,7 @@ impl DevicePoller {
         // out back to back.
         let link = self.link.clone();
         let mut link = link.lock().await;
+        let on_line = Instant::now();
         link.set_timeout(self.params.timeout);
         // One deadline for all blocks, counted from when the line is ours: a silent
         // device costs one deadline per cycle, not a timeout (and a reconnect) per block.
@@ -530,7 +532,7 @@ impl DevicePoller {
             connects,
             device: self.index,
             started,
-            elapsed: started.elapsed(),
+            elapsed: on_line.elapsed(),
             values,
             error: first_error,
             faults,
