@@ -462,12 +462,16 @@ async fn an_absent_unit_does_not_take_down_the_others_behind_a_one_connection_ga
     // 12 s: the absent unit is asked at least 4 times (its backoff from 1 s, doubling).
     let end = tokio::time::Instant::now() + Duration::from_secs(12);
     let mut not_good = Vec::new();
+    // A skipped cycle of the demoted unit reported 0 connects while another unit held
+    // the line.
+    let mut no_connects = 0;
     while tokio::time::Instant::now() < end {
         let _ = tokio::time::timeout(Duration::from_millis(200), status.changed()).await;
         let s = status.borrow_and_update().clone();
         if present(&s).iter().any(|q| *q != Quality::Good) {
             not_good.push(format!("{:?}", present(&s)));
         }
+        no_connects += s.devices.iter().filter(|d| d.connects == 0).count();
     }
     let s = status.borrow().clone();
     shutdown.cancel();
@@ -483,4 +487,5 @@ async fn an_absent_unit_does_not_take_down_the_others_behind_a_one_connection_ga
         s.devices
     );
     assert_eq!(accepted.load(Ordering::SeqCst), 1, "connections accepted");
+    assert_eq!(no_connects, 0, "status updates with a device at 0 connects");
 }

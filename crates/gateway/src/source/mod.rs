@@ -267,6 +267,9 @@ pub struct DevicePoller {
     /// [`Self::poll`].
     decode: Vec<Decode>,
     failed_cycles: u32,
+    /// The link's connects as the last cycle on it saw them: what a skipped cycle
+    /// reports while another device holds the line.
+    connects: u64,
     /// On a line shared with other devices: how often it is asked while it is
     /// silent (see [`Self::on_shared_line`]).
     silent: Option<Box<Silent>>,
@@ -332,6 +335,7 @@ impl DevicePoller {
             hints,
             decode,
             failed_cycles: 0,
+            connects: 0,
             silent: None,
         }
     }
@@ -484,6 +488,7 @@ impl DevicePoller {
         }
         link.set_cycle_deadline(None);
         let connects = link.connects();
+        self.connects = connects;
         drop(link);
         // Values go out in channel order, not register order: the core loop then walks
         // its channel processors front to back, as the CPU's prefetcher expects. In
@@ -558,7 +563,7 @@ impl DevicePoller {
                 (d.channel, Err(fault))
             })
             .collect();
-        let connects = self.link.try_lock().map_or(0, |l| l.connects());
+        let connects = self.link.try_lock().map_or(self.connects, |l| l.connects());
         Some(DeviceSample {
             connects,
             device: self.index,
