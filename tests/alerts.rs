@@ -156,7 +156,7 @@ fn rule_metrics() -> Vec<String> {
 // The shipped rules against what the gateway exports: every metric they use is in a
 // real scrape, and a real Prometheus evaluating them sees a field device and an NC
 // that stop answering (the alerts pending: their `for:` is minutes), and nothing
-// about the gateway or its recorder.
+// about the gateway or its recorder; parts a reload removes take their alerts along.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_real_prometheus_raises_the_alerts_for_a_silent_device_and_nc() {
     if !have_prometheus() {
@@ -174,12 +174,11 @@ async fn a_real_prometheus_raises_the_alerts_for_a_silent_device_and_nc() {
     let mut cfg = plant.config.clone();
     cfg.nc_modules.get_mut("nc_x").unwrap().address = proxy.addr.to_string();
     let path = dir.path().join("compgate.toml");
-    let text = toml::to_string(&cfg).unwrap()
-        + &format!(
-            "\n[metrics]\nbind = \"127.0.0.1:0\"\n\n[recorder]\npath = {:?}\n",
-            dir.path().join("rec.db").display().to_string()
-        );
-    std::fs::write(&path, text).unwrap();
+    let extra = format!(
+        "\n[metrics]\nbind = \"127.0.0.1:0\"\n\n[recorder]\npath = {:?}\n",
+        dir.path().join("rec.db").display().to_string()
+    );
+    std::fs::write(&path, toml::to_string(&cfg).unwrap() + &extra).unwrap();
     let mut gw = Gateway::start(dir.path(), &path, &[]);
     let port = tokio::task::block_in_place(|| gw.metrics_port(10.0));
     tokio::task::block_in_place(|| gw.wait_notify(10.0, "first job", |m| m.contains("jobs 1 ok")));
@@ -237,7 +236,68 @@ async fn a_real_prometheus_raises_the_alerts_for_a_silent_device_and_nc() {
     ] {
         assert!(!alerts.contains(quiet), "{quiet}: {alerts}");
     }
+
+    // The engineer takes the broken sensor and the cut NC out of the config: their
+    // series leave the scrape at the reload, and their alerts go (they stayed until
+    // the next restart).
+    cfg.axes.remove("X");
+    cfg.nc_modules.remove("nc_x");
+    cfg.channels.remove("T_bed");
+    cfg.sim = None;
+    std::fs::write(&path, toml::to_string(&cfg).unwrap() + &extra).unwrap();
+    gw.signal("HUP");
+    tokio::task::block_in_place(|| gw.wait_log(10.0, "configuration reloaded"));
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        let alerts = tokio::task::block_in_place(|| prom.alerts());
+        let (body, _) =
+            tokio::task::block_in_place(|| scrape(port, Duration::from_secs(2))).expect("scrape");
+        let gone = !body.contains("axis=\"X\"") && !body.contains("channel=\"T_bed\"");
+        if gone && !alerts.contains(wanted[1]) && !alerts.contains(wanted[2]) {
+            assert!(body.contains("channel=\"T_screw\""), "{body}");
+            assert!(alerts.contains(wanted[0]), "{alerts}");
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "30 s after the reload, the alerts: {alerts}\nthe scrape: {body}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
     drop(prom);
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    drop(plant);
+}
+
+// An NC that answers and applies no compensation raised no alert: its MD32750 is not
+// the config's (the axis holds), or the axis is not referenced. Each has a gauge of
+// its own, which the rules `CompgateMd32750Mismatch` and `CompgateAxisNotReferenced`
+// watch (their timing: tests/prometheus/compgate-alerts.test.yml).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_nc_that_applies_no_compensation_is_in_the_metrics() {
+    let dir = tempfile::tempdir().unwrap();
+    let toml = common::config("hold", "", "").replace(
+        "referenced = true\nmd32750 = 3",
+        "referenced = false\nmd32750 = 2",
+    );
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &toml, "\n[metrics]\nbind = \"127.0.0.1:0\"\n").await;
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    let port = tokio::task::block_in_place(|| gw.metrics_port(10.0));
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let (body, _) =
+            tokio::task::block_in_place(|| scrape(port, Duration::from_secs(2))).expect("scrape");
+        let of = |series: &str| common::metrics::value(&body, series);
+        if of("compgate_axis_md32750_mismatch{axis=\"X\"}") == Some(1.0)
+            && of("compgate_axis_unreferenced{axis=\"X\"}") == Some(1.0)
+        {
+            assert_eq!(of("compgate_axis_nc_up{axis=\"X\"}"), Some(1.0), "{body}");
+            break;
+        }
+        assert!(Instant::now() < deadline, "after 10 s: {body}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
     assert!(tokio::task::block_in_place(|| gw.stop()));
     drop(plant);
 }

@@ -12,6 +12,7 @@
 //! | `compgate_axis_sd43900_mm`, `compgate_axis_sd43910`, `compgate_axis_sd43920_mm` | gauge | axis | parameters last written and verified (what the NC held at start before the first job) |
 //! | `compgate_axis_at_limit` | gauge | axis | 1 while the model's value is beyond `max_abs_k0_mm` or `max_abs_tan_beta` and the NC gets the limit instead |
 //! | `compgate_axis_shadow` | gauge | axis | 1 when the axis runs in shadow mode (computes, never writes the NC) |
+//! | `compgate_axis_nc_up`, `compgate_axis_md32750_mismatch`, `compgate_axis_unreferenced`, `compgate_axis_jobs_failing` | gauge | axis | the NC answered its last read; it holds another MD32750 than the config; it reports the axis not referenced; the last job failed |
 //! | `compgate_axis_shadow_sd43900_mm`, `compgate_axis_shadow_sd43910`, `compgate_axis_shadow_sd43920_mm` | gauge | axis | shadow mode: the parameters the axis would have written last |
 //! | `compgate_nc_jobs_total` | counter | axis, result (`ok`/`failed`/`shadow`) | NC job outcomes; `shadow`: computed, not sent |
 //! | `compgate_cycle_seconds` | histogram | | control loop: time to process one device sample |
@@ -25,8 +26,9 @@
 //! | `compgate_http_connections_total` | counter | outcome (`accepted`, `evicted`, `refused`) | connections to this endpoint |
 //! | `compgate_http_accept_errors_total` | counter | | failed accepts (e.g. out of descriptors) |
 
+use std::collections::BTreeSet;
 use std::net::SocketAddr;
-use std::sync::Arc;
+use std::sync::{Arc, PoisonError, RwLock};
 use std::time::Instant;
 
 use metrics::{counter, gauge, histogram, Counter, Gauge, Histogram};
@@ -42,6 +44,31 @@ use compgate_gateway::runtime::{GatewayError, Observer, SampleReadings, Status};
 
 /// Seconds between the exporter's upkeep passes (histogram buffers drained).
 const UPKEEP_S: u64 = 5;
+
+/// Label pairs (`channel="T_bed"`) of channels, devices and axes a reload removed: the
+/// exporter cannot forget a series, so `/metrics` leaves theirs out. Their last values
+/// stayed in the scrape, and an alert on them (a cut NC, a broken sensor taken out of
+/// the config) fired until the next restart.
+static RETIRED: RwLock<BTreeSet<String>> = RwLock::new(BTreeSet::new());
+
+/// `text` (the exporter's) without the series of [`RETIRED`] labels.
+fn without_retired(text: String) -> String {
+    let retired = RETIRED.read().unwrap_or_else(PoisonError::into_inner);
+    if retired.is_empty() {
+        return text;
+    }
+    let gone = |line: &str| {
+        line.split_once('{')
+            .and_then(|(_, rest)| rest.split_once('}'))
+            .is_some_and(|(labels, _)| labels.split(',').any(|pair| retired.contains(pair)))
+    };
+    let mut out = String::with_capacity(text.len());
+    for line in text.lines().filter(|l| !gone(l)) {
+        out.push_str(line);
+        out.push('\n');
+    }
+    out
+}
 
 /// Installs the global recorder with help text for every metric, and serves
 /// `GET /metrics` on `cfg.bind` (on a thread of its own; called inside the tokio
@@ -77,7 +104,7 @@ pub fn install(
     });
     let router = crate::http::Router::new().get("/metrics", move || {
         set_heap_gauges();
-        let mut r = crate::http::text(hyper::StatusCode::OK, handle.render());
+        let mut r = crate::http::text(hyper::StatusCode::OK, without_retired(handle.render()));
         r.headers_mut().insert(
             hyper::header::CONTENT_TYPE,
             hyper::header::HeaderValue::from_static("text/plain; version=0.0.4; charset=utf-8"),
@@ -177,7 +204,22 @@ pub fn describe() {
     describe_gauge!(
         "compgate_axis_nc_up",
         Unit::Count,
-        "1 while the axis' NC answered its last read (read every status interval, at most once a second), 0 while it does not answer or answers with an error"
+        "1 while the axis' NC answered its last read (read every status interval, at most once a second), 0 while it does not answer or answers with an error, and before the first read"
+    );
+    describe_gauge!(
+        "compgate_axis_md32750_mismatch",
+        Unit::Count,
+        "1 while the NC answers with an MD32750 other than the config's: the axis holds and writes nothing"
+    );
+    describe_gauge!(
+        "compgate_axis_unreferenced",
+        Unit::Count,
+        "1 while the NC answers that the axis is not referenced: it applies no temperature compensation"
+    );
+    describe_gauge!(
+        "compgate_axis_jobs_failing",
+        Unit::Count,
+        "1 while the axis' last NC job failed (until a job succeeds)"
     );
     describe_gauge!(
         "compgate_axis_at_limit",
@@ -285,6 +327,24 @@ pub struct MetricsObserver {
     /// Per axis, the parameters the status carried when the gauges were last set from
     /// it: what the NC held at start counts as written until the first job.
     axis_written: Vec<Option<CompParams>>,
+    /// The label pairs of the channels, devices and axes the metrics have series for.
+    labels: BTreeSet<String>,
+    /// A reload took effect: the next status may name other parts.
+    relabel: bool,
+}
+
+/// The label pairs `status` exports series for.
+fn label_pairs(status: &Status) -> BTreeSet<String> {
+    let channels = status
+        .channels
+        .iter()
+        .map(|c| format!("channel=\"{}\"", c.name));
+    let devices = status
+        .devices
+        .iter()
+        .map(|d| format!("device=\"{}\"", d.name));
+    let axes = status.axes.iter().map(|a| format!("axis=\"{}\"", a.name));
+    channels.chain(devices).chain(axes).collect()
 }
 
 impl MetricsObserver {
@@ -337,6 +397,14 @@ impl Observer for MetricsObserver {
     }
 
     fn on_status(&mut self, status: &Status) {
+        if self.relabel || self.labels.is_empty() {
+            self.relabel = false;
+            let now = label_pairs(status);
+            let mut retired = RETIRED.write().unwrap_or_else(PoisonError::into_inner);
+            retired.extend(self.labels.difference(&now).cloned());
+            retired.retain(|pair| !now.contains(pair));
+            self.labels = now;
+        }
         // The channel gauges once per status interval, from the snapshot: set per
         // sample they were a tenth of the gateway's CPU at 100k points/s (two atomic
         // writes per point), for a value a scrape reads every few seconds.
@@ -399,8 +467,15 @@ impl Observer for MetricsObserver {
         for a in &status.axes {
             gauge!("compgate_axis_at_limit", "axis" => a.name.clone())
                 .set(f64::from(u8::from(a.at_limit)));
+            let answers = a.nc.is_some();
             gauge!("compgate_axis_nc_up", "axis" => a.name.clone())
-                .set(f64::from(u8::from(a.nc.is_some())));
+                .set(f64::from(u8::from(answers)));
+            gauge!("compgate_axis_md32750_mismatch", "axis" => a.name.clone())
+                .set(f64::from(u8::from(answers && a.md32750_wrong)));
+            gauge!("compgate_axis_unreferenced", "axis" => a.name.clone())
+                .set(f64::from(u8::from(answers && a.unreferenced)));
+            gauge!("compgate_axis_jobs_failing", "axis" => a.name.clone())
+                .set(f64::from(u8::from(a.last_job_error.is_some())));
         }
         if let Some(stats) = &self.recorder {
             let (c, g) = self.recorder_handles.get_or_insert_with(|| {
@@ -439,6 +514,7 @@ impl Observer for MetricsObserver {
         self.channels.clear();
         self.devices.clear();
         self.axis_written.clear();
+        self.relabel = true;
     }
 }
 

@@ -706,6 +706,8 @@ impl Running {
                             log_nc_facts(&axis.name, axis.md32750, self.nc_facts[i], facts);
                             self.nc_facts[i] = facts;
                             st.warning = facts.warning(axis.md32750);
+                            st.md32750_wrong = facts.md32750_wrong.is_some();
+                            st.unreferenced = facts.unreferenced;
                             st.nc = Some(*snap);
                             st.nc_reads += 1;
                         }

@@ -73,6 +73,11 @@ pub struct AxisStatus {
     pub nc_reads: u64,
     /// A warning a commissioning engineer must see (MD32750 mismatch, NC unreachable).
     pub warning: Option<String>,
+    /// The NC's last read found its MD32750 other than the config's: the axis holds.
+    pub md32750_wrong: bool,
+    /// The NC's last read found the axis not referenced: the NC applies no
+    /// compensation.
+    pub unreferenced: bool,
     /// Shadow mode: the axis computes and records what it would write, and never
     /// writes the NC.
     pub shadow: bool,
