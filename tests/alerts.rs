@@ -12,29 +12,13 @@ use std::path::Path;
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use common::metrics::scrape;
+use common::metrics::{have_promtool, scrape};
 use common::process::Gateway;
 use common::proxy::Proxy;
 use compgate::plant::{Bind, Plant};
 use compgate_plc::field::CommFault;
 
 const RULES: &str = "deploy/prometheus/compgate-alerts.yml";
-
-/// Whether promtool (and the server beside it) is there; under CI it must be.
-fn have_prometheus() -> bool {
-    let there = Command::new("promtool")
-        .arg("--version")
-        .output()
-        .is_ok_and(|o| o.status.success());
-    if !there {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "CI is set and promtool is missing (./test.sh installs the prometheus package)"
-        );
-        println!("SKIPPED: promtool not installed (Debian package `prometheus`)");
-    }
-    there
-}
 
 fn said(out: &Output) -> String {
     String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr)
@@ -44,7 +28,7 @@ fn said(out: &Output) -> String {
 // shorter than its `for:`).
 #[test]
 fn the_shipped_alert_rules_pass_promtool() {
-    if !have_prometheus() {
+    if !have_promtool() {
         return;
     }
     let out = Command::new("promtool")
@@ -159,7 +143,7 @@ fn rule_metrics() -> Vec<String> {
 // about the gateway or its recorder; parts a reload removes take their alerts along.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_real_prometheus_raises_the_alerts_for_a_silent_device_and_nc() {
-    if !have_prometheus() {
+    if !have_promtool() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();

@@ -211,6 +211,32 @@ async fn probe_makes_the_merged_reads_of_run_and_names_a_refused_one() {
     dev.abort();
 }
 
+/// The gateway in-process on the config `text`, reloaded with what `reloads` sends:
+/// its status, its stopper and its task.
+fn run(
+    text: &str,
+    reloads: Option<tokio::sync::mpsc::Receiver<compgate_gateway::config::Config>>,
+) -> (
+    tokio::sync::watch::Receiver<compgate_gateway::runtime::Status>,
+    tokio_util::sync::CancellationToken,
+    tokio::task::JoinHandle<()>,
+) {
+    let cfg = compgate_gateway::config::load_str(text, "units.toml").expect("config");
+    let (tx, status) = tokio::sync::watch::channel(Default::default());
+    let shutdown = tokio_util::sync::CancellationToken::new();
+    let sd = shutdown.clone();
+    let gw = tokio::spawn(async move {
+        let hooks = compgate_gateway::runtime::Hooks {
+            reload: reloads,
+            ..Default::default()
+        };
+        compgate_gateway::runtime::run_with(&cfg, sd, tx, hooks)
+            .await
+            .expect("runs");
+    });
+    (status, shutdown, gw)
+}
+
 // Two units behind one TCP-to-RTU gateway, which serves one request at a time on its
 // serial line: unit 1 answers in 5 ms, unit 2 is absent and the gateway answers 0x0B
 // after 100 ms. Unit 2, asked every cycle, held the line so that unit 1's requests
@@ -266,15 +292,7 @@ async fn an_absent_unit_behind_a_tcp_gateway_does_not_hold_up_the_present_one() 
         device("here", 1, 0.08, 5),
         device("gone", 2, 0.5, 2)
     );
-    let cfg = compgate_gateway::config::load_str(&text, "units.toml").expect("config");
-    let (tx, mut status) = tokio::sync::watch::channel(Default::default());
-    let shutdown = tokio_util::sync::CancellationToken::new();
-    let sd = shutdown.clone();
-    let gw = tokio::spawn(async move {
-        compgate_gateway::runtime::run(&cfg, sd, tx)
-            .await
-            .expect("runs");
-    });
+    let (mut status, shutdown, gw) = run(&text, None);
     let of = |s: &compgate_gateway::runtime::Status, name: &str| {
         s.devices.iter().find(|d| d.name == name).cloned().unwrap()
     };
@@ -369,29 +387,17 @@ async fn units_behind_a_gateway_that_takes_one_connection_share_it() {
                 )
             })
             .collect();
-        let text = format!("[gateway]\nstatus_interval_s = 0.05\n\n{text}");
-        compgate_gateway::config::load_str(&text, "units.toml").expect("config")
+        format!("[gateway]\nstatus_interval_s = 0.05\n\n{text}")
     };
-    let cfg = units(&[(1, 0.05), (2, 0.05), (3, 0.05)]);
-    let (tx, mut status) = tokio::sync::watch::channel(Default::default());
     let (reload, reloads) = tokio::sync::mpsc::channel(1);
-    let shutdown = tokio_util::sync::CancellationToken::new();
-    let sd = shutdown.clone();
-    let gw = tokio::spawn(async move {
-        let hooks = compgate_gateway::runtime::Hooks {
-            reload: Some(reloads),
-            ..Default::default()
-        };
-        compgate_gateway::runtime::run_with(&cfg, sd, tx, hooks)
-            .await
-            .expect("runs");
-    });
+    let (mut status, shutdown, gw) = run(&units(&[(1, 0.05), (2, 0.05), (3, 0.05)]), Some(reloads));
     common::wait_status(&mut status, 20.0, "20 cycles of each unit", |s| {
         s.devices.iter().all(|d| d.cycles >= 20)
     })
     .await;
+    let changed = units(&[(1, 0.05), (2, 0.1), (3, 0.05), (4, 0.05)]);
     reload
-        .send(units(&[(1, 0.05), (2, 0.1), (3, 0.05), (4, 0.05)]))
+        .send(compgate_gateway::config::load_str(&changed, "units.toml").expect("config"))
         .await
         .unwrap();
     let s = common::wait_status(&mut status, 20.0, "20 cycles of the added unit", |s| {
@@ -439,15 +445,7 @@ async fn an_absent_unit_does_not_take_down_the_others_behind_a_one_connection_ga
         })
         .collect();
     let text = format!("[gateway]\nstatus_interval_s = 0.05\n\n{text}");
-    let cfg = compgate_gateway::config::load_str(&text, "units.toml").expect("config");
-    let (tx, mut status) = tokio::sync::watch::channel(Default::default());
-    let shutdown = tokio_util::sync::CancellationToken::new();
-    let sd = shutdown.clone();
-    let gw = tokio::spawn(async move {
-        compgate_gateway::runtime::run(&cfg, sd, tx)
-            .await
-            .expect("runs");
-    });
+    let (mut status, shutdown, gw) = run(&text, None);
     let present = |s: &compgate_gateway::runtime::Status| {
         s.channels
             .iter()

@@ -35,3 +35,20 @@ pub fn value(body: &str, series: &str) -> Option<f64> {
         .find(|(k, _)| *k == series)
         .and_then(|(_, v)| v.parse().ok())
 }
+
+/// Whether `promtool` (package prometheus, with the server beside it) is installed;
+/// under CI it must be, elsewhere a test without it is skipped.
+pub fn have_promtool() -> bool {
+    let there = std::process::Command::new("promtool")
+        .arg("--version")
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !there {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "CI is set and promtool is missing (./test.sh installs the prometheus package)"
+        );
+        println!("SKIPPED: promtool not installed (Debian package `prometheus`)");
+    }
+    there
+}
