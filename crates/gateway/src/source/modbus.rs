@@ -6,7 +6,8 @@
 //! reply left in the old stream would otherwise be read as the answer to the next
 //! request (tokio-modbus issue 324). The one exception: at a TCP address several units
 //! share (a TCP-to-RTU gateway), a timeout keeps the connection, and a late reply is
-//! dropped by its transaction id ([`ModbusLink::shared_address`]). Reconnects back off exponentially up to a cap.
+//! dropped by its transaction id ([`ModbusLink::shared_address`]). Reconnects back off
+//! exponentially up to a cap.
 //! While a poll cycle runs, its deadline also bounds every request and connect, so a
 //! cycle of many reads to a silent device ends after one deadline.
 //!
@@ -396,8 +397,9 @@ impl ModbusLink {
     }
 
     /// `bytes` came on the serial line after `unit`'s request timed out after
-    /// `timeout`: a device slower than its `timeout_s`, whose replies are dropped. One WARN per
-    /// [`LATE_REPLY_LOG_EVERY`], with the count of the ones not logged; DEBUG else.
+    /// `timeout`: a device slower than its `timeout_s`, whose replies are dropped. One
+    /// WARN per [`LATE_REPLY_LOG_EVERY`], with the count of the ones not logged; DEBUG
+    /// else.
     fn late_reply(&mut self, unit: u8, timeout: Duration, bytes: usize) {
         let now = Instant::now();
         if self
