@@ -516,20 +516,27 @@ impl ModbusLink {
                 function(result),
                 request.value()
             ),
-            P::HeaderMismatch { .. } => {
-                let seen = self
-                    .peer
-                    .as_ref()
-                    .map(|s| s.lock().unwrap_or_else(PoisonError::into_inner));
-                let (sent, reply) = seen
-                    .as_ref()
-                    .map_or((&[][..], &[][..]), |s| (&s.sent[..], &s.reply[..]));
-                header_mismatch(&self.spec, unit, sent, reply)
-            }
+            P::HeaderMismatch { .. } => return self.mismatch_seen(unit),
         };
         SourceError::Frame {
             link: self.place().to_string(),
             detail,
+        }
+    }
+
+    /// A reply whose header does not fit the request to `unit`, from what the peer
+    /// sent and was sent.
+    fn mismatch_seen(&self, unit: u8) -> SourceError {
+        let seen = self
+            .peer
+            .as_ref()
+            .map(|s| s.lock().unwrap_or_else(PoisonError::into_inner));
+        let (sent, reply) = seen
+            .as_ref()
+            .map_or((&[][..], &[][..]), |s| (&s.sent[..], &s.reply[..]));
+        SourceError::Frame {
+            link: self.place().to_string(),
+            detail: header_mismatch(&self.spec, unit, sent, reply),
         }
     }
 
@@ -630,7 +637,19 @@ impl ModbusLink {
             }
             None => {
                 // Bytes that are no Modbus frame leave the client waiting for more.
+                // A reply to another transaction, when no request given up before may
+                // still be answered on this connection, is a module that does not echo
+                // the id: the frame filter dropped it, say what came.
+                let other_transaction = busy.is_none()
+                    && matches!(self.spec, LinkSpec::Tcp { .. })
+                    && self.peer.as_ref().is_some_and(|p| {
+                        let seen = p.lock().unwrap_or_else(PoisonError::into_inner);
+                        seen.reply.len() >= 8
+                            && mbap_plausible(&seen.reply)
+                            && seen.reply.get(..2) != seen.sent.get(..2)
+                    });
                 let error = match (self.peer_fault(None), cut) {
+                    _ if other_transaction => self.mismatch_seen(unit),
                     (Some(e @ (SourceError::NotModbus { .. } | SourceError::Frame { .. })), _) => e,
                     (_, Some((_, length))) => SourceError::Deadline(length),
                     (_, None) => {
@@ -1094,6 +1113,40 @@ mod tests {
             }
         });
         (addr, task)
+    }
+
+    // A module that answers every request with transaction id 0 (some do not echo
+    // it): its replies never reach tokio-modbus (the frame filter drops a reply to
+    // another request), and the request timed out as if nothing came. The error says
+    // what came, as it did before the filter.
+    #[tokio::test]
+    async fn a_reply_with_another_transaction_id_is_named() {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap().to_string();
+        let peer = tokio::spawn(async move {
+            while let Ok((mut s, _)) = listener.accept().await {
+                let mut req = [0u8; 12];
+                while s.read_exact(&mut req).await.is_ok() {
+                    let reply = [0, 0, 0, 0, 0, 5, req[6], 4, 2, 0, 7];
+                    if s.write_all(&reply).await.is_err() {
+                        break;
+                    }
+                }
+            }
+        });
+        let mut link = tcp_link(
+            address,
+            Duration::from_millis(300),
+            Duration::from_millis(10),
+        );
+        assert!(link.read(1, RegisterKind::Input, 0, 1).await.is_ok());
+        let err = link.read(1, RegisterKind::Input, 0, 1).await.unwrap_err();
+        assert!(
+            err.to_string()
+                .contains("the reply is to transaction 0, the request was transaction 1"),
+            "{err}"
+        );
+        peer.abort();
     }
 
     #[tokio::test]
