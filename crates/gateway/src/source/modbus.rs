@@ -389,6 +389,21 @@ impl ModbusLink {
         self.ctx.is_some() && self.answered
     }
 
+    /// A reply to a request that timed out came on a TCP connection that outlived the
+    /// timeout (the frame filter dropped it): the same WARN as for a late RTU reply.
+    fn late_tcp_reply(&mut self) {
+        let late = self
+            .peer
+            .as_ref()
+            .and_then(|p| p.lock().unwrap_or_else(PoisonError::into_inner).late.take());
+        if let (Some((unit, bytes)), Some((asked, timeout))) = (late, self.timed_out) {
+            if unit == asked {
+                self.timed_out = None;
+                self.late_reply(unit, timeout, bytes);
+            }
+        }
+    }
+
     /// Records a good reply: the link works, the backoff starts over.
     fn answered(&mut self) {
         self.answered = true;
@@ -396,7 +411,7 @@ impl ModbusLink {
         self.backoff.reset();
     }
 
-    /// `bytes` came on the serial line after `unit`'s request timed out after
+    /// `bytes` came on the line after `unit`'s request timed out after
     /// `timeout`: a device slower than its `timeout_s`, whose replies are dropped. One
     /// WARN per [`LATE_REPLY_LOG_EVERY`], with the count of the ones not logged; DEBUG
     /// else.
@@ -616,6 +631,7 @@ impl ModbusLink {
             r = ctx.call(request) => Some(r),
             () = deadline.as_mut() => None,
         };
+        self.late_tcp_reply();
         match outcome {
             // Good once the caller has checked its shape.
             Some(Ok(Ok(response))) => Ok(response),
@@ -747,6 +763,9 @@ struct PeerSeen {
     /// TCP: when the last whole frame came, a late one included, or else when the
     /// connection was made: a sign of life after a timeout.
     last_frame: Option<Instant>,
+    /// TCP: the unit and size of the last reply to an earlier request, dropped, until
+    /// the link has looked at it.
+    late: Option<(u8, usize)>,
 }
 
 /// A TCP stream or serial port that notes in [`PeerSeen`] what the peer does, for the
@@ -774,8 +793,9 @@ struct Frames {
 
 impl Frames {
     /// Moves the whole frames in `partial` to `ready`, dropping those whose
-    /// transaction id is not `tid`; returns how many frames were whole.
-    fn split(&mut self, tid: Option<[u8; 2]>) -> u64 {
+    /// transaction id is not `tid` (the last one's unit and size go to `late`); returns
+    /// how many frames were whole.
+    fn split(&mut self, tid: Option<[u8; 2]>, late: &mut Option<(u8, usize)>) -> u64 {
         let mut whole = 0;
         while self.partial.len() >= 6 {
             let len = usize::from(u16::from_be_bytes([self.partial[4], self.partial[5]]));
@@ -791,7 +811,7 @@ impl Frames {
             if tid.is_none_or(|t| frame.as_slice()[..2] == t) {
                 self.ready.extend(frame);
             } else {
-                tracing::debug!("a reply to an earlier request dropped");
+                *late = frame.as_slice().get(6).map(|&unit| (unit, 6 + len));
             }
         }
         whole
@@ -853,7 +873,7 @@ impl<S: AsyncRead + Unpin> WatchedStream<S> {
             seen.reply.extend_from_slice(&got[..keep]);
             frames.partial.extend_from_slice(got);
             let tid = seen.sent.get(..2).map(|t| [t[0], t[1]]);
-            if frames.split(tid) > 0 {
+            if frames.split(tid, &mut seen.late) > 0 {
                 seen.last_frame = Some(Instant::now());
             }
         }
@@ -1536,6 +1556,52 @@ mod tests {
         );
     }
 
+    // Behind a TCP-to-RTU gateway (a shared address), a unit slower than its timeout_s:
+    // the connection outlives the timeout, the next unit's request waits behind it and
+    // is answered, and the late reply, dropped, is the same WARN as on RTU (it was a
+    // DEBUG line, and only the timeouts showed).
+    #[tokio::test]
+    async fn a_late_reply_at_a_shared_address_is_one_warn_naming_the_unit() {
+        use tracing_subscriber::layer::SubscriberExt;
+        let warnings = Warnings::default();
+        let _log =
+            tracing::subscriber::set_default(tracing_subscriber::registry().with(warnings.clone()));
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap().to_string();
+        let peer = tokio::spawn(async move {
+            let (mut s, _) = listener.accept().await.unwrap();
+            let mut req = [0u8; 12];
+            while s.read_exact(&mut req).await.is_ok() {
+                if req[6] == 4 {
+                    tokio::time::sleep(Duration::from_millis(300)).await;
+                }
+                let reply = [req[0], req[1], 0, 0, 0, 5, req[6], 4, 2, 0, 7];
+                if s.write_all(&reply).await.is_err() {
+                    break;
+                }
+            }
+        });
+        let timeout = Duration::from_millis(200);
+        let mut link = tcp_link(address.clone(), timeout, timeout).shared_address();
+        assert_eq!(link.read(1, RegisterKind::Input, 0, 1).await, Ok(vec![7]));
+        assert_eq!(
+            link.read(4, RegisterKind::Input, 0, 1).await,
+            Err(SourceError::Timeout(timeout))
+        );
+        assert_eq!(link.read(1, RegisterKind::Input, 0, 1).await, Ok(vec![7]));
+        assert_eq!(link.connects(), 1);
+        peer.abort();
+        let seen = warnings.0.lock().unwrap().clone();
+        assert_eq!(
+            seen,
+            [format!(
+                " message=unit 4 answered after timeout_s = 0.2 s (11 bytes came after its \
+                 request timed out): a slow device; raise timeout_s for it \
+                 link=tcp://{address} unit=4"
+            )]
+        );
+    }
+
     // A device answering every request late logs one WARN a minute, the next one
     // with the count of those not logged.
     #[tokio::test(start_paused = true)]
@@ -1692,18 +1758,19 @@ mod tests {
     fn only_whole_frames_of_the_last_request_are_passed_on() {
         let frame = |tid: u8, unit: u8| vec![0, tid, 0, 0, 0, 5, unit, 4, 2, 0, 7];
         let mut frames = Frames::default();
+        let mut late = None;
         frames.partial.extend(frame(1, 4));
         frames.partial.extend(&frame(2, 1)[..8]);
-        assert_eq!(frames.split(Some([0, 2])), 1);
+        assert_eq!(frames.split(Some([0, 2]), &mut late), 1);
         assert!(
             frames.ready.is_empty(),
             "the late reply of request 1 passed"
         );
         frames.partial.extend(&frame(2, 1)[8..]);
-        assert_eq!(frames.split(Some([0, 2])), 1);
+        assert_eq!(frames.split(Some([0, 2]), &mut late), 1);
         assert_eq!(frames.ready.drain(..).collect::<Vec<_>>(), frame(2, 1));
         frames.partial.extend(b"HTTP/1.1 400 Bad Request");
-        assert_eq!(frames.split(Some([0, 3])), 0);
+        assert_eq!(frames.split(Some([0, 3]), &mut late), 0);
         assert_eq!(frames.ready.len(), 24);
     }
 
