@@ -968,6 +968,42 @@ mod tests {
         }
     }
 
+    // A demoted device's skipped cycle, while another device held the shared line,
+    // reported 0 connects (review S): it reports the last count its cycles saw.
+    #[tokio::test]
+    async fn a_skipped_cycle_reports_the_links_connects_while_the_line_is_busy() {
+        let (address, _, peer) = listener(|stream| async move {
+            tokio::time::sleep(Duration::from_secs(60)).await;
+            drop(stream);
+        })
+        .await;
+        let params = PollParams {
+            unit_id: 1,
+            timeout: Duration::from_millis(50),
+            retries: 0,
+            degrade_after_cycles: 1,
+            max_gap_registers: 0,
+            max_read_registers: plan::MAX_READ_REGISTERS,
+            cycle_deadline: Duration::from_millis(100),
+        };
+        let mut poller = u16_poller(tcp(&address), params, &[0]).on_shared_line(Backoff::new(
+            Duration::from_secs(10),
+            Duration::from_secs(10),
+        ));
+        let asked = poller.poll().await;
+        assert!(asked.error.is_some() && asked.connects == 1, "{asked:?}");
+        // Another device's cycle holds the line.
+        let link = poller.link().clone();
+        let _busy = link.lock().await;
+        let skipped = poller.poll().await;
+        assert!(
+            matches!(skipped.error, Some(SourceError::BackingOffAfter { .. })),
+            "{skipped:?}"
+        );
+        assert_eq!(skipped.connects, 1);
+        peer.abort();
+    }
+
     // A peer that accepts and closes at once used to be reconnected twice a cycle (the
     // read and its retry) forever, and reported "Operation now in progress (os error
     // 115)": tokio-modbus's stale errno for an end of stream.
