@@ -1517,6 +1517,16 @@ mod tests {
         }
     }
 
+    /// The WARN for `bytes` from `unit` on `link` after a 0.2 s timeout, as [`Warnings`]
+    /// records it.
+    fn late_warning(unit: u8, bytes: usize, link: &str) -> String {
+        format!(
+            " message=unit {unit} answered after timeout_s = 0.2 s ({bytes} bytes came after \
+             its request timed out): a slow device; raise timeout_s for it link={link} \
+             unit={unit}"
+        )
+    }
+
     // Field review: a slow module's reply, after its request timed out, was dropped by
     // the drain of the reopened port with a DEBUG line naming neither the device nor
     // the fix. One WARN names the unit (and the link); the next ones within the minute
@@ -1546,14 +1556,7 @@ mod tests {
         }
         device.abort();
         let seen = warnings.0.lock().unwrap().clone();
-        assert_eq!(
-            seen,
-            [format!(
-                " message=unit 3 answered after timeout_s = 0.2 s (7 bytes came after its \
-                 request timed out): a slow device; raise timeout_s for it \
-                 link=rtu://{path}@19200 unit=3"
-            )]
-        );
+        assert_eq!(seen, [late_warning(3, 7, &format!("rtu://{path}@19200"))]);
     }
 
     // Behind a TCP-to-RTU gateway (a shared address), a unit slower than its timeout_s:
@@ -1592,14 +1595,7 @@ mod tests {
         assert_eq!(link.connects(), 1);
         peer.abort();
         let seen = warnings.0.lock().unwrap().clone();
-        assert_eq!(
-            seen,
-            [format!(
-                " message=unit 4 answered after timeout_s = 0.2 s (11 bytes came after its \
-                 request timed out): a slow device; raise timeout_s for it \
-                 link=tcp://{address} unit=4"
-            )]
-        );
+        assert_eq!(seen, [late_warning(4, 11, &format!("tcp://{address}"))]);
     }
 
     // A device answering every request late logs one WARN a minute, the next one
