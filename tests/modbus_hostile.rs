@@ -433,19 +433,46 @@ async fn units_behind_a_gateway_that_takes_one_connection_share_it() {
 // timeout, and the late 0x0B is dropped by its transaction id.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_absent_unit_does_not_take_down_the_others_behind_a_one_connection_gateway() {
+    absent_unit_behind_a_one_connection_gateway(false).await;
+}
+
+// The same, with unit 1 alone at the address at start and the others added by a
+// reload: unit 1, unchanged, kept its link, which was not marked as shared, so the
+// absent unit's timeout dropped the connection as above (review S, F6).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn units_a_reload_adds_at_an_address_share_its_connection_as_at_start() {
+    absent_unit_behind_a_one_connection_gateway(true).await;
+}
+
+async fn absent_unit_behind_a_one_connection_gateway(added_by_reload: bool) {
     let (address, accepted, peer) = one_connection_gateway(&[4], Duration::from_secs(1)).await;
-    let text: String = (1..=4)
-        .map(|unit| {
-            format!(
-                "[devices.u{unit}]\ntransport = \"tcp\"\naddress = \"{address}\"\nunit_id = {unit}\n\
-                 timeout_s = 0.5\npoll_interval_s = 1.0\nbackoff_initial_s = 1.0\n\n\
-                 [channels.T_u{unit}]\ndevice = \"u{unit}\"\nregister = \"input\"\naddress = 0\n\
-                 data_type = \"u16\"\nscaling = {{ kind = \"direct\", gain = 0.01, offset_degc = 0.0 }}\n\n"
-            )
+    let units = |units: std::ops::RangeInclusive<u8>| {
+        let text: String = units
+            .map(|unit| {
+                format!(
+                    "[devices.u{unit}]\ntransport = \"tcp\"\naddress = \"{address}\"\nunit_id = {unit}\n\
+                     timeout_s = 0.5\npoll_interval_s = 1.0\nbackoff_initial_s = 1.0\n\n\
+                     [channels.T_u{unit}]\ndevice = \"u{unit}\"\nregister = \"input\"\naddress = 0\n\
+                     data_type = \"u16\"\nscaling = {{ kind = \"direct\", gain = 0.01, offset_degc = 0.0 }}\n\n"
+                )
+            })
+            .collect();
+        format!("[gateway]\nstatus_interval_s = 0.05\n\n{text}")
+    };
+    let (reload, reloads) = tokio::sync::mpsc::channel(1);
+    let first = if added_by_reload { 1..=1 } else { 1..=4 };
+    let (mut status, shutdown, gw) = run(&units(first), Some(reloads));
+    if added_by_reload {
+        common::wait_status(&mut status, 10.0, "unit 1 reads", |s| {
+            s.channels.len() == 1 && s.channels[0].reading.quality == Quality::Good
         })
-        .collect();
-    let text = format!("[gateway]\nstatus_interval_s = 0.05\n\n{text}");
-    let (mut status, shutdown, gw) = run(&text, None);
+        .await;
+        let all = units(1..=4);
+        reload
+            .send(compgate_gateway::config::load_str(&all, "units.toml").expect("config"))
+            .await
+            .unwrap();
+    }
     let present = |s: &compgate_gateway::runtime::Status| {
         s.channels
             .iter()

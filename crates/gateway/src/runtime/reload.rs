@@ -83,6 +83,11 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
         // A CAN node's poller starts afresh (NMT start, heartbeat watch); its
         // channels keep their filter state like any other.
         if let (Poller::Modbus(new), Poller::Modbus(old)) = (&mut dev.poller, &old_dev.poller) {
+            // The old generation's tasks have stopped: nothing else holds a link.
+            match (old.link().try_lock(), new.link().try_lock()) {
+                (Ok(mut kept), Ok(line)) => kept.adopt_settings(&line),
+                _ => tracing::warn!(device = %name, "reload: link busy, its settings kept"),
+            }
             relink.push((Arc::as_ptr(new.link()), old.link().clone()));
             new.carry_over(old);
         }

@@ -119,6 +119,14 @@ impl Backoff {
     pub fn current(&self) -> Duration {
         self.current
     }
+
+    /// Takes `other`'s first and longest delay, keeping where this one stands between
+    /// them.
+    fn retune(&mut self, other: &Backoff) {
+        self.initial = other.initial;
+        self.max = other.max;
+        self.current = self.current.clamp(self.initial, self.max.max(self.initial));
+    }
 }
 
 /// One Modbus connection (TCP socket or serial line) with its own recovery.
@@ -358,6 +366,27 @@ impl ModbusLink {
         self.peer = None;
         self.answered = false;
         self.busy_after_timeout = None;
+    }
+
+    /// Takes the settings of `line`, built for the same line by a reload, and keeps the
+    /// open connection: the line's shortest connect timeout and backoff, and whether
+    /// several units share the address, follow the devices a reload added, changed or
+    /// removed beside the unchanged ones that keep this link.
+    pub fn adopt_settings(&mut self, line: &ModbusLink) {
+        if let (
+            LinkSpec::Tcp {
+                connect_timeout, ..
+            },
+            LinkSpec::Tcp {
+                connect_timeout: new,
+                ..
+            },
+        ) = (&mut self.spec, &line.spec)
+        {
+            *connect_timeout = *new;
+        }
+        self.backoff.retune(&line.backoff);
+        self.shared_address = line.shared_address;
     }
 
     /// Several units are at this TCP address: see [`Self::shared_address`].
@@ -1797,5 +1826,22 @@ mod tests {
         b.reset();
         assert_eq!(b.current(), Duration::from_millis(100));
         assert_eq!(b.remaining(t0), None);
+    }
+
+    // A reload that gives a kept link a shorter backoff (a device added beside it):
+    // the delay reached so far is cut to the new longest, and a reset starts at the
+    // new first delay.
+    #[test]
+    fn a_retuned_backoff_keeps_within_its_new_bounds() {
+        let t0 = Instant::now();
+        let mut b = Backoff::new(Duration::from_secs(1), Duration::from_secs(30));
+        for _ in 0..4 {
+            b.failed(t0);
+        }
+        assert_eq!(b.current(), Duration::from_secs(16));
+        b.retune(&Backoff::new(Duration::from_millis(200), Duration::from_secs(2)));
+        assert_eq!(b.current(), Duration::from_secs(2));
+        b.reset();
+        assert_eq!(b.current(), Duration::from_millis(200));
     }
 }
