@@ -85,7 +85,7 @@ impl Prometheus {
                 "global:\n  scrape_interval: 1s\n  evaluation_interval: 1s\n\
                  rule_files: [{rules:?}]\n\
                  scrape_configs:\n  - job_name: compgate\n    static_configs:\n      \
-                 - targets: [\"127.0.0.1:{target}\"]\n"
+                 - targets: [\"127.0.0.1:{target}\"]\n        labels: {{instance: \"DMU 65 no. 3\"}}\n"
             ),
         )
         .unwrap();
@@ -213,6 +213,8 @@ async fn a_real_prometheus_raises_the_alerts_for_a_silent_device_and_nc() {
         );
         tokio::time::sleep(Duration::from_millis(200)).await;
     };
+    // The scrape names the machine (as the rules file's head shows): so do the alerts.
+    assert!(alerts.contains(r#""instance":"DMU 65 no. 3""#), "{alerts}");
     for quiet in [
         "CompgateDown",
         "CompgateRecorderFailing",

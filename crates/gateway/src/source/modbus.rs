@@ -1839,7 +1839,10 @@ mod tests {
             b.failed(t0);
         }
         assert_eq!(b.current(), Duration::from_secs(16));
-        b.retune(&Backoff::new(Duration::from_millis(200), Duration::from_secs(2)));
+        b.retune(&Backoff::new(
+            Duration::from_millis(200),
+            Duration::from_secs(2),
+        ));
         assert_eq!(b.current(), Duration::from_secs(2));
         b.reset();
         assert_eq!(b.current(), Duration::from_millis(200));
