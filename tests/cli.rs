@@ -89,6 +89,64 @@ fn backlash_with_sim_reports_the_table_and_without_a_target_exits_1() {
     );
 }
 
+// A signal during the backlash test (Ctrl-C, the unit stopped, a closed SSH session)
+// ended the process at once with the axis still running its programme: a rerun was
+// refused ("a programme is running"). Each now aborts the programme and says so.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_signal_during_the_backlash_test_aborts_the_move_programme() {
+    use compgate_plc::axis::{AxisParams, ProgramState};
+    use compgate_plc::nc::{NcAxis, NcAxisModule};
+    for signal in ["INT", "TERM", "HUP"] {
+        let module = NcAxisModule::new(NcAxis {
+            referenced: true,
+            ..NcAxis::default()
+        });
+        // In real time: the programme's four dwells alone take 8 s.
+        module.set_servo(AxisParams::default());
+        let (address, shutdown) = module.serve_loopback().await.unwrap();
+        let mut child = Command::new(BIN)
+            .args(["backlash", "--nc", &address])
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut stderr = BufReader::new(child.stderr.take().unwrap());
+        let mut log = String::new();
+        tokio::task::block_in_place(|| {
+            while !log.contains("programme started") {
+                assert!(stderr.read_line(&mut log).unwrap() > 0, "{log}");
+            }
+        });
+        assert_eq!(
+            module.with_servo(|s| s.program_state()),
+            ProgramState::Running
+        );
+        let kill = Command::new("kill")
+            .arg(format!("-{signal}"))
+            .arg(child.id().to_string())
+            .status()
+            .unwrap();
+        assert!(kill.success());
+        let status = tokio::task::block_in_place(|| {
+            stderr.read_to_string(&mut log).unwrap();
+            child.wait().unwrap()
+        });
+        assert_eq!(status.code(), Some(1), "SIG{signal}: {log}");
+        assert!(
+            log.contains(&format!(
+                "error: stopped by SIG{signal}; the move programme was aborted (MV_STATE 3)"
+            )),
+            "{log}"
+        );
+        assert_eq!(
+            module.with_servo(|s| s.program_state()),
+            ProgramState::Refused,
+            "SIG{signal}"
+        );
+        shutdown.cancel();
+    }
+}
+
 // `--version` names the commit and its date besides the version number: after an
 // update, builds of one version number are told apart on the PC.
 #[test]

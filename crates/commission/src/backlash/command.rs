@@ -5,6 +5,8 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
+use tokio::signal::unix::{signal, Signal, SignalKind};
+
 use compgate_ncproto::{self as ncmap, var};
 
 use compgate_gateway::nc::{Guarded, Job, ModbusNcWriter, NcWriter};
@@ -181,6 +183,146 @@ fn link_to(address: &str) -> ModbusLink {
     )
 }
 
+/// Waits for the programme and the trace; real time bounds the wait at the
+/// programme's own duration (`move_s`) plus a margin. Returns the final status.
+async fn wait_programme(
+    nc: &mut ServoClient,
+    cfg: &TraceConfig,
+    move_s: f64,
+) -> Result<Vec<u16>, BacklashError> {
+    let deadline =
+        tokio::time::Instant::now() + Duration::from_secs_f64(move_s + cfg.record_s + 30.0);
+    loop {
+        let status = nc.status().await?;
+        match reg(&status, ncmap::MV_STATE) {
+            3 => {
+                return Err(BacklashError::Refused {
+                    what: "move programme",
+                    code: reg(&status, ncmap::MV_STATUS),
+                })
+            }
+            2 if reg(&status, ncmap::TR_STATE) == 4 => return Ok(status),
+            2 if reg(&status, ncmap::TR_STATE) <= 1 => {
+                return Err(BacklashError::Timeout(format!(
+                    "the programme ended but the trace never triggered (scale rising through {} mm)",
+                    cfg.threshold_mm
+                )))
+            }
+            _ => {}
+        }
+        if tokio::time::Instant::now() >= deadline {
+            return Err(BacklashError::Timeout(format!(
+                "programme step {}, trace state {} after {:.0} s",
+                reg(&status, ncmap::MV_STEP),
+                reg(&status, ncmap::TR_STATE),
+                move_s + cfg.record_s + 30.0
+            )));
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Uploads the trace `status` reports complete, page by page.
+async fn upload_trace(
+    nc: &mut ServoClient,
+    status: &[u16],
+    cfg: &TraceConfig,
+) -> Result<Trace, BacklashError> {
+    let count = ncmap::regs_to_u32([
+        reg(status, ncmap::TR_COUNT),
+        reg(status, ncmap::TR_COUNT + 1),
+    ]);
+    let per_page = u32::from(ncmap::TR_PAGE_SAMPLES);
+    let mut trace = Trace {
+        period_s: cfg.period_s,
+        ..Trace::default()
+    };
+    for page in 0..count.div_ceil(per_page) {
+        let page_u16 = u16::try_from(page).map_err(|_| {
+            BacklashError::Extraction(format!("{count} samples exceed the page index"))
+        })?;
+        nc.write(ncmap::TR_PAGE, &[page_u16]).await?;
+        let w = nc.read(ncmap::TR_WINDOW, ncmap::TR_WINDOW_LEN).await?;
+        let in_page = (count - page * per_page).min(per_page) as usize;
+        for k in 0..in_page {
+            let f = |at: usize| ncmap::regs_to_f64([w[at], w[at + 1], w[at + 2], w[at + 3]]);
+            trace.encoder_mm.push(f(8 * k));
+            trace.scale_mm.push(f(8 * k + 4));
+        }
+    }
+    Ok(trace)
+}
+
+/// SIGINT, SIGTERM and SIGHUP, caught from [`Self::register`] on: one of them must
+/// not end the process while the axis moves, as their default action would.
+struct StopSignals {
+    int: Option<Signal>,
+    term: Option<Signal>,
+    hup: Option<Signal>,
+}
+
+impl StopSignals {
+    fn register() -> Self {
+        Self {
+            int: signal(SignalKind::interrupt()).ok(),
+            term: signal(SignalKind::terminate()).ok(),
+            hup: signal(SignalKind::hangup()).ok(),
+        }
+    }
+
+    /// The next of them, by name.
+    async fn recv(&mut self) -> &'static str {
+        let Self { int, term, hup } = self;
+        tokio::select! {
+            Some(()) = async { int.as_mut()?.recv().await } => "SIGINT",
+            Some(()) = async { term.as_mut()?.recv().await } => "SIGTERM",
+            Some(()) = async { hup.as_mut()?.recv().await } => "SIGHUP",
+            else => std::future::pending().await,
+        }
+    }
+}
+
+/// After `cause` ended the wait: if the programme still runs, aborts it
+/// (`MV_CMD = 2`) on a connection of its own (the test's may hold a cut request or a
+/// reconnect backoff) and says where the axis stopped, or that it could not be
+/// stopped.
+async fn abort_programme(address: &str, unit: u8, cause: BacklashError) -> BacklashError {
+    let mut nc = ServoClient {
+        link: link_to(address),
+        unit,
+    };
+    let running = match nc.status().await {
+        Ok(status) => reg(&status, ncmap::MV_STATE) == 1,
+        // Unknown: abort anyway, the write says whether the NC is reachable.
+        Err(_) => true,
+    };
+    if !running {
+        return cause;
+    }
+    let abort = match nc.write(ncmap::MV_CMD, &[2]).await {
+        Ok(()) => match nc.status().await {
+            Ok(status) if reg(&status, ncmap::MV_STATE) == 1 => format!(
+                "THE NC STILL RUNS THE MOVE PROGRAMME after MV_CMD = 2 (abort): stop the axis at \
+                 the machine; the scale reads {:.3} mm",
+                f64_reg(&status, ncmap::SCALE_POS)
+            ),
+            Ok(status) => format!(
+                "the move programme was aborted (MV_STATE {}); the scale reads {:.3} mm",
+                reg(&status, ncmap::MV_STATE),
+                f64_reg(&status, ncmap::SCALE_POS)
+            ),
+            Err(e) => format!("MV_CMD = 2 (abort) was sent; reading the axis after failed: {e}"),
+        },
+        Err(e) => format!(
+            "ABORTING THE MOVE PROGRAMME FAILED ({e}): the axis may still be moving; stop it at the machine"
+        ),
+    };
+    BacklashError::Aborted {
+        cause: Box::new(cause),
+        abort,
+    }
+}
+
 /// Runs the test on the NC axis module at `address` and returns everything measured.
 pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, BacklashError> {
     let procedure = Procedure::from_args(args);
@@ -234,6 +376,7 @@ pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, Backl
             words.extend_from_slice(&ncmap::f64_to_regs(v));
         }
     }
+    let mut stop = StopSignals::register();
     nc.write(ncmap::MV_CMD, &words).await?;
     tracing::info!(axis = %args.axis, nc = address, "backlash test programme started");
 
@@ -248,60 +391,21 @@ pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, Backl
         }
         total
     };
-    let deadline =
-        tokio::time::Instant::now() + Duration::from_secs_f64(move_s + cfg.record_s + 30.0);
-    let status = loop {
-        let status = nc.status().await?;
-        match reg(&status, ncmap::MV_STATE) {
-            3 => {
-                return Err(BacklashError::Refused {
-                    what: "move programme",
-                    code: reg(&status, ncmap::MV_STATUS),
-                })
-            }
-            2 if reg(&status, ncmap::TR_STATE) == 4 => break status,
-            2 if reg(&status, ncmap::TR_STATE) <= 1 => {
-                return Err(BacklashError::Timeout(format!(
-                    "the programme ended but the trace never triggered (scale rising through {} mm)",
-                    cfg.threshold_mm
-                )))
-            }
-            _ => {}
-        }
-        if tokio::time::Instant::now() >= deadline {
-            return Err(BacklashError::Timeout(format!(
-                "programme step {}, trace state {} after {:.0} s",
-                reg(&status, ncmap::MV_STEP),
-                reg(&status, ncmap::TR_STATE),
-                move_s + cfg.record_s + 30.0
-            )));
-        }
-        tokio::time::sleep(Duration::from_millis(20)).await;
+    // The axis moves until the programme ends: a signal (Ctrl-C, the unit stopped, a
+    // closed SSH session) or a failed wait must not leave it running unattended. A
+    // signal during the upload after it ends the test as well.
+    let measured = tokio::select! {
+        r = async {
+            let status = wait_programme(&mut nc, &cfg, move_s).await?;
+            let trace = upload_trace(&mut nc, &status, &cfg).await?;
+            Ok((status, trace))
+        } => r,
+        signal = stop.recv() => Err(BacklashError::Signal(signal)),
     };
-
-    // Upload, page by page.
-    let count = ncmap::regs_to_u32([
-        reg(&status, ncmap::TR_COUNT),
-        reg(&status, ncmap::TR_COUNT + 1),
-    ]);
-    let per_page = u32::from(ncmap::TR_PAGE_SAMPLES);
-    let mut trace = Trace {
-        period_s: cfg.period_s,
-        ..Trace::default()
+    let (status, trace) = match measured {
+        Ok(measured) => measured,
+        Err(e) => return Err(abort_programme(address, args.unit, e).await),
     };
-    for page in 0..count.div_ceil(per_page) {
-        let page_u16 = u16::try_from(page).map_err(|_| {
-            BacklashError::Extraction(format!("{count} samples exceed the page index"))
-        })?;
-        nc.write(ncmap::TR_PAGE, &[page_u16]).await?;
-        let w = nc.read(ncmap::TR_WINDOW, ncmap::TR_WINDOW_LEN).await?;
-        let in_page = (count - page * per_page).min(per_page) as usize;
-        for k in 0..in_page {
-            let f = |at: usize| ncmap::regs_to_f64([w[at], w[at + 1], w[at + 2], w[at + 3]]);
-            trace.encoder_mm.push(f(8 * k));
-            trace.scale_mm.push(f(8 * k + 4));
-        }
-    }
     let machine_time_s =
         f64_reg(&status, ncmap::MV_END_TIME_S) - f64_reg(&status, ncmap::MV_START_TIME_S);
 

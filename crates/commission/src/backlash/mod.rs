@@ -115,6 +115,18 @@ pub enum BacklashError {
     /// The programme or the trace did not finish in time.
     #[error("timed out: {0}")]
     Timeout(String),
+    /// A signal stopped the test while the axis moved.
+    #[error("stopped by {0}")]
+    Signal(&'static str),
+    /// The test ended while the programme ran, and the programme was aborted (or
+    /// could not be).
+    #[error("{cause}; {abort}")]
+    Aborted {
+        /// What ended the test.
+        cause: Box<BacklashError>,
+        /// What the abort did.
+        abort: String,
+    },
     /// An output path names the trace read or a missing directory.
     #[error("{0}")]
     Output(#[from] compgate_core::outputs::OutputError),
