@@ -10,6 +10,7 @@ use crate::cli::{self, OutputError};
 use compgate_gateway::config::{self, Config};
 use compgate_gateway::nc::{
     number, shown, shown_mm, thermal_limit, var, var_name, Guarded, Job, NcSnapshot, NcWriter,
+    StopSignals,
 };
 
 /// `compgate nc`: read or write an axis's compensation values on its target.
@@ -325,10 +326,21 @@ async fn write_with(
             return Ok(());
         }
     }
-    let report = w
-        .write_job(&job)
-        .await
-        .map_err(|e| format!("{label}: {e}"))?;
+    // A signal once the job is under way waits for its outcome (at most the job
+    // timeout): ended mid-job, nobody would know whether the values landed.
+    let mut stop = StopSignals::register();
+    let job_run = w.write_job(&job);
+    tokio::pin!(job_run);
+    let result = tokio::select! {
+        r = &mut job_run => r,
+        signal = stop.recv() => {
+            cli::eprintln(format_args!(
+                "{label}: {signal}: the job is under way; stopping once its outcome is known"
+            ))?;
+            job_run.await
+        }
+    };
+    let report = result.map_err(|e| format!("{label}: {e}"))?;
     cli::print(format_args!(
         "written and read back in {:.1} ms\n",
         report.elapsed.as_secs_f64() * 1e3

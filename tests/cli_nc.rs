@@ -355,6 +355,46 @@ async fn nc_write_takes_any_of_the_three_values_and_checks_the_allow_list_first(
     assert!(t.contains("--k0-mm") && t.contains("--tan-beta"), "{t}");
 }
 
+// Ctrl-C (or SIGTERM, a closed SSH session) while a job was under way ended the
+// process at once and silently: the values landed, and nobody was told. The command
+// now waits for the job's outcome (at most the job timeout) and reports it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_signal_during_an_nc_write_waits_for_the_jobs_outcome() {
+    use compgate_plc::nc::JobFault;
+    let dir = tempfile::tempdir().unwrap();
+    let (plant, file) = plant_and_file(dir.path(), &config("hold", "", ""), "").await;
+    let module = plant.nc["nc_x"].clone();
+    // Within the config's job_timeout_s = 0.5.
+    module.set_job_fault(JobFault::Delay(std::time::Duration::from_millis(300)));
+    let mut child = nc_command(&file, &["write", "--axis", "X", "--k0-mm", "0.02", "--yes"])
+        .stdin(Stdio::null())
+        .spawn()
+        .unwrap();
+    let end = std::time::Instant::now() + std::time::Duration::from_secs(10);
+    while module.job_state() != compgate_ncproto::JobState::Busy {
+        assert!(std::time::Instant::now() < end, "the job never started");
+        tokio::time::sleep(std::time::Duration::from_millis(1)).await;
+    }
+    let kill = Command::new("kill")
+        .arg("-INT")
+        .arg(child.id().to_string())
+        .status()
+        .unwrap();
+    assert!(kill.success());
+    let out = tokio::task::spawn_blocking(move || child.wait_with_output().unwrap())
+        .await
+        .unwrap();
+    let t = text_of(&out);
+    assert!(out.status.success(), "{:?}: {t}", out.status);
+    assert!(
+        t.contains("SIGINT: the job is under way; stopping once its outcome is known"),
+        "{t}"
+    );
+    assert!(t.contains("written and read back"), "{t}");
+    assert_eq!(module.state().sd43900_mm, 0.02);
+    drop(plant);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nc_write_errors_name_the_axis_and_say_a_late_job_may_have_landed() {
     if !s7_peer::available() {

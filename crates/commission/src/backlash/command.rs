@@ -5,11 +5,9 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use tokio::signal::unix::{signal, Signal, SignalKind};
-
 use compgate_ncproto::{self as ncmap, var};
 
-use compgate_gateway::nc::{Guarded, Job, ModbusNcWriter, NcWriter};
+use compgate_gateway::nc::{Guarded, Job, ModbusNcWriter, NcWriter, StopSignals};
 use compgate_gateway::source::modbus::{Backoff, LinkSpec, ModbusLink};
 use compgate_gateway::source::plan::RegisterKind;
 
@@ -251,35 +249,6 @@ async fn upload_trace(
         }
     }
     Ok(trace)
-}
-
-/// SIGINT, SIGTERM and SIGHUP, caught from [`Self::register`] on: one of them must
-/// not end the process while the axis moves, as their default action would.
-struct StopSignals {
-    int: Option<Signal>,
-    term: Option<Signal>,
-    hup: Option<Signal>,
-}
-
-impl StopSignals {
-    fn register() -> Self {
-        Self {
-            int: signal(SignalKind::interrupt()).ok(),
-            term: signal(SignalKind::terminate()).ok(),
-            hup: signal(SignalKind::hangup()).ok(),
-        }
-    }
-
-    /// The next of them, by name.
-    async fn recv(&mut self) -> &'static str {
-        let Self { int, term, hup } = self;
-        tokio::select! {
-            Some(()) = async { int.as_mut()?.recv().await } => "SIGINT",
-            Some(()) = async { term.as_mut()?.recv().await } => "SIGTERM",
-            Some(()) = async { hup.as_mut()?.recv().await } => "SIGHUP",
-            else => std::future::pending().await,
-        }
-    }
 }
 
 /// After `cause` ended the wait: if the programme still runs, aborts it

@@ -228,6 +228,7 @@ impl<W: NcWriter> Guarded<W> {
             }
         };
         let snap = match tokio::time::timeout_at(deadline, self.writer.read_snapshot()).await {
+            Ok(Err(NcError::Link(cause))) => return Err(NcError::ReadBackFailed { job_id, cause }),
             Ok(result) => result?,
             Err(_) => return Err(NcError::ReadBackTimeout { job_id, timeout }),
         };
@@ -279,6 +280,8 @@ mod tests {
         slow: Option<Duration>,
         /// How long a read takes.
         slow_read: Option<Duration>,
+        /// A read that fails on the link after the write.
+        read_fails: bool,
         precision: Precision,
     }
 
@@ -308,6 +311,11 @@ mod tests {
         async fn read_snapshot(&mut self) -> Result<NcSnapshot, NcError> {
             if let Some(d) = self.slow_read {
                 tokio::time::sleep(d).await;
+            }
+            if self.read_fails && !self.written.is_empty() {
+                return Err(NcError::Link(crate::source::SourceError::Timeout(
+                    Duration::from_millis(500),
+                )));
             }
             Ok(self.holds)
         }
@@ -433,6 +441,27 @@ mod tests {
             "job 1 written; read-back not finished within 1s: check with `compgate nc read`"
         );
         assert_eq!(g.inner().written.len(), 1);
+    }
+
+    // The target took the job and the read-back's link failed: it read as a job
+    // that failed on the link ("NC link: no reply within 500ms").
+    #[tokio::test]
+    async fn a_write_taken_whose_read_back_fails_says_it_was_written() {
+        let fails = Fake {
+            read_fails: true,
+            ..Fake::default()
+        };
+        let mut g = Guarded::new(fails, THERMAL_VARS.to_vec(), Duration::from_secs(1));
+        let e = g
+            .write_job(&thermal(0.01))
+            .await
+            .expect_err("read-back failed");
+        assert_eq!(
+            e.to_string(),
+            "job 1 written; reading it back failed: NC link: no reply within 500ms: check \
+             with `compgate nc read`"
+        );
+        assert!(e.is_unreachable());
     }
 
     #[test]

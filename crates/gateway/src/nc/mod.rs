@@ -15,6 +15,7 @@ pub mod guard;
 pub mod modbus;
 pub mod opcua;
 pub mod s7;
+pub mod signals;
 
 use std::future::Future;
 use std::time::Duration;
@@ -27,6 +28,7 @@ use compgate_core::comp::CompParams;
 pub use compgate_ncproto::{thermal_limit, var};
 pub use guard::{AnyNcWriter, Guarded};
 pub use modbus::ModbusNcWriter;
+pub use signals::StopSignals;
 
 /// Errors of the NC layer.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -53,6 +55,26 @@ pub enum NcError {
         state: Option<JobState>,
         /// Whether the job had been handed over (or may have been) when time ran out.
         sent: bool,
+    },
+    /// The link failed once the job request had gone out: the target may have taken
+    /// it.
+    #[error(
+        "job {job_id}: NC link: {cause}, after the job request went out: the values may \
+         have landed; check with `compgate nc read`"
+    )]
+    HandedOver {
+        /// Job id.
+        job_id: u16,
+        /// The link's fault.
+        cause: SourceError,
+    },
+    /// The target took the job, and reading the values back failed.
+    #[error("job {job_id} written; reading it back failed: NC link: {cause}: check with `compgate nc read`")]
+    ReadBackFailed {
+        /// Job id.
+        job_id: u16,
+        /// The link's fault.
+        cause: SourceError,
     },
     /// The read of the NC before a job (does it hold what the step was limited from?)
     /// did not end within the job timeout; nothing was sent.
@@ -241,8 +263,18 @@ impl NcError {
     /// an answer that refused the request: the status says "unreachable" only then.
     pub fn is_unreachable(&self) -> bool {
         match self {
-            Self::Link(SourceError::Exception(_)) => false,
+            Self::Link(SourceError::Exception(_))
+            | Self::HandedOver {
+                cause: SourceError::Exception(_),
+                ..
+            }
+            | Self::ReadBackFailed {
+                cause: SourceError::Exception(_),
+                ..
+            } => false,
             Self::Link(_)
+            | Self::HandedOver { .. }
+            | Self::ReadBackFailed { .. }
             | Self::Unreachable(_)
             | Self::JobTimeout { .. }
             | Self::CheckTimeout { .. }

@@ -103,15 +103,28 @@ impl ModbusNcWriter {
             block.extend_from_slice(&ncmap::f64_to_regs(*value));
         }
         self.link.write(self.unit_id, ncmap::JOB_ID, &block).await?;
-        self.link.write(self.unit_id, ncmap::REQ, &[1]).await?;
+        // From here a lost reply does not mean the module did not act: REQ = 1 may
+        // have reached it.
+        let handed_over = |e: NcError| match e {
+            NcError::Link(cause) => NcError::HandedOver { job_id, cause },
+            e => e,
+        };
+        self.link
+            .write(self.unit_id, ncmap::REQ, &[1])
+            .await
+            .map_err(|cause| NcError::HandedOver { job_id, cause })?;
         let r = self
             .wait_state(deadline, job_id, true, |s| {
                 matches!(s, JobState::Done | JobState::Error)
             })
-            .await?;
+            .await
+            .map_err(handed_over)?;
         let reg = |a: u16| r[usize::from(a - ncmap::STATE)];
         // Acknowledge before judging, so the module is idle whatever happens next.
-        self.link.write(self.unit_id, ncmap::REQ, &[0]).await?;
+        self.link
+            .write(self.unit_id, ncmap::REQ, &[0])
+            .await
+            .map_err(|cause| NcError::HandedOver { job_id, cause })?;
         if reg(ncmap::JOB_ID_DONE) != job_id {
             return Err(NcError::Protocol(format!(
                 "JOB_ID_DONE = {}, expected {job_id}",
@@ -325,5 +338,71 @@ mod tests {
         let accepts = accepts.load(Ordering::SeqCst);
         assert!((2..6).contains(&accepts), "{accepts} connects in 2 s");
         peer.abort();
+    }
+
+    /// One Modbus TCP frame from `from`: MBAP header and PDU.
+    async fn frame(from: &mut tokio::net::TcpStream) -> Option<Vec<u8>> {
+        use tokio::io::AsyncReadExt;
+        let mut head = [0u8; 7];
+        from.read_exact(&mut head).await.ok()?;
+        let len = usize::from(u16::from_be_bytes([head[4], head[5]]));
+        let mut pdu = vec![0u8; len.saturating_sub(1)];
+        from.read_exact(&mut pdu).await.ok()?;
+        Some([&head[..], &pdu].concat())
+    }
+
+    // The reply to the write that raises REQ was lost (a switch, a busy gateway): the
+    // module took the job, and the error read as a link that failed before anything
+    // was written ("NC link: no reply within 500ms"). It now says the values may have
+    // landed.
+    #[tokio::test]
+    async fn a_lost_reply_to_the_job_request_says_the_values_may_have_landed() {
+        use compgate_plc::nc::{NcAxis, NcAxisModule};
+        use tokio::io::AsyncWriteExt;
+        let module = NcAxisModule::new(NcAxis::default());
+        let (upstream, shutdown) = module.serve_loopback().await.unwrap();
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap().to_string();
+        // Forwards every frame, and drops the replies to a write of 1 to REQ.
+        let proxy = tokio::spawn(async move {
+            let (mut client, _) = listener.accept().await.unwrap();
+            let mut nc = tokio::net::TcpStream::connect(upstream).await.unwrap();
+            while let Some(request) = frame(&mut client).await {
+                nc.write_all(&request).await.unwrap();
+                let reply = frame(&mut nc).await.unwrap();
+                let address = u16::from_be_bytes([request[8], request[9]]);
+                let raises_req = address == ncmap::REQ
+                    && match request[7] {
+                        6 => request[10..12] == [0, 1],
+                        16 => request[13..15] == [0, 1],
+                        _ => false,
+                    };
+                if !raises_req {
+                    client.write_all(&reply).await.unwrap();
+                }
+            }
+        });
+        let cfg = ModbusTargetConfig {
+            address,
+            unit_id: 1,
+            timeout_s: 0.2,
+            connect_timeout_s: 1.0,
+            job_timeout_s: 1.0,
+        };
+        let mut writer = cfg.writer();
+        let job = Job {
+            pairs: vec![(ncmap::var::SD43900, 0.123)],
+        };
+        let error = writer.write_job(&job).await.unwrap_err();
+        assert!(matches!(error, NcError::HandedOver { .. }), "{error:?}");
+        assert!(
+            error
+                .to_string()
+                .ends_with("the values may have landed; check with `compgate nc read`"),
+            "{error}"
+        );
+        assert_eq!(module.state().sd43900_mm, 0.123, "the job landed");
+        proxy.abort();
+        shutdown.cancel();
     }
 }
