@@ -366,7 +366,7 @@ async fn a_signal_during_an_nc_write_waits_for_the_jobs_outcome() {
     let module = plant.nc["nc_x"].clone();
     // Within the config's job_timeout_s = 0.5.
     module.set_job_fault(JobFault::Delay(std::time::Duration::from_millis(300)));
-    let mut child = nc_command(&file, &["write", "--axis", "X", "--k0-mm", "0.02", "--yes"])
+    let child = nc_command(&file, &["write", "--axis", "X", "--k0-mm", "0.02", "--yes"])
         .stdin(Stdio::null())
         .spawn()
         .unwrap();
