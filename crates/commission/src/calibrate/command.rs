@@ -37,10 +37,12 @@ pub struct CalibrateArgs {
     /// SVG plot of the measured error curves with the fitted lines.
     #[arg(long)]
     pub plot: Option<PathBuf>,
-    /// Write the model even when the temperatures do not explain the error (the
-    /// temperature terms remove less than half of what constant K0 and tan(beta)
-    /// leave, and every temperature coefficient is within 2 standard errors of 0),
-    /// which is refused otherwise.
+    /// Write the model even when the fit is in doubt, which is refused otherwise: a
+    /// sensor that spans less than 0.5 K in the data, a tan(beta) coefficient beyond
+    /// 1e-4 /K (no machine structure expands so), or temperatures that do not explain
+    /// the error (the temperature terms remove less than half of what constant K0 and
+    /// tan(beta) leave, and every temperature coefficient is within 2 standard errors
+    /// of 0).
     #[arg(long)]
     pub accept_weak_fit: bool,
 }
@@ -130,14 +132,14 @@ impl Calibrated<'_> {
     }
 
     /// Writes the model and the plot, both or neither (an existing model stays as it
-    /// was when the plot cannot be written); returns the lines saying so. An
-    /// undetermined fit ([`Fit::undetermined`]) is not written without
-    /// `--accept-weak-fit`.
+    /// was when the plot cannot be written); returns the lines saying so. A fit with
+    /// doubts ([`Fit::doubts`]) is not written without `--accept-weak-fit`.
     pub fn write(&self) -> Result<String, CalibrateError> {
-        if self.fit.undetermined() && !self.args.accept_weak_fit {
-            return Err(CalibrateError::Undetermined {
+        let doubts = self.fit.doubts();
+        if !doubts.is_empty() && !self.args.accept_weak_fit {
+            return Err(CalibrateError::Doubtful {
                 path: self.args.out.display().to_string(),
-                temp_r2: self.fit.temp_r2,
+                doubts: doubts.join("; "),
             });
         }
         let io = |(path, source): (PathBuf, std::io::Error)| CalibrateError::Io {

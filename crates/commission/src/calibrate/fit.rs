@@ -40,6 +40,17 @@ pub const WEAK_R2: f64 = 0.5;
 /// A coefficient within this many standard errors of 0 is not told apart from 0.
 pub const SIGNIFICANT_SE: f64 = 2.0;
 
+/// Steel's thermal expansion, 1/K: the scale of a tan(beta) coefficient, which is
+/// the screw's (or the structure's) growth per unit length and kelvin.
+pub const STEEL_EXPANSION_PER_K: f64 = 11.5e-6;
+
+/// Largest |tan(beta) coefficient| a fit is written with, 1/K: nearly nine times
+/// steel's expansion and four times aluminium's. A sensor that warms less than the
+/// screw raises the coefficient by that ratio, which this leaves room for; beyond it
+/// no machine structure expands, and the usual cause is `pos_mm` in another unit
+/// (inches: 25.4 times too large a slope) or a mistyped number.
+pub const MAX_TAN_BETA_PER_K: f64 = 1e-4;
+
 /// Why a fit is impossible.
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum FitError {
@@ -180,8 +191,40 @@ impl Fit {
             })
     }
 
-    /// What the engineer must know before applying the model: sensors that barely
-    /// moved ([`MIN_SENSOR_SPAN_K`]) and an undetermined fit ([`Fit::undetermined`]).
+    /// Why the model is not written without `--accept-weak-fit`, one short reason
+    /// each: a sensor that barely moved ([`MIN_SENSOR_SPAN_K`]), a tan(beta)
+    /// coefficient no structure has ([`MAX_TAN_BETA_PER_K`]), an undetermined fit
+    /// ([`Fit::undetermined`]). [`Fit::warnings`] says each at length.
+    pub fn doubts(&self) -> Vec<String> {
+        let mut d: Vec<String> = self
+            .terms
+            .iter()
+            .filter(|t| t.span_degc < MIN_SENSOR_SPAN_K)
+            .map(|t| format!("T_{} spans only {:.2} K", t.name, t.span_degc))
+            .collect();
+        d.extend(self.implausible_slopes().map(|t| {
+            format!(
+                "T_{}'s tan(beta) coefficient is {:.3e} /K",
+                t.name, t.tan_beta_per_degc
+            )
+        }));
+        if self.undetermined() {
+            d.push(format!(
+                "the temperatures do not explain the error (partial R^2 {:.3})",
+                self.temp_r2
+            ));
+        }
+        d
+    }
+
+    fn implausible_slopes(&self) -> impl Iterator<Item = &SensorTerm> {
+        self.terms
+            .iter()
+            .filter(|t| t.tan_beta_per_degc.abs() > MAX_TAN_BETA_PER_K)
+    }
+
+    /// What the engineer must know before applying the model: each of
+    /// [`Fit::doubts`], with its cause and remedy.
     pub fn warnings(&self) -> Vec<String> {
         let mut w: Vec<String> = self
             .terms
@@ -192,11 +235,23 @@ impl Fit {
                     "T_{} spans only {:.2} K in the data (less than {MIN_SENSOR_SPAN_K} K): its \
                      coefficients rest on changes near the sensor's noise, and the model \
                      extrapolates them to every temperature the machine reaches; measure over \
-                     a run that heats and cools the machine",
+                     a run that heats and cools the machine, or leave the sensor out \
+                     (--sensors)",
                     t.name, t.span_degc
                 )
             })
             .collect();
+        w.extend(self.implausible_slopes().map(|t| {
+            format!(
+                "T_{}'s tan(beta) coefficient {:.3e} /K is {:.0} times steel's expansion \
+                 ({STEEL_EXPANSION_PER_K:e} /K), beyond {MAX_TAN_BETA_PER_K:e} /K: no machine \
+                 structure expands so; check the units of pos_mm (in inches the slope is 25.4 \
+                 times too large) and err_um",
+                t.name,
+                t.tan_beta_per_degc,
+                t.tan_beta_per_degc.abs() / STEEL_EXPANSION_PER_K
+            )
+        }));
         if self.undetermined() {
             w.push(format!(
                 "the temperatures do not explain the error: beyond constant K0 and tan(beta) \

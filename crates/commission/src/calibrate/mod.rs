@@ -40,13 +40,12 @@ pub enum CalibrateError {
     Plot(#[from] PlotError),
     #[error("{0}")]
     Output(#[from] compgate_core::outputs::OutputError),
-    /// The fit does not explain the error ([`Fit::undetermined`]); nothing written.
+    /// The fit is in doubt ([`Fit::doubts`]); nothing written.
     #[error(
-        "{path}: not written: the temperatures do not explain the error (partial R^2 \
-         {temp_r2:.3} over constant K0 and tan(beta), every temperature coefficient within 2 \
-         standard errors of 0; see the warning above); --accept-weak-fit writes it anyway"
+        "{path}: not written: {doubts} (see the warnings above); --accept-weak-fit writes \
+         it anyway"
     )]
-    Undetermined { path: String, temp_r2: f64 },
+    Doubtful { path: String, doubts: String },
     #[error("{path}: {source}")]
     Model {
         path: String,
