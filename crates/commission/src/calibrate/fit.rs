@@ -40,16 +40,9 @@ pub const WEAK_R2: f64 = 0.5;
 /// A coefficient within this many standard errors of 0 is not told apart from 0.
 pub const SIGNIFICANT_SE: f64 = 2.0;
 
-/// Steel's thermal expansion, 1/K: the scale of a tan(beta) coefficient, which is
-/// the screw's (or the structure's) growth per unit length and kelvin.
-pub const STEEL_EXPANSION_PER_K: f64 = 11.5e-6;
-
-/// Largest |tan(beta) coefficient| a fit is written with, 1/K: nearly nine times
-/// steel's expansion and four times aluminium's. A sensor that warms less than the
-/// screw raises the coefficient by that ratio, which this leaves room for; beyond it
-/// no machine structure expands, and the usual cause is `pos_mm` in another unit
-/// (inches: 25.4 times too large a slope) or a mistyped number.
-pub const MAX_TAN_BETA_PER_K: f64 = 1e-4;
+/// A fit with a larger |tan(beta) coefficient| is not written without
+/// `--accept-weak-fit`.
+pub use compgate_core::comp::{MAX_TAN_BETA_PER_K, STEEL_EXPANSION_PER_K};
 
 /// Why a fit is impossible.
 #[derive(Debug, Clone, PartialEq, Error)]

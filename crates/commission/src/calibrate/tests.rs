@@ -536,7 +536,11 @@ fn a_slope_coefficient_no_structure_has_is_refused_naming_the_units() {
     let mut args = args_for(dir.path(), csv);
     args.sensors = names(&["column", "screw"]);
     let calibrated = run(&args).unwrap();
-    assert!(calibrated.warnings().is_empty(), "{:?}", calibrated.warnings());
+    assert!(
+        calibrated.warnings().is_empty(),
+        "{:?}",
+        calibrated.warnings()
+    );
     calibrated.write().unwrap();
 }
 

@@ -14,7 +14,9 @@ mod model;
 
 pub use compensator::{AxisCompensator, BadInputPolicy, BeyondLimit, Decision, Limits};
 pub use dynamics::{heat_store_step, Dynamics, InputLag, MotionHeat};
-pub use model::{Affine, CompParams, Term, ThermalModel};
+pub use model::{
+    Affine, CompParams, Term, ThermalModel, MAX_TAN_BETA_PER_K, STEEL_EXPANSION_PER_K,
+};
 
 /// Errors of the compensation layer: settings that cannot work.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]

@@ -2,6 +2,17 @@
 
 use super::CompError;
 
+/// Steel's thermal expansion, 1/K: the scale of a tan(beta) coefficient, which is
+/// the screw's (or the structure's) growth per unit length and kelvin.
+pub const STEEL_EXPANSION_PER_K: f64 = 11.5e-6;
+
+/// Largest plausible |tan(beta) coefficient|, 1/K: nearly nine times steel's
+/// expansion and four times aluminium's. A sensor that warms less than the screw
+/// raises the coefficient by that ratio, which this leaves room for; beyond it no
+/// machine structure expands, and the usual cause is `pos_mm` in another unit
+/// (inches: 25.4 times too large a slope) or a mistyped number.
+pub const MAX_TAN_BETA_PER_K: f64 = 1e-4;
+
 /// One temperature term of an affine function: `coeff * (T[input] - ref_degc)`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Term {

@@ -4,6 +4,8 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use compgate_core::comp::{MAX_TAN_BETA_PER_K, STEEL_EXPANSION_PER_K};
+
 use super::keys::field;
 use super::problem::{peer_identity, ConfigProblem, Problems};
 use super::{Config, DeviceConfig};
@@ -23,6 +25,7 @@ use crate::source::modbus::config::{ModbusCommon, RtuDeviceConfig};
 ///   smallest `poll_interval_s`: a silent one holds up the others. Not for units at
 ///   one TCP address: behind a TCP-to-RTU gateway each `timeout_s` must stay above the
 ///   gateway's own response timeout, so lowering them is no advice.
+/// - A tan(beta) `coeff_per_degc` beyond [`MAX_TAN_BETA_PER_K`].
 pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
     let mut out = Problems::new(file);
     let mut tcp: BTreeMap<(String, u8), &String> = BTreeMap::new();
@@ -80,12 +83,36 @@ pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
             out.push(field("channels", name, "address"), message);
         }
     }
+    for (name, axis) in &cfg.axes {
+        for (i, t) in axis.tan_beta.terms.iter().enumerate() {
+            if let Some(message) = implausible_slope(t.coeff_per_degc) {
+                out.push(
+                    format!("axes.{name}.tan_beta.terms[{i}].coeff_per_degc"),
+                    message,
+                );
+            }
+        }
+    }
     if let Some(m) = &cfg.metrics {
         if let Some(message) = exposed(&m.bind) {
             out.push("metrics.bind", message);
         }
     }
     out.into_vec()
+}
+
+/// A tan(beta) coefficient no machine structure has: a model calibrated on positions
+/// in inches, or a mistyped exponent, compensates millimetres wrong (a coefficient
+/// 100 times too large gave 4.6 mm at 700 mm) while every limit but the NC's holds.
+fn implausible_slope(coeff_per_degc: f64) -> Option<String> {
+    (coeff_per_degc.abs() > MAX_TAN_BETA_PER_K).then(|| {
+        format!(
+            "{coeff_per_degc:e} /K is {:.0} times steel's expansion ({STEEL_EXPANSION_PER_K:e} \
+             /K), beyond {MAX_TAN_BETA_PER_K:e} /K: no machine structure expands so; check the \
+             model (calibrated on positions in inches? a mistyped exponent?)",
+            coeff_per_degc.abs() / STEEL_EXPANSION_PER_K
+        )
+    })
 }
 
 /// A listener beyond this PC (`0.0.0.0`, a LAN address): it has no authentication and
@@ -305,6 +332,36 @@ mod tests {
         assert_eq!(one_based(RegisterKind::Input, 30_000), None);
         assert_eq!(one_based(RegisterKind::Holding, 1_004), None);
         assert_eq!(one_based(RegisterKind::Holding, 50_000), None);
+    }
+
+    // Review V: a screw coefficient typed 100 times too large (0.0011445 /K) passed
+    // validate with OK and was compensated as 4.6 mm at 700 mm, nothing said.
+    #[test]
+    fn a_slope_coefficient_no_structure_has_gets_a_warning() {
+        let example = include_str!("../../../../config/example.toml");
+        let at = "coeff_per_degc = 0.0000115";
+        assert!(example.contains(at));
+        let slopes = |text: &str| -> Vec<String> {
+            let cfg = crate::config::load_str(text, "plant.toml").expect("valid");
+            warnings(&cfg, "plant.toml")
+                .iter()
+                .map(ToString::to_string)
+                .filter(|w| w.contains("tan_beta"))
+                .collect()
+        };
+        assert!(slopes(example).is_empty());
+        let w = slopes(&example.replacen(at, "coeff_per_degc = 0.0011445", 1));
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!(
+            w[0].starts_with(
+                "plant.toml: axes.X.tan_beta.terms[0].coeff_per_degc: 1.1445e-3 /K is 100 \
+                 times steel's expansion"
+            ),
+            "{}",
+            w[0]
+        );
+        // Eight times steel's (a sensor that warms less than the screw) is no warning.
+        assert_eq!(implausible_slope(8.0 * STEEL_EXPANSION_PER_K), None);
     }
 
     /// The warnings of `text`, as `validate` prints them (without "warning: ").
