@@ -201,6 +201,50 @@ async fn a_model_held_at_its_absolute_limit_is_logged_and_exported() {
     drop(plant);
 }
 
+// A model applied beyond the temperatures it was fitted over extrapolates: with a
+// summer's 35 degC after a winter's fit it wrote its values without a word (review V).
+// The journal says so once, with the channel and the range, the metric is 1 while it
+// lasts, and the return within the range is logged once too.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_model_applied_beyond_its_fitted_temperatures_is_logged_and_exported() {
+    let dir = tempfile::tempdir().unwrap();
+    // T_bed reads 30 degC: 6 K above the range.
+    let toml = common::config("hold", "", "").replace(
+        "tan_beta = {",
+        "fitted_degc = { T_bed = [18.0, 24.0], T_screw = [18.0, 26.0] }\ntan_beta = {",
+    );
+    let (plant, path) =
+        common::plant_and_file(dir.path(), &toml, "\n[metrics]\nbind = \"127.0.0.1:0\"\n").await;
+    let gw = Gateway::start(dir.path(), &path, &[]);
+    let port = tokio::task::block_in_place(|| gw.metrics_port(10.0));
+    let warned =
+        "axis X: T_bed reads 30.0 degC, 6.0 K above the 18.0..24.0 degC the model was fitted over";
+    tokio::task::block_in_place(|| gw.wait_log(10.0, warned));
+    // Many updates (100 ms) later: no more lines, and the axis still compensates.
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    assert!(once(&gw, warned).contains("WARN"));
+    let nc = plant.nc["nc_x"].clone();
+    assert!((nc.state().sd43900_mm - 0.04).abs() < 0.0005);
+    let outside = || {
+        let (text, _) = common::metrics::scrape(port, Duration::from_secs(2)).unwrap();
+        common::metrics::value(&text, "compgate_axis_outside_fit{axis=\"X\"}")
+    };
+    assert_eq!(tokio::task::block_in_place(outside), Some(1.0));
+
+    // 25.4 degC: 1.4 K above, within the margin once flagged less the hysteresis.
+    let t_bed = plant.transmitter["T_bed"];
+    plant.field["ain1"]
+        .set_temperature_override(t_bed, Some(25.4))
+        .unwrap();
+    let back = "axis X: its inputs are within the temperatures the model was fitted over again";
+    tokio::task::block_in_place(|| gw.wait_log(10.0, back));
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    assert!(once(&gw, back).contains("INFO"));
+    assert_eq!(tokio::task::block_in_place(outside), Some(0.0));
+    drop(gw);
+    drop(plant);
+}
+
 // A reload keeps what the journal was told of each axis: the axis held while a reload
 // had pointed its device at a dead port, and the reload back says it follows its
 // model again. The journal's last word used to be the hold: the reload started the

@@ -108,6 +108,14 @@ pub struct AxisConfig {
     /// `motion_heating`). Optional table; default: none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub motion_heat: Option<MotionHeatModel>,
+    /// The temperatures the model was fitted over, degC, per input channel: `{ T_bed =
+    /// [16.9, 27.1] }` (`calibrate` writes them). A usable reading more than
+    /// `FIT_MARGIN_K` (2 K) outside its range is flagged: the status, the metric
+    /// `compgate_axis_outside_fit` and one WARN say the model extrapolates there. The
+    /// axis still compensates. Optional; channels of the model's terms; min <= max,
+    /// -100..=500.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub fitted_degc: BTreeMap<String, [f64; 2]>,
     /// Shadow mode: compute, record and publish the parameters this axis would
     /// write, and never write its NC module (jobs are recorded as shadow). The NC
     /// is still read: what it holds is the start of the step limits. Default false.
@@ -410,6 +418,26 @@ impl AxisConfig {
             )
         });
         terms(&k("tan_beta.terms"), tb_terms, channels, out);
+        for (channel, &[min, max]) in &self.fitted_degc {
+            let key = k(&format!("fitted_degc.{channel}"));
+            let in_model = self.k0.terms.iter().any(|t| &t.channel == channel)
+                || self.tan_beta.terms.iter().any(|t| &t.channel == channel);
+            if !in_model {
+                out.push(
+                    key,
+                    format!("`{channel}` is not a channel of the axis' k0 or tan_beta terms"),
+                );
+            } else if !(min.is_finite() && max.is_finite())
+                || min > max
+                || min < -100.0
+                || max > 500.0
+            {
+                out.push(
+                    key,
+                    format!("must be [min, max] with -100 <= min <= max <= 500 degC, got [{min}, {max}]"),
+                );
+            }
+        }
         if let Some(m) = &self.motion_heat {
             if out.positive(&k("motion_heat.tau_s"), m.tau_s, "seconds") && m.tau_s < 1.0 {
                 out.push(
@@ -663,6 +691,27 @@ mod tests {
         { channel = \"spindle\", coeff_mm_per_degc = 0.0015 }]\n\
         [tan_beta]\nterms = [{ channel = \"screw\", lag_tau_s = 1200.0, coeff_per_degc = 0.0000115 }]\n\
         [motion_heat]\ntau_s = 2400.0\nref_mm_per_s = 30.0\nk0_mm_per_mm_per_s = 0.00006\n";
+
+    #[test]
+    fn fitted_ranges_name_channels_of_the_model_in_order() {
+        let ok = axis(&format!(
+            "fitted_degc = {{ column = [16.9, 23.5], screw = [17.0, 27.1] }}\n{LAGGED}"
+        ));
+        assert!(problems(&ok).is_empty(), "{:?}", problems(&ok));
+        let bad = axis(
+            "fitted_degc = { column = [23.5, 16.9], spindle = [20.0, 30.0], T_x = [0.0, 1.0] }\n\
+             [tan_beta]\nterms = [{ channel = \"screw\", coeff_per_degc = 0.0000115 }]\n\
+             [k0]\nterms = [{ channel = \"column\", coeff_mm_per_degc = 0.009 }]\n",
+        );
+        assert_eq!(
+            problems(&bad),
+            [
+                "axes.X.fitted_degc.T_x",
+                "axes.X.fitted_degc.column",
+                "axes.X.fitted_degc.spindle"
+            ]
+        );
+    }
 
     #[test]
     fn lagged_terms_get_slots_after_the_channels() {

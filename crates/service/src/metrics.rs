@@ -11,6 +11,7 @@
 //! | `compgate_channel_quality` | gauge | channel | 0 good, 1 uncertain, 2 bad, every `gateway.status_interval_s` |
 //! | `compgate_axis_sd43900_mm`, `compgate_axis_sd43910`, `compgate_axis_sd43920_mm` | gauge | axis | parameters last written and verified (what the NC held at start before the first job) |
 //! | `compgate_axis_at_limit` | gauge | axis | 1 while the model's value is beyond `max_abs_k0_mm` or `max_abs_tan_beta` and the NC gets the limit instead |
+//! | `compgate_axis_outside_fit` | gauge | axis | 1 while an input reads more than 2 K outside the temperatures the model was fitted over (`fitted_degc`): the model extrapolates |
 //! | `compgate_axis_shadow` | gauge | axis | 1 when the axis runs in shadow mode (computes, never writes the NC) |
 //! | `compgate_axis_nc_up`, `compgate_axis_md32750_mismatch`, `compgate_axis_unreferenced`, `compgate_axis_jobs_failing` | gauge | axis | the NC answered its last read; it holds another MD32750 than the config; it reports the axis not referenced; the last job failed |
 //! | `compgate_axis_shadow_sd43900_mm`, `compgate_axis_shadow_sd43910`, `compgate_axis_shadow_sd43920_mm` | gauge | axis | shadow mode: the parameters the axis would have written last |
@@ -225,6 +226,11 @@ pub fn describe() {
         "compgate_axis_at_limit",
         Unit::Count,
         "1 while the model's value is beyond max_abs_k0_mm or max_abs_tan_beta: the NC gets the limit"
+    );
+    describe_gauge!(
+        "compgate_axis_outside_fit",
+        Unit::Count,
+        "1 while an input reads more than 2 K outside the temperatures the model was fitted over"
     );
     describe_gauge!(
         "compgate_axis_shadow",
@@ -467,6 +473,8 @@ impl Observer for MetricsObserver {
         for a in &status.axes {
             gauge!("compgate_axis_at_limit", "axis" => a.name.clone())
                 .set(f64::from(u8::from(a.at_limit)));
+            gauge!("compgate_axis_outside_fit", "axis" => a.name.clone())
+                .set(f64::from(u8::from(a.outside_fit.is_some())));
             let answers = a.nc.is_some();
             gauge!("compgate_axis_nc_up", "axis" => a.name.clone())
                 .set(f64::from(u8::from(answers)));

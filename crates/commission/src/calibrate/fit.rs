@@ -104,6 +104,8 @@ pub struct SensorTerm {
     pub ref_degc: f64,
     /// Largest minus smallest temperature of the sensor in the data, K.
     pub span_degc: f64,
+    /// Smallest and largest temperature of the sensor in the data, degC.
+    pub range_degc: [f64; 2],
     /// K0 coefficient, um/K, and its standard error.
     pub k0_um_per_degc: f64,
     /// Standard error of `k0_um_per_degc`.
@@ -468,6 +470,10 @@ pub fn fit(
             name: (*name).to_string(),
             ref_degc: refs[j],
             span_degc: span(col),
+            range_degc: [
+                col.iter().copied().fold(f64::INFINITY, f64::min),
+                col.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+            ],
             k0_um_per_degc: beta[1 + j],
             k0_se_um_per_degc: se(1 + j),
             tan_beta_per_degc: beta[2 + m + j] / 1000.0,

@@ -16,7 +16,9 @@ use thiserror::Error;
 use crate::plot::PlotError;
 pub use command::{run, CalibrateArgs, Calibrated};
 pub use fit::{Fit, FitError};
-pub use model::{bounds, first_axis_model, load_model, model_toml, AxisModel, ModelError};
+pub use model::{
+    bounds, first_axis_model, fitted_range, load_model, model_toml, AxisModel, ModelError,
+};
 pub use report::{plot_curves, render_curves, report};
 
 /// Errors of `calibrate` and of reading a model file.

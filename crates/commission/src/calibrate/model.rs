@@ -67,6 +67,10 @@ pub struct AxisModel {
     /// Heat of axis motion from the NC's actual position (diagnose adds it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub motion_heat: Option<MotionHeatModel>,
+    /// The temperatures the model was fitted over, per channel, degC: the gateway
+    /// flags a reading beyond them.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub fitted_degc: BTreeMap<String, [f64; 2]>,
 }
 
 /// Plausible ranges of the model's values, the same as the gateway's config schema
@@ -219,6 +223,16 @@ impl AxisModel {
                     .collect(),
             },
             motion_heat: None,
+            fitted_degc: f
+                .terms
+                .iter()
+                .map(|t| {
+                    (
+                        t.name.clone(),
+                        fitted_range(t.range_degc[0], t.range_degc[1]),
+                    )
+                })
+                .collect(),
         }
     }
 
@@ -324,6 +338,12 @@ pub fn model_toml(
     Ok(s)
 }
 
+/// A `fitted_degc` entry for temperatures from `lo` to `hi`: to 0.01 K, outwards, so
+/// that it holds every temperature fitted.
+pub fn fitted_range(lo: f64, hi: f64) -> [f64; 2] {
+    [(lo * 100.0).floor() / 100.0, (hi * 100.0).ceil() / 100.0]
+}
+
 /// Reads the first `[axes.NAME]` of a model file (from calibrate or diagnose) or of a
 /// whole gateway config; keys other than `p0_mm`, `k0`, `tan_beta` and `motion_heat`
 /// are ignored.
@@ -350,7 +370,12 @@ pub fn first_axis_model(root: &toml::Table) -> Result<(String, AxisModel), Model
         .as_table()
         .cloned()
         .ok_or_else(|| ModelError::NotATable(name.clone()))?;
-    t.retain(|k, _| matches!(k, "p0_mm" | "k0" | "tan_beta" | "motion_heat"));
+    t.retain(|k, _| {
+        matches!(
+            k,
+            "p0_mm" | "k0" | "tan_beta" | "motion_heat" | "fitted_degc"
+        )
+    });
     let model: AxisModel =
         toml::Value::Table(t)
             .try_into()

@@ -233,6 +233,7 @@ fn hand_model() -> AxisModel {
             }],
         },
         motion_heat: None,
+        fitted_degc: Default::default(),
     }
 }
 
@@ -571,4 +572,36 @@ fn a_run_cut_short_is_not_written_as_a_model() {
     args.accept_weak_fit = true;
     run(&args).unwrap().write().unwrap();
     assert!(args.out.exists());
+}
+
+/// The model file carries the temperatures it was fitted over, which the gateway
+/// flags a reading beyond (review V: a model fitted on 17..27 degC ran at 35 degC
+/// without a word).
+#[test]
+fn the_model_names_the_temperatures_it_was_fitted_over() {
+    let (m, _) = commissioning(ThermalParams::default(), 1);
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("run.csv");
+    m.write(std::fs::File::create(&csv).unwrap()).unwrap();
+    let mut args = args_for(dir.path(), csv);
+    args.sensors = names(&["column", "screw"]);
+    run(&args).unwrap().write().unwrap();
+    let (_, model) = crate::calibrate::load_model(&args.out).unwrap();
+    assert_eq!(model.fitted_degc.len(), 2, "{:?}", model.fitted_degc);
+    assert!(
+        model.fitted_degc.contains_key("column"),
+        "{:?}",
+        model.fitted_degc
+    );
+    for c in m
+        .temps
+        .iter()
+        .filter(|c| model.fitted_degc.contains_key(&c.name))
+    {
+        let [lo, hi] = model.fitted_degc[&c.name];
+        let min = c.degc.iter().copied().fold(f64::INFINITY, f64::min);
+        let max = c.degc.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        assert!(lo <= min && min - lo < 0.01, "{}: {lo} {min}", c.name);
+        assert!(hi >= max && hi - max < 0.01, "{}: {hi} {max}", c.name);
+    }
 }

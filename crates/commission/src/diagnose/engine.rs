@@ -30,6 +30,8 @@ pub struct Data {
     pub temps_degc: Vec<Vec<f64>>,
     /// Mean per column, degC (the reference temperature of the fitted terms).
     pub temp_mean_degc: Vec<f64>,
+    /// Smallest and largest per column, degC.
+    pub temp_range_degc: Vec<[f64; 2]>,
     /// Indices of the baseline's sensors.
     pub sensors: Vec<usize>,
     /// Contiguous blocks for cross-validation.
@@ -86,6 +88,13 @@ impl Data {
             .iter()
             .map(|c| c.iter().sum::<f64>() / n as f64)
             .collect();
+        let temp_range_degc = temps_degc
+            .iter()
+            .map(|c| {
+                let lo = c.iter().copied().fold(f64::INFINITY, f64::min);
+                [lo, c.iter().copied().fold(f64::NEG_INFINITY, f64::max)]
+            })
+            .collect();
         Ok(Data {
             n,
             y_um: m.err_um.clone(),
@@ -101,6 +110,7 @@ impl Data {
             names,
             temps_degc,
             temp_mean_degc,
+            temp_range_degc,
             sensors,
             blocks: blocks(n, cv_blocks),
         })

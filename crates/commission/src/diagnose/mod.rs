@@ -268,6 +268,8 @@ pub struct Diagnosis {
     #[serde(skip)]
     pub temp_mean_degc: Vec<f64>,
     #[serde(skip)]
+    pub temp_range_degc: Vec<[f64; 2]>,
+    #[serde(skip)]
     pub temp_names: Vec<String>,
     #[serde(skip)]
     pub sensor_idx: Vec<usize>,
@@ -749,6 +751,7 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
         beta,
         beta_baseline,
         temp_mean_degc: d.temp_mean_degc.clone(),
+        temp_range_degc: d.temp_range_degc.clone(),
         temp_names: d.names.clone(),
         sensor_idx: d.sensors.clone(),
         pos_range_mm: (d.pos_min_mm, d.pos_max_mm),

@@ -19,7 +19,7 @@ use serde::{Deserialize, Serialize};
 
 use super::effects::{lag, legendre_2_4, motion_heat, EffectKind};
 use super::{DiagnoseError, Diagnosis};
-use crate::calibrate::AxisModel;
+use crate::calibrate::{fitted_range, AxisModel};
 use compgate_core::measure::Measurements;
 use compgate_gateway::config::schema::{
     K0Model, K0Term, MotionHeatModel, TanBetaModel, TanBetaTerm,
@@ -346,6 +346,7 @@ impl ModelFile {
                     terms: Vec::new(),
                 },
                 motion_heat: None,
+                fitted_degc: Default::default(),
             },
             ..Default::default()
         };
@@ -465,6 +466,16 @@ impl ModelFile {
                 }
             }
         }
+        // Each term's channel, over the temperatures the data held.
+        let channels = mf.axis.k0.terms.iter().map(|t| &t.channel);
+        let channels = channels.chain(mf.axis.tan_beta.terms.iter().map(|t| &t.channel));
+        mf.axis.fitted_degc = channels
+            .filter_map(|ch| {
+                let s = d.temp_names.iter().position(|n| n == ch)?;
+                let [lo, hi] = *d.temp_range_degc.get(s)?;
+                Some((ch.clone(), fitted_range(lo, hi)))
+            })
+            .collect();
         mf
     }
 }
@@ -506,6 +517,7 @@ mod tests {
                     }],
                 },
                 motion_heat: None,
+                fitted_degc: Default::default(),
             },
             lagged_channels: vec![],
             applied: vec!["thermal_lag: a through a 100 s lag".into()],

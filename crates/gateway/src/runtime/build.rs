@@ -15,7 +15,7 @@ use crate::source::modbus::{Backoff, LinkSpec, ModbusLink};
 use crate::source::{ChannelSpec, DevicePoller, DeviceSample, SharedLink};
 use compgate_core::comp::AxisCompensator;
 
-use super::{AxisRt, GatewayError, Pipeline};
+use super::{AxisRt, FittedRange, GatewayError, Pipeline};
 
 /// The poller of one device, by transport.
 #[derive(Debug)]
@@ -289,6 +289,20 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
                     .ok_or_else(|| GatewayError::Config(format!("axes.{name}: no channel {n}")))
             })
             .collect::<Result<Vec<_>, _>>()?;
+        let fitted = ax
+            .fitted_degc
+            .iter()
+            .map(|(n, &[min_degc, max_degc])| {
+                let channel = *channel_index.get(n.as_str()).ok_or_else(|| {
+                    GatewayError::Config(format!("axes.{name}.fitted_degc: no channel {n}"))
+                })?;
+                Ok(FittedRange {
+                    channel,
+                    min_degc,
+                    max_degc,
+                })
+            })
+            .collect::<Result<Vec<_>, GatewayError>>()?;
         axes.push(AxisRt {
             name: name.clone(),
             nc_module,
@@ -299,6 +313,7 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             nc_write: ax.nc_write_ids(),
             axis_state: nc_modules[nc_module].writer.has_axis_state(),
             shadow: ax.shadow || cfg.gateway.shadow,
+            fitted,
         });
     }
 

@@ -885,6 +885,18 @@ fn decide_axis(
     }
     state.status.axes[i].decision = text;
     state.status.axes[i].at_limit = course == AxisCourse::AtLimit;
+    let outside = pipeline.outside_fit(i, state.status.axes[i].outside_fit.is_some());
+    let st = &mut state.status.axes[i];
+    match (&outside, &st.outside_fit) {
+        (Some(why), None) => tracing::warn!(axis = %st.name, "axis {}: {why}", st.name),
+        (None, Some(_)) => tracing::info!(
+            axis = %st.name,
+            "axis {}: its inputs are within the temperatures the model was fitted over again",
+            st.name
+        ),
+        _ => {}
+    }
+    st.outside_fit = outside;
     let params = match decision {
         Decision::Write { params, .. } | Decision::Ramp { params, .. } => params,
         Decision::WithinDeadband | Decision::Hold { .. } => return,

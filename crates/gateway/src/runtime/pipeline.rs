@@ -33,6 +33,26 @@ pub struct AxisRt {
     pub axis_state: bool,
     /// Shadow mode: compute and record, never write the NC.
     pub shadow: bool,
+    /// The temperatures its model was fitted over (`fitted_degc`).
+    pub fitted: Vec<FittedRange>,
+}
+
+/// How far past its fitted range a reading is flagged, K: the noise and a day's
+/// drift of a sensor at the range's edge are no extrapolation worth a warning.
+pub const FIT_MARGIN_K: f64 = 2.0;
+
+/// How much closer than [`FIT_MARGIN_K`] a flagged reading must come to clear, K.
+pub const FIT_HYSTERESIS_K: f64 = 0.5;
+
+/// One input channel's temperatures the model was fitted over.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FittedRange {
+    /// Channel index.
+    pub channel: usize,
+    /// Lowest temperature in the fitted data, degC.
+    pub min_degc: f64,
+    /// Highest, degC.
+    pub max_degc: f64,
 }
 
 /// The synchronous part of the gateway: channel processors and axis compensators.
@@ -172,6 +192,39 @@ impl Pipeline {
     /// The value of channel `ch` if its quality allows using it.
     pub fn usable_degc(&self, ch: usize) -> Option<f64> {
         self.processors.get(ch)?.last().usable_degc()
+    }
+
+    /// Why axis `axis`'s model extrapolates now: the usable input reading farthest
+    /// (more than [`FIT_MARGIN_K`]) outside the range it was fitted over, in words.
+    /// Once `flagged`, a reading must come [`FIT_HYSTERESIS_K`] closer to clear it, so
+    /// that one at the margin does not flag and clear with its noise.
+    pub fn outside_fit(&self, axis: usize, flagged: bool) -> Option<String> {
+        let margin_k = if flagged {
+            FIT_MARGIN_K - FIT_HYSTERESIS_K
+        } else {
+            FIT_MARGIN_K
+        };
+        self.axes[axis]
+            .fitted
+            .iter()
+            .filter_map(|r| {
+                let v = self.usable_degc(r.channel)?;
+                let (beyond_k, side) = if v < r.min_degc {
+                    (r.min_degc - v, "below")
+                } else {
+                    (v - r.max_degc, "above")
+                };
+                (beyond_k > margin_k).then_some((beyond_k, v, side, r))
+            })
+            .max_by(|a, b| a.0.total_cmp(&b.0))
+            .map(|(beyond_k, v, side, r)| {
+                format!(
+                    "{} reads {v:.1} degC, {beyond_k:.1} K {side} the {:.1}..{:.1} degC the \
+                     model was fitted over: it extrapolates; measure and calibrate over the \
+                     temperatures the machine now reaches",
+                    self.channel_names[r.channel], r.min_degc, r.max_degc
+                )
+            })
     }
 
     /// Runs one compensation decision for axis `axis`.

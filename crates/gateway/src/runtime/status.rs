@@ -55,6 +55,9 @@ pub struct AxisStatus {
     /// The last decision found the model's value beyond `max_abs_k0_mm` or
     /// `max_abs_tan_beta`: the NC gets the limit (the decision names the value).
     pub at_limit: bool,
+    /// An input reads outside the temperatures the model was fitted over
+    /// (`fitted_degc`): which, and by how much.
+    pub outside_fit: Option<String>,
     /// Jobs that ended verified.
     pub jobs_ok: u64,
     /// Jobs that failed.

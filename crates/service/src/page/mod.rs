@@ -278,6 +278,7 @@ pub fn to_json(
                 "would_write": a.would_write.as_ref().map(params),
                 "decision": a.decision,
                 "at_limit": a.at_limit,
+                "outside_fit": a.outside_fit,
                 "jobs_ok": a.jobs_ok,
                 "jobs_failed": a.jobs_failed,
                 "jobs_shadow": a.jobs_shadow,

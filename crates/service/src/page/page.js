@@ -136,6 +136,7 @@ function axisWords(a) {
   if (a.shadow) w.push("shadow");
   if (held(a)) w.push("held");
   if (a.at_limit) w.push("at its limit");
+  if (a.outside_fit) w.push("outside its fit");
   return w.length ? w.join(", ") : "ok";
 }
 
@@ -155,6 +156,7 @@ function axes(list, now_ms) {
       : (a.nc_last ? `<b>NC not answering</b>; as read ${clock(now_ms - a.nc_last.read_ago_ms)}: ${ncLine(a.nc_last)}` : "NC not read yet");
     const badges = (held(a) ? badge("hold", "HOLD") : "") +
       (a.at_limit ? badge("limit", "AT LIMIT") : "") +
+      (a.outside_fit ? badge("limit", "OUTSIDE FIT") : "") +
       (a.shadow ? badge("shadow", "SHADOW: NC not written") : "");
     const jobsText = a.shadow
       ? `jobs ${a.jobs_shadow ?? 0} shadow`
@@ -172,6 +174,7 @@ function axes(list, now_ms) {
       <p>${line}</p>
       <p class="${a.at_limit || held(a) ? "warning" : "muted"}">decision: ${esc(a.decision)}; ${jobsText}</p>
       ${a.warning ? `<p class="warning">${esc(a.warning)}</p>` : ""}
+      ${a.outside_fit ? `<p class="warning">model: ${esc(a.outside_fit)}</p>` : ""}
       ${a.last_job_error ? `<p class="warning">last job: ${esc(a.last_job_error)}</p>`
         : a.last_failure ? `<p class="muted">last failed job ${clock(a.last_failure.t_unix_ms)}: ${esc(a.last_failure.error)}</p>` : ""}
     </div>`;
