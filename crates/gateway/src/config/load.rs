@@ -433,6 +433,11 @@ struct EnvOverride {
 /// keys ignoring case, so `COMPGATE__CHANNELS__T_BED__ADDRESS` sets `channels.T_bed`
 /// rather than creating a channel `t_bed`. A level that is a number and meets an array
 /// in the file becomes an index.
+///
+/// An empty variable and a `COMPGATE_...__...` one (one `_` after the prefix) are
+/// problems, not ignored: both are what a template with a missing value or a typo
+/// produces, and ignoring them runs the file's value, e.g. another machine's NC
+/// address.
 fn env_overrides(
     env: impl IntoIterator<Item = (String, String)>,
     file: &toml::Table,
@@ -440,10 +445,41 @@ fn env_overrides(
     problems: &mut Vec<ConfigProblem>,
 ) -> Vec<EnvOverride> {
     let pattern = format!("{ENV_PREFIX}{ENV_SEPARATOR}").to_lowercase();
-    let selected: HashMap<String, String> = env
-        .into_iter()
-        .filter(|(k, _)| k.to_lowercase().starts_with(&pattern))
-        .collect();
+    let root = toml::Value::Table(file.clone());
+    let mut env: Vec<(String, String)> = env.into_iter().collect();
+    env.sort();
+    let mut selected: HashMap<String, String> = HashMap::new();
+    for (name, raw) in env {
+        let Some(rest) = name.to_lowercase().strip_prefix(&pattern).map(dotted) else {
+            if let Some(meant) = mistyped_prefix(&name) {
+                let key = file_key(&root, &dotted(&meant[pattern.len()..]));
+                problems.push(ConfigProblem::new(
+                    origin,
+                    key,
+                    format!(
+                        "the environment variable {name} looks like an override but has one \
+                         `_` after {ENV_PREFIX}: write {meant}"
+                    ),
+                ));
+            }
+            continue;
+        };
+        if raw.is_empty() {
+            let keep = match restore_case(&root, &rest) {
+                Ok(path) if node(&root, &path).is_some() => {
+                    "unset it to keep the file's value, or give one"
+                }
+                _ => "unset it or give a value",
+            };
+            problems.push(ConfigProblem::new(
+                origin,
+                file_key(&root, &rest),
+                format!("the environment variable {name} is empty: {keep}"),
+            ));
+            continue;
+        }
+        selected.insert(name, raw);
+    }
     if selected.is_empty() {
         return Vec::new();
     }
@@ -451,13 +487,12 @@ fn env_overrides(
     // the variable's name again.
     let mut by_key: BTreeMap<String, Vec<(&String, &String)>> = BTreeMap::new();
     for (name, raw) in &selected {
-        let key = name.to_lowercase()[pattern.len()..].replace(ENV_SEPARATOR, ".");
+        let key = dotted(&name.to_lowercase()[pattern.len()..]);
         by_key.entry(key).or_default().push((name, raw));
     }
     let parsed = Environment::with_prefix(ENV_PREFIX)
         .separator(ENV_SEPARATOR)
         .try_parsing(true)
-        .ignore_empty(true)
         .source(Some(selected.clone().into_iter().collect()))
         .collect();
     let parsed = match parsed {
@@ -467,7 +502,6 @@ fn env_overrides(
             return Vec::new();
         }
     };
-    let root = toml::Value::Table(file.clone());
     let mut out = Vec::new();
     for (key, value) in parsed {
         let Some(vars) = by_key.get(&key) else {
@@ -506,6 +540,44 @@ fn env_overrides(
     }
     out.sort_by(|a, b| a.path.cmp(&b.path));
     out
+}
+
+/// The dotted, lowercased key of an override's name after the prefix, as the
+/// Environment source computes it.
+fn dotted(rest: &str) -> String {
+    rest.to_lowercase().replace(ENV_SEPARATOR, ".")
+}
+
+/// `key` (dotted, lowercased) as problems name it: in the file's spelling where the
+/// file has it, else as given.
+fn file_key(root: &toml::Value, key: &str) -> String {
+    restore_case(root, key).map_or_else(|_| key.to_string(), |path| render(&path))
+}
+
+/// The override `name` was meant to be when it starts with `COMPGATE_` (any case)
+/// followed by a level and `__`, e.g. `COMPGATE_NC_MODULES__NC_X__ADDRESS`; `None`
+/// for a name without `__` after the prefix, such as the `COMPGATE_OPCUA_USER` a
+/// `user_env` names.
+fn mistyped_prefix(name: &str) -> Option<String> {
+    let prefix = name.get(..ENV_PREFIX.len())?;
+    let rest = name.get(ENV_PREFIX.len()..)?.strip_prefix('_')?;
+    let mistyped = prefix.eq_ignore_ascii_case(ENV_PREFIX)
+        && !rest.starts_with('_')
+        && rest.contains(ENV_SEPARATOR);
+    mistyped.then(|| format!("{ENV_PREFIX}{ENV_SEPARATOR}{rest}"))
+}
+
+/// The value at `path`, if `root` has it.
+fn node<'a>(root: &'a toml::Value, path: &[Seg]) -> Option<&'a toml::Value> {
+    let mut node = root;
+    for seg in path {
+        node = match (node, seg) {
+            (toml::Value::Table(t), Seg::Key(k)) => t.get(k)?,
+            (toml::Value::Array(a), Seg::Index(i)) => a.get(*i)?,
+            _ => return None,
+        };
+    }
+    Some(node)
 }
 
 /// Maps a lowercased dotted key onto the spelling of the keys in `root`.
