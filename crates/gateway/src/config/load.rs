@@ -43,6 +43,14 @@ pub fn load(path: &Path) -> Result<Config, ConfigError> {
     load_with_env(path, process_env())
 }
 
+/// As [`load`], also returning the environment overrides that went into the
+/// configuration, sorted by key: `validate` and `run` name them, as nothing in the file
+/// shows that a value came from elsewhere.
+pub fn load_listing_overrides(path: &Path) -> Result<(Config, Vec<EnvOverride>), ConfigError> {
+    let file = path.display().to_string();
+    load_text(&read(path)?, &file, process_env(), false)
+}
+
 /// As [`load`], with the environment given explicitly (tests, or a caller that has
 /// already filtered it). Only entries named `COMPGATE__...` are used.
 pub fn load_with_env(
@@ -50,14 +58,14 @@ pub fn load_with_env(
     env: impl IntoIterator<Item = (String, String)>,
 ) -> Result<Config, ConfigError> {
     let file = path.display().to_string();
-    load_text(&read(path)?, &file, env, false)
+    load_text(&read(path)?, &file, env, false).map(|(cfg, _)| cfg)
 }
 
 /// As [`load`] for the simulated plant (`compgate sim`): in a file with `[sim]`, port
 /// 0 in an address passes, as the plant binds a free port for it.
 pub fn load_for_sim(path: &Path) -> Result<Config, ConfigError> {
     let file = path.display().to_string();
-    load_text(&read(path)?, &file, process_env(), true)
+    load_text(&read(path)?, &file, process_env(), true).map(|(cfg, _)| cfg)
 }
 
 /// Loads and validates configuration text, e.g. the demo's embedded file or a test's.
@@ -77,7 +85,7 @@ pub fn load_str_with_env(
     origin: &str,
     env: impl IntoIterator<Item = (String, String)>,
 ) -> Result<Config, ConfigError> {
-    load_text(text, origin, env, true)
+    load_text(text, origin, env, true).map(|(cfg, _)| cfg)
 }
 
 /// The largest configuration file read, bytes. A cell's is a few kB and a line's with
@@ -126,13 +134,14 @@ fn process_env() -> impl Iterator<Item = (String, String)> {
     })
 }
 
-/// Loads and validates `text`; `for_sim` as [`validate_assuming`].
+/// Loads and validates `text`; `for_sim` as [`validate_assuming`]. With the
+/// configuration, the environment overrides in it.
 fn load_text(
     text: &str,
     origin: &str,
     env: impl IntoIterator<Item = (String, String)>,
     for_sim: bool,
-) -> Result<Config, ConfigError> {
+) -> Result<(Config, Vec<EnvOverride>), ConfigError> {
     let invalid = |p: ConfigProblem| ConfigError::Invalid(vec![p]);
     let file_tree: toml::Table = text
         .parse()
@@ -195,7 +204,7 @@ fn load_text(
                 annotate_env(p, &overrides);
             }
             if problems.is_empty() {
-                Ok(cfg)
+                Ok((cfg, overrides))
             } else {
                 Err(ConfigError::Invalid(problems))
             }
@@ -413,8 +422,9 @@ fn syntax_problem(origin: &str, text: &str, e: &toml::de::Error) -> ConfigProble
 // ------------------------------------------------------------------ environment --
 
 /// One `COMPGATE__...` variable, its key mapped back onto the file's spelling.
-#[derive(Debug)]
-struct EnvOverride {
+///
+/// Shown as `VAR -> key`, without the value: a password may be in one.
+pub struct EnvOverride {
     /// The variable's name as set.
     var: String,
     /// The value as set, before the `config` crate parsed it.
@@ -426,6 +436,35 @@ struct EnvOverride {
     /// The table above `path` the file does not have, which the override creates
     /// (e.g. `devices.ain2` for `COMPGATE__DEVICES__AIN2__TIMEOUT_S`).
     creates: Option<Vec<Seg>>,
+}
+
+impl EnvOverride {
+    /// The variable's name as set.
+    pub fn var(&self) -> &str {
+        &self.var
+    }
+
+    /// The key it sets, as problems name keys (e.g. `axes.X.k0.terms[1].ref_degc`).
+    pub fn key(&self) -> String {
+        render(&self.path)
+    }
+}
+
+impl std::fmt::Display for EnvOverride {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} -> {}", self.var, self.key())
+    }
+}
+
+// By hand, as a derived Debug would print the value to wherever the record is logged.
+impl std::fmt::Debug for EnvOverride {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EnvOverride")
+            .field("var", &self.var)
+            .field("path", &self.path)
+            .field("creates", &self.creates)
+            .finish_non_exhaustive()
+    }
 }
 
 /// The `config` crate's [`Environment`] source does the parsing (prefix, `__`

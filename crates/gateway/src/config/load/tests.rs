@@ -444,6 +444,41 @@ fn a_variable_with_one_underscore_after_the_prefix_is_a_problem_naming_it() {
     );
 }
 
+// `validate` and `run` list the overrides from what the loader used, without values.
+#[test]
+fn the_loader_returns_the_overrides_it_applied_shown_without_their_values() {
+    let (cfg, overrides) = load_text(
+        EXAMPLE,
+        "e.toml",
+        env(&[
+            ("COMPGATE__NC_MODULES__NC_X__ADDRESS", "10.0.0.2:502"),
+            ("COMPGATE__CHANNELS__T_BED__ADDRESS", "9"),
+            (
+                "COMPGATE__AXES__X__K0__TERMS__1__COEFF_MM_PER_DEGC",
+                "0.002",
+            ),
+            ("COMPGATE_OPCUA_USER", "operator"),
+        ]),
+        true,
+    )
+    .expect("valid");
+    assert_eq!(cfg.channels["T_bed"].address, Some(9));
+    let shown: Vec<String> = overrides.iter().map(ToString::to_string).collect();
+    assert_eq!(
+        shown,
+        [
+            "COMPGATE__AXES__X__K0__TERMS__1__COEFF_MM_PER_DEGC -> axes.X.k0.terms[1].coeff_mm_per_degc",
+            "COMPGATE__CHANNELS__T_BED__ADDRESS -> channels.T_bed.address",
+            "COMPGATE__NC_MODULES__NC_X__ADDRESS -> nc_modules.nc_x.address",
+        ]
+    );
+    let debug = format!("{overrides:?}");
+    assert!(
+        !debug.contains("10.0.0.2") && !debug.contains("0.002"),
+        "{debug}"
+    );
+}
+
 #[test]
 fn env_override_keeps_mixed_case_names() {
     let cfg = load_str_with_env(
