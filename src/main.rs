@@ -171,7 +171,11 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
                 config = %path.display(),
                 "compgate starting"
             );
-            let cfg = config::load(&path).map_err(failed)?;
+            let (cfg, overrides) = config::load_listing_overrides(&path).map_err(failed)?;
+            // What the file does not show; names only, as a value may be a password.
+            for o in &overrides {
+                tracing::info!("environment override: {o}");
+            }
             for w in config::warnings(&cfg, &path.display().to_string()) {
                 tracing::warn!(file = %w.file, key = %w.key, "{}", w.message);
             }
@@ -184,7 +188,7 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
             e => failed(e),
         }),
         Command::Validate { config: path } => {
-            let cfg = config::load(&path).map_err(failed)?;
+            let (cfg, overrides) = config::load_listing_overrides(&path).map_err(failed)?;
             // What `run` needs of the file system, so that ExecStartPre catches it;
             // the warnings are printed whether it passes or not.
             let mut path_checked = Ok(());
@@ -203,7 +207,12 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
                 cli::eprintln(format_args!("warning: {w}"))?;
             }
             path_checked?;
-            Ok(cli::print(format_args!("{}: OK\n", path.display()))?)
+            cli::print(format_args!("{}: OK\n", path.display()))?;
+            // Names only: a value may be a password.
+            for o in &overrides {
+                cli::print(format_args!("environment override: {o}\n"))?;
+            }
+            Ok(())
         }
         #[cfg(feature = "sim")]
         Command::Sim { config: path } => demo::sim(&path).await,

@@ -35,6 +35,67 @@ fn a_recorder_path_from_the_environment_is_named_with_its_variable() {
     );
 }
 
+// Nothing in the file shows that a value came from the environment: validate lists
+// the overrides after OK, variable and key, never the value (a password may be one).
+// An empty override and one with a single `_` after COMPGATE, which ran the file's
+// value instead (another machine's NC address), are problems.
+#[test]
+fn validate_lists_the_overrides_and_refuses_empty_and_mistyped_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("plant.toml");
+    std::fs::copy("config/example.toml", &path).unwrap();
+    let validate = |vars: &[(&str, &str)]| {
+        let mut cmd = Command::new(BIN);
+        cmd.args(["validate", "--config"]).arg(&path);
+        for (k, v) in vars {
+            cmd.env(k, v);
+        }
+        let out = cmd.output().unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stdout).into_owned(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let (code, stdout, stderr) = validate(&[
+        ("COMPGATE__NC_MODULES__NC_X__ADDRESS", "127.0.0.1:5099"),
+        ("COMPGATE__DEVICES__AIN1__TIMEOUT_S", "0.25"),
+        ("COMPGATE_OPCUA_USER", "operator"),
+    ]);
+    assert_eq!(code, Some(0), "{stderr}");
+    assert_eq!(
+        stdout,
+        format!(
+            "{}: OK\n\
+             environment override: COMPGATE__DEVICES__AIN1__TIMEOUT_S -> devices.ain1.timeout_s\n\
+             environment override: COMPGATE__NC_MODULES__NC_X__ADDRESS -> nc_modules.nc_x.address\n",
+            path.display()
+        )
+    );
+    assert!(
+        !(stdout.clone() + &stderr).contains("5099"),
+        "{stdout}{stderr}"
+    );
+
+    let (code, _, stderr) = validate(&[("COMPGATE__NC_MODULES__NC_X__ADDRESS", "")]);
+    assert_eq!(code, Some(1), "{stderr}");
+    assert!(
+        stderr.contains(&format!(
+            "{}: nc_modules.nc_x.address: the environment variable \
+             COMPGATE__NC_MODULES__NC_X__ADDRESS is empty: unset it to keep the file's value, \
+             or give one",
+            path.display()
+        )),
+        "{stderr}"
+    );
+    let (code, _, stderr) = validate(&[("COMPGATE_NC_MODULES__NC_X__ADDRESS", "127.0.0.1:5099")]);
+    assert_eq!(code, Some(1), "{stderr}");
+    assert!(
+        stderr.contains("write COMPGATE__NC_MODULES__NC_X__ADDRESS"),
+        "{stderr}"
+    );
+}
+
 /// example.toml with its NC module replaced by an OPC UA target whose credentials are
 /// given by `credentials` (`credentials_file = ...` or `user_env`/`password_env`).
 fn opcua_config(dir: &std::path::Path, credentials: &str) -> std::path::PathBuf {

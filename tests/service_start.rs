@@ -60,6 +60,31 @@ fn ready_at_start_with_every_device_dead_and_status_names_them() {
     assert!(gw.stop());
 }
 
+// Which values came from the environment is in the log once at start, variable and
+// key; the value is not (a password may be one).
+#[test]
+fn the_environment_overrides_are_logged_at_start_without_their_values() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dead_plant_file(dir.path());
+    let mut gw = Gateway::start(
+        dir.path(),
+        &path,
+        &[("COMPGATE__DEVICES__AIN1__TIMEOUT_S", "0.375")],
+    );
+    gw.wait_notify(10.0, "READY=1", |m| m.lines().any(|l| l == "READY=1"));
+    let log = gw.stderr_text();
+    let line = "environment override: COMPGATE__DEVICES__AIN1__TIMEOUT_S -> devices.ain1.timeout_s";
+    assert_eq!(
+        log.lines()
+            .filter(|l| l.contains(line) && l.contains("INFO"))
+            .count(),
+        1,
+        "{log}"
+    );
+    assert!(!log.contains("0.375"), "{log}");
+    assert!(gw.stop());
+}
+
 // A file that does not load on SIGHUP: the log and systemd's STATUS= both say the
 // reload was refused, naming the problem, and STATUS= keeps saying it until a reload
 // succeeds; the old configuration runs on.

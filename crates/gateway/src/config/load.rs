@@ -43,6 +43,14 @@ pub fn load(path: &Path) -> Result<Config, ConfigError> {
     load_with_env(path, process_env())
 }
 
+/// As [`load`], also returning the environment overrides that went into the
+/// configuration, sorted by key: `validate` and `run` name them, as nothing in the file
+/// shows that a value came from elsewhere.
+pub fn load_listing_overrides(path: &Path) -> Result<(Config, Vec<EnvOverride>), ConfigError> {
+    let file = path.display().to_string();
+    load_text(&read(path)?, &file, process_env(), false)
+}
+
 /// As [`load`], with the environment given explicitly (tests, or a caller that has
 /// already filtered it). Only entries named `COMPGATE__...` are used.
 pub fn load_with_env(
@@ -50,14 +58,14 @@ pub fn load_with_env(
     env: impl IntoIterator<Item = (String, String)>,
 ) -> Result<Config, ConfigError> {
     let file = path.display().to_string();
-    load_text(&read(path)?, &file, env, false)
+    load_text(&read(path)?, &file, env, false).map(|(cfg, _)| cfg)
 }
 
 /// As [`load`] for the simulated plant (`compgate sim`): in a file with `[sim]`, port
 /// 0 in an address passes, as the plant binds a free port for it.
 pub fn load_for_sim(path: &Path) -> Result<Config, ConfigError> {
     let file = path.display().to_string();
-    load_text(&read(path)?, &file, process_env(), true)
+    load_text(&read(path)?, &file, process_env(), true).map(|(cfg, _)| cfg)
 }
 
 /// Loads and validates configuration text, e.g. the demo's embedded file or a test's.
@@ -77,7 +85,7 @@ pub fn load_str_with_env(
     origin: &str,
     env: impl IntoIterator<Item = (String, String)>,
 ) -> Result<Config, ConfigError> {
-    load_text(text, origin, env, true)
+    load_text(text, origin, env, true).map(|(cfg, _)| cfg)
 }
 
 /// The largest configuration file read, bytes. A cell's is a few kB and a line's with
@@ -126,13 +134,14 @@ fn process_env() -> impl Iterator<Item = (String, String)> {
     })
 }
 
-/// Loads and validates `text`; `for_sim` as [`validate_assuming`].
+/// Loads and validates `text`; `for_sim` as [`validate_assuming`]. With the
+/// configuration, the environment overrides in it.
 fn load_text(
     text: &str,
     origin: &str,
     env: impl IntoIterator<Item = (String, String)>,
     for_sim: bool,
-) -> Result<Config, ConfigError> {
+) -> Result<(Config, Vec<EnvOverride>), ConfigError> {
     let invalid = |p: ConfigProblem| ConfigError::Invalid(vec![p]);
     let file_tree: toml::Table = text
         .parse()
@@ -195,7 +204,7 @@ fn load_text(
                 annotate_env(p, &overrides);
             }
             if problems.is_empty() {
-                Ok(cfg)
+                Ok((cfg, overrides))
             } else {
                 Err(ConfigError::Invalid(problems))
             }
@@ -413,8 +422,9 @@ fn syntax_problem(origin: &str, text: &str, e: &toml::de::Error) -> ConfigProble
 // ------------------------------------------------------------------ environment --
 
 /// One `COMPGATE__...` variable, its key mapped back onto the file's spelling.
-#[derive(Debug)]
-struct EnvOverride {
+///
+/// Shown as `VAR -> key`, without the value: a password may be in one.
+pub struct EnvOverride {
     /// The variable's name as set.
     var: String,
     /// The value as set, before the `config` crate parsed it.
@@ -428,11 +438,45 @@ struct EnvOverride {
     creates: Option<Vec<Seg>>,
 }
 
+impl EnvOverride {
+    /// The variable's name as set.
+    pub fn var(&self) -> &str {
+        &self.var
+    }
+
+    /// The key it sets, as problems name keys (e.g. `axes.X.k0.terms[1].ref_degc`).
+    pub fn key(&self) -> String {
+        render(&self.path)
+    }
+}
+
+impl std::fmt::Display for EnvOverride {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} -> {}", self.var, self.key())
+    }
+}
+
+// By hand, as a derived Debug would print the value to wherever the record is logged.
+impl std::fmt::Debug for EnvOverride {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EnvOverride")
+            .field("var", &self.var)
+            .field("path", &self.path)
+            .field("creates", &self.creates)
+            .finish_non_exhaustive()
+    }
+}
+
 /// The `config` crate's [`Environment`] source does the parsing (prefix, `__`
 /// separator, value types); its lowercased keys are then matched against the file's
 /// keys ignoring case, so `COMPGATE__CHANNELS__T_BED__ADDRESS` sets `channels.T_bed`
 /// rather than creating a channel `t_bed`. A level that is a number and meets an array
 /// in the file becomes an index.
+///
+/// An empty variable and a `COMPGATE_...__...` one (one `_` after the prefix) are
+/// problems, not ignored: both are what a template with a missing value or a typo
+/// produces, and ignoring them runs the file's value, e.g. another machine's NC
+/// address.
 fn env_overrides(
     env: impl IntoIterator<Item = (String, String)>,
     file: &toml::Table,
@@ -440,10 +484,41 @@ fn env_overrides(
     problems: &mut Vec<ConfigProblem>,
 ) -> Vec<EnvOverride> {
     let pattern = format!("{ENV_PREFIX}{ENV_SEPARATOR}").to_lowercase();
-    let selected: HashMap<String, String> = env
-        .into_iter()
-        .filter(|(k, _)| k.to_lowercase().starts_with(&pattern))
-        .collect();
+    let root = toml::Value::Table(file.clone());
+    let mut env: Vec<(String, String)> = env.into_iter().collect();
+    env.sort();
+    let mut selected: HashMap<String, String> = HashMap::new();
+    for (name, raw) in env {
+        let Some(rest) = name.to_lowercase().strip_prefix(&pattern).map(dotted) else {
+            if let Some(meant) = mistyped_prefix(&name) {
+                let key = file_key(&root, &dotted(&meant[pattern.len()..]));
+                problems.push(ConfigProblem::new(
+                    origin,
+                    key,
+                    format!(
+                        "the environment variable {name} looks like an override but has one \
+                         `_` after {ENV_PREFIX}: write {meant}"
+                    ),
+                ));
+            }
+            continue;
+        };
+        if raw.is_empty() {
+            let keep = match restore_case(&root, &rest) {
+                Ok(path) if node(&root, &path).is_some() => {
+                    "unset it to keep the file's value, or give one"
+                }
+                _ => "unset it or give a value",
+            };
+            problems.push(ConfigProblem::new(
+                origin,
+                file_key(&root, &rest),
+                format!("the environment variable {name} is empty: {keep}"),
+            ));
+            continue;
+        }
+        selected.insert(name, raw);
+    }
     if selected.is_empty() {
         return Vec::new();
     }
@@ -451,13 +526,12 @@ fn env_overrides(
     // the variable's name again.
     let mut by_key: BTreeMap<String, Vec<(&String, &String)>> = BTreeMap::new();
     for (name, raw) in &selected {
-        let key = name.to_lowercase()[pattern.len()..].replace(ENV_SEPARATOR, ".");
+        let key = dotted(&name.to_lowercase()[pattern.len()..]);
         by_key.entry(key).or_default().push((name, raw));
     }
     let parsed = Environment::with_prefix(ENV_PREFIX)
         .separator(ENV_SEPARATOR)
         .try_parsing(true)
-        .ignore_empty(true)
         .source(Some(selected.clone().into_iter().collect()))
         .collect();
     let parsed = match parsed {
@@ -467,7 +541,6 @@ fn env_overrides(
             return Vec::new();
         }
     };
-    let root = toml::Value::Table(file.clone());
     let mut out = Vec::new();
     for (key, value) in parsed {
         let Some(vars) = by_key.get(&key) else {
@@ -506,6 +579,44 @@ fn env_overrides(
     }
     out.sort_by(|a, b| a.path.cmp(&b.path));
     out
+}
+
+/// The dotted, lowercased key of an override's name after the prefix, as the
+/// Environment source computes it.
+fn dotted(rest: &str) -> String {
+    rest.to_lowercase().replace(ENV_SEPARATOR, ".")
+}
+
+/// `key` (dotted, lowercased) as problems name it: in the file's spelling where the
+/// file has it, else as given.
+fn file_key(root: &toml::Value, key: &str) -> String {
+    restore_case(root, key).map_or_else(|_| key.to_string(), |path| render(&path))
+}
+
+/// The override `name` was meant to be when it starts with `COMPGATE_` (any case)
+/// followed by a level and `__`, e.g. `COMPGATE_NC_MODULES__NC_X__ADDRESS`; `None`
+/// for a name without `__` after the prefix, such as the `COMPGATE_OPCUA_USER` a
+/// `user_env` names.
+fn mistyped_prefix(name: &str) -> Option<String> {
+    let prefix = name.get(..ENV_PREFIX.len())?;
+    let rest = name.get(ENV_PREFIX.len()..)?.strip_prefix('_')?;
+    let mistyped = prefix.eq_ignore_ascii_case(ENV_PREFIX)
+        && !rest.starts_with('_')
+        && rest.contains(ENV_SEPARATOR);
+    mistyped.then(|| format!("{ENV_PREFIX}{ENV_SEPARATOR}{rest}"))
+}
+
+/// The value at `path`, if `root` has it.
+fn node<'a>(root: &'a toml::Value, path: &[Seg]) -> Option<&'a toml::Value> {
+    let mut node = root;
+    for seg in path {
+        node = match (node, seg) {
+            (toml::Value::Table(t), Seg::Key(k)) => t.get(k)?,
+            (toml::Value::Array(a), Seg::Index(i)) => a.get(*i)?,
+            _ => return None,
+        };
+    }
+    Some(node)
 }
 
 /// Maps a lowercased dotted key onto the spelling of the keys in `root`.

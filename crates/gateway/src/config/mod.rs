@@ -80,7 +80,8 @@ mod structure;
 mod warnings;
 
 pub use load::{
-    env_note, load, load_for_sim, load_str, load_str_with_env, load_with_env, MAX_FILE_BYTES,
+    env_note, load, load_for_sim, load_listing_overrides, load_str, load_str_with_env,
+    load_with_env, EnvOverride, MAX_FILE_BYTES,
 };
 pub use problem::{ConfigError, ConfigProblem};
 pub use root::validate;

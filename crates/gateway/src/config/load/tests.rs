@@ -350,26 +350,132 @@ fn syntax_error_names_line_and_column() {
 
 #[test]
 fn env_override_changes_a_value() {
-    let cfg = load_str_with_env(
-        EXAMPLE,
-        "e.toml",
-        env(&[
-            ("COMPGATE__DEVICES__AIN1__TIMEOUT_S", "0.25"),
-            ("COMPGATE__AXES__X__UPDATE_INTERVAL_S", "3"),
-            ("COMPGATE__AXES__X__ON_BAD_INPUT", "hold"),
-            ("COMPGATE__DEVICES__AIN2__TIMEOUT_S", ""),
-            ("UNRELATED", "1"),
-            ("COMPGATE_SINGLE_UNDERSCORE", "1"),
-        ]),
-    )
-    .expect("valid");
+    let vars = [
+        ("COMPGATE__DEVICES__AIN1__TIMEOUT_S", "0.25"),
+        ("COMPGATE__AXES__X__UPDATE_INTERVAL_S", "3"),
+        ("COMPGATE__AXES__X__ON_BAD_INPUT", "hold"),
+        ("COMPGATE__DEVICES__AIN2__TIMEOUT_S", ""),
+        ("UNRELATED", "1"),
+        ("COMPGATE_SINGLE_UNDERSCORE", "1"),
+    ];
+    // An empty variable is what a template with an undefined value renders: an error,
+    // not the file's value.
+    let p = problems_env(EXAMPLE, &vars);
+    assert_eq!(
+        p.iter().map(ToString::to_string).collect::<Vec<_>>(),
+        ["t.toml: devices.ain2.timeout_s: the environment variable \
+             COMPGATE__DEVICES__AIN2__TIMEOUT_S is empty: unset it to keep the file's \
+             value, or give one"]
+    );
+    let set: Vec<(&str, &str)> = vars.into_iter().filter(|(_, v)| !v.is_empty()).collect();
+    let cfg = load_str_with_env(EXAMPLE, "e.toml", env(&set)).expect("valid");
     assert_eq!(cfg.devices["ain1"].common().timeout_s, 0.25);
     assert_eq!(cfg.axes["X"].update_interval_s, 3.0);
     assert_eq!(cfg.axes["X"].on_bad_input, OnBadInput::Hold);
+    assert_eq!(cfg.devices["ain2"].common().timeout_s, 0.3, "the file's");
+}
+
+// The field case: an Ansible template with an undefined variable ran with the base
+// file's NC address, another machine's NC.
+#[test]
+fn an_empty_override_is_a_problem_naming_the_variable_and_the_key() {
+    let p = problems_env(EXAMPLE, &[("COMPGATE__NC_MODULES__NC_X__ADDRESS", "")]);
     assert_eq!(
-        cfg.devices["ain2"].common().timeout_s,
-        0.3,
-        "empty counts as unset"
+        p.iter().map(ToString::to_string).collect::<Vec<_>>(),
+        ["t.toml: nc_modules.nc_x.address: the environment variable \
+             COMPGATE__NC_MODULES__NC_X__ADDRESS is empty: unset it to keep the file's \
+             value, or give one"]
+    );
+    // In the file's spelling; a key the file lacks has no value to keep.
+    let p = problems_env(
+        EXAMPLE,
+        &[
+            ("COMPGATE__CHANNELS__T_BED__ADDRESS", ""),
+            ("COMPGATE__RECORDER__PATH", ""),
+        ],
+    );
+    assert_eq!(
+        p.iter().map(ToString::to_string).collect::<Vec<_>>(),
+        [
+            "t.toml: channels.T_bed.address: the environment variable \
+             COMPGATE__CHANNELS__T_BED__ADDRESS is empty: unset it to keep the file's \
+             value, or give one",
+            "t.toml: recorder.path: the environment variable COMPGATE__RECORDER__PATH is \
+             empty: unset it or give a value",
+        ],
+        "{p:#?}"
+    );
+}
+
+// `COMPGATE_NC_MODULES__NC_X__ADDRESS` was ignored and the file's address ran.
+#[test]
+fn a_variable_with_one_underscore_after_the_prefix_is_a_problem_naming_it() {
+    let p = problems_env(
+        EXAMPLE,
+        &[
+            ("COMPGATE_NC_MODULES__NC_X__ADDRESS", "10.0.0.2:502"),
+            ("compgate_channels__t_bed__address", "3"),
+            // A user_env's variable and other COMPGATE_ names without `__` are not
+            // overrides.
+            ("COMPGATE_OPCUA_USER", "operator"),
+            ("COMPGATE_SINGLE_UNDERSCORE", "1"),
+            ("COMPGATE_TRAILING_", "1"),
+        ],
+    );
+    assert_eq!(
+        p.iter().map(ToString::to_string).collect::<Vec<_>>(),
+        [
+            "t.toml: nc_modules.nc_x.address: the environment variable \
+             COMPGATE_NC_MODULES__NC_X__ADDRESS looks like an override but has one `_` \
+             after COMPGATE: write COMPGATE__NC_MODULES__NC_X__ADDRESS",
+            "t.toml: channels.T_bed.address: the environment variable \
+             compgate_channels__t_bed__address looks like an override but has one `_` \
+             after COMPGATE: write COMPGATE__channels__t_bed__address",
+        ],
+        "{p:#?}"
+    );
+    assert_eq!(mistyped_prefix("COMPGATE__X__Y"), None);
+    assert_eq!(mistyped_prefix("COMPGATE"), None);
+    assert_eq!(mistyped_prefix("COMPGATEX__Y"), None);
+    assert_eq!(
+        mistyped_prefix("COMPGATé_X__Y"),
+        None,
+        "not cut inside a character"
+    );
+}
+
+// `validate` and `run` list the overrides from what the loader used, without values.
+#[test]
+fn the_loader_returns_the_overrides_it_applied_shown_without_their_values() {
+    let (cfg, overrides) = load_text(
+        EXAMPLE,
+        "e.toml",
+        env(&[
+            ("COMPGATE__NC_MODULES__NC_X__ADDRESS", "10.0.0.2:502"),
+            ("COMPGATE__CHANNELS__T_BED__ADDRESS", "9"),
+            (
+                "COMPGATE__AXES__X__K0__TERMS__1__COEFF_MM_PER_DEGC",
+                "0.002",
+            ),
+            ("COMPGATE_OPCUA_USER", "operator"),
+        ]),
+        true,
+    )
+    .expect("valid");
+    assert_eq!(cfg.channels["T_bed"].address, Some(9));
+    let shown: Vec<String> = overrides.iter().map(ToString::to_string).collect();
+    assert_eq!(
+        shown,
+        [
+            "COMPGATE__AXES__X__K0__TERMS__1__COEFF_MM_PER_DEGC -> axes.X.k0.terms[1].coeff_mm_per_degc",
+            "COMPGATE__CHANNELS__T_BED__ADDRESS -> channels.T_bed.address",
+            "COMPGATE__NC_MODULES__NC_X__ADDRESS -> nc_modules.nc_x.address",
+        ]
+    );
+    let debug = format!("{overrides:?}");
+    assert!(
+        !debug.contains("10.0.0.2") && !debug.contains("0.002"),
+        "{debug}"
     );
 }
 
