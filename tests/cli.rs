@@ -860,3 +860,90 @@ fn volumetric_help_states_the_pole_band_the_code_uses() {
     );
     assert!(help.contains(&band), "{help}");
 }
+
+// The field review's repro: a recording with compensation applied (nc.applied_comp_mm
+// 0.03 mm, one ok job) exported byte for byte as one without, and stderr said only
+// the row count. Now stderr names the span, --add-applied-comp adds the 30 um back,
+// and the flag without --axis is refused, naming it.
+#[test]
+fn export_of_a_compensated_recording_says_so_and_adds_the_compensation_on_request() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = recording(dir.path(), 100);
+    let conn = compgate_service::record::open(&db).expect("the recording");
+    conn.execute("INSERT INTO channels(id, name) VALUES (2, 'laser_um')", [])
+        .expect("the laser channel");
+    for i in 0..100i64 {
+        let t_ms = 1_000_000_000_000 + i * 1000;
+        conn.execute(
+            "INSERT INTO readings VALUES (?1, 2, 0.0, 12.0, 12.0, 0, NULL)",
+            [t_ms],
+        )
+        .expect("a laser reading");
+        conn.execute(
+            "INSERT INTO nc VALUES (?1, 'X', 100.0, 0.03, 0.03, 0, 0)",
+            [t_ms],
+        )
+        .expect("an NC row");
+    }
+    conn.execute(
+        "INSERT INTO jobs(t_unix_ms, axis, sd43900_mm, sd43910, sd43920_mm, ok) VALUES (999999999000, 'X', 0.03, 0, 0, 1)",
+        [],
+    )
+    .expect("a job");
+    drop(conn);
+    let export = |extra: &[&str]| {
+        let out = Command::new(BIN)
+            .args([
+                "export",
+                "--csv",
+                "--since",
+                "1000000000",
+                "--until",
+                "1000000100",
+            ])
+            .args(["--db", db.to_str().unwrap(), "--err-channel", "laser_um"])
+            .args(["--step-s", "10"])
+            .args(extra)
+            .output()
+            .unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stdout).into_owned(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let err_um = |csv: &str| -> Vec<String> {
+        let mut lines = csv.lines();
+        let head: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
+        let col = head.iter().position(|h| *h == "err_um").expect("err_um");
+        lines
+            .map(|l| l.split(',').nth(col).unwrap_or_default().to_string())
+            .collect()
+    };
+    let (code, csv, err) = export(&["--axis", "X"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        err.contains(
+            "the NC applied compensation to axis `X` from 2001-09-09T01:46:40.000Z to 2001-09-09T01:48:19.000Z (up to 30.0 um)"
+        ) && err.contains("--add-applied-comp"),
+        "{err}"
+    );
+    assert!(
+        err_um(&csv).iter().all(|e| e.parse::<f64>() == Ok(12.0)),
+        "{csv}"
+    );
+    let (code, csv, err) = export(&["--axis", "X", "--add-applied-comp"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        err_um(&csv)
+            .iter()
+            .all(|e| e.parse::<f64>().is_ok_and(|v| (v - 42.0).abs() < 1e-9)),
+        "{csv}"
+    );
+    let (code, _, err) = export(&["--add-applied-comp"]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.starts_with("error: --add-applied-comp: needs --axis"),
+        "{err}"
+    );
+}

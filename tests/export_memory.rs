@@ -60,6 +60,7 @@ fn export_peak(db: &std::path::Path, days: i64) -> (usize, usize) {
         err_channel: None,
         step_s: PERIOD_S as f64,
         max_hold_s: 60.0,
+        add_applied_comp: false,
     };
     let base = IN_USE.load(Ordering::Relaxed);
     PEAK.store(base, Ordering::Relaxed);

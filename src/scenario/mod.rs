@@ -979,6 +979,7 @@ async fn commission_from_records(
         err_channel: Some(LASER_CHANNEL.into()),
         step_s: 10.0,
         max_hold_s: 60.0,
+        add_applied_comp: false,
     };
     let summary = export::run(&ex).map_err(|e| lerr(&e))?;
     // What the tools read: the CSV file.

@@ -224,6 +224,7 @@ async fn the_closed_loop_improves_on_the_baseline() {
             err_channel: Some(LASER_CHANNEL.into()),
             step_s: 60.0,
             max_hold_s: 60.0,
+            add_applied_comp: false,
         },
     )
     .unwrap()
@@ -371,4 +372,124 @@ fn the_guides_export_step_is_a_whole_command() {
     if let Err(e) = crate::cli::Cli::try_parse_from(&args) {
         panic!("{command}: {e}");
     }
+}
+
+/// Records `hours` of the shop plant through the service's recorder into `db`, the
+/// gateway running `model` with compensation on or off; the Unix ms of its start.
+async fn record_run(db: &Path, model: &AxisModel, compensate: bool, hours: f64) -> i64 {
+    use compgate_service::record::{self, Recorder};
+    let (params, effects) = Plant::from_name("shop").unwrap().build();
+    let rec = Recorder::start(&compgate_gateway::config::RecorderConfig {
+        path: db.display().to_string(),
+        queue_cycles: 1_000_000,
+        ..Default::default()
+    })
+    .unwrap();
+    // Whole seconds, so `--since` in Unix seconds is exact; near now, so that no
+    // retention pass takes the records for old ones.
+    let epoch_ms = record::now_unix_ms() / 1000 * 1000;
+    let setup = Setup {
+        params: &params,
+        effects,
+        seed: 11,
+        hours,
+        sample_every_s: 300.0,
+    };
+    let mode = Mode {
+        model,
+        compensate,
+        cycle: DutyCycle::recording(hours),
+        sweeps: false,
+        record: Some((&rec, epoch_ms)),
+    };
+    run_once(&setup, &mode, &indicatif::ProgressBar::hidden())
+        .await
+        .unwrap();
+    rec.finish();
+    epoch_ms
+}
+
+/// A recording made with compensation on measures the error left after the NC's
+/// compensation; export wrote it as the error, and a model calibrated on it was a
+/// model of the residual. The same machine recorded with compensation off and on:
+/// export names the compensated span, and with `--add-applied-comp` the on run's
+/// err_um is the off run's (what proves the sign: the simulated interferometer reads
+/// the error minus the compensation the NC applied).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_recording_with_compensation_on_exports_the_error_without_it_on_request() {
+    use compgate_service::record::export::{self, ExportArgs};
+    let dir = tempfile::tempdir().unwrap();
+    let (params, effects) = Plant::from_name("shop").unwrap().build();
+    let sensors = vec!["column".to_string(), "screw".to_string()];
+    let (model, _, _) = commissioning_model(&params, &effects, 11, &sensors).unwrap();
+    let hours = 1.0;
+    let (off_db, on_db) = (dir.path().join("off.sqlite"), dir.path().join("on.sqlite"));
+    let off_ms = record_run(&off_db, &model, false, hours).await;
+    let on_ms = record_run(&on_db, &model, true, hours).await;
+    let args = |db: &Path, epoch_ms: i64, add: bool| ExportArgs {
+        db: db.to_path_buf(),
+        since: (epoch_ms / 1000).to_string(),
+        until: (epoch_ms / 1000 + (hours * 3600.0) as i64 + 1).to_string(),
+        csv: true,
+        out: None,
+        axis: Some("X".into()),
+        err_channel: Some(LASER_CHANNEL.into()),
+        step_s: 10.0,
+        max_hold_s: 60.0,
+        add_applied_comp: add,
+    };
+    let (off, off_summary) = export::measurements(&args(&off_db, off_ms, false)).unwrap();
+    let (on, on_summary) = export::measurements(&args(&on_db, on_ms, false)).unwrap();
+    let (added, added_summary) = export::measurements(&args(&on_db, on_ms, true)).unwrap();
+    // The off run applied nothing and says nothing of it.
+    assert!(
+        !off_summary.notes.iter().any(|n| n.contains("applied")),
+        "{:?}",
+        off_summary.notes
+    );
+    let note = on_summary
+        .notes
+        .iter()
+        .find(|n| n.contains("compensation to axis `X` from "))
+        .unwrap_or_else(|| panic!("{:?}", on_summary.notes));
+    assert!(
+        note.contains("is not the machine's model") && note.contains("--add-applied-comp"),
+        "{note}"
+    );
+    assert!(
+        added_summary
+            .notes
+            .iter()
+            .any(|n| n.contains("the error without compensation")),
+        "{:?}",
+        added_summary.notes
+    );
+    // Same machine, same rows.
+    assert_eq!(off.len(), on.len());
+    assert_eq!(off.len(), added.len());
+    // (The filters' last bits differ between runs now and then: within 1e-9 degC.)
+    for (a, b) in off.temps.iter().zip(&added.temps) {
+        assert_eq!(a.name, b.name);
+        assert!(
+            a.degc
+                .iter()
+                .zip(&b.degc)
+                .all(|(x, y)| (x - y).abs() < 1e-9),
+            "{}",
+            a.name
+        );
+    }
+    assert_eq!(off.pos_mm, added.pos_mm);
+    let worst = |a: &Measurements| {
+        off.err_um
+            .iter()
+            .zip(&a.err_um)
+            .map(|(o, x)| (o - x).abs())
+            .fold(0.0, f64::max)
+    };
+    // Compensated, the error differs from the machine's by what the NC applied ...
+    assert!(worst(&on) > 10.0, "{}", worst(&on));
+    // ... and with it added back it is the machine's, up to the laser module's
+    // resolution (1000 um over 4/5 of 65535 counts: 0.02 um).
+    assert!(worst(&added) < 0.1, "{}", worst(&added));
 }

@@ -25,7 +25,13 @@
 //!   row, and the sign of the last one (so the travel does not depend on `--step-s`).
 //! - `err_um`: the filtered value of `--err-channel` (a channel that measures the
 //!   error, e.g. a probe or a laser interface, scaled to um); 0 without it (stated
-//!   on stderr): the gateway cannot know the error without a sensor for it.
+//!   on stderr): the gateway cannot know the error without a sensor for it. On a
+//!   machine in service the NC compensates: the sensor measures the error left after
+//!   the compensation the NC applied (recorded per status tick as
+//!   `nc.applied_comp_mm`), not the machine's error a model must predict. Export
+//!   names the span of the window where the axis had compensation applied, and
+//!   `--add-applied-comp` writes `err_um + 1000 * applied_comp_mm` (the applied
+//!   compensation held to the grid like the position), the error without it.
 
 use std::collections::BTreeMap;
 use std::io::Read;
@@ -68,7 +74,16 @@ pub struct ExportArgs {
     /// grid, s; raise it for a recorder that records less often (`recorder.interval_s`).
     #[arg(long, allow_negative_numbers = true, default_value_t = 60.0)]
     pub max_hold_s: f64,
+    /// Add the NC's recorded applied compensation of --axis to err_um (err_um + 1000 *
+    /// applied_comp_mm at that instant): on a recording made with compensation on,
+    /// the error without compensation, which is what calibrate and diagnose fit.
+    #[arg(long)]
+    pub add_applied_comp: bool,
 }
+
+/// Applied compensation smaller than this (mm, 0.5 um) is none: the NC's
+/// compensation rounded, not a compensated recording.
+pub const APPLIED_COMP_MIN_MM: f64 = 0.0005;
 
 /// Grid rows an export may span: a week at 0.1 s. More is a mistyped step (and hours
 /// of work before the first row).
@@ -283,7 +298,19 @@ pub fn export(
         notes.push("err_um is 0: the record holds no measured error (give --err-channel for a channel that measures it)".to_string());
     }
     if args.axis.is_none() {
+        if args.add_applied_comp {
+            return Err(ExportError::Arg {
+                flag: "add-applied-comp",
+                message: "needs --axis: the applied compensation is recorded per NC axis".into(),
+            });
+        }
         notes.push("pos_mm is 0: no --axis given".to_string());
+    }
+    if args.add_applied_comp && err_id.is_none() {
+        return Err(ExportError::Arg {
+            flag: "add-applied-comp",
+            message: "needs --err-channel: without a measured error err_um would be the applied compensation alone".into(),
+        });
     }
 
     // What each channel holds in the window, in one pass that keeps nothing per reading.
@@ -394,28 +421,30 @@ pub fn export(
         })
         .collect();
 
-    // The NC positions from the last one before the grid on, after the last change
-    // before that (which gives the direction): not the axis' whole history.
-    let positions: Vec<(i64, f64)> = match &args.axis {
+    // The NC positions, each with the compensation the NC applied in that status
+    // tick, from the last one before the grid on, after the last change before that
+    // (which gives the direction): not the axis' whole history.
+    let positions: Vec<(i64, f64, f64)> = match &args.axis {
         Some(axis) => {
-            let query =
-                |sql: &str, p: &[&dyn rusqlite::ToSql]| -> Result<Vec<(i64, f64)>, ExportError> {
-                    conn.prepare(sql)
-                        .and_then(|mut s| {
-                            s.query_map(p, |r| Ok((r.get(0)?, r.get(1)?)))?
-                                .collect::<Result<_, _>>()
-                        })
-                        .map_err(db)
-                };
+            let query = |sql: &str,
+                         p: &[&dyn rusqlite::ToSql]|
+             -> Result<Vec<(i64, f64, f64)>, ExportError> {
+                conn.prepare(sql)
+                    .and_then(|mut s| {
+                        s.query_map(p, |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))?
+                            .collect::<Result<_, _>>()
+                    })
+                    .map_err(db)
+            };
             let before = query(
-                "SELECT t_unix_ms, position_mm FROM nc WHERE axis = ?1 AND t_unix_ms <= ?2 ORDER BY t_unix_ms DESC LIMIT 1",
+                "SELECT t_unix_ms, position_mm, applied_comp_mm FROM nc WHERE axis = ?1 AND t_unix_ms <= ?2 ORDER BY t_unix_ms DESC LIMIT 1",
                 &[axis, &grid_start],
             )?;
             let mut v = Vec::new();
             let from = match before.first() {
-                Some(&(t0, p0)) => {
+                Some(&(t0, p0, _)) => {
                     v = query(
-                        "SELECT t_unix_ms, position_mm FROM nc WHERE axis = ?1 AND t_unix_ms < ?2 AND position_mm != ?3 ORDER BY t_unix_ms DESC LIMIT 1",
+                        "SELECT t_unix_ms, position_mm, applied_comp_mm FROM nc WHERE axis = ?1 AND t_unix_ms < ?2 AND position_mm != ?3 ORDER BY t_unix_ms DESC LIMIT 1",
                         &[axis, &t0, &p0],
                     )?;
                     t0
@@ -423,7 +452,7 @@ pub fn export(
                 None => grid_start,
             };
             v.extend(query(
-                "SELECT t_unix_ms, position_mm FROM nc WHERE axis = ?1 AND t_unix_ms >= ?2 AND t_unix_ms < ?3 ORDER BY t_unix_ms",
+                "SELECT t_unix_ms, position_mm, applied_comp_mm FROM nc WHERE axis = ?1 AND t_unix_ms >= ?2 AND t_unix_ms < ?3 ORDER BY t_unix_ms",
                 &[axis, &from, &until],
             )?);
             if v.is_empty() {
@@ -431,6 +460,9 @@ pub fn export(
                     flag: "axis",
                     message: format!("no recorded NC position of axis `{axis}` before --until"),
                 });
+            }
+            if let Some(note) = applied_comp_note(&conn, axis, since, until, args)? {
+                notes.push(note);
             }
             v
         }
@@ -458,6 +490,8 @@ pub fn export(
     let mut last: Vec<Option<(i64, f64)>> = vec![None; temp_ids.len()];
     let mut last_err: Option<(i64, f64)> = None;
     let mut last_pos: Option<(i64, f64)> = None;
+    // The compensation the NC applied at `last_pos`, mm: recorded in the same row.
+    let mut last_applied_mm = 0.0;
     // Whether the channel's latest reading was no measurement: its last value is not
     // held across it (the outage is known, not a gap between recorded samples).
     let mut cut = vec![false; temp_ids.len()];
@@ -490,7 +524,7 @@ pub fn export(
                 cut[c] = v.is_none();
             }
         }
-        while let Some(&(t, p)) = positions.get(pi) {
+        while let Some(&(t, p, applied_mm)) = positions.get(pi) {
             if t > grid {
                 break;
             }
@@ -503,6 +537,7 @@ pub fn export(
                 }
             }
             last_pos = Some((t, p));
+            last_applied_mm = applied_mm;
             pi += 1;
         }
         let fresh = |v: &Option<(i64, f64)>| v.is_some_and(|(t, _)| grid - t <= hold_ms);
@@ -541,7 +576,15 @@ pub fn export(
                     pos_mm: last_pos.map_or(0.0, |(_, p)| p),
                     dir,
                     travel_mm: travel,
-                    err_um: last_err.map_or(0.0, |(_, v)| v),
+                    err_um: last_err.map_or(0.0, |(_, v)| v)
+                        + if args.add_applied_comp {
+                            // The sensor read the error minus what the NC applied
+                            // (the simulated plant's `measure - applied`): added back,
+                            // the error without compensation.
+                            1000.0 * last_applied_mm
+                        } else {
+                            0.0
+                        },
                 },
                 &degc,
             )?;
@@ -602,6 +645,49 @@ pub fn export(
             .collect(),
         notes,
     })
+}
+
+/// The note on the compensation the NC applied to `axis` in the window, if any: a
+/// recording made with compensation on measures the error left after it.
+fn applied_comp_note(
+    conn: &Connection,
+    axis: &str,
+    since: i64,
+    until: i64,
+    args: &ExportArgs,
+) -> Result<Option<String>, ExportError> {
+    let span: Option<(String, String, f64)> = conn
+        .query_row(
+            "SELECT strftime('%Y-%m-%dT%H:%M:%fZ', min(t_unix_ms) / 1000.0, 'unixepoch'), \
+             strftime('%Y-%m-%dT%H:%M:%fZ', max(t_unix_ms) / 1000.0, 'unixepoch'), \
+             max(abs(applied_comp_mm)) \
+             FROM nc WHERE axis = ?1 AND t_unix_ms >= ?2 AND t_unix_ms < ?3 AND abs(applied_comp_mm) > ?4",
+            params![axis, since, until, APPLIED_COMP_MIN_MM],
+            |r| {
+                let first: Option<String> = r.get(0)?;
+                let last: Option<String> = r.get(1)?;
+                let max_mm: Option<f64> = r.get(2)?;
+                Ok(first.zip(last).zip(max_mm).map(|((a, b), m)| (a, b, m)))
+            },
+        )
+        .map_err(|e| ExportError::Db {
+            path: args.db.display().to_string(),
+            message: e.to_string(),
+        })?;
+    let Some((first, last, max_mm)) = span else {
+        return Ok(args.add_applied_comp.then(|| {
+            format!("--add-applied-comp: the NC applied no compensation to axis `{axis}` in the window; err_um is as measured")
+        }));
+    };
+    let applied = format!(
+        "the NC applied compensation to axis `{axis}` from {first} to {last} (up to {:.1} um)",
+        max_mm * 1000.0
+    );
+    Ok(Some(if args.add_applied_comp {
+        format!("{applied}; err_um is the measured error plus the applied compensation at that instant (--add-applied-comp): the error without compensation")
+    } else {
+        format!("{applied}: there err_um is the error left after the NC's compensation, and a model fitted on it is not the machine's model; give --add-applied-comp to write the error without compensation (err_um + the applied compensation at that instant), or export a window with compensation off")
+    }))
 }
 
 /// `compgate export --out FILE`: writes the CSV to `args.out`. Standard output is the

@@ -283,6 +283,7 @@ fn export_args(db: &std::path::Path, since_s: i64, until_s: i64) -> export::Expo
         err_channel: None,
         step_s: 1.0,
         max_hold_s: 60.0,
+        add_applied_comp: false,
     }
 }
 
@@ -1699,4 +1700,106 @@ fn test_writer(
         Arc::default(),
     );
     (writer, stats, shared)
+}
+
+/// A recording of 0..100 s with the error channel `laser_um` reading what is left
+/// after the NC's compensation: the machine's error is `t` um at `t` s, the NC applied
+/// 30 um (0.03 mm) from 40 s to 69 s, so the laser read `t - 30` there.
+fn recorded_with_compensation() -> (tempfile::TempDir, std::path::PathBuf) {
+    let (dir, db) = recorded(&[(0, 100)]);
+    let conn = schema::open(&db).unwrap();
+    conn.execute("INSERT INTO channels(id, name) VALUES (2, 'laser_um')", [])
+        .unwrap();
+    for t in 0..100i64 {
+        let applied_mm = if (40..70).contains(&t) { 0.03 } else { 0.0 };
+        conn.execute(
+            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 2, 0.0, ?2, 0)",
+            rusqlite::params![t * 1000, t as f64 - 1000.0 * applied_mm],
+        )
+        .unwrap();
+        conn.execute(
+            "INSERT INTO nc(t_unix_ms, axis, position_mm, applied_comp_mm, sd43900_mm, sd43910, sd43920_mm) VALUES (?1, 'X', 5.0, ?2, ?2, 0, 0)",
+            rusqlite::params![t * 1000, applied_mm],
+        )
+        .unwrap();
+    }
+    (dir, db)
+}
+
+// Export read only the NC's position: a recording made with compensation on gave the
+// same CSV as one without and said nothing, and a model calibrated on it was a model
+// of the residual.
+#[test]
+fn an_export_names_the_span_with_compensation_applied() {
+    let (_dir, db) = recorded_with_compensation();
+    let mut args = export_args(&db, 0, 100);
+    args.axis = Some("X".into());
+    args.err_channel = Some("laser_um".into());
+    let (m, summary) = export::measurements(&args).unwrap();
+    let note = summary
+        .notes
+        .iter()
+        .find(|n| n.contains("compensation to axis `X`"))
+        .unwrap_or_else(|| panic!("{:?}", summary.notes));
+    assert!(
+        note.contains("from 1970-01-01T00:00:40.000Z to 1970-01-01T00:01:09.000Z")
+            && note.contains("up to 30.0 um")
+            && note.contains("left after the NC's compensation")
+            && note.contains("--add-applied-comp"),
+        "{note}"
+    );
+    // Without the flag err_um is what the laser read.
+    assert_eq!(m.err_um[50], 20.0);
+    // Only non-zero compensation counts: the same window before 40 s says nothing.
+    let mut args = export_args(&db, 0, 40);
+    args.axis = Some("X".into());
+    args.err_channel = Some("laser_um".into());
+    let (_, summary) = export::measurements(&args).unwrap();
+    assert!(
+        !summary.notes.iter().any(|n| n.contains("compensation")),
+        "{:?}",
+        summary.notes
+    );
+}
+
+#[test]
+fn add_applied_comp_writes_the_error_without_compensation() {
+    let (_dir, db) = recorded_with_compensation();
+    let mut args = export_args(&db, 0, 100);
+    args.axis = Some("X".into());
+    args.err_channel = Some("laser_um".into());
+    args.add_applied_comp = true;
+    let (m, summary) = export::measurements(&args).unwrap();
+    assert_eq!(m.len(), 100);
+    for (t, e) in m.t_s.iter().zip(&m.err_um) {
+        assert!((e - t).abs() < 1e-9, "at {t} s: {e}");
+    }
+    assert!(
+        summary
+            .notes
+            .iter()
+            .any(|n| n.contains("up to 30.0 um") && n.contains("without compensation")),
+        "{:?}",
+        summary.notes
+    );
+    // Held like the position: a gap in the NC's record longer than --max-hold-s
+    // leaves the rows out rather than adding a stale compensation.
+    let conn = schema::open(&db).unwrap();
+    conn.execute("DELETE FROM nc WHERE t_unix_ms BETWEEN 45000 AND 60000", [])
+        .unwrap();
+    args.max_hold_s = 5.0;
+    let (m, _) = export::measurements(&args).unwrap();
+    // No NC row from 45 s to 60 s: 50..=60 s are more than 5 s after the one at 44 s.
+    assert_eq!(m.len(), 100 - 11, "{:?}", m.t_s);
+    // It needs the axis, and a measured error to add to.
+    args.axis = None;
+    let e = export::measurements(&args).unwrap_err().to_string();
+    assert!(e.starts_with("--add-applied-comp: needs --axis"), "{e}");
+    args.axis = Some("X".into());
+    args.err_channel = None;
+    let e = export::measurements(&args).unwrap_err().to_string();
+    assert!(
+        e.starts_with("--add-applied-comp: needs --err-channel"),
+        "{e}"
+    );
 }
