@@ -37,8 +37,9 @@ pub struct CalibrateArgs {
     /// SVG plot of the measured error curves with the fitted lines.
     #[arg(long)]
     pub plot: Option<PathBuf>,
-    /// Write the model even when the fit is in doubt, which is refused otherwise: a
-    /// sensor that spans less than 0.5 K in the data, a tan(beta) coefficient beyond
+    /// Write the model even when the fit is in doubt, which is refused otherwise:
+    /// err_um spanning less than 1 um (millimetres?), a sensor that spans less than
+    /// 0.5 K in the data, a tan(beta) coefficient beyond
     /// 1e-4 /K (no machine structure expands so), or temperatures that do not explain
     /// the error (the temperature terms remove less than half of what constant K0 and
     /// tan(beta) leave, and every temperature coefficient is within 2 standard errors

@@ -40,6 +40,10 @@ pub const WEAK_R2: f64 = 0.5;
 /// A coefficient within this many standard errors of 0 is not told apart from 0.
 pub const SIGNIFICANT_SE: f64 = 2.0;
 
+/// A measured error spanning less than this, um, is below any interferometer's noise:
+/// most likely `err_um` in millimetres (a factor 1000 too small).
+pub const MIN_ERR_SPAN_UM: f64 = 1.0;
+
 /// A fit with a larger |tan(beta) coefficient| is not written without
 /// `--accept-weak-fit`.
 pub use compgate_core::comp::{MAX_TAN_BETA_PER_K, STEEL_EXPANSION_PER_K};
@@ -148,6 +152,8 @@ pub struct Fit {
     pub condition: f64,
     /// Measured minus fitted, um, per row.
     pub residuals_um: Vec<f64>,
+    /// Largest minus smallest measured error, um.
+    pub err_span_um: f64,
 }
 
 impl Fit {
@@ -188,8 +194,9 @@ impl Fit {
 
     /// Why the model is not written without `--accept-weak-fit`, one short reason
     /// each: a sensor that barely moved ([`MIN_SENSOR_SPAN_K`]), a tan(beta)
-    /// coefficient no structure has ([`MAX_TAN_BETA_PER_K`]), an undetermined fit
-    /// ([`Fit::undetermined`]). [`Fit::warnings`] says each at length.
+    /// coefficient no structure has ([`MAX_TAN_BETA_PER_K`]), an error that barely
+    /// moved ([`MIN_ERR_SPAN_UM`]), an undetermined fit ([`Fit::undetermined`]).
+    /// [`Fit::warnings`] says each at length.
     pub fn doubts(&self) -> Vec<String> {
         let mut d: Vec<String> = self
             .terms
@@ -203,6 +210,9 @@ impl Fit {
                 t.name, t.tan_beta_per_degc
             )
         }));
+        if self.err_span_um < MIN_ERR_SPAN_UM {
+            d.push(format!("err_um spans only {:.4} um", self.err_span_um));
+        }
         if self.undetermined() {
             d.push(format!(
                 "the temperatures do not explain the error (partial R^2 {:.3})",
@@ -236,6 +246,13 @@ impl Fit {
                 )
             })
             .collect();
+        if self.err_span_um < MIN_ERR_SPAN_UM {
+            w.push(format!(
+                "err_um spans only {:.4} um over the data (less than {MIN_ERR_SPAN_UM} um, below \
+                 any laser's noise): is it in mm? The column holds micrometres",
+                self.err_span_um
+            ));
+        }
         w.extend(self.implausible_slopes().map(|t| {
             format!(
                 "T_{}'s tan(beta) coefficient {:.3e} /K is {:.0} times steel's expansion \
@@ -500,6 +517,7 @@ pub fn fit(
         },
         condition,
         residuals_um,
+        err_span_um: span(err_um),
     })
 }
 

@@ -605,3 +605,24 @@ fn the_model_names_the_temperatures_it_was_fitted_over() {
         assert!(hi >= max && hi - max < 0.01, "{}: {hi} {max}", c.name);
     }
 }
+
+/// err_um in millimetres (1000 times too small) was written as a model with an RMS
+/// residual of 0.001 um, which passed nothing through the deadband (review V).
+#[test]
+fn an_error_column_in_millimetres_is_named_and_not_written() {
+    let (mut m, _) = commissioning(ThermalParams::default(), 1);
+    for e in &mut m.err_um {
+        *e /= 1000.0;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("mm.csv");
+    m.write(std::fs::File::create(&csv).unwrap()).unwrap();
+    let mut args = args_for(dir.path(), csv);
+    args.sensors = names(&["column", "screw"]);
+    let calibrated = run(&args).unwrap();
+    let warnings = calibrated.warnings().join("\n");
+    assert!(warnings.contains("is it in mm?"), "{warnings}");
+    let e = calibrated.write().unwrap_err().to_string();
+    assert!(e.contains("not written: err_um spans only 0.28"), "{e}");
+    assert!(!args.out.exists());
+}
