@@ -715,3 +715,46 @@ fn sparse_sweeps_give_no_motion_heat_faster_than_their_gaps() {
         .expect("motion_heating is tried");
     assert!(motion.range.is_some_and(|r| r.0 > 1700.0), "{motion:?}");
 }
+
+/// A deployed model given with `--model` on data where a sensor reads 2 K high (a
+/// replaced PT100): the report showed the model's gap (RMS many times the refit's), and
+/// the verdict, on the refit that absorbed the offset, named a lag as if the model
+/// were fine (review V). The verdict now says first that the model does not fit.
+#[test]
+fn a_stale_model_is_named_before_the_verdict_on_the_refit() {
+    use compgate_commission::diagnose::ModelFile;
+    let (m, _) = generate(&spec(1, vec![], 0.5, 0.0));
+    let d = diagnose(&via_csv(&m), &opts()).expect("diagnose");
+    let model = ModelFile::from_diagnosis(&d);
+    let with_model = |m: &Measurements| {
+        diagnose(
+            &via_csv(m),
+            &Options {
+                model: Some(model.clone()),
+                ..opts()
+            },
+        )
+        .expect("diagnose")
+    };
+    let fits = with_model(&m);
+    assert!(
+        !fits.verdict.starts_with("the given model does not fit"),
+        "{}",
+        fits.verdict
+    );
+    let mut offset = m.clone();
+    for c in offset.temps.iter_mut().filter(|c| c.name == "a") {
+        for v in &mut c.degc {
+            *v += 2.0;
+        }
+    }
+    let stale = with_model(&offset);
+    assert!(
+        stale
+            .verdict
+            .starts_with("the given model does not fit this data: RMS "),
+        "{}",
+        stale.verdict
+    );
+    assert!(stale.verdict.contains("refit (calibrate) before anything else"));
+}

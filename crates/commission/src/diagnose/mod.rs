@@ -145,6 +145,14 @@ pub struct Options {
     pub thresholds: Thresholds,
 }
 
+/// A given model whose RMS gap is more than this many times the baseline refit's (and
+/// [`STALE_MODEL_MIN_UM`] more) does not describe the data: the verdict says so first.
+pub const STALE_MODEL_RATIO: f64 = 2.0;
+
+/// The least RMS excess over the baseline refit, um, that calls a given model stale:
+/// below a micrometre the difference is not worth a refit.
+pub const STALE_MODEL_MIN_UM: f64 = 1.0;
+
 /// RMS and largest absolute value of a residual, um.
 #[derive(Debug, Clone, Copy, Serialize, PartialEq)]
 pub struct Gap {
@@ -733,6 +741,23 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
             final_gap.rms_um,
             100.0 * (1.0 - final_gap.rms_um / baseline.rms_um.max(1e-300))
         )
+    };
+    // A given model far off the refit of its own form is stale: the refit absorbed an
+    // offset or a swap, and the verdict on the rest read as if the model were fine.
+    let verdict = match model_gap {
+        Some(g)
+            if g.rms_um > STALE_MODEL_RATIO * baseline.rms_um
+                && g.rms_um - baseline.rms_um > STALE_MODEL_MIN_UM =>
+        {
+            format!(
+                "the given model does not fit this data: RMS {:.3} um against {:.3} um for the \
+             refit of K0(T) + tan(beta)(T) on it; a sensor replaced, moved, swapped or \
+             drifting, or a changed machine; refit (calibrate) before anything else; the \
+             rest, on the refit: {verdict}",
+                g.rms_um, baseline.rms_um
+            )
+        }
+        _ => verdict,
     };
     Ok(Diagnosis {
         model_gap,
