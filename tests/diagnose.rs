@@ -756,5 +756,7 @@ fn a_stale_model_is_named_before_the_verdict_on_the_refit() {
         "{}",
         stale.verdict
     );
-    assert!(stale.verdict.contains("refit (calibrate) before anything else"));
+    assert!(stale
+        .verdict
+        .contains("refit (calibrate) before anything else"));
 }

@@ -801,6 +801,7 @@ max_step_tan_beta = 0.01
 on_bad_input = "hold"
 k0 = { offset_mm = 0.0, terms = [{ channel = "T_screw", ref_degc = 20.0, coeff_mm_per_degc = 0.002 }] }
 tan_beta = { offset = 0.0, terms = [] }
+fitted_degc = { T_screw = [18.0, 22.0] }
 
 [sim.nc_modules.nc_z]
 referenced = true
@@ -817,7 +818,8 @@ motion_speed_mm_per_s = 0.0
 // One axis of two in shadow mode: the banner names it and does not say the NC is
 // not written. A summary line on top counts the bad channels, the devices up and says
 // each axis' state; bad channels are listed first; an axis that holds for a bad input
-// has a HOLD badge; the shadow axis counts its shadow jobs.
+// has a HOLD badge; the shadow axis counts its shadow jobs, and its T_screw (25 degC)
+// is 3 K above the temperatures its model was fitted over: OUTSIDE FIT, with the why.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_summary_orders_channels_and_badges_say_hold_and_which_axis_is_shadow() {
     let Some(chromium) = chromium_or_skip() else {
@@ -855,7 +857,7 @@ async fn the_summary_orders_channels_and_badges_say_hold_and_which_axis_is_shado
     for want in [
         "3 channels: 1 bad",
         "devices: 1 of 1 up",
-        "axis X ok, Z shadow",
+        "axis X ok, Z shadow, outside its fit",
     ] {
         assert!(summary.contains(want), "{want:?} in {one_bad:#}");
     }
@@ -864,7 +866,15 @@ async fn the_summary_orders_channels_and_badges_say_hold_and_which_axis_is_shado
     assert!(!banner.contains("the NC is not written"), "{one_bad:#}");
     let z = &one_bad["axes"]["Z"];
     assert!(
-        z["heading"].as_str().is_some_and(|h| h.contains("SHADOW")),
+        z["heading"]
+            .as_str()
+            .is_some_and(|h| h.contains("SHADOW") && h.contains("OUTSIDE FIT")),
+        "{z:#}"
+    );
+    assert!(
+        z["text"].as_str().is_some_and(|t| t.contains(
+            "model: T_screw reads 25.0 degC, 3.0 K above the 18.0..22.0 degC the model was fitted over"
+        )),
         "{z:#}"
     );
     assert!(
@@ -892,7 +902,10 @@ async fn the_summary_orders_channels_and_badges_say_hold_and_which_axis_is_shado
         "{held:#}"
     );
     let summary = held["summary"].as_str().unwrap_or_default();
-    for want in ["3 channels: 2 bad", "axis X held, Z shadow"] {
+    for want in [
+        "3 channels: 2 bad",
+        "axis X held, Z shadow, outside its fit",
+    ] {
         assert!(summary.contains(want), "{want:?} in {held:#}");
     }
     drop(browser);
