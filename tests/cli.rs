@@ -729,6 +729,15 @@ fn export_names_the_database_it_cannot_read() {
     );
 }
 
+/// `compgate export --csv` of `db` from Unix second 1000000000 to `until`.
+fn export_from(db: &std::path::Path, until: &str) -> Command {
+    let mut cmd = Command::new(BIN);
+    cmd.args(["export", "--csv", "--since", "1000000000", "--until", until])
+        .arg("--db")
+        .arg(db);
+    cmd
+}
+
 // The grid is in whole milliseconds: a step below 1 ms or between two is refused,
 // naming the flag. Before, `--step-s 1e-9` and `0.0004` were silently 1 ms.
 #[test]
@@ -736,16 +745,8 @@ fn export_refuses_a_step_that_is_no_whole_millisecond() {
     let dir = tempfile::tempdir().unwrap();
     let db = recording(dir.path(), 10);
     let export = |step: &str| {
-        let out = Command::new(BIN)
-            .args([
-                "export",
-                "--csv",
-                "--since",
-                "1000000000",
-                "--until",
-                "1000000010",
-            ])
-            .args(["--db", db.to_str().unwrap(), "--step-s", step])
+        let out = export_from(&db, "1000000010")
+            .args(["--step-s", step])
             .output()
             .unwrap();
         (
@@ -892,16 +893,8 @@ fn export_of_a_compensated_recording_says_so_and_adds_the_compensation_on_reques
     .expect("a job");
     drop(conn);
     let export = |extra: &[&str]| {
-        let out = Command::new(BIN)
-            .args([
-                "export",
-                "--csv",
-                "--since",
-                "1000000000",
-                "--until",
-                "1000000100",
-            ])
-            .args(["--db", db.to_str().unwrap(), "--err-channel", "laser_um"])
+        let out = export_from(&db, "1000000100")
+            .args(["--err-channel", "laser_um"])
             .args(["--step-s", "10"])
             .args(extra)
             .output()

@@ -169,6 +169,15 @@ fn bad_input_is_named() {
     }
 }
 
+/// Arguments fitting `column` and `screw` of `m`, written to `dir/name`.
+fn column_and_screw(dir: &std::path::Path, m: &Measurements, name: &str) -> CalibrateArgs {
+    let csv = dir.join(name);
+    m.write(std::fs::File::create(&csv).unwrap()).unwrap();
+    let mut args = args_for(dir, csv);
+    args.sensors = names(&["column", "screw"]);
+    args
+}
+
 fn args_for(dir: &std::path::Path, csv: std::path::PathBuf) -> CalibrateArgs {
     CalibrateArgs {
         data: csv,
@@ -320,10 +329,7 @@ fn an_export_without_the_error_channel_is_refused_and_no_model_written() {
 fn a_plot_that_cannot_be_written_leaves_the_model_as_it_was() {
     let (m, _) = commissioning(noiseless(), 1);
     let dir = tempfile::tempdir().unwrap();
-    let csv = dir.path().join("m.csv");
-    m.write(std::fs::File::create(&csv).unwrap()).unwrap();
-    let mut args = args_for(dir.path(), csv);
-    args.sensors = names(&["column", "screw"]);
+    let mut args = column_and_screw(dir.path(), &m, "m.csv");
     std::fs::write(&args.out, "# previous good model\n").unwrap();
     args.plot = Some(dir.path().to_path_buf());
     let e = run(&args).unwrap_err().to_string();
@@ -355,10 +361,7 @@ fn a_fit_the_temperatures_do_not_explain_is_warned_about_and_not_written() {
         }
     }
     let dir = tempfile::tempdir().unwrap();
-    let csv = dir.path().join("onelevel.csv");
-    m.write(std::fs::File::create(&csv).unwrap()).unwrap();
-    let mut args = args_for(dir.path(), csv);
-    args.sensors = names(&["column", "screw"]);
+    let mut args = column_and_screw(dir.path(), &m, "onelevel.csv");
     let calibrated = run(&args).unwrap();
     let warnings = calibrated.warnings();
     // Each sensor's span, the slopes the noise gave, and the fit itself.
@@ -401,10 +404,7 @@ fn a_geometric_slope_does_not_get_a_model_of_noise_written() {
         *e += 0.1 * p;
     }
     let dir = tempfile::tempdir().unwrap();
-    let csv = dir.path().join("slope.csv");
-    m.write(std::fs::File::create(&csv).unwrap()).unwrap();
-    let mut args = args_for(dir.path(), csv);
-    args.sensors = names(&["column", "screw"]);
+    let args = column_and_screw(dir.path(), &m, "slope.csv");
     let calibrated = run(&args).unwrap();
     let report = calibrated.report();
     let r2: f64 = report.split("R^2 ").nth(1).unwrap()[..8].parse().unwrap();
@@ -514,10 +514,7 @@ fn a_slope_coefficient_no_structure_has_is_refused_naming_the_units() {
         *p /= 25.4;
     }
     let dir = tempfile::tempdir().unwrap();
-    let csv = dir.path().join("inches.csv");
-    m.write(std::fs::File::create(&csv).unwrap()).unwrap();
-    let mut args = args_for(dir.path(), csv);
-    args.sensors = names(&["column", "screw"]);
+    let args = column_and_screw(dir.path(), &m, "inches.csv");
     let calibrated = run(&args).unwrap();
     let warnings = calibrated.warnings().join("\n");
     assert!(
@@ -532,10 +529,7 @@ fn a_slope_coefficient_no_structure_has_is_refused_naming_the_units() {
     assert!(!args.out.exists());
     // In millimetres the same run is written, without a warning.
     let (m, _) = commissioning(ThermalParams::default(), 1);
-    let csv = dir.path().join("mm.csv");
-    m.write(std::fs::File::create(&csv).unwrap()).unwrap();
-    let mut args = args_for(dir.path(), csv);
-    args.sensors = names(&["column", "screw"]);
+    let args = column_and_screw(dir.path(), &m, "mm.csv");
     let calibrated = run(&args).unwrap();
     assert!(
         calibrated.warnings().is_empty(),
@@ -561,10 +555,7 @@ fn a_run_cut_short_is_not_written_as_a_model() {
         c.degc.truncate(n);
     }
     let dir = tempfile::tempdir().unwrap();
-    let csv = dir.path().join("short.csv");
-    m.write(std::fs::File::create(&csv).unwrap()).unwrap();
-    let mut args = args_for(dir.path(), csv);
-    args.sensors = names(&["column", "screw"]);
+    let mut args = column_and_screw(dir.path(), &m, "short.csv");
     let calibrated = run(&args).unwrap();
     let e = calibrated.write().unwrap_err().to_string();
     assert!(e.contains("not written: T_column spans only 0."), "{e}");
@@ -581,10 +572,7 @@ fn a_run_cut_short_is_not_written_as_a_model() {
 fn the_model_names_the_temperatures_it_was_fitted_over() {
     let (m, _) = commissioning(ThermalParams::default(), 1);
     let dir = tempfile::tempdir().unwrap();
-    let csv = dir.path().join("run.csv");
-    m.write(std::fs::File::create(&csv).unwrap()).unwrap();
-    let mut args = args_for(dir.path(), csv);
-    args.sensors = names(&["column", "screw"]);
+    let args = column_and_screw(dir.path(), &m, "run.csv");
     run(&args).unwrap().write().unwrap();
     let (_, model) = crate::calibrate::load_model(&args.out).unwrap();
     assert_eq!(model.fitted_degc.len(), 2, "{:?}", model.fitted_degc);
@@ -615,10 +603,7 @@ fn an_error_column_in_millimetres_is_named_and_not_written() {
         *e /= 1000.0;
     }
     let dir = tempfile::tempdir().unwrap();
-    let csv = dir.path().join("mm.csv");
-    m.write(std::fs::File::create(&csv).unwrap()).unwrap();
-    let mut args = args_for(dir.path(), csv);
-    args.sensors = names(&["column", "screw"]);
+    let args = column_and_screw(dir.path(), &m, "mm.csv");
     let calibrated = run(&args).unwrap();
     let warnings = calibrated.warnings().join("\n");
     assert!(warnings.contains("is it in mm?"), "{warnings}");
