@@ -109,11 +109,11 @@ pub struct AxisConfig {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub motion_heat: Option<MotionHeatModel>,
     /// The temperatures the model was fitted over, degC, per input channel: `{ T_bed =
-    /// [16.9, 27.1] }` (`calibrate` writes them). A usable reading more than
-    /// `FIT_MARGIN_K` (2 K) outside its range is flagged: the status, the metric
-    /// `compgate_axis_outside_fit` and one WARN say the model extrapolates there. The
-    /// axis still compensates. Optional; channels of the model's terms; min <= max,
-    /// -100..=500.
+    /// [16.9, 27.1] }` (`calibrate` and `diagnose` write them). A usable reading more
+    /// than 2 K outside its range is flagged until it is back within 1.5 K: the status,
+    /// the metric `compgate_axis_outside_fit` and one WARN say the model extrapolates
+    /// there. The axis still compensates. Optional; channels of the model's terms;
+    /// min <= max, -100..=500.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub fitted_degc: BTreeMap<String, [f64; 2]>,
     /// Shadow mode: compute, record and publish the parameters this axis would

@@ -39,11 +39,10 @@ pub struct CalibrateArgs {
     pub plot: Option<PathBuf>,
     /// Write the model even when the fit is in doubt, which is refused otherwise:
     /// err_um spanning less than 1 um (millimetres?), a sensor that spans less than
-    /// 0.5 K in the data, a tan(beta) coefficient beyond
-    /// 1e-4 /K (no machine structure expands so), or temperatures that do not explain
-    /// the error (the temperature terms remove less than half of what constant K0 and
-    /// tan(beta) leave, and every temperature coefficient is within 2 standard errors
-    /// of 0).
+    /// 0.5 K in the data, a tan(beta) coefficient beyond 1e-4 /K (no machine structure
+    /// expands so), or temperatures that do not explain the error (the temperature
+    /// terms remove less than half of what constant K0 and tan(beta) leave, and every
+    /// temperature coefficient is within 2 standard errors of 0).
     #[arg(long)]
     pub accept_weak_fit: bool,
 }
