@@ -637,6 +637,57 @@ fn validate_refuses_a_recorder_path_that_run_cannot_write() {
     drop(fs);
 }
 
+// A database copied to a new PC as root, and only the database given to the service
+// user, as the guide says: its -wal, copied along, stayed root's. `validate` (the
+// unit's ExecStartPre) passed it, and `run` failed at the first write ("attempt to
+// write a readonly database"), restarting in a loop (review W).
+#[test]
+fn validate_refuses_a_wal_the_service_user_cannot_write() {
+    let uid = std::process::Command::new("id").arg("-u").output().unwrap();
+    if String::from_utf8_lossy(&uid.stdout).trim() != "0" {
+        println!("SKIPPED: needs root to run validate as another user");
+        return;
+    }
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o777)).unwrap();
+    let db = dir.path().join("g.db");
+    compgate_service::record::open(&db).unwrap();
+    let config = dir.path().join("plant.toml");
+    let port = format!("127.0.0.1:{}", common::free_port());
+    let text =
+        common::config("hold", "", "").replace("127.0.0.1:0", &port) + &recorder_section(&db, "");
+    std::fs::write(&config, text).unwrap();
+    let nobody = 65534;
+    std::os::unix::fs::chown(&db, Some(nobody), Some(nobody)).unwrap();
+    let validate = || {
+        std::process::Command::new("setpriv")
+            .args(["--reuid=65534", "--regid=65534", "--clear-groups", BIN])
+            .args(["validate", "--config", config.to_str().unwrap()])
+            .output()
+            .unwrap()
+    };
+    let ok = validate();
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    // Root's -wal beside it.
+    let wal = dir.path().join("g.db-wal");
+    std::fs::write(&wal, "").unwrap();
+    let out = validate();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains(&format!(
+            "its {} is not writable: Permission denied",
+            wal.display()
+        )),
+        "{err}"
+    );
+}
+
 /// A database at `db` with `n` readings of one channel, a second apart, the newest
 /// `age_ms` old, and one reading now; its file size.
 fn aged_database(db: &Path, n: i64, age_ms: i64) -> u64 {

@@ -343,6 +343,19 @@ pub fn check_path(path: &Path) -> Result<(), RecordError> {
             ));
         }
         writable(path).map_err(|e| problem(format!("the database is not writable: {e}")))?;
+        // A -wal or -shm copied along with the database (as root, say) that this user
+        // cannot write: SQLite opens the database and fails at the first write.
+        for suffix in ["-wal", "-shm"] {
+            let side = with_suffix(path, suffix);
+            if std::fs::symlink_metadata(&side).is_ok() {
+                writable(&side).map_err(|e| {
+                    problem(format!(
+                        "its {} is not writable: {e} (give it the database's owner)",
+                        side.display()
+                    ))
+                })?;
+            }
+        }
     }
     writable(dir).map_err(|e| {
         problem(format!(
