@@ -760,3 +760,34 @@ fn a_stale_model_is_named_before_the_verdict_on_the_refit() {
         .verdict
         .contains("refit (calibrate) before anything else"));
 }
+
+/// The running config as the model: its channels are named `T_a` (as the example
+/// config's `T_bed`), and an export of its record has the columns `T_a`, sensors `a`.
+/// `diagnose --model` refused it: "channel `T_a` of k0.terms is neither a `T_` column
+/// of the data" (review W).
+#[test]
+fn a_model_naming_its_channels_with_t_reads_the_columns_of_an_export() {
+    let (m, _) = generate(&spec(1, vec![], 0.5, 0.0));
+    let d = diagnose(&via_csv(&m), &opts()).expect("diagnose");
+    let mut model = compgate_commission::diagnose::ModelFile::from_diagnosis(&d);
+    for t in &mut model.axis.k0.terms {
+        t.channel = format!("T_{}", t.channel);
+    }
+    for t in &mut model.axis.tan_beta.terms {
+        t.channel = format!("T_{}", t.channel);
+    }
+    let with = diagnose(
+        &via_csv(&m),
+        &Options {
+            model: Some(model),
+            ..opts()
+        },
+    )
+    .expect("the T_ names read the columns");
+    let gap = with.model_gap.expect("a model gap").rms_um;
+    assert!(
+        (gap - d.final_gap.rms_um).abs() < 0.02 * d.final_gap.rms_um + 1e-3,
+        "{gap} vs {}",
+        d.final_gap.rms_um
+    );
+}

@@ -504,11 +504,14 @@ impl Measurements {
         self.t_s.is_empty()
     }
 
-    /// The temperature column of a sensor (name without `T_`).
+    /// The temperature column of a sensor: `name` is the column's name without `T_`,
+    /// or, failing that, with it. A gateway channel named `T_bed` is exported as the
+    /// column `T_bed`, sensor `bed`: a model of the running config, whose terms name
+    /// `T_bed`, reads that column.
     pub fn temp(&self, name: &str) -> Option<&[f64]> {
-        self.temps
-            .iter()
-            .find(|c| c.name == name)
+        let find = |n: &str| self.temps.iter().find(|c| c.name == n);
+        find(name)
+            .or_else(|| name.strip_prefix("T_").and_then(find))
             .map(|c| c.degc.as_slice())
     }
 
