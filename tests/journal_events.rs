@@ -208,17 +208,18 @@ async fn a_model_held_at_its_absolute_limit_is_logged_and_exported() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_model_applied_beyond_its_fitted_temperatures_is_logged_and_exported() {
     let dir = tempfile::tempdir().unwrap();
-    // T_bed reads 30 degC: 6 K above the range.
+    // T_bed reads 30 degC, 6 K above its range, and T_screw 25 degC, 3 K above: both
+    // are named, farthest first.
     let toml = common::config("hold", "", "").replace(
         "tan_beta = {",
-        "fitted_degc = { T_bed = [18.0, 24.0], T_screw = [18.0, 26.0] }\ntan_beta = {",
+        "fitted_degc = { T_bed = [18.0, 24.0], T_screw = [18.0, 22.0] }\ntan_beta = {",
     );
     let (plant, path) =
         common::plant_and_file(dir.path(), &toml, "\n[metrics]\nbind = \"127.0.0.1:0\"\n").await;
     let gw = Gateway::start(dir.path(), &path, &[]);
     let port = tokio::task::block_in_place(|| gw.metrics_port(10.0));
-    let warned =
-        "axis X: T_bed reads 30.0 degC, 6.0 K above the 18.0..24.0 degC the model was fitted over";
+    let warned = "axis X: T_bed reads 30.0 degC, 6.0 K above the 18.0..24.0 degC; T_screw reads \
+                  25.0 degC, 3.0 K above the 18.0..22.0 degC the model was fitted over";
     tokio::task::block_in_place(|| gw.wait_log(10.0, warned));
     // Many updates (100 ms) later: no more lines, and the axis still compensates.
     tokio::time::sleep(Duration::from_millis(1500)).await;
@@ -231,11 +232,13 @@ async fn a_model_applied_beyond_its_fitted_temperatures_is_logged_and_exported()
     };
     assert_eq!(tokio::task::block_in_place(outside), Some(1.0));
 
-    // 25.4 degC: 1.4 K above, within the margin once flagged less the hysteresis.
-    let t_bed = plant.transmitter["T_bed"];
-    plant.field["ain1"]
-        .set_temperature_override(t_bed, Some(25.4))
-        .unwrap();
+    // 25.4 and 23.4 degC: 1.4 K above, within the margin once flagged less the
+    // hysteresis.
+    for (name, degc) in [("T_bed", 25.4), ("T_screw", 23.4)] {
+        plant.field["ain1"]
+            .set_temperature_override(plant.transmitter[name], Some(degc))
+            .unwrap();
+    }
     let back = "axis X: its inputs are within the temperatures the model was fitted over again";
     tokio::task::block_in_place(|| gw.wait_log(10.0, back));
     tokio::time::sleep(Duration::from_millis(1500)).await;

@@ -194,8 +194,8 @@ impl Pipeline {
         self.processors.get(ch)?.last().usable_degc()
     }
 
-    /// Why axis `axis`'s model extrapolates now: the usable input reading farthest
-    /// (more than [`FIT_MARGIN_K`]) outside the range it was fitted over, in words.
+    /// Why axis `axis`'s model extrapolates now: each usable input reading more than
+    /// [`FIT_MARGIN_K`] outside the range it was fitted over, farthest first, in words.
     /// Once `flagged`, a reading must come [`FIT_HYSTERESIS_K`] closer to clear it, so
     /// that one at the margin does not flag and clear with its noise.
     pub fn outside_fit(&self, axis: usize, flagged: bool) -> Option<String> {
@@ -204,7 +204,7 @@ impl Pipeline {
         } else {
             FIT_MARGIN_K
         };
-        self.axes[axis]
+        let mut outside: Vec<(f64, String)> = self.axes[axis]
             .fitted
             .iter()
             .filter_map(|r| {
@@ -214,17 +214,26 @@ impl Pipeline {
                 } else {
                     (v - r.max_degc, "above")
                 };
-                (beyond_k > margin_k).then_some((beyond_k, v, side, r))
+                (beyond_k > margin_k).then(|| {
+                    let text = format!(
+                        "{} reads {v:.1} degC, {beyond_k:.1} K {side} the {:.1}..{:.1} degC",
+                        self.channel_names[r.channel], r.min_degc, r.max_degc
+                    );
+                    (beyond_k, text)
+                })
             })
-            .max_by(|a, b| a.0.total_cmp(&b.0))
-            .map(|(beyond_k, v, side, r)| {
-                format!(
-                    "{} reads {v:.1} degC, {beyond_k:.1} K {side} the {:.1}..{:.1} degC the \
-                     model was fitted over: it extrapolates; measure and calibrate over the \
-                     temperatures the machine now reaches",
-                    self.channel_names[r.channel], r.min_degc, r.max_degc
-                )
-            })
+            .collect();
+        if outside.is_empty() {
+            return None;
+        }
+        outside.sort_by(|a, b| b.0.total_cmp(&a.0));
+        let each: Vec<String> = outside.into_iter().map(|(_, t)| t).collect();
+        Some(format!(
+            "{} the model was fitted over: it extrapolates; a sensor replaced or moved reads \
+             off (check it), else measure and calibrate over the temperatures the machine now \
+             reaches",
+            each.join("; ")
+        ))
     }
 
     /// Runs one compensation decision for axis `axis`.
