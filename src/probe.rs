@@ -401,7 +401,27 @@ async fn probe_channel(
         order.name()
     );
     // NaN and infinity are the fault values of float transmitters, not a byte order.
-    if ty.registers() == 2 && !raw.is_finite() {
+    let mut order_hinted = false;
+    if ty.registers() == 1 {
+        let f = processor.filter_params();
+        let middle_degc = (f.valid_min_degc + f.valid_max_degc) / 2.0;
+        let likely = plan::likely_order(
+            &regs,
+            ty,
+            order,
+            |r| processor.plausible_degc(r),
+            middle_degc,
+        );
+        if let Some((l, degc)) = likely.filter(|(l, _)| *l != order) {
+            let _ = writeln!(
+                out,
+                "    hint       as {} (low byte first) it reads {degc:.2} degC: set byte_order = \"{}\"",
+                l.name(),
+                l.name()
+            );
+            order_hinted = true;
+        }
+    } else if ty.registers() == 2 && !raw.is_finite() {
         let _ = writeln!(
             out,
             "    note       not finite: the transmitter reports a fault (no byte order hint)"
@@ -448,7 +468,10 @@ async fn probe_channel(
     }
     let f = processor.filter_params();
     let valid = (f.valid_min_degc, f.valid_max_degc);
-    let hint = reading_hint(ch, ty, raw, |v| processor.plausible_degc(v), valid);
+    // A byte order that reads plausibly as configured otherwise beats a scaling guess.
+    let hint = (!order_hinted)
+        .then(|| reading_hint(ch, ty, raw, |v| processor.plausible_degc(v), valid))
+        .flatten();
     let r = processor.on_sample(0.0, raw);
     let ma = r
         .current_ma

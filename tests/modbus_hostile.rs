@@ -169,6 +169,37 @@ async fn probe_gives_no_byte_order_hint_for_a_nan() {
     dev.abort();
 }
 
+// A replacement module that sends each register's low byte first: 24.6 degC in
+// tenths (0x00F6) arrives as 0xF600. The probe hinted "as 0.001 degC counts it reads
+// -2.560 degC: set scaling gain = 0.001", a plausible, wrong, good reading (review W).
+// It names the byte order now, and no scaling.
+#[tokio::test]
+async fn probe_names_a_swapped_byte_order_of_a_16_bit_register() {
+    let (address, dev) = device(|f, _, _, _| (Duration::ZERO, registers(f, &[0xF600]))).await;
+    let text =
+        config(&address, "", &[("t", "input", 0, "i16")]).replace("gain = 1.0", "gain = 0.1");
+    let report = probe(&text).await;
+    let text = &report.text;
+    assert!(
+        text.contains(
+            "hint       as BADC (low byte first) it reads 24.60 degC: set byte_order = \"BADC\""
+        ),
+        "{text}"
+    );
+    assert!(!text.contains("scaling gain"), "{text}");
+    // As BADC it reads good.
+    let swapped = config(&address, "", &[("t", "input", 0, "i16")])
+        .replace("gain = 1.0", "gain = 0.1")
+        .replace(
+            "data_type = \"i16\"",
+            "data_type = \"i16\"\nbyte_order = \"BADC\"",
+        );
+    let report = probe(&swapped).await;
+    assert!(report.bad.is_empty(), "{}", report.text);
+    assert!(!report.text.contains("hint"), "{}", report.text);
+    dev.abort();
+}
+
 // A module whose map has holes answers each channel's own read, and refuses `run`'s
 // read across the hole with 0x02: `probe` showed every channel good, and `run` failed
 // them all every cycle. Now the probe makes `run`'s merged reads too and names the key.

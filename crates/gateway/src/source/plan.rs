@@ -155,7 +155,8 @@ pub fn encode(value: f64, ty: DataType, order: ByteOrder) -> Option<Vec<u16>> {
 /// The byte order in which `regs` most likely hold a `ty` value: of the orders whose
 /// value `plausible` turns into a temperature, `configured` if it is one, else the one
 /// closest to `reference_degc` (e.g. the middle of the plausible range). `None` when
-/// no order gives a plausible value. Only 32-bit types have a word order to get wrong.
+/// no order gives a plausible value. A 16-bit value has only its byte order to get
+/// wrong: `ABCD` or `BADC` (a module that sends the low byte first).
 pub fn likely_order(
     regs: &[u16],
     ty: DataType,
@@ -163,10 +164,15 @@ pub fn likely_order(
     plausible: impl Fn(f64) -> Option<f64>,
     reference_degc: f64,
 ) -> Option<(ByteOrder, f64)> {
+    let swapped = match configured {
+        ByteOrder::Abcd | ByteOrder::Cdab => ByteOrder::Badc,
+        ByteOrder::Badc | ByteOrder::Dcba => ByteOrder::Abcd,
+    };
+    let one_register = [configured, swapped];
     let orders: &[ByteOrder] = if ty.registers() == 2 {
         &ByteOrder::ALL
     } else {
-        &[configured]
+        &one_register
     };
     let candidates = orders.iter().filter_map(|&o| {
         let degc = decode(regs, ty, o).and_then(&plausible)?;
