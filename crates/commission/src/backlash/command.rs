@@ -346,7 +346,10 @@ pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, Backl
         }
     }
     let mut stop = StopSignals::register();
-    nc.write(ncmap::MV_CMD, &words).await?;
+    // A lost reply to the start does not mean the programme did not start.
+    if let Err(e) = nc.write(ncmap::MV_CMD, &words).await {
+        return Err(abort_programme(address, args.unit, e).await);
+    }
     tracing::info!(axis = %args.axis, nc = address, "backlash test programme started");
 
     // Wait for the programme and the trace; real time bounds the wait at the
@@ -399,6 +402,11 @@ pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, Backl
                 compgate_ncproto::MD32450_LIMIT_MM
             )]));
         }
+        // A stop asked for since the upload (extraction and files take a moment)
+        // writes nothing.
+        if let Some(signal) = stop.pending() {
+            return Err(BacklashError::Signal(signal));
+        }
         // The guard checks the read-back bit for bit, as for every job.
         let mut writer = Guarded::new(
             ModbusNcWriter::new(link_to(address), args.unit, Duration::from_secs(5)),
@@ -411,6 +419,11 @@ pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, Backl
             })
             .await?;
         md32450_written_mm = Some(value);
+        if let Some(signal) = stop.pending() {
+            tracing::warn!(
+                "{signal} during the MD32450 job: the job was finished first (MD32450 = {value} mm written)"
+            );
+        }
     }
 
     Ok(Outcome {

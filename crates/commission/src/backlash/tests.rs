@@ -737,3 +737,53 @@ fn traces_from_outside_the_simulator_are_measured_or_refused_never_wrong() {
     );
     assert!(measured >= 48 && refused >= 12, "{measured} {refused}");
 }
+
+/// One Modbus TCP frame from `from`.
+async fn frame(from: &mut tokio::net::TcpStream) -> Option<Vec<u8>> {
+    use tokio::io::AsyncReadExt;
+    let mut head = [0u8; 7];
+    from.read_exact(&mut head).await.ok()?;
+    let len = usize::from(u16::from_be_bytes([head[4], head[5]]));
+    let mut pdu = vec![0u8; len.saturating_sub(1)];
+    from.read_exact(&mut pdu).await.ok()?;
+    Some([&head[..], &pdu].concat())
+}
+
+// The reply to the write that starts the programme was lost: the command ended with
+// "NC link: connection closed" while the axis ran its programme unattended (review X).
+// It now aborts the programme as after any failure while the axis may move.
+#[tokio::test]
+async fn a_lost_reply_to_the_start_aborts_the_programme() {
+    use tokio::io::AsyncWriteExt;
+    let (upstream, module, shutdown) = serve(0.02).await;
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let address = listener.local_addr().unwrap().to_string();
+    // Forwards every frame; after the start (MV_CMD = 1) it closes without the reply.
+    let proxy = tokio::spawn(async move {
+        while let Ok((mut client, _)) = listener.accept().await {
+            let mut nc = tokio::net::TcpStream::connect(&upstream).await.unwrap();
+            while let Some(request) = frame(&mut client).await {
+                nc.write_all(&request).await.unwrap();
+                let reply = frame(&mut nc).await.unwrap();
+                let at = u16::from_be_bytes([request[8], request[9]]);
+                if request[7] == 16 && at == compgate_ncproto::MV_CMD && request[13..15] == [0, 1] {
+                    break;
+                }
+                client.write_all(&reply).await.unwrap();
+            }
+        }
+    });
+    let err = run_on(&address, &BacklashArgs::default())
+        .await
+        .unwrap_err();
+    let text = err.to_string();
+    assert!(
+        text.contains("the move programme was aborted (MV_STATE 3)"),
+        "{text}"
+    );
+    module.with_servo(|s| {
+        assert_eq!(s.program_state(), compgate_plc::axis::ProgramState::Refused);
+    });
+    proxy.abort();
+    shutdown.cancel();
+}

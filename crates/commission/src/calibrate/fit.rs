@@ -258,7 +258,9 @@ impl Fit {
                 "T_{}'s tan(beta) coefficient {:.3e} /K is {:.0} times steel's expansion \
                  ({STEEL_EXPANSION_PER_K:e} /K), beyond {MAX_TAN_BETA_PER_K:e} /K: no machine \
                  structure expands so; check the units of pos_mm (in inches the slope is 25.4 \
-                 times too large) and err_um",
+                 times too large) and err_um, and whether the sensor warms far less than the \
+                 part that grows (a column sensor standing in for the screw: give the screw a \
+                 sensor of its own)",
                 t.name,
                 t.tan_beta_per_degc,
                 t.tan_beta_per_degc.abs() / STEEL_EXPANSION_PER_K

@@ -2,6 +2,8 @@
 //! backlash test): their default action ends the process at once, mid-job or with the
 //! axis moving; caught, the command finishes or undoes what it started and says so.
 
+use std::future::Future;
+
 use tokio::signal::unix::{signal, Signal, SignalKind};
 
 /// The three signals, caught from [`Self::register`] on (for the rest of the
@@ -19,6 +21,19 @@ impl StopSignals {
             int: signal(SignalKind::interrupt()).ok(),
             term: signal(SignalKind::terminate()).ok(),
             hup: signal(SignalKind::hangup()).ok(),
+        }
+    }
+
+    /// One of them that came and was not taken yet, without waiting.
+    pub fn pending(&mut self) -> Option<&'static str> {
+        let mut next = std::pin::pin!(self.recv());
+        let waker = std::task::Waker::noop();
+        match next
+            .as_mut()
+            .poll(&mut std::task::Context::from_waker(waker))
+        {
+            std::task::Poll::Ready(signal) => Some(signal),
+            std::task::Poll::Pending => None,
         }
     }
 
