@@ -831,6 +831,22 @@ fn holds(written: &CompParams, held: &CompParams, nc_write: &[u16]) -> bool {
 /// timer decides without one (at least its own update interval).
 const DECIDE_FALLBACK: Duration = Duration::from_secs(1);
 
+/// Sets axis `i`'s `outside_fit`, logging when it starts (WARN) and ends (INFO).
+fn note_outside_fit(state: &mut Running, i: usize) {
+    let st = &mut state.status.axes[i];
+    let outside = state.pipeline.outside_fit(i, st.outside_fit.as_deref());
+    match (&outside, &st.outside_fit) {
+        (Some(why), None) => tracing::warn!(axis = %st.name, "axis {}: {why}", st.name),
+        (None, Some(_)) => tracing::info!(
+            axis = %st.name,
+            "axis {}: its inputs are within the temperatures the model was fitted over again",
+            st.name
+        ),
+        _ => {}
+    }
+    st.outside_fit = outside;
+}
+
 /// Runs axis `i`'s decision at `at` and hands a write to its NC task (one job in
 /// flight per axis), or, in shadow mode, only reports it.
 fn decide_axis(
@@ -842,8 +858,11 @@ fn decide_axis(
     nc_tx: &[mpsc::Sender<NcCommand>],
     observer: &mut dyn Observer,
 ) {
+    next_update[i] = at + state.pipeline.axes[i].update_interval;
+    // Whatever the NC does: a model that extrapolates is worth knowing in a dry run
+    // against an NC that does not answer, too.
+    note_outside_fit(state, i);
     let pipeline = &mut state.pipeline;
-    next_update[i] = at + pipeline.axes[i].update_interval;
     if !state.baselined[i] || in_flight[i] {
         return;
     }
@@ -885,18 +904,6 @@ fn decide_axis(
     }
     state.status.axes[i].decision = text;
     state.status.axes[i].at_limit = course == AxisCourse::AtLimit;
-    let outside = pipeline.outside_fit(i, state.status.axes[i].outside_fit.is_some());
-    let st = &mut state.status.axes[i];
-    match (&outside, &st.outside_fit) {
-        (Some(why), None) => tracing::warn!(axis = %st.name, "axis {}: {why}", st.name),
-        (None, Some(_)) => tracing::info!(
-            axis = %st.name,
-            "axis {}: its inputs are within the temperatures the model was fitted over again",
-            st.name
-        ),
-        _ => {}
-    }
-    st.outside_fit = outside;
     let params = match decision {
         Decision::Write { params, .. } | Decision::Ramp { params, .. } => params,
         Decision::WithinDeadband | Decision::Hold { .. } => return,

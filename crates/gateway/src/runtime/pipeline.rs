@@ -196,9 +196,12 @@ impl Pipeline {
 
     /// Why axis `axis`'s model extrapolates now: each usable input reading more than
     /// [`FIT_MARGIN_K`] outside the range it was fitted over, farthest first, in words.
-    /// Once `flagged`, a reading must come [`FIT_HYSTERESIS_K`] closer to clear it, so
-    /// that one at the margin does not flag and clear with its noise.
-    pub fn outside_fit(&self, axis: usize, flagged: bool) -> Option<String> {
+    /// Once flagged (`previous`), a reading must come [`FIT_HYSTERESIS_K`] closer to
+    /// clear it, so that one at the margin does not flag and clear with its noise; and
+    /// an input without a usable reading (bad) does not clear it: nothing says it is
+    /// back within.
+    pub fn outside_fit(&self, axis: usize, previous: Option<&str>) -> Option<String> {
+        let flagged = previous.is_some();
         let margin_k = if flagged {
             FIT_MARGIN_K - FIT_HYSTERESIS_K
         } else {
@@ -224,7 +227,11 @@ impl Pipeline {
             })
             .collect();
         if outside.is_empty() {
-            return None;
+            let unknown = self.axes[axis]
+                .fitted
+                .iter()
+                .any(|r| self.usable_degc(r.channel).is_none());
+            return previous.filter(|_| unknown).map(str::to_string);
         }
         outside.sort_by(|a, b| b.0.total_cmp(&a.0));
         let each: Vec<String> = outside.into_iter().map(|(_, t)| t).collect();

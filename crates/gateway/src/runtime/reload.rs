@@ -165,6 +165,12 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
             st.jobs_failed = old_st.jobs_failed;
             st.jobs_shadow = old_st.jobs_shadow;
             st.last_failure.clone_from(&old_st.last_failure);
+            // The journal and the alert know the model extrapolates: the next decision
+            // says whether it still does (a changed range clears or names it anew).
+            let old_fit = old_cfg.axes.get(&axis.name).map(|a| &a.fitted_degc);
+            if old_fit == new_cfg.axes.get(&axis.name).map(|a| &a.fitted_degc) {
+                st.outside_fit.clone_from(&old_st.outside_fit);
+            }
         }
         let cfg_same = old_cfg.axes.get(&axis.name) == new_cfg.axes.get(&axis.name);
         let nc_same = same_nc.contains_key(&axis.name);
