@@ -485,12 +485,16 @@ fn env_overrides(
 ) -> Vec<EnvOverride> {
     let pattern = format!("{ENV_PREFIX}{ENV_SEPARATOR}").to_lowercase();
     let root = toml::Value::Table(file.clone());
+    // Variables the file names itself (`user_env`, `password_env`) are no overrides,
+    // whatever their spelling.
+    let mut named = Vec::new();
+    env_names(&root, &mut named);
     let mut env: Vec<(String, String)> = env.into_iter().collect();
     env.sort();
     let mut selected: HashMap<String, String> = HashMap::new();
     for (name, raw) in env {
         let Some(rest) = name.to_lowercase().strip_prefix(&pattern).map(dotted) else {
-            if let Some(meant) = mistyped_prefix(&name) {
+            if let Some(meant) = mistyped_prefix(&name).filter(|_| !named.contains(&&*name)) {
                 let key = file_key(&root, &dotted(&meant[pattern.len()..]));
                 problems.push(ConfigProblem::new(
                     origin,
@@ -579,6 +583,22 @@ fn env_overrides(
     }
     out.sort_by(|a, b| a.path.cmp(&b.path));
     out
+}
+
+/// The values of every `..._env` key in `node`: names of variables the config reads.
+fn env_names<'a>(node: &'a toml::Value, out: &mut Vec<&'a str>) {
+    match node {
+        toml::Value::Table(t) => {
+            for (k, v) in t {
+                match v.as_str() {
+                    Some(name) if k.ends_with("_env") => out.push(name),
+                    _ => env_names(v, out),
+                }
+            }
+        }
+        toml::Value::Array(a) => a.iter().for_each(|v| env_names(v, out)),
+        _ => {}
+    }
 }
 
 /// The dotted, lowercased key of an override's name after the prefix, as the

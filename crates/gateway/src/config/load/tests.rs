@@ -444,6 +444,33 @@ fn a_variable_with_one_underscore_after_the_prefix_is_a_problem_naming_it() {
     );
 }
 
+// An MQTT login whose variables the config names `COMPGATE_MQTT__USER` (a `__` in a
+// variable name is the integrator's choice) was refused as a mistyped override, with
+// advice that would have put the password into the config (review X).
+#[test]
+fn the_variables_the_config_names_are_no_overrides_whatever_their_spelling() {
+    let text = format!(
+        "{EXAMPLE}\n[mqtt]\nbroker = \"127.0.0.1:1883\"\nmachine = \"m1\"\nuser_env = \"COMPGATE_MQTT__USER\"\n\
+         password_env = \"COMPGATE_MQTT__PASSWORD\"\n"
+    );
+    let vars = env(&[
+        ("COMPGATE_MQTT__USER", "gw"),
+        ("COMPGATE_MQTT__PASSWORD", "secret"),
+    ]);
+    // (The login's own checks look for the variables in this process' environment.)
+    let problems = match load_str_with_env(&text, "t.toml", vars) {
+        Ok(_) => Vec::new(),
+        Err(ConfigError::Invalid(p)) => p,
+        Err(e) => panic!("unexpected {e}"),
+    };
+    assert!(
+        !problems
+            .iter()
+            .any(|p| p.message.contains("looks like an override")),
+        "{problems:#?}"
+    );
+}
+
 // `validate` and `run` list the overrides from what the loader used, without values.
 #[test]
 fn the_loader_returns_the_overrides_it_applied_shown_without_their_values() {
