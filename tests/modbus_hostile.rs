@@ -350,6 +350,56 @@ async fn an_absent_unit_behind_a_tcp_gateway_does_not_hold_up_the_present_one() 
     );
 }
 
+// A replacement module that answers 0 until its inputs have settled (8 s on the
+// reviewer's): 0.0 degC was a good reading, and the axis wrote compensation for it
+// for about 25 s (review W). With settle_s its values after a connect are no data.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_module_that_answers_0_until_it_settles_gives_no_reading_during_settle_s() {
+    let started = std::time::Instant::now();
+    let (address, dev) = device(move |f, _, _, _| {
+        let raw: u16 = if started.elapsed() < Duration::from_millis(800) {
+            0
+        } else {
+            245
+        };
+        (Duration::ZERO, registers(f, &[raw]))
+    })
+    .await;
+    let text = format!(
+        "[gateway]\nstatus_interval_s = 0.05\n\n{}",
+        config(
+            &address,
+            "poll_interval_s = 0.05\nsettle_s = 1.2\n",
+            &[("t", "input", 0, "i16")]
+        )
+        .replace("gain = 1.0", "gain = 0.1")
+    );
+    let (mut status, shutdown, gw) = run(&text, None);
+    let mut seen = Vec::new();
+    let end = tokio::time::Instant::now() + Duration::from_secs(4);
+    while tokio::time::Instant::now() < end {
+        let _ = tokio::time::timeout(Duration::from_millis(100), status.changed()).await;
+        let s = status.borrow_and_update().clone();
+        if let Some(c) = s.channels.first() {
+            seen.push((c.reading.quality, c.reading.value_degc));
+        }
+    }
+    shutdown.cancel();
+    gw.await.unwrap();
+    dev.abort();
+    assert!(
+        !seen
+            .iter()
+            .any(|(q, v)| *q == Quality::Good && *v == Some(0.0)),
+        "a settling 0 was read good: {seen:?}"
+    );
+    let last = seen.last().copied();
+    assert!(
+        last.is_some_and(|(q, v)| q == Quality::Good && v.is_some_and(|v| (v - 24.5).abs() < 1e-9)),
+        "{seen:?}"
+    );
+}
+
 /// A TCP-to-RTU gateway on loopback that takes one connection at a time (a second
 /// client is closed at once, as small gateways do) and serves its requests one after
 /// the other on its serial line: a unit answers its registers with 1000 + its unit id

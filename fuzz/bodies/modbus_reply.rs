@@ -165,6 +165,7 @@ pub fn run(data: &[u8]) {
             max_gap_registers: 0,
             max_read_registers: 125,
             cycle_deadline: timeout,
+            settle: Duration::ZERO,
         };
         let mut poller = DevicePoller::new(
             0,

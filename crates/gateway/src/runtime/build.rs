@@ -18,6 +18,9 @@ use compgate_core::comp::AxisCompensator;
 use super::{AxisRt, FittedRange, GatewayError, Pipeline};
 
 /// The poller of one device, by transport.
+// One per device, made once: the Modbus poller stays inline, as the common case on
+// the poll path, and the rarer CAN one is boxed.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug)]
 pub enum Poller {
     /// A Modbus TCP or RTU device.

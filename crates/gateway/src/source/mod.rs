@@ -236,6 +236,9 @@ pub struct PollParams {
     /// Longest time one poll cycle may take, every read, retry and reconnect
     /// included; the reads not done by then fail for this cycle.
     pub cycle_deadline: Duration,
+    /// After each connect, how long the device's values are not used: a module that
+    /// answers placeholders (0) until its inputs have settled.
+    pub settle: Duration,
 }
 
 /// One channel's value in a poll cycle's reads.
@@ -273,6 +276,8 @@ pub struct DevicePoller {
     /// On a line shared with other devices: how often it is asked while it is
     /// silent (see [`Self::on_shared_line`]).
     silent: Option<Box<Silent>>,
+    /// Until when its values are not used, after a connect ([`PollParams::settle`]).
+    settling_until: Option<Instant>,
 }
 
 /// A device on a shared line that stopped answering: its timeouts would hold the
@@ -337,6 +342,7 @@ impl DevicePoller {
             failed_cycles: 0,
             connects: 0,
             silent: None,
+            settling_until: None,
         }
     }
 
@@ -371,6 +377,9 @@ impl DevicePoller {
     pub fn carry_over(&mut self, old: &DevicePoller) {
         self.link = old.link.clone();
         self.failed_cycles = old.failed_cycles;
+        // The connection is the old one: no new settling for it.
+        self.connects = old.connects;
+        self.settling_until = old.settling_until;
         if let (Some(new), Some(old)) = (&mut self.silent, &old.silent) {
             *new = old.clone();
         }
@@ -488,8 +497,13 @@ impl DevicePoller {
         }
         link.set_cycle_deadline(None);
         let connects = link.connects();
+        if connects != self.connects && !self.params.settle.is_zero() {
+            self.settling_until = Some(Instant::now() + self.params.settle);
+            tracing::info!(device = %self.name, settle_s = self.params.settle.as_secs_f64(), "connected: its values are used once settle_s has passed");
+        }
         self.connects = connects;
         drop(link);
+        let settling = self.settling_until.is_some_and(|t| Instant::now() < t);
         // Values go out in channel order, not register order: the core loop then walks
         // its channel processors front to back, as the CPU's prefetcher expects. In
         // register order, channels whose names do not sort like their addresses are
@@ -498,13 +512,15 @@ impl DevicePoller {
         let mut failed = false;
         for d in &self.decode {
             let value = match &reads[d.block] {
+                // Answered, but not yet to be believed: no value, and no failure.
+                Ok(_) if settling => Err(Reason::NoData),
                 Ok(regs) => regs
                     .get(d.registers.clone())
                     .and_then(|r| plan::decode(r, d.data_type, d.byte_order))
                     .ok_or(Reason::Comm),
                 Err(reason) => Err(*reason),
             };
-            failed |= value.is_err();
+            failed |= value.as_ref().is_err_and(|r| *r != Reason::NoData);
             values.push((
                 d.channel,
                 value.map_err(|reason| Fault {
@@ -731,6 +747,7 @@ mod tests {
             max_gap_registers: 0,
             max_read_registers: plan::MAX_READ_REGISTERS,
             cycle_deadline,
+            settle: Duration::ZERO,
         };
         u16_poller(spec, params, &[0, 100])
     }
@@ -827,6 +844,7 @@ mod tests {
             max_gap_registers: 8,
             max_read_registers: plan::MAX_READ_REGISTERS,
             cycle_deadline: Duration::from_secs(2),
+            settle: Duration::ZERO,
         };
         u16_poller(tcp(address), params, registers)
     }
@@ -985,6 +1003,7 @@ mod tests {
             max_gap_registers: 0,
             max_read_registers: plan::MAX_READ_REGISTERS,
             cycle_deadline: Duration::from_millis(100),
+            settle: Duration::ZERO,
         };
         let mut poller = u16_poller(tcp(&address), params, &[0]).on_shared_line(Backoff::new(
             Duration::from_secs(10),

@@ -204,6 +204,13 @@ pub struct ModbusCommon {
     #[serde(default = "default_max_read_registers")]
     #[schemars(range(min = 1, max = 125))]
     pub max_read_registers: u16,
+    /// After each connect (the first, and every reconnect), seconds during which the
+    /// device's values are not used (its channels read "no data", its link is up): for
+    /// a module that answers 0 or another placeholder until its inputs have settled,
+    /// which would otherwise be a good reading. Default 0.0 (used at once); 0..=600.
+    #[serde(default)]
+    #[schemars(range(min = 0.0, max = 600.0))]
+    pub settle_s: f64,
 }
 
 impl ModbusCommon {
@@ -220,6 +227,7 @@ impl ModbusCommon {
             max_gap_registers: self.max_gap_registers,
             max_read_registers: self.max_read_registers,
             cycle_deadline: common.cycle_deadline(),
+            settle: crate::config::keys::secs(self.settle_s),
         }
     }
 }
