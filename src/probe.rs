@@ -401,41 +401,26 @@ async fn probe_channel(
         order.name()
     );
     // NaN and infinity are the fault values of float transmitters, not a byte order.
-    let mut order_hinted = false;
-    if ty.registers() == 1 {
-        let f = processor.filter_params();
-        let middle_degc = (f.valid_min_degc + f.valid_max_degc) / 2.0;
-        let likely = plan::likely_order(
-            &regs,
-            ty,
-            order,
-            |r| processor.plausible_degc(r),
-            middle_degc,
-        );
-        if let Some((l, degc)) = likely.filter(|(l, _)| *l != order) {
-            let _ = writeln!(
-                out,
-                "    hint       as {} (low byte first) it reads {degc:.2} degC: set byte_order = \"{}\"",
-                l.name(),
-                l.name()
-            );
-            order_hinted = true;
-        }
-    } else if ty.registers() == 2 && !raw.is_finite() {
+    let float_fault = ty.registers() == 2 && !raw.is_finite();
+    let likely = (!float_fault)
+        .then(|| {
+            let f = processor.filter_params();
+            let middle_degc = (f.valid_min_degc + f.valid_max_degc) / 2.0;
+            plan::likely_order(
+                &regs,
+                ty,
+                order,
+                |r| processor.plausible_degc(r),
+                middle_degc,
+            )
+        })
+        .flatten();
+    if float_fault {
         let _ = writeln!(
             out,
             "    note       not finite: the transmitter reports a fault (no byte order hint)"
         );
     } else if ty.registers() == 2 {
-        let f = processor.filter_params();
-        let middle_degc = (f.valid_min_degc + f.valid_max_degc) / 2.0;
-        let likely = plan::likely_order(
-            &regs,
-            ty,
-            order,
-            |r| processor.plausible_degc(r),
-            middle_degc,
-        );
         for o in ByteOrder::ALL {
             let Some(v) = plan::decode(&regs, ty, o) else {
                 continue;
@@ -457,15 +442,23 @@ async fn probe_channel(
                 show(v, ty)
             );
         }
-        if let Some((l, degc)) = likely.filter(|(l, _)| *l != order) {
-            let _ = writeln!(
-                out,
-                "    hint       as {} it reads {degc:.2} degC: set byte_order = \"{}\"",
-                l.name(),
-                l.name()
-            );
-        }
     }
+    let order_hint = likely.filter(|(l, _)| *l != order);
+    if let Some((l, degc)) = order_hint {
+        // A 16-bit register has only its bytes to swap.
+        let which = if ty.registers() == 1 {
+            " (low byte first)"
+        } else {
+            ""
+        };
+        let _ = writeln!(
+            out,
+            "    hint       as {}{which} it reads {degc:.2} degC: set byte_order = \"{}\"",
+            l.name(),
+            l.name()
+        );
+    }
+    let order_hinted = order_hint.is_some();
     let f = processor.filter_params();
     let valid = (f.valid_min_degc, f.valid_max_degc);
     // A byte order that reads plausibly as configured otherwise beats a scaling guess.
