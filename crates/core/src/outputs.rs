@@ -146,7 +146,7 @@ impl Staged {
         }
         let files = std::mem::take(&mut self.files);
         for (k, (tmp, path)) in files.iter().enumerate() {
-            if let Err(e) = std::fs::rename(tmp, path) {
+            if let Err(e) = put_in_place(tmp, path) {
                 // The rest stay staged, so that drop removes them.
                 self.files = files[k..].to_vec();
                 return Err((path.clone(), e));
@@ -169,6 +169,21 @@ impl Staged {
     }
 }
 
+/// Renames `tmp` over `path`; into a device, a fifo or a socket (`--plot /dev/null`)
+/// it copies instead: renamed over, `/dev/null` became a regular file for every
+/// program on the machine.
+fn put_in_place(tmp: &Path, path: &Path) -> std::io::Result<()> {
+    match std::fs::metadata(path) {
+        Ok(m) if !m.is_file() && !m.is_dir() => {
+            let mut from = std::fs::File::open(tmp)?;
+            let mut to = std::fs::OpenOptions::new().write(true).open(path)?;
+            std::io::copy(&mut from, &mut to)?;
+            std::fs::remove_file(tmp)
+        }
+        _ => std::fs::rename(tmp, path),
+    }
+}
+
 impl Drop for Staged {
     fn drop(&mut self) {
         for (tmp, _) in &self.files {
@@ -180,6 +195,29 @@ impl Drop for Staged {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    // `--plot /dev/null` (or `--out`) as root renamed a regular file over the
+    // machine's /dev/null, which every program then read garbage from. A null device
+    // of the test's own (mknod needs root) must stay a device.
+    #[test]
+    fn an_output_into_a_device_writes_into_it_and_leaves_it_a_device() {
+        use std::os::unix::fs::FileTypeExt;
+        let dir = tempfile::tempdir().unwrap();
+        let null = dir.path().join("null");
+        let made = std::process::Command::new("mknod")
+            .arg(&null)
+            .args(["c", "1", "3"])
+            .status();
+        if !made.is_ok_and(|s| s.success()) {
+            println!("SKIPPED: mknod needs root");
+            return;
+        }
+        write(&null, "svg").unwrap();
+        let kind = std::fs::metadata(&null).unwrap().file_type();
+        assert!(kind.is_char_device(), "{kind:?}");
+        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(left.len(), 1, "a temporary file is left: {left:?}");
+    }
 
     #[test]
     fn an_output_that_is_an_input_is_refused_by_any_spelling() {
