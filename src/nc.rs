@@ -161,15 +161,15 @@ async fn read(cfg: &Config, target: Option<&str>) -> Result<(), NcError> {
         match w.read_snapshot().await {
             Ok(s) => {
                 cli::print(format_args!("{label}: {}\n", values(&s)))?;
-                if w.has_axis_state() {
+                // A target that reports the axis state (the NC module, an S7 block)
+                // reports all of it.
+                if let (Some(md32750), Some(referenced)) = (s.md32750, s.referenced) {
                     cli::print(format_args!(
-                        "  MD32750 = {}, referenced = {}, applied compensation = {} mm\n",
-                        s.md32750,
-                        s.referenced,
-                        shown_mm(s.applied_comp_mm)
+                        "  MD32750 = {md32750}, referenced = {referenced}, applied compensation = {} mm\n",
+                        s.applied_comp_mm.map_or_else(|| "-".to_string(), shown_mm)
                     ))?;
                     // The same facts that hold the gateway and refuse `nc write`.
-                    if s.md32750 != ax.md32750 {
+                    if md32750 != ax.md32750 {
                         cli::print(format_args!(
                             "  warning: axes.{name}.md32750 expects {}: the gateway holds this \
                              axis and `nc write` refuses until MD32750 on the control or the \
@@ -177,7 +177,7 @@ async fn read(cfg: &Config, target: Option<&str>) -> Result<(), NcError> {
                             ax.md32750
                         ))?;
                     }
-                    if !s.referenced {
+                    if !referenced {
                         cli::print(
                             "  warning: the axis is not referenced: the NC applies no \
                              temperature compensation until it is\n",
@@ -273,23 +273,21 @@ async fn write_with(
         .read_snapshot()
         .await
         .map_err(|e| format!("{label}: {e}"))?;
-    if w.has_axis_state() {
-        if old.md32750 != ax.md32750 {
-            return Err(format!(
-                "{label}: MD32750 is {} on the NC, axes.{axis}.md32750 expects {}: the NC \
-                 would apply another part of the model than the config computes (bit 0: K0, \
-                 bit 1: slope); correct MD32750 on the control or axes.{axis}.md32750; nothing \
-                 was written",
-                old.md32750, ax.md32750
-            )
-            .into());
-        }
-        if !old.referenced {
-            cli::eprintln(format_args!(
-                "warning: {label}: the axis is not referenced: the NC applies no temperature \
-                 compensation until it is; a value written now takes effect then"
-            ))?;
-        }
+    if let Some(md32750) = old.md32750.filter(|&m| m != ax.md32750) {
+        return Err(format!(
+            "{label}: MD32750 is {md32750} on the NC, axes.{axis}.md32750 expects {}: the NC \
+             would apply another part of the model than the config computes (bit 0: K0, \
+             bit 1: slope); correct MD32750 on the control or axes.{axis}.md32750; nothing \
+             was written",
+            ax.md32750
+        )
+        .into());
+    }
+    if old.referenced == Some(false) {
+        cli::eprintln(format_args!(
+            "warning: {label}: the axis is not referenced: the NC applies no temperature \
+             compensation until it is; a value written now takes effect then"
+        ))?;
     }
     let held = |v: u16| match v {
         var::SD43900 => old.sd43900_mm,

@@ -20,7 +20,11 @@ async fn full_chain_tcp_transmitters_to_applied_nc_compensation() {
         .wait_for(10.0, "a verified job and the NC applying it", |s| {
             s.axes[0].jobs_ok >= 1
                 && s.axes[0].nc.is_some_and(|nc| {
-                    nc.sd43900_mm != 0.0 && (nc.applied_comp_mm - nc.target_comp_mm).abs() < 1e-12
+                    nc.sd43900_mm != 0.0
+                        && nc
+                            .applied_comp_mm
+                            .zip(nc.target_comp_mm)
+                            .is_some_and(|(a, t)| (a - t).abs() < 1e-12)
                 })
         })
         .await;
@@ -463,11 +467,15 @@ async fn md32750_mismatch_and_unreferenced_axis_are_shown() {
     let w = s.axes[0].warning.clone().unwrap_or_default();
     assert!(w.contains("axis not referenced"), "{w}");
     assert!(!w.contains("MD32750"), "{w}");
-    assert_eq!(s.axes[0].nc.map(|nc| nc.applied_comp_mm), Some(0.0));
+    assert_eq!(s.axes[0].nc.and_then(|nc| nc.applied_comp_mm), Some(0.0));
     rig.plant.nc["nc_x"].with_state(|a| a.referenced = true);
     let s = rig
         .wait_for(10.0, "warnings clear once the NC is right", |s| {
-            s.axes[0].warning.is_none() && s.axes[0].nc.is_some_and(|nc| nc.applied_comp_mm > 0.0)
+            s.axes[0].warning.is_none()
+                && s.axes[0]
+                    .nc
+                    .and_then(|nc| nc.applied_comp_mm)
+                    .is_some_and(|c| c > 0.0)
         })
         .await;
     assert!(render_has_no_warning(&s));

@@ -23,7 +23,10 @@ async fn a_module_serving_only_the_documented_registers_is_written() {
     // read only what the map documents.
     let s = rig
         .wait_for(10.0, "a verified job on the strict module", |s| {
-            s.axes[0].jobs_ok >= 1 && s.axes[0].nc.is_some_and(|n| n.md32750 == 3 && n.referenced)
+            s.axes[0].jobs_ok >= 1
+                && s.axes[0]
+                    .nc
+                    .is_some_and(|n| n.md32750 == Some(3) && n.referenced == Some(true))
         })
         .await;
     assert_eq!(

@@ -89,6 +89,17 @@ async fn values_land_bit_for_bit_on_the_right_axis() {
         assert_eq!(held(&mut peer, 2), bits(p), "peer holds what was written");
         let snap = w.read_snapshot().await.unwrap();
         assert_eq!(bits(&snap.thermal()), bits(p), "snapshot reads it back");
+        // The setting data are all it reads: no position, applied compensation or
+        // axis state (0 and false had looked like a standing, unreferenced axis).
+        assert_eq!(
+            (
+                snap.position_mm,
+                snap.applied_comp_mm,
+                snap.md32750,
+                snap.referenced
+            ),
+            (None, None, None, None)
+        );
     }
     // The other axes are untouched.
     assert_eq!(held(&mut peer, 1), [0; 3]);

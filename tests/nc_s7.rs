@@ -52,7 +52,7 @@ async fn lreal_values_land_bit_for_bit_in_each_axis_block() {
     assert_eq!(held.sd43900_mm.to_bits(), p.k0_mm.to_bits());
     assert_eq!(held.sd43910.to_bits(), p.tan_beta.to_bits());
     assert_eq!(held.sd43920_mm.to_bits(), p.p0_mm.to_bits());
-    assert_eq!((held.md32750, held.referenced), (3, true));
+    assert_eq!((held.md32750, held.referenced), (Some(3), Some(true)));
     assert_eq!(held.md32760, 0.01);
 
     let mut w1 = writer(&peer, "value_type = \"lreal\"", 1);

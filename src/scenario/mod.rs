@@ -754,7 +754,9 @@ async fn run_once(
         // does in the service.
         let snap = writer.read_snapshot().await.map_err(setup_err)?;
         let now_s = pipeline.now_s(at);
-        pipeline.axes[0].comp.on_position(now_s, snap.position_mm);
+        if let Some(pos_mm) = snap.position_mm {
+            pipeline.axes[0].comp.on_position(now_s, pos_mm);
+        }
         if let Some(o) = observer.as_mut() {
             status.axes[0].nc = Some(snap);
             status.axes[0].nc_reads += 1;

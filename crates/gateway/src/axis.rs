@@ -105,7 +105,8 @@ pub struct AxisConfig {
     #[serde(default)]
     pub tan_beta: TanBetaModel,
     /// Heat of axis motion, from the NC's actual position (diagnose's
-    /// `motion_heating`). Optional table; default: none.
+    /// `motion_heating`): needs a target that reports it (`kind = "modbus"` or
+    /// `"s7"`). Optional table; default: none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub motion_heat: Option<MotionHeatModel>,
     /// The temperatures the model was fitted over, degC, per input channel: `{ T_bed =

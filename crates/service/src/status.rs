@@ -73,13 +73,9 @@ pub fn render(s: &Status) -> String {
                 );
             }
         }
-        match &a.nc {
-            Some(nc) => {
-                let _ = write!(
-                    out,
-                    "NC pos={:.1}mm comp={:.4}mm ",
-                    nc.position_mm, nc.applied_comp_mm
-                );
+        match a.nc.and_then(|nc| nc.position_mm.zip(nc.applied_comp_mm)) {
+            Some((pos_mm, comp_mm)) => {
+                let _ = write!(out, "NC pos={pos_mm:.1}mm comp={comp_mm:.4}mm ");
             }
             None => out.push_str("NC comp=- "),
         }
@@ -167,10 +163,10 @@ pub fn render_table(s: &Status) -> Vec<String> {
             });
         }
         let nc = match &a.nc {
-            Some(nc) => format!(
-                "NC applies {:.4} mm at {:.1} mm",
-                nc.applied_comp_mm, nc.position_mm
-            ),
+            Some(nc) => match nc.applied_comp_mm.zip(nc.position_mm) {
+                Some((comp_mm, pos_mm)) => format!("NC applies {comp_mm:.4} mm at {pos_mm:.1} mm"),
+                None => "NC answers (reports no position)".into(),
+            },
             None => "NC -".into(),
         };
         lines.push(format!(
@@ -370,8 +366,8 @@ mod tests {
                 decision: "write".into(),
                 jobs_ok: 3,
                 nc: Some(NcSnapshot {
-                    applied_comp_mm: 0.0345,
-                    position_mm: 1234.5,
+                    applied_comp_mm: Some(0.0345),
+                    position_mm: Some(1234.5),
                     ..NcSnapshot::default()
                 }),
                 warning: warning.map(str::to_string),

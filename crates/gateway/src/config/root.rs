@@ -196,7 +196,8 @@ impl Config {
 ///   `ramp_to_zero`. `nc_write` holds every value the model sets: SD43900 with a K0
 ///   model, SD43910 and SD43920 with a tan(beta) model, SD43920 with `p0_mm` != 0
 ///   (motion heat counts towards the model it adds to), each once; its target has a
-///   place for each value in `nc_write`.
+///   place for each value in `nc_write`, and reports the position for `motion_heat`
+///   (a Modbus NC module or an S7 block; OPC UA and ADS do not).
 /// - **OPC UA credentials**: `credentials_file` readable with a user name on its
 ///   first line, or the variables `user_env` and `password_env` set, read as `run`
 ///   reads them at start.
@@ -377,6 +378,18 @@ pub(crate) fn validate_assuming(
                         out.push(field("axes", name, "nc_module"), message);
                     }
                     before.push(name);
+                }
+                if axis.motion_heat.is_some() && !t.reports_axis_state() {
+                    out.push(
+                        field("axes", name, "motion_heat"),
+                        format!(
+                            "counts the axis' travel from the NC's position, but target \
+                             `{module}` (kind = {}) reports no position: the term would stay \
+                             at its value for a standing axis; take motion_heat out, or \
+                             reach the axis through a Modbus NC module or an S7 block",
+                            t.kind().name()
+                        ),
+                    );
                 }
                 for &v in &axis.nc_write_ids() {
                     if !t.has(v) {

@@ -109,6 +109,13 @@ impl TargetConfig {
         matches!(self, Self::Modbus(_))
     }
 
+    /// Whether the target reports the axis' position, applied compensation, MD32750
+    /// and referenced flag (the NC module and the S7 block do; OPC UA and ADS reach
+    /// the setting data only).
+    pub fn reports_axis_state(&self) -> bool {
+        matches!(self, Self::Modbus(_) | Self::S7(_))
+    }
+
     /// Whether the target has a place for variable `var_id`.
     pub fn has(&self, var_id: u16) -> bool {
         match self {

@@ -75,15 +75,6 @@ impl NcWriter for AnyNcWriter {
         }
     }
 
-    fn has_axis_state(&self) -> bool {
-        match self {
-            Self::Modbus(w) => w.has_axis_state(),
-            Self::Opcua(w) => w.has_axis_state(),
-            Self::S7(w) => w.has_axis_state(),
-            Self::Ads(w) => w.has_axis_state(),
-        }
-    }
-
     async fn close(&mut self) {
         if let Self::Opcua(w) = self {
             w.close().await;
@@ -255,10 +246,6 @@ impl<W: NcWriter> NcWriter for Guarded<W> {
 
     fn precision(&self) -> Precision {
         self.writer.precision()
-    }
-
-    fn has_axis_state(&self) -> bool {
-        self.writer.has_axis_state()
     }
 
     async fn close(&mut self) {

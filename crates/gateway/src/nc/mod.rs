@@ -440,22 +440,24 @@ pub struct NcSnapshot {
     pub sd43910: f64,
     /// SD43920, mm.
     pub sd43920_mm: f64,
-    /// MD32750 mode bits.
-    pub md32750: u16,
+    /// MD32750 mode bits; `None` where the target does not report them (OPC UA, ADS).
+    pub md32750: Option<u16>,
     /// MD32760 velocity factor.
     pub md32760: f64,
     /// MD32000, mm/min.
     pub max_ax_velo_mm_per_min: f64,
     /// MD32450 backlash, mm.
     pub md32450_mm: f64,
-    /// Actual position, mm.
-    pub position_mm: f64,
-    /// Compensation the NC applies now, mm.
-    pub applied_comp_mm: f64,
-    /// Compensation the NC is moving towards at this position, mm.
-    pub target_comp_mm: f64,
-    /// Axis referenced.
-    pub referenced: bool,
+    /// Actual position, mm; `None` where the target does not report it (OPC UA, ADS):
+    /// a 0 there fed the motion heat term and the recording a standing axis.
+    pub position_mm: Option<f64>,
+    /// Compensation the NC applies now, mm; `None` where the target does not report it.
+    pub applied_comp_mm: Option<f64>,
+    /// Compensation the NC is moving towards at this position, mm; `None` where the
+    /// target does not report it.
+    pub target_comp_mm: Option<f64>,
+    /// Axis referenced; `None` where the target does not report it.
+    pub referenced: Option<bool>,
 }
 
 impl NcSnapshot {
@@ -485,12 +487,6 @@ pub trait NcWriter: Send {
     /// How the target stores the values (the read-back tolerance). Default: f64.
     fn precision(&self) -> Precision {
         Precision::F64
-    }
-    /// Whether the snapshot carries MD32750, MD32760, MD32000, the position, the
-    /// applied compensation and the referenced flag (the NC module does; a real
-    /// control reached for its setting data only does not). Default: false.
-    fn has_axis_state(&self) -> bool {
-        false
     }
     /// Ends the connection politely, so the target frees its session now and not
     /// after its own timeout (a control admits only a few sessions). Default: nothing

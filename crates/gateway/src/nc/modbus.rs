@@ -147,10 +147,6 @@ impl ModbusNcWriter {
 }
 
 impl NcWriter for ModbusNcWriter {
-    fn has_axis_state(&self) -> bool {
-        true
-    }
-
     async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
         job.check_pair_count()?;
         let job_id = self.job_ids.issue();
@@ -196,11 +192,11 @@ impl NcWriter for ModbusNcWriter {
             md32760: f64_at(&rb, base, ncmap::RB_MD32760)?,
             max_ax_velo_mm_per_min: f64_at(&rb, base, ncmap::RB_MAX_AX_VELO)?,
             md32450_mm: f64_at(&rb, base, ncmap::RB_MD32450)?,
-            position_mm: f64_at(&rb, base, ncmap::RB_POSITION)?,
-            applied_comp_mm: f64_at(&rb, base, ncmap::RB_APPLIED_COMP)?,
-            target_comp_mm: f64_at(&rb, base, ncmap::RB_TARGET_COMP)?,
-            md32750: u(ncmap::RB_MD32750),
-            referenced: u(ncmap::RB_REFERENCED) != 0,
+            position_mm: Some(f64_at(&rb, base, ncmap::RB_POSITION)?),
+            applied_comp_mm: Some(f64_at(&rb, base, ncmap::RB_APPLIED_COMP)?),
+            target_comp_mm: Some(f64_at(&rb, base, ncmap::RB_TARGET_COMP)?),
+            md32750: Some(u(ncmap::RB_MD32750)),
+            referenced: Some(u(ncmap::RB_REFERENCED) != 0),
         })
     }
 }

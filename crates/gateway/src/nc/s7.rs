@@ -746,11 +746,11 @@ impl PlcArea {
             md32760: self.value(3),
             max_ax_velo_mm_per_min: self.value(4),
             md32450_mm: self.value(5),
-            position_mm: self.value(6),
-            applied_comp_mm: self.value(7),
-            target_comp_mm: self.value(8),
-            md32750: self.word(self.layout.md32750()),
-            referenced: self.word(self.layout.referenced()) != 0,
+            position_mm: Some(self.value(6)),
+            applied_comp_mm: Some(self.value(7)),
+            target_comp_mm: Some(self.value(8)),
+            md32750: Some(self.word(self.layout.md32750())),
+            referenced: Some(self.word(self.layout.referenced()) != 0),
         }
     }
 }
@@ -932,11 +932,6 @@ impl NcWriter for S7NcWriter {
 
     fn precision(&self) -> Precision {
         self.spec.layout.value_type.precision()
-    }
-
-    /// The block carries MD32750 and the referenced flag the PLC program copies.
-    fn has_axis_state(&self) -> bool {
-        true
     }
 }
 

@@ -8,7 +8,7 @@ use tokio::sync::Mutex;
 
 use crate::config::problem::peer_identity;
 use crate::config::{Config, DeviceConfig};
-use crate::nc::{Guarded, NcWriter};
+use crate::nc::Guarded;
 use crate::source::can::sync::{self, SyncDevice, SyncParams};
 use crate::source::can::{CanChannelSpec, CanPoller};
 use crate::source::modbus::{Backoff, LinkSpec, ModbusLink};
@@ -314,7 +314,6 @@ pub fn build(cfg: &Config) -> Result<Built, GatewayError> {
             md32750: ax.md32750,
             update_interval: ax.update_interval(),
             nc_write: ax.nc_write_ids(),
-            axis_state: nc_modules[nc_module].writer.has_axis_state(),
             shadow: ax.shadow || cfg.gateway.shadow,
             fitted,
         });

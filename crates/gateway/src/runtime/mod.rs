@@ -656,8 +656,11 @@ impl Running {
                     let st = &mut self.status.axes[i];
                     match &result {
                         Ok(snap) => {
-                            // The motion heat term counts travel between snapshots.
-                            axis.comp.on_position(now_s, snap.position_mm);
+                            // The motion heat term counts travel between snapshots
+                            // (validate refuses the term on a target without a position).
+                            if let Some(pos_mm) = snap.position_mm {
+                                axis.comp.on_position(now_s, pos_mm);
+                            }
                             let held = snap.thermal();
                             // A restarted NC (or a value changed at the HMI) no longer
                             // holds what it confirmed: a baseline it does not hold
@@ -699,9 +702,8 @@ impl Running {
                                 st.written = Some(held);
                             }
                             let facts = NcFacts {
-                                md32750_wrong: (axis.axis_state && snap.md32750 != axis.md32750)
-                                    .then_some(snap.md32750),
-                                unreferenced: axis.axis_state && !snap.referenced,
+                                md32750_wrong: snap.md32750.filter(|&m| m != axis.md32750),
+                                unreferenced: snap.referenced == Some(false),
                             };
                             log_nc_facts(&axis.name, axis.md32750, self.nc_facts[i], facts);
                             self.nc_facts[i] = facts;
@@ -1669,7 +1671,7 @@ mod tests {
         let mut in_flight = vec![false];
         for pos_mm in [0.0, 500.0, 200.0] {
             let snap = NcSnapshot {
-                position_mm: pos_mm,
+                position_mm: Some(pos_mm),
                 ..NcSnapshot::default()
             };
             state.on_event(

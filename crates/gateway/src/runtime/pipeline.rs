@@ -29,8 +29,6 @@ pub struct AxisRt {
     pub update_interval: Duration,
     /// The variables it may write (its allow-list), as ids.
     pub nc_write: Vec<u16>,
-    /// Whether its target reports MD32750 and the referenced flag.
-    pub axis_state: bool,
     /// Shadow mode: compute and record, never write the NC.
     pub shadow: bool,
     /// The temperatures its model was fitted over (`fitted_degc`).

@@ -189,10 +189,11 @@ fn nc_json(nc: &NcSnapshot) -> Value {
         "sd43900_mm": num(nc.sd43900_mm),
         "sd43910": num(nc.sd43910),
         "sd43920_mm": num(nc.sd43920_mm),
+        // null where the target does not report it (OPC UA, ADS).
         "md32750": nc.md32750,
-        "position_mm": num(nc.position_mm),
-        "applied_comp_mm": num(nc.applied_comp_mm),
-        "target_comp_mm": num(nc.target_comp_mm),
+        "position_mm": nc.position_mm.map(num),
+        "applied_comp_mm": nc.applied_comp_mm.map(num),
+        "target_comp_mm": nc.target_comp_mm.map(num),
         "referenced": nc.referenced,
     })
 }

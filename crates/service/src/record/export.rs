@@ -424,11 +424,13 @@ pub fn export(
     // The NC positions, each with the compensation the NC applied in that status
     // tick, from the last one before the grid on, after the last change before that
     // (which gives the direction): not the axis' whole history.
-    let positions: Vec<(i64, f64, f64)> = match &args.axis {
+    // Only reads that carry a position: a target that reports none (OPC UA, ADS)
+    // records NULL, and a standing axis at 0 is not what the machine did.
+    let positions: Vec<(i64, f64, Option<f64>)> = match &args.axis {
         Some(axis) => {
             let query = |sql: &str,
                          p: &[&dyn rusqlite::ToSql]|
-             -> Result<Vec<(i64, f64, f64)>, ExportError> {
+             -> Result<Vec<(i64, f64, Option<f64>)>, ExportError> {
                 conn.prepare(sql)
                     .and_then(|mut s| {
                         s.query_map(p, |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))?
@@ -437,7 +439,7 @@ pub fn export(
                     .map_err(db)
             };
             let before = query(
-                "SELECT t_unix_ms, position_mm, applied_comp_mm FROM nc WHERE axis = ?1 AND t_unix_ms <= ?2 ORDER BY t_unix_ms DESC LIMIT 1",
+                "SELECT t_unix_ms, position_mm, applied_comp_mm FROM nc WHERE axis = ?1 AND t_unix_ms <= ?2 AND position_mm IS NOT NULL ORDER BY t_unix_ms DESC LIMIT 1",
                 &[axis, &grid_start],
             )?;
             let mut v = Vec::new();
@@ -452,13 +454,31 @@ pub fn export(
                 None => grid_start,
             };
             v.extend(query(
-                "SELECT t_unix_ms, position_mm, applied_comp_mm FROM nc WHERE axis = ?1 AND t_unix_ms >= ?2 AND t_unix_ms < ?3 ORDER BY t_unix_ms",
+                "SELECT t_unix_ms, position_mm, applied_comp_mm FROM nc WHERE axis = ?1 AND t_unix_ms >= ?2 AND t_unix_ms < ?3 AND position_mm IS NOT NULL ORDER BY t_unix_ms",
                 &[axis, &from, &until],
             )?);
             if v.is_empty() {
+                let unreported: bool = conn
+                    .query_row(
+                        "SELECT COUNT(*) > 0 FROM nc WHERE axis = ?1 AND t_unix_ms < ?2 AND position_mm IS NULL",
+                        params![axis, until],
+                        |r| r.get(0),
+                    )
+                    .map_err(db)?;
+                let message = if unreported {
+                    format!("the NC target of axis `{axis}` reports no position (an OPC UA or ADS target reads the setting data only): pos_mm cannot be exported; leave --axis out for pos_mm 0 (calibrate then fits K0 alone), or record the position with a channel")
+                } else {
+                    format!("no recorded NC position of axis `{axis}` before --until")
+                };
                 return Err(ExportError::Arg {
                     flag: "axis",
-                    message: format!("no recorded NC position of axis `{axis}` before --until"),
+                    message,
+                });
+            }
+            if args.add_applied_comp && v.iter().any(|(_, _, applied)| applied.is_none()) {
+                return Err(ExportError::Arg {
+                    flag: "add-applied-comp",
+                    message: format!("the NC target of axis `{axis}` reported no applied compensation in the window"),
                 });
             }
             if let Some(note) = applied_comp_note(&conn, axis, since, until, args)? {
@@ -491,7 +511,7 @@ pub fn export(
     let mut last_err: Option<(i64, f64)> = None;
     let mut last_pos: Option<(i64, f64)> = None;
     // The compensation the NC applied at `last_pos`, mm: recorded in the same row.
-    let mut last_applied_mm = 0.0;
+    let mut last_applied_mm: Option<f64> = None;
     // Whether the channel's latest reading was no measurement: its last value is not
     // held across it (the outage is known, not a gap between recorded samples).
     let mut cut = vec![false; temp_ids.len()];
@@ -581,7 +601,7 @@ pub fn export(
                             // The sensor read the error minus what the NC applied
                             // (the simulated plant's `measure - applied`): added back,
                             // the error without compensation.
-                            1000.0 * last_applied_mm
+                            1000.0 * last_applied_mm.unwrap_or(0.0)
                         } else {
                             0.0
                         },

@@ -145,10 +145,10 @@ pub enum Record {
         t_unix_ms: i64,
         /// Axis name.
         axis: String,
-        /// Actual position, mm.
-        position_mm: f64,
-        /// Compensation applied, mm.
-        applied_comp_mm: f64,
+        /// Actual position, mm; `None` where the target does not report it.
+        position_mm: Option<f64>,
+        /// Compensation applied, mm; `None` where the target does not report it.
+        applied_comp_mm: Option<f64>,
         /// Parameters the NC holds.
         params: CompParams,
     },

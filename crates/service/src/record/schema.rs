@@ -41,8 +41,8 @@ CREATE INDEX IF NOT EXISTS jobs_t ON jobs(t_unix_ms);
 CREATE TABLE IF NOT EXISTS nc (
     t_unix_ms       INTEGER NOT NULL,
     axis            TEXT NOT NULL,
-    position_mm     REAL NOT NULL,
-    applied_comp_mm REAL NOT NULL,
+    position_mm     REAL, -- NULL: the target does not report it (OPC UA, ADS)
+    applied_comp_mm REAL, -- NULL: likewise
     sd43900_mm      REAL NOT NULL,
     sd43910         REAL NOT NULL,
     sd43920_mm      REAL NOT NULL
@@ -122,6 +122,28 @@ pub fn open(path: &Path) -> Result<Connection, RecordError> {
     if !has_shadow {
         conn.execute_batch("ALTER TABLE jobs ADD COLUMN shadow INTEGER NOT NULL DEFAULT 0;")
             .map_err(err)?;
+    }
+    // Databases recorded before a target could report no position hold 0 there
+    // instead of NULL (their NOT NULL columns refuse it): rebuilt once, in one
+    // transaction, rows kept.
+    let nc_not_null: bool = conn
+        .query_row(
+            "SELECT COUNT(*) > 0 FROM pragma_table_info('nc') WHERE name = 'position_mm' AND \"notnull\"",
+            [],
+            |r| r.get(0),
+        )
+        .map_err(err)?;
+    if nc_not_null {
+        conn.execute_batch(&format!(
+            "BEGIN IMMEDIATE;
+             ALTER TABLE nc RENAME TO nc_not_null;
+             DROP INDEX nc_t;
+             {SCHEMA}
+             INSERT INTO nc SELECT * FROM nc_not_null;
+             DROP TABLE nc_not_null;
+             COMMIT;"
+        ))
+        .map_err(err)?;
     }
     conn.execute_batch(&format!("PRAGMA user_version = {LAYOUT_VERSION};"))
         .map_err(err)?;

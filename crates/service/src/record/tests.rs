@@ -252,6 +252,90 @@ fn an_old_database_gets_the_shadow_column_and_shadow_jobs_are_marked() {
     open(&path).expect("opens again");
 }
 
+// A target that reports no position (OPC UA, ADS) recorded 0 mm, and an export
+// with --axis took it for a standing axis. It records NULL now; a database of the
+// layout before (NOT NULL columns) is rebuilt once on open, its rows kept.
+#[test]
+fn an_nc_read_without_a_position_is_recorded_as_null_in_old_databases_too() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("old.db");
+    {
+        let old = rusqlite::Connection::open(&path).expect("create");
+        old.execute_batch(
+            "CREATE TABLE nc (t_unix_ms INTEGER NOT NULL, axis TEXT NOT NULL,
+                position_mm REAL NOT NULL, applied_comp_mm REAL NOT NULL,
+                sd43900_mm REAL NOT NULL, sd43910 REAL NOT NULL, sd43920_mm REAL NOT NULL);
+             CREATE INDEX nc_t ON nc(t_unix_ms);
+             INSERT INTO nc VALUES (1, 'X', 12.5, 0.002, 0.01, 0.0, 0.0);",
+        )
+        .expect("old schema");
+    }
+    let mut conn = open(&path).expect("opens and migrates");
+    let read = Record::Nc {
+        t_unix_ms: 2,
+        axis: "X".into(),
+        position_mm: None,
+        applied_comp_mm: None,
+        params: CompParams {
+            k0_mm: 0.02,
+            tan_beta: 0.0,
+            p0_mm: 0.0,
+        },
+    };
+    schema::insert(&mut conn, &mut schema::Statements::default(), &[read]).expect("insert");
+    let rows: Vec<(i64, Option<f64>, Option<f64>, f64)> = conn
+        .prepare(
+            "SELECT t_unix_ms, position_mm, applied_comp_mm, sd43900_mm FROM nc ORDER BY t_unix_ms",
+        )
+        .expect("query")
+        .query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)))
+        .expect("rows")
+        .collect::<Result<_, _>>()
+        .expect("rows");
+    assert_eq!(
+        rows,
+        vec![(1, Some(12.5), Some(0.002), 0.01), (2, None, None, 0.02)]
+    );
+    let index: i64 = conn
+        .query_row(
+            "SELECT COUNT(*) FROM sqlite_schema WHERE type = 'index' AND name = 'nc_t' AND tbl_name = 'nc'",
+            [],
+            |r| r.get(0),
+        )
+        .expect("index");
+    assert_eq!(index, 1);
+    drop(conn);
+    open(&path).expect("opens again");
+}
+
+// An export with --axis of an axis whose target reports no position gave pos_mm 0 in
+// every row, without a word.
+#[test]
+fn export_refuses_pos_mm_of_a_target_that_reports_no_position() {
+    let (_dir, db) = recorded(&[(0, 20)]);
+    let conn = schema::open(&db).unwrap();
+    for t in 0..20i64 {
+        conn.execute(
+            "INSERT INTO nc(t_unix_ms, axis, position_mm, applied_comp_mm, sd43900_mm, sd43910, sd43920_mm) VALUES (?1, 'X', NULL, NULL, 0.01, 0, 0)",
+            [t * 1000],
+        )
+        .unwrap();
+    }
+    let mut args = export_args(&db, 0, 20);
+    args.axis = Some("X".into());
+    let e = export::measurements(&args).unwrap_err().to_string();
+    assert!(
+        e.starts_with("--axis: the NC target of axis `X` reports no position")
+            && e.contains("leave --axis out"),
+        "{e}"
+    );
+    // Without --axis the same window exports, pos_mm 0 as stated.
+    args.axis = None;
+    let (m, summary) = export::measurements(&args).unwrap();
+    assert_eq!(m.len(), 20);
+    assert!(summary.notes.iter().any(|n| n.contains("pos_mm is 0")));
+}
+
 /// A database holding channel `T_a`, read once a second over `spans` (start, end in
 /// s, end exclusive), value 20 + t / 1000.
 fn recorded(spans: &[(i64, i64)]) -> (tempfile::TempDir, std::path::PathBuf) {
@@ -1585,8 +1669,8 @@ fn a_damaged_database_is_logged_once_and_never_taken_for_recovered() {
     let nc = |t_unix_ms| Record::Nc {
         t_unix_ms,
         axis: "X".into(),
-        position_mm: 1.0,
-        applied_comp_mm: 0.0,
+        position_mm: Some(1.0),
+        applied_comp_mm: Some(0.0),
         params: CompParams::default(),
     };
     let root: i64 = {

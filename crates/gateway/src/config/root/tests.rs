@@ -653,3 +653,35 @@ fn one_control_under_two_target_names_is_refused() {
         );
     }
 }
+
+// An OPC UA or ADS target reports no position: the motion heat term read 0 mm for
+// a standing axis and kept its reference offset on the NC whatever the axis did.
+#[test]
+fn motion_heat_needs_a_target_that_reports_the_position() {
+    let heat = || crate::axis::MotionHeatModel {
+        tau_s: 600.0,
+        ref_mm_per_s: 5.0,
+        k0_mm_per_mm_per_s: 0.001,
+        tan_beta_per_mm_per_s: 0.0,
+    };
+    let on_opcua = |with_heat: bool| {
+        problems_after(|c| {
+            c.nc_modules.remove("nc_x");
+            let t: TargetConfig =
+                toml::from_str("kind = \"opcua\"\nendpoint_url = \"opc.tcp://127.0.0.1:4840\"")
+                    .expect("opcua target");
+            c.targets.insert("nc_x".into(), t);
+            x(c).axis_number = Some(1);
+            if with_heat {
+                x(c).motion_heat = Some(heat());
+            }
+        })
+    };
+    assert_eq!(on_opcua(false), Vec::<String>::new());
+    assert_eq!(on_opcua(true), ["axes.X.motion_heat"]);
+    // The NC module reports it.
+    assert_eq!(
+        problems_after(|c| x(c).motion_heat = Some(heat())),
+        Vec::<String>::new()
+    );
+}
