@@ -7,7 +7,7 @@ use std::path::Path;
 use compgate_core::comp::{MAX_TAN_BETA_PER_K, STEEL_EXPANSION_PER_K};
 
 use super::keys::field;
-use super::problem::{peer_identity, ConfigProblem, Problems};
+use super::problem::{check_host_port, peer_identity, ConfigProblem, Problems};
 use super::{Config, DeviceConfig};
 use crate::channel::RegisterKind;
 use crate::source::config::DeviceCommon;
@@ -25,6 +25,8 @@ use crate::source::modbus::config::{ModbusCommon, RtuDeviceConfig};
 ///   smallest `poll_interval_s`: a silent one holds up the others. Not for units at
 ///   one TCP address: behind a TCP-to-RTU gateway each `timeout_s` must stay above the
 ///   gateway's own response timeout, so lowering them is no advice.
+/// - A TCP device at the address and unit id of a Modbus NC module: its channels
+///   would read the module's registers as temperatures (a copied address).
 /// - A tan(beta) `coeff_per_degc` beyond [`MAX_TAN_BETA_PER_K`].
 pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
     let mut out = Problems::new(file);
@@ -42,6 +44,23 @@ pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
                      twice; give one of them its own address or unit_id, or move its \
                      channels to `{other}`",
                     d.unit_id, d.address
+                ),
+            );
+        }
+    }
+    for (module, m) in cfg.modbus_targets() {
+        // Port 0 is the simulated plant's to give each its own free port.
+        if check_host_port(&m.address).is_err() {
+            continue;
+        }
+        if let Some(name) = tcp.get(&(peer_identity(&m.address), m.unit_id)) {
+            out.push(
+                field("devices", name, "address"),
+                format!(
+                    "{} unit id {} is also NC module `{module}`: the device's channels would \
+                     read the NC module's registers as temperatures; give the device the \
+                     temperature module's address",
+                    m.address, m.unit_id
                 ),
             );
         }
@@ -300,6 +319,48 @@ mod tests {
             w[0].starts_with(
                 "dup.toml: devices.good.unit_id: unit id 1 at 127.0.0.1:502 is also device `bad`"
             ),
+            "{}",
+            w[0]
+        );
+    }
+
+    // A temperature module given the NC module's address (a copied entry) read the
+    // module's registers as temperatures without a word.
+    #[test]
+    fn a_device_at_the_nc_modules_address_and_unit_gets_a_warning() {
+        let text = include_str!("../../../../config/example.toml");
+        let mut cfg = crate::config::load_str(text, "plant.toml").expect("valid");
+        let nc = cfg.modbus_targets()[0].1.clone();
+        let w = |cfg: &Config| -> Vec<String> {
+            // The example's RTU line is not plugged in here: not this warning.
+            warnings(cfg, "plant.toml")
+                .iter()
+                .map(ToString::to_string)
+                .filter(|w| !w.contains("serial_path"))
+                .collect()
+        };
+        assert_eq!(w(&cfg), Vec::<String>::new());
+        let Some(DeviceConfig::Tcp(d)) = cfg.devices.get_mut("ain1") else {
+            panic!("ain1 is a TCP device in the example");
+        };
+        d.address.clone_from(&nc.address);
+        d.unit_id = nc.unit_id + 1;
+        assert_eq!(
+            w(&cfg),
+            Vec::<String>::new(),
+            "another unit id is another device"
+        );
+        let Some(DeviceConfig::Tcp(d)) = cfg.devices.get_mut("ain1") else {
+            unreachable!()
+        };
+        d.unit_id = nc.unit_id;
+        let w = w(&cfg);
+        assert_eq!(w.len(), 1, "{w:#?}");
+        assert!(
+            w[0].starts_with(&format!(
+                "plant.toml: devices.ain1.address: {} unit id {} is also NC module `nc_x`",
+                nc.address, nc.unit_id
+            )),
             "{}",
             w[0]
         );
