@@ -343,5 +343,11 @@ async fn write_with(
         "written and read back in {:.1} ms\n",
         report.elapsed.as_secs_f64() * 1e3
     ))?;
+    // Nothing here can see a running gateway: say what it would do with the value.
+    cli::print(format_args!(
+        "note: a compgate service that compensates axis {axis} takes this as what the NC \
+         holds, logs that it changed, and replaces it at its next job (stop the service, \
+         or give the axis `shadow = true`, to keep it)\n"
+    ))?;
     Ok(())
 }

@@ -141,6 +141,11 @@ async fn nc_write_shows_the_change_and_writes_once_after_yes() {
     let t = text_of(&out);
     assert!(out.status.success(), "{t}");
     assert!(t.contains("written and read back"), "{t}");
+    // A running gateway would replace the value: said, with the way to keep it.
+    assert!(
+        t.contains("replaces it at its next job") && t.contains("shadow = true"),
+        "{t}"
+    );
     let s = module.state();
     assert_eq!(s.sd43900_mm.to_bits(), 0.02_f64.to_bits());
     assert_eq!(s.sd43910.to_bits(), (-0.0001_f64).to_bits());
