@@ -56,6 +56,9 @@ fn config_schema_is_the_json_schema_with_every_key_documented() {
     assert!(timeout["description"]
         .as_str()
         .is_some_and(|d| d.contains("poll cycle")));
+    // An editor checking against the schema flags an even median, as validate does.
+    let median = &schema["$defs"]["FilterConfig"]["properties"]["median_samples"];
+    assert_eq!(median["not"]["multipleOf"], 2, "{median}");
 }
 
 /// The annotated example was said to hold "every key" while it left out whole

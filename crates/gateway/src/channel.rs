@@ -334,7 +334,7 @@ pub struct FilterConfig {
     /// 1..=99 (an even window has no middle sample: a median of 2 is a mean and
     /// rejects no spike, so even numbers are refused).
     #[serde(default = "default_median_samples")]
-    #[schemars(range(min = 1, max = 99))]
+    #[schemars(range(min = 1, max = 99), extend("not" = {"multipleOf": 2}))]
     pub median_samples: u32,
     /// First-order low-pass time constant in seconds (0 = off). Default 10.0;
     /// 0..=86400.
