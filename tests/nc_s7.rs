@@ -54,6 +54,9 @@ async fn lreal_values_land_bit_for_bit_in_each_axis_block() {
     assert_eq!(held.sd43920_mm.to_bits(), p.p0_mm.to_bits());
     assert_eq!((held.md32750, held.referenced), (Some(3), Some(true)));
     assert_eq!(held.md32760, 0.01);
+    // The FB3 program leaves RbApplied and RbTarget 0: not read as "applies none".
+    assert!(held.position_mm.is_some());
+    assert_eq!((held.applied_comp_mm, held.target_comp_mm), (None, None));
 
     let mut w1 = writer(&peer, "value_type = \"lreal\"", 1);
     assert_eq!(

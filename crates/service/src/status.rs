@@ -73,11 +73,15 @@ pub fn render(s: &Status) -> String {
                 );
             }
         }
-        match a.nc.and_then(|nc| nc.position_mm.zip(nc.applied_comp_mm)) {
-            Some((pos_mm, comp_mm)) => {
+        let nc = a.nc.unwrap_or_default();
+        match (nc.position_mm, nc.applied_comp_mm) {
+            (Some(pos_mm), Some(comp_mm)) => {
                 let _ = write!(out, "NC pos={pos_mm:.1}mm comp={comp_mm:.4}mm ");
             }
-            None => out.push_str("NC comp=- "),
+            (Some(pos_mm), None) => {
+                let _ = write!(out, "NC pos={pos_mm:.1}mm comp=- ");
+            }
+            (None, _) => out.push_str("NC comp=- "),
         }
         let _ = write!(
             out,
@@ -163,9 +167,12 @@ pub fn render_table(s: &Status) -> Vec<String> {
             });
         }
         let nc = match &a.nc {
-            Some(nc) => match nc.applied_comp_mm.zip(nc.position_mm) {
-                Some((comp_mm, pos_mm)) => format!("NC applies {comp_mm:.4} mm at {pos_mm:.1} mm"),
-                None => "NC answers (reports no position)".into(),
+            Some(nc) => match (nc.applied_comp_mm, nc.position_mm) {
+                (Some(comp_mm), Some(pos_mm)) => {
+                    format!("NC applies {comp_mm:.4} mm at {pos_mm:.1} mm")
+                }
+                (None, Some(pos_mm)) => format!("NC at {pos_mm:.1} mm"),
+                _ => "NC answers (reports the setting data only)".into(),
             },
             None => "NC -".into(),
         };

@@ -747,8 +747,11 @@ impl PlcArea {
             max_ax_velo_mm_per_min: self.value(4),
             md32450_mm: self.value(5),
             position_mm: Some(self.value(6)),
-            applied_comp_mm: Some(self.value(7)),
-            target_comp_mm: Some(self.value(8)),
+            // RbApplied and RbTarget: the FB3 program of deploy/plc/ leaves them 0, and
+            // a 0 there read as "the NC applies no compensation" (an export of a
+            // compensated recording said so).
+            applied_comp_mm: None,
+            target_comp_mm: None,
             md32750: Some(self.word(self.layout.md32750())),
             referenced: Some(self.word(self.layout.referenced()) != 0),
         }

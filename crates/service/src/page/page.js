@@ -141,12 +141,15 @@ function axisWords(a) {
 }
 
 function ncLine(nc) {
-  // A target reached for its setting data only (OPC UA, ADS) reports no axis state.
+  // A target reached for its setting data only (OPC UA, ADS) reports no axis state;
+  // the S7 block's FB3 program leaves the applied compensation out.
   if (nc.position_mm === null) {
     return "its NC target reports the setting data only: no position, applied compensation or referenced flag";
   }
-  return `NC applies <b>${fmt(nc.applied_comp_mm, 4, "mm")}</b> at ${fmt(nc.position_mm, 1, "mm")}` +
-    ` (moving to ${fmt(nc.target_comp_mm, 4, "mm")}); MD32750 ${nc.md32750}; ` +
+  const applied = nc.applied_comp_mm === null
+    ? "NC reports no applied compensation,"
+    : `NC applies <b>${fmt(nc.applied_comp_mm, 4, "mm")}</b> (moving to ${fmt(nc.target_comp_mm, 4, "mm")})`;
+  return `${applied} at ${fmt(nc.position_mm, 1, "mm")}; MD32750 ${nc.md32750}; ` +
     (nc.referenced ? "referenced" : "<b>not referenced</b>");
 }
 

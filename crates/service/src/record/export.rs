@@ -466,7 +466,7 @@ pub fn export(
                     )
                     .map_err(db)?;
                 let message = if unreported {
-                    format!("the NC target of axis `{axis}` reports no position (an OPC UA or ADS target reads the setting data only): pos_mm cannot be exported; leave --axis out for pos_mm 0 (calibrate then fits K0 alone), or record the position with a channel")
+                    format!("the NC target of axis `{axis}` reports no position (an OPC UA or ADS target reads the setting data only): pos_mm cannot be exported from this record; leave --axis out to export the temperatures and the error alone (pos_mm 0), and measure the error over positions for calibrate (a laser run's CSV with pos_mm)")
                 } else {
                     format!("no recorded NC position of axis `{axis}` before --until")
                 };
@@ -488,6 +488,19 @@ pub fn export(
         }
         None => Vec::new(),
     };
+
+    // A target that reports no applied compensation (OPC UA, ADS, the S7 block), or
+    // no --axis: what compgate wrote is the only record that the error was measured
+    // with compensation on.
+    if err_id.is_some() && positions.iter().all(|(_, _, applied)| applied.is_none()) {
+        notes.extend(written_comp_notes(
+            &conn,
+            args.axis.as_deref(),
+            since,
+            until,
+            args,
+        )?);
+    }
 
     // Readings in the window, in time order, read as the grid reaches them. The value
     // only when it was measured in that cycle with a usable quality.
@@ -665,6 +678,58 @@ pub fn export(
             .collect(),
         notes,
     })
+}
+
+/// Per axis (`axis`, or every axis), a note when compgate wrote compensation in the
+/// window or left some on the NC before it: verified jobs with a value beyond
+/// [`APPLIED_COMP_MIN_MM`] (SD43900) or a slope.
+fn written_comp_notes(
+    conn: &Connection,
+    axis: Option<&str>,
+    since: i64,
+    until: i64,
+    args: &ExportArgs,
+) -> Result<Vec<String>, ExportError> {
+    let db = |e: rusqlite::Error| ExportError::Db {
+        path: args.db.display().to_string(),
+        message: e.to_string(),
+    };
+    // The last verified job before the window (what the NC held at its start) and
+    // those in it, per axis.
+    let mut stmt = conn
+        .prepare(
+            "SELECT axis, SUM(t_unix_ms >= ?2), max(abs(sd43900_mm)), max(abs(sd43910)) FROM jobs j \
+             WHERE ok = 1 AND (?1 IS NULL OR axis = ?1) AND t_unix_ms < ?3 AND (t_unix_ms >= ?2 \
+             OR t_unix_ms = (SELECT max(t_unix_ms) FROM jobs WHERE ok = 1 AND axis = j.axis AND t_unix_ms < ?2)) \
+             GROUP BY axis ORDER BY axis",
+        )
+        .map_err(db)?;
+    let rows = stmt
+        .query_map(params![axis, since, until], |r| {
+            Ok((
+                r.get::<_, String>(0)?,
+                r.get::<_, i64>(1)?,
+                r.get::<_, f64>(2)?,
+                r.get::<_, f64>(3)?,
+            ))
+        })
+        .map_err(db)?;
+    let mut notes = Vec::new();
+    for row in rows {
+        let (axis, in_window, k0_mm, tan_beta) = row.map_err(db)?;
+        if k0_mm <= APPLIED_COMP_MIN_MM && tan_beta == 0.0 {
+            continue;
+        }
+        notes.push(format!(
+            "compgate compensated axis `{axis}` in the window ({in_window} verified jobs in it, \
+             SD43900 up to {:.1} um, |SD43910| up to {tan_beta:.3e}), and the record holds no \
+             applied compensation to add back: err_um is the error left after it, and a model \
+             fitted on it is not the machine's; measure with the axis in shadow mode \
+             (`shadow = true`) for calibrate",
+            k0_mm * 1000.0
+        ));
+    }
+    Ok(notes)
 }
 
 /// The note on the compensation the NC applied to `axis` in the window, if any: a

@@ -336,6 +336,63 @@ fn export_refuses_pos_mm_of_a_target_that_reports_no_position() {
     assert!(summary.notes.iter().any(|n| n.contains("pos_mm is 0")));
 }
 
+// With a target that reports no applied compensation (or without --axis) an export of
+// a compensated recording said nothing of it: the jobs table is the record that
+// compgate wrote compensation, in the window or before it.
+#[test]
+fn export_names_the_compensation_compgate_wrote_where_none_was_reported() {
+    let (_dir, db) = recorded(&[(0, 100)]);
+    let conn = schema::open(&db).unwrap();
+    conn.execute("INSERT INTO channels(id, name) VALUES (2, 'laser_um')", [])
+        .unwrap();
+    for t in 0..100i64 {
+        conn.execute(
+            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 2, 0.0, 1.0, 0)",
+            [t * 1000],
+        )
+        .unwrap();
+    }
+    let job = |t_s: i64, axis: &str, k0_mm: f64, ok: bool, shadow: bool| {
+        conn.execute(
+            "INSERT INTO jobs(t_unix_ms, axis, sd43900_mm, sd43910, sd43920_mm, ok, shadow) VALUES (?1, ?2, ?3, 0, 0, ?4, ?5)",
+            rusqlite::params![t_s * 1000, axis, k0_mm, ok, shadow],
+        )
+        .unwrap();
+    };
+    // X: one job left 30 um on the NC before the window, two more in it; Y: shadow
+    // and failed jobs only, which compensated nothing.
+    job(5, "X", 0.01, true, false);
+    job(10, "X", 0.03, true, false);
+    job(60, "X", 0.02, true, false);
+    job(70, "X", 0.025, true, false);
+    job(60, "Y", 0.05, false, true);
+    job(61, "Y", 0.05, false, false);
+    let mut args = export_args(&db, 50, 100);
+    args.err_channel = Some("laser_um".into());
+    let (_, summary) = export::measurements(&args).unwrap();
+    let notes: Vec<&String> = summary
+        .notes
+        .iter()
+        .filter(|n| n.contains("compgate compensated"))
+        .collect();
+    assert_eq!(notes.len(), 1, "{:?}", summary.notes);
+    assert!(
+        notes[0].contains("axis `X` in the window (2 verified jobs in it, SD43900 up to 30.0 um")
+            && notes[0].contains("shadow = true"),
+        "{}",
+        notes[0]
+    );
+    // Before any job nothing was compensated: no note.
+    args.since = "0".into();
+    args.until = "5".into();
+    let (_, summary) = export::measurements(&args).unwrap();
+    assert!(
+        !summary.notes.iter().any(|n| n.contains("compensated")),
+        "{:?}",
+        summary.notes
+    );
+}
+
 /// A database holding channel `T_a`, read once a second over `spans` (start, end in
 /// s, end exclusive), value 20 + t / 1000.
 fn recorded(spans: &[(i64, i64)]) -> (tempfile::TempDir, std::path::PathBuf) {
