@@ -302,7 +302,15 @@ pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, Backl
         unit: args.unit,
     };
     // The axis limits and the highest feed come from the NC; check them before moving.
-    let status = nc.status().await?;
+    // The first contact says what --nc must be: an S7 PLC or an OPC UA server there
+    // answered "connection closed" or "no reply", as if the module were busy.
+    let status = nc.status().await.map_err(|e| match e {
+        BacklashError::Link(cause) => BacklashError::FirstContact {
+            address: address.to_string(),
+            cause,
+        },
+        e => e,
+    })?;
     let rb = nc.read(ncmap::READBACK, ncmap::READBACK_LEN).await?;
     let at = usize::from(ncmap::RB_MAX_AX_VELO - ncmap::READBACK);
     let max_feed = rb

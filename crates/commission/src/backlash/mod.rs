@@ -101,6 +101,14 @@ pub enum BacklashError {
     /// The Modbus link failed.
     #[error("NC link: {0}")]
     Link(#[from] SourceError),
+    /// The first read of `--nc` failed: most often not a Modbus NC axis module there.
+    #[error("--nc {address}: {cause}; --nc is the Modbus NC axis module (compgate's register map, e.g. the simulated plant's), not the control: for a SINUMERIK, TwinCAT or S7 axis run the test programme on the control and give its trace with --trace")]
+    FirstContact {
+        /// `--nc`.
+        address: String,
+        /// Why the read failed.
+        cause: SourceError,
+    },
     /// The MD32450 job failed.
     #[error("MD32450 write: {0}")]
     Nc(#[from] NcError),

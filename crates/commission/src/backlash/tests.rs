@@ -290,6 +290,36 @@ async fn run_without_an_nc_is_refused_before_connecting() {
     assert!(matches!(err, BacklashError::Invalid(_)));
 }
 
+// Pointed at an S7 PLC or an OPC UA server, the first read failed with "connection
+// closed ... is another client connected?" or "no reply": nothing said --nc must be
+// the Modbus NC module and that other controls take --trace (review Y).
+#[tokio::test]
+async fn a_peer_that_is_no_modbus_nc_module_is_named_with_the_way_for_other_controls() {
+    // A peer that takes the connection and closes it on the first bytes, as an S7
+    // PLC does with a Modbus request.
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let address = listener.local_addr().unwrap().to_string();
+    let peer = tokio::spawn(async move {
+        loop {
+            let Ok((mut s, _)) = listener.accept().await else {
+                return;
+            };
+            let mut buf = [0u8; 64];
+            let _ = tokio::io::AsyncReadExt::read(&mut s, &mut buf).await;
+        }
+    });
+    let args = BacklashArgs {
+        nc: Some(address.clone()),
+        ..BacklashArgs::default()
+    };
+    let e = run_on(&address, &args).await.unwrap_err().to_string();
+    assert!(
+        e.starts_with(&format!("--nc {address}: ")) && e.contains("give its trace with --trace"),
+        "{e}"
+    );
+    peer.abort();
+}
+
 #[tokio::test]
 async fn md32450_write_refused_by_the_nc_is_reported() {
     let (address, module, shutdown) = serve(0.01).await;
