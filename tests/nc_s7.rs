@@ -385,6 +385,27 @@ async fn a_block_of_the_other_value_type_is_named_and_never_gets_a_job() {
     }
 }
 
+// A one-axis REAL block read as LREAL, or for an axis it does not have, ends past
+// the block: the message blamed only the block's length or its optimized access.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reading_past_the_block_names_value_type_and_axis_number() {
+    if !s7_peer::available() {
+        return;
+    }
+    let peer = S7Peer::start(&["--value-type", "real", "--axes", "1", "--mode", "done"]);
+    for (configured, axis) in [("lreal", 1), ("real", 2)] {
+        let mut w = writer(&peer, &format!("value_type = \"{configured}\""), axis);
+        let text = w.read_snapshot().await.unwrap_err().to_string();
+        assert!(
+            text.contains("invalid address")
+                && text.contains(&format!(
+                    "axis_number {axis} of the layout with value_type = \"{configured}\""
+                )),
+            "{configured}, axis {axis}: {text}"
+        );
+    }
+}
+
 #[test]
 fn validation_names_the_axis_whose_block_passes_byte_65535() {
     let target = "[targets.nc_x]\nkind = \"s7\"\naddress = \"127.0.0.1:102\"\n\

@@ -620,9 +620,13 @@ fn s7_error(spec: &Spec, start: u16, len: usize, e: S7Error) -> NcError {
     let end = usize::from(start) + len;
     match e {
         S7Error::S7NotFound => NcError::Protocol(format!("DB{} does not exist in the PLC", spec.db)),
+        // A REAL block read with value_type = "lreal", or an axis_number beyond the
+        // block's axes, ends here too: name both keys, not only the block.
         S7Error::S7InvalidAddress => NcError::Protocol(format!(
-            "DB{} bytes {start}..{end}: invalid address (the block is shorter than the layout, or optimized: switch \"Optimized block access\" off)",
-            spec.db
+            "DB{} bytes {start}..{end}: invalid address: the block is shorter than axis_number {} of the layout with value_type = \"{}\" (a REAL block read as LREAL? an axis number the block does not have?), or optimized: switch \"Optimized block access\" off",
+            spec.db,
+            spec.axis_number,
+            spec.layout.value_type.name()
         )),
         S7Error::Io(ref io) if is_timeout(io) => NcError::Link(SourceError::Timeout(spec.timeout)),
         e => NcError::Link(SourceError::Transport(e.to_string())),
