@@ -81,3 +81,57 @@ async fn full_chain_lands_bit_for_bit_on_the_s7_peer() {
         rig.stop_without_failed_jobs().await;
     }
 }
+
+// A rotated password: the credentials file rewritten and the service reloaded. The
+// reload kept the OPC UA writer of the unchanged target, built with the credentials
+// read at start, so its next session logged in as before (review Y). Here the file
+// names another user, who may not write: after the reload and a session expiry the
+// jobs must fail as that user's, not land as the old one's.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reload_takes_up_credentials_rewritten_in_their_file() {
+    let Some(mut peer) = OpcuaPeer::start(&[]) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let target = peer.target_table(dir.path(), "writer");
+    let cfg = compgate_gateway::config::load_str(&with_target(&target, 2), "test.toml").unwrap();
+    let plant = compgate::plant::Plant::start(&cfg, compgate::plant::Bind::Ephemeral)
+        .await
+        .unwrap();
+    let cfg = plant.config.clone();
+    let (tx, mut status) = tokio::sync::watch::channel(Default::default());
+    let (reload, reloads) = tokio::sync::mpsc::channel(1);
+    let shutdown = tokio_util::sync::CancellationToken::new();
+    let (sd, run_cfg) = (shutdown.clone(), cfg.clone());
+    let gateway = tokio::spawn(async move {
+        let hooks = compgate_gateway::runtime::Hooks {
+            reload: Some(reloads),
+            ..Default::default()
+        };
+        compgate_gateway::runtime::run_with(&run_cfg, sd, tx, hooks)
+            .await
+            .unwrap();
+    });
+    common::wait_status(&mut status, 20.0, "a verified job as `writer`", |s| {
+        s.axes[0].jobs_ok >= 1
+    })
+    .await;
+
+    std::fs::write(dir.path().join("cred-writer"), "reader\nreader-pw\n").unwrap();
+    reload.send(cfg).await.unwrap();
+    tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+    peer.expire_sessions();
+    plant.field["ain1"]
+        .set_temperature_override(0, Some(35.0))
+        .unwrap();
+    // (A job that met the expired session fails first, as a link fault.)
+    common::wait_status(&mut status, 20.0, "a job refused to `reader`", |s| {
+        s.axes[0]
+            .last_job_error
+            .as_deref()
+            .is_some_and(|e| e.contains("BadUserAccessDenied"))
+    })
+    .await;
+    shutdown.cancel();
+    gateway.await.unwrap();
+}

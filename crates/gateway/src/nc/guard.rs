@@ -37,6 +37,17 @@ pub enum AnyNcWriter {
     Ads(AdsNcWriter),
 }
 
+impl AnyNcWriter {
+    /// The credentials it logs in with (OPC UA), read from their file or variables
+    /// when it was built: a reload compares them, so a changed password is taken up.
+    pub fn credentials(&self) -> Option<&crate::config::login::Credentials> {
+        match self {
+            Self::Opcua(w) => w.credentials(),
+            _ => None,
+        }
+    }
+}
+
 impl NcWriter for AnyNcWriter {
     async fn write_job(&mut self, job: &Job) -> Result<JobReport, NcError> {
         match self {

@@ -692,6 +692,11 @@ impl fmt::Debug for OpcuaNcWriter {
 }
 
 impl OpcuaNcWriter {
+    /// The user name and password it logs in with, read when it was built.
+    pub fn credentials(&self) -> Option<&Credentials> {
+        self.spec.credentials.as_ref()
+    }
+
     /// True while a session is open.
     pub fn is_connected(&self) -> bool {
         self.conn

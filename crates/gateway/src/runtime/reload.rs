@@ -137,8 +137,18 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
                 }
             }
         }
+        // The credentials too: a file rewritten with a new password (a rotation)
+        // leaves the configuration unchanged, and the kept session's writer would log
+        // in with the old one at its next reconnect.
+        let login = |m: Option<&Option<super::NcModuleRt>>| {
+            m.and_then(Option::as_ref)
+                .and_then(|m| m.writer.inner().credentials().cloned())
+        };
         let same = old_cfg.axes.get(name) == Some(axis)
-            && old_cfg.target(&axis.nc_module) == new_cfg.target(&axis.nc_module);
+            && old_cfg.target(&axis.nc_module) == new_cfg.target(&axis.nc_module)
+            && old_axis_index
+                .get(name.as_str())
+                .is_some_and(|&i| login(old_nc.get(i)) == login(next.nc_modules.get(j)));
         if let (true, Some(&i)) = (same, old_axis_index.get(name.as_str())) {
             if let Some(m) = old_nc.get_mut(i).and_then(Option::take) {
                 next.nc_modules[j] = Some(m);
