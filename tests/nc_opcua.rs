@@ -280,6 +280,48 @@ async fn slow_server_hits_the_job_timeout_and_the_job_is_not_taken_as_written() 
     assert_eq!(held(&mut peer, 1), bits(&next));
 }
 
+// A control slower than request_timeout_s: every job timed out, and each opened a new
+// session while the old one's close timed out too, so sessions piled up on the
+// server (11 in 25 s). The session stays; the job is reported as maybe landed.
+#[tokio::test]
+async fn a_request_timeout_keeps_the_session() {
+    let Some(mut peer) = OpcuaPeer::start(&["--write-delay-s", "1.5"]) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = OpcuaTargetConfig {
+        job_timeout_s: 5.0,
+        request_timeout_s: 0.5,
+        ..target(&peer, &dir, Some(("writer", "writer-pw")))
+    };
+    let mut w = writer_of(&cfg, 1);
+    w.read_snapshot().await.unwrap();
+    for k0_mm in [0.25, 0.5] {
+        let err = w
+            .write_job(&Job::thermal(&CompParams {
+                k0_mm,
+                tan_beta: 0.0,
+                p0_mm: 0.0,
+            }))
+            .await
+            .expect_err("the write answer comes after the request timeout");
+        assert!(
+            matches!(err, NcError::JobTimeout { sent: true, .. }),
+            "{err:?}"
+        );
+        // The server is done with the write before the next one.
+        tokio::time::sleep(Duration::from_secs(2)).await;
+    }
+    assert!(w.is_connected(), "the session is kept");
+    assert_eq!(w.connects(), 1, "no session per job");
+    // Quick again: the next job lands on the same session.
+    peer.set_write_delay(0.0);
+    w.write_job(&Job::thermal(&CompParams::default()))
+        .await
+        .unwrap();
+    assert_eq!(w.connects(), 1);
+}
+
 #[tokio::test]
 async fn unknown_namespace_or_node_is_named() {
     let Some(mut peer) = OpcuaPeer::start(&["--axes", "2"]) else {

@@ -583,12 +583,15 @@ fn keep_alive_interval(session_timeout_ms: u32) -> Duration {
     Duration::from_millis(u64::from(session_timeout_ms / 3)).min(Duration::from_secs(10))
 }
 
-/// Service results after which the session cannot be used any more.
+/// Service results after which the session cannot be used any more. Not
+/// `BadTimeout`: a control slower than `request_timeout_s` got a new session per job,
+/// and the old one's close timed out too, so the sessions piled up on the server until
+/// their timeout (review Y). A dead link is found by the keep-alive, which marks the
+/// connection lost.
 fn is_session_fault(status: StatusCode) -> bool {
     matches!(
         status,
-        StatusCode::BadTimeout
-            | StatusCode::BadNotConnected
+        StatusCode::BadNotConnected
             | StatusCode::BadConnectionClosed
             | StatusCode::BadServerNotConnected
             | StatusCode::BadCommunicationError
