@@ -140,7 +140,7 @@ async fn a_slow_control_hits_the_job_timeout() {
         .wait_for(15.0, "a job timeout", |s| {
             s.axes[0].last_job_error.as_deref().is_some_and(|e| {
                 e.ends_with(
-                    "written; read-back not finished within 800ms: check with `compgate nc read`",
+                    "written; read-back not finished within job_timeout_s = 800ms: check with `compgate nc read`",
                 )
             })
         })

@@ -436,7 +436,7 @@ mod tests {
         );
         assert_eq!(
             e.to_string(),
-            "job 1 written; read-back not finished within 1s: check with `compgate nc read`"
+            "job 1 written; read-back not finished within job_timeout_s = 1s: check with `compgate nc read`"
         );
         assert_eq!(g.inner().written.len(), 1);
     }

@@ -78,7 +78,7 @@ pub enum NcError {
     },
     /// The read of the NC before a job (does it hold what the step was limited from?)
     /// did not end within the job timeout; nothing was sent.
-    #[error("the read before job {job_id} did not end within {timeout:?}; nothing was sent")]
+    #[error("the read before job {job_id} did not end within job_timeout_s = {timeout:?}; nothing was sent")]
     CheckTimeout {
         /// Job id.
         job_id: u16,
@@ -88,8 +88,8 @@ pub enum NcError {
     /// The target took the job, and reading the values back did not end within the job
     /// timeout.
     #[error(
-        "job {job_id} written; read-back not finished within {timeout:?}: check with \
-         `compgate nc read`"
+        "job {job_id} written; read-back not finished within job_timeout_s = {timeout:?}: \
+         check with `compgate nc read`"
     )]
     ReadBackTimeout {
         /// Job id.
