@@ -712,6 +712,7 @@ impl Running {
                             st.unreferenced = facts.unreferenced;
                             st.nc = Some(*snap);
                             st.nc_reads += 1;
+                            st.nc_read_at = Some(std::time::Instant::now());
                         }
                         // The last snapshot is no longer what the NC holds: shown or
                         // recorded, it would pass for a live position. Nothing is

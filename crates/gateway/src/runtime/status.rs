@@ -71,6 +71,9 @@ pub struct AxisStatus {
     pub last_failure: Option<(std::time::SystemTime, String)>,
     /// The NC's last snapshot.
     pub nc: Option<NcSnapshot>,
+    /// When it was read (its answer came): the status is published up to a status
+    /// interval later, and a record stamped then lagged the NC by that much.
+    pub nc_read_at: Option<std::time::Instant>,
     /// Reads of the NC that answered: a new count is a new snapshot (the status is
     /// published more often than the NC is read).
     pub nc_reads: u64,

@@ -708,8 +708,13 @@ impl Observer for RecordObserver {
             }
             *recorded = a.nc_reads;
             if let Some(nc) = &a.nc {
+                // Stamped when it was read, not when the status came out (up to a
+                // status interval later: export's pos_mm lagged the axis by that).
+                let age_ms = a.nc_read_at.map_or(0, |at| {
+                    i64::try_from(at.elapsed().as_millis()).unwrap_or(i64::MAX)
+                });
                 self.tx.send(Record::Nc {
-                    t_unix_ms,
+                    t_unix_ms: t_unix_ms.saturating_sub(age_ms),
                     axis: a.name.clone(),
                     position_mm: nc.position_mm,
                     applied_comp_mm: nc.applied_comp_mm,

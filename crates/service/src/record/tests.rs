@@ -1079,6 +1079,45 @@ fn one_nc_row_per_read_of_the_nc_not_per_status() {
     assert_eq!(rows, 3);
 }
 
+// An `nc` row was stamped when the status came out, up to a status interval after
+// the read: the positions export took lagged the axis by that (review Y).
+#[test]
+fn an_nc_row_is_stamped_when_the_nc_was_read() {
+    use compgate_gateway::nc::NcSnapshot;
+    use compgate_gateway::runtime::AxisStatus;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cfg = RecorderConfig {
+        path: dir.path().join("r.db").display().to_string(),
+        ..RecorderConfig::default()
+    };
+    let rec = Recorder::start(&cfg).expect("starts");
+    let mut obs = rec.observer();
+    let read_at = std::time::Instant::now() - std::time::Duration::from_millis(800);
+    let status = Status {
+        axes: vec![AxisStatus {
+            name: "X".into(),
+            nc: Some(NcSnapshot::default()),
+            nc_reads: 1,
+            nc_read_at: Some(read_at),
+            ..AxisStatus::default()
+        }],
+        ..Status::default()
+    };
+    let before_ms = now_unix_ms();
+    obs.on_status(&status);
+    let after_ms = now_unix_ms();
+    drop(obs);
+    rec.finish();
+    let conn = Connection::open(dir.path().join("r.db")).expect("open");
+    let t: i64 = conn
+        .query_row("SELECT t_unix_ms FROM nc", [], |r| r.get(0))
+        .expect("nc row");
+    assert!(
+        (before_ms - 810..=after_ms - 790).contains(&t),
+        "{t} not 800 ms before {before_ms}..{after_ms}"
+    );
+}
+
 // SQLite stores a NaN as NULL: a NaN raw value is told apart from a device that gave
 // none by its reason, `not finite` (quality bad), not by `raw`; an infinite one is
 // stored as it came.
