@@ -204,6 +204,21 @@ async fn a_wrong_value_type_is_named_and_nothing_is_written() {
         "read of SD43900 (ADS 0x5001:0x0): the control answered 4 bytes where value_type = \
          \"lreal\" reads 8: check value_type (REAL is 4 bytes, LREAL 8)"
     );
+
+    // An index offset the control does not have: its ADS error names what to check.
+    let text = ads_config(&peer.address(), "value_type = \"real\"\n")
+        .replace("index_offset = 16", "index_offset = 24");
+    let target = compgate_gateway::config::load_str(&text, "ads.toml").unwrap();
+    let mut w = target.target("nc_x").unwrap().build("X", 1).unwrap();
+    let e = compgate_gateway::nc::NcWriter::read_snapshot(&mut w)
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.starts_with("read of SD43920 (ADS 0x5001:0x18): ADS error 0x703")
+            && e.ends_with(": check the value's index_group and index_offset"),
+        "{e}"
+    );
 }
 
 #[test]

@@ -354,6 +354,8 @@ async fn unknown_namespace_or_node_is_named() {
         msg.contains("BadNodeIdUnknown") && msg.contains("[u9]"),
         "{msg}"
     );
+    // The key it comes from, to correct (with axis_number).
+    assert!(msg.contains("(from sd43900_node)"), "{msg}");
     assert_eq!(peer.dump(), before);
 }
 

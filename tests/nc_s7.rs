@@ -238,7 +238,11 @@ async fn a_missing_data_block_is_named() {
     .unwrap();
     let mut w = cfg.build("X1", 1).unwrap();
     let e = w.write_job(&Job::thermal(&awkward())).await.unwrap_err();
-    assert!(e.to_string().contains("DB101 does not exist"), "{e}");
+    assert!(
+        e.to_string()
+            .contains("DB101 does not exist in the PLC (db_number)"),
+        "{e}"
+    );
     // A block shorter than the layout (axis 2 of a one-axis block) is named too.
     let cfg: S7TargetConfig = toml::from_str(&format!(
         "address = \"{}\"\ndb_number = 100",

@@ -395,9 +395,17 @@ impl Plan {
 /// failure.
 fn ads_error(what: String, e: ads::Error) -> NcError {
     match e {
+        // The codes a wrong key gives name the key to check.
         ads::Error::Ads(_, name, code) => NcError::Answered {
             what,
-            answer: format!("ADS error {code:#x} ({name})"),
+            answer: format!(
+                "ADS error {code:#x} ({name}){}",
+                match code {
+                    0x702 | 0x703 => ": check the value's index_group and index_offset",
+                    0x705 => ": check value_type (REAL is 4 bytes, LREAL 8)",
+                    _ => "",
+                }
+            ),
         },
         other => NcError::Unreachable(format!("{what}: {other}")),
     }

@@ -874,7 +874,7 @@ impl OpcuaNcWriter {
         idx.iter()
             .zip(&values)
             .map(|(&i, dv)| {
-                good(dv, &nodes[i], "read")?;
+                good(dv, &nodes[i], "read").map_err(|e| named_node(e, i))?;
                 match &dv.value {
                     Some(Variant::Double(v)) => Ok(*v),
                     other => Err(NcError::Protocol(format!(
@@ -914,11 +914,14 @@ impl OpcuaNcWriter {
                     user: self.user_label(),
                 }
             } else {
-                NcError::OpcuaStatus {
-                    service: "write",
-                    target: format!("of {}", nodes[i]),
-                    status: status.to_string(),
-                }
+                named_node(
+                    NcError::OpcuaStatus {
+                        service: "write",
+                        target: format!("of {}", nodes[i]),
+                        status: status.to_string(),
+                    },
+                    i,
+                )
             });
         }
         Ok(())
@@ -1104,6 +1107,26 @@ fn check_count<T>(results: &[T], want: usize, service: &str) -> Result<(), NcErr
     }
 }
 
+/// A status of the node of value `i` names the key it comes from, when the node
+/// is not there: that key is what the engineer has to correct.
+fn named_node(e: NcError, i: usize) -> NcError {
+    match e {
+        NcError::OpcuaStatus {
+            service,
+            target,
+            status,
+        } if status.starts_with("BadNodeId") => NcError::OpcuaStatus {
+            service,
+            target: format!(
+                "{target} (from {})",
+                ["sd43900_node", "sd43910_node", "sd43920_node"][i]
+            ),
+            status,
+        },
+        e => e,
+    }
+}
+
 fn good(dv: &DataValue, node: &NodeId, service: &'static str) -> Result<(), NcError> {
     match dv.status {
         Some(s) if !s.is_good() => Err(NcError::OpcuaStatus {
@@ -1158,8 +1181,9 @@ fn connect_error(url: &str, user: &str, status: StatusCode, detail: &str) -> NcE
         StatusCode::BadIdentityTokenRejected
         | StatusCode::BadIdentityTokenInvalid
         | StatusCode::BadUserAccessDenied => format!(
-            " (the server rejected user {user}: check the user name and password, or \
-             that the control admits this user)"
+            " (the server rejected user {user}: check the user name and password in \
+             credentials_file or the variables of user_env and password_env, or that \
+             the control admits this user)"
         ),
         StatusCode::BadCertificateUntrusted | StatusCode::BadSecurityChecksFailed => {
             " (a certificate is not trusted yet: move the control's certificate from \

@@ -619,7 +619,10 @@ fn is_timeout(e: &io::Error) -> bool {
 fn s7_error(spec: &Spec, start: u16, len: usize, e: S7Error) -> NcError {
     let end = usize::from(start) + len;
     match e {
-        S7Error::S7NotFound => NcError::Protocol(format!("DB{} does not exist in the PLC", spec.db)),
+        S7Error::S7NotFound => NcError::Protocol(format!(
+            "DB{} does not exist in the PLC (db_number)",
+            spec.db
+        )),
         // A REAL block read with value_type = "lreal", or an axis_number beyond the
         // block's axes, ends here too: name both keys, not only the block.
         S7Error::S7InvalidAddress => NcError::Protocol(format!(
