@@ -551,10 +551,10 @@ impl Running {
         let more = unlogged_suffix(more);
         match course {
             NcCourse::Unreachable => {
-                tracing::warn!(%axis, target_name = %name, %address, %error, "NC target unreachable: nothing is written to it{more}")
+                tracing::warn!(%axis, target_name = %name, %address, %error, "NC target unreachable: a job is written only once the read before it gets an answer{more}")
             }
             NcCourse::Refused => {
-                tracing::warn!(%axis, target_name = %name, %error, "NC target answered the read with an error: nothing is written to it{more}")
+                tracing::warn!(%axis, target_name = %name, %error, "NC target answered the read with an error: a job is written only once the read before it gets an answer{more}")
             }
             NcCourse::Up => {
                 tracing::info!(%axis, target_name = %name, "NC target reachable again{more}")
