@@ -195,3 +195,30 @@ fn validate_reads_the_opcua_credentials_as_run_does() {
         String::from_utf8_lossy(&out.stderr)
     );
 }
+
+// `run` warned of a credentials file others may read; validate, which
+// `systemctl reload` runs, said nothing.
+#[test]
+fn validate_warns_of_a_credentials_file_others_may_read() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let cred = dir.path().join("cred");
+    std::fs::write(&cred, "writer\nwriter-pw\n").unwrap();
+    let path = opcua_config(
+        dir.path(),
+        &format!("credentials_file = {:?}", cred.display().to_string()),
+    );
+    for (mode, warned) in [(0o644, true), (0o600, false)] {
+        std::fs::set_permissions(&cred, std::fs::Permissions::from_mode(mode)).unwrap();
+        let (code, text) = compgate("validate", &path);
+        assert_eq!(code, Some(0), "{text}");
+        assert_eq!(
+            text.contains(&format!(
+                "targets.nc_x.credentials_file: {} is readable by group or others",
+                cred.display()
+            )),
+            warned,
+            "mode {mode:o}: {text}"
+        );
+    }
+}

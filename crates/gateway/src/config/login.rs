@@ -116,20 +116,22 @@ impl LoginKeys<'_> {
         }))
     }
 
+    /// `credentials_file` when group or others may read it.
+    pub fn readable_by_others(&self) -> Option<PathBuf> {
+        use std::os::unix::fs::PermissionsExt;
+        let path = self.credentials_file.map(state_path)?;
+        let mode = std::fs::metadata(&path).ok()?.permissions().mode();
+        (mode & 0o077 != 0).then_some(path)
+    }
+
     /// Logs a WARN when `credentials_file` is readable by group or others; `peer`
     /// names whose credentials they are.
     pub fn warn_if_readable_by_others(&self, peer: &str) {
-        use std::os::unix::fs::PermissionsExt;
-        let Some(path) = self.credentials_file.map(state_path) else {
-            return;
-        };
-        if let Ok(meta) = std::fs::metadata(&path) {
-            if meta.permissions().mode() & 0o077 != 0 {
-                tracing::warn!(
-                    file = %path.display(),
-                    "{peer} credentials file is readable by group or others; chmod 600 it"
-                );
-            }
+        if let Some(path) = self.readable_by_others() {
+            tracing::warn!(
+                file = %path.display(),
+                "{peer} credentials file is readable by group or others; chmod 600 it"
+            );
         }
     }
 }

@@ -28,6 +28,7 @@ use crate::source::modbus::config::{ModbusCommon, RtuDeviceConfig};
 /// - A TCP device at the address and unit id of a Modbus NC module: its channels
 ///   would read the module's registers as temperatures (a copied address).
 /// - A tan(beta) `coeff_per_degc` beyond [`MAX_TAN_BETA_PER_K`].
+/// - An OPC UA target's or MQTT's `credentials_file` readable by group or others.
 pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
     let mut out = Problems::new(file);
     let mut tcp: BTreeMap<(String, u8), &String> = BTreeMap::new();
@@ -110,6 +111,28 @@ pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
                     message,
                 );
             }
+        }
+    }
+    // `run` logs it at start; validate (and so `systemctl reload`) said nothing.
+    let logins = cfg
+        .targets
+        .iter()
+        .filter_map(|(name, t)| match t {
+            crate::nc::config::TargetConfig::Opcua(o) => {
+                Some((format!("targets.{name}"), o.login()))
+            }
+            _ => None,
+        })
+        .chain(cfg.mqtt.as_ref().map(|m| ("mqtt".to_string(), m.login())));
+    for (table, login) in logins {
+        if let Some(path) = login.readable_by_others() {
+            out.push(
+                format!("{table}.credentials_file"),
+                format!(
+                    "{} is readable by group or others, and holds a password; chmod 600 it",
+                    path.display()
+                ),
+            );
         }
     }
     if let Some(m) = &cfg.metrics {

@@ -417,7 +417,7 @@ impl OpcuaTargetConfig {
         })
     }
 
-    fn login(&self) -> LoginKeys<'_> {
+    pub fn login(&self) -> LoginKeys<'_> {
         LoginKeys {
             credentials_file: self.credentials_file.as_deref(),
             user_env: self.user_env.as_deref(),
