@@ -119,8 +119,10 @@ async fn a_reload_takes_up_credentials_rewritten_in_their_file() {
 
     std::fs::write(dir.path().join("cred-writer"), "reader\nreader-pw\n").unwrap();
     reload.send(cfg).await.unwrap();
-    tokio::time::sleep(std::time::Duration::from_millis(500)).await;
-    peer.expire_sessions();
+    // The new writer has read the NC (once a second at most), and the old one's
+    // session is gone (a control admits only a few): one open.
+    tokio::time::sleep(std::time::Duration::from_millis(1500)).await;
+    assert_eq!(peer.expire_sessions(), 1, "sessions open after the reload");
     plant.field["ain1"]
         .set_temperature_override(0, Some(35.0))
         .unwrap();

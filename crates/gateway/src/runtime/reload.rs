@@ -156,6 +156,20 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
             same_nc.insert(name.clone(), ());
         }
     }
+    // The writers not kept end their sessions politely: a control admits only a few,
+    // and one dropped stays open there until its timeout.
+    let runtime = tokio::runtime::Handle::try_current();
+    for mut m in old_nc.into_iter().flatten() {
+        // (No runtime only in the unit tests that call this directly.)
+        let Ok(runtime) = &runtime else { break };
+        runtime.spawn(async move {
+            let _ = tokio::time::timeout(
+                std::time::Duration::from_secs(2),
+                crate::nc::NcWriter::close(&mut m.writer),
+            )
+            .await;
+        });
+    }
 
     // Axes: an unchanged axis on an unchanged NC module keeps its compensator, its
     // baseline and its status.
