@@ -68,6 +68,9 @@ const STATEMENT_CACHE: usize = 32;
 
 /// How long a statement waits for another connection's lock before it fails.
 pub const BUSY_TIMEOUT: Duration = Duration::from_secs(5);
+/// How long an open waits for another connection's one-time rebuild of a table (about
+/// 1.5 s per million rows on the test machine).
+const MIGRATION_WAIT: Duration = Duration::from_secs(600);
 
 /// Opens the database at `path` (creating it and its tables), in WAL mode. A file
 /// that is not a database of the recorder's layout (`check`) is refused before
@@ -83,9 +86,16 @@ pub fn open(path: &Path) -> Result<Connection, RecordError> {
         path: path.display().to_string(),
         message,
     })?;
-    // auto_vacuum only takes effect before the first table exists.
-    conn.execute_batch("PRAGMA auto_vacuum = INCREMENTAL;")
+    // auto_vacuum only takes effect before the first table exists, and setting it
+    // takes the write lock: not on a database that has tables, so an open waits only
+    // for what it must change (a connection's rebuild below).
+    let fresh: bool = conn
+        .query_row("SELECT COUNT(*) = 0 FROM sqlite_schema", [], |r| r.get(0))
         .map_err(err)?;
+    if fresh {
+        conn.execute_batch("PRAGMA auto_vacuum = INCREMENTAL;")
+            .map_err(err)?;
+    }
     let mode: String = conn
         .query_row("PRAGMA journal_mode = WAL", [], |r| r.get(0))
         .map_err(err)?;
@@ -125,28 +135,43 @@ pub fn open(path: &Path) -> Result<Connection, RecordError> {
     }
     // Databases recorded before a target could report no position hold 0 there
     // instead of NULL (their NOT NULL columns refuse it): rebuilt once, in one
-    // transaction, rows kept.
-    let nc_not_null: bool = conn
-        .query_row(
+    // transaction, rows kept. Another connection opening meanwhile (the MQTT outbox)
+    // waits for it as long as it takes, then finds it done.
+    let nc_not_null = |conn: &Connection| -> rusqlite::Result<bool> {
+        conn.query_row(
             "SELECT COUNT(*) > 0 FROM pragma_table_info('nc') WHERE name = 'position_mm' AND \"notnull\"",
             [],
             |r| r.get(0),
         )
-        .map_err(err)?;
-    if nc_not_null {
-        conn.execute_batch(&format!(
-            "BEGIN IMMEDIATE;
-             ALTER TABLE nc RENAME TO nc_not_null;
-             DROP INDEX nc_t;
-             {SCHEMA}
-             INSERT INTO nc SELECT * FROM nc_not_null;
-             DROP TABLE nc_not_null;
-             COMMIT;"
-        ))
-        .map_err(err)?;
+    };
+    if nc_not_null(&conn).map_err(err)? {
+        conn.busy_timeout(MIGRATION_WAIT).map_err(err)?;
+        conn.execute_batch("BEGIN IMMEDIATE").map_err(err)?;
+        let rebuilt = nc_not_null(&conn).and_then(|todo| {
+            if todo {
+                conn.execute_batch(&format!(
+                    "ALTER TABLE nc RENAME TO nc_not_null;
+                     DROP INDEX nc_t;
+                     {SCHEMA}
+                     INSERT INTO nc SELECT * FROM nc_not_null;
+                     DROP TABLE nc_not_null;"
+                ))?;
+            }
+            conn.execute_batch("COMMIT")
+        });
+        if let Err(e) = rebuilt {
+            let _ = conn.execute_batch("ROLLBACK");
+            return Err(err(e));
+        }
+        conn.busy_timeout(BUSY_TIMEOUT).map_err(err)?;
     }
-    conn.execute_batch(&format!("PRAGMA user_version = {LAYOUT_VERSION};"))
+    let version: i64 = conn
+        .query_row("PRAGMA user_version", [], |r| r.get(0))
         .map_err(err)?;
+    if version != LAYOUT_VERSION {
+        conn.execute_batch(&format!("PRAGMA user_version = {LAYOUT_VERSION};"))
+            .map_err(err)?;
+    }
     Ok(conn)
 }
 

@@ -308,6 +308,42 @@ fn an_nc_read_without_a_position_is_recorded_as_null_in_old_databases_too() {
     open(&path).expect("opens again");
 }
 
+// The one-time rebuild holds the write lock as long as the table takes (3 million
+// rows, about 5 s): a second connection opening meanwhile (the MQTT outbox) gave up
+// after the 5 s busy timeout, and nothing was published. It now waits for it.
+#[test]
+fn an_open_waits_for_another_connections_rebuild() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("old.db");
+    // A recorder's database whose `nc` table is of the layout before.
+    let old = open(&path).expect("create");
+    old.execute_batch(
+        "DROP TABLE nc;
+         CREATE TABLE nc (t_unix_ms INTEGER NOT NULL, axis TEXT NOT NULL,
+            position_mm REAL NOT NULL, applied_comp_mm REAL NOT NULL,
+            sd43900_mm REAL NOT NULL, sd43910 REAL NOT NULL, sd43920_mm REAL NOT NULL);
+         CREATE INDEX nc_t ON nc(t_unix_ms);
+         INSERT INTO nc VALUES (1, 'X', 12.5, 0.002, 0.01, 0.0, 0.0);
+         BEGIN IMMEDIATE;",
+    )
+    .expect("old schema, write lock held");
+    // A rebuild that takes longer than BUSY_TIMEOUT, in another connection.
+    let holder = std::thread::spawn(move || {
+        std::thread::sleep(schema::BUSY_TIMEOUT + std::time::Duration::from_secs(1));
+        old.execute_batch("COMMIT").expect("commit");
+    });
+    let conn = open(&path).expect("waits for the other connection and opens");
+    holder.join().expect("holder");
+    let kept: i64 = conn
+        .query_row(
+            "SELECT COUNT(*) FROM nc WHERE position_mm = 12.5",
+            [],
+            |r| r.get(0),
+        )
+        .expect("row");
+    assert_eq!(kept, 1);
+}
+
 // An export with --axis of an axis whose target reports no position gave pos_mm 0 in
 // every row, without a word.
 #[test]
