@@ -252,6 +252,13 @@ fn an_old_database_gets_the_shadow_column_and_shadow_jobs_are_marked() {
     open(&path).expect("opens again");
 }
 
+/// The `nc` table of the layout before NULL positions, with one row.
+const OLD_NC: &str = "CREATE TABLE nc (t_unix_ms INTEGER NOT NULL, axis TEXT NOT NULL,
+        position_mm REAL NOT NULL, applied_comp_mm REAL NOT NULL,
+        sd43900_mm REAL NOT NULL, sd43910 REAL NOT NULL, sd43920_mm REAL NOT NULL);
+    CREATE INDEX nc_t ON nc(t_unix_ms);
+    INSERT INTO nc VALUES (1, 'X', 12.5, 0.002, 0.01, 0.0, 0.0);";
+
 // A target that reports no position (OPC UA, ADS) recorded 0 mm, and an export
 // with --axis took it for a standing axis. It records NULL now; a database of the
 // layout before (NOT NULL columns) is rebuilt once on open, its rows kept.
@@ -261,14 +268,7 @@ fn an_nc_read_without_a_position_is_recorded_as_null_in_old_databases_too() {
     let path = dir.path().join("old.db");
     {
         let old = rusqlite::Connection::open(&path).expect("create");
-        old.execute_batch(
-            "CREATE TABLE nc (t_unix_ms INTEGER NOT NULL, axis TEXT NOT NULL,
-                position_mm REAL NOT NULL, applied_comp_mm REAL NOT NULL,
-                sd43900_mm REAL NOT NULL, sd43910 REAL NOT NULL, sd43920_mm REAL NOT NULL);
-             CREATE INDEX nc_t ON nc(t_unix_ms);
-             INSERT INTO nc VALUES (1, 'X', 12.5, 0.002, 0.01, 0.0, 0.0);",
-        )
-        .expect("old schema");
+        old.execute_batch(OLD_NC).expect("old schema");
     }
     let mut conn = open(&path).expect("opens and migrates");
     let read = Record::Nc {
@@ -317,16 +317,8 @@ fn an_open_waits_for_another_connections_rebuild() {
     let path = dir.path().join("old.db");
     // A recorder's database whose `nc` table is of the layout before.
     let old = open(&path).expect("create");
-    old.execute_batch(
-        "DROP TABLE nc;
-         CREATE TABLE nc (t_unix_ms INTEGER NOT NULL, axis TEXT NOT NULL,
-            position_mm REAL NOT NULL, applied_comp_mm REAL NOT NULL,
-            sd43900_mm REAL NOT NULL, sd43910 REAL NOT NULL, sd43920_mm REAL NOT NULL);
-         CREATE INDEX nc_t ON nc(t_unix_ms);
-         INSERT INTO nc VALUES (1, 'X', 12.5, 0.002, 0.01, 0.0, 0.0);
-         BEGIN IMMEDIATE;",
-    )
-    .expect("old schema, write lock held");
+    old.execute_batch(&format!("DROP TABLE nc; {OLD_NC} BEGIN IMMEDIATE;"))
+        .expect("old schema, write lock held");
     // A rebuild that takes longer than BUSY_TIMEOUT, in another connection.
     let holder = std::thread::spawn(move || {
         std::thread::sleep(schema::BUSY_TIMEOUT + std::time::Duration::from_secs(1));
