@@ -325,7 +325,7 @@ async fn the_gateway_logs_in_to_a_broker_that_asks_for_a_password() {
         "topic read #\n\nuser compgate\ntopic readwrite compgate/#\n",
     )
     .unwrap();
-    let broker = broker_with(
+    let mut broker = broker_with(
         dir.path(),
         &format!(
             "allow_anonymous true\npassword_file {}\nacl_file {}",
@@ -355,6 +355,32 @@ async fn the_gateway_logs_in_to_a_broker_that_asks_for_a_password() {
         "{}",
         gw.stderr_text()
     );
+
+    // The password is changed at the broker and in the file, and the broker restarts:
+    // the next connection reads the file again (it was read only at start, and the
+    // gateway was refused until a restart).
+    let ok = std::process::Command::new("mosquitto_passwd")
+        .args(["-b"])
+        .arg(&passwords)
+        .args(["compgate", "n3w pa55"])
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "mosquitto_passwd");
+    std::fs::write(&login, "compgate\nn3w pa55\n").unwrap();
+    tokio::task::block_in_place(|| {
+        broker.stop();
+        broker.restart();
+    });
+    let restarted_ms = now_ms();
+    wait_until(20.0, "a health message after the password changed", || {
+        got.lock().unwrap().iter().any(|(t, v)| {
+            t == "compgate/mill-7/health" && v["t_unix_ms"].as_i64().unwrap() > restarted_ms
+        })
+    })
+    .await;
+    let log = gw.stderr_text();
+    assert!(log.contains("MQTT: the credentials changed"), "{log}");
     assert!(tokio::task::block_in_place(|| gw.stop()));
 
     // A wrong password, from the environment: refused, and said so.

@@ -245,9 +245,11 @@ pub async fn publisher(
             return;
         }
     };
-    // Read once: `validate` and the start have checked them.
-    let login = match cfg.login().load() {
-        Ok(login) => login,
+    let mut login = match cfg.login().load() {
+        Ok(login) => Login {
+            current: login,
+            problem: None,
+        },
         Err((key, why)) => {
             tracing::error!(key = %format!("mqtt.{key}"), "MQTT: {why}; nothing is published");
             return;
@@ -260,9 +262,10 @@ pub async fn publisher(
     while !shutdown.is_cancelled() {
         let ended = match outbox.reopen_if_replaced() {
             Ok(()) => {
+                login.reread(&cfg);
                 session(
                     &cfg,
-                    login.as_ref(),
+                    login.current.as_ref(),
                     &mut outbox,
                     &grown,
                     &shutdown,
@@ -297,6 +300,38 @@ pub async fn publisher(
                 _ = shutdown.cancelled() => return,
                 () = tokio::time::sleep_until(retry_at) => break,
                 () = grown.notified() => cap_due = true,
+            }
+        }
+    }
+}
+
+/// The user name and password of the next connection. The credentials file is read
+/// again for each: a password changed at the broker and in the file is taken up at
+/// the next connection, without a restart.
+struct Login {
+    current: Option<Credentials>,
+    /// Why the file could not be read the last time, so that it is logged once.
+    problem: Option<String>,
+}
+
+impl Login {
+    fn reread(&mut self, cfg: &MqttConfig) {
+        match cfg.login().load() {
+            Ok(fresh) => {
+                if self.problem.take().is_some() {
+                    tracing::info!("MQTT: the credentials can be read again");
+                }
+                if fresh != self.current {
+                    let user = fresh.as_ref().map(|c| c.user.clone());
+                    tracing::info!(user = ?user, "MQTT: the credentials changed; this connection uses the new ones");
+                    self.current = fresh;
+                }
+            }
+            Err((key, why)) => {
+                if self.problem.as_ref() != Some(&why) {
+                    tracing::warn!(key = %format!("mqtt.{key}"), "MQTT: {why}; the credentials read before are used");
+                    self.problem = Some(why);
+                }
             }
         }
     }

@@ -198,9 +198,10 @@ pub struct MqttConfig {
     pub outbox_max_messages: u64,
     /// File holding the broker's user name on its first line and the password on its
     /// second (keep it readable by compgate only); a relative path is under
-    /// `$STATE_DIRECTORY` when set. Read at start. Not with `user_env`/`password_env`.
-    /// Default none: anonymous unless the two variables are named; at most 4096
-    /// characters.
+    /// `$STATE_DIRECTORY` when set. Read again for each connection to the broker, so
+    /// that a changed password is taken up without a restart. Not with
+    /// `user_env`/`password_env`. Default none: anonymous unless the two variables are
+    /// named; at most 4096 characters.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(length(min = 1, max = 4096))]
     pub credentials_file: Option<String>,
