@@ -23,6 +23,9 @@ enum CommandError {
     /// Its output could not be written.
     #[error(transparent)]
     Output(#[from] OutputError),
+    /// Stopped by the signal named before it was done; nothing was written.
+    #[error("stopped by {0}; nothing was written, the files that were there are as before")]
+    Interrupted(&'static str),
 }
 
 /// The command's error, as the operator reads it.
@@ -41,9 +44,14 @@ fn exit_code(result: Result<(), CommandError>) -> ExitCode {
         }
         Err(e) => e,
     };
+    // 128 + SIGINT, as a shell reports a tool that Ctrl-C ended.
+    let code = match e {
+        CommandError::Interrupted(_) => ExitCode::from(130),
+        _ => ExitCode::FAILURE,
+    };
     match cli::eprintln(format_args!("error: {e}")) {
         Err(e) if e.is_broken_pipe() => ExitCode::from(EXIT_BROKEN_PIPE),
-        _ => ExitCode::FAILURE,
+        _ => code,
     }
 }
 
@@ -254,7 +262,13 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
         }
         #[cfg(feature = "sim")]
         Command::Scenario(args) => {
-            let report = scenario::run(&args).await.map_err(failed)?;
+            // A run takes minutes. A signal drops it, and with it the staged outputs'
+            // temporary files (named after the pid, so left over for good otherwise).
+            let mut stop = compgate_gateway::nc::StopSignals::register();
+            let report = tokio::select! {
+                report = scenario::run(&args) => report.map_err(failed)?,
+                signal = stop.recv() => return Err(CommandError::Interrupted(signal)),
+            };
             Ok(cli::print(format_args!(
                 "{}written to {}\n",
                 report.text(),

@@ -940,3 +940,61 @@ fn export_of_a_compensated_recording_says_so_and_adds_the_compensation_on_reques
         "{err}"
     );
 }
+
+// Ctrl-C during a scenario left its staged outputs' temporary files behind for good
+// (`record.sqlite.tmp<pid>` with its WAL), beside the earlier run's outputs. Now the
+// run is dropped with them: exit 130, the directory as it was.
+#[test]
+fn a_scenario_stopped_by_ctrl_c_leaves_the_directory_as_it_was() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("scenario");
+    std::fs::create_dir(&out).unwrap();
+    std::fs::write(out.join("report.txt"), "an earlier run's report\n").unwrap();
+    let mut child = Command::new(BIN)
+        .args(["scenario", "--loop", "--out"])
+        .arg(&out)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let names = || -> Vec<String> {
+        std::fs::read_dir(&out)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect()
+    };
+    // Stopped while it records into its staged database.
+    let end = Instant::now() + Duration::from_secs(60);
+    while !names().iter().any(|n| n.contains(".tmp")) {
+        assert!(
+            Instant::now() < end,
+            "no staged file appeared: {:?}",
+            names()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let kill = Command::new("kill")
+        .arg("-INT")
+        .arg(child.id().to_string())
+        .status()
+        .unwrap();
+    assert!(kill.success());
+    let status = child.wait().unwrap();
+    let mut err = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    assert_eq!(status.code(), Some(130), "{err}");
+    assert!(
+        err.contains("error: stopped by SIGINT; nothing was written"),
+        "{err}"
+    );
+    assert_eq!(names(), ["report.txt"]);
+    assert_eq!(
+        std::fs::read_to_string(out.join("report.txt")).unwrap(),
+        "an earlier run's report\n"
+    );
+}
