@@ -950,7 +950,7 @@ fn a_scenario_stopped_by_ctrl_c_leaves_the_directory_as_it_was() {
     let out = dir.path().join("scenario");
     std::fs::create_dir(&out).unwrap();
     std::fs::write(out.join("report.txt"), "an earlier run's report\n").unwrap();
-    let mut child = Command::new(BIN)
+    let child = Command::new(BIN)
         .args(["scenario", "--loop", "--out"])
         .arg(&out)
         .stdout(Stdio::null())
@@ -973,21 +973,10 @@ fn a_scenario_stopped_by_ctrl_c_leaves_the_directory_as_it_was() {
         );
         std::thread::sleep(Duration::from_millis(20));
     }
-    let kill = Command::new("kill")
-        .arg("-INT")
-        .arg(child.id().to_string())
-        .status()
-        .unwrap();
-    assert!(kill.success());
-    let status = child.wait().unwrap();
-    let mut err = String::new();
-    child
-        .stderr
-        .take()
-        .unwrap()
-        .read_to_string(&mut err)
-        .unwrap();
-    assert_eq!(status.code(), Some(130), "{err}");
+    common::process::signal(child.id(), "INT");
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(130), "{err}");
     assert!(
         err.contains("error: stopped by SIGINT; nothing was written"),
         "{err}"
