@@ -974,9 +974,9 @@ fn a_scenario_stopped_by_ctrl_c_leaves_the_directory_as_it_was() {
         std::thread::sleep(Duration::from_millis(20));
     }
     common::process::signal(child.id(), "INT");
-    let out = child.wait_with_output().unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(130), "{err}");
+    let ended = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&ended.stderr);
+    assert_eq!(ended.status.code(), Some(130), "{err}");
     assert!(
         err.contains("error: stopped by SIGINT; nothing was written"),
         "{err}"
