@@ -460,6 +460,79 @@ async fn full_disk_loses_records_but_never_stops_the_gateway() {
     drop(plant);
 }
 
+// A database of the layout before NULL positions is rebuilt once on open, which
+// needs about three times its nc table's size free. On a nearly full disk the rebuild
+// failed and the gateway did not start at all: no poll, no NC job. It now starts with
+// the old layout, says why, and keeps every row.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_nc_table_that_cannot_be_rebuilt_for_lack_of_space_does_not_stop_the_gateway() {
+    let dir = tempfile::tempdir().unwrap();
+    let made = dir.path().join("made.db");
+    const OLD_ROWS: i64 = 60_000;
+    {
+        let conn = compgate_service::record::open(&made).unwrap();
+        conn.execute_batch(
+            "DROP TABLE nc; CREATE TABLE nc (t_unix_ms INTEGER NOT NULL, axis TEXT NOT NULL,
+                position_mm REAL NOT NULL, applied_comp_mm REAL NOT NULL,
+                sd43900_mm REAL NOT NULL, sd43910 REAL NOT NULL, sd43920_mm REAL NOT NULL);
+             CREATE INDEX nc_t ON nc(t_unix_ms);",
+        )
+        .unwrap();
+        // The last hours, within the retention.
+        conn.execute(
+            "WITH RECURSIVE n(i) AS (SELECT 1 UNION ALL SELECT i + 1 FROM n WHERE i < ?1)
+             INSERT INTO nc SELECT ?2 + i * 100, 'X', i * 0.001, 0.002, 0.01, 0, 0 FROM n",
+            [OLD_ROWS, now_ms() - OLD_ROWS * 100],
+        )
+        .unwrap();
+        conn.execute_batch("PRAGMA wal_checkpoint(TRUNCATE);")
+            .unwrap();
+    }
+    // Room for the file and a little more, not for a second copy of the table.
+    let size_kb = std::fs::metadata(&made).unwrap().len() / 1024 + 1024;
+    let fs = SmallFs::mount(&dir.path().join("small"), &format!("{size_kb}k"));
+    let db = fs.0.join("rec.db");
+    std::fs::copy(&made, &db).unwrap();
+    let (plant, path) = plant_recording(dir.path(), &db, "").await;
+    let mut gw = Gateway::start(dir.path(), &path, &[]);
+    tokio::task::block_in_place(|| gw.wait_notify(20.0, "READY=1", |m| m.contains("READY=1")));
+    let log = gw.stderr_text();
+    assert!(
+        log.contains("the nc table could not be rebuilt")
+            && log.contains("keeps its old layout")
+            && log.contains("disk is full"),
+        "{log}"
+    );
+    // The control loop runs: a temperature change reaches the NC.
+    plant.field["ain1"]
+        .set_temperature_override(plant.transmitter["T_bed"], Some(35.0))
+        .unwrap();
+    tokio::task::block_in_place(|| {
+        gw.wait_notify(10.0, "the write after the change", |m| {
+            m.contains("SD43900=0.060")
+        })
+    });
+    assert!(tokio::task::block_in_place(|| gw.stop()));
+    fs_rows_check(&db, OLD_ROWS);
+    drop(fs);
+    drop(plant);
+}
+
+/// Asserts that the `nc` table at `db` still has its NOT NULL layout and at least
+/// `old_rows` rows.
+fn fs_rows_check(db: &Path, old_rows: i64) {
+    let conn = Connection::open(db).unwrap();
+    let (rows, not_null): (i64, bool) = conn
+        .query_row(
+            "SELECT (SELECT COUNT(*) FROM nc), (SELECT \"notnull\" FROM pragma_table_info('nc') WHERE name = 'position_mm')",
+            [],
+            |r| Ok((r.get(0)?, r.get(1)?)),
+        )
+        .unwrap();
+    assert!(not_null, "the old layout stays");
+    assert!(rows >= old_rows, "{rows} rows");
+}
+
 // An error after the recorder started (here the metrics port in use) ends the run
 // with the error; it used to hang, the recorder waiting for an observer's sender
 // that the unwinding had not dropped yet.

@@ -72,6 +72,37 @@ pub const BUSY_TIMEOUT: Duration = Duration::from_secs(5);
 /// 1.5 s per million rows on the test machine).
 const MIGRATION_WAIT: Duration = Duration::from_secs(600);
 
+/// Rebuilds the `nc` table of the layout before NULL positions (`todo` tells whether
+/// it still is), telling the log and systemd (a long one must not be taken for a
+/// hung start) first. On an error the caller rolls back.
+fn rebuild_nc(
+    conn: &Connection,
+    path: &Path,
+    todo: impl Fn(&Connection) -> rusqlite::Result<bool>,
+) -> rusqlite::Result<()> {
+    conn.busy_timeout(MIGRATION_WAIT)?;
+    conn.execute_batch("BEGIN IMMEDIATE")?;
+    if todo(conn)? {
+        // The highest rowid: the row count without reading the table.
+        let rows: i64 =
+            conn.query_row("SELECT COALESCE(MAX(rowid), 0) FROM nc", [], |r| r.get(0))?;
+        tracing::info!(path = %path.display(), rows, "recorder database: rebuilding the nc table once, so that it takes NC reads without a position (about 1 s per million rows)");
+        let wait_us = u32::try_from(MIGRATION_WAIT.as_micros()).unwrap_or(u32::MAX);
+        let _ = sd_notify::notify(&[
+            sd_notify::NotifyState::ExtendTimeoutUsec(wait_us),
+            sd_notify::NotifyState::Status("rebuilding the recorder's nc table once"),
+        ]);
+        conn.execute_batch(&format!(
+            "ALTER TABLE nc RENAME TO nc_not_null;
+             DROP INDEX nc_t;
+             {SCHEMA}
+             INSERT INTO nc SELECT * FROM nc_not_null;
+             DROP TABLE nc_not_null;"
+        ))?;
+    }
+    conn.execute_batch("COMMIT")
+}
+
 /// Opens the database at `path` (creating it and its tables), in WAL mode. A file
 /// that is not a database of the recorder's layout (`check`) is refused before
 /// anything is written to it.
@@ -136,7 +167,9 @@ pub fn open(path: &Path) -> Result<Connection, RecordError> {
     // Databases recorded before a target could report no position hold 0 there
     // instead of NULL (their NOT NULL columns refuse it): rebuilt once, in one
     // transaction, rows kept. Another connection opening meanwhile (the MQTT outbox)
-    // waits for it as long as it takes, then finds it done.
+    // waits for it as long as it takes, then finds it done. A rebuild that fails (it
+    // needs about three times the table's size free) leaves the old layout: the
+    // gateway must start all the same, and `insert` skips the rows it refuses.
     let nc_not_null = |conn: &Connection| -> rusqlite::Result<bool> {
         conn.query_row(
             "SELECT COUNT(*) > 0 FROM pragma_table_info('nc') WHERE name = 'position_mm' AND \"notnull\"",
@@ -145,23 +178,13 @@ pub fn open(path: &Path) -> Result<Connection, RecordError> {
         )
     };
     if nc_not_null(&conn).map_err(err)? {
-        conn.busy_timeout(MIGRATION_WAIT).map_err(err)?;
-        conn.execute_batch("BEGIN IMMEDIATE").map_err(err)?;
-        let rebuilt = nc_not_null(&conn).and_then(|todo| {
-            if todo {
-                conn.execute_batch(&format!(
-                    "ALTER TABLE nc RENAME TO nc_not_null;
-                     DROP INDEX nc_t;
-                     {SCHEMA}
-                     INSERT INTO nc SELECT * FROM nc_not_null;
-                     DROP TABLE nc_not_null;"
-                ))?;
-            }
-            conn.execute_batch("COMMIT")
-        });
-        if let Err(e) = rebuilt {
+        if let Err(e) = rebuild_nc(&conn, path, nc_not_null) {
             let _ = conn.execute_batch("ROLLBACK");
-            return Err(err(e));
+            tracing::error!(
+                path = %path.display(),
+                error = %e,
+                "recorder database: the nc table could not be rebuilt to take NC reads without a position; it keeps its old layout and its rows, and reads of targets that report no position (OPC UA, ADS) are not recorded until a start with about three times the table's size free rebuilds it"
+            );
         }
         conn.busy_timeout(BUSY_TIMEOUT).map_err(err)?;
     }
@@ -448,7 +471,9 @@ pub fn insert(
                 applied_comp_mm,
                 params: p,
             } => {
-                tx.prepare_cached("INSERT INTO nc(t_unix_ms, axis, position_mm, applied_comp_mm, sd43900_mm, sd43910, sd43920_mm) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)")?
+                // OR IGNORE: a table of the layout before that could not be rebuilt
+                // (`open`) refuses a NULL position; that row is skipped, not the commit.
+                tx.prepare_cached("INSERT OR IGNORE INTO nc(t_unix_ms, axis, position_mm, applied_comp_mm, sd43900_mm, sd43910, sd43920_mm) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)")?
                     .execute(params![t_unix_ms, axis, position_mm, applied_comp_mm, p.k0_mm, p.tan_beta, p.p0_mm])?;
             }
             Record::Outbox { topic, payload } => {

@@ -308,6 +308,41 @@ fn an_nc_read_without_a_position_is_recorded_as_null_in_old_databases_too() {
     open(&path).expect("opens again");
 }
 
+// Where the rebuild failed (a nearly full disk), the old table refuses a NULL
+// position: that row is skipped, and the rest of the commit goes in.
+#[test]
+fn an_nc_table_left_in_the_old_layout_skips_reads_without_a_position_only() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut conn = open(&dir.path().join("old.db")).expect("create");
+    conn.execute_batch(&format!("DROP TABLE nc; {OLD_NC}"))
+        .expect("old schema");
+    let read = |t_unix_ms, position_mm| Record::Nc {
+        t_unix_ms,
+        axis: "X".into(),
+        position_mm,
+        applied_comp_mm: position_mm.map(|_| 0.0),
+        params: CompParams {
+            k0_mm: 0.02,
+            tan_beta: 0.0,
+            p0_mm: 0.0,
+        },
+    };
+    schema::insert(
+        &mut conn,
+        &mut schema::Statements::default(),
+        &[read(2, None), read(3, Some(4.0))],
+    )
+    .expect("the commit goes in");
+    let rows: Vec<i64> = conn
+        .prepare("SELECT t_unix_ms FROM nc ORDER BY t_unix_ms")
+        .expect("query")
+        .query_map([], |r| r.get(0))
+        .expect("rows")
+        .collect::<Result<_, _>>()
+        .expect("rows");
+    assert_eq!(rows, vec![1, 3]);
+}
+
 // The one-time rebuild holds the write lock as long as the table takes (3 million
 // rows, about 5 s): a second connection opening meanwhile (the MQTT outbox) gave up
 // after the 5 s busy timeout, and nothing was published. It now waits for it.
