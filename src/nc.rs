@@ -346,8 +346,10 @@ async fn write_with(
     // Nothing here can see a running gateway: say what it would do with the value.
     cli::print(format_args!(
         "note: a compgate service that compensates axis {axis} takes this as what the NC \
-         holds, logs that it changed, and replaces it at its next job (stop the service, \
-         or give the axis `shadow = true`, to keep it)\n"
+         holds, logs that it changed, and from its next update moves it back to its own \
+         value by at most max_step_k0_mm per update_interval_s (a value within \
+         deadband_k0_mm of its own stays); stop the service, or give the axis \
+         `shadow = true`, to keep it\n"
     ))?;
     Ok(())
 }

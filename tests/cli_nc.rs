@@ -143,7 +143,10 @@ async fn nc_write_shows_the_change_and_writes_once_after_yes() {
     assert!(t.contains("written and read back"), "{t}");
     // A running gateway would replace the value: said, with the way to keep it.
     assert!(
-        t.contains("replaces it at its next job") && t.contains("shadow = true"),
+        t.contains(
+            "moves it back to its own value by at most max_step_k0_mm per update_interval_s"
+        ) && t.contains("deadband_k0_mm")
+            && t.contains("shadow = true"),
         "{t}"
     );
     let s = module.state();
