@@ -37,7 +37,7 @@ use std::collections::BTreeMap;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
-use rusqlite::{params, Connection, OpenFlags};
+use rusqlite::{params, Connection, OpenFlags, OptionalExtension};
 
 use compgate_core::measure::{
     Measurements, Row, RowWriter, TempColumn, TEMP_DEGC_MAX, TEMP_DEGC_MIN,
@@ -426,6 +426,8 @@ pub fn export(
     // (which gives the direction): not the axis' whole history.
     // Only reads that carry a position: a target that reports none (OPC UA, ADS)
     // records NULL, and a standing axis at 0 is not what the machine did.
+    // --axis had compensation applied in the window, and a note said so.
+    let mut applied_found = false;
     let positions: Vec<(i64, f64, Option<f64>)> = match &args.axis {
         Some(axis) => {
             let query = |sql: &str,
@@ -481,19 +483,20 @@ pub fn export(
                     message: format!("the NC target of axis `{axis}` reported no applied compensation in the window"),
                 });
             }
-            if let Some(note) = applied_comp_note(&conn, axis, since, until, args)? {
-                notes.push(note);
-            }
+            let (note, applied) = applied_comp_note(&conn, axis, since, until, args)?;
+            notes.extend(note);
+            applied_found = applied;
             v
         }
         None => Vec::new(),
     };
 
-    // A target that reports no applied compensation (OPC UA, ADS, the S7 block), or
-    // no --axis: what compgate wrote is the only record that the error was measured
-    // with compensation on.
-    if err_id.is_some() && positions.iter().all(|(_, _, applied)| applied.is_none()) {
-        notes.extend(written_comp_notes(
+    // Without --axis, or where the record holds no applied compensation for it (a
+    // target that reports none: OPC UA, ADS, the S7 block; or zeros a build before
+    // stored for them): what the NC held and compgate wrote is the record that the
+    // error was measured with compensation on.
+    if err_id.is_some() && !applied_found {
+        notes.extend(comp_on_nc_notes(
             &conn,
             args.axis.as_deref(),
             since,
@@ -680,10 +683,11 @@ pub fn export(
     })
 }
 
-/// Per axis (`axis`, or every axis), a note when compgate wrote compensation in the
-/// window or left some on the NC before it: verified jobs with a value beyond
-/// [`APPLIED_COMP_MIN_MM`] (SD43900) or a slope.
-fn written_comp_notes(
+/// Per axis (`axis`, or every axis), a note when compensation was on the NC in the
+/// window or left on it before: the NC was read to hold, or a verified job wrote, a
+/// value beyond [`APPLIED_COMP_MIN_MM`] (SD43900) or a slope. A job that landed but
+/// was not verified (a read-back too slow) shows in the NC's reads.
+fn comp_on_nc_notes(
     conn: &Connection,
     axis: Option<&str>,
     since: i64,
@@ -694,53 +698,97 @@ fn written_comp_notes(
         path: args.db.display().to_string(),
         message: e.to_string(),
     };
-    // The last verified job before the window (what the NC held at its start) and
-    // those in it, per axis.
-    let mut stmt = conn
-        .prepare(
-            "SELECT axis, SUM(t_unix_ms >= ?2), max(abs(sd43900_mm)), max(abs(sd43910)) FROM jobs j \
-             WHERE ok = 1 AND (?1 IS NULL OR axis = ?1) AND t_unix_ms < ?3 AND (t_unix_ms >= ?2 \
-             OR t_unix_ms = (SELECT max(t_unix_ms) FROM jobs WHERE ok = 1 AND axis = j.axis AND t_unix_ms < ?2)) \
-             GROUP BY axis ORDER BY axis",
-        )
-        .map_err(db)?;
-    let rows = stmt
-        .query_map(params![axis, since, until], |r| {
-            Ok((
-                r.get::<_, String>(0)?,
-                r.get::<_, i64>(1)?,
-                r.get::<_, f64>(2)?,
-                r.get::<_, f64>(3)?,
-            ))
-        })
-        .map_err(db)?;
+    let axes: Vec<String> = match axis {
+        Some(a) => vec![a.to_string()],
+        // No index on the axis: the jobs table is small, and the nc rows of the window
+        // are an index range.
+        None => conn
+            .prepare(
+                "SELECT axis FROM jobs WHERE ok = 1 AND t_unix_ms < ?2 UNION \
+                 SELECT axis FROM nc WHERE t_unix_ms >= ?1 AND t_unix_ms < ?2 ORDER BY axis",
+            )
+            .map_err(db)?
+            .query_map(params![since, until], |r| r.get(0))
+            .map_err(db)?
+            .collect::<Result<_, _>>()
+            .map_err(db)?,
+    };
     let mut notes = Vec::new();
-    for row in rows {
-        let (axis, in_window, k0_mm, tan_beta) = row.map_err(db)?;
+    for axis in axes {
+        // The NC's reads in the window and the last one before it; the applied
+        // compensation recorded in the window (how many rows hold one, the largest).
+        let (held_k0, held_tan, applied_rows, applied_max): (Option<f64>, Option<f64>, i64, Option<f64>) = conn
+            .query_row(
+                "SELECT max(abs(sd43900_mm)), max(abs(sd43910)), COUNT(applied_comp_mm), max(abs(applied_comp_mm)) \
+                 FROM nc WHERE axis = ?1 AND t_unix_ms >= ?2 AND t_unix_ms < ?3",
+                params![axis, since, until],
+                |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)),
+            )
+            .map_err(db)?;
+        let before: Option<(f64, f64)> = conn
+            .query_row(
+                "SELECT abs(sd43900_mm), abs(sd43910) FROM nc WHERE axis = ?1 AND t_unix_ms < ?2 \
+                 ORDER BY t_unix_ms DESC LIMIT 1",
+                params![axis, since],
+                |r| Ok((r.get(0)?, r.get(1)?)),
+            )
+            .optional()
+            .map_err(db)?;
+        // The verified jobs in the window and the last one before it.
+        let (in_window, job_k0, job_tan): (i64, Option<f64>, Option<f64>) = conn
+            .query_row(
+                "SELECT COALESCE(SUM(t_unix_ms >= ?2), 0), max(abs(sd43900_mm)), max(abs(sd43910)) FROM jobs \
+                 WHERE ok = 1 AND axis = ?1 AND t_unix_ms < ?3 AND t_unix_ms >= COALESCE(\
+                 (SELECT max(t_unix_ms) FROM jobs WHERE ok = 1 AND axis = ?1 AND t_unix_ms < ?2), ?2)",
+                params![axis, since, until],
+                |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+            )
+            .map_err(db)?;
+        let largest = |xs: [Option<f64>; 3]| xs.into_iter().flatten().fold(0.0, f64::max);
+        let k0_mm = largest([held_k0, before.map(|b| b.0), job_k0]);
+        let tan_beta = largest([held_tan, before.map(|b| b.1), job_tan]);
         if k0_mm <= APPLIED_COMP_MIN_MM && tan_beta == 0.0 {
             continue;
         }
-        notes.push(format!(
+        let on_nc = format!(
             "compgate compensated axis `{axis}` in the window ({in_window} verified jobs in it, \
-             SD43900 up to {:.1} um, |SD43910| up to {tan_beta:.3e}), and the record holds no \
-             applied compensation to add back: err_um is the error left after it, and a model \
-             fitted on it is not the machine's; measure with the axis in shadow mode \
-             (`shadow = true`) for calibrate",
+             SD43900 up to {:.1} um on the NC, |SD43910| up to {tan_beta:.3e})",
             k0_mm * 1000.0
-        ));
+        );
+        let shadow = "measure with the axis in shadow mode (`shadow = true`) for calibrate";
+        notes.push(match applied_max {
+            Some(applied) if applied > APPLIED_COMP_MIN_MM => format!(
+                "the NC applied compensation to axis `{axis}` in the window (up to {:.1} um): \
+                 err_um is the error left after it; give --axis {axis} --add-applied-comp to \
+                 add it back, or {shadow}",
+                applied * 1000.0
+            ),
+            _ if applied_rows > 0 => format!(
+                "{on_nc}, yet the record says the NC applied none: an axis not referenced, or \
+                 with its compensation off, applies none, and builds before this one recorded \
+                 0 for a target that reports no applied compensation (OPC UA, ADS, S7); if \
+                 it applied, err_um is the error left after it and a model fitted on it is not \
+                 the machine's: {shadow}"
+            ),
+            _ => format!(
+                "{on_nc}, and the record holds no applied compensation to add back: err_um is \
+                 the error left after it, and a model fitted on it is not the machine's; {shadow}"
+            ),
+        });
     }
     Ok(notes)
 }
 
 /// The note on the compensation the NC applied to `axis` in the window, if any: a
-/// recording made with compensation on measures the error left after it.
+/// recording made with compensation on measures the error left after it; and whether
+/// the record holds some applied in the window.
 fn applied_comp_note(
     conn: &Connection,
     axis: &str,
     since: i64,
     until: i64,
     args: &ExportArgs,
-) -> Result<Option<String>, ExportError> {
+) -> Result<(Option<String>, bool), ExportError> {
     let span: Option<(String, String, f64)> = conn
         .query_row(
             "SELECT strftime('%Y-%m-%dT%H:%M:%fZ', min(t_unix_ms) / 1000.0, 'unixepoch'), \
@@ -760,19 +808,21 @@ fn applied_comp_note(
             message: e.to_string(),
         })?;
     let Some((first, last, max_mm)) = span else {
-        return Ok(args.add_applied_comp.then(|| {
-            format!("--add-applied-comp: the NC applied no compensation to axis `{axis}` in the window; err_um is as measured")
-        }));
+        let note = args.add_applied_comp.then(|| {
+            format!("--add-applied-comp: the record holds no applied compensation of axis `{axis}` in the window; err_um is as measured")
+        });
+        return Ok((note, false));
     };
     let applied = format!(
         "the NC applied compensation to axis `{axis}` from {first} to {last} (up to {:.1} um)",
         max_mm * 1000.0
     );
-    Ok(Some(if args.add_applied_comp {
+    let note = if args.add_applied_comp {
         format!("{applied}; err_um is the measured error plus the applied compensation at that instant (--add-applied-comp): the error without compensation")
     } else {
         format!("{applied}: there err_um is the error left after the NC's compensation, and a model fitted on it is not the machine's model; give --add-applied-comp to write the error without compensation (err_um + the applied compensation at that instant), or export a window with compensation off")
-    }))
+    };
+    Ok((Some(note), true))
 }
 
 /// `compgate export --out FILE`: writes the CSV to `args.out`. Standard output is the

@@ -456,6 +456,94 @@ fn export_names_the_compensation_compgate_wrote_where_none_was_reported() {
     );
 }
 
+// Review Z2: a job that landed but whose read-back was too slow (OPC UA) was not
+// counted, so nothing was said; an axis with applied compensation recorded (the
+// Modbus NC module) was told the record held none to add back; and an old recording
+// with 0 stored for an OPC UA axis's position and applied compensation was exported
+// with --axis without a word (and --add-applied-comp said the NC applied none).
+#[test]
+fn export_notes_go_by_what_the_nc_held_and_what_the_record_holds() {
+    let (_dir, db) = recorded(&[(0, 100)]);
+    let conn = schema::open(&db).unwrap();
+    conn.execute("INSERT INTO channels(id, name) VALUES (2, 'laser_um')", [])
+        .unwrap();
+    for t in 0..100i64 {
+        conn.execute(
+            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 2, 0.0, 1.0, 0)",
+            [t * 1000],
+        )
+        .unwrap();
+    }
+    let nc = |t_s: i64, axis: &str, pos: Option<f64>, applied: Option<f64>, k0_mm: f64| {
+        conn.execute(
+            "INSERT INTO nc(t_unix_ms, axis, position_mm, applied_comp_mm, sd43900_mm, sd43910, sd43920_mm) VALUES (?1, ?2, ?3, ?4, ?5, 0, 0)",
+            rusqlite::params![t_s * 1000, axis, pos, applied, k0_mm],
+        )
+        .unwrap();
+    };
+    let job = |t_s: i64, axis: &str, k0_mm: f64, ok: bool| {
+        conn.execute(
+            "INSERT INTO jobs(t_unix_ms, axis, sd43900_mm, sd43910, sd43920_mm, ok, shadow) VALUES (?1, ?2, ?3, 0, 0, ?4, 0)",
+            rusqlite::params![t_s * 1000, axis, k0_mm, ok],
+        )
+        .unwrap();
+    };
+    for t in (0..100).step_by(5) {
+        // O: OPC UA, every read-back too slow, the value on the NC all the same.
+        nc(t, "O", None, None, 0.012);
+        job(t, "O", 0.012, false);
+        // M: the Modbus NC module, applying 30 um.
+        nc(t, "M", Some(5.0), Some(0.03), 0.03);
+        job(t, "M", 0.03, true);
+        // Z: an OPC UA axis recorded by a build that stored 0 for what it lacks.
+        nc(t, "Z", Some(0.0), Some(0.0), 0.012);
+        job(t, "Z", 0.012, true);
+    }
+    let mut args = export_args(&db, 50, 100);
+    args.err_channel = Some("laser_um".into());
+    let notes = |args: &export::ExportArgs| export::measurements(args).unwrap().1.notes;
+    let all = notes(&args);
+    let of = |notes: &[String], axis: &str| -> Vec<String> {
+        notes
+            .iter()
+            .filter(|n| n.contains(&format!("axis `{axis}`")))
+            .cloned()
+            .collect()
+    };
+    let o = of(&all, "O");
+    assert!(
+        o.len() == 1
+            && o[0].contains("SD43900 up to 12.0 um on the NC")
+            && o[0].contains("holds no applied compensation"),
+        "{all:?}"
+    );
+    let m = of(&all, "M");
+    assert!(
+        m.len() == 1
+            && m[0].contains("up to 30.0 um")
+            && m[0].contains("--axis M --add-applied-comp"),
+        "{all:?}"
+    );
+    args.axis = Some("Z".into());
+    let z = notes(&args);
+    assert!(
+        z.iter().any(
+            |n| n.contains("axis `Z`") && n.contains("yet the record says the NC applied none")
+        ),
+        "{z:?}"
+    );
+    args.add_applied_comp = true;
+    let z = notes(&args);
+    assert!(
+        z.iter()
+            .any(|n| n.contains("yet the record says the NC applied none"))
+            && z.iter().any(|n| n.contains(
+                "--add-applied-comp: the record holds no applied compensation of axis `Z`"
+            )),
+        "{z:?}"
+    );
+}
+
 /// A database holding channel `T_a`, read once a second over `spans` (start, end in
 /// s, end exclusive), value 20 + t / 1000.
 fn recorded(spans: &[(i64, i64)]) -> (tempfile::TempDir, std::path::PathBuf) {
