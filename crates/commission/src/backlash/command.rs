@@ -10,6 +10,7 @@ use compgate_ncproto::{self as ncmap, var};
 use compgate_gateway::nc::{Guarded, Job, ModbusNcWriter, NcWriter, StopSignals};
 use compgate_gateway::source::modbus::{Backoff, LinkSpec, ModbusLink};
 use compgate_gateway::source::plan::RegisterKind;
+use compgate_gateway::source::SourceError;
 
 use compgate_ncproto::servo::TraceConfig;
 
@@ -305,6 +306,12 @@ pub async fn run_on(address: &str, args: &BacklashArgs) -> Result<Outcome, Backl
     // The first contact says what --nc must be: an S7 PLC or an OPC UA server there
     // answered "connection closed" or "no reply", as if the module were busy.
     let status = nc.status().await.map_err(|e| match e {
+        BacklashError::Link(cause @ (SourceError::Connect(_) | SourceError::ConnectTimeout)) => {
+            BacklashError::Unreachable {
+                address: address.to_string(),
+                cause,
+            }
+        }
         BacklashError::Link(cause) => BacklashError::FirstContact {
             address: address.to_string(),
             cause,

@@ -101,6 +101,16 @@ pub enum BacklashError {
     /// The Modbus link failed.
     #[error("NC link: {0}")]
     Link(#[from] SourceError),
+    /// Nothing at `--nc` took the connection.
+    #[error(
+        "--nc {address}: {cause}: is the NC axis module on, and are the address and port right?"
+    )]
+    Unreachable {
+        /// `--nc`.
+        address: String,
+        /// Why the connect failed.
+        cause: SourceError,
+    },
     /// The first read of `--nc` failed: most often not a Modbus NC axis module there.
     #[error("--nc {address}: {cause}; --nc is the Modbus NC axis module (compgate's register map, e.g. the simulated plant's), not the control: for a SINUMERIK, TwinCAT or S7 axis run the test programme on the control and give its trace with --trace")]
     FirstContact {

@@ -320,6 +320,27 @@ async fn a_peer_that_is_no_modbus_nc_module_is_named_with_the_way_for_other_cont
     peer.abort();
 }
 
+// Review Z2: a port where nothing listens (the module off, a wrong port) was told
+// that --nc is not the control, which sent the engineer the wrong way.
+#[tokio::test]
+async fn a_closed_port_at_nc_asks_whether_the_module_is_on() {
+    let address = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().to_string()
+    };
+    let args = BacklashArgs {
+        nc: Some(address.clone()),
+        ..BacklashArgs::default()
+    };
+    let e = run_on(&address, &args).await.unwrap_err().to_string();
+    assert!(
+        e.starts_with(&format!("--nc {address}: connect failed"))
+            && e.contains("is the NC axis module on")
+            && !e.contains("--trace"),
+        "{e}"
+    );
+}
+
 #[tokio::test]
 async fn md32450_write_refused_by_the_nc_is_reported() {
     let (address, module, shutdown) = serve(0.01).await;
