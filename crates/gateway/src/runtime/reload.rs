@@ -144,11 +144,16 @@ pub(super) fn transplant(old_cfg: &Config, new_cfg: &Config, old: Running, new: 
             m.and_then(Option::as_ref)
                 .and_then(|m| m.writer.inner().credentials().cloned())
         };
-        let same = old_cfg.axes.get(name) == Some(axis)
-            && old_cfg.target(&axis.nc_module) == new_cfg.target(&axis.nc_module)
-            && old_axis_index
-                .get(name.as_str())
-                .is_some_and(|&i| login(old_nc.get(i)) == login(next.nc_modules.get(j)));
+        let same_cfg = old_cfg.axes.get(name) == Some(axis)
+            && old_cfg.target(&axis.nc_module) == new_cfg.target(&axis.nc_module);
+        let same_login = old_axis_index
+            .get(name.as_str())
+            .is_some_and(|&i| login(old_nc.get(i)) == login(next.nc_modules.get(j)));
+        if same_cfg && !same_login {
+            // Else the log only says that the target's parameters were read again.
+            tracing::info!(axis = %name, "reload: the credentials of axis {name}'s NC target changed in their file; a new session logs in with them");
+        }
+        let same = same_cfg && same_login;
         if let (true, Some(&i)) = (same, old_axis_index.get(name.as_str())) {
             if let Some(m) = old_nc.get_mut(i).and_then(Option::take) {
                 next.nc_modules[j] = Some(m);
