@@ -683,6 +683,10 @@ pub fn export(
     })
 }
 
+/// How far before the window export looks for the NC's last read (the gateway reads
+/// it at least every status interval while it runs), ms.
+const READ_BEFORE_MS: i64 = 86_400_000;
+
 /// Per axis (`axis`, or every axis), a note when compensation was on the NC in the
 /// window or left on it before: the NC was read to hold, or a verified job wrote, a
 /// value beyond [`APPLIED_COMP_MIN_MM`] (SD43900) or a slope. A job that landed but
@@ -715,8 +719,8 @@ fn comp_on_nc_notes(
     };
     let mut notes = Vec::new();
     for axis in axes {
-        // The NC's reads in the window and the last one before it; the applied
-        // compensation recorded in the window (how many rows hold one, the largest).
+        // The NC's reads in the window; the applied compensation recorded in it (how
+        // many rows hold one, the largest).
         let (held_k0, held_tan, applied_rows, applied_max): (Option<f64>, Option<f64>, i64, Option<f64>) = conn
             .query_row(
                 "SELECT max(abs(sd43900_mm)), max(abs(sd43910)), COUNT(applied_comp_mm), max(abs(applied_comp_mm)) \
@@ -725,55 +729,80 @@ fn comp_on_nc_notes(
                 |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)),
             )
             .map_err(db)?;
-        let before: Option<(f64, f64)> = conn
-            .query_row(
-                "SELECT abs(sd43900_mm), abs(sd43910) FROM nc WHERE axis = ?1 AND t_unix_ms < ?2 \
-                 ORDER BY t_unix_ms DESC LIMIT 1",
-                params![axis, since],
-                |r| Ok((r.get(0)?, r.get(1)?)),
-            )
-            .optional()
-            .map_err(db)?;
-        // The verified jobs in the window and the last one before it.
+        // The verified jobs in the window, and the last one before it.
         let (in_window, job_k0, job_tan): (i64, Option<f64>, Option<f64>) = conn
             .query_row(
-                "SELECT COALESCE(SUM(t_unix_ms >= ?2), 0), max(abs(sd43900_mm)), max(abs(sd43910)) FROM jobs \
-                 WHERE ok = 1 AND axis = ?1 AND t_unix_ms < ?3 AND t_unix_ms >= COALESCE(\
-                 (SELECT max(t_unix_ms) FROM jobs WHERE ok = 1 AND axis = ?1 AND t_unix_ms < ?2), ?2)",
+                "SELECT COUNT(*), max(abs(sd43900_mm)), max(abs(sd43910)) FROM jobs \
+                 WHERE ok = 1 AND axis = ?1 AND t_unix_ms >= ?2 AND t_unix_ms < ?3",
                 params![axis, since, until],
                 |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
             )
             .map_err(db)?;
+        let job_before: Option<(i64, f64, f64)> = conn
+            .query_row(
+                "SELECT t_unix_ms, abs(sd43900_mm), abs(sd43910) FROM jobs \
+                 WHERE ok = 1 AND axis = ?1 AND t_unix_ms < ?2 ORDER BY t_unix_ms DESC LIMIT 1",
+                params![axis, since],
+                |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+            )
+            .optional()
+            .map_err(db)?;
+        // What the NC held at the start: its last read before the window, unless a
+        // verified job came after it; looked for over a bounded span (the index is
+        // on time only, and an axis without reads would be looked for back to the
+        // first row).
+        let read_from = job_before.map_or(since - READ_BEFORE_MS, |(t, _, _)| {
+            t.max(since - READ_BEFORE_MS)
+        });
+        let read_before: Option<(f64, f64)> = conn
+            .query_row(
+                "SELECT abs(sd43900_mm), abs(sd43910) FROM nc WHERE axis = ?1 AND t_unix_ms >= ?2 \
+                 AND t_unix_ms < ?3 ORDER BY t_unix_ms DESC LIMIT 1",
+                params![axis, read_from, since],
+                |r| Ok((r.get(0)?, r.get(1)?)),
+            )
+            .optional()
+            .map_err(db)?;
+        let at_start = read_before.or(job_before.map(|(_, k0, tan)| (k0, tan)));
         let largest = |xs: [Option<f64>; 3]| xs.into_iter().flatten().fold(0.0, f64::max);
-        let k0_mm = largest([held_k0, before.map(|b| b.0), job_k0]);
-        let tan_beta = largest([held_tan, before.map(|b| b.1), job_tan]);
-        if k0_mm <= APPLIED_COMP_MIN_MM && tan_beta == 0.0 {
-            continue;
-        }
-        let on_nc = format!(
-            "compgate compensated axis `{axis}` in the window ({in_window} verified jobs in it, \
-             SD43900 up to {:.1} um on the NC, |SD43910| up to {tan_beta:.3e})",
-            k0_mm * 1000.0
-        );
+        let k0_mm = largest([held_k0, at_start.map(|b| b.0), job_k0]);
+        let tan_beta = largest([held_tan, at_start.map(|b| b.1), job_tan]);
         let shadow = "measure with the axis in shadow mode (`shadow = true`) for calibrate";
-        notes.push(match applied_max {
-            Some(applied) if applied > APPLIED_COMP_MIN_MM => format!(
+        if let Some(applied) = applied_max.filter(|a| *a > APPLIED_COMP_MIN_MM) {
+            notes.push(format!(
                 "the NC applied compensation to axis `{axis}` in the window (up to {:.1} um): \
                  err_um is the error left after it; give --axis {axis} --add-applied-comp to \
                  add it back, or {shadow}",
                 applied * 1000.0
-            ),
-            _ if applied_rows > 0 => format!(
+            ));
+            continue;
+        }
+        if k0_mm <= APPLIED_COMP_MIN_MM && tan_beta == 0.0 {
+            continue;
+        }
+        let slope = if tan_beta > 0.0 {
+            format!(", |SD43910| up to {tan_beta:.3e}")
+        } else {
+            String::new()
+        };
+        let on_nc = format!(
+            "compgate compensated axis `{axis}` in the window ({in_window} verified jobs in it, \
+             SD43900 up to {:.1} um on the NC{slope})",
+            k0_mm * 1000.0
+        );
+        notes.push(if applied_rows > 0 {
+            format!(
                 "{on_nc}, yet the record says the NC applied none: an axis not referenced, or \
                  with its compensation off, applies none, and builds before this one recorded \
                  0 for a target that reports no applied compensation (OPC UA, ADS, S7); if \
                  it applied, err_um is the error left after it and a model fitted on it is not \
                  the machine's: {shadow}"
-            ),
-            _ => format!(
+            )
+        } else {
+            format!(
                 "{on_nc}, and the record holds no applied compensation to add back: err_um is \
                  the error left after it, and a model fitted on it is not the machine's; {shadow}"
-            ),
+            )
         });
     }
     Ok(notes)
@@ -809,7 +838,7 @@ fn applied_comp_note(
         })?;
     let Some((first, last, max_mm)) = span else {
         let note = args.add_applied_comp.then(|| {
-            format!("--add-applied-comp: the record holds no applied compensation of axis `{axis}` in the window; err_um is as measured")
+            format!("--add-applied-comp: the record holds no applied compensation of axis `{axis}` in the window; nothing was added")
         });
         return Ok((note, false));
     };

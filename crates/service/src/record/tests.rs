@@ -544,6 +544,49 @@ fn export_notes_go_by_what_the_nc_held_and_what_the_record_holds() {
     );
 }
 
+// Review Z3: a read before the window that a verified job of 0 had replaced still
+// called the window compensated; and applied compensation recorded with SD43900 and
+// SD43910 at 0 was not named without --axis.
+#[test]
+fn export_notes_take_what_the_nc_held_last_and_applied_compensation_first() {
+    let (_dir, db) = recorded(&[(0, 100)]);
+    let conn = schema::open(&db).unwrap();
+    conn.execute("INSERT INTO channels(id, name) VALUES (2, 'laser_um')", [])
+        .unwrap();
+    for t in 0..100i64 {
+        conn.execute(
+            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 2, 0.0, 1.0, 0)",
+            [t * 1000],
+        )
+        .unwrap();
+    }
+    // B: the NC read 50 um at 10 s, a verified job set 0 at 20 s, no read after.
+    conn.execute_batch(
+        "INSERT INTO nc(t_unix_ms, axis, position_mm, applied_comp_mm, sd43900_mm, sd43910, sd43920_mm) VALUES (10000, 'B', NULL, NULL, 0.05, 0, 0);
+         INSERT INTO jobs(t_unix_ms, axis, sd43900_mm, sd43910, sd43920_mm, ok, shadow) VALUES (20000, 'B', 0.0, 0, 0, 1, 0);",
+    )
+    .unwrap();
+    // C: 20 um applied with the setting data at 0.
+    for t in (50..100).step_by(5) {
+        conn.execute(
+            "INSERT INTO nc(t_unix_ms, axis, position_mm, applied_comp_mm, sd43900_mm, sd43910, sd43920_mm) VALUES (?1, 'C', 5.0, 0.02, 0, 0, 0)",
+            [t * 1000],
+        )
+        .unwrap();
+    }
+    let mut args = export_args(&db, 50, 100);
+    args.err_channel = Some("laser_um".into());
+    let notes = export::measurements(&args).unwrap().1.notes;
+    assert!(!notes.iter().any(|n| n.contains("axis `B`")), "{notes:?}");
+    assert!(
+        notes
+            .iter()
+            .any(|n| n.contains("axis `C` in the window (up to 20.0 um)")
+                && n.contains("--axis C --add-applied-comp")),
+        "{notes:?}"
+    );
+}
+
 /// A database holding channel `T_a`, read once a second over `spans` (start, end in
 /// s, end exclusive), value 20 + t / 1000.
 fn recorded(spans: &[(i64, i64)]) -> (tempfile::TempDir, std::path::PathBuf) {
