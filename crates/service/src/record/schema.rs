@@ -177,13 +177,24 @@ pub fn open(path: &Path) -> Result<Connection, RecordError> {
             |r| r.get(0),
         )
     };
-    if nc_not_null(&conn).map_err(err)? {
+    // Tried once per file and process: the MQTT outbox's open would try again at once.
+    static REBUILD_FAILED: std::sync::Mutex<Vec<std::path::PathBuf>> =
+        std::sync::Mutex::new(Vec::new());
+    let failed_before = || {
+        REBUILD_FAILED
+            .lock()
+            .is_ok_and(|failed| failed.iter().any(|p| p == path))
+    };
+    if nc_not_null(&conn).map_err(err)? && !failed_before() {
         if let Err(e) = rebuild_nc(&conn, path, nc_not_null) {
+            if let Ok(mut failed) = REBUILD_FAILED.lock() {
+                failed.push(path.to_path_buf());
+            }
             let _ = conn.execute_batch("ROLLBACK");
             tracing::error!(
                 path = %path.display(),
                 error = %e,
-                "recorder database: the nc table could not be rebuilt to take NC reads without a position; it keeps its old layout and its rows, and reads of targets that report no position (OPC UA, ADS) are not recorded until a start with about three times the table's size free rebuilds it"
+                "recorder database: the nc table could not be rebuilt to take NC reads without a position; it keeps its old layout and its rows, and reads of targets that report no position or no applied compensation (OPC UA, ADS, S7) are not recorded until a start with about three times the table's size free rebuilds it"
             );
         }
         conn.busy_timeout(BUSY_TIMEOUT).map_err(err)?;
