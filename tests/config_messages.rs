@@ -165,6 +165,11 @@ fn validate_reads_the_opcua_credentials_as_run_does() {
         "{text}"
     );
     assert!(!text.contains("secret-pw-4711"), "{text}");
+    // The user without a password line (a file caught half written): refused.
+    std::fs::write(&creds, "operator\n").unwrap();
+    let (code, text) = compgate("validate", &path);
+    assert_eq!(code, Some(1), "{text}");
+    assert!(text.contains("second line (password) is missing"), "{text}");
     std::fs::write(&creds, "operator\nsecret-pw-4711\n").unwrap();
     let (code, text) = compgate("validate", &path);
     assert_eq!(code, Some(0), "{text}");

@@ -75,14 +75,21 @@ impl LoginKeys<'_> {
             let text = std::fs::read_to_string(&path).map_err(|e| fail(e.to_string()))?;
             let mut lines = text.lines();
             let user = lines.next().unwrap_or_default().to_string();
-            let password = lines.next().unwrap_or_default().to_string();
-            if user.is_empty() {
-                return Err(fail(
-                    "the first line (user name) is empty; expected the user name on the \
-                     first line and the password on the second"
-                        .into(),
-                ));
+            // A file caught half written has the user and no password line yet: a
+            // login with an empty password would be refused. (`user\n\n` gives one.)
+            let password = lines.next();
+            if user.is_empty() || password.is_none() {
+                let which = if user.is_empty() {
+                    "the first line (user name) is empty"
+                } else {
+                    "the second line (password) is missing"
+                };
+                return Err(fail(format!(
+                    "{which}; expected the user name on the first line and the password \
+                     on the second"
+                )));
             }
+            let password = password.unwrap_or_default().to_string();
             return Ok(Some(Credentials { user, password }));
         }
         let (Some(u), Some(p)) = (self.user_env, self.password_env) else {
