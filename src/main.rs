@@ -265,9 +265,16 @@ async fn run(log: Option<String>, command: Command) -> Result<(), CommandError> 
             // A run takes minutes. A signal drops it, and with it the staged outputs'
             // temporary files (named after the pid, so left over for good otherwise).
             let mut stop = compgate_gateway::nc::StopSignals::register();
+            let made_out = !args.out.exists();
             let report = tokio::select! {
                 report = scenario::run(&args) => report.map_err(failed)?,
-                signal = stop.recv() => return Err(CommandError::Interrupted(signal)),
+                signal = stop.recv() => {
+                    if made_out {
+                        // Empty by now, as it was not there before.
+                        let _ = std::fs::remove_dir(&args.out);
+                    }
+                    return Err(CommandError::Interrupted(signal));
+                }
             };
             Ok(cli::print(format_args!(
                 "{}written to {}\n",

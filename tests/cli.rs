@@ -986,4 +986,23 @@ fn a_scenario_stopped_by_ctrl_c_leaves_the_directory_as_it_was() {
         std::fs::read_to_string(out.join("report.txt")).unwrap(),
         "an earlier run's report\n"
     );
+
+    // An output directory the run made is gone again.
+    let fresh = dir.path().join("fresh");
+    let child = Command::new(BIN)
+        .args(["scenario", "--loop", "--out"])
+        .arg(&fresh)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let end = Instant::now() + Duration::from_secs(60);
+    while !fresh.exists() {
+        assert!(Instant::now() < end, "no output directory made");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    common::process::signal(child.id(), "INT");
+    let ended = child.wait_with_output().unwrap();
+    assert_eq!(ended.status.code(), Some(130));
+    assert!(!fresh.exists(), "the directory the run made is left");
 }

@@ -516,7 +516,11 @@ async fn an_nc_table_that_cannot_be_rebuilt_for_lack_of_space_does_not_stop_the_
     });
     // Tried once: the MQTT outbox's open (by now) does not try again.
     let log = gw.stderr_text();
-    assert_eq!(log.matches("rebuilding the nc table once").count(), 1, "{log}");
+    assert_eq!(
+        log.matches("rebuilding the nc table once").count(),
+        1,
+        "{log}"
+    );
     assert!(tokio::task::block_in_place(|| gw.stop()));
     fs_rows_check(&db, OLD_ROWS);
     drop(fs);
