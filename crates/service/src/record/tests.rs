@@ -405,16 +405,7 @@ fn export_refuses_pos_mm_of_a_target_that_reports_no_position() {
 #[test]
 fn export_names_the_compensation_compgate_wrote_where_none_was_reported() {
     let (_dir, db) = recorded(&[(0, 100)]);
-    let conn = schema::open(&db).unwrap();
-    conn.execute("INSERT INTO channels(id, name) VALUES (2, 'laser_um')", [])
-        .unwrap();
-    for t in 0..100i64 {
-        conn.execute(
-            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 2, 0.0, 1.0, 0)",
-            [t * 1000],
-        )
-        .unwrap();
-    }
+    let conn = with_laser(&db);
     let job = |t_s: i64, axis: &str, k0_mm: f64, ok: bool, shadow: bool| {
         conn.execute(
             "INSERT INTO jobs(t_unix_ms, axis, sd43900_mm, sd43910, sd43920_mm, ok, shadow) VALUES (?1, ?2, ?3, 0, 0, ?4, ?5)",
@@ -464,16 +455,7 @@ fn export_names_the_compensation_compgate_wrote_where_none_was_reported() {
 #[test]
 fn export_notes_go_by_what_the_nc_held_and_what_the_record_holds() {
     let (_dir, db) = recorded(&[(0, 100)]);
-    let conn = schema::open(&db).unwrap();
-    conn.execute("INSERT INTO channels(id, name) VALUES (2, 'laser_um')", [])
-        .unwrap();
-    for t in 0..100i64 {
-        conn.execute(
-            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 2, 0.0, 1.0, 0)",
-            [t * 1000],
-        )
-        .unwrap();
-    }
+    let conn = with_laser(&db);
     let nc = |t_s: i64, axis: &str, pos: Option<f64>, applied: Option<f64>, k0_mm: f64| {
         conn.execute(
             "INSERT INTO nc(t_unix_ms, axis, position_mm, applied_comp_mm, sd43900_mm, sd43910, sd43920_mm) VALUES (?1, ?2, ?3, ?4, ?5, 0, 0)",
@@ -550,16 +532,7 @@ fn export_notes_go_by_what_the_nc_held_and_what_the_record_holds() {
 #[test]
 fn export_notes_take_what_the_nc_held_last_and_applied_compensation_first() {
     let (_dir, db) = recorded(&[(0, 100)]);
-    let conn = schema::open(&db).unwrap();
-    conn.execute("INSERT INTO channels(id, name) VALUES (2, 'laser_um')", [])
-        .unwrap();
-    for t in 0..100i64 {
-        conn.execute(
-            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 2, 0.0, 1.0, 0)",
-            [t * 1000],
-        )
-        .unwrap();
-    }
+    let conn = with_laser(&db);
     // B: the NC read 50 um at 10 s, a verified job set 0 at 20 s, no read after.
     conn.execute_batch(
         "INSERT INTO nc(t_unix_ms, axis, position_mm, applied_comp_mm, sd43900_mm, sd43910, sd43920_mm) VALUES (10000, 'B', NULL, NULL, 0.05, 0, 0);
@@ -585,6 +558,22 @@ fn export_notes_take_what_the_nc_held_last_and_applied_compensation_first() {
                 && n.contains("--axis C --add-applied-comp")),
         "{notes:?}"
     );
+}
+
+/// The database at `db` opened, with a channel `laser_um` reading 1 um once a second
+/// over the first 100 s.
+fn with_laser(db: &std::path::Path) -> rusqlite::Connection {
+    let conn = schema::open(db).unwrap();
+    conn.execute("INSERT INTO channels(id, name) VALUES (2, 'laser_um')", [])
+        .unwrap();
+    for t in 0..100i64 {
+        conn.execute(
+            "INSERT INTO readings(t_unix_ms, channel, raw, value_degc, quality) VALUES (?1, 2, 0.0, 1.0, 0)",
+            [t * 1000],
+        )
+        .unwrap();
+    }
+    conn
 }
 
 /// A database holding channel `T_a`, read once a second over `spans` (start, end in
