@@ -24,6 +24,7 @@ enum CommandError {
     #[error(transparent)]
     Output(#[from] OutputError),
     /// Stopped by the signal named before it was done; nothing was written.
+    #[cfg(feature = "sim")]
     #[error("stopped by {0}; nothing was written, the files that were there are as before")]
     Interrupted(&'static str),
 }
@@ -46,6 +47,7 @@ fn exit_code(result: Result<(), CommandError>) -> ExitCode {
     };
     // 128 + SIGINT, as a shell reports a tool that Ctrl-C ended.
     let code = match e {
+        #[cfg(feature = "sim")]
         CommandError::Interrupted(_) => ExitCode::from(130),
         _ => ExitCode::FAILURE,
     };
