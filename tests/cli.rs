@@ -950,13 +950,16 @@ fn a_scenario_stopped_by_ctrl_c_leaves_the_directory_as_it_was() {
     let out = dir.path().join("scenario");
     std::fs::create_dir(&out).unwrap();
     std::fs::write(out.join("report.txt"), "an earlier run's report\n").unwrap();
-    let child = Command::new(BIN)
-        .args(["scenario", "--loop", "--out"])
-        .arg(&out)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let scenario = |out: &std::path::Path| {
+        Command::new(BIN)
+            .args(["scenario", "--loop", "--out"])
+            .arg(out)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    let child = scenario(&out);
     let names = || -> Vec<String> {
         std::fs::read_dir(&out)
             .unwrap()
@@ -989,13 +992,7 @@ fn a_scenario_stopped_by_ctrl_c_leaves_the_directory_as_it_was() {
 
     // An output directory the run made is gone again.
     let fresh = dir.path().join("fresh");
-    let child = Command::new(BIN)
-        .args(["scenario", "--loop", "--out"])
-        .arg(&fresh)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let child = scenario(&fresh);
     let end = Instant::now() + Duration::from_secs(60);
     while !fresh.exists() {
         assert!(Instant::now() < end, "no output directory made");

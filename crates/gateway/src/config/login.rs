@@ -77,19 +77,20 @@ impl LoginKeys<'_> {
             let user = lines.next().unwrap_or_default().to_string();
             // A file caught half written has the user and no password line yet: a
             // login with an empty password would be refused. (`user\n\n` gives one.)
-            let password = lines.next();
-            if user.is_empty() || password.is_none() {
-                let which = if user.is_empty() {
-                    "the first line (user name) is empty"
-                } else {
-                    "the second line (password) is missing"
-                };
-                return Err(fail(format!(
-                    "{which}; expected the user name on the first line and the password \
-                     on the second"
-                )));
-            }
-            let password = password.unwrap_or_default().to_string();
+            let password = match (user.is_empty(), lines.next()) {
+                (false, Some(password)) => password.to_string(),
+                (no_user, _) => {
+                    let which = if no_user {
+                        "the first line (user name) is empty"
+                    } else {
+                        "the second line (password) is missing"
+                    };
+                    return Err(fail(format!(
+                        "{which}; expected the user name on the first line and the password \
+                         on the second"
+                    )));
+                }
+            };
             return Ok(Some(Credentials { user, password }));
         }
         let (Some(u), Some(p)) = (self.user_env, self.password_env) else {

@@ -426,7 +426,6 @@ pub fn export(
     // (which gives the direction): not the axis' whole history.
     // Only reads that carry a position: a target that reports none (OPC UA, ADS)
     // records NULL, and a standing axis at 0 is not what the machine did.
-    // --axis had compensation applied in the window, and a note said so.
     let mut applied_found = false;
     let positions: Vec<(i64, f64, Option<f64>)> = match &args.axis {
         Some(axis) => {
@@ -483,6 +482,7 @@ pub fn export(
                     message: format!("the NC target of axis `{axis}` reported no applied compensation in the window"),
                 });
             }
+            // Whether the record holds compensation applied to --axis in the window.
             let (note, applied) = applied_comp_note(&conn, axis, since, until, args)?;
             notes.extend(note);
             applied_found = applied;
