@@ -381,6 +381,30 @@ async fn the_gateway_logs_in_to_a_broker_that_asks_for_a_password() {
     .await;
     let log = gw.stderr_text();
     assert!(log.contains("MQTT: the credentials changed"), "{log}");
+
+    // The file is gone (moved away by an operator) when the broker restarts: the
+    // gateway says so once and logs in with what it read before.
+    let moved = dir.path().join("mqtt.login.moved");
+    std::fs::rename(&login, &moved).unwrap();
+    tokio::task::block_in_place(|| {
+        broker.stop();
+        broker.restart();
+    });
+    let restarted_ms = now_ms();
+    wait_until(
+        20.0,
+        "a health message without the credentials file",
+        || {
+            got.lock().unwrap().iter().any(|(t, v)| {
+                t == "compgate/mill-7/health" && v["t_unix_ms"].as_i64().unwrap() > restarted_ms
+            })
+        },
+    )
+    .await;
+    let before_used = "the credentials read before are used";
+    let log = gw.stderr_text();
+    assert_eq!(log.matches(before_used).count(), 1, "{log}");
+    assert!(log.contains("mqtt.credentials_file"), "{log}");
     assert!(tokio::task::block_in_place(|| gw.stop()));
 
     // A wrong password, from the environment: refused, and said so.
