@@ -219,6 +219,14 @@ pub fn run(args: &VolumetricArgs) -> Result<Evaluated, VolumetricError> {
             other => other,
         })?;
     let grid = parse_grid(&args.grid, &model.travel)?;
+    // Allowed by the format, but a measurement export that dropped a table looks like
+    // a valid result without this line.
+    let missing: Vec<&str> = AXES
+        .iter()
+        .zip(&model.tables)
+        .filter(|(_, t)| t.pos.is_empty())
+        .map(|(a, _)| *a)
+        .collect();
     let comp = VolumetricCompensator::new(model);
     let pole = Pole {
         mode: args.pole,
@@ -226,7 +234,17 @@ pub fn run(args: &VolumetricArgs) -> Result<Evaluated, VolumetricError> {
     };
     let ev = evaluate_pole(&comp, &grid, &pole);
     let acc = ev.acceptance();
-    let mut s = report(&ev);
+    let mut s = String::new();
+    if !missing.is_empty() {
+        let _ = writeln!(
+            s,
+            "{}: no table for {}: its component errors are taken as zero (write a table of \
+             zeros over the travel to say so)",
+            args.errors.display(),
+            missing.join(", ")
+        );
+    }
+    s.push_str(&report(&ev));
     if let Some(path) = &args.csv {
         write_poses_csv(path, &ev)?;
         let _ = writeln!(s, "wrote {}", path.display());

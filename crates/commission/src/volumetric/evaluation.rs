@@ -47,6 +47,12 @@ pub struct Evaluation {
     pub pole_fallbacks: usize,
     /// Band poses whose nominal tool axis no C reaches (least error taken).
     pub pole_unreachable: usize,
+    /// Band poses that are there only because the drive loop would take C more than
+    /// [`super::TRAVEL_MARGIN_DEG`] past its travel ([`super::PoleSolve::c_past_travel`]).
+    pub pole_c_past_travel: usize,
+    /// Per axis: the poses whose drive position lies beyond the travel, and the
+    /// largest excess (mm, deg), which the NC's software limits must leave.
+    pub past_travel: [(usize, f64); 5],
     /// Per pose: the drive positions the compensated pose settles at.
     pub drives: Vec<[f64; 5]>,
     /// Per pose: iterations of the solve (drive loop steps, or fixed-C solves of a
@@ -102,6 +108,10 @@ pub struct PoleClasses {
     /// See `cap_arcsec`.
     pub offset_arcsec: (f64, f64),
 }
+
+/// Least excess of a drive position over the travel that counts (mm, deg): below
+/// a nanometre it is rounding, not a limit the NC needs.
+const PAST_TRAVEL_MIN: f64 = 1e-6;
 
 /// The acceptance's fraction of the uncompensated error.
 pub const ACCEPT_FRACTION: f64 = 0.01;
@@ -310,6 +320,15 @@ pub fn evaluate_pole(
                         ev.poses.push(u);
                         let band = ps.solve.band || ps.newton_iterations > 0 || ps.fallback;
                         ev.singular.push(band);
+                        ev.pole_c_past_travel += usize::from(band && ps.c_past_travel);
+                        for (k, (n, most)) in ev.past_travel.iter_mut().enumerate() {
+                            let (lo, hi) = model.travel[k];
+                            let excess = (lo - s.drive[k]).max(s.drive[k] - hi);
+                            if excess > PAST_TRAVEL_MIN {
+                                *n += 1;
+                                *most = most.max(excess);
+                            }
+                        }
                         let travel_c = model.travel[4];
                         ev.pole_reach.push((band && !model.zero).then(|| {
                             let range = pole.c_range(c, travel_c).unwrap_or((c, c));

@@ -32,6 +32,8 @@ fn number(line: usize, field: &str, token: Option<&str>) -> Result<f64, Volumetr
     let v: f64 = t.parse().map_err(|_| {
         let hint = if t.replacen(',', ".", 1).parse::<f64>().is_ok() {
             " (a decimal comma? compgate reads numbers with a decimal point)"
+        } else if t.contains(';') {
+            " (fields are separated by spaces, not semicolons)"
         } else {
             ""
         };
@@ -52,6 +54,16 @@ fn number(line: usize, field: &str, token: Option<&str>) -> Result<f64, Volumetr
     Ok(v)
 }
 
+/// The keywords that start a line outside a table.
+const KEYWORDS: [&str; 6] = [
+    "travel",
+    "pivot_mm",
+    "tool_length_mm",
+    "squareness",
+    "location",
+    "table",
+];
+
 /// Largest magnitude of any number in an error file.
 const PLAUSIBLE_ABS: f64 = 1e6;
 
@@ -67,6 +79,14 @@ fn no_more<'a>(
     mut tokens: impl Iterator<Item = &'a str>,
 ) -> Result<(), VolumetricError> {
     match tokens.next() {
+        Some(t) if t.starts_with(|c: char| c.is_ascii_alphabetic()) => Err(err(
+            line,
+            "end of line",
+            format!(
+                "unexpected {t:?} (the units are fixed: um, arc-seconds, mm for X, Y, Z and \
+                 deg for A, C; write numbers only)"
+            ),
+        )),
         Some(t) => Err(err(line, "end of line", format!("unexpected {t:?}"))),
         None => Ok(()),
     }
@@ -255,6 +275,18 @@ pub fn parse(text: &str) -> Result<ErrorModel, VolumetricError> {
                         break;
                     }
                     let mut t = l.split_whitespace();
+                    let first = l.split_whitespace().next().unwrap_or("");
+                    if first.eq_ignore_ascii_case("end") || KEYWORDS.contains(&first) {
+                        return Err(err(
+                            n,
+                            "end",
+                            format!(
+                                "table {} of line {start} is not closed by a line \"end\" \
+                                 before {first:?}",
+                                AXES[i]
+                            ),
+                        ));
+                    }
                     let pos_name = if i < 3 {
                         "position (mm)"
                     } else {
@@ -274,7 +306,17 @@ pub fn parse(text: &str) -> Result<ErrorModel, VolumetricError> {
                     for (c, v) in row.iter_mut().enumerate() {
                         *v = number(n, COLUMNS[i][c], t.next())? * if c < 3 { tu } else { ru };
                     }
-                    no_more(n, t)?;
+                    if let Some(extra) = t.next() {
+                        return Err(err(
+                            n,
+                            "end of line",
+                            format!(
+                                "unexpected {extra:?}: a row is the {pos_name} and the six \
+                                 values {}",
+                                COLUMNS[i].join(" ")
+                            ),
+                        ));
+                    }
                     table.pos.push(p);
                     table.val.push(row);
                 }
@@ -290,10 +332,7 @@ pub fn parse(text: &str) -> Result<ErrorModel, VolumetricError> {
                 return Err(err(
                     n,
                     "keyword",
-                    format!(
-                        "unknown keyword {other:?} (travel, pivot_mm, tool_length_mm, \
-                         squareness, location, table)"
-                    ),
+                    format!("unknown keyword {other:?} ({})", KEYWORDS.join(", ")),
                 ))
             }
         }

@@ -469,6 +469,10 @@ pub struct PoleSolve {
     /// [`VolumetricCompensator::drive_positions_pole`]), where the drive positions
     /// give the least orientation error with the tip on the command.
     pub reached: bool,
+    /// Off the band, the drive loop converged with C more than [`TRAVEL_MARGIN_DEG`]
+    /// past its travel (near the pole, where the C correction grows): Swing solves it
+    /// as a band pose, Hold keeps it there.
+    pub c_past_travel: bool,
 }
 
 /// The online compensator: scale positions in, corrected feedback out.
@@ -599,21 +603,22 @@ impl VolumetricCompensator {
     /// the Hold result is returned and `fallback` is set.
     pub fn drive_positions_pole(&self, u: &[f64; 5], pole: &Pole) -> PoleSolve {
         let hold = self.drive_positions(u);
+        // Near the pole step 1 may move C out of its travel (or not converge): the
+        // band, solved with C bounded. At the travel's ends a correction of
+        // arc-seconds beyond it is what the NC's software limit margin is for.
+        let (c_lo, c_hi) = self.model.travel[4];
+        let converged = hold.residual_um <= TOL_UM && hold.residual_arcsec <= TOL_ARCSEC;
+        let c_in_travel =
+            (c_lo - TRAVEL_MARGIN_DEG..=c_hi + TRAVEL_MARGIN_DEG).contains(&hold.drive[4]);
+        let off_band = !hold.band && converged && c_in_travel;
         let plain = PoleSolve {
             solve: hold,
             newton_iterations: 0,
             c_swing_deg: 0.0,
             fallback: false,
             reached: true,
+            c_past_travel: !hold.band && converged && !c_in_travel,
         };
-        // Near the pole step 1 may move C out of its travel (or not converge): the
-        // band, solved with C bounded. At the travel's ends a correction of
-        // arc-seconds beyond it is what the NC's software limit margin is for.
-        let (c_lo, c_hi) = self.model.travel[4];
-        let off_band = !hold.band
-            && hold.residual_um <= TOL_UM
-            && hold.residual_arcsec <= TOL_ARCSEC
-            && (c_lo - TRAVEL_MARGIN_DEG..=c_hi + TRAVEL_MARGIN_DEG).contains(&hold.drive[4]);
         if pole.mode == PoleMode::Hold || self.model.zero || off_band {
             return plain;
         }
@@ -621,7 +626,10 @@ impl VolumetricCompensator {
             .c_range(u[4], self.model.travel[4])
             .and_then(|range| self.swing(u, &hold.drive, range));
         match swung {
-            Some(s) if (s.solve.drive[4] - u[4]).abs() <= pole.max_c_swing_deg => s,
+            Some(s) if (s.solve.drive[4] - u[4]).abs() <= pole.max_c_swing_deg => PoleSolve {
+                c_past_travel: plain.c_past_travel,
+                ..s
+            },
             _ => PoleSolve {
                 fallback: true,
                 reached: false,
@@ -668,6 +676,7 @@ impl VolumetricCompensator {
             c_swing_deg: (drive[4] - u[4]).abs(),
             fallback: false,
             reached,
+            c_past_travel: false,
         })
     }
 

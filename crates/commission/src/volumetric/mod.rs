@@ -149,7 +149,7 @@ pub use evaluation::{
 pub use format::{parse, write, LOCATION_A, LOCATION_C, MAGIC, SQUARENESS, VERSION};
 pub use kinematics::{
     angle_rad, distance_mm, nominal_pose, ErrorModel, Geometry, Pole, PoleMode, PoleReach,
-    PoleSolve, Solve, Table, VolumetricCompensator,
+    PoleSolve, Solve, Table, VolumetricCompensator, TRAVEL_MARGIN_DEG,
 };
 pub use report::{report, write_poses_csv, write_svgs, POSES_CSV_HEADER};
 pub use synthetic::{synthetic_model, synthetic_model_in_plane};

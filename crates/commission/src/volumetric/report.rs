@@ -7,7 +7,9 @@ use super::evaluation::{
     Evaluation, ACCEPT_FLOOR_ARCSEC, ACCEPT_FRACTION, POLE_TOL_ARCSEC, POLE_TOL_FRACTION,
 };
 use super::kinematics::PoleMode;
-use super::{VolumetricError, MAX_ONLINE_C_CORRECTION_DEG, TOL_ARCSEC, TOL_UM};
+use super::{
+    VolumetricError, AXES, MAX_ONLINE_C_CORRECTION_DEG, TOL_ARCSEC, TOL_UM, TRAVEL_MARGIN_DEG,
+};
 use crate::plot;
 use crate::table::{plain_line, Column};
 
@@ -20,19 +22,60 @@ pub fn report(ev: &Evaluation) -> String {
     let pct = |a: f64, b: f64| if b > 0.0 { 100.0 * a / b } else { 0.0 };
     let mut s = String::new();
     let (n_sing, su, sc) = ev.singular_stats();
+    // Why poses are solved at the pole: the band as `--pole`'s help states it, and
+    // poses whose C would leave its travel (they are not in that band).
+    let n_travel = ev.pole_c_past_travel;
+    let why = [
+        (
+            n_sing - n_travel,
+            format!(
+                "where step 1 would move C by more than {} deg",
+                MAX_ONLINE_C_CORRECTION_DEG / 2.0
+            ),
+        ),
+        (
+            n_travel,
+            format!(
+                "where the drive loop would take C more than {TRAVEL_MARGIN_DEG} deg past \
+                 its travel"
+            ),
+        ),
+    ]
+    .into_iter()
+    .filter(|(n, _)| *n > 0)
+    .map(|(n, what)| format!("{n} {what}"))
+    .collect::<Vec<_>>();
     let _ = writeln!(
         s,
         "volumetric compensation over {} grid poses{}",
         ev.poses.len(),
         if n_sing > 0 {
             format!(
-                " ({n_sing} of them in the A = 0 pole band, where step 1 would move C by \
-                 more than {MAX_ONLINE_C_CORRECTION_DEG} deg: also below)"
+                " ({n_sing} of them at the A = 0 pole: {}; also below)",
+                why.join(", ")
             )
         } else {
             String::new()
         }
     );
+    let past: Vec<String> = ev
+        .past_travel
+        .iter()
+        .enumerate()
+        .filter(|(_, (n, _))| *n > 0)
+        .map(|(k, (n, most))| {
+            let unit = if k < 3 { "mm" } else { "deg" };
+            format!("{} {most:.4} {unit} ({n} poses)", AXES[k])
+        })
+        .collect();
+    if !past.is_empty() {
+        let _ = writeln!(
+            s,
+            "drive positions past the travel of the error file (the NC's software limits \
+             must leave this margin), by up to:\n  {}",
+            past.join(", ")
+        );
+    }
     const COLUMNS: [Column; 4] = [
         Column::left(0, 20),
         Column::right(1, 13),

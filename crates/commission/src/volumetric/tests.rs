@@ -992,3 +992,139 @@ fn a_failed_acceptance_is_shown_named_and_an_error() {
         Ok(())
     );
 }
+
+/// At the end of the C travel near the pole, a C correction of 1.09 deg took C past
+/// the travel's margin: the pose was swung 180 deg, and the report called it a pose
+/// of the band "where step 1 would move C by more than 10 deg" (field review). Drive
+/// positions past the travel, which the NC's software limits must allow, were not
+/// reported at all.
+#[test]
+fn poses_whose_c_would_leave_its_travel_are_named_apart_from_the_band() {
+    let comp = VolumetricCompensator::new(parse(EXAMPLE).expect("example"));
+    let grid = [
+        vec![0.0],
+        vec![0.0],
+        vec![0.0],
+        vec![-0.2, -30.0],
+        vec![200.0],
+    ];
+    let ev = evaluate_pole(&comp, &grid, &Pole::default());
+    assert_eq!(ev.singular, [true, false]);
+    assert_eq!(ev.pole_c_past_travel, 1);
+    let r = report(&ev);
+    let first = r.lines().next().expect("report");
+    assert!(
+        first.contains("1 of them at the A = 0 pole: 1 where the drive loop would take C more than 1 deg past its travel;"),
+        "{r}"
+    );
+    assert!(!first.contains("where step 1 would move C"), "{r}");
+
+    // Hold keeps C there, and the report gives the excess per axis.
+    let hold = Pole {
+        mode: PoleMode::Hold,
+        ..Pole::default()
+    };
+    let ev = evaluate_pole(&comp, &grid, &hold);
+    assert_eq!(ev.singular, [false, false]);
+    // A = -30 deg takes C past it too, by arc-seconds.
+    let (n, most) = ev.past_travel[4];
+    assert_eq!(n, 2);
+    assert!(
+        ev.drives[1][4] > 200.0 && ev.drives[1][4] < 200.01,
+        "{:?}",
+        ev.drives
+    );
+    assert!(
+        (ev.drives[0][4] - 200.0 - most).abs() < 1e-12 && most > 1.0,
+        "{most}"
+    );
+    let r = report(&ev);
+    assert!(
+        r.contains("must leave this margin), by up to:\n  X "),
+        "{r}"
+    );
+    assert!(r.contains(&format!(", C {most:.4} deg (2 poses)\n")), "{r}");
+}
+
+/// The band's threshold in the report is the one `--pole`'s help states (it said 10
+/// deg, the help 5).
+#[test]
+fn the_report_states_the_band_as_the_help_does() {
+    let comp = VolumetricCompensator::new(parse(EXAMPLE).expect("example"));
+    let grid = [vec![0.0], vec![0.0], vec![0.0], vec![0.0], vec![0.0]];
+    let r = report(&evaluate_pole(&comp, &grid, &Pole::default()));
+    let help = format!(
+        "where step 1 would move C by more than {} deg",
+        MAX_ONLINE_C_CORRECTION_DEG / 2.0
+    );
+    assert!(r.lines().next().expect("report").contains(&help), "{r}");
+}
+
+/// A file without an axis' table ran as if that axis had no errors, without a word.
+#[test]
+fn a_missing_table_is_named_in_the_report() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let errors = dir.path().join("m.errors");
+    let mut lines = EXAMPLE.lines();
+    let mut text = String::new();
+    while let Some(l) = lines.next() {
+        if l.starts_with("table Y ") {
+            lines.by_ref().take_while(|l| *l != "end").for_each(drop);
+            continue;
+        }
+        text.push_str(l);
+        text.push('\n');
+    }
+    std::fs::write(&errors, text).expect("write");
+    let args = |errors| VolumetricArgs {
+        errors,
+        grid: "2".into(),
+        out: None,
+        pole: PoleMode::Swing,
+        max_c_swing_deg: 720.0,
+        csv: None,
+    };
+    let report = run(&args(errors.clone())).expect("run").report;
+    let want = format!(
+        "{}: no table for Y: its component errors are taken as zero",
+        errors.display()
+    );
+    assert!(report.starts_with(&want), "{report}");
+    std::fs::write(&errors, EXAMPLE).expect("write");
+    let report = run(&args(errors)).expect("run").report;
+    assert!(!report.contains("no table"), "{report}");
+}
+
+/// An unclosed table read the next keyword as a position, a row with a seventh
+/// value and a unit after a number said only "unexpected", semicolons no more than
+/// "not a number" (field review).
+#[test]
+fn file_mistakes_say_what_the_format_wants() {
+    let head = "compgate-volumetric-errors 1\n";
+    let table_a = "table A EXA EYA EZA EAA EBA ECA\n0 1 2 3 4 5 6\n";
+    for (text, want) in [
+        (
+            format!("{head}{table_a}table C EXC EYC EZC EAC EBC ECC\n"),
+            "line 4, end: table A of line 2 is not closed by a line \"end\" before \"table\"",
+        ),
+        (
+            format!("{head}{table_a}END\n"),
+            "line 4, end: table A of line 2 is not closed by a line \"end\" before \"END\"",
+        ),
+        (
+            format!("{head}{table_a}1 1 2 3 4 5 6 7\nend\n"),
+            "line 4, end of line: unexpected \"7\": a row is the angle (deg) and the six values EXA EYA EZA EAA EBA ECA",
+        ),
+        (
+            format!("{head}travel A -100 100 deg\n"),
+            "line 2, end of line: unexpected \"deg\" (the units are fixed",
+        ),
+        (
+            format!("{head}table A EXA EYA EZA EAA EBA ECA\n0;1;2;3;4;5;6\n"),
+            "(fields are separated by spaces, not semicolons)",
+        ),
+    ] {
+        let e = parse(&text).expect_err(&text).to_string();
+        assert!(e.contains(want), "{text:?}: {e}");
+    }
+}
