@@ -133,6 +133,60 @@ fn a_systematic_residual_no_candidate_explains_is_not_called_noise() {
         .contains("a sensor that drives the error is missing"));
 }
 
+/// An offset step (a tool change, a re-zeroed probe) is a form no candidate has. It was
+/// fitted as a thermal lag as long as the run and the verdict read as a clean find,
+/// although what remained was as systematic as before (field review: that model was
+/// further off than the baseline on the next run). A drift over the run got the advice
+/// "measure with finer steps", which no finer step answers.
+#[test]
+fn a_step_or_a_drift_no_candidate_has_is_not_passed_off_as_found() {
+    let remains = "but what remains is systematic, not noise";
+    for seed in 0..4u64 {
+        let (clean, _) = generate(&spec(900 + seed * 3, vec![], 0.3, 0.0));
+        let n = clean.len();
+        let (t0, t1) = (clean.t_s[0], clean.t_s[n - 1]);
+        let mut step = clean.clone();
+        for (i, e) in step.err_um.iter_mut().enumerate() {
+            if i > n * 55 / 100 {
+                *e += 8.0;
+            }
+        }
+        let mut drift = clean.clone();
+        for (t, e) in drift.t_s.iter().zip(drift.err_um.iter_mut()) {
+            *e += 12.0 * (t - t0) / (t1 - t0);
+        }
+        let d = diagnose(&via_csv(&step), &opts()).expect("diagnose");
+        let v = &d.verdict;
+        if d.effects.is_empty() {
+            assert!(
+                v.contains("is systematic, not noise"),
+                "step seed {seed}: {v}"
+            );
+        } else {
+            assert!(v.contains(remains), "step seed {seed}: {v}");
+        }
+        // A lag of the temperatures may explain a drift as well; where nothing is
+        // named, the advice is a longer run.
+        let d = diagnose(&via_csv(&drift), &opts()).expect("diagnose");
+        let v = &d.verdict;
+        assert!(!v.contains("finer steps"), "drift seed {seed}: {v}");
+        if v.starts_with("no effect named, but") {
+            assert!(
+                v.contains("a run several time constants long tells them apart")
+                    && v.contains("the residual is systematic, not noise"),
+                "drift seed {seed}: {v}"
+            );
+        }
+        // Without the step the residual is noise, and nothing says otherwise.
+        let d = diagnose(&via_csv(&clean), &opts()).expect("diagnose");
+        assert!(
+            !d.verdict.contains("systematic"),
+            "seed {seed}: {}",
+            d.verdict
+        );
+    }
+}
+
 /// `--sensors a,T_a` kept one `a` silently; calibrate and scenario refused it as
 /// linearly dependent. All three now refuse it as named twice.
 #[test]
@@ -789,5 +843,33 @@ fn a_model_naming_its_channels_with_t_reads_the_columns_of_an_export() {
         (gap - d.final_gap.rms_um).abs() < 0.02 * d.final_gap.rms_um + 1e-3,
         "{gap} vs {}",
         d.final_gap.rms_um
+    );
+}
+
+/// One err_um of -999 among the rows made a lag that was there read as "no missing
+/// effect: the baseline explains the data to within its noise" (field review).
+#[test]
+fn a_bad_reading_is_named_before_the_verdict() {
+    let (clean, _) = generate(&spec(31, vec![EffectKind::ThermalLag], 0.5, 6.0));
+    let d = diagnose(&via_csv(&clean), &opts()).expect("diagnose");
+    assert!(
+        d.verdict.starts_with("missing: thermal_lag"),
+        "{}",
+        d.verdict
+    );
+    let mut m = clean.clone();
+    m.err_um[40] = -999.0;
+    let d = diagnose(&via_csv(&m), &opts()).expect("diagnose");
+    let want = format!(
+        "the data hold rows that look like bad readings (1 row more than 10 times the typical \
+         residual ({:.3} um) off the baseline, the farthest at t_s {} s with err_um -999); fix or \
+         remove them and diagnose again; on them: ",
+        0.0, m.t_s[40]
+    );
+    let (head, tail) = want.split_once("(0.000 um)").expect("split");
+    assert!(
+        d.verdict.starts_with(head) && d.verdict.contains(tail),
+        "{}",
+        d.verdict
     );
 }

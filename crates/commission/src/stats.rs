@@ -15,6 +15,20 @@ pub fn mean_sd(v: &[f64]) -> (f64, f64) {
     (mean, var.sqrt())
 }
 
+/// The values more than `factor` times their typical size and beyond `min_abs`,
+/// farthest first, with that typical size: the median absolute value scaled to a
+/// standard deviation (1.4826 for normal noise), which the few values it finds do not
+/// move.
+pub fn far_off(v: &[f64], factor: f64, min_abs: f64) -> (Vec<usize>, f64) {
+    let mut abs: Vec<f64> = v.iter().map(|x| x.abs()).collect();
+    abs.sort_by(f64::total_cmp);
+    let typical = 1.4826 * abs.get(abs.len() / 2).copied().unwrap_or(0.0);
+    let limit = (factor * typical).max(min_abs);
+    let mut far: Vec<usize> = (0..v.len()).filter(|&i| v[i].abs() > limit).collect();
+    far.sort_by(|&a, &b| v[b].abs().total_cmp(&v[a].abs()));
+    (far, typical)
+}
+
 /// Golden-section minimisation of a unimodal `f` on `[a, b]`: the better of the two
 /// inner points after `iters` steps, with its value.
 pub fn golden(a: f64, b: f64, iters: usize, f: &mut dyn FnMut(f64) -> f64) -> (f64, f64) {

@@ -479,6 +479,24 @@ pub struct TempColumn {
     pub degc: Vec<f64>,
 }
 
+/// See [`Measurements::temperature_jumps`], K.
+pub const TEMP_JUMP_K: f64 = 5.0;
+/// See [`Measurements::temperature_jumps`], s.
+pub const TEMP_JUMP_WITHIN_S: f64 = 60.0;
+
+/// A temperature jump ([`Measurements::temperature_jumps`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct TempJump {
+    /// Sensor name without `T_`.
+    pub sensor: String,
+    /// The row after the jump (0-based).
+    pub row: usize,
+    /// Its change from the row before, K.
+    pub delta_k: f64,
+    /// Time from the row before, s.
+    pub dt_s: f64,
+}
+
 /// A measurement series, column-wise.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Measurements {
@@ -536,11 +554,37 @@ impl Measurements {
         Self::read_rows(reader, Wanted::Thermal(None))
     }
 
-    /// [`Measurements::read_path`] for a fit of some sensors only: the `T_` columns of
-    /// the others (names without `T_`) are listed in `ignored_columns` unread, so a bad
-    /// cell of a sensor the fit leaves out does not stop it.
-    pub fn read_path_sensors(path: &Path, sensors: &[&str]) -> Result<Self, MeasureError> {
-        Self::read_rows(open(path)?, Wanted::Thermal(Some(sensors))).map(|(m, _)| m)
+    /// [`Measurements::read_path_with_lines`] for a fit of some sensors only: the `T_`
+    /// columns of the others (names without `T_`) are listed in `ignored_columns`
+    /// unread, so a bad cell of a sensor the fit leaves out does not stop it.
+    pub fn read_path_sensors(
+        path: &Path,
+        sensors: &[&str],
+    ) -> Result<(Self, Vec<u64>), MeasureError> {
+        Self::read_rows(open(path)?, Wanted::Thermal(Some(sensors)))
+    }
+
+    /// Temperature changes between two rows at most [`TEMP_JUMP_WITHIN_S`] apart by
+    /// more than [`TEMP_JUMP_K`], in row order. No machine structure, and no sensor
+    /// on one, changes so fast: such a jump is a sensor that dropped out or a plug
+    /// swapped, or a 0 or a fault value written for a missing reading.
+    pub fn temperature_jumps(&self) -> Vec<TempJump> {
+        let mut jumps = Vec::new();
+        for c in &self.temps {
+            for i in 1..self.len().min(c.degc.len()) {
+                let (dt_s, delta_k) = (self.t_s[i] - self.t_s[i - 1], c.degc[i] - c.degc[i - 1]);
+                if dt_s <= TEMP_JUMP_WITHIN_S && delta_k.abs() > TEMP_JUMP_K {
+                    jumps.push(TempJump {
+                        sensor: c.name.clone(),
+                        row: i,
+                        delta_k,
+                        dt_s,
+                    });
+                }
+            }
+        }
+        jumps.sort_by_key(|j| j.row);
+        jumps
     }
 
     /// The positions alone, for an evaluation that needs no time or temperature (ISO

@@ -61,6 +61,115 @@ pub struct Calibrated<'a> {
     /// Columns of the data the fit did not read: not of the format, and `T_`
     /// columns `--sensors` left out.
     ignored_columns: Vec<String>,
+    /// Bad rows of the data, named with their lines: temperature jumps and rows far
+    /// off the fit. Each keeps the model from being written without
+    /// `--accept-weak-fit`.
+    bad_rows: Vec<BadRows>,
+}
+
+/// Rows of the data that look like bad readings.
+#[derive(Debug)]
+struct BadRows {
+    /// One short reason, for the refusal.
+    doubt: String,
+    /// The rows named, cause and remedy, for stderr.
+    warning: String,
+}
+
+/// Rows named in a warning.
+const SHOWN_ROWS: usize = 5;
+
+/// "1 row lies", "2 rows lie".
+fn count(n: usize, one: &str, many: &str) -> String {
+    format!("{n} {}", if n == 1 { one } else { many })
+}
+
+/// ", the N first" when more than [`SHOWN_ROWS`] are named.
+fn shown(n: usize, which: &str) -> String {
+    if n > SHOWN_ROWS {
+        format!(", the {SHOWN_ROWS} {which}")
+    } else {
+        String::new()
+    }
+}
+
+/// The temperature jumps ([`Measurements::temperature_jumps`]), named by line.
+fn jump_warning(m: &Measurements, lines: &[u64]) -> Option<BadRows> {
+    let jumps = m.temperature_jumps();
+    if jumps.is_empty() {
+        return None;
+    }
+    let named: Vec<String> = jumps
+        .iter()
+        .take(SHOWN_ROWS)
+        .map(|j| {
+            format!(
+                "T_{} {:+.2} K to {} at line {} ({} s after the row before)",
+                j.sensor,
+                j.delta_k,
+                m.temps
+                    .iter()
+                    .find(|c| c.name == j.sensor)
+                    .map_or(f64::NAN, |c| c.degc[j.row]),
+                lines[j.row],
+                j.dt_s
+            )
+        })
+        .collect();
+    Some(BadRows {
+        doubt: count(jumps.len(), "temperature jump", "temperature jumps"),
+        warning: format!(
+            "{} of more than {} K within {} s{}: {}; no machine structure changes so fast: a \
+             sensor that dropped out or a plug swapped, or a 0 or a fault value written for a \
+             missing reading; fix or remove those rows and fit again",
+            count(jumps.len(), "temperature jump", "temperature jumps"),
+            compgate_core::measure::TEMP_JUMP_K,
+            compgate_core::measure::TEMP_JUMP_WITHIN_S,
+            shown(jumps.len(), "first"),
+            named.join("; ")
+        ),
+    })
+}
+
+/// The rows far off the fit ([`Fit::outliers`]), named by line and values.
+fn outlier_warning(m: &Measurements, lines: &[u64], f: &Fit) -> Option<BadRows> {
+    let (rows, typical_um) = f.outliers();
+    if rows.is_empty() {
+        return None;
+    }
+    let named: Vec<String> = rows
+        .iter()
+        .take(SHOWN_ROWS)
+        .map(|&i| {
+            let temps: String = m
+                .temps
+                .iter()
+                .filter(|c| f.terms.iter().any(|t| t.name == c.name))
+                .map(|c| format!(", T_{} {}", c.name, c.degc[i]))
+                .collect();
+            format!(
+                "line {} (t_s {}, pos_mm {}, err_um {}{temps}) {:+.3} um off",
+                lines[i], m.t_s[i], m.pos_mm[i], m.err_um[i], f.residuals_um[i]
+            )
+        })
+        .collect();
+    Some(BadRows {
+        doubt: format!(
+            "{} more than {} times the typical residual off the fit",
+            count(rows.len(), "row lies", "rows lie"),
+            super::fit::OUTLIER_FACTOR
+        ),
+        warning: format!(
+            "{} more than {} times the typical residual ({:.3} um) off the fit{}: {}; a bad \
+             reading (a -999 or a 0 written for a missing value, a sensor that dropped out) \
+             pulls every coefficient: fix or remove those rows and fit again",
+            count(rows.len(), "row lies", "rows lie"),
+            super::fit::OUTLIER_FACTOR,
+            typical_um,
+            shown(rows.len(), "farthest"),
+            named.join("; ")
+        ),
+    })
 }
 
 /// Runs the command up to its outputs: checks them (before the data is read), reads,
@@ -71,11 +180,11 @@ pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
     compgate_core::outputs::check(&[&args.data], &outputs)?;
     // A sensor --sensors leaves out is not read: its bad cell cannot stop the fit.
     let read = if args.sensors.is_empty() {
-        Measurements::read_path(&args.data)
+        Measurements::read_path_with_lines(&args.data)
     } else {
         Measurements::read_path_sensors(&args.data, &crate::args::sensor_names(&args.sensors)?)
     };
-    let m = read.map_err(|e| match e {
+    let (m, lines) = read.map_err(|e| match e {
         // The reader's own error names the file already.
         MeasureError::Io { path, source } => CalibrateError::Io { path, source },
         e => CalibrateError::Data(args.data.display().to_string(), e),
@@ -105,11 +214,16 @@ pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
         })?),
         None => None,
     };
+    let bad_rows = [jump_warning(&m, &lines), outlier_warning(&m, &lines, &f)]
+        .into_iter()
+        .flatten()
+        .collect();
     Ok(Calibrated {
         args,
         fit: f,
         model,
         plot,
+        bad_rows,
         // The sensors --sensors left out are among them: they were not read.
         ignored_columns: m.ignored_columns,
     })
@@ -126,16 +240,19 @@ impl Calibrated<'_> {
         s
     }
 
-    /// The fit's warnings ([`Fit::warnings`]), for stderr.
+    /// The fit's warnings ([`Fit::warnings`]) and the data's bad rows, for stderr.
     pub fn warnings(&self) -> Vec<String> {
-        self.fit.warnings()
+        let mut w = self.fit.warnings();
+        w.extend(self.bad_rows.iter().map(|b| b.warning.clone()));
+        w
     }
 
     /// Writes the model and the plot, both or neither (an existing model stays as it
     /// was when the plot cannot be written); returns the lines saying so. A fit with
     /// doubts ([`Fit::doubts`]) is not written without `--accept-weak-fit`.
     pub fn write(&self) -> Result<String, CalibrateError> {
-        let doubts = self.fit.doubts();
+        let mut doubts = self.fit.doubts();
+        doubts.extend(self.bad_rows.iter().map(|b| b.doubt.clone()));
         if !doubts.is_empty() && !self.args.accept_weak_fit {
             return Err(CalibrateError::Doubtful {
                 path: self.args.out.display().to_string(),

@@ -611,3 +611,71 @@ fn an_error_column_in_millimetres_is_named_and_not_written() {
     assert!(e.contains("not written: err_um spans only 0.28"), "{e}");
     assert!(!args.out.exists());
 }
+
+/// One err_um of -999 (a logger's mark for a missing value) turned a 2 um fit into 16
+/// um, and a sensor that read 0 for ten minutes moved every coefficient; both models
+/// were written without a word (field review). The rows are named by their line, and
+/// the model is written only with --accept-weak-fit.
+#[test]
+fn bad_readings_are_named_by_line_and_keep_the_model_from_being_written() {
+    let (clean, _) = commissioning(ThermalParams::default(), 2);
+    let dir = tempfile::tempdir().unwrap();
+    let args = column_and_screw(dir.path(), &clean, "clean.csv");
+    let calibrated = run(&args).unwrap();
+    assert!(
+        calibrated.warnings().is_empty(),
+        "{:?}",
+        calibrated.warnings()
+    );
+
+    let mut m = clean.clone();
+    m.err_um[100] = -999.0;
+    let mut args = column_and_screw(dir.path(), &m, "m999.csv");
+    let calibrated = run(&args).unwrap();
+    let w = calibrated.warnings();
+    assert_eq!(w.len(), 1, "{w:?}");
+    let row = format!(
+        "line 102 (t_s {}, pos_mm {}, err_um -999, T_column ",
+        m.t_s[100], m.pos_mm[100]
+    );
+    assert!(
+        w[0].starts_with("1 row lies more than 10 times the typical residual")
+            && w[0].contains(&row),
+        "{w:?}"
+    );
+    let e = calibrated.write().unwrap_err().to_string();
+    assert!(
+        e.contains("1 row lies more than 10 times the typical residual off the fit"),
+        "{e}"
+    );
+    assert!(!args.out.exists());
+    args.accept_weak_fit = true;
+    run(&args).unwrap().write().unwrap();
+    assert!(args.out.exists());
+
+    // The column sensor drops out to 0 for three rows of one sweep.
+    let i = (1..clean.len() - 4)
+        .find(|&i| clean.t_s[i + 3] - clean.t_s[i - 1] <= 60.0)
+        .expect("a sweep");
+    let mut m = clean.clone();
+    let col = m.temps.iter_mut().find(|c| c.name == "column").unwrap();
+    for v in &mut col.degc[i..i + 3] {
+        *v = 0.0;
+    }
+    let args = column_and_screw(dir.path(), &m, "dropout.csv");
+    let calibrated = run(&args).unwrap();
+    let w = calibrated.warnings().join("\n");
+    let first = format!(
+        "2 temperature jumps of more than 5 K within 60 s: T_column {:+.2} K to 0 at line {}",
+        -clean
+            .temps
+            .iter()
+            .find(|c| c.name == "column")
+            .unwrap()
+            .degc[i - 1],
+        i + 2
+    );
+    assert!(w.contains(&first), "{w}");
+    let e = calibrated.write().unwrap_err().to_string();
+    assert!(e.contains("2 temperature jumps"), "{e}");
+}

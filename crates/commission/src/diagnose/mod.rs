@@ -135,6 +135,69 @@ pub fn noise_level_um(rms_um: f64, rho: f64) -> f64 {
     rms_um * (1.0 - rho).max(0.0).sqrt()
 }
 
+/// The rows that look like bad readings, told by time: temperature jumps
+/// ([`Measurements::temperature_jumps`]) and rows far off the baseline, as calibrate
+/// refuses them ([`crate::calibrate::fit::OUTLIER_FACTOR`]).
+fn bad_readings(m: &Measurements, r0: &[f64]) -> Option<String> {
+    use crate::calibrate::fit::{OUTLIER_FACTOR, OUTLIER_MIN_UM};
+    let mut bad = Vec::new();
+    let jumps = m.temperature_jumps();
+    if let Some(j) = jumps.first() {
+        bad.push(format!(
+            "{} of more than {} K within {} s, the first of T_{} by {:+.2} K at t_s {} s",
+            if jumps.len() == 1 {
+                "1 temperature jump".to_string()
+            } else {
+                format!("{} temperature jumps", jumps.len())
+            },
+            compgate_core::measure::TEMP_JUMP_K,
+            compgate_core::measure::TEMP_JUMP_WITHIN_S,
+            j.sensor,
+            j.delta_k,
+            m.t_s[j.row]
+        ));
+    }
+    let (far, typical_um) = crate::stats::far_off(r0, OUTLIER_FACTOR, OUTLIER_MIN_UM);
+    if let Some(&i) = far.first() {
+        bad.push(format!(
+            "{} more than {OUTLIER_FACTOR} times the typical residual ({typical_um:.3} um) off \
+             the baseline, the farthest at t_s {} s with err_um {}",
+            if far.len() == 1 {
+                "1 row".to_string()
+            } else {
+                format!("{} rows", far.len())
+            },
+            m.t_s[i],
+            m.err_um[i]
+        ));
+    }
+    (!bad.is_empty()).then(|| bad.join("; "))
+}
+
+/// What to do about a candidate whose searched parameter sits at an edge of its
+/// range: the data of another run, not finer steps, resolves a time constant as long
+/// as the run.
+fn edge_advice(c: &CandidateReport) -> &'static str {
+    let upper = match (c.param, c.range) {
+        (Some(p), Some((lo, hi))) => (p.ln() - lo.ln()).abs() > (hi.ln() - p.ln()).abs(),
+        _ => false,
+    };
+    match (c.param_name, upper) {
+        (Some("tau_s"), true) => {
+            "a time constant as long as the run is a drift over the run or an effect slower \
+             than the run shows; a run several time constants long tells them apart"
+        }
+        (Some("tau_s"), false) => {
+            "a time constant as short as the rows resolve; rows closer in time tell"
+        }
+        (Some("period_mm"), true) => {
+            "a period as long as the travel measured is a curve; a longer travel tells"
+        }
+        (Some("period_mm"), false) => "target positions closer together tell",
+        _ => "measure with finer steps to tell",
+    }
+}
+
 /// What the user asked for.
 #[derive(Debug, Clone, Default)]
 pub struct Options {
@@ -688,15 +751,32 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
     } else {
         format!("; not tested: {}", untested.join("; "))
     };
+    // What a residual that is still systematic says, after the candidates.
+    let systematic = |rho: f64, rms_um: f64| {
+        format!(
+            "systematic, not noise: RMS {rms_um:.3} um, lag-1 autocorrelation {rho:.3} in \
+             time (noise level about {:.3} um from successive rows)",
+            noise_level_um(rms_um, rho)
+        )
+    };
     let verdict = if let (true, Some(c)) = (effects.is_empty(), edge_rivals.first()) {
+        let baseline_systematic = if where_baseline.rho >= SYSTEMATIC_RHO {
+            format!(
+                "; the residual is {}",
+                systematic(where_baseline.rho, baseline.rms_um)
+            )
+        } else {
+            String::new()
+        };
         format!(
             "no effect named, but {} fits better (residual RMS {:.3} -> {:.3} um) with its {} \
-             at the edge of the range the data resolves ({:.4}); measure with finer steps to tell{not_tested}",
+             at the edge of the range the data resolves ({:.4}): {}{baseline_systematic}{not_tested}",
             c.name,
             c.rms_before_um,
             c.rms_after_um,
             c.param_name.unwrap_or("parameter"),
             c.param.unwrap_or(f64::NAN),
+            edge_advice(c),
         )
     } else if effects.is_empty() && where_baseline.rho >= SYSTEMATIC_RHO {
         format!(
@@ -734,13 +814,36 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
                 }
             })
             .collect();
+        // A named effect can take up part of what none of the candidates has (a step
+        // at a tool change fitted as a lag as long as the run): the rest then stays
+        // systematic, and the model is no better on the next run.
+        let rest = if where_final.rho >= SYSTEMATIC_RHO {
+            format!(
+                "; but what remains is {}: something none of the candidates has (a step such \
+                 as a tool change or a re-zeroed probe, a drift over the run) or a missing \
+                 sensor, which the effects named may have partly taken up; look at the \
+                 residual over time before using the model",
+                systematic(where_final.rho, final_gap.rms_um)
+            )
+        } else {
+            String::new()
+        };
         format!(
-            "missing: {}; residual RMS {:.3} -> {:.3} um ({:.0} % smaller)",
+            "missing: {}; residual RMS {:.3} -> {:.3} um ({:.0} % smaller){rest}",
             names.join(", then "),
             baseline.rms_um,
             final_gap.rms_um,
             100.0 * (1.0 - final_gap.rms_um / baseline.rms_um.max(1e-300))
         )
+    };
+    // A bad reading pulls the baseline and every candidate: a single err_um of -999
+    // made a lag that was there read as noise. Named first, by time.
+    let verdict = match bad_readings(m, &r0) {
+        Some(bad) => format!(
+            "the data hold rows that look like bad readings ({bad}); fix or remove them and \
+             diagnose again; on them: {verdict}"
+        ),
+        None => verdict,
     };
     // A given model far off the refit of its own form is stale: the refit absorbed an
     // offset or a swap, and the verdict on the rest read as if the model were fine.
