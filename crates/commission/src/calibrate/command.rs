@@ -61,9 +61,11 @@ pub struct Calibrated<'a> {
     /// Columns of the data the fit did not read: not of the format, and `T_`
     /// columns `--sensors` left out.
     ignored_columns: Vec<String>,
+    /// Why the model is not written without `--accept-weak-fit`: the fit's
+    /// ([`Fit::doubts`]) and the bad rows'.
+    doubts: Vec<String>,
     /// Bad rows of the data, named with their lines: temperature jumps and rows far
-    /// off the fit. Each keeps the model from being written without
-    /// `--accept-weak-fit`.
+    /// off the fit.
     bad_rows: Vec<BadRows>,
 }
 
@@ -190,8 +192,14 @@ pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
         e => CalibrateError::Data(args.data.display().to_string(), e),
     })?;
     let f = calibrate(&m, &args.sensors, args.p0_mm)?;
+    let bad_rows: Vec<BadRows> = [jump_warning(&m, &lines), outlier_warning(&m, &lines, &f)]
+        .into_iter()
+        .flatten()
+        .collect();
+    let mut doubts = f.doubts();
+    doubts.extend(bad_rows.iter().map(|b| b.doubt.clone()));
     let model = AxisModel::from_fit(&f);
-    let header = format!(
+    let mut header = format!(
         "compgate calibrate: axis {} from {} rows of {}\nRMS residual {:.3} um, R^2 {:.6}\nchannels are the CSV's T_ columns without T_; name the gateway's channels alike",
         args.axis,
         f.rows,
@@ -199,6 +207,14 @@ pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
         f.rms_um,
         f.r2
     );
+    // Whoever loads the model later sees that it was forced.
+    if args.accept_weak_fit && !doubts.is_empty() {
+        let _ = write!(
+            header,
+            "\nwritten with --accept-weak-fit: {}",
+            doubts.join("; ")
+        );
+    }
     // Refused before anything is written: a model the gateway would load must
     // never hold a NaN or an absurd coefficient.
     let model = model_toml(&args.axis, &args.nc_module, &model, &header).map_err(|source| {
@@ -214,15 +230,12 @@ pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
         })?),
         None => None,
     };
-    let bad_rows = [jump_warning(&m, &lines), outlier_warning(&m, &lines, &f)]
-        .into_iter()
-        .flatten()
-        .collect();
     Ok(Calibrated {
         args,
         fit: f,
         model,
         plot,
+        doubts,
         bad_rows,
         // The sensors --sensors left out are among them: they were not read.
         ignored_columns: m.ignored_columns,
@@ -234,6 +247,9 @@ impl Calibrated<'_> {
     /// did not read, as diagnose does.
     pub fn report(&self) -> String {
         let mut s = report(&self.fit);
+        for b in &self.bad_rows {
+            let _ = writeln!(s, "warning: {}", b.warning);
+        }
         if !self.ignored_columns.is_empty() {
             s = format!("ignored columns: {}\n{s}", self.ignored_columns.join(", "));
         }
@@ -249,14 +265,12 @@ impl Calibrated<'_> {
 
     /// Writes the model and the plot, both or neither (an existing model stays as it
     /// was when the plot cannot be written); returns the lines saying so. A fit with
-    /// doubts ([`Fit::doubts`]) is not written without `--accept-weak-fit`.
+    /// doubts is not written without `--accept-weak-fit`.
     pub fn write(&self) -> Result<String, CalibrateError> {
-        let mut doubts = self.fit.doubts();
-        doubts.extend(self.bad_rows.iter().map(|b| b.doubt.clone()));
-        if !doubts.is_empty() && !self.args.accept_weak_fit {
+        if !self.doubts.is_empty() && !self.args.accept_weak_fit {
             return Err(CalibrateError::Doubtful {
                 path: self.args.out.display().to_string(),
-                doubts: doubts.join("; "),
+                doubts: self.doubts.join("; "),
             });
         }
         let io = |(path, source): (PathBuf, std::io::Error)| CalibrateError::Io {

@@ -40,6 +40,10 @@ pub const WEAK_R2: f64 = 0.5;
 /// A coefficient within this many standard errors of 0 is not told apart from 0.
 pub const SIGNIFICANT_SE: f64 = 2.0;
 
+/// A sensor that never reads below this, degC, is in kelvin (room temperature is
+/// 293 K): no sensor on a machine structure stays so hot over a run.
+pub const KELVIN_LIKE_DEGC: f64 = 200.0;
+
 /// A measured error spanning less than this, um, is below any interferometer's noise:
 /// most likely `err_um` in millimetres (a factor 1000 too small).
 pub const MIN_ERR_SPAN_UM: f64 = 1.0;
@@ -221,6 +225,10 @@ impl Fit {
                 t.name, t.tan_beta_per_degc
             )
         }));
+        d.extend(
+            self.kelvin()
+                .map(|t| format!("T_{} never reads below {:.1} degC", t.name, t.range_degc[0])),
+        );
         if self.err_span_um < MIN_ERR_SPAN_UM {
             d.push(format!("err_um spans only {:.4} um", self.err_span_um));
         }
@@ -238,6 +246,13 @@ impl Fit {
     /// first, and the typical residual, um.
     pub fn outliers(&self) -> (Vec<usize>, f64) {
         crate::stats::far_off(&self.residuals_um, OUTLIER_FACTOR, OUTLIER_MIN_UM)
+    }
+
+    /// Sensors that never read below [`KELVIN_LIKE_DEGC`].
+    fn kelvin(&self) -> impl Iterator<Item = &SensorTerm> {
+        self.terms
+            .iter()
+            .filter(|t| t.range_degc[0] > KELVIN_LIKE_DEGC)
     }
 
     fn implausible_slopes(&self) -> impl Iterator<Item = &SensorTerm> {
@@ -282,6 +297,14 @@ impl Fit {
                 t.name,
                 t.tan_beta_per_degc,
                 t.tan_beta_per_degc.abs() / STEEL_EXPANSION_PER_K
+            )
+        }));
+        w.extend(self.kelvin().map(|t| {
+            format!(
+                "T_{} never reads below {:.1} degC over the data: no sensor on a machine \
+                 structure stays so hot; in kelvin? The columns hold degC, and the gateway's \
+                 channels read degC, so a model of kelvin never meets its temperatures",
+                t.name, t.range_degc[0]
             )
         }));
         if self.undetermined() {

@@ -643,6 +643,13 @@ fn bad_readings_are_named_by_line_and_keep_the_model_from_being_written() {
             && w[0].contains(&row),
         "{w:?}"
     );
+    assert!(
+        calibrated
+            .report()
+            .contains(&format!("\nwarning: {}\n", w[0])),
+        "{}",
+        calibrated.report()
+    );
     let e = calibrated.write().unwrap_err().to_string();
     assert!(
         e.contains("1 row lies more than 10 times the typical residual off the fit"),
@@ -651,7 +658,11 @@ fn bad_readings_are_named_by_line_and_keep_the_model_from_being_written() {
     assert!(!args.out.exists());
     args.accept_weak_fit = true;
     run(&args).unwrap().write().unwrap();
-    assert!(args.out.exists());
+    let model = std::fs::read_to_string(&args.out).unwrap();
+    assert!(
+        model.contains("\n# written with --accept-weak-fit: 1 row lies more than 10 times"),
+        "{model}"
+    );
 
     // The column sensor drops out to 0 for three rows of one sweep.
     let i = (1..clean.len() - 4)
@@ -678,4 +689,25 @@ fn bad_readings_are_named_by_line_and_keep_the_model_from_being_written() {
     assert!(w.contains(&first), "{w}");
     let e = calibrated.write().unwrap_err().to_string();
     assert!(e.contains("2 temperature jumps"), "{e}");
+}
+
+/// Temperatures logged in kelvin (296 K read as degC) were fitted without a word, and
+/// the model's fitted_degc lay beyond every channel's range (field review).
+#[test]
+fn temperatures_in_kelvin_keep_the_model_from_being_written() {
+    let (mut m, _) = commissioning(ThermalParams::default(), 3);
+    for c in &mut m.temps {
+        for v in &mut c.degc {
+            *v += 273.15;
+        }
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let args = column_and_screw(dir.path(), &m, "kelvin.csv");
+    let calibrated = run(&args).unwrap();
+    let w = calibrated.warnings();
+    assert_eq!(w.len(), 2, "{w:?}");
+    assert!(w[0].starts_with("T_column never reads below 29"), "{w:?}");
+    assert!(w[0].contains("in kelvin?"), "{w:?}");
+    let e = calibrated.write().unwrap_err().to_string();
+    assert!(e.contains("T_screw never reads below"), "{e}");
 }

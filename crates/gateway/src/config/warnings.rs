@@ -113,6 +113,26 @@ pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
             }
         }
     }
+    // A model fitted over temperatures its channel never reads as valid (a CSV in
+    // kelvin) is never within its fitted range, and compensates with what it never saw.
+    for (name, axis) in &cfg.axes {
+        for (channel, &[min, max]) in &axis.fitted_degc {
+            let Some(ch) = cfg.channels.get(channel) else {
+                continue;
+            };
+            let (lo, hi) = (ch.filter.valid_min_degc, ch.filter.valid_max_degc);
+            if max < lo || min > hi {
+                out.push(
+                    format!("axes.{name}.fitted_degc.{channel}"),
+                    format!(
+                        "the model was fitted over {min}..{max} degC, but channel `{channel}` \
+                         takes only {lo}..{hi} degC as valid: it never meets the temperatures it \
+                         was fitted over (a measurement CSV in kelvin?); fit it again from degC"
+                    ),
+                );
+            }
+        }
+    }
     // `run` logs it at start; validate (and so `systemctl reload`) said nothing.
     let logins = cfg
         .targets
@@ -446,6 +466,35 @@ mod tests {
         );
         // Eight times steel's (a sensor that warms less than the screw) is no warning.
         assert_eq!(implausible_slope(8.0 * STEEL_EXPANSION_PER_K), None);
+    }
+
+    /// A model fitted on temperatures in kelvin passed validate with OK (field review).
+    #[test]
+    fn a_model_fitted_beyond_its_channels_valid_range_gets_a_warning() {
+        let example = include_str!("../../../../config/example.toml");
+        let fitted = "fitted_degc = { T_bed = [16.9, 23.5], T_screw = [17.0, 27.1] }";
+        let axis = "[axes.X]\n";
+        assert!(example.contains(axis));
+        let ok = example.replacen(axis, &format!("{axis}{fitted}\n"), 1);
+        assert!(
+            !warned(&ok).iter().any(|w| w.contains("fitted_degc")),
+            "{:?}",
+            warned(&ok)
+        );
+        let kelvin = ok.replacen("T_screw = [17.0, 27.1]", "T_screw = [290.15, 300.25]", 1);
+        let w: Vec<String> = warned(&kelvin)
+            .into_iter()
+            .filter(|w| w.contains("fitted_degc"))
+            .collect();
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!(
+            w[0].starts_with(
+                "rtu.toml: axes.X.fitted_degc.T_screw: the model was fitted over 290.15..300.25 \
+                 degC, but channel `T_screw` takes only"
+            ),
+            "{}",
+            w[0]
+        );
     }
 
     /// The warnings of `text`, as `validate` prints them (without "warning: ").
