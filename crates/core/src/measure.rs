@@ -56,8 +56,12 @@ pub enum MeasureError {
     },
     #[error("line {line}: {message}")]
     Csv { line: u64, message: String },
-    #[error("line 1: required column `{0}` is missing")]
-    MissingColumn(&'static str),
+    #[error("line 1: required column `{name}` is missing{}", units_hint(found))]
+    MissingColumn {
+        name: &'static str,
+        /// A header that is the name with something after it (`err_um [um]`).
+        found: Option<String>,
+    },
     /// The header splits on another delimiter: an export of a spreadsheet set to a
     /// locale with decimal commas, which would otherwise read as one odd column.
     #[error(
@@ -130,7 +134,10 @@ pub enum MeasureError {
         value: String,
         reason: &'static str,
     },
-    #[error("line {line}, column `t_s`: time goes backwards ({t_s} s after {prev_s} s)")]
+    #[error(
+        "line {line}, column `t_s`: time goes backwards ({t_s} s after {prev_s} s): rows in \
+         time order; two runs in one file? give each a file of its own"
+    )]
     TimeBackwards { line: u64, t_s: f64, prev_s: f64 },
     #[error("no data rows")]
     Empty,
@@ -479,6 +486,13 @@ pub struct TempColumn {
     pub degc: Vec<f64>,
 }
 
+/// The hint of [`MeasureError::MissingColumn`] when a header carries the name and more.
+fn units_hint(found: &Option<String>) -> String {
+    found.as_ref().map_or(String::new(), |h| {
+        format!(" (there is a column `{h}`: the header holds the name alone, without units)")
+    })
+}
+
 /// See [`Measurements::temperature_jumps`], K.
 pub const TEMP_JUMP_K: f64 = 5.0;
 /// See [`Measurements::temperature_jumps`], s.
@@ -652,12 +666,19 @@ impl Measurements {
                 },
             }
         }
+        let missing = |name: &'static str| MeasureError::MissingColumn {
+            name,
+            found: header
+                .iter()
+                .find(|h| h.len() > name.len() && h.starts_with(name))
+                .map(str::to_string),
+        };
         let i_t = match i_t {
-            None if thermal => return Err(MeasureError::MissingColumn("t_s")),
+            None if thermal => return Err(missing("t_s")),
             i_t => i_t,
         };
-        let i_pos = i_pos.ok_or(MeasureError::MissingColumn("pos_mm"))?;
-        let i_err = i_err.ok_or(MeasureError::MissingColumn("err_um"))?;
+        let i_pos = i_pos.ok_or_else(|| missing("pos_mm"))?;
+        let i_err = i_err.ok_or_else(|| missing("err_um"))?;
         // Sensors left out (`Wanted::Thermal(Some)`) count: the fit names a missing one.
         if thermal && !header.iter().any(|h| h.len() > 2 && h.starts_with("T_")) {
             return Err(MeasureError::NoTemperature);
@@ -673,7 +694,22 @@ impl Measurements {
                 reason,
             };
             let num = |i: usize| -> Result<f64, MeasureError> {
-                let v: f64 = record[i].parse().map_err(|_| bad(i, "not a number"))?;
+                let v: f64 = record[i].parse().map_err(|_| {
+                    let cell = record[i].trim();
+                    bad(
+                        i,
+                        if cell.is_empty() {
+                            "an empty cell: every row needs a value in every column (logged \
+                             less often than the error? give each row the last reading before \
+                             it)"
+                        } else if cell.replacen(',', ".", 1).parse::<f64>().is_ok() {
+                            "not a number: a decimal comma? compgate reads numbers with a \
+                             decimal point"
+                        } else {
+                            "not a number"
+                        },
+                    )
+                })?;
                 if v.is_finite() {
                     Ok(v)
                 } else {
@@ -947,6 +983,38 @@ mod tests {
         let mut buf = Vec::new();
         m.write(&mut buf).unwrap();
         assert_eq!(read(std::str::from_utf8(&buf).unwrap()).unwrap(), m);
+    }
+
+    /// Temperatures logged at another rate (empty cells), a quoted decimal comma,
+    /// units in a header and two runs in one file were refused without a word of
+    /// what to do (field review).
+    #[test]
+    fn refusals_say_what_to_do() {
+        for (text, want) in [
+            (
+                "t_s,pos_mm,err_um,T_a\n0,0,1,20\n1,5,2,\n",
+                "line 3, column `T_a`: an empty cell: every row needs a value in every column \
+                 (logged less often than the error? give each row the last reading before it) \
+                 (value \"\")",
+            ),
+            (
+                "t_s,pos_mm,err_um,T_a\n0,0,\"1,5\",20\n",
+                "line 2, column `err_um`: not a number: a decimal comma? compgate reads \
+                 numbers with a decimal point (value \"1,5\")",
+            ),
+            (
+                "t_s,pos_mm,err_um [um],T_a\n0,0,1,20\n",
+                "line 1: required column `err_um` is missing (there is a column `err_um \
+                 [um]`: the header holds the name alone, without units)",
+            ),
+            (
+                "t_s,pos_mm,err_um,T_a\n0,0,1,20\n600,0,1,20\n0,0,1,20\n",
+                "line 4, column `t_s`: time goes backwards (0 s after 600 s): rows in time \
+                 order; two runs in one file? give each a file of its own",
+            ),
+        ] {
+            assert_eq!(read(text).unwrap_err().to_string(), want, "{text:?}");
+        }
     }
 
     #[test]

@@ -26,8 +26,8 @@ pub use report::{plot_curves, render_curves, report};
 pub enum CalibrateError {
     #[error("{0}: {1}")]
     Data(String, MeasureError),
-    #[error("--sensors: no column T_{0} in the data (it has: {1})")]
-    NoSensor(String, String),
+    #[error("--sensors: no column T_{0} in the data (it has: {1}){2}")]
+    NoSensor(String, String, String),
     #[error("fit: {0}")]
     Fit(#[from] FitError),
     #[error("{0}")]
@@ -89,7 +89,19 @@ pub fn select_sensors<'a>(
                                 .cloned(),
                         )
                         .collect();
-                    CalibrateError::NoSensor(name.to_string(), have.join(", "))
+                    // `T_a [degC]` for `a`: units in the header.
+                    let prefix = format!("T_{name}");
+                    let hint = have
+                        .iter()
+                        .find(|h| {
+                            h.strip_prefix(&prefix).is_some_and(|rest| {
+                                rest.starts_with(|c: char| !c.is_ascii_alphanumeric() && c != '_')
+                            })
+                        })
+                        .map_or(String::new(), |h| {
+                            format!("; `{h}`: the header holds the name alone, without units")
+                        });
+                    CalibrateError::NoSensor(name.to_string(), have.join(", "), hint)
                 })
         })
         .collect()

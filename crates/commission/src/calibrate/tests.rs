@@ -711,3 +711,19 @@ fn temperatures_in_kelvin_keep_the_model_from_being_written() {
     let e = calibrated.write().unwrap_err().to_string();
     assert!(e.contains("T_screw never reads below"), "{e}");
 }
+
+/// `--sensors a` on a header `T_a [degC]` said only that there is no column T_a.
+#[test]
+fn a_sensor_header_with_units_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("units.csv");
+    std::fs::write(&csv, "t_s,pos_mm,err_um,T_a [degC],T_b\n0,0,1,20,20\n").unwrap();
+    let mut args = args_for(dir.path(), csv);
+    args.sensors = names(&["a"]);
+    let e = run(&args).unwrap_err().to_string();
+    assert_eq!(
+        e,
+        "--sensors: no column T_a in the data (it has: T_a [degC], T_b); `T_a [degC]`: the \
+         header holds the name alone, without units"
+    );
+}
