@@ -99,12 +99,16 @@ pub fn parse_grid(spec: &str, travel: &[(f64, f64); 5]) -> Result<[Vec<f64>; 5],
 }
 
 fn parse_grid_axes(spec: &str, travel: &[(f64, f64); 5]) -> Result<[Vec<f64>; 5], VolumetricError> {
+    // To the nanometre (or 1e-9 deg): -0.5:-0.1:5 gave -0.19999999999999996.
     let lin = |lo: f64, hi: f64, n: usize| -> Vec<f64> {
         if n == 1 {
             vec![(lo + hi) / 2.0]
         } else {
             (0..n)
-                .map(|i| lo + (hi - lo) * i as f64 / (n - 1) as f64)
+                .map(|i| {
+                    let v = lo + (hi - lo) * i as f64 / (n - 1) as f64;
+                    (v * 1e9).round() / 1e9
+                })
                 .collect()
         }
     };
@@ -149,6 +153,13 @@ fn parse_grid_axes(spec: &str, travel: &[(f64, f64); 5]) -> Result<[Vec<f64>; 5]
             )));
         }
         let (lo, hi, n) = (num(f[0])?, num(f[1])?, count(f[2])?);
+        if n == 1 && lo != hi {
+            // It evaluated the middle, a position nobody asked for.
+            return Err(VolumetricError::Grid(format!(
+                "{name}: one point over {lo}..{hi}: give the point as start and end (e.g. \
+                 {name}={lo}:{lo}:1)"
+            )));
+        }
         let (tlo, thi) = travel[i];
         if lo > hi {
             return Err(VolumetricError::Grid(format!(

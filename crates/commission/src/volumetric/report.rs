@@ -110,8 +110,9 @@ pub fn report(ev: &Evaluation) -> String {
     // In full: a failure by 4e-5" printed as "+0.0000" with four decimals.
     let _ = writeln!(
         s,
-        "acceptance: {} of {} poses within {} % of their uncompensated error, or the \
-         achievable minimum + {ACCEPT_FLOOR_ARCSEC}\" where the pole limits it (worst \
+        "acceptance: {} of {} poses within {} % of their uncompensated error (the tip at \
+         least {TOL_UM} um), or the achievable minimum + {ACCEPT_FLOOR_ARCSEC}\" where the pole \
+         limits it (worst \
          orientation margin {:+.2e}\"; minimum from the parameters, by brute force for {} poses)",
         acc.passed,
         acc.total,
@@ -210,7 +211,7 @@ pub fn report(ev: &Evaluation) -> String {
                 "  against the minimum (within {POLE_TOL_ARCSEC}\" or {} % of the \
                  uncompensated error): {} reachable and reached, {} reachable but missed, {} \
                  unreachable and at the minimum, {} unreachable and above it (largest excess \
-                 {:+.4}\")",
+                 over the minimum {:+.4}\")",
                 100.0 * POLE_TOL_FRACTION,
                 k.reached,
                 k.missed,

@@ -208,6 +208,16 @@ fn grid_spec() {
     // A reversed range said "outside the travel".
     let e = parse_grid("X=1000:0:5", &t).unwrap_err().to_string();
     assert_eq!(e, "grid: X: 1000..0 is reversed: give start <= end");
+    // Grid values to the nanometre, not -0.19999999999999996; one point of a range
+    // evaluated its middle.
+    let g = parse_grid("A=-0.5:-0.1:5,X=500:500:1", &t).expect("grid");
+    assert_eq!(g[3], vec![-0.5, -0.4, -0.3, -0.2, -0.1]);
+    assert_eq!(g[0], vec![500.0]);
+    let e = parse_grid("X=0:1000:1", &t).unwrap_err().to_string();
+    assert_eq!(
+        e,
+        "grid: X: one point over 0..1000: give the point as start and end (e.g. X=0:0:1)"
+    );
 }
 
 #[test]
