@@ -33,8 +33,8 @@ pub struct VolumetricArgs {
     #[arg(long, value_name = "FILE")]
     pub errors: PathBuf,
     /// Evaluation grid: a count of points per axis over its travel (e.g. `4`), or
-    /// per-axis ranges `X=0:1000:5,A=-90:90:4` (start:end:count; axes not named get 3
-    /// points over their travel). At most 2000000 poses (the product of the five
+    /// per-axis ranges `X=0:1000:5,A=-90:90:4` (start:end:count, a count of 1 with
+    /// start = end; axes not named get 3 points over their travel). At most 2000000 poses (the product of the five
     /// counts, e.g. `--grid 18`): larger grids are refused.
     #[arg(long, default_value = "4")]
     pub grid: String,
