@@ -293,6 +293,21 @@ fn cli_writes_json_plots_report_and_a_model_that_reproduces_the_fit() {
         e["rms_before_um"].as_f64().expect("before") > e["rms_after_um"].as_f64().expect("after")
     );
     assert!(fin < 0.7 * base, "{fin} vs {base}");
+    // The shrinking on data each fit did not see, in the JSON and the verdict.
+    let held = &v["held_out"];
+    let (held_base, held_fin) = (
+        held["baseline_rms_um"].as_f64().expect("held-out baseline"),
+        held["final_rms_um"].as_f64().expect("held-out final"),
+    );
+    assert_eq!(held["blocks"], 5);
+    assert!(held_fin < 0.7 * held_base && held_base >= base, "{held}");
+    assert!(
+        stdout.contains(&format!(
+            "held out, each of 5 time blocks predicted from the others: {held_base:.3} -> \
+             {held_fin:.3} um)"
+        )),
+        "{stdout}"
+    );
 
     for f in [
         "residual_time.svg",

@@ -216,6 +216,15 @@ pub const STALE_MODEL_RATIO: f64 = 2.0;
 /// below a micrometre the difference is not worth a refit.
 pub const STALE_MODEL_MIN_UM: f64 = 1.0;
 
+/// See [`Diagnosis::held_out`].
+#[derive(Debug, Clone, Copy, Serialize, PartialEq)]
+pub struct HeldOut {
+    /// Contiguous time blocks.
+    pub blocks: usize,
+    pub baseline_rms_um: f64,
+    pub final_rms_um: f64,
+}
+
 /// RMS and largest absolute value of a residual, um.
 #[derive(Debug, Clone, Copy, Serialize, PartialEq)]
 pub struct Gap {
@@ -322,6 +331,10 @@ pub struct Diagnosis {
     pub ignored_columns: Vec<String>,
     pub where_baseline: Where,
     pub where_final: Where,
+    /// Held-out RMS of the baseline and of the final model, um: each of the
+    /// `cv_blocks` contiguous time blocks predicted by the fit on the others, so the
+    /// gap's shrinking is shown on data each fit did not see.
+    pub held_out: HeldOut,
     pub rounds: Vec<Round>,
     /// Candidates the data cannot test, each with the reason (time that does not
     /// advance, positions too sparse for a period).
@@ -542,6 +555,7 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
     let beta_baseline: Vec<f64> = cur.gram.try_solve()?.beta.iter().copied().collect();
     let baseline = Gap::of(&r0);
     let where_baseline = describe(&d, &r0);
+    let held_out_baseline_mse = cur.cv;
 
     let mut effects: Vec<EffectReport> = Vec::new();
     let mut rounds = Vec::new();
@@ -731,6 +745,11 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
 
     let final_gap = Gap::of(&r_final);
     let where_final = describe(&d, &r_final);
+    let held_out = HeldOut {
+        blocks: th.cv_blocks,
+        baseline_rms_um: held_out_baseline_mse.sqrt(),
+        final_rms_um: cur.cv.sqrt(),
+    };
     // The last round's candidates that pass every test but the edge of their search
     // range: the data cannot tell such an effect apart, but it must not read as noise.
     let edge_rivals: Vec<&CandidateReport> = rounds
@@ -829,11 +848,15 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
             String::new()
         };
         format!(
-            "missing: {}; residual RMS {:.3} -> {:.3} um ({:.0} % smaller){rest}",
+            "missing: {}; residual RMS {:.3} -> {:.3} um ({:.0} % smaller; held out, each of \
+             {} time blocks predicted from the others: {:.3} -> {:.3} um){rest}",
             names.join(", then "),
             baseline.rms_um,
             final_gap.rms_um,
-            100.0 * (1.0 - final_gap.rms_um / baseline.rms_um.max(1e-300))
+            100.0 * (1.0 - final_gap.rms_um / baseline.rms_um.max(1e-300)),
+            held_out.blocks,
+            held_out.baseline_rms_um,
+            held_out.final_rms_um,
         )
     };
     // A bad reading pulls the baseline and every candidate: a single err_um of -999
@@ -872,6 +895,7 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
         ignored_columns: m.ignored_columns.clone(),
         where_baseline,
         where_final,
+        held_out,
         rounds,
         untested,
         verdict,
