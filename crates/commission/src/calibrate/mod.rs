@@ -122,8 +122,13 @@ pub fn calibrate(
     Ok(fit::fit(&m.pos_mm, &m.err_um, &cols, p0_mm)?)
 }
 
+/// Longest sweep, s: rows at a regular interval (a recording exported every
+/// `--step-s`) have no pauses, and were one "sweep" over the whole run, drawn as one
+/// curve at the first row's temperature.
+pub const MAX_SWEEP_S: f64 = 3600.0;
+
 /// Splits rows into sweeps: a new sweep starts after a pause longer than 5 times the
-/// median time step.
+/// median time step, or [`MAX_SWEEP_S`] after the sweep's first row.
 pub fn sweeps(t_s: &[f64]) -> Vec<std::ops::Range<usize>> {
     if t_s.is_empty() {
         return Vec::new();
@@ -134,7 +139,7 @@ pub fn sweeps(t_s: &[f64]) -> Vec<std::ops::Range<usize>> {
     let mut out = Vec::new();
     let mut start = 0;
     for i in 1..t_s.len() {
-        if t_s[i] - t_s[i - 1] > gap {
+        if t_s[i] - t_s[i - 1] > gap || t_s[i] - t_s[start] >= MAX_SWEEP_S {
             out.push(start..i);
             start = i;
         }

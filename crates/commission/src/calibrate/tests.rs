@@ -727,3 +727,18 @@ fn a_sensor_header_with_units_is_named() {
          header holds the name alone, without units"
     );
 }
+
+/// Rows every 20 s over 24 h (an export with --step-s) were one sweep: the plot drew
+/// one curve labelled with the first row's time and temperature (field review).
+#[test]
+fn regular_rows_are_split_into_hour_long_sweeps() {
+    let t_s: Vec<f64> = (0..4320).map(|i| 20.0 * i as f64).collect();
+    let s = sweeps(&t_s);
+    assert_eq!(s.len(), 24, "{s:?}");
+    assert!(s.iter().all(|r| r.len() == 180), "{s:?}");
+    // Sweeps with pauses between them stay as they are.
+    let t_s: Vec<f64> = (0..90)
+        .map(|i| (i / 9) as f64 * 1800.0 + (i % 9) as f64 * 4.0)
+        .collect();
+    assert_eq!(sweeps(&t_s).len(), 10);
+}
