@@ -72,7 +72,8 @@ impl Data {
         }
         let pos_min_mm = m.pos_mm.iter().copied().fold(f64::INFINITY, f64::min);
         let pos_max_mm = m.pos_mm.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        let p0_mm = p0_mm.unwrap_or(0.5 * (pos_min_mm + pos_max_mm));
+        // To the micrometre: the model file showed 1000.8729999999999.
+        let p0_mm = p0_mm.unwrap_or((500.0 * (pos_min_mm + pos_max_mm)).round() / 1000.0);
         // The baseline is calibrate's model: refuse the data calibrate refuses
         // (constant err_um, one position, a constant or a duplicated sensor) rather
         // than let the minimum-norm solver split or zero a coefficient silently.
@@ -632,6 +633,18 @@ mod tests {
             ],
             ignored_columns: vec![],
         }
+    }
+
+    /// The middle of the positions, p0_mm, went into the model file as
+    /// 1000.8729999999999 (field review).
+    #[test]
+    fn p0_is_the_middle_of_the_positions_to_the_micrometre() {
+        let mut m = two_sensor_rows(100);
+        for (i, p) in m.pos_mm.iter_mut().enumerate() {
+            *p = if i % 2 == 0 { 0.1 } else { 2001.646 };
+        }
+        let d = Data::new(&m, None, None, 5).expect("data");
+        assert_eq!(d.p0_mm, 1000.873);
     }
 
     /// Sweeps of rows 4 s apart every 1800 s, the machining between them on the
