@@ -493,22 +493,26 @@ fn units_hint(found: &Option<String>) -> String {
     })
 }
 
-/// See [`Measurements::temperature_jumps`], K.
-pub const TEMP_JUMP_K: f64 = 5.0;
-/// See [`Measurements::temperature_jumps`], s.
-pub const TEMP_JUMP_WITHIN_S: f64 = 60.0;
+/// See [`Measurements::temperature_excursions`], K.
+pub const EXCURSION_K: f64 = 5.0;
+/// See [`Measurements::temperature_excursions`]: a step must be this many times the
+/// sensor's median change from row to row too.
+pub const EXCURSION_TYPICAL_STEPS: f64 = 10.0;
+/// See [`Measurements::temperature_excursions`], K: the spread of a fault value's
+/// rows (a constant written for a missing reading).
+pub const EXCURSION_FLAT_K: f64 = 0.1;
 
-/// A temperature jump ([`Measurements::temperature_jumps`]).
+/// A temperature excursion ([`Measurements::temperature_excursions`]).
 #[derive(Debug, Clone, PartialEq)]
-pub struct TempJump {
+pub struct Excursion {
     /// Sensor name without `T_`.
     pub sensor: String,
-    /// The row after the jump (0-based).
-    pub row: usize,
-    /// Its change from the row before, K.
-    pub delta_k: f64,
-    /// Time from the row before, s.
-    pub dt_s: f64,
+    /// Its rows (0-based).
+    pub rows: std::ops::Range<usize>,
+    /// The reading before it, degC.
+    pub before_degc: f64,
+    /// The reading during it (its first row), degC.
+    pub during_degc: f64,
 }
 
 /// A measurement series, column-wise.
@@ -578,27 +582,52 @@ impl Measurements {
         Self::read_rows(open(path)?, Wanted::Thermal(Some(sensors)))
     }
 
-    /// Temperature changes between two rows at most [`TEMP_JUMP_WITHIN_S`] apart by
-    /// more than [`TEMP_JUMP_K`], in row order. No machine structure, and no sensor
-    /// on one, changes so fast: such a jump is a sensor that dropped out or a plug
-    /// swapped, or a 0 or a fault value written for a missing reading.
-    pub fn temperature_jumps(&self) -> Vec<TempJump> {
-        let mut jumps = Vec::new();
+    /// Readings that leave a sensor's level by more than [`EXCURSION_K`] (and
+    /// [`EXCURSION_TYPICAL_STEPS`] times its median step) from one row to the next,
+    /// hold one value (within [`EXCURSION_FLAT_K`]) and come back to
+    /// within 1 K (or a fifth of the step) of that level: a sensor that dropped out,
+    /// a 0 or a fault value written for a missing reading. A sensor that heats or
+    /// cools fast (a motor winding) moves through its values and does not come back
+    /// at once, however far apart the rows.
+    pub fn temperature_excursions(&self) -> Vec<Excursion> {
+        let mut found = Vec::new();
         for c in &self.temps {
-            for i in 1..self.len().min(c.degc.len()) {
-                let (dt_s, delta_k) = (self.t_s[i] - self.t_s[i - 1], c.degc[i] - c.degc[i - 1]);
-                if dt_s <= TEMP_JUMP_WITHIN_S && delta_k.abs() > TEMP_JUMP_K {
-                    jumps.push(TempJump {
+            let v = &c.degc;
+            // Rows hours apart change by kelvins as the machine does: a step counts
+            // only far beyond the sensor's own typical change from row to row.
+            let mut steps: Vec<f64> = v.windows(2).map(|w| (w[1] - w[0]).abs()).collect();
+            steps.sort_by(f64::total_cmp);
+            let typical = steps.get(steps.len() / 2).copied().unwrap_or(0.0);
+            let least = EXCURSION_K.max(EXCURSION_TYPICAL_STEPS * typical);
+            let mut i = 1;
+            while i < v.len() {
+                let (before, step) = (v[i - 1], v[i] - v[i - 1]);
+                if step.abs() <= least {
+                    i += 1;
+                    continue;
+                }
+                let mut k = i;
+                while k < v.len()
+                    && (v[k] - before).abs() > EXCURSION_K
+                    && (v[k] - v[i]).abs() <= EXCURSION_FLAT_K
+                {
+                    k += 1;
+                }
+                if k < v.len() && (v[k] - before).abs() <= (0.2 * step.abs()).max(1.0) {
+                    found.push(Excursion {
                         sensor: c.name.clone(),
-                        row: i,
-                        delta_k,
-                        dt_s,
+                        rows: i..k,
+                        before_degc: before,
+                        during_degc: v[i],
                     });
+                    i = k + 1;
+                } else {
+                    i += 1;
                 }
             }
         }
-        jumps.sort_by_key(|j| j.row);
-        jumps
+        found.sort_by_key(|e| e.rows.start);
+        found
     }
 
     /// The positions alone, for an evaluation that needs no time or temperature (ISO
@@ -983,6 +1012,55 @@ mod tests {
         let mut buf = Vec::new();
         m.write(&mut buf).unwrap();
         assert_eq!(read(std::str::from_utf8(&buf).unwrap()).unwrap(), m);
+    }
+
+    /// A dropout to 0 is found whatever the rows' spacing (a check of rows at most
+    /// 60 s apart missed it in a log every 120 s, named the row where the sensor came
+    /// back, and refused a motor sensor heating 6.5 K a minute: field review).
+    #[test]
+    fn a_dropout_is_an_excursion_and_a_fast_sensor_is_not() {
+        let series = |degc: Vec<f64>| Measurements {
+            t_s: (0..degc.len()).map(|i| 120.0 * i as f64).collect(),
+            pos_mm: vec![0.0; degc.len()],
+            err_um: vec![0.0; degc.len()],
+            dir: vec![1; degc.len()],
+            travel_mm: vec![0.0; degc.len()],
+            temps: vec![TempColumn {
+                name: "a".into(),
+                degc,
+            }],
+            ignored_columns: Vec::new(),
+        };
+        // 23.6 degC warming slowly, 0 on rows 10..15, a one-row -999 at 30.
+        let mut v: Vec<f64> = (0..40).map(|i| 23.6 + 0.01 * i as f64).collect();
+        v[10..15].fill(0.0);
+        v[30] = -999.0;
+        let e = series(v).temperature_excursions();
+        assert_eq!(e.len(), 2, "{e:?}");
+        assert_eq!((e[0].rows.clone(), e[0].during_degc), (10..15, 0.0));
+        assert!((e[0].before_degc - 23.69).abs() < 1e-9, "{e:?}");
+        assert_eq!(e[1].rows, 30..31);
+        // A motor sensor: 25 K up with a 200 s time constant, rows 60 s apart, then
+        // down again; and the same logged every 600 s with its noise.
+        let motor: Vec<f64> = (0..120)
+            .map(|i| {
+                let t = 60.0 * i as f64;
+                let on = |t: f64| 25.0 * (1.0 - (-(t / 200.0)).exp());
+                20.0 + if t < 3600.0 {
+                    on(t)
+                } else {
+                    on(3600.0) * (-((t - 3600.0) / 200.0)).exp()
+                }
+            })
+            .collect();
+        assert!(series(motor.clone()).temperature_excursions().is_empty());
+        let coarse: Vec<f64> = motor
+            .iter()
+            .step_by(10)
+            .enumerate()
+            .map(|(i, v)| v + 0.03 * ((i * 7) % 5) as f64)
+            .collect();
+        assert!(series(coarse).temperature_excursions().is_empty());
     }
 
     /// Temperatures logged at another rate (empty cells), a quoted decimal comma,

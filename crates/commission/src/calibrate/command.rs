@@ -9,7 +9,7 @@ use compgate_core::outputs::Staged;
 
 use super::model::{model_toml, AxisModel};
 use super::report::{render_curves, report};
-use super::{calibrate, CalibrateError, Fit};
+use super::{bad_readings, calibrate, BadReadings, CalibrateError, Fit};
 use crate::plot::PlotError;
 
 /// `compgate calibrate` arguments.
@@ -42,7 +42,9 @@ pub struct CalibrateArgs {
     /// 0.5 K in the data, a tan(beta) coefficient beyond 1e-4 /K (no machine structure
     /// expands so), or temperatures that do not explain the error (the temperature
     /// terms remove less than half of what constant K0 and tan(beta) leave, and every
-    /// temperature coefficient is within 2 standard errors of 0).
+    /// temperature coefficient is within 2 standard errors of 0), a sensor that never
+    /// reads below 200 degC (kelvin?), or bad readings that move the fit (a sensor that
+    /// dropped out, a -999), each named by its line. The model file's header says why.
     #[arg(long)]
     pub accept_weak_fit: bool,
 }
@@ -64,113 +66,106 @@ pub struct Calibrated<'a> {
     /// Why the model is not written without `--accept-weak-fit`: the fit's
     /// ([`Fit::doubts`]) and the bad rows'.
     doubts: Vec<String>,
-    /// Bad rows of the data, named with their lines: temperature jumps and rows far
-    /// off the fit.
-    bad_rows: Vec<BadRows>,
-}
-
-/// Rows of the data that look like bad readings.
-#[derive(Debug)]
-struct BadRows {
-    /// One short reason, for the refusal.
-    doubt: String,
-    /// The rows named, cause and remedy, for stderr.
-    warning: String,
+    /// The data's bad readings ([`BadReadings`]), named with their lines.
+    bad_rows: Option<String>,
 }
 
 /// Rows named in a warning.
 const SHOWN_ROWS: usize = 5;
 
-/// "1 row lies", "2 rows lie".
-fn count(n: usize, one: &str, many: &str) -> String {
-    format!("{n} {}", if n == 1 { one } else { many })
+/// The lines `rows` (0-based, ascending) lie on: "line 7" or "lines 7-9".
+fn lines_of(lines: &[u64], rows: &std::ops::Range<usize>) -> String {
+    match (lines[rows.start], lines[rows.end - 1]) {
+        (a, b) if a == b => format!("line {a}"),
+        (a, b) => format!("lines {a}-{b}"),
+    }
 }
 
-/// ", the N first" when more than [`SHOWN_ROWS`] are named.
-fn shown(n: usize, which: &str) -> String {
-    if n > SHOWN_ROWS {
-        format!(", the {SHOWN_ROWS} {which}")
+/// The bad readings named by line, what leaving them out does to the fit, and the
+/// doubt that keeps the model from being written when they move it.
+fn bad_rows_warning(
+    m: &Measurements,
+    lines: &[u64],
+    f: &Fit,
+    bad: &BadReadings,
+) -> Option<(String, Option<String>)> {
+    if bad.is_empty() {
+        return None;
+    }
+    let mut parts: Vec<String> = bad
+        .excursions
+        .iter()
+        .take(SHOWN_ROWS)
+        .map(|e| {
+            format!(
+                "T_{} reads {} on {} ({} degC before)",
+                e.sensor,
+                e.during_degc,
+                lines_of(lines, &e.rows),
+                e.before_degc
+            )
+        })
+        .collect();
+    if bad.excursions.len() > SHOWN_ROWS {
+        parts.push(format!(
+            "{} more excursions",
+            bad.excursions.len() - SHOWN_ROWS
+        ));
+    }
+    parts.extend(bad.far_off.iter().take(SHOWN_ROWS).map(|&i| {
+        let temps: String = f
+            .terms
+            .iter()
+            .filter_map(|t| m.temp(&t.name).map(|c| format!(", T_{} {}", t.name, c[i])))
+            .collect();
+        format!(
+            "{} (t_s {}, pos_mm {}, err_um {}{temps}) {:+.3} um off the fit",
+            lines_of(lines, &(i..i + 1)),
+            m.t_s[i],
+            m.pos_mm[i],
+            m.err_um[i],
+            f.residuals_um[i]
+        )
+    }));
+    if bad.far_off.len() > SHOWN_ROWS {
+        parts.push(format!(
+            "{} more rows far off",
+            bad.far_off.len() - SHOWN_ROWS
+        ));
+    }
+    let n = bad.rows().len();
+    let what = format!(
+        "{n} {} like bad readings (a temperature that leaves its level by more than {} K \
+         and comes back, a row more than {} times the typical residual ({:.3} um) off the \
+         fit, alone or in a pair): {}",
+        if n == 1 { "row looks" } else { "rows look" },
+        compgate_core::measure::EXCURSION_K,
+        super::bad::OUTLIER_FACTOR,
+        bad.typical_um,
+        parts.join("; ")
+    );
+    Some(if bad.pull() {
+        (
+            format!(
+                "{what}; left out, they move the fitted error by up to {:.3} um: a sensor \
+                 that dropped out, a 0 or a -999 written for a missing value; fix or remove \
+                 those rows and fit again",
+                bad.pull_um
+            ),
+            Some(format!(
+                "bad readings move the fitted error by up to {:.3} um",
+                bad.pull_um
+            )),
+        )
     } else {
-        String::new()
-    }
-}
-
-/// The temperature jumps ([`Measurements::temperature_jumps`]), named by line.
-fn jump_warning(m: &Measurements, lines: &[u64]) -> Option<BadRows> {
-    let jumps = m.temperature_jumps();
-    if jumps.is_empty() {
-        return None;
-    }
-    let named: Vec<String> = jumps
-        .iter()
-        .take(SHOWN_ROWS)
-        .map(|j| {
+        (
             format!(
-                "T_{} {:+.2} K to {} at line {} ({} s after the row before)",
-                j.sensor,
-                j.delta_k,
-                m.temps
-                    .iter()
-                    .find(|c| c.name == j.sensor)
-                    .map_or(f64::NAN, |c| c.degc[j.row]),
-                lines[j.row],
-                j.dt_s
-            )
-        })
-        .collect();
-    Some(BadRows {
-        doubt: count(jumps.len(), "temperature jump", "temperature jumps"),
-        warning: format!(
-            "{} of more than {} K within {} s{}: {}; no machine structure changes so fast: a \
-             sensor that dropped out or a plug swapped, or a 0 or a fault value written for a \
-             missing reading; fix or remove those rows and fit again",
-            count(jumps.len(), "temperature jump", "temperature jumps"),
-            compgate_core::measure::TEMP_JUMP_K,
-            compgate_core::measure::TEMP_JUMP_WITHIN_S,
-            shown(jumps.len(), "first"),
-            named.join("; ")
-        ),
-    })
-}
-
-/// The rows far off the fit ([`Fit::outliers`]), named by line and values.
-fn outlier_warning(m: &Measurements, lines: &[u64], f: &Fit) -> Option<BadRows> {
-    let (rows, typical_um) = f.outliers();
-    if rows.is_empty() {
-        return None;
-    }
-    let named: Vec<String> = rows
-        .iter()
-        .take(SHOWN_ROWS)
-        .map(|&i| {
-            let temps: String = m
-                .temps
-                .iter()
-                .filter(|c| f.terms.iter().any(|t| t.name == c.name))
-                .map(|c| format!(", T_{} {}", c.name, c.degc[i]))
-                .collect();
-            format!(
-                "line {} (t_s {}, pos_mm {}, err_um {}{temps}) {:+.3} um off",
-                lines[i], m.t_s[i], m.pos_mm[i], m.err_um[i], f.residuals_um[i]
-            )
-        })
-        .collect();
-    Some(BadRows {
-        doubt: format!(
-            "{} more than {} times the typical residual off the fit",
-            count(rows.len(), "row lies", "rows lie"),
-            super::fit::OUTLIER_FACTOR
-        ),
-        warning: format!(
-            "{} more than {} times the typical residual ({:.3} um) off the fit{}: {}; a bad \
-             reading (a -999 or a 0 written for a missing value, a sensor that dropped out) \
-             pulls every coefficient: fix or remove those rows and fit again",
-            count(rows.len(), "row lies", "rows lie"),
-            super::fit::OUTLIER_FACTOR,
-            typical_um,
-            shown(rows.len(), "farthest"),
-            named.join("; ")
-        ),
+                "{what}; left out, they move the fitted error by {:.3} um at most: the model \
+                 stands, remove them for a clean record",
+                bad.pull_um
+            ),
+            None,
+        )
     })
 }
 
@@ -192,12 +187,10 @@ pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
         e => CalibrateError::Data(args.data.display().to_string(), e),
     })?;
     let f = calibrate(&m, &args.sensors, args.p0_mm)?;
-    let bad_rows: Vec<BadRows> = [jump_warning(&m, &lines), outlier_warning(&m, &lines, &f)]
-        .into_iter()
-        .flatten()
-        .collect();
+    let bad = bad_readings(&m, &args.sensors, &f);
+    let (bad_rows, bad_doubt) = bad_rows_warning(&m, &lines, &f, &bad).unzip();
     let mut doubts = f.doubts();
-    doubts.extend(bad_rows.iter().map(|b| b.doubt.clone()));
+    doubts.extend(bad_doubt.flatten());
     let model = AxisModel::from_fit(&f);
     let mut header = format!(
         "compgate calibrate: axis {} from {} rows of {}\nRMS residual {:.3} um, R^2 {:.6}\nchannels are the CSV's T_ columns without T_; name the gateway's channels alike",
@@ -247,8 +240,8 @@ impl Calibrated<'_> {
     /// did not read, as diagnose does.
     pub fn report(&self) -> String {
         let mut s = report(&self.fit);
-        for b in &self.bad_rows {
-            let _ = writeln!(s, "warning: {}", b.warning);
+        if let Some(b) = &self.bad_rows {
+            let _ = writeln!(s, "warning: {b}");
         }
         if !self.ignored_columns.is_empty() {
             s = format!("ignored columns: {}\n{s}", self.ignored_columns.join(", "));
@@ -259,7 +252,7 @@ impl Calibrated<'_> {
     /// The fit's warnings ([`Fit::warnings`]) and the data's bad rows, for stderr.
     pub fn warnings(&self) -> Vec<String> {
         let mut w = self.fit.warnings();
-        w.extend(self.bad_rows.iter().map(|b| b.warning.clone()));
+        w.extend(self.bad_rows.clone());
         w
     }
 

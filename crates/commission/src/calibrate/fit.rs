@@ -48,17 +48,6 @@ pub const KELVIN_LIKE_DEGC: f64 = 200.0;
 /// most likely `err_um` in millimetres (a factor 1000 too small).
 pub const MIN_ERR_SPAN_UM: f64 = 1.0;
 
-/// A row whose residual is more than this many times the typical residual
-/// ([`Fit::outliers`]) is a bad reading, not the model's misfit: a -999 or
-/// a 0 written for a missing value, a sensor that dropped out. One such row pulls
-/// every coefficient (a single err_um of -999 among 4000 rows turned a 2 um fit into
-/// 16 um). Thermal misfits and noise stay within a few times the typical residual.
-pub const OUTLIER_FACTOR: f64 = 10.0;
-
-/// A row counts as an outlier only this far off the fit at least, um: below an
-/// interferometer's noise a factor means nothing.
-pub const OUTLIER_MIN_UM: f64 = 1.0;
-
 /// A fit with a larger |tan(beta) coefficient| is not written without
 /// `--accept-weak-fit`.
 pub use compgate_core::comp::{MAX_TAN_BETA_PER_K, STEEL_EXPANSION_PER_K};
@@ -239,13 +228,6 @@ impl Fit {
             ));
         }
         d
-    }
-
-    /// Rows (0-based) whose residual is more than [`OUTLIER_FACTOR`] times the typical
-    /// residual ([`crate::stats::far_off`]) and at least [`OUTLIER_MIN_UM`], farthest
-    /// first, and the typical residual, um.
-    pub fn outliers(&self) -> (Vec<usize>, f64) {
-        crate::stats::far_off(&self.residuals_um, OUTLIER_FACTOR, OUTLIER_MIN_UM)
     }
 
     /// Sensors that never read below [`KELVIN_LIKE_DEGC`].

@@ -5,6 +5,7 @@
 //! The model's channels are the CSV's temperature columns without `T_`: name the
 //! gateway's channels alike (or rename them in the written file).
 
+pub mod bad;
 mod command;
 pub mod fit;
 mod model;
@@ -14,6 +15,7 @@ use compgate_core::measure::{MeasureError, Measurements};
 use thiserror::Error;
 
 use crate::plot::PlotError;
+pub use bad::{bad_readings, BadReadings};
 pub use command::{run, CalibrateArgs, Calibrated};
 pub use fit::{Fit, FitError};
 pub use model::{

@@ -97,8 +97,8 @@ pub fn render_curves(m: &Measurements, f: &Fit) -> Result<String, plot::DrawErro
         for (k, r) in chosen.iter().enumerate() {
             let color = plot::Palette99::pick(k).to_rgba();
             let temps: Vec<f64> = cols.iter().map(|c| stats::mean(&c[r.clone()])).collect();
-            // A sweep of a continuous capture can hold all the rows.
-            let mut pts: Vec<(f64, f64)> = plot::thin(r.len(), 1000)
+            // A continuous capture's sweeps hold every row: about 1000 dots in all.
+            let mut pts: Vec<(f64, f64)> = plot::thin(r.len(), (1000 / chosen.len()).max(50))
                 .into_iter()
                 .map(|k| (m.pos_mm[r.start + k], m.err_um[r.start + k]))
                 .collect();

@@ -135,43 +135,24 @@ pub fn noise_level_um(rms_um: f64, rho: f64) -> f64 {
     rms_um * (1.0 - rho).max(0.0).sqrt()
 }
 
-/// The rows that look like bad readings, told by time: temperature jumps
-/// ([`Measurements::temperature_jumps`]) and rows far off the baseline, as calibrate
-/// refuses them ([`crate::calibrate::fit::OUTLIER_FACTOR`]).
-fn bad_readings(m: &Measurements, r0: &[f64]) -> Option<String> {
-    use crate::calibrate::fit::{OUTLIER_FACTOR, OUTLIER_MIN_UM};
-    let mut bad = Vec::new();
-    let jumps = m.temperature_jumps();
-    if let Some(j) = jumps.first() {
-        bad.push(format!(
-            "{} of more than {} K within {} s, the first of T_{} by {:+.2} K at t_s {} s",
-            if jumps.len() == 1 {
-                "1 temperature jump".to_string()
-            } else {
-                format!("{} temperature jumps", jumps.len())
-            },
-            compgate_core::measure::TEMP_JUMP_K,
-            compgate_core::measure::TEMP_JUMP_WITHIN_S,
-            j.sensor,
-            j.delta_k,
-            m.t_s[j.row]
-        ));
+/// The bad readings that move the baseline fit, told by time, as calibrate refuses
+/// them ([`crate::calibrate::bad_readings`]); `None` where there are none, they do not
+/// move it, or the baseline cannot be fitted as calibrate fits it.
+fn bad_readings(m: &Measurements, sensors: &[String]) -> Option<String> {
+    let f = crate::calibrate::calibrate(m, sensors, None).ok()?;
+    let bad = crate::calibrate::bad_readings(m, sensors, &f);
+    if !bad.pull() {
+        return None;
     }
-    let (far, typical_um) = crate::stats::far_off(r0, OUTLIER_FACTOR, OUTLIER_MIN_UM);
-    if let Some(&i) = far.first() {
-        bad.push(format!(
-            "{} more than {OUTLIER_FACTOR} times the typical residual ({typical_um:.3} um) off \
-             the baseline, the farthest at t_s {} s with err_um {}",
-            if far.len() == 1 {
-                "1 row".to_string()
-            } else {
-                format!("{} rows", far.len())
-            },
-            m.t_s[i],
-            m.err_um[i]
-        ));
-    }
-    (!bad.is_empty()).then(|| bad.join("; "))
+    let n = bad.rows().len();
+    let first = bad.rows()[0];
+    Some(format!(
+        "{n} {} (a sensor that dropped out, a 0 or a -999 written for a missing value), the \
+         first at t_s {} s; left out, they move the baseline by up to {:.3} um",
+        if n == 1 { "row" } else { "rows" },
+        m.t_s[first],
+        bad.pull_um
+    ))
 }
 
 /// What to do about a candidate whose searched parameter sits at an edge of its
@@ -187,8 +168,11 @@ fn edge_advice(c: &CandidateReport) -> &'static str {
             "a time constant as long as the run is a drift over the run or an effect slower \
              than the run shows; a run several time constants long tells them apart"
         }
+        // Rows closer in time made such a lag pass on null data with 0.1 K sensors:
+        // it smooths the sensors' steps.
         (Some("tau_s"), false) => {
-            "a time constant as short as the rows resolve; rows closer in time tell"
+            "a time constant as short as the rows resolve: more likely the sensors' own lag, \
+             filtering or resolution than the machine's, and of no use to a compensation"
         }
         (Some("period_mm"), true) => {
             "a period as long as the travel measured is a curve; a longer travel tells"
@@ -861,10 +845,11 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
     };
     // A bad reading pulls the baseline and every candidate: a single err_um of -999
     // made a lag that was there read as noise. Named first, by time.
-    let verdict = match bad_readings(m, &r0) {
+    let sensors: Vec<String> = d.sensors.iter().map(|&s| d.names[s].clone()).collect();
+    let verdict = match bad_readings(m, &sensors) {
         Some(bad) => format!(
-            "the data hold rows that look like bad readings ({bad}); fix or remove them and \
-             diagnose again; on them: {verdict}"
+            "the data hold bad readings: {bad}; fix or remove them and diagnose again; what \
+             follows is on them: {verdict}"
         ),
         None => verdict,
     };
