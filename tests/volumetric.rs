@@ -492,7 +492,7 @@ fn per_pose_csv_agrees_with_an_independent_kinematic_model_and_meets_the_target(
     let mut worst_diff = 0.0f64;
     for line in lines {
         let f: Vec<f64> = line.split(',').map(|c| c.parse().unwrap()).collect();
-        assert_eq!(f.len(), 17, "{line}");
+        assert_eq!(f.len(), 18, "{line}");
         let u = [f[0], f[1], f[2], f[3], f[4]];
         let q = [f[5], f[6], f[7], f[8], f[9]];
         let (tip, orient, unc_tip, unc_orient) = (f[11], f[12], f[13], f[14]);

@@ -32,7 +32,8 @@ pub struct VolumetricArgs {
     /// Error parameter file (format: `compgate-volumetric-errors 1`).
     #[arg(long, value_name = "FILE")]
     pub errors: PathBuf,
-    /// Evaluation grid: a count of points per axis over its travel (e.g. `4`), or
+    /// Evaluation grid: a count of points per axis over its travel (e.g. `4`, at least
+    /// 2), or
     /// per-axis ranges `X=0:1000:5,A=-90:90:4` (start:end:count, a count of 1 with
     /// start = end; axes not named get 3 points over their travel). At most 2000000 poses (the product of the five
     /// counts, e.g. `--grid 18`): larger grids are refused.
@@ -121,6 +122,14 @@ fn parse_grid_axes(spec: &str, travel: &[(f64, f64); 5]) -> Result<[Vec<f64>; 5]
     let spec = spec.trim();
     if !spec.contains('=') {
         let n = count(spec)?;
+        if n == 1 {
+            // The middle of every travel: a pose nobody asked for.
+            return Err(VolumetricError::Grid(
+                "--grid 1: one point per axis would be the middle of every travel; give the \
+                 pose as ranges (e.g. X=500:500:1,Y=400:400:1,Z=300:300:1,A=0:0:1,C=0:0:1)"
+                    .into(),
+            ));
+        }
         return Ok(std::array::from_fn(|i| lin(travel[i].0, travel[i].1, n)));
     }
     let mut out: [Option<Vec<f64>>; 5] = Default::default();
@@ -249,10 +258,11 @@ pub fn run(args: &VolumetricArgs) -> Result<Evaluated, VolumetricError> {
     if !missing.is_empty() {
         let _ = writeln!(
             s,
-            "{}: no table for {}: its component errors are taken as zero (write a table of \
+            "{}: no table for {}: {} component errors are taken as zero (write a table of \
              zeros over the travel to say so)",
             args.errors.display(),
-            missing.join(", ")
+            missing.join(", "),
+            if missing.len() == 1 { "its" } else { "their" }
         );
     }
     s.push_str(&report(&ev));

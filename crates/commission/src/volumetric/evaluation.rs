@@ -47,9 +47,10 @@ pub struct Evaluation {
     pub pole_fallbacks: usize,
     /// Band poses whose nominal tool axis no C reaches (least error taken).
     pub pole_unreachable: usize,
-    /// Band poses that are there only because the drive loop would take C more than
-    /// [`super::TRAVEL_MARGIN_DEG`] past its travel ([`super::PoleSolve::c_past_travel`]).
-    pub pole_c_past_travel: usize,
+    /// Per pose: solved at the pole only because the drive loop would take C more
+    /// than [`super::TRAVEL_MARGIN_DEG`] past its travel
+    /// ([`super::PoleSolve::c_past_travel`]); such a pose is `singular` too.
+    pub c_past_travel: Vec<bool>,
     /// Per axis: the poses whose drive position lies beyond the travel, and the
     /// largest excess (mm, deg), which the NC's software limits must leave.
     pub past_travel: [(usize, f64); 5],
@@ -267,6 +268,12 @@ impl Evaluation {
         a
     }
 
+    /// Poses solved at the pole because C would leave its travel
+    /// ([`Evaluation::c_past_travel`]).
+    pub fn pole_c_past_travel(&self) -> usize {
+        self.c_past_travel.iter().filter(|c| **c).count()
+    }
+
     /// Poses within the A = 0 band: their count and (uncompensated, compensated)
     /// statistics.
     pub fn singular_stats(&self) -> (usize, Stats, Stats) {
@@ -320,7 +327,7 @@ pub fn evaluate_pole(
                         ev.poses.push(u);
                         let band = ps.solve.band || ps.newton_iterations > 0 || ps.fallback;
                         ev.singular.push(band);
-                        ev.pole_c_past_travel += usize::from(band && ps.c_past_travel);
+                        ev.c_past_travel.push(band && ps.c_past_travel);
                         for (k, (n, most)) in ev.past_travel.iter_mut().enumerate() {
                             let (lo, hi) = model.travel[k];
                             let excess = (lo - s.drive[k]).max(s.drive[k] - hi);

@@ -34,6 +34,12 @@ fn number(line: usize, field: &str, token: Option<&str>) -> Result<f64, Volumetr
             " (a decimal comma? compgate reads numbers with a decimal point)"
         } else if t.contains(';') {
             " (fields are separated by spaces, not semicolons)"
+        } else if t
+            .trim_end_matches(|c: char| c.is_ascii_alphabetic() || "\"'°".contains(c))
+            .parse::<f64>()
+            .is_ok()
+        {
+            UNITS_FIXED
         } else {
             ""
         };
@@ -53,6 +59,10 @@ fn number(line: usize, field: &str, token: Option<&str>) -> Result<f64, Volumetr
     }
     Ok(v)
 }
+
+/// The hint for a unit written in the file.
+const UNITS_FIXED: &str = " (the units are fixed: um, arc-seconds, mm for X, Y, Z and deg \
+                           for A, C; write names and numbers only)";
 
 /// The keywords that start a line outside a table.
 const KEYWORDS: [&str; 6] = [
@@ -82,10 +92,7 @@ fn no_more<'a>(
         Some(t) if t.starts_with(|c: char| c.is_ascii_alphabetic()) => Err(err(
             line,
             "end of line",
-            format!(
-                "unexpected {t:?} (the units are fixed: um, arc-seconds, mm for X, Y, Z and \
-                 deg for A, C; write numbers only)"
-            ),
+            format!("unexpected {t:?}{UNITS_FIXED}"),
         )),
         Some(t) => Err(err(line, "end of line", format!("unexpected {t:?}"))),
         None => Ok(()),
@@ -246,11 +253,16 @@ pub fn parse(text: &str) -> Result<ErrorModel, VolumetricError> {
                     match t.next() {
                         Some(got) if got == *want => {}
                         Some(got) => {
+                            let hint = if got.starts_with(want) {
+                                UNITS_FIXED
+                            } else {
+                                ""
+                            };
                             return Err(err(
                                 n,
                                 &format!("column {}", c + 2),
-                                format!("expected {want}, found {got:?}"),
-                            ))
+                                format!("expected {want}, found {got:?}{hint}"),
+                            ));
                         }
                         None => {
                             return Err(err(

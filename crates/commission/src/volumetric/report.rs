@@ -24,7 +24,7 @@ pub fn report(ev: &Evaluation) -> String {
     let (n_sing, su, sc) = ev.singular_stats();
     // Why poses are solved at the pole: the band as `--pole`'s help states it, and
     // poses whose C would leave its travel (they are not in that band).
-    let n_travel = ev.pole_c_past_travel;
+    let n_travel = ev.pole_c_past_travel();
     let why = [
         (
             n_sing - n_travel,
@@ -51,7 +51,7 @@ pub fn report(ev: &Evaluation) -> String {
         ev.poses.len(),
         if n_sing > 0 {
             format!(
-                " ({n_sing} of them at the A = 0 pole: {}; also below)",
+                " ({n_sing} of them near the A = 0 pole: {}; also below)",
                 why.join(", ")
             )
         } else {
@@ -185,10 +185,19 @@ pub fn report(ev: &Evaluation) -> String {
         } else {
             String::new()
         };
+        let kinds = if n_travel > 0 {
+            format!(
+                ": {} in the band, {n_travel} where C would leave its travel",
+                n_sing - n_travel
+            )
+        } else {
+            String::new()
+        };
         if ev.pole.mode == PoleMode::Swing {
             let _ = writeln!(
                 s,
-                "A = 0 band ({n_sing} poses, pole mode swing, C within {} deg of the command \
+                "near the A = 0 pole ({n_sing} poses{kinds}, pole mode swing, C within {} deg of \
+                 the command \
                  and its travel): tip max {:.4} -> {:.6} um ({:.4} %)",
                 ev.pole.max_c_swing_deg,
                 su.max_tip_um,
@@ -228,7 +237,7 @@ pub fn report(ev: &Evaluation) -> String {
         } else {
             let _ = writeln!(
                 s,
-                "A = 0 band ({n_sing} poses, pole mode hold, C not corrected): tip max {:.4} -> {:.6} um, \
+                "near the A = 0 pole ({n_sing} poses, pole mode hold, C not corrected): tip max {:.4} -> {:.6} um, \
                  orientation max {:.4} -> {:.4}\" (the part about the A plane's normal needs \
                  a C move)",
                 su.max_tip_um, sc.max_tip_um, su.max_orient_arcsec, sc.max_orient_arcsec
@@ -245,10 +254,12 @@ pub fn report(ev: &Evaluation) -> String {
 
 /// The per-pose CSV's header: the commanded pose, the drive positions it settles at,
 /// the iterations, the compensated (residual) and uncompensated tip and orientation
-/// errors, whether the pose is in the pole band, and the floor there.
+/// errors, whether the pose was solved at the pole, the floor there, and whether it
+/// was so because C would leave its travel.
 pub const POSES_CSV_HEADER: &str = "x_mm,y_mm,z_mm,a_deg,c_deg,\
 drive_x_mm,drive_y_mm,drive_z_mm,drive_a_deg,drive_c_deg,iterations,\
-tip_um,orient_arcsec,uncomp_tip_um,uncomp_orient_arcsec,pole_band,floor_arcsec";
+tip_um,orient_arcsec,uncomp_tip_um,uncomp_orient_arcsec,pole_band,floor_arcsec,\
+c_past_travel";
 
 /// Writes one row per grid pose ([`POSES_CSV_HEADER`]), every number in full
 /// precision (shortest round-trip form), so that the result can be checked by an
@@ -262,7 +273,7 @@ pub fn write_poses_csv(path: &Path, ev: &Evaluation) -> Result<(), VolumetricErr
         let (comp, unc) = (ev.compensated[i], ev.uncompensated[i]);
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             u[0],
             u[1],
             u[2],
@@ -279,7 +290,8 @@ pub fn write_poses_csv(path: &Path, ev: &Evaluation) -> Result<(), VolumetricErr
             unc.0,
             unc.1,
             u8::from(ev.singular[i]),
-            ev.floor_arcsec(i)
+            ev.floor_arcsec(i),
+            u8::from(ev.c_past_travel[i])
         );
     }
     compgate_core::outputs::write(path, s)

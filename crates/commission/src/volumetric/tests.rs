@@ -213,6 +213,10 @@ fn grid_spec() {
     let g = parse_grid("A=-0.5:-0.1:5,X=500:500:1", &t).expect("grid");
     assert_eq!(g[3], vec![-0.5, -0.4, -0.3, -0.2, -0.1]);
     assert_eq!(g[0], vec![500.0]);
+    assert!(parse_grid("1", &t)
+        .unwrap_err()
+        .to_string()
+        .starts_with("grid: --grid 1: one point per axis would be the middle of every travel"));
     let e = parse_grid("X=0:1000:1", &t).unwrap_err().to_string();
     assert_eq!(
         e,
@@ -268,7 +272,7 @@ fn a_zero_band_is_reported_apart() {
     let (cu, cc) = (ev.uncompensated_stats(), ev.compensated_stats());
     assert!(cc.max_orient_arcsec <= 0.01 * cu.max_orient_arcsec);
     assert!(
-        report(&ev).contains("A = 0 band (81 poses"),
+        report(&ev).contains("near the A = 0 pole (81 poses, pole mode"),
         "{}",
         report(&ev)
     );
@@ -1020,11 +1024,11 @@ fn poses_whose_c_would_leave_its_travel_are_named_apart_from_the_band() {
     ];
     let ev = evaluate_pole(&comp, &grid, &Pole::default());
     assert_eq!(ev.singular, [true, false]);
-    assert_eq!(ev.pole_c_past_travel, 1);
+    assert_eq!(ev.c_past_travel, [true, false]);
     let r = report(&ev);
     let first = r.lines().next().expect("report");
     assert!(
-        first.contains("1 of them at the A = 0 pole: 1 where the drive loop would take C more than 1 deg past its travel;"),
+        first.contains("1 of them near the A = 0 pole: 1 where the drive loop would take C more than 1 deg past its travel;"),
         "{r}"
     );
     assert!(!first.contains("where step 1 would move C"), "{r}");
@@ -1132,6 +1136,14 @@ fn file_mistakes_say_what_the_format_wants() {
         (
             format!("{head}table A EXA EYA EZA EAA EBA ECA\n0;1;2;3;4;5;6\n"),
             "(fields are separated by spaces, not semicolons)",
+        ),
+        (
+            format!("{head}squareness EC0Y 6.0\"\n"),
+            "line 2, EC0Y: not a number: \"6.0\\\"\" (the units are fixed",
+        ),
+        (
+            format!("{head}table A EXA[um] EYA EZA EAA EBA ECA\n"),
+            "line 2, column 2: expected EXA, found \"EXA[um]\" (the units are fixed",
         ),
     ] {
         let e = parse(&text).expect_err(&text).to_string();

@@ -127,7 +127,9 @@ pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
                     format!(
                         "the model was fitted over {min}..{max} degC, but channel `{channel}` \
                          takes only {lo}..{hi} degC as valid: it never meets the temperatures it \
-                         was fitted over (a measurement CSV in kelvin?); fit it again from degC"
+                         was fitted over; a measurement CSV in kelvin (fit the model again from \
+                         degC), or a valid range narrower than the machine's temperatures (widen \
+                         channels.{channel}.filter.valid_min_degc or valid_max_degc)"
                     ),
                 );
             }
