@@ -71,14 +71,23 @@ pub fn bad_readings(m: &Measurements, sensors: &[String], f: &Fit) -> BadReading
         .filter(|e| f.terms.iter().any(|t| t.name == e.sensor))
         .collect();
     let (far, typical_um) = crate::stats::far_off(&f.residuals_um, OUTLIER_FACTOR, OUTLIER_MIN_UM);
+    let mut sorted = far.clone();
+    sorted.sort_unstable();
     let far_off: Vec<usize> = far
         .iter()
         .copied()
         .filter(|&i| {
             // The run of far-off rows around i.
-            let is_far = |j: usize| far.contains(&j);
-            let before = (0..i).rev().take_while(|&j| is_far(j)).count();
-            let after = (i + 1..m.len()).take_while(|&j| is_far(j)).count();
+            let is_far = |j: usize| sorted.binary_search(&j).is_ok();
+            let before = (0..i)
+                .rev()
+                .take(ISOLATED_ROWS)
+                .take_while(|&j| is_far(j))
+                .count();
+            let after = (i + 1..m.len())
+                .take(ISOLATED_ROWS)
+                .take_while(|&j| is_far(j))
+                .count();
             before + 1 + after <= ISOLATED_ROWS
         })
         .collect();
