@@ -367,12 +367,20 @@ pub fn parse(text: &str) -> Result<ErrorModel, VolumetricError> {
             let (lo, hi) = tr[i];
             let (first, last) = (table.pos[0], table.pos[table.pos.len() - 1]);
             if first > lo || last < hi {
+                // A C table measured over 0..360 for a travel of -200..200 spans enough
+                // but is numbered otherwise.
+                let wrap = if i >= 3 && last - first >= hi - lo.max(hi - 360.0) {
+                    "; a rotary table is not wrapped: number its angles as the travel does \
+                     (rows beyond it shifted by 360 deg)"
+                } else {
+                    ""
+                };
                 return Err(err(
                     line,
                     AXES[i],
                     format!(
                         "table covers {first}..{last} but the travel (line {}) is {lo}..{hi}; \
-                         tables are not extrapolated",
+                         tables are not extrapolated{wrap}",
                         travel_line[i]
                     ),
                 ));

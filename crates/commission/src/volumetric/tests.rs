@@ -178,6 +178,15 @@ fn table_not_covering_travel_is_rejected() {
         + 1;
     assert_eq!((*line, field.as_str()), (table_line, "X"), "{message}");
     assert!(message.contains("not extrapolated"), "{message}");
+    assert!(!message.contains("wrapped"), "{message}");
+    // A C table numbered otherwise than the travel (0..360 for -200..200, say) gets
+    // the hint to renumber it; it said only "not extrapolated" (field review).
+    let text = EXAMPLE.replace("travel C -200 200", "travel C -100 300");
+    let e = parse(&text).expect_err("must reject").to_string();
+    assert!(
+        e.contains("; a rotary table is not wrapped: number its angles as the travel does"),
+        "{e}"
+    );
 }
 
 #[test]
