@@ -144,8 +144,8 @@ fn bad_readings(m: &Measurements, sensors: &[String]) -> Option<String> {
     if !bad.pull() {
         return None;
     }
-    let n = bad.rows().len();
-    let first = bad.rows()[0];
+    let rows = bad.rows();
+    let (n, first) = (rows.len(), rows[0]);
     Some(format!(
         "{n} {} (a sensor that dropped out, a 0 or a -999 written for a missing value), the \
          first at t_s {} s; left out, they move the baseline by up to {:.3} um",
