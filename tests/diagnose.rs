@@ -876,8 +876,8 @@ fn a_bad_reading_is_named_before_the_verdict() {
     m.err_um[40] = -999.0;
     let d = diagnose(&via_csv(&m), &opts()).expect("diagnose");
     let head = format!(
-        "the data hold bad readings: 1 row (a sensor that dropped out, a 0 or a -999 written \
-         for a missing value), the first at t_s {} s; left out, they move the baseline by up \
+        "the data hold bad readings: 1 row (a sensor that dropped out or froze, a 0 or a -999 \
+         written for a missing value), the first at t_s {} s; left out, they move the baseline by up \
          to ",
         m.t_s[40]
     );

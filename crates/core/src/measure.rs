@@ -502,6 +502,29 @@ pub const EXCURSION_TYPICAL_STEPS: f64 = 10.0;
 /// rows (a constant written for a missing reading).
 pub const EXCURSION_FLAT_K: f64 = 0.1;
 
+/// See [`Measurements::frozen_readings`], s: a live reading flickers in its last
+/// digit well within half an hour while another part of the machine warms.
+pub const FROZEN_MIN_S: f64 = 1800.0;
+/// See [`Measurements::frozen_readings`], K.
+pub const FROZEN_OTHERS_K: f64 = 2.0;
+/// See [`Measurements::frozen_readings`]: fewer rows than this say too little.
+const FROZEN_MIN_ROWS: usize = 10;
+
+/// A reading held at one value ([`Measurements::frozen_readings`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frozen {
+    /// Sensor name without `T_`.
+    pub sensor: String,
+    /// Its rows (0-based).
+    pub rows: std::ops::Range<usize>,
+    /// The value it holds, degC.
+    pub degc: f64,
+    /// The sensor that moved most meanwhile, without `T_`.
+    pub other: String,
+    /// How far that one moved meanwhile (its range), K.
+    pub other_moved_k: f64,
+}
+
 /// A temperature excursion ([`Measurements::temperature_excursions`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Excursion {
@@ -627,6 +650,57 @@ impl Measurements {
             }
         }
         found.sort_by_key(|e| e.rows.start);
+        found
+    }
+
+    /// Readings that hold exactly one value for [`FROZEN_MIN_S`] at least while another
+    /// sensor of the file moves by more than [`FROZEN_OTHERS_K`]: a frozen transmitter,
+    /// or a last value held for a sensor that went silent. A sensor at a steady level
+    /// still flickers in its last digit; one far from the heat may not, so these are
+    /// doubts to weigh, not faults.
+    pub fn frozen_readings(&self) -> Vec<Frozen> {
+        let mut found = Vec::new();
+        for c in &self.temps {
+            let v = &c.degc;
+            let mut start = 0;
+            while start < v.len() {
+                // At least one row: a NaN equals nothing, itself neither.
+                let end = start
+                    + v[start..]
+                        .iter()
+                        .take_while(|&&x| x == v[start])
+                        .count()
+                        .max(1);
+                let held = end - start >= FROZEN_MIN_ROWS
+                    && self.t_s[end - 1] - self.t_s[start] >= FROZEN_MIN_S;
+                if held {
+                    let moved = self
+                        .temps
+                        .iter()
+                        .filter(|o| o.name != c.name)
+                        .map(|o| {
+                            let (lo, hi) = o.degc[start..end]
+                                .iter()
+                                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &x| {
+                                    (lo.min(x), hi.max(x))
+                                });
+                            (o, hi - lo)
+                        })
+                        .max_by(|a, b| a.1.total_cmp(&b.1));
+                    if let Some((o, k)) = moved.filter(|(_, k)| *k > FROZEN_OTHERS_K) {
+                        found.push(Frozen {
+                            sensor: c.name.clone(),
+                            rows: start..end,
+                            degc: v[start],
+                            other: o.name.clone(),
+                            other_moved_k: k,
+                        });
+                    }
+                }
+                start = end;
+            }
+        }
+        found.sort_by_key(|f| f.rows.start);
         found
     }
 
@@ -1061,6 +1135,68 @@ mod tests {
             .map(|(i, v)| v + 0.03 * ((i * 7) % 5) as f64)
             .collect();
         assert!(series(coarse).temperature_excursions().is_empty());
+    }
+
+    /// A transmitter frozen at a plausible value went unnoticed (field review R5-D).
+    #[test]
+    fn a_reading_held_while_the_machine_warms_is_frozen() {
+        // Rows 120 s apart over 4 h; the screw warms 9 K, the column 2 K.
+        let n = 120;
+        let t_s: Vec<f64> = (0..n).map(|i| 120.0 * i as f64).collect();
+        let warm = |k: f64| -> Vec<f64> {
+            (0..n)
+                .map(|i| {
+                    20.0 + k * (1.0 - (-(i as f64) / 80.0).exp()) + 0.013 * ((i * 7) % 3) as f64
+                })
+                .collect()
+        };
+        let mut column = warm(2.5);
+        // Frozen from row 60 on (2 h).
+        let held = column[60];
+        column[60..].fill(held);
+        // The ambient, logged to 0.1 K, holds 20.0 for 20 min (too short) and then
+        // 20.1 while the screw warms: held as a frozen one is, which only the fit
+        // can weigh (`calibrate::bad_readings`).
+        let ambient: Vec<f64> = (0..n).map(|i| if i < 10 { 20.0 } else { 20.1 }).collect();
+        let m = Measurements {
+            t_s,
+            pos_mm: vec![0.0; n],
+            err_um: vec![0.0; n],
+            dir: vec![1; n],
+            travel_mm: vec![0.0; n],
+            temps: vec![
+                TempColumn {
+                    name: "column".into(),
+                    degc: column,
+                },
+                TempColumn {
+                    name: "screw".into(),
+                    degc: warm(12.0),
+                },
+                TempColumn {
+                    name: "ambient".into(),
+                    degc: ambient,
+                },
+            ],
+            ignored_columns: Vec::new(),
+        };
+        let f = m.frozen_readings();
+        assert_eq!(f.len(), 2, "{f:?}");
+        assert_eq!(
+            (f[0].sensor.as_str(), f[0].rows.clone()),
+            ("ambient", 10..n)
+        );
+        assert_eq!(
+            (f[1].sensor.as_str(), f[1].rows.clone(), f[1].degc),
+            ("column", 60..n, held)
+        );
+        assert_eq!(f[1].other, "screw");
+        assert!(f[1].other_moved_k > FROZEN_OTHERS_K, "{f:?}");
+        // A live reading, flickering in its last digit, is not frozen.
+        let mut live = m.clone();
+        live.temps.truncate(2);
+        live.temps[0].degc = warm(2.5);
+        assert!(live.frozen_readings().is_empty());
     }
 
     /// Temperatures logged at another rate (empty cells), a quoted decimal comma,

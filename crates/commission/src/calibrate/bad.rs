@@ -2,7 +2,7 @@
 //! fit (pure, no I/O). `calibrate` names them by line and refuses a model they move;
 //! `diagnose` names them before its verdict.
 
-use compgate_core::measure::{Excursion, Measurements};
+use compgate_core::measure::{Excursion, Frozen, Measurements};
 
 use super::{calibrate, Fit};
 
@@ -29,6 +29,10 @@ pub struct BadReadings {
     /// Temperature excursions of the fit's sensors
     /// ([`Measurements::temperature_excursions`]).
     pub excursions: Vec<Excursion>,
+    /// Readings of the fit's sensors held at one value
+    /// ([`Measurements::frozen_readings`]), only where leaving them out moves the fit:
+    /// a sensor far from the heat, logged coarsely, holds its value too.
+    pub frozen: Vec<Frozen>,
     /// Rows far off the fit, alone or in pairs, farthest first.
     pub far_off: Vec<usize>,
     /// The typical residual, um ([`crate::stats::far_off`]).
@@ -41,20 +45,18 @@ pub struct BadReadings {
 impl BadReadings {
     /// Nothing looks bad.
     pub fn is_empty(&self) -> bool {
-        self.excursions.is_empty() && self.far_off.is_empty()
+        self.excursions.is_empty() && self.frozen.is_empty() && self.far_off.is_empty()
     }
 
     /// Every row named, in row order.
     pub fn rows(&self) -> Vec<usize> {
-        let mut rows: Vec<usize> = self
-            .excursions
-            .iter()
-            .flat_map(|e| e.rows.clone())
-            .chain(self.far_off.iter().copied())
-            .collect();
-        rows.sort_unstable();
-        rows.dedup();
-        rows
+        ascending(
+            self.excursions
+                .iter()
+                .flat_map(|e| e.rows.clone())
+                .chain(self.frozen.iter().flat_map(|f| f.rows.clone()))
+                .chain(self.far_off.iter().copied()),
+        )
     }
 
     /// They move the fit ([`PULL_MIN_UM`]): the model is not to be used as it is.
@@ -91,8 +93,20 @@ pub fn bad_readings(m: &Measurements, sensors: &[String], f: &Fit) -> BadReading
             before + 1 + after <= ISOLATED_ROWS
         })
         .collect();
+    let mut frozen: Vec<Frozen> = m
+        .frozen_readings()
+        .into_iter()
+        .filter(|z| f.terms.iter().any(|t| t.name == z.sensor))
+        .collect();
+    if !frozen.is_empty() {
+        let rows = ascending(frozen.iter().flat_map(|z| z.rows.clone()));
+        if pull_um(m, sensors, f, &rows) <= PULL_MIN_UM.max(typical_um) {
+            frozen.clear();
+        }
+    }
     let mut bad = BadReadings {
         excursions,
+        frozen,
         far_off,
         typical_um,
         pull_um: 0.0,
@@ -101,6 +115,14 @@ pub fn bad_readings(m: &Measurements, sensors: &[String], f: &Fit) -> BadReading
         bad.pull_um = pull_um(m, sensors, f, &bad.rows());
     }
     bad
+}
+
+/// Row indices, ascending, each once.
+fn ascending(rows: impl Iterator<Item = usize>) -> Vec<usize> {
+    let mut rows: Vec<usize> = rows.collect();
+    rows.sort_unstable();
+    rows.dedup();
+    rows
 }
 
 /// How far the fitted error moves when `rows` are left out, um.

@@ -112,6 +112,23 @@ fn bad_rows_warning(
             bad.excursions.len() - SHOWN_ROWS
         ));
     }
+    parts.extend(bad.frozen.iter().take(SHOWN_ROWS).map(|z| {
+        format!(
+            "T_{} holds {} degC exactly on {} ({:.1} h) while T_{} moves {:.1} K",
+            z.sensor,
+            z.degc,
+            lines_of(lines, &z.rows),
+            (m.t_s[z.rows.end - 1] - m.t_s[z.rows.start]) / 3600.0,
+            z.other,
+            z.other_moved_k
+        )
+    }));
+    if bad.frozen.len() > SHOWN_ROWS {
+        parts.push(format!(
+            "{} more held readings",
+            bad.frozen.len() - SHOWN_ROWS
+        ));
+    }
     parts.extend(bad.far_off.iter().take(SHOWN_ROWS).map(|&i| {
         let temps: String = f
             .terms
@@ -136,10 +153,13 @@ fn bad_rows_warning(
     let n = bad.rows().len();
     let what = format!(
         "{n} {} like bad readings (a temperature that leaves its level by more than {} K \
-         and comes back, a row more than {} times the typical residual ({:.3} um) off the \
-         fit, alone or in a pair): {}",
+         and comes back, or holds one value for {} min or more while another moves more than {} K \
+         and leaving it out moves the fit, a row more than {} times the typical residual \
+         ({:.3} um) off the fit, alone or in a pair): {}",
         if n == 1 { "row looks" } else { "rows look" },
         compgate_core::measure::EXCURSION_K,
+        compgate_core::measure::FROZEN_MIN_S / 60.0,
+        compgate_core::measure::FROZEN_OTHERS_K,
         super::bad::OUTLIER_FACTOR,
         bad.typical_um,
         parts.join("; ")
@@ -148,8 +168,8 @@ fn bad_rows_warning(
         (
             format!(
                 "{what}; left out, they move the fitted error by up to {:.3} um: a sensor \
-                 that dropped out, a 0 or a -999 written for a missing value; fix or remove \
-                 those rows and fit again",
+                 that dropped out or froze, a 0 or a -999 written for a missing value; fix \
+                 or remove those rows and fit again",
                 bad.pull_um
             ),
             Some(format!(

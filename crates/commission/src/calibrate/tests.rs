@@ -769,3 +769,56 @@ fn regular_rows_are_split_into_hour_long_sweeps() {
         .collect();
     assert_eq!(sweeps(&t_s).len(), 10);
 }
+
+/// A transmitter frozen at a plausible value for the run's last 10 hours was fitted
+/// without a word (field review R5-D): the fit gave the screw the column's part. It
+/// is named by its lines and the model is not written; a sensor that holds its value
+/// without moving the fit is not named.
+#[test]
+fn a_frozen_sensor_that_moves_the_fit_is_named_and_keeps_the_model_from_being_written() {
+    let (clean, _) = commissioning(ThermalParams::default(), 2);
+    let dir = tempfile::tempdir().unwrap();
+    let mut m = clean.clone();
+    let from = m.t_s.iter().position(|&t| t >= 14.0 * 3600.0).unwrap();
+    let col = m.temps.iter_mut().find(|c| c.name == "column").unwrap();
+    let held = col.degc[from];
+    col.degc[from..].fill(held);
+    let args = column_and_screw(dir.path(), &m, "frozen.csv");
+    let calibrated = run(&args).unwrap();
+    let w = calibrated.warnings().join("\n");
+    let named = format!(
+        "T_column holds {held} degC exactly on lines {}-{} (",
+        from + 2,
+        m.len() + 1
+    );
+    assert!(w.contains(&named), "{w}");
+    let e = calibrate_error(&calibrated);
+    assert!(e.contains("bad readings move the fitted error"), "{e}");
+
+    // The same hold on a sensor the fit does not read is not named.
+    let mut args = column_and_screw(dir.path(), &m, "frozen_other.csv");
+    args.sensors = names(&["screw", "motor"]);
+    let calibrated = run(&args).unwrap();
+    assert!(
+        !calibrated.warnings().join("\n").contains("holds"),
+        "{:?}",
+        calibrated.warnings()
+    );
+
+    // A column logged to 0.5 K holds each value for hours while the screw warms,
+    // which leaving out does not change: not named, the model written.
+    let mut m = clean.clone();
+    let col = m.temps.iter_mut().find(|c| c.name == "column").unwrap();
+    col.degc
+        .iter_mut()
+        .for_each(|v| *v = (*v * 2.0).round() / 2.0);
+    assert!(!m.frozen_readings().is_empty());
+    let args = column_and_screw(dir.path(), &m, "coarse.csv");
+    let calibrated = run(&args).unwrap();
+    assert!(
+        calibrated.warnings().is_empty(),
+        "{:?}",
+        calibrated.warnings()
+    );
+    calibrated.write().unwrap();
+}

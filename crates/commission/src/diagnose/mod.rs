@@ -147,7 +147,8 @@ fn bad_readings(m: &Measurements, sensors: &[String]) -> Option<String> {
     let rows = bad.rows();
     let (n, first) = (rows.len(), rows[0]);
     Some(format!(
-        "{n} {} (a sensor that dropped out, a 0 or a -999 written for a missing value), the \
+        "{n} {} (a sensor that dropped out or froze, a 0 or a -999 written for a missing \
+         value), the \
          first at t_s {} s; left out, they move the baseline by up to {:.3} um",
         if n == 1 { "row" } else { "rows" },
         m.t_s[first],
