@@ -1151,7 +1151,7 @@ pub async fn run_with(
     let extra =
         Effects::from_names(&args.effects).map_err(|e| ScenarioError::Effects(e.to_string()))?;
     let effects = merge(effects, extra);
-    std::fs::create_dir_all(&args.out).map_err(|e| io_err(&args.out, e))?;
+    compgate_core::outputs::make_dir("--out", &args.out)?;
     let outputs: Vec<PathBuf> = output_names(args)
         .into_iter()
         .map(|f| args.out.join(f))

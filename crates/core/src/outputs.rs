@@ -44,6 +44,40 @@ pub enum OutputError {
         /// The output, as given.
         output: String,
     },
+    /// An output directory's path names something else (a file).
+    #[error("{flag} {dir}: is a file; {flag} takes a directory, made if it does not exist")]
+    NotADirectory {
+        /// The flag that names it.
+        flag: &'static str,
+        /// The path, as given.
+        dir: String,
+    },
+    /// An output directory could not be made.
+    #[error("{flag} {dir}: cannot make the directory: {message}")]
+    MakeDirectory {
+        /// The flag that names it.
+        flag: &'static str,
+        /// The path, as given.
+        dir: String,
+        /// The system's reason.
+        message: String,
+    },
+}
+
+/// Makes the output directory `dir` that `flag` names, with its parents; a file
+/// there is named as such (the system says only "File exists").
+pub fn make_dir(flag: &'static str, dir: &Path) -> Result<(), OutputError> {
+    if dir.exists() && !dir.is_dir() {
+        return Err(OutputError::NotADirectory {
+            flag,
+            dir: dir.display().to_string(),
+        });
+    }
+    std::fs::create_dir_all(dir).map_err(|e| OutputError::MakeDirectory {
+        flag,
+        dir: dir.display().to_string(),
+        message: e.to_string(),
+    })
 }
 
 /// Same file: same device and inode, so links and `./` spellings are caught. A path
@@ -253,6 +287,31 @@ mod tests {
         assert!(e.to_string().contains("does not exist"), "{e}");
         // A bare file name lives in the working directory, which exists.
         assert_eq!(check(&[], &[Path::new("report.csv")]), Ok(()));
+    }
+
+    /// `--out report.toml`, a file, got the system's "File exists (os error 17)".
+    #[test]
+    fn an_output_directory_that_is_a_file_is_named_as_such() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("model.toml");
+        std::fs::write(&file, "x").unwrap();
+        let e = make_dir("--out", &file).unwrap_err().to_string();
+        assert_eq!(
+            e,
+            format!(
+                "--out {}: is a file; --out takes a directory, made if it does not exist",
+                file.display()
+            )
+        );
+        assert_eq!(std::fs::read_to_string(&file).unwrap(), "x");
+        let e = make_dir("--out", &file.join("sub"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("cannot make the directory"), "{e}");
+        let sub = dir.path().join("a/b");
+        make_dir("--out", &sub).unwrap();
+        make_dir("--out", &sub).unwrap();
+        assert!(sub.is_dir());
     }
 
     #[test]

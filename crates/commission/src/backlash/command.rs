@@ -490,8 +490,7 @@ fn prepare_out(args: &BacklashArgs, inputs: &[&std::path::Path]) -> Result<(), B
     let (Some(dir), Some((svg, csv))) = (&args.out, out_files(args)) else {
         return Ok(());
     };
-    std::fs::create_dir_all(dir)
-        .map_err(|e| BacklashError::Io(format!("{}: {e}", dir.display())))?;
+    compgate_core::outputs::make_dir("--out", dir)?;
     Ok(compgate_core::outputs::check(inputs, &[&svg, &csv])?)
 }
 

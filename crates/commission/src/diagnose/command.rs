@@ -55,10 +55,7 @@ pub fn run(args: &DiagnoseArgs) -> Result<Diagnosed<'_>, DiagnoseError> {
         .transpose()?;
     let mut outputs: Vec<PathBuf> = args.json.iter().cloned().collect();
     if let Some(dir) = &args.out {
-        std::fs::create_dir_all(dir).map_err(|source| DiagnoseError::Io {
-            path: dir.display().to_string(),
-            source,
-        })?;
+        compgate_core::outputs::make_dir("--out", dir)?;
         outputs.extend(output::OUT_FILES.iter().map(|f| dir.join(f)));
     }
     let mut inputs = vec![args.data.as_path()];

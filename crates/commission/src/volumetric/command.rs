@@ -219,8 +219,7 @@ pub fn run(args: &VolumetricArgs) -> Result<Evaluated, VolumetricError> {
     crate::args::check_f64("--max-c-swing", args.max_c_swing_deg, 0.0, 720.0, "deg")?;
     let mut outputs: Vec<PathBuf> = args.csv.iter().cloned().collect();
     if let Some(dir) = &args.out {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| VolumetricError::Io(format!("{}: {e}", dir.display())))?;
+        compgate_core::outputs::make_dir("--out", dir)?;
         outputs.extend(SVG_FILES.iter().map(|f| dir.join(f)));
     }
     compgate_core::outputs::check(
