@@ -872,6 +872,7 @@ fn a_bad_reading_is_named_before_the_verdict() {
         "{}",
         d.verdict
     );
+    let clean_rms_um = d.final_gap.rms_um;
     let mut m = clean.clone();
     m.err_um[40] = -999.0;
     let d = diagnose(&via_csv(&m), &opts()).expect("diagnose");
@@ -885,6 +886,24 @@ fn a_bad_reading_is_named_before_the_verdict() {
         d.verdict.starts_with(&head)
             && d.verdict
                 .contains(" um; fix or remove them and diagnose again; what follows is on them: "),
+        "{}",
+        d.verdict
+    );
+
+    // A glitch that moves nothing: the verdict stands, and says its RMS includes it
+    // (a -999 among 200000 rows made the final RMS 2.6 um for 0.5 without a word).
+    let mut m = clean.clone();
+    m.err_um[40] += 100.0 * clean_rms_um;
+    let d = diagnose(&via_csv(&m), &opts()).expect("diagnose");
+    let tail = format!(
+        "; 1 row looks like a bad reading (at t_s {} s) and, left out, moves the baseline by ",
+        m.t_s[40]
+    );
+    assert!(
+        d.verdict.starts_with("missing: thermal_lag")
+            && d.verdict.contains(&tail)
+            && d.verdict
+                .ends_with(" um at most: the verdict stands; the RMS and max figures include it"),
         "{}",
         d.verdict
     );

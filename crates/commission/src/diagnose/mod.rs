@@ -135,25 +135,40 @@ pub fn noise_level_um(rms_um: f64, rho: f64) -> f64 {
     rms_um * (1.0 - rho).max(0.0).sqrt()
 }
 
-/// The bad readings that move the baseline fit, told by time, as calibrate refuses
-/// them ([`crate::calibrate::bad_readings`]); `None` where there are none, they do not
-/// move it, or the baseline cannot be fitted as calibrate fits it.
-fn bad_readings(m: &Measurements, sensors: &[String]) -> Option<String> {
+/// The bad readings of the baseline fit, told by time, as calibrate finds them
+/// ([`crate::calibrate::bad_readings`]), and whether they move it; `None` where there
+/// are none or the baseline cannot be fitted as calibrate fits it.
+fn bad_readings(m: &Measurements, sensors: &[String]) -> Option<(String, bool)> {
     let f = crate::calibrate::calibrate(m, sensors, None).ok()?;
     let bad = crate::calibrate::bad_readings(m, sensors, &f);
-    if !bad.pull() {
-        return None;
-    }
     let rows = bad.rows();
-    let (n, first) = (rows.len(), rows[0]);
-    Some(format!(
-        "{n} {} (a sensor that dropped out or froze, a 0 or a -999 written for a missing \
-         value), the \
-         first at t_s {} s; left out, they move the baseline by up to {:.3} um",
-        if n == 1 { "row" } else { "rows" },
-        m.t_s[first],
-        bad.pull_um
-    ))
+    let (n, first) = (rows.len(), *rows.first()?);
+    let rows = if n == 1 { "row" } else { "rows" };
+    Some(if bad.pull() {
+        (
+            format!(
+                "{n} {rows} (a sensor that dropped out or froze, a 0 or a -999 written for a \
+                 missing value), the first at t_s {} s; left out, they move the baseline by up \
+                 to {:.3} um",
+                m.t_s[first], bad.pull_um
+            ),
+            true,
+        )
+    } else {
+        let (look, moves, them) = if n == 1 {
+            ("looks like a bad reading (at", "moves", "it")
+        } else {
+            ("look like bad readings (the first at", "move", "them")
+        };
+        (
+            format!(
+                "{n} {rows} {look} t_s {} s) and, left out, {moves} the baseline by {:.3} um \
+                 at most: the verdict stands; the RMS and max figures include {them}",
+                m.t_s[first], bad.pull_um
+            ),
+            false,
+        )
+    })
 }
 
 /// What to do about a candidate whose searched parameter sits at an edge of its
@@ -848,10 +863,12 @@ pub fn diagnose(m: &Measurements, opts: &Options) -> Result<Diagnosis, DiagnoseE
     // made a lag that was there read as noise. Named first, by time.
     let sensors: Vec<String> = d.sensors.iter().map(|&s| d.names[s].clone()).collect();
     let verdict = match bad_readings(m, &sensors) {
-        Some(bad) => format!(
+        Some((bad, true)) => format!(
             "the data hold bad readings: {bad}; fix or remove them and diagnose again; what \
              follows is on them: {verdict}"
         ),
+        // A single -999 that moves nothing still made the RMS 2.6 um for 0.5.
+        Some((bad, false)) => format!("{verdict}; {bad}"),
         None => verdict,
     };
     // A given model far off the refit of its own form is stale: the refit absorbed an
