@@ -850,15 +850,16 @@ impl Measurements {
             )?;
             let delta_mm = out.pos_mm.last().map_or(0.0, |p| pos_mm - p);
             let dir = match i_dir {
-                Some(i) => match num(i)? {
-                    1.0 => 1,
-                    -1.0 => -1,
+                // A "+" or "up" was "not a number", which said nothing of the values.
+                Some(i) => match record[i].trim().parse::<f64>() {
+                    Ok(1.0) => 1,
+                    Ok(-1.0) => -1,
                     _ => {
                         return Err(MeasureError::Field {
                             line,
                             column: "dir".into(),
                             value: record[i].to_string(),
-                            reason: "must be +1 or -1",
+                            reason: "must be +1 (approached upwards) or -1 (downwards)",
                         })
                     }
                 },
@@ -1210,6 +1211,11 @@ mod tests {
                 "line 3, column `T_a`: an empty cell: every row needs a value in every column \
                  (logged less often than the error? give each row the last reading before it) \
                  (value \"\")",
+            ),
+            (
+                "t_s,pos_mm,dir,err_um,T_a\n0,0,up,1,20\n",
+                "line 2, column `dir`: must be +1 (approached upwards) or -1 (downwards) \
+                 (value \"up\")",
             ),
             (
                 "t_s,pos_mm,err_um,T_a\n0,0,\"1,5\",20\n",

@@ -94,10 +94,14 @@ pub enum Iso230Error {
         source: Box<Iso230Error>,
     },
     #[error(
-        "target {pos_mm} mm has {n} run(s) in the {dir} direction; at least 2 each way are needed"
+        "target {pos_mm} mm (line {line} first) has {n} run(s) in the {dir} direction; \
+         ISO 230-2 approaches every target from both sides, at least 2 runs each way (an \
+         end target too: the test cycle overshoots it)"
     )]
     TooFewRuns {
         pos_mm: f64,
+        /// The file line of its first row.
+        line: usize,
         dir: &'static str,
         n: usize,
     },
@@ -278,8 +282,16 @@ fn assign_targets(
             index[r] = nominal.len();
         }
         let mean = cluster.iter().map(|&r| pos_mm[r]).sum::<f64>() / cluster.len() as f64;
-        // An exact target stays exact (no 1e-13 residue from the mean's rounding).
-        nominal.push(if from == to { from } else { mean });
+        // An exact target stays exact (no 1e-13 residue from the mean's rounding); a
+        // jittered one is known to a tenth of the tolerance, and the report showed
+        // 100.00000000000001 mm for a target recorded within +-0.5 um of 100.
+        nominal.push(if from == to {
+            from
+        } else {
+            // Divided by a power of ten, so 493.4 prints as such.
+            let per_mm = 10f64.powf(-(tol / 10.0).log10().floor());
+            (mean * per_mm).round() / per_mm + 0.0
+        });
         cluster.clear();
         Ok(())
     };
@@ -348,11 +360,13 @@ pub fn evaluate_lines(
         return Err(Iso230Error::TooFewTargets);
     }
     let mut targets = Vec::with_capacity(groups.len());
-    for (pos_mm, up, down) in groups {
+    for (i, (pos_mm, up, down)) in groups.into_iter().enumerate() {
         for (v, dir) in [(&up, "positive"), (&down, "negative")] {
             if v.len() < 2 {
+                let first = index.iter().position(|&t| t == i).unwrap_or(0);
                 return Err(Iso230Error::TooFewRuns {
                     pos_mm,
+                    line: csv_line(lines, first),
                     dir,
                     n: v.len(),
                 });
@@ -424,7 +438,7 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(
-            e.starts_with("target 1000000000000000000000000000000 mm has 1 run(s)"),
+            e.starts_with("target 1000000000000000000000000000000 mm (line 6 first) has 1 run(s)"),
             "{e}"
         );
     }
@@ -655,12 +669,39 @@ mod tests {
         ));
     }
 
+    /// Positions recorded within +-0.5 um of their targets made the report's target
+    /// column 100.00000000000001 and -0.00015999999999999999.
+    #[test]
+    fn a_jittered_target_is_reported_to_a_tenth_of_the_tolerance() {
+        let pos = [
+            -0.0004, 0.0001, 493.4004, 493.3999, 0.0002, 0.0001, 493.4, 493.3997,
+        ];
+        let r = evaluate(&pos, &[1, 1, 1, 1, -1, -1, -1, -1], &[0.0; 8]).unwrap();
+        let at: Vec<String> = r.targets.iter().map(|t| t.pos_mm.to_string()).collect();
+        assert_eq!(at, ["0", "493.4"]);
+    }
+
+    /// A laser's deviations in mm in the err_um column gave A = 0.015 um without a word.
+    #[test]
+    fn deviations_in_millimetres_are_warned_of() {
+        let pos = [0.0, 0.0, 0.0, 0.0, 100.0, 100.0, 100.0, 100.0];
+        let dir = [1, 1, -1, -1, 1, 1, -1, -1];
+        let mm = [
+            0.002, 0.0021, -0.002, -0.0019, 0.003, 0.0031, -0.001, -0.0012,
+        ];
+        let warned =
+            |err: &[f64]| report(&evaluate(&pos, &dir, err).unwrap()).contains("is err_um in mm?");
+        assert!(warned(&mm));
+        let um: Vec<f64> = mm.iter().map(|e| e * 1000.0).collect();
+        assert!(!warned(&um));
+    }
+
     #[test]
     fn refuses_too_few_runs_and_unknown_direction() {
         let e = evaluate(&[0.0, 0.0, 1.0, 1.0, 1.0], &[1, -1, 1, -1, -1], &[0.0; 5]).unwrap_err();
         assert!(
             e.to_string()
-                .contains("target 0 mm has 1 run(s) in the positive"),
+                .contains("target 0 mm (line 2 first) has 1 run(s) in the positive"),
             "{e}"
         );
         let e = evaluate(&[0.0, 1.0, 1.0], &[1, 1, 0], &[0.0; 3]).unwrap_err();
@@ -720,7 +761,10 @@ mod tests {
         );
         // Errors that are not about one row name the file too.
         let e = run_file(&path, vec![]).unwrap_err().to_string();
-        assert!(e.contains("off.csv: target 0 mm has 1 run(s)"), "{e}");
+        assert!(
+            e.contains("off.csv: target 0 mm (line 2 first) has 1 run(s)"),
+            "{e}"
+        );
     }
 
     /// With blank lines in the file, the line was counted from the header row by

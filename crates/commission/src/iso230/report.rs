@@ -67,5 +67,15 @@ pub fn report(r: &Iso230) -> String {
             "\nnote: {few} target(s) have fewer than the {RUNS_REQUIRED} runs each way ISO 230-2 asks for"
         );
     }
+    // A laser's export in mm read as um gave A = 0.015 um without a word.
+    let least_um = crate::calibrate::fit::MIN_ERR_SPAN_UM;
+    if r.a_um < least_um {
+        let _ = writeln!(
+            s,
+            "\nwarning: A is {:.4} um, below {least_um} um (below any machine's repeatability \
+             and any laser's noise): is err_um in mm? The column holds micrometres",
+            r.a_um
+        );
+    }
     s
 }
