@@ -770,7 +770,7 @@ fn regular_rows_are_split_into_hour_long_sweeps() {
     assert_eq!(sweeps(&t_s).len(), 10);
 }
 
-/// A transmitter frozen at a plausible value for the run's last 10 hours was fitted
+/// A transmitter frozen at a plausible value from hour 14 of a 24-hour run on was fitted
 /// without a word (field review R5-D): the fit gave the screw the column's part. It
 /// is named by its lines and the model is not written; a sensor that holds its value
 /// without moving the fit is not named.

@@ -143,11 +143,11 @@ fn bad_readings(m: &Measurements, sensors: &[String]) -> Option<(String, bool)> 
     let bad = crate::calibrate::bad_readings(m, sensors, &f);
     let rows = bad.rows();
     let (n, first) = (rows.len(), *rows.first()?);
-    let rows = if n == 1 { "row" } else { "rows" };
+    let noun = if n == 1 { "row" } else { "rows" };
     Some(if bad.pull() {
         (
             format!(
-                "{n} {rows} (a sensor that dropped out or froze, a 0 or a -999 written for a \
+                "{n} {noun} (a sensor that dropped out or froze, a 0 or a -999 written for a \
                  missing value), the first at t_s {} s; left out, they move the baseline by up \
                  to {:.3} um",
                 m.t_s[first], bad.pull_um
@@ -162,7 +162,7 @@ fn bad_readings(m: &Measurements, sensors: &[String]) -> Option<(String, bool)> 
         };
         (
             format!(
-                "{n} {rows} {look} t_s {} s) and, left out, {moves} the baseline by {:.3} um \
+                "{n} {noun} {look} t_s {} s) and, left out, {moves} the baseline by {:.3} um \
                  at most: the verdict stands; the RMS and max figures include {them}",
                 m.t_s[first], bad.pull_um
             ),
