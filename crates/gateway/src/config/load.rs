@@ -412,11 +412,16 @@ fn syntax_problem(origin: &str, text: &str, e: &toml::de::Error) -> ConfigProble
         }
         None => "(syntax)".to_string(),
     };
-    ConfigProblem::new(
-        origin,
-        key,
-        format!("TOML syntax error: {}", e.message().trim()),
-    )
+    let message = e.message().trim();
+    // A model pasted beside the [axes.X] already there (`cat config.toml model.toml`)
+    // got "duplicate key" alone.
+    let hint = if message.starts_with("duplicate key") {
+        " (a table or key given twice: a model from calibrate or diagnose goes in place \
+         of the axis' table, not beside it)"
+    } else {
+        ""
+    };
+    ConfigProblem::new(origin, key, format!("TOML syntax error: {message}{hint}"))
 }
 
 // ------------------------------------------------------------------ environment --

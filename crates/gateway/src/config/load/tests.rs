@@ -346,6 +346,27 @@ fn syntax_error_names_line_and_column() {
         "{p:?}"
     );
     assert!(p[0].message.starts_with("TOML syntax error"), "{p:?}");
+    assert!(!p[0].message.contains("given twice"), "{p:?}");
+}
+
+/// `cat example.toml model.toml > plant.toml` said "duplicate key" alone (field
+/// review R7-B).
+#[test]
+fn a_model_pasted_beside_the_axis_table_says_where_it_goes() {
+    let axis = EXAMPLE
+        .split("\n[")
+        .find(|t| t.starts_with("axes.X]"))
+        .expect("the example has [axes.X]");
+    let text = format!("{EXAMPLE}\n[{axis}");
+    let p = problems(&text);
+    assert_eq!(p.len(), 1, "{p:?}");
+    assert!(
+        p[0].message.starts_with("TOML syntax error: duplicate key")
+            && p[0]
+                .message
+                .ends_with("goes in place of the axis' table, not beside it)"),
+        "{p:?}"
+    );
 }
 
 #[test]
