@@ -306,19 +306,22 @@ pub async fn print_to<W: Write>(
     mut printer: Printer<W>,
     shutdown: CancellationToken,
 ) -> Printer<W> {
+    // Copied out before printing: a borrow held while stdout blocks (a paused pager, a
+    // full pipe) keeps the control loop from publishing its next status.
+    let mut shown = Status::default();
     loop {
         let stop = tokio::select! {
             _ = shutdown.cancelled() => true,
             changed = rx.changed() => changed.is_err(),
         };
+        // The gateway publishes its final status as it stops.
+        if !stop || rx.has_changed().unwrap_or(true) {
+            shown.clone_from(&rx.borrow_and_update());
+            printer.show(&shown);
+        }
         if stop {
-            // The gateway publishes its final status as it stops.
-            if rx.has_changed().unwrap_or(true) {
-                printer.show(&rx.borrow_and_update());
-            }
             break;
         }
-        printer.show(&rx.borrow_and_update());
     }
     printer
 }
@@ -527,5 +530,50 @@ mod tests {
             assert!(l.contains("SHADOW would_write SD43900=0.0200mm"), "{l}");
             assert!(!l.contains('\r') && !l.contains('\x1b'), "{l:?}");
         }
+    }
+
+    /// Stdout that takes nothing until `release` is dropped: a paused pager.
+    struct Stalled {
+        release: std::sync::mpsc::Receiver<()>,
+    }
+
+    impl Write for Stalled {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            let _ = self.release.recv();
+            Ok(buf.len())
+        }
+
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    // A stdout that blocks holds the printer up, never the control loop's next status.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_blocked_stdout_does_not_hold_up_the_next_status() {
+        let (tx, rx) = watch::channel(Status::default());
+        let shutdown = CancellationToken::new();
+        let (release, stalled) = std::sync::mpsc::channel();
+        let printer = tokio::spawn(print_to(
+            rx,
+            Printer::new(Stalled { release: stalled }, false),
+            shutdown.clone(),
+        ));
+        tx.send_replace(status(20.0, None));
+        // The printer is now stuck writing that status.
+        tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+        let (sent, done) = std::sync::mpsc::channel();
+        let published = std::thread::scope(|scope| {
+            scope.spawn(|| {
+                tx.send_replace(status(21.0, None));
+                let _ = sent.send(());
+            });
+            let published = done.recv_timeout(std::time::Duration::from_secs(2));
+            drop(release);
+            published
+        });
+        assert!(published.is_ok(), "the next status waited for stdout");
+        shutdown.cancel();
+        printer.await.expect("printer");
     }
 }

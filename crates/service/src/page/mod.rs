@@ -392,9 +392,13 @@ pub async fn track(
         l.history = History::new(window);
         l.interval_s = interval.as_secs_f64();
     }
+    // Copied out before the page's lock is taken: a borrow held while a browser's
+    // JSON is built under that lock kept the control loop from publishing its next
+    // status, and its polls waited.
+    let mut s = Status::default();
     loop {
+        s.clone_from(&rx.borrow_and_update());
         {
-            let s = rx.borrow_and_update();
             let now = unix_ms(SystemTime::now());
             let mut l = page.inner.lock().unwrap_or_else(|p| p.into_inner());
             // Before the first sample every channel is "no data": not a trend point.
@@ -402,7 +406,7 @@ pub async fn track(
                 l.history.push(&s, now);
             }
             l.seen.note(&s, now);
-            l.status.clone_from(&s);
+            std::mem::swap(&mut l.status, &mut s);
             l.t_unix_ms = now;
             l.body = [None, None];
         }
@@ -591,5 +595,39 @@ mod tests {
         assert_eq!(j["channels"][0]["value_degc"], Value::Null);
         // serde_json writes NaN as null too; what matters is valid JSON text.
         assert!(serde_json::from_str::<Value>(&j.to_string()).is_ok());
+    }
+
+    // A browser's JSON being built (the page's lock held) holds up the trends, never
+    // the control loop's next status.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_json_build_does_not_hold_up_the_next_status() {
+        let (tx, rx) = watch::channel(Status::default());
+        let page = Page::default();
+        let tracker = tokio::spawn(track(
+            rx,
+            page.clone(),
+            Duration::from_secs(10),
+            Duration::from_secs(1),
+        ));
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        let published = {
+            let building = page.inner.lock().expect("page lock");
+            tx.send_replace(status(20.0, Quality::Good));
+            // The tracker now waits for the lock with that status.
+            std::thread::sleep(Duration::from_millis(200));
+            let (sent, done) = std::sync::mpsc::channel();
+            std::thread::scope(|scope| {
+                scope.spawn(|| {
+                    tx.send_replace(status(21.0, Quality::Good));
+                    let _ = sent.send(());
+                });
+                let published = done.recv_timeout(Duration::from_secs(2));
+                drop(building);
+                published
+            })
+        };
+        assert!(published.is_ok(), "the next status waited for the JSON");
+        drop(tx);
+        tracker.await.expect("tracker");
     }
 }
