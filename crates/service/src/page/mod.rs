@@ -14,7 +14,7 @@
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use bytes::Bytes;
 use http_body_util::Full;
@@ -330,7 +330,8 @@ pub fn to_json(
 }
 
 /// What the page's routes answer from: the latest status and the trends; the
-/// `/api/status` body is built from them when asked for, at most once per status.
+/// `/api/status` body is built from them when asked for, at most once per status and
+/// once per 250 ms, the page's shortest refresh.
 #[derive(Debug, Clone, Default)]
 pub struct Page {
     inner: Arc<Mutex<Latest>>,
@@ -343,9 +344,25 @@ struct Latest {
     seen: Seen,
     interval_s: f64,
     t_unix_ms: i64,
-    /// The bodies of this status (with the trends, without), once built.
-    body: [Option<Bytes>; 2],
+    /// Statuses received so far.
+    seq: u64,
+    /// The bodies last built (with the trends, without).
+    body: [Option<Built>; 2],
 }
+
+#[derive(Debug)]
+struct Built {
+    bytes: Bytes,
+    /// [`Latest::seq`] of the status it shows.
+    seq: u64,
+    at: Instant,
+}
+
+/// A body is rebuilt for a newer status only when it is older than this, the page's
+/// shortest refresh: at a 50 ms status interval, a flood of requests had the listener
+/// build half a megabyte of JSON 20 times a second, and `/metrics` went unanswered
+/// for 5 s.
+const REBUILD_AFTER: Duration = Duration::from_millis(250);
 
 impl Page {
     /// The latest `/api/status` body, with the trends if `trends`.
@@ -353,7 +370,9 @@ impl Page {
         let mut l = self.inner.lock().unwrap_or_else(|p| p.into_inner());
         let slot = usize::from(!trends);
         if let Some(b) = &l.body[slot] {
-            return b.clone();
+            if b.seq == l.seq || b.at.elapsed() < REBUILD_AFTER {
+                return b.bytes.clone();
+            }
         }
         let body = Bytes::from(
             to_json(
@@ -366,7 +385,11 @@ impl Page {
             )
             .to_string(),
         );
-        l.body[slot] = Some(body.clone());
+        l.body[slot] = Some(Built {
+            bytes: body.clone(),
+            seq: l.seq,
+            at: Instant::now(),
+        });
         body
     }
 }
@@ -408,7 +431,7 @@ pub async fn track(
             l.seen.note(&s, now);
             std::mem::swap(&mut l.status, &mut s);
             l.t_unix_ms = now;
-            l.body = [None, None];
+            l.seq += 1;
         }
         if rx.changed().await.is_err() {
             break;
@@ -629,5 +652,42 @@ mod tests {
         assert!(published.is_ok(), "the next status waited for the JSON");
         drop(tx);
         tracker.await.expect("tracker");
+    }
+
+    // Statuses faster than the page refreshes share one body; a newer status gets its
+    // own once the body is REBUILD_AFTER old; a status with no new one since is never
+    // built twice.
+    #[test]
+    fn a_body_is_rebuilt_for_a_newer_status_at_most_every_250_ms() {
+        let page = Page::default();
+        let publish = |v: f64| {
+            let mut l = page.inner.lock().expect("page lock");
+            l.status = status(v, Quality::Good);
+            l.seq += 1;
+        };
+        let value = |b: &Bytes| -> f64 {
+            let j: Value = serde_json::from_slice(b).expect("json");
+            j["channels"][0]["value_degc"].as_f64().expect("value")
+        };
+        publish(20.0);
+        let first = page.json(true);
+        assert_eq!(value(&first), 20.0);
+        publish(21.0);
+        assert_eq!(
+            page.json(true).as_ptr(),
+            first.as_ptr(),
+            "rebuilt before {REBUILD_AFTER:?}"
+        );
+        // The other body is built for the status of now.
+        assert_eq!(value(&page.json(false)), 21.0);
+        std::thread::sleep(REBUILD_AFTER);
+        let second = page.json(true);
+        assert_eq!(value(&second), 21.0);
+        std::thread::sleep(REBUILD_AFTER);
+        assert_eq!(
+            page.json(true).as_ptr(),
+            second.as_ptr(),
+            "rebuilt without a newer status"
+        );
     }
 }
