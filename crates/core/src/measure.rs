@@ -707,7 +707,7 @@ impl Measurements {
     /// The positions alone, for an evaluation that needs no time or temperature (ISO
     /// 230-2 from a laser's file): `t_s` and `T_<name>` may be missing, and `T_`
     /// cells are not read (a sensor's bad cell does not stop it); a row without
-    /// `t_s` has time 0. With the file line of every row; errors name the file.
+    /// `t_s` has time 0, and `t_s` may restart (two sessions in one file). With the file line of every row; errors name the file.
     pub fn read_positions_path(path: &Path) -> Result<(Self, Vec<u64>), MeasureError> {
         Self::read_rows(open(path)?, Wanted::Positions)
     }
@@ -837,7 +837,9 @@ impl Measurements {
                 )?,
                 None => 0.0,
             };
-            if let Some(&prev_s) = out.t_s.last() {
+            // Positions alone (ISO 230-2) take the file's order as the run order, and a
+            // laser's export of two sessions restarts its clock.
+            if let (true, Some(&prev_s)) = (thermal, out.t_s.last()) {
                 if t_s < prev_s {
                     return Err(MeasureError::TimeBackwards { line, t_s, prev_s });
                 }
@@ -1235,6 +1237,16 @@ mod tests {
         ] {
             assert_eq!(read(text).unwrap_err().to_string(), want, "{text:?}");
         }
+        // The positions alone: time is not read for its order.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("two_sessions.csv");
+        std::fs::write(
+            &path,
+            "t_s,pos_mm,dir,err_um\n0,0,1,1\n600,0,-1,1\n0,0,1,1\n",
+        )
+        .unwrap();
+        let (m, lines) = Measurements::read_positions_path(&path).unwrap();
+        assert_eq!((m.len(), lines), (3, vec![2, 3, 4]));
     }
 
     #[test]

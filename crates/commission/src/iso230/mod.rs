@@ -94,9 +94,9 @@ pub enum Iso230Error {
         source: Box<Iso230Error>,
     },
     #[error(
-        "target {pos_mm} mm (line {line} first) has {n} run(s) in the {dir} direction; \
+        "target {pos_mm} mm (line {line} first) has {n} run(s) in the {dir} direction{more}; \
          ISO 230-2 approaches every target from both sides, at least 2 runs each way (an \
-         end target too: the test cycle overshoots it)"
+         end target too: the test cycle overshoots it){hint}"
     )]
     TooFewRuns {
         pos_mm: f64,
@@ -104,6 +104,22 @@ pub enum Iso230Error {
         line: usize,
         dir: &'static str,
         n: usize,
+        /// ", as have N other targets", or empty.
+        more: String,
+        /// What to check when the runs may have been split by a tolerance too tight,
+        /// or empty.
+        hint: String,
+    },
+    /// A target of `--targets` no row was taken by.
+    #[error(
+        "target {target_mm} mm of --targets: no row lies within the tolerance of \
+         {tolerance_mm} mm of it (the list's other targets: {others}); leave it out or \
+         check the list"
+    )]
+    NoRows {
+        target_mm: f64,
+        tolerance_mm: f64,
+        others: String,
     },
     /// A row without a direction: the reader gives 0 only when the file has no `dir`
     /// column, and then on its first row at the latest.
@@ -113,11 +129,14 @@ pub enum Iso230Error {
          tell the two approaches of a target at a reversal apart"
     )]
     NoDirection { line: usize },
-    #[error("fewer than 2 target positions")]
-    TooFewTargets,
+    /// All rows at one target (`found`: "0 mm (10 rows)"); `hint` says what may
+    /// have merged the targets, or is empty.
+    #[error("{found}; ISO 230-2 evaluates an axis at 2 targets or more{hint}")]
+    TooFewTargets { found: String, hint: String },
     #[error(
         "line {line}, column `pos_mm`: position {pos_mm} mm is {off_mm:.6} mm from the \
-         nearest target {target_mm} mm, beyond the tolerance of {tolerance_mm} mm"
+         nearest target {target_mm} mm, beyond the tolerance of {tolerance_mm} mm \
+         (--target-tolerance-mm)"
     )]
     OffTarget {
         line: usize,
@@ -128,8 +147,9 @@ pub enum Iso230Error {
     },
     #[error(
         "positions {from_mm} mm to {to_mm} mm chain together within the tolerance of \
-         {tolerance_mm} mm but span more than it: give the targets (--targets) or a \
-         smaller tolerance"
+         {tolerance_mm} mm but span more than it: give the targets (--targets), or a \
+         --target-tolerance-mm below the targets' spacing, or above this span if these \
+         positions are one target (is pos_mm the actual position, not the target?)"
     )]
     AmbiguousTarget {
         from_mm: f64,
@@ -309,6 +329,109 @@ fn assign_targets(
     Ok((index, nominal))
 }
 
+/// Per target: its nominal position, its deviations upwards and downwards.
+type Groups = [(f64, Vec<f64>, Vec<f64>)];
+
+/// Refuses a listed target no row was taken by, and a file at one target.
+fn check_targets(groups: &Groups, pos_mm: &[f64], g: &Grouping) -> Result<(), Iso230Error> {
+    let list = |skip: f64| {
+        let others: Vec<String> = groups
+            .iter()
+            .filter(|t| t.0 != skip)
+            .map(|t| format!("{} mm", t.0))
+            .collect();
+        others.join(", ")
+    };
+    if let Some(empty) = groups.iter().find(|t| t.1.is_empty() && t.2.is_empty()) {
+        return Err(Iso230Error::NoRows {
+            target_mm: empty.0,
+            tolerance_mm: g.tolerance_mm,
+            others: list(empty.0),
+        });
+    }
+    if groups.len() >= 2 {
+        return Ok(());
+    }
+    let Some((at_mm, up, down)) = groups.first() else {
+        return Err(Iso230Error::TooFewTargets {
+            found: "the file has no rows".into(),
+            hint: String::new(),
+        });
+    };
+    let span_mm = max(pos_mm.iter().copied()) - min(pos_mm.iter().copied());
+    let hint = if !g.targets_mm.is_empty() {
+        ": --targets lists one".to_string()
+    } else if span_mm > 0.0 {
+        format!(
+            ": the positions span {span_mm} mm, and clustering within the tolerance of {} mm \
+             made them one target; give the targets (--targets) or a smaller \
+             --target-tolerance-mm",
+            g.tolerance_mm
+        )
+    } else {
+        String::new()
+    };
+    Err(Iso230Error::TooFewTargets {
+        found: format!(
+            "every row is at one target position, {at_mm} mm ({} rows)",
+            up.len() + down.len()
+        ),
+        hint,
+    })
+}
+
+/// Refuses a target with fewer than 2 runs either way: names the first, counts the
+/// others, and points at the tolerance when clustering may have split a target.
+fn check_runs(
+    groups: &Groups,
+    index: &[usize],
+    nominal: &[f64],
+    g: &Grouping,
+    lines: &[u64],
+) -> Result<(), Iso230Error> {
+    let short: Vec<(usize, &'static str, usize)> = groups
+        .iter()
+        .enumerate()
+        .flat_map(|(i, (_, up, down))| [(i, "positive", up.len()), (i, "negative", down.len())])
+        .filter(|&(_, _, n)| n < 2)
+        .collect();
+    let Some(&(i, dir, n)) = short.first() else {
+        return Ok(());
+    };
+    let mut others: Vec<usize> = short.iter().map(|s| s.0).filter(|&j| j != i).collect();
+    others.dedup();
+    let more = match others.len() {
+        0 => String::new(),
+        1 => ", as has 1 other target".into(),
+        k => format!(", as have {k} other targets"),
+    };
+    let tol = g.tolerance_mm;
+    // Clustered targets lie more than the tolerance apart; barely more, and the
+    // positions of one target may jitter more than the tolerance.
+    let neighbour = [i.wrapping_sub(1), i + 1]
+        .into_iter()
+        .filter_map(|j| nominal.get(j))
+        .map(|&p| (p, (p - nominal[i]).abs()))
+        .min_by(|a, b| a.1.total_cmp(&b.1));
+    let hint = match neighbour {
+        Some((p, d)) if g.targets_mm.is_empty() && d <= 5.0 * tol => format!(
+            "; target {p} mm is only {d:.6} mm away: if the two are one target, its \
+             positions jitter more than the tolerance of {tol} mm, and a larger \
+             --target-tolerance-mm joins them"
+        ),
+        _ => String::new(),
+    };
+    let first = index.iter().position(|&t| t == i).unwrap_or(0);
+    Err(Iso230Error::TooFewRuns {
+        pos_mm: groups[i].0,
+        line: csv_line(lines, first),
+        dir,
+        n,
+        more,
+        hint,
+    })
+}
+
 /// Evaluates rows of position, direction (+1/-1) and deviation (um), targets found by
 /// clustering with the default tolerance.
 pub fn evaluate(pos_mm: &[f64], dir: &[i8], err_um: &[f64]) -> Result<Iso230, Iso230Error> {
@@ -356,22 +479,10 @@ pub fn evaluate_lines(
             g.2.push(*e);
         }
     }
-    if groups.len() < 2 {
-        return Err(Iso230Error::TooFewTargets);
-    }
+    check_targets(&groups, pos_mm, grouping)?;
+    check_runs(&groups, &index, &nominal, grouping, lines)?;
     let mut targets = Vec::with_capacity(groups.len());
-    for (i, (pos_mm, up, down)) in groups.into_iter().enumerate() {
-        for (v, dir) in [(&up, "positive"), (&down, "negative")] {
-            if v.len() < 2 {
-                let first = index.iter().position(|&t| t == i).unwrap_or(0);
-                return Err(Iso230Error::TooFewRuns {
-                    pos_mm,
-                    line: csv_line(lines, first),
-                    dir,
-                    n: v.len(),
-                });
-            }
-        }
+    for (pos_mm, up, down) in groups {
         let (mu, su) = mean_sd(&up);
         let (md, sd) = mean_sd(&down);
         let b = mu - md;
@@ -492,7 +603,13 @@ mod tests {
             text.contains("| A accuracy | 4.000 | 11.000 | 11.000 |"),
             "{text}"
         );
-        assert!(text.contains("fewer than the 5 runs"), "{text}");
+        assert!(
+            text.contains(
+                "fewer than the 5 runs each way ISO 230-2 asks for at 0 mm (3/3), 100 mm (3/3)"
+            ),
+            "{text}"
+        );
+        assert!(!text.contains("differ in number"), "{text}");
     }
 
     /// Five runs of a pure reversal error of b: B = b at every target, R = |b|,
@@ -519,6 +636,16 @@ mod tests {
         assert!(close(r.r_um, 4.0) && close(r.r_up_um, 0.0));
         assert!(close(r.e_um, 4.0) && close(r.m_um, 0.0) && close(r.a_um, 4.0));
         assert!(!report(&r).contains("fewer than"));
+        assert!(!report(&r).contains("differ in number"));
+        // Two more upward runs at 500 mm: evaluated, and the report asks about them.
+        pos.extend([500.0, 500.0]);
+        dir.extend([1, 1]);
+        err.extend([-2.0, -2.0]);
+        let text = report(&evaluate(&pos, &dir, &err).unwrap());
+        assert!(
+            text.contains("runs upwards and downwards differ in number at 500 mm (7/5)"),
+            "{text}"
+        );
     }
 
     #[test]
@@ -700,10 +827,13 @@ mod tests {
     fn refuses_too_few_runs_and_unknown_direction() {
         let e = evaluate(&[0.0, 0.0, 1.0, 1.0, 1.0], &[1, -1, 1, -1, -1], &[0.0; 5]).unwrap_err();
         assert!(
-            e.to_string()
-                .contains("target 0 mm (line 2 first) has 1 run(s) in the positive"),
+            e.to_string().contains(
+                "target 0 mm (line 2 first) has 1 run(s) in the positive direction, as has 1 \
+                 other target; "
+            ),
             "{e}"
         );
+        assert!(!e.to_string().contains("jitter"), "{e}");
         let e = evaluate(&[0.0, 1.0, 1.0], &[1, 1, 0], &[0.0; 3]).unwrap_err();
         assert!(e.to_string().starts_with("line 4, column `dir`"), "{e}");
     }
@@ -783,5 +913,83 @@ mod tests {
         std::fs::write(&path, "t_s,pos_mm,err_um,T_a\n\n\n0,0,1,20\n1,100,1,20\n").unwrap();
         let e = run_file(&path, vec![]).unwrap_err().to_string();
         assert!(e.contains("blank.csv: line 4, column `dir`"), "{e}");
+    }
+
+    /// A target whose positions jitter 3 um, clustered with a tolerance of 1 um,
+    /// became two targets of one run each way, and the error said nothing of the
+    /// tolerance.
+    #[test]
+    fn a_target_split_by_a_tight_tolerance_points_at_the_tolerance() {
+        let pos = [0.0, 0.0, 0.003, 0.003, 100.0, 100.0, 100.0, 100.0];
+        let dir = [1, -1, 1, -1, 1, -1, 1, -1];
+        let tight = Grouping {
+            targets_mm: vec![],
+            tolerance_mm: 0.001,
+        };
+        let e = evaluate_grouped(&pos, &dir, &[0.0; 8], &tight)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("has 1 run(s) in the positive direction, as has 1 other target;")
+                && e.ends_with(
+                    "target 0.003 mm is only 0.003000 mm away: if the two are one target, its \
+                     positions jitter more than the tolerance of 0.001 mm, and a larger \
+                     --target-tolerance-mm joins them"
+                ),
+            "{e}"
+        );
+        // The default tolerance joins them.
+        assert_eq!(evaluate(&pos, &dir, &[0.0; 8]).unwrap().targets.len(), 2);
+    }
+
+    /// A --targets entry no row is near said "0 run(s) in the positive direction".
+    #[test]
+    fn a_listed_target_without_rows_is_named() {
+        let (pos, dir, err) = jittered_runs(0.1);
+        let listed = Grouping {
+            targets_mm: vec![0.0, 600.0005, 1200.0, 1800.0],
+            tolerance_mm: DEFAULT_TOLERANCE_MM,
+        };
+        let e = evaluate_grouped(&pos, &dir, &err, &listed)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with(
+                "target 1800 mm of --targets: no row lies within the tolerance of 0.01 mm of \
+                 it (the list's other targets: 0 mm, 600.0005 mm, 1200 mm)"
+            ),
+            "{e}"
+        );
+    }
+
+    /// "fewer than 2 target positions" said neither what was found nor why.
+    #[test]
+    fn a_file_at_one_target_says_where_and_why() {
+        let dir = [1, -1, 1, -1];
+        let e = evaluate(&[0.0, 0.004, 0.0, 0.004], &dir, &[0.0; 4])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with(
+                "every row is at one target position, 0.002 mm (4 rows); ISO 230-2 evaluates an \
+                 axis at 2 targets or more: the positions span 0.004 mm, and clustering"
+            ),
+            "{e}"
+        );
+        let one = Grouping {
+            targets_mm: vec![0.0],
+            tolerance_mm: DEFAULT_TOLERANCE_MM,
+        };
+        let e = evaluate_grouped(&[0.0, 0.004, 0.0, 0.004], &dir, &[0.0; 4], &one)
+            .unwrap_err()
+            .to_string();
+        assert!(e.ends_with("or more: --targets lists one"), "{e}");
+        let e = evaluate(&[5.0; 4], &dir, &[0.0; 4])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.ends_with("5 mm (4 rows); ISO 230-2 evaluates an axis at 2 targets or more"),
+            "{e}"
+        );
     }
 }

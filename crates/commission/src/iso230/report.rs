@@ -56,15 +56,29 @@ pub fn report(r: &Iso230) -> String {
     ]);
     s.push('\n');
     s.push_str(&axis.render());
-    let few = r
-        .targets
-        .iter()
-        .filter(|t| t.runs_up < RUNS_REQUIRED || t.runs_down < RUNS_REQUIRED)
-        .count();
-    if few > 0 {
+    let runs = |keep: &dyn Fn(&super::Target) -> bool| {
+        let at: Vec<String> = r
+            .targets
+            .iter()
+            .filter(|t| keep(t))
+            .map(|t| format!("{} mm ({}/{})", t.pos_mm, t.runs_up, t.runs_down))
+            .collect();
+        at.join(", ")
+    };
+    let few = runs(&|t| t.runs_up < RUNS_REQUIRED || t.runs_down < RUNS_REQUIRED);
+    if !few.is_empty() {
         let _ = writeln!(
             s,
-            "\nnote: {few} target(s) have fewer than the {RUNS_REQUIRED} runs each way ISO 230-2 asks for"
+            "\nnote: fewer than the {RUNS_REQUIRED} runs each way ISO 230-2 asks for at {few}"
+        );
+    }
+    // The standard's cycle approaches every target as often from each side.
+    let unequal = runs(&|t| t.runs_up != t.runs_down);
+    if !unequal.is_empty() {
+        let _ = writeln!(
+            s,
+            "\nnote: runs upwards and downwards differ in number at {unequal}: the test \
+             cycle approaches every target as often from each side; are rows missing?"
         );
     }
     // A laser's export in mm read as um gave A = 0.015 um without a word.
