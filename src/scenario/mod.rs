@@ -261,6 +261,9 @@ pub struct LoopReport {
     pub dropped: u64,
     /// Rows `export` wrote.
     pub rows: usize,
+    /// The `compgate export` command that wrote recorded.csv from record.sqlite, run
+    /// in the `--out` directory.
+    pub export_command: String,
     /// RMS residual of the baseline fit, um.
     pub baseline_fit_rms_um: f64,
     /// diagnose's verdict.
@@ -418,6 +421,11 @@ impl LoopReport {
             self.dropped,
             self.rows,
             self.baseline_fit_rms_um
+        );
+        let _ = writeln!(
+            s,
+            "the export again, in this directory: `{}`",
+            self.export_command
         );
         let _ = writeln!(s, "diagnose: {}", self.verdict);
         let _ = writeln!(s, "applied online by the gateway (model_diagnosed.toml):");
@@ -984,6 +992,11 @@ async fn commission_from_records(
         add_applied_comp: false,
     };
     let summary = export::run(&ex).map_err(|e| lerr(&e))?;
+    let export_command = format!(
+        "compgate export --db record.sqlite --since {} --until {} --csv --axis X \
+         --err-channel {LASER_CHANNEL} --step-s {} --max-hold-s {} --out recorded.csv",
+        ex.since, ex.until, ex.step_s, ex.max_hold_s
+    );
     // What the tools read: the CSV file.
     let m = Measurements::read_path(&csv).map_err(|source| ScenarioError::Csv {
         path: csv.display().to_string(),
@@ -1019,6 +1032,7 @@ async fn commission_from_records(
         records,
         dropped,
         rows: summary.rows,
+        export_command,
         baseline_fit_rms_um: fit.rms_um,
         verdict: d.verdict.clone(),
         model,

@@ -266,6 +266,26 @@ async fn the_closed_loop_improves_on_the_baseline() {
         md.contains("closed loop") && md.contains("loop_vs_time.svg"),
         "{md}"
     );
+    // The export as the report prints it writes recorded.csv again, byte for byte.
+    let printed = md
+        .split("the export again, in this directory: `")
+        .nth(1)
+        .and_then(|rest| rest.split('`').next())
+        .unwrap_or_else(|| panic!("no export command in the report:\n{md}"));
+    use clap::Parser;
+    let cli = crate::cli::Cli::try_parse_from(printed.split_whitespace())
+        .unwrap_or_else(|e| panic!("{printed}: {e}"));
+    let Some(crate::cli::Command::Export(mut again)) = cli.command else {
+        panic!("{printed}: not an export");
+    };
+    again.db = dir.path().join(&again.db);
+    again.out = Some(dir.path().join("again.csv"));
+    compgate_service::record::export::run(&again).unwrap();
+    assert!(
+        std::fs::read(dir.path().join("again.csv")).unwrap()
+            == std::fs::read(dir.path().join("recorded.csv")).unwrap(),
+        "{printed} wrote another file"
+    );
 }
 
 /// How often the interferometer samples does not change the machine: the rows both
