@@ -56,12 +56,22 @@ pub enum MeasureError {
     },
     #[error("line {line}: {message}")]
     Csv { line: u64, message: String },
-    #[error("line 1: required column `{name}` is missing{}", units_hint(found))]
+    #[error(
+        "line 1: required column `{name}` is missing{}",
+        column_hint(name, found)
+    )]
     MissingColumn {
         name: &'static str,
-        /// A header that is the name with something after it (`err_um [um]`).
+        /// A header that is the name with something after it (`err_um [um]`), or
+        /// in other case (`POS_MM`).
         found: Option<String>,
     },
+    /// A data line that is the header again: two files joined into one.
+    #[error(
+        "line {line} repeats the header of line {header_line}: two files joined into one? \
+         Give each its own file, or delete the line if the rows go on in order"
+    )]
+    RepeatedHeader { line: u64, header_line: u64 },
     /// The header splits on another delimiter: an export of a spreadsheet set to a
     /// locale with decimal commas, which would otherwise read as one odd column.
     #[error(
@@ -486,11 +496,18 @@ pub struct TempColumn {
     pub degc: Vec<f64>,
 }
 
-/// The hint of [`MeasureError::MissingColumn`] when a header carries the name and more.
-fn units_hint(found: &Option<String>) -> String {
-    found.as_ref().map_or(String::new(), |h| {
-        format!(" (there is a column `{h}`: the header holds the name alone, without units)")
-    })
+/// The hint of [`MeasureError::MissingColumn`] when a header carries the name and
+/// more, or the name in other case.
+fn column_hint(name: &str, found: &Option<String>) -> String {
+    match found {
+        Some(h) if h.eq_ignore_ascii_case(name) => {
+            format!(" (there is a column `{h}`: names are lower case, `{name}`)")
+        }
+        Some(h) => {
+            format!(" (there is a column `{h}`: the header holds the name alone, without units)")
+        }
+        None => String::new(),
+    }
 }
 
 /// See [`Measurements::temperature_excursions`], K.
@@ -773,7 +790,9 @@ impl Measurements {
             name,
             found: header
                 .iter()
-                .find(|h| h.len() > name.len() && h.starts_with(name))
+                .find(|h| {
+                    (h.len() > name.len() && h.starts_with(name)) || h.eq_ignore_ascii_case(name)
+                })
                 .map(str::to_string),
         };
         let i_t = match i_t {
@@ -790,6 +809,16 @@ impl Measurements {
         let mut record = csv::StringRecord::new();
         let mut last_dir: i8 = 0;
         while let Some(line) = input.next(&mut record)? {
+            if header
+                .iter()
+                .enumerate()
+                .all(|(i, h)| record[i].trim() == h)
+            {
+                return Err(MeasureError::RepeatedHeader {
+                    line,
+                    header_line: input.header_line,
+                });
+            }
             let bad = |i: usize, reason| MeasureError::Field {
                 line,
                 column: header[i].to_string(),
@@ -1233,6 +1262,16 @@ mod tests {
                 "t_s,pos_mm,err_um,T_a\n0,0,1,20\n600,0,1,20\n0,0,1,20\n",
                 "line 4, column `t_s`: time goes backwards (0 s after 600 s): rows in time \
                  order; two runs in one file? give each a file of its own",
+            ),
+            (
+                "T_S,POS_MM,ERR_UM,T_BED\n0,0,1,20\n",
+                "line 1: required column `t_s` is missing (there is a column `T_S`: names \
+                 are lower case, `t_s`)",
+            ),
+            (
+                "t_s,pos_mm,err_um,T_a\n0,0,1,20\n# second file\nt_s,pos_mm,err_um,T_a\n0,0,1,20\n",
+                "line 4 repeats the header of line 1: two files joined into one? Give each \
+                 its own file, or delete the line if the rows go on in order",
             ),
         ] {
             assert_eq!(read(text).unwrap_err().to_string(), want, "{text:?}");
