@@ -600,7 +600,7 @@ mod tests {
         assert!(close(r.a_up_um, 4.0) && close(r.a_down_um, 11.0) && close(r.a_um, 11.0));
         let text = report(&r);
         assert!(
-            text.contains("| A accuracy | 4.000 | 11.000 | 11.000 |"),
+            text.contains("| A accuracy of positioning | 4.000 | 11.000 | 11.000 |"),
             "{text}"
         );
         assert!(
@@ -684,11 +684,11 @@ mod tests {
         })
         .unwrap();
         assert!(
-            text.contains("| A accuracy | 4.000 | 11.000 | 11.000 |"),
+            text.contains("| A accuracy of positioning | 4.000 | 11.000 | 11.000 |"),
             "{text}"
         );
         assert!(
-            text.contains("| B reversal value (mean B) | | | 5.000 (1.500) |"),
+            text.contains("| B reversal value (mean reversal value) | | | 5.000 (1.500) |"),
             "{text}"
         );
         std::fs::write(&path, "t_s,pos_mm,dir,err_um,T_a\n0,0,1,1,20\n1,0,2,1,20\n").unwrap();

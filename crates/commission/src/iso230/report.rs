@@ -39,17 +39,32 @@ pub fn report(r: &Iso230) -> String {
         ]);
     }
     s.push_str(&targets.render());
-    let mut axis = Markdown::new(["axis", "+ (up)", "- (down)", "bidirectional"]);
+    let mut axis = Markdown::new(["axis, um", "+ (up)", "- (down)", "bidirectional"]);
     for (name, up, down, both) in [
-        ("A accuracy", r.a_up_um, r.a_down_um, r.a_um),
-        ("R repeatability", r.r_up_um, r.r_down_um, r.r_um),
-        ("E systematic error", r.e_up_um, r.e_down_um, r.e_um),
+        ("A accuracy of positioning", r.a_up_um, r.a_down_um, r.a_um),
+        (
+            "R repeatability of positioning",
+            r.r_up_um,
+            r.r_down_um,
+            r.r_um,
+        ),
+        (
+            "E systematic positioning error",
+            r.e_up_um,
+            r.e_down_um,
+            r.e_um,
+        ),
     ] {
         axis.row([name.to_string(), um(up), um(down), um(both)]);
     }
-    axis.row(["M mean bidirectional error", "", "", &um(r.m_um)]);
     axis.row([
-        "B reversal value (mean B)",
+        "M mean bidirectional positioning error",
+        "",
+        "",
+        &um(r.m_um),
+    ]);
+    axis.row([
+        "B reversal value (mean reversal value)",
         "",
         "",
         &format!("{:.3} ({:.3})", r.b_um, r.b_mean_um),
