@@ -724,7 +724,8 @@ impl Measurements {
     /// The positions alone, for an evaluation that needs no time or temperature (ISO
     /// 230-2 from a laser's file): `t_s` and `T_<name>` may be missing, and `T_`
     /// cells are not read (a sensor's bad cell does not stop it); a row without
-    /// `t_s` has time 0, and `t_s` may restart (two sessions in one file). With the file line of every row; errors name the file.
+    /// `t_s` has time 0, and `t_s` may restart (two sessions in one file). With the
+    /// file line of every row; errors name the file.
     pub fn read_positions_path(path: &Path) -> Result<(Self, Vec<u64>), MeasureError> {
         Self::read_rows(open(path)?, Wanted::Positions)
     }

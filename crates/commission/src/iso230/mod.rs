@@ -129,8 +129,8 @@ pub enum Iso230Error {
          tell the two approaches of a target at a reversal apart"
     )]
     NoDirection { line: usize },
-    /// All rows at one target (`found`: "0 mm (10 rows)"); `hint` says what may
-    /// have merged the targets, or is empty.
+    /// Fewer than 2 targets: `found` says where the rows are (or that there are
+    /// none); `hint` says what may have merged the targets, or is empty.
     #[error("{found}; ISO 230-2 evaluates an axis at 2 targets or more{hint}")]
     TooFewTargets { found: String, hint: String },
     #[error(
