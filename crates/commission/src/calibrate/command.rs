@@ -211,8 +211,13 @@ pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
     let (bad_rows, bad_doubt) = bad_rows_warning(&m, &lines, &f, &bad).unzip();
     let mut doubts = f.doubts();
     doubts.extend(bad_doubt.flatten());
-    let model = AxisModel::from_fit(&f);
-    let mut header = format!(
+    let mut model = AxisModel::from_fit(&f);
+    // Whoever loads the model later sees that it was forced: the gateway warns of
+    // them at every start.
+    if args.accept_weak_fit {
+        model.accepted_doubts.clone_from(&doubts);
+    }
+    let header = format!(
         "compgate calibrate: axis {} from {} rows of {}\nRMS residual {:.3} um, R^2 {:.6}\nchannels are the CSV's T_ columns without T_; name the gateway's channels alike",
         args.axis,
         f.rows,
@@ -220,14 +225,6 @@ pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
         f.rms_um,
         f.r2
     );
-    // Whoever loads the model later sees that it was forced.
-    if args.accept_weak_fit && !doubts.is_empty() {
-        let _ = write!(
-            header,
-            "\nwritten with --accept-weak-fit: {}",
-            doubts.join("; ")
-        );
-    }
     // Refused before anything is written: a model the gateway would load must
     // never hold a NaN or an absurd coefficient.
     let model = model_toml(&args.axis, &args.nc_module, &model, &header).map_err(|source| {

@@ -58,6 +58,10 @@ pub struct AxisModel {
     /// SD43920, mm.
     #[serde(default)]
     pub p0_mm: f64,
+    /// The doubts about the fit that `calibrate --accept-weak-fit` wrote the model
+    /// over: the gateway warns of them at every start, and `validate` too.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub accepted_doubts: Vec<String>,
     /// K0(T) -> SD43900.
     #[serde(default)]
     pub k0: K0Model,
@@ -196,6 +200,7 @@ impl AxisModel {
     pub fn from_fit(f: &Fit) -> Self {
         Self {
             p0_mm: f.p0_mm,
+            accepted_doubts: Vec::new(),
             k0: K0Model {
                 offset_mm: f.k0_offset_um / 1000.0,
                 terms: f

@@ -337,6 +337,7 @@ impl ModelFile {
         let mut mf = ModelFile {
             axis: AxisModel {
                 p0_mm: d.p0_mm,
+                accepted_doubts: Vec::new(),
                 k0: K0Model {
                     offset_mm: b[0] / 1000.0,
                     terms: Vec::new(),
@@ -490,6 +491,7 @@ mod tests {
         ModelFile {
             axis: AxisModel {
                 p0_mm: 100.0,
+                accepted_doubts: Vec::new(),
                 k0: K0Model {
                     offset_mm: 0.001,
                     terms: vec![

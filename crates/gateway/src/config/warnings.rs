@@ -135,6 +135,19 @@ pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
             }
         }
     }
+    for (name, axis) in &cfg.axes {
+        if !axis.accepted_doubts.is_empty() {
+            out.push(
+                format!("axes.{name}.accepted_doubts"),
+                format!(
+                    "the model was written with calibrate --accept-weak-fit over: {}; \
+                     measure the machine again and fit anew, or remove the key once the \
+                     doubt is settled",
+                    axis.accepted_doubts.join("; ")
+                ),
+            );
+        }
+    }
     // `run` logs it at start; validate (and so `systemctl reload`) said nothing.
     let logins = cfg
         .targets
@@ -496,6 +509,35 @@ mod tests {
             ),
             "{}",
             w[0]
+        );
+    }
+
+    /// A model forced past its doubts said so only in a comment, which nothing
+    /// read after the day it was written.
+    #[test]
+    fn a_model_written_over_its_doubts_is_warned_of() {
+        let example = include_str!("../../../../config/example.toml");
+        let axis = "[axes.X]\n";
+        assert!(example.contains(axis));
+        assert!(!warned(example)
+            .iter()
+            .any(|w| w.contains("accepted_doubts")));
+        let forced = example.replacen(
+            axis,
+            &format!("{axis}accepted_doubts = [\"T_bed spans only 0.2 K\", \"kelvin?\"]\n"),
+            1,
+        );
+        let w: Vec<String> = warned(&forced)
+            .into_iter()
+            .filter(|w| w.contains("accepted_doubts"))
+            .collect();
+        assert_eq!(
+            w,
+            [
+                "rtu.toml: axes.X.accepted_doubts: the model was written with calibrate \
+              --accept-weak-fit over: T_bed spans only 0.2 K; kelvin?; measure the machine \
+              again and fit anew, or remove the key once the doubt is settled"
+            ]
         );
     }
 
