@@ -117,9 +117,9 @@ pub struct AxisConfig {
     /// min <= max, -100..=500.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub fitted_degc: BTreeMap<String, [f64; 2]>,
-    /// The doubts about the model's fit that `calibrate --accept-weak-fit` wrote it
-    /// over (calibrate writes them): while any is listed, `validate` and every start
-    /// warn, naming them, so a forced model is not forgotten. Remove the key once the
+    /// The doubts about the model's fit that it was written over (`calibrate
+    /// --accept-weak-fit` and `scenario` write them): while any is listed, `validate`
+    /// and every start warn, naming them, so a forced model is not forgotten. Remove the key once the
     /// machine is measured again or the doubt is settled. Optional; default none.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub accepted_doubts: Vec<String>,

@@ -212,11 +212,8 @@ pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
     let mut doubts = f.doubts();
     doubts.extend(bad_doubt.flatten());
     let mut model = AxisModel::from_fit(&f);
-    // Whoever loads the model later sees that it was forced: the gateway warns of
-    // them at every start.
-    if args.accept_weak_fit {
-        model.accepted_doubts.clone_from(&doubts);
-    }
+    // The bad readings too: whoever loads a forced model later is warned of them.
+    model.accepted_doubts.clone_from(&doubts);
     let header = format!(
         "compgate calibrate: axis {} from {} rows of {}\nRMS residual {:.3} um, R^2 {:.6}\nchannels are the CSV's T_ columns without T_; name the gateway's channels alike",
         args.axis,

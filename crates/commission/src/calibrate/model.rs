@@ -58,8 +58,9 @@ pub struct AxisModel {
     /// SD43920, mm.
     #[serde(default)]
     pub p0_mm: f64,
-    /// The doubts about the fit that `calibrate --accept-weak-fit` wrote the model
-    /// over: the gateway warns of them at every start, and `validate` too.
+    /// The doubts about the fit that the model was written over (`calibrate
+    /// --accept-weak-fit`, or `scenario`, which runs its fit whatever it holds): the
+    /// gateway warns of them at every start, and `validate` too.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub accepted_doubts: Vec<String>,
     /// K0(T) -> SD43900.
@@ -200,7 +201,7 @@ impl AxisModel {
     pub fn from_fit(f: &Fit) -> Self {
         Self {
             p0_mm: f.p0_mm,
-            accepted_doubts: Vec::new(),
+            accepted_doubts: f.doubts(),
             k0: K0Model {
                 offset_mm: f.k0_offset_um / 1000.0,
                 terms: f

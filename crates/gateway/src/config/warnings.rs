@@ -140,7 +140,7 @@ pub fn warnings(cfg: &Config, file: &str) -> Vec<ConfigProblem> {
             out.push(
                 format!("axes.{name}.accepted_doubts"),
                 format!(
-                    "the model was written with calibrate --accept-weak-fit over: {}; \
+                    "the model was written although its fit is in doubt: {}; \
                      measure the machine again and fit anew, or remove the key once the \
                      doubt is settled",
                     axis.accepted_doubts.join("; ")
@@ -534,8 +534,8 @@ mod tests {
         assert_eq!(
             w,
             [
-                "rtu.toml: axes.X.accepted_doubts: the model was written with calibrate \
-              --accept-weak-fit over: T_bed spans only 0.2 K; kelvin?; measure the machine \
+                "rtu.toml: axes.X.accepted_doubts: the model was written although its \
+              fit is in doubt: T_bed spans only 0.2 K; kelvin?; measure the machine \
               again and fit anew, or remove the key once the doubt is settled"
             ]
         );
