@@ -119,8 +119,9 @@ pub struct AxisConfig {
     pub fitted_degc: BTreeMap<String, [f64; 2]>,
     /// The doubts about the model's fit that it was written over (`calibrate
     /// --accept-weak-fit` and `scenario` write them): while any is listed, `validate`
-    /// and every start warn, naming them, so a forced model is not forgotten. Remove the key once the
-    /// machine is measured again or the doubt is settled. Optional; default none.
+    /// and every start warn, naming them, so a forced model is not forgotten. Remove
+    /// the key once the machine is measured again or the doubt is settled. Optional;
+    /// default none.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub accepted_doubts: Vec<String>,
     /// Shadow mode: compute, record and publish the parameters this axis would
