@@ -41,8 +41,8 @@ pub fn annotated(cfg: &Config) -> String {
          # structs' doc comments, also in `compgate config schema`). Optional sections\n\
          # and keys the example leaves out ([targets] of kind opcua, s7 or ads, CAN\n\
          # devices, [recorder], [metrics], [mqtt], [sim], axis_number, lag_tau_s,\n\
-         # motion_heat, fitted_degc) are in `compgate config schema` and\n\
-         # docs/reference/config.md.\n\
+         # motion_heat, fitted_degc, accepted_doubts) are in `compgate config schema`\n\
+         # and docs/reference/config.md.\n\
          # Do not edit: change example.toml or the doc comments and regenerate with\n\
          #   cargo run -- config example > config/annotated.toml\n\
          #\n",
