@@ -209,11 +209,10 @@ pub fn run(args: &CalibrateArgs) -> Result<Calibrated<'_>, CalibrateError> {
     let f = calibrate(&m, &args.sensors, args.p0_mm)?;
     let bad = bad_readings(&m, &args.sensors, &f);
     let (bad_rows, bad_doubt) = bad_rows_warning(&m, &lines, &f, &bad).unzip();
-    let mut doubts = f.doubts();
-    doubts.extend(bad_doubt.flatten());
     let mut model = AxisModel::from_fit(&f);
     // The bad readings too: whoever loads a forced model later is warned of them.
-    model.accepted_doubts.clone_from(&doubts);
+    model.accepted_doubts.extend(bad_doubt.flatten());
+    let doubts = model.accepted_doubts.clone();
     let header = format!(
         "compgate calibrate: axis {} from {} rows of {}\nRMS residual {:.3} um, R^2 {:.6}\nchannels are the CSV's T_ columns without T_; name the gateway's channels alike",
         args.axis,
