@@ -173,15 +173,42 @@ systemctl daemon-reload
 since=$(date '+%Y-%m-%d %H:%M:%S')
 systemctl restart compgate
 expect_down "a drop-in with its DeviceAllow= opens it" hvc '*kind="timeout"*' --since "$since"
+
+# ---- a restart on a config that does not validate: ExecStartPre refuses it, systemd
+# tries again every RestartSec= (Restart=on-failure), the journal naming the key each
+# time, and the gateway starts by itself once the file validates
+sed 's/^poll_interval_s = 0.5/poll_interval_s = -1/' "$work/good.toml" >/etc/compgate/compgate.toml
+named() { journalctl -u compgate -o cat | grep -c "devices.ain1.poll_interval_s"; }
+n0=$(named)
+if systemctl restart compgate 2>/dev/null; then
+    bad "a restart on a config that does not validate fails" "it started"
+else
+    ok "a restart on a config that does not validate fails"
+fi
+r0=$(prop NRestarts)
+# Two tries more, each with its line: NRestarts counts a try before its line is written.
+retried() { (($(prop NRestarts) >= r0 + 2 && $(named) >= n0 + 3)); }
+if until_s 30 retried && [[ $(prop ActiveState) != failed ]]; then
+    ok "systemd tries again every RestartSec=, the journal naming the key each time"
+else
+    bad "systemd tries again every RestartSec=, the journal naming the key each time" \
+        "$(prop ActiveState) after $(prop NRestarts) restarts, key named $(($(named) - n0)) times"
+fi
 cp "$work/good.toml" /etc/compgate/compgate.toml
+if until_s 30 systemctl is-active --quiet compgate; then
+    ok "it starts by itself once the config validates"
+else
+    bad "it starts by itself once the config validates" "$(systemctl status --no-pager compgate | tail -5)"
+fi
 systemctl restart compgate
 pid=$(prop MainPID)
 
 # ---- the watchdog: a gateway that stops answering is killed and restarted, and
 # keeps what it recorded
 before=$(readings)
+r0=$(prop NRestarts)
 kill -STOP "$pid"
-if until_s 90 bash -c "[[ \$(systemctl show -p NRestarts --value compgate) -ge 1 && \$(systemctl is-active compgate) == active ]]"; then
+if until_s 90 bash -c "[[ \$(systemctl show -p NRestarts --value compgate) -gt $r0 && \$(systemctl is-active compgate) == active ]]"; then
     ok "a hung gateway is restarted by the watchdog"
 else
     bad "a hung gateway is restarted by the watchdog" "$(systemctl status --no-pager compgate | tail -5)"
