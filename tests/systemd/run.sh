@@ -10,11 +10,12 @@
 #
 # Usage: tests/systemd/run.sh
 # With CI set, a run in which the checks did not run is a failure.
-# Environment: SYSTEMD_VM_TIMEOUT_S (default 900) bounds the VM run.
+# Environment: SYSTEMD_VM_TIMEOUT_S (default 1500) bounds the VM run; VM_PROFILE=release
+# runs the release build (tests/vm/lib.sh).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 ROOT=$PWD
-TIMEOUT_S=${SYSTEMD_VM_TIMEOUT_S:-900}
+TIMEOUT_S=${SYSTEMD_VM_TIMEOUT_S:-1500}
 WORK=$ROOT/target/systemd
 mkdir -p "$WORK"
 
@@ -38,22 +39,19 @@ vm_kernel
 
 # The binary install.sh installs: it builds it itself where cargo is on the PATH, which
 # the VM's systemd does not have, and otherwise takes target/production's. Built here
-# as install.sh builds it, but in the shared target directory, whose release
-# dependencies the vcan tests have built already. Stripped of its line tables (110 MB
-# to 20 MB): the update checks copy it over the VM's 9p root several times, which took
-# a minute under emulation; the code is the same. The simulated plant is the release
-# binary the vcan stage built (the same build: nothing to do after it), put aside
-# first; a debug one made the emulated CPU the bottleneck of every check.
+# as install.sh builds it (in VM_PROFILE) but in the shared target directory, whose
+# dependencies the test build has built already. Both stripped of their line tables
+# (70 MB to 38 MB in debug, 110 MB to 20 MB in release): the update checks copy the
+# binary over the VM's 9p root several times, slow under emulation; the code is the
+# same. The simulated plant is the build the vcan stage ran (nothing to do after it),
+# put aside first.
 echo "systemd: building the production binary and the simulator"
-build() {
-    cargo "$@" --locked >>"$WORK/build.log" 2>&1 ||
-        { tail -20 "$WORK/build.log" >&2; echo "systemd: FAILED: build" >&2; exit 1; }
-}
 : >"$WORK/build.log"
-build test --release -p compgate --test can_vcan --no-run
-install -D target/release/compgate "$WORK/plant/compgate"
-build build --release --no-default-features --bin compgate
-install -s -D target/release/compgate target/production/release/compgate
+vm_build "$WORK/build.log" >/dev/null
+install -s -D "$VM_BIN_DIR/compgate" "$WORK/plant/compgate"
+cargo build "${VM_CARGO_PROFILE[@]}" --no-default-features --bin compgate --locked >>"$WORK/build.log" 2>&1 ||
+    { tail -20 "$WORK/build.log" >&2; echo "systemd: FAILED: build" >&2; exit 1; }
+install -s -D "$VM_BIN_DIR/compgate" target/production/release/compgate
 
 # ---- initramfs: mount this machine's root read-only with a tmpfs over it, add the
 # check's units, hand over to systemd

@@ -11,7 +11,8 @@
 #
 # With CI set, any run in which the vcan tests did not run is a failure.
 # Environment: VCAN_VM_TIMEOUT_S (default 1500) bounds the whole VM run;
-# VCAN_TESTS narrows the test set; VCAN_PROFILE=debug skips the release build.
+# VCAN_TESTS narrows the test set; VM_PROFILE=release runs the release build
+# (tests/vm/lib.sh).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 ROOT=$PWD
@@ -35,24 +36,21 @@ TESTS=(
 # VCAN_TESTS="pkg:test ..." narrows the set while iterating.
 if [[ -n "${VCAN_TESTS:-}" ]]; then read -ra TESTS <<<"$VCAN_TESTS"; fi
 
-# Release builds: the benchmark measures what the service runs, and TCG is slow
-# enough already. VCAN_PROFILE=debug builds faster while iterating.
-PROFILE_ARG=--release
-[[ "${VCAN_PROFILE:-release}" == "debug" ]] && PROFILE_ARG=
-
 build_tests() {
     local out=$WORK/tests.txt
+    : >"$WORK/build.log"
+    vm_build "$WORK/build.log" --message-format=json >"$WORK/build.json"
     : >"$out"
     for t in "${TESTS[@]}"; do
-        local pkg=${t%%:*} name=${t#*:}
-        # The test target's own executable (not the binaries built alongside it).
-        cargo test $PROFILE_ARG -p "$pkg" --test "$name" --no-run --message-format=json 2>"$WORK/build.log" |
-            grep "\"kind\":\\[\"test\"\\]" | grep "\"name\":\"$name\"" |
+        local name=${t#*:}
+        # The test target's own executable (not the binaries built alongside it); test
+        # target names are unique in the workspace.
+        grep "\"kind\":\\[\"test\"\\]" "$WORK/build.json" | grep "\"name\":\"$name\"" |
             grep -o '"executable":"[^"]*"' | cut -d'"' -f4 >>"$out" || true
     done
     if [[ $(wc -l <"$out") -ne ${#TESTS[@]} ]]; then
         tail -20 "$WORK/build.log" >&2
-        echo "vcan: FAILED: cannot build the test binaries" >&2
+        echo "vcan: FAILED: cannot find the test binaries of ${TESTS[*]}" >&2
         exit 1
     fi
 }

@@ -5,6 +5,21 @@
 # VM_STAGE_WHAT (what must run, e.g. "the vcan tests"); VM_SKIP_HINT, if set, is said
 # after a skip.
 
+# The build the VMs run: debug by default, the one `cargo test --workspace --all-targets`
+# made just before in ./test.sh, so no stage builds again. An optimised build of the
+# workspace costs CI's two cores 12 minutes and more; the checks pass on either (the
+# systemd checks take about 4 minutes longer on debug binaries under emulation).
+# VM_PROFILE=release runs them on the release build (the CAN benchmark figures in
+# docs/guide/can.md are from it).
+VM_PROFILE=${VM_PROFILE:-debug}
+case $VM_PROFILE in
+debug) VM_CARGO_PROFILE=() ;;
+release) VM_CARGO_PROFILE=(--release) ;;
+*) echo "VM_PROFILE must be debug or release, not '$VM_PROFILE'" >&2; exit 2 ;;
+esac
+# Where that build's binaries are, relative to the checkout.
+VM_BIN_DIR=target/$VM_PROFILE
+
 # skip_or_fail MESSAGE: under CI a stage that cannot run fails; elsewhere it is skipped,
 # saying so.
 skip_or_fail() {
@@ -60,6 +75,17 @@ vm_kernel() {
     for m in "${VM_MODULES[@]}"; do cp "$KDIR"/x/lib/modules/*/kernel/"$m" "$KDIR/mods/"; done
     cp "$KDIR"/x/boot/vmlinuz-* "$KDIR/vmlinuz"
     rm -rf "$KDIR/x" "$KDIR"/linux-image-*.deb
+}
+
+# vm_build LOG [CARGO_ARG...]: the workspace's test build, as ./test.sh's `cargo test`
+# makes it (the same targets and so the same features: nothing is built twice), in
+# VM_PROFILE; cargo's stdout on stdout, its stderr appended to LOG. Fails the stage with
+# the end of LOG when the build fails.
+vm_build() {
+    local log=$1
+    shift
+    cargo test "${VM_CARGO_PROFILE[@]}" --workspace --all-targets --no-run --locked "$@" 2>>"$log" ||
+        { tail -20 "$log" >&2; echo "$VM_STAGE: FAILED: build (${log#"$ROOT"/})" >&2; exit 1; }
 }
 
 # carry IR BINARY DEST: a program and its shared libraries into the initramfs tree IR.
