@@ -28,12 +28,12 @@ VM_SKIP_HINT="the CAN tests did NOT run; set up vcan0 or the VM tooling"
 source "$ROOT/tests/vm/lib.sh"
 
 # The test binaries that need vcan0; their vcan tests are #[ignore]d in a plain
-# `cargo test` and run here with --ignored.
+# `cargo test` and run here with --ignored. Test target names are unique in the workspace.
 TESTS=(
-    "compgate:can_vcan"
-    "compgate-plc:canopen_vcan"
+    can_vcan     # compgate
+    canopen_vcan # compgate-plc
 )
-# VCAN_TESTS="pkg:test ..." narrows the set while iterating.
+# VCAN_TESTS="test ..." narrows the set while iterating.
 if [[ -n "${VCAN_TESTS:-}" ]]; then read -ra TESTS <<<"$VCAN_TESTS"; fi
 
 build_tests() {
@@ -41,10 +41,8 @@ build_tests() {
     : >"$WORK/build.log"
     vm_build "$WORK/build.log" --message-format=json >"$WORK/build.json"
     : >"$out"
-    for t in "${TESTS[@]}"; do
-        local name=${t#*:}
-        # The test target's own executable (not the binaries built alongside it); test
-        # target names are unique in the workspace.
+    for name in "${TESTS[@]}"; do
+        # The test target's own executable (not the binaries built alongside it).
         grep "\"kind\":\\[\"test\"\\]" "$WORK/build.json" | grep "\"name\":\"$name\"" |
             grep -o '"executable":"[^"]*"' | cut -d'"' -f4 >>"$out" || true
     done
