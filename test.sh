@@ -42,12 +42,48 @@ cargo clippy --workspace --all-targets -- -D warnings
 cargo clippy -p compgate --no-default-features -- -D warnings
 echo "== cargo doc (broken links and bad doc markup are errors)"
 RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --quiet
-echo "== cargo test"
+echo "== cargo test, the VM stages beside it"
+cargo test --workspace --all-targets --no-run
+# Each VM stage installs what it needs, copies its binaries out of this build and packs
+# its initramfs (one after the other: they share apt and the kernel cache), then boots
+# in the background: the VMs (one core each under emulation) beside the tests (less
+# than one of the two cores) save CI about 7 minutes. Their output is shown once the
+# tests are done.
+stages=(vcan powerloss systemd)
+declare -A what=(
+    [vcan]="vcan tests (CAN source and CANopen node; natively on vcan0, else in a VM)"
+    [powerloss]="power-loss checks (a power cut while recording and after calibrate, in a VM)"
+    [systemd]="systemd checks (deploy/install.sh and the unit under a real systemd, in a VM)"
+)
+for s in "${stages[@]}"; do
+    echo "== preparing the ${what[$s]%% (*}"
+    "tests/$s/run.sh" prepare
+    rm -f "target/$s/boot.rc"
+done
+# boot_bg STAGE...: boots the stages one after the other in a process group of their
+# own (stopped with this script), each one's output in target/STAGE/boot.log and its
+# exit status in target/STAGE/boot.rc.
+boot_pids=()
+trap 'for p in "${boot_pids[@]}"; do kill -- "-$p" 2>/dev/null || true; done' EXIT
+boot_bg() {
+    setsid bash -c 'for s; do rc=0; "tests/$s/run.sh" boot >"target/$s/boot.log" 2>&1 || rc=$?
+        echo "$rc" >"target/$s/boot.rc"; done' _ "$@" &
+    boot_pids+=($!)
+}
+# The systemd VM is the longest (about 7 minutes); the other two take 3 together.
+boot_bg systemd
+boot_bg vcan powerloss
 cargo test --workspace --all-targets
 cargo test --workspace --doc
-echo "== vcan tests (CAN source and CANopen node; natively on vcan0, else in a VM)"
-tests/vcan/run.sh
-echo "== power-loss checks (a power cut while recording and after calibrate, in a VM)"
-tests/powerloss/run.sh
-echo "== systemd checks (deploy/install.sh and the unit under a real systemd, in a VM)"
-tests/systemd/run.sh
+echo "== waiting for the VM stages"
+wait "${boot_pids[@]}" || true
+failed=()
+for s in "${stages[@]}"; do
+    echo "== ${what[$s]}"
+    cat "target/$s/boot.log"
+    [[ $(cat "target/$s/boot.rc" 2>/dev/null) == 0 ]] || failed+=("$s")
+done
+if ((${#failed[@]})); then
+    echo "FAILED: the VM stages ${failed[*]} (their output above)" >&2
+    exit 1
+fi

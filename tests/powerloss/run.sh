@@ -18,7 +18,7 @@
 #   boot: only the messages of the last commit_interval_s + 1 s may come again.
 # Results come back over the serial console: one PL-CHECK line per check.
 #
-# Usage: tests/powerloss/run.sh
+# Usage: tests/powerloss/run.sh [prepare|boot]   (the phases: tests/vm/lib.sh; none: both)
 # With CI set, a run in which the checks did not run is a failure.
 # Environment: POWERLOSS_VM_TIMEOUT_S (default 120) bounds each boot.
 set -euo pipefail
@@ -34,6 +34,75 @@ VM_STAGE_WHAT="the power-loss checks"
 # shellcheck source=../vm/lib.sh
 source "$ROOT/tests/vm/lib.sh"
 
+# ---- boot: the two boots, on what prepare left, and the results
+boot_phase() {
+    local phase=$1 log=$WORK/console-$1.log
+    echo "powerloss: boot $phase (console in target/powerloss/console-$phase.log)"
+    set +e
+    timeout "$TIMEOUT_S" qemu-system-x86_64 -accel tcg -m 2048 -smp 1 -nographic -no-reboot \
+        -serial mon:stdio \
+        -drive file="$WORK/disk.img",format=raw,if=virtio \
+        -fsdev local,id=hostroot,path=/,security_model=passthrough,readonly=on,multidevs=remap \
+        -device virtio-9p-pci,fsdev=hostroot,mount_tag=hostroot \
+        -kernel "$KDIR/vmlinuz" -initrd "$WORK/initrd.gz" \
+        -append "console=ttyS0 quiet panic=-1 pl.phase=$phase" \
+        </dev/null 2>&1 | stdbuf -oL tr -d '\r' >"$log"
+    local qrc=${PIPESTATUS[0]}
+    set -e
+    [[ $qrc -eq 124 ]] && echo "powerloss: boot $phase timed out after ${TIMEOUT_S} s" >&2
+    grep -q 'PL-BOOTED' "$log" || { echo "powerloss: FAILED: boot $phase did not boot" >&2; exit 1; }
+    grep -a 'PL-ERROR' "$log" >&2 && { echo "powerloss: FAILED: boot $phase" >&2; exit 1; }
+    grep -a '^PL-[A-Z0-9]*:' "$log" | grep -v '^PL-BOOTED\|^PL-PHASE-END\|^PL-MSG' | sed 's/^/powerloss: /' || true
+}
+
+run_vm() {
+    # A fresh disk: nothing of an earlier run is taken for this one's.
+    rm -f "$WORK/disk.img" "$WORK/boot1.txt"
+    truncate -s 256M "$WORK/disk.img"
+    mkfs.ext4 -q -F "$WORK/disk.img"
+    boot_phase 1
+    # Boot 1 ends with the power cut: no PL-PHASE-END. What boot 2 compares with comes
+    # from its console (its tmpfs is gone).
+    grep -a '^PL-CUT:' "$WORK/console-1.log" >"$WORK/boot1.txt" ||
+        { echo "powerloss: FAILED: boot 1 did not reach the power cut" >&2; exit 1; }
+    ! grep -aq 'PL-PHASE-END' "$WORK/console-1.log" ||
+        { echo "powerloss: FAILED: boot 1 ended without the power cut" >&2; exit 1; }
+    boot_phase 2
+
+    # The MQTT outbox: a message boot 1's subscriber got and boot 2 published again was
+    # sent before the cut, but its deletion from the outbox was not on the disk. Only the
+    # messages of the last commit_interval_s + 1 s may come again, as only the readings of
+    # that span may be lost.
+    read -r _ cut _ <"$WORK/boot1.txt"
+    msgs() { grep -a '^PL-MSG: ' "$WORK/console-$1.log" | cut -d' ' -f2- | sort -u; }
+    msgs 1 >"$WORK/mqtt-1.txt"
+    msgs 2 >"$WORK/mqtt-2.txt"
+    again=$(comm -12 "$WORK/mqtt-1.txt" "$WORK/mqtt-2.txt")
+    n_again=$(grep -c . <<<"$again" || true)
+    oldest=$(awk -v cut="$cut" 'NF { a = cut - $2; if (a > m) m = a } END { print m + 0 }' <<<"$again")
+    detail="boot 1's subscriber got $(grep -c . "$WORK/mqtt-1.txt") messages, boot 2's $(grep -c . "$WORK/mqtt-2.txt"); $n_again published again, the oldest $oldest ms before the cut (at most 1500)"
+    mqtt_ok=0
+    if [[ ! -s $WORK/mqtt-1.txt || $(comm -13 "$WORK/mqtt-1.txt" "$WORK/mqtt-2.txt" | grep -c .) -eq 0 ]]; then
+        echo "powerloss: PL-CHECK: FAILED: the outbox publishes again at most the last commit_interval_s + 1 s: no messages to compare: $detail"
+    elif ((oldest > 1500)); then
+        echo "powerloss: PL-CHECK: FAILED: the outbox publishes again at most the last commit_interval_s + 1 s: $detail"
+    else
+        echo "powerloss: PL-CHECK: ok: the outbox publishes again at most the last commit_interval_s + 1 s: $detail"
+        mqtt_ok=1
+    fi
+
+    res=$(grep -ao 'PL-RESULT: [0-9]* passed, [0-9]* failed' "$WORK/console-2.log" | tail -1 || true)
+    echo "powerloss: whole stage $(($(date +%s) - t_start)) s wall"
+    [[ -n "$res" ]] || { echo "powerloss: FAILED: no result line from boot 2" >&2; exit 1; }
+    passed=$(($(echo "$res" | awk '{print $2}') + mqtt_ok))
+    failed=$(($(echo "$res" | awk '{print $4}') + 1 - mqtt_ok))
+    echo "powerloss: $passed passed, $failed failed"
+    ((failed == 0)) || exit 1
+}
+
+vm_prepares || vm_boot_only
+
+# ---- prepare
 need=()
 command -v qemu-system-x86_64 >/dev/null || need+=(qemu-system-x86)
 if [[ ! -x /bin/busybox ]] || ldd /bin/busybox >/dev/null 2>&1; then need+=(busybox-static); fi
@@ -69,11 +138,6 @@ awk 'BEGIN { print "t_s,pos_mm,err_um,T_a,T_b"; t = 0
         p = k * 250; t += 10; ta = 20 + t / 600; tb = 22 + 3 * sin(t / 400)
         printf "%d,%d,%.4f,%.4f,%.4f\n", t, p, 5 * (ta - 20) + 0.01 * p + 0.3 * sin(t * 7.1), ta, tb } }' \
     >"$WORK/m.csv"
-
-# A fresh disk: nothing of an earlier run is taken for this one's.
-rm -f "$WORK/disk.img" "$WORK/boot1.txt"
-truncate -s 256M "$WORK/disk.img"
-mkfs.ext4 -q -F "$WORK/disk.img"
 
 # ---- initramfs: the disk at /data, this machine's root read-only with a tmpfs over
 # it, a tmpfs at /run; guest.sh in a chroot, then power off
@@ -114,61 +178,4 @@ EOF
 chmod +x "$IR/init"
 (cd "$IR" && find . | cpio -o -H newc 2>/dev/null | gzip -1 >"$WORK/initrd.gz")
 
-boot() {
-    local phase=$1 log=$WORK/console-$1.log
-    echo "powerloss: boot $phase (console in target/powerloss/console-$phase.log)"
-    set +e
-    timeout "$TIMEOUT_S" qemu-system-x86_64 -accel tcg -m 2048 -smp 1 -nographic -no-reboot \
-        -serial mon:stdio \
-        -drive file="$WORK/disk.img",format=raw,if=virtio \
-        -fsdev local,id=hostroot,path=/,security_model=passthrough,readonly=on,multidevs=remap \
-        -device virtio-9p-pci,fsdev=hostroot,mount_tag=hostroot \
-        -kernel "$KDIR/vmlinuz" -initrd "$WORK/initrd.gz" \
-        -append "console=ttyS0 quiet panic=-1 pl.phase=$phase" \
-        </dev/null 2>&1 | stdbuf -oL tr -d '\r' >"$log"
-    local qrc=${PIPESTATUS[0]}
-    set -e
-    [[ $qrc -eq 124 ]] && echo "powerloss: boot $phase timed out after ${TIMEOUT_S} s" >&2
-    grep -q 'PL-BOOTED' "$log" || { echo "powerloss: FAILED: boot $phase did not boot" >&2; exit 1; }
-    grep -a 'PL-ERROR' "$log" >&2 && { echo "powerloss: FAILED: boot $phase" >&2; exit 1; }
-    grep -a '^PL-[A-Z0-9]*:' "$log" | grep -v '^PL-BOOTED\|^PL-PHASE-END\|^PL-MSG' | sed 's/^/powerloss: /' || true
-}
-
-boot 1
-# Boot 1 ends with the power cut: no PL-PHASE-END. What boot 2 compares with comes
-# from its console (its tmpfs is gone).
-grep -a '^PL-CUT:' "$WORK/console-1.log" >"$WORK/boot1.txt" ||
-    { echo "powerloss: FAILED: boot 1 did not reach the power cut" >&2; exit 1; }
-! grep -aq 'PL-PHASE-END' "$WORK/console-1.log" ||
-    { echo "powerloss: FAILED: boot 1 ended without the power cut" >&2; exit 1; }
-boot 2
-
-# The MQTT outbox: a message boot 1's subscriber got and boot 2 published again was
-# sent before the cut, but its deletion from the outbox was not on the disk. Only the
-# messages of the last commit_interval_s + 1 s may come again, as only the readings of
-# that span may be lost.
-read -r _ cut _ <"$WORK/boot1.txt"
-msgs() { grep -a '^PL-MSG: ' "$WORK/console-$1.log" | cut -d' ' -f2- | sort -u; }
-msgs 1 >"$WORK/mqtt-1.txt"
-msgs 2 >"$WORK/mqtt-2.txt"
-again=$(comm -12 "$WORK/mqtt-1.txt" "$WORK/mqtt-2.txt")
-n_again=$(grep -c . <<<"$again" || true)
-oldest=$(awk -v cut="$cut" 'NF { a = cut - $2; if (a > m) m = a } END { print m + 0 }' <<<"$again")
-detail="boot 1's subscriber got $(grep -c . "$WORK/mqtt-1.txt") messages, boot 2's $(grep -c . "$WORK/mqtt-2.txt"); $n_again published again, the oldest $oldest ms before the cut (at most 1500)"
-mqtt_ok=0
-if [[ ! -s $WORK/mqtt-1.txt || $(comm -13 "$WORK/mqtt-1.txt" "$WORK/mqtt-2.txt" | grep -c .) -eq 0 ]]; then
-    echo "powerloss: PL-CHECK: FAILED: the outbox publishes again at most the last commit_interval_s + 1 s: no messages to compare: $detail"
-elif ((oldest > 1500)); then
-    echo "powerloss: PL-CHECK: FAILED: the outbox publishes again at most the last commit_interval_s + 1 s: $detail"
-else
-    echo "powerloss: PL-CHECK: ok: the outbox publishes again at most the last commit_interval_s + 1 s: $detail"
-    mqtt_ok=1
-fi
-
-res=$(grep -ao 'PL-RESULT: [0-9]* passed, [0-9]* failed' "$WORK/console-2.log" | tail -1 || true)
-echo "powerloss: whole stage $(($(date +%s) - t_start)) s wall"
-[[ -n "$res" ]] || { echo "powerloss: FAILED: no result line from boot 2" >&2; exit 1; }
-passed=$(($(echo "$res" | awk '{print $2}') + mqtt_ok))
-failed=$(($(echo "$res" | awk '{print $4}') + 1 - mqtt_ok))
-echo "powerloss: $passed passed, $failed failed"
-((failed == 0)) || exit 1
+vm_prepared

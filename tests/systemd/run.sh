@@ -8,7 +8,7 @@
 # virtio 9p under a tmpfs overlay, booted with systemd as PID 1 into a target that
 # runs check.sh and powers off. Results come back over the serial console.
 #
-# Usage: tests/systemd/run.sh
+# Usage: tests/systemd/run.sh [prepare|boot]   (the phases: tests/vm/lib.sh; none: both)
 # With CI set, a run in which the checks did not run is a failure.
 # Environment: SYSTEMD_VM_TIMEOUT_S (default 1500) bounds the VM run; VM_PROFILE=release
 # runs the release build (tests/vm/lib.sh).
@@ -24,6 +24,37 @@ VM_STAGE_WHAT="the systemd checks"
 # shellcheck source=../vm/lib.sh
 source "$ROOT/tests/vm/lib.sh"
 
+# ---- boot: the VM, on what prepare left, and its results
+run_vm() {
+    LOG=$WORK/console.log
+    echo "systemd: booting the VM (timeout ${TIMEOUT_S} s, console in target/systemd/console.log)"
+    t0=$(date +%s)
+    set +e
+    # Serial ports for check.sh: a second 16550 UART (ttyS1) and a virtio console (hvc0),
+    # a driver group the unit does not allow; what they send is discarded.
+    timeout "$TIMEOUT_S" qemu-system-x86_64 -accel tcg -m 3072 -smp 1 -nographic -no-reboot \
+        -serial mon:stdio -serial null \
+        -device virtio-serial-pci -chardev null,id=hvc -device virtconsole,chardev=hvc \
+        -fsdev local,id=hostroot,path=/,security_model=passthrough,readonly=on,multidevs=remap \
+        -device virtio-9p-pci,fsdev=hostroot,mount_tag=hostroot \
+        -kernel "$KDIR/vmlinuz" -initrd "$WORK/initrd.gz" \
+        -append "console=ttyS0 quiet panic=-1 systemd.unit=compgate-check.target systemd.show_status=false" \
+        </dev/null 2>&1 | stdbuf -oL tr -d '\r' | tee "$LOG"
+    qrc=${PIPESTATUS[0]}
+    set -e
+    echo "systemd: VM run $(($(date +%s) - t0)) s wall"
+    [[ $qrc -eq 124 ]] && echo "systemd: the VM timed out after ${TIMEOUT_S} s" >&2
+    grep -q 'SD-BOOTED' "$LOG" || { echo "systemd: FAILED: the VM did not boot" >&2; exit 1; }
+    res=$(grep -ao 'SD-RESULT: [0-9]* passed, [0-9]* failed' "$LOG" | tail -1 || true)
+    [[ -n "$res" ]] || { echo "systemd: FAILED: no result line from the VM" >&2; exit 1; }
+    echo "systemd: ${res#SD-RESULT: }"
+    failed=$(echo "$res" | awk '{print $4}')
+    [[ $failed -eq 0 ]] || { grep -a 'SD-CHECK: FAILED' "$LOG" >&2; exit 1; }
+}
+
+vm_prepares || vm_boot_only
+
+# ---- prepare
 need=()
 command -v qemu-system-x86_64 >/dev/null || need+=(qemu-system-x86)
 if [[ ! -x /bin/busybox ]] || ldd /bin/busybox >/dev/null 2>&1; then need+=(busybox-static); fi
@@ -111,27 +142,4 @@ EOF
 chmod +x "$IR/init"
 (cd "$IR" && find . | cpio -o -H newc 2>/dev/null | gzip -1 >"$WORK/initrd.gz")
 
-LOG=$WORK/console.log
-echo "systemd: booting the VM (timeout ${TIMEOUT_S} s, console in target/systemd/console.log)"
-t0=$(date +%s)
-set +e
-# Serial ports for check.sh: a second 16550 UART (ttyS1) and a virtio console (hvc0),
-# a driver group the unit does not allow; what they send is discarded.
-timeout "$TIMEOUT_S" qemu-system-x86_64 -accel tcg -m 3072 -smp 1 -nographic -no-reboot \
-    -serial mon:stdio -serial null \
-    -device virtio-serial-pci -chardev null,id=hvc -device virtconsole,chardev=hvc \
-    -fsdev local,id=hostroot,path=/,security_model=passthrough,readonly=on,multidevs=remap \
-    -device virtio-9p-pci,fsdev=hostroot,mount_tag=hostroot \
-    -kernel "$KDIR/vmlinuz" -initrd "$WORK/initrd.gz" \
-    -append "console=ttyS0 quiet panic=-1 systemd.unit=compgate-check.target systemd.show_status=false" \
-    </dev/null 2>&1 | stdbuf -oL tr -d '\r' | tee "$LOG"
-qrc=${PIPESTATUS[0]}
-set -e
-echo "systemd: VM run $(($(date +%s) - t0)) s wall"
-[[ $qrc -eq 124 ]] && echo "systemd: the VM timed out after ${TIMEOUT_S} s" >&2
-grep -q 'SD-BOOTED' "$LOG" || { echo "systemd: FAILED: the VM did not boot" >&2; exit 1; }
-res=$(grep -ao 'SD-RESULT: [0-9]* passed, [0-9]* failed' "$LOG" | tail -1 || true)
-[[ -n "$res" ]] || { echo "systemd: FAILED: no result line from the VM" >&2; exit 1; }
-echo "systemd: ${res#SD-RESULT: }"
-failed=$(echo "$res" | awk '{print $4}')
-[[ $failed -eq 0 ]] || { grep -a 'SD-CHECK: FAILED' "$LOG" >&2; exit 1; }
+vm_prepared

@@ -6,7 +6,8 @@
 #   emulation, an initramfs with busybox, the CAN modules, can-utils and the test
 #   binaries. Results come back over the serial console.
 #
-# Usage: tests/vcan/run.sh [--smoke]
+# Usage: tests/vcan/run.sh [prepare|boot] [--smoke]
+#   prepare, boot   one phase only (tests/vm/lib.sh); none: both
 #   --smoke   boot the VM and show `ip link` with vcan0 up, run no tests
 #
 # With CI set, any run in which the vcan tests did not run is a failure.
@@ -17,7 +18,7 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."
 ROOT=$PWD
 SMOKE=0
-[[ "${1:-}" == "--smoke" ]] && SMOKE=1
+[[ " $* " == *" --smoke "* ]] && SMOKE=1
 TIMEOUT_S=${VCAN_VM_TIMEOUT_S:-1500}
 WORK=$ROOT/target/vcan
 
@@ -58,18 +59,60 @@ mkdir -p "$WORK"
 # ---- native: the kernel has vcan
 if [[ $SMOKE -eq 0 && -e /sys/class/net/vcan0 ]]; then
     echo "vcan: vcan0 exists, running natively"
-    ip link set up vcan0 2>/dev/null || true
+    run_vm() { # natively: no VM
+        ip link set up vcan0 2>/dev/null || true
+        local rc=0 exe
+        for exe in $(cat "$WORK/tests.txt"); do
+            VCAN_IF=vcan0 "$exe" --ignored --test-threads=1 --show-output || rc=1
+        done
+        exit $rc
+    }
+    vm_prepares || vm_boot_only
     # The e2e test drives can-utils (cansend, candump, cangen) as a third-party peer.
     command -v cansend >/dev/null || vm_install "$WORK.apt.log" can-utils
-    rc=0
     build_tests
-    for exe in $(cat "$WORK/tests.txt"); do
-        VCAN_IF=vcan0 "$exe" --ignored --test-threads=1 --show-output || rc=1
-    done
-    exit $rc
+    vm_prepared
+    exit 0
 fi
 
-# ---- VM
+# ---- VM: boot, on what prepare left, and the results
+run_vm() {
+    LOG=$WORK/console.log
+    echo "vcan: booting the VM (timeout ${TIMEOUT_S} s, console in target/vcan/console.log)"
+    t0=$(date +%s.%N)
+    set +e
+    # -enable-kvm hangs on the build machines: software emulation it is.
+    timeout "$TIMEOUT_S" qemu-system-x86_64 -accel tcg -m 1536 -smp 1 -nographic -no-reboot \
+        -kernel "$KDIR/vmlinuz" -initrd "$WORK/initrd.gz" \
+        -append "console=ttyS0 quiet panic=-1" </dev/null 2>&1 | tr -d '\r' | tee "$LOG"
+    qrc=${PIPESTATUS[0]}
+    set -e
+    t1=$(date +%s.%N)
+    wall=$(echo "$t1 - $t0" | bc 2>/dev/null || awk "BEGIN{print $t1-$t0}")
+    [[ $qrc -eq 124 ]] && echo "vcan: the VM timed out after ${TIMEOUT_S} s" >&2
+
+    grep -q 'VCAN-BOOTED' "$LOG" || { echo "vcan: FAILED: the VM did not boot" >&2; exit 1; }
+    echo "vcan: VM $(grep -o 'VCAN-BOOTED: .*' "$LOG" | sed 's/VCAN-BOOTED: /booted with vcan0 up after /') of guest uptime; whole VM run ${wall%.*} s wall"
+    if [[ $SMOKE -eq 1 ]]; then
+        grep -q 'vcan0:.*UP' "$LOG" || { echo "vcan: FAILED: vcan0 not up" >&2; exit 1; }
+        exit 0
+    fi
+    res=$(grep -o 'VCAN-RESULT: [0-9]* passed, [0-9]* failed' "$LOG" | tail -1 || true)
+    [[ -n "$res" ]] || { echo "vcan: FAILED: no result line from the VM" >&2; exit 1; }
+    passed=$(echo "$res" | awk '{print $2}')
+    failed=$(echo "$res" | awk '{print $4}')
+    # Individual tests, from the harness' own summary lines inside the VM.
+    tp=$(grep -ao 'test result: [a-zA-Z]*\. [0-9]* passed; [0-9]* failed' "$LOG" | awk '{s+=$4} END{print s+0}')
+    tf=$(grep -ao 'test result: [a-zA-Z]*\. [0-9]* passed; [0-9]* failed' "$LOG" | awk '{s+=$6} END{print s+0}')
+    grep -ao 'CAN-BENCH: highest.*\|CAN e2e: .*' "$LOG" | sed 's/^/vcan: /' || true
+    echo "vcan: test binaries: $passed of ${#TESTS[@]} passed; guest time $(grep -ao 'VCAN-RESULT: .*uptime [0-9.]* s' "$LOG" | grep -o '[0-9.]* s$')"
+    echo "vcan: $tp passed, $tf failed"
+    [[ $failed -eq 0 && $passed -eq ${#TESTS[@]} && $tp -gt 0 ]] || exit 1
+}
+
+vm_prepares || vm_boot_only
+
+# ---- VM: prepare
 need=()
 command -v qemu-system-x86_64 >/dev/null || need+=(qemu-system-x86)
 # A static busybox: the initramfs carries no libraries for it.
@@ -190,34 +233,4 @@ EOF
 chmod +x "$IR/init"
 (cd "$IR" && find . | cpio -o -H newc 2>/dev/null | gzip -1 >"$WORK/initrd.gz")
 
-LOG=$WORK/console.log
-echo "vcan: booting the VM (timeout ${TIMEOUT_S} s, console in target/vcan/console.log)"
-t0=$(date +%s.%N)
-set +e
-# -enable-kvm hangs on the build machines: software emulation it is.
-timeout "$TIMEOUT_S" qemu-system-x86_64 -accel tcg -m 1536 -smp 1 -nographic -no-reboot \
-    -kernel "$KDIR/vmlinuz" -initrd "$WORK/initrd.gz" \
-    -append "console=ttyS0 quiet panic=-1" </dev/null 2>&1 | tr -d '\r' | tee "$LOG"
-qrc=${PIPESTATUS[0]}
-set -e
-t1=$(date +%s.%N)
-wall=$(echo "$t1 - $t0" | bc 2>/dev/null || awk "BEGIN{print $t1-$t0}")
-[[ $qrc -eq 124 ]] && echo "vcan: the VM timed out after ${TIMEOUT_S} s" >&2
-
-grep -q 'VCAN-BOOTED' "$LOG" || { echo "vcan: FAILED: the VM did not boot" >&2; exit 1; }
-echo "vcan: VM $(grep -o 'VCAN-BOOTED: .*' "$LOG" | sed 's/VCAN-BOOTED: /booted with vcan0 up after /') of guest uptime; whole VM run ${wall%.*} s wall"
-if [[ $SMOKE -eq 1 ]]; then
-    grep -q 'vcan0:.*UP' "$LOG" || { echo "vcan: FAILED: vcan0 not up" >&2; exit 1; }
-    exit 0
-fi
-res=$(grep -o 'VCAN-RESULT: [0-9]* passed, [0-9]* failed' "$LOG" | tail -1 || true)
-[[ -n "$res" ]] || { echo "vcan: FAILED: no result line from the VM" >&2; exit 1; }
-passed=$(echo "$res" | awk '{print $2}')
-failed=$(echo "$res" | awk '{print $4}')
-# Individual tests, from the harness' own summary lines inside the VM.
-tp=$(grep -ao 'test result: [a-zA-Z]*\. [0-9]* passed; [0-9]* failed' "$LOG" | awk '{s+=$4} END{print s+0}')
-tf=$(grep -ao 'test result: [a-zA-Z]*\. [0-9]* passed; [0-9]* failed' "$LOG" | awk '{s+=$6} END{print s+0}')
-grep -ao 'CAN-BENCH: highest.*\|CAN e2e: .*' "$LOG" | sed 's/^/vcan: /' || true
-echo "vcan: test binaries: $passed of ${#TESTS[@]} passed; guest time $(grep -ao 'VCAN-RESULT: .*uptime [0-9.]* s' "$LOG" | grep -o '[0-9.]* s$')"
-echo "vcan: $tp passed, $tf failed"
-[[ $failed -eq 0 && $passed -eq ${#TESTS[@]} && $tp -gt 0 ]] || exit 1
+vm_prepared

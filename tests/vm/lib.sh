@@ -1,9 +1,10 @@
 # Sourced by the scripts that boot a test VM (tests/vcan/run.sh, tests/systemd/run.sh,
-# tests/powerloss/run.sh): a stage that cannot run, installing what a stage needs, a
-# Debian kernel with the modules they load, and carrying a program into an initramfs.
-# The caller sets ROOT (the checkout), VM_STAGE (its name in messages) and
-# VM_STAGE_WHAT (what must run, e.g. "the vcan tests"); VM_SKIP_HINT, if set, is said
-# after a skip.
+# tests/powerloss/run.sh): their phases, a stage that cannot run, installing what a
+# stage needs, a Debian kernel with the modules they load, and carrying a program into
+# an initramfs. The caller sets ROOT (the checkout), WORK (the stage's directory under
+# target/), VM_STAGE (its name in messages) and VM_STAGE_WHAT (what must run, e.g. "the
+# vcan tests"), and defines run_vm (the boot phase) before vm_boot_only or vm_prepared
+# is called; VM_SKIP_HINT, if set, is said after a skip.
 
 # The build the VMs run: debug by default, the one `cargo test --workspace --all-targets`
 # made just before in ./test.sh, so no stage builds again. An optimised build of the
@@ -19,6 +20,35 @@ release) VM_CARGO_PROFILE=(--release) ;;
 esac
 # Where that build's binaries are, relative to the checkout.
 VM_BIN_DIR=target/$VM_PROFILE
+
+# A stage runs in two phases, chosen by its first argument (none: both): `prepare`
+# installs what it needs, builds, and packs what the VM takes (binaries copied out of
+# target/); `boot` runs the VM on what prepare left and reports. ./test.sh prepares
+# the stages one by one and boots them beside `cargo test` (which keeps less than one
+# of the two cores busy): a boot runs no cargo and reads nothing of target/debug,
+# whose binaries the tests are running.
+case ${1:-} in
+prepare | boot) VM_PHASE=$1 ;;
+*) VM_PHASE=all ;;
+esac
+vm_prepares() { [[ $VM_PHASE != boot ]]; }
+vm_boots() { [[ $VM_PHASE != prepare ]]; }
+# Prepare's mark that it finished (one that skipped left none), under the stage's WORK.
+VM_PREPARED=$WORK/prepared
+if vm_prepares; then rm -f "$VM_PREPARED"; fi
+# vm_boot_only: the `boot` phase: the stage's run_vm on what prepare left, then exit.
+vm_boot_only() {
+    [[ -e $VM_PREPARED ]] || skip_or_fail "nothing prepared (tests/$VM_STAGE/run.sh prepare did not finish)"
+    run_vm
+    exit
+}
+# vm_prepared: prepare's end: its mark, then run_vm unless only preparing.
+vm_prepared() {
+    touch "$VM_PREPARED"
+    if vm_boots; then run_vm; fi
+}
+# The kernel and modules vm_kernel keeps.
+KDIR=$ROOT/target/vm-kernel
 
 # skip_or_fail MESSAGE: under CI a stage that cannot run fails; elsewhere it is skipped,
 # saying so.
@@ -56,10 +86,9 @@ VM_MODULES=(
     net/9p/9pnet.ko net/9p/9pnet_virtio.ko fs/9p/9p.ko fs/overlayfs/overlay.ko
 )
 
-# Sets KDIR to a directory with vmlinuz and mods/*.ko (every VM_MODULES entry), taken
+# Fills KDIR with vmlinuz and mods/*.ko (every VM_MODULES entry), taken
 # from Debian's current kernel package and cached under target/vm-kernel.
 vm_kernel() {
-    KDIR=$ROOT/target/vm-kernel
     local m have=1
     [[ -f $KDIR/vmlinuz ]] || have=0
     for m in "${VM_MODULES[@]}"; do [[ -f $KDIR/mods/$(basename "$m") ]] || have=0; done
