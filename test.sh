@@ -47,7 +47,7 @@ cargo test --workspace --all-targets --no-run
 # Each VM stage installs what it needs, copies its binaries out of this build and packs
 # its initramfs (one after the other: they share apt and the kernel cache), then boots
 # in the background: the VMs (one core each under emulation) beside the tests (less
-# than one of the two cores) took a clean-clone run from 24 to 21.6 minutes. Their
+# than one of the two cores) took a clean-clone run from 24 minutes to 19-22. Their
 # output is shown once the tests are done.
 stages=(vcan powerloss systemd)
 declare -A what=(
@@ -70,7 +70,8 @@ boot_bg() {
         echo "$rc" >"target/$s/boot.rc"; done' _ "$@" &
     boot_pids+=($!)
 }
-# The systemd VM is the longest (about 7 minutes); the other two take 3 together.
+# The systemd VM is the longest (8-10 minutes beside the tests); the other two take 4-5
+# together.
 boot_bg systemd
 boot_bg vcan powerloss
 cargo test --workspace --all-targets
