@@ -120,7 +120,6 @@ if [[ ! -x /bin/busybox ]] || ldd /bin/busybox >/dev/null 2>&1; then need+=(busy
 command -v cpio >/dev/null || need+=(cpio)
 command -v cansend >/dev/null || need+=(can-utils)
 if [[ ${#need[@]} -gt 0 ]]; then vm_install "$WORK.apt.log" "${need[@]}"; fi
-mkdir -p "$WORK"
 
 # ---- kernel and CAN modules, cached under target/vm-kernel
 vm_kernel
