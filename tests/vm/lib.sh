@@ -24,8 +24,9 @@ VM_BIN_DIR=target/$VM_PROFILE
 # A stage runs in two phases, chosen by its first argument (none: both): `prepare`
 # installs what it needs, builds, and packs what the VM takes (binaries copied out of
 # target/); `boot` runs the VM on what prepare left and reports. ./test.sh prepares
-# the stages one by one and boots them beside clippy and `cargo test`: a boot runs no
-# cargo and reads nothing of target/debug, whose binaries the tests are running.
+# the stages one by one and boots them beside `cargo test` (which keeps less than one
+# of the two cores busy): a boot runs no cargo and reads nothing of target/debug,
+# whose binaries the tests are running.
 case ${1:-} in
 prepare | boot) VM_PHASE=$1 ;;
 *) VM_PHASE=all ;;
