@@ -184,8 +184,10 @@ if [[ -e $unit ]] && ! cmp -s deploy/compgate.service "$unit"; then
 fi
 install -m 0644 deploy/compgate.service "$unit"
 
+# Enabled before the one reload: `enable` alone reloads systemd as well, and a reload
+# re-reads every unit and re-runs every generator (seconds on a slow box).
+systemctl enable --no-reload compgate.service
 systemctl daemon-reload
-systemctl enable compgate.service
 # A running service keeps its old binary and config until restarted.
 if systemctl is-active --quiet compgate.service; then
     echo "compgate was running: restarting it on the new binary and config"

@@ -183,8 +183,8 @@ fn install_sh_installs_updates_and_says_what_it_did() {
     assert_eq!(
         s.systemctl()[..4],
         [
+            "enable --no-reload compgate.service",
             "daemon-reload",
-            "enable compgate.service",
             "is-active --quiet compgate.service",
             "restart compgate.service"
         ]
