@@ -329,14 +329,17 @@ async fn write_with(
     let mut stop = StopSignals::register();
     let job_run = w.write_job(&job);
     tokio::pin!(job_run);
+    // Biased to the signal: one that came while the job ran is reported even when the
+    // job's answer is read in the same turn.
     let result = tokio::select! {
-        r = &mut job_run => r,
+        biased;
         signal = stop.recv() => {
             cli::eprintln(format_args!(
                 "{label}: {signal}: the job is under way; stopping once its outcome is known"
             ))?;
             job_run.await
         }
+        r = &mut job_run => r,
     };
     let report = result.map_err(|e| format!("{label}: {e}"))?;
     cli::print(format_args!(

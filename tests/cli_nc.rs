@@ -370,10 +370,12 @@ async fn nc_write_takes_any_of_the_three_values_and_checks_the_allow_list_first(
 async fn a_signal_during_an_nc_write_waits_for_the_jobs_outcome() {
     use compgate_plc::nc::JobFault;
     let dir = tempfile::tempdir().unwrap();
-    let (plant, file) = plant_and_file(dir.path(), &config("hold", "", ""), "").await;
+    // A job of 2 s within a timeout of 5 s: a loaded machine may stall this test or
+    // the command for a good part of a second between the job's start and the signal.
+    let toml = config("hold", "", "").replace("job_timeout_s = 0.5", "job_timeout_s = 5");
+    let (plant, file) = plant_and_file(dir.path(), &toml, "").await;
     let module = plant.nc["nc_x"].clone();
-    // Within the config's job_timeout_s = 0.5.
-    module.set_job_fault(JobFault::Delay(std::time::Duration::from_millis(300)));
+    module.set_job_fault(JobFault::Delay(std::time::Duration::from_secs(2)));
     let child = nc_command(&file, &["write", "--axis", "X", "--k0-mm", "0.02", "--yes"])
         .stdin(Stdio::null())
         .spawn()
