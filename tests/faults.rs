@@ -612,17 +612,19 @@ async fn a_silent_module_on_a_shared_rtu_line_does_not_hold_up_the_others() {
 async fn each_module_on_a_shared_rtu_line_gets_its_own_timeout() {
     let toml = two_modules_on_a_line(
         "/dev/compgate-test-timeouts",
-        "timeout_s = 0.5\nretries = 0\npoll_interval_s = 0.2",
+        "timeout_s = 0.8\nretries = 0\npoll_interval_s = 0.2",
     )
     .replace("timeout_s = 0.2\n", "timeout_s = 0.05\n");
     let plant = Plant::start(&cfgmod::load_str(&toml, "t.toml").unwrap(), Bind::Ephemeral)
         .await
         .unwrap();
-    plant.field["ain2"].set_comm_fault(CommFault::Delay(Duration::from_millis(120)));
+    // Slow enough that a wait for the line shows in the fast module's cycle beside
+    // what a loaded machine adds to its round trips.
+    plant.field["ain2"].set_comm_fault(CommFault::Delay(Duration::from_millis(300)));
     let (mut rx, shutdown, h) = run_gateway(plant.config.clone());
     // The fast module's cycles, as the status shows them, while it takes turns with
     // the slow one: its own round trips (and the quiet wait of 0.05 s when it opens
-    // the port), not its wait for the line (that made it look 120 ms slow and more in
+    // the port), not its wait for the line (that made it look as slow as the other in
     // its metrics and on the status page).
     let mut fast_cycle = Duration::ZERO;
     let s = loop {
@@ -641,7 +643,7 @@ async fn each_module_on_a_shared_rtu_line_gets_its_own_timeout() {
     shutdown.cancel();
     h.await.unwrap();
     assert!(
-        fast_cycle < Duration::from_millis(100),
+        fast_cycle < Duration::from_millis(200),
         "the fast module's cycle took {fast_cycle:?}"
     );
     let slow = s.devices.iter().find(|d| d.name == "ain2").unwrap();
@@ -682,8 +684,10 @@ async fn a_late_reply_on_a_shared_rtu_line_never_reaches_the_next_module() {
     shutdown.cancel();
     h.await.unwrap();
     let fast = s.devices.iter().find(|d| d.name == "ain1").unwrap();
+    // A late reply reaching the fast module is a frame error naming unit 2. A timeout
+    // of its own 0.05 s is what a loaded machine may cause (CI saw one).
     assert!(
-        fast.errors.is_empty(),
+        fast.errors.keys().all(|k| *k == "timeout"),
         "the fast module's requests failed: {:?}, {:?}",
         fast.errors,
         fast.last_error
