@@ -186,6 +186,18 @@ async fn refused_jobs_report_status_and_index_and_change_nothing() {
     write_job(ctx, 1, &[(var::SD43900, 0.05)]).await;
     set_req(ctx, 1).await;
     set_req(ctx, 0).await;
+    // The IPO loop slews the applied compensation over a few cycles, longer on a loaded
+    // machine: compare with the axis at rest.
+    let settled = timeout(STEP, async {
+        while run.module.state().applied_comp_mm != 0.05 {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    })
+    .await;
+    assert!(
+        settled.is_ok(),
+        "applied compensation never reached 0.05 mm"
+    );
     let before = run.module.state();
 
     // (pairs, expected STATUS, expected ERROR_INDEX)
