@@ -807,6 +807,9 @@ async fn frame(from: &mut tokio::net::TcpStream) -> Option<Vec<u8>> {
 async fn a_lost_reply_to_the_start_aborts_the_programme() {
     use tokio::io::AsyncWriteExt;
     let (upstream, module, shutdown) = serve(0.02).await;
+    // At 2000 times real time a loaded machine let the programme end before the abort
+    // came (MV_STATE 2): slow enough that it is still running then.
+    module.set_sim_speed(20.0);
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let address = listener.local_addr().unwrap().to_string();
     // Forwards every frame; after the start (MV_CMD = 1) it closes without the reply.
