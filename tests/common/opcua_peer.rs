@@ -95,7 +95,9 @@ impl OpcuaPeer {
     fn expect_line(&mut self, prefix: &str) -> String {
         let line = self
             .lines
-            .recv_timeout(Duration::from_secs(30))
+            // Eleven Python servers starting two at a time beside the VM stages took
+            // more than 30 s on CI; a peer that died closes the channel at once.
+            .recv_timeout(Duration::from_secs(120))
             .unwrap_or_else(|e| panic!("OPC UA peer: no `{prefix}` line: {e}"));
         line.strip_prefix(prefix)
             .unwrap_or_else(|| panic!("OPC UA peer: expected `{prefix}...`, got `{line}`"))
