@@ -113,9 +113,6 @@ command -v sqlite3 >/dev/null || need+=(sqlite3)
 command -v mosquitto_sub >/dev/null || need+=(mosquitto-clients)
 [[ -x /usr/sbin/mosquitto ]] || need+=(mosquitto)
 if [[ ${#need[@]} -gt 0 ]]; then vm_install "$WORK/apt.log" "${need[@]}"; fi
-# ext4 on a virtio disk, besides the 9p root and its overlay.
-VM_MODULES+=(lib/crc16.ko crypto/crc32c_generic.ko lib/libcrc32c.ko fs/mbcache.ko
-    fs/jbd2/jbd2.ko fs/ext4/ext4.ko drivers/block/virtio_blk.ko)
 vm_kernel
 
 # The gateway and the simulated plant: the build the vcan stage ran (the same build:

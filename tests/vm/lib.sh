@@ -73,7 +73,7 @@ vm_install() {
         >"$log" 2>&1 || skip_or_fail "could not install $* (see ${log#"$ROOT"/})"
 }
 
-# The modules either VM loads, as paths under the kernel package's lib/modules/*/kernel.
+# The modules the VMs load, as paths under the kernel package's lib/modules/*/kernel.
 VM_MODULES=(
     # vcan: can-bcm because python-can sends the Python node's heartbeat through it.
     net/can/can.ko net/can/can-raw.ko net/can/can-bcm.ko
@@ -84,7 +84,12 @@ VM_MODULES=(
     drivers/virtio/virtio_pci.ko fs/netfs/netfs.ko fs/fscache/fscache.ko
     drivers/char/virtio_console.ko
     net/9p/9pnet.ko net/9p/9pnet_virtio.ko fs/9p/9p.ko fs/overlayfs/overlay.ko
+    # powerloss: ext4 on a virtio disk, besides the 9p root and its overlay.
+    lib/crc16.ko crypto/crc32c_generic.ko lib/libcrc32c.ko fs/mbcache.ko
+    fs/jbd2/jbd2.ko fs/ext4/ext4.ko drivers/block/virtio_blk.ko
 )
+# One list for every stage: a stage that found a module missing would empty the cache
+# while a VM booted before it may still be reading its kernel.
 
 # Fills KDIR with vmlinuz and mods/*.ko (every VM_MODULES entry), taken
 # from Debian's current kernel package and cached under target/vm-kernel.
