@@ -75,22 +75,23 @@ enum Command {
     Scale {
         /// Measured seconds per client and load point, over all rounds (at least 2
         /// per round).
-        #[arg(long, default_value_t = 12.0)]
+        #[arg(long, default_value_t = 12.0, allow_negative_numbers = true)]
         seconds: f64,
         /// Rounds per load point, each the gateway then the bare client (1..=20).
         #[arg(long, default_value_t = 3)]
         rounds: usize,
         /// Reply delay of every simulated field module, ms (0..=1000).
-        #[arg(long, default_value_t = 1.0)]
+        #[arg(long, default_value_t = 1.0, allow_negative_numbers = true)]
         delay_ms: f64,
         /// The gateway's `recorder.interval_s`: seconds between the recorded cycles of
         /// a device (0: every poll).
-        #[arg(long, default_value_t = 1.0)]
+        #[arg(long, default_value_t = 1.0, allow_negative_numbers = true)]
         record_interval_s: f64,
         /// The load points to run, by name (10k, 100k, 1M); all by default.
         #[arg(long, value_delimiter = ',')]
         loads: Vec<String>,
-        /// Also write the figures per load point as JSON to this file.
+        /// Also write the figures per load point as JSON to this file (replaced only
+        /// once the run has succeeded).
         #[arg(long)]
         json: Option<PathBuf>,
         /// The `compgate` binary; by default the one beside this binary.
@@ -110,6 +111,41 @@ enum Command {
         #[arg(long)]
         points: u16,
     },
+}
+
+/// A temporary file beside `path` that takes the JSON of `--json` and then its name.
+fn json_out(path: &std::path::Path) -> Result<tempfile::NamedTempFile, String> {
+    if path.is_dir() {
+        return Err(format!("--json {}: is a directory", path.display()));
+    }
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => std::path::Path::new("."),
+    };
+    if !dir.is_dir() {
+        return Err(format!(
+            "--json {}: no directory {}",
+            path.display(),
+            dir.display()
+        ));
+    }
+    let f = tempfile::NamedTempFile::new_in(dir).map_err(|e| {
+        format!(
+            "--json {}: cannot write into {} ({})",
+            path.display(),
+            dir.display(),
+            e.kind()
+        )
+    })?;
+    // As `fs::write` would create it, not the temporary file's owner-only mode.
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt as _;
+        f.as_file()
+            .set_permissions(std::fs::Permissions::from_mode(0o644))
+            .map_err(|e| format!("--json {}: {e}", path.display()))?;
+    }
+    Ok(f)
 }
 
 /// The `compgate` binary that cargo built beside this one.
@@ -133,7 +169,7 @@ fn runtime() -> Result<tokio::runtime::Runtime, String> {
         .map_err(|e| format!("cannot start the async runtime: {e}"))
 }
 
-/// The options of `scale`, with `--loads` names checked.
+/// The options of `scale`, with `--loads` names checked (each once).
 fn scale_options(
     seconds: f64,
     rounds: usize,
@@ -142,7 +178,7 @@ fn scale_options(
     names: &[String],
     compgate: PathBuf,
 ) -> Result<scale::Options, String> {
-    let loads = if names.is_empty() {
+    let loads: Vec<scale::Load> = if names.is_empty() {
         scale::LOADS.to_vec()
     } else {
         names
@@ -156,6 +192,23 @@ fn scale_options(
             })
             .collect::<Result<_, _>>()?
     };
+    if let Some((i, l)) = loads
+        .iter()
+        .enumerate()
+        .find(|(i, l)| loads[..*i].iter().any(|m| m.name == l.name))
+    {
+        return Err(format!(
+            "--loads: {} given twice (as load point {})",
+            l.name,
+            i + 1
+        ));
+    }
+    if !compgate.is_file() {
+        return Err(format!(
+            "--compgate {}: no such file (the `compgate` binary to measure)",
+            compgate.display()
+        ));
+    }
     Ok(scale::Options {
         seconds,
         rounds,
@@ -220,11 +273,23 @@ fn main() -> ExitCode {
                 scale_options(seconds, rounds, delay_ms, record_interval_s, &loads, exe)
             })
             .and_then(|opts| {
+                // A JSON file that cannot be written fails now, not after the run; the
+                // file a run before wrote stays until this one's is complete.
+                let out = json
+                    .map(|path| json_out(&path).map(|f| (path, f)))
+                    .transpose()?;
                 let report = runtime()?.block_on(scale::run(&opts))?;
                 print!("{}", report.table());
-                match json {
-                    Some(path) => std::fs::write(&path, format!("{:#}\n", report.json()))
-                        .map_err(|e| format!("{}: {e}", path.display())),
+                match out {
+                    Some((path, mut f)) => {
+                        use std::io::Write as _;
+                        writeln!(f, "{:#}", report.json())
+                            .map_err(|e| e.to_string())
+                            .and_then(|()| {
+                                f.persist(&path).map(drop).map_err(|e| e.error.to_string())
+                            })
+                            .map_err(|e| format!("--json {}: {e}", path.display()))
+                    }
                     None => Ok(()),
                 }
             }),
@@ -244,5 +309,65 @@ fn main() -> ExitCode {
             eprintln!("error: {e}");
             ExitCode::FAILURE
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A file that passes for the `compgate` binary.
+    fn some_file() -> tempfile::NamedTempFile {
+        tempfile::NamedTempFile::new().unwrap()
+    }
+
+    #[test]
+    fn scale_loads_are_named_once() {
+        let exe = some_file();
+        let names = |n: &[&str]| n.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        let opts =
+            scale_options(12.0, 3, 1.0, 1.0, &names(&["1m", "10K"]), exe.path().into()).unwrap();
+        let loaded: Vec<_> = opts.loads.iter().map(|l| l.name).collect();
+        assert_eq!(loaded, ["1M", "10k"]);
+        let e = scale_options(
+            12.0,
+            3,
+            1.0,
+            1.0,
+            &names(&["10k", "1M", "10K"]),
+            exe.path().into(),
+        )
+        .unwrap_err();
+        assert_eq!(e, "--loads: 10k given twice (as load point 3)");
+        let e = scale_options(12.0, 3, 1.0, 1.0, &names(&["5k"]), exe.path().into()).unwrap_err();
+        assert!(e.contains("--loads 5k"), "{e}");
+    }
+
+    #[test]
+    fn a_missing_compgate_binary_is_named_before_the_run() {
+        let e = scale_options(12.0, 3, 1.0, 1.0, &[], "/no/such/compgate".into()).unwrap_err();
+        assert!(
+            e.starts_with("--compgate /no/such/compgate: no such file"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn the_json_file_is_checked_first_and_replaced_only_when_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let e = json_out(dir.path()).unwrap_err();
+        assert!(e.ends_with("is a directory"), "{e}");
+        let e = json_out(&dir.path().join("gone/scale.json")).unwrap_err();
+        assert!(e.contains("no directory"), "{e}");
+
+        let path = dir.path().join("scale.json");
+        std::fs::write(&path, "the run before\n").unwrap();
+        let mut f = json_out(&path).unwrap();
+        use std::io::Write as _;
+        writeln!(f, "{{}}").unwrap();
+        // Until the new figures are complete the old ones are what the file holds.
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "the run before\n");
+        f.persist(&path).unwrap();
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "{}\n");
     }
 }

@@ -672,7 +672,7 @@ async fn watch_process(pid: u32, window: Duration) -> Result<(f64, f64), String>
 }
 
 /// Waits until every module has been read, i.e. the client polls all devices.
-async fn wait_polled(modules: &[FieldModule], what: &str) -> Result<(), String> {
+async fn wait_polled(modules: &[FieldModule], client: &mut Kill, what: &str) -> Result<(), String> {
     let t0 = Instant::now();
     let base: Vec<u64> = modules.iter().map(FieldModule::requests_received).collect();
     while modules
@@ -680,6 +680,13 @@ async fn wait_polled(modules: &[FieldModule], what: &str) -> Result<(), String> 
         .zip(&base)
         .any(|(m, b)| m.requests_received() <= *b)
     {
+        // A client that exits at once (a wrong binary, a refused config) says why on
+        // the inherited stderr; waiting out the 30 s would only hide that.
+        if let Ok(Some(status)) = client.0.try_wait() {
+            return Err(format!(
+                "{what} exited ({status}) before it polled every device"
+            ));
+        }
         if t0.elapsed() > Duration::from_secs(30) {
             return Err(format!("{what} did not poll every device within 30 s"));
         }
@@ -762,7 +769,7 @@ async fn run_gateway(
         ),
     )
     .map_err(|e| format!("{}: {e}", cfg_path.display()))?;
-    let gw = Kill(
+    let mut gw = Kill(
         Command::new(&opts.compgate)
             .args(["--log", "warn", "run", "--config"])
             .arg(&cfg_path)
@@ -770,9 +777,9 @@ async fn run_gateway(
             .stdout(Stdio::null())
             .stderr(Stdio::inherit())
             .spawn()
-            .map_err(|e| format!("{} run: {e}", opts.compgate.display()))?,
+            .map_err(|e| format!("cannot start the gateway {}: {e}", opts.compgate.display()))?,
     );
-    wait_polled(&plant.modules, "the gateway").await?;
+    wait_polled(&plant.modules, &mut gw, "the gateway").await?;
     tokio::time::sleep(WARMUP).await;
     let before = Counters::scrape(metrics_port);
 
@@ -861,13 +868,13 @@ async fn run_bare(load: &Load, plant: &Plant, seconds: f64) -> Result<ClientFigu
     for p in &plant.ports {
         cmd.args(["--address", &format!("127.0.0.1:{p}")]);
     }
-    let bare = Kill(
+    let mut bare = Kill(
         cmd.stdout(Stdio::null())
             .stderr(Stdio::inherit())
             .spawn()
             .map_err(|e| format!("compgate-bench scale-bare: {e}"))?,
     );
-    wait_polled(&plant.modules, "the bare client").await?;
+    wait_polled(&plant.modules, &mut bare, "the bare client").await?;
     tokio::time::sleep(WARMUP).await;
     let figures = measure_client(plant, load, bare.0.id(), seconds).await?;
     drop(bare);
