@@ -229,7 +229,6 @@ pub async fn run(channels: u16, cycles: u32, rounds: u32) -> Result<BenchReport,
 }
 
 async fn measure(channels: u16, cycles: u32, rounds: u32) -> Result<BenchReport, BenchError> {
-    let channels = channels.clamp(1, 125);
     let transmitters = (0..channels)
         .map(|i| {
             let mut t = TransmitterSpec::new(

@@ -30,22 +30,23 @@ struct Cli {
 enum Command {
     /// Measure poll-filter-compute cycles against the bare Modbus request rate.
     Cycle {
-        /// Channels on the simulated module, read in one request.
-        #[arg(long, default_value_t = 64)]
+        /// Channels on the simulated module, read in one request (3..=125: the axis
+        /// reads the first three, one read carries at most 125 registers).
+        #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u16).range(3..=125))]
         channels: u16,
         /// Measured cycles per round.
-        #[arg(long, default_value_t = 2000)]
+        #[arg(long, default_value_t = 2000, value_parser = clap::value_parser!(u32).range(1..))]
         cycles: u32,
         /// Alternating rounds of gateway and bare measurements (many short rounds: the
         /// median then outvotes bursts of load from other processes).
-        #[arg(long, default_value_t = 15)]
+        #[arg(long, default_value_t = 15, value_parser = clap::value_parser!(u32).range(1..))]
         rounds: u32,
     },
     /// Soak the real gateway process (8 devices x 64 channels at 10 Hz, recording,
     /// metrics and MQTT on) and report CPU and RSS.
     Soak {
         /// How long, in seconds (at least 10).
-        #[arg(long)]
+        #[arg(long, allow_negative_numbers = true)]
         seconds: f64,
         /// The `compgate` binary to soak; by default the one beside this binary.
         #[arg(long)]
@@ -53,8 +54,8 @@ enum Command {
     },
     /// NC job latency (write + verified read-back) per target kind against its peer.
     Nc {
-        /// Measured jobs per kind.
-        #[arg(long, default_value_t = 1000)]
+        /// Measured jobs per kind (at least 1).
+        #[arg(long, default_value_t = 1000, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
         jobs: usize,
         /// Python interpreter of the peers; default target/peers-venv/bin/python.
         #[arg(long)]
@@ -66,7 +67,7 @@ enum Command {
         #[arg(long, value_enum, value_delimiter = ',')]
         s7_types: Vec<nc::S7Type>,
         /// Scan cycle of the S7 peer's PLC program, ms (0..=1000).
-        #[arg(long, default_value_t = 1.0)]
+        #[arg(long, default_value_t = 1.0, allow_negative_numbers = true)]
         plc_cycle_ms: f64,
     },
     /// The gateway process at 10k, 100k and 1M points/s against simulated field
@@ -238,6 +239,16 @@ fn main() -> ExitCode {
             }),
         Command::Soak { seconds, compgate } => compgate
             .map_or_else(sibling_compgate, Ok)
+            .and_then(|exe| {
+                if exe.is_file() {
+                    Ok(exe)
+                } else {
+                    Err(format!(
+                        "--compgate {}: no such file (the `compgate` binary to soak)",
+                        exe.display()
+                    ))
+                }
+            })
             .and_then(|exe| soak::run(seconds, &exe))
             .map(|report| print!("{report}")),
         Command::Nc {
@@ -341,6 +352,32 @@ mod tests {
         assert_eq!(e, "--loads: 10k given twice (as load point 3)");
         let e = scale_options(12.0, 3, 1.0, 1.0, &names(&["5k"]), exe.path().into()).unwrap_err();
         assert!(e.contains("--loads 5k"), "{e}");
+    }
+
+    #[test]
+    fn out_of_range_flags_are_refused_by_name() {
+        let parse = |args: &[&str]| {
+            Cli::try_parse_from(std::iter::once("compgate-bench").chain(args.iter().copied()))
+        };
+        for args in [
+            &["cycle", "--channels", "2"][..],
+            &["cycle", "--channels", "126"],
+            &["cycle", "--rounds", "0"],
+            &["nc", "--jobs", "0"],
+        ] {
+            let e = parse(args).unwrap_err().to_string();
+            assert!(e.contains(args[1]), "{args:?}: {e}");
+        }
+        // A negative number is a value, for the command's own range check to name.
+        let Command::Scale {
+            record_interval_s, ..
+        } = parse(&["scale", "--record-interval-s", "-1"])
+            .unwrap()
+            .command
+        else {
+            panic!("not scale");
+        };
+        assert_eq!(record_interval_s, -1.0);
     }
 
     #[test]
