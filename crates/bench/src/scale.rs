@@ -228,7 +228,97 @@ pub struct Report {
     pub load_avg: (String, String),
 }
 
+/// One of issue 26's targets, judged on this run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Target {
+    /// What it asks, in words.
+    pub name: String,
+    /// Whether this run met it.
+    pub met: bool,
+    /// The run's figure behind the verdict.
+    pub figure: String,
+}
+
+/// Issue 26's bounds: 100k points/s under this share of one core and this RSS.
+const TARGET_100K_CPU_SHARE: f64 = 0.02;
+const TARGET_100K_RSS_MB: f64 = 30.0;
+/// The CPU ratio gateway / bare client at most this, at every load point.
+const TARGET_RATIO: f64 = 1.5;
+
 impl Report {
+    /// Issue 26's targets at the load points this run measured, each with its
+    /// verdict, so a run on another machine says which hold there.
+    pub fn targets(&self) -> Vec<Target> {
+        let mut out = Vec::new();
+        let mut push = |name: String, met: bool, figure: String| {
+            out.push(Target { name, met, figure });
+        };
+        for p in &self.points {
+            let (l, g) = (&p.load, &p.gateway);
+            match l.name {
+                "100k" => {
+                    push(
+                        "100k points/s with no point lost".into(),
+                        g.points_lost == 0,
+                        format!("{} lost", g.points_lost),
+                    );
+                    push(
+                        format!("100k under {} % of one core", 100.0 * TARGET_100K_CPU_SHARE),
+                        g.cpu_share_of_core < TARGET_100K_CPU_SHARE,
+                        format!(
+                            "{:.2} %, the bare client {:.2} %",
+                            100.0 * g.cpu_share_of_core,
+                            100.0 * p.bare.cpu_share_of_core
+                        ),
+                    );
+                    push(
+                        format!("100k under {TARGET_100K_RSS_MB} MB RSS"),
+                        g.rss_mb < TARGET_100K_RSS_MB,
+                        format!("{:.1} MB", g.rss_mb),
+                    );
+                }
+                "1M" => push(
+                    "1M points/s sustained on one core".into(),
+                    g.cpu_share_of_core < 1.0 && g.points_lost == 0,
+                    format!(
+                        "{:.1} % of one core, {} lost",
+                        100.0 * g.cpu_share_of_core,
+                        g.points_lost
+                    ),
+                ),
+                _ => {}
+            }
+            push(
+                format!(
+                    "{}: CPU ratio gateway / bare client at most {TARGET_RATIO}",
+                    l.name
+                ),
+                p.cpu_ratio() <= TARGET_RATIO,
+                format!("{:.2}", p.cpu_ratio()),
+            );
+            push(
+                format!(
+                    "{}: step-to-NC p99 within one poll interval plus two job round trips",
+                    l.name
+                ),
+                p.latency.steps > 0
+                    && p.latency.missed == 0
+                    && p.latency.p99_ms <= p.latency.target_ms(l),
+                format!(
+                    "{:.1} / {:.1} ms{}",
+                    p.latency.p99_ms,
+                    p.latency.target_ms(l),
+                    if p.latency.missed > 0 {
+                        format!(", {} steps missed", p.latency.missed)
+                    } else {
+                        String::new()
+                    }
+                ),
+            );
+        }
+        out
+    }
+
     /// The table, Markdown.
     pub fn table(&self) -> String {
         let mut t = Markdown::new([
@@ -327,6 +417,22 @@ impl Report {
             "load average before / after: {} / {}",
             self.load_avg.0, self.load_avg.1
         );
+        let targets = self.targets();
+        let _ = writeln!(
+            s,
+            "\nissue 26's targets, this run: {} of {} met",
+            targets.iter().filter(|t| t.met).count(),
+            targets.len()
+        );
+        for t in &targets {
+            let _ = writeln!(
+                s,
+                "- {}: {} ({})",
+                t.name,
+                if t.met { "met" } else { "NOT met" },
+                t.figure
+            );
+        }
         s
     }
 
@@ -374,6 +480,11 @@ impl Report {
             "record_interval_s": self.record_interval_s,
             "load_average": [self.load_avg.0, self.load_avg.1],
             "points": points,
+            "targets": self
+                .targets()
+                .iter()
+                .map(|t| serde_json::json!({ "target": t.name, "met": t.met, "figure": t.figure }))
+                .collect::<Vec<_>>(),
         })
     }
 }
@@ -1121,6 +1232,77 @@ mod tests {
                 .unwrap_or_else(|e| panic!("{}: {e}", load.name));
             assert_eq!(cfg.channels.len(), load.devices * load.points);
         }
+    }
+
+    #[test]
+    fn targets_are_judged_on_the_figures_of_the_run() {
+        let point = |load: Load, cpu: f64, bare: f64, lost: u64, p99_ms: f64| PointResult {
+            load,
+            gateway: ClientFigures {
+                cpu_share_of_core: cpu,
+                rss_mb: 22.0,
+                points_lost: lost,
+                ..ClientFigures::default()
+            },
+            bare: ClientFigures {
+                cpu_share_of_core: bare,
+                ..ClientFigures::default()
+            },
+            recorded: 0,
+            latency: Latency {
+                steps: 100,
+                missed: 0,
+                p50_ms: 7.0,
+                p99_ms,
+                job_rtt_ms: 0.3,
+                poll_ms: 1.4,
+            },
+            cpu_rounds: vec![(cpu, bare)],
+        };
+        let report = Report {
+            // 100k: nothing lost, 1.9 % at 1.4 times the bare client, p99 under the
+            // target (10 + 1.4 + 2 x 0.3 ms); 1M: points lost, p99 past the target.
+            points: vec![
+                point(LOADS[1], 0.019, 0.019 / 1.4, 0, 11.9),
+                point(LOADS[2], 0.2, 0.08, 250, 12.1),
+            ],
+            seconds: 12.0,
+            rounds: 1,
+            delay_ms: 1.0,
+            record_interval_s: 1.0,
+            load_avg: (String::new(), String::new()),
+        };
+        let verdicts: Vec<(String, bool)> = report
+            .targets()
+            .into_iter()
+            .map(|t| (t.name, t.met))
+            .collect();
+        let met = |name: &str| {
+            verdicts
+                .iter()
+                .find(|(n, _)| n == name)
+                .unwrap_or_else(|| panic!("no target {name}: {verdicts:?}"))
+                .1
+        };
+        assert!(met("100k points/s with no point lost"));
+        assert!(met("100k under 2 % of one core"));
+        assert!(met("100k under 30 MB RSS"));
+        assert!(met("100k: CPU ratio gateway / bare client at most 1.5"));
+        assert!(met(
+            "100k: step-to-NC p99 within one poll interval plus two job round trips"
+        ));
+        assert!(!met("1M points/s sustained on one core"), "250 points lost");
+        assert!(
+            !met("1M: CPU ratio gateway / bare client at most 1.5"),
+            "2.5"
+        );
+        assert!(!met(
+            "1M: step-to-NC p99 within one poll interval plus two job round trips"
+        ));
+        assert_eq!(verdicts.len(), 8);
+        assert!(report
+            .table()
+            .contains("issue 26's targets, this run: 5 of 8 met"));
     }
 
     #[test]
