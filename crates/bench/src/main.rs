@@ -149,6 +149,19 @@ fn json_out(path: &std::path::Path) -> Result<tempfile::NamedTempFile, String> {
     Ok(f)
 }
 
+/// The `compgate` binary: `--compgate` if given (checked before any run starts),
+/// else the one cargo built beside this one.
+fn compgate_binary(given: Option<PathBuf>) -> Result<PathBuf, String> {
+    match given {
+        Some(path) if path.is_file() => Ok(path),
+        Some(path) => Err(format!(
+            "--compgate {}: no such file (the `compgate` binary to run)",
+            path.display()
+        )),
+        None => sibling_compgate(),
+    }
+}
+
 /// The `compgate` binary that cargo built beside this one.
 fn sibling_compgate() -> Result<PathBuf, String> {
     let exe = std::env::current_exe().map_err(|e| format!("own binary: {e}"))?;
@@ -204,12 +217,6 @@ fn scale_options(
             i + 1
         ));
     }
-    if !compgate.is_file() {
-        return Err(format!(
-            "--compgate {}: no such file (the `compgate` binary to measure)",
-            compgate.display()
-        ));
-    }
     Ok(scale::Options {
         seconds,
         rounds,
@@ -237,18 +244,7 @@ fn main() -> ExitCode {
                 println!();
                 print!("{}", cycle::volumetric_line(2.0));
             }),
-        Command::Soak { seconds, compgate } => compgate
-            .map_or_else(sibling_compgate, Ok)
-            .and_then(|exe| {
-                if exe.is_file() {
-                    Ok(exe)
-                } else {
-                    Err(format!(
-                        "--compgate {}: no such file (the `compgate` binary to soak)",
-                        exe.display()
-                    ))
-                }
-            })
+        Command::Soak { seconds, compgate } => compgate_binary(compgate)
             .and_then(|exe| soak::run(seconds, &exe))
             .map(|report| print!("{report}")),
         Command::Nc {
@@ -278,8 +274,7 @@ fn main() -> ExitCode {
             loads,
             json,
             compgate,
-        } => compgate
-            .map_or_else(sibling_compgate, Ok)
+        } => compgate_binary(compgate)
             .and_then(|exe| {
                 scale_options(seconds, rounds, delay_ms, record_interval_s, &loads, exe)
             })
@@ -327,17 +322,11 @@ fn main() -> ExitCode {
 mod tests {
     use super::*;
 
-    /// A file that passes for the `compgate` binary.
-    fn some_file() -> tempfile::NamedTempFile {
-        tempfile::NamedTempFile::new().unwrap()
-    }
-
     #[test]
     fn scale_loads_are_named_once() {
-        let exe = some_file();
         let names = |n: &[&str]| n.iter().map(|s| s.to_string()).collect::<Vec<_>>();
         let opts =
-            scale_options(12.0, 3, 1.0, 1.0, &names(&["1m", "10K"]), exe.path().into()).unwrap();
+            scale_options(12.0, 3, 1.0, 1.0, &names(&["1m", "10K"]), "compgate".into()).unwrap();
         let loaded: Vec<_> = opts.loads.iter().map(|l| l.name).collect();
         assert_eq!(loaded, ["1M", "10k"]);
         let e = scale_options(
@@ -346,11 +335,11 @@ mod tests {
             1.0,
             1.0,
             &names(&["10k", "1M", "10K"]),
-            exe.path().into(),
+            "compgate".into(),
         )
         .unwrap_err();
         assert_eq!(e, "--loads: 10k given twice (as load point 3)");
-        let e = scale_options(12.0, 3, 1.0, 1.0, &names(&["5k"]), exe.path().into()).unwrap_err();
+        let e = scale_options(12.0, 3, 1.0, 1.0, &names(&["5k"]), "compgate".into()).unwrap_err();
         assert!(e.contains("--loads 5k"), "{e}");
     }
 
@@ -382,7 +371,7 @@ mod tests {
 
     #[test]
     fn a_missing_compgate_binary_is_named_before_the_run() {
-        let e = scale_options(12.0, 3, 1.0, 1.0, &[], "/no/such/compgate".into()).unwrap_err();
+        let e = compgate_binary(Some("/no/such/compgate".into())).unwrap_err();
         assert!(
             e.starts_with("--compgate /no/such/compgate: no such file"),
             "{e}"

@@ -239,8 +239,9 @@ pub struct Target {
     pub figure: String,
 }
 
-/// Issue 26's bounds: 100k points/s under this share of one core and this RSS.
+/// Issue 26: 100k points/s under this share of one core...
 const TARGET_100K_CPU_SHARE: f64 = 0.02;
+/// ...and under this RSS.
 const TARGET_100K_RSS_MB: f64 = 30.0;
 /// The CPU ratio gateway / bare client at most this, at every load point.
 const TARGET_RATIO: f64 = 1.5;
