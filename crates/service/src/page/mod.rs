@@ -36,6 +36,16 @@ const PAGE_JS: &str = include_str!("page.js");
 /// Points a channel's trend keeps at most: the trend window is sampled this finely.
 pub const TREND_POINTS: usize = 300;
 
+/// `degc` in mdegC for a trend point: [`NO_VALUE`] if not finite or beyond the range.
+fn to_mdegc(degc: f64) -> i32 {
+    let m = (degc * 1000.0).round();
+    if m.is_finite() && m > f64::from(NO_VALUE) && m <= f64::from(i32::MAX) {
+        m as i32
+    } else {
+        NO_VALUE
+    }
+}
+
 /// Trend points kept per channel: [`TREND_POINTS`] apart plus the newest.
 const TREND_SLOTS: usize = TREND_POINTS + 1;
 
@@ -43,11 +53,15 @@ const TREND_SLOTS: usize = TREND_POINTS + 1;
 /// for the times before it).
 const ABSENT: u8 = u8::MAX;
 
+/// A trend point's value in mdegC when it has none.
+const NO_VALUE: i32 = i32::MIN;
+
 /// The trends of every channel, by index, on one timeline. Each status gives every
 /// channel a point at the same time, so the times are kept once in a ring of
-/// [`TREND_SLOTS`], and each channel's points as a value and a quality per slot: 9
-/// bytes a point, allocated once. A deque of 32-byte points per channel doubled to
-/// 512 points: 16 kB a channel, 164 MB at 10000 channels after five minutes.
+/// [`TREND_SLOTS`], and each channel's points as a value (to 0.001 degC, which a
+/// drawn trend does not resolve) and a quality per slot: 5 bytes a point, allocated
+/// once. A deque of 32-byte points per channel doubled to 512 points: 16 kB a
+/// channel, 164 MB at 10000 channels after five minutes.
 #[derive(Debug, Clone, Default)]
 pub struct History {
     window: Duration,
@@ -56,8 +70,8 @@ pub struct History {
     times_ms: Vec<i64>,
     head: usize,
     len: usize,
-    /// Channel `c`'s value in slot `s` at `c * TREND_SLOTS + s` (NaN: none).
-    values_degc: Vec<f64>,
+    /// Channel `c`'s value in slot `s` at `c * TREND_SLOTS + s`, mdegC ([`NO_VALUE`]).
+    values_mdegc: Vec<i32>,
     /// Its quality code there (0 good, 1 uncertain, 2 bad; [`ABSENT`]: no point).
     qualities: Vec<u8>,
 }
@@ -117,11 +131,7 @@ impl History {
         self.times_ms[at] = t_unix_ms;
         for (c, ch) in status.channels.iter().enumerate() {
             let i = c * TREND_SLOTS + at;
-            self.values_degc[i] = ch
-                .reading
-                .value_degc
-                .filter(|v| v.is_finite())
-                .unwrap_or(f64::NAN);
+            self.values_mdegc[i] = ch.reading.value_degc.map_or(NO_VALUE, to_mdegc);
             self.qualities[i] = quality_code(&ch.reading.quality).0;
         }
         while self.len > 0 && t_unix_ms - self.times_ms[self.head] > window_ms {
@@ -134,19 +144,19 @@ impl History {
     /// ones start empty.
     fn rename(&mut self, status: &Status) {
         let n = status.channels.len();
-        let mut values_degc = vec![f64::NAN; n * TREND_SLOTS];
+        let mut values_mdegc = vec![NO_VALUE; n * TREND_SLOTS];
         let mut qualities = vec![ABSENT; n * TREND_SLOTS];
         for (c, ch) in status.channels.iter().enumerate() {
             if let Some(old) = self.names.iter().position(|o| *o == ch.name) {
                 let (from, to) = (old * TREND_SLOTS, c * TREND_SLOTS);
-                values_degc[to..to + TREND_SLOTS]
-                    .copy_from_slice(&self.values_degc[from..from + TREND_SLOTS]);
+                values_mdegc[to..to + TREND_SLOTS]
+                    .copy_from_slice(&self.values_mdegc[from..from + TREND_SLOTS]);
                 qualities[to..to + TREND_SLOTS]
                     .copy_from_slice(&self.qualities[from..from + TREND_SLOTS]);
             }
         }
         self.names = status.channels.iter().map(|c| c.name.clone()).collect();
-        self.values_degc = values_degc;
+        self.values_mdegc = values_mdegc;
         self.qualities = qualities;
     }
 
@@ -156,11 +166,11 @@ impl History {
         (0..if base.is_some() { self.len } else { 0 }).filter_map(move |k| {
             let s = self.slot(k);
             let at = base? + s;
-            let v = self.values_degc[at];
+            let v = self.values_mdegc[at];
             (self.qualities[at] != ABSENT).then(|| {
                 (
                     self.times_ms[s],
-                    (!v.is_nan()).then_some(v),
+                    (v != NO_VALUE).then(|| f64::from(v) / 1000.0),
                     self.qualities[at],
                 )
             })
@@ -591,9 +601,20 @@ mod tests {
         assert!(last.0 - first.0 <= 60_000);
         assert!(last.0 - first.0 >= 59_000);
         // The memory is that of the first status: 10000 statuses later nothing grew.
-        assert_eq!(h.values_degc.capacity(), TREND_SLOTS);
+        assert_eq!(h.values_mdegc.capacity(), TREND_SLOTS);
         assert_eq!(h.qualities.capacity(), TREND_SLOTS);
         assert_eq!(h.times_ms.capacity(), TREND_SLOTS);
+    }
+
+    #[test]
+    fn a_trend_value_keeps_a_thousandth_of_a_degree() {
+        for (degc, back) in [(23.4567, Some(23.457)), (-0.0004, Some(0.0)), (1e9, None)] {
+            let m = to_mdegc(degc);
+            let got = (m != NO_VALUE).then(|| f64::from(m) / 1000.0);
+            assert_eq!(got, back, "{degc}");
+        }
+        assert_eq!(to_mdegc(f64::NAN), NO_VALUE);
+        assert_eq!(to_mdegc(f64::NEG_INFINITY), NO_VALUE);
     }
 
     // A reload keeps the trends of the channels it keeps, wherever they move; a new
