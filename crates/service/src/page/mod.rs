@@ -58,7 +58,7 @@ const NO_VALUE: i32 = i32::MIN;
 
 /// The trends of every channel, by index, on one timeline. Each status gives every
 /// channel a point at the same time, so the times are kept once in a ring of
-/// [`TREND_SLOTS`], and each channel's points as a value (to 0.001 degC, which a
+/// [`TREND_POINTS`] + 1, and each channel's points as a value (to 0.001 degC, which a
 /// drawn trend does not resolve) and a quality per slot: 5 bytes a point, allocated
 /// once. A deque of 32-byte points per channel doubled to 512 points: 16 kB a
 /// channel, 164 MB at 10000 channels after five minutes.
