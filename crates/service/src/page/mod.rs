@@ -81,7 +81,6 @@ impl History {
     pub fn new(window: Duration) -> Self {
         History {
             window,
-            times_ms: vec![0; TREND_SLOTS],
             ..Self::default()
         }
     }
@@ -95,6 +94,7 @@ impl History {
     /// window / [`TREND_POINTS`] apart (the newest point is replaced until it is, so
     /// the newest value always shows).
     pub fn push(&mut self, status: &Status, t_unix_ms: i64) {
+        // The ring's times, allocated with the first status.
         if self.times_ms.len() != TREND_SLOTS {
             self.times_ms = vec![0; TREND_SLOTS];
         }
@@ -162,10 +162,10 @@ impl History {
 
     /// Channel `i`'s points, oldest first: (t_unix_ms, value_degc, quality code).
     fn points(&self, i: usize) -> impl Iterator<Item = (i64, Option<f64>, u8)> + '_ {
-        let base = (i < self.names.len()).then_some(i * TREND_SLOTS);
-        (0..if base.is_some() { self.len } else { 0 }).filter_map(move |k| {
+        let kept = if i < self.names.len() { self.len } else { 0 };
+        (0..kept).filter_map(move |k| {
             let s = self.slot(k);
-            let at = base? + s;
+            let at = i * TREND_SLOTS + s;
             let v = self.values_mdegc[at];
             (self.qualities[at] != ABSENT).then(|| {
                 (
